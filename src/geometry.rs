@@ -1,0 +1,206 @@
+//! Collision primitives shared by the robot model, the crop stage and the scene simulator.
+//!
+//! Paper section IV-A attaches primitive objects (spheres, capsules, boxes) to the robot's
+//! links and removes every cloud point inside one of them. A primitive is stored in the frame
+//! it was defined in (a link frame in the robot model, the cloud frame once posed) and moved
+//! between frames with [`Primitive::transformed`]. All values are `f64` metres.
+
+use nalgebra::{Isometry3, Point3, Rotation3, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// A convex collision primitive, in the frame of whoever holds it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "shape", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Primitive {
+    /// Ball of `radius_m` around `center_m`.
+    Sphere { center_m: Point3<f64>, radius_m: f64 },
+    /// Segment `a_m`..`b_m` swept by a ball of `radius_m`.
+    Capsule {
+        a_m: Point3<f64>,
+        b_m: Point3<f64>,
+        radius_m: f64,
+    },
+    /// Box with half side lengths `half_extents_m`, centred at `center_m` and rotated by
+    /// roll-pitch-yaw `rpy_rad` (fixed axes x, then y, then z).
+    OrientedBox {
+        center_m: Point3<f64>,
+        #[serde(default)]
+        rpy_rad: Vector3<f64>,
+        half_extents_m: Vector3<f64>,
+    },
+}
+
+/// Why a primitive is unusable.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum PrimitiveError {
+    #[error("primitive has a non-finite coordinate")]
+    NonFinite,
+    #[error("primitive size must be positive, got {0} m")]
+    NonPositiveSize(f64),
+}
+
+impl Primitive {
+    /// Checks that every value is finite and every size positive.
+    pub fn validate(&self) -> Result<(), PrimitiveError> {
+        let (coords, sizes): (Vec<f64>, Vec<f64>) = match self {
+            Primitive::Sphere { center_m, radius_m } => {
+                (center_m.coords.iter().copied().collect(), vec![*radius_m])
+            }
+            Primitive::Capsule { a_m, b_m, radius_m } => (
+                a_m.coords.iter().chain(b_m.coords.iter()).copied().collect(),
+                vec![*radius_m],
+            ),
+            Primitive::OrientedBox {
+                center_m,
+                rpy_rad,
+                half_extents_m,
+            } => (
+                center_m.coords.iter().chain(rpy_rad.iter()).copied().collect(),
+                half_extents_m.iter().copied().collect(),
+            ),
+        };
+        if coords.iter().chain(&sizes).any(|v| !v.is_finite()) {
+            return Err(PrimitiveError::NonFinite);
+        }
+        match sizes.into_iter().find(|&s| s <= 0.0) {
+            Some(s) => Err(PrimitiveError::NonPositiveSize(s)),
+            None => Ok(()),
+        }
+    }
+
+    /// Signed distance from `p` to the surface: negative inside, zero on it, positive outside.
+    pub fn signed_distance(&self, p: &Point3<f64>) -> f64 {
+        match self {
+            Primitive::Sphere { center_m, radius_m } => (p - center_m).norm() - radius_m,
+            Primitive::Capsule { a_m, b_m, radius_m } => {
+                (p - closest_point_on_segment(a_m, b_m, p)).norm() - radius_m
+            }
+            Primitive::OrientedBox {
+                center_m,
+                rpy_rad,
+                half_extents_m,
+            } => {
+                let local = box_rotation(rpy_rad).inverse() * (p - center_m);
+                let q = local.abs() - half_extents_m;
+                let outside = q.map(|v| v.max(0.0)).norm();
+                let inside = q.max().min(0.0);
+                outside + inside
+            }
+        }
+    }
+
+    /// True when `p` lies inside or on the primitive.
+    pub fn contains(&self, p: &Point3<f64>) -> bool {
+        self.signed_distance(p) <= 0.0
+    }
+
+    /// The same primitive expressed in frame `a`, given the transform `a_from_b` from the
+    /// frame `b` it is stored in.
+    pub fn transformed(&self, a_from_b: &Isometry3<f64>) -> Primitive {
+        match self {
+            Primitive::Sphere { center_m, radius_m } => Primitive::Sphere {
+                center_m: a_from_b * center_m,
+                radius_m: *radius_m,
+            },
+            Primitive::Capsule { a_m, b_m, radius_m } => Primitive::Capsule {
+                a_m: a_from_b * a_m,
+                b_m: a_from_b * b_m,
+                radius_m: *radius_m,
+            },
+            Primitive::OrientedBox {
+                center_m,
+                rpy_rad,
+                half_extents_m,
+            } => {
+                let rotation = a_from_b.rotation.to_rotation_matrix() * box_rotation(rpy_rad);
+                let (roll, pitch, yaw) = rotation.euler_angles();
+                Primitive::OrientedBox {
+                    center_m: a_from_b * center_m,
+                    rpy_rad: Vector3::new(roll, pitch, yaw),
+                    half_extents_m: *half_extents_m,
+                }
+            }
+        }
+    }
+}
+
+/// Rotation of an [`Primitive::OrientedBox`] from its roll-pitch-yaw angles.
+pub fn box_rotation(rpy_rad: &Vector3<f64>) -> Rotation3<f64> {
+    Rotation3::from_euler_angles(rpy_rad.x, rpy_rad.y, rpy_rad.z)
+}
+
+/// The point of segment `a`..`b` closest to `p` (a degenerate segment returns `a`).
+pub fn closest_point_on_segment(a: &Point3<f64>, b: &Point3<f64>, p: &Point3<f64>) -> Point3<f64> {
+    let ab = b - a;
+    let len2 = ab.norm_squared();
+    if len2 <= f64::MIN_POSITIVE {
+        return *a;
+    }
+    let t = ((p - a).dot(&ab) / len2).clamp(0.0, 1.0);
+    a + ab * t
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    #[test]
+    fn box_distance_inside_and_outside() {
+        let b = Primitive::OrientedBox {
+            center_m: Point3::new(1.0, 0.0, 0.0),
+            rpy_rad: Vector3::new(0.0, 0.0, std::f64::consts::FRAC_PI_2),
+            half_extents_m: Vector3::new(0.5, 0.1, 0.1),
+        };
+        // Rotated 90 deg about z: the long axis now runs along y.
+        assert!(b.contains(&Point3::new(1.0, 0.4, 0.0)));
+        assert!(!b.contains(&Point3::new(1.4, 0.0, 0.0)));
+        assert!((b.signed_distance(&Point3::new(1.0, 0.0, 0.0)) + 0.1).abs() < 1e-12);
+    }
+
+    #[test]
+    fn transform_preserves_distances() {
+        let prims = [
+            Primitive::Sphere {
+                center_m: Point3::new(0.1, 0.2, 0.3),
+                radius_m: 0.05,
+            },
+            Primitive::Capsule {
+                a_m: Point3::new(0.0, 0.0, 0.0),
+                b_m: Point3::new(0.0, 0.3, 0.0),
+                radius_m: 0.04,
+            },
+            Primitive::OrientedBox {
+                center_m: Point3::new(0.2, 0.0, 0.1),
+                rpy_rad: Vector3::new(0.3, -0.2, 0.9),
+                half_extents_m: Vector3::new(0.1, 0.05, 0.02),
+            },
+        ];
+        let a_from_b = Isometry3::from_parts(
+            Translation3::new(0.5, -1.0, 2.0),
+            UnitQuaternion::from_euler_angles(0.4, 1.1, -0.7),
+        );
+        let p_b = Point3::new(0.15, 0.1, 0.05);
+        for prim in &prims {
+            let moved = prim.transformed(&a_from_b);
+            let d_b = prim.signed_distance(&p_b);
+            let d_a = moved.signed_distance(&(a_from_b * p_b));
+            assert!((d_a - d_b).abs() < 1e-12, "{prim:?}: {d_a} vs {d_b}");
+        }
+    }
+
+    #[test]
+    fn validate_rejects_bad_sizes() {
+        let s = Primitive::Sphere {
+            center_m: Point3::origin(),
+            radius_m: -1.0,
+        };
+        assert_eq!(s.validate(), Err(PrimitiveError::NonPositiveSize(-1.0)));
+        let c = Primitive::Capsule {
+            a_m: Point3::new(f64::NAN, 0.0, 0.0),
+            b_m: Point3::origin(),
+            radius_m: 0.1,
+        };
+        assert_eq!(c.validate(), Err(PrimitiveError::NonFinite));
+    }
+}

@@ -1,0 +1,1 @@
+//! File formats: PCD, PLY and 16-bit depth images.

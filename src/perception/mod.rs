@@ -1,0 +1,2 @@
+//! Per-camera perception stages (paper section IV-A to IV-E), each with a GPU and a CPU
+//! reference implementation.

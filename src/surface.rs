@@ -1,0 +1,58 @@
+//! The collision surface one camera sees near the HIP: the value that crosses from perception
+//! to fusion and control (paper Alg. 2 output: centroid `c^k`, normal `n^k`).
+//!
+//! Plain data only: fusion, haptics and the controller depend on this module, never on the
+//! perception code that fills it.
+
+use nalgebra::{Point3, Unit, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Which fit produced a shell's estimate (paper Alg. 2: `plane3d` for the innermost non-empty
+/// shell, `circle3d` for the others).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShellFitKind {
+    Plane,
+    Circle,
+}
+
+/// One concentric shell's fit.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ShellFit {
+    /// Inner and outer radius of the shell around the HIP, metres.
+    pub inner_radius_m: f64,
+    pub outer_radius_m: f64,
+    /// Points that fell in the shell.
+    pub point_count: u32,
+    pub kind: ShellFitKind,
+    /// Centre of the fitted circle (or the mean point for the plane), world frame, metres.
+    pub center_m: Point3<f64>,
+    /// Fitted normal, oriented towards the camera (paper eq. 2).
+    pub normal: Unit<Vector3<f64>>,
+    /// Radius of the fitted circle, metres (`None` for the plane).
+    pub circle_radius_m: Option<f64>,
+    /// RMS distance of the shell's points from the fitted model, metres.
+    pub residual_rms_m: f64,
+    /// True when the outlier rejection of Alg. 2 dropped this shell.
+    pub rejected: bool,
+}
+
+/// One camera's estimate of the closest collision surface at one instant.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SurfaceEstimate {
+    /// Which camera produced it.
+    pub camera_id: u32,
+    /// Sensor time of the frame it came from, seconds.
+    pub stamp_s: f64,
+    /// Surface centroid `c`, world frame, metres.
+    pub centroid_m: Point3<f64>,
+    /// Outward surface normal `n` (pointing from the body towards the HIP), world frame.
+    pub normal: Unit<Vector3<f64>>,
+    /// Per-shell fits, innermost first (rejected ones included and marked).
+    pub shells: Vec<ShellFit>,
+    /// Quality in [0, 1]: 1 for a consistent, well-populated estimate, 0 when unusable.
+    pub quality: f64,
+    /// False when no trustworthy surface was found; then `centroid_m` and `normal` must not
+    /// be used.
+    pub valid: bool,
+}
