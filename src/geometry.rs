@@ -13,7 +13,10 @@ use serde::{Deserialize, Serialize};
 #[serde(tag = "shape", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Primitive {
     /// Ball of `radius_m` around `center_m`.
-    Sphere { center_m: Point3<f64>, radius_m: f64 },
+    Sphere {
+        center_m: Point3<f64>,
+        radius_m: f64,
+    },
     /// Segment `a_m`..`b_m` swept by a ball of `radius_m`.
     Capsule {
         a_m: Point3<f64>,
@@ -47,7 +50,11 @@ impl Primitive {
                 (center_m.coords.iter().copied().collect(), vec![*radius_m])
             }
             Primitive::Capsule { a_m, b_m, radius_m } => (
-                a_m.coords.iter().chain(b_m.coords.iter()).copied().collect(),
+                a_m.coords
+                    .iter()
+                    .chain(b_m.coords.iter())
+                    .copied()
+                    .collect(),
                 vec![*radius_m],
             ),
             Primitive::OrientedBox {
@@ -55,7 +62,12 @@ impl Primitive {
                 rpy_rad,
                 half_extents_m,
             } => (
-                center_m.coords.iter().chain(rpy_rad.iter()).copied().collect(),
+                center_m
+                    .coords
+                    .iter()
+                    .chain(rpy_rad.iter())
+                    .copied()
+                    .collect(),
                 half_extents_m.iter().copied().collect(),
             ),
         };

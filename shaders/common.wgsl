@@ -1,0 +1,51 @@
+// Shared WGSL helpers, prepended to every stage shader by src/gpu/shader.rs (WGSL has no
+// include). No bindings here: each stage declares its own.
+
+// Fixed-point scale of a point's offset inside its voxel (fraction of a leaf): 2^24.
+const FIXED_ONE: f32 = 16777216.0;
+// Largest fixed-point offset, 2^24 - 1.
+const FIXED_MAX: u32 = 16777215u;
+// Marks an empty hash slot / a missing index.
+const NONE: u32 = 0xffffffffu;
+
+// True when `v` is finite, decided on the bit pattern (WGSL may assume floats are never
+// NaN or infinite, so `v != v` style tests can be optimised away).
+fn finite_bits(v: f32) -> bool {
+    return (bitcast<u32>(v) & 0x7f800000u) != 0x7f800000u;
+}
+
+fn finite_point(p: vec3<f32>) -> bool {
+    return finite_bits(p.x) && finite_bits(p.y) && finite_bits(p.z);
+}
+
+// Maps an f32 to a u32 whose unsigned order equals the float order (for atomicMin/Max on
+// floats with integer atomics: deterministic whatever the thread order).
+fn order_key(v: f32) -> u32 {
+    let b = bitcast<u32>(v);
+    if (b & 0x80000000u) != 0u {
+        return ~b;
+    }
+    return b | 0x80000000u;
+}
+
+// Inverse of `order_key`.
+fn from_order_key(k: u32) -> f32 {
+    if (k & 0x80000000u) != 0u {
+        return bitcast<f32>(k & 0x7fffffffu);
+    }
+    return bitcast<f32>(~k);
+}
+
+// MurmurHash3's 32-bit finaliser: spreads consecutive cell indices over the table.
+fn hash_u32(x: u32) -> u32 {
+    var h = x;
+    h = h ^ (h >> 16u);
+    h = h * 0x85ebca6bu;
+    h = h ^ (h >> 13u);
+    h = h * 0xc2b2ae35u;
+    h = h ^ (h >> 16u);
+    return h;
+}
+
+// Threads per workgroup of the one-thread-per-item passes (src/gpu/shader.rs WORKGROUP_SIZE).
+const WORKGROUP_SIZE: u32 = 64u;
