@@ -21,3 +21,5 @@ pub mod surface;
 pub mod gpu;
 pub mod io;
 pub mod perception;
+#[cfg(feature = "viewer")]
+pub mod viewer;

@@ -1,0 +1,218 @@
+//! What the viewer draws: one [`ViewFrame`] per instant, plain data with units in the names.
+//!
+//! A frame holds, per camera, the perception stage's point layers (each point tagged with the
+//! role it played: kept, cropped away, dropped by clustering, or filled in from the surface
+//! memory of paper Alg. 1), the camera's [`SurfaceEstimate`] with its per-shell fits (paper
+//! Alg. 2, Fig. 7), the HIP sphere and shell radii, the fused surface and, when the source is
+//! simulated, the ground-truth closest point. Scalar samples (d_proj of paper eq. 7 and its
+//! rate, constraint activity, per-stage latency) ride along so that a timeline of frames is
+//! also the data of the time plots. Nothing here depends on egui.
+//!
+//! Frames come from a [`ViewerSource`]: a finished timeline (a recording or a simulated run),
+//! or a channel the node feeds while it runs (`hapcloud run --overlay`).
+
+use crate::surface::SurfaceEstimate;
+use glam::Vec3;
+use nalgebra::{Isometry3, Point3, Unit, Vector3};
+use std::sync::mpsc::Receiver;
+
+/// The role a point played in the per-camera pipeline (paper Fig. 4).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum PointRole {
+    /// Survived crop, voxel grid and clustering: the input of the shell fits.
+    Kept,
+    /// Removed by the crop (inside a robot primitive or outside the sphere around the HIP).
+    Cropped,
+    /// Removed by Euclidean cluster segmentation (cluster too small or not the chosen one).
+    ClusteredOut,
+    /// Filled in from the ICP-matched surface memory (paper Alg. 1).
+    Memorised,
+}
+
+impl PointRole {
+    /// Every role, in drawing order (context first, the fitted points last).
+    pub const ALL: [PointRole; 4] = [
+        PointRole::Cropped,
+        PointRole::ClusteredOut,
+        PointRole::Kept,
+        PointRole::Memorised,
+    ];
+
+    /// The label used in the layer toggles and legends.
+    pub fn label(self) -> &'static str {
+        match self {
+            PointRole::Kept => "kept",
+            PointRole::Cropped => "cropped",
+            PointRole::ClusteredOut => "clustered out",
+            PointRole::Memorised => "memorised",
+        }
+    }
+}
+
+/// Points of one role, world frame, metres.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PointLayer {
+    pub role: PointRole,
+    pub points_m: Vec<Vec3>,
+}
+
+/// A surface point with its outward normal (pointing from the body towards the HIP).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfacePoint {
+    pub point_m: Point3<f64>,
+    pub normal: Unit<Vector3<f64>>,
+}
+
+/// Everything one camera contributed at one instant.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CameraView {
+    pub camera_id: u32,
+    /// Camera pose, when known (drawn as a small marker and used to pick the initial view).
+    pub world_from_camera: Option<Isometry3<f64>>,
+    /// Point layers; a role appears at most once.
+    pub layers: Vec<PointLayer>,
+    /// The camera's surface estimate with its shell fits (paper Alg. 2), when one was made.
+    pub estimate: Option<SurfaceEstimate>,
+}
+
+impl CameraView {
+    /// The points of one role (empty when the camera has no such layer).
+    pub fn layer(&self, role: PointRole) -> &[Vec3] {
+        self.layers
+            .iter()
+            .find(|l| l.role == role)
+            .map_or(&[], |l| l.points_m.as_slice())
+    }
+}
+
+/// One haptic constraint's state (paper section V): whether it bounds the motion now.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ConstraintSample {
+    pub name: String,
+    pub active: bool,
+}
+
+/// Time spent in one processing stage for this frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StageLatency {
+    pub stage: String,
+    pub latency_s: f64,
+}
+
+/// Scalar samples of one instant, plotted over the timeline.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FrameSamples {
+    /// Projected distance HIP to surface (paper eq. 7), metres.
+    pub d_proj_m: Option<f64>,
+    /// Its time derivative, metres per second (negative when approaching).
+    pub d_proj_rate_m_per_s: Option<f64>,
+    pub constraints: Vec<ConstraintSample>,
+    pub latencies: Vec<StageLatency>,
+}
+
+/// Everything drawn for one instant.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewFrame {
+    /// Time of the frame, seconds.
+    pub stamp_s: f64,
+    /// Haptic interaction point, world frame, metres.
+    pub hip_m: Point3<f64>,
+    /// Radius of the HIP sphere (`r_HIP` of eq. 7), metres.
+    pub hip_radius_m: f64,
+    /// Radii of the concentric spheres `r_in < ... < r_out` around the HIP, metres.
+    pub shell_radii_m: Vec<f64>,
+    pub cameras: Vec<CameraView>,
+    /// The fused, filtered surface (paper IV-F), when available.
+    pub fused: Option<SurfacePoint>,
+    /// The true closest surface point, when the source is simulated.
+    pub truth: Option<SurfacePoint>,
+    pub samples: FrameSamples,
+}
+
+/// Errors of an estimate against ground truth.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EstimateError {
+    /// Distance between estimated and true centroid, metres.
+    pub centroid_m: f64,
+    /// Angle between estimated and true normal, radians.
+    pub normal_rad: f64,
+}
+
+impl EstimateError {
+    pub fn between(estimate: &SurfacePoint, truth: &SurfacePoint) -> Self {
+        let cos = estimate.normal.dot(&truth.normal).clamp(-1.0, 1.0);
+        Self {
+            centroid_m: (estimate.point_m - truth.point_m).norm(),
+            normal_rad: cos.acos(),
+        }
+    }
+}
+
+impl ViewFrame {
+    /// Error of the fused surface against ground truth, when both exist.
+    pub fn fused_error(&self) -> Option<EstimateError> {
+        Some(EstimateError::between(
+            self.fused.as_ref()?,
+            self.truth.as_ref()?,
+        ))
+    }
+
+    /// Number of points of one role over all cameras.
+    pub fn point_count(&self, role: PointRole) -> usize {
+        self.cameras.iter().map(|c| c.layer(role).len()).sum()
+    }
+}
+
+/// Where the viewer's frames come from.
+pub enum ViewerSource {
+    /// A finished timeline (a recording or a simulated run), frames in time order.
+    Timeline(Vec<ViewFrame>),
+    /// Frames arriving while the node runs; the viewer keeps a bounded history.
+    Live(Receiver<ViewFrame>),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sp(p: [f64; 3], n: [f64; 3]) -> SurfacePoint {
+        SurfacePoint {
+            point_m: Point3::from(p),
+            normal: Unit::new_normalize(Vector3::from(n)),
+        }
+    }
+
+    #[test]
+    fn error_is_distance_and_angle() {
+        let e = EstimateError::between(
+            &sp([0.0, 0.0, 0.003], [0.0, 1.0, 1.0]),
+            &sp([0.0, 0.004, 0.0], [0.0, 0.0, 1.0]),
+        );
+        assert!((e.centroid_m - 0.005).abs() < 1e-12);
+        assert!((e.normal_rad - std::f64::consts::FRAC_PI_4).abs() < 1e-12);
+    }
+
+    #[test]
+    fn opposite_normals_give_pi_not_nan() {
+        let e = EstimateError::between(
+            &sp([0.0; 3], [0.0, 0.0, 1.0]),
+            &sp([0.0; 3], [0.0, 0.0, -1.0]),
+        );
+        assert!((e.normal_rad - std::f64::consts::PI).abs() < 1e-9);
+    }
+
+    #[test]
+    fn missing_layer_is_empty() {
+        let cam = CameraView {
+            camera_id: 0,
+            world_from_camera: None,
+            layers: vec![PointLayer {
+                role: PointRole::Kept,
+                points_m: vec![Vec3::ZERO; 3],
+            }],
+            estimate: None,
+        };
+        assert_eq!(cam.layer(PointRole::Kept).len(), 3);
+        assert!(cam.layer(PointRole::Memorised).is_empty());
+    }
+}

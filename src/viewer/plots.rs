@@ -1,0 +1,214 @@
+//! Time plots beside the 3D view (egui_plot): d_proj (paper eq. 7) and its rate, constraint
+//! activity (paper section V), centroid and normal error of the fused surface against ground
+//! truth, and per-stage latency. The series are extracted from the timeline of frames by
+//! [`PlotData::from_timeline`] (plain data, tested without a ui); a vertical line marks the
+//! frame on screen. Time is relative to the first frame; all plots share their x axis.
+
+use super::frame::ViewFrame;
+use egui_plot::{Corner, Legend, Line, Plot, PlotPoints, VLine};
+
+/// One named series of `[t_s, value]` samples.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Series {
+    pub name: String,
+    pub points: Vec<[f64; 2]>,
+}
+
+fn push_named(list: &mut Vec<Series>, name: &str, sample: [f64; 2]) {
+    match list.iter_mut().find(|s| s.name == name) {
+        Some(s) => s.points.push(sample),
+        None => list.push(Series {
+            name: name.to_owned(),
+            points: vec![sample],
+        }),
+    }
+}
+
+/// Everything the plot panel shows, in display units (mm, mm/s, deg, ms).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PlotData {
+    /// Time of the first frame, seconds; every `t_s` is relative to it.
+    pub t0_s: f64,
+    pub d_proj_mm: Series,
+    pub d_proj_rate_mm_per_s: Series,
+    /// Per constraint: 1 while active, 0 while inactive.
+    pub constraints: Vec<Series>,
+    pub centroid_error_mm: Series,
+    pub normal_error_deg: Series,
+    pub latencies_ms: Vec<Series>,
+}
+
+impl PlotData {
+    pub fn from_timeline(frames: &[ViewFrame]) -> Self {
+        let t0_s = frames.first().map_or(0.0, |f| f.stamp_s);
+        let mut d = PlotData {
+            t0_s,
+            d_proj_mm: Series {
+                name: "d_proj (mm)".into(),
+                ..Series::default()
+            },
+            d_proj_rate_mm_per_s: Series {
+                name: "rate (mm/s)".into(),
+                ..Series::default()
+            },
+            centroid_error_mm: Series {
+                name: "centroid (mm)".into(),
+                ..Series::default()
+            },
+            normal_error_deg: Series {
+                name: "normal (deg)".into(),
+                ..Series::default()
+            },
+            ..PlotData::default()
+        };
+        for f in frames {
+            let t = f.stamp_s - t0_s;
+            let s = &f.samples;
+            if let Some(v) = s.d_proj_m {
+                d.d_proj_mm.points.push([t, v * 1e3]);
+            }
+            if let Some(v) = s.d_proj_rate_m_per_s {
+                d.d_proj_rate_mm_per_s.points.push([t, v * 1e3]);
+            }
+            for c in &s.constraints {
+                push_named(
+                    &mut d.constraints,
+                    &c.name,
+                    [t, f64::from(u8::from(c.active))],
+                );
+            }
+            if let Some(e) = f.fused_error() {
+                d.centroid_error_mm.points.push([t, e.centroid_m * 1e3]);
+                d.normal_error_deg
+                    .points
+                    .push([t, e.normal_rad.to_degrees()]);
+            }
+            for l in &s.latencies {
+                push_named(&mut d.latencies_ms, &l.stage, [t, l.latency_s * 1e3]);
+            }
+        }
+        d
+    }
+
+    pub fn has_errors(&self) -> bool {
+        !self.centroid_error_mm.points.is_empty()
+    }
+}
+
+fn line(s: &Series) -> Line<'_> {
+    Line::new(s.name.clone(), PlotPoints::from(s.points.clone()))
+}
+
+/// Draw the plot panel; `now_s` (relative to `t0_s`) is marked in every plot.
+pub fn show_plots(ui: &mut egui::Ui, data: &PlotData, now_s: f64) {
+    let link = egui::Id::unique("hapcloud_view_time_axis");
+    let groups = if data.has_errors() { 4.0 } else { 3.0 };
+    let spacing = ui.spacing().item_spacing.y;
+    let height = ((ui.available_height() - groups * (spacing + 18.0)) / groups).max(60.0);
+    let cursor = || {
+        VLine::new("", now_s)
+            .color(egui::Color32::from_gray(160))
+            .width(1.0)
+    };
+    let plot = |id: &str| {
+        Plot::new(id)
+            .height(height)
+            .link_axis(link, [true, false])
+            .legend(Legend::default().position(Corner::RightTop))
+            .x_axis_label("t (s)")
+    };
+
+    ui.label("distance to surface");
+    plot("plot_d_proj").show(ui, |p| {
+        p.line(line(&data.d_proj_mm));
+        p.line(line(&data.d_proj_rate_mm_per_s));
+        p.vline(cursor());
+    });
+    ui.label("constraint activity");
+    plot("plot_constraints").show(ui, |p| {
+        // Stack the on/off traces so they do not overlap.
+        for (k, s) in data.constraints.iter().enumerate() {
+            let offset = 1.5 * k as f64;
+            let pts: Vec<[f64; 2]> = s.points.iter().map(|[t, v]| [*t, offset + v]).collect();
+            p.line(Line::new(s.name.clone(), PlotPoints::from(pts)));
+        }
+        p.vline(cursor());
+    });
+    if data.has_errors() {
+        ui.label("error vs ground truth");
+        plot("plot_errors").show(ui, |p| {
+            p.line(line(&data.centroid_error_mm));
+            p.line(line(&data.normal_error_deg));
+            p.vline(cursor());
+        });
+    }
+    ui.label("latency per stage (ms)");
+    plot("plot_latency").show(ui, |p| {
+        for s in &data.latencies_ms {
+            p.line(line(s));
+        }
+        p.vline(cursor());
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::viewer::frame::{ConstraintSample, FrameSamples, StageLatency, SurfacePoint};
+    use nalgebra::{Point3, Unit, Vector3};
+
+    fn frame(t: f64, d: f64, active: bool, truth: bool) -> ViewFrame {
+        let up = Unit::new_normalize(Vector3::z());
+        ViewFrame {
+            stamp_s: t,
+            hip_m: Point3::origin(),
+            hip_radius_m: 0.02,
+            shell_radii_m: vec![],
+            cameras: vec![],
+            fused: Some(SurfacePoint {
+                point_m: Point3::new(0.0, 0.0, d),
+                normal: up,
+            }),
+            truth: truth.then_some(SurfacePoint {
+                point_m: Point3::new(0.0, 0.0, 0.0),
+                normal: up,
+            }),
+            samples: FrameSamples {
+                d_proj_m: Some(d),
+                d_proj_rate_m_per_s: None,
+                constraints: vec![ConstraintSample {
+                    name: "position".into(),
+                    active,
+                }],
+                latencies: vec![StageLatency {
+                    stage: "crop".into(),
+                    latency_s: 0.002,
+                }],
+            },
+        }
+    }
+
+    #[test]
+    fn series_are_relative_in_time_and_in_display_units() {
+        let d = PlotData::from_timeline(&[
+            frame(10.0, 0.05, false, true),
+            frame(10.5, 0.04, true, true),
+        ]);
+        assert_eq!(d.t0_s, 10.0);
+        assert_eq!(d.d_proj_mm.points, vec![[0.0, 50.0], [0.5, 40.0]]);
+        assert!(d.d_proj_rate_mm_per_s.points.is_empty());
+        assert_eq!(d.constraints.len(), 1);
+        assert_eq!(d.constraints[0].points, vec![[0.0, 0.0], [0.5, 1.0]]);
+        assert_eq!(d.latencies_ms[0].name, "crop");
+        assert!((d.latencies_ms[0].points[1][1] - 2.0).abs() < 1e-12);
+        assert!((d.centroid_error_mm.points[1][1] - 40.0).abs() < 1e-9);
+        assert!(d.has_errors());
+    }
+
+    #[test]
+    fn no_truth_no_error_plot() {
+        let d = PlotData::from_timeline(&[frame(0.0, 0.05, false, false)]);
+        assert!(!d.has_errors());
+        assert!(PlotData::from_timeline(&[]).d_proj_mm.points.is_empty());
+    }
+}

@@ -1,0 +1,169 @@
+//! The viewer in egui_kittest: snapshot tests rendered by wgpu (lavapipe in CI) and
+//! interaction tests (layer toggles change what is drawn, the timeline changes the frame,
+//! playback advances, the orbit camera follows the mouse).
+//!
+//! Snapshots live in tests/snapshots; regenerate them only on purpose with
+//! `UPDATE_SNAPSHOTS=1 cargo test --test viewer_ui`.
+#![cfg(feature = "viewer")]
+
+mod viewer_fixture;
+
+use egui_kittest::Harness;
+use egui_kittest::kittest::Queryable;
+use hapcloud::viewer::{PointRole, ViewerApp, ViewerConfig, ViewerSource};
+
+const SIZE: egui::Vec2 = egui::vec2(1280.0, 760.0);
+
+fn app() -> ViewerApp {
+    ViewerApp::new(
+        ViewerSource::Timeline(viewer_fixture::timeline()),
+        ViewerConfig::default(),
+    )
+    .unwrap()
+}
+
+fn harness(mut app: ViewerApp, frame: usize) -> Harness<'static, ViewerApp> {
+    app.seek(frame);
+    let mut h = Harness::builder()
+        .with_size(SIZE)
+        .with_step_dt(1.0 / 60.0)
+        .wgpu()
+        .build_ui_state(|ui, app: &mut ViewerApp| app.ui(ui), app);
+    h.run();
+    h
+}
+
+#[test]
+fn overview_snapshot() {
+    let mut h = harness(app(), 16);
+    let stats = h.state().draw_stats();
+    // Everything of the frame is on screen: 2 cameras, 6 shells, fits, estimates, patch.
+    assert!(stats.points > 1000, "{stats:?}");
+    assert_eq!(stats.shell_spheres, 6);
+    assert!(stats.fits >= 8 && stats.rejected_fits >= 2, "{stats:?}");
+    assert_eq!(stats.estimates, 2);
+    assert!(stats.patch_triangles > 100, "{stats:?}");
+    assert!(stats.fused && stats.truth);
+    h.snapshot("viewer_overview");
+}
+
+#[test]
+fn hidden_layers_snapshot() {
+    let mut h = harness(app(), 16);
+    for label in ["kept", "memorised", "surface patch", "cropped"] {
+        h.get_by_label(label).click();
+    }
+    h.run();
+    h.remove_cursor();
+    h.run();
+    let stats = h.state().draw_stats();
+    assert_eq!(stats.patch_triangles, 0);
+    h.snapshot("viewer_hidden_layers");
+}
+
+#[test]
+fn toggling_a_layer_changes_what_is_drawn() {
+    let frames = viewer_fixture::timeline();
+    let memorised = frames[16].point_count(PointRole::Memorised);
+    assert!(
+        memorised > 50,
+        "the fixture hides part of the head behind the HIP"
+    );
+    let mut h = harness(app(), 16);
+    let before = h.state().draw_stats();
+
+    h.get_by_label("memorised").click();
+    h.run();
+    let after = h.state().draw_stats();
+    assert!(!h.state().layers().role_visible(PointRole::Memorised));
+    assert_eq!(after.points + memorised, before.points);
+
+    h.get_by_label("shell fits").click();
+    h.get_by_label("ground truth").click();
+    h.run();
+    let none = h.state().draw_stats();
+    assert_eq!((none.fits, none.rejected_fits, none.truth), (0, 0, false));
+    assert_eq!(none.shell_spheres, before.shell_spheres);
+
+    h.get_by_label("camera 1").click();
+    h.run();
+    let one_camera = h.state().draw_stats();
+    assert_eq!(one_camera.estimates, 1);
+    assert!(one_camera.points < after.points);
+}
+
+#[test]
+fn timeline_scrub_changes_the_frame() {
+    let frames = viewer_fixture::timeline();
+    let mut h = harness(app(), 4);
+    let d_label = |k: usize| {
+        format!(
+            "d_proj = {:.1} mm",
+            frames[k].samples.d_proj_m.unwrap() * 1e3
+        )
+    };
+    assert!(h.query_by_label(&d_label(4)).is_some());
+
+    h.get_by_label("Next frame").click();
+    h.run();
+    assert_eq!(h.state().current_index(), 5);
+    assert!(h.query_by_label(&d_label(5)).is_some());
+
+    h.get_by_role(egui::accesskit::Role::Slider)
+        .set_value_accesskit(20.0);
+    h.run();
+    assert_eq!(h.state().current_index(), 20);
+    assert!(h.query_by_label(&d_label(20)).is_some());
+    assert!(h.query_by_label(&d_label(5)).is_none());
+    assert!(h.query_by_label("t = 0.667 s").is_some());
+
+    h.get_by_label("Previous frame").click();
+    h.run();
+    assert_eq!(h.state().current_index(), 19);
+}
+
+#[test]
+fn play_advances_with_the_clock_and_stops_at_the_end() {
+    let mut h = harness(app(), 0);
+    h.get_by_label("Play").click();
+    // 20 steps of 1/60 s at 1x: a third of a second, 10 frames at 30 Hz.
+    h.run_steps(20);
+    assert!(h.state().is_playing());
+    let k = h.state().current_index();
+    assert!((9..=11).contains(&k), "frame {k}");
+    h.run_steps(60);
+    assert!(!h.state().is_playing());
+    assert_eq!(h.state().current_index(), viewer_fixture::FRAME_COUNT - 1);
+}
+
+#[test]
+fn dragging_the_view_orbits_and_scrolling_zooms() {
+    let mut h = harness(app(), 10);
+    let before = *h.state().orbit().unwrap();
+    let centre = h.get_by_label("3D view").rect().center();
+    h.drag_at(centre);
+    h.run();
+    h.hover_at(centre + egui::vec2(80.0, 30.0));
+    h.run();
+    h.drop_at(centre + egui::vec2(80.0, 30.0));
+    h.run();
+    let rotated = *h.state().orbit().unwrap();
+    assert!(
+        rotated.yaw_rad < before.yaw_rad - 0.1,
+        "{before:?} -> {rotated:?}"
+    );
+    assert!(rotated.pitch_rad > before.pitch_rad);
+    assert_eq!(rotated.distance_m, before.distance_m);
+
+    h.hover_at(centre);
+    h.event(egui::Event::MouseWheel {
+        unit: egui::MouseWheelUnit::Point,
+        delta: egui::vec2(0.0, 120.0),
+        phase: egui::TouchPhase::Move,
+        modifiers: egui::Modifiers::NONE,
+        source: egui::MouseWheelSource::Wheel,
+    });
+    // egui smooths wheel scrolling over several frames.
+    h.run_steps(20);
+    assert!(h.state().orbit().unwrap().distance_m < rotated.distance_m);
+}
