@@ -7,7 +7,9 @@
 
 mod viewer_fixture;
 
-use hapcloud::viewer::{PointRole, ScreenshotRequest, ViewerApp, ViewerConfig, ViewerSource, draw, run_window};
+use hapcloud::viewer::{
+    PointRole, ScreenshotRequest, ViewerApp, ViewerConfig, ViewerSource, draw, run_window,
+};
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
 
@@ -15,7 +17,9 @@ const TEST_NAME: &str = "window_screenshot_under_x";
 const WINDOW_PX: [u32; 2] = [1280, 760];
 
 fn read_png(path: &Path) -> (u32, u32, Vec<u8>) {
-    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).expect("screenshot exists")));
+    let decoder = png::Decoder::new(std::io::BufReader::new(
+        std::fs::File::open(path).expect("screenshot exists"),
+    ));
     let mut reader = decoder.read_info().expect("screenshot is a PNG");
     let mut buf = vec![0; reader.output_buffer_size().expect("sane PNG size")];
     let info = reader.next_frame(&mut buf).expect("PNG decodes");
@@ -34,18 +38,37 @@ fn count_near(rgba: &[u8], c: egui::Color32) -> usize {
 }
 
 fn window_screenshot(path: &Path) {
-    let app = ViewerApp::new(ViewerSource::Timeline(viewer_fixture::timeline()), ViewerConfig::default()).unwrap();
+    let app = ViewerApp::new(
+        ViewerSource::Timeline(viewer_fixture::timeline()),
+        ViewerConfig::default(),
+    )
+    .unwrap();
     let mut app = app;
     app.seek(16);
     let size = [WINDOW_PX[0] as f32, WINDOW_PX[1] as f32];
-    run_window(app, size, Some(ScreenshotRequest { path: path.to_owned(), settle_frames: 5 })).expect("window ran and wrote its screenshot");
+    run_window(
+        app,
+        size,
+        Some(ScreenshotRequest {
+            path: path.to_owned(),
+            settle_frames: 5,
+        }),
+    )
+    .expect("window ran and wrote its screenshot");
 
     let (w, h, rgba) = read_png(path);
-    assert_eq!((w, h), (WINDOW_PX[0], WINDOW_PX[1]), "screenshot has the window's size");
+    assert_eq!(
+        (w, h),
+        (WINDOW_PX[0], WINDOW_PX[1]),
+        "screenshot has the window's size"
+    );
     // What a user sees: the HIP handle's cropped points in red, the kept head points, the
     // dark 3D background, and the HIP sphere outline.
     let background = count_near(&rgba, egui::Color32::from_rgb(22, 24, 30));
-    assert!(background > (w * h / 10) as usize, "3D view background covers the centre: {background}");
+    assert!(
+        background > (w * h / 10) as usize,
+        "3D view background covers the centre: {background}"
+    );
     for (what, color, min) in [
         ("kept points", draw::role_color(PointRole::Kept), 200),
         ("cropped points", draw::role_color(PointRole::Cropped), 200),
@@ -75,7 +98,11 @@ fn main() -> ExitCode {
             .args(&args)
             .status()
             .expect("xvfb-run is installed (apt-get install xvfb xauth)");
-        return if status.success() { ExitCode::SUCCESS } else { ExitCode::FAILURE };
+        return if status.success() {
+            ExitCode::SUCCESS
+        } else {
+            ExitCode::FAILURE
+        };
     }
     let path = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("viewer_window.png");
     window_screenshot(&path);
