@@ -1,0 +1,525 @@
+//! Concentric-shell abstraction (paper IV-E, Alg. 2): per-shell moments, per-shell fits, the
+//! outlier rejection and the weighted average that make one [`SurfaceEstimate`].
+//!
+//! **Moments.** Shell `i` holds the points with `r_{i-1} <= |p - h| < r_i` around the HIP `h`
+//! (`r_{-1} = 0`). Per shell we need the count, the first and second moments (centroid and
+//! covariance: the plane and the normal) and the third and fourth moments (Kasa needs
+//! `sum u z`, Taubin `sum z^2`, `z = u^2 + v^2`): all 35 monomials of degree <= 4 of the
+//! HIP-centred offset `d = p - h` (see [`super::fit::Moments`]). To stay deterministic and free
+//! of cancellation on the GPU, every point contributes in **fixed point**: `d` is computed in
+//! f32 next to the HIP (exact by Sterbenz for nearby points), scaled by the shell's outer
+//! radius into `s = d / r_i` (`|s| <= 1`), each monomial of `s` is formed by the fixed product
+//! chain [`super::fit::PARENT`]/[`super::fit::AXIS`] and rounded to an `i32` in units of
+//! `2^-30`; these integers are summed in 64 bits. Integer sums are exact and associative, so
+//! the result is the same bits for any point order or thread schedule. Shell membership is
+//! decided on integers too: `d` is quantised to `2^15` steps across `r_out` and the squared
+//! integer length is compared with integer bounds. [`accumulate_cpu`] is the reference;
+//! `shaders/shells.wgsl` computes the same [`ShellSums`] on the GPU (see `gpu_shells`).
+//!
+//! **Fits (Alg. 2).** The innermost shell with enough points gets `plane3d`, the others
+//! `circle3d` ([`super::fit`]). Each normal is oriented against the camera's viewing
+//! direction `z` (eq. 2: `n <- -sign(n . z) n`). Fits whose residual is a large fraction of
+//! their shell radius (two surfaces in one shell) count as degenerate. The worst half by the
+//! summed normal distance `S_j = sum_i |n_j - n_i|` is rejected, and the rest are averaged
+//! with weights `1 / r_i` (the shell's outer radius).
+//!
+//! **Curvature correction** (design note: the circles' centres lie on the axis through the
+//! HIP, deeper the larger the shell, so on a convex body the paper's average sits inside the
+//! body and overestimates the distance). For a sphere every point obeys
+//! `a = alpha + beta r^2` exactly, where `a = n . (h - p)` is its depth along the normal and
+//! `r = |p - h|` (`beta = 1 / (2 L)`, `L` the HIP-to-centre distance); for other smooth convex
+//! bodies it holds locally. A weighted least-squares line through the mean `(r^2, a)` of the
+//! shells whose normal agrees with the average (within `correction_max_angle_rad`) gives
+//! `alpha, beta`; the closest point lies on the axis at the depth `D` where
+//! `r = a`: `D = 2 alpha / (1 + sqrt(1 - 4 alpha beta))` (the stable root; `beta = 0` is a
+//! plane and leaves the paper's estimate unchanged). The paper's centroid is moved along the
+//! normal to that depth. The correction is skipped (and reported) with fewer than two shells
+//! or an inconsistent line.
+
+use super::fit::{
+    self, AXIS, CircleMethod, FitError, FitLimits, MOMENT_COUNT, Moments, PARENT, circle3d, plane3d,
+};
+use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate};
+use glam::Vec3;
+use nalgebra::{Point3, Unit, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Most shells a configuration may ask for (bounds the GPU's per-shell arrays).
+pub const MAX_SHELLS: usize = 32;
+/// Fixed-point unit of one monomial contribution: values in [-1, 1] become i32 in units of
+/// 2^-30.
+pub const FIXED_ONE: f32 = 1_073_741_824.0;
+/// Integer steps across the outermost radius used to decide shell membership: squared lengths
+/// stay below `3 * 2^30`, inside a u32.
+pub const RADIUS_STEPS: f64 = 32_768.0;
+
+/// Configuration of the shell abstraction (Alg. 2).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ShellConfig {
+    /// Outer radii `r_0 < r_1 < ...` of the shells around the HIP, metres. Shell 0 is the ball
+    /// `r < r_0`; the last radius is the outermost one considered.
+    pub radii_m: Vec<f64>,
+    /// Centre estimator of `circle3d`.
+    pub circle_method: CircleMethod,
+    /// Shells with fewer points are skipped (a plane needs 3).
+    pub min_points_per_shell: u32,
+    /// Reject the worst half of the shell estimates by the normal distance matrix.
+    pub reject_worst_half: bool,
+    /// Move the centroid to the closest point of the locally fitted sphere (see module doc).
+    pub curvature_correction: bool,
+    /// Second/largest covariance eigenvalue below this: collinear shell, no normal. The f32
+    /// monomials carry 2^-24 relative rounding, so the covariance of a point set far from the
+    /// HIP resolves about 1e-7 of its extent squared; 1e-6 (a band thinner than 1/1000 of its
+    /// length) keeps clear of that.
+    pub collinear_eigen_ratio: f64,
+    /// Algebraic circle radius above this multiple of the shell radius: straight arc, fall
+    /// back to the sphere cut.
+    pub max_circle_radius_ratio: f64,
+    /// A fit whose RMS residual exceeds this fraction of its shell's outer radius does not
+    /// describe one surface (e.g. two surfaces in the shell) and is treated as degenerate.
+    pub max_residual_ratio: f64,
+    /// Shells whose normal lies within this angle of the averaged normal feed the curvature
+    /// correction, rejected or not (the rejection keeps half even of two good shells), rad.
+    pub correction_max_angle_rad: f64,
+}
+
+impl Default for ShellConfig {
+    fn default() -> Self {
+        Self {
+            radii_m: vec![0.02, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08, 0.09, 0.10],
+            circle_method: CircleMethod::Taubin,
+            min_points_per_shell: 3,
+            reject_worst_half: true,
+            curvature_correction: true,
+            collinear_eigen_ratio: 1e-6,
+            max_circle_radius_ratio: 20.0,
+            max_residual_ratio: 0.2,
+            correction_max_angle_rad: 10f64.to_radians(),
+        }
+    }
+}
+
+/// A shell configuration that cannot work.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ShellConfigError {
+    #[error("radii_m must hold 1 to {MAX_SHELLS} radii, got {0}")]
+    RadiusCount(usize),
+    #[error("radii_m must be finite, positive and strictly increasing: {0:?}")]
+    RadiusOrder(Vec<f64>),
+    #[error("min_points_per_shell must be at least 3 (a plane needs 3 points), got {0}")]
+    MinPoints(u32),
+    #[error("collinear_eigen_ratio must lie in (0, 1), got {0}")]
+    CollinearRatio(f64),
+    #[error("max_circle_radius_ratio must be at least 1, got {0}")]
+    CircleRadiusRatio(f64),
+    #[error("max_residual_ratio must be positive, got {0}")]
+    ResidualRatio(f64),
+    #[error("correction_max_angle_rad must lie in [0, pi], got {0}")]
+    CorrectionAngle(f64),
+}
+
+impl ShellConfig {
+    pub fn validate(&self) -> Result<(), ShellConfigError> {
+        let r = &self.radii_m;
+        if r.is_empty() || r.len() > MAX_SHELLS {
+            return Err(ShellConfigError::RadiusCount(r.len()));
+        }
+        if !r.iter().all(|x| x.is_finite() && *x > 0.0) || r.windows(2).any(|w| w[1] <= w[0]) {
+            return Err(ShellConfigError::RadiusOrder(r.clone()));
+        }
+        if self.min_points_per_shell < 3 {
+            return Err(ShellConfigError::MinPoints(self.min_points_per_shell));
+        }
+        if !(self.collinear_eigen_ratio > 0.0 && self.collinear_eigen_ratio < 1.0) {
+            return Err(ShellConfigError::CollinearRatio(self.collinear_eigen_ratio));
+        }
+        if !(self.max_circle_radius_ratio >= 1.0) {
+            return Err(ShellConfigError::CircleRadiusRatio(self.max_circle_radius_ratio));
+        }
+        if !(self.max_residual_ratio > 0.0) {
+            return Err(ShellConfigError::ResidualRatio(self.max_residual_ratio));
+        }
+        if !(0.0..=std::f64::consts::PI).contains(&self.correction_max_angle_rad) {
+            return Err(ShellConfigError::CorrectionAngle(self.correction_max_angle_rad));
+        }
+        Ok(())
+    }
+
+    /// Outermost radius, metres.
+    pub fn outer_radius_m(&self) -> f64 {
+        self.radii_m.last().copied().unwrap_or(0.0)
+    }
+}
+
+/// What the CPU reference and the shader share for one frame: the HIP in f32 and the integer
+/// and f32 constants derived from the radii.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ShellLayout {
+    /// HIP rounded to f32 (the origin of all moments).
+    pub hip: [f32; 3],
+    /// Outermost radius in f32; points with any |d_i| >= it are outside.
+    pub outer_radius: f32,
+    /// `RADIUS_STEPS / r_out`: metres to integer steps.
+    pub steps_per_m: f32,
+    /// Exclusive upper bound of the squared integer length per shell.
+    pub bounds: Vec<u32>,
+    /// `1 / r_i` in f32: the scale taking shell i's offsets into [-1, 1].
+    pub inv_radius: Vec<f32>,
+}
+
+impl ShellLayout {
+    /// `radii_m` must satisfy [`ShellConfig::validate`].
+    pub fn new(hip: &Point3<f64>, radii_m: &[f64]) -> Self {
+        let outer = radii_m.last().copied().unwrap_or(0.0);
+        let steps_per_m = (RADIUS_STEPS / outer) as f32;
+        let bounds = radii_m
+            .iter()
+            .map(|r| {
+                let steps = r * f64::from(steps_per_m);
+                (steps * steps).floor().min(3.0 * 2f64.powi(30)) as u32
+            })
+            .collect();
+        Self {
+            hip: [hip.x as f32, hip.y as f32, hip.z as f32],
+            outer_radius: outer as f32,
+            steps_per_m,
+            bounds,
+            inv_radius: radii_m.iter().map(|r| (1.0 / r) as f32).collect(),
+        }
+    }
+
+    pub fn origin(&self) -> Point3<f64> {
+        Point3::new(self.hip[0].into(), self.hip[1].into(), self.hip[2].into())
+    }
+
+    pub fn shell_count(&self) -> usize {
+        self.bounds.len()
+    }
+}
+
+/// Exact per-shell fixed-point sums, plus the points that were skipped.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ShellSums {
+    /// Per shell, the sums of the 35 monomials of `d / r_i`, units of 2^-30.
+    pub sums: Vec<[i64; MOMENT_COUNT]>,
+    /// Points with a NaN or infinite coordinate.
+    pub non_finite: u32,
+    /// Finite points outside the outermost shell.
+    pub outside: u32,
+}
+
+impl ShellSums {
+    /// f64 moments in metres about the layout's HIP.
+    pub fn to_moments(&self, layout: &ShellLayout) -> Vec<Moments> {
+        self.sums
+            .iter()
+            .zip(&layout.inv_radius)
+            .map(|(sums, &inv)| {
+                let radius = 1.0 / f64::from(inv);
+                let mut m = Moments::zero(layout.origin());
+                for (n, s) in sums.iter().enumerate() {
+                    m.sums[n] = *s as f64 / f64::from(FIXED_ONE) * radius.powi(fit::degree(n) as i32);
+                }
+                m
+            })
+            .collect()
+    }
+}
+
+/// True when all three coordinates are finite, decided on the bits (as the shader does).
+pub fn finite_bits(p: Vec3) -> bool {
+    p.to_array().iter().all(|c| c.to_bits() & 0x7f80_0000 != 0x7f80_0000)
+}
+
+/// The shell a point falls in, with its HIP-centred offset, or `None` when it lies outside.
+/// The same integer decision as the shader.
+pub fn shell_of(p: Vec3, layout: &ShellLayout) -> Option<(usize, [f32; 3])> {
+    let d = [p.x - layout.hip[0], p.y - layout.hip[1], p.z - layout.hip[2]];
+    if d.iter().any(|c| c.abs() >= layout.outer_radius) {
+        return None;
+    }
+    let r2: u32 = d
+        .iter()
+        .map(|c| {
+            let q = (c * layout.steps_per_m).round_ties_even() as i32;
+            (q * q) as u32
+        })
+        .sum();
+    layout.bounds.iter().position(|&b| r2 < b).map(|i| (i, d))
+}
+
+/// Fixed-point monomials of one offset in shell `shell` (the shader's exact arithmetic).
+pub fn fixed_monomials(d: [f32; 3], inv_radius: f32) -> [i32; MOMENT_COUNT] {
+    let s = d.map(|c| c * inv_radius);
+    let mut mono = [0f32; MOMENT_COUNT];
+    mono[0] = 1.0;
+    for n in 1..MOMENT_COUNT {
+        mono[n] = mono[PARENT[n] as usize] * s[AXIS[n] as usize];
+    }
+    mono.map(|m| (m * FIXED_ONE).round_ties_even() as i32)
+}
+
+/// CPU reference of the per-shell moment reduction.
+pub fn accumulate_cpu(points: &[Vec3], layout: &ShellLayout) -> ShellSums {
+    let mut out = ShellSums {
+        sums: vec![[0i64; MOMENT_COUNT]; layout.shell_count()],
+        non_finite: 0,
+        outside: 0,
+    };
+    for &p in points {
+        if !finite_bits(p) {
+            out.non_finite += 1;
+            continue;
+        }
+        match shell_of(p, layout) {
+            None => out.outside += 1,
+            Some((i, d)) => {
+                let fixed = fixed_monomials(d, layout.inv_radius[i]);
+                for (s, f) in out.sums[i].iter_mut().zip(fixed) {
+                    *s += i64::from(f);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Outcome of one shell, for reports and the overlay.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ShellReport {
+    pub inner_radius_m: f64,
+    pub outer_radius_m: f64,
+    pub point_count: u64,
+    /// `fitted`, `empty`, `too_few_points`, `collinear`, `non_finite`, `eigen_failed` or
+    /// `inconsistent` (residual too large for one surface).
+    pub status: &'static str,
+    /// The circle fit was degenerate (straight arc) and the sphere cut answered.
+    pub fell_back: bool,
+}
+
+/// The curvature correction's line and result.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct CurvatureCorrection {
+    /// Depth of the paper's centroid below the HIP along the normal, metres.
+    pub paper_depth_m: f64,
+    /// Depth of the corrected closest point, metres.
+    pub depth_m: f64,
+    /// `a = alpha + beta r^2`: intercept (m) and slope (1/m); `1 / (2 beta)` is the distance
+    /// from the HIP to the osculating sphere's centre.
+    pub alpha_m: f64,
+    pub beta_per_m: f64,
+}
+
+/// Alg. 2's result with what a report or the overlay needs beyond the estimate.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ShellAbstraction {
+    pub estimate: SurfaceEstimate,
+    /// One report per configured shell, innermost first.
+    pub reports: Vec<ShellReport>,
+    /// The paper's weighted average of the accepted shells' centres (before the curvature
+    /// correction).
+    pub paper_centroid_m: Point3<f64>,
+    /// `None` when disabled or not possible (fewer than two accepted shells, inconsistent).
+    pub correction: Option<CurvatureCorrection>,
+}
+
+struct Accepted {
+    fit: ShellFit,
+    moments: Moments,
+}
+
+/// Alg. 2: shell fits, eq. 2 orientation, rejection of the worst half, weighted average,
+/// curvature correction. `view_dir` is the camera's viewing direction `z^k`.
+pub fn abstract_surface(
+    moments: &[Moments],
+    config: &ShellConfig,
+    view_dir: &Vector3<f64>,
+    camera_id: u32,
+    stamp_s: f64,
+) -> ShellAbstraction {
+    let hip = moments.first().map(|m| m.origin).unwrap_or_else(Point3::origin);
+    let mut reports = Vec::with_capacity(moments.len());
+    let mut fits: Vec<Accepted> = Vec::new();
+    for (i, m) in moments.iter().enumerate() {
+        let inner = if i == 0 { 0.0 } else { config.radii_m[i - 1] };
+        let outer = config.radii_m[i];
+        let count = m.count().max(0.0).round() as u64;
+        let mut report = ShellReport {
+            inner_radius_m: inner,
+            outer_radius_m: outer,
+            point_count: count,
+            status: "fitted",
+            fell_back: false,
+        };
+        if count == 0 {
+            report.status = "empty";
+            reports.push(report);
+            continue;
+        }
+        if count < u64::from(config.min_points_per_shell) {
+            report.status = "too_few_points";
+            reports.push(report);
+            continue;
+        }
+        let limits = FitLimits {
+            collinear_eigen_ratio: config.collinear_eigen_ratio,
+            max_circle_radius_m: config.max_circle_radius_ratio * outer,
+        };
+        let first = fits.is_empty();
+        let fitted = if first {
+            plane3d(m, &limits).map(|p| (ShellFitKind::Plane, p.centroid_m, p.normal, None, p.residual_rms_m(), false))
+        } else {
+            circle3d(m, config.circle_method, &limits).map(|c| {
+                (ShellFitKind::Circle, c.center_m, c.normal, Some(c.radius_m), c.residual_rms_m, c.fell_back)
+            })
+        };
+        match fitted {
+            Err(e) => {
+                report.status = match e {
+                    FitError::TooFewPoints { .. } => "too_few_points",
+                    FitError::Collinear { .. } => "collinear",
+                    FitError::NonFinite => "non_finite",
+                    FitError::EigenFailed => "eigen_failed",
+                };
+            }
+            Ok((kind, center, normal, radius, residual, fell_back)) => {
+                report.fell_back = fell_back;
+                if !(residual <= config.max_residual_ratio * outer) {
+                    report.status = "inconsistent";
+                } else {
+                    // Eq. 2: orient against the camera's viewing direction.
+                    let dot = normal.dot(view_dir);
+                    let normal = if dot > 0.0 { -normal } else { normal };
+                    fits.push(Accepted {
+                        fit: ShellFit {
+                            inner_radius_m: inner,
+                            outer_radius_m: outer,
+                            point_count: count.min(u64::from(u32::MAX)) as u32,
+                            kind,
+                            center_m: center,
+                            normal,
+                            circle_radius_m: radius,
+                            residual_rms_m: residual,
+                            rejected: false,
+                        },
+                        moments: *m,
+                    });
+                }
+            }
+        }
+        reports.push(report);
+    }
+
+    if config.reject_worst_half && fits.len() >= 2 {
+        let scores: Vec<f64> = fits
+            .iter()
+            .map(|a| fits.iter().map(|b| (a.fit.normal.into_inner() - b.fit.normal.into_inner()).norm()).sum())
+            .collect();
+        let mut order: Vec<usize> = (0..fits.len()).collect();
+        order.sort_by(|&a, &b| scores[a].total_cmp(&scores[b]).then(a.cmp(&b)));
+        let keep = fits.len().div_ceil(2);
+        for &i in &order[keep..] {
+            fits[i].fit.rejected = true;
+        }
+    }
+
+    let kept: Vec<&Accepted> = fits.iter().filter(|a| !a.fit.rejected).collect();
+    let weight = |a: &Accepted| 1.0 / a.fit.outer_radius_m;
+    let total_w: f64 = kept.iter().map(|a| weight(a)).sum();
+    let sum_n: Vector3<f64> = kept.iter().map(|a| weight(a) * a.fit.normal.into_inner()).sum();
+    let sum_c: Vector3<f64> = kept.iter().map(|a| weight(a) * a.fit.center_m.coords).sum();
+    let resultant = if total_w > 0.0 { sum_n.norm() / total_w } else { 0.0 };
+    let fallback_normal = Unit::try_new(-view_dir, 1e-12).unwrap_or(Vector3::z_axis());
+    let mut estimate = SurfaceEstimate {
+        camera_id,
+        stamp_s,
+        centroid_m: hip,
+        normal: fallback_normal,
+        shells: fits.iter().map(|a| a.fit.clone()).collect(),
+        quality: 0.0,
+        valid: false,
+    };
+    let normal = Unit::try_new(sum_n, 1e-9);
+    let (Some(normal), true) = (normal, total_w > 0.0 && resultant > 1e-6) else {
+        return ShellAbstraction {
+            estimate,
+            reports,
+            paper_centroid_m: hip,
+            correction: None,
+        };
+    };
+    let paper_centroid = Point3::from(sum_c / total_w);
+    let agreeing: Vec<&Accepted> = fits
+        .iter()
+        .filter(|a| a.fit.normal.angle(&normal) <= config.correction_max_angle_rad)
+        .collect();
+    let correction = if config.curvature_correction {
+        curvature_correction(&agreeing, &normal, &hip, &paper_centroid, config.outer_radius_m())
+    } else {
+        None
+    };
+    let centroid = match correction {
+        Some(c) => paper_centroid + (c.paper_depth_m - c.depth_m) * normal.into_inner(),
+        None => paper_centroid,
+    };
+    if centroid.coords.iter().all(|c| c.is_finite()) {
+        estimate.centroid_m = centroid;
+        estimate.normal = normal;
+        estimate.quality = (resultant * (kept.len() as f64 / 2.0).min(1.0)).clamp(0.0, 1.0);
+        estimate.valid = true;
+    }
+    ShellAbstraction {
+        estimate,
+        reports,
+        paper_centroid_m: paper_centroid,
+        correction,
+    }
+}
+
+/// Weighted line `a = alpha + beta r^2` through the agreeing shells' mean depth and mean
+/// squared distance, and the depth where it meets `r = a` (module doc).
+fn curvature_correction(
+    kept: &[&Accepted],
+    normal: &Unit<Vector3<f64>>,
+    hip: &Point3<f64>,
+    paper_centroid: &Point3<f64>,
+    max_shift_m: f64,
+) -> Option<CurvatureCorrection> {
+    if kept.len() < 2 {
+        return None;
+    }
+    let samples: Vec<(f64, f64, f64)> = kept
+        .iter()
+        .map(|a| {
+            let depth = normal.dot(&(hip - a.moments.mean()));
+            (1.0 / a.fit.outer_radius_m, a.moments.mean_squared_distance(), depth)
+        })
+        .collect();
+    let sw: f64 = samples.iter().map(|s| s.0).sum();
+    let mx = samples.iter().map(|s| s.0 * s.1).sum::<f64>() / sw;
+    let my = samples.iter().map(|s| s.0 * s.2).sum::<f64>() / sw;
+    let sxx: f64 = samples.iter().map(|s| s.0 * (s.1 - mx).powi(2)).sum();
+    let sxy: f64 = samples.iter().map(|s| s.0 * (s.1 - mx) * (s.2 - my)).sum();
+    // The r^2 values must spread (distinct shells); a tiny spread makes the slope noise.
+    if !(sxx > 1e-12 * sw * mx * mx) {
+        return None;
+    }
+    let beta = sxy / sxx;
+    let alpha = my - beta * mx;
+    let disc = 1.0 - 4.0 * alpha * beta;
+    if !(disc >= 0.0) {
+        return None;
+    }
+    let depth = 2.0 * alpha / (1.0 + disc.sqrt());
+    let paper_depth = normal.dot(&(hip - paper_centroid));
+    if !depth.is_finite() || (depth - paper_depth).abs() > max_shift_m {
+        return None;
+    }
+    Some(CurvatureCorrection {
+        paper_depth_m: paper_depth,
+        depth_m: depth,
+        alpha_m: alpha,
+        beta_per_m: beta,
+    })
+}
