@@ -24,17 +24,30 @@ fn no_memory() -> SurfaceConfig {
     }
 }
 
-fn run(config: &SurfaceConfig, cloud: &[Vec3], hip: &Point3<f64>, view: &Vector3<f64>) -> SurfaceFrame {
-    SurfaceEstimator::new(config.clone()).unwrap().estimate(cloud, hip, view, 0, 0.0)
+fn run(
+    config: &SurfaceConfig,
+    cloud: &[Vec3],
+    hip: &Point3<f64>,
+    view: &Vector3<f64>,
+) -> SurfaceFrame {
+    SurfaceEstimator::new(config.clone())
+        .unwrap()
+        .estimate(cloud, hip, view, 0, 0.0)
 }
 
 /// Never NaN, whatever the validity.
 fn assert_finite(e: &SurfaceEstimate) {
     assert!(e.centroid_m.coords.iter().all(|c| c.is_finite()), "{e:?}");
     assert!(e.normal.iter().all(|c| c.is_finite()), "{e:?}");
-    assert!(e.quality.is_finite() && (0.0..=1.0).contains(&e.quality), "{e:?}");
+    assert!(
+        e.quality.is_finite() && (0.0..=1.0).contains(&e.quality),
+        "{e:?}"
+    );
     for s in &e.shells {
-        assert!(s.center_m.coords.iter().all(|c| c.is_finite()) && s.normal.iter().all(|c| c.is_finite()));
+        assert!(
+            s.center_m.coords.iter().all(|c| c.is_finite())
+                && s.normal.iter().all(|c| c.is_finite())
+        );
         assert!(s.residual_rms_m.is_finite());
         assert!(s.circle_radius_m.is_none_or(f64::is_finite));
     }
@@ -74,10 +87,17 @@ fn head_with_noise_is_accurate_for_every_circle_method() {
         assert!(e.valid, "{method:?}");
         let (ce, ne) = errors(e, &head(), &hip);
         let paper = (frame.abstraction.paper_centroid_m - head().closest(&hip).0).norm();
-        eprintln!("{method:?}: centroid {:.2} mm (paper {:.2} mm), normal {ne:.3} deg", ce * 1e3, paper * 1e3);
+        eprintln!(
+            "{method:?}: centroid {:.2} mm (paper {:.2} mm), normal {ne:.3} deg",
+            ce * 1e3,
+            paper * 1e3
+        );
         assert!(ce < 2e-3, "{method:?} centroid {ce}");
         assert!(ne < 1.0, "{method:?} normal {ne}");
-        assert!(paper > ce, "the curvature correction should help on a sphere");
+        assert!(
+            paper > ce,
+            "the curvature correction should help on a sphere"
+        );
     }
 }
 
@@ -93,11 +113,17 @@ fn plane_without_noise_is_exact() {
     for method in CircleMethod::ALL {
         let mut config = no_memory();
         config.shells.circle_method = method;
-        let e = run(&config, &cloud, &hip, &view.direction(&hip)).abstraction.estimate;
+        let e = run(&config, &cloud, &hip, &view.direction(&hip))
+            .abstraction
+            .estimate;
         let (ce, ne) = errors(&e, &plane, &hip);
         // The sphere cut puts every centre on the axis; the algebraic fits see annular bands
         // cut by the patch edge, whose best circle is slightly off-centre.
-        let tol = if method == CircleMethod::SphereCut { 1e-5 } else { 1e-4 };
+        let tol = if method == CircleMethod::SphereCut {
+            1e-5
+        } else {
+            1e-4
+        };
         assert!(e.valid && ce < tol && ne < 1e-3, "{method:?} {ce} {ne}");
     }
 }
@@ -118,10 +144,15 @@ fn far_from_the_origin() {
             s => s,
         };
         let cloud = view.render(&[shape], &hip);
-        let e = run(&no_memory(), &cloud, &hip, &view.direction(&hip)).abstraction.estimate;
+        let e = run(&no_memory(), &cloud, &hip, &view.direction(&hip))
+            .abstraction
+            .estimate;
         assert_finite(&e);
         let (ce, ne) = errors(&e, &shape, &hip);
-        eprintln!("offset {offset} m: centroid {:.3} mm normal {ne:.3} deg", ce * 1e3);
+        eprintln!(
+            "offset {offset} m: centroid {:.3} mm normal {ne:.3} deg",
+            ce * 1e3
+        );
         // f32 points 10 km out are quantised to ~1 mm: the error follows that resolution.
         let tol = if offset > 1000.0 { 4e-3 } else { 2e-3 };
         assert!(e.valid && ce < tol && ne < 2.0, "{offset}: {ce} {ne}");
@@ -132,7 +163,11 @@ fn far_from_the_origin() {
 fn shells_with_zero_one_two_points_are_invalid() {
     let hip = Point3::new(0.0, 0.0, 0.5);
     let view = Vector3::z();
-    let pts = [Vec3::new(0.01, 0.0, 0.5), Vec3::new(0.0, 0.015, 0.51), Vec3::new(-0.012, 0.0, 0.49)];
+    let pts = [
+        Vec3::new(0.01, 0.0, 0.5),
+        Vec3::new(0.0, 0.015, 0.51),
+        Vec3::new(-0.012, 0.0, 0.49),
+    ];
     for n in 0..3 {
         let frame = run(&no_memory(), &pts[..n], &hip, &view);
         assert_finite(&frame.abstraction.estimate);
@@ -150,11 +185,19 @@ fn shells_with_zero_one_two_points_are_invalid() {
 #[test]
 fn collinear_points_are_flagged() {
     let hip = Point3::new(0.0, 0.0, 0.0);
-    let cloud: Vec<Vec3> = (0..200).map(|i| Vec3::new(-0.09 + i as f32 * 0.0009, 0.03, 0.02)).collect();
+    let cloud: Vec<Vec3> = (0..200)
+        .map(|i| Vec3::new(-0.09 + i as f32 * 0.0009, 0.03, 0.02))
+        .collect();
     let frame = run(&no_memory(), &cloud, &hip, &Vector3::z());
     assert_finite(&frame.abstraction.estimate);
     assert!(!frame.abstraction.estimate.valid);
-    assert!(frame.abstraction.reports.iter().any(|r| r.status == "collinear"));
+    assert!(
+        frame
+            .abstraction
+            .reports
+            .iter()
+            .any(|r| r.status == "collinear")
+    );
 }
 
 #[test]
@@ -166,14 +209,25 @@ fn coplanar_and_duplicated_points() {
             grid.push(Vec3::new(i as f32 * 0.0025, j as f32 * 0.0025, 0.0));
         }
     }
-    let e = run(&no_memory(), &grid, &hip, &-Vector3::z()).abstraction.estimate;
+    let e = run(&no_memory(), &grid, &hip, &-Vector3::z())
+        .abstraction
+        .estimate;
     assert!(e.valid);
-    assert!((e.centroid_m - Point3::origin()).norm() < 1e-6, "{:?}", e.centroid_m);
+    assert!(
+        (e.centroid_m - Point3::origin()).norm() < 1e-6,
+        "{:?}",
+        e.centroid_m
+    );
     assert!((e.normal.into_inner() - Vector3::z()).norm() < 1e-9);
     // Every point five times: the same surface.
     let dup: Vec<Vec3> = grid.iter().flat_map(|p| [*p; 5]).collect();
-    let d = run(&no_memory(), &dup, &hip, &-Vector3::z()).abstraction.estimate;
-    assert!((d.centroid_m - e.centroid_m).norm() < 1e-9 && (d.normal.into_inner() - e.normal.into_inner()).norm() < 1e-9);
+    let d = run(&no_memory(), &dup, &hip, &-Vector3::z())
+        .abstraction
+        .estimate;
+    assert!(
+        (d.centroid_m - e.centroid_m).norm() < 1e-9
+            && (d.normal.into_inner() - e.normal.into_inner()).norm() < 1e-9
+    );
     // All points identical: no normal, flagged.
     let same = vec![Vec3::new(0.0, 0.0, 0.0); 1000];
     let s = run(&no_memory(), &same, &hip, &-Vector3::z()).abstraction;
@@ -218,23 +272,40 @@ fn two_equidistant_surfaces_are_flagged() {
             cloud.push(Vec3::new(x, -0.04, y));
         }
     }
-    let frame = run(&no_memory(), &cloud, &hip, &Vector3::new(0.0, 0.3, 1.0).normalize());
+    let frame = run(
+        &no_memory(),
+        &cloud,
+        &hip,
+        &Vector3::new(0.0, 0.3, 1.0).normalize(),
+    );
     assert_finite(&frame.abstraction.estimate);
-    assert!(!frame.abstraction.estimate.valid, "{:?}", frame.abstraction.reports);
+    assert!(
+        !frame.abstraction.estimate.valid,
+        "{:?}",
+        frame.abstraction.reports
+    );
 }
 
 #[test]
 fn point_counts_from_three_to_a_million() {
     let hip = Point3::new(0.0, 0.0, 0.03);
-    let three = [Vec3::new(0.01, 0.0, 0.0), Vec3::new(0.0, 0.01, 0.0), Vec3::new(-0.01, -0.01, 0.0)];
-    let e = run(&no_memory(), &three, &hip, &-Vector3::z()).abstraction.estimate;
+    let three = [
+        Vec3::new(0.01, 0.0, 0.0),
+        Vec3::new(0.0, 0.01, 0.0),
+        Vec3::new(-0.01, -0.01, 0.0),
+    ];
+    let e = run(&no_memory(), &three, &hip, &-Vector3::z())
+        .abstraction
+        .estimate;
     assert!(e.valid && (e.centroid_m - Point3::origin()).norm() < 1e-6);
     // 10^6 points on the head (a fine ray grid), clean.
     let (hip, mut view) = head_scene(0.03);
     view.fx = 4600.0;
     let cloud = view.render(&[head()], &hip);
     assert!(cloud.len() > 1_000_000, "{}", cloud.len());
-    let e = run(&no_memory(), &cloud, &hip, &view.direction(&hip)).abstraction.estimate;
+    let e = run(&no_memory(), &cloud, &hip, &view.direction(&hip))
+        .abstraction
+        .estimate;
     let (ce, ne) = errors(&e, &head(), &hip);
     assert!(e.valid && ce < 1e-3 && ne < 0.2, "{ce} {ne}");
 }
@@ -243,12 +314,16 @@ fn point_counts_from_three_to_a_million() {
 fn zero_and_huge_noise() {
     let (hip, mut view) = head_scene(0.05);
     let clean = view.render(&[head()], &hip);
-    let e = run(&no_memory(), &clean, &hip, &view.direction(&hip)).abstraction.estimate;
+    let e = run(&no_memory(), &clean, &hip, &view.direction(&hip))
+        .abstraction
+        .estimate;
     let (ce, ne) = errors(&e, &head(), &hip);
     assert!(e.valid && ce < 1e-3 && ne < 0.2, "{ce} {ne}");
     view.extra_noise_m = 0.05;
     let noisy = view.render(&[head()], &hip);
-    let e = run(&no_memory(), &noisy, &hip, &view.direction(&hip)).abstraction.estimate;
+    let e = run(&no_memory(), &noisy, &hip, &view.direction(&hip))
+        .abstraction
+        .estimate;
     assert_finite(&e);
 }
 
@@ -267,8 +342,18 @@ fn nan_and_inf_are_ignored() {
             _ => {}
         }
     }
-    let a = run(&SurfaceConfig::default(), &clean, &hip, &view.direction(&hip));
-    let b = run(&SurfaceConfig::default(), &dirty, &hip, &view.direction(&hip));
+    let a = run(
+        &SurfaceConfig::default(),
+        &clean,
+        &hip,
+        &view.direction(&hip),
+    );
+    let b = run(
+        &SurfaceConfig::default(),
+        &dirty,
+        &hip,
+        &view.direction(&hip),
+    );
     assert_eq!(a.abstraction.estimate, b.abstraction.estimate);
     let layout = ShellLayout::new(&hip, &SurfaceConfig::default().shells.radii_m);
     let sums = accumulate_cpu(&dirty, &layout);
@@ -277,8 +362,20 @@ fn nan_and_inf_are_ignored() {
 }
 
 fn rotation_strategy() -> impl Strategy<Value = Isometry3<f64>> {
-    (-3.0..3.0f64, -3.0..3.0f64, -3.0..3.0f64, -2.0..2.0f64, -2.0..2.0f64, -2.0..2.0f64)
-        .prop_map(|(a, b, c, x, y, z)| Isometry3::from_parts(Translation3::new(x, y, z), UnitQuaternion::from_euler_angles(a, b, c)))
+    (
+        -3.0..3.0f64,
+        -3.0..3.0f64,
+        -3.0..3.0f64,
+        -2.0..2.0f64,
+        -2.0..2.0f64,
+        -2.0..2.0f64,
+    )
+        .prop_map(|(a, b, c, x, y, z)| {
+            Isometry3::from_parts(
+                Translation3::new(x, y, z),
+                UnitQuaternion::from_euler_angles(a, b, c),
+            )
+        })
 }
 
 proptest! {
@@ -334,11 +431,17 @@ fn memory_fills_the_occluded_centre_on_an_approach() {
     let mut last: Option<Point3<f64>> = None;
     let dir = Vector3::new(1.0, 0.3, 0.2).normalize();
     let side = dir.cross(&Vector3::z()).normalize();
-    let cam_dir = UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(dir.cross(&side)), 40f64.to_radians()) * dir;
+    let cam_dir = UnitQuaternion::from_axis_angle(
+        &nalgebra::Unit::new_normalize(dir.cross(&side)),
+        40f64.to_radians(),
+    ) * dir;
     for k in 0..frames {
         let t = k as f64 / 30.0;
         let center = Point3::from(dir * (0.1 * t));
-        let shape = Shape::Sphere { center, radius: 0.09 };
+        let shape = Shape::Sphere {
+            center,
+            radius: 0.09,
+        };
         let gap = 0.09 - 0.075 * k as f64 / (frames - 1) as f64;
         let hip = center + dir * (0.09 + gap);
         let mut view = View::new(center + cam_dir * 0.6);
@@ -351,7 +454,12 @@ fn memory_fills_the_occluded_centre_on_an_approach() {
         let (ea, _) = errors(&a.abstraction.estimate, &shape, &hip);
         let (eb, _) = errors(&b.abstraction.estimate, &shape, &hip);
         if k > 0 {
-            assert_eq!(a.memory.status, hapcloud::perception::memory::MemoryStatus::Merged, "{:?}", a.memory.registration);
+            assert_eq!(
+                a.memory.status,
+                hapcloud::perception::memory::MemoryStatus::Merged,
+                "{:?}",
+                a.memory.registration
+            );
         }
         merged += a.memory.merged_points;
         sq_with += ea * ea;
@@ -362,8 +470,16 @@ fn memory_fills_the_occluded_centre_on_an_approach() {
         }
         last = Some(c);
     }
-    let (rms_with, rms_without) = ((sq_with / frames as f64).sqrt(), (sq_without / frames as f64).sqrt());
-    eprintln!("RMS centroid error: memory {:.2} mm, none {:.2} mm; merged {merged}; max jump {:.2} mm", rms_with * 1e3, rms_without * 1e3, max_jump * 1e3);
+    let (rms_with, rms_without) = (
+        (sq_with / frames as f64).sqrt(),
+        (sq_without / frames as f64).sqrt(),
+    );
+    eprintln!(
+        "RMS centroid error: memory {:.2} mm, none {:.2} mm; merged {merged}; max jump {:.2} mm",
+        rms_with * 1e3,
+        rms_without * 1e3,
+        max_jump * 1e3
+    );
     assert!(merged > 0);
     assert!(rms_with < 2e-3);
     assert!(max_jump < 10e-3);
@@ -385,7 +501,12 @@ fn failed_registration_is_rejected() {
     };
     let bad = view.render(&[wall], &hip);
     let frame = est.estimate(&bad, &hip, &view.direction(&hip), 0, 1.0 / 30.0);
-    assert_eq!(frame.memory.status, hapcloud::perception::memory::MemoryStatus::Rejected, "{:?}", frame.memory.registration);
+    assert_eq!(
+        frame.memory.status,
+        hapcloud::perception::memory::MemoryStatus::Rejected,
+        "{:?}",
+        frame.memory.registration
+    );
     assert_eq!(frame.memory.merged_points, 0);
     let r = MemoryConfig::default();
     assert!(est.memory().points().iter().all(|p| {

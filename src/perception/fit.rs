@@ -169,7 +169,10 @@ impl Moments {
 
     /// Direct f64 accumulation over `points` (the reference the fixed-point paths are tested
     /// against, and the path for point sets that never go to the GPU).
-    pub fn from_points<'a>(origin: Point3<f64>, points: impl IntoIterator<Item = &'a Point3<f64>>) -> Self {
+    pub fn from_points<'a>(
+        origin: Point3<f64>,
+        points: impl IntoIterator<Item = &'a Point3<f64>>,
+    ) -> Self {
         let mut m = Self::zero(origin);
         for p in points {
             m.push(&(p - origin));
@@ -235,7 +238,9 @@ impl Moments {
 pub enum FitError {
     #[error("{count} points: a plane needs at least 3")]
     TooFewPoints { count: u64 },
-    #[error("points are collinear or coincident (second/largest eigenvalue {ratio:.3e}): normal undefined")]
+    #[error(
+        "points are collinear or coincident (second/largest eigenvalue {ratio:.3e}): normal undefined"
+    )]
     Collinear { ratio: f64 },
     #[error("moments are not finite")]
     NonFinite,
@@ -269,7 +274,11 @@ impl PlaneFit {
     pub fn curvature(&self) -> f64 {
         let [l0, l1, l2] = self.eigenvalues_m2;
         let total = l0 + l1 + l2;
-        if total > 0.0 { l0.max(0.0) / total } else { 0.0 }
+        if total > 0.0 {
+            l0.max(0.0) / total
+        } else {
+            0.0
+        }
     }
 
     /// RMS distance of the points from the plane.
@@ -295,7 +304,7 @@ pub fn plane3d(m: &Moments, limits: &FitLimits) -> Result<PlaneFit, FitError> {
     order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
     let eigenvalues_m2 = order.map(|i| eig.eigenvalues[i]);
     let [_, l1, l2] = eigenvalues_m2;
-    if !(l1 > limits.collinear_eigen_ratio * l2) || l2 <= 0.0 {
+    if l1 <= limits.collinear_eigen_ratio * l2 || l2 <= 0.0 {
         let ratio = if l2 > 0.0 { l1 / l2 } else { 0.0 };
         return Err(FitError::Collinear { ratio });
     }
@@ -325,7 +334,11 @@ pub enum CircleMethod {
 }
 
 impl CircleMethod {
-    pub const ALL: [CircleMethod; 3] = [CircleMethod::Kasa, CircleMethod::Taubin, CircleMethod::SphereCut];
+    pub const ALL: [CircleMethod; 3] = [
+        CircleMethod::Kasa,
+        CircleMethod::Taubin,
+        CircleMethod::SphereCut,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -363,6 +376,8 @@ fn binomial(n: usize, k: usize) -> f64 {
     (0..k).fold(1.0, |acc, i| acc * (n - i) as f64 / (i + 1) as f64)
 }
 
+// Index arithmetic over the binomial expansion reads clearer than iterator chains.
+#[allow(clippy::needless_range_loop)]
 fn planar_moments(m: &Moments, e1: &Vector3<f64>, e2: &Vector3<f64>) -> PlanarMoments {
     let n = m.count();
     let (u, v) = (Poly::linear(e1), Poly::linear(e2));
@@ -404,7 +419,11 @@ fn planar_moments(m: &Moments, e1: &Vector3<f64>, e2: &Vector3<f64>) -> PlanarMo
 }
 
 /// `circle3d` of Alg. 2 with the chosen centre estimator.
-pub fn circle3d(m: &Moments, method: CircleMethod, limits: &FitLimits) -> Result<CircleFit, FitError> {
+pub fn circle3d(
+    m: &Moments,
+    method: CircleMethod,
+    limits: &FitLimits,
+) -> Result<CircleFit, FitError> {
     let plane = plane3d(m, limits)?;
     let n = plane.normal.into_inner();
     let offset = n.dot(&(plane.centroid_m - m.origin));
@@ -432,7 +451,7 @@ pub fn circle3d(m: &Moments, method: CircleMethod, limits: &FitLimits) -> Result
     let c = &pm.m;
     // Normalise by the RMS planar spread so the Newton iteration works on O(1) numbers.
     let scale2 = c[2][0] + c[0][2];
-    if !(scale2 > 0.0) || !scale2.is_finite() {
+    if !scale2.is_finite() || scale2 <= 0.0 {
         return Ok(CircleFit {
             fell_back: true,
             ..sphere_cut()
@@ -454,7 +473,9 @@ pub fn circle3d(m: &Moments, method: CircleMethod, limits: &FitLimits) -> Result
     let yc = (myz * (mxx - root) - mxz * mxy) / det / 2.0;
     let radius = (xc * xc + yc * yc + mz).sqrt();
     let radius_m = radius * s;
-    if !(radius_m.is_finite() && xc.is_finite() && yc.is_finite()) || radius_m > limits.max_circle_radius_m {
+    if !(radius_m.is_finite() && xc.is_finite() && yc.is_finite())
+        || radius_m > limits.max_circle_radius_m
+    {
         return Ok(CircleFit {
             fell_back: true,
             ..sphere_cut()
@@ -521,7 +542,9 @@ fn sphere_cut_residual(m: &Moments, plane: &PlaneFit, radius_m: f64) -> f64 {
         .add(&Poly::linear(&Vector3::y()).mul(&Poly::linear(&Vector3::y())))
         .add(&Poly::linear(&Vector3::z()).mul(&Poly::linear(&Vector3::z())));
     let nd = Poly::linear(&n);
-    let f = sq.add(&nd.mul(&nd).scale(-1.0)).add(&Poly::constant(-(radius_m * radius_m)));
+    let f = sq
+        .add(&nd.mul(&nd).scale(-1.0))
+        .add(&Poly::constant(-(radius_m * radius_m)));
     let alg = m.sum_of(&f.mul(&f)) / m.count();
     (alg.max(0.0) / (4.0 * radius_m * radius_m) + out_of_plane).sqrt()
 }
@@ -558,7 +581,15 @@ mod tests {
     }
 
     /// Points of a circle arc of `radius` around `center` in the plane with normal `n`.
-    fn arc(center: Point3<f64>, n: Vector3<f64>, radius: f64, from: f64, to: f64, count: usize, noise: f64) -> Vec<Point3<f64>> {
+    fn arc(
+        center: Point3<f64>,
+        n: Vector3<f64>,
+        radius: f64,
+        from: f64,
+        to: f64,
+        count: usize,
+        noise: f64,
+    ) -> Vec<Point3<f64>> {
         let n = n.normalize();
         let e1 = n.cross(&Vector3::new(0.3, 0.5, 0.7)).normalize();
         let e2 = n.cross(&e1);
@@ -589,8 +620,16 @@ mod tests {
         let origin = center + 0.03 * n.normalize();
         for method in CircleMethod::ALL {
             let fit = circle3d(&moments(origin, &pts), method, &LIMITS).unwrap();
-            assert!((fit.center_m - center).norm() < 1e-9, "{method:?} {:?}", fit.center_m);
-            assert!((fit.radius_m - 0.04).abs() < 2e-3, "{method:?} {}", fit.radius_m);
+            assert!(
+                (fit.center_m - center).norm() < 1e-9,
+                "{method:?} {:?}",
+                fit.center_m
+            );
+            assert!(
+                (fit.radius_m - 0.04).abs() < 2e-3,
+                "{method:?} {}",
+                fit.radius_m
+            );
             assert!(!fit.fell_back);
         }
     }
@@ -610,15 +649,37 @@ mod tests {
 
     #[test]
     fn straight_arc_falls_back_to_the_sphere_cut() {
+        use std::f64::consts::FRAC_PI_2;
         // A 1 cm piece of a 1 km circle: numerically a straight segment with a tiny thickness.
         let n = Vector3::z();
-        let mut pts = arc(Point3::new(0.0, -1000.0, 0.0), n, 1000.0, 1.5707, 1.5708, 50, 0.0);
-        pts.extend(arc(Point3::new(0.0, -1000.0, 0.001), n, 1000.0, 1.5707, 1.5708, 50, 0.0));
+        let mut pts = arc(
+            Point3::new(0.0, -1000.0, 0.0),
+            n,
+            1000.0,
+            FRAC_PI_2 - 5e-5,
+            FRAC_PI_2 + 5e-5,
+            50,
+            0.0,
+        );
+        pts.extend(arc(
+            Point3::new(0.0, -1000.0, 0.001),
+            n,
+            1000.0,
+            FRAC_PI_2 - 5e-5,
+            FRAC_PI_2 + 5e-5,
+            50,
+            0.0,
+        ));
         let limits = FitLimits {
             max_circle_radius_m: 1.0,
             ..LIMITS
         };
-        let fit = circle3d(&moments(Point3::new(0.0, 0.0, 0.0), &pts), CircleMethod::Taubin, &limits).unwrap();
+        let fit = circle3d(
+            &moments(Point3::new(0.0, 0.0, 0.0), &pts),
+            CircleMethod::Taubin,
+            &limits,
+        )
+        .unwrap();
         assert!(fit.fell_back);
         assert!(fit.center_m.coords.iter().all(|c| c.is_finite()));
     }
@@ -627,11 +688,22 @@ mod tests {
     fn degenerate_sets_are_reported() {
         let o = Point3::origin();
         let two = [Point3::new(1.0, 0.0, 0.0), Point3::new(0.0, 1.0, 0.0)];
-        assert!(matches!(plane3d(&moments(o, &two), &LIMITS), Err(FitError::TooFewPoints { count: 2 })));
-        let line: Vec<_> = (0..10).map(|i| Point3::new(i as f64 * 0.01, i as f64 * 0.02, 0.0)).collect();
-        assert!(matches!(plane3d(&moments(o, &line), &LIMITS), Err(FitError::Collinear { .. })));
+        assert!(matches!(
+            plane3d(&moments(o, &two), &LIMITS),
+            Err(FitError::TooFewPoints { count: 2 })
+        ));
+        let line: Vec<_> = (0..10)
+            .map(|i| Point3::new(i as f64 * 0.01, i as f64 * 0.02, 0.0))
+            .collect();
+        assert!(matches!(
+            plane3d(&moments(o, &line), &LIMITS),
+            Err(FitError::Collinear { .. })
+        ));
         let same = vec![Point3::new(0.1, 0.2, 0.3); 20];
-        assert!(matches!(plane3d(&moments(o, &same), &LIMITS), Err(FitError::Collinear { .. })));
+        assert!(matches!(
+            plane3d(&moments(o, &same), &LIMITS),
+            Err(FitError::Collinear { .. })
+        ));
         let mut nan = moments(o, &line);
         nan.sums[5] = f64::NAN;
         assert_eq!(plane3d(&nan, &LIMITS), Err(FitError::NonFinite));

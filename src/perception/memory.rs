@@ -26,7 +26,10 @@
 
 use glam::Vec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
-use nalgebra::{Isometry3, Matrix3, Matrix6, Point3, Rotation3, SymmetricEigen, Translation3, UnitQuaternion, Vector3, Vector6};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix6, Point3, Rotation3, SymmetricEigen, Translation3, UnitQuaternion,
+    Vector3, Vector6,
+};
 use serde::{Deserialize, Serialize};
 use std::num::NonZeroUsize;
 
@@ -84,7 +87,9 @@ pub enum MemoryConfigError {
     NotPositive { name: &'static str, value: f64 },
     #[error("icp.normal_neighbours must be at least 3, got {0}")]
     Neighbours(u32),
-    #[error("memory radii must satisfy 0 < inner_radius_m < outer_radius_m, got {inner} and {outer}")]
+    #[error(
+        "memory radii must satisfy 0 < inner_radius_m < outer_radius_m, got {inner} and {outer}"
+    )]
     Radii { inner: f64, outer: f64 },
     #[error("min_fitness must lie in [0, 1], got {0}")]
     Fitness(f64),
@@ -121,7 +126,9 @@ pub enum IcpError {
     EmptySource,
     #[error("ICP target has {0} finite points, need at least 3")]
     SmallTarget(usize),
-    #[error("iteration {iteration}: {found} correspondences within the maximum distance, need at least 3")]
+    #[error(
+        "iteration {iteration}: {found} correspondences within the maximum distance, need at least 3"
+    )]
     TooFewCorrespondences { iteration: u32, found: usize },
     #[error("iteration {iteration}: the update is degenerate (singular system)")]
     Degenerate { iteration: u32 },
@@ -162,7 +169,11 @@ impl NearestSearch {
 
     /// Index and squared distance of the nearest point (the set must be non-empty).
     pub fn nearest(&self, q: &Point3<f64>) -> (usize, f64) {
-        let nn = self.tree.query(&[q.x, q.y, q.z]).nearest_one::<SquaredEuclidean<f64>>().execute();
+        let nn = self
+            .tree
+            .query(&[q.x, q.y, q.z])
+            .nearest_one::<SquaredEuclidean<f64>>()
+            .execute();
         (nn.item as usize, nn.distance)
     }
 
@@ -190,7 +201,11 @@ fn estimate_normals(search: &NearestSearch, k: usize) -> Vec<Vector3<f64>> {
             if idx.len() < 3 {
                 return Vector3::zeros();
             }
-            let mean = idx.iter().map(|&i| search.points[i].coords).sum::<Vector3<f64>>() / idx.len() as f64;
+            let mean = idx
+                .iter()
+                .map(|&i| search.points[i].coords)
+                .sum::<Vector3<f64>>()
+                / idx.len() as f64;
             let cov = idx.iter().fold(Matrix3::zeros(), |acc, &i| {
                 let d = search.points[i].coords - mean;
                 acc + d * d.transpose()
@@ -217,10 +232,9 @@ fn kabsch(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Option<Isometry3<f64>> {
     let n = src.len() as f64;
     let cs = src.iter().map(|p| p.coords).sum::<Vector3<f64>>() / n;
     let cd = dst.iter().map(|p| p.coords).sum::<Vector3<f64>>() / n;
-    let h = src
-        .iter()
-        .zip(dst)
-        .fold(Matrix3::zeros(), |acc, (s, d)| acc + (s.coords - cs) * (d.coords - cd).transpose());
+    let h = src.iter().zip(dst).fold(Matrix3::zeros(), |acc, (s, d)| {
+        acc + (s.coords - cs) * (d.coords - cd).transpose()
+    });
     let svd = h.try_svd(true, true, f64::EPSILON, 10_000)?;
     let (u, v_t) = (svd.u?, svd.v_t?);
     let mut v = v_t.transpose();
@@ -237,7 +251,11 @@ fn kabsch(src: &[Point3<f64>], dst: &[Point3<f64>]) -> Option<Isometry3<f64>> {
 }
 
 /// Linearised point-to-plane step: `min sum ((R s + t - d) . n)^2` with `R ~ I + [w]x`.
-fn point_to_plane_step(src: &[Point3<f64>], dst: &[Point3<f64>], normals: &[Vector3<f64>]) -> Option<Isometry3<f64>> {
+fn point_to_plane_step(
+    src: &[Point3<f64>],
+    dst: &[Point3<f64>],
+    normals: &[Vector3<f64>],
+) -> Option<Isometry3<f64>> {
     let mut ata = Matrix6::<f64>::zeros();
     let mut atb = Vector6::<f64>::zeros();
     for ((s, d), n) in src.iter().zip(dst).zip(normals) {
@@ -252,7 +270,7 @@ fn point_to_plane_step(src: &[Point3<f64>], dst: &[Point3<f64>], normals: &[Vect
     // (sliding along a plane, turning about a sphere's centre) get no update instead of noise.
     let eig = SymmetricEigen::try_new(ata, f64::EPSILON, 10_000)?;
     let max = eig.eigenvalues.max();
-    if !(max > 0.0) || !max.is_finite() {
+    if !max.is_finite() || max <= 0.0 {
         return None;
     }
     let mut x = Vector6::zeros();
@@ -265,12 +283,24 @@ fn point_to_plane_step(src: &[Point3<f64>], dst: &[Point3<f64>], normals: &[Vect
     }
     let omega = Vector3::new(x[0], x[1], x[2]);
     let rot = UnitQuaternion::from_scaled_axis(omega);
-    Some(Isometry3::from_parts(Translation3::new(x[3], x[4], x[5]), rot))
+    Some(Isometry3::from_parts(
+        Translation3::new(x[3], x[4], x[5]),
+        rot,
+    ))
 }
 
 /// Registers `source` onto `target`, starting from `initial` (target_from_source).
-pub fn icp(source: &[Point3<f64>], target: &NearestSearch, initial: Isometry3<f64>, config: &IcpConfig) -> Result<IcpResult, IcpError> {
-    let source: Vec<Point3<f64>> = source.iter().filter(|p| p.coords.iter().all(|c| c.is_finite())).copied().collect();
+pub fn icp(
+    source: &[Point3<f64>],
+    target: &NearestSearch,
+    initial: Isometry3<f64>,
+    config: &IcpConfig,
+) -> Result<IcpResult, IcpError> {
+    let source: Vec<Point3<f64>> = source
+        .iter()
+        .filter(|p| p.coords.iter().all(|c| c.is_finite()))
+        .copied()
+        .collect();
     if source.is_empty() {
         return Err(IcpError::EmptySource);
     }
@@ -318,7 +348,9 @@ pub fn icp(source: &[Point3<f64>], target: &NearestSearch, initial: Isometry3<f6
             IcpMethod::PointToPoint => kabsch(&src, &dst),
             IcpMethod::PointToPlane => point_to_plane_step(&src, &dst, &nrm),
         }
-        .ok_or(IcpError::Degenerate { iteration: iterations })?;
+        .ok_or(IcpError::Degenerate {
+            iteration: iterations,
+        })?;
         transform = step * transform;
         let mse = sum_d2 / src.len() as f64;
         let small_step = step.rotation.angle() <= config.rotation_epsilon_rad
@@ -331,14 +363,22 @@ pub fn icp(source: &[Point3<f64>], target: &NearestSearch, initial: Isometry3<f6
     }
     let (inliers, sum_d2) = source.iter().fold((0usize, 0.0), |(n, s), p| {
         let (_, d2) = target.nearest(&(transform * p));
-        if d2 <= max_d2 { (n + 1, s + d2) } else { (n, s) }
+        if d2 <= max_d2 {
+            (n + 1, s + d2)
+        } else {
+            (n, s)
+        }
     });
     Ok(IcpResult {
         target_from_source: transform,
         converged,
         iterations,
         fitness: inliers as f64 / source.len() as f64,
-        inlier_rmse_m: if inliers > 0 { (sum_d2 / inliers as f64).sqrt() } else { f64::INFINITY },
+        inlier_rmse_m: if inliers > 0 {
+            (sum_d2 / inliers as f64).sqrt()
+        } else {
+            f64::INFINITY
+        },
     })
 }
 
@@ -391,7 +431,10 @@ impl Default for MemoryConfig {
 
 impl MemoryConfig {
     pub fn validate(&self) -> Result<(), MemoryConfigError> {
-        if !(self.inner_radius_m > 0.0 && self.inner_radius_m < self.outer_radius_m && self.outer_radius_m.is_finite()) {
+        if !(self.inner_radius_m > 0.0
+            && self.inner_radius_m < self.outer_radius_m
+            && self.outer_radius_m.is_finite())
+        {
             return Err(MemoryConfigError::Radii {
                 inner: self.inner_radius_m,
                 outer: self.outer_radius_m,
@@ -476,7 +519,11 @@ impl SurfaceMemory {
             let r = (p - hip).norm();
             r >= config.inner_radius_m && r < config.outer_radius_m
         };
-        let annulus: Vec<Point3<f64>> = finite.iter().map(|&p| to_f64(p)).filter(in_annulus).collect();
+        let annulus: Vec<Point3<f64>> = finite
+            .iter()
+            .map(|&p| to_f64(p))
+            .filter(in_annulus)
+            .collect();
         let memory = std::mem::take(&mut self.points);
         let mut step = MemoryStep {
             points: finite,
@@ -489,7 +536,11 @@ impl SurfaceMemory {
         let min = config.min_points as usize;
         if !memory.is_empty() {
             let source: Vec<Point3<f64>> = memory.iter().copied().filter(in_annulus).collect();
-            let source = if source.len() >= min { source } else { memory.clone() };
+            let source = if source.len() >= min {
+                source
+            } else {
+                memory.clone()
+            };
             if source.len() < min || annulus.len() < min {
                 step.status = MemoryStatus::TooFewPoints;
             } else {
@@ -528,7 +579,11 @@ impl SurfaceMemory {
             merged.retain(|p| current.nearest(p).1 > cover2);
         }
         step.merged_points = merged.len();
-        step.points.extend(merged.iter().map(|p| Vec3::new(p.x as f32, p.y as f32, p.z as f32)));
+        step.points.extend(
+            merged
+                .iter()
+                .map(|p| Vec3::new(p.x as f32, p.y as f32, p.z as f32)),
+        );
         self.points = annulus;
         self.points.extend(kept);
         step
@@ -550,7 +605,11 @@ mod tests {
         }
         lines
             .filter_map(|l| {
-                let v: Vec<f64> = l.split_whitespace().take(3).filter_map(|t| t.parse().ok()).collect();
+                let v: Vec<f64> = l
+                    .split_whitespace()
+                    .take(3)
+                    .filter_map(|t| t.parse().ok())
+                    .collect();
                 (v.len() == 3).then(|| Point3::new(v[0], v[1], v[2]))
             })
             .collect()
@@ -566,7 +625,13 @@ mod tests {
             method: IcpMethod::PointToPoint,
             ..IcpConfig::default()
         };
-        let result = icp(&src, &NearestSearch::new(dst), Isometry3::identity(), &config).unwrap();
+        let result = icp(
+            &src,
+            &NearestSearch::new(dst),
+            Isometry3::identity(),
+            &config,
+        )
+        .unwrap();
         let m = result.target_from_source.to_homogeneous();
         let expected = [
             [0.8806, 0.0365, -0.4724, 0.0345],
@@ -576,7 +641,12 @@ mod tests {
         for r in 0..3 {
             for c in 0..4 {
                 let tol = if (r, c) == (0, 1) { 1e-2 } else { 1e-3 };
-                assert!((m[(r, c)] - expected[r][c]).abs() < tol, "({r},{c}) {} vs {}\n{m}", m[(r, c)], expected[r][c]);
+                assert!(
+                    (m[(r, c)] - expected[r][c]).abs() < tol,
+                    "({r},{c}) {} vs {}\n{m}",
+                    m[(r, c)],
+                    expected[r][c]
+                );
             }
         }
         eprintln!("bun0->bun4: {result:?}");

@@ -11,7 +11,9 @@
 //! over the cleaned cloud.
 
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
-use super::shells::{self, ShellAbstraction, ShellConfig, ShellConfigError, ShellLayout, ShellSums};
+use super::shells::{
+    self, ShellAbstraction, ShellConfig, ShellConfigError, ShellLayout, ShellSums,
+};
 use crate::camera::Frame;
 use glam::Vec3;
 use nalgebra::{Point3, Vector3};
@@ -96,12 +98,20 @@ impl SurfaceEstimator {
     }
 
     /// Estimate from a cleaned cloud already in the world frame.
-    pub fn estimate(&mut self, cloud_world: &[Vec3], hip: &Point3<f64>, view_dir: &Vector3<f64>, camera_id: u32, stamp_s: f64) -> SurfaceFrame {
+    pub fn estimate(
+        &mut self,
+        cloud_world: &[Vec3],
+        hip: &Point3<f64>,
+        view_dir: &Vector3<f64>,
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> SurfaceFrame {
         let memory = self.memory.step(cloud_world, hip, &self.config.memory);
         let layout = ShellLayout::new(hip, &self.config.shells.radii_m);
         let sums = shells::accumulate_cpu(&memory.points, &layout);
         let moments = sums.to_moments(&layout);
-        let abstraction = shells::abstract_surface(&moments, &self.config.shells, view_dir, camera_id, stamp_s);
+        let abstraction =
+            shells::abstract_surface(&moments, &self.config.shells, view_dir, camera_id, stamp_s);
         SurfaceFrame {
             abstraction,
             memory,

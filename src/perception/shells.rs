@@ -134,14 +134,18 @@ impl ShellConfig {
         if !(self.collinear_eigen_ratio > 0.0 && self.collinear_eigen_ratio < 1.0) {
             return Err(ShellConfigError::CollinearRatio(self.collinear_eigen_ratio));
         }
-        if !(self.max_circle_radius_ratio >= 1.0) {
-            return Err(ShellConfigError::CircleRadiusRatio(self.max_circle_radius_ratio));
+        if self.max_circle_radius_ratio.is_nan() || self.max_circle_radius_ratio < 1.0 {
+            return Err(ShellConfigError::CircleRadiusRatio(
+                self.max_circle_radius_ratio,
+            ));
         }
-        if !(self.max_residual_ratio > 0.0) {
+        if self.max_residual_ratio.is_nan() || self.max_residual_ratio <= 0.0 {
             return Err(ShellConfigError::ResidualRatio(self.max_residual_ratio));
         }
         if !(0.0..=std::f64::consts::PI).contains(&self.correction_max_angle_rad) {
-            return Err(ShellConfigError::CorrectionAngle(self.correction_max_angle_rad));
+            return Err(ShellConfigError::CorrectionAngle(
+                self.correction_max_angle_rad,
+            ));
         }
         Ok(())
     }
@@ -219,7 +223,8 @@ impl ShellSums {
                 let radius = 1.0 / f64::from(inv);
                 let mut m = Moments::zero(layout.origin());
                 for (n, s) in sums.iter().enumerate() {
-                    m.sums[n] = *s as f64 / f64::from(FIXED_ONE) * radius.powi(fit::degree(n) as i32);
+                    m.sums[n] =
+                        *s as f64 / f64::from(FIXED_ONE) * radius.powi(fit::degree(n) as i32);
                 }
                 m
             })
@@ -229,13 +234,19 @@ impl ShellSums {
 
 /// True when all three coordinates are finite, decided on the bits (as the shader does).
 pub fn finite_bits(p: Vec3) -> bool {
-    p.to_array().iter().all(|c| c.to_bits() & 0x7f80_0000 != 0x7f80_0000)
+    p.to_array()
+        .iter()
+        .all(|c| c.to_bits() & 0x7f80_0000 != 0x7f80_0000)
 }
 
 /// The shell a point falls in, with its HIP-centred offset, or `None` when it lies outside.
 /// The same integer decision as the shader.
 pub fn shell_of(p: Vec3, layout: &ShellLayout) -> Option<(usize, [f32; 3])> {
-    let d = [p.x - layout.hip[0], p.y - layout.hip[1], p.z - layout.hip[2]];
+    let d = [
+        p.x - layout.hip[0],
+        p.y - layout.hip[1],
+        p.z - layout.hip[2],
+    ];
     if d.iter().any(|c| c.abs() >= layout.outer_radius) {
         return None;
     }
@@ -338,7 +349,10 @@ pub fn abstract_surface(
     camera_id: u32,
     stamp_s: f64,
 ) -> ShellAbstraction {
-    let hip = moments.first().map(|m| m.origin).unwrap_or_else(Point3::origin);
+    let hip = moments
+        .first()
+        .map(|m| m.origin)
+        .unwrap_or_else(Point3::origin);
     let mut reports = Vec::with_capacity(moments.len());
     let mut fits: Vec<Accepted> = Vec::new();
     for (i, m) in moments.iter().enumerate() {
@@ -368,10 +382,26 @@ pub fn abstract_surface(
         };
         let first = fits.is_empty();
         let fitted = if first {
-            plane3d(m, &limits).map(|p| (ShellFitKind::Plane, p.centroid_m, p.normal, None, p.residual_rms_m(), false))
+            plane3d(m, &limits).map(|p| {
+                (
+                    ShellFitKind::Plane,
+                    p.centroid_m,
+                    p.normal,
+                    None,
+                    p.residual_rms_m(),
+                    false,
+                )
+            })
         } else {
             circle3d(m, config.circle_method, &limits).map(|c| {
-                (ShellFitKind::Circle, c.center_m, c.normal, Some(c.radius_m), c.residual_rms_m, c.fell_back)
+                (
+                    ShellFitKind::Circle,
+                    c.center_m,
+                    c.normal,
+                    Some(c.radius_m),
+                    c.residual_rms_m,
+                    c.fell_back,
+                )
             })
         };
         match fitted {
@@ -385,7 +415,7 @@ pub fn abstract_surface(
             }
             Ok((kind, center, normal, radius, residual, fell_back)) => {
                 report.fell_back = fell_back;
-                if !(residual <= config.max_residual_ratio * outer) {
+                if residual.is_nan() || residual > config.max_residual_ratio * outer {
                     report.status = "inconsistent";
                 } else {
                     // Eq. 2: orient against the camera's viewing direction.
@@ -414,7 +444,11 @@ pub fn abstract_surface(
     if config.reject_worst_half && fits.len() >= 2 {
         let scores: Vec<f64> = fits
             .iter()
-            .map(|a| fits.iter().map(|b| (a.fit.normal.into_inner() - b.fit.normal.into_inner()).norm()).sum())
+            .map(|a| {
+                fits.iter()
+                    .map(|b| (a.fit.normal.into_inner() - b.fit.normal.into_inner()).norm())
+                    .sum()
+            })
             .collect();
         let mut order: Vec<usize> = (0..fits.len()).collect();
         order.sort_by(|&a, &b| scores[a].total_cmp(&scores[b]).then(a.cmp(&b)));
@@ -427,9 +461,16 @@ pub fn abstract_surface(
     let kept: Vec<&Accepted> = fits.iter().filter(|a| !a.fit.rejected).collect();
     let weight = |a: &Accepted| 1.0 / a.fit.outer_radius_m;
     let total_w: f64 = kept.iter().map(|a| weight(a)).sum();
-    let sum_n: Vector3<f64> = kept.iter().map(|a| weight(a) * a.fit.normal.into_inner()).sum();
+    let sum_n: Vector3<f64> = kept
+        .iter()
+        .map(|a| weight(a) * a.fit.normal.into_inner())
+        .sum();
     let sum_c: Vector3<f64> = kept.iter().map(|a| weight(a) * a.fit.center_m.coords).sum();
-    let resultant = if total_w > 0.0 { sum_n.norm() / total_w } else { 0.0 };
+    let resultant = if total_w > 0.0 {
+        sum_n.norm() / total_w
+    } else {
+        0.0
+    };
     let fallback_normal = Unit::try_new(-view_dir, 1e-12).unwrap_or(Vector3::z_axis());
     let mut estimate = SurfaceEstimate {
         camera_id,
@@ -455,7 +496,13 @@ pub fn abstract_surface(
         .filter(|a| a.fit.normal.angle(&normal) <= config.correction_max_angle_rad)
         .collect();
     let correction = if config.curvature_correction {
-        curvature_correction(&agreeing, &normal, &hip, &paper_centroid, config.outer_radius_m())
+        curvature_correction(
+            &agreeing,
+            &normal,
+            &hip,
+            &paper_centroid,
+            config.outer_radius_m(),
+        )
     } else {
         None
     };
@@ -493,7 +540,11 @@ fn curvature_correction(
         .iter()
         .map(|a| {
             let depth = normal.dot(&(hip - a.moments.mean()));
-            (1.0 / a.fit.outer_radius_m, a.moments.mean_squared_distance(), depth)
+            (
+                1.0 / a.fit.outer_radius_m,
+                a.moments.mean_squared_distance(),
+                depth,
+            )
         })
         .collect();
     let sw: f64 = samples.iter().map(|s| s.0).sum();
@@ -502,13 +553,13 @@ fn curvature_correction(
     let sxx: f64 = samples.iter().map(|s| s.0 * (s.1 - mx).powi(2)).sum();
     let sxy: f64 = samples.iter().map(|s| s.0 * (s.1 - mx) * (s.2 - my)).sum();
     // The r^2 values must spread (distinct shells); a tiny spread makes the slope noise.
-    if !(sxx > 1e-12 * sw * mx * mx) {
+    if sxx.is_nan() || sxx <= 1e-12 * sw * mx * mx {
         return None;
     }
     let beta = sxy / sxx;
     let alpha = my - beta * mx;
     let disc = 1.0 - 4.0 * alpha * beta;
-    if !(disc >= 0.0) {
+    if disc.is_nan() || disc < 0.0 {
         return None;
     }
     let depth = 2.0 * alpha / (1.0 + disc.sqrt());

@@ -10,9 +10,15 @@ use rand_distr::{Distribution, Normal};
 
 #[derive(Clone, Copy, Debug)]
 pub enum Shape {
-    Sphere { center: Point3<f64>, radius: f64 },
+    Sphere {
+        center: Point3<f64>,
+        radius: f64,
+    },
     /// Plane through `point` with unit normal `normal` (facing the camera).
-    Plane { point: Point3<f64>, normal: Vector3<f64> },
+    Plane {
+        point: Point3<f64>,
+        normal: Vector3<f64>,
+    },
 }
 
 impl Shape {
@@ -27,7 +33,9 @@ impl Shape {
             }
             Shape::Plane { point, normal } => {
                 let den = normal.dot(d);
-                (den.abs() > 1e-12).then(|| normal.dot(&(point - o)) / den).filter(|t| *t > 0.0)
+                (den.abs() > 1e-12)
+                    .then(|| normal.dot(&(point - o)) / den)
+                    .filter(|t| *t > 0.0)
             }
         }
     }
@@ -100,14 +108,21 @@ impl View {
                         continue;
                     }
                 }
-                let hit = shapes.iter().filter_map(|s| s.ray(&self.camera, &d)).min_by(f64::total_cmp);
+                let hit = shapes
+                    .iter()
+                    .filter_map(|s| s.ray(&self.camera, &d))
+                    .min_by(f64::total_cmp);
                 let Some(t) = hit else { continue };
                 let z = t * d.dot(&axis);
                 let mut sigma = self.extra_noise_m;
                 if self.d435_noise {
                     sigma += 0.000611 + 0.003587 * (z - 0.3515).powi(2);
                 }
-                let t = if sigma > 0.0 { t * (1.0 + sigma * unit.sample(&mut rng) / z) } else { t };
+                let t = if sigma > 0.0 {
+                    t * (1.0 + sigma * unit.sample(&mut rng) / z)
+                } else {
+                    t
+                };
                 let p = self.camera + t * d;
                 out.push(Vec3::new(p.x as f32, p.y as f32, p.z as f32));
             }
@@ -118,5 +133,9 @@ impl View {
 
 /// Angle between two unit vectors, degrees.
 pub fn angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
-    a.normalize().dot(&b.normalize()).clamp(-1.0, 1.0).acos().to_degrees()
+    a.normalize()
+        .dot(&b.normalize())
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
 }
