@@ -172,7 +172,10 @@ fn dragging_the_view_orbits_and_scrolling_zooms() {
 fn live_mode_follows_the_newest_frame_and_drops_old_history() {
     let frames = viewer_fixture::timeline();
     let (tx, rx) = std::sync::mpsc::channel();
-    let config = ViewerConfig { live_history_s: 0.2, ..ViewerConfig::default() };
+    let config = ViewerConfig {
+        live_history_s: 0.2,
+        ..ViewerConfig::default()
+    };
     let app = ViewerApp::new(ViewerSource::Live(rx), config).unwrap();
     let mut h = Harness::builder()
         .with_size(SIZE)
@@ -189,7 +192,10 @@ fn live_mode_follows_the_newest_frame_and_drops_old_history() {
     // 0.2 s of history at 30 Hz: the newest frame and the 6 before it.
     assert_eq!(h.state().frame_count(), 7);
     assert_eq!(h.state().current_index(), 6);
-    let d9 = format!("d_proj = {:.1} mm", frames[9].samples.d_proj_m.unwrap() * 1e3);
+    let d9 = format!(
+        "d_proj = {:.1} mm",
+        frames[9].samples.d_proj_m.unwrap() * 1e3
+    );
     assert!(h.query_by_label(&d9).is_some());
 
     // Scrubbing stops following; new frames then do not move the view.
@@ -199,8 +205,15 @@ fn live_mode_follows_the_newest_frame_and_drops_old_history() {
     tx.send(frames[10].clone()).unwrap();
     h.run_steps(2);
     assert_eq!(h.state().frame_count(), 7);
-    assert_eq!(h.state().current_index(), 4, "frame 8 stays on screen as history shifts");
-    let d8 = format!("d_proj = {:.1} mm", frames[8].samples.d_proj_m.unwrap() * 1e3);
+    assert_eq!(
+        h.state().current_index(),
+        4,
+        "frame 8 stays on screen as history shifts"
+    );
+    let d8 = format!(
+        "d_proj = {:.1} mm",
+        frames[8].samples.d_proj_m.unwrap() * 1e3
+    );
     assert!(h.query_by_label(&d8).is_some());
     h.get_by_label("follow latest").click();
     h.run_steps(2);
