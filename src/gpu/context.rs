@@ -288,13 +288,20 @@ fn convert(context: &str, e: wgpu::Error) -> GpuError {
     }
 }
 
+/// The context GPU tests share (opening a device per test is slow on lavapipe). GPU tests
+/// need a Vulkan device; CI installs lavapipe (see .ci/run).
+#[cfg(test)]
+pub(crate) fn test_context() -> &'static GpuContext {
+    static CTX: std::sync::OnceLock<GpuContext> = std::sync::OnceLock::new();
+    CTX.get_or_init(|| GpuContext::new().unwrap_or_else(|e| panic!("GPU tests need Vulkan: {e}")))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// GPU tests need a Vulkan device; CI installs lavapipe (see .ci/run).
-    pub(crate) fn ctx() -> GpuContext {
-        GpuContext::new().unwrap_or_else(|e| panic!("GPU tests need Vulkan: {e}"))
+    fn ctx() -> &'static GpuContext {
+        test_context()
     }
 
     #[test]

@@ -9,6 +9,7 @@
 //! and its CPU reference (`--backend gpu|cpu` on every processing command).
 
 pub mod context;
+pub mod mirrors;
 pub mod shader;
 pub mod timing;
 

@@ -27,8 +27,18 @@ impl StageShader {
     }
 }
 
+pub const CROP: StageShader = StageShader {
+    name: "crop",
+    source: include_str!("../../shaders/crop.wgsl"),
+};
+
+pub const VOXEL: StageShader = StageShader {
+    name: "voxel",
+    source: include_str!("../../shaders/voxel.wgsl"),
+};
+
 /// Every stage shader; the naga test checks this against the files in `shaders/`.
-pub const STAGE_SHADERS: &[StageShader] = &[];
+pub const STAGE_SHADERS: &[StageShader] = &[CROP, VOXEL];
 
 /// Number of workgroups of [`WORKGROUP_SIZE`] threads that cover `items`.
 pub fn workgroups_for(items: u32) -> u32 {

@@ -1,7 +1,12 @@
 //! Per-camera perception stages (paper section IV-A to IV-E), each with a GPU and a CPU
 //! reference implementation.
 
+pub mod crop;
 pub mod fit;
 pub mod memory;
 pub mod pipeline;
 pub mod shells;
+pub mod voxel;
+
+#[cfg(test)]
+pub(crate) mod test_data;

@@ -103,13 +103,6 @@ impl ViewerApp {
         self.play_clock_s = self.frames.get(self.current).map_or(0.0, |f| f.stamp_s);
     }
 
-    /// The user picked a frame: stop playing and stop following a live source.
-    fn scrub(&mut self, index: usize) {
-        self.playing = false;
-        self.follow_live = false;
-        self.seek(index);
-    }
-
     /// Draw the whole viewer into `ui`.
     pub fn ui(&mut self, ui: &mut egui::Ui) {
         self.poll_live(ui.ctx());
@@ -265,7 +258,8 @@ impl ViewerApp {
                 .add_enabled(self.current > 0, egui::Button::new("Previous frame"))
                 .clicked()
             {
-                self.scrub(self.current.saturating_sub(1));
+                self.playing = false;
+                self.seek(self.current.saturating_sub(1));
             }
             let label = if self.playing { "Pause" } else { "Play" };
             if ui.add_enabled(n > 1, egui::Button::new(label)).clicked() {
@@ -273,14 +267,14 @@ impl ViewerApp {
                     self.seek(0);
                 }
                 self.playing = !self.playing;
-                self.follow_live = false;
                 self.play_clock_s = self.frames.get(self.current).map_or(0.0, |f| f.stamp_s);
             }
             if ui
                 .add_enabled(self.current < last, egui::Button::new("Next frame"))
                 .clicked()
             {
-                self.scrub(self.current + 1);
+                self.playing = false;
+                self.seek(self.current + 1);
             }
             egui::ComboBox::from_label("speed")
                 .selected_text(format!("{}x", self.speed))
@@ -299,7 +293,9 @@ impl ViewerApp {
             ui.spacing_mut().slider_width = (ui.available_width() - 160.0).max(100.0);
             let slider = egui::Slider::new(&mut index, 0..=last).text("frame");
             if ui.add_enabled(n > 1, slider).changed() {
-                self.scrub(index);
+                self.playing = false;
+                self.follow_live = false;
+                self.seek(index);
             }
             if let (Some(f), Some(first)) = (self.frames.get(self.current), self.frames.first()) {
                 ui.label(format!("t = {:.3} s", f.stamp_s - first.stamp_s));

@@ -1,0 +1,134 @@
+//! `#[repr(C)]` Rust mirrors of the WGSL structs that cross the CPU-GPU boundary.
+//!
+//! Each mirror is listed in [`MIRRORS`] with the shader that declares it; a CPU-only test
+//! computes the WGSL layout with naga's layouter and checks size and alignment against Rust.
+
+use bytemuck::{Pod, Zeroable};
+
+use super::shader::{self, StageShader};
+
+/// `CropParams` in crop.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct CropParams {
+    /// HIP position (xyz, m) and squared crop radius (w, m^2).
+    pub hip_r2: [f32; 4],
+    pub point_count: u32,
+    pub primitive_count: u32,
+    pub word_count: u32,
+    pub _pad: u32,
+}
+
+/// `CropPrimitive` in crop.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct CropPrimitive {
+    /// 0 sphere, 1 capsule, 2 oriented box.
+    pub kind: u32,
+    pub radius: f32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+    pub a: [f32; 4],
+    pub b: [f32; 4],
+    pub axis_x: [f32; 4],
+    pub axis_y: [f32; 4],
+    pub axis_z: [f32; 4],
+}
+
+/// `VoxelParams` in voxel.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct VoxelParams {
+    pub inv_leaf: f32,
+    pub leaf: f32,
+    pub point_count: u32,
+    pub table_mask: u32,
+    pub max_probes: u32,
+    pub min_points: u32,
+    /// 0, 1, 2: filter on x, y, z; 3: none.
+    pub filter_axis: u32,
+    pub filter_keep_inside: u32,
+    pub filter_lo: f32,
+    pub filter_hi: f32,
+    pub use_mask: u32,
+    pub _pad: u32,
+}
+
+/// `VoxelHeader` in voxel.wgsl (atomics there, plain words here).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct VoxelHeader {
+    pub valid_count: u32,
+    pub cells: u32,
+    pub out_count: u32,
+    pub overflow: u32,
+    /// Bitwise-inverted order keys of the minimum coordinates.
+    pub min_inv: [u32; 3],
+    /// Order keys of the maximum coordinates.
+    pub max_key: [u32; 3],
+    pub _pad0: u32,
+    pub _pad1: u32,
+}
+
+/// `SortStep` in voxel.wgsl: one bitonic step, bound with a dynamic uniform offset.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct SortStep {
+    pub k: u32,
+    pub j: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+}
+
+/// A mirrored struct: its WGSL name, the shader declaring it, and the Rust layout.
+pub struct Mirror {
+    pub shader: StageShader,
+    pub wgsl_name: &'static str,
+    pub size: usize,
+    pub align: usize,
+}
+
+const fn mirror<T>(shader: StageShader, wgsl_name: &'static str) -> Mirror {
+    Mirror {
+        shader,
+        wgsl_name,
+        size: std::mem::size_of::<T>(),
+        align: std::mem::align_of::<T>(),
+    }
+}
+
+/// Every mirror, checked against naga's layout of its shader.
+pub const MIRRORS: &[Mirror] = &[
+    mirror::<CropParams>(shader::CROP, "CropParams"),
+    mirror::<CropPrimitive>(shader::CROP, "CropPrimitive"),
+    mirror::<VoxelParams>(shader::VOXEL, "VoxelParams"),
+    mirror::<VoxelHeader>(shader::VOXEL, "VoxelHeader"),
+    mirror::<SortStep>(shader::VOXEL, "SortStep"),
+];
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mirror_sizes_match_wgsl_layouts() {
+        for m in MIRRORS {
+            let (module, _) =
+                shader::validate(&m.shader, naga::valid::Capabilities::empty()).unwrap();
+            let mut layouter = naga::proc::Layouter::default();
+            layouter.update(module.to_ctx()).unwrap();
+            let (handle, _) = module
+                .types
+                .iter()
+                .find(|(_, t)| t.name.as_deref() == Some(m.wgsl_name))
+                .unwrap_or_else(|| panic!("{} not in {}.wgsl", m.wgsl_name, m.shader.name));
+            let layout = layouter[handle];
+            assert_eq!(layout.size as usize, m.size, "size of {}", m.wgsl_name);
+            // Rust alignment may be smaller (f32 arrays instead of vec4) but must divide
+            // WGSL's, and the size must be a multiple of WGSL's alignment (array stride).
+            let wgsl_align = layout.alignment.round_up(1) as usize;
+            assert_eq!(m.size % wgsl_align, 0, "stride of {}", m.wgsl_name);
+            assert_eq!(wgsl_align % m.align, 0, "alignment of {}", m.wgsl_name);
+        }
+    }
+}

@@ -1,0 +1,546 @@
+//! Crop: extraction of relevant points (paper section IV-A).
+//!
+//! A point is kept when (1) its three coordinates are finite, decided by an integer test on
+//! the f32 bit pattern (exponent bits not all ones), (2) it lies within `radius_m` of the
+//! haptic interaction point (HIP), i.e. not outside the paper's "inverted sphere", and
+//! (3) it lies outside every robot collision primitive ([`Primitive`], posed in the cloud
+//! frame). The result is a keep mask of 32-bit words, bit `i % 32` of word `i / 32` for point
+//! `i`, which the voxel stage consumes directly on the GPU.
+//!
+//! [`crop_cpu`] is the reference (f64 geometry from [`crate::geometry`]); [`GpuCrop`] runs
+//! `shaders/crop.wgsl` (f32, one thread per mask word, no atomics). Both agree exactly except
+//! for points within f32 rounding (about 1e-6 m) of a boundary.
+
+use glam::Vec3;
+use nalgebra::Point3;
+use serde::{Deserialize, Serialize};
+
+use crate::geometry::{Primitive, PrimitiveError, box_rotation};
+use crate::gpu::mirrors::{CropParams, CropPrimitive};
+use crate::gpu::shader::{self, BindingKind};
+use crate::gpu::{GpuContext, GpuError};
+
+/// Crop settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CropConfig {
+    /// Points farther than this from the HIP are dropped (m).
+    pub radius_m: f64,
+}
+
+impl Default for CropConfig {
+    fn default() -> Self {
+        Self { radius_m: 0.3 }
+    }
+}
+
+/// Why a crop cannot run.
+#[derive(Debug, thiserror::Error)]
+pub enum CropError {
+    #[error("crop radius_m must be finite and positive, got {0}")]
+    BadRadius(f64),
+    #[error("HIP position must be finite")]
+    BadHip,
+    #[error("robot primitive {index}: {source}")]
+    BadPrimitive {
+        index: usize,
+        source: PrimitiveError,
+    },
+    #[error("cloud of {0} points is too large for one crop pass")]
+    TooManyPoints(usize),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+}
+
+impl CropConfig {
+    pub fn validate(&self) -> Result<(), CropError> {
+        if !(self.radius_m.is_finite() && self.radius_m > 0.0) {
+            return Err(CropError::BadRadius(self.radius_m));
+        }
+        Ok(())
+    }
+}
+
+/// What the crop needs each frame, in the cloud frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CropScene<'a> {
+    /// The haptic interaction point (m).
+    pub hip_m: Point3<f64>,
+    /// Robot collision primitives posed in the cloud frame.
+    pub robot: &'a [Primitive],
+}
+
+impl CropScene<'_> {
+    fn validate(&self) -> Result<(), CropError> {
+        if !self.hip_m.coords.iter().all(|v| v.is_finite()) {
+            return Err(CropError::BadHip);
+        }
+        for (index, p) in self.robot.iter().enumerate() {
+            p.validate()
+                .map_err(|source| CropError::BadPrimitive { index, source })?;
+        }
+        Ok(())
+    }
+}
+
+/// True when all three coordinates are finite, decided on the bit patterns.
+pub fn finite_bits(p: Vec3) -> bool {
+    const EXP: u32 = 0x7f80_0000;
+    [p.x, p.y, p.z].iter().all(|v| v.to_bits() & EXP != EXP)
+}
+
+/// Number of 32-bit mask words for `n` points.
+pub fn mask_words(n: usize) -> usize {
+    n.div_ceil(32)
+}
+
+/// Whether point `i` is set in a keep mask.
+pub fn mask_bit(mask: &[u32], i: usize) -> bool {
+    mask.get(i / 32).is_some_and(|w| (w >> (i % 32)) & 1 == 1)
+}
+
+/// Indices of the points a keep mask keeps, ascending.
+pub fn kept_indices(mask: &[u32], n: usize) -> Vec<usize> {
+    (0..n).filter(|&i| mask_bit(mask, i)).collect()
+}
+
+/// CPU reference: the keep mask of `points`.
+pub fn crop_cpu(
+    points: &[Vec3],
+    config: &CropConfig,
+    scene: &CropScene<'_>,
+) -> Result<Vec<u32>, CropError> {
+    config.validate()?;
+    scene.validate()?;
+    let r2 = config.radius_m * config.radius_m;
+    let mut mask = vec![0u32; mask_words(points.len())];
+    for (i, p) in points.iter().enumerate() {
+        if !finite_bits(*p) {
+            continue;
+        }
+        let q = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+        if (q - scene.hip_m).norm_squared() > r2 {
+            continue;
+        }
+        if scene.robot.iter().any(|prim| prim.contains(&q)) {
+            continue;
+        }
+        mask[i / 32] |= 1 << (i % 32);
+    }
+    Ok(mask)
+}
+
+fn v4(v: nalgebra::Vector3<f64>) -> [f32; 4] {
+    [v.x as f32, v.y as f32, v.z as f32, 0.0]
+}
+
+/// The GPU form of a primitive (f32, box axes as rotation columns).
+pub fn gpu_primitive(p: &Primitive) -> CropPrimitive {
+    match p {
+        Primitive::Sphere { center_m, radius_m } => CropPrimitive {
+            kind: 0,
+            radius: *radius_m as f32,
+            a: v4(center_m.coords),
+            ..Default::default()
+        },
+        Primitive::Capsule { a_m, b_m, radius_m } => CropPrimitive {
+            kind: 1,
+            radius: *radius_m as f32,
+            a: v4(a_m.coords),
+            b: v4(b_m.coords),
+            ..Default::default()
+        },
+        Primitive::OrientedBox {
+            center_m,
+            rpy_rad,
+            half_extents_m,
+        } => {
+            let r = box_rotation(rpy_rad);
+            let m = r.matrix();
+            CropPrimitive {
+                kind: 2,
+                radius: 0.0,
+                a: v4(center_m.coords),
+                b: v4(*half_extents_m),
+                axis_x: v4(m.column(0).into_owned()),
+                axis_y: v4(m.column(1).into_owned()),
+                axis_z: v4(m.column(2).into_owned()),
+                ..Default::default()
+            }
+        }
+    }
+}
+
+/// GPU crop: pipeline built once, buffers grown as needed.
+pub struct GpuCrop {
+    layout: wgpu::BindGroupLayout,
+    pipeline: wgpu::ComputePipeline,
+    params: wgpu::Buffer,
+    primitives: wgpu::Buffer,
+    mask: wgpu::Buffer,
+    word_count: u32,
+}
+
+fn storage(
+    device: &wgpu::Device,
+    label: &str,
+    bytes: u64,
+    extra: wgpu::BufferUsages,
+) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: bytes.max(16),
+        usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | extra,
+        mapped_at_creation: false,
+    })
+}
+
+impl GpuCrop {
+    pub fn new(ctx: &GpuContext) -> Result<Self, CropError> {
+        use BindingKind::*;
+        let layout = shader::bind_group_layout(
+            ctx,
+            "crop bind group layout",
+            &[Uniform, StorageReadOnly, StorageReadOnly, Storage],
+        )?;
+        let pipeline =
+            shader::compute_pipelines(ctx, &shader::CROP, &[&layout], &["crop_mask"])?.remove(0);
+        let (params, primitives, mask) = ctx.scoped("crop buffers", |device| {
+            (
+                device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("crop params"),
+                    size: std::mem::size_of::<CropParams>() as u64,
+                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                }),
+                storage(device, "crop primitives", 0, wgpu::BufferUsages::empty()),
+                storage(device, "crop keep mask", 0, wgpu::BufferUsages::COPY_SRC),
+            )
+        })?;
+        Ok(Self {
+            layout,
+            pipeline,
+            params,
+            primitives,
+            mask,
+            word_count: 0,
+        })
+    }
+
+    /// The keep mask written by the last recorded pass (one bit per point).
+    pub fn mask(&self) -> &wgpu::Buffer {
+        &self.mask
+    }
+
+    /// Uploads this frame's parameters and grows buffers for `point_count` points.
+    pub fn prepare(
+        &mut self,
+        ctx: &GpuContext,
+        point_count: usize,
+        config: &CropConfig,
+        scene: &CropScene<'_>,
+    ) -> Result<(), CropError> {
+        config.validate()?;
+        scene.validate()?;
+        let n = u32::try_from(point_count).map_err(|_| CropError::TooManyPoints(point_count))?;
+        let words = mask_words(point_count) as u64;
+        let prims: Vec<CropPrimitive> = scene.robot.iter().map(gpu_primitive).collect();
+        let prim_bytes = std::mem::size_of_val(prims.as_slice()) as u64;
+        ctx.check_storage_size("crop keep mask", 4 * words)?;
+        ctx.scoped("crop buffers", |device| {
+            if self.mask.size() < 4 * words {
+                self.mask = storage(
+                    device,
+                    "crop keep mask",
+                    4 * words,
+                    wgpu::BufferUsages::COPY_SRC,
+                );
+            }
+            if self.primitives.size() < prim_bytes {
+                self.primitives = storage(
+                    device,
+                    "crop primitives",
+                    prim_bytes,
+                    wgpu::BufferUsages::empty(),
+                );
+            }
+        })?;
+        let hip = scene.hip_m;
+        let params = CropParams {
+            hip_r2: [
+                hip.x as f32,
+                hip.y as f32,
+                hip.z as f32,
+                (config.radius_m * config.radius_m) as f32,
+            ],
+            point_count: n,
+            primitive_count: prims.len() as u32,
+            word_count: words as u32,
+            _pad: 0,
+        };
+        ctx.queue()
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        if !prims.is_empty() {
+            ctx.queue()
+                .write_buffer(&self.primitives, 0, bytemuck::cast_slice(&prims));
+        }
+        self.word_count = words as u32;
+        Ok(())
+    }
+
+    /// Records the crop pass over `points` (packed xyz f32, as uploaded from [`Vec3`]s).
+    pub fn record(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        points: &wgpu::Buffer,
+        timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
+    ) {
+        let bind_group = ctx.device().create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("crop bind group"),
+            layout: &self.layout,
+            entries: &[
+                entry(0, &self.params),
+                entry(1, points),
+                entry(2, &self.primitives),
+                entry(3, &self.mask),
+            ],
+        });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("crop pass"),
+            timestamp_writes: timestamps,
+        });
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &bind_group, &[]);
+        pass.dispatch_workgroups(shader::workgroups_for(self.word_count), 1, 1);
+    }
+
+    /// Crops one cloud on its own (one submit, one readback): the keep mask.
+    pub fn run(
+        &mut self,
+        ctx: &GpuContext,
+        points: &[Vec3],
+        config: &CropConfig,
+        scene: &CropScene<'_>,
+    ) -> Result<Vec<u32>, CropError> {
+        self.prepare(ctx, points.len(), config, scene)?;
+        if points.is_empty() {
+            return Ok(Vec::new());
+        }
+        let bytes = 4 * u64::from(self.word_count);
+        let (input, readback) = ctx.scoped("crop upload", |device| {
+            let input = storage(
+                device,
+                "crop input points",
+                12 * points.len() as u64,
+                wgpu::BufferUsages::empty(),
+            );
+            let readback = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("crop readback"),
+                size: bytes,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            (input, readback)
+        })?;
+        ctx.queue()
+            .write_buffer(&input, 0, bytemuck::cast_slice(points));
+        let mut encoder = ctx
+            .device()
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("crop frame"),
+            });
+        self.record(ctx, &mut encoder, &input, None);
+        encoder.copy_buffer_to_buffer(&self.mask, 0, &readback, 0, bytes);
+        Ok(
+            ctx.submit_and_read("crop", encoder.finish(), &readback, |b| {
+                bytemuck::cast_slice::<u8, u32>(b).to_vec()
+            })?,
+        )
+    }
+}
+
+/// A whole-buffer bind group entry.
+pub(crate) fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+    use proptest::prelude::*;
+
+    fn hip_scene(robot: &[Primitive]) -> CropScene<'_> {
+        CropScene {
+            hip_m: Point3::origin(),
+            robot,
+        }
+    }
+
+    #[test]
+    fn drops_invalid_far_and_inside_points() {
+        let robot = [Primitive::Sphere {
+            center_m: Point3::new(0.1, 0.0, 0.0),
+            radius_m: 0.05,
+        }];
+        let pts = vec![
+            Vec3::new(0.0, 0.0, 0.2),      // kept
+            Vec3::new(f32::NAN, 0.0, 0.0), // invalid
+            Vec3::new(0.0, f32::INFINITY, 0.0),
+            Vec3::new(0.0, 0.0, 0.5),  // outside radius 0.3
+            Vec3::new(0.11, 0.0, 0.0), // inside the sphere
+            Vec3::new(-0.2, 0.1, 0.0), // kept
+        ];
+        let mask = crop_cpu(&pts, &CropConfig::default(), &hip_scene(&robot)).unwrap();
+        assert_eq!(kept_indices(&mask, pts.len()), vec![0, 5]);
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let scene = hip_scene(&[]);
+        let bad = CropConfig { radius_m: -1.0 };
+        assert!(matches!(
+            crop_cpu(&[], &bad, &scene),
+            Err(CropError::BadRadius(_))
+        ));
+        let robot = [Primitive::Sphere {
+            center_m: Point3::origin(),
+            radius_m: 0.0,
+        }];
+        assert!(matches!(
+            crop_cpu(&[], &CropConfig::default(), &hip_scene(&robot)),
+            Err(CropError::BadPrimitive { index: 0, .. })
+        ));
+    }
+
+    fn primitive_strategy() -> impl Strategy<Value = Primitive> {
+        let c = || (-0.2..0.2f64, -0.2..0.2f64, -0.2..0.2f64);
+        prop_oneof![
+            (c(), 0.01..0.15f64).prop_map(|((x, y, z), r)| Primitive::Sphere {
+                center_m: Point3::new(x, y, z),
+                radius_m: r
+            }),
+            (c(), c(), 0.01..0.1f64).prop_map(|((x, y, z), (u, v, w), r)| Primitive::Capsule {
+                a_m: Point3::new(x, y, z),
+                b_m: Point3::new(u, v, w),
+                radius_m: r
+            }),
+            (
+                c(),
+                (-3.0..3.0f64, -1.5..1.5f64, -3.0..3.0f64),
+                (0.01..0.15f64, 0.01..0.15f64, 0.01..0.15f64)
+            )
+                .prop_map(|((x, y, z), (r, p, yaw), (a, b, d))| {
+                    Primitive::OrientedBox {
+                        center_m: Point3::new(x, y, z),
+                        rpy_rad: Vector3::new(r, p, yaw),
+                        half_extents_m: Vector3::new(a, b, d),
+                    }
+                }),
+        ]
+    }
+
+    /// Points that the CPU and GPU may legitimately decide differently: within f32 rounding
+    /// of a primitive surface or of the crop sphere.
+    fn near_boundary(p: Vec3, config: &CropConfig, scene: &CropScene<'_>) -> bool {
+        const EPS: f64 = 1e-5;
+        let q = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+        ((q - scene.hip_m).norm() - config.radius_m).abs() < EPS
+            || scene
+                .robot
+                .iter()
+                .any(|r| r.signed_distance(&q).abs() < EPS)
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        /// Per primitive: the CPU mask drops exactly the points inside it (the geometry
+        /// reference), and the GPU mask agrees except within 1e-5 m of a boundary.
+        #[test]
+        fn primitive_crop_matches_geometry_and_gpu(
+            prim in primitive_strategy(),
+            pts in prop::collection::vec((-0.3..0.3f32, -0.3..0.3f32, -0.3..0.3f32), 1..400),
+        ) {
+            let points: Vec<Vec3> = pts.iter().map(|&(x, y, z)| Vec3::new(x, y, z)).collect();
+            let robot = [prim];
+            let config = CropConfig { radius_m: 0.4 };
+            let scene = hip_scene(&robot);
+            let cpu = crop_cpu(&points, &config, &scene).unwrap();
+            for (i, p) in points.iter().enumerate() {
+                let q = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                let expect = q.coords.norm() <= 0.4 && !robot[0].contains(&q);
+                prop_assert_eq!(mask_bit(&cpu, i), expect);
+            }
+            let ctx = crate::gpu::context::test_context();
+            let gpu = GpuCrop::new(ctx).unwrap().run(ctx, &points, &config, &scene).unwrap();
+            for (i, p) in points.iter().enumerate() {
+                if mask_bit(&cpu, i) != mask_bit(&gpu, i) {
+                    prop_assert!(near_boundary(*p, &config, &scene), "point {} {:?}", i, p);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn gpu_matches_cpu_on_a_real_frame_with_all_primitive_kinds() {
+        let cloud = crate::perception::test_data::synthetic_frame(1);
+        let robot = vec![
+            Primitive::Sphere {
+                center_m: Point3::new(0.0, 0.0, 1.0),
+                radius_m: 0.1,
+            },
+            Primitive::Capsule {
+                a_m: Point3::new(-0.2, 0.1, 0.9),
+                b_m: Point3::new(0.2, 0.1, 1.1),
+                radius_m: 0.05,
+            },
+            Primitive::OrientedBox {
+                center_m: Point3::new(0.1, -0.1, 1.0),
+                rpy_rad: Vector3::new(0.3, 0.2, 0.7),
+                half_extents_m: Vector3::new(0.1, 0.05, 0.2),
+            },
+        ];
+        let scene = CropScene {
+            hip_m: Point3::new(0.0, 0.0, 1.0),
+            robot: &robot,
+        };
+        let config = CropConfig { radius_m: 0.5 };
+        let cpu = crop_cpu(&cloud, &config, &scene).unwrap();
+        let ctx = crate::gpu::context::test_context();
+        let gpu = GpuCrop::new(ctx)
+            .unwrap()
+            .run(ctx, &cloud, &config, &scene)
+            .unwrap();
+        let kept = kept_indices(&cpu, cloud.len()).len();
+        assert!(kept > 1000 && kept < cloud.len(), "kept {kept}");
+        let mut differing = 0;
+        for (i, p) in cloud.iter().enumerate() {
+            if mask_bit(&cpu, i) != mask_bit(&gpu, i) {
+                assert!(near_boundary(*p, &config, &scene), "point {i} {p:?}");
+                differing += 1;
+            }
+        }
+        assert!(differing <= 2, "{differing} boundary disagreements");
+    }
+
+    #[test]
+    fn empty_cloud() {
+        let ctx = crate::gpu::context::test_context();
+        let scene = hip_scene(&[]);
+        let gpu = GpuCrop::new(ctx)
+            .unwrap()
+            .run(ctx, &[], &CropConfig::default(), &scene)
+            .unwrap();
+        assert!(gpu.is_empty());
+        assert!(
+            crop_cpu(&[], &CropConfig::default(), &scene)
+                .unwrap()
+                .is_empty()
+        );
+    }
+}

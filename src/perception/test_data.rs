@@ -1,0 +1,86 @@
+//! Test clouds: a synthetic 640x480 RGB-D frame (depth quantised to 1 mm, dropouts) built
+//! with the camera model, so GPU and CPU stages can be compared on frame-sized input.
+
+use crate::camera::{DepthImage, PinholeIntrinsics};
+use glam::Vec3;
+use rand::{RngExt, SeedableRng};
+
+/// Kinect-class intrinsics of PCL's grabber frames.
+pub fn intrinsics() -> PinholeIntrinsics {
+    PinholeIntrinsics {
+        width: 640,
+        height: 480,
+        fx: 525.0,
+        fy: 525.0,
+        cx: 320.0,
+        cy: 240.0,
+    }
+}
+
+/// A wall at 1.5 m, a tilted table plane and a 9 cm sphere (a head) at 0.9 m; 5 % of the
+/// pixels have no return.
+pub fn synthetic_frame(seed: u64) -> Vec<Vec3> {
+    let k = intrinsics();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut data = Vec::with_capacity((k.width * k.height) as usize);
+    let centre = nalgebra::Vector3::new(0.05, -0.05, 0.9);
+    for v in 0..k.height {
+        for u in 0..k.width {
+            let ray = nalgebra::Vector3::new(
+                (f64::from(u) - k.cx) / k.fx,
+                (f64::from(v) - k.cy) / k.fy,
+                1.0,
+            );
+            let mut z: f64 = 1.5;
+            // Table: y = 0.3 - 0.2 z (camera frame, y down).
+            let t = 0.3 / (ray.y + 0.2);
+            if ray.y + 0.2 > 0.0 && t < z {
+                z = t;
+            }
+            // Sphere of radius 0.09 m.
+            let b = ray.dot(&centre);
+            let disc = b * b - ray.norm_squared() * (centre.norm_squared() - 0.0081);
+            if disc >= 0.0 {
+                let t = (b - disc.sqrt()) / ray.norm_squared();
+                if t > 0.0 && t < z {
+                    z = t;
+                }
+            }
+            let noise: f64 = rng.random_range(-0.002..0.002);
+            let dropout = rng.random_range(0.0..1.0) < 0.05;
+            data.push(if dropout {
+                0
+            } else {
+                ((z + noise) * 1000.0).round() as u16
+            });
+        }
+    }
+    DepthImage {
+        width: k.width,
+        height: k.height,
+        depth_scale_m: 0.001,
+        data,
+    }
+    .deproject(&k)
+    .expect("sizes match")
+    .points
+}
+
+/// Uniform random points in a cube of side `side_m` centred at the origin, with a few
+/// non-finite ones.
+pub fn random_cloud(seed: u64, n: usize, side_m: f32) -> Vec<Vec3> {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    (0..n)
+        .map(|i| {
+            if i % 97 == 13 {
+                Vec3::new(f32::NAN, 0.0, 1.0)
+            } else {
+                Vec3::new(
+                    rng.random_range(-0.5..0.5) * side_m,
+                    rng.random_range(-0.5..0.5) * side_m,
+                    rng.random_range(-0.5..0.5) * side_m,
+                )
+            }
+        })
+        .collect()
+}

@@ -1,0 +1,1123 @@
+//! Voxel grid filter (paper section IV-B) with PCL `VoxelGrid` semantics.
+//!
+//! PCL's algorithm, which both implementations follow exactly:
+//! 1. valid points: finite (integer test on the bits), in the crop mask, and inside the
+//!    optional filter limits (PCL `setFilterLimits`: keep `min <= v <= max`, or the outside
+//!    when negative);
+//! 2. `min_p`, `max_p` of the valid points; PCL's overflow check:
+//!    `dx = i64((max_p.x - min_p.x) * inv) + 1` (f32 arithmetic), likewise `dy`, `dz`, and
+//!    `dx * dy * dz > i32::MAX` is an error ([`VoxelError::GridOverflow`]);
+//! 3. cell = `floor(p * inv)` with `inv = 1 / leaf` in f32 (grid anchored at the origin),
+//!    `min_b = floor(min_p * inv)`, `div = floor(max_p * inv) - min_b + 1`, linear index
+//!    `(c.x - min_b.x) + (c.y - min_b.y) * div.x + (c.z - min_b.z) * div.x * div.y`;
+//! 4. output: one point per cell with at least `min_points_per_voxel` points, the mean of its
+//!    points, ordered by linear index (x fastest, then y, then z).
+//!
+//! [`voxel_cpu`] is the reference (f64 sums). [`GpuVoxel`] runs `shaders/voxel.wgsl`: a hash
+//! table keyed by the linear index with bounded linear probing, per-cell sums of the points'
+//! offsets inside their cell as 64-bit fixed-point integers (2^-24 leaf resolution, integer
+//! atomics, so the result is byte-identical whatever the thread order), a bitonic sort of the
+//! occupied cell indices, and one mean per sorted cell. The overflow flag is read back every
+//! frame: an overflowing table is retried with four times the slots up to
+//! `max_table_slots`, and beyond that the frame is an error, never a silently wrong result.
+//!
+//! [`LeafAdapter`] adapts the leaf between frames towards `target_points` (the paper keeps
+//! about 5000 points): surface points scale like `leaf^-2`.
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use crate::gpu::mirrors::{SortStep, VoxelHeader, VoxelParams};
+use crate::gpu::shader::{self, BindingKind};
+use crate::gpu::timing::StageTimer;
+use crate::gpu::{GpuContext, GpuError};
+use crate::perception::crop::{entry, finite_bits, mask_bit};
+
+/// The coordinate a filter limit tests.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Axis {
+    X,
+    Y,
+    Z,
+}
+
+impl Axis {
+    fn index(self) -> usize {
+        match self {
+            Axis::X => 0,
+            Axis::Y => 1,
+            Axis::Z => 2,
+        }
+    }
+}
+
+/// PCL's `setFilterFieldName` / `setFilterLimits` / `setFilterLimitsNegative`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FilterLimits {
+    pub axis: Axis,
+    pub min_m: f64,
+    pub max_m: f64,
+    /// Keep the points outside `[min_m, max_m]` instead of inside.
+    #[serde(default)]
+    pub negative: bool,
+}
+
+impl FilterLimits {
+    /// PCL's test (f32 value against f64 limits).
+    fn keeps(&self, p: Vec3) -> bool {
+        let v = f64::from(p[self.axis.index()]);
+        if self.negative {
+            !(v < self.max_m && v > self.min_m)
+        } else {
+            !(v > self.max_m || v < self.min_m)
+        }
+    }
+
+    /// The same test as an f32 range `[lo, hi]` (inclusive) plus "keep inside": for every
+    /// f32 `v`, `(lo <= v && v <= hi) == keep_inside` equals [`Self::keeps`].
+    fn f32_range(&self) -> (f32, f32, bool) {
+        if self.negative {
+            // dropped iff min < v < max
+            (f32_above(self.min_m), f32_below(self.max_m), false)
+        } else {
+            (f32_at_least(self.min_m), f32_at_most(self.max_m), true)
+        }
+    }
+}
+
+fn clamp_f32(v: f64) -> f32 {
+    v.clamp(f64::from(f32::MIN), f64::from(f32::MAX)) as f32
+}
+/// Smallest f32 >= v.
+fn f32_at_least(v: f64) -> f32 {
+    let f = clamp_f32(v);
+    if f64::from(f) < v { f.next_up() } else { f }
+}
+/// Largest f32 <= v.
+fn f32_at_most(v: f64) -> f32 {
+    let f = clamp_f32(v);
+    if f64::from(f) > v { f.next_down() } else { f }
+}
+/// Smallest f32 > v.
+fn f32_above(v: f64) -> f32 {
+    let f = f32_at_least(v);
+    if f64::from(f) == v { f.next_up() } else { f }
+}
+/// Largest f32 < v.
+fn f32_below(v: f64) -> f32 {
+    let f = f32_at_most(v);
+    if f64::from(f) == v { f.next_down() } else { f }
+}
+
+/// Voxel grid settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VoxelConfig {
+    /// Cubic leaf size (m); the starting leaf when `target_points` is set.
+    pub leaf_m: f64,
+    /// Cells with fewer points are dropped (PCL `setMinimumPointsNumberPerVoxel`; 0 = 1).
+    pub min_points_per_voxel: u32,
+    /// Optional PCL filter limits applied before voxelisation.
+    pub filter: Option<FilterLimits>,
+    /// Adapt the leaf between frames towards this many output points (paper: about 5000).
+    pub target_points: Option<u32>,
+    /// Bounds of the adapted leaf (m).
+    pub min_leaf_m: f64,
+    pub max_leaf_m: f64,
+    /// Hash probes per insertion before the overflow flag is raised.
+    pub max_probes: u32,
+    /// Hash table slots of the first frame (rounded up to a power of two, at least 1024).
+    pub initial_table_slots: u32,
+    /// Largest table an overflowing frame may be retried with.
+    pub max_table_slots: u32,
+}
+
+impl Default for VoxelConfig {
+    fn default() -> Self {
+        Self {
+            leaf_m: 0.01,
+            min_points_per_voxel: 1,
+            filter: None,
+            target_points: None,
+            min_leaf_m: 0.002,
+            max_leaf_m: 0.2,
+            max_probes: 64,
+            initial_table_slots: 1 << 16,
+            max_table_slots: 1 << 22,
+        }
+    }
+}
+
+/// Why a voxel grid cannot be computed.
+#[derive(Debug, thiserror::Error)]
+pub enum VoxelError {
+    #[error("voxel {name} must be finite and positive, got {value}")]
+    BadLength { name: &'static str, value: f64 },
+    #[error("voxel filter limits must not be NaN and min_m <= max_m, got {0:?}")]
+    BadFilter(FilterLimits),
+    #[error("voxel {0}")]
+    BadSetting(String),
+    #[error(
+        "leaf size is too small for the input dataset: integer indices would overflow \
+         ({dx} x {dy} x {dz} cells > i32::MAX, PCL's VoxelGrid check)"
+    )]
+    GridOverflow { dx: i64, dy: i64, dz: i64 },
+    #[error("cell indices of the cloud exceed the i32 range at leaf {leaf_m} m")]
+    IndexRange { leaf_m: f64 },
+    #[error(
+        "voxel hash table overflow: more occupied cells than {slots} slots allow \
+         (max_table_slots = {max_slots}); raise max_table_slots or the leaf"
+    )]
+    TableOverflow { slots: u32, max_slots: u32 },
+    #[error("cloud of {0} points is too large for one voxel pass")]
+    TooManyPoints(usize),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+}
+
+impl VoxelConfig {
+    pub fn validate(&self) -> Result<(), VoxelError> {
+        for (name, value) in [
+            ("leaf_m", self.leaf_m),
+            ("min_leaf_m", self.min_leaf_m),
+            ("max_leaf_m", self.max_leaf_m),
+        ] {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(VoxelError::BadLength { name, value });
+            }
+        }
+        if self.min_leaf_m > self.max_leaf_m {
+            return Err(VoxelError::BadSetting(format!(
+                "min_leaf_m {} exceeds max_leaf_m {}",
+                self.min_leaf_m, self.max_leaf_m
+            )));
+        }
+        if let Some(f) = &self.filter
+            && (f.min_m.is_nan() || f.max_m.is_nan() || f.min_m > f.max_m)
+        {
+            return Err(VoxelError::BadFilter(f.clone()));
+        }
+        if self.target_points == Some(0) {
+            return Err(VoxelError::BadSetting(
+                "target_points must be positive".into(),
+            ));
+        }
+        if self.max_probes == 0 {
+            return Err(VoxelError::BadSetting("max_probes must be positive".into()));
+        }
+        if self.initial_table_slots > self.max_table_slots {
+            return Err(VoxelError::BadSetting(format!(
+                "initial_table_slots {} exceeds max_table_slots {}",
+                self.initial_table_slots, self.max_table_slots
+            )));
+        }
+        if self.max_table_slots > 1 << 30 {
+            return Err(VoxelError::BadSetting(
+                "max_table_slots must be at most 2^30".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The voxel grid of one cloud.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VoxelOutput {
+    /// Mean of each kept cell, in PCL order (linear cell index ascending).
+    pub points: Vec<Vec3>,
+    /// Number of input points per output point.
+    pub counts: Vec<u32>,
+    /// Points that entered the grid (finite, in the crop mask, inside the filter limits).
+    pub valid_in: usize,
+    /// Leaf used (m).
+    pub leaf_m: f64,
+    /// GPU only: hash table slots of the successful attempt, and how many retries with a
+    /// bigger table an overflow caused.
+    pub table_slots: Option<u32>,
+    pub retries: u32,
+}
+
+/// f32 bounds and PCL grid of the valid points, with PCL's checks.
+struct Grid {
+    min_b: [i32; 3],
+    div: [i64; 3],
+}
+
+fn pcl_grid(min_p: [f32; 3], max_p: [f32; 3], inv: f32, leaf_m: f64) -> Result<Grid, VoxelError> {
+    let d: Vec<i64> = (0..3)
+        .map(|a| ((max_p[a] - min_p[a]) * inv) as i64 + 1)
+        .collect();
+    if d[0].saturating_mul(d[1]).saturating_mul(d[2]) > i64::from(i32::MAX) {
+        return Err(VoxelError::GridOverflow {
+            dx: d[0],
+            dy: d[1],
+            dz: d[2],
+        });
+    }
+    let mut g = Grid {
+        min_b: [0; 3],
+        div: [0; 3],
+    };
+    for a in 0..3 {
+        let lo = (min_p[a] * inv).floor();
+        let hi = (max_p[a] * inv).floor();
+        let range = f64::from(i32::MIN)..=f64::from(i32::MAX);
+        if !range.contains(&f64::from(lo)) || !range.contains(&f64::from(hi)) {
+            return Err(VoxelError::IndexRange { leaf_m });
+        }
+        g.min_b[a] = lo as i32;
+        g.div[a] = hi as i64 - lo as i64 + 1;
+    }
+    Ok(g)
+}
+
+fn inv_leaf(leaf_m: f64) -> f32 {
+    1.0 / leaf_m as f32
+}
+
+/// CPU reference: the voxel grid of the points of `points` that are valid, set in `mask`
+/// (a crop keep mask, when given) and inside the filter limits.
+pub fn voxel_cpu(
+    points: &[Vec3],
+    mask: Option<&[u32]>,
+    config: &VoxelConfig,
+) -> Result<VoxelOutput, VoxelError> {
+    voxel_cpu_with_leaf(points, mask, config, config.leaf_m)
+}
+
+/// [`voxel_cpu`] with an explicit leaf (the adapted one).
+pub fn voxel_cpu_with_leaf(
+    points: &[Vec3],
+    mask: Option<&[u32]>,
+    config: &VoxelConfig,
+    leaf_m: f64,
+) -> Result<VoxelOutput, VoxelError> {
+    config.validate()?;
+    let valid: Vec<Vec3> = points
+        .iter()
+        .enumerate()
+        .filter(|&(i, p)| {
+            finite_bits(*p)
+                && mask.is_none_or(|m| mask_bit(m, i))
+                && config.filter.as_ref().is_none_or(|f| f.keeps(*p))
+        })
+        .map(|(_, p)| *p)
+        .collect();
+    let mut out = VoxelOutput {
+        points: Vec::new(),
+        counts: Vec::new(),
+        valid_in: valid.len(),
+        leaf_m,
+        table_slots: None,
+        retries: 0,
+    };
+    if valid.is_empty() {
+        return Ok(out);
+    }
+    let mut min_p = [f32::INFINITY; 3];
+    let mut max_p = [f32::NEG_INFINITY; 3];
+    for p in &valid {
+        for a in 0..3 {
+            min_p[a] = min_p[a].min(p[a]);
+            max_p[a] = max_p[a].max(p[a]);
+        }
+    }
+    let inv = inv_leaf(leaf_m);
+    let g = pcl_grid(min_p, max_p, inv, leaf_m)?;
+    let mut keyed: Vec<(i64, Vec3)> = valid
+        .iter()
+        .map(|p| {
+            let rel = |a: usize| (p[a] * inv).floor() as i64 - i64::from(g.min_b[a]);
+            (
+                rel(0) + rel(1) * g.div[0] + rel(2) * g.div[0] * g.div[1],
+                *p,
+            )
+        })
+        .collect();
+    // Stable: within a cell the points keep their input order, so the f64 sums are
+    // reproducible.
+    keyed.sort_by_key(|(k, _)| *k);
+    let min_points = config.min_points_per_voxel.max(1) as usize;
+    for run in keyed.chunk_by(|a, b| a.0 == b.0) {
+        if run.len() < min_points {
+            continue;
+        }
+        let sum = run.iter().fold([0.0f64; 3], |s, (_, p)| {
+            [
+                s[0] + f64::from(p.x),
+                s[1] + f64::from(p.y),
+                s[2] + f64::from(p.z),
+            ]
+        });
+        let n = run.len() as f64;
+        out.points.push(Vec3::new(
+            (sum[0] / n) as f32,
+            (sum[1] / n) as f32,
+            (sum[2] / n) as f32,
+        ));
+        out.counts.push(run.len() as u32);
+    }
+    Ok(out)
+}
+
+/// Adapts the leaf between frames towards `target_points` output points.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LeafAdapter {
+    /// Leaf for the next frame (m).
+    pub leaf_m: f64,
+}
+
+impl LeafAdapter {
+    pub fn new(config: &VoxelConfig) -> Self {
+        Self {
+            leaf_m: config.leaf_m.clamp(config.min_leaf_m, config.max_leaf_m),
+        }
+    }
+
+    /// Updates the leaf after a frame that produced `output_points` (no change without a
+    /// target or with an empty frame). Points on surfaces scale like `leaf^-2`, so the leaf
+    /// is multiplied by `sqrt(output / target)`, limited to a factor of two per frame.
+    pub fn update(&mut self, config: &VoxelConfig, output_points: usize) {
+        let Some(target) = config.target_points else {
+            return;
+        };
+        if output_points == 0 {
+            return;
+        }
+        let factor = (output_points as f64 / f64::from(target))
+            .sqrt()
+            .clamp(0.5, 2.0);
+        self.leaf_m = (self.leaf_m * factor).clamp(config.min_leaf_m, config.max_leaf_m);
+    }
+}
+
+/// Entry points of voxel.wgsl, in pipeline order.
+const ENTRY_POINTS: [&str; 7] = [
+    "bounds",
+    "insert",
+    "gather",
+    "sort_local",
+    "sort_global",
+    "sort_merge",
+    "reduce",
+];
+const SORT_BLOCK: u32 = 512;
+const SLOT_WORDS: u64 = 8;
+const MIN_TABLE_SLOTS: u32 = 1024;
+/// Bytes of the header at the start of a voxel readback.
+pub const HEADER_BYTES: u64 = std::mem::size_of::<VoxelHeader>() as u64;
+
+enum SortPass {
+    Global { step: u32 },
+    Merge { step: u32 },
+}
+
+/// GPU voxel grid: pipelines built once, table and output buffers grown as needed.
+pub struct GpuVoxel {
+    layout: wgpu::BindGroupLayout,
+    pipelines: Vec<wgpu::ComputePipeline>,
+    params: wgpu::Buffer,
+    header: wgpu::Buffer,
+    no_mask: wgpu::Buffer,
+    table_keys: wgpu::Buffer,
+    table_data: wgpu::Buffer,
+    sort_keys: wgpu::Buffer,
+    out_points: wgpu::Buffer,
+    steps: wgpu::Buffer,
+    step_stride: u64,
+    sort_passes: Vec<SortPass>,
+    table_slots: u32,
+    point_count: u32,
+    use_mask: bool,
+    /// Table size for the next frame, from the last frame's occupied cells.
+    next_slots: Option<u32>,
+}
+
+fn gpu_buffer(
+    device: &wgpu::Device,
+    label: &str,
+    bytes: u64,
+    usage: wgpu::BufferUsages,
+) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: bytes.max(16),
+        usage,
+        mapped_at_creation: false,
+    })
+}
+
+const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+    .union(wgpu::BufferUsages::COPY_DST)
+    .union(wgpu::BufferUsages::COPY_SRC);
+
+fn slots_for(n: u64) -> u32 {
+    n.max(u64::from(MIN_TABLE_SLOTS))
+        .next_power_of_two()
+        .min(1 << 30) as u32
+}
+
+impl GpuVoxel {
+    pub fn new(ctx: &GpuContext) -> Result<Self, VoxelError> {
+        use BindingKind::*;
+        let layout = shader::bind_group_layout(
+            ctx,
+            "voxel bind group layout",
+            &[
+                Uniform,
+                StorageReadOnly,
+                StorageReadOnly,
+                Storage,
+                Storage,
+                Storage,
+                Storage,
+                Storage,
+                UniformDynamic,
+            ],
+        )?;
+        let pipelines = shader::compute_pipelines(ctx, &shader::VOXEL, &[&layout], &ENTRY_POINTS)?;
+        let step_stride = u64::from(ctx.device().limits().min_uniform_buffer_offset_alignment)
+            .max(std::mem::size_of::<SortStep>() as u64);
+        let buffers = ctx.scoped("voxel buffers", |device| {
+            let uniform = wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST;
+            (
+                gpu_buffer(
+                    device,
+                    "voxel params",
+                    std::mem::size_of::<VoxelParams>() as u64,
+                    uniform,
+                ),
+                gpu_buffer(device, "voxel header", HEADER_BYTES, STORAGE),
+                gpu_buffer(device, "voxel no mask", 16, STORAGE),
+            )
+        })?;
+        let mut voxel = Self {
+            layout,
+            pipelines,
+            params: buffers.0,
+            header: buffers.1,
+            no_mask: buffers.2.clone(),
+            table_keys: buffers.2.clone(),
+            table_data: buffers.2.clone(),
+            sort_keys: buffers.2.clone(),
+            out_points: buffers.2.clone(),
+            steps: buffers.2.clone(),
+            step_stride,
+            sort_passes: Vec::new(),
+            table_slots: 0,
+            point_count: 0,
+            use_mask: false,
+            next_slots: None,
+        };
+        voxel.resize_table(ctx, MIN_TABLE_SLOTS)?;
+        Ok(voxel)
+    }
+
+    /// Current hash table slots (also the capacity of the output buffer).
+    pub fn table_slots(&self) -> u32 {
+        self.table_slots
+    }
+
+    /// The header buffer ([`VoxelHeader`]); `out_count` is the number of output points.
+    pub fn header(&self) -> &wgpu::Buffer {
+        &self.header
+    }
+
+    /// Output points, `vec4<f32>` each: the cell mean in xyz and the cell's point count as
+    /// u32 bits in w; valid up to the header's `out_count`, capacity [`Self::table_slots`].
+    pub fn out_points(&self) -> &wgpu::Buffer {
+        &self.out_points
+    }
+
+    fn resize_table(&mut self, ctx: &GpuContext, slots: u32) -> Result<(), VoxelError> {
+        let slots = slots.max(MIN_TABLE_SLOTS);
+        if slots == self.table_slots {
+            return Ok(());
+        }
+        let s = u64::from(slots);
+        ctx.check_storage_size("voxel table", s * SLOT_WORDS * 4)?;
+        // Bitonic schedule: local sort of 512-blocks, then for every k >= 1024 the global
+        // steps j >= 512 and one in-block merge of the steps j < 512.
+        let mut steps: Vec<SortStep> = Vec::new();
+        let mut passes = Vec::new();
+        let mut k = 2 * SORT_BLOCK;
+        while k <= slots {
+            let mut j = k / 2;
+            while j >= SORT_BLOCK {
+                passes.push(SortPass::Global {
+                    step: steps.len() as u32,
+                });
+                steps.push(SortStep {
+                    k,
+                    j,
+                    ..Default::default()
+                });
+                j /= 2;
+            }
+            passes.push(SortPass::Merge {
+                step: steps.len() as u32,
+            });
+            steps.push(SortStep {
+                k,
+                j: 0,
+                ..Default::default()
+            });
+            k *= 2;
+        }
+        let stride = self.step_stride;
+        let mut step_bytes = vec![0u8; (steps.len() as u64 * stride).max(stride) as usize];
+        for (i, st) in steps.iter().enumerate() {
+            let at = i * stride as usize;
+            step_bytes[at..at + std::mem::size_of::<SortStep>()]
+                .copy_from_slice(bytemuck::bytes_of(st));
+        }
+        let (keys, data, sort, out, step_buf) = ctx.scoped("voxel table", |device| {
+            (
+                gpu_buffer(device, "voxel table keys", 4 * s, STORAGE),
+                gpu_buffer(device, "voxel table sums", 4 * SLOT_WORDS * s, STORAGE),
+                gpu_buffer(device, "voxel sort keys", 4 * s, STORAGE),
+                gpu_buffer(device, "voxel output points", 16 * s, STORAGE),
+                gpu_buffer(
+                    device,
+                    "voxel sort steps",
+                    step_bytes.len() as u64,
+                    wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                ),
+            )
+        })?;
+        ctx.queue().write_buffer(&step_buf, 0, &step_bytes);
+        self.table_keys = keys;
+        self.table_data = data;
+        self.sort_keys = sort;
+        self.out_points = out;
+        self.steps = step_buf;
+        self.sort_passes = passes;
+        self.table_slots = slots;
+        Ok(())
+    }
+
+    /// Uploads this frame's parameters for `point_count` points at `leaf_m` and picks the
+    /// table size (the last frame's need, else `initial_table_slots`).
+    pub fn prepare(
+        &mut self,
+        ctx: &GpuContext,
+        point_count: usize,
+        use_mask: bool,
+        config: &VoxelConfig,
+        leaf_m: f64,
+    ) -> Result<(), VoxelError> {
+        config.validate()?;
+        if !(leaf_m.is_finite() && leaf_m > 0.0) {
+            return Err(VoxelError::BadLength {
+                name: "leaf_m",
+                value: leaf_m,
+            });
+        }
+        let max_points = 65_535 * u64::from(shader::WORKGROUP_SIZE);
+        if point_count as u64 > max_points {
+            return Err(VoxelError::TooManyPoints(point_count));
+        }
+        let wanted = self
+            .next_slots
+            .unwrap_or_else(|| slots_for(u64::from(config.initial_table_slots)))
+            .min(slots_for(u64::from(config.max_table_slots)));
+        self.resize_table(ctx, wanted)?;
+        self.write_params(ctx, point_count as u32, use_mask, config, leaf_m);
+        Ok(())
+    }
+
+    fn write_params(
+        &mut self,
+        ctx: &GpuContext,
+        point_count: u32,
+        use_mask: bool,
+        config: &VoxelConfig,
+        leaf_m: f64,
+    ) {
+        let (filter_axis, lo, hi, inside) = match &config.filter {
+            Some(f) => {
+                let (lo, hi, inside) = f.f32_range();
+                (f.axis.index() as u32, lo, hi, inside)
+            }
+            None => (3, 0.0, 0.0, true),
+        };
+        let params = VoxelParams {
+            inv_leaf: inv_leaf(leaf_m),
+            leaf: leaf_m as f32,
+            point_count,
+            table_mask: self.table_slots - 1,
+            max_probes: config.max_probes,
+            min_points: config.min_points_per_voxel.max(1),
+            filter_axis,
+            filter_keep_inside: u32::from(inside),
+            filter_lo: lo,
+            filter_hi: hi,
+            use_mask: u32::from(use_mask),
+            _pad: 0,
+        };
+        ctx.queue()
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        self.point_count = point_count;
+        self.use_mask = use_mask;
+    }
+
+    /// Records the whole voxel stage (clears, then one compute pass) over `points` (packed
+    /// xyz f32), using `mask` when [`Self::prepare`] was told so.
+    pub fn record(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        points: &wgpu::Buffer,
+        mask: Option<&wgpu::Buffer>,
+        timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
+    ) {
+        let mask = mask.filter(|_| self.use_mask).unwrap_or(&self.no_mask);
+        let bind_group = ctx.device().create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("voxel bind group"),
+            layout: &self.layout,
+            entries: &[
+                entry(0, &self.params),
+                entry(1, points),
+                entry(2, mask),
+                entry(3, &self.header),
+                entry(4, &self.table_keys),
+                entry(5, &self.table_data),
+                entry(6, &self.sort_keys),
+                entry(7, &self.out_points),
+                wgpu::BindGroupEntry {
+                    binding: 8,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &self.steps,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(std::mem::size_of::<SortStep>() as u64),
+                    }),
+                },
+            ],
+        });
+        encoder.clear_buffer(&self.header, 0, None);
+        encoder.clear_buffer(&self.table_keys, 0, None);
+        encoder.clear_buffer(&self.table_data, 0, None);
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("voxel pass"),
+            timestamp_writes: timestamps,
+        });
+        let point_groups = shader::workgroups_for(self.point_count);
+        let slot_groups = shader::workgroups_for(self.table_slots);
+        let blocks = self.table_slots / SORT_BLOCK;
+        let [
+            bounds,
+            insert,
+            gather,
+            sort_local,
+            sort_global,
+            sort_merge,
+            reduce,
+        ] = std::array::from_fn(|i| &self.pipelines[i]);
+        let mut dispatch = |pipeline: &wgpu::ComputePipeline, step: u32, groups: u32| {
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(
+                0,
+                &bind_group,
+                &[(u64::from(step) * self.step_stride) as u32],
+            );
+            pass.dispatch_workgroups(groups, 1, 1);
+        };
+        dispatch(bounds, 0, point_groups);
+        dispatch(insert, 0, point_groups);
+        dispatch(gather, 0, slot_groups);
+        dispatch(sort_local, 0, blocks);
+        for p in &self.sort_passes {
+            match p {
+                SortPass::Global { step } => dispatch(
+                    sort_global,
+                    *step,
+                    shader::workgroups_for(self.table_slots / 2),
+                ),
+                SortPass::Merge { step } => dispatch(sort_merge, *step, blocks),
+            }
+        }
+        dispatch(reduce, 0, slot_groups);
+    }
+
+    /// Bytes of the voxel results in a readback buffer: header, then output capacity.
+    pub fn readback_bytes(&self) -> u64 {
+        HEADER_BYTES + 16 * u64::from(self.table_slots)
+    }
+
+    /// Copies header and output points into `dst` at `offset` (see [`Self::readback_bytes`]).
+    pub fn copy_results(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        dst: &wgpu::Buffer,
+        offset: u64,
+    ) {
+        encoder.copy_buffer_to_buffer(&self.header, 0, dst, offset, HEADER_BYTES);
+        encoder.copy_buffer_to_buffer(
+            &self.out_points,
+            0,
+            dst,
+            offset + HEADER_BYTES,
+            16 * u64::from(self.table_slots),
+        );
+    }
+
+    /// Decodes the results copied by [`Self::copy_results`]. `Ok(None)` means the table
+    /// overflowed and the frame must be recorded again with the bigger table this call
+    /// already allocated; an overflow at `max_table_slots` is an error.
+    pub fn decode(
+        &mut self,
+        ctx: &GpuContext,
+        bytes: &[u8],
+        config: &VoxelConfig,
+        leaf_m: f64,
+    ) -> Result<Option<VoxelOutput>, VoxelError> {
+        let header: VoxelHeader = bytemuck::pod_read_unaligned(&bytes[..HEADER_BYTES as usize]);
+        if header.overflow != 0 {
+            let max = slots_for(u64::from(config.max_table_slots));
+            if self.table_slots >= max {
+                return Err(VoxelError::TableOverflow {
+                    slots: self.table_slots,
+                    max_slots: max,
+                });
+            }
+            let bigger = (self.table_slots.saturating_mul(4)).min(max);
+            self.resize_table(ctx, bigger)?;
+            self.write_params(ctx, self.point_count, self.use_mask, config, leaf_m);
+            return Ok(None);
+        }
+        let mut out = VoxelOutput {
+            points: Vec::new(),
+            counts: Vec::new(),
+            valid_in: header.valid_count as usize,
+            leaf_m,
+            table_slots: Some(self.table_slots),
+            retries: 0,
+        };
+        if header.valid_count == 0 {
+            return Ok(Some(out));
+        }
+        let min_p: [f32; 3] = std::array::from_fn(|a| from_order_key(!header.min_inv[a]));
+        let max_p: [f32; 3] = std::array::from_fn(|a| from_order_key(header.max_key[a]));
+        pcl_grid(min_p, max_p, inv_leaf(leaf_m), leaf_m)?;
+        // Size the next frame's table for a load factor of at most one half; shrink only
+        // when four times too big.
+        let need = slots_for(2 * u64::from(header.cells));
+        if need > self.table_slots || need.saturating_mul(4) <= self.table_slots {
+            self.next_slots = Some(need.min(slots_for(u64::from(config.max_table_slots))));
+        }
+        let n = header.out_count as usize;
+        let raw: &[[u32; 4]] =
+            bytemuck::cast_slice(&bytes[HEADER_BYTES as usize..HEADER_BYTES as usize + 16 * n]);
+        out.points = raw
+            .iter()
+            .map(|v| {
+                Vec3::new(
+                    f32::from_bits(v[0]),
+                    f32::from_bits(v[1]),
+                    f32::from_bits(v[2]),
+                )
+            })
+            .collect();
+        out.counts = raw.iter().map(|v| v[3]).collect();
+        Ok(Some(out))
+    }
+
+    /// Voxelises one cloud on its own: upload, one submit and readback per attempt (a table
+    /// overflow retries with a bigger table). Returns the output and the stage's GPU time.
+    pub fn run(
+        &mut self,
+        ctx: &GpuContext,
+        points: &[Vec3],
+        config: &VoxelConfig,
+        timer: Option<&StageTimer>,
+    ) -> Result<(VoxelOutput, Option<f64>), VoxelError> {
+        self.prepare(ctx, points.len(), false, config, config.leaf_m)?;
+        let input = ctx.scoped("voxel input", |device| {
+            gpu_buffer(
+                device,
+                "voxel input points",
+                12 * points.len() as u64,
+                STORAGE,
+            )
+        })?;
+        if !points.is_empty() {
+            ctx.queue()
+                .write_buffer(&input, 0, bytemuck::cast_slice(points));
+        }
+        let mut retries = 0;
+        loop {
+            let ts_bytes = timer.map_or(0, |t| t.readback_bytes());
+            let readback = ctx.scoped("voxel readback", |device| {
+                gpu_buffer(
+                    device,
+                    "voxel readback",
+                    ts_bytes + self.readback_bytes(),
+                    wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                )
+            })?;
+            let mut encoder =
+                ctx.device()
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("voxel frame"),
+                    });
+            self.record(
+                ctx,
+                &mut encoder,
+                &input,
+                None,
+                timer.map(|t| t.pass_writes(0)),
+            );
+            if let Some(t) = timer {
+                t.resolve_into(&mut encoder, &readback, 0);
+            }
+            self.copy_results(&mut encoder, &readback, ts_bytes);
+            let ts_len = ts_bytes as usize;
+            let (result, gpu_ms) =
+                ctx.submit_and_read("voxel", encoder.finish(), &readback, |b| {
+                    let ms = timer.map(|t| t.read(&b[..ts_len])[0].gpu_ms);
+                    (self.decode(ctx, &b[ts_len..], config, config.leaf_m), ms)
+                })?;
+            if let Some(mut out) = result? {
+                out.retries = retries;
+                return Ok((out, gpu_ms));
+            }
+            retries += 1;
+        }
+    }
+}
+
+fn from_order_key(k: u32) -> f32 {
+    if k & 0x8000_0000 != 0 {
+        f32::from_bits(k & 0x7fff_ffff)
+    } else {
+        f32::from_bits(!k)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gpu::context::test_context;
+    use crate::perception::test_data::{random_cloud, synthetic_frame};
+    use proptest::prelude::*;
+
+    pub(crate) fn assert_same(gpu: &VoxelOutput, cpu: &VoxelOutput) {
+        assert_eq!(gpu.valid_in, cpu.valid_in, "valid points");
+        assert_eq!(gpu.points.len(), cpu.points.len(), "output count");
+        assert_eq!(gpu.counts, cpu.counts, "points per cell");
+        for (i, (g, c)) in gpu.points.iter().zip(&cpu.points).enumerate() {
+            assert!(
+                (*g - *c).abs().max_element() <= 1e-5,
+                "point {i}: gpu {g} cpu {c}"
+            );
+        }
+    }
+
+    fn gpu_run(points: &[Vec3], config: &VoxelConfig) -> Result<VoxelOutput, VoxelError> {
+        let ctx = test_context();
+        GpuVoxel::new(ctx)?
+            .run(ctx, points, config, None)
+            .map(|(o, _)| o)
+    }
+
+    #[test]
+    fn gpu_equals_cpu_on_random_clouds() {
+        for (seed, n, leaf) in [(1, 20_000, 0.05), (2, 5_000, 0.013), (3, 300, 0.2)] {
+            let pts = random_cloud(seed, n, 1.0);
+            let config = VoxelConfig {
+                leaf_m: leaf,
+                ..Default::default()
+            };
+            let cpu = voxel_cpu(&pts, None, &config).unwrap();
+            assert!(cpu.points.len() > 10);
+            assert_same(&gpu_run(&pts, &config).unwrap(), &cpu);
+        }
+    }
+
+    #[test]
+    fn gpu_equals_cpu_on_a_frame_with_min_points_filter_and_mask() {
+        let pts = synthetic_frame(7);
+        let mask: Vec<u32> = (0..pts.len().div_ceil(32))
+            .map(|w| if w % 3 == 0 { 0 } else { 0xffff_fff7 })
+            .collect();
+        let config = VoxelConfig {
+            leaf_m: 0.01,
+            min_points_per_voxel: 3,
+            filter: Some(FilterLimits {
+                axis: Axis::Z,
+                min_m: 0.8,
+                max_m: 1.2,
+                negative: false,
+            }),
+            ..Default::default()
+        };
+        let cpu = voxel_cpu(&pts, Some(&mask), &config).unwrap();
+        assert!(cpu.points.len() > 1000, "{}", cpu.points.len());
+        let ctx = test_context();
+        let mut voxel = GpuVoxel::new(ctx).unwrap();
+        voxel
+            .prepare(ctx, pts.len(), true, &config, config.leaf_m)
+            .unwrap();
+        let input = ctx
+            .scoped("test input", |d| {
+                gpu_buffer(d, "test points", 12 * pts.len() as u64, STORAGE)
+            })
+            .unwrap();
+        let mask_buf = ctx
+            .scoped("test mask", |d| {
+                gpu_buffer(d, "test mask", 4 * mask.len() as u64, STORAGE)
+            })
+            .unwrap();
+        ctx.queue()
+            .write_buffer(&input, 0, bytemuck::cast_slice(&pts));
+        ctx.queue()
+            .write_buffer(&mask_buf, 0, bytemuck::cast_slice(&mask));
+        let readback = ctx
+            .scoped("test readback", |d| {
+                gpu_buffer(
+                    d,
+                    "test readback",
+                    voxel.readback_bytes(),
+                    wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                )
+            })
+            .unwrap();
+        let mut encoder = ctx.device().create_command_encoder(&Default::default());
+        voxel.record(ctx, &mut encoder, &input, Some(&mask_buf), None);
+        voxel.copy_results(&mut encoder, &readback, 0);
+        let gpu = ctx
+            .submit_and_read("test", encoder.finish(), &readback, |b| {
+                voxel.decode(ctx, b, &config, config.leaf_m)
+            })
+            .unwrap()
+            .unwrap()
+            .expect("no overflow");
+        assert_same(&gpu, &cpu);
+    }
+
+    #[test]
+    fn gpu_output_is_byte_identical_across_runs() {
+        let pts = synthetic_frame(3);
+        let config = VoxelConfig {
+            leaf_m: 0.007,
+            ..Default::default()
+        };
+        let a = gpu_run(&pts, &config).unwrap();
+        let b = gpu_run(&pts, &config).unwrap();
+        let bits = |o: &VoxelOutput| -> Vec<u32> {
+            o.points
+                .iter()
+                .flat_map(|p| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
+                .collect()
+        };
+        assert_eq!(bits(&a), bits(&b));
+        assert_eq!(a.counts, b.counts);
+    }
+
+    #[test]
+    fn table_overflow_is_flagged_not_wrong() {
+        // About 8000 occupied cells, far more than 1024 slots.
+        let pts = random_cloud(5, 20_000, 1.0);
+        let small = VoxelConfig {
+            leaf_m: 0.05,
+            initial_table_slots: 1024,
+            max_table_slots: 1024,
+            ..Default::default()
+        };
+        let cpu = voxel_cpu(&pts, None, &small).unwrap();
+        assert!(cpu.points.len() > 4000);
+        match gpu_run(&pts, &small) {
+            Err(VoxelError::TableOverflow { slots: 1024, .. }) => {}
+            other => panic!("expected an overflow error, got {other:?}"),
+        }
+        // Allowed to grow, the same frame is retried and comes out right.
+        let growing = VoxelConfig {
+            max_table_slots: 1 << 20,
+            ..small
+        };
+        let out = gpu_run(&pts, &growing).unwrap();
+        assert!(out.retries >= 1);
+        assert!(out.table_slots.unwrap() > 1024);
+        assert_same(&out, &cpu);
+    }
+
+    #[test]
+    fn empty_and_all_invalid_clouds() {
+        let config = VoxelConfig::default();
+        for pts in [vec![], vec![Vec3::splat(f32::NAN); 100]] {
+            let cpu = voxel_cpu(&pts, None, &config).unwrap();
+            assert!(cpu.points.is_empty());
+            assert_same(&gpu_run(&pts, &config).unwrap(), &cpu);
+        }
+    }
+
+    #[test]
+    fn pcl_grid_overflow_check() {
+        let pts = vec![
+            Vec3::new(-500.0, -500.0, -500.0),
+            Vec3::new(500.0, 500.0, 500.0),
+        ];
+        let config = VoxelConfig {
+            leaf_m: 0.001,
+            ..Default::default()
+        };
+        assert!(matches!(
+            voxel_cpu(&pts, None, &config),
+            Err(VoxelError::GridOverflow { .. })
+        ));
+        assert!(matches!(
+            gpu_run(&pts, &config),
+            Err(VoxelError::GridOverflow { .. })
+        ));
+    }
+
+    #[test]
+    fn leaf_adapter_reaches_the_target() {
+        let pts = synthetic_frame(11);
+        let config = VoxelConfig {
+            leaf_m: 0.002,
+            target_points: Some(5000),
+            ..Default::default()
+        };
+        let mut adapter = LeafAdapter::new(&config);
+        let mut count = 0;
+        for _ in 0..12 {
+            count = voxel_cpu_with_leaf(&pts, None, &config, adapter.leaf_m)
+                .unwrap()
+                .points
+                .len();
+            adapter.update(&config, count);
+        }
+        assert!(
+            (4000..6000).contains(&count),
+            "{count} points at leaf {}",
+            adapter.leaf_m
+        );
+    }
+
+    proptest! {
+        /// The f32 form of PCL's f64 filter limits decides every f32 value the same way.
+        #[test]
+        fn filter_f32_range_equals_pcl_test(
+            a in -2.0..2.0f64, b in -2.0..2.0f64, negative: bool,
+            v in prop_oneof![-2.5..2.5f32, Just(0.1f32), Just(-0.3f32)],
+        ) {
+            let f = FilterLimits { axis: Axis::Y, min_m: a.min(b), max_m: a.max(b), negative };
+            let (lo, hi, inside) = f.f32_range();
+            let p = Vec3::new(0.0, v, 0.0);
+            prop_assert_eq!(f.keeps(p), (lo <= v && v <= hi) == inside);
+            // Limits that are exactly f32 neighbours of v.
+            for m in [f64::from(v), f64::from(v.next_up()), f64::from(v.next_down()), f64::from(v) + 1e-12] {
+                for g in [
+                    FilterLimits { min_m: m, max_m: 3.0, ..f.clone() },
+                    FilterLimits { min_m: -3.0, max_m: m, ..f.clone() },
+                ] {
+                    let (lo, hi, inside) = g.f32_range();
+                    prop_assert_eq!(g.keeps(p), (lo <= v && v <= hi) == inside);
+                }
+            }
+        }
+    }
+}
