@@ -514,3 +514,27 @@ fn failed_registration_is_rejected() {
         d >= r.inner_radius_m && d < r.outer_radius_m
     }));
 }
+
+/// The GPU path gives the same estimate as the CPU reference, bit for bit, in any point order.
+#[test]
+fn gpu_path_equals_cpu_path() {
+    use rand::SeedableRng;
+    use rand::seq::SliceRandom;
+    let ctx = std::sync::Arc::new(
+        hapcloud::gpu::GpuContext::new().expect("GPU tests need Vulkan (lavapipe)"),
+    );
+    let (hip, mut view) = head_scene(0.03);
+    view.d435_noise = true;
+    let mut cloud = view.render(&[head()], &hip);
+    cloud.push(Vec3::NAN);
+    let cpu = run(&no_memory(), &cloud, &hip, &view.direction(&hip));
+    let mut gpu = SurfaceEstimator::with_gpu(no_memory(), ctx).unwrap();
+    let a = gpu.estimate(&cloud, &hip, &view.direction(&hip), 0, 0.0);
+    assert_eq!(a.backend, hapcloud::gpu::Backend::Gpu);
+    assert_eq!(a.gpu_error, None);
+    assert_eq!(a.abstraction.estimate, cpu.abstraction.estimate);
+    cloud.shuffle(&mut rand_chacha::ChaCha8Rng::seed_from_u64(9));
+    let b = gpu.estimate(&cloud, &hip, &view.direction(&hip), 0, 0.0);
+    assert_eq!(b.sums, a.sums);
+    assert_eq!(b.abstraction.estimate, a.abstraction.estimate);
+}

@@ -37,8 +37,14 @@ pub const VOXEL: StageShader = StageShader {
     source: include_str!("../../shaders/voxel.wgsl"),
 };
 
+/// Per-shell moments (src/perception/shells.rs).
+pub const SHELLS: StageShader = StageShader {
+    name: "shells",
+    source: include_str!("../../shaders/shells.wgsl"),
+};
+
 /// Every stage shader; the naga test checks this against the files in `shaders/`.
-pub const STAGE_SHADERS: &[StageShader] = &[CROP, VOXEL];
+pub const STAGE_SHADERS: &[StageShader] = &[CROP, VOXEL, SHELLS];
 
 /// Number of workgroups of [`WORKGROUP_SIZE`] threads that cover `items`.
 pub fn workgroups_for(items: u32) -> u32 {

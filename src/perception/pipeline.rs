@@ -3,7 +3,8 @@
 //!
 //! 1. points to the world frame (the HIP and the memory live there),
 //! 2. surface memory (Alg. 1): register the remembered annulus, fill the occluded centre,
-//! 3. per-shell moments around the HIP (GPU shader or its CPU reference, same integers),
+//! 3. per-shell moments around the HIP (GPU shader or its CPU reference, same integers; a GPU
+//!    failure falls back to the reference and is reported in [`SurfaceFrame::gpu_error`]),
 //! 4. shell fits, eq. 2 orientation, outlier rejection, weighted average and curvature
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
 //!
@@ -12,12 +13,14 @@
 
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
 use super::shells::{
-    self, ShellAbstraction, ShellConfig, ShellConfigError, ShellLayout, ShellSums,
+    self, GpuShells, ShellAbstraction, ShellConfig, ShellConfigError, ShellLayout, ShellSums,
 };
 use crate::camera::Frame;
+use crate::gpu::{Backend, GpuContext, GpuError};
 use glam::Vec3;
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// Settings of the per-camera surface estimator.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -27,13 +30,15 @@ pub struct SurfaceConfig {
     pub shells: ShellConfig,
 }
 
-/// A surface configuration that cannot work.
-#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+/// A surface configuration that cannot work, or a GPU stage that cannot be built.
+#[derive(Debug, thiserror::Error)]
 pub enum SurfaceConfigError {
     #[error("memory: {0}")]
     Memory(#[from] MemoryConfigError),
     #[error("shells: {0}")]
     Shells(#[from] ShellConfigError),
+    #[error("GPU shell moments: {0}")]
+    Gpu(#[from] GpuError),
 }
 
 impl SurfaceConfig {
@@ -50,21 +55,47 @@ pub struct SurfaceFrame {
     pub abstraction: ShellAbstraction,
     pub memory: MemoryStep,
     pub sums: ShellSums,
+    /// Where the shell moments were computed this frame.
+    pub backend: Backend,
+    /// A GPU failure this frame; the CPU reference answered instead (same integers).
+    pub gpu_error: Option<String>,
 }
 
 /// One camera's estimator; keeps the surface memory between frames.
 pub struct SurfaceEstimator {
     config: SurfaceConfig,
     memory: SurfaceMemory,
+    gpu: Option<(Arc<GpuContext>, GpuShells)>,
 }
 
 impl SurfaceEstimator {
+    /// An estimator computing shell moments on the CPU reference.
     pub fn new(config: SurfaceConfig) -> Result<Self, SurfaceConfigError> {
         config.validate()?;
         Ok(Self {
             config,
             memory: SurfaceMemory::new(),
+            gpu: None,
         })
+    }
+
+    /// An estimator computing shell moments with `shaders/shells.wgsl` on `ctx`.
+    pub fn with_gpu(
+        config: SurfaceConfig,
+        ctx: Arc<GpuContext>,
+    ) -> Result<Self, SurfaceConfigError> {
+        let mut estimator = Self::new(config)?;
+        let stage = GpuShells::new(&ctx)?;
+        estimator.gpu = Some((ctx, stage));
+        Ok(estimator)
+    }
+
+    pub fn backend(&self) -> Backend {
+        if self.gpu.is_some() {
+            Backend::Gpu
+        } else {
+            Backend::Cpu
+        }
     }
 
     pub fn config(&self) -> &SurfaceConfig {
@@ -108,7 +139,21 @@ impl SurfaceEstimator {
     ) -> SurfaceFrame {
         let memory = self.memory.step(cloud_world, hip, &self.config.memory);
         let layout = ShellLayout::new(hip, &self.config.shells.radii_m);
-        let sums = shells::accumulate_cpu(&memory.points, &layout);
+        let (sums, backend, gpu_error) = match &mut self.gpu {
+            Some((ctx, stage)) => match stage.accumulate(ctx, &memory.points, &layout) {
+                Ok(sums) => (sums, Backend::Gpu, None),
+                Err(e) => (
+                    shells::accumulate_cpu(&memory.points, &layout),
+                    Backend::Cpu,
+                    Some(e.to_string()),
+                ),
+            },
+            None => (
+                shells::accumulate_cpu(&memory.points, &layout),
+                Backend::Cpu,
+                None,
+            ),
+        };
         let moments = sums.to_moments(&layout);
         let abstraction =
             shells::abstract_surface(&moments, &self.config.shells, view_dir, camera_id, stamp_s);
@@ -116,6 +161,8 @@ impl SurfaceEstimator {
             abstraction,
             memory,
             sums,
+            backend,
+            gpu_error,
         }
     }
 }

@@ -39,6 +39,8 @@
 use super::fit::{
     self, AXIS, CircleMethod, FitError, FitLimits, MOMENT_COUNT, Moments, PARENT, circle3d, plane3d,
 };
+use crate::gpu::shader::{self, BindingKind};
+use crate::gpu::{GpuContext, GpuError};
 use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate};
 use glam::Vec3;
 use nalgebra::{Point3, Unit, Vector3};
@@ -573,4 +575,303 @@ fn curvature_correction(
         alpha_m: alpha,
         beta_per_m: beta,
     })
+}
+
+/// `ShellParams` in shells.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct ShellParams {
+    pub hip: [f32; 3],
+    pub point_count: u32,
+    pub outer_radius: f32,
+    pub steps_per_m: f32,
+    pub shell_count: u32,
+    pub _pad: u32,
+    pub bounds: [u32; MAX_SHELLS],
+    pub inv_radius: [f32; MAX_SHELLS],
+}
+
+/// u32 words of the GPU result: 64-bit sums per shell and moment, then two counters.
+const RESULT_WORDS: usize = MAX_SHELLS * MOMENT_COUNT * 2 + 2;
+/// Workgroups at most per pass; threads stride over the points beyond that.
+const MAX_WORKGROUPS: u32 = 256;
+
+/// The GPU per-shell moment pass (`shaders/shells.wgsl`); built once, one submit and one
+/// small readback per frame. Same [`ShellSums`] as [`accumulate_cpu`], bit for bit.
+pub struct GpuShells {
+    layout: wgpu::BindGroupLayout,
+    pipeline: wgpu::ComputePipeline,
+    params: wgpu::Buffer,
+    tables: wgpu::Buffer,
+    points: wgpu::Buffer,
+    sums: wgpu::Buffer,
+    readback: wgpu::Buffer,
+}
+
+impl GpuShells {
+    pub fn new(ctx: &GpuContext) -> Result<Self, GpuError> {
+        use BindingKind::*;
+        let layout = shader::bind_group_layout(
+            ctx,
+            "shells bind group layout",
+            &[Uniform, StorageReadOnly, StorageReadOnly, Storage],
+        )?;
+        let pipeline =
+            shader::compute_pipelines(ctx, &shader::SHELLS, &[&layout], &["shell_moments"])?
+                .remove(0);
+        let tables: Vec<u32> = PARENT.iter().chain(AXIS.iter()).copied().collect();
+        let result_bytes = (RESULT_WORDS * 4) as u64;
+        let (params, tables_buf, points, sums, readback) =
+            ctx.scoped("shells buffers", |device| {
+                let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+                    device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some(label),
+                        size,
+                        usage,
+                        mapped_at_creation: false,
+                    })
+                };
+                use wgpu::BufferUsages as U;
+                (
+                    buffer(
+                        "shells params",
+                        std::mem::size_of::<ShellParams>() as u64,
+                        U::UNIFORM | U::COPY_DST,
+                    ),
+                    buffer(
+                        "shells monomial tables",
+                        (tables.len() * 4) as u64,
+                        U::STORAGE | U::COPY_DST,
+                    ),
+                    buffer("shells points", 16, U::STORAGE | U::COPY_DST),
+                    buffer(
+                        "shells sums",
+                        result_bytes,
+                        U::STORAGE | U::COPY_DST | U::COPY_SRC,
+                    ),
+                    buffer("shells readback", result_bytes, U::MAP_READ | U::COPY_DST),
+                )
+            })?;
+        ctx.queue()
+            .write_buffer(&tables_buf, 0, bytemuck::cast_slice(&tables));
+        Ok(Self {
+            layout,
+            pipeline,
+            params,
+            tables: tables_buf,
+            points,
+            sums,
+            readback,
+        })
+    }
+
+    /// Per-shell sums of `points` (world frame, NaN allowed) for `layout`.
+    pub fn accumulate(
+        &mut self,
+        ctx: &GpuContext,
+        points: &[Vec3],
+        layout: &ShellLayout,
+    ) -> Result<ShellSums, GpuError> {
+        let n = u32::try_from(points.len()).map_err(|_| GpuError::TooLarge {
+            what: "shell moment points".into(),
+            needed: points.len() as u64,
+            limit: u64::from(u32::MAX),
+        })?;
+        let bytes = std::mem::size_of_val(points) as u64;
+        ctx.check_storage_size("shells points", bytes)?;
+        if self.points.size() < bytes {
+            self.points = ctx.scoped("shells points", |device| {
+                device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("shells points"),
+                    size: bytes.next_power_of_two(),
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                })
+            })?;
+        }
+        let mut params = ShellParams {
+            hip: layout.hip,
+            point_count: n,
+            outer_radius: layout.outer_radius,
+            steps_per_m: layout.steps_per_m,
+            shell_count: layout.shell_count() as u32,
+            ..ShellParams::default()
+        };
+        params.bounds[..layout.shell_count()].copy_from_slice(&layout.bounds);
+        params.inv_radius[..layout.shell_count()].copy_from_slice(&layout.inv_radius);
+        let queue = ctx.queue();
+        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        if n > 0 {
+            queue.write_buffer(&self.points, 0, bytemuck::cast_slice(points));
+        }
+        let commands = ctx.scoped("shells record", |device| {
+            let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("shells bind group"),
+                layout: &self.layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: self.params.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: self.points.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: self.tables.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 3,
+                        resource: self.sums.as_entire_binding(),
+                    },
+                ],
+            });
+            let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("shells frame"),
+            });
+            encoder.clear_buffer(&self.sums, 0, None);
+            {
+                let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                    label: Some("shells moments pass"),
+                    timestamp_writes: None,
+                });
+                pass.set_pipeline(&self.pipeline);
+                pass.set_bind_group(0, &bind_group, &[]);
+                pass.dispatch_workgroups(shader::workgroups_for(n).clamp(1, MAX_WORKGROUPS), 1, 1);
+            }
+            encoder.copy_buffer_to_buffer(&self.sums, 0, &self.readback, 0, self.sums.size());
+            encoder.finish()
+        })?;
+        let shells = layout.shell_count();
+        ctx.submit_and_read("shells moments", commands, &self.readback, |bytes| {
+            let words: &[u32] = bytemuck::cast_slice(bytes);
+            let word64 =
+                |i: usize| (u64::from(words[2 * i + 1]) << 32 | u64::from(words[2 * i])) as i64;
+            ShellSums {
+                sums: (0..shells)
+                    .map(|s| std::array::from_fn(|m| word64(s * MOMENT_COUNT + m)))
+                    .collect(),
+                non_finite: words[RESULT_WORDS - 2],
+                outside: words[RESULT_WORDS - 1],
+            }
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::seq::SliceRandom;
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    fn gpu() -> GpuContext {
+        GpuContext::new().unwrap_or_else(|e| panic!("GPU tests need Vulkan: {e}"))
+    }
+
+    /// Points on a noisy bumpy patch around the HIP, some outside, some NaN/Inf.
+    fn cloud(seed: u64, n: usize, hip: &Point3<f64>) -> Vec<Vec3> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        (0..n)
+            .map(|i| match i % 97 {
+                0 => Vec3::new(f32::NAN, 0.0, 1.0),
+                1 => Vec3::new(0.0, f32::INFINITY, 1.0),
+                _ => {
+                    let (x, y): (f64, f64) =
+                        (rng.random_range(-0.15..0.15), rng.random_range(-0.15..0.15));
+                    let z = 0.04 - 2.0 * (x * x + y * y) + rng.random_range(-0.002..0.002);
+                    Vec3::new((hip.x + x) as f32, (hip.y + y) as f32, (hip.z - z) as f32)
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn shell_params_mirror_matches_wgsl() {
+        let (module, _) =
+            shader::validate(&shader::SHELLS, naga::valid::Capabilities::empty()).unwrap();
+        let mut layouter = naga::proc::Layouter::default();
+        layouter.update(module.to_ctx()).unwrap();
+        let (handle, _) = module
+            .types
+            .iter()
+            .find(|(_, t)| t.name.as_deref() == Some("ShellParams"))
+            .unwrap();
+        assert_eq!(
+            layouter[handle].size as usize,
+            std::mem::size_of::<ShellParams>()
+        );
+        let constant = |name: &str| {
+            module
+                .constants
+                .iter()
+                .find(|(_, c)| c.name.as_deref() == Some(name))
+                .map(|(_, c)| module.global_expressions[c.init].clone())
+                .unwrap()
+        };
+        assert_eq!(
+            constant("SHELL_MOMENTS"),
+            naga::Expression::Literal(naga::Literal::U32(MOMENT_COUNT as u32))
+        );
+        assert_eq!(
+            constant("SHELL_MAX"),
+            naga::Expression::Literal(naga::Literal::U32(MAX_SHELLS as u32))
+        );
+        assert_eq!(
+            constant("SHELL_FIXED_ONE"),
+            naga::Expression::Literal(naga::Literal::F32(FIXED_ONE))
+        );
+        assert_eq!(
+            constant("SHELL_COUNTERS"),
+            naga::Expression::Literal(naga::Literal::U32((RESULT_WORDS - 2) as u32))
+        );
+    }
+
+    #[test]
+    fn fixed_point_moments_match_f64_moments() {
+        let hip = Point3::new(0.3, -0.2, 0.8);
+        let config = ShellConfig::default();
+        let layout = ShellLayout::new(&hip, &config.radii_m);
+        let points = cloud(1, 20_000, &hip);
+        let fixed = accumulate_cpu(&points, &layout).to_moments(&layout);
+        for (i, m) in fixed.iter().enumerate() {
+            let inside: Vec<Point3<f64>> = points
+                .iter()
+                .filter(|p| shell_of(**p, &layout).is_some_and(|(s, _)| s == i) && finite_bits(**p))
+                .map(|p| Point3::new(p.x.into(), p.y.into(), p.z.into()))
+                .collect();
+            let exact = Moments::from_points(layout.origin(), &inside);
+            let r = config.radii_m[i];
+            for n in 0..MOMENT_COUNT {
+                let tol = 1e-6 * exact.count().max(1.0) * r.powi(fit::degree(n) as i32);
+                assert!(
+                    (m.sums[n] - exact.sums[n]).abs() <= tol,
+                    "shell {i} moment {n}: {} vs {}",
+                    m.sums[n],
+                    exact.sums[n]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn gpu_equals_cpu_bit_for_bit_and_ignores_order() {
+        let ctx = gpu();
+        let mut stage = GpuShells::new(&ctx).unwrap();
+        for (seed, n) in [(2u64, 0usize), (3, 1), (4, 5_000), (5, 70_001)] {
+            let hip = Point3::new(-1.2, 0.4, 2.5);
+            let layout = ShellLayout::new(&hip, &ShellConfig::default().radii_m);
+            let mut points = cloud(seed, n, &hip);
+            let cpu = accumulate_cpu(&points, &layout);
+            let gpu = stage.accumulate(&ctx, &points, &layout).unwrap();
+            assert_eq!(gpu, cpu, "{n} points");
+            points.shuffle(&mut ChaCha8Rng::seed_from_u64(seed));
+            assert_eq!(
+                stage.accumulate(&ctx, &points, &layout).unwrap(),
+                gpu,
+                "{n} points shuffled"
+            );
+        }
+    }
 }
