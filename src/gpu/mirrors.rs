@@ -80,6 +80,24 @@ pub struct SortStep {
     pub _pad1: u32,
 }
 
+/// Shell slots in `ShellParams` (`SHELL_MAX` in shells.wgsl, `MAX_SHELLS` in shells.rs).
+pub const SHELL_SLOTS: usize = 32;
+
+/// `ShellParams` in shells.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct ShellParams {
+    /// HIP (m), then counts and the integer/f32 constants of `ShellLayout`.
+    pub hip: [f32; 3],
+    pub point_count: u32,
+    pub outer_radius: f32,
+    pub steps_per_m: f32,
+    pub shell_count: u32,
+    pub _pad: u32,
+    pub bounds: [u32; SHELL_SLOTS],
+    pub inv_radius: [f32; SHELL_SLOTS],
+}
+
 /// A mirrored struct: its WGSL name, the shader declaring it, and the Rust layout.
 pub struct Mirror {
     pub shader: StageShader,
@@ -104,6 +122,7 @@ pub const MIRRORS: &[Mirror] = &[
     mirror::<VoxelParams>(shader::VOXEL, "VoxelParams"),
     mirror::<VoxelHeader>(shader::VOXEL, "VoxelHeader"),
     mirror::<SortStep>(shader::VOXEL, "SortStep"),
+    mirror::<ShellParams>(shader::SHELLS, "ShellParams"),
 ];
 
 #[cfg(test)]

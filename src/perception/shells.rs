@@ -39,6 +39,7 @@
 use super::fit::{
     self, AXIS, CircleMethod, FitError, FitLimits, MOMENT_COUNT, Moments, PARENT, circle3d, plane3d,
 };
+use crate::gpu::mirrors::ShellParams;
 use crate::gpu::shader::{self, BindingKind};
 use crate::gpu::{GpuContext, GpuError};
 use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate};
@@ -47,7 +48,7 @@ use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// Most shells a configuration may ask for (bounds the GPU's per-shell arrays).
-pub const MAX_SHELLS: usize = 32;
+pub const MAX_SHELLS: usize = crate::gpu::mirrors::SHELL_SLOTS;
 /// Fixed-point unit of one monomial contribution: values in [-1, 1] become i32 in units of
 /// 2^-30.
 pub const FIXED_ONE: f32 = 1_073_741_824.0;
@@ -577,20 +578,6 @@ fn curvature_correction(
     })
 }
 
-/// `ShellParams` in shells.wgsl.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct ShellParams {
-    pub hip: [f32; 3],
-    pub point_count: u32,
-    pub outer_radius: f32,
-    pub steps_per_m: f32,
-    pub shell_count: u32,
-    pub _pad: u32,
-    pub bounds: [u32; MAX_SHELLS],
-    pub inv_radius: [f32; MAX_SHELLS],
-}
-
 /// u32 words of the GPU result: 64-bit sums per shell and moment, then two counters.
 const RESULT_WORDS: usize = MAX_SHELLS * MOMENT_COUNT * 2 + 2;
 /// Workgroups at most per pass; threads stride over the points beyond that.
@@ -788,20 +775,9 @@ mod tests {
     }
 
     #[test]
-    fn shell_params_mirror_matches_wgsl() {
+    fn shader_constants_match_rust() {
         let (module, _) =
             shader::validate(&shader::SHELLS, naga::valid::Capabilities::empty()).unwrap();
-        let mut layouter = naga::proc::Layouter::default();
-        layouter.update(module.to_ctx()).unwrap();
-        let (handle, _) = module
-            .types
-            .iter()
-            .find(|(_, t)| t.name.as_deref() == Some("ShellParams"))
-            .unwrap();
-        assert_eq!(
-            layouter[handle].size as usize,
-            std::mem::size_of::<ShellParams>()
-        );
         let constant = |name: &str| {
             module
                 .constants
