@@ -18,6 +18,7 @@ use serde::{Deserialize, Serialize};
 use crate::geometry::{Primitive, PrimitiveError, box_rotation};
 use crate::gpu::mirrors::{CropParams, CropPrimitive};
 use crate::gpu::shader::{self, BindingKind};
+use crate::gpu::timing::StageTimer;
 use crate::gpu::{GpuContext, GpuError};
 
 /// Crop settings.
@@ -315,19 +316,22 @@ impl GpuCrop {
         pass.dispatch_workgroups(shader::workgroups_for(self.word_count), 1, 1);
     }
 
-    /// Crops one cloud on its own (one submit, one readback): the keep mask.
+    /// Crops one cloud on its own (one submit, one readback): the keep mask and, with a
+    /// timer, the pass's GPU time (ms).
     pub fn run(
         &mut self,
         ctx: &GpuContext,
         points: &[Vec3],
         config: &CropConfig,
         scene: &CropScene<'_>,
-    ) -> Result<Vec<u32>, CropError> {
+        timer: Option<&StageTimer>,
+    ) -> Result<(Vec<u32>, Option<f64>), CropError> {
         self.prepare(ctx, points.len(), config, scene)?;
         if points.is_empty() {
-            return Ok(Vec::new());
+            return Ok((Vec::new(), None));
         }
         let bytes = 4 * u64::from(self.word_count);
+        let ts_bytes = timer.map_or(0, |t| t.readback_bytes());
         let (input, readback) = ctx.scoped("crop upload", |device| {
             let input = storage(
                 device,
@@ -337,7 +341,7 @@ impl GpuCrop {
             );
             let readback = device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("crop readback"),
-                size: bytes,
+                size: ts_bytes + bytes,
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             });
@@ -350,11 +354,16 @@ impl GpuCrop {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("crop frame"),
             });
-        self.record(ctx, &mut encoder, &input, None);
-        encoder.copy_buffer_to_buffer(&self.mask, 0, &readback, 0, bytes);
+        self.record(ctx, &mut encoder, &input, timer.map(|t| t.pass_writes(0)));
+        if let Some(t) = timer {
+            t.resolve_into(&mut encoder, &readback, 0);
+        }
+        encoder.copy_buffer_to_buffer(&self.mask, 0, &readback, ts_bytes, bytes);
+        let ts = ts_bytes as usize;
         Ok(
             ctx.submit_and_read("crop", encoder.finish(), &readback, |b| {
-                bytemuck::cast_slice::<u8, u32>(b).to_vec()
+                let ms = timer.map(|t| t.read(&b[..ts])[0].gpu_ms);
+                (bytemuck::cast_slice::<u8, u32>(&b[ts..]).to_vec(), ms)
             })?,
         )
     }
@@ -477,7 +486,7 @@ mod tests {
                 prop_assert_eq!(mask_bit(&cpu, i), expect);
             }
             let ctx = crate::gpu::context::test_context();
-            let gpu = GpuCrop::new(ctx).unwrap().run(ctx, &points, &config, &scene).unwrap();
+            let gpu = GpuCrop::new(ctx).unwrap().run(ctx, &points, &config, &scene, None).unwrap().0;
             for (i, p) in points.iter().enumerate() {
                 if mask_bit(&cpu, i) != mask_bit(&gpu, i) {
                     prop_assert!(near_boundary(*p, &config, &scene), "point {} {:?}", i, p);
@@ -514,8 +523,9 @@ mod tests {
         let ctx = crate::gpu::context::test_context();
         let gpu = GpuCrop::new(ctx)
             .unwrap()
-            .run(ctx, &cloud, &config, &scene)
-            .unwrap();
+            .run(ctx, &cloud, &config, &scene, None)
+            .unwrap()
+            .0;
         let kept = kept_indices(&cpu, cloud.len()).len();
         assert!(kept > 1000 && kept < cloud.len(), "kept {kept}");
         let mut differing = 0;
@@ -534,8 +544,9 @@ mod tests {
         let scene = hip_scene(&[]);
         let gpu = GpuCrop::new(ctx)
             .unwrap()
-            .run(ctx, &[], &CropConfig::default(), &scene)
-            .unwrap();
+            .run(ctx, &[], &CropConfig::default(), &scene, None)
+            .unwrap()
+            .0;
         assert!(gpu.is_empty());
         assert!(
             crop_cpu(&[], &CropConfig::default(), &scene)

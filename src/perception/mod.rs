@@ -3,6 +3,7 @@
 
 pub mod crop;
 pub mod fit;
+pub mod frontend;
 pub mod memory;
 pub mod pipeline;
 pub mod shells;

@@ -897,7 +897,7 @@ fn from_order_key(k: u32) -> f32 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::gpu::context::test_context;
     use crate::perception::test_data::{random_cloud, synthetic_frame};

@@ -1,0 +1,369 @@
+//! The per-frame front end (paper IV-A to IV-C): crop -> voxel grid -> clustering.
+//!
+//! On the GPU ([`GpuFrontend`]) a frame is one command encoder and one submit: upload the
+//! points, record the crop pass (keep mask), the voxel pass (reads the mask; clears with
+//! `clear_buffer`), resolve the timestamp queries, and copy the stage results into one
+//! readback buffer, which is mapped once. Each stage is one compute pass bracketed by
+//! timestamps, so the frame reports the GPU time per stage. A voxel-table overflow (flag in the
+//! readback) re-records the frame once with a bigger table (see [`crate::perception::voxel`]).
+//!
+//! [`CpuFrontend`] runs the CPU references of the same stages and produces the same
+//! [`FrontendOutput`]. Both adapt the voxel leaf between frames towards
+//! `voxel.target_points` ([`LeafAdapter`]).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+use crate::gpu::timing::{StageTime, StageTimer};
+use crate::gpu::{Backend, GpuContext, GpuError};
+use crate::perception::crop::{CropConfig, CropError, CropScene, GpuCrop, crop_cpu};
+use crate::perception::voxel::{
+    GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, voxel_cpu_with_leaf,
+};
+
+/// Settings of the front end, one struct per stage.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FrontendConfig {
+    pub crop: CropConfig,
+    pub voxel: VoxelConfig,
+}
+
+impl FrontendConfig {
+    pub fn validate(&self) -> Result<(), FrontendError> {
+        self.crop.validate()?;
+        self.voxel.validate()?;
+        Ok(())
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum FrontendError {
+    #[error("crop: {0}")]
+    Crop(#[from] CropError),
+    #[error("voxel: {0}")]
+    Voxel(#[from] VoxelError),
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+}
+
+/// One frame's input: points in the cloud frame (NaN = invalid) and, when the crop runs,
+/// the HIP and the posed robot primitives.
+#[derive(Clone, Debug)]
+pub struct FrameInput<'a> {
+    pub points: &'a [Vec3],
+    /// `None` skips the crop (every finite point enters the voxel grid).
+    pub crop: Option<CropScene<'a>>,
+}
+
+/// What the front end hands on.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrontendOutput {
+    pub points_in: usize,
+    /// Voxel grid of the cropped points (`valid_in` = points that survived the crop).
+    pub voxel: VoxelOutput,
+    /// GPU time per stage (GPU backend with timestamp queries), else empty.
+    pub gpu_times: Vec<StageTime>,
+    /// Wall time of the whole frame, upload and readback included (ms).
+    pub wall_ms: f64,
+}
+
+/// The front end on either backend.
+pub enum Frontend {
+    Gpu(Box<GpuFrontend>),
+    Cpu(CpuFrontend),
+}
+
+impl Frontend {
+    /// A front end on `backend`; the GPU one opens a context unless `ctx` is given.
+    pub fn new(
+        backend: Backend,
+        config: FrontendConfig,
+        ctx: Option<Arc<GpuContext>>,
+    ) -> Result<Self, FrontendError> {
+        Ok(match backend {
+            Backend::Cpu => Frontend::Cpu(CpuFrontend::new(config)?),
+            Backend::Gpu => {
+                let ctx = match ctx {
+                    Some(c) => c,
+                    None => Arc::new(GpuContext::new()?),
+                };
+                Frontend::Gpu(Box::new(GpuFrontend::new(ctx, config)?))
+            }
+        })
+    }
+
+    pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
+        match self {
+            Frontend::Gpu(g) => g.process(frame),
+            Frontend::Cpu(c) => c.process(frame),
+        }
+    }
+
+    /// The adapter name (GPU) or `None` (CPU).
+    pub fn adapter(&self) -> Option<&str> {
+        match self {
+            Frontend::Gpu(g) => Some(&g.ctx.adapter().name),
+            Frontend::Cpu(_) => None,
+        }
+    }
+}
+
+/// CPU reference front end.
+pub struct CpuFrontend {
+    config: FrontendConfig,
+    leaf: LeafAdapter,
+}
+
+impl CpuFrontend {
+    pub fn new(config: FrontendConfig) -> Result<Self, FrontendError> {
+        config.validate()?;
+        Ok(Self {
+            leaf: LeafAdapter::new(&config.voxel),
+            config,
+        })
+    }
+
+    pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
+        let start = Instant::now();
+        let mask = match &frame.crop {
+            Some(scene) => Some(crop_cpu(frame.points, &self.config.crop, scene)?),
+            None => None,
+        };
+        let voxel = voxel_cpu_with_leaf(
+            frame.points,
+            mask.as_deref(),
+            &self.config.voxel,
+            self.leaf.leaf_m,
+        )?;
+        self.leaf.update(&self.config.voxel, voxel.points.len());
+        Ok(FrontendOutput {
+            points_in: frame.points.len(),
+            voxel,
+            gpu_times: Vec::new(),
+            wall_ms: start.elapsed().as_secs_f64() * 1e3,
+        })
+    }
+}
+
+/// Stages with a compute pass each, in recording order (timestamp pairs in this order).
+const STAGES: [&str; 2] = ["crop", "voxel"];
+
+/// GPU front end: stages and buffers built once and reused every frame.
+pub struct GpuFrontend {
+    ctx: Arc<GpuContext>,
+    config: FrontendConfig,
+    crop: GpuCrop,
+    voxel: GpuVoxel,
+    timer: Option<StageTimer>,
+    input: wgpu::Buffer,
+    readback: wgpu::Buffer,
+    leaf: LeafAdapter,
+}
+
+fn make_buffer(
+    ctx: &GpuContext,
+    label: &str,
+    bytes: u64,
+    usage: wgpu::BufferUsages,
+) -> Result<wgpu::Buffer, GpuError> {
+    ctx.scoped(label, |device| {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: bytes.max(16),
+            usage,
+            mapped_at_creation: false,
+        })
+    })
+}
+
+const INPUT_USAGE: wgpu::BufferUsages =
+    wgpu::BufferUsages::STORAGE.union(wgpu::BufferUsages::COPY_DST);
+const READBACK_USAGE: wgpu::BufferUsages =
+    wgpu::BufferUsages::MAP_READ.union(wgpu::BufferUsages::COPY_DST);
+
+impl GpuFrontend {
+    pub fn new(ctx: Arc<GpuContext>, config: FrontendConfig) -> Result<Self, FrontendError> {
+        config.validate()?;
+        let crop = GpuCrop::new(&ctx)?;
+        let voxel = GpuVoxel::new(&ctx)?;
+        let timer = StageTimer::new(&ctx, "frontend", &STAGES)?;
+        let input = make_buffer(&ctx, "frontend input points", 16, INPUT_USAGE)?;
+        let readback = make_buffer(&ctx, "frontend readback", 16, READBACK_USAGE)?;
+        Ok(Self {
+            leaf: LeafAdapter::new(&config.voxel),
+            ctx,
+            config,
+            crop,
+            voxel,
+            timer,
+            input,
+            readback,
+        })
+    }
+
+    pub fn context(&self) -> &Arc<GpuContext> {
+        &self.ctx
+    }
+
+    /// Leaf the next frame will use (m).
+    pub fn leaf_m(&self) -> f64 {
+        self.leaf.leaf_m
+    }
+
+    pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
+        let start = Instant::now();
+        let ctx = Arc::clone(&self.ctx);
+        let n = frame.points.len();
+        let input_bytes = 12 * n as u64;
+        ctx.check_storage_size("frontend input points", input_bytes)?;
+        if self.input.size() < input_bytes {
+            self.input = make_buffer(&ctx, "frontend input points", input_bytes, INPUT_USAGE)?;
+        }
+        if n > 0 {
+            ctx.queue()
+                .write_buffer(&self.input, 0, bytemuck::cast_slice(frame.points));
+        }
+        if let Some(scene) = &frame.crop {
+            self.crop.prepare(&ctx, n, &self.config.crop, scene)?;
+        }
+        let leaf_m = self.leaf.leaf_m;
+        self.voxel
+            .prepare(&ctx, n, frame.crop.is_some(), &self.config.voxel, leaf_m)?;
+        let mut retries = 0;
+        let (mut voxel, gpu_times) = loop {
+            let ts_bytes = self.timer.as_ref().map_or(0, |t| t.readback_bytes());
+            let needed = ts_bytes + self.voxel.readback_bytes();
+            if self.readback.size() < needed {
+                self.readback = make_buffer(&ctx, "frontend readback", needed, READBACK_USAGE)?;
+            }
+            let mut encoder =
+                ctx.device()
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("frontend frame"),
+                    });
+            let writes = |i: usize| self.timer.as_ref().map(|t| t.pass_writes(i));
+            if frame.crop.is_some() {
+                self.crop.record(&ctx, &mut encoder, &self.input, writes(0));
+            }
+            let mask = frame.crop.as_ref().map(|_| self.crop.mask());
+            self.voxel
+                .record(&ctx, &mut encoder, &self.input, mask, writes(1));
+            if let Some(t) = &self.timer {
+                t.resolve_into(&mut encoder, &self.readback, 0);
+            }
+            self.voxel
+                .copy_results(&mut encoder, &self.readback, ts_bytes);
+            let ts = ts_bytes as usize;
+            let (voxel, times) = {
+                let voxel = &mut self.voxel;
+                let timer = self.timer.as_ref();
+                let config = &self.config.voxel;
+                ctx.submit_and_read("frontend frame", encoder.finish(), &self.readback, |b| {
+                    let times = timer.map(|t| t.read(&b[..ts])).unwrap_or_default();
+                    (voxel.decode(&ctx, &b[ts..], config, leaf_m), times)
+                })?
+            };
+            if let Some(v) = voxel? {
+                let times = times
+                    .into_iter()
+                    .filter(|t| t.stage != "crop" || frame.crop.is_some())
+                    .collect::<Vec<_>>();
+                break (v, times);
+            }
+            retries += 1;
+        };
+        voxel.retries = retries;
+        self.leaf.update(&self.config.voxel, voxel.points.len());
+        Ok(FrontendOutput {
+            points_in: n,
+            voxel,
+            gpu_times,
+            wall_ms: start.elapsed().as_secs_f64() * 1e3,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::Primitive;
+    use crate::perception::test_data::synthetic_frame;
+    use crate::perception::voxel::tests::assert_same;
+    use nalgebra::Point3;
+
+    #[test]
+    fn gpu_frontend_equals_cpu_frontend_over_frames_with_leaf_adaptation() {
+        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
+        let config = FrontendConfig {
+            crop: CropConfig { radius_m: 0.6 },
+            voxel: VoxelConfig {
+                leaf_m: 0.003,
+                target_points: Some(3000),
+                initial_table_slots: 1024,
+                ..Default::default()
+            },
+        };
+        let robot = [Primitive::Capsule {
+            a_m: Point3::new(0.2, 0.0, 0.8),
+            b_m: Point3::new(0.3, 0.2, 0.9),
+            radius_m: 0.05,
+        }];
+        let mut gpu = Frontend::new(Backend::Gpu, config.clone(), Some(ctx)).unwrap();
+        let mut cpu = Frontend::new(Backend::Cpu, config, None).unwrap();
+        assert!(gpu.adapter().is_some() && cpu.adapter().is_none());
+        let mut last = 0;
+        for seed in 0..4 {
+            let points = synthetic_frame(seed);
+            let frame = FrameInput {
+                points: &points,
+                crop: Some(CropScene {
+                    hip_m: Point3::new(0.05, 0.0, 0.85),
+                    robot: &robot,
+                }),
+            };
+            let g = gpu.process(&frame).unwrap();
+            let c = cpu.process(&frame).unwrap();
+            assert_eq!(g.voxel.leaf_m, c.voxel.leaf_m);
+            assert_same(&g.voxel, &c.voxel);
+            assert!(g.voxel.valid_in < points.len() / 2);
+            if seed == 0 {
+                // The first frame's 1024-slot table is too small: retried, still right.
+                assert!(g.voxel.retries >= 1);
+            }
+            if let Frontend::Gpu(f) = &gpu
+                && f.context().timestamp_period_ns().is_some()
+            {
+                let stages: Vec<_> = g.gpu_times.iter().map(|t| t.stage).collect();
+                assert_eq!(stages, ["crop", "voxel"]);
+            }
+            last = g.voxel.points.len();
+        }
+        assert!((2000..4500).contains(&last), "{last}");
+    }
+
+    #[test]
+    fn frontend_without_crop_and_with_an_empty_frame() {
+        let mut gpu = Frontend::new(Backend::Gpu, FrontendConfig::default(), None).unwrap();
+        let empty = gpu
+            .process(&FrameInput {
+                points: &[],
+                crop: None,
+            })
+            .unwrap();
+        assert!(empty.voxel.points.is_empty());
+        let points = synthetic_frame(2);
+        let out = gpu
+            .process(&FrameInput {
+                points: &points,
+                crop: None,
+            })
+            .unwrap();
+        let cpu =
+            crate::perception::voxel::voxel_cpu(&points, None, &VoxelConfig::default()).unwrap();
+        assert_same(&out.voxel, &cpu);
+    }
+}
