@@ -15,6 +15,7 @@
 
 pub mod camera;
 pub mod cloud;
+pub mod fusion;
 pub mod geometry;
 pub mod surface;
 

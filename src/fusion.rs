@@ -1,0 +1,1292 @@
+//! Fusion of all cameras' surface estimates into one surface at the control rate (paper IV-F,
+//! eq. 3-6, Fig. 8).
+//!
+//! # How it works
+//!
+//! Every valid [`SurfaceEstimate`] of every camera is pushed into one buffer sorted by stamp
+//! ([`Fusion::push`]). At each control tick ([`Fusion::tick`], 800 Hz in the node) two steps
+//! run, as in the paper:
+//!
+//! 1. **Regression (eq. 3-5).** The samples of the last `window_s` seconds (the paper's
+//!    duration `d`, counted back from the newest stamp) of *all* cameras are fitted per
+//!    coordinate by a 2nd-degree polynomial `x(t) = a2 t^2 + a1 t + a0` with weighted least
+//!    squares `(WA) x = (W b)`. The weight of a sample falls with its age relative to the
+//!    newest sample, `w = q / (1 + age / weight_age_scale_s)`: the paper's "inverse
+//!    proportional to the arrival time compared to the last measurement", regularised so the
+//!    newest sample has a finite weight, times the estimate's quality `q`. Because the
+//!    samples of all cameras enter the same fit, a camera's calibration bias is averaged out
+//!    under the paper's assumption of zero-mean bias over the cameras. Plain eq. 4-5 does
+//!    that exactly only for synchronised cameras: free-running cameras alternate in the
+//!    window, the alternating bias leaks into the polynomial's end, and the evaluation at the
+//!    newest end is where it leaks most (measured in the tests: 66 % of the bias remains at worst
+//!    for two 30 Hz cameras half a frame apart). With `camera_offsets` (the default) the
+//!    fit therefore also estimates one constant offset per camera in the window, constrained
+//!    to sum to zero: the same zero-mean assumption, made explicit, so the bias is removed
+//!    whatever the interleaving. When the cameras do not overlap in time the offsets are not
+//!    identifiable and the fit falls back to plain eq. 4-5.
+//!    The fit is evaluated at the tick time (a short extrapolation: frames arrive with
+//!    latency) and its derivative gives the surface's own velocity, which the haptic
+//!    velocity constraint uses (issue 5, item 3).
+//! 2. **PID smoothing (eq. 6).** A PID loop with velocity feed-forward moves the output state
+//!    `x̄` towards the fitted target `x`. Each tick the state first moves as the fit itself
+//!    moved since the previous tick (feed-forward, weight `f`), then the PID acts on what is
+//!    left, `e = x - x̄`: `x̄ += (kp e + ki ∫e + kd ė) dt`. A target that follows the
+//!    polynomial is thus tracked without lag, and the PID smooths only the jumps of the target
+//!    when a new estimate changes the fit. The centroid and the normal have separate gains
+//!    (the normal changes more slowly, paper IV-F); the defaults are critically damped
+//!    (`ki = kp² / 4`).
+//!
+//! # Numerics
+//!
+//! The fit is solved in f64 by an SVD of the weighted Vandermonde matrix (never the normal
+//! equations), with time centred on the newest stamp and scaled by the window, `τ = (t -
+//! t_newest) / window_s ∈ [-1, 0]`, so the columns `1, τ, τ²` are of order one whatever the
+//! absolute clock is. With too few samples or distinct stamps (or a numerically rank-deficient
+//! matrix) the degree falls back to 1, then 0. The evaluation time is clamped to the window
+//! plus the stale timeout, so a polynomial is never extrapolated far.
+//!
+//! # The normal, its angles, the pole and the wrap
+//!
+//! The paper smooths the normal as the spherical angles `[n_θ, n_φ]`. In one fixed chart
+//! these angles break down at the pole (`θ = 0`: `φ` is undefined and jumps) and at the wrap
+//! (`φ = ±π`). Here:
+//!
+//! * The **fit** treats the normal as a vector: each of its three components is fitted like a
+//!   centroid coordinate and the result is renormalised. Normals of one window differ by a
+//!   few degrees, so the fitted vector is far from zero; when it is not (the window's normals
+//!   disagree, fitted length below `min_normal_fit_norm`) the status is
+//!   [`FusionStatus::Inconsistent`] and the output holds.
+//! * The **PID** runs on `[n_θ, n_φ]` of a chart that is re-centred on the current smoothed
+//!   normal every tick: its reference axis is perpendicular to the smoothed normal, which
+//!   therefore always sits on the chart's equator, where the angles are orthonormal
+//!   coordinates of the tangent plane and far from the pole and the wrap. Concretely the
+//!   error is the rotation vector taking the smoothed normal to the target (its two
+//!   tangent components are the chart's `Δθ, Δφ`), the commanded angular rate rotates the
+//!   smoothed normal, and the integral and previous-error states are carried along by the
+//!   same rotation (parallel transport), so re-centring the chart leaves them consistent.
+//!   The output normal is therefore continuous through any world direction, including
+//!   `θ = 0` and `φ = ±π` of the world chart.
+//!
+//! # Robustness and status
+//!
+//! Invalid estimates (`valid == false`, quality ≤ 0, non-finite or implausible values) are
+//! skipped and counted; duplicates (same camera, same stamp within `duplicate_tolerance_s`)
+//! are dropped; out-of-order estimates are inserted at their place when still inside the
+//! window and dropped as too old otherwise. A camera that stops simply contributes no new
+//! samples. When the newest sample is older than `stale_timeout_s` at the tick time the
+//! status is [`FusionStatus::Stale`]: the last smoothed surface is held (velocity zero) and
+//! the consumer disables or holds its constraint. When data returns, the PID state restarts
+//! at the fitted target: the constraint was off meanwhile, so there is no jump to feel, and a
+//! lagging state would render a wrong surface.
+//!
+//! Clocks: estimate stamps and tick times must be on the same clock (seconds).
+
+use crate::surface::SurfaceEstimate;
+use nalgebra::{DMatrix, Point3, Unit, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Gains of one PID loop. The output is a rate (m/s for the centroid, rad/s for the normal).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PidGains {
+    /// Proportional gain: rate per unit error, 1/s.
+    pub kp_per_s: f64,
+    /// Integral gain, 1/s².
+    pub ki_per_s2: f64,
+    /// Derivative gain (rate per unit error rate), dimensionless.
+    pub kd_unitless: f64,
+    /// Clamp of the integral term's contribution `ki ∫e` (anti-windup): m/s for the
+    /// centroid, rad/s for the normal.
+    pub max_integral_rate_per_s: f64,
+}
+
+impl PidGains {
+    fn validate(&self, name: &str) -> Result<(), FusionConfigError> {
+        let bad = |field: &str, value: f64| FusionConfigError::Invalid {
+            field: format!("{name}.{field}"),
+            value,
+        };
+        if !(self.kp_per_s.is_finite() && self.kp_per_s > 0.0) {
+            return Err(bad("kp_per_s", self.kp_per_s));
+        }
+        if !(self.ki_per_s2.is_finite() && self.ki_per_s2 >= 0.0) {
+            return Err(bad("ki_per_s2", self.ki_per_s2));
+        }
+        if !(self.kd_unitless.is_finite() && self.kd_unitless >= 0.0) {
+            return Err(bad("kd_unitless", self.kd_unitless));
+        }
+        if !(self.max_integral_rate_per_s.is_finite() && self.max_integral_rate_per_s >= 0.0) {
+            return Err(bad("max_integral_rate_per_s", self.max_integral_rate_per_s));
+        }
+        Ok(())
+    }
+}
+
+/// Configuration of the fusion stage.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FusionConfig {
+    /// Regression window `d`, counted back from the newest stamp, seconds.
+    pub window_s: f64,
+    /// Age at which a sample's weight has halved, seconds.
+    pub weight_age_scale_s: f64,
+    /// Age of the newest sample after which the output is stale (constraint off), seconds.
+    pub stale_timeout_s: f64,
+    /// Samples needed for a quadratic fit (at least 3 distinct stamps are needed as well).
+    pub min_samples_quadratic_count: usize,
+    /// Samples needed for a linear fit (at least 2 distinct stamps are needed as well).
+    pub min_samples_linear_count: usize,
+    /// Buffer bound: the oldest samples are evicted beyond this many.
+    pub max_samples_count: usize,
+    /// Two estimates of one camera closer in time than this are duplicates, seconds.
+    pub duplicate_tolerance_s: f64,
+    /// Estimates whose centroid is farther than this from the world origin are implausible
+    /// and skipped, metres.
+    pub max_centroid_norm_m: f64,
+    /// A fitted normal vector shorter than this (the window's normals disagree) makes the
+    /// output inconsistent, dimensionless (a unit normal has length 1).
+    pub min_normal_fit_norm_unitless: f64,
+    /// Fit one constant offset per camera, constrained to sum to zero, beside the polynomial
+    /// (see the module doc); false fits eq. 4-5 exactly as the paper states them.
+    pub camera_offsets: bool,
+    /// Weight of the fit's own motion since the previous tick, fed forward into the PID
+    /// state before the error is taken, dimensionless (0..1; 1 tracks a polynomial exactly).
+    pub velocity_feedforward_unitless: f64,
+    /// PID of the centroid `[c_x, c_y, c_z]`.
+    pub centroid_pid: PidGains,
+    /// PID of the normal `[n_θ, n_φ]` (in the re-centred chart, see the module doc).
+    pub normal_pid: PidGains,
+}
+
+impl Default for FusionConfig {
+    fn default() -> Self {
+        Self {
+            window_s: 0.2,
+            weight_age_scale_s: 0.1,
+            stale_timeout_s: 0.15,
+            min_samples_quadratic_count: 4,
+            min_samples_linear_count: 2,
+            max_samples_count: 256,
+            duplicate_tolerance_s: 1e-6,
+            max_centroid_norm_m: 10.0,
+            min_normal_fit_norm_unitless: 0.5,
+            camera_offsets: true,
+            velocity_feedforward_unitless: 1.0,
+            centroid_pid: PidGains {
+                kp_per_s: 150.0,
+                ki_per_s2: 5625.0,
+                kd_unitless: 0.0,
+                max_integral_rate_per_s: 0.5,
+            },
+            normal_pid: PidGains {
+                kp_per_s: 40.0,
+                ki_per_s2: 400.0,
+                kd_unitless: 0.0,
+                max_integral_rate_per_s: 2.0,
+            },
+        }
+    }
+}
+
+/// Why a [`FusionConfig`] is unusable.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum FusionConfigError {
+    #[error("fusion config: {field} = {value} is out of range")]
+    Invalid { field: String, value: f64 },
+    #[error(
+        "fusion config: sample counts must satisfy 1 <= min_samples_linear_count <= \
+         min_samples_quadratic_count <= max_samples_count (got {linear}, {quadratic}, {max})"
+    )]
+    SampleCounts {
+        linear: usize,
+        quadratic: usize,
+        max: usize,
+    },
+}
+
+impl FusionConfig {
+    /// Checks every field; the error names the first bad one.
+    pub fn validate(&self) -> Result<(), FusionConfigError> {
+        let positive = [
+            ("window_s", self.window_s),
+            ("weight_age_scale_s", self.weight_age_scale_s),
+            ("stale_timeout_s", self.stale_timeout_s),
+            ("duplicate_tolerance_s", self.duplicate_tolerance_s),
+            ("max_centroid_norm_m", self.max_centroid_norm_m),
+        ];
+        for (field, value) in positive {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(FusionConfigError::Invalid {
+                    field: field.into(),
+                    value,
+                });
+            }
+        }
+        let unit_interval = [
+            (
+                "min_normal_fit_norm_unitless",
+                self.min_normal_fit_norm_unitless,
+            ),
+            (
+                "velocity_feedforward_unitless",
+                self.velocity_feedforward_unitless,
+            ),
+        ];
+        for (field, value) in unit_interval {
+            if !(0.0..=1.0).contains(&value) {
+                return Err(FusionConfigError::Invalid {
+                    field: field.into(),
+                    value,
+                });
+            }
+        }
+        if self.duplicate_tolerance_s >= self.window_s {
+            return Err(FusionConfigError::Invalid {
+                field: "duplicate_tolerance_s".into(),
+                value: self.duplicate_tolerance_s,
+            });
+        }
+        if !(1 <= self.min_samples_linear_count
+            && self.min_samples_linear_count <= self.min_samples_quadratic_count
+            && self.min_samples_quadratic_count <= self.max_samples_count)
+        {
+            return Err(FusionConfigError::SampleCounts {
+                linear: self.min_samples_linear_count,
+                quadratic: self.min_samples_quadratic_count,
+                max: self.max_samples_count,
+            });
+        }
+        self.centroid_pid.validate("centroid_pid")?;
+        self.normal_pid.validate("normal_pid")
+    }
+}
+
+/// Whether the fused surface may be used.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FusionStatus {
+    /// Fresh data: the surface follows the cameras.
+    Tracking,
+    /// The newest estimate is older than the stale timeout: the last surface is held and the
+    /// constraint must be disabled (or held, per the consumer's config).
+    Stale,
+    /// The estimates in the window disagree on the normal: the last surface is held.
+    Inconsistent,
+    /// No valid estimate has ever arrived: centroid and normal are placeholders.
+    NoData,
+}
+
+/// The fused surface at one control tick: what haptics and the controller consume.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FusedSurface {
+    /// Tick time the surface is valid for, seconds (same clock as the estimates' stamps).
+    pub stamp_s: f64,
+    /// Smoothed surface centroid `c`, world frame, metres (eq. 6 output).
+    pub centroid_m: Point3<f64>,
+    /// Smoothed outward normal `n` (from the body towards the HIP), world frame.
+    pub normal: Unit<Vector3<f64>>,
+    /// The surface's own velocity: derivative of the centroid fit at the tick, world frame,
+    /// m/s. Zero unless tracking.
+    pub velocity_m_per_s: Vector3<f64>,
+    pub status: FusionStatus,
+    /// Tick time minus the newest estimate's stamp, seconds (infinite with no data).
+    pub age_s: f64,
+    /// The regression's centroid at the tick, before PID smoothing (Fig. 8's "planned
+    /// trajectory"), metres.
+    pub fit_centroid_m: Point3<f64>,
+    /// The regression's normal at the tick, before PID smoothing.
+    pub fit_normal: Unit<Vector3<f64>>,
+    /// Degree of the polynomial actually fitted (2, or 1/0 with too few samples).
+    pub fit_degree: u8,
+    /// Samples and distinct cameras in the regression window.
+    pub sample_count: u32,
+    pub camera_count: u32,
+}
+
+impl FusedSurface {
+    /// True when the surface is fresh and consistent and may drive a constraint.
+    pub fn is_tracking(&self) -> bool {
+        self.status == FusionStatus::Tracking
+    }
+}
+
+/// What [`Fusion::push`] did with an estimate.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PushOutcome {
+    Accepted,
+    /// Not valid, no positive quality, or a non-finite or implausible value: skipped.
+    Invalid,
+    /// Same camera and stamp as a sample already held: dropped.
+    Duplicate,
+    /// Older than the window behind the newest sample: dropped.
+    TooOld,
+}
+
+/// Running counts of what happened to pushed estimates.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FusionCounters {
+    pub accepted: u64,
+    pub invalid: u64,
+    pub duplicate: u64,
+    pub too_old: u64,
+    /// Samples evicted because the buffer was full.
+    pub evicted: u64,
+}
+
+/// One accepted estimate: the six fitted channels `[c_x, c_y, c_z, n_x, n_y, n_z]`.
+#[derive(Clone, Copy, Debug)]
+struct Sample {
+    camera_id: u32,
+    stamp_s: f64,
+    quality: f64,
+    channels: [f64; CHANNELS],
+}
+
+const CHANNELS: usize = 6;
+
+/// The weighted polynomial of the current window, in `τ = (t - ref_stamp_s) / scale_s`.
+#[derive(Clone, Copy, Debug)]
+struct Fit {
+    ref_stamp_s: f64,
+    scale_s: f64,
+    /// `coeffs[k][j]`: coefficient of `τ^k` for channel `j`; unused degrees are zero.
+    coeffs: [[f64; CHANNELS]; 3],
+    degree: u8,
+    sample_count: u32,
+    camera_count: u32,
+}
+
+impl Fit {
+    /// Value and time derivative (per second) of every channel at time `t_s`.
+    fn eval(&self, t_s: f64) -> ([f64; CHANNELS], [f64; CHANNELS]) {
+        let tau = (t_s - self.ref_stamp_s) / self.scale_s;
+        let mut value = [0.0; CHANNELS];
+        let mut rate = [0.0; CHANNELS];
+        for j in 0..CHANNELS {
+            let [a0, a1, a2] = [self.coeffs[0][j], self.coeffs[1][j], self.coeffs[2][j]];
+            value[j] = a0 + tau * (a1 + tau * a2);
+            rate[j] = (a1 + 2.0 * a2 * tau) / self.scale_s;
+        }
+        (value, rate)
+    }
+}
+
+/// PID state of the smoothed surface (eq. 6).
+#[derive(Clone, Copy, Debug)]
+struct Smoothed {
+    centroid: Vector3<f64>,
+    centroid_integral: Vector3<f64>,
+    centroid_prev_error: Vector3<f64>,
+    normal: Unit<Vector3<f64>>,
+    /// Integral and previous error of the normal loop: rotation vectors in the tangent plane
+    /// of `normal` (the re-centred chart's `[n_θ, n_φ]`).
+    normal_integral: Vector3<f64>,
+    normal_prev_error: Vector3<f64>,
+    stamp_s: f64,
+}
+
+/// The fusion stage: push estimates as they come, tick at the control rate.
+#[derive(Clone, Debug)]
+pub struct Fusion {
+    config: FusionConfig,
+    /// Accepted samples, sorted by stamp (ties in arrival order).
+    samples: Vec<Sample>,
+    fit: Option<Fit>,
+    fit_dirty: bool,
+    smoothed: Option<Smoothed>,
+    /// Whether the previous tick was tracking (a return to tracking restarts the PID).
+    was_tracking: bool,
+    counters: FusionCounters,
+}
+
+impl Fusion {
+    /// A fusion stage with a validated config.
+    pub fn new(config: FusionConfig) -> Result<Self, FusionConfigError> {
+        config.validate()?;
+        Ok(Self {
+            samples: Vec::with_capacity(config.max_samples_count + 1),
+            config,
+            fit: None,
+            fit_dirty: false,
+            smoothed: None,
+            was_tracking: false,
+            counters: FusionCounters::default(),
+        })
+    }
+
+    pub fn config(&self) -> &FusionConfig {
+        &self.config
+    }
+
+    pub fn counters(&self) -> FusionCounters {
+        self.counters
+    }
+
+    /// Adds one camera's estimate (any order of stamps and cameras).
+    pub fn push(&mut self, estimate: &SurfaceEstimate) -> PushOutcome {
+        let outcome = self.insert(estimate);
+        match outcome {
+            PushOutcome::Accepted => self.counters.accepted += 1,
+            PushOutcome::Invalid => self.counters.invalid += 1,
+            PushOutcome::Duplicate => self.counters.duplicate += 1,
+            PushOutcome::TooOld => self.counters.too_old += 1,
+        }
+        outcome
+    }
+
+    fn insert(&mut self, estimate: &SurfaceEstimate) -> PushOutcome {
+        let c = estimate.centroid_m.coords;
+        let n = estimate.normal.into_inner();
+        let plausible = estimate.valid
+            && estimate.stamp_s.is_finite()
+            && estimate.quality.is_finite()
+            && estimate.quality > 0.0
+            && c.iter().all(|v| v.is_finite())
+            && c.norm() <= self.config.max_centroid_norm_m
+            && n.iter().all(|v| v.is_finite());
+        // `Unit` may hold anything after deserialisation: accept near-unit normals only.
+        let n_norm = n.norm();
+        if !plausible || !(0.5..=2.0).contains(&n_norm) {
+            return PushOutcome::Invalid;
+        }
+        let n = n / n_norm;
+        let newest = self.samples.last().map(|s| s.stamp_s);
+        if newest.is_some_and(|t| estimate.stamp_s < t - self.config.window_s) {
+            return PushOutcome::TooOld;
+        }
+        let tol = self.config.duplicate_tolerance_s;
+        let lo = self
+            .samples
+            .partition_point(|s| s.stamp_s < estimate.stamp_s - tol);
+        let hi = self
+            .samples
+            .partition_point(|s| s.stamp_s <= estimate.stamp_s + tol);
+        if self.samples[lo..hi]
+            .iter()
+            .any(|s| s.camera_id == estimate.camera_id)
+        {
+            return PushOutcome::Duplicate;
+        }
+        let at = self
+            .samples
+            .partition_point(|s| s.stamp_s <= estimate.stamp_s);
+        self.samples.insert(
+            at,
+            Sample {
+                camera_id: estimate.camera_id,
+                stamp_s: estimate.stamp_s,
+                quality: estimate.quality.min(1.0),
+                channels: [c.x, c.y, c.z, n.x, n.y, n.z],
+            },
+        );
+        // Keep only the window behind the newest sample, and at most the buffer bound.
+        let newest = self.samples.last().map_or(estimate.stamp_s, |s| s.stamp_s);
+        let first_kept = self
+            .samples
+            .partition_point(|s| s.stamp_s < newest - self.config.window_s);
+        self.samples.drain(..first_kept);
+        if self.samples.len() > self.config.max_samples_count {
+            let extra = self.samples.len() - self.config.max_samples_count;
+            self.samples.drain(..extra);
+            self.counters.evicted += extra as u64;
+        }
+        self.fit_dirty = true;
+        PushOutcome::Accepted
+    }
+
+    /// Evaluates the fused surface at tick time `t_s` and advances the PID smoothing by the
+    /// time since the previous tick. Never panics; the output is always finite with a unit
+    /// normal.
+    pub fn tick(&mut self, t_s: f64) -> FusedSurface {
+        if self.fit_dirty {
+            self.fit_dirty = false;
+            // A failed solve keeps the previous window's fit (it cannot fail with finite
+            // samples; the guard keeps the control path panic-free regardless).
+            if let Some(fit) = fit_window(&self.samples, &self.config) {
+                self.fit = Some(fit);
+            }
+        }
+        let Some(fit) = self.fit else {
+            self.was_tracking = false;
+            return no_data(t_s);
+        };
+        let t_s = if t_s.is_finite() {
+            t_s
+        } else {
+            self.smoothed.map_or(fit.ref_stamp_s, |s| s.stamp_s)
+        };
+        let age_s = t_s - fit.ref_stamp_s;
+        let now = target_at(&fit, &self.config, t_s);
+        let status = match now {
+            _ if age_s > self.config.stale_timeout_s => FusionStatus::Stale,
+            None => FusionStatus::Inconsistent,
+            Some(_) => FusionStatus::Tracking,
+        };
+        let tracking = status == FusionStatus::Tracking;
+        if let (true, Some((target, _))) = (tracking, now) {
+            match self.smoothed.as_mut() {
+                Some(s) if self.was_tracking => {
+                    // The fit's motion since the previous tick is the feed-forward.
+                    let before = target_at(&fit, &self.config, s.stamp_s).map_or(target, |p| p.0);
+                    s.step(&self.config, t_s, &before, &target);
+                }
+                _ => self.smoothed = Some(Smoothed::at(t_s, target)),
+            }
+        }
+        self.was_tracking = tracking;
+        let placeholder = Target {
+            centroid: Vector3::zeros(),
+            normal: Vector3::z_axis(),
+        };
+        let held = self.smoothed.map_or(placeholder, |s| Target {
+            centroid: s.centroid,
+            normal: s.normal,
+        });
+        let (fit_target, velocity) = now.unwrap_or((held, Vector3::zeros()));
+        FusedSurface {
+            stamp_s: t_s,
+            centroid_m: Point3::from(held.centroid),
+            normal: held.normal,
+            velocity_m_per_s: if tracking { velocity } else { Vector3::zeros() },
+            status,
+            age_s,
+            fit_centroid_m: Point3::from(fit_target.centroid),
+            fit_normal: fit_target.normal,
+            fit_degree: fit.degree,
+            sample_count: fit.sample_count,
+            camera_count: fit.camera_count,
+        }
+    }
+}
+
+/// The regression's surface at one instant.
+#[derive(Clone, Copy, Debug)]
+struct Target {
+    centroid: Vector3<f64>,
+    normal: Unit<Vector3<f64>>,
+}
+
+/// The fit's surface and centroid velocity at `t_s`, clamped to the window plus the stale
+/// timeout; `None` when the window's normals disagree (fitted normal too short).
+fn target_at(fit: &Fit, config: &FusionConfig, t_s: f64) -> Option<(Target, Vector3<f64>)> {
+    let t_eval = t_s.clamp(
+        fit.ref_stamp_s - config.window_s,
+        fit.ref_stamp_s + config.stale_timeout_s,
+    );
+    let (value, rate) = fit.eval(t_eval);
+    let centroid = Vector3::new(value[0], value[1], value[2]);
+    let velocity = Vector3::new(rate[0], rate[1], rate[2]);
+    let normal = Vector3::new(value[3], value[4], value[5]);
+    let norm = normal.norm();
+    let finite = centroid
+        .iter()
+        .chain(velocity.iter())
+        .all(|v| v.is_finite());
+    (finite && norm >= config.min_normal_fit_norm_unitless).then(|| {
+        let target = Target {
+            centroid,
+            normal: Unit::new_unchecked(normal / norm),
+        };
+        (target, velocity)
+    })
+}
+
+fn no_data(t_s: f64) -> FusedSurface {
+    FusedSurface {
+        stamp_s: t_s,
+        centroid_m: Point3::origin(),
+        normal: Vector3::z_axis(),
+        velocity_m_per_s: Vector3::zeros(),
+        status: FusionStatus::NoData,
+        age_s: f64::INFINITY,
+        fit_centroid_m: Point3::origin(),
+        fit_normal: Vector3::z_axis(),
+        fit_degree: 0,
+        sample_count: 0,
+        camera_count: 0,
+    }
+}
+
+impl Smoothed {
+    fn at(t_s: f64, target: Target) -> Self {
+        Self {
+            centroid: target.centroid,
+            centroid_integral: Vector3::zeros(),
+            centroid_prev_error: Vector3::zeros(),
+            normal: target.normal,
+            normal_integral: Vector3::zeros(),
+            normal_prev_error: Vector3::zeros(),
+            stamp_s: t_s,
+        }
+    }
+
+    /// One PID step of eq. 6 from the previous tick to `t_s`.
+    fn step(&mut self, config: &FusionConfig, t_s: f64, before: &Target, target: &Target) {
+        let dt = t_s - self.stamp_s;
+        if dt <= 0.0 {
+            // A repeated or earlier tick time: nothing to integrate.
+            return;
+        }
+        let (cg, ng) = (&config.centroid_pid, &config.normal_pid);
+        if dt * cg.kp_per_s.max(ng.kp_per_s) >= 1.0 {
+            // A gap longer than the fastest time constant (the node paused): explicit Euler
+            // would overshoot, so restart at the target instead.
+            *self = Self::at(t_s, *target);
+            return;
+        }
+        let ff = config.velocity_feedforward_unitless;
+
+        // Feed-forward: the state first moves as the fit moved since the previous tick (exact
+        // for the polynomial), so the error measures only what it missed.
+        let predicted = self.centroid + (target.centroid - before.centroid) * ff;
+        let e = target.centroid - predicted;
+        let integral = clamp_norm(
+            self.centroid_integral + e * dt,
+            cg.max_integral_rate_per_s / cg.ki_per_s2.max(f64::MIN_POSITIVE),
+        );
+        let rate = e * cg.kp_per_s
+            + integral * cg.ki_per_s2
+            + (e - self.centroid_prev_error) * (cg.kd_unitless / dt);
+        self.centroid = predicted + rate * dt;
+        self.centroid_integral = integral;
+        self.centroid_prev_error = e;
+
+        let feed_forward =
+            UnitQuaternion::from_scaled_axis(rotation_vector(&before.normal, &target.normal) * ff);
+        let predicted = feed_forward * self.normal;
+        // The loop state lives in the tangent plane: carry it along with every rotation.
+        let e = rotation_vector(&predicted, &target.normal);
+        let integral = clamp_norm(
+            feed_forward * self.normal_integral + e * dt,
+            ng.max_integral_rate_per_s / ng.ki_per_s2.max(f64::MIN_POSITIVE),
+        );
+        let omega = e * ng.kp_per_s
+            + integral * ng.ki_per_s2
+            + (e - feed_forward * self.normal_prev_error) * (ng.kd_unitless / dt);
+        let rotation = UnitQuaternion::from_scaled_axis(omega * dt);
+        let normal = Unit::new_normalize(rotation * predicted.into_inner());
+        let tangent = |v: Vector3<f64>| v - normal.into_inner() * normal.dot(&v);
+        self.normal_integral = tangent(rotation * integral);
+        self.normal_prev_error = tangent(rotation * e);
+        self.normal = normal;
+        self.stamp_s = t_s;
+
+        let finite = self.centroid.iter().all(|v| v.is_finite())
+            && self.normal.iter().all(|v| v.is_finite());
+        if !finite {
+            *self = Self::at(t_s, *target);
+        }
+    }
+}
+
+fn clamp_norm(v: Vector3<f64>, max_norm: f64) -> Vector3<f64> {
+    let norm = v.norm();
+    if norm > max_norm {
+        v * (max_norm / norm)
+    } else {
+        v
+    }
+}
+
+/// The rotation vector (axis times angle) turning unit `from` onto unit `to`; it lies in the
+/// tangent plane of `from`, so its components there are the re-centred chart's `Δθ, Δφ`.
+fn rotation_vector(from: &Unit<Vector3<f64>>, to: &Unit<Vector3<f64>>) -> Vector3<f64> {
+    let axis = from.cross(to);
+    let sin = axis.norm();
+    let angle = sin.atan2(from.dot(to));
+    if sin > 1e-12 {
+        axis * (angle / sin)
+    } else if angle < 1.0 {
+        Vector3::zeros()
+    } else {
+        // Antipodal: any perpendicular axis turns one onto the other; pick a fixed one.
+        let helper = if from.x.abs() < 0.9 {
+            Vector3::x()
+        } else {
+            Vector3::y()
+        };
+        from.cross(&helper).normalize() * angle
+    }
+}
+
+/// Weighted least squares of eq. 4-5 over the window's samples (sorted by stamp).
+fn fit_window(samples: &[Sample], config: &FusionConfig) -> Option<Fit> {
+    let newest = samples.last()?.stamp_s;
+    let n = samples.len();
+    let distinct_stamps = 1 + samples
+        .windows(2)
+        .filter(|w| w[1].stamp_s - w[0].stamp_s > config.duplicate_tolerance_s)
+        .count();
+    let mut cameras: Vec<u32> = samples.iter().map(|s| s.camera_id).collect();
+    cameras.sort_unstable();
+    cameras.dedup();
+    let mut degree: usize = if n >= config.min_samples_quadratic_count && distinct_stamps >= 3 {
+        2
+    } else if n >= config.min_samples_linear_count && distinct_stamps >= 2 {
+        1
+    } else {
+        0
+    };
+    let scale_s = config.window_s;
+    let sqrt_w: Vec<f64> = samples
+        .iter()
+        .map(|s| (s.quality / (1.0 + (newest - s.stamp_s) / config.weight_age_scale_s)).sqrt())
+        .collect();
+    // Camera offset column of each sample: camera k < K-1 has +1 in column k; the last camera
+    // has -1 in every column, which makes the offsets sum to zero.
+    let last_camera = cameras.len() - 1;
+    let camera_index: Vec<usize> = samples
+        .iter()
+        .map(|s| cameras.partition_point(|&c| c < s.camera_id))
+        .collect();
+    let mut offsets = config.camera_offsets && last_camera > 0;
+    let rhs = DMatrix::from_fn(n, CHANNELS, |i, j| sqrt_w[i] * samples[i].channels[j]);
+    loop {
+        let offset_cols = if offsets { last_camera } else { 0 };
+        let cols = degree + 1 + offset_cols;
+        if offsets && n <= cols {
+            offsets = false;
+            continue;
+        }
+        let a = DMatrix::from_fn(n, cols, |i, k| {
+            let v = if k <= degree {
+                ((samples[i].stamp_s - newest) / scale_s).powi(k as i32)
+            } else if camera_index[i] == last_camera {
+                -1.0
+            } else if camera_index[i] == k - degree - 1 {
+                1.0
+            } else {
+                0.0
+            };
+            sqrt_w[i] * v
+        });
+        let svd = a.svd(true, true);
+        let max_sv = svd.singular_values.max();
+        let min_sv = svd.singular_values.min();
+        if min_sv <= 1e-9 * max_sv {
+            // Rank-deficient: first give up the camera offsets (cameras that do not overlap
+            // in time), then lower the degree.
+            if offsets {
+                offsets = false;
+                continue;
+            }
+            if degree > 0 {
+                degree -= 1;
+                continue;
+            }
+        }
+        let x = svd.solve(&rhs, 0.0).ok()?;
+        let mut coeffs = [[0.0; CHANNELS]; 3];
+        for (k, row) in coeffs.iter_mut().enumerate().take(degree + 1) {
+            for (j, c) in row.iter_mut().enumerate() {
+                *c = x[(k, j)];
+            }
+        }
+        if coeffs.iter().flatten().any(|c| !c.is_finite()) {
+            return None;
+        }
+        return Some(Fit {
+            ref_stamp_s: newest,
+            scale_s,
+            coeffs,
+            degree: degree as u8,
+            sample_count: n as u32,
+            camera_count: cameras.len() as u32,
+        });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    const TICK_S: f64 = 1.0 / 800.0;
+
+    fn estimate(camera_id: u32, stamp_s: f64, c: Vector3<f64>, n: Vector3<f64>) -> SurfaceEstimate {
+        SurfaceEstimate {
+            camera_id,
+            stamp_s,
+            centroid_m: Point3::from(c),
+            normal: Unit::new_normalize(n),
+            shells: Vec::new(),
+            quality: 1.0,
+            valid: true,
+        }
+    }
+
+    fn quadratic(t: f64) -> Vector3<f64> {
+        Vector3::new(
+            0.3 + 0.2 * t - 0.5 * t * t,
+            -0.1 + 0.05 * t * t,
+            0.8 - 0.4 * t,
+        )
+    }
+
+    fn quadratic_velocity(t: f64) -> Vector3<f64> {
+        Vector3::new(0.2 - t, 0.1 * t, -0.4)
+    }
+
+    /// Runs the node's schedule: camera frames at `rate_hz` (camera k offset by `k/(rate*n)`)
+    /// pushed when their stamp has passed, 800 Hz ticks from `0` to `end_s`.
+    fn run(
+        fusion: &mut Fusion,
+        cameras: u32,
+        rate_hz: f64,
+        end_s: f64,
+        sample: impl Fn(u32, f64) -> Option<SurfaceEstimate>,
+        mut each_tick: impl FnMut(f64, &FusedSurface),
+    ) {
+        let mut next_frame: Vec<f64> = (0..cameras)
+            .map(|k| f64::from(k) / (rate_hz * f64::from(cameras)))
+            .collect();
+        let ticks = (end_s / TICK_S).round() as usize;
+        for i in 0..=ticks {
+            let t = i as f64 * TICK_S;
+            for (k, next) in next_frame.iter_mut().enumerate() {
+                while *next <= t {
+                    if let Some(e) = sample(k as u32, *next) {
+                        fusion.push(&e);
+                    }
+                    *next += 1.0 / rate_hz;
+                }
+            }
+            let out = fusion.tick(t);
+            each_tick(t, &out);
+        }
+    }
+
+    #[test]
+    fn default_config_is_valid_and_bad_fields_are_named() {
+        FusionConfig::default().validate().unwrap();
+        let mut c = FusionConfig {
+            window_s: -1.0,
+            ..Default::default()
+        };
+        let err = c.validate().unwrap_err().to_string();
+        assert!(err.contains("window_s"), "{err}");
+        c = FusionConfig::default();
+        c.normal_pid.kp_per_s = f64::NAN;
+        let err = c.validate().unwrap_err().to_string();
+        assert!(err.contains("normal_pid.kp_per_s"), "{err}");
+        c = FusionConfig {
+            min_samples_linear_count: 5,
+            ..Default::default()
+        };
+        assert!(matches!(
+            c.validate(),
+            Err(FusionConfigError::SampleCounts { .. })
+        ));
+        let parsed: Result<FusionConfig, _> = toml::from_str("window_seconds = 0.3");
+        assert!(parsed.is_err(), "unknown fields are rejected");
+        let parsed: FusionConfig = toml::from_str("window_s = 0.3").unwrap();
+        assert_eq!(parsed.window_s, 0.3);
+        assert_eq!(
+            parsed.stale_timeout_s,
+            FusionConfig::default().stale_timeout_s
+        );
+    }
+
+    #[test]
+    fn no_data_before_any_estimate() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let out = f.tick(1.0);
+        assert_eq!(out.status, FusionStatus::NoData);
+        assert!(!out.is_tracking());
+        assert!(out.age_s.is_infinite());
+    }
+
+    #[test]
+    fn quadratic_trajectory_is_recovered_exactly() {
+        // Absolute clock far from zero: centring on the newest stamp keeps it exact.
+        let t0 = 1.0e5;
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let n = Vector3::new(0.0, 0.0, 1.0);
+        for i in 0..12 {
+            let t = i as f64 / 60.0;
+            assert_eq!(
+                f.push(&estimate(i % 2, t0 + t, quadratic(t), n)),
+                PushOutcome::Accepted
+            );
+        }
+        let newest = 11.0 / 60.0;
+        for dt in [0.0, 0.01, 0.03, 0.1] {
+            let t = newest + dt;
+            let out = f.tick(t0 + t);
+            assert_eq!(out.status, FusionStatus::Tracking);
+            assert_eq!(out.fit_degree, 2);
+            let err = (out.fit_centroid_m.coords - quadratic(t)).norm();
+            assert!(err < 1e-9, "fit error {err} at +{dt}s");
+            let verr = (out.velocity_m_per_s - quadratic_velocity(t)).norm();
+            assert!(verr < 1e-8, "velocity error {verr} at +{dt}s");
+        }
+    }
+
+    #[test]
+    fn smoothed_output_follows_a_quadratic_trajectory_at_800_hz() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let mut worst: f64 = 0.0;
+        run(
+            &mut f,
+            2,
+            30.0,
+            1.0,
+            |k, t| Some(estimate(k, t, quadratic(t), Vector3::z())),
+            |t, out| {
+                if t > 0.2 {
+                    assert_eq!(out.status, FusionStatus::Tracking);
+                    worst = worst.max((out.centroid_m.coords - quadratic(t)).norm());
+                }
+            },
+        );
+        // Fit exact; the PID's Euler steps lag by far less than a millimetre.
+        assert!(worst < 1e-4, "worst smoothed error {worst} m");
+    }
+
+    #[test]
+    fn constant_velocity_surface_reports_its_velocity() {
+        let v = Vector3::new(0.0, 0.0, 1.0);
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let mut checked = 0;
+        run(
+            &mut f,
+            2,
+            30.0,
+            0.6,
+            |k, t| {
+                let c = Vector3::new(0.1, 0.2, 0.3) + v * t;
+                Some(estimate(k, t, c, Vector3::new(0.0, 0.0, 1.0)))
+            },
+            |t, out| {
+                if t > 0.15 {
+                    assert!((out.velocity_m_per_s - v).norm() < 1e-9);
+                }
+                // After the start-up transient (degree 0, then 1, then 2) has decayed.
+                if t > 0.4 {
+                    let truth = Vector3::new(0.1, 0.2, 0.3) + v * t;
+                    assert!((out.centroid_m.coords - truth).norm() < 1e-9);
+                    checked += 1;
+                }
+            },
+        );
+        assert!(checked > 100);
+    }
+
+    #[test]
+    fn opposite_camera_biases_average_out() {
+        let bias = Vector3::new(0.01, -0.005, 0.008);
+        let truth = |t: f64| Vector3::new(0.2, 0.0, 0.5) + Vector3::new(0.1, 0.0, -0.2) * t;
+        let biased = |k: u32, t: f64| {
+            let b = if k == 0 { bias } else { -bias };
+            Some(estimate(k, t, truth(t) + b, Vector3::z()))
+        };
+        // Synchronised cameras: exact cancellation.
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        for i in 0..12 {
+            let t = i as f64 / 30.0;
+            f.push(&biased(0, t).unwrap());
+            f.push(&biased(1, t).unwrap());
+        }
+        let t = 11.0 / 30.0 + 0.02;
+        let out = f.tick(t);
+        assert_eq!(out.camera_count, 2);
+        assert!((out.fit_centroid_m.coords - truth(t)).norm() < 1e-9);
+
+        // Free-running cameras half a frame apart.
+        let worst_error = |cameras: u32, camera_offsets: bool| {
+            let config = FusionConfig {
+                camera_offsets,
+                ..Default::default()
+            };
+            let mut f = Fusion::new(config).unwrap();
+            let mut worst: f64 = 0.0;
+            run(&mut f, cameras, 30.0, 1.0, biased, |t, out| {
+                if t > 0.3 {
+                    worst = worst.max((out.centroid_m.coords - truth(t)).norm());
+                }
+            });
+            worst / bias.norm()
+        };
+        let single = worst_error(1, true);
+        assert!((single - 1.0).abs() < 1e-6, "one camera keeps its bias");
+        // Plain eq. 4-5 removes part of it; the zero-sum camera offsets remove all of it.
+        let paper = worst_error(2, false);
+        assert!(
+            paper > 0.1 && paper < 0.7,
+            "eq. 4-5 leaves {paper} of the bias"
+        );
+        let offsets = worst_error(2, true);
+        // (What is left is the PID's decaying start-up transient.)
+        assert!(offsets < 1e-4, "camera offsets leave {offsets} of the bias");
+        eprintln!("bias left: eq. 4-5 {paper:.3}, with camera offsets {offsets:.1e}");
+    }
+
+    #[test]
+    fn missing_camera_leaves_the_other_tracking() {
+        let truth = |t: f64| Vector3::new(0.0, 0.1 * t, 0.4);
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let mut cameras_seen = Vec::new();
+        run(
+            &mut f,
+            2,
+            30.0,
+            1.5,
+            // Camera 1 dies after 0.5 s.
+            |k, t| (k == 0 || t < 0.5).then(|| estimate(k, t, truth(t), Vector3::z())),
+            |t, out| {
+                if t > 0.2 {
+                    assert_eq!(out.status, FusionStatus::Tracking, "at {t}");
+                    assert!((out.centroid_m.coords - truth(t)).norm() < 1e-6);
+                    cameras_seen.push(out.camera_count);
+                }
+            },
+        );
+        assert_eq!(cameras_seen.first(), Some(&2));
+        assert_eq!(cameras_seen.last(), Some(&1));
+    }
+
+    #[test]
+    fn stale_data_disables_then_recovers() {
+        let config = FusionConfig::default();
+        let mut f = Fusion::new(config).unwrap();
+        let c = |t: f64| Vector3::new(0.0, 0.0, 0.4 + 0.05 * t);
+        let mut log = Vec::new();
+        run(
+            &mut f,
+            1,
+            30.0,
+            2.0,
+            // A gap from 0.5 s to 1.2 s.
+            |k, t| (!(0.5..1.2).contains(&t)).then(|| estimate(k, t, c(t), Vector3::z())),
+            |t, out| log.push((t, *out)),
+        );
+        let last_before_gap = (0.5f64 * 30.0).floor() / 30.0;
+        for (t, out) in &log {
+            let age = t - last_before_gap;
+            if *t > 0.5 && *t < 1.2 && age > config.stale_timeout_s + 1e-9 {
+                assert_eq!(out.status, FusionStatus::Stale, "at {t}");
+                assert!(!out.is_tracking());
+                assert_eq!(out.velocity_m_per_s, Vector3::zeros());
+                // The last surface is held.
+                assert!((out.centroid_m.z - c(last_before_gap).z).abs() < 0.01);
+            }
+            if *t > 1.25 {
+                assert_eq!(out.status, FusionStatus::Tracking, "recovered at {t}");
+                assert!((out.centroid_m.coords - c(*t)).norm() < 1e-3, "at {t}");
+            }
+            if *t > 1.6 {
+                assert!((out.centroid_m.coords - c(*t)).norm() < 1e-9, "at {t}");
+            }
+        }
+        assert!(log.iter().any(|(_, o)| o.status == FusionStatus::Stale));
+    }
+
+    #[test]
+    fn out_of_order_and_duplicate_stamps() {
+        let c = |t: f64| quadratic(t);
+        let stamps: Vec<f64> = (0..12).map(|i| i as f64 / 60.0).collect();
+        let mut in_order = Fusion::new(FusionConfig::default()).unwrap();
+        for (i, &t) in stamps.iter().enumerate() {
+            in_order.push(&estimate(i as u32 % 2, t, c(t), Vector3::z()));
+        }
+        let mut shuffled = Fusion::new(FusionConfig::default()).unwrap();
+        for &i in &[3usize, 0, 7, 1, 11, 2, 5, 4, 9, 6, 10, 8] {
+            let t = stamps[i];
+            assert_eq!(
+                shuffled.push(&estimate(i as u32 % 2, t, c(t), Vector3::z())),
+                PushOutcome::Accepted
+            );
+        }
+        // Duplicates (same camera, same stamp) are dropped, whatever their values.
+        assert_eq!(
+            shuffled.push(&estimate(1, stamps[11], Vector3::zeros(), Vector3::x())),
+            PushOutcome::Duplicate
+        );
+        // The same stamp from another camera is a real sample.
+        assert_eq!(
+            shuffled.push(&estimate(0, stamps[11], c(stamps[11]), Vector3::z())),
+            PushOutcome::Accepted
+        );
+        // Older than the window behind the newest stamp.
+        assert_eq!(
+            shuffled.push(&estimate(0, stamps[11] - 0.5, c(0.0), Vector3::z())),
+            PushOutcome::TooOld
+        );
+        let a = in_order.tick(0.2);
+        let b = shuffled.tick(0.2);
+        assert!((a.fit_centroid_m - b.fit_centroid_m).norm() < 1e-9);
+        assert!((b.fit_centroid_m.coords - c(0.2)).norm() < 1e-9);
+        let counters = shuffled.counters();
+        assert_eq!(
+            (counters.accepted, counters.duplicate, counters.too_old),
+            (13, 1, 1)
+        );
+    }
+
+    #[test]
+    fn invalid_estimates_are_skipped() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let good = estimate(0, 0.0, Vector3::new(0.0, 0.0, 0.5), Vector3::z());
+        let mut bad = vec![good.clone(); 5];
+        bad[0].valid = false;
+        bad[1].quality = 0.0;
+        bad[2].centroid_m.x = f64::NAN;
+        bad[3].stamp_s = f64::INFINITY;
+        bad[4].normal = Unit::new_unchecked(Vector3::zeros());
+        for (i, e) in bad.iter_mut().enumerate() {
+            e.stamp_s += i as f64 * 0.01;
+            e.centroid_m.y = 5.0; // would move the fit if it were used
+            assert_eq!(f.push(e), PushOutcome::Invalid);
+        }
+        assert_eq!(f.tick(0.0).status, FusionStatus::NoData);
+        f.push(&good);
+        let out = f.tick(0.01);
+        assert_eq!(out.status, FusionStatus::Tracking);
+        assert_eq!(out.centroid_m, good.centroid_m);
+        assert_eq!(f.counters().invalid, 5);
+    }
+
+    #[test]
+    fn degree_falls_back_with_few_samples() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        f.push(&estimate(0, 0.0, Vector3::new(0.0, 0.0, 0.5), Vector3::z()));
+        assert_eq!(f.tick(0.0).fit_degree, 0);
+        f.push(&estimate(
+            0,
+            0.03,
+            Vector3::new(0.0, 0.0, 0.53),
+            Vector3::z(),
+        ));
+        let out = f.tick(0.05);
+        assert_eq!(out.fit_degree, 1);
+        assert!((out.velocity_m_per_s.z - 1.0).abs() < 1e-9);
+        assert!((out.fit_centroid_m.z - 0.55).abs() < 1e-9);
+        // Two cameras at one stamp are two samples but one distinct stamp: degree 1 stays.
+        f.push(&estimate(
+            1,
+            0.03,
+            Vector3::new(0.0, 0.0, 0.53),
+            Vector3::z(),
+        ));
+        f.push(&estimate(
+            2,
+            0.03,
+            Vector3::new(0.0, 0.0, 0.53),
+            Vector3::z(),
+        ));
+        assert_eq!(f.tick(0.05).fit_degree, 1);
+        f.push(&estimate(
+            0,
+            0.06,
+            Vector3::new(0.0, 0.0, 0.56),
+            Vector3::z(),
+        ));
+        assert_eq!(f.tick(0.07).fit_degree, 2);
+    }
+
+    /// A normal turning at `rate` rad/s in the plane spanned by `a` and `b`.
+    fn turning(a: Vector3<f64>, b: Vector3<f64>, rate: f64, t: f64) -> Vector3<f64> {
+        a * (rate * t).cos() + b * (rate * t).sin()
+    }
+
+    fn check_continuous_turn(a: Vector3<f64>, b: Vector3<f64>, t_cross: f64) {
+        let rate = 1.0;
+        let normal = |t: f64| turning(a, b, rate, t - t_cross);
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let mut prev: Option<Unit<Vector3<f64>>> = None;
+        let mut worst_error: f64 = 0.0;
+        let mut worst_step: f64 = 0.0;
+        run(
+            &mut f,
+            2,
+            30.0,
+            2.0 * t_cross,
+            |k, t| Some(estimate(k, t, Vector3::new(0.0, 0.0, 0.5), normal(t))),
+            |t, out| {
+                assert!((out.normal.norm() - 1.0).abs() < 1e-12);
+                if t > 0.2 {
+                    assert_eq!(out.status, FusionStatus::Tracking);
+                    worst_error = worst_error.max(out.normal.angle(&normal(t)));
+                }
+                if let Some(p) = prev {
+                    worst_step = worst_step.max(out.normal.angle(&p));
+                }
+                prev = Some(out.normal);
+            },
+        );
+        // The true normal moves 1.25 mrad per tick; the output never jumps.
+        assert!(worst_step < 3e-3, "largest step {worst_step} rad");
+        assert!(worst_error < 2e-3, "largest error {worst_error} rad");
+    }
+
+    #[test]
+    fn normal_through_the_pole_stays_continuous() {
+        // Through theta = 0 (+z), where phi jumps by pi in the world chart.
+        check_continuous_turn(Vector3::z(), Vector3::x(), 0.6);
+    }
+
+    #[test]
+    fn normal_through_the_phi_wrap_stays_continuous() {
+        // Through phi = +-pi (the -x direction in the xy plane).
+        check_continuous_turn(-Vector3::x(), -Vector3::y(), 0.6);
+    }
+
+    #[test]
+    fn disagreeing_normals_are_inconsistent() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        for i in 0..6 {
+            let t = i as f64 / 30.0;
+            f.push(&estimate(0, t, Vector3::new(0.0, 0.0, 0.5), Vector3::z()));
+            f.push(&estimate(1, t, Vector3::new(0.0, 0.0, 0.5), -Vector3::z()));
+        }
+        let out = f.tick(0.1);
+        assert_eq!(out.status, FusionStatus::Inconsistent);
+        assert!(!out.is_tracking());
+        assert!((out.normal.norm() - 1.0).abs() < 1e-12);
+    }
+
+    fn arb_estimate() -> impl Strategy<Value = (u32, f64, [f64; 3], [f64; 3], f64, bool)> {
+        (
+            0u32..4,
+            prop_oneof![8 => 0.0f64..3.0, 1 => Just(f64::NAN), 1 => -1e9f64..1e9],
+            prop::array::uniform3(prop_oneof![9 => -2.0f64..2.0, 1 => Just(f64::INFINITY)]),
+            prop::array::uniform3(-1.0f64..1.0),
+            prop_oneof![-0.5f64..1.5, Just(0.0)],
+            prop::bool::weighted(0.9),
+        )
+    }
+
+    proptest! {
+        #[test]
+        fn output_is_always_finite_with_a_unit_normal(
+            events in prop::collection::vec((arb_estimate(), 0.0f64..0.2), 1..80),
+        ) {
+            let mut f = Fusion::new(FusionConfig::default()).unwrap();
+            let mut t = 0.0;
+            for ((cam, stamp, c, n, q, valid), dt) in events {
+                let e = SurfaceEstimate {
+                    camera_id: cam,
+                    stamp_s: stamp,
+                    centroid_m: Point3::new(c[0], c[1], c[2]),
+                    normal: Unit::new_unchecked(Vector3::new(n[0], n[1], n[2])),
+                    shells: Vec::new(),
+                    quality: q,
+                    valid,
+                };
+                f.push(&e);
+                t += dt;
+                for k in 0..3 {
+                    let out = f.tick(t + k as f64 * TICK_S);
+                    prop_assert!(out.centroid_m.iter().all(|v| v.is_finite()));
+                    prop_assert!(out.fit_centroid_m.iter().all(|v| v.is_finite()));
+                    prop_assert!(out.velocity_m_per_s.iter().all(|v| v.is_finite()));
+                    prop_assert!((out.normal.norm() - 1.0).abs() < 1e-9);
+                    prop_assert!((out.fit_normal.norm() - 1.0).abs() < 1e-9);
+                    if out.status != FusionStatus::Tracking {
+                        prop_assert_eq!(out.velocity_m_per_s, Vector3::zeros());
+                    }
+                }
+            }
+        }
+    }
+}
