@@ -120,6 +120,18 @@ fn timeline_scrub_changes_the_frame() {
     h.get_by_label("Previous frame").click();
     h.run();
     assert_eq!(h.state().current_index(), 19);
+
+    // Keyboard: arrows step, space plays (nothing has focus after the click above).
+    h.key_press(egui::Key::ArrowLeft);
+    h.run();
+    assert_eq!(h.state().current_index(), 18);
+    h.key_press(egui::Key::ArrowRight);
+    h.key_press(egui::Key::ArrowRight);
+    h.run();
+    assert_eq!(h.state().current_index(), 20);
+    h.key_press(egui::Key::Space);
+    h.step();
+    assert!(h.state().is_playing());
 }
 
 #[test]
@@ -166,4 +178,60 @@ fn dragging_the_view_orbits_and_scrolling_zooms() {
     // egui smooths wheel scrolling over several frames.
     h.run_steps(20);
     assert!(h.state().orbit().unwrap().distance_m < rotated.distance_m);
+}
+
+#[test]
+fn live_mode_follows_the_newest_frame_and_drops_old_history() {
+    let frames = viewer_fixture::timeline();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let config = ViewerConfig {
+        live_history_s: 0.2,
+        ..ViewerConfig::default()
+    };
+    let app = ViewerApp::new(ViewerSource::Live(rx), config).unwrap();
+    let mut h = Harness::builder()
+        .with_size(SIZE)
+        .with_step_dt(1.0 / 60.0)
+        .build_ui_state(|ui, app: &mut ViewerApp| app.ui(ui), app);
+    h.run_steps(2);
+    assert_eq!(h.state().frame_count(), 0);
+    assert!(h.query_by_label("follow latest").is_some());
+
+    for f in &frames[..10] {
+        tx.send(f.clone()).unwrap();
+    }
+    h.run_steps(2);
+    // 0.2 s of history at 30 Hz: the newest frame and the 6 before it.
+    assert_eq!(h.state().frame_count(), 7);
+    assert_eq!(h.state().current_index(), 6);
+    let d9 = format!(
+        "d_proj = {:.1} mm",
+        frames[9].samples.d_proj_m.unwrap() * 1e3
+    );
+    assert!(h.query_by_label(&d9).is_some());
+
+    // Scrubbing stops following; new frames then do not move the view.
+    h.get_by_label("Previous frame").click();
+    h.run_steps(2);
+    assert_eq!(h.state().current_index(), 5);
+    tx.send(frames[10].clone()).unwrap();
+    h.run_steps(2);
+    assert_eq!(h.state().frame_count(), 7);
+    assert_eq!(
+        h.state().current_index(),
+        4,
+        "frame 8 stays on screen as history shifts"
+    );
+    let d8 = format!(
+        "d_proj = {:.1} mm",
+        frames[8].samples.d_proj_m.unwrap() * 1e3
+    );
+    assert!(h.query_by_label(&d8).is_some());
+    h.get_by_label("follow latest").click();
+    h.run_steps(2);
+    assert_eq!(h.state().current_index(), 6);
+
+    drop(tx);
+    h.run_steps(2);
+    assert!(h.query_by_label("source ended").is_some());
 }

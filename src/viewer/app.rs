@@ -103,9 +103,17 @@ impl ViewerApp {
         self.play_clock_s = self.frames.get(self.current).map_or(0.0, |f| f.stamp_s);
     }
 
+    /// The user picked a frame: stop playing and stop following a live source.
+    fn scrub(&mut self, index: usize) {
+        self.playing = false;
+        self.follow_live = false;
+        self.seek(index);
+    }
+
     /// Draw the whole viewer into `ui`.
     pub fn ui(&mut self, ui: &mut egui::Ui) {
         self.poll_live(ui.ctx());
+        self.keyboard(ui);
         self.advance_playback(ui);
 
         egui::Panel::bottom("viewer_timeline").show(ui, |ui| self.timeline(ui));
@@ -151,6 +159,38 @@ impl ViewerApp {
         if !self.live_ended {
             ctx.request_repaint_after(Duration::from_millis(30));
         }
+    }
+
+    /// Space plays or pauses, the arrow keys step, unless a widget has keyboard focus.
+    fn keyboard(&mut self, ui: &egui::Ui) {
+        if ui.ctx().memory(|m| m.focused().is_some()) {
+            return;
+        }
+        let (space, left, right) = ui.input(|i| {
+            (
+                i.key_pressed(egui::Key::Space),
+                i.key_pressed(egui::Key::ArrowLeft),
+                i.key_pressed(egui::Key::ArrowRight),
+            )
+        });
+        if space && self.frames.len() > 1 {
+            self.toggle_play();
+        }
+        if left {
+            self.scrub(self.current.saturating_sub(1));
+        }
+        if right {
+            self.scrub(self.current + 1);
+        }
+    }
+
+    fn toggle_play(&mut self) {
+        if !self.playing && self.current + 1 >= self.frames.len() {
+            self.seek(0);
+        }
+        self.playing = !self.playing;
+        self.follow_live = false;
+        self.play_clock_s = self.frames.get(self.current).map_or(0.0, |f| f.stamp_s);
     }
 
     fn advance_playback(&mut self, ui: &egui::Ui) {
@@ -258,23 +298,17 @@ impl ViewerApp {
                 .add_enabled(self.current > 0, egui::Button::new("Previous frame"))
                 .clicked()
             {
-                self.playing = false;
-                self.seek(self.current.saturating_sub(1));
+                self.scrub(self.current.saturating_sub(1));
             }
             let label = if self.playing { "Pause" } else { "Play" };
             if ui.add_enabled(n > 1, egui::Button::new(label)).clicked() {
-                if !self.playing && self.current == last {
-                    self.seek(0);
-                }
-                self.playing = !self.playing;
-                self.play_clock_s = self.frames.get(self.current).map_or(0.0, |f| f.stamp_s);
+                self.toggle_play();
             }
             if ui
                 .add_enabled(self.current < last, egui::Button::new("Next frame"))
                 .clicked()
             {
-                self.playing = false;
-                self.seek(self.current + 1);
+                self.scrub(self.current + 1);
             }
             egui::ComboBox::from_label("speed")
                 .selected_text(format!("{}x", self.speed))
@@ -293,9 +327,7 @@ impl ViewerApp {
             ui.spacing_mut().slider_width = (ui.available_width() - 160.0).max(100.0);
             let slider = egui::Slider::new(&mut index, 0..=last).text("frame");
             if ui.add_enabled(n > 1, slider).changed() {
-                self.playing = false;
-                self.follow_live = false;
-                self.seek(index);
+                self.scrub(index);
             }
             if let (Some(f), Some(first)) = (self.frames.get(self.current), self.frames.first()) {
                 ui.label(format!("t = {:.3} s", f.stamp_s - first.stamp_s));
@@ -359,7 +391,7 @@ impl ViewerApp {
         painter.text(
             rect.left_top() + egui::vec2(8.0, 8.0),
             egui::Align2::LEFT_TOP,
-            "drag: rotate   right-drag: pan   scroll: zoom   double-click: reset",
+            "drag: rotate   right-drag: pan   scroll: zoom   double-click: reset   space: play   arrows: step",
             egui::FontId::proportional(11.0),
             Color32::from_gray(140),
         );

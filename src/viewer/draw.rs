@@ -348,8 +348,19 @@ pub fn paint_frame(
                     if outer { 1.5 } else { 1.0 },
                     SHELL_COLOR.gamma_multiply(if outer { 1.0 } else { 0.7 }),
                 );
-                painter.circle_stroke(hip_px, proj.radius_px(*r as f32, depth), stroke);
+                let radius_px = proj.radius_px(*r as f32, depth);
+                painter.circle_stroke(hip_px, radius_px, stroke);
                 stats.shell_spheres += 1;
+                if i == 0 || outer {
+                    let name = if outer { "r_out" } else { "r_in" };
+                    painter.text(
+                        hip_px - Vec2::new(0.0, radius_px + 2.0),
+                        egui::Align2::CENTER_BOTTOM,
+                        format!("{name} {:.0} mm", r * 1e3),
+                        egui::FontId::proportional(10.0),
+                        SHELL_COLOR,
+                    );
+                }
             }
         }
         if layers.hip {
