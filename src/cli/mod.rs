@@ -5,7 +5,9 @@ mod convert;
 
 use clap::{Parser, Subcommand};
 
+mod crop;
 mod gpu_info;
+mod voxel;
 use std::process::ExitCode;
 
 #[derive(Parser)]
@@ -25,6 +27,11 @@ enum Command {
     Convert(convert::Args),
     /// Open the GPU context and report the adapter (set WGPU_ADAPTER_NAME to choose one).
     GpuInfo(gpu_info::Args),
+    /// Crop a cloud: drop invalid points, points farther than --radius from the HIP and
+    /// points inside the robot's collision primitives (paper IV-A).
+    Crop(crop::Args),
+    /// Voxel-grid a cloud with PCL VoxelGrid semantics (paper IV-B), like pcl_voxel_grid.
+    Voxel(voxel::Args),
 }
 
 pub fn main() -> ExitCode {
@@ -32,6 +39,8 @@ pub fn main() -> ExitCode {
     let result: anyhow::Result<()> = match cli.command {
         Command::Convert(args) => convert::run(args),
         Command::GpuInfo(args) => gpu_info::run(args),
+        Command::Crop(args) => crop::run(args),
+        Command::Voxel(args) => voxel::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -84,3 +84,20 @@ pub fn random_cloud(seed: u64, n: usize, side_m: f32) -> Vec<Vec3> {
         })
         .collect()
 }
+
+/// A cloud from PCL's test data (`../shared/data/pcl/<name>` beside the crate).
+pub fn pcl_cloud(name: &str) -> crate::cloud::PointCloud {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/pcl")
+        .join(name);
+    crate::io::read_cloud(&path).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// PCL's real 640x480 frames: the mug scene, five people, and the three grabber frames.
+pub const PCL_FRAMES: [&str; 5] = [
+    "table_scene_mug_stereo_textured.pcd",
+    "five_people.pcd",
+    "grabber_sequences/pcd/frame_20121214T142255.814212.pcd",
+    "grabber_sequences/pcd/frame_20121214T142256.068683.pcd",
+    "grabber_sequences/pcd/frame_20121214T142256.332395.pcd",
+];

@@ -128,7 +128,8 @@ pub struct VoxelConfig {
     pub max_leaf_m: f64,
     /// Hash probes per insertion before the overflow flag is raised.
     pub max_probes: u32,
-    /// Hash table slots of the first frame (rounded up to a power of two, at least 1024).
+    /// Hash table slots of the first frame (rounded up to a power of two, at least 1024,
+    /// at most two per input point).
     pub initial_table_slots: u32,
     /// Largest table an overflowing frame may be retried with.
     pub max_table_slots: u32,
@@ -619,9 +620,13 @@ impl GpuVoxel {
         if point_count as u64 > max_points {
             return Err(VoxelError::TooManyPoints(point_count));
         }
+        // The last frame's need, else the configured start (no bigger than two slots per
+        // point: there cannot be more cells than points).
         let wanted = self
             .next_slots
-            .unwrap_or_else(|| slots_for(u64::from(config.initial_table_slots)))
+            .unwrap_or_else(|| {
+                slots_for(u64::from(config.initial_table_slots).min(2 * point_count as u64))
+            })
             .min(slots_for(u64::from(config.max_table_slots)));
         self.resize_table(ctx, wanted)?;
         self.write_params(ctx, point_count as u32, use_mask, config, leaf_m);
@@ -900,7 +905,7 @@ fn from_order_key(k: u32) -> f32 {
 pub(crate) mod tests {
     use super::*;
     use crate::gpu::context::test_context;
-    use crate::perception::test_data::{random_cloud, synthetic_frame};
+    use crate::perception::test_data::{PCL_FRAMES, pcl_cloud, random_cloud, synthetic_frame};
     use proptest::prelude::*;
 
     pub(crate) fn assert_same(gpu: &VoxelOutput, cpu: &VoxelOutput) {
@@ -995,6 +1000,69 @@ pub(crate) mod tests {
             .unwrap()
             .expect("no overflow");
         assert_same(&gpu, &cpu);
+    }
+
+    /// The facts PCL's own VoxelGrid test asserts on bun0.pcd (../shared/data/pcl/README.md).
+    #[test]
+    fn pcl_facts_on_bun0_cpu_and_gpu() {
+        let bun0 = pcl_cloud("bun0.pcd");
+        let all = VoxelConfig {
+            leaf_m: 0.02,
+            ..Default::default()
+        };
+        let z_band = VoxelConfig {
+            filter: Some(FilterLimits {
+                axis: Axis::Z,
+                min_m: 0.05,
+                max_m: 0.1,
+                negative: false,
+            }),
+            ..all.clone()
+        };
+        for out in [
+            voxel_cpu(&bun0.points, None, &all).unwrap(),
+            gpu_run(&bun0.points, &all).unwrap(),
+        ] {
+            assert_eq!(out.points.len(), 103);
+        }
+        for out in [
+            voxel_cpu(&bun0.points, None, &z_band).unwrap(),
+            gpu_run(&bun0.points, &z_band).unwrap(),
+        ] {
+            assert_eq!(out.points.len(), 14);
+            let first = Vec3::new(-0.026125, 0.039788, 0.052827);
+            let last = Vec3::new(-0.073202, 0.1296, 0.051333);
+            assert!(
+                (out.points[0] - first).abs().max_element() < 1e-4,
+                "{}",
+                out.points[0]
+            );
+            assert!(
+                (out.points[13] - last).abs().max_element() < 1e-4,
+                "{}",
+                out.points[13]
+            );
+        }
+    }
+
+    /// GPU == CPU on PCL's real 640x480 frames at two leaves.
+    #[test]
+    fn gpu_equals_cpu_on_real_frames() {
+        let ctx = test_context();
+        let mut voxel = GpuVoxel::new(ctx).unwrap();
+        for name in PCL_FRAMES {
+            let cloud = pcl_cloud(name);
+            for leaf_m in [0.01, 0.02] {
+                let config = VoxelConfig {
+                    leaf_m,
+                    ..Default::default()
+                };
+                let cpu = voxel_cpu(&cloud.points, None, &config).unwrap();
+                assert!(cpu.points.len() > 1000, "{name}: {}", cpu.points.len());
+                let (gpu, _) = voxel.run(ctx, &cloud.points, &config, None).unwrap();
+                assert_same(&gpu, &cpu);
+            }
+        }
     }
 
     #[test]

@@ -1,0 +1,138 @@
+//! `hapcloud crop`: the crop stage on a PCD/PLY file: drops invalid points, points farther
+//! than `--radius` from the HIP and points inside the robot's collision primitives.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use hapcloud::geometry::Primitive;
+use hapcloud::gpu::timing::StageTimer;
+use hapcloud::gpu::{Backend, GpuContext};
+use hapcloud::perception::crop::{CropConfig, CropScene, GpuCrop, crop_cpu, kept_indices};
+use nalgebra::Point3;
+
+use super::voxel::ms;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Input cloud (.pcd or .ply).
+    input: PathBuf,
+    /// Haptic interaction point `x,y,z` in the cloud frame (m).
+    #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
+    hip: Point3<f64>,
+    /// Keep points within this distance of the HIP (m).
+    #[arg(long)]
+    radius: f64,
+    /// TOML file with the robot's collision primitives in the cloud frame:
+    /// `[[primitive]]` tables with `shape = "sphere" | "capsule" | "oriented_box"`.
+    #[arg(long)]
+    robot: Option<PathBuf>,
+    /// Output cloud (.pcd or .ply, binary), the kept points with their fields.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t = Backend::Gpu)]
+    backend: Backend,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
+/// The robot file: a list of primitives.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RobotFile {
+    #[serde(default)]
+    primitive: Vec<Primitive>,
+}
+
+fn parse_point(s: &str) -> Result<Point3<f64>, String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|c| c.trim().parse::<f64>().map_err(|e| format!("{c:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    match v.as_slice() {
+        [x, y, z] => Ok(Point3::new(*x, *y, *z)),
+        _ => Err(format!("expected x,y,z, got {s:?}")),
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut timings = BTreeMap::new();
+    let t = Instant::now();
+    let cloud = hapcloud::io::read_cloud(&args.input)?;
+    let robot = match &args.robot {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            toml::from_str::<RobotFile>(&text)
+                .with_context(|| format!("{}: not a robot primitive list", path.display()))?
+                .primitive
+        }
+        None => Vec::new(),
+    };
+    timings.insert("read", ms(t));
+    let config = CropConfig {
+        radius_m: args.radius,
+    };
+    let scene = CropScene {
+        hip_m: args.hip,
+        robot: &robot,
+    };
+    let mut adapter = None;
+    let mask = match args.backend {
+        Backend::Cpu => {
+            let t = Instant::now();
+            let mask = crop_cpu(&cloud.points, &config, &scene)?;
+            timings.insert("crop", ms(t));
+            mask
+        }
+        Backend::Gpu => {
+            let t = Instant::now();
+            let ctx = GpuContext::new()?;
+            let timer = StageTimer::new(&ctx, "crop", &["crop"])?;
+            let mut crop = GpuCrop::new(&ctx)?;
+            timings.insert("gpu_init", ms(t));
+            let t = Instant::now();
+            let (mask, gpu_ms) = crop.run(&ctx, &cloud.points, &config, &scene, timer.as_ref())?;
+            timings.insert("crop_wall", ms(t));
+            if let Some(g) = gpu_ms {
+                timings.insert("crop", g);
+            }
+            adapter = Some(ctx.adapter().name.clone());
+            mask
+        }
+    };
+    let kept = kept_indices(&mask, cloud.len());
+    if let Some(path) = &args.out {
+        let t = Instant::now();
+        hapcloud::io::write_cloud(path, &cloud.select(&kept), hapcloud::io::Encoding::Binary)
+            .with_context(|| format!("writing {}", path.display()))?;
+        timings.insert("write", ms(t));
+    }
+    if args.json {
+        let json = serde_json::json!({
+            "points_in": cloud.len(),
+            "points_out": kept.len(),
+            "primitives": robot.len(),
+            "backend": args.backend,
+            "adapter": adapter,
+            "timings_ms": timings,
+        });
+        println!("{json}");
+    } else {
+        println!(
+            "{}: {} points -> {} kept ({} robot primitives) [{}{}]",
+            args.input.display(),
+            cloud.len(),
+            kept.len(),
+            robot.len(),
+            args.backend,
+            adapter.map(|a| format!(", {a}")).unwrap_or_default()
+        );
+        for (stage, t) in &timings {
+            println!("  {stage}: {t:.3} ms");
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,140 @@
+//! `hapcloud voxel`: PCL VoxelGrid on a PCD/PLY file (like `pcl_voxel_grid`), on the GPU or
+//! with the CPU reference.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context;
+use hapcloud::cloud::PointCloud;
+use hapcloud::gpu::timing::StageTimer;
+use hapcloud::gpu::{Backend, GpuContext};
+use hapcloud::perception::voxel::{Axis, FilterLimits, GpuVoxel, VoxelConfig, voxel_cpu};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Input cloud (.pcd or .ply).
+    input: PathBuf,
+    /// Cubic leaf size (m).
+    #[arg(long)]
+    leaf: f64,
+    /// Drop cells with fewer points (PCL setMinimumPointsNumberPerVoxel).
+    #[arg(long, default_value_t = 1)]
+    min_points: u32,
+    /// Filter field (PCL setFilterFieldName); used with --fmin/--fmax.
+    #[arg(long, value_enum, default_value = "z")]
+    field: FieldArg,
+    /// Lower filter limit (m); no filter unless --fmin or --fmax is given.
+    #[arg(long, allow_hyphen_values = true)]
+    fmin: Option<f64>,
+    /// Upper filter limit (m).
+    #[arg(long, allow_hyphen_values = true)]
+    fmax: Option<f64>,
+    /// Keep the points outside the filter limits instead.
+    #[arg(long)]
+    filter_negative: bool,
+    /// Output cloud (.pcd or .ply, binary).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t = Backend::Gpu)]
+    backend: Backend,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum FieldArg {
+    X,
+    Y,
+    Z,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut timings = BTreeMap::new();
+    let t = Instant::now();
+    let cloud = hapcloud::io::read_cloud(&args.input)?;
+    timings.insert("read", ms(t));
+    let filter = (args.fmin.is_some() || args.fmax.is_some()).then(|| FilterLimits {
+        axis: match args.field {
+            FieldArg::X => Axis::X,
+            FieldArg::Y => Axis::Y,
+            FieldArg::Z => Axis::Z,
+        },
+        min_m: args.fmin.unwrap_or(f64::NEG_INFINITY),
+        max_m: args.fmax.unwrap_or(f64::INFINITY),
+        negative: args.filter_negative,
+    });
+    let config = VoxelConfig {
+        leaf_m: args.leaf,
+        min_points_per_voxel: args.min_points,
+        filter,
+        ..Default::default()
+    };
+    config.validate()?;
+    let mut adapter = None;
+    let out = match args.backend {
+        Backend::Cpu => {
+            let t = Instant::now();
+            let out = voxel_cpu(&cloud.points, None, &config)?;
+            timings.insert("voxel", ms(t));
+            out
+        }
+        Backend::Gpu => {
+            let t = Instant::now();
+            let ctx = GpuContext::new()?;
+            let timer = StageTimer::new(&ctx, "voxel", &["voxel"])?;
+            let mut voxel = GpuVoxel::new(&ctx)?;
+            timings.insert("gpu_init", ms(t));
+            let t = Instant::now();
+            let (out, gpu_ms) = voxel.run(&ctx, &cloud.points, &config, timer.as_ref())?;
+            timings.insert("voxel_wall", ms(t));
+            if let Some(g) = gpu_ms {
+                timings.insert("voxel", g);
+            }
+            adapter = Some(ctx.adapter().name.clone());
+            out
+        }
+    };
+    if let Some(path) = &args.out {
+        let t = Instant::now();
+        let mut result = PointCloud::from_points(out.points.clone());
+        result.sensor_pose = cloud.sensor_pose;
+        hapcloud::io::write_cloud(path, &result, hapcloud::io::Encoding::Binary)
+            .with_context(|| format!("writing {}", path.display()))?;
+        timings.insert("write", ms(t));
+    }
+    if args.json {
+        let json = serde_json::json!({
+            "points_in": cloud.len(),
+            "points_valid": out.valid_in,
+            "points_out": out.points.len(),
+            "leaf_m": out.leaf_m,
+            "backend": args.backend,
+            "adapter": adapter,
+            "table_slots": out.table_slots,
+            "retries": out.retries,
+            "timings_ms": timings,
+        });
+        println!("{json}");
+    } else {
+        println!(
+            "{}: {} points ({} valid) -> {} points at leaf {} m [{}{}]",
+            args.input.display(),
+            cloud.len(),
+            out.valid_in,
+            out.points.len(),
+            out.leaf_m,
+            args.backend,
+            adapter.map(|a| format!(", {a}")).unwrap_or_default()
+        );
+        for (stage, t) in &timings {
+            println!("  {stage}: {t:.3} ms");
+        }
+    }
+    Ok(())
+}
+
+pub(crate) fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
