@@ -1,6 +1,7 @@
 //! Subcommands of the `hapcloud` binary. Each subcommand lives in its own file here and
 //! only wires library stages together; `--json` output is one JSON object on stdout.
 
+mod can_decode;
 mod convert;
 
 use clap::{Parser, Subcommand};
@@ -25,6 +26,8 @@ struct Cli {
 enum Command {
     /// Convert a PCD/PLY cloud or a 16-bit depth image (with intrinsics) to PCD or PLY.
     Convert(convert::Args),
+    /// Decode a candump -L log with the CAN protocol's DBC file.
+    CanDecode(can_decode::Args),
     /// Open the GPU context and report the adapter (set WGPU_ADAPTER_NAME to choose one).
     GpuInfo(gpu_info::Args),
     /// Crop a cloud: drop invalid points, points farther than --radius from the HIP and
@@ -38,6 +41,7 @@ pub fn main() -> ExitCode {
     let cli = Cli::parse();
     let result: anyhow::Result<()> = match cli.command {
         Command::Convert(args) => convert::run(args),
+        Command::CanDecode(args) => can_decode::run(args),
         Command::GpuInfo(args) => gpu_info::run(args),
         Command::Crop(args) => crop::run(args),
         Command::Voxel(args) => voxel::run(args),

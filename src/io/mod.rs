@@ -1,4 +1,4 @@
-//! File formats: PCD, PLY and 16-bit depth images, in and out.
+//! File formats and wire formats: PCD, PLY, 16-bit depth images, and the CAN protocol.
 //!
 //! Each format lives in its own module and has the same shape: a `from_bytes` parser that
 //! never panics (every malformed input becomes a [`FormatError`]), a `to_bytes` writer, and
@@ -9,9 +9,12 @@
 //! - [`pcd`]: PCL's Point Cloud Data format, `ascii`, `binary` and `binary_compressed` (LZF).
 //! - [`ply`]: the Stanford PLY format, `ascii`, `binary_little_endian`, `binary_big_endian`.
 //! - [`depth`]: 16-bit depth images as PNG or TIFF, to and from [`crate::camera::DepthImage`].
+//! - [`can`]: the node's CAN protocol (`hapcloud.dbc`): typed values <-> frames, a SocketCAN
+//!   sender and `candump -L` logs.
 //!
 //! [`read_cloud`] and [`write_cloud`] pick the point-cloud format from the file extension.
 
+pub mod can;
 pub mod depth;
 pub mod pcd;
 pub mod ply;
