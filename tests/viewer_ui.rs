@@ -235,3 +235,25 @@ fn live_mode_follows_the_newest_frame_and_drops_old_history() {
     h.run_steps(2);
     assert!(h.query_by_label("source ended").is_some());
 }
+
+#[test]
+fn big_layers_are_thinned_for_display() {
+    let frames = viewer_fixture::timeline();
+    let config = ViewerConfig {
+        max_points_per_layer: 100,
+        ..ViewerConfig::default()
+    };
+    let mut app = ViewerApp::new(ViewerSource::Timeline(frames.clone()), config).unwrap();
+    app.seek(16);
+    let mut h = Harness::builder()
+        .with_size(SIZE)
+        .build_ui_state(|ui, app: &mut ViewerApp| app.ui(ui), app);
+    h.run();
+    let drawn = h.state().draw_stats().points;
+    let layers: usize = frames[16].cameras.iter().map(|c| c.layers.len()).sum();
+    assert!(drawn <= 100 * layers, "{drawn}");
+    assert!(
+        drawn >= 50 * layers / 2,
+        "thinning keeps a useful share: {drawn}"
+    );
+}

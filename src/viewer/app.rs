@@ -377,6 +377,7 @@ impl ViewerApp {
         let style = DrawStyle {
             point_size_px: self.config.point_size_px,
             normal_length_m: self.config.normal_length_m,
+            max_points_per_layer: self.config.max_points_per_layer,
         };
         let proj = orbit.projector(rect);
         self.stats = draw::paint_frame(

@@ -7,6 +7,8 @@ use serde::{Deserialize, Serialize};
 pub struct ViewerConfig {
     /// Side of the square drawn per point, pixels.
     pub point_size_px: f32,
+    /// Layers with more points are thinned for display to at most this many (every k-th).
+    pub max_points_per_layer: usize,
     /// Length of drawn normal vectors, metres.
     pub normal_length_m: f64,
     /// Triangles of the surface patch with a longer edge are dropped, metres.
@@ -22,6 +24,7 @@ impl Default for ViewerConfig {
     fn default() -> Self {
         Self {
             point_size_px: 2.0,
+            max_points_per_layer: 60_000,
             normal_length_m: 0.03,
             patch_max_edge_m: 0.015,
             live_history_s: 30.0,
@@ -46,6 +49,7 @@ impl ViewerConfig {
             ("live_history_s", self.live_history_s),
             ("window_width_px", f64::from(self.window_width_px)),
             ("window_height_px", f64::from(self.window_height_px)),
+            ("max_points_per_layer", self.max_points_per_layer as f64),
         ];
         for (field, value) in fields {
             if !(value.is_finite() && value > 0.0) {

@@ -115,6 +115,13 @@ pub struct DrawStats {
 pub struct DrawStyle {
     pub point_size_px: f32,
     pub normal_length_m: f64,
+    /// A layer with more points is drawn with every k-th point (k as small as possible).
+    pub max_points_per_layer: usize,
+}
+
+/// The stride that draws at most `max` of `len` points.
+pub fn display_stride(len: usize, max: usize) -> usize {
+    len.div_ceil(max.max(1)).max(1)
 }
 
 fn v3(p: &Point3<f64>) -> Vec3 {
@@ -192,7 +199,9 @@ fn paint_points(
             .iter()
             .filter(|c| layers.camera_visible(c.camera_id))
         {
-            for p in cam.layer(role) {
+            let pts = cam.layer(role);
+            let stride = display_stride(pts.len(), style.max_points_per_layer);
+            for p in pts.iter().step_by(stride) {
                 if let Some((pos, _)) = proj.project(*p)
                     && proj.rect().contains(pos)
                 {
@@ -422,4 +431,21 @@ pub fn paint_frame(
     }
     paint_axes(painter, proj, orbit.target_m, orbit.distance_m);
     stats
+}
+
+#[cfg(test)]
+mod tests {
+    use super::display_stride;
+
+    #[test]
+    fn stride_caps_the_drawn_points() {
+        assert_eq!(display_stride(0, 100), 1);
+        assert_eq!(display_stride(100, 100), 1);
+        assert_eq!(display_stride(101, 100), 2);
+        assert_eq!(display_stride(400_000, 50_000), 8);
+        assert_eq!(display_stride(10, 0), 10);
+        for len in [1usize, 7, 99, 100, 101, 12_345] {
+            assert!(len.div_ceil(display_stride(len, 100)) <= 100);
+        }
+    }
 }
