@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 
 mod crop;
 mod gpu_info;
+mod surface;
 mod voxel;
 use std::process::ExitCode;
 
@@ -30,6 +31,8 @@ enum Command {
     CanDecode(can_decode::Args),
     /// Open the GPU context and report the adapter (set WGPU_ADAPTER_NAME to choose one).
     GpuInfo(gpu_info::Args),
+    /// Closest collision surface (centroid, normal, per-shell fits) of a cloud around a HIP.
+    Surface(surface::Args),
     /// Crop a cloud: drop invalid points, points farther than --radius from the HIP and
     /// points inside the robot's collision primitives (paper IV-A).
     Crop(crop::Args),
@@ -43,6 +46,7 @@ pub fn main() -> ExitCode {
         Command::Convert(args) => convert::run(args),
         Command::CanDecode(args) => can_decode::run(args),
         Command::GpuInfo(args) => gpu_info::run(args),
+        Command::Surface(args) => surface::run(args),
         Command::Crop(args) => crop::run(args),
         Command::Voxel(args) => voxel::run(args),
     };

@@ -264,10 +264,6 @@ fn list_len(v: f64, what: &str) -> Result<usize, FormatError> {
 }
 
 fn skip_element(src: &mut dyn Source, element: &Element) -> Result<(), FormatError> {
-    // An element without properties takes no bytes, whatever its count (which may be huge).
-    if element.properties.is_empty() {
-        return Ok(());
-    }
     for i in 0..element.count {
         for p in &element.properties {
             let what = format!("{} {i} property {}", element.name, p.name);
@@ -654,21 +650,6 @@ mod tests {
             let err = from_bytes(text.as_bytes()).unwrap_err().to_string();
             assert!(err.contains(expect), "{text:?}: {err}");
         }
-    }
-
-    #[test]
-    fn huge_element_without_properties_is_skipped_at_once() {
-        let text = "ply\nformat binary_little_endian 1.0\nelement empty 18000000000000000000\n\
-                    element vertex 1\nproperty float x\nproperty float y\nproperty float z\n\
-                    end_header\n";
-        let mut bytes = text.as_bytes().to_vec();
-        [1.0f32, 2.0, 3.0]
-            .iter()
-            .for_each(|v| bytes.extend(v.to_le_bytes()));
-        assert_eq!(
-            from_bytes(&bytes).unwrap().points,
-            vec![Vec3::new(1.0, 2.0, 3.0)]
-        );
     }
 
     #[test]

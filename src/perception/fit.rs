@@ -709,6 +709,31 @@ mod tests {
         assert_eq!(plane3d(&nan, &LIMITS), Err(FitError::NonFinite));
     }
 
+    /// PCL's test asserts this PCA over all 397 points of bun0.pcd (tolerance 1e-4).
+    #[test]
+    fn pca_of_bun0_matches_pcl() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/pcl/bun0.pcd");
+        let cloud = crate::io::read_cloud(std::path::Path::new(path)).unwrap();
+        let pts: Vec<Point3<f64>> = cloud
+            .points
+            .iter()
+            .map(|p| Point3::new(p.x.into(), p.y.into(), p.z.into()))
+            .collect();
+        // Moments about the first point keep the raw sums small (no cancellation).
+        let fit = plane3d(&moments(pts[0], &pts), &LIMITS).unwrap();
+        let expected = [0.035592, 0.369596, 0.928511];
+        for (got, want) in fit.normal.iter().zip(expected) {
+            assert!((got.abs() - want).abs() < 1e-4, "{:?}", fit.normal);
+        }
+        assert!(
+            (fit.curvature() - 0.0693136).abs() < 1e-4,
+            "{}",
+            fit.curvature()
+        );
+        let c = fit.centroid_m;
+        assert!((c - Point3::new(-0.0290809, 0.102653, 0.027302)).norm() < 1e-6);
+    }
+
     #[test]
     fn moments_of_random_points_match_direct_sums() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);

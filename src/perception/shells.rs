@@ -36,6 +36,7 @@
 //! normal to that depth. The correction is skipped (and reported) with fewer than two shells
 //! or an inconsistent line.
 
+use super::crop::finite_bits;
 use super::fit::{
     self, AXIS, CircleMethod, FitError, FitLimits, MOMENT_COUNT, Moments, PARENT, circle3d, plane3d,
 };
@@ -233,13 +234,6 @@ impl ShellSums {
             })
             .collect()
     }
-}
-
-/// True when all three coordinates are finite, decided on the bits (as the shader does).
-pub fn finite_bits(p: Vec3) -> bool {
-    p.to_array()
-        .iter()
-        .all(|c| c.to_bits() & 0x7f80_0000 != 0x7f80_0000)
 }
 
 /// The shell a point falls in, with its HIP-centred offset, or `None` when it lies outside.
