@@ -20,6 +20,8 @@ pub mod frame;
 pub mod orbit;
 pub mod patch;
 pub mod plots;
+pub mod replay;
+pub mod source;
 mod window;
 
 pub use app::ViewerApp;

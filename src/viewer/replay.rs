@@ -1,0 +1,259 @@
+//! Perception with its layers kept: runs the project's stages (CPU references) on camera
+//! frames and records what each stage did to every point, so the viewer can show it.
+//!
+//! Per camera frame, top to bottom like the design card's data flow:
+//! 1. the cloud to the world frame (`world_from_camera`),
+//! 2. the front end (paper IV-A, IV-B: crop around the HIP and outside the robot primitives,
+//!    voxel grid; [`CpuFrontend`]); the crop's keep mask ([`crop_cpu`], the same reference
+//!    the front end runs) tells which finite points were cropped away,
+//! 3. the surface estimator (paper Alg. 1 memory and Alg. 2 shells; [`SurfaceEstimator`], one
+//!    per camera so each keeps its memory); the memory points it merged are the memorised
+//!    layer, its [`SurfaceEstimate`] carries the shell fits,
+//! 4. fusion of all cameras (paper IV-F, [`Fusion`]) evaluated at the instant's stamp, and
+//!    d_proj of eq. 7 from the fused surface and the HIP.
+//!
+//! Wall times of the stages are reported per frame as latencies (display only). The result
+//! is a [`ViewFrame`] per instant.
+
+use super::frame::{
+    CameraView, FrameSamples, PointLayer, PointRole, StageLatency, SurfacePoint, ViewFrame,
+};
+use crate::camera::Frame;
+use crate::fusion::{Fusion, FusionConfig, FusionConfigError};
+use crate::geometry::Primitive;
+use crate::perception::crop::{CropError, CropScene, crop_cpu, finite_bits, mask_bit};
+use crate::perception::frontend::{CpuFrontend, FrameInput, FrontendConfig, FrontendError};
+use crate::perception::pipeline::{SurfaceConfig, SurfaceConfigError, SurfaceEstimator};
+use crate::surface::SurfaceEstimate;
+use glam::Vec3;
+use nalgebra::{Point3, Vector3};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+/// Settings of the stages the replay runs, plus the HIP's radius (`r_HIP` of eq. 7).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ReplayConfig {
+    pub frontend: FrontendConfig,
+    pub surface: SurfaceConfig,
+    pub fusion: FusionConfig,
+    /// Radius of the HIP sphere, metres.
+    pub hip_radius_m: f64,
+}
+
+impl Default for ReplayConfig {
+    fn default() -> Self {
+        Self {
+            frontend: FrontendConfig::default(),
+            surface: SurfaceConfig::default(),
+            fusion: FusionConfig::default(),
+            hip_radius_m: 0.04,
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    #[error("front end: {0}")]
+    Frontend(#[from] FrontendError),
+    #[error("crop: {0}")]
+    Crop(#[from] CropError),
+    #[error("surface: {0}")]
+    Surface(#[from] SurfaceConfigError),
+    #[error("fusion: {0}")]
+    Fusion(#[from] FusionConfigError),
+    #[error("hip_radius_m must be finite and positive, got {0}")]
+    HipRadius(f64),
+}
+
+impl ReplayConfig {
+    pub fn validate(&self) -> Result<(), ReplayError> {
+        self.frontend.validate()?;
+        self.surface.validate()?;
+        self.fusion.validate()?;
+        if !(self.hip_radius_m.is_finite() && self.hip_radius_m > 0.0) {
+            return Err(ReplayError::HipRadius(self.hip_radius_m));
+        }
+        Ok(())
+    }
+}
+
+/// The stages, with their state across frames (voxel leaf adaptation, surface memories,
+/// fusion window).
+pub struct LayeredPerception {
+    config: ReplayConfig,
+    frontend: CpuFrontend,
+    estimators: BTreeMap<u32, SurfaceEstimator>,
+    fusion: Fusion,
+    previous_d_proj: Option<(f64, f64)>,
+}
+
+fn seconds_since(start: Instant) -> f64 {
+    start.elapsed().as_secs_f64()
+}
+
+impl LayeredPerception {
+    pub fn new(config: ReplayConfig) -> Result<Self, ReplayError> {
+        config.validate()?;
+        Ok(Self {
+            frontend: CpuFrontend::new(config.frontend.clone())?,
+            fusion: Fusion::new(config.fusion)?,
+            estimators: BTreeMap::new(),
+            previous_d_proj: None,
+            config,
+        })
+    }
+
+    /// One camera frame through the stages; returns the camera's view and the stage times.
+    fn camera(
+        &mut self,
+        frame: &Frame,
+        hip_m: &Point3<f64>,
+        robot: &[Primitive],
+    ) -> Result<(CameraView, SurfaceEstimate, Vec<StageLatency>), ReplayError> {
+        let pose = frame.world_from_camera;
+        let world: Vec<Vec3> = frame
+            .cloud
+            .points
+            .iter()
+            .map(|p| {
+                if !finite_bits(*p) {
+                    return *p;
+                }
+                let q = pose * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                Vec3::new(q.x as f32, q.y as f32, q.z as f32)
+            })
+            .collect();
+        let scene = CropScene {
+            hip_m: *hip_m,
+            robot,
+        };
+
+        let start = Instant::now();
+        let front = self.frontend.process(&FrameInput {
+            points: &world,
+            crop: Some(scene.clone()),
+        })?;
+        let front_s = seconds_since(start);
+        let mask = crop_cpu(&world, &self.config.frontend.crop, &scene)?;
+        let cropped: Vec<Vec3> = world
+            .iter()
+            .enumerate()
+            .filter(|(i, p)| finite_bits(**p) && !mask_bit(&mask, *i))
+            .map(|(_, p)| *p)
+            .collect();
+
+        let start = Instant::now();
+        let estimator = match self.estimators.entry(frame.camera_id) {
+            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::btree_map::Entry::Vacant(e) => {
+                e.insert(SurfaceEstimator::new(self.config.surface.clone())?)
+            }
+        };
+        let view_dir: Vector3<f64> = pose.rotation * Vector3::z();
+        let surface = estimator.estimate(
+            &front.voxel.points,
+            hip_m,
+            &view_dir,
+            frame.camera_id,
+            frame.stamp_s,
+        );
+        let surface_s = seconds_since(start);
+
+        let merged = surface
+            .memory
+            .merged_points
+            .min(surface.memory.points.len());
+        let memorised = surface.memory.points[surface.memory.points.len() - merged..].to_vec();
+        let estimate = surface.abstraction.estimate;
+        let view = CameraView {
+            camera_id: frame.camera_id,
+            world_from_camera: Some(pose),
+            layers: vec![
+                PointLayer {
+                    role: PointRole::Cropped,
+                    points_m: cropped,
+                },
+                PointLayer {
+                    role: PointRole::Kept,
+                    points_m: front.voxel.points,
+                },
+                PointLayer {
+                    role: PointRole::Memorised,
+                    points_m: memorised,
+                },
+            ],
+            estimate: Some(estimate.clone()),
+        };
+        let latencies = vec![
+            StageLatency {
+                stage: "crop + voxel".into(),
+                latency_s: front_s,
+            },
+            StageLatency {
+                stage: "memory + shells".into(),
+                latency_s: surface_s,
+            },
+        ];
+        Ok((view, estimate, latencies))
+    }
+
+    /// One instant: the frames the cameras took at about `stamp_s`, the HIP and the posed
+    /// robot primitives (world frame), and the ground truth when the source knows it.
+    pub fn step(
+        &mut self,
+        stamp_s: f64,
+        frames: &[Frame],
+        hip_m: Point3<f64>,
+        robot: &[Primitive],
+        truth: Option<SurfacePoint>,
+    ) -> Result<ViewFrame, ReplayError> {
+        let mut cameras = Vec::with_capacity(frames.len());
+        let mut latencies: Vec<StageLatency> = Vec::new();
+        for frame in frames {
+            let (view, estimate, lat) = self.camera(frame, &hip_m, robot)?;
+            self.fusion.push(&estimate);
+            cameras.push(view);
+            for l in lat {
+                match latencies.iter_mut().find(|x| x.stage == l.stage) {
+                    Some(x) => x.latency_s += l.latency_s,
+                    None => latencies.push(l),
+                }
+            }
+        }
+        let start = Instant::now();
+        let fused = self.fusion.tick(stamp_s);
+        latencies.push(StageLatency {
+            stage: "fusion".into(),
+            latency_s: seconds_since(start),
+        });
+        let fused = fused.is_tracking().then_some(SurfacePoint {
+            point_m: fused.centroid_m,
+            normal: fused.normal,
+        });
+        // Paper eq. 7: d_proj = (c - h) . (-n) - r_HIP.
+        let d_proj_m = fused
+            .map(|f| (f.point_m - hip_m).dot(&-f.normal.into_inner()) - self.config.hip_radius_m);
+        let d_proj_rate_m_per_s = match (d_proj_m, self.previous_d_proj) {
+            (Some(d), Some((t0, d0))) if stamp_s > t0 => Some((d - d0) / (stamp_s - t0)),
+            _ => None,
+        };
+        self.previous_d_proj = d_proj_m.map(|d| (stamp_s, d));
+        Ok(ViewFrame {
+            stamp_s,
+            hip_m,
+            hip_radius_m: self.config.hip_radius_m,
+            shell_radii_m: self.config.surface.shells.radii_m.clone(),
+            cameras,
+            fused,
+            truth,
+            samples: FrameSamples {
+                d_proj_m,
+                d_proj_rate_m_per_s,
+                constraints: Vec::new(),
+                latencies,
+            },
+        })
+    }
+}
