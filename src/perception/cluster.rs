@@ -1,0 +1,1134 @@
+//! Euclidean cluster labelling (paper section IV-C): PCL's `EuclideanClusterExtraction`.
+//!
+//! Two points are neighbours when their squared distance, computed in `f32` as
+//! `(dx*dx + dy*dy) + dz*dz` with `d = a - b`, is strictly below `f32(tolerance)^2` (rounded
+//! to `f32`). That is exactly what PCL does: `extractEuclideanClusters` calls
+//! `KdTreeFLANN::radiusSearch(p, tol)`, which hands FLANN `float(radius * radius)`, and
+//! FLANN's `KDTreeSingleIndex` with `L2_Simple<float>` sums the squared differences axis by
+//! axis in `float` and keeps a point only when `dist < radius` (`RadiusResultSet::addPoint`
+//! and the leaf test both compare strictly). A cluster is a connected component of that
+//! neighbour graph; components whose size lies outside `[min, max]` are dropped and the rest
+//! are sorted largest first. Points with a non-finite coordinate are never anyone's
+//! neighbour (FLANN leaves them out of the tree and a NaN distance compares false), so each
+//! one is a component of its own, as in PCL.
+//!
+//! PCL sorts clusters with the unstable `std::sort`, so the order of equally large clusters is
+//! unspecified there. Here every component has a canonical id, the smallest index of its
+//! points; ties in size are ordered by that id, and a cluster's indices are ascending (PCL
+//! sorts them too). Because connected components are unique, the canonical ids make the GPU
+//! and CPU results comparable element by element.
+//!
+//! * CPU reference ([`components_cpu`]): PCL's seeded region growing over the points in index
+//!   order, neighbours from a `kiddo` k-d tree queried with a slightly larger radius and then
+//!   filtered with the exact predicate above ([`is_neighbour`]), so the decision never depends
+//!   on how kiddo rounds.
+//! * GPU ([`GpuClusterer`], `shaders/cluster.wgsl`): a spatial hash grid whose cells are a bit
+//!   larger than the tolerance (so every neighbour lies in one of the 27 surrounding cells),
+//!   then a lock-free union-find over the neighbour edges (ECL-CC style: bounded `find` with
+//!   path halving, roots hooked larger-under-smaller with compare-and-swap), then pointer
+//!   jumping until every point holds its root. Hooking larger roots under smaller ones makes
+//!   each root the smallest index of its component, i.e. the canonical id. Every loop is
+//!   bounded; a pass that hits a bound raises a flag and the host re-submits the passes (no
+//!   spin-waits). Sizes, filtering and sorting run on the CPU from the read-back labels.
+
+use crate::cloud::PointCloud;
+use crate::gpu::shader::{self, BindingKind, StageShader};
+use crate::gpu::timing::{StageTime, StageTimer};
+use crate::gpu::{GpuContext, GpuError};
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+/// Component id of a point that has not been reached yet (CPU reference internals).
+const UNVISITED: u32 = u32::MAX;
+
+/// Errors of the clustering stage.
+#[derive(Debug, thiserror::Error)]
+pub enum ClusterError {
+    #[error("invalid cluster config: {0}")]
+    Config(String),
+    #[error("cloud has {points} points; clustering supports at most {max}")]
+    TooManyPoints { points: usize, max: usize },
+    #[error(
+        "GPU cluster hash table overflowed ({slots} slots, at most {max_probes} probes per \
+         cell); the labels would be wrong, so none are returned"
+    )]
+    HashOverflow { slots: u32, max_probes: u32 },
+    #[error(
+        "a point lies more than {limit_cells} cells ({limit_m:.1} m at this tolerance) from the \
+         origin; the GPU grid cannot place it exactly"
+    )]
+    OutOfGridRange { limit_cells: f32, limit_m: f32 },
+    #[error("GPU union-find did not converge in {submissions} submissions")]
+    NotConverged { submissions: u32 },
+    #[error("GPU returned non-canonical labels (point {index} has label {label})")]
+    InvalidLabels { index: usize, label: u32 },
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+}
+
+/// Configuration of the clustering stage (PCL's `-tolerance`, `-min`, `-max`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ClusterConfig {
+    /// Neighbour distance: points closer than this (strictly) are connected. Metres.
+    pub tolerance_m: f32,
+    /// Smallest cluster kept, points (PCL default 100).
+    pub min_cluster_points: u32,
+    /// Largest cluster kept, points (PCL default 25000).
+    pub max_cluster_points: u32,
+    /// GPU hash table size, slots (a power of two); 0 = automatic, the next power of two at
+    /// or above twice the point capacity (load factor at most 1/2).
+    pub gpu_hash_slots: u32,
+    /// Longest linear probe sequence of the GPU hash table, slots; longer means overflow.
+    pub gpu_hash_max_probes: u32,
+}
+
+impl Default for ClusterConfig {
+    /// The defaults of PCL's `pcl_cluster_extraction` tool.
+    fn default() -> Self {
+        Self {
+            tolerance_m: 0.02,
+            min_cluster_points: 100,
+            max_cluster_points: 25_000,
+            gpu_hash_slots: 0,
+            gpu_hash_max_probes: 32,
+        }
+    }
+}
+
+impl ClusterConfig {
+    pub fn validate(&self) -> Result<(), ClusterError> {
+        if !(self.tolerance_m.is_finite() && self.tolerance_m > 0.0) {
+            return Err(ClusterError::Config(format!(
+                "tolerance_m must be a positive finite distance, got {}",
+                self.tolerance_m
+            )));
+        }
+        if (self.tolerance_m * self.tolerance_m) == 0.0 {
+            return Err(ClusterError::Config(format!(
+                "tolerance_m = {} underflows when squared in f32",
+                self.tolerance_m
+            )));
+        }
+        if self.min_cluster_points > self.max_cluster_points {
+            return Err(ClusterError::Config(format!(
+                "min_cluster_points ({}) exceeds max_cluster_points ({})",
+                self.min_cluster_points, self.max_cluster_points
+            )));
+        }
+        if self.gpu_hash_slots != 0 && !self.gpu_hash_slots.is_power_of_two() {
+            return Err(ClusterError::Config(format!(
+                "gpu_hash_slots must be 0 (automatic) or a power of two, got {}",
+                self.gpu_hash_slots
+            )));
+        }
+        if self.gpu_hash_max_probes == 0 {
+            return Err(ClusterError::Config(
+                "gpu_hash_max_probes must be at least 1".into(),
+            ));
+        }
+        Ok(())
+    }
+
+    /// The squared tolerance the neighbour test compares against (`f32`, as PCL/FLANN).
+    pub fn tolerance_squared(&self) -> f32 {
+        self.tolerance_m * self.tolerance_m
+    }
+}
+
+/// PCL's neighbour test: `(dx*dx + dy*dy) + dz*dz < r2` in `f32`, false for non-finite points.
+///
+/// Rust never contracts these operations into fused multiply-adds, so the rounding is the
+/// one FLANN's `L2_Simple<float>` produces.
+#[inline]
+pub fn is_neighbour(a: Vec3, b: Vec3, tolerance_squared: f32) -> bool {
+    let (dx, dy, dz) = (a.x - b.x, a.y - b.y, a.z - b.z);
+    dx * dx + dy * dy + dz * dz < tolerance_squared
+}
+
+/// One kept cluster.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct Cluster {
+    /// Canonical id: the smallest point index in the cluster.
+    pub id: u32,
+    /// Point indices, ascending.
+    pub indices: Vec<u32>,
+}
+
+/// Result of clustering one cloud.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Clustering {
+    /// Per input point, the canonical id of its connected component (smallest point index of
+    /// the component; a point with no neighbours is its own component).
+    pub component: Vec<u32>,
+    /// Components with a size in `[min, max]`, largest first, ties by ascending id.
+    pub clusters: Vec<Cluster>,
+}
+
+impl Clustering {
+    /// Builds the kept, sorted clusters from per-point canonical component ids (shared by the
+    /// CPU reference and the GPU path). `component[i] <= i` and `component[component[i]] ==
+    /// component[i]` hold for canonical ids; other input is rejected by `debug_assert`.
+    pub fn from_components(component: Vec<u32>, config: &ClusterConfig) -> Self {
+        let mut size = vec![0u32; component.len()];
+        for &c in &component {
+            size[c as usize] += 1;
+        }
+        let in_range =
+            |s: u32| s >= config.min_cluster_points.max(1) && s <= config.max_cluster_points;
+        let mut kept: Vec<u32> = (0..component.len() as u32)
+            .filter(|&id| in_range(size[id as usize]))
+            .collect();
+        kept.sort_by(|&a, &b| size[b as usize].cmp(&size[a as usize]).then(a.cmp(&b)));
+        // slot[id] = position of the cluster in `kept`, or u32::MAX when dropped.
+        let mut slot = vec![u32::MAX; component.len()];
+        let mut clusters: Vec<Cluster> = kept
+            .iter()
+            .enumerate()
+            .map(|(k, &id)| {
+                slot[id as usize] = k as u32;
+                Cluster {
+                    id,
+                    indices: Vec::with_capacity(size[id as usize] as usize),
+                }
+            })
+            .collect();
+        for (i, &c) in component.iter().enumerate() {
+            debug_assert!(c as usize <= i && component[c as usize] == c);
+            let k = slot[c as usize];
+            if k != u32::MAX {
+                clusters[k as usize].indices.push(i as u32);
+            }
+        }
+        Self {
+            component,
+            clusters,
+        }
+    }
+
+    /// Sizes of the kept clusters, largest first.
+    pub fn cluster_sizes(&self) -> Vec<usize> {
+        self.clusters.iter().map(|c| c.indices.len()).collect()
+    }
+
+    /// Number of connected components, kept or not.
+    pub fn component_count(&self) -> usize {
+        self.component
+            .iter()
+            .enumerate()
+            .filter(|&(i, &c)| c as usize == i)
+            .count()
+    }
+
+    /// One cloud per kept cluster (largest first), with the input's per-point fields.
+    pub fn extract(&self, cloud: &PointCloud) -> Vec<PointCloud> {
+        self.clusters
+            .iter()
+            .map(|c| {
+                let idx: Vec<usize> = c.indices.iter().map(|&i| i as usize).collect();
+                cloud.select(&idx)
+            })
+            .collect()
+    }
+}
+
+/// Largest cloud the stage accepts: ids are `u32` and `u32::MAX` is reserved.
+pub const MAX_POINTS: usize = (u32::MAX - 1) as usize;
+
+fn check_len(points: &[Vec3]) -> Result<(), ClusterError> {
+    if points.len() > MAX_POINTS {
+        return Err(ClusterError::TooManyPoints {
+            points: points.len(),
+            max: MAX_POINTS,
+        });
+    }
+    Ok(())
+}
+
+/// CPU reference: canonical component id per point (PCL's region growing over a k-d tree).
+///
+/// Seeds are taken in index order, so the seed of each component is its smallest index,
+/// which is the canonical id.
+pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, ClusterError> {
+    use kiddo::{ImmutableKdTree, SquaredEuclidean};
+    check_len(points)?;
+    let r2 = tolerance_m * tolerance_m;
+    // Search slightly wider than r2 so that kiddo's own rounding can never lose a neighbour;
+    // `is_neighbour` then decides exactly.
+    let search_r2 = r2 * 1.001;
+    let finite: Vec<u32> = (0..points.len() as u32)
+        .filter(|&i| points[i as usize].is_finite())
+        .collect();
+    let coords: Vec<[f32; 3]> = finite
+        .iter()
+        .map(|&i| points[i as usize].to_array())
+        .collect();
+    let mut component = vec![UNVISITED; points.len()];
+    if coords.is_empty() {
+        return Ok((0..points.len() as u32).collect());
+    }
+    let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(&coords)
+        .map_err(|e| ClusterError::Config(format!("k-d tree construction failed: {e}")))?;
+    let mut queue: Vec<u32> = Vec::new();
+    for seed in 0..points.len() as u32 {
+        if component[seed as usize] != UNVISITED {
+            continue;
+        }
+        component[seed as usize] = seed;
+        if !points[seed as usize].is_finite() {
+            continue;
+        }
+        queue.clear();
+        queue.push(seed);
+        while let Some(q) = queue.pop() {
+            let p = points[q as usize];
+            tree.query(&p.to_array())
+                .within::<SquaredEuclidean<f32>>(search_r2)
+                .unsorted()
+                .visit(|item| {
+                    let j = finite[item.item as usize];
+                    if component[j as usize] == UNVISITED
+                        && is_neighbour(p, points[j as usize], r2)
+                    {
+                        component[j as usize] = seed;
+                        queue.push(j);
+                    }
+                });
+        }
+    }
+    Ok(component)
+}
+
+/// CPU reference of the whole stage.
+pub fn cluster_cpu(points: &[Vec3], config: &ClusterConfig) -> Result<Clustering, ClusterError> {
+    config.validate()?;
+    let component = components_cpu(points, config.tolerance_m)?;
+    Ok(Clustering::from_components(component, config))
+}
+
+/// `shaders/cluster.wgsl`, registered in [`crate::gpu::shader::STAGE_SHADERS`].
+pub const CLUSTER_SHADER: StageShader = StageShader {
+    name: "cluster",
+    source: include_str!("../../shaders/cluster.wgsl"),
+};
+
+/// Grid cells are this much larger than the tolerance, so that every neighbour lies in one of
+/// the 27 cells around a point despite the rounding of `floor(p * inv_cell)`: with cell
+/// coordinates below [`GRID_LIMIT_CELLS`] that rounding moves a point by at most
+/// 65536 * 2^-23 = 0.008 cells, and a neighbour is at most 1/1.05 + 2 * 0.008 < 1 cell away.
+pub const CELL_MARGIN: f32 = 1.05;
+/// `GRID_LIMIT` in the shader: largest |cell coordinate| the GPU grid accepts.
+pub const GRID_LIMIT_CELLS: f32 = 65536.0;
+/// Bytes of one `Slot` in the shader (`rep`, `head`).
+const SLOT_BYTES: u64 = 8;
+/// Bytes of one `PointInfo` in the shader (`cell: vec3<i32>`, `next`).
+const INFO_BYTES: u64 = 16;
+/// Bytes of the `status` array (overflow, incomplete, out of range, spare).
+const STATUS_BYTES: u64 = 16;
+/// Status words, as in the shader.
+const STATUS_OVERFLOW: usize = 0;
+const STATUS_INCOMPLETE: usize = 1;
+const STATUS_OUT_OF_RANGE: usize = 2;
+/// The shader's union-find passes are bounded; this many submissions are enough for any
+/// cloud we have seen by a wide margin (one nearly always suffices).
+const MAX_SUBMISSIONS: u32 = 16;
+/// Largest point count one indirect dispatch of `WORKGROUP_SIZE` threads covers.
+const MAX_GPU_POINTS: u32 = 65_535 * shader::WORKGROUP_SIZE;
+/// GPU time is reported for these passes of the first submission.
+const TIMED_PASSES: [&str; 3] = ["cluster_grid", "cluster_hook", "cluster_compress"];
+
+/// Rust mirror of the shader's `Params` (size checked against naga's layout in the tests).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+struct ClusterParams {
+    inv_cell: f32,
+    r2: f32,
+    one: f32,
+    table_mask: u32,
+    max_probes: u32,
+    capacity: u32,
+    pad: [u32; 2],
+}
+
+/// Buffers sized for a point capacity (reallocated only when a larger cloud arrives).
+struct ClusterBuffers {
+    capacity: u32,
+    table_slots: u32,
+    params: wgpu::Buffer,
+    points: wgpu::Buffer,
+    count: wgpu::Buffer,
+    slots: wgpu::Buffer,
+    info: wgpu::Buffer,
+    parent: wgpu::Buffer,
+    status: wgpu::Buffer,
+    dispatch_args: wgpu::Buffer,
+    args_group: wgpu::BindGroup,
+}
+
+/// Where the points come from: the stage's own upload buffer, or another stage's output.
+pub struct ClusterInput<'a> {
+    /// `array<vec4<f32>>` (xyz, w ignored), at least `count` entries.
+    pub points: &'a wgpu::Buffer,
+    /// A `u32` point count (read on the GPU and clamped to the reserved capacity).
+    pub count: wgpu::BufferBinding<'a>,
+}
+
+/// What the GPU path measured.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct GpuClusterStats {
+    /// Submissions used (1 unless a bounded union-find pass ran out of steps).
+    pub submissions: u32,
+    /// Per-pass GPU time of the first submission (empty without timestamp queries).
+    pub gpu_times: Vec<StageTime>,
+    pub table_slots: u32,
+}
+
+/// Pipelines of `shaders/cluster.wgsl` (built once) and the buffers of the last capacity.
+pub struct GpuClusterer {
+    layout: wgpu::BindGroupLayout,
+    args_layout: wgpu::BindGroupLayout,
+    prepare: wgpu::ComputePipeline,
+    insert: wgpu::ComputePipeline,
+    hook: wgpu::ComputePipeline,
+    compress: wgpu::ComputePipeline,
+    timer: Option<StageTimer>,
+    buffers: Option<ClusterBuffers>,
+}
+
+impl GpuClusterer {
+    /// Compiles the shader and builds the pipelines.
+    pub fn new(ctx: &GpuContext) -> Result<Self, ClusterError> {
+        use BindingKind::{Storage, StorageReadOnly, Uniform};
+        let layout = shader::bind_group_layout(
+            ctx,
+            "cluster bind group layout",
+            &[
+                Uniform,
+                StorageReadOnly,
+                StorageReadOnly,
+                Storage,
+                Storage,
+                Storage,
+                Storage,
+            ],
+        )?;
+        let args_layout =
+            shader::bind_group_layout(ctx, "cluster dispatch-args layout", &[Storage])?;
+        let prepare = shader::compute_pipelines(
+            ctx,
+            &CLUSTER_SHADER,
+            &[&layout, &args_layout],
+            &["prepare"],
+        )?
+        .remove(0);
+        let mut passes = shader::compute_pipelines(
+            ctx,
+            &CLUSTER_SHADER,
+            &[&layout],
+            &["insert", "hook", "compress"],
+        )?
+        .into_iter();
+        let (Some(insert), Some(hook), Some(compress)) =
+            (passes.next(), passes.next(), passes.next())
+        else {
+            unreachable!("compute_pipelines returns one pipeline per entry point");
+        };
+        let timer = StageTimer::new(ctx, "cluster", &TIMED_PASSES)?;
+        Ok(Self {
+            layout,
+            args_layout,
+            prepare,
+            insert,
+            hook,
+            compress,
+            timer,
+            buffers: None,
+        })
+    }
+
+    /// Makes room for `capacity` points with `config`'s table settings; reuses the buffers
+    /// when they are large enough and the table size is unchanged.
+    pub fn reserve(
+        &mut self,
+        ctx: &GpuContext,
+        capacity: u32,
+        config: &ClusterConfig,
+    ) -> Result<(), ClusterError> {
+        config.validate()?;
+        if capacity > MAX_GPU_POINTS {
+            return Err(ClusterError::TooManyPoints {
+                points: capacity as usize,
+                max: MAX_GPU_POINTS as usize,
+            });
+        }
+        let capacity = capacity.max(shader::WORKGROUP_SIZE);
+        let table_slots = match config.gpu_hash_slots {
+            0 => (2 * capacity).next_power_of_two(),
+            s => s,
+        };
+        let fits = self
+            .buffers
+            .as_ref()
+            .is_some_and(|b| b.capacity >= capacity && b.table_slots == table_slots);
+        if !fits {
+            self.buffers = Some(self.allocate(ctx, capacity, table_slots)?);
+        }
+        let b = self.buffers.as_ref().expect("allocated above");
+        let cell_m = config.tolerance_m * CELL_MARGIN;
+        let params = ClusterParams {
+            inv_cell: 1.0 / cell_m,
+            r2: config.tolerance_squared(),
+            one: 1.0,
+            table_mask: b.table_slots - 1,
+            max_probes: config.gpu_hash_max_probes,
+            capacity: b.capacity,
+            pad: [0; 2],
+        };
+        ctx.queue()
+            .write_buffer(&b.params, 0, bytemuck::bytes_of(&params));
+        Ok(())
+    }
+
+    fn allocate(
+        &self,
+        ctx: &GpuContext,
+        capacity: u32,
+        table_slots: u32,
+    ) -> Result<ClusterBuffers, ClusterError> {
+        use wgpu::BufferUsages as U;
+        let n = u64::from(capacity);
+        let sizes = [
+            ("cluster points", n * 16),
+            ("cluster slots", u64::from(table_slots) * SLOT_BYTES),
+            ("cluster point info", n * INFO_BYTES),
+        ];
+        for (what, bytes) in sizes {
+            ctx.check_storage_size(what, bytes)?;
+        }
+        Ok(ctx.scoped("allocating cluster buffers", |device| {
+            let buffer = |label: &str, size: u64, usage: U| {
+                device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            let dispatch_args = buffer("cluster dispatch args", 12, U::STORAGE | U::INDIRECT);
+            let args_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("cluster dispatch-args bind group"),
+                layout: &self.args_layout,
+                entries: &[wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: dispatch_args.as_entire_binding(),
+                }],
+            });
+            ClusterBuffers {
+                capacity,
+                table_slots,
+                params: buffer(
+                    "cluster params",
+                    std::mem::size_of::<ClusterParams>() as u64,
+                    U::UNIFORM | U::COPY_DST,
+                ),
+                points: buffer("cluster points", n * 16, U::STORAGE | U::COPY_DST),
+                count: buffer("cluster point count", 4, U::STORAGE | U::COPY_DST),
+                slots: buffer(
+                    "cluster hash slots",
+                    u64::from(table_slots) * SLOT_BYTES,
+                    U::STORAGE | U::COPY_DST,
+                ),
+                info: buffer("cluster point info", n * INFO_BYTES, U::STORAGE),
+                parent: buffer("cluster labels", n * 4, U::STORAGE | U::COPY_SRC),
+                status: buffer(
+                    "cluster status",
+                    STATUS_BYTES,
+                    U::STORAGE | U::COPY_SRC | U::COPY_DST,
+                ),
+                dispatch_args,
+                args_group,
+            }
+        })?)
+    }
+
+    fn buffers(&self) -> &ClusterBuffers {
+        self.buffers
+            .as_ref()
+            .expect("GpuClusterer::reserve must run before encoding")
+    }
+
+    /// The stage's own point buffer and count, for [`Self::encode`] after [`Self::upload`].
+    pub fn own_input(&self) -> ClusterInput<'_> {
+        let b = self.buffers();
+        ClusterInput {
+            points: &b.points,
+            count: b.count.as_entire_buffer_binding(),
+        }
+    }
+
+    /// Writes `points` (at most the reserved capacity) into the stage's own input buffers.
+    pub fn upload(&self, ctx: &GpuContext, points: &[Vec3]) {
+        let b = self.buffers();
+        let padded: Vec<[f32; 4]> = points.iter().map(|p| [p.x, p.y, p.z, 0.0]).collect();
+        ctx.queue()
+            .write_buffer(&b.points, 0, bytemuck::cast_slice(&padded));
+        ctx.queue()
+            .write_buffer(&b.count, 0, bytemuck::bytes_of(&(points.len() as u32)));
+    }
+
+    /// Records the clustering of `input` into the frame's encoder: table and status cleared
+    /// with `clear_buffer`, then prepare + insert, hook, compress as timed compute passes.
+    pub fn encode(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        input: &ClusterInput<'_>,
+    ) -> Result<(), ClusterError> {
+        let b = self.buffers();
+        let group = self.bind_group(ctx, input)?;
+        encoder.clear_buffer(&b.slots, 0, None);
+        encoder.clear_buffer(&b.status, 0, None);
+        let stages: [&[&wgpu::ComputePipeline]; 3] = [
+            &[&self.prepare, &self.insert],
+            &[&self.hook],
+            &[&self.compress],
+        ];
+        for (k, pipelines) in stages.into_iter().enumerate() {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(TIMED_PASSES[k]),
+                timestamp_writes: self.timer.as_ref().map(|t| t.pass_writes(k)),
+            });
+            pass.set_bind_group(0, &group, &[]);
+            for &pipeline in pipelines {
+                pass.set_pipeline(pipeline);
+                if std::ptr::eq(pipeline, &self.prepare) {
+                    pass.set_bind_group(1, &b.args_group, &[]);
+                    pass.dispatch_workgroups(1, 1, 1);
+                } else {
+                    pass.dispatch_workgroups_indirect(&b.dispatch_args, 0);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Bytes [`Self::encode_readback`] writes: status, timestamps, `points` labels.
+    pub fn readback_bytes(&self, points: u32) -> u64 {
+        STATUS_BYTES + self.timer_bytes() + 4 * u64::from(points)
+    }
+
+    fn timer_bytes(&self) -> u64 {
+        self.timer.as_ref().map_or(0, StageTimer::readback_bytes)
+    }
+
+    /// Copies status, pass timestamps and the first `points` labels into `dst` at `offset`
+    /// (a multiple of 4); `dst` is the frame's one readback buffer.
+    pub fn encode_readback(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        dst: &wgpu::Buffer,
+        offset: u64,
+        points: u32,
+    ) {
+        let b = self.buffers();
+        encoder.copy_buffer_to_buffer(&b.status, 0, dst, offset, STATUS_BYTES);
+        if let Some(timer) = &self.timer {
+            timer.resolve_into(encoder, dst, offset + STATUS_BYTES);
+        }
+        if points > 0 {
+            encoder.copy_buffer_to_buffer(
+                &b.parent,
+                0,
+                dst,
+                offset + STATUS_BYTES + self.timer_bytes(),
+                4 * u64::from(points),
+            );
+        }
+    }
+
+    /// Decodes the readback region of `points` labels. When a bounded union-find pass ran
+    /// out of steps, re-submits hook + compress (each its own small submission and readback)
+    /// until the status is clean.
+    pub fn finish(
+        &self,
+        ctx: &GpuContext,
+        input: &ClusterInput<'_>,
+        bytes: &[u8],
+        points: u32,
+        config: &ClusterConfig,
+    ) -> Result<(Clustering, GpuClusterStats), ClusterError> {
+        let b = self.buffers();
+        let timer_end = (STATUS_BYTES + self.timer_bytes()) as usize;
+        let mut stats = GpuClusterStats {
+            submissions: 1,
+            gpu_times: self
+                .timer
+                .as_ref()
+                .map(|t| t.read(&bytes[STATUS_BYTES as usize..timer_end]))
+                .unwrap_or_default(),
+            table_slots: b.table_slots,
+        };
+        let mut status: [u32; 4] = bytemuck::pod_read_unaligned(&bytes[..STATUS_BYTES as usize]);
+        let mut labels: Vec<u32> = bytes[timer_end..timer_end + 4 * points as usize]
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        if status[STATUS_OVERFLOW] != 0 {
+            return Err(ClusterError::HashOverflow {
+                slots: b.table_slots,
+                max_probes: config.gpu_hash_max_probes,
+            });
+        }
+        if status[STATUS_OUT_OF_RANGE] != 0 {
+            return Err(ClusterError::OutOfGridRange {
+                limit_cells: GRID_LIMIT_CELLS,
+                limit_m: GRID_LIMIT_CELLS * config.tolerance_m * CELL_MARGIN,
+            });
+        }
+        while status[STATUS_INCOMPLETE] != 0 {
+            if stats.submissions >= MAX_SUBMISSIONS {
+                return Err(ClusterError::NotConverged {
+                    submissions: stats.submissions,
+                });
+            }
+            (status, labels) = self.resubmit(ctx, input, points)?;
+            stats.submissions += 1;
+        }
+        check_canonical(&labels)?;
+        Ok((Clustering::from_components(labels, config), stats))
+    }
+
+    /// One more hook + compress over the table built by the first submission.
+    fn resubmit(
+        &self,
+        ctx: &GpuContext,
+        input: &ClusterInput<'_>,
+        points: u32,
+    ) -> Result<([u32; 4], Vec<u32>), ClusterError> {
+        let b = self.buffers();
+        let group = self.bind_group(ctx, input)?;
+        let readback = readback_buffer(ctx, "cluster re-submit readback", STATUS_BYTES + 4 * u64::from(points))?;
+        let mut encoder = ctx
+            .device()
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("cluster re-submit"),
+            });
+        encoder.clear_buffer(&b.status, 0, None);
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("cluster hook + compress (re-submit)"),
+                timestamp_writes: None,
+            });
+            pass.set_bind_group(0, &group, &[]);
+            for pipeline in [&self.hook, &self.compress] {
+                pass.set_pipeline(pipeline);
+                pass.dispatch_workgroups_indirect(&b.dispatch_args, 0);
+            }
+        }
+        encoder.copy_buffer_to_buffer(&b.status, 0, &readback, 0, STATUS_BYTES);
+        if points > 0 {
+            encoder.copy_buffer_to_buffer(&b.parent, 0, &readback, STATUS_BYTES, 4 * u64::from(points));
+        }
+        Ok(ctx.submit_and_read("cluster re-submit", encoder.finish(), &readback, |bytes| {
+            let status: [u32; 4] = bytemuck::pod_read_unaligned(&bytes[..STATUS_BYTES as usize]);
+            let labels = bytes[STATUS_BYTES as usize..]
+                .chunks_exact(4)
+                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect();
+            (status, labels)
+        })?)
+    }
+
+    fn bind_group(
+        &self,
+        ctx: &GpuContext,
+        input: &ClusterInput<'_>,
+    ) -> Result<wgpu::BindGroup, ClusterError> {
+        let b = self.buffers();
+        let resources = [
+            b.params.as_entire_binding(),
+            input.points.as_entire_binding(),
+            wgpu::BindingResource::Buffer(input.count.clone()),
+            b.slots.as_entire_binding(),
+            b.info.as_entire_binding(),
+            b.parent.as_entire_binding(),
+            b.status.as_entire_binding(),
+        ];
+        Ok(ctx.scoped("cluster bind group", |device| {
+            let entries: Vec<wgpu::BindGroupEntry> = resources
+                .into_iter()
+                .enumerate()
+                .map(|(i, resource)| wgpu::BindGroupEntry {
+                    binding: i as u32,
+                    resource,
+                })
+                .collect();
+            device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("cluster bind group"),
+                layout: &self.layout,
+                entries: &entries,
+            })
+        })?)
+    }
+
+    /// Standalone run: upload `points`, one submission with one readback (more only when the
+    /// union-find needs them), then sizes, filtering and sorting on the CPU.
+    pub fn cluster(
+        &mut self,
+        ctx: &GpuContext,
+        points: &[Vec3],
+        config: &ClusterConfig,
+    ) -> Result<(Clustering, GpuClusterStats), ClusterError> {
+        check_len(points)?;
+        let n = u32::try_from(points.len()).map_err(|_| ClusterError::TooManyPoints {
+            points: points.len(),
+            max: MAX_GPU_POINTS as usize,
+        })?;
+        self.reserve(ctx, n, config)?;
+        self.upload(ctx, points);
+        let input = self.own_input();
+        let readback = readback_buffer(ctx, "cluster readback", self.readback_bytes(n))?;
+        let mut encoder = ctx
+            .device()
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("cluster frame"),
+            });
+        self.encode(ctx, &mut encoder, &input)?;
+        self.encode_readback(&mut encoder, &readback, 0, n);
+        let bytes = ctx.submit_and_read("cluster", encoder.finish(), &readback, <[u8]>::to_vec)?;
+        self.finish(ctx, &input, &bytes, n, config)
+    }
+}
+
+fn readback_buffer(ctx: &GpuContext, label: &str, size: u64) -> Result<wgpu::Buffer, ClusterError> {
+    Ok(ctx.scoped(label, |device| {
+        device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    })?)
+}
+
+/// Canonical ids satisfy `label[i] <= i` and `label[label[i]] == label[i]`; anything else
+/// from the GPU is an error, not a panic further down.
+fn check_canonical(labels: &[u32]) -> Result<(), ClusterError> {
+    for (i, &l) in labels.iter().enumerate() {
+        if l as usize > i || labels[l as usize] != l {
+            return Err(ClusterError::InvalidLabels { index: i, label: l });
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use rand::seq::SliceRandom;
+    use rand::{RngExt, SeedableRng};
+
+    /// Brute-force connected components over all pairs (union-find), canonical ids.
+    fn components_brute(points: &[Vec3], tol: f32) -> Vec<u32> {
+        let n = points.len();
+        let mut parent: Vec<usize> = (0..n).collect();
+        fn root(parent: &mut [usize], mut x: usize) -> usize {
+            while parent[x] != x {
+                parent[x] = parent[parent[x]];
+                x = parent[x];
+            }
+            x
+        }
+        for i in 0..n {
+            for j in 0..i {
+                if is_neighbour(points[i], points[j], tol * tol) {
+                    let (a, b) = (root(&mut parent, i), root(&mut parent, j));
+                    let (lo, hi) = (a.min(b), a.max(b));
+                    parent[hi] = lo;
+                }
+            }
+        }
+        (0..n).map(|i| root(&mut parent, i) as u32).collect()
+    }
+
+    fn config(tol: f32, min: u32, max: u32) -> ClusterConfig {
+        ClusterConfig {
+            tolerance_m: tol,
+            min_cluster_points: min,
+            max_cluster_points: max,
+            ..ClusterConfig::default()
+        }
+    }
+
+    #[test]
+    fn empty_and_single_point() {
+        let c = cluster_cpu(&[], &config(0.1, 1, 10)).unwrap();
+        assert!(c.component.is_empty() && c.clusters.is_empty());
+        let c = cluster_cpu(&[Vec3::new(1.0, 2.0, 3.0)], &config(0.1, 1, 10)).unwrap();
+        assert_eq!(c.component, vec![0]);
+        assert_eq!(c.cluster_sizes(), vec![1]);
+        let c = cluster_cpu(&[Vec3::new(1.0, 2.0, 3.0)], &config(0.1, 2, 10)).unwrap();
+        assert!(c.clusters.is_empty());
+    }
+
+    #[test]
+    fn strict_threshold_like_flann() {
+        // 0.5 and 0.25 are exact in f32: distance exactly equal to the tolerance is no edge.
+        let pts = [Vec3::ZERO, Vec3::new(0.5, 0.0, 0.0), Vec3::new(0.5, 0.49, 0.0)];
+        assert_eq!(components_cpu(&pts, 0.5).unwrap(), vec![0, 1, 1]);
+        let pts = [Vec3::ZERO, Vec3::new(0.5, 0.0, 0.0)];
+        assert_eq!(components_cpu(&pts, 0.5).unwrap(), vec![0, 1]);
+        assert_eq!(components_cpu(&pts, 0.500_001).unwrap(), vec![0, 0]);
+    }
+
+    #[test]
+    fn non_finite_points_are_singletons() {
+        let pts = [
+            Vec3::ZERO,
+            Vec3::splat(f32::NAN),
+            Vec3::new(0.01, 0.0, 0.0),
+            Vec3::new(f32::INFINITY, 0.0, 0.0),
+        ];
+        assert_eq!(components_cpu(&pts, 0.1).unwrap(), vec![0, 1, 0, 3]);
+        let c = cluster_cpu(&pts, &config(0.1, 1, 10)).unwrap();
+        assert_eq!(c.cluster_sizes(), vec![2, 1, 1]);
+        assert_eq!(c.clusters[1].id, 1);
+    }
+
+    #[test]
+    fn size_filter_and_order() {
+        // Clusters of 3 (ids 0), 1 (id 1), 3 (id 2), 5 (id 4) points along x, 1 m apart.
+        let mut pts = Vec::new();
+        let mut add = |x: f32, k: usize| {
+            for j in 0..k {
+                pts.push(Vec3::new(x, j as f32 * 0.01, 0.0));
+            }
+        };
+        add(0.0, 2);
+        add(1.0, 1);
+        add(2.0, 3);
+        add(0.0, 1); // joins the first cluster (index 6, y = 0.0 duplicate)
+        add(3.0, 5);
+        let c = cluster_cpu(&pts, &config(0.05, 2, 4)).unwrap();
+        assert_eq!(c.cluster_sizes(), vec![3, 3]);
+        assert_eq!(c.clusters[0].id, 0);
+        assert_eq!(c.clusters[0].indices, vec![0, 1, 6]);
+        assert_eq!(c.clusters[1].id, 3);
+        assert_eq!(c.component_count(), 4);
+    }
+
+    #[test]
+    fn duplicate_points_in_one_cell() {
+        let pts = vec![Vec3::new(0.3, -0.2, 1.0); 500];
+        let c = cluster_cpu(&pts, &config(0.01, 1, 1000)).unwrap();
+        assert_eq!(c.cluster_sizes(), vec![500]);
+    }
+
+    #[test]
+    fn config_validation() {
+        assert!(config(0.0, 1, 2).validate().is_err());
+        assert!(config(f32::NAN, 1, 2).validate().is_err());
+        assert!(config(1e-30, 1, 2).validate().is_err());
+        assert!(config(0.1, 3, 2).validate().is_err());
+        assert!(ClusterConfig::default().validate().is_ok());
+        let parsed: Result<ClusterConfig, _> = toml::from_str("tolerance_m = 0.1\nfoo = 1");
+        assert!(parsed.is_err());
+    }
+
+    // ---- GPU path (lavapipe in CI) ----
+
+    use std::sync::{Mutex, OnceLock};
+
+    /// One context and one clusterer for all GPU tests of this module (building them per
+    /// proptest case would dominate the run time).
+    fn gpu() -> std::sync::MutexGuard<'static, (GpuContext, GpuClusterer)> {
+        static GPU: OnceLock<Mutex<(GpuContext, GpuClusterer)>> = OnceLock::new();
+        GPU.get_or_init(|| {
+            let ctx = GpuContext::new().unwrap_or_else(|e| panic!("GPU tests need Vulkan: {e}"));
+            let clusterer = GpuClusterer::new(&ctx).unwrap();
+            Mutex::new((ctx, clusterer))
+        })
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn cluster_gpu(points: &[Vec3], config: &ClusterConfig) -> Result<Clustering, ClusterError> {
+        let mut guard = gpu();
+        let (ctx, clusterer) = &mut *guard;
+        clusterer.cluster(ctx, points, config).map(|(c, _)| c)
+    }
+
+    fn assert_gpu_matches_cpu(points: &[Vec3], config: &ClusterConfig) {
+        let cpu = cluster_cpu(points, config).unwrap();
+        let gpu = cluster_gpu(points, config).unwrap();
+        assert_eq!(gpu.component, cpu.component);
+        assert_eq!(gpu.clusters, cpu.clusters);
+    }
+
+    #[test]
+    fn wgsl_structs_match_rust_mirrors() {
+        let (module, _) = shader::validate(&CLUSTER_SHADER, naga::valid::Capabilities::empty())
+            .unwrap_or_else(|e| panic!("{e}"));
+        let mut layouter = naga::proc::Layouter::default();
+        layouter.update(module.to_ctx()).unwrap();
+        let size_of = |name: &str| {
+            let (handle, _) = module
+                .types
+                .iter()
+                .find(|(_, t)| t.name.as_deref() == Some(name))
+                .unwrap_or_else(|| panic!("struct {name} in cluster.wgsl"));
+            u64::from(layouter[handle].size)
+        };
+        assert_eq!(size_of("Params"), std::mem::size_of::<ClusterParams>() as u64);
+        assert_eq!(size_of("Slot"), SLOT_BYTES);
+        assert_eq!(size_of("PointInfo"), INFO_BYTES);
+    }
+
+    #[test]
+    fn gpu_empty_single_and_one_cell() {
+        let cfg = config(0.05, 1, 10_000);
+        assert_gpu_matches_cpu(&[], &cfg);
+        assert_gpu_matches_cpu(&[Vec3::new(0.1, 0.2, 0.3)], &cfg);
+        // 2000 points in one 5 cm cell, a few of them farther apart than the tolerance.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let pts: Vec<Vec3> = (0..2000)
+            .map(|_| Vec3::new(rng.random(), rng.random(), rng.random()) * 0.05 + 1.0)
+            .collect();
+        assert_gpu_matches_cpu(&pts, &config(0.004, 1, 10_000));
+        assert_gpu_matches_cpu(&vec![Vec3::splat(-0.5); 300], &cfg);
+    }
+
+    #[test]
+    fn gpu_non_finite_points() {
+        let mut pts = vec![Vec3::ZERO, Vec3::new(0.01, 0.0, 0.0)];
+        pts.push(Vec3::new(f32::NAN, 0.0, 0.0));
+        pts.push(Vec3::new(0.0, f32::NEG_INFINITY, 0.0));
+        pts.push(Vec3::new(0.02, 0.0, 0.0));
+        assert_gpu_matches_cpu(&pts, &config(0.015, 1, 10));
+    }
+
+    #[test]
+    fn gpu_overflow_is_flagged() {
+        // 100 distinct cells, 16 slots: the table cannot hold them.
+        let pts: Vec<Vec3> = (0..100).map(|i| Vec3::new(i as f32, 0.0, 0.0)).collect();
+        let cfg = ClusterConfig {
+            gpu_hash_slots: 16,
+            ..config(0.1, 1, 10)
+        };
+        assert!(matches!(
+            cluster_gpu(&pts, &cfg),
+            Err(ClusterError::HashOverflow { slots: 16, .. })
+        ));
+        // The same cloud with an automatic table works (and the clusterer recovers).
+        assert_gpu_matches_cpu(&pts, &config(0.1, 1, 10));
+    }
+
+    #[test]
+    fn gpu_out_of_grid_range_is_an_error() {
+        let pts = [Vec3::ZERO, Vec3::new(1.0e4, 0.0, 0.0)];
+        assert!(matches!(
+            cluster_gpu(&pts, &config(0.01, 1, 10)),
+            Err(ClusterError::OutOfGridRange { .. })
+        ));
+    }
+
+    /// Pairs whose squared distance rounds to just below or just above r2, including pairs
+    /// where a fused multiply-add would decide differently: the GPU must round like the CPU.
+    #[test]
+    fn gpu_threshold_decisions_match_cpu_exactly() {
+        let tol = 0.013f32;
+        let r2 = tol * tol;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let mut pts = Vec::new();
+        let mut fused_differs = 0;
+        let mut slot = 0;
+        while pts.len() < 4000 {
+            let a = Vec3::new(rng.random(), rng.random(), rng.random()) * 0.5;
+            let dir = Vec3::new(rng.random(), rng.random(), rng.random()).normalize_or(Vec3::X);
+            let scale = 1.0 + (rng.random::<f32>() - 0.5) * 4e-7;
+            let b = a + dir * (tol * scale);
+            let d = a - b;
+            let plain = d.x * d.x + d.y * d.y + d.z * d.z;
+            let fused = d.z.mul_add(d.z, d.y.mul_add(d.y, d.x * d.x));
+            if (plain < r2) != (fused < r2) {
+                fused_differs += 1;
+            } else if rng.random::<f32>() < 0.9 {
+                continue;
+            }
+            // Each pair on its own node of a 1 m lattice.
+            let offset = Vec3::new((slot % 16) as f32, (slot / 16 % 16) as f32, (slot / 256) as f32);
+            slot += 1;
+            pts.push(a + offset);
+            pts.push(b + offset);
+        }
+        assert!(fused_differs > 100, "only {fused_differs} pairs tell fma apart");
+        let cfg = config(tol, 1, 10);
+        let cpu = cluster_cpu(&pts, &cfg).unwrap();
+        let edges = cpu.component.iter().enumerate().filter(|&(i, &c)| c as usize != i).count();
+        assert!(edges > 100 && edges < pts.len() / 2 - 100, "{edges} edges");
+        assert_gpu_matches_cpu(&pts, &cfg);
+    }
+
+    /// A long chain visited in scrambled order stresses the bounded union-find.
+    #[test]
+    fn gpu_long_chains() {
+        let mut order: Vec<usize> = (0..20_000).collect();
+        order.shuffle(&mut rand_chacha::ChaCha8Rng::seed_from_u64(3));
+        let pts: Vec<Vec3> = order
+            .iter()
+            .map(|&k| Vec3::new((k % 5000) as f32 * 0.01, (k / 5000) as f32 * 0.5, 0.0))
+            .collect();
+        assert_gpu_matches_cpu(&pts, &config(0.0101, 1, 100_000));
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(24))]
+        #[test]
+        fn gpu_matches_cpu_on_random_clouds(
+            seed in any::<u64>(),
+            n in 0usize..3000,
+            extent in 0.05f32..2.0,
+            tol in 0.005f32..0.1,
+            min in 1u32..20,
+        ) {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            // Points around a few blob centres plus uniform clutter, some exact duplicates.
+            let centres: Vec<Vec3> = (0..5)
+                .map(|_| Vec3::new(rng.random(), rng.random(), rng.random()) * extent - 0.5 * extent)
+                .collect();
+            let mut pts: Vec<Vec3> = Vec::with_capacity(n);
+            for k in 0..n {
+                let p = if k % 7 == 6 && !pts.is_empty() {
+                    pts[rng.random_range(0..pts.len())]
+                } else if k % 3 == 0 {
+                    Vec3::new(rng.random(), rng.random(), rng.random()) * extent - 0.5 * extent
+                } else {
+                    let c = centres[k % centres.len()];
+                    c + Vec3::new(rng.random(), rng.random(), rng.random()) * (extent * 0.1)
+                };
+                pts.push(p);
+            }
+            let cfg = config(tol, min, 2000);
+            let cpu = cluster_cpu(&pts, &cfg).unwrap();
+            let gpu = cluster_gpu(&pts, &cfg).unwrap();
+            prop_assert_eq!(gpu.component, cpu.component);
+            prop_assert_eq!(gpu.clusters, cpu.clusters);
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn cpu_matches_brute_force(
+            raw in prop::collection::vec((0u8..40, 0u8..40, 0u8..8), 0..300),
+            tol in 0.02f32..0.2,
+        ) {
+            // Coordinates on a coarse lattice make exact-threshold distances common.
+            let pts: Vec<Vec3> = raw
+                .iter()
+                .map(|&(x, y, z)| Vec3::new(x as f32 * 0.05, y as f32 * 0.05, z as f32 * 0.05))
+                .collect();
+            prop_assert_eq!(components_cpu(&pts, tol).unwrap(), components_brute(&pts, tol));
+        }
+    }
+}
