@@ -5,8 +5,9 @@
 //   insert   per point   cell = floor(p * inv_cell), cells a bit larger than the tolerance;
 //                        claim a hash slot for the cell (linear probing, at most max_probes,
 //                        overflow flag otherwise) and push the point on the slot's list
-//   hook     per point   for every neighbour j < i in the 27 surrounding cells with
-//                        (dx*dx + dy*dy) + dz*dz < r2: union(i, j) on a lock-free union-find
+//   hook     per point   for every neighbour j in a half stencil of the 27 surrounding cells
+//                        (each pair once) with (dx*dx + dy*dy) + dz*dz < r2: union(i, j) on
+//                        a lock-free union-find
 //                        (find with path halving; roots hooked larger-under-smaller by CAS)
 //   compress per point   parent[i] = root(i)
 // Roots are only ever hooked under smaller roots, so each final root is the smallest point
@@ -215,24 +216,24 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let c = cell_of(p);
-    for (var dz = -1; dz <= 1; dz++) {
-        for (var dy = -1; dy <= 1; dy++) {
-            for (var dx = -1; dx <= 1; dx++) {
-                let s = find_slot(c + vec3<i32>(dx, dy, dz));
-                if s == NONE {
-                    continue;
-                }
-                var link = atomicLoad(&slots[s].head);
-                // A list holds at most n points.
-                for (var step = 0u; step < n && link != 0u; step++) {
-                    let j = link - 1u;
-                    // Each undirected edge once, from its larger end.
-                    if j < i && is_neighbour(p, points[j].xyz) {
-                        unite(i, j);
-                    }
-                    link = info[j].next;
-                }
+    // Half stencil: the own cell (k = 13, only j < i) and the 13 cells that follow it in
+    // (z, y, x) order, k = 14..26. Every neighbour pair is then seen exactly once: in the
+    // same cell from its larger index, across cells from the cell the other one follows.
+    for (var k = 13u; k < 27u; k++) {
+        let offset = vec3<i32>(i32(k % 3u) - 1, i32(k / 3u % 3u) - 1, i32(k / 9u) - 1);
+        let s = find_slot(c + offset);
+        if s == NONE {
+            continue;
+        }
+        let bound = select(n, i, k == 13u);
+        var link = atomicLoad(&slots[s].head);
+        // A list holds at most n points.
+        for (var step = 0u; step < n && link != 0u; step++) {
+            let j = link - 1u;
+            if j < bound && is_neighbour(p, points[j].xyz) {
+                unite(i, j);
             }
+            link = info[j].next;
         }
     }
 }

@@ -10,6 +10,7 @@ mod crop;
 mod gpu_info;
 mod surface;
 mod voxel;
+mod cluster;
 use std::process::ExitCode;
 
 #[derive(Parser)]
@@ -38,6 +39,8 @@ enum Command {
     Crop(crop::Args),
     /// Voxel-grid a cloud with PCL VoxelGrid semantics (paper IV-B), like pcl_voxel_grid.
     Voxel(voxel::Args),
+    /// Euclidean cluster extraction (PCL EuclideanClusterExtraction semantics).
+    Cluster(cluster::Args),
 }
 
 pub fn main() -> ExitCode {
@@ -49,6 +52,7 @@ pub fn main() -> ExitCode {
         Command::Surface(args) => surface::run(args),
         Command::Crop(args) => crop::run(args),
         Command::Voxel(args) => voxel::run(args),
+        Command::Cluster(args) => cluster::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
