@@ -17,7 +17,7 @@
 // on another one. The slot table and status are cleared with clear_buffer by the host.
 // Uses common.wgsl (prepended): NONE, WORKGROUP_SIZE, finite_point, hash_u32.
 
-struct Params {
+struct ClusterParams {
     // 1 / cell size; cell size = tolerance * CELL_MARGIN (host side), metres^-1.
     inv_cell: f32,
     // f32(tolerance)^2, the strict neighbour threshold, m^2.
@@ -31,8 +31,9 @@ struct Params {
     max_probes: u32,
     // Point capacity of the per-point buffers; the count is clamped to it.
     capacity: u32,
-    _pad0: u32,
-    _pad1: u32,
+    // Index of the point count in point_count (the voxel header, or a buffer of its own).
+    count_word: u32,
+    _pad: u32,
 }
 
 struct Slot {
@@ -59,7 +60,7 @@ const STATUS_OVERFLOW: u32 = 0u;
 const STATUS_INCOMPLETE: u32 = 1u;
 const STATUS_OUT_OF_RANGE: u32 = 2u;
 
-@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(0) var<uniform> params: ClusterParams;
 @group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> point_count: array<u32>;
 @group(0) @binding(3) var<storage, read_write> slots: array<Slot>;
@@ -69,7 +70,7 @@ const STATUS_OUT_OF_RANGE: u32 = 2u;
 @group(1) @binding(0) var<storage, read_write> dispatch_args: array<u32, 3>;
 
 fn count() -> u32 {
-    return min(point_count[0], params.capacity);
+    return min(point_count[params.count_word], params.capacity);
 }
 
 // Cell of a finite point, or false when it lies outside the grid's range.

@@ -66,7 +66,12 @@ fn pcl(tool: &str, args: &[&str]) -> anyhow::Result<String> {
 fn pcl_compute_line(text: &str, what: &str) -> anyhow::Result<(f64, usize)> {
     let line = text
         .lines()
-        .find(|l| l.contains("[done, ") && l.contains(what) && !l.contains("Loading") && !l.contains("Saving"))
+        .find(|l| {
+            l.contains("[done, ")
+                && l.contains(what)
+                && !l.contains("Loading")
+                && !l.contains("Saving")
+        })
         .with_context(|| format!("no compute line with {what:?} in PCL output:\n{text}"))?;
     let after = &line[line.find("[done, ").unwrap_or(0) + 7..];
     let mut parts = after.split_whitespace();
@@ -85,7 +90,14 @@ fn pcl_cluster_sizes(text: &str) -> Vec<usize> {
     let mut sizes: Vec<usize> = text
         .lines()
         .filter(|l| l.contains("Saving"))
-        .filter_map(|l| l.rsplit(':').next()?.split_whitespace().next()?.parse().ok())
+        .filter_map(|l| {
+            l.rsplit(':')
+                .next()?
+                .split_whitespace()
+                .next()?
+                .parse()
+                .ok()
+        })
         .collect();
     sizes.sort_unstable_by(|a, b| b.cmp(a));
     sizes
@@ -139,7 +151,9 @@ fn main() -> anyhow::Result<()> {
     );
     let mut all_match = true;
     for file in &files {
-        let name = file.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+        let name = file
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
         let voxel = work.join("voxel.pcd");
         let (voxel_s, cluster_s) = (voxel.to_string_lossy().into_owned(), work.join("out.pcd"));
         let mut pcl_voxel_ms = Vec::new();
@@ -147,7 +161,10 @@ fn main() -> anyhow::Result<()> {
         let mut pcl_sizes = Vec::new();
         let mut voxel_points = 0;
         for _ in 0..args.runs.min(3) {
-            let text = pcl("pcl_voxel_grid", &[&file.to_string_lossy(), &voxel_s, "-leaf", &leaf])?;
+            let text = pcl(
+                "pcl_voxel_grid",
+                &[&file.to_string_lossy(), &voxel_s, "-leaf", &leaf],
+            )?;
             let (ms, n) = pcl_compute_line(&text, "points")?;
             pcl_voxel_ms.push(ms);
             voxel_points = n;
@@ -159,7 +176,16 @@ fn main() -> anyhow::Result<()> {
             }
             let text = pcl(
                 "pcl_cluster_extraction",
-                &[&voxel_s, &cluster_s.to_string_lossy(), "-tolerance", &tol, "-min", &min, "-max", &max],
+                &[
+                    &voxel_s,
+                    &cluster_s.to_string_lossy(),
+                    "-tolerance",
+                    &tol,
+                    "-min",
+                    &min,
+                    "-max",
+                    &max,
+                ],
             )?;
             pcl_cluster_ms.push(pcl_compute_line(&text, "clusters")?.0);
             pcl_sizes = pcl_cluster_sizes(&text);
@@ -167,7 +193,12 @@ fn main() -> anyhow::Result<()> {
         let best = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
         let cloud = hapcloud::io::read_cloud(&voxel)?;
         if cloud.len() != voxel_points {
-            bail!("{}: hapcloud read {} points, PCL wrote {}", voxel.display(), cloud.len(), voxel_points);
+            bail!(
+                "{}: hapcloud read {} points, PCL wrote {}",
+                voxel.display(),
+                cloud.len(),
+                voxel_points
+            );
         }
 
         let mut cpu_ms = Vec::new();
@@ -198,9 +229,22 @@ fn main() -> anyhow::Result<()> {
         all_match &= matches;
         let pcl_cluster = best(&pcl_cluster_ms);
         let (cpu, gpu_wall) = (median(cpu_ms), median(gpu_ms));
-        println!("\n{name}: {} points -> PCL voxel {} points (PCL voxel {:.2} ms)", hapcloud::io::read_cloud(file)?.len(), voxel_points, best(&pcl_voxel_ms));
+        println!(
+            "\n{name}: {} points -> PCL voxel {} points (PCL voxel {:.2} ms)",
+            hapcloud::io::read_cloud(file)?.len(),
+            voxel_points,
+            best(&pcl_voxel_ms)
+        );
         println!("  cluster sizes PCL      {pcl_sizes:?}");
-        println!("  cluster sizes hapcloud {gpu_sizes:?} (cpu {})  {}", if cpu_sizes == gpu_sizes { "same" } else { "DIFFERENT" }, if matches { "MATCH" } else { "MISMATCH" });
+        println!(
+            "  cluster sizes hapcloud {gpu_sizes:?} (cpu {})  {}",
+            if cpu_sizes == gpu_sizes {
+                "same"
+            } else {
+                "DIFFERENT"
+            },
+            if matches { "MATCH" } else { "MISMATCH" }
+        );
         println!(
             "  cluster time: PCL {pcl_cluster:.2} ms | hapcloud cpu {cpu:.2} ms (x{:.2}) | gpu {gpu_wall:.2} ms wall (x{:.2}), {:.2} ms GPU passes, first frame {gpu_first_ms:.1} ms",
             pcl_cluster / cpu,

@@ -64,12 +64,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let t = Instant::now();
             let ctx = GpuContext::new()?;
             let mut clusterer = GpuClusterer::new(&ctx)?;
-            timings.insert("gpu_setup".into(), json!(ms(t)));
+            timings.insert("gpu_init".into(), json!(ms(t)));
             let t = Instant::now();
             let (c, stats) = clusterer.cluster(&ctx, &cloud.points, &config)?;
-            timings.insert("cluster".into(), json!(ms(t)));
+            timings.insert("cluster_wall".into(), json!(ms(t)));
+            if !stats.gpu_times.is_empty() {
+                let total: f64 = stats.gpu_times.iter().map(|s| s.gpu_ms).sum();
+                timings.insert("cluster".into(), json!(total));
+            }
             for s in &stats.gpu_times {
-                timings.insert(format!("gpu_{}", s.stage), json!(s.gpu_ms));
+                timings.insert(s.stage.into(), json!(s.gpu_ms));
             }
             adapter = Some(ctx.adapter().name.clone());
             submissions = Some(stats.submissions);

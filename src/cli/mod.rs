@@ -6,11 +6,11 @@ mod convert;
 
 use clap::{Parser, Subcommand};
 
+mod cluster;
 mod crop;
 mod gpu_info;
 mod surface;
 mod voxel;
-mod cluster;
 use std::process::ExitCode;
 
 #[derive(Parser)]

@@ -98,6 +98,24 @@ pub struct ShellParams {
     pub inv_radius: [f32; SHELL_SLOTS],
 }
 
+/// `ClusterParams` in cluster.wgsl.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct ClusterParams {
+    /// 1 / cell size (cell = tolerance * margin), 1/m.
+    pub inv_cell: f32,
+    /// f32(tolerance)^2, m^2.
+    pub r2: f32,
+    /// Always 1.0 (keeps fused multiply-adds from changing the neighbour test's rounding).
+    pub one: f32,
+    pub table_mask: u32,
+    pub max_probes: u32,
+    pub capacity: u32,
+    /// Index of the point count in the count buffer.
+    pub count_word: u32,
+    pub _pad: u32,
+}
+
 /// A mirrored struct: its WGSL name, the shader declaring it, and the Rust layout.
 pub struct Mirror {
     pub shader: StageShader,
@@ -123,6 +141,7 @@ pub const MIRRORS: &[Mirror] = &[
     mirror::<VoxelHeader>(shader::VOXEL, "VoxelHeader"),
     mirror::<SortStep>(shader::VOXEL, "SortStep"),
     mirror::<ShellParams>(shader::SHELLS, "ShellParams"),
+    mirror::<ClusterParams>(shader::CLUSTER, "ClusterParams"),
 ];
 
 #[cfg(test)]

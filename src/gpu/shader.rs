@@ -43,8 +43,14 @@ pub const SHELLS: StageShader = StageShader {
     source: include_str!("../../shaders/shells.wgsl"),
 };
 
+/// Euclidean cluster labelling (src/perception/cluster.rs).
+pub const CLUSTER: StageShader = StageShader {
+    name: "cluster",
+    source: include_str!("../../shaders/cluster.wgsl"),
+};
+
 /// Every stage shader; the naga test checks this against the files in `shaders/`.
-pub const STAGE_SHADERS: &[StageShader] = &[CROP, VOXEL, SHELLS];
+pub const STAGE_SHADERS: &[StageShader] = &[CROP, VOXEL, SHELLS, CLUSTER];
 
 /// Number of workgroups of [`WORKGROUP_SIZE`] threads that cover `items`.
 pub fn workgroups_for(items: u32) -> u32 {

@@ -32,7 +32,8 @@
 //!   spin-waits). Sizes, filtering and sorting run on the CPU from the read-back labels.
 
 use crate::cloud::PointCloud;
-use crate::gpu::shader::{self, BindingKind, StageShader};
+use crate::gpu::mirrors::ClusterParams;
+use crate::gpu::shader::{self, BindingKind};
 use crate::gpu::timing::{StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
 use glam::Vec3;
@@ -287,8 +288,7 @@ pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, Clu
                 .unsorted()
                 .visit(|item| {
                     let j = finite[item.item as usize];
-                    if component[j as usize] == UNVISITED
-                        && is_neighbour(p, points[j as usize], r2)
+                    if component[j as usize] == UNVISITED && is_neighbour(p, points[j as usize], r2)
                     {
                         component[j as usize] = seed;
                         queue.push(j);
@@ -305,12 +305,6 @@ pub fn cluster_cpu(points: &[Vec3], config: &ClusterConfig) -> Result<Clustering
     let component = components_cpu(points, config.tolerance_m)?;
     Ok(Clustering::from_components(component, config))
 }
-
-/// `shaders/cluster.wgsl`, registered in [`crate::gpu::shader::STAGE_SHADERS`].
-pub const CLUSTER_SHADER: StageShader = StageShader {
-    name: "cluster",
-    source: include_str!("../../shaders/cluster.wgsl"),
-};
 
 /// Grid cells are this much larger than the tolerance, so that every neighbour lies in one of
 /// the 27 cells around a point despite the rounding of `floor(p * inv_cell)`: with cell
@@ -337,23 +331,12 @@ const MAX_GPU_POINTS: u32 = 65_535 * shader::WORKGROUP_SIZE;
 /// GPU time is reported for these passes of the first submission.
 const TIMED_PASSES: [&str; 3] = ["cluster_grid", "cluster_hook", "cluster_compress"];
 
-/// Rust mirror of the shader's `Params` (size checked against naga's layout in the tests).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
-struct ClusterParams {
-    inv_cell: f32,
-    r2: f32,
-    one: f32,
-    table_mask: u32,
-    max_probes: u32,
-    capacity: u32,
-    pad: [u32; 2],
-}
-
 /// Buffers sized for a point capacity (reallocated only when a larger cloud arrives).
 struct ClusterBuffers {
     capacity: u32,
     table_slots: u32,
+    /// Parameters of the last `reserve`; `encode` writes them with the input's count word.
+    params_value: ClusterParams,
     params: wgpu::Buffer,
     points: wgpu::Buffer,
     count: wgpu::Buffer,
@@ -369,8 +352,11 @@ struct ClusterBuffers {
 pub struct ClusterInput<'a> {
     /// `array<vec4<f32>>` (xyz, w ignored), at least `count` entries.
     pub points: &'a wgpu::Buffer,
-    /// A `u32` point count (read on the GPU and clamped to the reserved capacity).
-    pub count: wgpu::BufferBinding<'a>,
+    /// A buffer of `u32` words holding the point count (read on the GPU, clamped to the
+    /// reserved capacity), e.g. the voxel stage's header.
+    pub count: &'a wgpu::Buffer,
+    /// Index of the count's word in `count`.
+    pub count_word: u32,
 }
 
 /// What the GPU path measured.
@@ -416,14 +402,14 @@ impl GpuClusterer {
             shader::bind_group_layout(ctx, "cluster dispatch-args layout", &[Storage])?;
         let prepare = shader::compute_pipelines(
             ctx,
-            &CLUSTER_SHADER,
+            &shader::CLUSTER,
             &[&layout, &args_layout],
             &["prepare"],
         )?
         .remove(0);
         let mut passes = shader::compute_pipelines(
             ctx,
-            &CLUSTER_SHADER,
+            &shader::CLUSTER,
             &[&layout],
             &["insert", "hook", "compress"],
         )?
@@ -473,19 +459,17 @@ impl GpuClusterer {
         if !fits {
             self.buffers = Some(self.allocate(ctx, capacity, table_slots)?);
         }
-        let b = self.buffers.as_ref().expect("allocated above");
-        let cell_m = config.tolerance_m * CELL_MARGIN;
-        let params = ClusterParams {
-            inv_cell: 1.0 / cell_m,
+        let b = self.buffers.as_mut().expect("allocated above");
+        b.params_value = ClusterParams {
+            inv_cell: 1.0 / (config.tolerance_m * CELL_MARGIN),
             r2: config.tolerance_squared(),
             one: 1.0,
             table_mask: b.table_slots - 1,
             max_probes: config.gpu_hash_max_probes,
             capacity: b.capacity,
-            pad: [0; 2],
+            count_word: 0,
+            _pad: 0,
         };
-        ctx.queue()
-            .write_buffer(&b.params, 0, bytemuck::bytes_of(&params));
         Ok(())
     }
 
@@ -526,6 +510,7 @@ impl GpuClusterer {
             ClusterBuffers {
                 capacity,
                 table_slots,
+                params_value: ClusterParams::default(),
                 params: buffer(
                     "cluster params",
                     std::mem::size_of::<ClusterParams>() as u64,
@@ -562,7 +547,8 @@ impl GpuClusterer {
         let b = self.buffers();
         ClusterInput {
             points: &b.points,
-            count: b.count.as_entire_buffer_binding(),
+            count: &b.count,
+            count_word: 0,
         }
     }
 
@@ -585,6 +571,12 @@ impl GpuClusterer {
         input: &ClusterInput<'_>,
     ) -> Result<(), ClusterError> {
         let b = self.buffers();
+        let params = ClusterParams {
+            count_word: input.count_word,
+            ..b.params_value
+        };
+        ctx.queue()
+            .write_buffer(&b.params, 0, bytemuck::bytes_of(&params));
         let group = self.bind_group(ctx, input)?;
         encoder.clear_buffer(&b.slots, 0, None);
         encoder.clear_buffer(&b.status, 0, None);
@@ -707,7 +699,11 @@ impl GpuClusterer {
     ) -> Result<([u32; 4], Vec<u32>), ClusterError> {
         let b = self.buffers();
         let group = self.bind_group(ctx, input)?;
-        let readback = readback_buffer(ctx, "cluster re-submit readback", STATUS_BYTES + 4 * u64::from(points))?;
+        let readback = readback_buffer(
+            ctx,
+            "cluster re-submit readback",
+            STATUS_BYTES + 4 * u64::from(points),
+        )?;
         let mut encoder = ctx
             .device()
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
@@ -727,16 +723,25 @@ impl GpuClusterer {
         }
         encoder.copy_buffer_to_buffer(&b.status, 0, &readback, 0, STATUS_BYTES);
         if points > 0 {
-            encoder.copy_buffer_to_buffer(&b.parent, 0, &readback, STATUS_BYTES, 4 * u64::from(points));
+            encoder.copy_buffer_to_buffer(
+                &b.parent,
+                0,
+                &readback,
+                STATUS_BYTES,
+                4 * u64::from(points),
+            );
         }
-        Ok(ctx.submit_and_read("cluster re-submit", encoder.finish(), &readback, |bytes| {
-            let status: [u32; 4] = bytemuck::pod_read_unaligned(&bytes[..STATUS_BYTES as usize]);
-            let labels = bytes[STATUS_BYTES as usize..]
-                .chunks_exact(4)
-                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-                .collect();
-            (status, labels)
-        })?)
+        Ok(
+            ctx.submit_and_read("cluster re-submit", encoder.finish(), &readback, |bytes| {
+                let status: [u32; 4] =
+                    bytemuck::pod_read_unaligned(&bytes[..STATUS_BYTES as usize]);
+                let labels = bytes[STATUS_BYTES as usize..]
+                    .chunks_exact(4)
+                    .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                    .collect();
+                (status, labels)
+            })?,
+        )
     }
 
     fn bind_group(
@@ -748,7 +753,7 @@ impl GpuClusterer {
         let resources = [
             b.params.as_entire_binding(),
             input.points.as_entire_binding(),
-            wgpu::BindingResource::Buffer(input.count.clone()),
+            input.count.as_entire_binding(),
             b.slots.as_entire_binding(),
             b.info.as_entire_binding(),
             b.parent.as_entire_binding(),
@@ -875,7 +880,11 @@ mod tests {
     #[test]
     fn strict_threshold_like_flann() {
         // 0.5 and 0.25 are exact in f32: distance exactly equal to the tolerance is no edge.
-        let pts = [Vec3::ZERO, Vec3::new(0.5, 0.0, 0.0), Vec3::new(0.5, 0.49, 0.0)];
+        let pts = [
+            Vec3::ZERO,
+            Vec3::new(0.5, 0.0, 0.0),
+            Vec3::new(0.5, 0.49, 0.0),
+        ];
         assert_eq!(components_cpu(&pts, 0.5).unwrap(), vec![0, 1, 1]);
         let pts = [Vec3::ZERO, Vec3::new(0.5, 0.0, 0.0)];
         assert_eq!(components_cpu(&pts, 0.5).unwrap(), vec![0, 1]);
@@ -966,9 +975,10 @@ mod tests {
         assert_eq!(gpu.clusters, cpu.clusters);
     }
 
+    /// The GPU-only structs whose sizes the host uses to size buffers.
     #[test]
-    fn wgsl_structs_match_rust_mirrors() {
-        let (module, _) = shader::validate(&CLUSTER_SHADER, naga::valid::Capabilities::empty())
+    fn wgsl_buffer_element_sizes() {
+        let (module, _) = shader::validate(&shader::CLUSTER, naga::valid::Capabilities::empty())
             .unwrap_or_else(|e| panic!("{e}"));
         let mut layouter = naga::proc::Layouter::default();
         layouter.update(module.to_ctx()).unwrap();
@@ -980,7 +990,6 @@ mod tests {
                 .unwrap_or_else(|| panic!("struct {name} in cluster.wgsl"));
             u64::from(layouter[handle].size)
         };
-        assert_eq!(size_of("Params"), std::mem::size_of::<ClusterParams>() as u64);
         assert_eq!(size_of("Slot"), SLOT_BYTES);
         assert_eq!(size_of("PointInfo"), INFO_BYTES);
     }
@@ -1057,15 +1066,27 @@ mod tests {
                 continue;
             }
             // Each pair on its own node of a 1 m lattice.
-            let offset = Vec3::new((slot % 16) as f32, (slot / 16 % 16) as f32, (slot / 256) as f32);
+            let offset = Vec3::new(
+                (slot % 16) as f32,
+                (slot / 16 % 16) as f32,
+                (slot / 256) as f32,
+            );
             slot += 1;
             pts.push(a + offset);
             pts.push(b + offset);
         }
-        assert!(fused_differs > 100, "only {fused_differs} pairs tell fma apart");
+        assert!(
+            fused_differs > 100,
+            "only {fused_differs} pairs tell fma apart"
+        );
         let cfg = config(tol, 1, 10);
         let cpu = cluster_cpu(&pts, &cfg).unwrap();
-        let edges = cpu.component.iter().enumerate().filter(|&(i, &c)| c as usize != i).count();
+        let edges = cpu
+            .component
+            .iter()
+            .enumerate()
+            .filter(|&(i, &c)| c as usize != i)
+            .count();
         assert!(edges > 100 && edges < pts.len() / 2 - 100, "{edges} edges");
         assert_gpu_matches_cpu(&pts, &cfg);
     }

@@ -2,8 +2,11 @@
 //!
 //! On the GPU ([`GpuFrontend`]) a frame is one command encoder and one submit: upload the
 //! points, record the crop pass (keep mask), the voxel pass (reads the mask; clears with
-//! `clear_buffer`), resolve the timestamp queries, and copy the stage results into one
-//! readback buffer, which is mapped once. Each stage is one compute pass bracketed by
+//! `clear_buffer`), the cluster passes (read the voxel output and its GPU-side count through
+//! an indirect dispatch), resolve the timestamp queries, and copy the stage results into one
+//! readback buffer, which is mapped once. Only when a bounded union-find pass of the
+//! clustering ran out of steps does the cluster stage add small submissions of its own
+//! (see [`crate::perception::cluster`]). Each stage is one compute pass bracketed by
 //! timestamps, so the frame reports the GPU time per stage. A voxel-table overflow (flag in the
 //! readback) re-records the frame once with a bigger table (see [`crate::perception::voxel`]).
 //!
@@ -17,8 +20,12 @@ use std::time::Instant;
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+use crate::gpu::mirrors::VoxelHeader;
 use crate::gpu::timing::{StageTime, StageTimer};
 use crate::gpu::{Backend, GpuContext, GpuError};
+use crate::perception::cluster::{
+    ClusterConfig, ClusterError, ClusterInput, Clustering, GpuClusterer, cluster_cpu,
+};
 use crate::perception::crop::{CropConfig, CropError, CropScene, GpuCrop, crop_cpu};
 use crate::perception::voxel::{
     GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, voxel_cpu_with_leaf,
@@ -30,12 +37,14 @@ use crate::perception::voxel::{
 pub struct FrontendConfig {
     pub crop: CropConfig,
     pub voxel: VoxelConfig,
+    pub cluster: ClusterConfig,
 }
 
 impl FrontendConfig {
     pub fn validate(&self) -> Result<(), FrontendError> {
         self.crop.validate()?;
         self.voxel.validate()?;
+        self.cluster.validate()?;
         Ok(())
     }
 }
@@ -46,6 +55,8 @@ pub enum FrontendError {
     Crop(#[from] CropError),
     #[error("voxel: {0}")]
     Voxel(#[from] VoxelError),
+    #[error("cluster: {0}")]
+    Cluster(#[from] ClusterError),
     #[error(transparent)]
     Gpu(#[from] GpuError),
 }
@@ -65,6 +76,8 @@ pub struct FrontendOutput {
     pub points_in: usize,
     /// Voxel grid of the cropped points (`valid_in` = points that survived the crop).
     pub voxel: VoxelOutput,
+    /// Euclidean clusters of the voxel points (indices into `voxel.points`).
+    pub clusters: Clustering,
     /// GPU time per stage (GPU backend with timestamp queries), else empty.
     pub gpu_times: Vec<StageTime>,
     /// Wall time of the whole frame, upload and readback included (ms).
@@ -140,9 +153,11 @@ impl CpuFrontend {
             self.leaf.leaf_m,
         )?;
         self.leaf.update(&self.config.voxel, voxel.points.len());
+        let clusters = cluster_cpu(&voxel.points, &self.config.cluster)?;
         Ok(FrontendOutput {
             points_in: frame.points.len(),
             voxel,
+            clusters,
             gpu_times: Vec::new(),
             wall_ms: start.elapsed().as_secs_f64() * 1e3,
         })
@@ -158,6 +173,7 @@ pub struct GpuFrontend {
     config: FrontendConfig,
     crop: GpuCrop,
     voxel: GpuVoxel,
+    cluster: GpuClusterer,
     timer: Option<StageTimer>,
     input: wgpu::Buffer,
     readback: wgpu::Buffer,
@@ -190,6 +206,7 @@ impl GpuFrontend {
         config.validate()?;
         let crop = GpuCrop::new(&ctx)?;
         let voxel = GpuVoxel::new(&ctx)?;
+        let cluster = GpuClusterer::new(&ctx)?;
         let timer = StageTimer::new(&ctx, "frontend", &STAGES)?;
         let input = make_buffer(&ctx, "frontend input points", 16, INPUT_USAGE)?;
         let readback = make_buffer(&ctx, "frontend readback", 16, READBACK_USAGE)?;
@@ -199,6 +216,7 @@ impl GpuFrontend {
             config,
             crop,
             voxel,
+            cluster,
             timer,
             input,
             readback,
@@ -212,6 +230,15 @@ impl GpuFrontend {
     /// Leaf the next frame will use (m).
     pub fn leaf_m(&self) -> f64 {
         self.leaf.leaf_m
+    }
+
+    /// The voxel output as the cluster stage's input (count = the header's `out_count`).
+    fn cluster_input(&self) -> ClusterInput<'_> {
+        ClusterInput {
+            points: self.voxel.out_points(),
+            count: self.voxel.header(),
+            count_word: (std::mem::offset_of!(VoxelHeader, out_count) / 4) as u32,
+        }
     }
 
     pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
@@ -234,9 +261,14 @@ impl GpuFrontend {
         self.voxel
             .prepare(&ctx, n, frame.crop.is_some(), &self.config.voxel, leaf_m)?;
         let mut retries = 0;
-        let (mut voxel, gpu_times) = loop {
+        let (mut voxel, mut gpu_times, cluster_bytes) = loop {
             let ts_bytes = self.timer.as_ref().map_or(0, |t| t.readback_bytes());
-            let needed = ts_bytes + self.voxel.readback_bytes();
+            // The cluster stage reads the voxel output in place: its capacity is the voxel
+            // table's, its point count the header's `out_count`, known only on the GPU.
+            let capacity = self.voxel.table_slots();
+            self.cluster.reserve(&ctx, capacity, &self.config.cluster)?;
+            let voxel_bytes = self.voxel.readback_bytes();
+            let needed = ts_bytes + voxel_bytes + self.cluster.readback_bytes(capacity);
             if self.readback.size() < needed {
                 self.readback = make_buffer(&ctx, "frontend readback", needed, READBACK_USAGE)?;
             }
@@ -252,19 +284,29 @@ impl GpuFrontend {
             let mask = frame.crop.as_ref().map(|_| self.crop.mask());
             self.voxel
                 .record(&ctx, &mut encoder, &self.input, mask, writes(1));
+            self.cluster
+                .encode(&ctx, &mut encoder, &self.cluster_input())?;
             if let Some(t) = &self.timer {
                 t.resolve_into(&mut encoder, &self.readback, 0);
             }
             self.voxel
                 .copy_results(&mut encoder, &self.readback, ts_bytes);
+            self.cluster.encode_readback(
+                &mut encoder,
+                &self.readback,
+                ts_bytes + voxel_bytes,
+                capacity,
+            );
             let ts = ts_bytes as usize;
-            let (voxel, times) = {
+            let cluster_at = (ts_bytes + voxel_bytes) as usize;
+            let (voxel, times, cluster_bytes) = {
                 let voxel = &mut self.voxel;
                 let timer = self.timer.as_ref();
                 let config = &self.config.voxel;
                 ctx.submit_and_read("frontend frame", encoder.finish(), &self.readback, |b| {
                     let times = timer.map(|t| t.read(&b[..ts])).unwrap_or_default();
-                    (voxel.decode(&ctx, &b[ts..], config, leaf_m), times)
+                    let voxel = voxel.decode(&ctx, &b[ts..cluster_at], config, leaf_m);
+                    (voxel, times, b[cluster_at..].to_vec())
                 })?
             };
             if let Some(v) = voxel? {
@@ -272,15 +314,24 @@ impl GpuFrontend {
                     .into_iter()
                     .filter(|t| t.stage != "crop" || frame.crop.is_some())
                     .collect::<Vec<_>>();
-                break (v, times);
+                break (v, times, cluster_bytes);
             }
             retries += 1;
         };
         voxel.retries = retries;
+        let (clusters, cluster_stats) = self.cluster.finish(
+            &ctx,
+            &self.cluster_input(),
+            &cluster_bytes,
+            voxel.points.len() as u32,
+            &self.config.cluster,
+        )?;
+        gpu_times.extend(cluster_stats.gpu_times);
         self.leaf.update(&self.config.voxel, voxel.points.len());
         Ok(FrontendOutput {
             points_in: n,
             voxel,
+            clusters,
             gpu_times,
             wall_ms: start.elapsed().as_secs_f64() * 1e3,
         })
@@ -306,6 +357,7 @@ mod tests {
                 initial_table_slots: 1024,
                 ..Default::default()
             },
+            cluster: ClusterConfig::default(),
         };
         let robot = [Primitive::Capsule {
             a_m: Point3::new(0.2, 0.0, 0.8),
@@ -329,6 +381,8 @@ mod tests {
             let c = cpu.process(&frame).unwrap();
             assert_eq!(g.voxel.leaf_m, c.voxel.leaf_m);
             assert_same(&g.voxel, &c.voxel);
+            assert_eq!(g.clusters, c.clusters);
+            assert!(!g.clusters.clusters.is_empty());
             assert!(g.voxel.valid_in < points.len() / 2);
             if seed == 0 {
                 // The first frame's 1024-slot table is too small: retried, still right.
@@ -338,7 +392,16 @@ mod tests {
                 && f.context().timestamp_period_ns().is_some()
             {
                 let stages: Vec<_> = g.gpu_times.iter().map(|t| t.stage).collect();
-                assert_eq!(stages, ["crop", "voxel"]);
+                assert_eq!(
+                    stages,
+                    [
+                        "crop",
+                        "voxel",
+                        "cluster_grid",
+                        "cluster_hook",
+                        "cluster_compress"
+                    ]
+                );
             }
             last = g.voxel.points.len();
         }
@@ -365,5 +428,7 @@ mod tests {
         let cpu =
             crate::perception::voxel::voxel_cpu(&points, None, &VoxelConfig::default()).unwrap();
         assert_same(&out.voxel, &cpu);
+        let clusters = cluster_cpu(&cpu.points, &ClusterConfig::default()).unwrap();
+        assert_eq!(out.clusters, clusters);
     }
 }
