@@ -140,6 +140,36 @@ fn decodes_like_pcl() {
     }
 }
 
+/// PCL's own binary and binary_compressed writers (bun0: seven fields with normals and
+/// curvature; table_scene: organized with rgba) read back to the original's points.
+#[test]
+fn reads_pcl_binary_writers() {
+    if pcl_tool("pcl_convert_pcd_ascii_binary").is_none() {
+        return;
+    }
+    for file in ["bun0.pcd", "table_scene_mug_stereo_textured.pcd"] {
+        let original = pcd::read(&data(file)).unwrap();
+        for (mode, name) in [("1", "binary"), ("2", "binary_compressed")] {
+            let out = scratch(&format!("pcl_{name}_{file}"));
+            let mut cmd = pcl_tool("pcl_convert_pcd_ascii_binary").unwrap();
+            cmd.arg(data(file)).arg(&out).arg(mode);
+            run(cmd);
+            let header = std::fs::read(&out).unwrap();
+            let data_line = format!("DATA {name}\n");
+            assert!(
+                header
+                    .windows(data_line.len())
+                    .any(|w| w == data_line.as_bytes())
+            );
+            assert_same_cloud(
+                &original,
+                &pcd::read(&out).unwrap(),
+                &format!("{file} {name}"),
+            );
+        }
+    }
+}
+
 /// What we write loads in PCL: PCL re-encodes our files as ASCII and gets our points back,
 /// and `pcl_voxel_grid` gives the same output count on our binary_compressed copy as on the
 /// original file.
@@ -209,6 +239,29 @@ fn ply_interoperates_with_pcl() {
         run(cmd);
         assert_eq!(pcd::read(&via).unwrap().points, cloud.points, "{file}");
     }
+    // An organized RGBA frame: PCL's PLY (with its camera element) keeps the 640 x 480
+    // layout and the colours, and PCL reads our PLY's layout back.
+    let table = data("table_scene_mug_stereo_textured.pcd");
+    let cloud = pcd::read(&table).unwrap();
+    let out = scratch("pcl_table.ply");
+    let mut cmd = pcl_tool("pcl_pcd2ply").unwrap();
+    cmd.args(["-format", "1"]).arg(&table).arg(&out);
+    run(cmd);
+    let back = ply::read(&out).unwrap();
+    let mut expected = cloud.clone();
+    expected.sensor_pose = back.sensor_pose; // pcl_pcd2ply does not carry the VIEWPOINT
+    assert_same_cloud(&expected, &back, "pcl_pcd2ply table");
+    let ours = scratch("ours_table.ply");
+    ply::write(&ours, &cloud, ply::Encoding::BinaryLittleEndian).unwrap();
+    let via = scratch("ours_table_via_pcl.pcd");
+    let mut cmd = pcl_tool("pcl_ply2pcd").unwrap();
+    cmd.arg(&ours).arg(&via);
+    run(cmd);
+    assert_same_cloud(
+        &cloud.clone(),
+        &pcd::read(&via).unwrap(),
+        "pcl_ply2pcd table",
+    );
 }
 
 #[test]

@@ -369,13 +369,16 @@ pub fn encode(value: &CanValue) -> Encoded {
         }
         CanValue::Status(v) => {
             let mut p = Packer::new();
-            p.put(unsigned(0, 16, 1.0), f64::from(v.deadline_misses))
-                .put(unsigned(16, 16, 1.0), f64::from(v.fault_flags))
-                .put(unsigned(32, 2, 1.0), v.backend as u8 as f64)
-                .put(unsigned(40, 16, LATENCY_MS), v.latency_ms)
-                .put(unsigned(56, 8, 1.0), f64::from(v.heartbeat));
-            // A saturated miss count is expected on a long run, not an encoding problem.
-            p.saturated = p.saturated && v.deadline_misses <= 0xFFFF;
+            // The miss count saturates on a long run by design (documented in the DBC); it
+            // does not count as an encoding problem.
+            p.put(
+                unsigned(0, 16, 1.0),
+                f64::from(v.deadline_misses.min(0xFFFF)),
+            )
+            .put(unsigned(16, 16, 1.0), f64::from(v.fault_flags))
+            .put(unsigned(32, 2, 1.0), v.backend as u8 as f64)
+            .put(unsigned(40, 16, LATENCY_MS), v.latency_ms)
+            .put(unsigned(56, 8, 1.0), f64::from(v.heartbeat));
             emit(id::NODE_STATUS, &p);
         }
     }
@@ -833,6 +836,42 @@ mod tests {
             d.push(&frames[1]).unwrap(),
             Some(CanValue::Surface(_))
         ));
+    }
+
+    #[test]
+    fn surface_from_estimate_and_status_saturation() {
+        use nalgebra::{Point3, Unit, Vector3};
+        let estimate = SurfaceEstimate {
+            camera_id: 17,
+            stamp_s: 1.0,
+            centroid_m: Point3::new(0.1, -0.2, 0.9),
+            normal: Unit::new_normalize(Vector3::new(0.0, 3.0, 4.0)),
+            shells: Vec::new(),
+            quality: 0.8,
+            valid: true,
+        };
+        let s = CanSurface::from_estimate(&estimate, 18);
+        assert_eq!((s.camera_id, s.counter), (1, 2));
+        assert_eq!(s.centroid_m, [0.1, -0.2, 0.9]);
+        assert!((s.normal[1] - 0.6).abs() < 1e-12 && (s.normal[2] - 0.8).abs() < 1e-12);
+        let status = |deadline_misses, latency_ms| {
+            encode(&CanValue::Status(CanStatus {
+                deadline_misses,
+                fault_flags: fault::DEADLINE_MISSED,
+                backend: CanBackend::Cpu,
+                latency_ms,
+                heartbeat: 0,
+            }))
+        };
+        assert!(!status(1 << 20, 10.0).saturated);
+        assert!(status(1 << 20, 1e4).saturated);
+        let Some(CanValue::Status(back)) = Decoder::new()
+            .push(&status(1 << 20, 10.0).frames[0])
+            .unwrap()
+        else {
+            panic!("no status");
+        };
+        assert_eq!(back.deadline_misses, 0xFFFF);
     }
 
     #[test]

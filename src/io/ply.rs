@@ -11,10 +11,14 @@
 //! floats in [0, 1]); every other property and element (faces with their list properties
 //! included) is skipped by its declared type. PCL's `obj_info num_cols W` / `num_rows H`
 //! restore an organized layout when `W * H` equals the vertex count; the writer emits them.
+//! PCL's `camera` element (written by `pcl_pcd2ply`) gives the layout too (`viewportx`,
+//! `viewporty`) and the sensor pose (`view_p*` origin, `*_axis*` rotation rows).
 
 use super::{Error, FormatError, Scalar, check_cloud, read_bytes, write_bytes};
 use crate::cloud::PointCloud;
 use glam::Vec3;
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
+use std::collections::HashMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
@@ -264,6 +268,10 @@ fn list_len(v: f64, what: &str) -> Result<usize, FormatError> {
 }
 
 fn skip_element(src: &mut dyn Source, element: &Element) -> Result<(), FormatError> {
+    // An element without properties takes no bytes, whatever its count (which may be huge).
+    if element.properties.is_empty() {
+        return Ok(());
+    }
     for i in 0..element.count {
         for p in &element.properties {
             let what = format!("{} {i} property {}", element.name, p.name);
@@ -383,22 +391,90 @@ pub fn from_bytes(bytes: &[u8]) -> Result<PointCloud, FormatError> {
         }
     };
     let mut cloud = None;
+    let mut camera = HashMap::new();
     for element in &header.elements {
         if element.name == "vertex" && cloud.is_none() {
             cloud = Some(read_vertices(src, element)?);
+        } else if element.name == "camera" && element.count >= 1 && camera.is_empty() {
+            camera = read_first_instance(src, element)?;
         } else {
             skip_element(src, element)?;
         }
     }
     let mut cloud =
         cloud.ok_or_else(|| FormatError::Unsupported("no vertex element (no points)".into()))?;
-    if let (Some(w), Some(h)) = (header.num_cols, header.num_rows)
-        && u64::from(w) * u64::from(h) == cloud.len() as u64
+    // Organized layout: PCL's obj_info lines, else its camera element's viewport.
+    let n = cloud.len() as u64;
+    let viewport = |k: &str| camera.get(k).map(|&v| v as u64);
+    let layout = match (header.num_cols, header.num_rows) {
+        (Some(w), Some(h)) if u64::from(w) * u64::from(h) == n => {
+            Some((u64::from(w), u64::from(h)))
+        }
+        _ => viewport("viewportx").zip(viewport("viewporty")),
+    };
+    if let Some((w, h)) = layout
+        && w * h == n
+        && let (Ok(w), Ok(h)) = (u32::try_from(w), u32::try_from(h))
     {
         cloud.width = w;
         cloud.height = h;
     }
+    if let Some(pose) = camera_pose(&camera) {
+        cloud.sensor_pose = pose;
+    }
     Ok(cloud)
+}
+
+/// The scalar properties of an element's first instance (lists skipped); later instances
+/// are skipped.
+fn read_first_instance(
+    src: &mut dyn Source,
+    element: &Element,
+) -> Result<HashMap<String, f64>, FormatError> {
+    let mut values = HashMap::new();
+    for p in &element.properties {
+        let what = format!("{} 0 property {}", element.name, p.name);
+        match p.kind {
+            Kind::Scalar(s) => {
+                values.insert(p.name.clone(), src.value(s, &what)?);
+            }
+            Kind::List { count, item } => {
+                let n = list_len(src.value(count, &what)?, &what)?;
+                src.skip(item, n, &what)?;
+            }
+        }
+    }
+    let rest = Element {
+        count: element.count - 1,
+        ..element.clone()
+    };
+    skip_element(src, &rest)?;
+    Ok(values)
+}
+
+/// PCL's camera element: origin `view_p{x,y,z}` and the rows of the sensor's rotation
+/// matrix (`x_axis*`, `y_axis*`, `z_axis*`). `None` when absent or not a rotation.
+fn camera_pose(camera: &HashMap<String, f64>) -> Option<Isometry3<f64>> {
+    let get = |k: &str| camera.get(k).copied();
+    let row = |a: &str| {
+        Some([
+            get(&format!("{a}x"))?,
+            get(&format!("{a}y"))?,
+            get(&format!("{a}z"))?,
+        ])
+    };
+    let origin = row("view_p")?;
+    let (x, y, z) = (row("x_axis")?, row("y_axis")?, row("z_axis")?);
+    let m = Matrix3::new(x[0], x[1], x[2], y[0], y[1], y[2], z[0], z[1], z[2]);
+    let orthonormal = (m * m.transpose() - Matrix3::identity()).amax() < 1e-3;
+    if !orthonormal || m.determinant() < 0.0 || !origin.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(m));
+    Some(Isometry3::from_parts(
+        Translation3::new(origin[0], origin[1], origin[2]),
+        rotation,
+    ))
 }
 
 /// Read a PLY file.
@@ -650,6 +726,46 @@ mod tests {
             let err = from_bytes(text.as_bytes()).unwrap_err().to_string();
             assert!(err.contains(expect), "{text:?}: {err}");
         }
+    }
+
+    #[test]
+    fn pcl_camera_element_gives_layout_and_pose() {
+        let text = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n\
+                    property float z\nelement face 0\nproperty list uchar int vertex_indices\n\
+                    element camera 1\nproperty float view_px\nproperty float view_py\n\
+                    property float view_pz\nproperty float x_axisx\nproperty float x_axisy\n\
+                    property float x_axisz\nproperty float y_axisx\nproperty float y_axisy\n\
+                    property float y_axisz\nproperty float z_axisx\nproperty float z_axisy\n\
+                    property float z_axisz\nproperty int viewportx\nproperty int viewporty\n\
+                    end_header\n1 2 3\n4 5 6\n0.5 1 -2 1 0 0 0 -1 0 0 0 -1 1 2\n";
+        let cloud = from_bytes(text.as_bytes()).unwrap();
+        assert_eq!((cloud.width, cloud.height), (1, 2));
+        assert_eq!(
+            cloud.sensor_pose.translation.vector,
+            nalgebra::Vector3::new(0.5, 1.0, -2.0)
+        );
+        let half_turn_x =
+            UnitQuaternion::from_axis_angle(&nalgebra::Vector3::x_axis(), std::f64::consts::PI);
+        assert!(cloud.sensor_pose.rotation.angle_to(&half_turn_x) < 1e-9);
+        // A camera "rotation" that is not one leaves the pose alone.
+        let skewed = text.replace("0.5 1 -2 1 0 0", "0.5 1 -2 2 0 0");
+        let cloud = from_bytes(skewed.as_bytes()).unwrap();
+        assert_eq!(cloud.sensor_pose, Isometry3::identity());
+    }
+
+    #[test]
+    fn huge_element_without_properties_is_skipped_at_once() {
+        let text = "ply\nformat binary_little_endian 1.0\nelement empty 18000000000000000000\n\
+                    element vertex 1\nproperty float x\nproperty float y\nproperty float z\n\
+                    end_header\n";
+        let mut bytes = text.as_bytes().to_vec();
+        [1.0f32, 2.0, 3.0]
+            .iter()
+            .for_each(|v| bytes.extend(v.to_le_bytes()));
+        assert_eq!(
+            from_bytes(&bytes).unwrap().points,
+            vec![Vec3::new(1.0, 2.0, 3.0)]
+        );
     }
 
     #[test]
