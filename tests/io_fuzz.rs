@@ -86,7 +86,7 @@ proptest! {
         width in any::<u32>(),
         height in any::<u32>(),
         points in any::<u64>(),
-        count in any::<u32>(),
+        count in prop_oneof![any::<u32>(), 1u32..=(1 << 20)],
         sizes in (0u64..10, 0u64..10),
         words in (any::<u32>(), any::<u32>()),
         encoding in 0usize..3,
@@ -102,6 +102,27 @@ proptest! {
         bytes.extend_from_slice(&words.1.to_le_bytes());
         bytes.extend_from_slice(&[0x1f; 64]);
         let _ = pcd::from_bytes(&bytes);
+    }
+
+    /// A PLY header with any element counts and list types, over random data.
+    #[test]
+    fn forged_ply_numbers_never_panic(
+        vertices in any::<u64>(),
+        faces in any::<u64>(),
+        list_type in 0usize..4,
+        format in 0usize..3,
+        body in proptest::collection::vec(any::<u8>(), 0..256),
+    ) {
+        let format = ["ascii", "binary_little_endian", "binary_big_endian"][format];
+        let count = ["uchar", "ushort", "uint", "float"][list_type];
+        let mut bytes = format!(
+            "ply\nformat {format} 1.0\nelement face {faces}\nproperty list {count} int idx\n\
+             element vertex {vertices}\nproperty float x\nproperty float y\nproperty float z\n\
+             end_header\n"
+        )
+        .into_bytes();
+        bytes.extend_from_slice(&body);
+        let _ = ply::from_bytes(&bytes);
     }
 }
 

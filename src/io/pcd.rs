@@ -353,8 +353,8 @@ fn assemble(
 
 fn read_binary(header: &Header, wanted: &Wanted, data: &[u8]) -> Result<PointCloud, FormatError> {
     let record: usize = header.fields.iter().map(Field::bytes).sum();
-    let need = (header.points as u64) * (record as u64);
-    if (data.len() as u64) < need {
+    let need = (header.points as u128) * (record as u128);
+    if (data.len() as u128) < need {
         return Err(FormatError::Truncated(format!(
             "{} points of {record} bytes need {need} data bytes, file has {}",
             header.points,
@@ -390,8 +390,8 @@ fn read_compressed(
         .filter(|f| f.name != "_")
         .map(Field::bytes)
         .sum();
-    let expected = (header.points as u64) * (record as u64);
-    if uncompressed as u64 != expected {
+    let expected = (header.points as u128) * (record as u128);
+    if uncompressed as u128 != expected {
         return Err(FormatError::CountMismatch(format!(
             "uncompressed size {uncompressed} != {} points x {record} bytes = {expected}",
             header.points
@@ -849,6 +849,18 @@ mod tests {
 
     fn find(hay: &[u8], needle: &[u8]) -> usize {
         hay.windows(needle.len()).position(|w| w == needle).unwrap()
+    }
+
+    #[test]
+    fn huge_header_numbers_do_not_overflow() {
+        // points x record size is beyond u64: must be an error, not an overflow.
+        for data in ["binary", "binary_compressed"] {
+            let text = format!(
+                "FIELDS x y z h\nSIZE 4 4 4 8\nTYPE F F F F\nCOUNT 1 1 1 1048576\n\
+                 WIDTH 4294967295\nHEIGHT 4294967295\nDATA {data}\n\0\0\0\0\0\0\0\0"
+            );
+            assert!(from_bytes(text.as_bytes()).is_err(), "{data}");
+        }
     }
 
     #[test]
