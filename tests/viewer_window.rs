@@ -1,6 +1,8 @@
 //! A real viewer window under X (Xvfb when no display is set): eframe with the wgpu renderer
-//! shows the fixture timeline, takes a screenshot of what it presented and closes. The PNG
-//! lands in `$CARGO_TARGET_TMPDIR/viewer_window.png` so anyone can look at what a user sees.
+//! shows the fixture timeline, takes a screenshot of what it presented and closes; then the
+//! command-line tool does the same on PCL's real grabber frames (`hapcloud view DIR
+//! --screenshot`). The PNGs land in `$CARGO_TARGET_TMPDIR/viewer_window.png` and
+//! `viewer_cli_grabber.png` so anyone can look at what a user sees.
 //!
 //! winit needs the main thread, so this test has its own `main` (`harness = false`). Without
 //! `DISPLAY` it runs itself again under `xvfb-run` (CI installs xvfb and xauth).
@@ -79,6 +81,30 @@ fn window_screenshot(path: &Path) {
     }
 }
 
+/// The command-line tool on real frames: `hapcloud view DIR --screenshot PNG`.
+fn cli_screenshot(path: &Path) {
+    let grabber = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/data/pcl/grabber_sequences/pcd"
+    );
+    let out = Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .args(["view", grabber, "--frame", "1", "--screenshot"])
+        .arg(path)
+        .output()
+        .expect("hapcloud runs");
+    assert!(
+        out.status.success(),
+        "hapcloud view failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (w, h, rgba) = read_png(path);
+    // The default window size of ViewerConfig.
+    assert_eq!((w, h), (1400, 860));
+    let kept = count_near(&rgba, draw::role_color(PointRole::Kept));
+    let hip = count_near(&rgba, draw::HIP_COLOR);
+    assert!(kept > 500 && hip > 100, "kept {kept}, HIP {hip}");
+}
+
 fn main() -> ExitCode {
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.iter().any(|a| a == "--list") {
@@ -107,5 +133,11 @@ fn main() -> ExitCode {
     let path = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("viewer_window.png");
     window_screenshot(&path);
     println!("test {TEST_NAME} ... ok ({})", path.display());
+    let path = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("viewer_cli_grabber.png");
+    cli_screenshot(&path);
+    println!(
+        "test {TEST_NAME} (hapcloud view --screenshot) ... ok ({})",
+        path.display()
+    );
     ExitCode::SUCCESS
 }

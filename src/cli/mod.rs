@@ -10,6 +10,8 @@ mod cluster;
 mod crop;
 mod gpu_info;
 mod surface;
+#[cfg(feature = "viewer")]
+mod view;
 mod voxel;
 use std::process::ExitCode;
 
@@ -41,6 +43,10 @@ enum Command {
     Voxel(voxel::Args),
     /// Euclidean cluster extraction (PCL EuclideanClusterExtraction semantics).
     Cluster(cluster::Args),
+    /// Show clouds, shells, fits, estimates and time plots of a timeline of frames in a
+    /// window (egui, wgpu).
+    #[cfg(feature = "viewer")]
+    View(view::Args),
 }
 
 pub fn main() -> ExitCode {
@@ -53,6 +59,8 @@ pub fn main() -> ExitCode {
         Command::Crop(args) => crop::run(args),
         Command::Voxel(args) => voxel::run(args),
         Command::Cluster(args) => cluster::run(args),
+        #[cfg(feature = "viewer")]
+        Command::View(args) => view::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

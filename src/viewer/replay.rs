@@ -3,9 +3,10 @@
 //!
 //! Per camera frame, top to bottom like the design card's data flow:
 //! 1. the cloud to the world frame (`world_from_camera`),
-//! 2. the front end (paper IV-A, IV-B: crop around the HIP and outside the robot primitives,
-//!    voxel grid; [`CpuFrontend`]); the crop's keep mask ([`crop_cpu`], the same reference
-//!    the front end runs) tells which finite points were cropped away,
+//! 2. the front end (paper IV-A to IV-C: crop around the HIP and outside the robot
+//!    primitives, voxel grid, Euclidean clusters; [`CpuFrontend`]); the crop's keep mask
+//!    ([`crop_cpu`], the same reference the front end runs) tells which finite points were
+//!    cropped away, and voxel points outside every kept cluster were clustered out,
 //! 3. the surface estimator (paper Alg. 1 memory and Alg. 2 shells; [`SurfaceEstimator`], one
 //!    per camera so each keeps its memory); the memory points it merged are the memorised
 //!    layer, its [`SurfaceEstimate`] carries the shell fits,
@@ -144,6 +145,22 @@ impl LayeredPerception {
             .map(|(_, p)| *p)
             .collect();
 
+        // Paper IV-C: the points of the kept clusters go on; the rest were clustered out.
+        let mut in_cluster = vec![false; front.voxel.points.len()];
+        for c in &front.clusters.clusters {
+            for &i in &c.indices {
+                in_cluster[i as usize] = true;
+            }
+        }
+        let (mut kept, mut clustered_out) = (Vec::new(), Vec::new());
+        for (p, keep) in front.voxel.points.iter().zip(&in_cluster) {
+            if *keep {
+                kept.push(*p)
+            } else {
+                clustered_out.push(*p)
+            }
+        }
+
         let start = Instant::now();
         let estimator = match self.estimators.entry(frame.camera_id) {
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
@@ -152,13 +169,7 @@ impl LayeredPerception {
             }
         };
         let view_dir: Vector3<f64> = pose.rotation * Vector3::z();
-        let surface = estimator.estimate(
-            &front.voxel.points,
-            hip_m,
-            &view_dir,
-            frame.camera_id,
-            frame.stamp_s,
-        );
+        let surface = estimator.estimate(&kept, hip_m, &view_dir, frame.camera_id, frame.stamp_s);
         let surface_s = seconds_since(start);
 
         let merged = surface
@@ -176,8 +187,12 @@ impl LayeredPerception {
                     points_m: cropped,
                 },
                 PointLayer {
+                    role: PointRole::ClusteredOut,
+                    points_m: clustered_out,
+                },
+                PointLayer {
                     role: PointRole::Kept,
-                    points_m: front.voxel.points,
+                    points_m: kept,
                 },
                 PointLayer {
                     role: PointRole::Memorised,
@@ -188,7 +203,7 @@ impl LayeredPerception {
         };
         let latencies = vec![
             StageLatency {
-                stage: "crop + voxel".into(),
+                stage: "crop + voxel + cluster".into(),
                 latency_s: front_s,
             },
             StageLatency {

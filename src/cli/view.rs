@@ -1,0 +1,137 @@
+//! `hapcloud view SOURCE`: the shell overlay on a timeline of frames (egui window, wgpu).
+//!
+//! SOURCE is a directory of PCD/PLY frames of one camera (e.g. PCL's grabber sequences); the
+//! project's stages run on every frame with the HIP fixed (`--hip`, or placed in front of the
+//! surface point nearest the optical axis), and the viewer opens on the result. `--screenshot`
+//! saves what the window shows as PNG and closes it (run under `xvfb-run` without a display);
+//! `--json` prints a summary of the timeline instead of opening a window.
+
+use anyhow::{Context, bail};
+use hapcloud::viewer::replay::ReplayConfig;
+use hapcloud::viewer::source::{hip_on_axis, read_cloud_dir, timeline_from_frames};
+use hapcloud::viewer::{
+    PointRole, ScreenshotRequest, ViewerApp, ViewerConfig, ViewerSource, run_window,
+};
+use nalgebra::Point3;
+use serde::Deserialize;
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Directory of .pcd/.ply frames of one camera, in name order.
+    source: PathBuf,
+    /// HIP position "x,y,z" in metres (world frame: camera at the origin looking along x,
+    /// z up); default: hip radius + --hip-clearance-m in front of the surface point seen
+    /// nearest the optical axis in the first frame.
+    #[arg(long, allow_hyphen_values = true)]
+    hip: Option<String>,
+    /// Gap between the HIP sphere and the surface when the HIP is placed automatically (m).
+    #[arg(long, default_value_t = 0.02)]
+    hip_clearance_m: f64,
+    /// Frame rate for files whose names carry no time stamp (Hz).
+    #[arg(long, default_value_t = 30.0)]
+    rate_hz: f64,
+    /// TOML file with a [viewer] table (ViewerConfig) and a [replay] table (front end,
+    /// surface, fusion and hip_radius_m); unknown keys are rejected.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Frame shown first.
+    #[arg(long, default_value_t = 0)]
+    frame: usize,
+    /// Save a PNG of the window after it settles, then close it.
+    #[arg(long)]
+    screenshot: Option<PathBuf>,
+    /// Frames rendered before the screenshot.
+    #[arg(long, default_value_t = 5)]
+    settle_frames: u32,
+    /// Print one JSON object summarising the timeline instead of opening a window.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct ViewFile {
+    viewer: ViewerConfig,
+    replay: ReplayConfig,
+}
+
+fn parse_hip(s: &str) -> anyhow::Result<Point3<f64>> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|c| c.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("--hip {s:?}: expected three numbers x,y,z in metres"))?;
+    match v.as_slice() {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Point3::new(*x, *y, *z)),
+        _ => bail!("--hip {s:?}: expected three finite numbers x,y,z in metres"),
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let file: ViewFile = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            toml::from_str(&text).with_context(|| format!("{}", path.display()))?
+        }
+        None => ViewFile::default(),
+    };
+    file.viewer.validate()?;
+    file.replay.validate()?;
+    if !(args.hip_clearance_m.is_finite() && args.hip_clearance_m >= 0.0) {
+        bail!(
+            "--hip-clearance-m must be finite and not negative, got {}",
+            args.hip_clearance_m
+        );
+    }
+
+    let frames = read_cloud_dir(&args.source, args.rate_hz)?;
+    let hip = match &args.hip {
+        Some(s) => parse_hip(s)?,
+        None => hip_on_axis(&frames[0], file.replay.hip_radius_m + args.hip_clearance_m)
+            .with_context(|| {
+                format!(
+                    "{}: no finite point to place the HIP in front of; give --hip",
+                    args.source.display()
+                )
+            })?,
+    };
+    let timeline = timeline_from_frames(&frames, hip, file.replay.clone())?;
+
+    if args.json {
+        let count = |role| timeline.iter().map(|f| f.point_count(role)).sum::<usize>();
+        let estimates: Vec<_> = timeline
+            .iter()
+            .flat_map(|f| &f.cameras)
+            .filter_map(|c| c.estimate.as_ref())
+            .collect();
+        let d_proj: Vec<f64> = timeline.iter().filter_map(|f| f.samples.d_proj_m).collect();
+        let summary = serde_json::json!({
+            "frames": timeline.len(),
+            "hip_m": [hip.x, hip.y, hip.z],
+            "points": {
+                "kept": count(PointRole::Kept),
+                "cropped": count(PointRole::Cropped),
+                "clustered_out": count(PointRole::ClusteredOut),
+                "memorised": count(PointRole::Memorised),
+            },
+            "estimates": estimates.len(),
+            "valid_estimates": estimates.iter().filter(|e| e.valid).count(),
+            "rejected_shells": estimates.iter().flat_map(|e| &e.shells).filter(|s| s.rejected).count(),
+            "d_proj_m": d_proj,
+        });
+        println!("{summary}");
+        return Ok(());
+    }
+
+    let size = [file.viewer.window_width_px, file.viewer.window_height_px];
+    let mut app = ViewerApp::new(ViewerSource::Timeline(timeline), file.viewer)?;
+    app.seek(args.frame);
+    let screenshot = args.screenshot.map(|path| ScreenshotRequest {
+        path,
+        settle_frames: args.settle_frames,
+    });
+    run_window(app, size, screenshot)?;
+    Ok(())
+}
