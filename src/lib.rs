@@ -21,6 +21,7 @@ pub mod surface;
 
 pub mod gpu;
 pub mod io;
+pub mod node;
 pub mod perception;
 #[cfg(feature = "viewer")]
 pub mod viewer;

@@ -9,6 +9,8 @@ use clap::{Parser, Subcommand};
 mod cluster;
 mod crop;
 mod gpu_info;
+mod replay;
+mod run;
 mod surface;
 #[cfg(feature = "viewer")]
 mod view;
@@ -41,6 +43,11 @@ enum Command {
     Crop(crop::Args),
     /// Voxel-grid a cloud with PCL VoxelGrid semantics (paper IV-B), like pcl_voxel_grid.
     Voxel(voxel::Args),
+    /// Run the perception node: frames -> surface estimates -> 800 Hz fused surface, with
+    /// stats, recording (--record DIR) and a JSON summary.
+    Run(run::Args),
+    /// Re-run a recording and check estimates and fused surfaces bit for bit.
+    Replay(replay::Args),
     /// Euclidean cluster extraction (PCL EuclideanClusterExtraction semantics).
     Cluster(cluster::Args),
     /// Show clouds, shells, fits, estimates and time plots of a timeline of frames in a
@@ -58,6 +65,8 @@ pub fn main() -> ExitCode {
         Command::Surface(args) => surface::run(args),
         Command::Crop(args) => crop::run(args),
         Command::Voxel(args) => voxel::run(args),
+        Command::Run(args) => run::run(args),
+        Command::Replay(args) => replay::run(args),
         Command::Cluster(args) => cluster::run(args),
         #[cfg(feature = "viewer")]
         Command::View(args) => view::run(args),

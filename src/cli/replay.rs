@@ -1,0 +1,35 @@
+//! `hapcloud replay DIR`: re-runs a recording and checks that estimates and fused surfaces
+//! come out bit for bit as recorded. Exits with failure when anything differs.
+
+use hapcloud::node;
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// The recording directory (`hapcloud run --record DIR`).
+    dir: PathBuf,
+    /// Print one JSON object.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let report = node::replay(&args.dir)?;
+    if args.json {
+        println!("{}", serde_json::to_string(&report)?);
+    } else {
+        println!(
+            "frames {}  estimates {} ({} differ)  ticks {} ({} differ)  backend {}",
+            report.frames,
+            report.estimates_compared,
+            report.estimate_mismatches,
+            report.ticks_compared,
+            report.tick_mismatches,
+            report.backend
+        );
+    }
+    match &report.first_mismatch {
+        None => Ok(()),
+        Some(what) => anyhow::bail!("replay differs from the recording, first at {what}"),
+    }
+}

@@ -1,0 +1,241 @@
+//! Node tests: a synthetic two-camera stream of a moving plane through the whole node.
+
+use super::stream::StreamSender;
+use super::*;
+use crate::fusion::FusionStatus;
+use glam::Vec3;
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use std::path::PathBuf;
+
+/// Height of the plane `z = h(t)` (world), moving at 0.05 m/s.
+fn plane_height(t: f64) -> f64 {
+    0.01 + 0.05 * t
+}
+
+/// A camera 0.8 m above the origin, tilted a little per camera, looking down (-z world).
+fn world_from_camera(camera_id: u32) -> Isometry3<f64> {
+    let tilt = if camera_id == 0 { 0.15 } else { -0.15 };
+    let down = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+    let tilt = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), tilt);
+    Isometry3::from_parts(Translation3::new(0.0, 0.0, 0.8), tilt * down)
+}
+
+/// A frame of the plane: a 5 mm grid around the HIP, in the camera's optical frame.
+fn plane_frame(camera_id: u32, stamp_s: f64) -> Frame {
+    let pose = world_from_camera(camera_id);
+    let h = plane_height(stamp_s);
+    let mut points = Vec::new();
+    for i in -24..=24 {
+        for j in -24..=24 {
+            let world = Point3::new(f64::from(i) * 0.005, f64::from(j) * 0.005, h);
+            let p = pose.inverse_transform_point(&world);
+            points.push(Vec3::new(p.x as f32, p.y as f32, p.z as f32));
+        }
+    }
+    Frame {
+        camera_id,
+        stamp_s,
+        world_from_camera: pose,
+        cloud: PointCloud::from_points(points),
+        depth: None,
+    }
+}
+
+/// Two cameras at 30 Hz, half a frame apart, from `t0`, skipping stamps in `gap`.
+fn plane_frames(duration_s: f64, gap: Option<(f64, f64)>) -> Vec<Frame> {
+    let mut frames = Vec::new();
+    for k in 0..(duration_s * 30.0) as u32 {
+        for cam in 0..2u32 {
+            let t = 1.0 + f64::from(k) / 30.0 + f64::from(cam) / 60.0;
+            if gap.is_some_and(|(a, b)| (a..b).contains(&(t - 1.0))) {
+                continue;
+            }
+            frames.push(plane_frame(cam, t));
+        }
+    }
+    frames
+}
+
+/// The tests run unoptimised, beside other tests, on a shared machine: perception may take
+/// tens of milliseconds, so the stale timeout is generous here (latency is not under test).
+fn config() -> NodeConfig {
+    let mut config = NodeConfig {
+        hip_world_m: Point3::new(0.0, 0.0, 0.08),
+        ..Default::default()
+    };
+    config.fusion.stale_timeout_s = 0.4;
+    config
+}
+
+fn options(speed: f64) -> RunOptions {
+    RunOptions {
+        duration_s: None,
+        speed,
+        backend: Backend::Cpu,
+        adapter: None,
+        record: None,
+        progress_every_s: None,
+    }
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("hapcloud-node-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+#[test]
+fn node_tracks_a_moving_plane_from_two_cameras() {
+    let frames = plane_frames(1.0, None);
+    let count = frames.len() as u64;
+    let mut worst: f64 = 0.0;
+    let mut tracking = 0;
+    let mut worst_velocity: f64 = 0.0;
+    let summary = run(&config(), Source::Timed(frames), &options(1.0), |f| {
+        if f.is_tracking() && f.stamp_s > 1.3 {
+            tracking += 1;
+            let h = plane_height(f.stamp_s);
+            worst = worst.max((f.centroid_m.z - h).abs());
+            worst = worst.max(f.normal.angle(&Vector3::z()) * 0.1);
+            worst_velocity = worst_velocity.max((f.velocity_m_per_s.z - 0.05).abs());
+        }
+    })
+    .unwrap();
+    assert_eq!(summary.frames + summary.dropped_frames, count);
+    assert!(summary.frames > 10, "{summary:?}");
+    assert_eq!(summary.cameras.len(), 2);
+    // 800 Hz over the stream (1 s) and the stale timeout after it.
+    assert!(summary.ticks >= 800, "{}", summary.ticks);
+    assert!(tracking > 300, "{tracking}");
+    assert!(worst < 0.003, "worst height error {worst} m");
+    assert!(
+        worst_velocity < 0.02,
+        "worst velocity error {worst_velocity} m/s"
+    );
+    assert!(summary.latency_ms.p50 > 0.0 && summary.latency_ms.p99 >= summary.latency_ms.p50);
+    assert_eq!(summary.backend, Backend::Cpu);
+}
+
+#[test]
+fn a_camera_gap_makes_fusion_stale_and_it_recovers() {
+    // Both cameras stop from 0.3 s to 1.0 s.
+    let frames = plane_frames(1.5, Some((0.3, 1.0)));
+    let mut statuses = Vec::new();
+    let summary = run(&config(), Source::Timed(frames), &options(1.0), |f| {
+        if statuses.last() != Some(&f.status) {
+            statuses.push(f.status);
+        }
+    })
+    .unwrap();
+    assert!(summary.stale_ticks > 100, "{summary:?}");
+    let stale_at = statuses
+        .iter()
+        .position(|s| *s == FusionStatus::Stale)
+        .unwrap();
+    assert!(
+        statuses[stale_at..].contains(&FusionStatus::Tracking),
+        "recovers: {statuses:?}"
+    );
+}
+
+#[test]
+fn recording_replays_bit_for_bit_and_bad_recordings_are_clear_errors() {
+    let dir = temp_dir("replay");
+    let opts = RunOptions {
+        record: Some(dir.clone()),
+        ..options(1.0)
+    };
+    let summary = run(
+        &config(),
+        Source::Timed(plane_frames(0.6, None)),
+        &opts,
+        |_| {},
+    )
+    .unwrap();
+    let report = replay(&dir).unwrap();
+    assert!(report.identical(), "{report:?}");
+    assert_eq!(report.ticks_compared, summary.ticks);
+    assert_eq!(report.frames, summary.frames);
+    assert!(report.estimates_compared > 3, "{report:?}");
+
+    // A recording re-used as a source gives the same frames.
+    let back = record::read(&dir).unwrap();
+    assert_eq!(back.frames.len() as u64, summary.frames);
+
+    // Corrupt one byte of the ticks: a clear error naming the file.
+    let ticks = dir.join("ticks.hcr");
+    let mut bytes = std::fs::read(&ticks).unwrap();
+    bytes[40] ^= 0xff;
+    std::fs::write(&ticks, &bytes).unwrap();
+    let err = replay(&dir).unwrap_err().to_string();
+    assert!(err.contains("ticks.hcr") && err.contains("CRC"), "{err}");
+    // Truncated frames.
+    let frames = dir.join("frames.hcr");
+    let len = std::fs::metadata(&frames).unwrap().len();
+    let bytes = std::fs::read(&frames).unwrap();
+    std::fs::write(&frames, &bytes[..len as usize - 3]).unwrap();
+    let err = record::read(&dir).unwrap_err().to_string();
+    assert!(
+        err.contains("frames.hcr") && err.contains("cut short"),
+        "{err}"
+    );
+    // No recording at all.
+    let err = replay(&dir.join("missing")).unwrap_err().to_string();
+    assert!(err.contains("meta.json"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn stream_source_counts_and_drops_malformed_records() {
+    let receiver = stream::StreamReceiver::bind("127.0.0.1:0").unwrap();
+    let addr = receiver.local_addr().unwrap();
+    let sender = std::thread::spawn(move || {
+        let mut s = StreamSender::connect(addr).unwrap();
+        // The node may stop first (its duration is up): then the sends fail and we stop.
+        for (i, frame) in plane_frames(0.4, None).iter().enumerate() {
+            if s.send(frame).is_err() {
+                break;
+            }
+            if i % 5 == 2 {
+                let mut bad = Vec::new();
+                wire::write_record(&mut bad, wire::RecordKind::Frame, b"not a frame");
+                if s.send_raw(&bad).is_err() {
+                    break;
+                }
+            }
+            std::thread::sleep(Duration::from_millis(8));
+        }
+    });
+    let opts = RunOptions {
+        duration_s: Some(1.5),
+        ..options(1.0)
+    };
+    let mut tracking = 0;
+    let summary = run(&config(), Source::Stream(receiver), &opts, |f| {
+        tracking += usize::from(f.is_tracking());
+    })
+    .unwrap();
+    sender.join().unwrap();
+    assert!(summary.malformed_records >= 4, "{summary:?}");
+    assert!(summary.frames > 3, "{summary:?}");
+    assert!(tracking > 0);
+}
+
+#[test]
+fn missing_gpu_falls_back_to_the_cpu() {
+    let opts = RunOptions {
+        backend: Backend::Gpu,
+        adapter: Some("no-such-adapter-xyz".into()),
+        ..options(4.0)
+    };
+    let summary = run(
+        &config(),
+        Source::Timed(plane_frames(0.2, None)),
+        &opts,
+        |_| {},
+    )
+    .unwrap();
+    assert_eq!(summary.backend, Backend::Cpu);
+    assert!(summary.gpu_fallback.is_some());
+    assert!(summary.frames > 0);
+}
