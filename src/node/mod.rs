@@ -239,6 +239,9 @@ impl Clock {
 struct Shared {
     stop: AtomicBool,
     dropped: AtomicU64,
+    /// Frames handed to perception, and whether a timed source has handed over all.
+    queued: AtomicU64,
+    source_finished: AtomicBool,
     malformed: AtomicU64,
 }
 
@@ -400,7 +403,10 @@ fn perception_thread(
 
 fn source_thread(source: Source, clock: &Clock, queue: SyncSender<Frame>, shared: &Shared) {
     let offer = |frame: Frame| match queue.try_send(frame) {
-        Ok(()) => true,
+        Ok(()) => {
+            shared.queued.fetch_add(1, Ordering::Relaxed);
+            true
+        }
         Err(TrySendError::Full(_)) => {
             shared.dropped.fetch_add(1, Ordering::Relaxed);
             true
@@ -426,6 +432,7 @@ fn source_thread(source: Source, clock: &Clock, queue: SyncSender<Frame>, shared
                     return;
                 }
             }
+            shared.source_finished.store(true, Ordering::Release);
         }
         Source::Stream(mut receiver) => {
             while !shared.stop.load(Ordering::Relaxed) {
@@ -516,6 +523,7 @@ pub fn run(
         let mut run_loop = || -> Result<u64, NodeError> {
             let mut last_progress = Instant::now();
             let mut pending_latency: Vec<f64> = Vec::new();
+            let mut received: u64 = 0;
             let loop_start = clock.start;
             let stream_length_s = t_end - t_first;
             let mut k: u64 = 0;
@@ -538,6 +546,7 @@ pub fn run(
                     }
                     fusion.push(&estimate);
                     pending_latency.push(estimate.stamp_s);
+                    received += 1;
                 }
                 let fused = fusion.tick(t_tick);
                 on_tick(&fused);
@@ -580,7 +589,13 @@ pub fn run(
                     );
                 }
                 k += 1;
-                if k as f64 * tick_s >= stream_length_s {
+                // Without --duration a timed source runs until its last stamp plus the stale
+                // timeout, and on until perception has delivered every queued frame.
+                let drained = options.duration_s.is_some()
+                    || perception_handle.is_finished()
+                    || (shared.source_finished.load(Ordering::Acquire)
+                        && received >= shared.queued.load(Ordering::Relaxed));
+                if k as f64 * tick_s >= stream_length_s && drained {
                     break;
                 }
             }
