@@ -183,7 +183,9 @@ fn find_root(x: u32) -> u32 {
     return NONE;
 }
 
-fn unite(a: u32, b: u32) {
+// Unites the sets of a and b; returns a member of the united set (the root it hooked
+// under, or their common root), or `a` when a bound was hit.
+fn unite(a: u32, b: u32) -> u32 {
     var ra = find_root(a);
     var rb = find_root(b);
     for (var attempt = 0u; attempt < MAX_HOOK; attempt++) {
@@ -191,18 +193,19 @@ fn unite(a: u32, b: u32) {
             break;
         }
         if ra == rb {
-            return;
+            return ra;
         }
         let lo = min(ra, rb);
         let hi = max(ra, rb);
         // Hook only while hi is still a root; otherwise someone hooked it: look again.
         if atomicCompareExchangeWeak(&parent[hi], hi, lo).exchanged {
-            return;
+            return lo;
         }
         ra = find_root(lo);
         rb = find_root(hi);
     }
     atomicOr(&status[STATUS_INCOMPLETE], 1u);
+    return a;
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -217,6 +220,8 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let c = cell_of(p);
+    // A known member of i's set, kept close to its root.
+    var member = i;
     // Half stencil: the own cell (k = 13, only j < i) and the 13 cells that follow it in
     // (z, y, x) order, k = 14..26. Every neighbour pair is then seen exactly once: in the
     // same cell from its larger index, across cells from the cell the other one follows.
@@ -232,7 +237,11 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         for (var step = 0u; step < n && link != 0u; step++) {
             let j = link - 1u;
             if j < bound && is_neighbour(p, points[j].xyz) {
-                unite(i, j);
+                // Sets never split, so a j that is `member` or whose parent is `member` is
+                // already in i's set: skip the union (most neighbours, after the first).
+                if j != member && atomicLoad(&parent[j]) != member {
+                    member = unite(member, j);
+                }
             }
             link = info[j].next;
         }

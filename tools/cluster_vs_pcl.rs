@@ -15,10 +15,13 @@
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use hapcloud::gpu::GpuContext;
+use hapcloud::gpu::{Backend, GpuContext};
 use hapcloud::perception::cluster::{ClusterConfig, GpuClusterer, cluster_cpu};
+use hapcloud::perception::frontend::{FrameInput, Frontend, FrontendConfig};
+use hapcloud::perception::voxel::VoxelConfig;
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::Arc;
 use std::time::Instant;
 
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/pcl");
@@ -132,8 +135,20 @@ fn main() -> anyhow::Result<()> {
         ..ClusterConfig::default()
     };
     config.validate()?;
-    let ctx = GpuContext::new()?;
+    let ctx = Arc::new(GpuContext::new()?);
     let mut gpu = GpuClusterer::new(&ctx)?;
+    let frontend_config = FrontendConfig {
+        voxel: VoxelConfig {
+            leaf_m: args.leaf,
+            ..VoxelConfig::default()
+        },
+        cluster: config.clone(),
+        ..FrontendConfig::default()
+    };
+    let mut frontends = [
+        Frontend::new(Backend::Cpu, frontend_config.clone(), None)?,
+        Frontend::new(Backend::Gpu, frontend_config, Some(Arc::clone(&ctx)))?,
+    ];
     println!(
         "leaf {} m, tolerance {} m, cluster size [{}, {}], {} runs; GPU: {}",
         args.leaf,
@@ -190,6 +205,7 @@ fn main() -> anyhow::Result<()> {
             pcl_cluster_ms.push(pcl_compute_line(&text, "clusters")?.0);
             pcl_sizes = pcl_cluster_sizes(&text);
         }
+        let raw = hapcloud::io::read_cloud(file)?;
         let best = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
         let cloud = hapcloud::io::read_cloud(&voxel)?;
         if cloud.len() != voxel_points {
@@ -251,6 +267,40 @@ fn main() -> anyhow::Result<()> {
             pcl_cluster / gpu_wall,
             median(gpu_pass_ms),
         );
+        // Voxel + cluster, the front end without crop, from the raw frame.
+        let pcl_total = best(&pcl_voxel_ms) + pcl_cluster;
+        let mut line = format!("  voxel+cluster: PCL {pcl_total:.2} ms");
+        for frontend in &mut frontends {
+            let frame = FrameInput {
+                points: &raw.points,
+                crop: None,
+            };
+            let first = frontend.process(&frame)?;
+            let mut wall = Vec::new();
+            for _ in 0..args.runs {
+                let out = frontend.process(&frame)?;
+                if out.clusters != first.clusters || out.voxel.points != first.voxel.points {
+                    bail!("{name}: front end output differs between runs");
+                }
+                wall.push(out.wall_ms);
+            }
+            let sizes = first.clusters.cluster_sizes();
+            let same = first.voxel.points.len() == voxel_points && sizes == pcl_sizes;
+            all_match &= same;
+            let backend = if frontend.adapter().is_some() {
+                "gpu"
+            } else {
+                "cpu"
+            };
+            let wall = median(wall);
+            line += &format!(
+                " | hapcloud {backend} {wall:.2} ms (x{:.2}, {} voxels, sizes {})",
+                pcl_total / wall,
+                first.voxel.points.len(),
+                if same { "MATCH" } else { "MISMATCH" }
+            );
+        }
+        println!("{line}");
     }
     std::fs::remove_dir_all(&work).ok();
     if !all_match {

@@ -1091,6 +1091,39 @@ mod tests {
         assert_gpu_matches_cpu(&pts, &cfg);
     }
 
+    /// Real frames after PCL's VoxelGrid (leaf 1 cm): GPU labels equal the CPU reference's,
+    /// and the cluster sizes equal what `pcl_cluster_extraction -tolerance 0.02 -min 100
+    /// -max 25000` prints for the `pcl_voxel_grid -leaf 0.01,0.01,0.01` output (PCL 1.13).
+    #[test]
+    fn gpu_equals_cpu_and_pcl_on_real_frames() {
+        use crate::perception::voxel::{VoxelConfig, voxel_cpu};
+        let cases: [(&str, usize, &[usize]); 2] = [
+            (
+                "table_scene_mug_stereo_textured.pcd",
+                6,
+                &[4410, 2666, 1265, 571, 187, 145],
+            ),
+            (
+                "five_people.pcd",
+                162,
+                &[21235, 9463, 5947, 4867, 4436, 1854],
+            ),
+        ];
+        for (file, clusters, largest) in cases {
+            let path = format!("{}/../shared/data/pcl/{file}", env!("CARGO_MANIFEST_DIR"));
+            let cloud = crate::io::read_cloud(std::path::Path::new(&path)).unwrap();
+            let voxel = voxel_cpu(&cloud.points, None, &VoxelConfig::default()).unwrap();
+            let cfg = ClusterConfig::default();
+            let cpu = cluster_cpu(&voxel.points, &cfg).unwrap();
+            let gpu = cluster_gpu(&voxel.points, &cfg).unwrap();
+            assert_eq!(gpu, cpu, "{file}");
+            let sizes = cpu.cluster_sizes();
+            assert_eq!(sizes.len(), clusters, "{file}");
+            assert_eq!(&sizes[..largest.len()], largest, "{file}");
+            assert!(sizes.iter().all(|&s| (100..=25_000).contains(&s)));
+        }
+    }
+
     /// A long chain visited in scrambled order stresses the bounded union-find.
     #[test]
     fn gpu_long_chains() {
