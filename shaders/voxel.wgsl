@@ -1,10 +1,12 @@
 // Voxel grid (paper IV-B) with PCL VoxelGrid semantics, deterministic on the GPU.
 //
 // Passes (one compute pass, in this order; wgpu orders dispatches within a pass):
-//   bounds      - min/max of the valid points with integer atomics on order keys
+//   bounds      - min/max of the valid points (32 points per thread, then integer atomics
+//                 on order keys)
 //   insert      - cell index (PCL's linear index relative to the min cell) into a hash table
 //                 with bounded linear probing; per cell: point count and the 64-bit fixed-point
-//                 sum of the points' offsets inside the cell (integer atomics: order-free)
+//                 sum of the points' offsets inside the cell (integer atomics: order-free).
+//                 A thread takes 8 consecutive points and merges runs in the same cell first.
 //   gather      - one sort key per table slot: cell index, or NONE when empty / too few points
 //   sort_local, sort_global, sort_merge - bitonic sort of the keys (ascending = PCL order)
 //   reduce      - output r = mean of the r-th smallest cell
@@ -60,6 +62,9 @@ struct SortStep {
 
 const SLOT_WORDS: u32 = 8u;
 const SORT_BLOCK: u32 = 512u;
+// Points per thread of `bounds` and of `insert`.
+const BOUNDS_CHUNK: u32 = 32u;
+const INSERT_CHUNK: u32 = 8u;
 
 fn load_point(i: u32) -> vec3<f32> {
     return vec3<f32>(points[3u * i], points[3u * i + 1u], points[3u * i + 2u]);
@@ -82,19 +87,27 @@ fn valid_point(i: u32, p: vec3<f32>) -> bool {
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn bounds(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if i >= params.point_count {
+    let first = gid.x * BOUNDS_CHUNK;
+    let last = min(first + BOUNDS_CHUNK, params.point_count);
+    var count = 0u;
+    var hi = vec3<u32>(0u);
+    var lo_inv = vec3<u32>(0u);
+    for (var i = first; i < last; i++) {
+        let p = load_point(i);
+        if valid_point(i, p) {
+            count += 1u;
+            let k = vec3<u32>(order_key(p.x), order_key(p.y), order_key(p.z));
+            hi = max(hi, k);
+            lo_inv = max(lo_inv, ~k);
+        }
+    }
+    if count == 0u {
         return;
     }
-    let p = load_point(i);
-    if !valid_point(i, p) {
-        return;
-    }
-    atomicAdd(&header.valid_count, 1u);
+    atomicAdd(&header.valid_count, count);
     for (var a = 0u; a < 3u; a++) {
-        let k = order_key(p[a]);
-        atomicMax(&header.max_key[a], k);
-        atomicMax(&header.min_inv[a], ~k);
+        atomicMax(&header.max_key[a], hi[a]);
+        atomicMax(&header.min_inv[a], lo_inv[a]);
     }
 }
 
@@ -119,59 +132,107 @@ fn grid() -> Grid {
 }
 
 // 64-bit add of `v` to the (lo, hi) pair at `at`: the carry is exact whatever the order.
-fn add64(at: u32, v: u32) {
-    let old = atomicAdd(&table_data[at], v);
-    if old + v < old {
-        atomicAdd(&table_data[at + 1u], 1u);
+fn add64(at: u32, v: vec2<u32>) {
+    let old = atomicAdd(&table_data[at], v.x);
+    let carry = select(0u, 1u, old + v.x < old);
+    if v.y + carry != 0u {
+        atomicAdd(&table_data[at + 1u], v.y + carry);
     }
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if i >= params.point_count {
-        return;
-    }
-    let p = load_point(i);
-    if !valid_point(i, p) {
-        return;
-    }
-    let g = grid();
-    let s = p * params.inv_leaf;
-    let cell = floor(s);
-    let rel = vec3<u32>(vec3<i32>(cell) - g.min_b);
-    let index = rel.x + rel.y * g.div.x + rel.z * g.div.x * g.div.y;
+// (lo, hi) += v as a 64-bit integer.
+fn acc64(sum: vec2<u32>, v: u32) -> vec2<u32> {
+    let lo = sum.x + v;
+    return vec2<u32>(lo, sum.y + select(0u, 1u, lo < v));
+}
+
+// Finds or inserts `index` in the table; NONE when the probe budget is exhausted.
+fn find_or_insert(index: u32) -> u32 {
     let key = index + 1u;
     var slot = hash_u32(index) & params.table_mask;
-    var found = false;
-    // Bounded: at most `max_probes` slots are visited (a failed weak exchange on an empty
-    // slot retries the same slot and also counts).
+    // Bounded: at most 2 * max_probes attempts, each visiting one slot (a failed weak
+    // exchange on an empty slot retries the same slot); `reduce` searches as far.
     for (var attempt = 0u; attempt < 2u * params.max_probes; attempt++) {
+        // Most cells are already inserted: a plain load avoids the exchange.
+        let seen = atomicLoad(&table_keys[slot]);
+        if seen == key {
+            return slot;
+        }
+        if seen != 0u {
+            slot = (slot + 1u) & params.table_mask;
+            continue;
+        }
         let r = atomicCompareExchangeWeak(&table_keys[slot], 0u, key);
         if r.exchanged {
             atomicAdd(&header.cells, 1u);
-            found = true;
-            break;
+            return slot;
         }
         if r.old_value == key {
-            found = true;
-            break;
+            return slot;
         }
         if r.old_value != 0u {
             slot = (slot + 1u) & params.table_mask;
         }
     }
-    if !found {
+    return NONE;
+}
+
+// Adds a run of `count` points of one cell with fixed-point sums (sx, sy, sz).
+fn flush(index: u32, count: u32, sx: vec2<u32>, sy: vec2<u32>, sz: vec2<u32>) {
+    let slot = find_or_insert(index);
+    if slot == NONE {
         atomicMax(&header.overflow, 1u);
         return;
     }
     let base = slot * SLOT_WORDS;
-    atomicAdd(&table_data[base], 1u);
-    let frac = clamp(s - cell, vec3<f32>(0.0), vec3<f32>(1.0));
-    let q = min(vec3<u32>(frac * FIXED_ONE), vec3<u32>(FIXED_MAX));
-    add64(base + 1u, q.x);
-    add64(base + 3u, q.y);
-    add64(base + 5u, q.z);
+    atomicAdd(&table_data[base], count);
+    add64(base + 1u, sx);
+    add64(base + 3u, sy);
+    add64(base + 5u, sz);
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let first = gid.x * INSERT_CHUNK;
+    let last = min(first + INSERT_CHUNK, params.point_count);
+    if first >= last {
+        return;
+    }
+    let g = grid();
+    var run_index = NONE;
+    var run_count = 0u;
+    var sx = vec2<u32>(0u);
+    var sy = vec2<u32>(0u);
+    var sz = vec2<u32>(0u);
+    for (var i = first; i < last; i++) {
+        let p = load_point(i);
+        if !valid_point(i, p) {
+            continue;
+        }
+        let s = p * params.inv_leaf;
+        let cell = floor(s);
+        let rel = vec3<u32>(vec3<i32>(cell) - g.min_b);
+        let index = rel.x + rel.y * g.div.x + rel.z * g.div.x * g.div.y;
+        if index != run_index {
+            if run_count != 0u {
+                flush(run_index, run_count, sx, sy, sz);
+            }
+            run_index = index;
+            run_count = 0u;
+            sx = vec2<u32>(0u);
+            sy = vec2<u32>(0u);
+            sz = vec2<u32>(0u);
+        }
+        let frac = clamp(s - cell, vec3<f32>(0.0), vec3<f32>(1.0));
+        let q = min(vec3<u32>(frac * FIXED_ONE), vec3<u32>(FIXED_MAX));
+        run_count += 1u;
+        sx = acc64(sx, q.x);
+        sy = acc64(sy, q.y);
+        sz = acc64(sz, q.z);
+    }
+    if run_count != 0u {
+        flush(run_index, run_count, sx, sy, sz);
+    }
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -273,7 +334,7 @@ fn reduce(@builtin(global_invocation_id) gid: vec3<u32>) {
     let index = sort_keys[r];
     let key = index + 1u;
     var slot = hash_u32(index) & params.table_mask;
-    for (var n = 0u; n < params.max_probes; n++) {
+    for (var n = 0u; n < 2u * params.max_probes; n++) {
         if atomicLoad(&table_keys[slot]) == key {
             break;
         }

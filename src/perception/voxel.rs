@@ -405,6 +405,9 @@ const ENTRY_POINTS: [&str; 7] = [
     "reduce",
 ];
 const SORT_BLOCK: u32 = 512;
+/// Points per thread of `bounds` and `insert` (voxel.wgsl constants).
+const BOUNDS_CHUNK: u32 = 32;
+const INSERT_CHUNK: u32 = 8;
 const SLOT_WORDS: u64 = 8;
 const MIN_TABLE_SLOTS: u32 = 1024;
 /// Bytes of the header at the start of a voxel readback.
@@ -708,7 +711,6 @@ impl GpuVoxel {
             label: Some("voxel pass"),
             timestamp_writes: timestamps,
         });
-        let point_groups = shader::workgroups_for(self.point_count);
         let slot_groups = shader::workgroups_for(self.table_slots);
         let blocks = self.table_slots / SORT_BLOCK;
         let [
@@ -729,8 +731,16 @@ impl GpuVoxel {
             );
             pass.dispatch_workgroups(groups, 1, 1);
         };
-        dispatch(bounds, 0, point_groups);
-        dispatch(insert, 0, point_groups);
+        dispatch(
+            bounds,
+            0,
+            shader::workgroups_for(self.point_count.div_ceil(BOUNDS_CHUNK)),
+        );
+        dispatch(
+            insert,
+            0,
+            shader::workgroups_for(self.point_count.div_ceil(INSERT_CHUNK)),
+        );
         dispatch(gather, 0, slot_groups);
         dispatch(sort_local, 0, blocks);
         for p in &self.sort_passes {
@@ -911,7 +921,14 @@ pub(crate) mod tests {
     pub(crate) fn assert_same(gpu: &VoxelOutput, cpu: &VoxelOutput) {
         assert_eq!(gpu.valid_in, cpu.valid_in, "valid points");
         assert_eq!(gpu.points.len(), cpu.points.len(), "output count");
-        assert_eq!(gpu.counts, cpu.counts, "points per cell");
+        if let Some(i) = (0..gpu.counts.len()).find(|&i| gpu.counts[i] != cpu.counts[i]) {
+            panic!(
+                "points per cell differ at {i} of {}: gpu {:?} cpu {:?}",
+                gpu.counts.len(),
+                &gpu.points[i.saturating_sub(2)..(i + 3).min(gpu.counts.len())],
+                &cpu.points[i.saturating_sub(2)..(i + 3).min(gpu.counts.len())]
+            );
+        }
         for (i, (g, c)) in gpu.points.iter().zip(&cpu.points).enumerate() {
             assert!(
                 (*g - *c).abs().max_element() <= 1e-5,
@@ -1109,6 +1126,31 @@ pub(crate) mod tests {
         assert!(out.retries >= 1);
         assert!(out.table_slots.unwrap() > 1024);
         assert_same(&out, &cpu);
+    }
+
+    #[test]
+    fn rust_constants_match_the_shader() {
+        let (module, _) =
+            crate::gpu::shader::validate(&shader::VOXEL, naga::valid::Capabilities::empty())
+                .unwrap();
+        for (name, value) in [
+            ("BOUNDS_CHUNK", BOUNDS_CHUNK),
+            ("INSERT_CHUNK", INSERT_CHUNK),
+            ("SORT_BLOCK", SORT_BLOCK),
+            ("SLOT_WORDS", SLOT_WORDS as u32),
+        ] {
+            let init = module
+                .constants
+                .iter()
+                .find(|(_, c)| c.name.as_deref() == Some(name))
+                .map(|(_, c)| module.global_expressions[c.init].clone())
+                .unwrap_or_else(|| panic!("{name} missing"));
+            assert_eq!(
+                init,
+                naga::Expression::Literal(naga::Literal::U32(value)),
+                "{name}"
+            );
+        }
     }
 
     #[test]
