@@ -471,6 +471,14 @@ pub fn run(
     }
     let mut fusion = Fusion::new(config.fusion)?;
     let perception = Perception::new(config.clone(), options.backend, options.adapter.as_deref())?;
+    if options.progress_every_s.is_some() {
+        let adapter = perception.ctx.as_ref().map(|c| c.adapter().name.clone());
+        eprintln!(
+            "perception backend: {}{}",
+            perception.backend(),
+            adapter.map(|a| format!(" on {a}")).unwrap_or_default()
+        );
+    }
     let (frame_recorder, mut tick_recorder) = match &options.record {
         Some(dir) => {
             let meta = record::RecordingMeta {
@@ -524,6 +532,8 @@ pub fn run(
             let mut last_progress = Instant::now();
             let mut pending_latency: Vec<f64> = Vec::new();
             let mut received: u64 = 0;
+            let mut recent_per_camera: BTreeMap<u32, u64> = BTreeMap::new();
+            let mut progress_t = t_first;
             let loop_start = clock.start;
             let stream_length_s = t_end - t_first;
             let mut k: u64 = 0;
@@ -547,6 +557,7 @@ pub fn run(
                     fusion.push(&estimate);
                     pending_latency.push(estimate.stamp_s);
                     received += 1;
+                    *recent_per_camera.entry(estimate.camera_id).or_insert(0u64) += 1;
                 }
                 let fused = fusion.tick(t_tick);
                 on_tick(&fused);
@@ -578,14 +589,25 @@ pub fn run(
                     && last_progress.elapsed().as_secs_f64() >= every
                 {
                     last_progress = Instant::now();
+                    let span = (t_tick - progress_t).max(tick_s);
+                    progress_t = t_tick;
+                    let rates: Vec<String> = recent_per_camera
+                        .iter()
+                        .map(|(id, n)| format!("cam{id} {:.1} Hz", *n as f64 / span))
+                        .collect();
+                    recent_per_camera.clear();
                     eprintln!(
-                        "t {:7.2} s  ticks {}  misses {}  estimates {}  status {:?}  latency last {:.1} ms",
+                        "t {:7.2} s  {}  latency last {:.1} ms  ticks {}  misses {}  status {:?}",
                         t_tick - t_first,
+                        if rates.is_empty() {
+                            "no frames".into()
+                        } else {
+                            rates.join(", ")
+                        },
+                        stats.latency_s.last().map_or(f64::NAN, |l| l * 1e3),
                         stats.ticks,
                         stats.deadline_misses,
-                        fusion.counters().accepted,
                         fused.status,
-                        stats.latency_s.last().map_or(f64::NAN, |l| l * 1e3),
                     );
                 }
                 k += 1;
