@@ -23,5 +23,6 @@ pub mod gpu;
 pub mod io;
 pub mod node;
 pub mod perception;
+pub mod study;
 #[cfg(feature = "viewer")]
 pub mod viewer;

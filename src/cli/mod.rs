@@ -11,6 +11,7 @@ mod crop;
 mod gpu_info;
 mod replay;
 mod run;
+mod study;
 mod surface;
 #[cfg(feature = "viewer")]
 mod view;
@@ -50,6 +51,8 @@ enum Command {
     Replay(replay::Args),
     /// Euclidean cluster extraction (PCL EuclideanClusterExtraction semantics).
     Cluster(cluster::Args),
+    /// Sweep the knobs that trade accuracy for time: CSV, markdown table, Pareto plot.
+    Study(study::Args),
     /// Show clouds, shells, fits, estimates and time plots of a timeline of frames in a
     /// window (egui, wgpu).
     #[cfg(feature = "viewer")]
@@ -68,6 +71,7 @@ pub fn main() -> ExitCode {
         Command::Run(args) => run::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Cluster(args) => cluster::run(args),
+        Command::Study(args) => study::run(args),
         #[cfg(feature = "viewer")]
         Command::View(args) => view::run(args),
     };
