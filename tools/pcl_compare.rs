@@ -6,17 +6,19 @@
 //! ```
 //!
 //! PCL's time is the "Computing" time `pcl_voxel_grid` prints (the filter alone, file I/O
-//! excluded; median of the runs). hapcloud's times are steady-state per-frame times of the
-//! front end (median after two warm-up frames): GPU wall (upload, one submit, readback),
-//! GPU stage time (timestamp queries) and the CPU reference's wall time. Exits non-zero
-//! when a count differs.
+//! excluded; median of the runs). hapcloud's times are steady-state times of the voxel stage
+//! alone (median after two warm-up runs): GPU wall (upload, one submit, readback), GPU stage
+//! time (timestamp queries) and the CPU reference's wall time. Voxel + clustering against
+//! PCL is `cargo bench --bench cluster_vs_pcl`. Exits non-zero when a count differs.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};
 
-use hapcloud::gpu::Backend;
-use hapcloud::perception::frontend::{FrameInput, Frontend, FrontendConfig};
-use hapcloud::perception::voxel::VoxelConfig;
+use std::time::Instant;
+
+use hapcloud::gpu::GpuContext;
+use hapcloud::gpu::timing::StageTimer;
+use hapcloud::perception::voxel::{GpuVoxel, VoxelConfig, voxel_cpu};
 
 const FRAMES: [&str; 5] = [
     "table_scene_mug_stereo_textured.pcd",
@@ -94,20 +96,18 @@ fn parse_args() -> anyhow::Result<Args> {
 
 fn main() -> anyhow::Result<ExitCode> {
     let args = parse_args()?;
-    let config = FrontendConfig {
-        voxel: VoxelConfig {
-            leaf_m: args.leaf,
-            ..Default::default()
-        },
+    let config = VoxelConfig {
+        leaf_m: args.leaf,
         ..Default::default()
     };
-    let mut gpu = Frontend::new(Backend::Gpu, config.clone(), None)?;
-    let mut cpu = Frontend::new(Backend::Cpu, config, None)?;
+    let ctx = GpuContext::new()?;
+    let timer = StageTimer::new(&ctx, "voxel", &["voxel"])?;
+    let mut gpu = GpuVoxel::new(&ctx)?;
     println!(
         "voxel grid, leaf {} m, {} runs; GPU adapter: {}",
         args.leaf,
         args.runs,
-        gpu.adapter().unwrap_or("-")
+        ctx.adapter().name
     );
     println!(
         "{:<28} {:>7} {:>7} {:>7} {:>9} {:>9} {:>9} {:>9} {:>8} {:>8}",
@@ -134,26 +134,23 @@ fn main() -> anyhow::Result<ExitCode> {
             pcl_points = n;
             pcl_ms.push(ms);
         }
-        let frame = FrameInput {
-            points: &cloud.points,
-            crop: None,
-        };
-        let time = |fe: &mut Frontend| -> anyhow::Result<(usize, f64, f64)> {
-            let mut wall = Vec::new();
-            let mut stage = Vec::new();
-            let mut count = 0;
-            for i in 0..args.runs + 2 {
-                let out = fe.process(&frame)?;
-                count = out.voxel.points.len();
-                if i >= 2 {
-                    wall.push(out.wall_ms);
-                    stage.push(out.gpu_times.iter().map(|t| t.gpu_ms).sum::<f64>());
-                }
+        let (mut gpu_wall, mut gpu_ts, mut cpu_wall) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut gpu_n, mut cpu_n) = (0, 0);
+        for i in 0..args.runs + 2 {
+            let t = Instant::now();
+            let (out, ts) = gpu.run(&ctx, &cloud.points, &config, timer.as_ref())?;
+            let wall = t.elapsed().as_secs_f64() * 1e3;
+            gpu_n = out.points.len();
+            let t = Instant::now();
+            cpu_n = voxel_cpu(&cloud.points, None, &config)?.points.len();
+            let cpu = t.elapsed().as_secs_f64() * 1e3;
+            if i >= 2 {
+                gpu_wall.push(wall);
+                gpu_ts.push(ts.unwrap_or(f64::NAN));
+                cpu_wall.push(cpu);
             }
-            Ok((count, median(wall), median(stage)))
-        };
-        let (gpu_n, gpu_ms, gpu_ts) = time(&mut gpu)?;
-        let (cpu_n, cpu_ms, _) = time(&mut cpu)?;
+        }
+        let (gpu_ms, gpu_ts, cpu_ms) = (median(gpu_wall), median(gpu_ts), median(cpu_wall));
         let pcl = median(pcl_ms);
         let short = Path::new(name)
             .file_name()

@@ -816,12 +816,10 @@ impl GpuVoxel {
         let min_p: [f32; 3] = std::array::from_fn(|a| from_order_key(!header.min_inv[a]));
         let max_p: [f32; 3] = std::array::from_fn(|a| from_order_key(header.max_key[a]));
         pcl_grid(min_p, max_p, inv_leaf(leaf_m), leaf_m)?;
-        // Size the next frame's table for a load factor of at most one half; shrink only
-        // when four times too big.
+        // Size the next frame's table for a load factor of at most one half (the sort
+        // costs grow with the table, so it also shrinks).
         let need = slots_for(2 * u64::from(header.cells));
-        if need > self.table_slots || need.saturating_mul(4) <= self.table_slots {
-            self.next_slots = Some(need.min(slots_for(u64::from(config.max_table_slots))));
-        }
+        self.next_slots = Some(need.min(slots_for(u64::from(config.max_table_slots))));
         let n = header.out_count as usize;
         let raw: &[[u32; 4]] =
             bytemuck::cast_slice(&bytes[HEADER_BYTES as usize..HEADER_BYTES as usize + 16 * n]);
