@@ -15,14 +15,17 @@
 
 pub mod camera;
 pub mod cloud;
+pub mod control;
 pub mod fusion;
 pub mod geometry;
 pub mod surface;
 
 pub mod gpu;
+pub mod haptics;
 pub mod io;
 pub mod node;
 pub mod perception;
 pub mod study;
+pub mod robot;
 #[cfg(feature = "viewer")]
 pub mod viewer;

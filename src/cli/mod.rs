@@ -3,6 +3,7 @@
 
 mod can_decode;
 mod convert;
+mod experiment;
 
 use clap::{Parser, Subcommand};
 
@@ -44,6 +45,8 @@ enum Command {
     Crop(crop::Args),
     /// Voxel-grid a cloud with PCL VoxelGrid semantics (paper IV-B), like pcl_voxel_grid.
     Voxel(voxel::Args),
+    /// Closed-loop experiments of the paper (section VI) in simulation: CSV, PNG, metrics.
+    Experiment(experiment::ExperimentArgs),
     /// Run the perception node: frames -> surface estimates -> 800 Hz fused surface, with
     /// stats, recording (--record DIR) and a JSON summary.
     Run(run::Args),
@@ -68,6 +71,7 @@ pub fn main() -> ExitCode {
         Command::Surface(args) => surface::run(args),
         Command::Crop(args) => crop::run(args),
         Command::Voxel(args) => voxel::run(args),
+        Command::Experiment(args) => experiment::run(args),
         Command::Run(args) => run::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Cluster(args) => cluster::run(args),

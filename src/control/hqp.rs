@@ -1,0 +1,466 @@
+//! Hierarchical quadratic programming: prioritised tasks with equalities and inequalities
+//! solved as a cascade of QPs, each in the null space of the equalities above and inside the
+//! (relaxed) inequalities above (Kanoun 2011, de Lasa 2010, Hutter 2014, Bellicoso 2016).
+//!
+//! Level `p` has equalities `A_p x = b_p` (least squares) and inequalities `D_p x <= f_p`.
+//! With `x = x_{p-1} + Z_{p-1} z` and slacks `v`:
+//!
+//! ```text
+//! min  1/2 |A_p (x_{p-1} + Z z) - b_p|^2 + 1/2 |v|^2 + 1/2 eps |z|^2
+//! s.t. D_p (x_{p-1} + Z z) - v <= f_p
+//!      D_j (x_{p-1} + Z z) <= f_j + v_j* + tol        for every higher level j
+//! ```
+//!
+//! then `x_p = x_{p-1} + Z z*`, `v_p* = max(D_p x_p - f_p, 0)` and
+//! `Z_p = Z_{p-1} null(A_p Z_{p-1})`. Because every later step moves inside `Z_p` and keeps
+//! the higher inequalities, a lower level can never undo a higher one.
+//!
+//! Speed: a level is handed to the QP solver (clarabel, an interior-point method) only when
+//! it has to be. When the unconstrained least-squares step (a Cholesky solve) already meets
+//! every inequality, it is the exact optimum of the level's QP (objective and slack both at
+//! their minima), so the solver is skipped; this is the common case of a controller far from
+//! its limits. The null space is the eigenspace of `(A Z)^T (A Z)` with eigenvalues below a
+//! relative tolerance; when no freedom is left, the remaining levels only report slacks.
+
+use clarabel::algebra::CscMatrix;
+use clarabel::solver::{DefaultSettings, DefaultSolver, IPSolver, NonnegativeConeT, SolverStatus};
+use nalgebra::{DMatrix, DVector};
+
+/// One priority level: equalities `a x = b` and inequalities `d x <= f`.
+#[derive(Clone, Debug)]
+pub struct Task {
+    pub name: &'static str,
+    pub a: DMatrix<f64>,
+    pub b: DVector<f64>,
+    pub d: DMatrix<f64>,
+    pub f: DVector<f64>,
+}
+
+impl Task {
+    /// A level with no rows (to be filled with [`Task::equalities`] / [`Task::inequalities`]).
+    pub fn new(name: &'static str, n: usize) -> Self {
+        Self {
+            name,
+            a: DMatrix::zeros(0, n),
+            b: DVector::zeros(0),
+            d: DMatrix::zeros(0, n),
+            f: DVector::zeros(0),
+        }
+    }
+
+    pub fn equalities(mut self, a: DMatrix<f64>, b: DVector<f64>) -> Self {
+        self.a = a;
+        self.b = b;
+        self
+    }
+
+    pub fn inequalities(mut self, d: DMatrix<f64>, f: DVector<f64>) -> Self {
+        self.d = d;
+        self.f = f;
+        self
+    }
+}
+
+/// Numerical settings of the cascade.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HqpSettings {
+    /// Tikhonov weight `eps` on the step `z` (keeps each level's Hessian positive definite).
+    pub regularization: f64,
+    /// Relative eigenvalue threshold below which a direction counts as null.
+    pub null_space_tolerance: f64,
+    /// Amount by which higher inequalities are loosened for the levels below, so that solver
+    /// rounding cannot turn an active constraint infeasible.
+    pub feasibility_tolerance: f64,
+    /// Interior-point iteration limit per QP.
+    pub max_iterations: u32,
+}
+
+impl Default for HqpSettings {
+    fn default() -> Self {
+        Self {
+            regularization: 1e-9,
+            null_space_tolerance: 1e-10,
+            feasibility_tolerance: 1e-7,
+            max_iterations: 50,
+        }
+    }
+}
+
+/// How a level was solved.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LevelMethod {
+    /// The unconstrained least-squares step met every inequality.
+    LeastSquares,
+    /// A QP was solved.
+    Qp,
+    /// No freedom was left; the level was only evaluated.
+    NoFreedom,
+}
+
+/// Outcome of one level.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LevelReport {
+    pub name: &'static str,
+    pub method: LevelMethod,
+    /// `|A_p x_p - b_p|` after the level.
+    pub equality_residual: f64,
+    /// Optimal slacks `v_p*` of the level's inequalities (zero when all are met).
+    pub slacks: Vec<f64>,
+    /// Dimension of the null space left for the levels below.
+    pub freedom_left: usize,
+}
+
+/// The solution of the whole hierarchy.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HqpSolution {
+    pub x: DVector<f64>,
+    pub levels: Vec<LevelReport>,
+}
+
+/// Why a hierarchy could not be solved.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum HqpError {
+    #[error("task `{task}` has inconsistent dimensions")]
+    Dimensions { task: &'static str },
+    #[error("task `{task}` has a non-finite entry")]
+    NonFinite { task: &'static str },
+    #[error("QP of task `{task}` failed: {status}")]
+    Solver { task: &'static str, status: String },
+}
+
+/// Solves task hierarchies over `n` variables; holds the solver settings between calls.
+#[derive(Clone, Debug)]
+pub struct HierarchicalSolver {
+    n: usize,
+    settings: HqpSettings,
+    qp_settings: DefaultSettings<f64>,
+}
+
+fn csc_from_dense(m: &DMatrix<f64>, upper_only: bool) -> CscMatrix<f64> {
+    let mut colptr = Vec::with_capacity(m.ncols() + 1);
+    let mut rowval = Vec::new();
+    let mut nzval = Vec::new();
+    colptr.push(0);
+    for c in 0..m.ncols() {
+        let rows = if upper_only { c + 1 } else { m.nrows() };
+        for r in 0..rows {
+            let v = m[(r, c)];
+            if v != 0.0 {
+                rowval.push(r);
+                nzval.push(v);
+            }
+        }
+        colptr.push(rowval.len());
+    }
+    CscMatrix::new(m.nrows(), m.ncols(), colptr, rowval, nzval)
+}
+
+impl HierarchicalSolver {
+    pub fn new(n: usize, settings: HqpSettings) -> Self {
+        let qp_settings = DefaultSettings {
+            verbose: false,
+            max_iter: settings.max_iterations,
+            presolve_enable: false,
+            ..DefaultSettings::default()
+        };
+        Self {
+            n,
+            settings,
+            qp_settings,
+        }
+    }
+
+    /// Solves the hierarchy `tasks` (highest priority first).
+    pub fn solve(&self, tasks: &[Task]) -> Result<HqpSolution, HqpError> {
+        let n = self.n;
+        for t in tasks {
+            if t.a.ncols() != n
+                || t.d.ncols() != n
+                || t.a.nrows() != t.b.len()
+                || t.d.nrows() != t.f.len()
+            {
+                return Err(HqpError::Dimensions { task: t.name });
+            }
+            let finite =
+                t.a.iter()
+                    .chain(t.b.iter())
+                    .chain(t.d.iter())
+                    .chain(t.f.iter());
+            if finite.copied().any(|v| !v.is_finite()) {
+                return Err(HqpError::NonFinite { task: t.name });
+            }
+        }
+        let tol = self.settings.feasibility_tolerance;
+        let mut x = DVector::zeros(n);
+        let mut basis = DMatrix::identity(n, n);
+        // accumulated higher inequalities with their relaxed right-hand sides
+        let total_rows: usize = tasks.iter().map(|t| t.d.nrows()).sum();
+        let mut dh = DMatrix::zeros(total_rows, n);
+        let mut fh = DVector::zeros(total_rows);
+        let mut rows_h = 0;
+        let mut levels = Vec::with_capacity(tasks.len());
+        for (p, t) in tasks.iter().enumerate() {
+            let nz = basis.ncols();
+            let k = t.d.nrows();
+            let method = if nz == 0 {
+                LevelMethod::NoFreedom
+            } else {
+                let az = &t.a * &basis;
+                let r = &t.b - &t.a * &x;
+                let mut hess = az.transpose() * &az;
+                for i in 0..nz {
+                    hess[(i, i)] += self.settings.regularization;
+                }
+                let grad = az.transpose() * &r;
+                let z_ls = if t.a.nrows() == 0 {
+                    DVector::zeros(nz)
+                } else {
+                    hess.clone()
+                        .cholesky()
+                        .map(|c| c.solve(&grad))
+                        .unwrap_or_else(|| DVector::zeros(nz))
+                };
+                let dz = &t.d * &basis;
+                let s = &t.f - &t.d * &x;
+                let dhv = dh.rows(0, rows_h);
+                let dhz = dhv * &basis;
+                let sh = fh.rows(0, rows_h) - dhv * &x;
+                let meets = |dm: &DMatrix<f64>, rhs: &DVector<f64>| {
+                    (dm * &z_ls - rhs).iter().all(|&e| e <= tol)
+                };
+                if meets(&dz, &s) && meets(&dhz, &sh) {
+                    x += &basis * z_ls;
+                    LevelMethod::LeastSquares
+                } else {
+                    let z = self.solve_qp(t.name, &hess, &grad, &dz, &s, &dhz, &sh)?;
+                    x += &basis * z;
+                    LevelMethod::Qp
+                }
+            };
+            // optimal slacks from the final x of this level
+            let viol = &t.d * &x - &t.f;
+            let slacks: Vec<f64> = viol.iter().map(|v| v.max(0.0)).collect();
+            for (i, v) in slacks.iter().enumerate() {
+                dh.row_mut(rows_h + i).copy_from(&t.d.row(i));
+                fh[rows_h + i] = t.f[i] + v + tol;
+            }
+            rows_h += k;
+            let last = p + 1 == tasks.len();
+            if t.a.nrows() > 0 && !last && basis.ncols() > 0 {
+                basis = self.null_space_basis(&(&t.a * &basis), &basis);
+            }
+            levels.push(LevelReport {
+                name: t.name,
+                method,
+                equality_residual: (&t.a * &x - &t.b).norm(),
+                slacks,
+                freedom_left: basis.ncols(),
+            });
+        }
+        Ok(HqpSolution { x, levels })
+    }
+
+    /// `basis * null(az)` via the eigen-decomposition of `az^T az`.
+    fn null_space_basis(&self, az: &DMatrix<f64>, basis: &DMatrix<f64>) -> DMatrix<f64> {
+        let gram = az.transpose() * az;
+        let dim = gram.nrows();
+        let eig = gram.symmetric_eigen();
+        let scale = eig.eigenvalues.max().max(1.0);
+        let keep: Vec<usize> = (0..eig.eigenvalues.len())
+            .filter(|&i| eig.eigenvalues[i] <= self.settings.null_space_tolerance * scale)
+            .collect();
+        let mut null = DMatrix::zeros(dim, keep.len());
+        for (c, &i) in keep.iter().enumerate() {
+            null.set_column(c, &eig.eigenvectors.column(i));
+        }
+        basis * null
+    }
+
+    /// One level's QP over `[z; v]` with clarabel.
+    #[allow(clippy::too_many_arguments)]
+    fn solve_qp(
+        &self,
+        name: &'static str,
+        hess: &DMatrix<f64>,
+        grad: &DVector<f64>,
+        dz: &DMatrix<f64>,
+        s: &DVector<f64>,
+        dhz: &DMatrix<f64>,
+        sh: &DVector<f64>,
+    ) -> Result<DVector<f64>, HqpError> {
+        let nz = hess.nrows();
+        let k = dz.nrows();
+        let nv = nz + k;
+        let mut p = DMatrix::zeros(nv, nv);
+        p.view_mut((0, 0), (nz, nz)).copy_from(hess);
+        for i in 0..k {
+            p[(nz + i, nz + i)] = 1.0;
+        }
+        let mut q = vec![0.0; nv];
+        for i in 0..nz {
+            q[i] = -grad[i];
+        }
+        let m = k + dhz.nrows();
+        let mut a = DMatrix::zeros(m, nv);
+        a.view_mut((0, 0), (k, nz)).copy_from(dz);
+        for i in 0..k {
+            a[(i, nz + i)] = -1.0;
+        }
+        a.view_mut((k, 0), (dhz.nrows(), nz)).copy_from(dhz);
+        let b: Vec<f64> = s.iter().chain(sh.iter()).copied().collect();
+        let cones = [NonnegativeConeT(m)];
+        let fail = |status: String| HqpError::Solver { task: name, status };
+        let mut solver = DefaultSolver::new(
+            &csc_from_dense(&p, true),
+            &q,
+            &csc_from_dense(&a, false),
+            &b,
+            &cones,
+            self.qp_settings.clone(),
+        )
+        .map_err(|e| fail(format!("setup: {e:?}")))?;
+        solver.solve();
+        match solver.solution.status {
+            SolverStatus::Solved | SolverStatus::AlmostSolved => Ok(DVector::from_iterator(
+                nz,
+                solver.solution.x[..nz].iter().copied(),
+            )),
+            other => Err(fail(format!("{other:?}"))),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn solver(n: usize) -> HierarchicalSolver {
+        HierarchicalSolver::new(n, HqpSettings::default())
+    }
+
+    #[test]
+    fn equality_priority_and_null_space() {
+        // level 1: x0 + x1 = 1; level 2: x0 = 5, x1 = 5 (conflicts); level 3: x2 = 3
+        let t1 = Task::new("sum", 3).equalities(
+            DMatrix::from_row_slice(1, 3, &[1.0, 1.0, 0.0]),
+            DVector::from_vec(vec![1.0]),
+        );
+        let t2 = Task::new("fives", 3).equalities(
+            DMatrix::from_row_slice(2, 3, &[1.0, 0.0, 0.0, 0.0, 1.0, 0.0]),
+            DVector::from_vec(vec![5.0, 5.0]),
+        );
+        let t3 = Task::new("three", 3).equalities(
+            DMatrix::from_row_slice(1, 3, &[0.0, 0.0, 1.0]),
+            DVector::from_vec(vec![3.0]),
+        );
+        let sol = solver(3).solve(&[t1, t2, t3]).unwrap();
+        assert!((sol.x[0] + sol.x[1] - 1.0).abs() < 1e-8);
+        assert!((sol.x[0] - 0.5).abs() < 1e-6 && (sol.x[1] - 0.5).abs() < 1e-6);
+        assert!((sol.x[2] - 3.0).abs() < 1e-6);
+        assert_eq!(sol.levels[0].freedom_left, 2);
+        assert_eq!(sol.levels[1].freedom_left, 1);
+    }
+
+    #[test]
+    fn inequality_above_equality_uses_the_qp() {
+        // level 1: x0 <= 1; level 2: x0 = 3, x1 = 2
+        let t1 = Task::new("bound", 2).inequalities(
+            DMatrix::from_row_slice(1, 2, &[1.0, 0.0]),
+            DVector::from_vec(vec![1.0]),
+        );
+        let t2 = Task::new("target", 2)
+            .equalities(DMatrix::identity(2, 2), DVector::from_vec(vec![3.0, 2.0]));
+        let sol = solver(2).solve(&[t1, t2]).unwrap();
+        assert!((sol.x[0] - 1.0).abs() < 1e-6, "{}", sol.x);
+        assert!((sol.x[1] - 2.0).abs() < 1e-6);
+        assert_eq!(sol.levels[1].method, LevelMethod::Qp);
+        assert_eq!(sol.levels[0].method, LevelMethod::LeastSquares);
+    }
+
+    #[test]
+    fn infeasible_inequalities_get_least_squares_slacks() {
+        // x0 <= -1 and -x0 <= -1 (x0 >= 1) at one level: the slacks split the violation
+        let t1 = Task::new("conflict", 1).inequalities(
+            DMatrix::from_row_slice(2, 1, &[1.0, -1.0]),
+            DVector::from_vec(vec![-1.0, -1.0]),
+        );
+        let sol = solver(1).solve(&[t1]).unwrap();
+        assert!(sol.x[0].abs() < 1e-6);
+        assert!((sol.levels[0].slacks[0] - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn bad_input_is_an_error() {
+        let t = Task::new("nan", 2).equalities(
+            DMatrix::from_row_slice(1, 2, &[f64::NAN, 0.0]),
+            DVector::from_vec(vec![0.0]),
+        );
+        assert_eq!(
+            solver(2).solve(&[t]),
+            Err(HqpError::NonFinite { task: "nan" })
+        );
+        let t = Task::new("dims", 2).equalities(DMatrix::zeros(1, 3), DVector::zeros(1));
+        assert_eq!(
+            solver(2).solve(&[t]),
+            Err(HqpError::Dimensions { task: "dims" })
+        );
+    }
+
+    fn task_strategy(
+        n: usize,
+    ) -> impl Strategy<Value = (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, usize, usize)> {
+        (0usize..=3, 0usize..=4).prop_flat_map(move |(me, mi)| {
+            (
+                proptest::collection::vec(-2.0..2.0f64, me * n),
+                proptest::collection::vec(-3.0..3.0f64, me),
+                proptest::collection::vec(-2.0..2.0f64, mi * n),
+                proptest::collection::vec(-1.0..3.0f64, mi),
+                Just(me),
+                Just(mi),
+            )
+        })
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+        /// A lower level never violates a higher one: the final x keeps every higher level's
+        /// inequalities within its optimal slacks and its equality residual at its optimum.
+        #[test]
+        fn lower_levels_never_violate_higher(specs in proptest::collection::vec(task_strategy(4), 1..5)) {
+            let n = 4;
+            let tasks: Vec<Task> = specs
+                .iter()
+                .map(|(a, b, d, f, me, mi)| {
+                    Task::new("random", n)
+                        .equalities(DMatrix::from_row_slice(*me, n, a), DVector::from_vec(b.clone()))
+                        .inequalities(DMatrix::from_row_slice(*mi, n, d), DVector::from_vec(f.clone()))
+                })
+                .collect();
+            let full = solver(n).solve(&tasks).unwrap();
+            for (p, t) in tasks.iter().enumerate() {
+                // level p's optimum (slacks, residual) as recorded when it was solved
+                let lvl = &full.levels[p];
+                let final_viol = &t.d * &full.x - &t.f;
+                for (i, v) in final_viol.iter().enumerate() {
+                    prop_assert!(*v <= lvl.slacks[i] + 1e-5 * (1.0 + lvl.slacks[i]),
+                        "level {p} row {i}: {v} > slack {}", lvl.slacks[i]);
+                }
+                let final_res = (&t.a * &full.x - &t.b).norm();
+                prop_assert!(final_res <= lvl.equality_residual + 1e-5 * (1.0 + lvl.equality_residual),
+                    "level {p}: residual {final_res} > {}", lvl.equality_residual);
+            }
+        }
+
+        /// With a single level the cascade is an ordinary (regularised) least-squares problem.
+        #[test]
+        fn single_equality_level_is_least_squares(a in proptest::collection::vec(-2.0..2.0f64, 12), b in proptest::collection::vec(-2.0..2.0f64, 3)) {
+            let am = DMatrix::from_row_slice(3, 4, &a);
+            let bv = DVector::from_vec(b);
+            let sol = solver(4).solve(&[Task::new("ls", 4).equalities(am.clone(), bv.clone())]).unwrap();
+            // normal equations hold: A^T (A x - b) ~ 0 (up to the tiny regularisation)
+            let g = am.transpose() * (&am * &sol.x - &bv);
+            prop_assert!(g.norm() < 1e-6 * (1.0 + sol.x.norm()));
+        }
+    }
+}

@@ -1,0 +1,546 @@
+//! The hierarchical task controller (Hutter 2014, Bellicoso 2016) with the priorities of the
+//! paper's Table I, turning the haptic constraints into joint torques at 800 Hz.
+//!
+//! The decision variable of the paper is `xi = [qdd; tau]` with the equation of motion
+//! `M qdd + h = tau + J^T F` as the top equality (`F`: the interaction force measured at the
+//! HIP). That equality always has an exact solution, so it is eliminated: `tau = M qdd + h -
+//! J^T F`, and the cascade works on `qdd` alone (6 variables instead of 12; see DESIGN.md's
+//! note on clarabel's cost). The levels, highest first:
+//!
+//! 1. equation of motion (eliminated) with the actuator torque limits `|tau| <= tau_max`;
+//! 2. joint position limits (predicted over a horizon) and joint velocity limits;
+//! 3. fixed collision constraint: the HIP stays in front of fixed planes (the base plate);
+//! 4. online collision avoidance: the haptic constraints of [`crate::haptics`];
+//! 5. what the user asks for ([`Intent`]): a joint torque command (default: gravity
+//!    compensation with light damping, i.e. a transparent exoskeleton) or a HIP acceleration;
+//! 6. minimal joint accelerations, `qdd = -k qd` (`k = 0` is the paper's level 5).
+//!
+//! Table I puts minimal joint accelerations last; the intent task sits just above it because
+//! `qdd = -k qd` pins every DoF and would leave nothing to a task below it.
+//!
+//! A failed solve or non-finite input never panics: the controller returns the safe command
+//! (gravity compensation and joint damping, saturated) with a status saying why.
+
+pub mod closed_loop;
+pub mod hqp;
+
+use crate::fusion::FusedSurface;
+use crate::haptics::{self, HapticConfig, HapticConstraints};
+use crate::robot::{DOF, HipKinematics, JointMatrix, JointVector, RobotModel};
+use hqp::{HierarchicalSolver, HqpSettings, LevelReport, Task};
+use nalgebra::{DMatrix, DVector, Point3, RowSVector, Unit, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// A fixed plane the HIP must stay in front of (level 3), world frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FixedPlane {
+    pub point_m: Point3<f64>,
+    /// Side the HIP must stay on.
+    pub normal: Unit<Vector3<f64>>,
+}
+
+/// Controller configuration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ControllerConfig {
+    /// Haptic constraints (also holds the controller period `period_s`).
+    pub haptics: HapticConfig,
+    /// Horizon over which joint positions are predicted against their limits, seconds.
+    pub joint_limit_horizon_s: f64,
+    /// Horizon over which joint velocities are predicted against their limits, seconds.
+    pub joint_velocity_horizon_s: f64,
+    /// Fixed planes of level 3.
+    pub fixed_planes: Vec<FixedPlane>,
+    /// Joint damping of the default intent and of the safe command, Nm s/rad.
+    pub damping_nms_per_rad: f64,
+    /// Gain `k` of the minimal-acceleration task `qdd = -k qd`, 1/s.
+    pub min_acceleration_damping_per_s: f64,
+}
+
+impl Default for ControllerConfig {
+    fn default() -> Self {
+        Self {
+            haptics: HapticConfig::default(),
+            joint_limit_horizon_s: 0.05,
+            joint_velocity_horizon_s: 0.01,
+            // the back plate of robots/anyexo.urdf lies behind x = -0.15 m
+            fixed_planes: vec![FixedPlane {
+                point_m: Point3::new(-0.12, 0.0, 0.0),
+                normal: Vector3::x_axis(),
+            }],
+            damping_nms_per_rad: 0.3,
+            min_acceleration_damping_per_s: 5.0,
+        }
+    }
+}
+
+/// A configuration value out of range.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ControllerConfigError {
+    #[error(transparent)]
+    Haptics(#[from] haptics::HapticConfigError),
+    #[error("controller config: {0}")]
+    Value(String),
+}
+
+impl ControllerConfig {
+    pub fn validate(&self) -> Result<(), ControllerConfigError> {
+        self.haptics.validate()?;
+        for (name, v) in [
+            ("joint_limit_horizon_s", self.joint_limit_horizon_s),
+            ("joint_velocity_horizon_s", self.joint_velocity_horizon_s),
+        ] {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err(ControllerConfigError::Value(format!(
+                    "{name} must be positive, got {v}"
+                )));
+            }
+        }
+        for (name, v) in [
+            ("damping_nms_per_rad", self.damping_nms_per_rad),
+            (
+                "min_acceleration_damping_per_s",
+                self.min_acceleration_damping_per_s,
+            ),
+        ] {
+            if !(v >= 0.0 && v.is_finite()) {
+                return Err(ControllerConfigError::Value(format!(
+                    "{name} must be finite and not negative, got {v}"
+                )));
+            }
+        }
+        if self
+            .fixed_planes
+            .iter()
+            .any(|p| !p.point_m.coords.iter().all(|v| v.is_finite()))
+        {
+            return Err(ControllerConfigError::Value(
+                "fixed plane point must be finite".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// What the user (patient or therapist program) asks of the robot: level 5.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Intent {
+    /// Gravity compensation with joint damping: the exoskeleton follows the patient.
+    Transparent,
+    /// A joint torque command, Nm (on top of nothing: include gravity compensation).
+    Torque(JointVector),
+    /// A HIP acceleration, world frame, m/s^2.
+    HipAcceleration(Vector3<f64>),
+}
+
+/// Inputs of one tick.
+#[derive(Clone, Debug)]
+pub struct ControllerInput<'a> {
+    pub q: JointVector,
+    pub qd: JointVector,
+    /// The fused surface (None: no surface known).
+    pub surface: Option<&'a FusedSurface>,
+    /// Force the patient applies to the robot at the HIP (measured), world frame, N.
+    pub interaction_force_n: Vector3<f64>,
+    pub intent: Intent,
+}
+
+/// Outcome of a tick.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ControlStatus {
+    /// The hierarchy was solved; the torques realise its accelerations.
+    Ok,
+    /// Input was not finite: safe command.
+    BadInput,
+    /// The hierarchy failed: safe command.
+    SolverFailed,
+}
+
+/// Result of one tick.
+#[derive(Clone, Debug)]
+pub struct ControllerOutput {
+    /// Joint torque command, Nm (always finite, within the effort limits).
+    pub tau_nm: JointVector,
+    /// Joint accelerations the torques were computed for, rad/s^2.
+    pub qdd: JointVector,
+    pub status: ControlStatus,
+    /// Human-readable reason for a fallback (empty when Ok).
+    pub message: String,
+    /// The haptic constraints of this tick (d_proj, rate, status).
+    pub haptics: HapticConstraints,
+    /// Per-level report of the cascade (empty on fallback).
+    pub levels: Vec<LevelReport>,
+}
+
+/// The controller: robot model, configuration, solver.
+#[derive(Clone, Debug)]
+pub struct Controller {
+    model: RobotModel,
+    config: ControllerConfig,
+    solver: HierarchicalSolver,
+}
+
+fn row_task(name: &'static str, rows: &[(RowSVector<f64, DOF>, f64)]) -> Task {
+    let mut d = DMatrix::zeros(rows.len(), DOF);
+    let mut f = DVector::zeros(rows.len());
+    for (i, (r, b)) in rows.iter().enumerate() {
+        d.row_mut(i).copy_from(r);
+        f[i] = *b;
+    }
+    Task::new(name, DOF).inequalities(d, f)
+}
+
+fn dense(m: &JointMatrix) -> DMatrix<f64> {
+    DMatrix::from_column_slice(DOF, DOF, m.as_slice())
+}
+
+fn dvec(v: &JointVector) -> DVector<f64> {
+    DVector::from_column_slice(v.as_slice())
+}
+
+impl Controller {
+    pub fn new(model: RobotModel, config: ControllerConfig) -> Result<Self, ControllerConfigError> {
+        config.validate()?;
+        Ok(Self {
+            model,
+            config,
+            solver: HierarchicalSolver::new(DOF, HqpSettings::default()),
+        })
+    }
+
+    pub fn model(&self) -> &RobotModel {
+        &self.model
+    }
+
+    pub fn config(&self) -> &ControllerConfig {
+        &self.config
+    }
+
+    fn effort(&self) -> JointVector {
+        JointVector::from_fn(|i, _| self.model.joint_limits()[i].effort_nm)
+    }
+
+    /// Gravity compensation and joint damping, saturated at the effort limits.
+    pub fn safe_command(&self, q: &JointVector, qd: &JointVector) -> JointVector {
+        let effort = self.effort();
+        let tau = if q.iter().chain(qd.iter()).all(|v| v.is_finite()) {
+            self.model.gravity_torques(q) - qd * self.config.damping_nms_per_rad
+        } else {
+            JointVector::zeros()
+        };
+        JointVector::from_fn(|i, _| tau[i].clamp(-effort[i], effort[i]))
+    }
+
+    /// One control tick: constraints, hierarchy, torques.
+    pub fn tick(&self, input: &ControllerInput<'_>) -> ControllerOutput {
+        let finite = input
+            .q
+            .iter()
+            .chain(input.qd.iter())
+            .chain(input.interaction_force_n.iter());
+        let intent_finite = match &input.intent {
+            Intent::Transparent => true,
+            Intent::Torque(t) => t.iter().all(|v| v.is_finite()),
+            Intent::HipAcceleration(a) => a.iter().all(|v| v.is_finite()),
+        };
+        let surface_finite = input.surface.is_none_or(|s| {
+            s.centroid_m
+                .coords
+                .iter()
+                .chain(s.normal.iter())
+                .chain(s.velocity_m_per_s.iter())
+                .all(|v| v.is_finite())
+        });
+        if !finite.copied().all(f64::is_finite) || !intent_finite || !surface_finite {
+            return self.fallback(
+                input,
+                ControlStatus::BadInput,
+                "non-finite input".into(),
+                None,
+            );
+        }
+        let (q, qd) = (&input.q, &input.qd);
+        let hip = self.model.hip_kinematics(q, qd);
+        let mass = self.model.mass_matrix(q);
+        let bias = self.model.bias_forces(q, qd);
+        // generalised interaction force J^T F
+        let jtf = hip.jacobian.transpose() * input.interaction_force_n;
+        let haptic = haptics::haptic_constraints(
+            &self.config.haptics,
+            input.surface,
+            &hip,
+            self.model.hip_radius_m(),
+            qd,
+            &mass,
+        );
+        let tasks = self.tasks(input, &hip, &mass, &bias, &jtf, &haptic);
+        match self.solver.solve(&tasks) {
+            Ok(sol) => {
+                let qdd = JointVector::from_column_slice(sol.x.as_slice());
+                let tau = mass * qdd + bias - jtf;
+                let effort = self.effort();
+                let tau_nm = JointVector::from_fn(|i, _| tau[i].clamp(-effort[i], effort[i]));
+                ControllerOutput {
+                    tau_nm,
+                    qdd,
+                    status: ControlStatus::Ok,
+                    message: String::new(),
+                    haptics: haptic,
+                    levels: sol.levels,
+                }
+            }
+            Err(e) => self.fallback(
+                input,
+                ControlStatus::SolverFailed,
+                e.to_string(),
+                Some(haptic),
+            ),
+        }
+    }
+
+    fn fallback(
+        &self,
+        input: &ControllerInput<'_>,
+        status: ControlStatus,
+        message: String,
+        haptic: Option<HapticConstraints>,
+    ) -> ControllerOutput {
+        ControllerOutput {
+            tau_nm: self.safe_command(&input.q, &input.qd),
+            qdd: JointVector::zeros(),
+            status,
+            message,
+            haptics: haptic.unwrap_or(HapticConstraints {
+                status: haptics::HapticStatus::NoSurface,
+                d_proj_m: f64::NAN,
+                d_rate_mps: f64::NAN,
+                jacobian: RowSVector::zeros(),
+                rows: Vec::new(),
+            }),
+            levels: Vec::new(),
+        }
+    }
+
+    /// The six levels for this tick (see the module doc).
+    fn tasks(
+        &self,
+        input: &ControllerInput<'_>,
+        hip: &HipKinematics,
+        mass: &JointMatrix,
+        bias: &JointVector,
+        jtf: &JointVector,
+        haptic: &HapticConstraints,
+    ) -> Vec<Task> {
+        let (q, qd) = (&input.q, &input.qd);
+        let effort = self.effort();
+        let md = dense(mass);
+        // 1. torque limits: -tau_max <= M qdd + h - J^T F <= tau_max
+        let free = bias - jtf;
+        let mut d1 = DMatrix::zeros(2 * DOF, DOF);
+        d1.rows_mut(0, DOF).copy_from(&md);
+        d1.rows_mut(DOF, DOF).copy_from(&(-&md));
+        let f1 = DVector::from_iterator(
+            2 * DOF,
+            (0..DOF)
+                .map(|i| effort[i] - free[i])
+                .chain((0..DOF).map(|i| effort[i] + free[i])),
+        );
+        let t1 = Task::new("equation of motion, torque limits", DOF).inequalities(d1, f1);
+        // 2. joint position (predicted) and velocity limits as bounds on qdd
+        let tl = self.config.joint_limit_horizon_s;
+        let tv = self.config.joint_velocity_horizon_s;
+        let mut upper = JointVector::zeros();
+        let mut lower = JointVector::zeros();
+        for (i, lim) in self.model.joint_limits().iter().enumerate() {
+            let pos_up = 2.0 * (lim.upper_rad - q[i] - tl * qd[i]) / (tl * tl);
+            let pos_lo = 2.0 * (lim.lower_rad - q[i] - tl * qd[i]) / (tl * tl);
+            let vel_up = (lim.velocity_rad_s - qd[i]) / tv;
+            let vel_lo = (-lim.velocity_rad_s - qd[i]) / tv;
+            upper[i] = pos_up.min(vel_up);
+            lower[i] = pos_lo.max(vel_lo);
+        }
+        let mut d2 = DMatrix::zeros(2 * DOF, DOF);
+        d2.view_mut((0, 0), (DOF, DOF)).fill_with_identity();
+        d2.view_mut((DOF, 0), (DOF, DOF))
+            .copy_from(&(-DMatrix::identity(DOF, DOF)));
+        let f2 = DVector::from_iterator(
+            2 * DOF,
+            upper.iter().copied().chain(lower.iter().map(|v| -v)),
+        );
+        let t2 = Task::new("joint position and velocity limits", DOF).inequalities(d2, f2);
+        // 3. fixed planes: the same positional constraint as eq. 9 against a static surface
+        let horizon = self.config.haptics.position_gain * self.config.haptics.period_s;
+        let rows3: Vec<_> = self
+            .config
+            .fixed_planes
+            .iter()
+            .map(|p| {
+                let n = p.normal.into_inner();
+                let d = (hip.position_m - p.point_m).dot(&n) - self.model.hip_radius_m();
+                let jc = n.transpose() * hip.jacobian;
+                let r = haptics::positional_row(
+                    horizon,
+                    d,
+                    (jc * qd)[0],
+                    &jc,
+                    n.dot(&hip.bias_acceleration_mps2),
+                );
+                (r.row, r.bound)
+            })
+            .collect();
+        let t3 = row_task("fixed collision constraint", &rows3);
+        // 4. haptic constraints
+        let rows4: Vec<_> = haptic.rows.iter().map(|r| (r.row, r.bound)).collect();
+        let t4 = row_task("online collision avoidance", &rows4);
+        // 5. intent
+        let t5 = match &input.intent {
+            Intent::Transparent | Intent::Torque(_) => {
+                let tau_des = match &input.intent {
+                    Intent::Torque(t) => *t,
+                    _ => self.model.gravity_torques(q) - qd * self.config.damping_nms_per_rad,
+                };
+                // M qdd + h - J^T F = tau_des
+                Task::new("intent: torque", DOF).equalities(md, dvec(&(tau_des - free)))
+            }
+            Intent::HipAcceleration(a) => {
+                let jd = DMatrix::from_column_slice(3, DOF, hip.jacobian.as_slice());
+                let b = a - hip.bias_acceleration_mps2;
+                Task::new("intent: HIP acceleration", DOF)
+                    .equalities(jd, DVector::from_column_slice(b.as_slice()))
+            }
+        };
+        // 6. minimal joint accelerations
+        let t6 = Task::new("minimal joint accelerations", DOF).equalities(
+            DMatrix::identity(DOF, DOF),
+            dvec(&(-qd * self.config.min_acceleration_damping_per_s)),
+        );
+        vec![t1, t2, t3, t4, t5, t6]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn controller() -> Controller {
+        Controller::new(RobotModel::anyexo().unwrap(), ControllerConfig::default()).unwrap()
+    }
+
+    fn pose() -> JointVector {
+        JointVector::from_column_slice(&[0.1, 0.0, 0.3, 0.0, 0.6, 1.5])
+    }
+
+    #[test]
+    fn free_transparent_tick_is_gravity_compensation() {
+        let c = controller();
+        let q = pose();
+        let qd = JointVector::from_column_slice(&[0.1, -0.2, 0.3, 0.0, 0.2, -0.1]);
+        let out = c.tick(&ControllerInput {
+            q,
+            qd,
+            surface: None,
+            interaction_force_n: Vector3::zeros(),
+            intent: Intent::Transparent,
+        });
+        assert_eq!(out.status, ControlStatus::Ok);
+        let expected = c.model().gravity_torques(&q) - qd * 0.3;
+        assert!(
+            (out.tau_nm - expected).norm() < 1e-6,
+            "{} vs {expected}",
+            out.tau_nm
+        );
+        assert!(out.levels.iter().all(|l| l.method != hqp::LevelMethod::Qp));
+        // the torque intent pins every DoF: nothing is left to the last level
+        assert_eq!(out.levels[5].method, hqp::LevelMethod::NoFreedom);
+    }
+
+    #[test]
+    fn haptic_constraint_stops_a_fast_approach() {
+        let c = controller();
+        let q = pose();
+        let model = c.model();
+        let hip = model.hip_kinematics(&q, &JointVector::zeros());
+        // HIP moving down at 1 m/s towards a floor 5 mm below the HIP sphere
+        let jpinv = hip.jacobian.pseudo_inverse(1e-9).unwrap();
+        let qd = jpinv * Vector3::new(0.0, 0.0, -1.0);
+        let surface = haptics::known_surface(
+            0.0,
+            hip.position_m - Vector3::new(0.0, 0.0, 0.045),
+            Vector3::z_axis(),
+            Vector3::zeros(),
+        );
+        let out = c.tick(&ControllerInput {
+            q,
+            qd,
+            surface: Some(&surface),
+            interaction_force_n: Vector3::zeros(),
+            intent: Intent::Transparent,
+        });
+        assert_eq!(out.status, ControlStatus::Ok);
+        assert_eq!(out.haptics.status, haptics::HapticStatus::Active);
+        // the commanded HIP acceleration points up (decelerates the approach)
+        let hip_v = model.hip_kinematics(&q, &qd);
+        let acc = hip_v.jacobian * out.qdd + hip_v.bias_acceleration_mps2;
+        assert!(acc.z > 10.0, "HIP acceleration {acc}");
+        // torques respect the limits
+        assert!(out.tau_nm.iter().all(|t| t.abs() <= 40.0 + 1e-9));
+    }
+
+    #[test]
+    fn bad_input_yields_safe_command() {
+        let c = controller();
+        let q = pose();
+        let mut qd = JointVector::zeros();
+        qd[2] = f64::NAN;
+        let out = c.tick(&ControllerInput {
+            q,
+            qd,
+            surface: None,
+            interaction_force_n: Vector3::zeros(),
+            intent: Intent::Transparent,
+        });
+        assert_eq!(out.status, ControlStatus::BadInput);
+        assert!(out.tau_nm.iter().all(|t| t.is_finite()));
+        let out = c.tick(&ControllerInput {
+            q,
+            qd: JointVector::zeros(),
+            surface: None,
+            interaction_force_n: Vector3::zeros(),
+            intent: Intent::Torque(JointVector::from_element(f64::INFINITY)),
+        });
+        assert_eq!(out.status, ControlStatus::BadInput);
+        assert!((out.tau_nm - c.safe_command(&q, &JointVector::zeros())).norm() < 1e-12);
+    }
+
+    #[test]
+    fn hip_acceleration_intent_is_tracked_when_free() {
+        let c = controller();
+        let q = pose();
+        let qd = JointVector::from_column_slice(&[0.0, 0.1, -0.2, 0.1, 0.3, -0.2]);
+        let target = Vector3::new(0.5, -0.2, 1.0);
+        let out = c.tick(&ControllerInput {
+            q,
+            qd,
+            surface: None,
+            interaction_force_n: Vector3::zeros(),
+            intent: Intent::HipAcceleration(target),
+        });
+        let hip = c.model().hip_kinematics(&q, &qd);
+        let acc = hip.jacobian * out.qdd + hip.bias_acceleration_mps2;
+        assert!((acc - target).norm() < 1e-6, "{acc}");
+    }
+
+    #[test]
+    fn config_rejects_unknown_fields_and_bad_values() {
+        assert!(toml::from_str::<ControllerConfig>("joint_limit_horizon = 1.0").is_err());
+        let cfg: ControllerConfig = toml::from_str("joint_limit_horizon_s = -1.0").unwrap();
+        assert!(
+            cfg.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("joint_limit_horizon_s")
+        );
+    }
+}

@@ -1,0 +1,422 @@
+//! Haptic constraints (paper section V, eq. 7-14): the fused collision surface `(c, n)` and
+//! the HIP become linear inequalities on the joint accelerations `qdd`, for the hierarchical
+//! task controller.
+//!
+//! - Projected distance (eq. 7): `d_proj = (c - h) . (-n) - r_HIP`, positive outside.
+//! - Constraint Jacobian (eq. 8): `J_c = n^T J_s,trans`, so `d/dt d_proj = J_c qd - n . v_s`.
+//! - Positional constraint (eq. 9-11): the distance predicted over the horizon
+//!   `T_p = k_p dt` by a 2nd-order Taylor expansion stays non-negative:
+//!   `d + T_p d' + 1/2 T_p^2 d'' >= 0`, i.e. the row `-1/2 T_p^2 J_c qdd <= d + T_p d' +
+//!   1/2 T_p^2 n . Jdot qd`. The task Jacobian is `J_t,P = 1/2 k_p^2 dt^2 J_c` as in eq. 10.
+//!   Beyond the paper's `J_c qdd`, the HIP's bias acceleration `Jdot qd` is included.
+//! - Velocity constraint (eq. 12-14): the approach speed ramps with the distance,
+//!   `vc(d)` from `v_min` (inside `d_offset`) to `v_max` (beyond `d_offset + d_width`), and the
+//!   rate predicted over `T_v = k_v dt` obeys `d' + T_v d'' >= -vc(d)`: the row
+//!   `-T_v J_c qdd <= vc(d) + d' + T_v n . Jdot qd` (eq. 14: `J_t,V = k_v dt J_c`).
+//! - Force constraint (the paper names it without detail): the force that pushes the HIP out
+//!   of the surface, taken as the robot's apparent mass along `n`,
+//!   `m_n = 1 / (J_c M^-1 J_c^T)`, times the outward acceleration, stays below `F_max`:
+//!   `m_n (J_c qdd + n . Jdot qd) <= F_max`. It bounds how hard the constraint may shove the
+//!   patient's arm when the surface jumps.
+//! - The constraints switch off when the HIP is farther than `activation_distance_m` or the
+//!   fused surface is not tracking (the grey areas of the paper's Fig. 9).
+//!
+//! Input: the [`FusedSurface`] of [`crate::fusion`] (or [`known_surface`] for virtual walls).
+//! - Beyond the paper (issue 5 item 3): with `use_surface_velocity`, `d' = J_c qd - n . v_s`
+//!   uses the surface's own velocity from the fusion fit; the paper uses `d' = J_c qd`.
+
+use crate::fusion::{FusedSurface, FusionStatus};
+use crate::robot::{HipKinematics, JointMatrix, JointVector};
+use nalgebra::{Point3, RowSVector, Unit, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// A surface known exactly (a virtual wall, a simulated experiment) as a tracking
+/// [`FusedSurface`]: fit and output agree, no camera contributed.
+pub fn known_surface(
+    stamp_s: f64,
+    centroid_m: Point3<f64>,
+    normal: Unit<Vector3<f64>>,
+    velocity_m_per_s: Vector3<f64>,
+) -> FusedSurface {
+    FusedSurface {
+        stamp_s,
+        centroid_m,
+        normal,
+        velocity_m_per_s,
+        status: FusionStatus::Tracking,
+        age_s: 0.0,
+        fit_centroid_m: centroid_m,
+        fit_normal: normal,
+        fit_degree: 2,
+        sample_count: 0,
+        camera_count: 0,
+    }
+}
+
+/// Configuration of the haptic constraints.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HapticConfig {
+    /// Controller period `dt`, seconds (paper: 800 Hz).
+    pub period_s: f64,
+    /// Positional constraint gain `k_p` (eq. 9): prediction horizon `k_p dt`.
+    pub position_gain: f64,
+    /// Velocity constraint gain `k_v` (eq. 13): prediction horizon `k_v dt`.
+    pub velocity_gain: f64,
+    /// `v_min` of eq. 12, m/s (allowed approach speed inside `d_offset`).
+    pub min_speed_mps: f64,
+    /// `v_max` of eq. 12, m/s.
+    pub max_speed_mps: f64,
+    /// `d_offset` of eq. 12, metres.
+    pub ramp_offset_m: f64,
+    /// `d_width` of eq. 12, metres.
+    pub ramp_width_m: f64,
+    /// Largest push-out force the constraint may command, N.
+    pub max_force_n: f64,
+    /// The constraints are off while `d_proj` exceeds this distance, metres.
+    pub activation_distance_m: f64,
+    /// Use the surface's velocity in the rate of `d_proj` (beyond the paper).
+    pub use_surface_velocity: bool,
+    pub enable_position: bool,
+    pub enable_velocity: bool,
+    pub enable_force: bool,
+}
+
+impl Default for HapticConfig {
+    fn default() -> Self {
+        Self {
+            period_s: 1.0 / 800.0,
+            position_gain: 20.0,
+            velocity_gain: 8.0,
+            min_speed_mps: 0.0,
+            max_speed_mps: 2.0,
+            ramp_offset_m: 0.0,
+            ramp_width_m: 0.1,
+            max_force_n: 150.0,
+            activation_distance_m: 0.15,
+            use_surface_velocity: true,
+            enable_position: true,
+            enable_velocity: true,
+            enable_force: true,
+        }
+    }
+}
+
+/// A configuration value out of range.
+#[derive(Debug, thiserror::Error, PartialEq)]
+#[error("haptic config: {0}")]
+pub struct HapticConfigError(pub String);
+
+impl HapticConfig {
+    pub fn validate(&self) -> Result<(), HapticConfigError> {
+        let positive = [
+            ("period_s", self.period_s),
+            ("position_gain", self.position_gain),
+            ("velocity_gain", self.velocity_gain),
+            ("ramp_width_m", self.ramp_width_m),
+            ("max_force_n", self.max_force_n),
+            ("activation_distance_m", self.activation_distance_m),
+        ];
+        for (name, v) in positive {
+            if !(v > 0.0 && v.is_finite()) {
+                return Err(HapticConfigError(format!(
+                    "{name} must be positive, got {v}"
+                )));
+            }
+        }
+        if !(self.min_speed_mps.is_finite() && self.max_speed_mps.is_finite())
+            || self.min_speed_mps > self.max_speed_mps
+        {
+            return Err(HapticConfigError(format!(
+                "min_speed_mps ({}) must not exceed max_speed_mps ({})",
+                self.min_speed_mps, self.max_speed_mps
+            )));
+        }
+        if !self.ramp_offset_m.is_finite() {
+            return Err(HapticConfigError("ramp_offset_m must be finite".into()));
+        }
+        Ok(())
+    }
+
+    /// The speed ramp `vc(d)` of eq. 12, m/s.
+    pub fn speed_limit_mps(&self, d_proj_m: f64) -> f64 {
+        let t = ((d_proj_m - self.ramp_offset_m) / self.ramp_width_m).clamp(0.0, 1.0);
+        self.min_speed_mps + t * (self.max_speed_mps - self.min_speed_mps)
+    }
+}
+
+/// Why the haptic constraints are (in)active.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HapticStatus {
+    /// Constraints are in force.
+    Active,
+    /// The HIP is farther than the activation distance.
+    Far,
+    /// No tracking surface (no data, stale or inconsistent fusion): constraints off.
+    NoSurface,
+}
+
+/// One linear inequality `row . qdd <= bound`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ConstraintRow {
+    pub row: RowSVector<f64, 6>,
+    pub bound: f64,
+}
+
+/// The haptic constraints for one controller tick.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HapticConstraints {
+    pub status: HapticStatus,
+    /// `d_proj` of eq. 7, metres (NaN without a surface).
+    pub d_proj_m: f64,
+    /// Rate of `d_proj`, m/s (relative to the moving surface when configured).
+    pub d_rate_mps: f64,
+    /// `J_c` of eq. 8.
+    pub jacobian: RowSVector<f64, 6>,
+    /// Inequalities on `qdd` (positional, velocity, force as enabled); empty when inactive.
+    pub rows: Vec<ConstraintRow>,
+}
+
+/// Builds the positional constraint row of eq. 9-11 for a distance `d`, its rate and the
+/// constraint Jacobian: `-1/2 T^2 J_c qdd <= d + T d' + 1/2 T^2 bias`.
+pub fn positional_row(
+    horizon_s: f64,
+    d_m: f64,
+    d_rate_mps: f64,
+    jacobian: &RowSVector<f64, 6>,
+    bias_acceleration_mps2: f64,
+) -> ConstraintRow {
+    let half_t2 = 0.5 * horizon_s * horizon_s;
+    ConstraintRow {
+        row: -jacobian * half_t2,
+        bound: d_m + horizon_s * d_rate_mps + half_t2 * bias_acceleration_mps2,
+    }
+}
+
+/// Evaluates eq. 7-14 for the HIP state `hip` (see [`crate::robot::RobotModel::hip_kinematics`])
+/// with joint velocities `qd`, mass matrix `mass`, HIP radius `hip_radius_m`.
+pub fn haptic_constraints(
+    config: &HapticConfig,
+    surface: Option<&FusedSurface>,
+    hip: &HipKinematics,
+    hip_radius_m: f64,
+    qd: &JointVector,
+    mass: &JointMatrix,
+) -> HapticConstraints {
+    let inactive = |status| HapticConstraints {
+        status,
+        d_proj_m: f64::NAN,
+        d_rate_mps: f64::NAN,
+        jacobian: RowSVector::zeros(),
+        rows: Vec::new(),
+    };
+    let Some(surface) = surface.filter(|s| s.is_tracking()) else {
+        return inactive(HapticStatus::NoSurface);
+    };
+    let n = surface.normal.into_inner();
+    // eq. 7: d_proj = (c - h) . (-n) - r
+    let d_proj_m = (surface.centroid_m - hip.position_m).dot(&-n) - hip_radius_m;
+    // eq. 8: J_c = n^T J_s,trans
+    let jacobian = n.transpose() * hip.jacobian;
+    let surface_rate = if config.use_surface_velocity {
+        n.dot(&surface.velocity_m_per_s)
+    } else {
+        0.0
+    };
+    let d_rate_mps = (jacobian * qd)[0] - surface_rate;
+    let bias = n.dot(&hip.bias_acceleration_mps2);
+    if d_proj_m > config.activation_distance_m {
+        return HapticConstraints {
+            status: HapticStatus::Far,
+            d_proj_m,
+            d_rate_mps,
+            jacobian,
+            rows: Vec::new(),
+        };
+    }
+    let mut rows = Vec::with_capacity(3);
+    if config.enable_position {
+        let horizon = config.position_gain * config.period_s;
+        rows.push(positional_row(
+            horizon, d_proj_m, d_rate_mps, &jacobian, bias,
+        ));
+    }
+    if config.enable_velocity {
+        let horizon = config.velocity_gain * config.period_s;
+        rows.push(ConstraintRow {
+            row: -jacobian * horizon,
+            bound: config.speed_limit_mps(d_proj_m) + d_rate_mps + horizon * bias,
+        });
+    }
+    if config.enable_force {
+        // apparent mass along n: 1 / (J_c M^-1 J_c^T)
+        if let Some(chol) = mass.cholesky() {
+            let inv_mass = (jacobian * chol.solve(&jacobian.transpose()))[0];
+            if inv_mass > 1e-12 {
+                let m_n = 1.0 / inv_mass;
+                rows.push(ConstraintRow {
+                    row: jacobian * m_n,
+                    bound: config.max_force_n - m_n * bias,
+                });
+            }
+        }
+    }
+    HapticConstraints {
+        status: HapticStatus::Active,
+        d_proj_m,
+        d_rate_mps,
+        jacobian,
+        rows,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::robot::{PointJacobian, RobotModel};
+
+    /// A HIP whose Jacobian moves it along world z with joint 0 and along x with joint 1.
+    fn hip_at(z: f64, bias_z: f64) -> HipKinematics {
+        let mut jacobian = PointJacobian::zeros();
+        jacobian[(2, 0)] = 1.0;
+        jacobian[(0, 1)] = 1.0;
+        HipKinematics {
+            position_m: Point3::new(0.0, 0.0, z),
+            velocity_mps: Vector3::zeros(),
+            jacobian,
+            bias_acceleration_mps2: Vector3::new(0.0, 0.0, bias_z),
+        }
+    }
+
+    fn floor(z: f64, vz: f64) -> FusedSurface {
+        known_surface(
+            0.0,
+            Point3::new(0.3, 0.2, z),
+            Vector3::z_axis(),
+            Vector3::new(0.0, 0.0, vz),
+        )
+    }
+
+    #[test]
+    fn distance_and_rows_by_hand() {
+        let cfg = HapticConfig::default();
+        let qd = JointVector::from_column_slice(&[-0.5, 0.2, 0.0, 0.0, 0.0, 0.0]);
+        let mass = JointMatrix::identity() * 2.0;
+        let hip = hip_at(0.1, 0.3);
+        let s = floor(0.0, 0.2);
+        let c = haptic_constraints(&cfg, Some(&s), &hip, 0.04, &qd, &mass);
+        assert_eq!(c.status, HapticStatus::Active);
+        // eq. 7: 0.1 above the floor minus the radius
+        assert!((c.d_proj_m - 0.06).abs() < 1e-15);
+        // rate: HIP moves down at 0.5, surface rises at 0.2
+        assert!((c.d_rate_mps + 0.7).abs() < 1e-15);
+        assert_eq!(c.jacobian[0], 1.0);
+        assert_eq!(c.jacobian[1], 0.0);
+        let tp = 20.0 / 800.0;
+        let pos = &c.rows[0];
+        assert!((pos.row[0] + 0.5 * tp * tp).abs() < 1e-15);
+        assert!((pos.bound - (0.06 - tp * 0.7 + 0.5 * tp * tp * 0.3)).abs() < 1e-15);
+        let tv = 8.0 / 800.0;
+        let vel = &c.rows[1];
+        // vc(0.06) = 0.6 * 2.0 m/s
+        assert!((vel.row[0] + tv).abs() < 1e-15);
+        assert!((vel.bound - (1.2 - 0.7 + tv * 0.3)).abs() < 1e-12);
+        // apparent mass along z is 2 kg
+        let force = &c.rows[2];
+        assert!((force.row[0] - 2.0).abs() < 1e-12);
+        assert!((force.bound - (150.0 - 0.6)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn speed_ramp_eq_12() {
+        let cfg = HapticConfig {
+            min_speed_mps: 0.1,
+            max_speed_mps: 1.1,
+            ramp_offset_m: 0.01,
+            ramp_width_m: 0.1,
+            ..HapticConfig::default()
+        };
+        assert_eq!(cfg.speed_limit_mps(-0.5), 0.1);
+        assert_eq!(cfg.speed_limit_mps(0.01), 0.1);
+        assert!((cfg.speed_limit_mps(0.06) - 0.6).abs() < 1e-12);
+        assert_eq!(cfg.speed_limit_mps(0.2), 1.1);
+    }
+
+    #[test]
+    fn paper_mode_ignores_surface_velocity_and_far_or_invalid_switch_off() {
+        let cfg = HapticConfig {
+            use_surface_velocity: false,
+            ..HapticConfig::default()
+        };
+        let qd = JointVector::zeros();
+        let mass = JointMatrix::identity();
+        let c = haptic_constraints(
+            &cfg,
+            Some(&floor(0.0, 1.0)),
+            &hip_at(0.1, 0.0),
+            0.04,
+            &qd,
+            &mass,
+        );
+        assert_eq!(c.d_rate_mps, 0.0);
+        let far = haptic_constraints(
+            &cfg,
+            Some(&floor(0.0, 0.0)),
+            &hip_at(0.5, 0.0),
+            0.04,
+            &qd,
+            &mass,
+        );
+        assert_eq!(far.status, HapticStatus::Far);
+        assert!(far.rows.is_empty());
+        let mut invalid = floor(0.0, 0.0);
+        invalid.status = FusionStatus::Stale;
+        let none = haptic_constraints(&cfg, Some(&invalid), &hip_at(0.1, 0.0), 0.04, &qd, &mass);
+        assert_eq!(none.status, HapticStatus::NoSurface);
+        assert!(none.rows.is_empty());
+    }
+
+    #[test]
+    fn positional_row_predicts_distance_on_the_real_robot() {
+        // integrate the robot's HIP over a short horizon with constant qdd: the second-order
+        // prediction of eq. 9 (with the bias term) matches the true distance to O(T^3)
+        let m = RobotModel::anyexo().unwrap();
+        let q = JointVector::from_column_slice(&[0.1, 0.0, 0.3, 0.2, 0.8, 1.4]);
+        let qd = JointVector::from_column_slice(&[0.2, -0.1, 0.4, 0.3, -0.5, 0.6]);
+        let qdd = JointVector::from_column_slice(&[1.0, 0.5, -2.0, 0.3, 1.5, -1.0]);
+        let hip = m.hip_kinematics(&q, &qd);
+        let surf = known_surface(
+            0.0,
+            hip.position_m - Vector3::new(0.1, 0.05, 0.1),
+            Unit::new_normalize(Vector3::new(0.3, 0.2, 1.0)),
+            Vector3::zeros(),
+        );
+        let cfg = HapticConfig::default();
+        let c = haptic_constraints(&cfg, Some(&surf), &hip, 0.04, &qd, &m.mass_matrix(&q));
+        let t = cfg.position_gain * cfg.period_s;
+        let predicted = c.rows[0].bound - (c.rows[0].row * qdd)[0];
+        let q_t = q + qd * t + qdd * (0.5 * t * t);
+        let h_t = m.world_from_hip(&q_t).translation.vector;
+        let d_true = (h_t - surf.centroid_m.coords).dot(&surf.normal) - 0.04;
+        assert!((predicted - d_true).abs() < 1e-4, "{predicted} vs {d_true}");
+    }
+
+    #[test]
+    fn config_validation() {
+        assert!(HapticConfig::default().validate().is_ok());
+        let bad = HapticConfig {
+            ramp_width_m: 0.0,
+            ..HapticConfig::default()
+        };
+        assert!(bad.validate().unwrap_err().0.contains("ramp_width_m"));
+        let bad = HapticConfig {
+            min_speed_mps: 2.0,
+            max_speed_mps: 1.0,
+            ..HapticConfig::default()
+        };
+        assert!(bad.validate().is_err());
+        let parsed: Result<HapticConfig, _> = toml::from_str("position_gian = 3.0");
+        assert!(parsed.is_err());
+    }
+}

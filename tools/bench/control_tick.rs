@@ -1,0 +1,122 @@
+//! Benchmark of one 800 Hz control tick: fusion evaluation, haptic constraints (paper eq.
+//! 7-14) and the whole hierarchical solve (six levels, clarabel where a level needs a QP).
+//! Budget (issue 5): median < 100 us, p99 < 250 us.
+//!
+//! States are drawn at random (seeded) over the joint ranges with joint speeds up to 1.5
+//! rad/s, a measured hand force up to 40 N and a surface placed so that `d_proj` spans
+//! -3 cm .. 12 cm (constraints active) or beyond the activation distance (free motion), with a
+//! random outward normal and surface speed up to 1.5 m/s. A Fusion instance fed with 30 Hz
+//! estimates of two cameras is evaluated in every tick as in the node. Prints median, p99 and
+//! max per case, and how many levels needed a QP.
+//!
+//! Run: `cargo bench --bench control_tick`.
+
+use hapcloud::control::hqp::LevelMethod;
+use hapcloud::control::{Controller, ControllerConfig, ControllerInput, Intent};
+use hapcloud::fusion::{Fusion, FusionConfig};
+use hapcloud::haptics::known_surface;
+use hapcloud::robot::{JointVector, RobotModel};
+use hapcloud::surface::SurfaceEstimate;
+use nalgebra::{Point3, Unit, Vector3};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use std::hint::black_box;
+use std::time::Instant;
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+fn main() {
+    let model = RobotModel::anyexo().expect("embedded URDF parses");
+    let controller =
+        Controller::new(model.clone(), ControllerConfig::default()).expect("default config");
+    let mut fusion = Fusion::new(FusionConfig::default()).expect("default fusion config");
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let tick_s = 1.0 / 800.0;
+    let frame_s = 1.0 / 30.0;
+    let mut next_frame = [0.0, 0.5 * frame_s];
+    let mut cases: Vec<(&str, Vec<f64>, usize)> = vec![
+        ("free", Vec::new(), 0),
+        ("contact", Vec::new(), 0),
+        ("all", Vec::new(), 0),
+    ];
+    for i in 0..20_000u32 {
+        let t = f64::from(i) * tick_s;
+        let q = JointVector::from_fn(|j, _| {
+            let l = &model.joint_limits()[j];
+            rng.random_range(l.lower_rad..l.upper_rad)
+        });
+        let qd = JointVector::from_fn(|_, _| rng.random_range(-1.5..1.5));
+        let force = Vector3::new(
+            rng.random_range(-40.0..40.0),
+            rng.random_range(-40.0..40.0),
+            rng.random_range(-40.0..40.0),
+        );
+        let hip = model.world_from_hip(&q).translation.vector;
+        let normal = Unit::new_normalize(Vector3::new(
+            rng.random_range(-0.5..0.5),
+            rng.random_range(-0.5..0.5),
+            1.0,
+        ));
+        let contact = rng.random_bool(0.7);
+        let d = if contact {
+            rng.random_range(-0.03..0.12)
+        } else {
+            rng.random_range(0.2..0.5)
+        };
+        let centroid = Point3::from(hip - normal.into_inner() * (d + model.hip_radius_m()));
+        let velocity = normal.into_inner() * rng.random_range(0.0..1.5);
+        let surface = known_surface(t, centroid, normal, velocity);
+        for (k, next) in next_frame.iter_mut().enumerate() {
+            while *next <= t {
+                fusion.push(&SurfaceEstimate {
+                    camera_id: k as u32,
+                    stamp_s: *next,
+                    centroid_m: Point3::new(0.3, -0.2, -0.6 + 0.2 * next.sin()),
+                    normal: Vector3::z_axis(),
+                    shells: Vec::new(),
+                    quality: 1.0,
+                    valid: true,
+                });
+                *next += frame_s;
+            }
+        }
+        let start = Instant::now();
+        black_box(fusion.tick(black_box(t)));
+        let out = controller.tick(black_box(&ControllerInput {
+            q,
+            qd,
+            surface: Some(&surface),
+            interaction_force_n: force,
+            intent: Intent::Transparent,
+        }));
+        let us = start.elapsed().as_secs_f64() * 1e6;
+        let qps = out
+            .levels
+            .iter()
+            .filter(|l| l.method == LevelMethod::Qp)
+            .count();
+        let case = usize::from(contact);
+        cases[case].1.push(us);
+        cases[case].2 += qps;
+        cases[2].1.push(us);
+        cases[2].2 += qps;
+    }
+    println!(
+        "{:<8} {:>7} {:>10} {:>10} {:>10} {:>14}",
+        "case", "ticks", "median_us", "p99_us", "max_us", "QPs_per_tick"
+    );
+    for (name, times, qps) in &mut cases {
+        times.sort_by(f64::total_cmp);
+        println!(
+            "{:<8} {:>7} {:>10.2} {:>10.2} {:>10.2} {:>14.2}",
+            name,
+            times.len(),
+            percentile(times, 0.5),
+            percentile(times, 0.99),
+            times.last().copied().unwrap_or(0.0),
+            *qps as f64 / times.len() as f64
+        );
+    }
+}
