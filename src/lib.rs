@@ -29,3 +29,4 @@ pub mod study;
 pub mod robot;
 #[cfg(feature = "viewer")]
 pub mod viewer;
+pub mod scene;

@@ -4,6 +4,7 @@
 mod can_decode;
 mod convert;
 mod experiment;
+mod scenes;
 
 use clap::{Parser, Subcommand};
 
@@ -60,6 +61,8 @@ enum Command {
     /// window (egui, wgpu).
     #[cfg(feature = "viewer")]
     View(view::Args),
+    /// List the built-in scenes (or print one as a complete scene file).
+    Scenes(scenes::Args),
 }
 
 pub fn main() -> ExitCode {
@@ -78,6 +81,7 @@ pub fn main() -> ExitCode {
         Command::Study(args) => study::run(args),
         #[cfg(feature = "viewer")]
         Command::View(args) => view::run(args),
+        Command::Scenes(args) => scenes::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

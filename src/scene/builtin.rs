@@ -1,0 +1,62 @@
+//! Built-in scenes, embedded in the binary from `tools/scenes/`. They mirror the paper's
+//! experiments (section VI): repeated direct impacts on the forehead, sliding along the head,
+//! an approach to the torso, a horizontal surface rising at constant speed, and reaching
+//! across to the other arm. Each comes in a `_clean` variant (no effects: the exact analytic
+//! surface) and a `_realistic` one (D435 noise, holes, occlusion, an extrinsic bias of a few
+//! mm, timing effects).
+//!
+//! A built-in scene is the concatenation of TOML parts: the experiment's own file (top-level
+//! keys, robot motion, extra bodies), the seated patient, the paper's two cameras and, for
+//! the realistic variant, the realistic effect list. `hapcloud scenes --print NAME` shows the
+//! result, a complete scene file to copy and edit.
+
+const PATIENT: &str = include_str!("../../tools/scenes/common/patient.toml");
+const CAMERAS: &str = include_str!("../../tools/scenes/common/cameras.toml");
+const REALISTIC: &str = include_str!("../../tools/scenes/common/realistic_effects.toml");
+
+/// The experiments, each embedded once.
+const EXPERIMENTS: &[(&str, &str)] = &[
+    (
+        "forehead_impacts",
+        include_str!("../../tools/scenes/forehead_impacts.toml"),
+    ),
+    (
+        "head_sliding",
+        include_str!("../../tools/scenes/head_sliding.toml"),
+    ),
+    (
+        "torso_approach",
+        include_str!("../../tools/scenes/torso_approach.toml"),
+    ),
+    (
+        "rising_surface",
+        include_str!("../../tools/scenes/rising_surface.toml"),
+    ),
+    (
+        "reach_other_arm",
+        include_str!("../../tools/scenes/reach_other_arm.toml"),
+    ),
+];
+
+/// Names of every built-in scene, in a fixed order.
+pub fn names() -> Vec<String> {
+    EXPERIMENTS
+        .iter()
+        .flat_map(|(n, _)| [format!("{n}_clean"), format!("{n}_realistic")])
+        .collect()
+}
+
+/// The full TOML text of built-in scene `name`.
+pub fn text(name: &str) -> Option<String> {
+    let (base, realistic) = if let Some(b) = name.strip_suffix("_clean") {
+        (b, false)
+    } else {
+        (name.strip_suffix("_realistic")?, true)
+    };
+    let (_, own) = EXPERIMENTS.iter().find(|(n, _)| *n == base)?;
+    let mut text = format!("name = \"{name}\"\n{own}\n{PATIENT}\n{CAMERAS}\n");
+    if realistic {
+        text.push_str(REALISTIC);
+    }
+    Some(text)
+}

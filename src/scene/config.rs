@@ -1,0 +1,409 @@
+//! Scene files: the TOML a scene is written in, deserialised with serde (unknown fields
+//! rejected) and checked by [`SceneFile::validate`], whose errors name the offending item.
+//!
+//! World frame (shared with the robot model): z up, x forward (the way the seated patient
+//! faces), y to the patient's left, metres. A scene lists
+//! - `[[body]]`: patient body parts (and virtual surfaces), each an analytic
+//!   [`Shape`](super::shape::Shape) in its body frame plus a translational [`Motion`];
+//! - `[robot]`: where the exoskeleton's base is mounted and how it moves: joint waypoints or a
+//!   HIP path (approach, repeated impacts, sliding) solved by inverse kinematics;
+//! - `[[camera]]`: RealSense D435 depth streams (848x480 or 640x480, 30/60/90 Hz) placed by
+//!   position and look-at point;
+//! - `[[effect]]`: the sensor effects to simulate, each with its parameters (none = the exact
+//!   analytic surface).
+
+use super::effects::Effect;
+use super::motion::Motion;
+use super::shape::Shape;
+use crate::camera::PinholeIntrinsics;
+use nalgebra::{Isometry3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// A whole scene file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SceneFile {
+    /// Short name (built-in scenes: their registry name).
+    pub name: String,
+    /// One line saying what the scene exercises.
+    pub description: String,
+    /// Seed of every random draw (effects); the same seed gives the same frames.
+    pub seed: u64,
+    /// Length of the scene, seconds (motions hold their last state afterwards).
+    pub duration_s: f64,
+    /// Patient body parts and virtual surfaces.
+    #[serde(rename = "body")]
+    pub bodies: Vec<BodyConfig>,
+    /// The exoskeleton, when the scene has one.
+    pub robot: Option<RobotConfig>,
+    #[serde(rename = "camera")]
+    pub cameras: Vec<CameraConfig>,
+    /// Sensor effects, applied only when listed.
+    #[serde(rename = "effect")]
+    pub effects: Vec<Effect>,
+}
+
+impl Default for SceneFile {
+    fn default() -> Self {
+        Self {
+            name: String::new(),
+            description: String::new(),
+            seed: 0,
+            duration_s: 5.0,
+            bodies: Vec::new(),
+            robot: None,
+            cameras: Vec::new(),
+            effects: Vec::new(),
+        }
+    }
+}
+
+/// One rigid body part.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BodyConfig {
+    /// Unique name; ground truth reports it (e.g. `head`, `torso`, `left_forearm`).
+    pub name: String,
+    /// Shape in the body frame (the body frame coincides with the world at offset zero).
+    pub geometry: Shape,
+    #[serde(default)]
+    pub motion: Motion,
+    /// False for a surface that exists for ground truth and control only (not rendered).
+    #[serde(default = "yes")]
+    pub visible: bool,
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// The exoskeleton's mounting and motion.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RobotConfig {
+    /// Base (URDF root link) position in the world, metres.
+    #[serde(default)]
+    pub base_xyz_m: Vector3<f64>,
+    /// Base orientation, roll-pitch-yaw (fixed axes x, y, z), radians.
+    #[serde(default)]
+    pub base_rpy_rad: Vector3<f64>,
+    /// False to leave the robot out of the rendered images.
+    #[serde(default = "yes")]
+    pub visible: bool,
+    pub motion: RobotMotion,
+}
+
+impl RobotConfig {
+    pub fn world_from_base(&self) -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::from(self.base_xyz_m),
+            UnitQuaternion::from_euler_angles(
+                self.base_rpy_rad.x,
+                self.base_rpy_rad.y,
+                self.base_rpy_rad.z,
+            ),
+        )
+    }
+}
+
+/// How the exoskeleton moves.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum RobotMotion {
+    /// Joint positions (rad, one vector of the robot's DoF per waypoint) at increasing
+    /// `times_s`; minimum-jerk blends between waypoints, held outside.
+    Joints {
+        times_s: Vec<f64>,
+        joints_rad: Vec<Vec<f64>>,
+    },
+    /// A HIP path from `start_m` through `segments`, followed by damped least-squares inverse
+    /// kinematics on the robot model from `initial_joints_rad`.
+    HipPath {
+        start_m: Point3<f64>,
+        initial_joints_rad: Vec<f64>,
+        segments: Vec<HipSegment>,
+    },
+}
+
+/// One piece of a HIP path; each starts where the previous one ended.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum HipSegment {
+    /// Minimum-jerk move to `to_m` (an approach).
+    Move { to_m: Point3<f64>, duration_s: f64 },
+    /// Stay put.
+    Hold { duration_s: f64 },
+    /// `count` repeated direct impacts: minimum-jerk out to `target_m` and back, each taking
+    /// `period_s`.
+    Impacts {
+        target_m: Point3<f64>,
+        count: u32,
+        period_s: f64,
+    },
+    /// Slide: rotate the current point by `angle_rad` about the axis `axis` through
+    /// `center_m` (e.g. along the head at a constant distance from its centre), with a
+    /// minimum-jerk angle profile.
+    Slide {
+        center_m: Point3<f64>,
+        axis: Vector3<f64>,
+        angle_rad: f64,
+        duration_s: f64,
+    },
+}
+
+impl HipSegment {
+    pub fn duration_s(&self) -> f64 {
+        match self {
+            HipSegment::Move { duration_s, .. }
+            | HipSegment::Hold { duration_s }
+            | HipSegment::Slide { duration_s, .. } => *duration_s,
+            HipSegment::Impacts {
+                count, period_s, ..
+            } => f64::from(*count) * period_s,
+        }
+    }
+}
+
+/// The depth stream resolutions of the D435 the simulator offers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Resolution {
+    #[serde(rename = "848x480")]
+    W848H480,
+    #[serde(rename = "640x480")]
+    W640H480,
+}
+
+impl Resolution {
+    /// Typical D435 intrinsics (REFERENCE.md: calibration dumps of librealsense): 848x480
+    /// fx = fy = 424, principal point at the centre; 640x480 fx = fy = 383.5, cx = 319.5,
+    /// cy = 239.5.
+    pub fn d435_intrinsics(self) -> PinholeIntrinsics {
+        match self {
+            Resolution::W848H480 => PinholeIntrinsics {
+                width: 848,
+                height: 480,
+                fx: 424.0,
+                fy: 424.0,
+                cx: 424.0,
+                cy: 240.0,
+            },
+            Resolution::W640H480 => PinholeIntrinsics {
+                width: 640,
+                height: 480,
+                fx: 383.5,
+                fy: 383.5,
+                cx: 319.5,
+                cy: 239.5,
+            },
+        }
+    }
+}
+
+/// One depth camera.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraConfig {
+    pub name: String,
+    #[serde(default = "default_resolution")]
+    pub resolution: Resolution,
+    /// Frame rate: 30, 60 or 90 Hz (the D435 depth rates at these resolutions).
+    #[serde(default = "default_rate")]
+    pub rate_hz: f64,
+    /// Optical centre in the world, metres.
+    pub position_m: Point3<f64>,
+    /// The world point the optical axis passes through.
+    pub look_at_m: Point3<f64>,
+    /// World direction that appears upwards in the image.
+    #[serde(default = "Vector3::z")]
+    pub up: Vector3<f64>,
+    /// Capture time of frame 0, seconds (cameras need not be synchronised).
+    #[serde(default)]
+    pub phase_s: f64,
+    /// Overrides the resolution's typical intrinsics (a calibration of a real unit).
+    #[serde(default)]
+    pub intrinsics: Option<PinholeIntrinsics>,
+}
+
+fn default_resolution() -> Resolution {
+    Resolution::W848H480
+}
+
+fn default_rate() -> f64 {
+    30.0
+}
+
+impl CameraConfig {
+    pub fn intrinsics(&self) -> PinholeIntrinsics {
+        self.intrinsics
+            .unwrap_or_else(|| self.resolution.d435_intrinsics())
+    }
+
+    /// Pose of the optical frame (x right, y down, z forward) in the world.
+    pub fn world_from_camera(&self) -> Isometry3<f64> {
+        let z = (self.look_at_m - self.position_m).normalize();
+        let x = z.cross(&self.up).normalize();
+        let y = z.cross(&x);
+        let rotation = Rotation3::from_basis_unchecked(&[x, y, z]);
+        Isometry3::from_parts(
+            Translation3::from(self.position_m.coords),
+            UnitQuaternion::from_rotation_matrix(&rotation),
+        )
+    }
+}
+
+fn finite3(v: &Vector3<f64>) -> bool {
+    v.iter().all(|c| c.is_finite())
+}
+
+impl SceneFile {
+    /// Checks every value; the error names the item and the problem.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.duration_s.is_finite() && self.duration_s > 0.0) {
+            return Err(format!(
+                "duration_s must be positive, got {}",
+                self.duration_s
+            ));
+        }
+        let mut names = std::collections::HashSet::new();
+        for body in &self.bodies {
+            let ctx = |e: String| format!("body `{}`: {e}", body.name);
+            if body.name.is_empty() {
+                return Err("a body has an empty name".into());
+            }
+            if !names.insert(body.name.as_str()) {
+                return Err(format!("two bodies are called `{}`", body.name));
+            }
+            body.geometry.validate().map_err(ctx)?;
+            body.motion.validate().map_err(ctx)?;
+        }
+        if let Some(robot) = &self.robot {
+            let ctx = |e: String| format!("robot: {e}");
+            if !finite3(&robot.base_xyz_m) || !finite3(&robot.base_rpy_rad) {
+                return Err(ctx("base pose has a non-finite value".into()));
+            }
+            validate_robot_motion(&robot.motion).map_err(ctx)?;
+        }
+        if self.cameras.is_empty() {
+            return Err("a scene needs at least one [[camera]]".into());
+        }
+        let mut cam_names = std::collections::HashSet::new();
+        for cam in &self.cameras {
+            let ctx = |e: String| format!("camera `{}`: {e}", cam.name);
+            if !cam_names.insert(cam.name.as_str()) {
+                return Err(format!("two cameras are called `{}`", cam.name));
+            }
+            if ![30.0, 60.0, 90.0].contains(&cam.rate_hz) {
+                return Err(ctx(format!(
+                    "rate_hz must be 30, 60 or 90 (D435 depth rates), got {}",
+                    cam.rate_hz
+                )));
+            }
+            if !finite3(&cam.position_m.coords)
+                || !finite3(&cam.look_at_m.coords)
+                || !finite3(&cam.up)
+                || !cam.phase_s.is_finite()
+            {
+                return Err(ctx("pose has a non-finite value".into()));
+            }
+            let axis = cam.look_at_m - cam.position_m;
+            if axis.norm() < 1e-6 {
+                return Err(ctx("look_at_m equals position_m".into()));
+            }
+            if axis.normalize().cross(&cam.up).norm() < 1e-6 {
+                return Err(ctx("up is parallel to the viewing direction".into()));
+            }
+            if let Some(k) = &cam.intrinsics {
+                let ok = k.width > 0
+                    && k.height > 0
+                    && [k.fx, k.fy].iter().all(|f| f.is_finite() && *f > 0.0)
+                    && k.cx.is_finite()
+                    && k.cy.is_finite();
+                if !ok {
+                    return Err(ctx(format!("bad intrinsics {k:?}")));
+                }
+            }
+        }
+        for effect in &self.effects {
+            effect
+                .validate()
+                .map_err(|e| format!("effect `{}`: {e}", effect.name()))?;
+        }
+        let mut kinds: Vec<&str> = self.effects.iter().map(Effect::name).collect();
+        kinds.sort_unstable();
+        if let Some(w) = kinds.windows(2).find(|w| w[0] == w[1]) {
+            return Err(format!("effect `{}` is listed twice", w[0]));
+        }
+        Ok(())
+    }
+}
+
+fn validate_robot_motion(motion: &RobotMotion) -> Result<(), String> {
+    match motion {
+        RobotMotion::Joints {
+            times_s,
+            joints_rad,
+        } => {
+            if times_s.is_empty() || times_s.len() != joints_rad.len() {
+                return Err(format!(
+                    "joint motion needs one joint vector per time, got {} times and {} vectors",
+                    times_s.len(),
+                    joints_rad.len()
+                ));
+            }
+            if times_s.windows(2).any(|w| w[1] <= w[0]) || times_s.iter().any(|t| !t.is_finite()) {
+                return Err("times_s must be finite and strictly increasing".into());
+            }
+            if let Some(q) = joints_rad
+                .iter()
+                .find(|q| q.len() != crate::robot::DOF || q.iter().any(|v| !v.is_finite()))
+            {
+                return Err(format!(
+                    "each joint vector needs {} finite values, got {q:?}",
+                    crate::robot::DOF
+                ));
+            }
+        }
+        RobotMotion::HipPath {
+            start_m,
+            initial_joints_rad,
+            segments,
+        } => {
+            if !finite3(&start_m.coords) {
+                return Err("start_m has a non-finite value".into());
+            }
+            if initial_joints_rad.len() != crate::robot::DOF
+                || initial_joints_rad.iter().any(|v| !v.is_finite())
+            {
+                return Err(format!(
+                    "initial_joints_rad needs {} finite values, got {initial_joints_rad:?}",
+                    crate::robot::DOF
+                ));
+            }
+            for (i, seg) in segments.iter().enumerate() {
+                let d = seg.duration_s();
+                if !(d.is_finite() && d > 0.0) {
+                    return Err(format!("segment {i}: duration must be positive, got {d} s"));
+                }
+                let ok = match seg {
+                    HipSegment::Move { to_m, .. } => finite3(&to_m.coords),
+                    HipSegment::Hold { .. } => true,
+                    HipSegment::Impacts {
+                        target_m, count, ..
+                    } => finite3(&target_m.coords) && *count > 0,
+                    HipSegment::Slide {
+                        center_m,
+                        axis,
+                        angle_rad,
+                        ..
+                    } => finite3(&center_m.coords) && axis.norm() > 1e-9 && angle_rad.is_finite(),
+                };
+                if !ok {
+                    return Err(format!(
+                        "segment {i} ({seg:?}): non-finite point, zero axis or zero count"
+                    ));
+                }
+            }
+        }
+    }
+    Ok(())
+}
