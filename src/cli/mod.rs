@@ -5,6 +5,7 @@ mod can_decode;
 mod convert;
 mod experiment;
 mod scenes;
+mod sim;
 
 use clap::{Parser, Subcommand};
 
@@ -63,6 +64,8 @@ enum Command {
     View(view::Args),
     /// List the built-in scenes (or print one as a complete scene file).
     Scenes(scenes::Args),
+    /// Simulate a scene: per camera PCD + 16-bit PNG depth + JSON sidecar, and ground truth.
+    Sim(sim::Args),
 }
 
 pub fn main() -> ExitCode {
@@ -82,6 +85,7 @@ pub fn main() -> ExitCode {
         #[cfg(feature = "viewer")]
         Command::View(args) => view::run(args),
         Command::Scenes(args) => scenes::run(args),
+        Command::Sim(args) => sim::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

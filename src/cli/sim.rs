@@ -1,0 +1,63 @@
+//! `hapcloud sim SCENE --out DIR [--frames N]`: renders a built-in scene (see `hapcloud
+//! scenes`) or a scene file and writes each camera's frames (binary PCD, 16-bit PNG depth in
+//! millimetres, JSON sidecar with intrinsics, poses and stamps) and `ground_truth.csv`.
+
+use anyhow::Context;
+use hapcloud::scene::{Scene, Simulator, export};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Built-in scene name or path of a scene TOML file.
+    scene: String,
+    /// Output directory (created if missing).
+    #[arg(long)]
+    out: PathBuf,
+    /// Frames per camera (default: every frame delivered within the scene's duration).
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Override the scene's seed.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// One JSON object on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut scene = Scene::from_name_or_path(&args.scene)?;
+    if let Some(seed) = args.seed {
+        scene.file.seed = seed;
+    }
+    let sim = Simulator::new(&scene)?;
+    let start = Instant::now();
+    let summary = export::write_sequence(&sim, &args.out, args.frames)
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    let seconds = start.elapsed().as_secs_f64();
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "scene": scene.file.name,
+                "out": args.out,
+                "frames_per_camera": summary.frames_per_camera,
+                "truth_rows": summary.truth_rows,
+                "dropped_frames": summary.dropped_frames,
+                "seconds": seconds,
+            })
+        );
+    } else {
+        for (camera, n) in &summary.frames_per_camera {
+            println!("{camera}: {n} frames");
+        }
+        println!(
+            "{} ground-truth rows, {} dropped frames, {:.1} s -> {}",
+            summary.truth_rows,
+            summary.dropped_frames,
+            seconds,
+            args.out.display()
+        );
+    }
+    Ok(())
+}
