@@ -737,7 +737,10 @@ fn sim_output_reads_back_through_the_io_readers() {
     let sim = Simulator::new(&scene).unwrap();
     let dir = std::env::temp_dir().join(format!("hapcloud-sim-test-{}", std::process::id()));
     let summary = write_sequence(&sim, &dir, Some(2)).unwrap();
-    assert_eq!(summary.frames_per_camera, vec![("front".into(), 2), ("right45".into(), 2)]);
+    assert_eq!(
+        summary.frames_per_camera,
+        vec![("front".into(), 2), ("right45".into(), 2)]
+    );
     let mut rows = 0;
     for cam in sim.cameras() {
         let mut files: Vec<_> = std::fs::read_dir(dir.join(&cam.name))
@@ -748,19 +751,26 @@ fn sim_output_reads_back_through_the_io_readers() {
         files.sort();
         assert_eq!(files.len(), 2);
         for json in files {
-            let side: FrameSidecar = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+            let side: FrameSidecar =
+                serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
             let f = sim.frame(&sim.timing(side.camera_id, side.index).unwrap());
             let cloud = hapcloud::io::read_cloud(&json.with_extension("pcd")).unwrap();
             assert_eq!((cloud.width, cloud.height), (848, 480));
-            let same = cloud.points.iter().zip(&f.frame.cloud.points).all(|(a, b)| {
-                (a.is_nan() && b.is_nan()) || a == b
-            });
+            let same = cloud
+                .points
+                .iter()
+                .zip(&f.frame.cloud.points)
+                .all(|(a, b)| (a.is_nan() && b.is_nan()) || a == b);
             assert!(same, "{}", json.display());
-            let depth = hapcloud::io::depth::read(&json.with_extension("png"), side.depth_scale_m).unwrap();
+            let depth =
+                hapcloud::io::depth::read(&json.with_extension("png"), side.depth_scale_m).unwrap();
             assert_eq!(&depth, &f.frame.depth.as_ref().unwrap().0);
             assert_eq!(side.intrinsics, f.frame.depth.as_ref().unwrap().1);
             let pose = side.world_from_camera.isometry();
-            assert!((pose.translation.vector - f.frame.world_from_camera.translation.vector).norm() < 1e-12);
+            assert!(
+                (pose.translation.vector - f.frame.world_from_camera.translation.vector).norm()
+                    < 1e-12
+            );
             assert!(pose.rotation.angle_to(&f.frame.world_from_camera.rotation) < 1e-9);
             assert_eq!(side.stamp_s, f.frame.stamp_s);
             // The deprojected PNG is the cloud up to the 1 mm quantisation (the realistic

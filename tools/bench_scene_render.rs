@@ -47,8 +47,10 @@ fn main() -> anyhow::Result<()> {
             for c in 0..cams {
                 if let Some(t) = sim.timing(c, index) {
                     let f = sim.frame(&t);
-                    valid += f.frame.cloud.finite_count();
-                    views += 1;
+                    if steps == 0 {
+                        valid += f.frame.cloud.finite_count();
+                        views += 1;
+                    }
                 }
             }
             steps += 1;

@@ -135,8 +135,14 @@ pub fn write_sequence(
         }
         let cam = &sim.cameras()[c];
         let f = sim.frame(&timing);
-        let stem = dir.join(&cam.name).join(format!("frame_{:05}", timing.index));
-        io::pcd::write(&stem.with_extension("pcd"), &f.frame.cloud, Encoding::Binary)?;
+        let stem = dir
+            .join(&cam.name)
+            .join(format!("frame_{:05}", timing.index));
+        io::pcd::write(
+            &stem.with_extension("pcd"),
+            &f.frame.cloud,
+            Encoding::Binary,
+        )?;
         if let Some((depth, intrinsics)) = &f.frame.depth {
             io::depth::write(&stem.with_extension("png"), depth)?;
             let sidecar = FrameSidecar {
@@ -152,7 +158,8 @@ pub fn write_sequence(
                 world_from_camera_true: (&f.world_from_camera_true).into(),
             };
             let json_path = stem.with_extension("json");
-            let json = serde_json::to_string_pretty(&sidecar).map_err(|e| file_error(&json_path, e))?;
+            let json =
+                serde_json::to_string_pretty(&sidecar).map_err(|e| file_error(&json_path, e))?;
             std::fs::write(&json_path, json).map_err(|e| file_error(&json_path, e))?;
         }
         if let Some(gt) = sim.ground_truth(timing.capture_s) {

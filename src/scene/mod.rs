@@ -42,6 +42,7 @@ use nalgebra::{Isometry3, Point3, Translation3};
 use render::{FrameKey, RawView};
 use robot_track::RobotTrack;
 use std::path::Path;
+use std::sync::Mutex;
 
 /// Why a scene could not be loaded or simulated.
 #[derive(Debug, thiserror::Error)]
@@ -169,6 +170,8 @@ pub struct Simulator {
     robot: Option<RobotTrack>,
     effects: Compiled,
     threads: usize,
+    /// Render buffers kept between frames (one per concurrent caller).
+    scratch: Mutex<Vec<render::Scratch>>,
 }
 
 /// A shape in the world frame at some instant, with its label.
@@ -223,6 +226,7 @@ impl Simulator {
             robot,
             effects,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            scratch: Mutex::new(Vec::new()),
         })
     }
 
@@ -372,8 +376,19 @@ impl Simulator {
             frame: timing.index,
         };
         let passes = &self.effects.passes;
-        let raw: RawView = render::cast(&cam.intrinsics, &solids, passes, key, self.threads);
+        let scratch = self
+            .scratch
+            .lock()
+            .ok()
+            .and_then(|mut pool| pool.pop())
+            .unwrap_or_default();
+        let raw: RawView =
+            render::cast(&cam.intrinsics, &solids, passes, key, self.threads, scratch);
         let (cloud, depth) = render::finish(&cam.intrinsics, &raw, passes, key, self.threads);
+        let (labels, scratch) = raw.into_parts();
+        if let Ok(mut pool) = self.scratch.lock() {
+            pool.push(scratch);
+        }
         SimFrame {
             frame: Frame {
                 camera_id: cam.id,
@@ -383,7 +398,7 @@ impl Simulator {
                 depth: Some((depth, cam.intrinsics)),
             },
             timing: *timing,
-            labels: raw.label,
+            labels,
             label_names,
             world_from_camera_true: cam.world_from_camera_true,
         }

@@ -409,7 +409,7 @@ impl Solid {
             } => {
                 let corners: Vec<Vector3<f64>> =
                     oriented(c, local_from_frame, Vector3::new(half.x, half.y, 0.0));
-                corners.into_iter().step_by(2).collect()
+                corners.into_iter().take(4).collect()
             }
         }
     }
