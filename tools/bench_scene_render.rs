@@ -6,7 +6,7 @@
 //! `/proc/self/stat`, Linux USER_HZ = 100): on a shared machine the wall rate depends on the
 //! load, `threads / cpu_ms_per_step` is the rate an idle machine would give.
 //!
-//! `cargo bench --bench scene_render [-- SECONDS_PER_SCENE [THREADS]]`
+//! `cargo bench --bench scene_render [-- SECONDS_PER_SCENE [THREADS [NAME_FILTER]]]`
 
 use hapcloud::scene::{Scene, Simulator, builtin};
 use std::time::Instant;
@@ -18,11 +18,12 @@ fn main() -> anyhow::Result<()> {
         .collect();
     let seconds: f64 = args.first().map_or(Ok(2.0), |s| s.parse())?;
     let threads: Option<usize> = args.get(1).map(|s| s.parse()).transpose()?;
+    let filter = args.get(2).cloned().unwrap_or_default();
     println!(
         "{:<28} {:>6} {:>9} {:>9} {:>12} {:>13}",
         "scene", "steps", "steps/s", "ms/step", "cpu ms/step", "valid px/view"
     );
-    for name in builtin::names() {
+    for name in builtin::names().into_iter().filter(|n| n.contains(&filter)) {
         let scene = Scene::from_builtin(&name)?;
         let mut sim = Simulator::new(&scene)?;
         if let Some(n) = threads {

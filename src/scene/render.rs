@@ -499,7 +499,7 @@ fn apply_passes(
         }
     }
     if let Some(q) = &passes.quantization {
-        for zu in z.iter_mut() {
+        for zu in z.iter_mut().filter(|z| **z > 0.0) {
             *zu = round_positive(*zu / q.step_m) * q.step_m;
         }
     }
@@ -510,7 +510,8 @@ fn apply_passes(
 #[inline]
 fn round_positive(x: f64) -> f64 {
     if x > 0.0 {
-        (x + 0.5) as u64 as f64
+        // i64, not u64: one cvttsd2si (depths in steps stay far below 2^63).
+        (x + 0.5) as i64 as f64
     } else {
         0.0
     }
