@@ -792,3 +792,27 @@ fn sim_output_reads_back_through_the_io_readers() {
     assert_eq!(again.file, scene.file);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn rising_surface_speed_is_a_parameter() {
+    for speed in [0.1, 1.5] {
+        let scene = builtin::rising_surface(speed, false).unwrap();
+        let sim = Simulator::new(&scene).unwrap();
+        assert!((sim.duration_s() - (0.5 + 0.45 / speed)).abs() < 1e-12);
+        let hip = sim.hip_at(0.0).unwrap();
+        // The plate starts 0.30 m below the HIP centre and rises from t = 0.5 s.
+        for t in [0.5 + 0.15 / speed, 0.5 + 0.25 / speed] {
+            let gt = sim.ground_truth(t).unwrap();
+            assert_eq!(gt.body, "surface");
+            let expected = 0.30 - speed * (t - 0.5);
+            assert!(
+                (gt.distance_m - expected).abs() < 1e-6,
+                "{speed} m/s t={t}: {}",
+                gt.distance_m
+            );
+            assert!((gt.normal - Vector3::z()).norm() < 1e-9);
+            assert!((sim.hip_at(t).unwrap() - hip).norm() < 1e-6);
+        }
+    }
+    assert!(builtin::rising_surface(-1.0, false).is_err());
+}

@@ -3,7 +3,7 @@
 //! millimetres, JSON sidecar with intrinsics, poses and stamps) and `ground_truth.csv`.
 
 use anyhow::Context;
-use hapcloud::scene::{Scene, Simulator, export};
+use hapcloud::scene::{Scene, Simulator, builtin, export};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -20,13 +20,23 @@ pub struct Args {
     /// Override the scene's seed.
     #[arg(long)]
     seed: Option<u64>,
+    /// For rising_surface_clean / _realistic: the surface's speed, m/s (paper: 0.1 to 1.5).
+    #[arg(long, value_name = "M_PER_S")]
+    rising_speed: Option<f64>,
     /// One JSON object on stdout.
     #[arg(long)]
     json: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut scene = Scene::from_name_or_path(&args.scene)?;
+    let mut scene = match (args.rising_speed, args.scene.as_str()) {
+        (Some(v), "rising_surface_clean") => builtin::rising_surface(v, false)?,
+        (Some(v), "rising_surface_realistic") => builtin::rising_surface(v, true)?,
+        (Some(_), other) => anyhow::bail!(
+            "--rising-speed needs rising_surface_clean or rising_surface_realistic, not `{other}`"
+        ),
+        (None, name) => Scene::from_name_or_path(name)?,
+    };
     if let Some(seed) = args.seed {
         scene.file.seed = seed;
     }

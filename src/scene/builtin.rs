@@ -60,3 +60,34 @@ pub fn text(name: &str) -> Option<String> {
     }
     Some(text)
 }
+
+/// The rising-surface experiment (paper Fig. 12) at `speed_m_s` (the paper sweeps 0.1 to
+/// 1.5 m/s): body `surface` rises from 0.30 m below the HIP centre from t = 0.5 s, and the
+/// scene lasts until it has risen 0.45 m (15 cm past the HIP centre).
+pub fn rising_surface(speed_m_s: f64, realistic: bool) -> Result<super::Scene, super::SceneError> {
+    let name = if realistic {
+        "rising_surface_realistic"
+    } else {
+        "rising_surface_clean"
+    };
+    let mut scene = super::Scene::from_builtin(name)?;
+    let origin = format!("builtin:{name} at {speed_m_s} m/s");
+    if !(speed_m_s.is_finite() && speed_m_s > 0.0) {
+        return Err(super::SceneError::Invalid {
+            origin,
+            message: format!("the surface speed must be positive, got {speed_m_s} m/s"),
+        });
+    }
+    let file = &mut scene.file;
+    for body in file.bodies.iter_mut().filter(|b| b.name == "surface") {
+        if let super::Motion::ConstantVelocity {
+            velocity_m_s,
+            start_s,
+        } = &mut body.motion
+        {
+            *velocity_m_s = nalgebra::Vector3::new(0.0, 0.0, speed_m_s);
+            file.duration_s = *start_s + 0.45 / speed_m_s;
+        }
+    }
+    super::Scene::new(scene.file, &origin)
+}

@@ -47,7 +47,7 @@ use std::sync::Mutex;
 /// Why a scene could not be loaded or simulated.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
-    #[error("no built-in scene `{name}` (built-in scenes: {known})")]
+    #[error("no built-in scene (or file) `{name}` (built-in scenes: {known})")]
     UnknownBuiltin { name: String, known: String },
     #[error("cannot read scene file {path}: {source}")]
     Read {
@@ -91,10 +91,11 @@ impl Scene {
 
     /// A built-in name or, failing that, a path.
     pub fn from_name_or_path(name_or_path: &str) -> Result<Self, SceneError> {
-        if builtin::text(name_or_path).is_some() {
+        let path = Path::new(name_or_path);
+        if builtin::text(name_or_path).is_some() || !path.exists() {
             Self::from_builtin(name_or_path)
         } else {
-            Self::from_file(Path::new(name_or_path))
+            Self::from_file(path)
         }
     }
 
@@ -268,6 +269,12 @@ impl Simulator {
     /// HIP position (world) at `t_s`.
     pub fn hip_at(&self, t_s: f64) -> Option<Point3<f64>> {
         self.robot.as_ref().map(|r| r.hip_at(t_s))
+    }
+
+    /// HIP velocity (world) at `t_s`, m/s (central difference over 1 ms).
+    pub fn hip_velocity_at(&self, t_s: f64) -> Option<nalgebra::Vector3<f64>> {
+        let h = 5e-4;
+        Some((self.hip_at(t_s + h)? - self.hip_at(t_s - h)?) / (2.0 * h))
     }
 
     /// The HIP path's commanded point at `t_s` (equal to [`Simulator::hip_at`] up to the
