@@ -27,6 +27,6 @@ pub mod node;
 pub mod perception;
 pub mod study;
 pub mod robot;
+pub mod scene;
 #[cfg(feature = "viewer")]
 pub mod viewer;
-pub mod scene;

@@ -58,5 +58,8 @@ fn sim_writes_frames_and_truth_and_rejects_unknown_scenes() {
     let out = hapcloud(&["sim", "no_such_scene", "--out", d]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("no_such_scene") && err.contains("torso_approach_clean"), "{err}");
+    assert!(
+        err.contains("no_such_scene") && err.contains("torso_approach_clean"),
+        "{err}"
+    );
 }
