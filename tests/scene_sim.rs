@@ -652,11 +652,7 @@ fn latency_jitter_and_dropped_frames_statistics() {
     assert_eq!(arrivals.len(), expect.len());
     // frames_at: the newest arrived frame.
     let latest = sim.latest_timings(2.0);
-    let newest = timings
-        .iter()
-        .filter(|t| t.arrival_s <= 2.0)
-        .last()
-        .unwrap();
+    let newest = timings.iter().rfind(|t| t.arrival_s <= 2.0).unwrap();
     assert_eq!(latest[0].index, newest.index);
 }
 
