@@ -153,7 +153,8 @@ fn plot_fig11(path: &Path, name: &str, run: &Run, r_hip: f64) -> Result<()> {
     root.fill(&WHITE)?;
     let panels = root.split_evenly((2, 1));
     let t_end = run.samples.last().map_or(1.0, |s| s.t_s);
-    let series: [(&str, fn(&closed_loop::Sample) -> f64); 2] = [
+    type Series = (&'static str, fn(&closed_loop::Sample) -> f64);
+    let series: [Series; 2] = [
         ("d_proj [m]", |s| s.d_proj_m),
         ("d/dt d_proj [m/s]", |s| s.d_rate_mps),
     ];

@@ -187,11 +187,11 @@ impl RobotModel {
             }
         }
         let mut m = JointMatrix::zeros();
-        for i in 1..n {
+        for (i, ic_i) in ic.iter().enumerate().skip(1) {
             let Some(di) = st.dof[i] else {
                 continue;
             };
-            let mut force = ic[i] * st.s[i];
+            let mut force = ic_i * st.s[i];
             m[(di, di)] = st.s[i].dot(&force);
             let mut j = i;
             while let Some(p) = self.links[j].parent {

@@ -267,7 +267,11 @@ impl RobotModel {
                             if lower.is_nan() || upper.is_nan() || lower >= upper {
                                 return Err(bad("lower must be below upper"));
                             }
-                            if !(j.limit.velocity > 0.0) || !(j.limit.effort > 0.0) {
+                            if j.limit.velocity.is_nan()
+                                || j.limit.velocity <= 0.0
+                                || j.limit.effort.is_nan()
+                                || j.limit.effort <= 0.0
+                            {
                                 return Err(bad("velocity and effort must be positive"));
                             }
                             limits.push(JointLimit {
@@ -304,7 +308,7 @@ impl RobotModel {
                 reason: reason.to_owned(),
             };
             let mass_kg = inertial.mass.value;
-            if !(mass_kg >= 0.0) || !mass_kg.is_finite() {
+            if !mass_kg.is_finite() || mass_kg < 0.0 {
                 return Err(bad("mass must be finite and not negative"));
             }
             let r = UnitQuaternion::from_euler_angles(
