@@ -4,6 +4,7 @@
 use anyhow::Context;
 use hapcloud::gpu::Backend;
 use hapcloud::node::{self, NodeConfig, NodeSummary, RunOptions, Source, record, stream};
+use hapcloud::scene::{Scene, Simulator};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -12,7 +13,8 @@ pub struct Args {
     /// `.pcd`/`.ply` frames of one camera (PCL grabber names give the stamps, others are
     /// 30 Hz; the HIP is put 5 cm in front of the surface on the optical axis unless
     /// --config sets `hip_world_m`), or `tcp://HOST:PORT` to listen for a camera stream
-    /// (the format is in `hapcloud::node::wire`).
+    /// (the format is in `hapcloud::node::wire`). Without one, the built-in realistic scene
+    /// `torso_approach_realistic` (two simulated D435 cameras) is rendered and played.
     source: Option<String>,
     /// Stop after this many seconds of node time (default: the end of a recording).
     #[arg(long)]
@@ -32,6 +34,30 @@ pub struct Args {
     /// Print one JSON object instead of the progress line and table.
     #[arg(long)]
     json: bool,
+}
+
+/// The scene `hapcloud run` plays when no source is given.
+const DEFAULT_SCENE: &str = "torso_approach_realistic";
+
+/// Renders every frame of built-in scene `name` up to `duration_s` (default: the whole scene)
+/// and returns them with the HIP at the scene's start. The node takes one fixed HIP from its
+/// config, so the scene's HIP path is not followed.
+fn render_builtin_scene(
+    name: &str,
+    duration_s: Option<f64>,
+) -> anyhow::Result<(Vec<hapcloud::camera::Frame>, nalgebra::Point3<f64>)> {
+    let scene = Scene::from_builtin(name)?;
+    let simulator = Simulator::new(&scene)?;
+    let end_s = duration_s.unwrap_or_else(|| simulator.duration_s());
+    let frames = simulator
+        .arrivals(0.0, end_s)
+        .iter()
+        .map(|timing| simulator.frame(timing).frame)
+        .collect();
+    let hip = simulator
+        .hip_at(0.0)
+        .with_context(|| format!("built-in scene {name} has no HIP"))?;
+    Ok((frames, hip))
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -73,10 +99,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(dir) => {
             anyhow::bail!("{dir}: not a recording (cloud directories need the viewer feature)")
         }
-        None => anyhow::bail!(
-            "no source: give a recording directory or tcp://HOST:PORT (the built-in scene \
-             arrives with the scene simulator)"
-        ),
+        None => {
+            let (frames, hip) = render_builtin_scene(DEFAULT_SCENE, args.duration)?;
+            if args.config.is_none() {
+                config.hip_world_m = hip;
+            }
+            if !args.json {
+                eprintln!(
+                    "built-in scene {DEFAULT_SCENE}: {} frames rendered",
+                    frames.len()
+                );
+            }
+            Source::Timed(frames)
+        }
     };
     let options = RunOptions {
         duration_s: args.duration,
