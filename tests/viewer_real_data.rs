@@ -102,3 +102,113 @@ fn real_frames_in_the_viewer() {
     assert!(stats.patch_triangles > 50, "{stats:?}");
     h.snapshot("viewer_real_grabber");
 }
+
+/// A recording made by the node (CPU backend) on the grabber frames, with the node's HIP put
+/// where `hip_on_axis` puts it.
+fn node_recording() -> (tempdir::Dir, hapcloud::node::record::Recording) {
+    use hapcloud::node::{NodeConfig, RunOptions, Source, run};
+    let frames = read_cloud_dir(&grabber_dir(), 30.0).unwrap();
+    let config = NodeConfig {
+        hip_world_m: hip_on_axis(&frames[0], 0.06).unwrap(),
+        ..NodeConfig::default()
+    };
+    let dir = tempdir::Dir::new("viewer_recording");
+    let options = RunOptions {
+        duration_s: None,
+        // Slow enough for the CPU stages of a debug build to keep up with the frames.
+        speed: 0.2,
+        backend: hapcloud::gpu::Backend::Cpu,
+        adapter: None,
+        record: Some(dir.path.clone()),
+        progress_every_s: None,
+    };
+    run(&config, Source::Timed(frames), &options, |_| {}).unwrap();
+    let recording = hapcloud::node::record::read(&dir.path).unwrap();
+    (dir, recording)
+}
+
+mod tempdir {
+    /// A directory under the target's tmp dir, removed on drop.
+    pub struct Dir {
+        pub path: std::path::PathBuf,
+    }
+    impl Dir {
+        pub fn new(name: &str) -> Self {
+            let path = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR"))
+                .join(format!("{name}_{}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&path);
+            Self { path }
+        }
+    }
+    impl Drop for Dir {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.path);
+        }
+    }
+}
+
+#[test]
+fn node_recording_shows_the_nodes_own_estimates() {
+    use hapcloud::viewer::source::timeline_from_recording;
+    let (dir, recording) = node_recording();
+    assert_eq!(recording.frames.len(), 3);
+    let timeline = timeline_from_recording(&recording, 0.04).unwrap();
+    assert_eq!(timeline.len(), 3);
+    let mut matched = 0;
+    for (f, frame) in timeline.iter().zip(&recording.frames) {
+        let cam = &f.cameras[0];
+        assert!(cam.layer(PointRole::Kept).len() > 100);
+        assert_eq!(f.hip_m, recording.meta.config.hip_world_m);
+        // Where the node recorded an estimate for this frame, that is the one shown, with
+        // the fused surface of the tick that took it in.
+        let Some((tick, recorded)) = recording
+            .estimates
+            .iter()
+            .find(|(_, e)| e.camera_id == frame.camera_id && e.stamp_s == frame.stamp_s)
+        else {
+            continue;
+        };
+        matched += 1;
+        assert_eq!(cam.estimate.as_ref(), Some(recorded));
+        let fused = recording
+            .ticks
+            .iter()
+            .find(|t| t.index == *tick)
+            .unwrap()
+            .fused;
+        assert_eq!(f.fused.is_some(), fused.is_tracking());
+        if fused.is_tracking() {
+            assert_eq!(f.fused.unwrap().point_m, fused.centroid_m);
+            assert!(f.samples.d_proj_m.is_some());
+        }
+        assert!(
+            f.samples
+                .latencies
+                .iter()
+                .any(|l| l.stage == "node tick work")
+        );
+    }
+    let stamps: Vec<(u32, f64)> = recording
+        .estimates
+        .iter()
+        .map(|(_, e)| (e.camera_id, e.stamp_s))
+        .collect();
+    let frame_stamps: Vec<f64> = recording.frames.iter().map(|f| f.stamp_s).collect();
+    assert!(
+        matched > 0,
+        "no recorded estimate matched a recorded frame: {stamps:?} vs {frame_stamps:?}"
+    );
+    // The command line opens the same recording.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .args(["view", dir.path.to_str().unwrap(), "--json"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["frames"], 3);
+    assert!(v["valid_estimates"].as_u64().unwrap() >= 1);
+}

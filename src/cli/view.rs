@@ -1,14 +1,19 @@
 //! `hapcloud view SOURCE`: the shell overlay on a timeline of frames (egui window, wgpu).
 //!
-//! SOURCE is a directory of PCD/PLY frames of one camera (e.g. PCL's grabber sequences); the
-//! project's stages run on every frame with the HIP fixed (`--hip`, or placed in front of the
-//! surface point nearest the optical axis), and the viewer opens on the result. `--screenshot`
+//! SOURCE is a node recording (`hapcloud run --record DIR`): its frames run through the
+//! stages again for the point layers, and the node's recorded estimates and fused surfaces are
+//! shown; or a directory of PCD/PLY frames of one camera (e.g. PCL's grabber sequences): the
+//! stages run on every frame with the HIP fixed (`--hip`, or placed in front of the surface
+//! point nearest the optical axis). `--screenshot`
 //! saves what the window shows as PNG and closes it (run under `xvfb-run` without a display);
 //! `--json` prints a summary of the timeline instead of opening a window.
 
 use anyhow::{Context, bail};
+use hapcloud::node::record;
 use hapcloud::viewer::replay::ReplayConfig;
-use hapcloud::viewer::source::{hip_on_axis, read_cloud_dir, timeline_from_frames};
+use hapcloud::viewer::source::{
+    hip_on_axis, read_cloud_dir, timeline_from_frames, timeline_from_recording,
+};
 use hapcloud::viewer::{
     PointRole, ScreenshotRequest, ViewerApp, ViewerConfig, ViewerSource, run_window,
 };
@@ -18,7 +23,8 @@ use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Directory of .pcd/.ply frames of one camera, in name order.
+    /// A node recording (`hapcloud run --record DIR`: has meta.json), or a directory of
+    /// .pcd/.ply frames of one camera in name order.
     source: PathBuf,
     /// HIP position "x,y,z" in metres (world frame: camera at the origin looking along x,
     /// z up); default: hip radius + --hip-clearance-m in front of the surface point seen
@@ -86,18 +92,36 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
 
-    let frames = read_cloud_dir(&args.source, args.rate_hz)?;
-    let hip = match &args.hip {
-        Some(s) => parse_hip(s)?,
-        None => hip_on_axis(&frames[0], file.replay.hip_radius_m + args.hip_clearance_m)
-            .with_context(|| {
-                format!(
-                    "{}: no finite point to place the HIP in front of; give --hip",
-                    args.source.display()
-                )
-            })?,
+    let (timeline, hip) = if args.source.join("meta.json").is_file() {
+        if args.hip.is_some() {
+            bail!("--hip is for frame directories; a recording carries the node's HIP");
+        }
+        let recording = record::read(&args.source)?;
+        let hip = recording.meta.config.hip_world_m;
+        (
+            timeline_from_recording(&recording, file.replay.hip_radius_m)?,
+            hip,
+        )
+    } else {
+        let frames = read_cloud_dir(&args.source, args.rate_hz)?;
+        let hip = match &args.hip {
+            Some(s) => parse_hip(s)?,
+            None => hip_on_axis(&frames[0], file.replay.hip_radius_m + args.hip_clearance_m)
+                .with_context(|| {
+                    format!(
+                        "{}: no finite point to place the HIP in front of; give --hip",
+                        args.source.display()
+                    )
+                })?,
+        };
+        (
+            timeline_from_frames(&frames, hip, file.replay.clone())?,
+            hip,
+        )
     };
-    let timeline = timeline_from_frames(&frames, hip, file.replay.clone())?;
+    if timeline.is_empty() {
+        bail!("{}: no frames", args.source.display());
+    }
 
     if args.json {
         let count = |role| timeline.iter().map(|f| f.point_count(role)).sum::<usize>();

@@ -86,6 +86,8 @@ pub struct LayeredPerception {
     config: ReplayConfig,
     frontend: CpuFrontend,
     estimators: BTreeMap<u32, SurfaceEstimator>,
+    /// Each camera's newest view: cameras at different rates or phases all stay on screen.
+    latest: BTreeMap<u32, CameraView>,
     fusion: Fusion,
     previous_d_proj: Option<(f64, f64)>,
 }
@@ -101,6 +103,7 @@ impl LayeredPerception {
             frontend: CpuFrontend::new(config.frontend.clone())?,
             fusion: Fusion::new(config.fusion)?,
             estimators: BTreeMap::new(),
+            latest: BTreeMap::new(),
             previous_d_proj: None,
             config,
         })
@@ -214,8 +217,9 @@ impl LayeredPerception {
         Ok((view, estimate, latencies))
     }
 
-    /// One instant: the frames the cameras took at about `stamp_s`, the HIP and the posed
-    /// robot primitives (world frame), and the ground truth when the source knows it.
+    /// One instant: the frames that arrived (any subset of the cameras), the HIP and the
+    /// posed robot primitives (world frame), and the ground truth when the source knows it.
+    /// The view shows every camera's newest frame; fusion is evaluated at `stamp_s`.
     pub fn step(
         &mut self,
         stamp_s: f64,
@@ -224,12 +228,11 @@ impl LayeredPerception {
         robot: &[Primitive],
         truth: Option<SurfacePoint>,
     ) -> Result<ViewFrame, ReplayError> {
-        let mut cameras = Vec::with_capacity(frames.len());
         let mut latencies: Vec<StageLatency> = Vec::new();
         for frame in frames {
             let (view, estimate, lat) = self.camera(frame, &hip_m, robot)?;
             self.fusion.push(&estimate);
-            cameras.push(view);
+            self.latest.insert(view.camera_id, view);
             for l in lat {
                 match latencies.iter_mut().find(|x| x.stage == l.stage) {
                     Some(x) => x.latency_s += l.latency_s,
@@ -260,7 +263,7 @@ impl LayeredPerception {
             hip_m,
             hip_radius_m: self.config.hip_radius_m,
             shell_radii_m: self.config.surface.shells.radii_m.clone(),
-            cameras,
+            cameras: self.latest.values().cloned().collect(),
             fused,
             truth,
             samples: FrameSamples {

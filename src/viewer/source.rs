@@ -1,4 +1,5 @@
-//! Timelines for the viewer from files: a directory of point-cloud frames of one camera.
+//! Timelines for the viewer from files: a node recording ([`timeline_from_recording`]) or a
+//! directory of point-cloud frames of one camera.
 //!
 //! Frames are the directory's `.pcd`/`.ply` files in name order. A PCL grabber name
 //! (`frame_YYYYMMDDThhmmss.ffffff`) gives the stamp (seconds of the day); other names are
@@ -10,10 +11,11 @@
 //! puts one in front of the surface point seen closest to the optical axis. Every frame
 //! then goes through [`LayeredPerception`].
 
-use super::frame::ViewFrame;
+use super::frame::{StageLatency, SurfacePoint, ViewFrame};
 use super::replay::{LayeredPerception, ReplayConfig, ReplayError};
 use crate::camera::Frame;
 use crate::io;
+use crate::node::record::Recording;
 use nalgebra::{Isometry3, Matrix3, Point3, Translation3, UnitQuaternion};
 use std::path::{Path, PathBuf};
 
@@ -119,6 +121,75 @@ pub fn hip_on_axis(frame: &Frame, distance_m: f64) -> Option<Point3<f64>> {
     let p = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
     let ray = p.coords.normalize();
     Some(frame.world_from_camera * (p - distance_m * ray))
+}
+
+/// The viewer timeline of a node recording (`hapcloud run --record DIR`).
+///
+/// The recorded frames go through [`LayeredPerception`] with the node's own stage configs
+/// and HIP (`NodeConfig::hip_world_m`) to recover the point layers; what the node decided is
+/// shown as recorded: each camera's estimate is the node's (matched by camera and stamp), and
+/// the fused surface is the one of the tick that took that estimate in, so d_proj and the
+/// error plots follow the node's own output. The tick's work time joins the latencies.
+pub fn timeline_from_recording(
+    recording: &Recording,
+    hip_radius_m: f64,
+) -> Result<Vec<ViewFrame>, SourceError> {
+    let node = &recording.meta.config;
+    let config = ReplayConfig {
+        frontend: node.frontend.clone(),
+        surface: node.surface.clone(),
+        fusion: node.fusion,
+        hip_radius_m,
+    };
+    let hip = node.hip_world_m;
+    let mut perception = LayeredPerception::new(config)?;
+    let mut previous: Option<(f64, f64)> = None;
+    recording
+        .frames
+        .iter()
+        .map(|frame| {
+            let mut view =
+                perception.step(frame.stamp_s, std::slice::from_ref(frame), hip, &[], None)?;
+            let recorded = recording
+                .estimates
+                .iter()
+                .find(|(_, e)| e.camera_id == frame.camera_id && e.stamp_s == frame.stamp_s);
+            if let Some((tick_index, estimate)) = recorded {
+                if let Some(cam) = view
+                    .cameras
+                    .iter_mut()
+                    .find(|c| c.camera_id == frame.camera_id)
+                {
+                    cam.estimate = Some(estimate.clone());
+                }
+                let tick = recording.ticks.iter().find(|t| t.index == *tick_index);
+                view.fused = tick
+                    .filter(|t| t.fused.is_tracking())
+                    .map(|t| SurfacePoint {
+                        point_m: t.fused.centroid_m,
+                        normal: t.fused.normal,
+                    });
+                if let Some(t) = tick {
+                    view.samples.latencies.push(StageLatency {
+                        stage: "node tick work".into(),
+                        latency_s: t.work_s,
+                    });
+                }
+            }
+            // Paper eq. 7 on the fused surface shown.
+            view.samples.d_proj_m = view
+                .fused
+                .map(|f| (f.point_m - hip).dot(&-f.normal.into_inner()) - hip_radius_m);
+            view.samples.d_proj_rate_m_per_s = match (view.samples.d_proj_m, previous) {
+                (Some(d), Some((t0, d0))) if view.stamp_s > t0 => {
+                    Some((d - d0) / (view.stamp_s - t0))
+                }
+                _ => None,
+            };
+            previous = view.samples.d_proj_m.map(|d| (view.stamp_s, d));
+            Ok(view)
+        })
+        .collect()
 }
 
 /// The viewer timeline of one camera's frames with a fixed HIP.
