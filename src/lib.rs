@@ -25,8 +25,8 @@ pub mod haptics;
 pub mod io;
 pub mod node;
 pub mod perception;
-pub mod study;
 pub mod robot;
 pub mod scene;
+pub mod study;
 #[cfg(feature = "viewer")]
 pub mod viewer;

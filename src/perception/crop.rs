@@ -214,7 +214,14 @@ impl GpuCrop {
                     usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
                     mapped_at_creation: false,
                 }),
-                storage(device, "crop primitives", 0, wgpu::BufferUsages::empty()),
+                // A runtime-sized array binding must hold at least one element, even when
+                // no primitive is posed.
+                storage(
+                    device,
+                    "crop primitives",
+                    std::mem::size_of::<CropPrimitive>() as u64,
+                    wgpu::BufferUsages::empty(),
+                ),
                 storage(device, "crop keep mask", 0, wgpu::BufferUsages::COPY_SRC),
             )
         })?;
@@ -560,5 +567,27 @@ mod tests {
                 .unwrap()
                 .is_empty()
         );
+    }
+
+    /// Regression: with no robot primitive the primitives binding still holds one element
+    /// (a 16-byte buffer failed wgpu validation against the 96-byte `CropPrimitive`).
+    #[test]
+    fn gpu_without_primitives_matches_cpu() {
+        let ctx = crate::gpu::context::test_context();
+        let scene = hip_scene(&[]);
+        let pts = vec![
+            Vec3::new(0.0, 0.0, 0.2),
+            Vec3::new(f32::NAN, 0.0, 0.0),
+            Vec3::new(0.0, 0.0, 0.5),
+            Vec3::new(-0.2, 0.1, 0.0),
+        ];
+        let config = CropConfig::default();
+        let gpu = GpuCrop::new(ctx)
+            .unwrap()
+            .run(ctx, &pts, &config, &scene, None)
+            .unwrap()
+            .0;
+        assert_eq!(gpu, crop_cpu(&pts, &config, &scene).unwrap());
+        assert_eq!(kept_indices(&gpu, pts.len()), vec![0, 3]);
     }
 }
