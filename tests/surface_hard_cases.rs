@@ -449,8 +449,8 @@ fn memory_fills_the_occluded_centre_on_an_approach() {
         view.occluder_radius_m = 0.04;
         view.seed = k;
         let cloud = view.render(&[shape], &hip);
-        let a = with.estimate(&cloud, &hip, &view.direction(&hip), 0, t);
-        let b = without.estimate(&cloud, &hip, &view.direction(&hip), 0, t);
+        let a = with.estimate(&cloud, &hip, view.direction(&hip), 0, t);
+        let b = without.estimate(&cloud, &hip, view.direction(&hip), 0, t);
         let (ea, _) = errors(&a.abstraction.estimate, &shape, &hip);
         let (eb, _) = errors(&b.abstraction.estimate, &shape, &hip);
         if k > 0 {
@@ -493,14 +493,14 @@ fn failed_registration_is_rejected() {
     view.d435_noise = true;
     let mut est = SurfaceEstimator::new(SurfaceConfig::default()).unwrap();
     let cloud = view.render(&[head()], &hip);
-    est.estimate(&cloud, &hip, &view.direction(&hip), 0, 0.0);
+    est.estimate(&cloud, &hip, view.direction(&hip), 0, 0.0);
     // Unrelated: a plane crossing the annulus at a steep angle, far from the remembered head.
     let wall = Shape::Plane {
         point: hip + Vector3::new(0.0, 0.0, 0.07),
         normal: Vector3::new(0.0, 0.2, -1.0).normalize(),
     };
     let bad = view.render(&[wall], &hip);
-    let frame = est.estimate(&bad, &hip, &view.direction(&hip), 0, 1.0 / 30.0);
+    let frame = est.estimate(&bad, &hip, view.direction(&hip), 0, 1.0 / 30.0);
     assert_eq!(
         frame.memory.status,
         hapcloud::perception::memory::MemoryStatus::Rejected,
@@ -529,12 +529,34 @@ fn gpu_path_equals_cpu_path() {
     cloud.push(Vec3::NAN);
     let cpu = run(&no_memory(), &cloud, &hip, &view.direction(&hip));
     let mut gpu = SurfaceEstimator::with_gpu(no_memory(), ctx).unwrap();
-    let a = gpu.estimate(&cloud, &hip, &view.direction(&hip), 0, 0.0);
+    let a = gpu.estimate(&cloud, &hip, view.direction(&hip), 0, 0.0);
     assert_eq!(a.backend, hapcloud::gpu::Backend::Gpu);
     assert_eq!(a.gpu_error, None);
     assert_eq!(a.abstraction.estimate, cpu.abstraction.estimate);
     cloud.shuffle(&mut rand_chacha::ChaCha8Rng::seed_from_u64(9));
-    let b = gpu.estimate(&cloud, &hip, &view.direction(&hip), 0, 0.0);
+    let b = gpu.estimate(&cloud, &hip, view.direction(&hip), 0, 0.0);
     assert_eq!(b.sums, a.sums);
     assert_eq!(b.abstraction.estimate, a.abstraction.estimate);
+}
+
+/// Eq. 2 with the camera position: a floor under the HIP seen by a camera looking
+/// horizontally (its optical axis is perpendicular to the floor normal, so the printed eq. 2
+/// cannot tell up from down); the rays from the camera can.
+#[test]
+fn floor_seen_from_a_horizontal_camera_faces_up() {
+    let floor = Shape::Plane {
+        point: Point3::new(0.0, 0.0, 0.0),
+        normal: Vector3::z(),
+    };
+    let hip = Point3::new(0.0, 0.0, 0.04);
+    let camera = Point3::new(0.6, 0.0, 0.25);
+    let cloud = View::new(camera).render(&[floor], &hip);
+    let e = SurfaceEstimator::new(no_memory())
+        .unwrap()
+        .estimate(&cloud, &hip, camera, 0, 0.0)
+        .abstraction
+        .estimate;
+    let (ce, ne) = errors(&e, &floor, &hip);
+    assert!(e.valid && ce < 1e-4 && ne < 0.1, "{ce} {ne}");
+    assert!(e.shells.iter().all(|s| s.normal.z > 0.0));
 }

@@ -2,8 +2,8 @@
 //! of one cloud file around a HIP.
 //!
 //! The cloud (PCD or PLY, read by the project's readers) is taken as the front end's cleaned
-//! cloud in its own frame; the HIP is in that frame too. The viewing direction of eq. 2
-//! defaults to the optical axis of the file's sensor pose (PCD `VIEWPOINT`). One frame has no
+//! cloud in its own frame; the HIP is in that frame too. Eq. 2 orients the normals against
+//! `--view`, or by default against the rays from the file's sensor position (PCD `VIEWPOINT`). One frame has no
 //! memory yet, so this shows the shell abstraction: every shell's outcome and fit, the paper's
 //! centroid and the curvature-corrected one.
 
@@ -13,6 +13,7 @@ use hapcloud::gpu::{Backend, GpuContext};
 use hapcloud::io;
 use hapcloud::perception::fit::CircleMethod;
 use hapcloud::perception::pipeline::{SurfaceConfig, SurfaceEstimator};
+use hapcloud::perception::shells::Viewpoint;
 use nalgebra::{Point3, Vector3};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -26,7 +27,7 @@ pub struct Args {
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub hip: Vec<f64>,
     /// Camera viewing direction z^k of eq. 2 (normals are turned against it): x,y,z.
-    /// Default: the optical axis of the file's sensor pose.
+    /// Default: the rays from the file's sensor position (PCD VIEWPOINT) to each shell.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub view: Option<Vec<f64>>,
     /// Surface configuration (TOML of `SurfaceConfig`: [memory], [shells]).
@@ -74,12 +75,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     config.validate().context("surface configuration")?;
     let cloud = io::read_cloud(&args.input)?;
     let view = match &args.view {
-        Some(v) => vec3("view", v)?,
-        None => cloud.sensor_pose.rotation * Vector3::z(),
+        Some(v) => {
+            let v = vec3("view", v)?;
+            if v.norm() == 0.0 {
+                bail!("--view must not be the zero vector");
+            }
+            Viewpoint::Direction(v)
+        }
+        None => Viewpoint::Position(Point3::from(cloud.sensor_pose.translation.vector)),
     };
-    if view.norm() == 0.0 {
-        bail!("--view must not be the zero vector");
-    }
     let (mut estimator, adapter) = match args.backend {
         Backend::Cpu => (SurfaceEstimator::new(config.clone())?, None),
         Backend::Gpu => {
@@ -89,7 +93,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     };
     let start = Instant::now();
-    let frame = estimator.estimate(&cloud.points, &hip, &view, 0, 0.0);
+    let frame = estimator.estimate(&cloud.points, &hip, view, 0, 0.0);
     let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
     if let Some(e) = &frame.gpu_error {
         eprintln!("warning: GPU shell moments failed ({e}); used the CPU reference");

@@ -14,11 +14,12 @@
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
 use super::shells::{
     self, GpuShells, ShellAbstraction, ShellConfig, ShellConfigError, ShellLayout, ShellSums,
+    Viewpoint,
 };
 use crate::camera::Frame;
 use crate::gpu::{Backend, GpuContext, GpuError};
 use glam::Vec3;
-use nalgebra::{Point3, Vector3};
+use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -112,7 +113,7 @@ impl SurfaceEstimator {
     }
 
     /// Estimate from a camera frame whose cloud is the front end's cleaned cloud in the
-    /// camera's optical frame; the viewing direction `z^k` of eq. 2 is the optical axis.
+    /// camera's optical frame; eq. 2 orients normals against the rays from the camera.
     pub fn estimate_frame(&mut self, frame: &Frame, hip_world: &Point3<f64>) -> SurfaceFrame {
         let pose = frame.world_from_camera;
         let world: Vec<Vec3> = frame
@@ -124,8 +125,8 @@ impl SurfaceEstimator {
                 Vec3::new(q.x as f32, q.y as f32, q.z as f32)
             })
             .collect();
-        let view = pose.rotation * Vector3::z();
-        self.estimate(&world, hip_world, &view, frame.camera_id, frame.stamp_s)
+        let camera = Point3::from(pose.translation.vector);
+        self.estimate(&world, hip_world, camera, frame.camera_id, frame.stamp_s)
     }
 
     /// Estimate from a cleaned cloud already in the world frame.
@@ -133,7 +134,7 @@ impl SurfaceEstimator {
         &mut self,
         cloud_world: &[Vec3],
         hip: &Point3<f64>,
-        view_dir: &Vector3<f64>,
+        viewpoint: impl Into<Viewpoint>,
         camera_id: u32,
         stamp_s: f64,
     ) -> SurfaceFrame {
@@ -156,7 +157,7 @@ impl SurfaceEstimator {
         };
         let moments = sums.to_moments(&layout);
         let abstraction =
-            shells::abstract_surface(&moments, &self.config.shells, view_dir, camera_id, stamp_s);
+            shells::abstract_surface(&moments, &self.config.shells, viewpoint, camera_id, stamp_s);
         SurfaceFrame {
             abstraction,
             memory,

@@ -19,7 +19,8 @@
 //! **Fits (Alg. 2).** The innermost shell with enough points gets `plane3d`, the others
 //! `circle3d` ([`super::fit`]). Each normal is oriented against the camera's viewing
 //! direction `z` (eq. 2: `n <- -sign(n . z) n`). Fits whose residual is a large fraction of
-//! their shell radius (two surfaces in one shell) count as degenerate. The worst half by the
+//! their shell radius (two surfaces in one shell) count as degenerate. With the camera's
+//! position known ([`Viewpoint::Position`]), `z` is the ray from the camera to the shell. The worst half by the
 //! summed normal distance `S_j = sum_i |n_j - n_i|` is rejected, and the rest are averaged
 //! with weights `1 / r_i` (the shell's outer radius).
 //!
@@ -337,15 +338,56 @@ struct Accepted {
     moments: Moments,
 }
 
+/// What eq. 2 orients the normals against.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Viewpoint {
+    /// The camera's viewing direction `z^k` (eq. 2 as printed).
+    Direction(Vector3<f64>),
+    /// The camera's optical centre: each shell normal is turned against the ray from the
+    /// camera to the shell's centre. Same as eq. 2 near the optical axis, and still right for
+    /// a surface seen far off the axis (a floor below a horizontal camera, where the normal is
+    /// nearly perpendicular to `z^k` and its sign would be a coin toss).
+    Position(Point3<f64>),
+}
+
+impl Viewpoint {
+    /// The viewing direction towards `target`.
+    pub fn towards(&self, target: &Point3<f64>) -> Vector3<f64> {
+        match self {
+            Viewpoint::Direction(d) => *d,
+            Viewpoint::Position(p) => target - p,
+        }
+    }
+}
+
+impl From<Vector3<f64>> for Viewpoint {
+    fn from(d: Vector3<f64>) -> Self {
+        Viewpoint::Direction(d)
+    }
+}
+
+impl From<&Vector3<f64>> for Viewpoint {
+    fn from(d: &Vector3<f64>) -> Self {
+        Viewpoint::Direction(*d)
+    }
+}
+
+impl From<Point3<f64>> for Viewpoint {
+    fn from(p: Point3<f64>) -> Self {
+        Viewpoint::Position(p)
+    }
+}
+
 /// Alg. 2: shell fits, eq. 2 orientation, rejection of the worst half, weighted average,
-/// curvature correction. `view_dir` is the camera's viewing direction `z^k`.
+/// curvature correction.
 pub fn abstract_surface(
     moments: &[Moments],
     config: &ShellConfig,
-    view_dir: &Vector3<f64>,
+    viewpoint: impl Into<Viewpoint>,
     camera_id: u32,
     stamp_s: f64,
 ) -> ShellAbstraction {
+    let viewpoint = viewpoint.into();
     let hip = moments
         .first()
         .map(|m| m.origin)
@@ -416,7 +458,7 @@ pub fn abstract_surface(
                     report.status = "inconsistent";
                 } else {
                     // Eq. 2: orient against the camera's viewing direction.
-                    let dot = normal.dot(view_dir);
+                    let dot = normal.dot(&viewpoint.towards(&center));
                     let normal = if dot > 0.0 { -normal } else { normal };
                     fits.push(Accepted {
                         fit: ShellFit {
@@ -468,7 +510,8 @@ pub fn abstract_surface(
     } else {
         0.0
     };
-    let fallback_normal = Unit::try_new(-view_dir, 1e-12).unwrap_or(Vector3::z_axis());
+    let fallback_normal =
+        Unit::try_new(-viewpoint.towards(&hip), 1e-12).unwrap_or(Vector3::z_axis());
     let mut estimate = SurfaceEstimate {
         camera_id,
         stamp_s,

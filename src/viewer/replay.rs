@@ -27,7 +27,7 @@ use crate::perception::frontend::{CpuFrontend, FrameInput, FrontendConfig, Front
 use crate::perception::pipeline::{SurfaceConfig, SurfaceConfigError, SurfaceEstimator};
 use crate::surface::SurfaceEstimate;
 use glam::Vec3;
-use nalgebra::{Point3, Vector3};
+use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -171,8 +171,9 @@ impl LayeredPerception {
                 e.insert(SurfaceEstimator::new(self.config.surface.clone())?)
             }
         };
-        let view_dir: Vector3<f64> = pose.rotation * Vector3::z();
-        let surface = estimator.estimate(&kept, hip_m, &view_dir, frame.camera_id, frame.stamp_s);
+        // Eq. 2 against the rays from the camera (hapcloud::perception::shells::Viewpoint).
+        let camera = Point3::from(pose.translation.vector);
+        let surface = estimator.estimate(&kept, hip_m, camera, frame.camera_id, frame.stamp_s);
         let surface_s = seconds_since(start);
 
         let merged = surface
