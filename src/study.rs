@@ -685,7 +685,7 @@ pub fn run_setting(
                 .estimate(
                     &kept,
                     &rec.truth.hip_m,
-                    &view,
+                    view,
                     frame.camera_id,
                     frame.stamp_s,
                 );
