@@ -1,13 +1,13 @@
 //! `hapcloud cluster`: Euclidean cluster extraction of one cloud, shaped like PCL's
 //! `pcl_cluster_extraction` (same tolerance / min / max meaning, clusters largest first).
 
+use super::timing::Timings;
 use anyhow::Context;
-use hapcloud::gpu::{Backend, GpuContext};
+use hapcloud::gpu::Backend;
 use hapcloud::io::{self, Encoding};
 use hapcloud::perception::cluster::{ClusterConfig, GpuClusterer, cluster_cpu};
 use serde_json::json;
 use std::path::PathBuf;
-use std::time::Instant;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -32,10 +32,6 @@ pub struct Args {
     json: bool,
 }
 
-fn ms(since: Instant) -> f64 {
-    since.elapsed().as_secs_f64() * 1e3
-}
-
 pub fn run(args: Args) -> anyhow::Result<()> {
     let config = ClusterConfig {
         // PCL's tool parses a double and its extractor casts it to float.
@@ -45,54 +41,32 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ..ClusterConfig::default()
     };
     config.validate()?;
-    let mut timings = serde_json::Map::new();
-
-    let t = Instant::now();
-    let cloud = io::read_cloud(&args.input)?;
-    timings.insert("read".into(), json!(ms(t)));
-
-    let mut adapter = None;
-    let mut submissions = None;
-    let clustering = match args.backend {
-        Backend::Cpu => {
-            let t = Instant::now();
-            let c = cluster_cpu(&cloud.points, &config)?;
-            timings.insert("cluster".into(), json!(ms(t)));
-            c
-        }
-        Backend::Gpu => {
-            let t = Instant::now();
-            let ctx = GpuContext::new()?;
-            let mut clusterer = GpuClusterer::new(&ctx)?;
-            timings.insert("gpu_init".into(), json!(ms(t)));
-            let t = Instant::now();
-            let (c, stats) = clusterer.cluster(&ctx, &cloud.points, &config)?;
-            timings.insert("cluster_wall".into(), json!(ms(t)));
-            if !stats.gpu_times.is_empty() {
-                let total: f64 = stats.gpu_times.iter().map(|s| s.gpu_ms).sum();
-                timings.insert("cluster".into(), json!(total));
-            }
-            for s in &stats.gpu_times {
-                timings.insert(s.stage.into(), json!(s.gpu_ms));
-            }
-            adapter = Some(ctx.adapter().name.clone());
-            submissions = Some(stats.submissions);
-            c
-        }
-    };
+    let mut timings = Timings::default();
+    let cloud = timings.time("read", || io::read_cloud(&args.input))?;
+    let ((clustering, submissions), adapter) = timings.run_stage(
+        args.backend,
+        "cluster",
+        || Ok((cluster_cpu(&cloud.points, &config)?, None)),
+        |ctx| Ok(GpuClusterer::new(ctx)?),
+        |clusterer, ctx| {
+            let (c, stats) = clusterer.cluster(ctx, &cloud.points, &config)?;
+            Ok(((c, Some(stats.submissions)), stats.gpu_times))
+        },
+    )?;
 
     if let Some(dir) = &args.out_dir {
-        let t = Instant::now();
-        std::fs::create_dir_all(dir)
-            .with_context(|| format!("creating output directory {}", dir.display()))?;
-        for (k, part) in clustering.extract(&cloud).iter().enumerate() {
-            io::write_cloud(
-                &dir.join(format!("cluster_{k}.pcd")),
-                part,
-                Encoding::Binary,
-            )?;
-        }
-        timings.insert("write".into(), json!(ms(t)));
+        timings.time("write", || {
+            std::fs::create_dir_all(dir)
+                .with_context(|| format!("creating output directory {}", dir.display()))?;
+            for (k, part) in clustering.extract(&cloud).iter().enumerate() {
+                io::write_cloud(
+                    &dir.join(format!("cluster_{k}.pcd")),
+                    part,
+                    Encoding::Binary,
+                )?;
+            }
+            anyhow::Ok(())
+        })?;
     }
 
     let sizes = clustering.cluster_sizes();
@@ -121,11 +95,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.backend,
             adapter.map(|a| format!(" on {a}")).unwrap_or_default()
         );
-        let parts: Vec<String> = timings
-            .iter()
-            .map(|(k, v)| format!("{k} {:.3} ms", v.as_f64().unwrap_or(f64::NAN)))
-            .collect();
-        println!("timings: {}", parts.join(", "));
+        timings.print();
     }
     Ok(())
 }

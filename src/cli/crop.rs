@@ -1,18 +1,15 @@
 //! `hapcloud crop`: the crop stage on a PCD/PLY file: drops invalid points, points farther
 //! than `--radius` from the HIP and points inside the robot's collision primitives.
 
-use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::time::Instant;
 
+use super::timing::Timings;
 use anyhow::Context;
 use hapcloud::geometry::Primitive;
-use hapcloud::gpu::timing::StageTimer;
-use hapcloud::gpu::{Backend, GpuContext};
+use hapcloud::gpu::Backend;
+use hapcloud::gpu::timing::{StageTime, StageTimer};
 use hapcloud::perception::crop::{CropConfig, CropScene, GpuCrop, crop_cpu, kept_indices};
 use nalgebra::Point3;
-
-use super::voxel::ms;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -58,20 +55,21 @@ fn parse_point(s: &str) -> Result<Point3<f64>, String> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut timings = BTreeMap::new();
-    let t = Instant::now();
-    let cloud = hapcloud::io::read_cloud(&args.input)?;
-    let robot = match &args.robot {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("reading {}", path.display()))?;
-            toml::from_str::<RobotFile>(&text)
-                .with_context(|| format!("{}: not a robot primitive list", path.display()))?
-                .primitive
-        }
-        None => Vec::new(),
-    };
-    timings.insert("read", ms(t));
+    let mut timings = Timings::default();
+    let (cloud, robot) = timings.time("read", || {
+        let cloud = hapcloud::io::read_cloud(&args.input)?;
+        let robot = match &args.robot {
+            Some(path) => {
+                let text = std::fs::read_to_string(path)
+                    .with_context(|| format!("reading {}", path.display()))?;
+                toml::from_str::<RobotFile>(&text)
+                    .with_context(|| format!("{}: not a robot primitive list", path.display()))?
+                    .primitive
+            }
+            None => Vec::new(),
+        };
+        anyhow::Ok((cloud, robot))
+    })?;
     let config = CropConfig {
         radius_m: args.radius,
     };
@@ -79,36 +77,31 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         hip_m: args.hip,
         robot: &robot,
     };
-    let mut adapter = None;
-    let mask = match args.backend {
-        Backend::Cpu => {
-            let t = Instant::now();
-            let mask = crop_cpu(&cloud.points, &config, &scene)?;
-            timings.insert("crop", ms(t));
-            mask
-        }
-        Backend::Gpu => {
-            let t = Instant::now();
-            let ctx = GpuContext::new()?;
-            let timer = StageTimer::new(&ctx, "crop", &["crop"])?;
-            let mut crop = GpuCrop::new(&ctx)?;
-            timings.insert("gpu_init", ms(t));
-            let t = Instant::now();
-            let (mask, gpu_ms) = crop.run(&ctx, &cloud.points, &config, &scene, timer.as_ref())?;
-            timings.insert("crop_wall", ms(t));
-            if let Some(g) = gpu_ms {
-                timings.insert("crop", g);
-            }
-            adapter = Some(ctx.adapter().name.clone());
-            mask
-        }
-    };
+    let (mask, adapter) = timings.run_stage(
+        args.backend,
+        "crop",
+        || Ok(crop_cpu(&cloud.points, &config, &scene)?),
+        |ctx| Ok((GpuCrop::new(ctx)?, StageTimer::new(ctx, "crop", &["crop"])?)),
+        |(crop, timer), ctx| {
+            let (mask, gpu_ms) = crop.run(ctx, &cloud.points, &config, &scene, timer.as_ref())?;
+            let passes = gpu_ms.map(|gpu_ms| StageTime {
+                stage: "crop",
+                gpu_ms,
+            });
+            Ok((mask, passes.into_iter().collect()))
+        },
+    )?;
     let kept = kept_indices(&mask, cloud.len());
     if let Some(path) = &args.out {
-        let t = Instant::now();
-        hapcloud::io::write_cloud(path, &cloud.select(&kept), hapcloud::io::Encoding::Binary)
+        timings
+            .time("write", || {
+                hapcloud::io::write_cloud(
+                    path,
+                    &cloud.select(&kept),
+                    hapcloud::io::Encoding::Binary,
+                )
+            })
             .with_context(|| format!("writing {}", path.display()))?;
-        timings.insert("write", ms(t));
     }
     if args.json {
         let json = serde_json::json!({
@@ -130,9 +123,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.backend,
             adapter.map(|a| format!(", {a}")).unwrap_or_default()
         );
-        for (stage, t) in &timings {
-            println!("  {stage}: {t:.3} ms");
-        }
+        timings.print();
     }
     Ok(())
 }

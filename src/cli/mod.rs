@@ -16,6 +16,7 @@ mod replay;
 mod run;
 mod study;
 mod surface;
+mod timing;
 #[cfg(feature = "viewer")]
 mod view;
 mod voxel;

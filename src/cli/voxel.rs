@@ -1,14 +1,13 @@
 //! `hapcloud voxel`: PCL VoxelGrid on a PCD/PLY file (like `pcl_voxel_grid`), on the GPU or
 //! with the CPU reference.
 
-use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::time::Instant;
 
+use super::timing::Timings;
 use anyhow::Context;
 use hapcloud::cloud::PointCloud;
-use hapcloud::gpu::timing::StageTimer;
-use hapcloud::gpu::{Backend, GpuContext};
+use hapcloud::gpu::Backend;
+use hapcloud::gpu::timing::{StageTime, StageTimer};
 use hapcloud::perception::voxel::{Axis, FilterLimits, GpuVoxel, VoxelConfig, voxel_cpu};
 
 #[derive(clap::Args)]
@@ -51,10 +50,8 @@ enum FieldArg {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut timings = BTreeMap::new();
-    let t = Instant::now();
-    let cloud = hapcloud::io::read_cloud(&args.input)?;
-    timings.insert("read", ms(t));
+    let mut timings = Timings::default();
+    let cloud = timings.time("read", || hapcloud::io::read_cloud(&args.input))?;
     let filter = (args.fmin.is_some() || args.fmax.is_some()).then(|| FilterLimits {
         axis: match args.field {
             FieldArg::X => Axis::X,
@@ -72,37 +69,33 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ..Default::default()
     };
     config.validate()?;
-    let mut adapter = None;
-    let out = match args.backend {
-        Backend::Cpu => {
-            let t = Instant::now();
-            let out = voxel_cpu(&cloud.points, None, &config)?;
-            timings.insert("voxel", ms(t));
-            out
-        }
-        Backend::Gpu => {
-            let t = Instant::now();
-            let ctx = GpuContext::new()?;
-            let timer = StageTimer::new(&ctx, "voxel", &["voxel"])?;
-            let mut voxel = GpuVoxel::new(&ctx)?;
-            timings.insert("gpu_init", ms(t));
-            let t = Instant::now();
-            let (out, gpu_ms) = voxel.run(&ctx, &cloud.points, &config, timer.as_ref())?;
-            timings.insert("voxel_wall", ms(t));
-            if let Some(g) = gpu_ms {
-                timings.insert("voxel", g);
-            }
-            adapter = Some(ctx.adapter().name.clone());
-            out
-        }
-    };
+    let (out, adapter) = timings.run_stage(
+        args.backend,
+        "voxel",
+        || Ok(voxel_cpu(&cloud.points, None, &config)?),
+        |ctx| {
+            Ok((
+                GpuVoxel::new(ctx)?,
+                StageTimer::new(ctx, "voxel", &["voxel"])?,
+            ))
+        },
+        |(voxel, timer), ctx| {
+            let (out, gpu_ms) = voxel.run(ctx, &cloud.points, &config, timer.as_ref())?;
+            let passes = gpu_ms.map(|gpu_ms| StageTime {
+                stage: "voxel",
+                gpu_ms,
+            });
+            Ok((out, passes.into_iter().collect()))
+        },
+    )?;
     if let Some(path) = &args.out {
-        let t = Instant::now();
         let mut result = PointCloud::from_points(out.points.clone());
         result.sensor_pose = cloud.sensor_pose;
-        hapcloud::io::write_cloud(path, &result, hapcloud::io::Encoding::Binary)
+        timings
+            .time("write", || {
+                hapcloud::io::write_cloud(path, &result, hapcloud::io::Encoding::Binary)
+            })
             .with_context(|| format!("writing {}", path.display()))?;
-        timings.insert("write", ms(t));
     }
     if args.json {
         let json = serde_json::json!({
@@ -128,13 +121,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.backend,
             adapter.map(|a| format!(", {a}")).unwrap_or_default()
         );
-        for (stage, t) in &timings {
-            println!("  {stage}: {t:.3} ms");
-        }
+        timings.print();
     }
     Ok(())
-}
-
-pub(crate) fn ms(t: Instant) -> f64 {
-    t.elapsed().as_secs_f64() * 1e3
 }
