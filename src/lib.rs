@@ -28,5 +28,6 @@ pub mod perception;
 pub mod robot;
 pub mod scene;
 pub mod study;
+pub mod timing;
 #[cfg(feature = "viewer")]
 pub mod viewer;

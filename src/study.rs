@@ -36,10 +36,9 @@ use crate::camera::Frame;
 use crate::cloud::PointCloud;
 use crate::fusion::{Fusion, FusionConfig, FusionConfigError};
 use crate::gpu::{Backend, GpuContext};
-use crate::perception::crop::{CropScene, finite_bits};
 use crate::perception::fit::CircleMethod;
-use crate::perception::frontend::{FrameInput, Frontend, FrontendConfig, FrontendError};
-use crate::perception::pipeline::{SurfaceConfig, SurfaceConfigError, SurfaceEstimator};
+use crate::perception::frontend::{FrontendConfig, FrontendError};
+use crate::perception::pipeline::{CameraChain, ChainError, SurfaceConfig};
 use glam::Vec3;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use plotters::prelude::*;
@@ -260,17 +259,11 @@ impl Default for SyntheticScene {
 pub enum StudyError {
     #[error("synthetic scene: {0}")]
     Scene(String),
-    #[error("setting {knob}={value}: front end: {source}")]
-    Frontend {
+    #[error("setting {knob}={value}: {source}")]
+    Pipeline {
         knob: String,
         value: String,
-        source: FrontendError,
-    },
-    #[error("setting {knob}={value}: surface: {source}")]
-    Surface {
-        knob: String,
-        value: String,
-        source: SurfaceConfigError,
+        source: ChainError,
     },
     #[error("setting {knob}={value}: fusion: {source}")]
     Fusion {
@@ -595,30 +588,14 @@ pub fn run_setting(
             have,
         });
     }
-    let mut frontend =
-        Frontend::new(backend, knobs.frontend.clone(), ctx.clone()).map_err(|source| {
-            StudyError::Frontend {
+    let mut pipeline =
+        CameraChain::new(backend, knobs.frontend.clone(), knobs.surface.clone(), ctx).map_err(
+            |source| StudyError::Pipeline {
                 knob: knob.clone(),
                 value: value.clone(),
                 source,
-            }
-        })?;
-    let surface_error = |source| StudyError::Surface {
-        knob: knob.clone(),
-        value: value.clone(),
-        source,
-    };
-    let mut estimators = BTreeMap::new();
-    for id in 0..knobs.camera_count {
-        let est = match (backend, &ctx) {
-            (Backend::Gpu, Some(ctx)) => {
-                SurfaceEstimator::with_gpu(knobs.surface.clone(), Arc::clone(ctx))
-            }
-            _ => SurfaceEstimator::new(knobs.surface.clone()),
-        }
-        .map_err(surface_error)?;
-        estimators.insert(id, est);
-    }
+            },
+        )?;
     let mut fusion = Fusion::new(knobs.fusion).map_err(|source| StudyError::Fusion {
         knob: knob.clone(),
         value: value.clone(),
@@ -638,60 +615,22 @@ pub fn run_setting(
         .peekable();
     for (t, truth) in &recording.ticks {
         while let Some(rec) = next.next_if(|f| f.arrival_s <= *t) {
-            let frame = &rec.frame;
-            let pose = frame.world_from_camera;
-            let world: Vec<Vec3> = frame
-                .cloud
-                .points
-                .iter()
-                .map(|p| {
-                    if !finite_bits(*p) {
-                        return *p;
-                    }
-                    let q = pose * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-                    Vec3::new(q.x as f32, q.y as f32, q.z as f32)
-                })
-                .collect();
-            let out = frontend
-                .process(&FrameInput {
-                    points: &world,
-                    crop: Some(CropScene {
-                        hip_m: rec.truth.hip_m,
-                        robot: &[],
-                    }),
-                })
-                .map_err(|source| StudyError::Frontend {
+            let cam = pipeline
+                .process(&rec.frame, &rec.truth.hip_m, &[])
+                .map_err(|source| StudyError::Pipeline {
                     knob: knob.clone(),
                     value: value.clone(),
                     source,
                 })?;
-            frontend_sum += out.wall_ms;
-            for st in &out.gpu_times {
+            frontend_sum += cam.frontend_time.wall_ms;
+            for st in &cam.front.gpu_times {
                 *gpu_stage_sum.entry(st.stage.to_string()).or_default() += st.gpu_ms;
             }
-            let kept: Vec<Vec3> = out
-                .clusters
-                .clusters
-                .iter()
-                .flat_map(|c| c.indices.iter().map(|&i| out.voxel.points[i as usize]))
-                .collect();
-            voxel_sum += out.voxel.points.len();
-            kept_sum += kept.len();
-            let view = pose.rotation * Vector3::z();
-            let start = Instant::now();
-            let est = estimators
-                .get_mut(&frame.camera_id)
-                .expect("one estimator per camera below camera_count")
-                .estimate(
-                    &kept,
-                    &rec.truth.hip_m,
-                    view,
-                    frame.camera_id,
-                    frame.stamp_s,
-                );
-            surface_sum += start.elapsed().as_secs_f64() * 1e3;
+            voxel_sum += cam.front.voxel.points.len();
+            kept_sum += cam.kept.len();
+            surface_sum += cam.surface_time.wall_ms;
             frames += 1;
-            let e = &est.abstraction.estimate;
+            let e = cam.estimate();
             if e.valid {
                 valid += 1;
                 cam_c.push((e.centroid_m - rec.truth.closest_m).norm() * 1e3);
@@ -777,10 +716,10 @@ pub fn run_study(
 ) -> Result<Vec<StudyRow>, StudyError> {
     let ctx = match backend {
         Backend::Gpu => Some(Arc::new(GpuContext::new().map_err(|e| {
-            StudyError::Frontend {
+            StudyError::Pipeline {
                 knob: "default".into(),
                 value: "-".into(),
-                source: FrontendError::Gpu(e),
+                source: ChainError::Frontend(FrontendError::Gpu(e)),
             }
         })?)),
         Backend::Cpu => None,

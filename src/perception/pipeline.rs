@@ -1,5 +1,24 @@
-//! The per-camera surface estimator: one frame in, one [`SurfaceEstimate`] out, reading top to
-//! bottom like the data flow of the design card (paper Fig. 3, IV-D and IV-E):
+//! The per-camera chain: one camera frame in, one [`SurfaceEstimate`] out, reading top to
+//! bottom like the data flow of the design card (paper Fig. 3, IV-A to IV-E).
+//!
+//! [`CameraChain`] is the one owner of the chain that the node, the study and the
+//! viewer's replay all run:
+//!
+//! 1. the frame's points to the world frame with the pose the camera reports (the HIP, the
+//!    robot primitives and the surface memory live there),
+//! 2. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
+//!    the robot primitives, voxel grid, Euclidean clusters (paper IV-A to IV-C); the points of
+//!    the kept clusters go on (clusters below the size threshold are noise, IV-C),
+//! 3. the camera's [`SurfaceEstimator`] (one per camera id, so each keeps its memory):
+//!    memory (Alg. 1) and shells (Alg. 2), eq. 2 against the rays from the camera.
+//!
+//! Each frame reports wall and thread CPU time of the front end and of the estimator
+//! ([`crate::timing`]) next to the front end's per-pass GPU timestamp times. A GPU failure
+//! (front end or shell moments) switches the chain to the CPU references for good and is
+//! reported in [`CameraChain::gpu_fallback`]. Fusion of the cameras (IV-F) is not
+//! perception: the caller pushes each estimate into its own `Fusion`.
+//!
+//! [`SurfaceEstimator`] itself, per camera:
 //!
 //! 1. points to the world frame (the HIP and the memory live there),
 //! 2. surface memory (Alg. 1): register the remembered annulus, fill the occluded centre,
@@ -7,20 +26,23 @@
 //!    failure falls back to the reference and is reported in [`SurfaceFrame::gpu_error`]),
 //! 4. shell fits, eq. 2 orientation, outlier rejection, weighted average and curvature
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
-//!
-//! The front end (crop, voxel grid, clustering; paper IV-A to IV-C) runs before this and hands
-//! over the cleaned cloud.
 
+use super::crop::finite_bits;
+use super::frontend::{FrameInput, Frontend, FrontendConfig, FrontendError, FrontendOutput};
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
 use super::shells::{
     self, GpuShells, ShellAbstraction, ShellConfig, ShellConfigError, ShellLayout, ShellSums,
     Viewpoint,
 };
 use crate::camera::Frame;
+use crate::geometry::Primitive;
 use crate::gpu::{Backend, GpuContext, GpuError};
+use crate::surface::SurfaceEstimate;
+use crate::timing::{SpanTime, Stopwatch};
 use glam::Vec3;
-use nalgebra::Point3;
+use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 /// Settings of the per-camera surface estimator.
@@ -116,15 +138,7 @@ impl SurfaceEstimator {
     /// camera's optical frame; eq. 2 orients normals against the rays from the camera.
     pub fn estimate_frame(&mut self, frame: &Frame, hip_world: &Point3<f64>) -> SurfaceFrame {
         let pose = frame.world_from_camera;
-        let world: Vec<Vec3> = frame
-            .cloud
-            .points
-            .iter()
-            .map(|p| {
-                let q = pose * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-                Vec3::new(q.x as f32, q.y as f32, q.z as f32)
-            })
-            .collect();
+        let world = to_world(&frame.cloud.points, &pose);
         let camera = Point3::from(pose.translation.vector);
         self.estimate(&world, hip_world, camera, frame.camera_id, frame.stamp_s)
     }
@@ -165,5 +179,340 @@ impl SurfaceEstimator {
             backend,
             gpu_error,
         }
+    }
+}
+
+/// Why the per-camera chain cannot be built or cannot process a frame.
+#[derive(Debug, thiserror::Error)]
+pub enum ChainError {
+    #[error("front end: {0}")]
+    Frontend(#[from] FrontendError),
+    #[error("surface: {0}")]
+    Surface(#[from] SurfaceConfigError),
+}
+
+/// Everything one camera frame produced through the chain.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ChainFrame {
+    pub camera_id: u32,
+    pub stamp_s: f64,
+    /// The frame's points in the world frame, in the frame's order (invalid points stay NaN).
+    pub world_points: Vec<Vec3>,
+    /// The front end's output (voxel grid, clusters, GPU time per pass).
+    pub front: FrontendOutput,
+    /// The points of the kept clusters, world frame: the estimator's input.
+    pub kept: Vec<Vec3>,
+    /// The estimator's output (memory step, shell sums, abstraction with the estimate).
+    pub surface: SurfaceFrame,
+    /// Wall and thread CPU time of the front end call (GPU: upload, recording, wait, readback).
+    pub frontend_time: SpanTime,
+    /// Wall and thread CPU time of the estimator (memory, shell moments, fits).
+    pub surface_time: SpanTime,
+}
+
+impl ChainFrame {
+    pub fn estimate(&self) -> &SurfaceEstimate {
+        &self.surface.abstraction.estimate
+    }
+}
+
+/// `world_from_camera` applied to every finite point; invalid points stay as they are.
+pub fn to_world(points: &[Vec3], world_from_camera: &Isometry3<f64>) -> Vec<Vec3> {
+    points
+        .iter()
+        .map(|p| {
+            if !finite_bits(*p) {
+                return *p;
+            }
+            let q = world_from_camera * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+            Vec3::new(q.x as f32, q.y as f32, q.z as f32)
+        })
+        .collect()
+}
+
+/// The per-camera chain of a node (paper Fig. 3, one camera's column) for any number of
+/// cameras: one front end (its stages and buffers built once; it keeps no per-camera state
+/// beyond the adapted voxel leaf) and one [`SurfaceEstimator`] per camera id, created at the
+/// camera's first frame.
+pub struct CameraChain {
+    frontend_config: FrontendConfig,
+    surface_config: SurfaceConfig,
+    frontend: Frontend,
+    ctx: Option<Arc<GpuContext>>,
+    estimators: BTreeMap<u32, SurfaceEstimator>,
+    gpu_fallback: Option<String>,
+}
+
+impl CameraChain {
+    /// The chain on `backend`; the GPU one uses `ctx` or opens a context.
+    pub fn new(
+        backend: Backend,
+        frontend: FrontendConfig,
+        surface: SurfaceConfig,
+        ctx: Option<Arc<GpuContext>>,
+    ) -> Result<Self, ChainError> {
+        surface.validate()?;
+        let ctx = match backend {
+            Backend::Cpu => None,
+            Backend::Gpu => Some(match ctx {
+                Some(c) => c,
+                None => Arc::new(GpuContext::new().map_err(FrontendError::Gpu)?),
+            }),
+        };
+        Ok(Self {
+            frontend: Frontend::new(backend, frontend.clone(), ctx.clone())?,
+            frontend_config: frontend,
+            surface_config: surface,
+            ctx,
+            estimators: BTreeMap::new(),
+            gpu_fallback: None,
+        })
+    }
+
+    /// Where the stages run now (CPU after a GPU fallback).
+    pub fn backend(&self) -> Backend {
+        if self.ctx.is_some() {
+            Backend::Gpu
+        } else {
+            Backend::Cpu
+        }
+    }
+
+    /// The GPU context while the chain runs on the GPU.
+    pub fn context(&self) -> Option<&Arc<GpuContext>> {
+        self.ctx.as_ref()
+    }
+
+    /// The GPU adapter's name (GPU backend) or `None`.
+    pub fn adapter(&self) -> Option<&str> {
+        self.frontend.adapter()
+    }
+
+    /// The GPU failure that moved the chain to the CPU, if one did.
+    pub fn gpu_fallback(&self) -> Option<&str> {
+        self.gpu_fallback.as_deref()
+    }
+
+    pub fn frontend_config(&self) -> &FrontendConfig {
+        &self.frontend_config
+    }
+
+    pub fn surface_config(&self) -> &SurfaceConfig {
+        &self.surface_config
+    }
+
+    /// Forget every camera's remembered surface (e.g. after a gap in the stream).
+    pub fn reset(&mut self) {
+        for estimator in self.estimators.values_mut() {
+            estimator.reset();
+        }
+    }
+
+    /// Moves every stage to the CPU references (the estimators start with an empty memory).
+    fn fall_back(&mut self, reason: String) -> Result<(), ChainError> {
+        self.gpu_fallback.get_or_insert(reason);
+        self.ctx = None;
+        self.frontend = Frontend::new(Backend::Cpu, self.frontend_config.clone(), None)?;
+        for estimator in self.estimators.values_mut() {
+            *estimator = SurfaceEstimator::new(self.surface_config.clone())?;
+        }
+        Ok(())
+    }
+
+    /// One camera frame through the chain. `hip_world` and the posed `robot` primitives are
+    /// in the world frame; the frame's cloud is in its camera's optical frame.
+    pub fn process(
+        &mut self,
+        frame: &Frame,
+        hip_world: &Point3<f64>,
+        robot: &[Primitive],
+    ) -> Result<ChainFrame, ChainError> {
+        let pose = frame.world_from_camera;
+        let world_points = to_world(&frame.cloud.points, &pose);
+        let input = FrameInput {
+            points: &world_points,
+            crop: Some(super::crop::CropScene {
+                hip_m: *hip_world,
+                robot,
+            }),
+        };
+        let watch = Stopwatch::start();
+        let front = match self.frontend.process(&input) {
+            Ok(o) => o,
+            Err(FrontendError::Gpu(e)) => {
+                self.fall_back(e.to_string())?;
+                self.frontend.process(&input)?
+            }
+            Err(e) => return Err(e.into()),
+        };
+        let frontend_time = watch.elapsed();
+        let kept: Vec<Vec3> = front
+            .clusters
+            .clusters
+            .iter()
+            .flat_map(|c| c.indices.iter().map(|&i| front.voxel.points[i as usize]))
+            .collect();
+
+        let watch = Stopwatch::start();
+        let estimator = match self.estimators.entry(frame.camera_id) {
+            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::btree_map::Entry::Vacant(v) => v.insert(match &self.ctx {
+                Some(ctx) => SurfaceEstimator::with_gpu(self.surface_config.clone(), ctx.clone())?,
+                None => SurfaceEstimator::new(self.surface_config.clone())?,
+            }),
+        };
+        // Eq. 2 against the rays from the camera (Viewpoint::Position).
+        let camera = Point3::from(pose.translation.vector);
+        let surface = estimator.estimate(&kept, hip_world, camera, frame.camera_id, frame.stamp_s);
+        let surface_time = watch.elapsed();
+        if let Some(e) = &surface.gpu_error {
+            // This frame was already answered on the CPU; keep every stage there.
+            self.fall_back(e.clone())?;
+        }
+        Ok(ChainFrame {
+            camera_id: frame.camera_id,
+            stamp_s: frame.stamp_s,
+            world_points,
+            front,
+            kept,
+            surface,
+            frontend_time,
+            surface_time,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cloud::PointCloud;
+    use crate::perception::test_data::synthetic_frame;
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+
+    /// The test frame's sphere (camera frame): centre and radius.
+    const CENTRE_CAM: [f64; 3] = [0.05, -0.05, 0.9];
+    const RADIUS_M: f64 = 0.09;
+
+    fn pose() -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::new(0.3, -0.2, 1.1),
+            UnitQuaternion::from_euler_angles(0.4, -0.3, 1.2),
+        )
+    }
+
+    fn frame(seed: u64, camera_id: u32) -> Frame {
+        Frame {
+            camera_id,
+            stamp_s: seed as f64 / 30.0,
+            world_from_camera: pose(),
+            cloud: PointCloud::organized(synthetic_frame(seed), 640, 480).unwrap(),
+            depth: None,
+        }
+    }
+
+    /// HIP 5 cm in front of the sphere towards the camera, and the true closest point and
+    /// normal, world frame.
+    fn hip_and_truth() -> (Point3<f64>, Point3<f64>, Vector3<f64>) {
+        let centre = Point3::from(CENTRE_CAM);
+        let hip = centre + Vector3::new(0.0, 0.0, -(RADIUS_M + 0.05));
+        let normal = (hip - centre).normalize();
+        let closest = centre + normal * RADIUS_M;
+        (pose() * hip, pose() * closest, pose() * normal)
+    }
+
+    #[test]
+    fn the_chain_finds_the_sphere_in_the_world_frame_on_both_backends() {
+        let (hip, closest, normal) = hip_and_truth();
+        let mut cpu = CameraChain::new(
+            Backend::Cpu,
+            FrontendConfig::default(),
+            SurfaceConfig::default(),
+            None,
+        )
+        .unwrap();
+        let mut gpu = CameraChain::new(
+            Backend::Gpu,
+            FrontendConfig::default(),
+            SurfaceConfig::default(),
+            None,
+        )
+        .expect("GPU tests need Vulkan");
+        assert_eq!((cpu.backend(), gpu.backend()), (Backend::Cpu, Backend::Gpu));
+        for seed in 0..3 {
+            let f = frame(seed, 0);
+            let c = cpu.process(&f, &hip, &[]).unwrap();
+            let g = gpu.process(&f, &hip, &[]).unwrap();
+            // The GPU front end equals its CPU reference (voxel means to f32 rounding, the
+            // same cells and clusters), so the estimates agree to well below a millimetre.
+            assert_eq!(g.kept.len(), c.kept.len());
+            let worst = g
+                .kept
+                .iter()
+                .zip(&c.kept)
+                .map(|(a, b)| (*a - *b).length())
+                .fold(0.0, f32::max);
+            assert!(worst < 1e-5, "kept points differ by {worst} m");
+            let (ge, ce) = (g.estimate(), c.estimate());
+            assert_eq!(ge.valid, ce.valid);
+            assert!((ge.centroid_m - ce.centroid_m).norm() < 1e-4);
+            assert!(ge.normal.dot(&ce.normal) > (0.01f64).to_radians().cos());
+            assert!(c.kept.len() > 100 && c.kept.len() < c.front.voxel.points.len() + 1);
+            let e = c.estimate();
+            assert!(e.valid, "seed {seed}");
+            let err_mm = (e.centroid_m - closest).norm() * 1e3;
+            let angle = e.normal.dot(&normal).clamp(-1.0, 1.0).acos().to_degrees();
+            assert!(err_mm < 8.0, "seed {seed}: centroid off by {err_mm} mm");
+            assert!(angle < 5.0, "seed {seed}: normal off by {angle} deg");
+            assert!(c.frontend_time.wall_ms > 0.0 && c.surface_time.cpu_ms >= 0.0);
+        }
+        assert!(gpu.gpu_fallback().is_none());
+    }
+
+    #[test]
+    fn each_camera_keeps_its_own_memory_and_a_robot_primitive_is_cropped() {
+        let (hip, _, _) = hip_and_truth();
+        let mut p = CameraChain::new(
+            Backend::Cpu,
+            FrontendConfig::default(),
+            SurfaceConfig::default(),
+            None,
+        )
+        .unwrap();
+        let first = p.process(&frame(0, 0), &hip, &[]).unwrap();
+        let again = p.process(&frame(1, 0), &hip, &[]).unwrap();
+        let other = p.process(&frame(1, 1), &hip, &[]).unwrap();
+        // Camera 1's first frame starts with an empty memory (nothing to register against);
+        // camera 0's second frame registers against the first.
+        assert!(first.surface.memory.registration.is_none());
+        assert!(other.surface.memory.registration.is_none());
+        assert!(again.surface.memory.registration.is_some());
+        // A robot link over the whole sphere leaves none of its points.
+        let link = Primitive::Sphere {
+            center_m: pose() * Point3::from(CENTRE_CAM),
+            radius_m: RADIUS_M + 0.02,
+        };
+        let cropped = p.process(&frame(2, 2), &hip, &[link]).unwrap();
+        let centre = pose() * Point3::from(CENTRE_CAM);
+        let near = |pts: &[Vec3]| {
+            pts.iter()
+                .filter(|q| {
+                    let q = Point3::new(f64::from(q.x), f64::from(q.y), f64::from(q.z));
+                    (q - centre).norm() < RADIUS_M + 0.01
+                })
+                .count()
+        };
+        assert!(near(&first.kept) > 100);
+        assert_eq!(near(&cropped.kept), 0);
+    }
+
+    #[test]
+    fn a_bad_surface_config_is_a_clear_error() {
+        let mut surface = SurfaceConfig::default();
+        surface.shells.radii_m.clear();
+        let e = CameraChain::new(Backend::Cpu, FrontendConfig::default(), surface, None)
+            .err()
+            .expect("empty shell list rejected")
+            .to_string();
+        assert!(e.starts_with("surface: shells:"), "{e}");
     }
 }

@@ -3,13 +3,14 @@
 //!
 //! Per camera frame, top to bottom like the design card's data flow:
 //! 1. the cloud to the world frame (`world_from_camera`),
-//! 2. the front end (paper IV-A to IV-C: crop around the HIP and outside the robot
-//!    primitives, voxel grid, Euclidean clusters; [`CpuFrontend`]); the crop's keep mask
+//! 2. the per-camera chain of [`CameraChain`] on the CPU references: the front end
+//!    (paper IV-A to IV-C: crop around the HIP and outside the robot primitives, voxel grid,
+//!    Euclidean clusters), then the camera's surface estimator (paper Alg. 1 memory and
+//!    Alg. 2 shells; one per camera so each keeps its memory). The crop's keep mask
 //!    ([`crop_cpu`], the same reference the front end runs) tells which finite points were
-//!    cropped away, and voxel points outside every kept cluster were clustered out,
-//! 3. the surface estimator (paper Alg. 1 memory and Alg. 2 shells; [`SurfaceEstimator`], one
-//!    per camera so each keeps its memory); the memory points it merged are the memorised
-//!    layer, its [`SurfaceEstimate`] carries the shell fits,
+//!    cropped away, voxel points outside every kept cluster were clustered out, the memory
+//!    points the estimator merged are the memorised layer, and its [`SurfaceEstimate`]
+//!    carries the shell fits,
 //! 4. fusion of all cameras (paper IV-F, [`Fusion`]) evaluated at the instant's stamp, and
 //!    d_proj of eq. 7 from the fused surface and the HIP.
 //!
@@ -22,9 +23,10 @@ use super::frame::{
 use crate::camera::Frame;
 use crate::fusion::{Fusion, FusionConfig, FusionConfigError};
 use crate::geometry::Primitive;
+use crate::gpu::Backend;
 use crate::perception::crop::{CropError, CropScene, crop_cpu, finite_bits, mask_bit};
-use crate::perception::frontend::{CpuFrontend, FrameInput, FrontendConfig, FrontendError};
-use crate::perception::pipeline::{SurfaceConfig, SurfaceConfigError, SurfaceEstimator};
+use crate::perception::frontend::{FrontendConfig, FrontendError};
+use crate::perception::pipeline::{CameraChain, ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::surface::SurfaceEstimate;
 use glam::Vec3;
 use nalgebra::Point3;
@@ -64,6 +66,8 @@ pub enum ReplayError {
     Surface(#[from] SurfaceConfigError),
     #[error("fusion: {0}")]
     Fusion(#[from] FusionConfigError),
+    #[error(transparent)]
+    Pipeline(#[from] ChainError),
     #[error("hip_radius_m must be finite and positive, got {0}")]
     HipRadius(f64),
 }
@@ -84,8 +88,7 @@ impl ReplayConfig {
 /// fusion window).
 pub struct LayeredPerception {
     config: ReplayConfig,
-    frontend: CpuFrontend,
-    estimators: BTreeMap<u32, SurfaceEstimator>,
+    pipeline: CameraChain,
     /// Each camera's newest view: cameras at different rates or phases all stay on screen.
     latest: BTreeMap<u32, CameraView>,
     fusion: Fusion,
@@ -100,9 +103,13 @@ impl LayeredPerception {
     pub fn new(config: ReplayConfig) -> Result<Self, ReplayError> {
         config.validate()?;
         Ok(Self {
-            frontend: CpuFrontend::new(config.frontend.clone())?,
+            pipeline: CameraChain::new(
+                Backend::Cpu,
+                config.frontend.clone(),
+                config.surface.clone(),
+                None,
+            )?,
             fusion: Fusion::new(config.fusion)?,
-            estimators: BTreeMap::new(),
             latest: BTreeMap::new(),
             previous_d_proj: None,
             config,
@@ -116,31 +123,13 @@ impl LayeredPerception {
         hip_m: &Point3<f64>,
         robot: &[Primitive],
     ) -> Result<(CameraView, SurfaceEstimate, Vec<StageLatency>), ReplayError> {
-        let pose = frame.world_from_camera;
-        let world: Vec<Vec3> = frame
-            .cloud
-            .points
-            .iter()
-            .map(|p| {
-                if !finite_bits(*p) {
-                    return *p;
-                }
-                let q = pose * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-                Vec3::new(q.x as f32, q.y as f32, q.z as f32)
-            })
-            .collect();
+        let cam = self.pipeline.process(frame, hip_m, robot)?;
         let scene = CropScene {
             hip_m: *hip_m,
             robot,
         };
-
-        let start = Instant::now();
-        let front = self.frontend.process(&FrameInput {
-            points: &world,
-            crop: Some(scene.clone()),
-        })?;
-        let front_s = seconds_since(start);
-        let mask = crop_cpu(&world, &self.config.frontend.crop, &scene)?;
+        let world = &cam.world_points;
+        let mask = crop_cpu(world, &self.config.frontend.crop, &scene)?;
         let cropped: Vec<Vec3> = world
             .iter()
             .enumerate()
@@ -149,42 +138,31 @@ impl LayeredPerception {
             .collect();
 
         // Paper IV-C: the points of the kept clusters go on; the rest were clustered out.
-        let mut in_cluster = vec![false; front.voxel.points.len()];
-        for c in &front.clusters.clusters {
+        let mut in_cluster = vec![false; cam.front.voxel.points.len()];
+        for c in &cam.front.clusters.clusters {
             for &i in &c.indices {
                 in_cluster[i as usize] = true;
             }
         }
-        let (mut kept, mut clustered_out) = (Vec::new(), Vec::new());
-        for (p, keep) in front.voxel.points.iter().zip(&in_cluster) {
-            if *keep {
-                kept.push(*p)
-            } else {
-                clustered_out.push(*p)
-            }
-        }
-
-        let start = Instant::now();
-        let estimator = match self.estimators.entry(frame.camera_id) {
-            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::btree_map::Entry::Vacant(e) => {
-                e.insert(SurfaceEstimator::new(self.config.surface.clone())?)
-            }
-        };
-        // Eq. 2 against the rays from the camera (hapcloud::perception::shells::Viewpoint).
-        let camera = Point3::from(pose.translation.vector);
-        let surface = estimator.estimate(&kept, hip_m, camera, frame.camera_id, frame.stamp_s);
-        let surface_s = seconds_since(start);
-
+        let clustered_out: Vec<Vec3> = cam
+            .front
+            .voxel
+            .points
+            .iter()
+            .zip(&in_cluster)
+            .filter(|(_, keep)| !**keep)
+            .map(|(p, _)| *p)
+            .collect();
+        let surface = &cam.surface;
         let merged = surface
             .memory
             .merged_points
             .min(surface.memory.points.len());
         let memorised = surface.memory.points[surface.memory.points.len() - merged..].to_vec();
-        let estimate = surface.abstraction.estimate;
+        let estimate = surface.abstraction.estimate.clone();
         let view = CameraView {
             camera_id: frame.camera_id,
-            world_from_camera: Some(pose),
+            world_from_camera: Some(frame.world_from_camera),
             layers: vec![
                 PointLayer {
                     role: PointRole::Cropped,
@@ -196,7 +174,7 @@ impl LayeredPerception {
                 },
                 PointLayer {
                     role: PointRole::Kept,
-                    points_m: kept,
+                    points_m: cam.kept.clone(),
                 },
                 PointLayer {
                     role: PointRole::Memorised,
@@ -208,11 +186,11 @@ impl LayeredPerception {
         let latencies = vec![
             StageLatency {
                 stage: "crop + voxel + cluster".into(),
-                latency_s: front_s,
+                latency_s: cam.frontend_time.wall_ms * 1e-3,
             },
             StageLatency {
                 stage: "memory + shells".into(),
-                latency_s: surface_s,
+                latency_s: cam.surface_time.wall_ms * 1e-3,
             },
         ];
         Ok((view, estimate, latencies))
