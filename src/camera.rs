@@ -23,6 +23,19 @@ pub struct PinholeIntrinsics {
     pub cy: f64,
 }
 
+impl PinholeIntrinsics {
+    /// The Kinect-class camera of PCL's grabber test frames (`grabber_sequences`: 640x480,
+    /// fx = fy = 525 px, principal point at the image centre).
+    pub const PCL_GRABBER: Self = Self {
+        width: 640,
+        height: 480,
+        fx: 525.0,
+        fy: 525.0,
+        cx: 320.0,
+        cy: 240.0,
+    };
+}
+
 /// A 16-bit depth image, row-major.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DepthImage {

@@ -302,14 +302,7 @@ fn writers_round_trip_real_clouds() {
 /// cy = 240, 1 mm units) to the PCD of the same stamp, NaN exactly where the depth is 0.
 #[test]
 fn grabber_depth_frames_deproject_to_their_pcd() {
-    let intrinsics = PinholeIntrinsics {
-        width: 640,
-        height: 480,
-        fx: 525.0,
-        fy: 525.0,
-        cx: 320.0,
-        cy: 240.0,
-    };
+    let intrinsics = PinholeIntrinsics::PCL_GRABBER;
     let mut worst = 0.0f32;
     for stamp in GRABBER_STAMPS {
         let tiff = data(&format!("grabber_sequences/tiff/frame_{stamp}_depth.tiff"));
@@ -391,14 +384,7 @@ fn convert_command_deprojects_a_depth_frame() {
         .status()
         .unwrap();
     assert!(status.success());
-    let intrinsics = PinholeIntrinsics {
-        width: 640,
-        height: 480,
-        fx: 525.0,
-        fy: 525.0,
-        cx: 320.0,
-        cy: 240.0,
-    };
+    let intrinsics = PinholeIntrinsics::PCL_GRABBER;
     let expected = depth::read(&tiff, 0.001)
         .unwrap()
         .deproject(&intrinsics)

@@ -5,22 +5,10 @@ use crate::camera::{DepthImage, PinholeIntrinsics};
 use glam::Vec3;
 use rand::{RngExt, SeedableRng};
 
-/// Kinect-class intrinsics of PCL's grabber frames.
-pub fn intrinsics() -> PinholeIntrinsics {
-    PinholeIntrinsics {
-        width: 640,
-        height: 480,
-        fx: 525.0,
-        fy: 525.0,
-        cx: 320.0,
-        cy: 240.0,
-    }
-}
-
 /// A wall at 1.5 m, a tilted table plane and a 9 cm sphere (a head) at 0.9 m; 5 % of the
 /// pixels have no return.
 pub fn synthetic_frame(seed: u64) -> Vec<Vec3> {
-    let k = intrinsics();
+    let k = PinholeIntrinsics::PCL_GRABBER;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut data = Vec::with_capacity((k.width * k.height) as usize);
     let centre = nalgebra::Vector3::new(0.05, -0.05, 0.9);
