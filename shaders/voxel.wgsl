@@ -264,23 +264,36 @@ fn block_exchange(a: u32, b: u32, ga: u32, k: u32) {
     }
 }
 
+// Bitonic steps j = j_first .. 1 of stage k on the 512-key block at `base`, thread `t` of 256
+// exchanging one pair per step; called from uniform control flow only (barriers inside).
+fn block_steps(base: u32, t: u32, k: u32, j_first: u32) {
+    for (var j = j_first; j > 0u; j = j >> 1u) {
+        let a = 2u * j * (t / j) + (t % j);
+        block_exchange(a, a + j, base + a, k);
+        workgroupBarrier();
+    }
+}
+
+fn load_block(base: u32, t: u32) {
+    block[t] = sort_keys[base + t];
+    block[t + 256u] = sort_keys[base + t + 256u];
+    workgroupBarrier();
+}
+
+fn store_block(base: u32, t: u32) {
+    sort_keys[base + t] = block[t];
+    sort_keys[base + t + 256u] = block[t + 256u];
+}
+
 // Sorts every 512-key block completely (bitonic stages k = 2 .. 512).
 @compute @workgroup_size(256)
 fn sort_local(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     let base = wid.x * SORT_BLOCK;
-    let t = lid.x;
-    block[t] = sort_keys[base + t];
-    block[t + 256u] = sort_keys[base + t + 256u];
-    workgroupBarrier();
+    load_block(base, lid.x);
     for (var k = 2u; k <= SORT_BLOCK; k = k << 1u) {
-        for (var j = k >> 1u; j > 0u; j = j >> 1u) {
-            let a = 2u * j * (t / j) + (t % j);
-            block_exchange(a, a + j, base + a, k);
-            workgroupBarrier();
-        }
+        block_steps(base, lid.x, k, k >> 1u);
     }
-    sort_keys[base + t] = block[t];
-    sort_keys[base + t + 256u] = block[t + 256u];
+    store_block(base, lid.x);
 }
 
 // One global bitonic step (k, j) with j >= 512: one thread per pair.
@@ -306,17 +319,9 @@ fn sort_global(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(256)
 fn sort_merge(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     let base = wid.x * SORT_BLOCK;
-    let t = lid.x;
-    block[t] = sort_keys[base + t];
-    block[t + 256u] = sort_keys[base + t + 256u];
-    workgroupBarrier();
-    for (var j = SORT_BLOCK >> 1u; j > 0u; j = j >> 1u) {
-        let a = 2u * j * (t / j) + (t % j);
-        block_exchange(a, a + j, base + a, sort_step.k);
-        workgroupBarrier();
-    }
-    sort_keys[base + t] = block[t];
-    sort_keys[base + t + 256u] = block[t + 256u];
+    load_block(base, lid.x);
+    block_steps(base, lid.x, sort_step.k, SORT_BLOCK >> 1u);
+    store_block(base, lid.x);
 }
 
 fn mean_fraction(base: u32, count: f32) -> f32 {
