@@ -114,13 +114,10 @@ fn node_recording() -> (tempdir::Dir, hapcloud::node::record::Recording) {
     };
     let dir = tempdir::Dir::new("viewer_recording");
     let options = RunOptions {
-        duration_s: None,
         // Slow enough for the CPU stages of a debug build to keep up with the frames.
         speed: 0.2,
-        backend: hapcloud::gpu::Backend::Cpu,
-        adapter: None,
         record: Some(dir.path.clone()),
-        progress_every_s: None,
+        ..RunOptions::new(hapcloud::gpu::Backend::Cpu)
     };
     run(&config, Source::Timed(frames), &options, |_| {}).unwrap();
     let recording = hapcloud::node::record::read(&dir.path).unwrap();

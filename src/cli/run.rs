@@ -1,11 +1,14 @@
 //! `hapcloud run [SOURCE]`: the perception node (issue 6). Wires a source to
-//! `hapcloud::node::run`, prints a progress line while it runs and a summary at the end.
+//! `hapcloud::node::run` (perception, fusion, haptic constraints and the controller), the
+//! CAN outputs (`--can`, `--can-log`), prints a progress line while it runs and a summary at
+//! the end.
 
 use anyhow::Context;
 use hapcloud::gpu::Backend;
 use hapcloud::node::{self, NodeConfig, NodeSummary, RunOptions, Source, record, stream};
 use hapcloud::scene::{Scene, Simulator};
 use std::path::PathBuf;
+use std::sync::Arc;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -13,8 +16,10 @@ pub struct Args {
     /// `.pcd`/`.ply` frames of one camera (PCL grabber names give the stamps, others are
     /// 30 Hz; the HIP is put 5 cm in front of the surface on the optical axis unless
     /// --config sets `hip_world_m`), or `tcp://HOST:PORT` to listen for a camera stream
-    /// (the format is in `hapcloud::node::wire`). Without one, the built-in realistic scene
-    /// `torso_approach_realistic` (two simulated D435 cameras) is rendered and played.
+    /// (the format is in `hapcloud::node::wire`), or a scene (a built-in name, see `hapcloud
+    /// scenes`, or a scene TOML file): rendered by the simulator and played, the robot
+    /// following the scene's joint trajectory. Without one, the built-in realistic scene
+    /// `torso_approach_realistic` (two simulated D435 cameras) is played.
     source: Option<String>,
     /// Stop after this many seconds of node time (default: the end of a recording).
     #[arg(long)]
@@ -34,30 +39,43 @@ pub struct Args {
     /// Print one JSON object instead of the progress line and table.
     #[arg(long)]
     json: bool,
+    /// Send the CAN protocol (hapcloud.dbc) on this SocketCAN interface, e.g. can0.
+    #[arg(long)]
+    can: Option<String>,
+    /// Write the CAN frames as a `candump -L` log to this file.
+    #[arg(long)]
+    can_log: Option<PathBuf>,
 }
 
 /// The scene `hapcloud run` plays when no source is given.
 const DEFAULT_SCENE: &str = "torso_approach_realistic";
 
-/// Renders every frame of built-in scene `name` up to `duration_s` (default: the whole scene)
-/// and returns them with the HIP at the scene's start. The node takes one fixed HIP from its
-/// config, so the scene's HIP path is not followed.
-fn render_builtin_scene(
-    name: &str,
-    duration_s: Option<f64>,
-) -> anyhow::Result<(Vec<hapcloud::camera::Frame>, nalgebra::Point3<f64>)> {
-    let scene = Scene::from_builtin(name)?;
-    let simulator = Simulator::new(&scene)?;
+/// Renders every frame of scene `scene` (a built-in name or a TOML file) up to `duration_s`
+/// (default: the whole scene), before the node starts (rendering is not what the node's
+/// timing measures). The node's robot follows the scene's joint trajectory.
+fn render_scene(scene: &Scene, duration_s: Option<f64>) -> anyhow::Result<Source> {
+    let simulator = Simulator::new(scene)?;
+    if simulator.robot_model().is_none() {
+        anyhow::bail!("scene {}: has no robot to run the node for", scene.origin);
+    }
     let end_s = duration_s.unwrap_or_else(|| simulator.duration_s());
     let frames = simulator
         .arrivals(0.0, end_s)
         .iter()
         .map(|timing| simulator.frame(timing).frame)
         .collect();
-    let hip = simulator
-        .hip_at(0.0)
-        .with_context(|| format!("built-in scene {name} has no HIP"))?;
-    Ok((frames, hip))
+    Ok(Source::Simulated {
+        frames,
+        simulator: Arc::new(simulator),
+    })
+}
+
+/// A scene argument: a built-in scene name or an existing `.toml` file.
+fn as_scene(arg: &str) -> Option<anyhow::Result<Scene>> {
+    let path = std::path::Path::new(arg);
+    let builtin = hapcloud::scene::builtin::names().iter().any(|n| n == arg);
+    let file = path.extension().is_some_and(|e| e == "toml") && path.is_file();
+    (builtin || file).then(|| Scene::from_name_or_path(arg).map_err(Into::into))
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -79,6 +97,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             Source::Stream(receiver)
         }
+        Some(arg) if as_scene(arg).is_some() => {
+            let scene = as_scene(arg).expect("checked")?;
+            render_scene(&scene, args.duration)?
+        }
         Some(dir) if std::path::Path::new(dir).join("meta.json").exists() => {
             Source::Timed(record::read(std::path::Path::new(dir))?.frames)
         }
@@ -99,27 +121,19 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(dir) => {
             anyhow::bail!("{dir}: not a recording (cloud directories need the viewer feature)")
         }
-        None => {
-            let (frames, hip) = render_builtin_scene(DEFAULT_SCENE, args.duration)?;
-            if args.config.is_none() {
-                config.hip_world_m = hip;
-            }
-            if !args.json {
-                eprintln!(
-                    "built-in scene {DEFAULT_SCENE}: {} frames rendered",
-                    frames.len()
-                );
-            }
-            Source::Timed(frames)
-        }
+        None => render_scene(&Scene::from_builtin(DEFAULT_SCENE)?, args.duration)?,
     };
+    if let (Source::Simulated { frames, .. }, false) = (&source, args.json) {
+        eprintln!("scene rendered: {} frames", frames.len());
+    }
     let options = RunOptions {
         duration_s: args.duration,
         speed: args.speed,
-        backend: args.backend,
-        adapter: None,
         record: args.record.clone(),
         progress_every_s: (!args.json).then_some(1.0),
+        can_interface: args.can.clone(),
+        can_log: args.can_log.clone(),
+        ..RunOptions::new(args.backend)
     };
     let summary = node::run(&config, source, &options, |_| {})?;
     if args.json {
@@ -158,6 +172,33 @@ fn print_table(s: &NodeSummary) {
         "ticks {}  tracking {}  stale {}  deadline misses {}",
         s.ticks, s.tracking_ticks, s.stale_ticks, s.deadline_misses
     );
+    println!(
+        "constraints active {} ticks  held {}  controller fallbacks {}  robot {}",
+        s.constraint_active_ticks,
+        s.held_ticks,
+        s.controller_fallbacks,
+        if s.robot_joint_states {
+            "follows the source's joint states"
+        } else {
+            "standing (no joint states)"
+        }
+    );
+    if let Some(can) = &s.can {
+        println!(
+            "CAN frames sent {}  dropped {}  logged {}  saturated values {}  bus load {:.1} % ({:.0} frames/s){}",
+            can.counters.frames_sent,
+            can.counters.frames_dropped,
+            can.counters.frames_logged,
+            can.counters.saturated_values,
+            can.bus_load.load_fraction * 100.0,
+            can.bus_load.frames_per_s,
+            can.counters
+                .error
+                .as_deref()
+                .map(|e| format!("  error: {e}"))
+                .unwrap_or_default()
+        );
+    }
     println!("                     p50 ms    p99 ms");
     for (name, p) in [
         ("stamp -> surface", s.latency_ms),

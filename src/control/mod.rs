@@ -147,7 +147,7 @@ pub struct ControllerInput<'a> {
 }
 
 /// Outcome of a tick.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ControlStatus {
     /// The hierarchy was solved; the torques realise its accelerations.

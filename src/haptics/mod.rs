@@ -157,9 +157,22 @@ pub enum HapticStatus {
     NoSurface,
 }
 
+/// Which of the paper's constraints a row is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ConstraintKind {
+    /// Positional constraint (eq. 9-11); its bound is the constraint value `alpha_P`, m.
+    Position,
+    /// Velocity constraint (eq. 12-14); its bound is `alpha_V`, m/s.
+    Velocity,
+    /// Force constraint; its bound is in N.
+    Force,
+}
+
 /// One linear inequality `row . qdd <= bound`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ConstraintRow {
+    pub kind: ConstraintKind,
     pub row: RowSVector<f64, 6>,
     pub bound: f64,
 }
@@ -178,6 +191,13 @@ pub struct HapticConstraints {
     pub rows: Vec<ConstraintRow>,
 }
 
+impl HapticConstraints {
+    /// The row of one constraint kind, when it is in force this tick.
+    pub fn row(&self, kind: ConstraintKind) -> Option<&ConstraintRow> {
+        self.rows.iter().find(|r| r.kind == kind)
+    }
+}
+
 /// Builds the positional constraint row of eq. 9-11 for a distance `d`, its rate and the
 /// constraint Jacobian: `-1/2 T^2 J_c qdd <= d + T d' + 1/2 T^2 bias`.
 pub fn positional_row(
@@ -189,6 +209,7 @@ pub fn positional_row(
 ) -> ConstraintRow {
     let half_t2 = 0.5 * horizon_s * horizon_s;
     ConstraintRow {
+        kind: ConstraintKind::Position,
         row: -jacobian * half_t2,
         bound: d_m + horizon_s * d_rate_mps + half_t2 * bias_acceleration_mps2,
     }
@@ -245,6 +266,7 @@ pub fn haptic_constraints(
     if config.enable_velocity {
         let horizon = config.velocity_gain * config.period_s;
         rows.push(ConstraintRow {
+            kind: ConstraintKind::Velocity,
             row: -jacobian * horizon,
             bound: config.speed_limit_mps(d_proj_m) + d_rate_mps + horizon * bias,
         });
@@ -256,6 +278,7 @@ pub fn haptic_constraints(
             if inv_mass > 1e-12 {
                 let m_n = 1.0 / inv_mass;
                 rows.push(ConstraintRow {
+                    kind: ConstraintKind::Force,
                     row: jacobian * m_n,
                     bound: config.max_force_n - m_n * bias,
                 });

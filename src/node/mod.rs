@@ -11,23 +11,36 @@
 //!    the per-camera surface estimator (one surface memory per camera), then hands each
 //!    [`SurfaceEstimate`] to the loop through a channel,
 //! 3. **control loop** (the calling thread): absolute deadlines `start + k / rate` (no drift:
-//!    a late tick does not push the later ones back), each tick drains the channel without
+//!    a late tick does not push the later ones back; a loop more than one period behind skips
+//!    the slots already past, counted, instead of running them late in a burst), each tick drains the channel without
 //!    blocking, pushes the estimates into [`Fusion`] (paper IV-F) and evaluates the fused
-//!    surface at the tick's time. The haptic constraints and the controller run here once
-//!    they exist (issue 5).
+//!    surface at the tick's time; then the haptic constraints (paper V, eq. 7-14,
+//!    [`crate::haptics`]) and the hierarchical controller ([`crate::control`]) turn it into
+//!    a joint torque command for the robot state at the tick ([`robot_state`]: the scene's
+//!    joint trajectory for a simulated source, a standing robot otherwise). The tick's outputs
+//!    go to the recording ([`record::ControlRecord`]) and to CAN ([`can_out`]). The patient's
+//!    interaction force is taken as zero (the simulated robot has no force sensor), and the
+//!    intent is the transparent mode (gravity compensation and damping, paper Table I).
 //!
 //! Time: the node keeps a simulated clock `t = offset + elapsed * speed` (`--speed` runs
 //! faster than real time); stamps are on that clock. A recording starts the clock at its
 //! first stamp; a stream aligns it at its first frame. Latency is measured from a frame's
 //! stamp to the end of the tick that first used its estimate, on that clock.
 //!
+//! Perception takes the HIP and the robot's collision primitives (for the crop) from the
+//! robot's joints at each frame's stamp, so the HIP follows the robot ([`robot_state`]).
+//!
 //! Faults: a GPU that cannot be opened or fails mid-run falls back to the CPU reference
-//! stages, logged once; a camera that stops makes fusion go stale (its status tells the
-//! constraint to switch off) and tracking resumes when frames return; malformed stream
+//! stages, logged once; a camera that stops makes fusion go stale and the constraints follow
+//! `on_stale`: `disable` switches them off at once, `hold` keeps the last fused surface for at
+//! most `stale_hold_max_s` (flagged as held in the record and on CAN), then switches them off;
+//! tracking resumes when frames return; malformed stream
 //! records are counted and dropped ([`wire`]); an unreadable recording is an error naming the
 //! file ([`record`]).
 
+pub mod can_out;
 pub mod record;
+pub mod robot_state;
 pub mod stream;
 pub mod wire;
 
@@ -36,14 +49,24 @@ mod tests;
 
 use crate::camera::Frame;
 use crate::cloud::PointCloud;
-use crate::fusion::{FusedSurface, Fusion, FusionConfig, FusionConfigError, FusionCounters};
+use crate::control::{
+    Controller, ControllerConfig, ControllerConfigError, ControllerInput, Intent,
+};
+use crate::fusion::{
+    FusedSurface, Fusion, FusionConfig, FusionConfigError, FusionCounters, FusionStatus,
+};
 use crate::gpu::{Backend, GpuContext};
+use crate::haptics::HapticStatus;
+use crate::io::can::{CanError, fault};
 use crate::perception::crop::CropScene;
 use crate::perception::frontend::{FrameInput, Frontend, FrontendConfig, FrontendError};
 use crate::perception::pipeline::{SurfaceConfig, SurfaceConfigError, SurfaceEstimator};
+use crate::scene::Simulator;
 use crate::surface::SurfaceEstimate;
-use nalgebra::Point3;
-use record::{FrameRecorder, RecordError, TickRecord};
+use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
+use nalgebra::{Point3, Vector3};
+use record::{ControlRecord, FrameRecorder, RecordError, TickRecord};
+use robot_state::{PerceptionScene, RobotState, RobotStateConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -61,9 +84,32 @@ pub struct NodeConfig {
     pub hip_world_m: Point3<f64>,
     /// Frames waiting for perception; beyond this the source drops frames.
     pub frame_queue_count: usize,
+    /// What the constraints do when fusion goes stale (a camera stopped).
+    pub on_stale: StalePolicy,
+    /// With `on_stale = "hold"`: how long past the stale timeout the last fused surface is
+    /// held before the constraints switch off, s.
+    pub stale_hold_max_s: f64,
+    /// The robot for sources without joint states.
+    pub robot: RobotStateConfig,
     pub frontend: FrontendConfig,
     pub surface: SurfaceConfig,
     pub fusion: FusionConfig,
+    /// Haptic constraints and the hierarchical controller (`haptics.period_s` must be the
+    /// tick period).
+    pub controller: ControllerConfig,
+    /// Rates of the CAN messages (`--can`, `--can-log`).
+    pub can: CanOutputConfig,
+}
+
+/// What the constraints do while the cameras are stale.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StalePolicy {
+    /// Constraints off as soon as fusion is stale.
+    #[default]
+    Disable,
+    /// Keep the last fused surface (standing still) for at most `stale_hold_max_s`.
+    Hold,
 }
 
 impl Default for NodeConfig {
@@ -72,9 +118,14 @@ impl Default for NodeConfig {
             tick_rate_hz: 800.0,
             hip_world_m: Point3::new(0.0, 0.0, 0.6),
             frame_queue_count: 2,
+            on_stale: StalePolicy::Disable,
+            stale_hold_max_s: 0.3,
+            robot: RobotStateConfig::default(),
             frontend: FrontendConfig::default(),
             surface: SurfaceConfig::default(),
             fusion: FusionConfig::default(),
+            controller: ControllerConfig::default(),
+            can: CanOutputConfig::default(),
         }
     }
 }
@@ -98,6 +149,14 @@ pub enum NodeError {
     Frontend(#[from] FrontendError),
     #[error(transparent)]
     Record(#[from] RecordError),
+    #[error("robot: {0}")]
+    Robot(String),
+    #[error(transparent)]
+    Controller(#[from] ControllerConfigError),
+    #[error("node config: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Can(#[from] CanError),
     #[error("a node thread panicked")]
     Thread,
 }
@@ -113,9 +172,24 @@ impl NodeConfig {
         if !self.hip_world_m.iter().all(|v| v.is_finite()) {
             return Err(NodeError::Hip);
         }
+        if !(self.stale_hold_max_s.is_finite() && self.stale_hold_max_s >= 0.0) {
+            return Err(NodeError::Config(format!(
+                "stale_hold_max_s must be finite and not negative, got {}",
+                self.stale_hold_max_s
+            )));
+        }
         self.frontend.validate()?;
         self.surface.validate()?;
         self.fusion.validate()?;
+        self.controller.validate()?;
+        let period = self.controller.haptics.period_s;
+        if (period * self.tick_rate_hz - 1.0).abs() > 1e-9 {
+            return Err(NodeError::Config(format!(
+                "controller.haptics.period_s = {period} s is not the tick period 1 / {} Hz",
+                self.tick_rate_hz
+            )));
+        }
+        self.can.validate().map_err(NodeError::Config)?;
         Ok(())
     }
 }
@@ -124,6 +198,12 @@ impl NodeConfig {
 pub enum Source {
     /// Frames delivered when the clock reaches their stamp (a recording's `frames.hcr`).
     Timed(Vec<Frame>),
+    /// Frames of a simulated scene, delivered like [`Source::Timed`]; the robot follows the
+    /// scene's joint trajectory.
+    Simulated {
+        frames: Vec<Frame>,
+        simulator: Arc<Simulator>,
+    },
     /// A TCP stream; frames are used as they arrive.
     Stream(stream::StreamReceiver),
 }
@@ -142,6 +222,29 @@ pub struct RunOptions {
     pub record: Option<std::path::PathBuf>,
     /// Print a progress line every this many seconds of wall time (`None`: quiet).
     pub progress_every_s: Option<f64>,
+    /// SocketCAN interface to send the protocol on (`--can`).
+    pub can_interface: Option<String>,
+    /// candump -L log of the same frames (`--can-log`).
+    pub can_log: Option<std::path::PathBuf>,
+    /// Set from outside to end the run early (e.g. the overlay window was closed).
+    pub stop: Option<Arc<AtomicBool>>,
+}
+
+impl RunOptions {
+    /// Real time, quiet, nothing recorded or sent.
+    pub fn new(backend: Backend) -> Self {
+        Self {
+            duration_s: None,
+            speed: 1.0,
+            backend,
+            adapter: None,
+            record: None,
+            progress_every_s: None,
+            can_interface: None,
+            can_log: None,
+            stop: None,
+        }
+    }
 }
 
 /// p50 and p99 of a sample, milliseconds.
@@ -186,8 +289,19 @@ pub struct NodeSummary {
     pub ticks: u64,
     pub tracking_ticks: u64,
     pub stale_ticks: u64,
+    /// Ticks with the haptic constraints in force.
+    pub constraint_active_ticks: u64,
+    /// Ticks whose constraints used a surface held over stale cameras.
+    pub held_ticks: u64,
+    /// Ticks where the controller returned its safe command (bad input or solver failure).
+    pub controller_fallbacks: u64,
+    /// Whether the robot followed joint states from the source (else it stood still).
+    pub robot_joint_states: bool,
     /// Ticks whose work ended after the next tick's deadline.
     pub deadline_misses: u64,
+    /// Tick slots skipped because the loop was more than one period behind (an overrun is not
+    /// made up by a burst of late ticks).
+    pub skipped_ticks: u64,
     /// Frame stamp to the end of the tick that first used its estimate.
     pub latency_ms: Percentiles,
     /// Tick start after its absolute deadline.
@@ -202,8 +316,60 @@ pub struct NodeSummary {
     /// The GPU failure that made perception fall back to the CPU, if any.
     pub gpu_fallback: Option<String>,
     pub fusion: FusionCounters,
+    /// CAN output, when `--can` or `--can-log` was given.
+    pub can: Option<CanSummary>,
     pub duration_s: f64,
     pub speed: f64,
+}
+
+/// What went on the CAN bus, and the bus load the configured rates imply.
+#[derive(Clone, Debug, Serialize)]
+pub struct CanSummary {
+    pub counters: CanCounters,
+    pub bus_load: BusLoad,
+}
+
+/// The surface the constraints use at a tick, and whether it is held over stale cameras:
+/// the fused surface while it tracks; while fusion is stale and `on_stale = "hold"`, the
+/// last smoothed surface (fusion keeps it) standing still, for at most `stale_hold_max_s`
+/// past the stale timeout; otherwise none (the constraints switch off).
+pub fn constraint_surface(
+    config: &NodeConfig,
+    fused: &FusedSurface,
+) -> (Option<FusedSurface>, bool) {
+    match fused.status {
+        FusionStatus::Tracking => (Some(*fused), false),
+        FusionStatus::Stale
+            if config.on_stale == StalePolicy::Hold
+                && fused.age_s - config.fusion.stale_timeout_s <= config.stale_hold_max_s =>
+        {
+            let held = FusedSurface {
+                status: FusionStatus::Tracking,
+                velocity_m_per_s: Vector3::zeros(),
+                ..*fused
+            };
+            (Some(held), true)
+        }
+        _ => (None, false),
+    }
+}
+
+/// One control tick after fusion: constraints and controller for the robot state `joints`.
+fn control_tick(
+    config: &NodeConfig,
+    controller: &Controller,
+    fused: &FusedSurface,
+    joints: robot_state::JointState,
+) -> ControlRecord {
+    let (surface, held) = constraint_surface(config, fused);
+    let out = controller.tick(&ControllerInput {
+        q: joints.q_rad,
+        qd: joints.qd_rad_per_s,
+        surface: surface.as_ref(),
+        interaction_force_n: Vector3::zeros(),
+        intent: Intent::Transparent,
+    });
+    ControlRecord::new(joints, held, &out)
 }
 
 /// The node's clock: `t = offset + elapsed * speed`.
@@ -243,6 +409,8 @@ struct Shared {
     queued: AtomicU64,
     source_finished: AtomicBool,
     malformed: AtomicU64,
+    /// Perception fell back from the GPU to the CPU.
+    gpu_fell_back: AtomicBool,
 }
 
 /// What the perception thread reports at the end.
@@ -323,15 +491,25 @@ impl Perception {
         Ok(())
     }
 
-    /// One frame to one estimate.
-    fn process(&mut self, frame: &Frame) -> Result<SurfaceEstimate, NodeError> {
-        let hip = self.config.hip_world_m;
-        let hip_camera = frame.world_from_camera.inverse_transform_point(&hip);
+    /// One frame to one estimate, with the HIP and the robot's primitives of `scene` (world).
+    fn process(
+        &mut self,
+        frame: &Frame,
+        scene: &PerceptionScene,
+    ) -> Result<SurfaceEstimate, NodeError> {
+        let hip = scene.hip_m;
+        let camera_from_world = frame.world_from_camera.inverse();
+        let hip_camera = camera_from_world * hip;
+        let robot: Vec<_> = scene
+            .primitives
+            .iter()
+            .map(|p| p.transformed(&camera_from_world))
+            .collect();
         let input = FrameInput {
             points: &frame.cloud.points,
             crop: Some(CropScene {
                 hip_m: hip_camera,
-                robot: &[],
+                robot: &robot,
             }),
         };
         let output = match self.frontend.process(&input) {
@@ -369,18 +547,25 @@ impl Perception {
 
 fn perception_thread(
     mut perception: Perception,
+    robot: &RobotState,
     frames: Receiver<Frame>,
     estimates: mpsc::Sender<SurfaceEstimate>,
     mut recorder: Option<FrameRecorder>,
+    shared: &Shared,
 ) -> Result<PerceptionReport, NodeError> {
     let mut counts: BTreeMap<u32, (u64, u64)> = BTreeMap::new();
     let mut times_s = Vec::new();
     for frame in frames {
         let start = Instant::now();
-        let estimate = perception.process(&frame)?;
+        let q = robot.at(frame.stamp_s).q_rad;
+        let scene = robot.perception_scene(&q);
+        let estimate = perception.process(&frame, &scene)?;
         times_s.push(start.elapsed().as_secs_f64());
+        if perception.gpu_fallback.is_some() {
+            shared.gpu_fell_back.store(true, Ordering::Relaxed);
+        }
         if let Some(r) = recorder.as_mut() {
-            r.frame(&frame)?;
+            r.frame(&frame, &q)?;
         }
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
@@ -414,7 +599,7 @@ fn source_thread(source: Source, clock: &Clock, queue: SyncSender<Frame>, shared
         Err(TrySendError::Disconnected(_)) => false,
     };
     match source {
-        Source::Timed(frames) => {
+        Source::Timed(frames) | Source::Simulated { frames, .. } => {
             for frame in frames {
                 // Sleep until the frame is due, waking regularly to see a stop.
                 loop {
@@ -458,26 +643,61 @@ fn source_thread(source: Source, clock: &Clock, queue: SyncSender<Frame>, shared
 }
 
 /// Runs the node until the duration is reached (or a timed source is exhausted), calling
-/// `on_tick` with every fused surface (the constraints' input). Returns the summary.
+/// `on_tick` with every tick's record (fused surface, robot state, constraints, torques).
+/// Returns the summary.
 pub fn run(
     config: &NodeConfig,
     source: Source,
     options: &RunOptions,
-    mut on_tick: impl FnMut(&FusedSurface),
+    mut on_tick: impl FnMut(&TickRecord),
 ) -> Result<NodeSummary, NodeError> {
     config.validate()?;
     if !(options.speed.is_finite() && options.speed > 0.0) {
         return Err(NodeError::Speed(options.speed));
     }
+    let robot = match &source {
+        Source::Simulated { simulator, .. } => RobotState::simulated(simulator.clone()),
+        _ => None,
+    };
+    let robot = match robot {
+        Some(r) => r,
+        None => RobotState::fixed(config)?,
+    };
+    let controller = Controller::new(robot.model().clone(), config.controller.clone())?;
+    let mut can = if options.can_interface.is_some() || options.can_log.is_some() {
+        Some(CanOutput::open(
+            &config.can,
+            options.can_interface.as_deref(),
+            options.can_log.as_deref(),
+        )?)
+    } else {
+        None
+    };
     let mut fusion = Fusion::new(config.fusion)?;
     let perception = Perception::new(config.clone(), options.backend, options.adapter.as_deref())?;
+    let start_backend = perception.backend();
     if options.progress_every_s.is_some() {
         let adapter = perception.ctx.as_ref().map(|c| c.adapter().name.clone());
         eprintln!(
-            "perception backend: {}{}",
+            "perception backend: {}{}; robot: {}",
             perception.backend(),
-            adapter.map(|a| format!(" on {a}")).unwrap_or_default()
+            adapter.map(|a| format!(" on {a}")).unwrap_or_default(),
+            if robot.has_joint_states() {
+                "joint states from the source"
+            } else {
+                "standing at robot.fixed_joints_rad (source has no joint states)"
+            }
         );
+        if can.is_some() {
+            let load = config.can.bus_load(config.tick_rate_hz);
+            eprintln!(
+                "CAN: {:.0} frames/s, {:.0} kbit/s worst case, {:.1} % of {:.0} kbit/s",
+                load.frames_per_s,
+                load.bits_per_s / 1e3,
+                load.load_fraction * 100.0,
+                config.can.bitrate_bit_per_s / 1e3
+            );
+        }
     }
     let (frame_recorder, mut tick_recorder) = match &options.record {
         Some(dir) => {
@@ -485,14 +705,19 @@ pub fn run(
                 version: record::RECORDING_VERSION,
                 config: config.clone(),
                 backend: perception.backend(),
+                robot: robot.meta(),
             };
             let (f, t) = record::create(dir, &meta)?;
             (Some(f), Some(t))
         }
         None => (None, None),
     };
-    let (t_first, t_end) = match &source {
-        Source::Timed(frames) => {
+    let timed_frames = match &source {
+        Source::Timed(frames) | Source::Simulated { frames, .. } => Some(frames),
+        Source::Stream(_) => None,
+    };
+    let (t_first, t_end) = match timed_frames {
+        Some(frames) => {
             let first = frames
                 .iter()
                 .map(|f| f.stamp_s)
@@ -508,24 +733,35 @@ pub fn run(
             );
             (first, end)
         }
-        Source::Stream(_) => (0.0, options.duration_s.unwrap_or(f64::INFINITY)),
+        None => (0.0, options.duration_s.unwrap_or(f64::INFINITY)),
     };
     let clock = Clock {
         start: Instant::now(),
         speed: options.speed,
         offset_bits: AtomicU64::new(t_first.to_bits()),
-        aligned: AtomicBool::new(matches!(source, Source::Timed(_))),
+        aligned: AtomicBool::new(timed_frames.is_some()),
     };
     let shared = Shared::default();
     let (frame_tx, frame_rx) = mpsc::sync_channel::<Frame>(config.frame_queue_count);
     let (estimate_tx, estimate_rx) = mpsc::channel::<SurfaceEstimate>();
     let tick_s = 1.0 / config.tick_rate_hz;
     let period = Duration::from_secs_f64(tick_s / options.speed);
+    let status_every = u64::from(config.can.status_every_ticks);
 
     let result = std::thread::scope(|scope| {
-        let perception_handle = scope
-            .spawn(move || perception_thread(perception, frame_rx, estimate_tx, frame_recorder));
-        let source_handle = scope.spawn(|| source_thread(source, &clock, frame_tx, &shared));
+        let robot = &robot;
+        let shared = &shared;
+        let perception_handle = scope.spawn(move || {
+            perception_thread(
+                perception,
+                robot,
+                frame_rx,
+                estimate_tx,
+                frame_recorder,
+                shared,
+            )
+        });
+        let source_handle = scope.spawn(|| source_thread(source, &clock, frame_tx, shared));
 
         let mut stats = LoopStats::default();
         let mut run_loop = || -> Result<u64, NodeError> {
@@ -534,19 +770,28 @@ pub fn run(
             let mut received: u64 = 0;
             let mut recent_per_camera: BTreeMap<u32, u64> = BTreeMap::new();
             let mut progress_t = t_first;
+            let mut misses_since_status = false;
             let loop_start = clock.start;
             let stream_length_s = t_end - t_first;
             let mut k: u64 = 0;
             loop {
-                let deadline = loop_start + period.mul_f64(k as f64);
                 let now = Instant::now();
+                let behind = now.saturating_duration_since(loop_start + period.mul_f64(k as f64));
+                if behind > period {
+                    // Overrun: the slots already past are skipped (counted), not run back to
+                    // back: they would all be late, and the node clock would fall behind the
+                    // cameras' clock.
+                    let skip = (behind.as_secs_f64() / period.as_secs_f64()).floor() as u64;
+                    stats.skipped += skip;
+                    k += skip;
+                }
+                let deadline = loop_start + period.mul_f64(k as f64);
                 if deadline > now {
                     std::thread::sleep(deadline - now);
                 }
                 let started = Instant::now();
-                stats
-                    .jitter_s
-                    .push(started.saturating_duration_since(deadline).as_secs_f64());
+                let late_s = started.saturating_duration_since(deadline).as_secs_f64();
+                stats.jitter_s.push(late_s);
                 // The tick's time on the node clock: absolute, from the tick index.
                 let t_tick =
                     f64::from_bits(clock.offset_bits.load(Ordering::Acquire)) + k as f64 * tick_s;
@@ -554,36 +799,79 @@ pub fn run(
                     if let Some(r) = tick_recorder.as_mut() {
                         r.estimate(k, &estimate)?;
                     }
+                    if let Some(c) = can.as_mut() {
+                        c.estimate(t_tick, &estimate);
+                    }
                     fusion.push(&estimate);
                     pending_latency.push(estimate.stamp_s);
                     received += 1;
                     *recent_per_camera.entry(estimate.camera_id).or_insert(0u64) += 1;
                 }
                 let fused = fusion.tick(t_tick);
-                on_tick(&fused);
+                let control = control_tick(config, &controller, &fused, robot.at(t_tick));
+                let mut tick = TickRecord {
+                    index: k,
+                    fused,
+                    control,
+                    late_s,
+                    work_s: 0.0,
+                };
+                on_tick(&tick);
                 stats.ticks += 1;
                 match fused.status {
-                    crate::fusion::FusionStatus::Tracking => stats.tracking += 1,
-                    crate::fusion::FusionStatus::Stale => stats.stale += 1,
+                    FusionStatus::Tracking => stats.tracking += 1,
+                    FusionStatus::Stale => stats.stale += 1,
                     _ => {}
                 }
+                stats.active += u64::from(control.haptic_status == HapticStatus::Active);
+                stats.held += u64::from(control.held);
+                stats.fallbacks += u64::from(control.status != crate::control::ControlStatus::Ok);
                 let finished = Instant::now();
-                let work_s = (finished - started).as_secs_f64();
-                stats.work_s.push(work_s);
+                tick.work_s = (finished - started).as_secs_f64();
+                stats.work_s.push(tick.work_s);
                 let t_done = clock.now_s();
                 for stamp in pending_latency.drain(..) {
                     stats.latency_s.push(t_done - stamp);
                 }
                 if finished > deadline + period {
                     stats.deadline_misses += 1;
+                    misses_since_status = true;
                 }
                 if let Some(r) = tick_recorder.as_mut() {
-                    r.tick(&TickRecord {
-                        index: k,
-                        fused,
-                        late_s: started.saturating_duration_since(deadline).as_secs_f64(),
-                        work_s,
-                    })?;
+                    r.tick(&tick)?;
+                }
+                if let Some(c) = can.as_mut() {
+                    let mut flags = 0;
+                    let mut flag = |on: bool, bit: u16| {
+                        if on {
+                            flags |= bit;
+                        }
+                    };
+                    flag(fused.status == FusionStatus::Stale, fault::CAMERA_STALE);
+                    flag(
+                        shared.gpu_fell_back.load(Ordering::Relaxed),
+                        fault::GPU_FALLBACK,
+                    );
+                    flag(
+                        shared.malformed.load(Ordering::Relaxed) > 0,
+                        fault::NETWORK_MALFORMED,
+                    );
+                    flag(misses_since_status, fault::DEADLINE_MISSED);
+                    flag(control.held, fault::CONSTRAINT_HELD);
+                    c.tick(
+                        t_tick,
+                        &tick,
+                        &can_out::Health {
+                            deadline_misses: stats.deadline_misses,
+                            fault_flags: flags,
+                            gpu: start_backend == Backend::Gpu
+                                && !shared.gpu_fell_back.load(Ordering::Relaxed),
+                            latency_ms: stats.latency_s.last().map_or(0.0, |l| l * 1e3),
+                        },
+                    );
+                    if k.is_multiple_of(status_every) {
+                        misses_since_status = false;
+                    }
                 }
                 if let Some(every) = options.progress_every_s
                     && last_progress.elapsed().as_secs_f64() >= every
@@ -597,7 +885,7 @@ pub fn run(
                         .collect();
                     recent_per_camera.clear();
                     eprintln!(
-                        "t {:7.2} s  {}  latency last {:.1} ms  ticks {}  misses {}  status {:?}",
+                        "t {:7.2} s  {}  latency last {:.1} ms  ticks {}  misses {}  fusion {:?}  constraints {:?}{}  d_proj {:.1} mm",
                         t_tick - t_first,
                         if rates.is_empty() {
                             "no frames".into()
@@ -608,9 +896,19 @@ pub fn run(
                         stats.ticks,
                         stats.deadline_misses,
                         fused.status,
+                        control.haptic_status,
+                        if control.held { " (held)" } else { "" },
+                        control.d_proj_m * 1e3,
                     );
                 }
                 k += 1;
+                if options
+                    .stop
+                    .as_ref()
+                    .is_some_and(|s| s.load(Ordering::Relaxed))
+                {
+                    break;
+                }
                 // Without --duration a timed source runs until its last stamp plus the stale
                 // timeout, and on until perception has delivered every queued frame.
                 let drained = options.duration_s.is_some()
@@ -663,7 +961,12 @@ pub fn run(
         ticks: stats.ticks,
         tracking_ticks: stats.tracking,
         stale_ticks: stats.stale,
+        constraint_active_ticks: stats.active,
+        held_ticks: stats.held,
+        controller_fallbacks: stats.fallbacks,
+        robot_joint_states: robot.has_joint_states(),
         deadline_misses: stats.deadline_misses,
+        skipped_ticks: stats.skipped,
         latency_ms: Percentiles::of_seconds(&mut stats.latency_s),
         jitter_ms: Percentiles::of_seconds(&mut stats.jitter_s),
         tick_work_ms: Percentiles::of_seconds(&mut stats.work_s),
@@ -672,6 +975,10 @@ pub fn run(
         adapter: report.adapter,
         gpu_fallback: report.gpu_fallback,
         fusion: fusion.counters(),
+        can: can.map(|c| CanSummary {
+            counters: c.finish(),
+            bus_load: config.can.bus_load(config.tick_rate_hz),
+        }),
         duration_s,
         speed: options.speed,
     })
@@ -682,6 +989,10 @@ struct LoopStats {
     ticks: u64,
     tracking: u64,
     stale: u64,
+    active: u64,
+    held: u64,
+    skipped: u64,
+    fallbacks: u64,
     deadline_misses: u64,
     latency_s: Vec<f64>,
     jitter_s: Vec<f64>,
@@ -709,13 +1020,17 @@ impl ReplayReport {
     }
 }
 
-/// Re-runs a recording: perception on its frames (same config and backend), then fusion
-/// with those estimates pushed at their recorded ticks and evaluated at the recorded tick
-/// times; compares estimates and ticks bit for bit with what was recorded.
+/// Re-runs a recording: perception on its frames (same config and backend, the HIP and
+/// primitives of the recorded joints), then fusion with those estimates pushed at their
+/// recorded ticks and evaluated at the recorded tick times, then the constraints and the
+/// controller on the recorded robot states; compares estimates and ticks (fused surface,
+/// constraint values, torques) bit for bit with what was recorded.
 pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
     let recording = record::read(dir)?;
     let config = &recording.meta.config;
     config.validate()?;
+    let robot = RobotState::recorded(&recording.meta.robot)?;
+    let controller = Controller::new(robot.model().clone(), config.controller.clone())?;
     let mut perception = Perception::new(config.clone(), recording.meta.backend, None)?;
     let mut report = ReplayReport {
         frames: recording.frames.len() as u64,
@@ -727,8 +1042,13 @@ pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
         }
     };
     let mut estimates = Vec::with_capacity(recording.frames.len());
-    for (i, frame) in recording.frames.iter().enumerate() {
-        let estimate = perception.process(frame)?;
+    for (i, (frame, q)) in recording
+        .frames
+        .iter()
+        .zip(&recording.frame_joints)
+        .enumerate()
+    {
+        let estimate = perception.process(frame, &robot.perception_scene(q))?;
         if let Some((_, recorded)) = recording.estimates.get(i) {
             let (mut a, mut b) = (Vec::new(), Vec::new());
             wire::encode_estimate(&mut a, &estimate);
@@ -758,7 +1078,12 @@ pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
             next += 1;
         }
         let fused = fusion.tick(tick.fused.stamp_s);
-        let again = TickRecord { fused, ..*tick };
+        let control = control_tick(config, &controller, &fused, tick.control.joints);
+        let again = TickRecord {
+            fused,
+            control,
+            ..*tick
+        };
         report.ticks_compared += 1;
         if again.deterministic_bytes() != tick.deterministic_bytes() {
             report.tick_mismatches += 1;

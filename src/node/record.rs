@@ -2,24 +2,33 @@
 //!
 //! A recording directory holds
 //!
-//! * `meta.json`: format version, the node config and the perception backend,
+//! * `meta.json`: format version, the node config, the perception backend and the robot
+//!   (base pose, whether the source had joint states),
 //! * `frames.hcr`: every camera frame perception processed, in processing order (kind 1),
+//! * `frame_joints.hcr`: per frame, in the same order, the robot's joint positions at its
+//!   stamp (kind 4: 6 x f64 rad), from which perception took the HIP and the primitives,
 //! * `estimates.hcr`: every surface estimate, with the index of the tick that pushed it into
 //!   fusion (kind 2: `u64 tick index`, then the estimate, see [`wire::encode_estimate`]),
-//! * `ticks.hcr`: every control tick (kind 3): the fused surface the constraints use, and the
+//! * `ticks.hcr`: every control tick (kind 3): the fused surface, the robot state, the haptic
+//!   constraint values and status, the joint torque command ([`ControlRecord`]), and the
 //!   tick's timing.
 //!
 //! Each `.hcr` file is a plain sequence of [`wire`] records (16-byte header with length and
 //! CRC), written through a buffer and flushed at the end, so a recording cut short by a crash
 //! is still readable up to its last whole record. Reading is strict: a bad record is an error
 //! naming the file and the byte offset. `hapcloud replay DIR` re-runs perception on the frames
-//! and fusion on the estimates at their recorded ticks and compares bit for bit.
+//! (with the recorded joints), fusion on the estimates at their recorded ticks, and the
+//! constraints and the controller on the recorded robot states, and compares bit for bit.
 
 use super::NodeConfig;
+use super::robot_state::{JointState, RobotMeta};
 use super::wire::{self, Reader, RecordKind, WireError, put_vec3};
 use crate::camera::Frame;
+use crate::control::{ControlStatus, ControllerOutput};
 use crate::fusion::{FusedSurface, FusionStatus};
 use crate::gpu::Backend;
+use crate::haptics::{ConstraintKind, HapticStatus};
+use crate::robot::JointVector;
 use crate::surface::SurfaceEstimate;
 use nalgebra::{Point3, Unit};
 use serde::{Deserialize, Serialize};
@@ -28,7 +37,9 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 /// Recording format version (the record framing has its own, [`wire::VERSION`]).
-pub const RECORDING_VERSION: u32 = 1;
+/// Version 2 added the robot (`meta.json`'s `robot`, `frame_joints.hcr`) and the controller's
+/// outputs in every tick; version 1 recordings are refused with a clear error.
+pub const RECORDING_VERSION: u32 = 2;
 
 /// `meta.json` of a recording.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -38,6 +49,141 @@ pub struct RecordingMeta {
     pub config: NodeConfig,
     /// Backend perception used (after any fallback at start-up).
     pub backend: Backend,
+    /// The robot's base pose and whether the source had joint states.
+    pub robot: RobotMeta,
+}
+
+/// What the controller did in one tick (everything replay recomputes and compares).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ControlRecord {
+    /// Robot state the tick used.
+    pub joints: JointState,
+    /// True when the constraints used a surface held over a stale camera (`on_stale = hold`).
+    pub held: bool,
+    pub haptic_status: HapticStatus,
+    /// `d_proj` of eq. 7, m (NaN without a surface).
+    pub d_proj_m: f64,
+    /// Its rate, m/s (NaN without a surface).
+    pub d_rate_mps: f64,
+    /// Constraint value `alpha_P` of eq. 9 (the positional row's bound), m; NaN when off.
+    pub alpha_p_m: f64,
+    /// Constraint value `alpha_V` of eq. 13 (the velocity row's bound), m/s; NaN when off.
+    pub alpha_v_mps: f64,
+    pub force_active: bool,
+    pub status: ControlStatus,
+    /// Joint torque command, Nm.
+    pub tau_nm: JointVector,
+    /// Joint accelerations the torques realise, rad/s^2.
+    pub qdd_rad_per_s2: JointVector,
+}
+
+impl ControlRecord {
+    /// The record of a controller output for the robot state `joints`.
+    pub fn new(joints: JointState, held: bool, out: &ControllerOutput) -> Self {
+        let h = &out.haptics;
+        let bound = |kind| h.row(kind).map_or(f64::NAN, |r| r.bound);
+        Self {
+            joints,
+            held,
+            haptic_status: h.status,
+            d_proj_m: h.d_proj_m,
+            d_rate_mps: h.d_rate_mps,
+            alpha_p_m: bound(ConstraintKind::Position),
+            alpha_v_mps: bound(ConstraintKind::Velocity),
+            force_active: h.row(ConstraintKind::Force).is_some(),
+            status: out.status,
+            tau_nm: out.tau_nm,
+            qdd_rad_per_s2: out.qdd,
+        }
+    }
+
+    pub fn position_active(&self) -> bool {
+        !self.alpha_p_m.is_nan()
+    }
+
+    pub fn velocity_active(&self) -> bool {
+        !self.alpha_v_mps.is_nan()
+    }
+
+    fn encode(&self, out: &mut Vec<u8>) {
+        put_joints(out, &self.joints.q_rad);
+        put_joints(out, &self.joints.qd_rad_per_s);
+        out.push(u8::from(self.held));
+        out.push(match self.haptic_status {
+            HapticStatus::Active => 0,
+            HapticStatus::Far => 1,
+            HapticStatus::NoSurface => 2,
+        });
+        for v in [
+            self.d_proj_m,
+            self.d_rate_mps,
+            self.alpha_p_m,
+            self.alpha_v_mps,
+        ] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.push(u8::from(self.force_active));
+        out.push(match self.status {
+            ControlStatus::Ok => 0,
+            ControlStatus::BadInput => 1,
+            ControlStatus::SolverFailed => 2,
+        });
+        put_joints(out, &self.tau_nm);
+        put_joints(out, &self.qdd_rad_per_s2);
+    }
+
+    fn decode(r: &mut Reader<'_>) -> Result<Self, WireError> {
+        let q_rad = read_joints(r)?;
+        let qd_rad_per_s = read_joints(r)?;
+        let held = r.u8()? != 0;
+        let haptic_status = match r.u8()? {
+            0 => HapticStatus::Active,
+            1 => HapticStatus::Far,
+            2 => HapticStatus::NoSurface,
+            _ => return Err(WireError::Payload("unknown haptic status")),
+        };
+        let d_proj_m = r.f64()?;
+        let d_rate_mps = r.f64()?;
+        let alpha_p_m = r.f64()?;
+        let alpha_v_mps = r.f64()?;
+        let force_active = r.u8()? != 0;
+        let status = match r.u8()? {
+            0 => ControlStatus::Ok,
+            1 => ControlStatus::BadInput,
+            2 => ControlStatus::SolverFailed,
+            _ => return Err(WireError::Payload("unknown control status")),
+        };
+        Ok(Self {
+            joints: JointState {
+                q_rad,
+                qd_rad_per_s,
+            },
+            held,
+            haptic_status,
+            d_proj_m,
+            d_rate_mps,
+            alpha_p_m,
+            alpha_v_mps,
+            force_active,
+            status,
+            tau_nm: read_joints(r)?,
+            qdd_rad_per_s2: read_joints(r)?,
+        })
+    }
+}
+
+fn put_joints(out: &mut Vec<u8>, v: &JointVector) {
+    for c in v.iter() {
+        out.extend_from_slice(&c.to_le_bytes());
+    }
+}
+
+fn read_joints(r: &mut Reader<'_>) -> Result<JointVector, WireError> {
+    let mut v = JointVector::zeros();
+    for c in v.iter_mut() {
+        *c = r.f64()?;
+    }
+    Ok(v)
 }
 
 /// One control tick as recorded.
@@ -45,6 +191,7 @@ pub struct RecordingMeta {
 pub struct TickRecord {
     pub index: u64,
     pub fused: FusedSurface,
+    pub control: ControlRecord,
     /// How late the tick started after its absolute deadline, seconds (timing only: not
     /// compared by replay).
     pub late_s: f64,
@@ -53,10 +200,11 @@ pub struct TickRecord {
 }
 
 impl TickRecord {
-    /// The deterministic part (index and fused surface) as bytes: what replay compares.
+    /// The deterministic part (index, fused surface, controller) as bytes: what replay
+    /// compares.
     pub fn deterministic_bytes(&self) -> Vec<u8> {
         let f = &self.fused;
-        let mut out = Vec::with_capacity(200);
+        let mut out = Vec::with_capacity(400);
         out.extend_from_slice(&self.index.to_le_bytes());
         out.extend_from_slice(&f.stamp_s.to_le_bytes());
         put_vec3(&mut out, &f.centroid_m.coords);
@@ -74,6 +222,7 @@ impl TickRecord {
         out.push(f.fit_degree);
         out.extend_from_slice(&f.sample_count.to_le_bytes());
         out.extend_from_slice(&f.camera_count.to_le_bytes());
+        self.control.encode(&mut out);
         out
     }
 
@@ -104,6 +253,7 @@ impl TickRecord {
         let fit_degree = r.u8()?;
         let sample_count = r.u32()?;
         let camera_count = r.u32()?;
+        let control = ControlRecord::decode(&mut r)?;
         let late_s = r.f64()?;
         let work_s = r.f64()?;
         r.finish()?;
@@ -122,6 +272,7 @@ impl TickRecord {
                 sample_count,
                 camera_count,
             },
+            control,
             late_s,
             work_s,
         })
@@ -175,8 +326,11 @@ impl Stream {
     }
 }
 
-/// Writes the frames perception processed (owned by the perception thread).
-pub struct FrameRecorder(Stream);
+/// Writes the frames perception processed and their joints (owned by the perception thread).
+pub struct FrameRecorder {
+    frames: Stream,
+    joints: Stream,
+}
 
 /// Writes estimates and ticks (owned by the control loop).
 pub struct TickRecorder {
@@ -197,7 +351,10 @@ pub fn create(
     })?;
     std::fs::write(&meta_path, text).map_err(io_err(&meta_path))?;
     Ok((
-        FrameRecorder(Stream::create(dir.join("frames.hcr"))?),
+        FrameRecorder {
+            frames: Stream::create(dir.join("frames.hcr"))?,
+            joints: Stream::create(dir.join("frame_joints.hcr"))?,
+        },
         TickRecorder {
             estimates: Stream::create(dir.join("estimates.hcr"))?,
             ticks: Stream::create(dir.join("ticks.hcr"))?,
@@ -206,12 +363,17 @@ pub fn create(
 }
 
 impl FrameRecorder {
-    pub fn frame(&mut self, frame: &Frame) -> Result<(), RecordError> {
-        self.0.append(RecordKind::Frame, &wire::encode_frame(frame))
+    pub fn frame(&mut self, frame: &Frame, q: &JointVector) -> Result<(), RecordError> {
+        self.frames
+            .append(RecordKind::Frame, &wire::encode_frame(frame))?;
+        let mut payload = Vec::with_capacity(48);
+        put_joints(&mut payload, q);
+        self.joints.append(RecordKind::FrameJoints, &payload)
     }
 
     pub fn finish(self) -> Result<(), RecordError> {
-        self.0.finish()
+        self.frames.finish()?;
+        self.joints.finish()
     }
 }
 
@@ -237,6 +399,8 @@ impl TickRecorder {
 pub struct Recording {
     pub meta: RecordingMeta,
     pub frames: Vec<Frame>,
+    /// Joint positions perception used for each frame, rad.
+    pub frame_joints: Vec<JointVector>,
     /// (tick index that pushed it, estimate), in push order.
     pub estimates: Vec<(u64, SurfaceEstimate)>,
     pub ticks: Vec<TickRecord>,
@@ -264,29 +428,58 @@ fn payload_err(path: &Path, i: usize) -> impl FnOnce(WireError) -> RecordError +
     }
 }
 
+fn decode_joints(payload: &[u8]) -> Result<JointVector, WireError> {
+    let mut reader = Reader::new(payload);
+    let q = read_joints(&mut reader)?;
+    reader.finish()?;
+    Ok(q)
+}
+
 /// Reads a recording directory; any missing or malformed part is an error naming the file.
 pub fn read(dir: &Path) -> Result<Recording, RecordError> {
     let meta_path = dir.join("meta.json");
     let text = std::fs::read_to_string(&meta_path).map_err(io_err(&meta_path))?;
-    let meta: RecordingMeta = serde_json::from_str(&text).map_err(|e| RecordError::Format {
+    let format_err = |reason: String| RecordError::Format {
         path: meta_path.clone(),
-        reason: e.to_string(),
-    })?;
-    if meta.version != RECORDING_VERSION {
-        return Err(RecordError::Format {
-            path: meta_path,
-            reason: format!(
-                "recording version {} (this build reads {RECORDING_VERSION})",
-                meta.version
-            ),
-        });
+        reason,
+    };
+    // The version first: an older meta.json lacks fields this build requires.
+    let value: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format_err(e.to_string()))?;
+    match value.get("version").and_then(serde_json::Value::as_u64) {
+        Some(v) if v == u64::from(RECORDING_VERSION) => {}
+        Some(v) => {
+            return Err(format_err(format!(
+                "recording version {v}, this build reads version {RECORDING_VERSION} only \
+                 (record it again with this build's `hapcloud run --record`)"
+            )));
+        }
+        None => return Err(format_err("no format version".into())),
     }
+    let meta: RecordingMeta =
+        serde_json::from_value(value).map_err(|e| format_err(e.to_string()))?;
     let path = dir.join("frames.hcr");
-    let frames = read_records(&path, RecordKind::Frame)?
+    let frames: Vec<Frame> = read_records(&path, RecordKind::Frame)?
         .iter()
         .enumerate()
         .map(|(i, r)| wire::decode_frame(&r.payload).map_err(payload_err(&path, i)))
         .collect::<Result<_, _>>()?;
+    let path = dir.join("frame_joints.hcr");
+    let frame_joints: Vec<JointVector> = read_records(&path, RecordKind::FrameJoints)?
+        .iter()
+        .enumerate()
+        .map(|(i, r)| decode_joints(&r.payload).map_err(payload_err(&path, i)))
+        .collect::<Result<_, _>>()?;
+    if frame_joints.len() != frames.len() {
+        return Err(RecordError::Format {
+            path,
+            reason: format!(
+                "{} joint records for {} frames",
+                frame_joints.len(),
+                frames.len()
+            ),
+        });
+    }
     let path = dir.join("estimates.hcr");
     let estimates = read_records(&path, RecordKind::Estimate)?
         .iter()
@@ -309,6 +502,7 @@ pub fn read(dir: &Path) -> Result<Recording, RecordError> {
     Ok(Recording {
         meta,
         frames,
+        frame_joints,
         estimates,
         ticks,
     })

@@ -6,7 +6,7 @@
 //! offset size  field
 //!  0      4    magic  b"HCAP"
 //!  4      2    format version (VERSION = 1)
-//!  6      2    kind   (1 camera frame, 2 surface estimate, 3 tick)
+//!  6      2    kind   (1 camera frame, 2 surface estimate, 3 tick, 4 frame joints)
 //!  8      4    payload length N in bytes (at most MAX_PAYLOAD_BYTES)
 //! 12      4    CRC-32 (IEEE 802.3, the zlib/PNG polynomial) of bytes 0..12 and the payload
 //! 16      N    payload
@@ -46,6 +46,8 @@ pub enum RecordKind {
     Frame = 1,
     Estimate = 2,
     Tick = 3,
+    /// The robot's joint positions perception used for a recorded frame.
+    FrameJoints = 4,
 }
 
 impl RecordKind {
@@ -54,6 +56,7 @@ impl RecordKind {
             1 => Some(Self::Frame),
             2 => Some(Self::Estimate),
             3 => Some(Self::Tick),
+            4 => Some(Self::FrameJoints),
             _ => None,
         }
     }

@@ -255,6 +255,11 @@ impl Simulator {
         self.robot.as_ref().map(RobotTrack::hip_radius_m)
     }
 
+    /// The exoskeleton's model with the scene's base pose (None without a robot).
+    pub fn robot_model(&self) -> Option<&crate::robot::RobotModel> {
+        self.robot.as_ref().map(RobotTrack::model)
+    }
+
     /// Joint positions of the exoskeleton at `t_s`.
     pub fn joints_at(&self, t_s: f64) -> Option<JointVector> {
         self.robot.as_ref().map(|r| r.joints_at(t_s))

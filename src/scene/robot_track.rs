@@ -89,6 +89,11 @@ impl RobotTrack {
         })
     }
 
+    /// The robot model, with the scene's base pose.
+    pub fn model(&self) -> &RobotModel {
+        &self.model
+    }
+
     pub fn visible(&self) -> bool {
         self.visible
     }
