@@ -13,6 +13,8 @@ use hapcloud::io::can::{
     CanTorqueCommand, CanValue, CandumpWriter, Decoder, encode,
 };
 use proptest::prelude::*;
+
+mod common;
 use socketcan::{CanSocket, Socket};
 use std::collections::HashMap;
 
@@ -338,9 +340,8 @@ fn opening_a_missing_interface_names_it() {
 
 #[test]
 fn can_decode_command_reads_a_log() {
-    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("can_protocol");
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join("node.log");
+    let dir = common::TempDir::new("can_protocol");
+    let path = dir.path.join("node.log");
     let mut log = CandumpWriter::new(std::fs::File::create(&path).unwrap(), "can0");
     let constraint = CanConstraint {
         d_proj_m: 0.0421,
@@ -355,16 +356,7 @@ fn can_decode_command_reads_a_log() {
     log.write_value(1_700_000_000.0, &CanValue::Constraint(constraint))
         .unwrap();
     log.flush().unwrap();
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hapcloud"))
-        .args(["can-decode", "--json"])
-        .arg(&path)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = common::run_ok(["can-decode".as_ref(), "--json".as_ref(), path.as_os_str()]);
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["frames"], 1);
     assert_eq!(json["unknown"], 0);

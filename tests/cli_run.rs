@@ -1,44 +1,28 @@
-//! `hapcloud run` and `hapcloud replay` end to end on PCL's real grabber frames: the JSON
-//! summary's fields, a recording, its bit-for-bit replay, and clear errors.
+//! `hapcloud run` and `hapcloud replay` end to end: on PCL's real grabber frames (the JSON
+//! summary's fields, a recording, its bit-for-bit replay, clear errors), and on a short
+//! built-in scene with the CAN log decoded by the DBC and checked against the recording.
 
-use std::path::PathBuf;
-use std::process::Command;
+mod common;
 
-fn hapcloud() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_hapcloud"))
-}
-
-fn grabber_pcd() -> PathBuf {
-    PathBuf::from(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../shared/data/pcl/grabber_sequences/pcd"
-    ))
-}
+use common::{TempDir, grabber_pcd, hapcloud, run_node, run_ok};
+use hapcloud::io::can;
+use hapcloud::node::record::{self, TickRecord};
+use std::collections::BTreeMap;
+use std::ffi::OsStr;
 
 #[test]
 fn run_records_real_frames_and_replay_reproduces_them() {
-    let dir = std::env::temp_dir().join(format!("hapcloud-cli-run-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    let out = hapcloud()
-        .args([
-            "run",
-            "--backend",
-            "cpu",
-            "--json",
-            "--speed",
-            "2",
-            "--record",
-        ])
-        .arg(&dir)
-        .arg(grabber_pcd())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let tmp = TempDir::new("cli_run");
+    let dir = tmp.path.join("rec");
+    let summary = run_node(
+        grabber_pcd(),
+        &[
+            "--speed".as_ref(),
+            "2".as_ref(),
+            "--record".as_ref(),
+            dir.as_os_str(),
+        ],
     );
-    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     for key in [
         "frames",
         "ticks",
@@ -53,18 +37,10 @@ fn run_records_real_frames_and_replay_reproduces_them() {
     let frames = summary["frames"].as_u64().unwrap() + summary["dropped_frames"].as_u64().unwrap();
     assert_eq!(frames, 3, "{summary}");
     assert!(summary["ticks"].as_u64().unwrap() > 100, "{summary}");
+    // Real frames carry no joint states: the robot stands with its HIP at the config's.
+    assert_eq!(summary["robot_joint_states"], false);
 
-    let out = hapcloud()
-        .arg("replay")
-        .arg(&dir)
-        .arg("--json")
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = run_ok(["replay".as_ref(), dir.as_os_str(), "--json".as_ref()]);
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(report["estimate_mismatches"], 0);
     assert_eq!(report["tick_mismatches"], 0);
@@ -77,5 +53,180 @@ fn run_records_real_frames_and_replay_reproduces_them() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("estimates.hcr"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
-    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `expected` as the bus carries it: saturated to the signal's range, NaN sent as 0.
+fn on_bus(expected: f64, lo: f64, hi: f64) -> f64 {
+    if expected.is_nan() {
+        0.0
+    } else {
+        expected.clamp(lo, hi)
+    }
+}
+
+fn assert_signal(signals: &BTreeMap<&str, f64>, name: &str, expected: f64, lsb: f64) {
+    let got = signals[name];
+    let want = on_bus(expected, -32768.0 * lsb, 32767.0 * lsb);
+    assert!(
+        (got - want).abs() <= 0.5 * lsb + 1e-9,
+        "{name}: bus {got}, recorded {expected}"
+    );
+}
+
+#[test]
+fn can_log_of_a_scene_run_decodes_with_the_dbc_to_the_recorded_values() {
+    let tmp = TempDir::new("cli_run_can");
+    let log = tmp.path.join("node.log");
+    let dir = tmp.path.join("rec");
+    let args: Vec<&OsStr> = vec![
+        "--duration".as_ref(),
+        "0.25".as_ref(),
+        "--speed".as_ref(),
+        "0.25".as_ref(),
+        "--can-log".as_ref(),
+        log.as_os_str(),
+        "--record".as_ref(),
+        dir.as_os_str(),
+    ];
+    let summary = run_node("torso_approach_clean", &args);
+    assert_eq!(summary["robot_joint_states"], true, "{summary}");
+    let recording = record::read(&dir).unwrap();
+    let ticks: BTreeMap<u64, &TickRecord> = recording
+        .ticks
+        .iter()
+        .map(|t| ((t.fused.stamp_s * 1e6).round() as u64, t))
+        .collect();
+    assert_eq!(ticks.len() as u64, summary["ticks"].as_u64().unwrap());
+
+    let dbc = can::parse_dbc(can::DBC_TEXT).unwrap();
+    let logged =
+        can::read_candump(std::io::BufReader::new(std::fs::File::open(&log).unwrap())).unwrap();
+    assert_eq!(
+        logged.len() as u64,
+        summary["can"]["counters"]["frames_logged"]
+            .as_u64()
+            .unwrap()
+    );
+    let mut seen: BTreeMap<&str, usize> = BTreeMap::new();
+    let mut surfaces = 0;
+    for entry in &logged {
+        let (name, signals) = can::decode_with_dbc(&dbc, &entry.frame).expect("a protocol id");
+        let signals: BTreeMap<&str, f64> = signals.into_iter().collect();
+        let tick = ticks
+            .get(&entry.stamp_us)
+            .unwrap_or_else(|| panic!("{name} at {} us matches no tick", entry.stamp_us));
+        *seen.entry(name).or_default() += 1;
+        let c = &tick.control;
+        let counter = (tick.index % 256) as f64;
+        match name {
+            "TorqueCommand_1_4" | "TorqueCommand_5_6" => {
+                let joints = if name == "TorqueCommand_1_4" {
+                    0..4
+                } else {
+                    4..6
+                };
+                for j in joints {
+                    assert_signal(
+                        &signals,
+                        &format!("Joint{}Torque", j + 1),
+                        c.tau_nm[j],
+                        0.01,
+                    );
+                }
+                if name == "TorqueCommand_5_6" {
+                    assert_eq!(signals["TorqueCounter"], counter);
+                    assert_eq!(signals["TorqueEnable"], 1.0, "controller ok");
+                }
+            }
+            "HapticConstraint" => {
+                assert_signal(&signals, "DProj", c.d_proj_m, 1e-4);
+                assert_signal(&signals, "AlphaP", c.alpha_p_m, 1e-4);
+                assert_signal(&signals, "AlphaV", c.alpha_v_mps, 1e-4);
+                assert_eq!(signals["PositionActive"], f64::from(c.position_active()));
+                assert_eq!(signals["VelocityActive"], f64::from(c.velocity_active()));
+                assert_eq!(signals["ForceActive"], f64::from(c.force_active));
+                assert_eq!(signals["ConstraintCounter"], counter);
+            }
+            "JointState_1_2" | "JointState_3_4" | "JointState_5_6" => {
+                assert_eq!(tick.index % 4, 0, "joint states at 200 Hz");
+                let first = match name {
+                    "JointState_1_2" => 0,
+                    "JointState_3_4" => 2,
+                    _ => 4,
+                };
+                for j in first..first + 2 {
+                    let n = j + 1;
+                    assert_signal(
+                        &signals,
+                        &format!("Joint{n}Position"),
+                        c.joints.q_rad[j],
+                        1e-4,
+                    );
+                    assert_signal(
+                        &signals,
+                        &format!("Joint{n}Velocity"),
+                        c.joints.qd_rad_per_s[j],
+                        1e-3,
+                    );
+                }
+            }
+            "NodeStatus" => {
+                assert_eq!(tick.index % 8, 0, "status at 100 Hz");
+                assert_eq!(signals["Backend"], 0.0, "cpu");
+                assert_eq!(signals["Heartbeat"], counter);
+            }
+            "SurfaceCentroid" => {
+                // The estimates fusion took in at this tick, in order.
+                let pushed: Vec<_> = recording
+                    .estimates
+                    .iter()
+                    .filter(|(k, _)| *k == tick.index)
+                    .map(|(_, e)| e)
+                    .collect();
+                let e = pushed
+                    .iter()
+                    .find(|e| f64::from(e.camera_id) == signals["CentroidCameraId"])
+                    .expect("an estimate of this camera at this tick");
+                for (axis, v) in ["CentroidX", "CentroidY", "CentroidZ"]
+                    .iter()
+                    .zip(e.centroid_m.iter())
+                {
+                    assert_signal(&signals, axis, *v, 1e-4);
+                }
+                assert_eq!(signals["EstimateValid"], f64::from(e.valid));
+                surfaces += 1;
+            }
+            "SurfaceNormal" => {}
+            other => panic!("unexpected message {other}"),
+        }
+    }
+    let n = ticks.len();
+    assert_eq!(seen["TorqueCommand_1_4"], n);
+    assert_eq!(seen["HapticConstraint"], n);
+    assert_eq!(surfaces, recording.estimates.len());
+    assert!(surfaces > 0, "no estimate reached fusion: {summary}");
+    let load = summary["can"]["bus_load"]["load_fraction"]
+        .as_f64()
+        .unwrap();
+    assert!(load > 0.3 && load < 0.5, "{load}");
+}
+
+#[test]
+fn a_missing_can_interface_is_a_clear_error() {
+    let out = hapcloud()
+        .args([
+            "run",
+            "--json",
+            "--duration",
+            "0.1",
+            "--can",
+            "hapcloud_no_can7",
+        ])
+        .arg(grabber_pcd())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("hapcloud_no_can7"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
 }

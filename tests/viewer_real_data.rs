@@ -9,14 +9,9 @@ use hapcloud::viewer::replay::ReplayConfig;
 use hapcloud::viewer::source::{hip_on_axis, read_cloud_dir, timeline_from_frames};
 use hapcloud::viewer::{PointRole, ViewFrame, ViewerApp, ViewerConfig, ViewerSource};
 use nalgebra::Vector3;
-use std::path::PathBuf;
 
-fn grabber_dir() -> PathBuf {
-    PathBuf::from(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../shared/data/pcl/grabber_sequences/pcd"
-    ))
-}
+mod common;
+use common::{TempDir, grabber_pcd as grabber_dir};
 
 fn timeline() -> Vec<ViewFrame> {
     let frames = read_cloud_dir(&grabber_dir(), 30.0).unwrap();
@@ -103,45 +98,23 @@ fn real_frames_in_the_viewer() {
     h.snapshot("viewer_real_grabber");
 }
 
-/// A recording made by the node (CPU backend) on the grabber frames, with the node's HIP put
-/// where `hip_on_axis` puts it.
-fn node_recording() -> (tempdir::Dir, hapcloud::node::record::Recording) {
-    use hapcloud::node::{NodeConfig, RunOptions, Source, run};
-    let frames = read_cloud_dir(&grabber_dir(), 30.0).unwrap();
-    let config = NodeConfig {
-        hip_world_m: hip_on_axis(&frames[0], 0.06).unwrap(),
-        ..NodeConfig::default()
-    };
-    let dir = tempdir::Dir::new("viewer_recording");
-    let options = RunOptions {
-        // Slow enough for the CPU stages of a debug build to keep up with the frames.
-        speed: 0.2,
-        record: Some(dir.path.clone()),
-        ..RunOptions::new(hapcloud::gpu::Backend::Cpu)
-    };
-    run(&config, Source::Timed(frames), &options, |_| {}).unwrap();
-    let recording = hapcloud::node::record::read(&dir.path).unwrap();
+/// A recording made by `hapcloud run` (CPU backend) on the grabber frames, its HIP put on
+/// the optical axis in front of the surface.
+fn node_recording() -> (TempDir, hapcloud::node::record::Recording) {
+    let dir = TempDir::new("viewer_recording");
+    let record = dir.path.join("rec");
+    // Slow enough for the CPU stages of a debug build to keep up with the frames.
+    common::run_node(
+        grabber_dir(),
+        &[
+            "--speed".as_ref(),
+            "0.2".as_ref(),
+            "--record".as_ref(),
+            record.as_os_str(),
+        ],
+    );
+    let recording = hapcloud::node::record::read(&record).unwrap();
     (dir, recording)
-}
-
-mod tempdir {
-    /// A directory under the target's tmp dir, removed on drop.
-    pub struct Dir {
-        pub path: std::path::PathBuf,
-    }
-    impl Dir {
-        pub fn new(name: &str) -> Self {
-            let path = std::path::PathBuf::from(env!("CARGO_TARGET_TMPDIR"))
-                .join(format!("{name}_{}", std::process::id()));
-            let _ = std::fs::remove_dir_all(&path);
-            Self { path }
-        }
-    }
-    impl Drop for Dir {
-        fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.path);
-        }
-    }
 }
 
 #[test]
@@ -196,15 +169,11 @@ fn node_recording_shows_the_nodes_own_estimates() {
         "no recorded estimate matched a recorded frame: {stamps:?} vs {frame_stamps:?}"
     );
     // The command line opens the same recording.
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_hapcloud"))
-        .args(["view", dir.path.to_str().unwrap(), "--json"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = common::run_ok([
+        "view".as_ref(),
+        dir.path.join("rec").as_os_str(),
+        "--json".as_ref(),
+    ]);
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["frames"], 3);
     assert!(v["valid_estimates"].as_u64().unwrap() >= 1);

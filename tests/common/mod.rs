@@ -1,0 +1,68 @@
+//! Shared by the integration tests that run the `hapcloud` binary: the command, PCL's real
+//! grabber frames, scratch directories, and running the node with a JSON summary.
+// Each test binary compiles this module and uses only part of it.
+#![allow(dead_code)]
+
+use std::ffi::OsStr;
+use std::path::PathBuf;
+use std::process::{Command, Output};
+
+/// The `hapcloud` binary of this build.
+pub fn hapcloud() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+}
+
+/// PCL's grabber sequence: three Kinect-class frames named by their stamps.
+pub fn grabber_pcd() -> PathBuf {
+    PathBuf::from(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../shared/data/pcl/grabber_sequences/pcd"
+    ))
+}
+
+/// A directory under the target's tmp dir, empty at the start, removed on drop.
+pub struct TempDir {
+    pub path: PathBuf,
+}
+
+impl TempDir {
+    pub fn new(name: &str) -> Self {
+        let path = PathBuf::from(env!("CARGO_TARGET_TMPDIR"))
+            .join(format!("{name}_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&path);
+        std::fs::create_dir_all(&path).unwrap();
+        Self { path }
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.path);
+    }
+}
+
+/// Runs `hapcloud ARGS`, asserts success (printing its stderr otherwise).
+pub fn run_ok<I, S>(args: I) -> Output
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let out = hapcloud().args(args).output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// `hapcloud run --json --backend cpu ARGS SOURCE`: the node's JSON summary.
+pub fn run_node<S: AsRef<OsStr>>(source: S, args: &[&OsStr]) -> serde_json::Value {
+    let mut all: Vec<&OsStr> = ["run", "--json", "--backend", "cpu"]
+        .iter()
+        .map(OsStr::new)
+        .collect();
+    all.extend_from_slice(args);
+    all.push(source.as_ref());
+    serde_json::from_slice(&run_ok(all).stdout).unwrap()
+}
