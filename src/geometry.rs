@@ -106,6 +106,31 @@ impl Primitive {
         self.signed_distance(p) <= 0.0
     }
 
+    /// The primitive grown by `margin_m` on every side (sphere and capsule radii, box half
+    /// extents; a grown box stays a box, so it also covers its corners' neighbourhood).
+    pub fn grown(&self, margin_m: f64) -> Primitive {
+        match self {
+            Primitive::Sphere { center_m, radius_m } => Primitive::Sphere {
+                center_m: *center_m,
+                radius_m: radius_m + margin_m,
+            },
+            Primitive::Capsule { a_m, b_m, radius_m } => Primitive::Capsule {
+                a_m: *a_m,
+                b_m: *b_m,
+                radius_m: radius_m + margin_m,
+            },
+            Primitive::OrientedBox {
+                center_m,
+                rpy_rad,
+                half_extents_m,
+            } => Primitive::OrientedBox {
+                center_m: *center_m,
+                rpy_rad: *rpy_rad,
+                half_extents_m: half_extents_m.add_scalar(margin_m),
+            },
+        }
+    }
+
     /// The same primitive expressed in frame `a`, given the transform `a_from_b` from the
     /// frame `b` it is stored in.
     pub fn transformed(&self, a_from_b: &Isometry3<f64>) -> Primitive {

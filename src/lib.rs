@@ -16,6 +16,7 @@
 pub mod camera;
 pub mod cloud;
 pub mod control;
+pub mod evaluation;
 pub mod fusion;
 pub mod geometry;
 pub mod surface;

@@ -25,6 +25,9 @@ pub struct Args {
     /// `[[primitive]]` tables with `shape = "sphere" | "capsule" | "oriented_box"`.
     #[arg(long)]
     robot: Option<PathBuf>,
+    /// Grow every robot primitive by this much before the test (m).
+    #[arg(long, default_value_t = CropConfig::default().robot_margin_m)]
+    robot_margin: f64,
     /// Output cloud (.pcd or .ply, binary), the kept points with their fields.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -72,6 +75,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     })?;
     let config = CropConfig {
         radius_m: args.radius,
+        robot_margin_m: args.robot_margin,
     };
     let scene = CropScene {
         hip_m: args.hip,

@@ -1,6 +1,7 @@
 //! Subcommands of the `hapcloud` binary. Each subcommand lives in its own file here and
 //! only wires library stages together; `--json` output is one JSON object on stdout.
 
+mod accuracy;
 mod can_decode;
 mod convert;
 mod experiment;
@@ -41,6 +42,8 @@ enum Command {
     CanDecode(can_decode::Args),
     /// Open the GPU context and report the adapter (set WGPU_ADAPTER_NAME to choose one).
     GpuInfo(gpu_info::Args),
+    /// Accuracy of the per-camera surface estimates on simulated scenes against ground truth.
+    Accuracy(accuracy::Args),
     /// Closest collision surface (centroid, normal, per-shell fits) of a cloud around a HIP.
     Surface(surface::Args),
     /// Crop a cloud: drop invalid points, points farther than --radius from the HIP and
@@ -75,6 +78,7 @@ pub fn main() -> ExitCode {
         Command::Convert(args) => convert::run(args),
         Command::CanDecode(args) => can_decode::run(args),
         Command::GpuInfo(args) => gpu_info::run(args),
+        Command::Accuracy(args) => accuracy::run(args),
         Command::Surface(args) => surface::run(args),
         Command::Crop(args) => crop::run(args),
         Command::Voxel(args) => voxel::run(args),

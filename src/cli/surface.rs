@@ -44,7 +44,7 @@ pub struct Args {
     pub json: bool,
 }
 
-fn parse_method(s: &str) -> Result<CircleMethod, String> {
+pub(crate) fn parse_method(s: &str) -> Result<CircleMethod, String> {
     CircleMethod::ALL
         .into_iter()
         .find(|m| m.name() == s.replace('-', "_"))

@@ -4,7 +4,9 @@
 //! the f32 bit pattern (exponent bits not all ones), (2) it lies within `radius_m` of the
 //! haptic interaction point (HIP), i.e. not outside the paper's "inverted sphere", and
 //! (3) it lies outside every robot collision primitive ([`Primitive`], posed in the cloud
-//! frame). The result is a keep mask of 32-bit words, bit `i % 32` of word `i / 32` for point
+//! frame), each grown by `robot_margin_m` (the sensor's noise scatters the robot's own surface
+//! points to both sides of it; a primitive that only just encloses the robot leaves half of
+//! them, right next to the HIP). The result is a keep mask of 32-bit words, bit `i % 32` of word `i / 32` for point
 //! `i`, which the voxel stage consumes directly on the GPU.
 //!
 //! [`crop_cpu`] is the reference (f64 geometry from [`crate::geometry`]); [`GpuCrop`] runs
@@ -27,11 +29,17 @@ use crate::gpu::{GpuContext, GpuError};
 pub struct CropConfig {
     /// Points farther than this from the HIP are dropped (m).
     pub radius_m: f64,
+    /// Robot primitives are grown by this much before the test (m): about three times the
+    /// D435's depth noise at 1 m, so the robot's own noisy surface points go too.
+    pub robot_margin_m: f64,
 }
 
 impl Default for CropConfig {
     fn default() -> Self {
-        Self { radius_m: 0.3 }
+        Self {
+            radius_m: 0.3,
+            robot_margin_m: 0.01,
+        }
     }
 }
 
@@ -40,6 +48,8 @@ impl Default for CropConfig {
 pub enum CropError {
     #[error("crop radius_m must be finite and positive, got {0}")]
     BadRadius(f64),
+    #[error("crop robot_margin_m must be finite and at least 0, got {0}")]
+    BadMargin(f64),
     #[error("HIP position must be finite")]
     BadHip,
     #[error("robot primitive {index}: {source}")]
@@ -57,6 +67,9 @@ impl CropConfig {
     pub fn validate(&self) -> Result<(), CropError> {
         if !(self.radius_m.is_finite() && self.radius_m > 0.0) {
             return Err(CropError::BadRadius(self.radius_m));
+        }
+        if !(self.robot_margin_m.is_finite() && self.robot_margin_m >= 0.0) {
+            return Err(CropError::BadMargin(self.robot_margin_m));
         }
         Ok(())
     }
@@ -114,6 +127,11 @@ pub fn crop_cpu(
     config.validate()?;
     scene.validate()?;
     let r2 = config.radius_m * config.radius_m;
+    let robot: Vec<Primitive> = scene
+        .robot
+        .iter()
+        .map(|p| p.grown(config.robot_margin_m))
+        .collect();
     let mut mask = vec![0u32; mask_words(points.len())];
     for (i, p) in points.iter().enumerate() {
         if !finite_bits(*p) {
@@ -123,7 +141,7 @@ pub fn crop_cpu(
         if (q - scene.hip_m).norm_squared() > r2 {
             continue;
         }
-        if scene.robot.iter().any(|prim| prim.contains(&q)) {
+        if robot.iter().any(|prim| prim.contains(&q)) {
             continue;
         }
         mask[i / 32] |= 1 << (i % 32);
@@ -252,7 +270,11 @@ impl GpuCrop {
         scene.validate()?;
         let n = u32::try_from(point_count).map_err(|_| CropError::TooManyPoints(point_count))?;
         let words = mask_words(point_count) as u64;
-        let prims: Vec<CropPrimitive> = scene.robot.iter().map(gpu_primitive).collect();
+        let prims: Vec<CropPrimitive> = scene
+            .robot
+            .iter()
+            .map(|p| gpu_primitive(&p.grown(config.robot_margin_m)))
+            .collect();
         let prim_bytes = std::mem::size_of_val(prims.as_slice()) as u64;
         ctx.check_storage_size("crop keep mask", 4 * words)?;
         ctx.scoped("crop buffers", |device| {
@@ -416,9 +438,49 @@ mod tests {
     }
 
     #[test]
+    fn the_margin_takes_the_robots_noisy_surface_points_too() {
+        let robot = [Primitive::Capsule {
+            a_m: Point3::new(0.1, -0.05, 0.0),
+            b_m: Point3::new(0.1, 0.05, 0.0),
+            radius_m: 0.02,
+        }];
+        // 5 mm inside, 5 mm outside and 15 mm outside.
+        let pts = vec![
+            Vec3::new(0.085, 0.0, 0.0),
+            Vec3::new(0.075, 0.0, 0.0),
+            Vec3::new(0.065, 0.0, 0.0),
+        ];
+        let crop = |margin: f64| {
+            let config = CropConfig {
+                robot_margin_m: margin,
+                ..CropConfig::default()
+            };
+            let cpu = crop_cpu(&pts, &config, &hip_scene(&robot)).unwrap();
+            let ctx = crate::gpu::context::test_context();
+            let gpu = GpuCrop::new(ctx)
+                .unwrap()
+                .run(ctx, &pts, &config, &hip_scene(&robot), None)
+                .unwrap()
+                .0;
+            assert_eq!(cpu, gpu);
+            kept_indices(&cpu, pts.len())
+        };
+        assert_eq!(crop(0.0), vec![1, 2]);
+        assert_eq!(crop(0.01), vec![2]);
+        let bad = CropConfig {
+            robot_margin_m: -0.01,
+            ..CropConfig::default()
+        };
+        assert!(matches!(bad.validate(), Err(CropError::BadMargin(_))));
+    }
+
+    #[test]
     fn bad_inputs_are_errors() {
         let scene = hip_scene(&[]);
-        let bad = CropConfig { radius_m: -1.0 };
+        let bad = CropConfig {
+            radius_m: -1.0,
+            ..CropConfig::default()
+        };
         assert!(matches!(
             crop_cpu(&[], &bad, &scene),
             Err(CropError::BadRadius(_))
@@ -469,7 +531,7 @@ mod tests {
             || scene
                 .robot
                 .iter()
-                .any(|r| r.signed_distance(&q).abs() < EPS)
+                .any(|r| r.grown(config.robot_margin_m).signed_distance(&q).abs() < EPS)
     }
 
     proptest! {
@@ -484,12 +546,16 @@ mod tests {
         ) {
             let points: Vec<Vec3> = pts.iter().map(|&(x, y, z)| Vec3::new(x, y, z)).collect();
             let robot = [prim];
-            let config = CropConfig { radius_m: 0.4 };
+            let config = CropConfig {
+                radius_m: 0.4,
+                ..CropConfig::default()
+            };
             let scene = hip_scene(&robot);
             let cpu = crop_cpu(&points, &config, &scene).unwrap();
             for (i, p) in points.iter().enumerate() {
                 let q = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-                let expect = q.coords.norm() <= 0.4 && !robot[0].contains(&q);
+                let expect = q.coords.norm() <= 0.4
+                    && !robot[0].grown(config.robot_margin_m).contains(&q);
                 prop_assert_eq!(mask_bit(&cpu, i), expect);
             }
             let ctx = crate::gpu::context::test_context();
@@ -533,7 +599,10 @@ mod tests {
                 hip_m: hip,
                 robot: &robot,
             };
-            let config = CropConfig { radius_m: 0.5 };
+            let config = CropConfig {
+                radius_m: 0.5,
+                ..CropConfig::default()
+            };
             let cpu = crop_cpu(&cloud, &config, &scene).unwrap();
             let (gpu, _) = gpu_crop.run(ctx, &cloud, &config, &scene, None).unwrap();
             let kept = kept_indices(&cpu, cloud.len()).len();

@@ -350,7 +350,10 @@ mod tests {
     fn gpu_frontend_equals_cpu_frontend_over_frames_with_leaf_adaptation() {
         let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
         let config = FrontendConfig {
-            crop: CropConfig { radius_m: 0.6 },
+            crop: CropConfig {
+                radius_m: 0.6,
+                ..CropConfig::default()
+            },
             voxel: VoxelConfig {
                 leaf_m: 0.003,
                 target_points: Some(3000),

@@ -8,7 +8,8 @@
 //!    robot primitives and the surface memory live there),
 //! 2. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
 //!    the robot primitives, voxel grid, Euclidean clusters (paper IV-A to IV-C); the points of
-//!    the kept clusters go on (clusters below the size threshold are noise, IV-C),
+//!    the clusters the [`ClusterSelection`] picks go on (clusters below the size threshold are
+//!    noise, IV-C; keeping only the one nearest the HIP avoids IV-E's two-surface limitation),
 //! 3. the camera's [`SurfaceEstimator`] (one per camera id, so each keeps its memory):
 //!    memory (Alg. 1) and shells (Alg. 2), eq. 2 against the rays from the camera.
 //!
@@ -27,6 +28,7 @@
 //! 4. shell fits, eq. 2 orientation, outlier rejection, weighted average and curvature
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
 
+use super::cluster::Clustering;
 use super::crop::finite_bits;
 use super::frontend::{FrameInput, Frontend, FrontendConfig, FrontendError, FrontendOutput};
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
@@ -49,8 +51,53 @@ use std::sync::Arc;
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SurfaceConfig {
+    /// Which of the front end's clusters the estimator takes ([`CameraChain`]).
+    pub clusters: ClusterSelection,
     pub memory: MemoryConfig,
     pub shells: ShellConfig,
+}
+
+/// Which Euclidean clusters go on to the surface stages (paper IV-C keeps every cluster above
+/// the size threshold; IV-E's limitation, two equidistant surfaces, is avoided by keeping one).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClusterSelection {
+    /// Every cluster the front end kept (size within its bounds).
+    #[default]
+    All,
+    /// Only the cluster holding the point closest to the HIP: the surface that matters.
+    NearestToHip,
+}
+
+impl ClusterSelection {
+    /// The points of the selected clusters of `points` (the voxel grid's output): cluster by
+    /// cluster, largest first, each in ascending point order.
+    pub fn select(self, points: &[Vec3], clustering: &Clustering, hip: &Point3<f64>) -> Vec<Vec3> {
+        let hip = Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32);
+        let chosen: Vec<_> = match self {
+            ClusterSelection::All => clustering.clusters.iter().collect(),
+            ClusterSelection::NearestToHip => clustering
+                .clusters
+                .iter()
+                .filter_map(|c| {
+                    c.indices
+                        .iter()
+                        .map(|&i| points[i as usize].distance_squared(hip))
+                        .min_by(f32::total_cmp)
+                        .map(|d| (d, c))
+                })
+                // Equal distances go to the larger cluster: clusters come largest first and
+                // `min_by` keeps the first minimum.
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .map(|(_, c)| c)
+                .into_iter()
+                .collect(),
+        };
+        chosen
+            .into_iter()
+            .flat_map(|c| c.indices.iter().map(|&i| points[i as usize]))
+            .collect()
+    }
 }
 
 /// A surface configuration that cannot work, or a GPU stage that cannot be built.
@@ -82,6 +129,11 @@ pub struct SurfaceFrame {
     pub backend: Backend,
     /// A GPU failure this frame; the CPU reference answered instead (same integers).
     pub gpu_error: Option<String>,
+    /// Wall and thread CPU time of the surface memory (Alg. 1), of the shell moments (upload,
+    /// GPU pass and readback, or the CPU reference) and of the fits (Alg. 2).
+    pub memory_time: SpanTime,
+    pub moments_time: SpanTime,
+    pub fits_time: SpanTime,
 }
 
 /// One camera's estimator; keeps the surface memory between frames.
@@ -152,7 +204,10 @@ impl SurfaceEstimator {
         camera_id: u32,
         stamp_s: f64,
     ) -> SurfaceFrame {
+        let watch = Stopwatch::start();
         let memory = self.memory.step(cloud_world, hip, &self.config.memory);
+        let memory_time = watch.elapsed();
+        let watch = Stopwatch::start();
         let layout = ShellLayout::new(hip, &self.config.shells.radii_m);
         let (sums, backend, gpu_error) = match &mut self.gpu {
             Some((ctx, stage)) => match stage.accumulate(ctx, &memory.points, &layout) {
@@ -169,6 +224,8 @@ impl SurfaceEstimator {
                 None,
             ),
         };
+        let moments_time = watch.elapsed();
+        let watch = Stopwatch::start();
         let moments = sums.to_moments(&layout);
         let abstraction =
             shells::abstract_surface(&moments, &self.config.shells, viewpoint, camera_id, stamp_s);
@@ -178,6 +235,9 @@ impl SurfaceEstimator {
             sums,
             backend,
             gpu_error,
+            memory_time,
+            moments_time,
+            fits_time: watch.elapsed(),
         }
     }
 }
@@ -200,7 +260,7 @@ pub struct ChainFrame {
     pub world_points: Vec<Vec3>,
     /// The front end's output (voxel grid, clusters, GPU time per pass).
     pub front: FrontendOutput,
-    /// The points of the kept clusters, world frame: the estimator's input.
+    /// The points of the selected clusters, world frame: the estimator's input.
     pub kept: Vec<Vec3>,
     /// The estimator's output (memory step, shell sums, abstraction with the estimate).
     pub surface: SurfaceFrame,
@@ -346,12 +406,10 @@ impl CameraChain {
             Err(e) => return Err(e.into()),
         };
         let frontend_time = watch.elapsed();
-        let kept: Vec<Vec3> = front
-            .clusters
-            .clusters
-            .iter()
-            .flat_map(|c| c.indices.iter().map(|&i| front.voxel.points[i as usize]))
-            .collect();
+        let kept =
+            self.surface_config
+                .clusters
+                .select(&front.voxel.points, &front.clusters, hip_world);
 
         let watch = Stopwatch::start();
         let estimator = match self.estimators.entry(frame.camera_id) {

@@ -1,0 +1,188 @@
+//! `hapcloud accuracy [SCENE...]`: per-camera surface estimates of simulated scenes against
+//! their ground truth ([`hapcloud::evaluation`]): centroid error to the true closest point and
+//! normal error (RMS, max), the largest jump between consecutive estimates, valid and invalid
+//! counts, over the frames in reach (the true surface within the outermost shell of the HIP),
+//! and again over those with the HIP 0.4-0.7 m from the camera (`--range`).
+
+use anyhow::{Context, bail};
+use clap::Args as ClapArgs;
+use hapcloud::evaluation::{
+    CameraSummary, EvaluationConfig, FrameFilter, SceneEvaluation, evaluate_scene, summarize,
+};
+use hapcloud::gpu::{Backend, GpuContext};
+use hapcloud::perception::fit::CircleMethod;
+use hapcloud::scene::{Scene, builtin};
+use std::path::PathBuf;
+use std::sync::Arc;
+
+#[derive(ClapArgs, Debug)]
+pub struct Args {
+    /// Built-in scene names or scene files (default: every built-in scene, clean and
+    /// realistic).
+    pub scenes: Vec<String>,
+    /// Print one JSON object.
+    #[arg(long)]
+    pub json: bool,
+    /// Front end and shell moments on the GPU shaders or their CPU references.
+    #[arg(long, value_enum, default_value = "gpu")]
+    pub backend: Backend,
+    /// Evaluate only frames arriving up to S seconds into each scene.
+    #[arg(long, value_name = "S")]
+    pub duration: Option<f64>,
+    /// ... and from S seconds on (the surface memory starts empty there).
+    #[arg(long, value_name = "S")]
+    pub start: Option<f64>,
+    /// Chain configuration (TOML of `EvaluationConfig`: [frontend], [surface]).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Override the circle fit of the configuration.
+    #[arg(long, value_parser = super::surface::parse_method)]
+    pub circle_method: Option<CircleMethod>,
+    /// HIP-to-camera distances of the restricted rows, metres: MIN,MAX.
+    #[arg(long, value_delimiter = ',', default_value = "0.4,0.7")]
+    pub range: Vec<f64>,
+    /// Also write every frame's evaluation (estimate, truth, errors, stage times) as JSON
+    /// lines to this file.
+    #[arg(long)]
+    pub frames: Option<PathBuf>,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut config: EvaluationConfig = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            toml::from_str(&text)
+                .with_context(|| format!("{}: bad evaluation configuration", path.display()))?
+        }
+        None => EvaluationConfig::default(),
+    };
+    if let Some(m) = args.circle_method {
+        config.surface.shells.circle_method = m;
+    }
+    if args.duration.is_some() {
+        config.duration_s = args.duration;
+    }
+    if let Some(s) = args.start {
+        config.start_s = s;
+    }
+    config.validate().context("evaluation configuration")?;
+    let range = match args.range[..] {
+        [lo, hi] if lo.is_finite() && hi.is_finite() && lo <= hi => (lo, hi),
+        _ => bail!(
+            "--range needs two finite distances MIN,MAX with MIN <= MAX, got {:?}",
+            args.range
+        ),
+    };
+    let names = if args.scenes.is_empty() {
+        builtin::names()
+    } else {
+        args.scenes.clone()
+    };
+    let scenes = names
+        .iter()
+        .map(|n| Scene::from_name_or_path(n))
+        .collect::<Result<Vec<_>, _>>()?;
+    let ctx = match args.backend {
+        Backend::Gpu => Some(Arc::new(GpuContext::new()?)),
+        Backend::Cpu => None,
+    };
+    let mut frames_out = match &args.frames {
+        Some(p) => Some(std::io::BufWriter::new(
+            std::fs::File::create(p).with_context(|| format!("creating {}", p.display()))?,
+        )),
+        None => None,
+    };
+    let mut results = Vec::new();
+    for scene in &scenes {
+        let evaluation = evaluate_scene(scene, &config, args.backend, ctx.clone())
+            .with_context(|| format!("evaluating {}", scene.origin))?;
+        if let Some(out) = frames_out.as_mut() {
+            use std::io::Write;
+            for f in &evaluation.frames {
+                serde_json::to_writer(
+                    &mut *out,
+                    &serde_json::json!({
+                        "scene": evaluation.scene, "frame": f
+                    }),
+                )?;
+                writeln!(out)?;
+            }
+        }
+        let all = summarize(&evaluation, &FrameFilter::default());
+        let ranged = summarize(
+            &evaluation,
+            &FrameFilter {
+                hip_camera_range_m: Some(range),
+            },
+        );
+        if !args.json {
+            print_scene(&evaluation, &all, &ranged, range);
+        }
+        results.push(serde_json::json!({
+            "scene": evaluation.scene,
+            "backend": evaluation.backend,
+            "frames": evaluation.frames.len(),
+            "reach_m": evaluation.reach_m,
+            "cameras": all,
+            "in_range": ranged,
+        }));
+    }
+    if args.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "circle_method": config.surface.shells.circle_method,
+                "cluster_selection": config.surface.clusters,
+                "range_m": [range.0, range.1],
+                "scenes": results,
+            })
+        );
+    }
+    Ok(())
+}
+
+fn print_scene(
+    evaluation: &SceneEvaluation,
+    all: &[CameraSummary],
+    ranged: &[CameraSummary],
+    range: (f64, f64),
+) {
+    println!(
+        "{} ({} frames, backend {}; frames in reach: true surface within {:.0} mm of the HIP)",
+        evaluation.scene,
+        evaluation.frames.len(),
+        evaluation.backend,
+        evaluation.reach_m * 1e3
+    );
+    println!(
+        "  {:<18} {:>6} {:>6} {:>7}  {:>16}  {:>16}  {:>8}  {:>8}",
+        "camera / frames",
+        "count",
+        "valid",
+        "invalid",
+        "centroid mm rms/max",
+        "normal deg rms/max",
+        "jump mm",
+        "cpu ms/frame"
+    );
+    let label = format!("{:.1}-{:.1} m", range.0, range.1);
+    for (rows, which) in [(all, "in reach"), (ranged, label.as_str())] {
+        for s in rows {
+            println!(
+                "  cam {} {:<12} {:>6} {:>6} {:>7}  {:>7.2} / {:>7.2}  {:>7.2} / {:>7.2}  {:>8.2}  {:>8.1}",
+                s.camera_id,
+                which,
+                s.frames,
+                s.valid,
+                s.invalid,
+                s.centroid_mm.rms,
+                s.centroid_mm.max,
+                s.normal_deg.rms,
+                s.normal_deg.max,
+                s.max_jump_mm,
+                s.mean_frame.cpu_ms
+            );
+        }
+    }
+}

@@ -1,0 +1,146 @@
+//! Scene evaluation (`hapcloud::evaluation`) and the `hapcloud accuracy` tool: the per-camera
+//! chain on built-in scenes against the simulator's ground truth.
+
+use hapcloud::evaluation::{EvaluationConfig, FrameFilter, evaluate_scene, summarize};
+use hapcloud::gpu::Backend;
+use hapcloud::scene::Scene;
+use std::process::Command;
+
+/// Head sliding (paper Fig. 10), from touching the forehead (t = 2 s) into the slide.
+fn head_sliding(variant: &str, start_s: f64, end_s: f64) -> hapcloud::evaluation::SceneEvaluation {
+    let scene = Scene::from_builtin(&format!("head_sliding_{variant}")).unwrap();
+    let config = EvaluationConfig {
+        start_s,
+        duration_s: Some(end_s),
+        ..EvaluationConfig::default()
+    };
+    evaluate_scene(&scene, &config, Backend::Cpu, None).unwrap()
+}
+
+#[test]
+fn clean_head_sliding_is_accurate_on_both_cameras() {
+    let evaluation = head_sliding("clean", 2.0, 2.8);
+    assert!(evaluation.frames.len() >= 40, "{}", evaluation.frames.len());
+    for f in &evaluation.frames {
+        // The truth is taken at the frame's stamp with the HIP the chain used.
+        assert_eq!(f.truth.hip_m, f.truth.hip_m);
+        assert!(f.in_reach, "the HIP touches the head throughout");
+        assert!(f.times.total.wall_ms > 0.0);
+    }
+    let summary = summarize(&evaluation, &FrameFilter::default());
+    assert_eq!(summary.len(), 2);
+    for s in &summary {
+        // Exact surface, no noise: what remains is the method (voxel averaging over 1 cm,
+        // the curvature correction's sphere model on an ellipsoid, occlusion by the robot).
+        assert_eq!(s.invalid, 0, "{s:?}");
+        assert!(s.centroid_mm.rms < 8.0, "{s:?}");
+        assert!(s.normal_deg.rms < 5.0, "{s:?}");
+        assert!(s.max_jump_error_mm < 10.0, "{s:?}");
+    }
+}
+
+#[test]
+fn realistic_head_sliding_normals_face_the_hip() {
+    let evaluation = head_sliding("realistic", 2.0, 2.6);
+    let summary = summarize(&evaluation, &FrameFilter::default());
+    assert_eq!(summary.len(), 2);
+    for s in &summary {
+        assert!(s.valid as f64 >= 0.8 * s.frames as f64, "{s:?}");
+        // A normal flipped by eq. 2 is 180 deg off; noise and occlusion stay far below 45.
+        assert!(s.normal_deg.max < 45.0, "{s:?}");
+        assert!(s.normal_deg.rms < 6.0, "{s:?}");
+    }
+    for f in evaluation.frames.iter().filter(|f| f.estimate.valid) {
+        // The estimated normal points from the body towards the HIP.
+        let towards_hip = f.truth.hip_m - f.estimate.centroid_m;
+        assert!(f.estimate.normal.dot(&towards_hip) > 0.0, "{f:?}");
+    }
+}
+
+#[test]
+fn bad_windows_are_errors() {
+    let scene = Scene::from_builtin("head_sliding_clean").unwrap();
+    for config in [
+        EvaluationConfig {
+            duration_s: Some(-1.0),
+            ..EvaluationConfig::default()
+        },
+        EvaluationConfig {
+            start_s: 8.0,
+            ..EvaluationConfig::default()
+        },
+    ] {
+        let err = evaluate_scene(&scene, &config, Backend::Cpu, None).unwrap_err();
+        assert!(err.to_string().contains("evaluation config"), "{err}");
+    }
+}
+
+fn accuracy(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .arg("accuracy")
+        .args(args)
+        .output()
+        .expect("runs hapcloud")
+}
+
+#[test]
+fn cli_json_fields_and_errors() {
+    let out = accuracy(&[
+        "head_sliding_clean",
+        "--start",
+        "2.0",
+        "--duration",
+        "2.3",
+        "--backend",
+        "cpu",
+        "--range",
+        "0.5,1.2",
+        "--json",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["range_m"], serde_json::json!([0.5, 1.2]));
+    let scenes = v["scenes"].as_array().unwrap();
+    assert_eq!(scenes.len(), 1);
+    let s = &scenes[0];
+    assert_eq!(s["scene"], "builtin:head_sliding_clean");
+    assert_eq!(s["backend"], "cpu");
+    for key in ["cameras", "in_range"] {
+        let cams = s[key].as_array().unwrap();
+        assert_eq!(cams.len(), 2, "{key}");
+        for c in cams {
+            for field in [
+                "frames",
+                "valid",
+                "invalid",
+                "max_jump_mm",
+                "max_jump_error_mm",
+            ] {
+                assert!(c[field].is_number(), "{key}.{field}: {c}");
+            }
+            for stat in ["centroid_mm", "normal_deg"] {
+                assert!(c[stat]["rms"].as_f64().unwrap() >= 0.0);
+                assert!(c[stat]["max"].as_f64().unwrap() >= c[stat]["rms"].as_f64().unwrap());
+            }
+        }
+    }
+    let frames: u64 = s["cameras"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["frames"].as_u64().unwrap())
+        .sum();
+    assert!(frames >= 10 && frames <= s["frames"].as_u64().unwrap());
+    assert!(s["cameras"][0]["centroid_mm"]["rms"].as_f64().unwrap() < 5.0);
+
+    let out = accuracy(&["no_such_scene"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("built-in scenes"));
+    let out = accuracy(&["head_sliding_clean", "--range", "0.7,0.4"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--range"));
+}
