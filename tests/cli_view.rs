@@ -56,3 +56,42 @@ fn bad_arguments_are_named() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn json_summary_of_a_simulated_scene() {
+    let out = hapcloud(&[
+        "view",
+        "head_sliding_clean",
+        "--json",
+        "--start-s",
+        "2.0",
+        "--duration-s",
+        "0.2",
+        "--view-rate-hz",
+        "10",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["frames"], 3);
+    assert!(v["points"]["kept"].as_u64().unwrap() > 300);
+    // Ground truth: the fused surface against the true closest point on the head.
+    let e = &v["fused_error"];
+    assert_eq!(e["frames"], 3);
+    assert!(e["centroid_max_m"].as_f64().unwrap() < 0.015, "{e}");
+    assert!(e["normal_max_rad"].as_f64().unwrap() < 0.1, "{e}");
+    // The HIP is at the forehead: every constraint is in force in every frame.
+    for name in ["position", "velocity", "force"] {
+        assert_eq!(v["constraints"][name]["active_frames"], 3, "{name}");
+    }
+
+    let out = hapcloud(&["view", "head_sliding_clean", "--json", "--hip", "0,0,1"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("a scene moves its own HIP"));
+    let out = hapcloud(&["view", "no_such_scene", "--json"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("head_sliding_clean"));
+}

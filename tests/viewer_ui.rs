@@ -1,4 +1,5 @@
-//! The viewer in egui_kittest: snapshot tests rendered by wgpu (lavapipe in CI) and
+//! The viewer in egui_kittest: snapshot tests rendered by wgpu (lavapipe in CI) of the
+//! fixture timeline and of a simulated scene with ground truth and constraint plots, and
 //! interaction tests (layer toggles change what is drawn, the timeline changes the frame,
 //! playback advances, the orbit camera follows the mouse).
 //!
@@ -10,7 +11,8 @@ mod viewer_fixture;
 
 use egui_kittest::Harness;
 use egui_kittest::kittest::Queryable;
-use hapcloud::viewer::{PointRole, ViewerApp, ViewerConfig, ViewerSource};
+use hapcloud::haptics::HapticStatus;
+use hapcloud::viewer::{PointRole, ViewerApp, ViewerConfig, ViewerSource, draw};
 
 const SIZE: egui::Vec2 = egui::vec2(1280.0, 760.0);
 
@@ -256,4 +258,47 @@ fn big_layers_are_thinned_for_display() {
         drawn >= 50 * layers / 2,
         "thinning keeps a useful share: {drawn}"
     );
+}
+
+#[test]
+fn simulated_scene_snapshot() {
+    let frames = viewer_fixture::scene_timeline();
+    assert_eq!(frames.len(), viewer_fixture::SCENE_FRAME + 1);
+    let frame = &frames[viewer_fixture::SCENE_FRAME];
+    let app = ViewerApp::new(
+        ViewerSource::Timeline(frames.clone()),
+        ViewerConfig::default(),
+    );
+    let mut h = harness(app.unwrap(), viewer_fixture::SCENE_FRAME);
+    let stats = h.state().draw_stats();
+    // Both cameras' layers, fits and estimates, the fused surface, the truth and the HIP's
+    // projection on the surface plane; the HIP sphere in the colour of the constraint state.
+    assert!(stats.points > 10_000, "{stats:?}");
+    assert!(stats.fits >= 8 && stats.estimates == 2, "{stats:?}");
+    assert!(
+        stats.fused && stats.truth && stats.hip_projection,
+        "{stats:?}"
+    );
+    assert!(stats.patch_triangles > 50, "{stats:?}");
+    assert_eq!(stats.hip_color, Some(draw::hip_color(frame)));
+    assert_ne!(stats.hip_color, Some(draw::HIP_NO_SURFACE_COLOR));
+    // The HIP touches the forehead: the constraints are in force.
+    assert_eq!(frame.samples.haptic_status, Some(HapticStatus::Active));
+    let error = frame.fused_error().expect("fused surface and ground truth");
+    assert!(error.centroid_m < 0.02, "{error:?}");
+    for label in [
+        "distance to surface (eq. 7)",
+        "rate of d_proj and speed limit (eq. 12-14)",
+        "constraint activity (in force; red: binding)",
+        "fused surface error vs ground truth",
+        "latency per stage (ms)",
+    ] {
+        assert!(h.query_by_label(label).is_some(), "plot {label:?} missing");
+    }
+    h.snapshot("viewer_scene");
+
+    // The projection is a layer of its own.
+    h.get_by_label("HIP projection").click();
+    h.run();
+    assert!(!h.state().draw_stats().hip_projection);
 }

@@ -1,12 +1,17 @@
 //! A real viewer window under X (Xvfb when no display is set): eframe with the wgpu renderer
-//! shows the fixture timeline, takes a screenshot of what it presented and closes; then the
-//! command-line tool does the same on PCL's real grabber frames (`hapcloud view DIR
-//! --screenshot`). The PNGs land in `$CARGO_TARGET_TMPDIR/viewer_window.png` and
-//! `viewer_cli_grabber.png` so anyone can look at what a user sees.
+//! shows a simulated scene (`head_sliding_realistic` with ground truth and haptic
+//! constraints, as `hapcloud view head_sliding_realistic` does), takes a screenshot of what it
+//! presented and closes; then the command-line tool does the same on PCL's real grabber frames
+//! (`hapcloud view DIR --screenshot`). The PNGs land in `$CARGO_TARGET_TMPDIR/viewer_window.png`
+//! and `viewer_cli_grabber.png` so anyone can look at what a user sees; with
+//! `UPDATE_DOCS_SCREENSHOTS=1` the scene's is also copied to `docs/viewer_scene.png` (the
+//! README's picture; regenerate it only on purpose).
 //!
 //! winit needs the main thread, so this test has its own `main` (`harness = false`). Without
 //! `DISPLAY` it runs itself again under `xvfb-run` (CI installs xvfb and xauth).
 
+// This binary shows only the fixture's simulated scene, not its hand-made timeline.
+#[allow(dead_code)]
 mod viewer_fixture;
 
 use hapcloud::viewer::{
@@ -40,13 +45,11 @@ fn count_near(rgba: &[u8], c: egui::Color32) -> usize {
 }
 
 fn window_screenshot(path: &Path) {
-    let app = ViewerApp::new(
-        ViewerSource::Timeline(viewer_fixture::timeline()),
-        ViewerConfig::default(),
-    )
-    .unwrap();
-    let mut app = app;
-    app.seek(16);
+    let timeline = viewer_fixture::scene_timeline_wall_clock();
+    let frame = timeline[viewer_fixture::SCENE_FRAME].clone();
+    let mut app =
+        ViewerApp::new(ViewerSource::Timeline(timeline), ViewerConfig::default()).unwrap();
+    app.seek(viewer_fixture::SCENE_FRAME);
     let size = [WINDOW_PX[0] as f32, WINDOW_PX[1] as f32];
     run_window(
         app,
@@ -64,8 +67,9 @@ fn window_screenshot(path: &Path) {
         (WINDOW_PX[0], WINDOW_PX[1]),
         "screenshot has the window's size"
     );
-    // What a user sees: the HIP handle's cropped points in red, the kept head points, the
-    // dark 3D background, and the HIP sphere outline.
+    // What a user sees: the patient's cropped points in red, the kept points near the HIP,
+    // the dark 3D background, the HIP sphere in the colour of the constraint state and the
+    // ground truth's normal.
     let background = count_near(&rgba, egui::Color32::from_rgb(22, 24, 30));
     assert!(
         background > (w * h / 10) as usize,
@@ -74,7 +78,8 @@ fn window_screenshot(path: &Path) {
     for (what, color, min) in [
         ("kept points", draw::role_color(PointRole::Kept), 200),
         ("cropped points", draw::role_color(PointRole::Cropped), 200),
-        ("HIP outline", draw::HIP_COLOR, 100),
+        ("HIP sphere outline", draw::hip_color(&frame), 100),
+        ("ground truth", draw::TRUTH_COLOR, 20),
     ] {
         let n = count_near(&rgba, color);
         assert!(n >= min, "{what}: only {n} pixels of {color:?}");
@@ -133,6 +138,12 @@ fn main() -> ExitCode {
     let path = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("viewer_window.png");
     window_screenshot(&path);
     println!("test {TEST_NAME} ... ok ({})", path.display());
+    if std::env::var_os("UPDATE_DOCS_SCREENSHOTS").is_some() {
+        let docs = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/viewer_scene.png");
+        std::fs::create_dir_all(docs.parent().expect("docs/ has a parent")).unwrap();
+        std::fs::copy(&path, &docs).unwrap();
+        println!("updated {}", docs.display());
+    }
     let path = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("viewer_cli_grabber.png");
     cli_screenshot(&path);
     println!(

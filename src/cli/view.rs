@@ -1,6 +1,10 @@
 //! `hapcloud view SOURCE`: the shell overlay on a timeline of frames (egui window, wgpu).
 //!
-//! SOURCE is a node recording (`hapcloud run --record DIR`): its frames run through the
+//! SOURCE is a simulated scene (a built-in name from `hapcloud scenes`, or a scene TOML
+//! file): it is rendered, every camera frame runs through the stages with the scene's HIP and
+//! the robot cropped at its joint state, and each view tick shows the ground truth and the
+//! haptic constraints computed on the fused surface (`hapcloud::viewer::simulated`). Or a
+//! node recording (`hapcloud run --record DIR`): its frames run through the
 //! stages again for the point layers, and the node's recorded estimates and fused surfaces are
 //! shown; or a directory of PCD/PLY frames of one camera (e.g. PCL's grabber sequences): the
 //! stages run on every frame with the HIP fixed (`--hip`, or placed in front of the surface
@@ -10,12 +14,15 @@
 
 use anyhow::{Context, bail};
 use hapcloud::node::record;
+use hapcloud::scene::{Scene, Simulator};
 use hapcloud::viewer::replay::ReplayConfig;
+use hapcloud::viewer::simulated::{SceneViewConfig, timeline_from_scene};
 use hapcloud::viewer::source::{
     hip_on_axis, read_cloud_dir, timeline_from_frames, timeline_from_recording,
 };
 use hapcloud::viewer::{
-    PointRole, ScreenshotRequest, ViewerApp, ViewerConfig, ViewerSource, run_window,
+    EstimateError, PointRole, ScreenshotRequest, ViewFrame, ViewerApp, ViewerConfig, ViewerSource,
+    run_window,
 };
 use nalgebra::Point3;
 use serde::Deserialize;
@@ -23,9 +30,20 @@ use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// A node recording (`hapcloud run --record DIR`: has meta.json), or a directory of
-    /// .pcd/.ply frames of one camera in name order.
+    /// A simulated scene (built-in name, see `hapcloud scenes`, or a scene .toml), a node
+    /// recording (`hapcloud run --record DIR`: has meta.json), or a directory of .pcd/.ply
+    /// frames of one camera in name order.
     source: PathBuf,
+    /// Scenes: first view tick, seconds of scene time (overrides [scene] start_s).
+    #[arg(long)]
+    start_s: Option<f64>,
+    /// Scenes: seconds shown from --start-s (default: to the scene's end; overrides [scene]
+    /// duration_s).
+    #[arg(long)]
+    duration_s: Option<f64>,
+    /// Scenes: view ticks per second (overrides [scene] view_rate_hz).
+    #[arg(long)]
+    view_rate_hz: Option<f64>,
     /// HIP position "x,y,z" in metres (world frame: camera at the origin looking along x,
     /// z up); default: hip radius + --hip-clearance-m in front of the surface point seen
     /// nearest the optical axis in the first frame.
@@ -37,8 +55,9 @@ pub struct Args {
     /// Frame rate for files whose names carry no time stamp (Hz).
     #[arg(long, default_value_t = 30.0)]
     rate_hz: f64,
-    /// TOML file with a [viewer] table (ViewerConfig) and a [replay] table (front end,
-    /// surface, fusion and hip_radius_m); unknown keys are rejected.
+    /// TOML file with a [viewer] table (ViewerConfig), a [replay] table (front end, surface,
+    /// fusion and hip_radius_m) and a [scene] table (SceneViewConfig: start, duration, view
+    /// rate, stored points, haptics); unknown keys are rejected.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Frame shown first.
@@ -60,6 +79,7 @@ pub struct Args {
 struct ViewFile {
     viewer: ViewerConfig,
     replay: ReplayConfig,
+    scene: SceneViewConfig,
 }
 
 fn parse_hip(s: &str) -> anyhow::Result<Point3<f64>> {
@@ -102,7 +122,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             timeline_from_recording(&recording, file.replay.hip_radius_m)?,
             hip,
         )
-    } else {
+    } else if args.source.is_dir() {
         let frames = read_cloud_dir(&args.source, args.rate_hz)?;
         let hip = match &args.hip {
             Some(s) => parse_hip(s)?,
@@ -118,6 +138,20 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             timeline_from_frames(&frames, hip, file.replay.clone())?,
             hip,
         )
+    } else {
+        if args.hip.is_some() {
+            bail!("--hip is for frame directories; a scene moves its own HIP");
+        }
+        let name = args.source.to_string_lossy();
+        let scene = Scene::from_name_or_path(&name)?;
+        let simulator = Simulator::new(&scene)?;
+        let mut config = file.scene.clone();
+        config.start_s = args.start_s.unwrap_or(config.start_s);
+        config.duration_s = args.duration_s.unwrap_or(config.duration_s);
+        config.view_rate_hz = args.view_rate_hz.unwrap_or(config.view_rate_hz);
+        let timeline = timeline_from_scene(&simulator, &file.replay, &config)?;
+        let hip = timeline.first().map_or_else(Point3::origin, |f| f.hip_m);
+        (timeline, hip)
     };
     if timeline.is_empty() {
         bail!("{}: no frames", args.source.display());
@@ -144,6 +178,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "valid_estimates": estimates.iter().filter(|e| e.valid).count(),
             "rejected_shells": estimates.iter().flat_map(|e| &e.shells).filter(|s| s.rejected).count(),
             "d_proj_m": d_proj,
+            "fused_error": error_summary(&timeline),
+            "constraints": constraint_summary(&timeline),
         });
         println!("{summary}");
         return Ok(());
@@ -158,4 +194,42 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     });
     run_window(app, size, screenshot)?;
     Ok(())
+}
+
+/// Mean and largest error of the fused surface against ground truth, over the frames that
+/// have both (null without ground truth).
+fn error_summary(timeline: &[ViewFrame]) -> serde_json::Value {
+    let errors: Vec<_> = timeline.iter().filter_map(ViewFrame::fused_error).collect();
+    if errors.is_empty() {
+        return serde_json::Value::Null;
+    }
+    let n = errors.len() as f64;
+    let mean = |f: fn(&EstimateError) -> f64| errors.iter().map(f).sum::<f64>() / n;
+    let max = |f: fn(&EstimateError) -> f64| errors.iter().map(f).fold(0.0, f64::max);
+    serde_json::json!({
+        "frames": errors.len(),
+        "centroid_mean_m": mean(|e| e.centroid_m),
+        "centroid_max_m": max(|e| e.centroid_m),
+        "normal_mean_rad": mean(|e| e.normal_rad),
+        "normal_max_rad": max(|e| e.normal_rad),
+    })
+}
+
+/// Per haptic constraint: frames in force and frames where the motion reached its bound.
+fn constraint_summary(timeline: &[ViewFrame]) -> serde_json::Value {
+    let mut out = serde_json::Map::new();
+    for c in timeline.iter().flat_map(|f| &f.samples.constraints) {
+        let entry = out
+            .entry(c.name.clone())
+            .or_insert_with(|| serde_json::json!({"active_frames": 0, "binding_frames": 0}));
+        for (key, on) in [
+            ("active_frames", c.active),
+            ("binding_frames", c.binding == Some(true)),
+        ] {
+            if on {
+                entry[key] = (entry[key].as_u64().unwrap_or(0) + 1).into();
+            }
+        }
+    }
+    out.into()
 }

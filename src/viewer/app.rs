@@ -13,6 +13,7 @@ use super::frame::{PointRole, SurfacePoint, ViewFrame, ViewerSource};
 use super::orbit::OrbitCamera;
 use super::patch::{SurfacePatch, triangulate_patch};
 use super::plots::{PlotData, show_plots};
+use crate::haptics::HapticStatus;
 use crate::surface::ShellFitKind;
 use egui::{Color32, PointerButton, RichText, Sense};
 use glam::Vec3;
@@ -224,8 +225,10 @@ impl ViewerApp {
                 }
             });
         }
-        let toggles: [(&mut bool, &str, Color32); 7] = [
-            (&mut self.layers.hip, "HIP sphere", draw::HIP_COLOR),
+        let hip_color = frame.map_or(draw::HIP_COLOR, draw::hip_color);
+        let toggles: [(&mut bool, &str, Color32); 8] = [
+            (&mut self.layers.hip, "HIP sphere", hip_color),
+            (&mut self.layers.hip_projection, "HIP projection", hip_color),
             (&mut self.layers.shells, "shells", draw::SHELL_COLOR),
             (
                 &mut self.layers.shell_fits,
@@ -421,6 +424,29 @@ fn frame_details(ui: &mut egui::Ui, f: &ViewFrame) {
     ));
     if let Some(d) = f.samples.d_proj_m {
         ui.label(format!("d_proj = {:.1} mm", d * 1e3));
+    }
+    if let (Some(rate), Some(vc)) = (f.samples.d_proj_rate_m_per_s, f.samples.speed_limit_m_per_s) {
+        ui.label(format!(
+            "rate = {:.0} mm/s, vc(d) = {:.0} mm/s",
+            rate * 1e3,
+            vc * 1e3
+        ));
+    }
+    if let Some(status) = f.samples.haptic_status {
+        let binding: Vec<&str> = f
+            .samples
+            .constraints
+            .iter()
+            .filter(|c| c.binding == Some(true))
+            .map(|c| c.name.as_str())
+            .collect();
+        let text = match status {
+            HapticStatus::Active if binding.is_empty() => "constraints in force".to_owned(),
+            HapticStatus::Active => format!("binding: {}", binding.join(", ")),
+            HapticStatus::Far => "constraints off: HIP far".to_owned(),
+            HapticStatus::NoSurface => "constraints off: no surface".to_owned(),
+        };
+        ui.label(RichText::new(text).color(draw::hip_color(f)));
     }
     if let Some(e) = f.fused_error() {
         ui.label(format!(

@@ -6,12 +6,15 @@
 //! clustered-out orange, kept grey-blue, memorised green), the HIP sphere, the concentric shell
 //! spheres (their silhouettes), each shell's fit (plane disc with its red normal for the
 //! innermost shell, fitted circles with their normals for the others; rejected fits dashed,
-//! grey and crossed out), each camera's estimate, the fused surface (blue normal) and the
-//! ground truth (magenta). The returned [`DrawStats`] count what was actually drawn.
+//! grey and crossed out), each camera's estimate (grey and crossed out when the camera
+//! rejected it), the fused surface (blue normal), the ground truth (magenta) and the HIP's
+//! projection on the fused surface plane; the HIP sphere takes the colour of the haptic
+//! constraint state ([`hip_color`]). The returned [`DrawStats`] count what was actually drawn.
 
 use super::frame::{PointRole, SurfacePoint, ViewFrame};
 use super::orbit::{OrbitCamera, Projector};
 use super::patch::SurfacePatch;
+use crate::haptics::HapticStatus;
 use crate::surface::{ShellFit, ShellFitKind};
 use egui::{Color32, Mesh, Painter, Pos2, Shape, Stroke, Vec2};
 use glam::Vec3;
@@ -29,6 +32,12 @@ pub fn role_color(role: PointRole) -> Color32 {
 }
 
 pub const HIP_COLOR: Color32 = Color32::from_rgb(240, 210, 60);
+/// HIP sphere while the haptic constraints are in force.
+pub const HIP_ACTIVE_COLOR: Color32 = Color32::from_rgb(245, 140, 40);
+/// HIP sphere while the motion reaches a constraint's bound.
+pub const HIP_BINDING_COLOR: Color32 = Color32::from_rgb(235, 50, 50);
+/// HIP sphere while no tracking surface exists (constraints off).
+pub const HIP_NO_SURFACE_COLOR: Color32 = Color32::from_rgb(150, 150, 150);
 pub const SHELL_COLOR: Color32 = Color32::from_rgb(120, 120, 130);
 pub const PLANE_FIT_COLOR: Color32 = Color32::from_rgb(230, 60, 60);
 pub const REJECTED_COLOR: Color32 = Color32::from_rgb(130, 130, 130);
@@ -56,6 +65,21 @@ pub fn fit_color(fit: &ShellFit, circle_index: usize) -> Color32 {
     }
 }
 
+/// Colour of the HIP sphere for the frame's haptic state: yellow without constraint data or
+/// while the HIP is too far, orange while the constraints are in force, red while one binds,
+/// grey without a tracking surface.
+pub fn hip_color(frame: &ViewFrame) -> Color32 {
+    let s = &frame.samples;
+    match s.haptic_status {
+        None | Some(HapticStatus::Far) => HIP_COLOR,
+        Some(HapticStatus::NoSurface) => HIP_NO_SURFACE_COLOR,
+        Some(HapticStatus::Active) if s.constraints.iter().any(|c| c.binding == Some(true)) => {
+            HIP_BINDING_COLOR
+        }
+        Some(HapticStatus::Active) => HIP_ACTIVE_COLOR,
+    }
+}
+
 /// Which elements are drawn (each one is a toggle in the layer panel).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Layers {
@@ -63,6 +87,8 @@ pub struct Layers {
     /// Cameras hidden by the user (all others are drawn).
     pub hidden_cameras: Vec<u32>,
     pub hip: bool,
+    /// The HIP's projection on the fused surface plane (what eq. 7 measures).
+    pub hip_projection: bool,
     pub shells: bool,
     pub shell_fits: bool,
     pub camera_estimates: bool,
@@ -77,6 +103,7 @@ impl Default for Layers {
             roles: PointRole::ALL.iter().map(|&r| (r, true)).collect(),
             hidden_cameras: Vec::new(),
             hip: true,
+            hip_projection: true,
             shells: true,
             shell_fits: true,
             camera_estimates: true,
@@ -104,10 +131,17 @@ pub struct DrawStats {
     pub shell_spheres: usize,
     pub fits: usize,
     pub rejected_fits: usize,
+    /// Valid camera estimates drawn.
     pub estimates: usize,
+    /// Camera estimates marked as rejected (not valid) drawn.
+    pub rejected_estimates: usize,
     pub patch_triangles: usize,
     pub fused: bool,
     pub truth: bool,
+    /// The HIP's projection on the fused surface plane was drawn.
+    pub hip_projection: bool,
+    /// Colour the HIP sphere was drawn in (None when hidden or off screen).
+    pub hip_color: Option<Color32>,
 }
 
 /// Display sizes.
@@ -290,13 +324,53 @@ fn paint_fit(
         normal * style.normal_length_m as f32,
         stroke,
     );
-    if fit.rejected
-        && let Some((c, _)) = proj.project(centre)
-    {
+    if fit.rejected {
+        paint_cross(painter, proj, centre);
+    }
+    true
+}
+
+/// A red cross marking something rejected at world point `at`.
+fn paint_cross(painter: &Painter, proj: &Projector, at: Vec3) {
+    if let Some((c, _)) = proj.project(at) {
         let cross = Stroke::new(2.0, Color32::from_rgb(220, 40, 40));
         let d = 5.0;
         painter.line_segment([c + Vec2::new(-d, -d), c + Vec2::new(d, d)], cross);
         painter.line_segment([c + Vec2::new(-d, d), c + Vec2::new(d, -d)], cross);
+    }
+}
+
+/// The HIP centre's foot on the fused surface's tangent plane: a dashed line from the HIP
+/// centre, a disc of the HIP's radius in the plane and `d_proj` written beside it, in the
+/// colour of the constraint state.
+fn paint_hip_projection(painter: &Painter, proj: &Projector, frame: &ViewFrame) -> bool {
+    let (Some(foot), Some(fused)) = (frame.hip_projection(), frame.fused.as_ref()) else {
+        return false;
+    };
+    let color = hip_color(frame);
+    let (Some((a, _)), Some((b, _))) = (proj.project(v3(&frame.hip_m)), proj.project(v3(&foot)))
+    else {
+        return false;
+    };
+    let stroke = Stroke::new(1.5, color);
+    painter.add(Shape::dashed_line(&[a, b], stroke, 5.0, 3.0));
+    let normal = d3(&fused.normal.into_inner());
+    if let Some(disc) = circle_points(proj, v3(&foot), normal, frame.hip_radius_m as f32) {
+        painter.add(Shape::convex_polygon(
+            disc,
+            color.gamma_multiply(0.2),
+            stroke,
+        ));
+    }
+    painter.circle_filled(b, 3.0, color);
+    if let Some(d) = frame.samples.d_proj_m {
+        painter.text(
+            b + Vec2::new(8.0, 8.0),
+            egui::Align2::LEFT_TOP,
+            format!("d_proj {:.1} mm", d * 1e3),
+            egui::FontId::proportional(11.0),
+            color,
+        );
     }
     true
 }
@@ -374,13 +448,18 @@ pub fn paint_frame(
         }
         if layers.hip {
             let r = proj.radius_px(frame.hip_radius_m as f32, depth);
+            let color = hip_color(frame);
             painter.circle(
                 hip_px,
                 r,
-                HIP_COLOR.gamma_multiply(0.45),
-                Stroke::new(1.5, HIP_COLOR),
+                color.gamma_multiply(0.45),
+                Stroke::new(1.5, color),
             );
+            stats.hip_color = Some(color);
         }
+    }
+    if layers.hip_projection {
+        stats.hip_projection = paint_hip_projection(painter, proj, frame);
     }
 
     for cam in frame
@@ -402,19 +481,25 @@ pub fn paint_frame(
                 }
             }
         }
-        if layers.camera_estimates && est.valid {
+        let finite = est.centroid_m.coords.iter().all(|v| v.is_finite());
+        if layers.camera_estimates && finite {
             let s = SurfacePoint {
                 point_m: est.centroid_m,
                 normal: est.normal,
             };
-            if paint_surface_point(
-                painter,
-                proj,
-                &s,
-                style,
-                Stroke::new(2.0, CAMERA_ESTIMATE_COLOR),
-            ) {
-                stats.estimates += 1;
+            let color = if est.valid {
+                CAMERA_ESTIMATE_COLOR
+            } else {
+                REJECTED_COLOR
+            };
+            if paint_surface_point(painter, proj, &s, style, Stroke::new(2.0, color)) {
+                if est.valid {
+                    stats.estimates += 1;
+                } else {
+                    // An estimate the camera rejected (too few shells agreed): crossed out.
+                    paint_cross(painter, proj, v3(&est.centroid_m));
+                    stats.rejected_estimates += 1;
+                }
             }
         }
     }

@@ -11,6 +11,7 @@
 //! Frames come from a [`ViewerSource`]: a finished timeline (a recording or a simulated run),
 //! or a channel the node feeds while it runs (`hapcloud run --overlay`).
 
+use crate::haptics::HapticStatus;
 use crate::surface::SurfaceEstimate;
 use glam::Vec3;
 use nalgebra::{Isometry3, Point3, Unit, Vector3};
@@ -53,7 +54,32 @@ impl PointRole {
 #[derive(Clone, Debug, PartialEq)]
 pub struct PointLayer {
     pub role: PointRole,
+    /// The points kept for display (every k-th point when the layer was thinned).
     pub points_m: Vec<Vec3>,
+    /// How many points the stage put in this layer, before any thinning.
+    pub count: usize,
+}
+
+impl PointLayer {
+    /// A layer holding all its points.
+    pub fn new(role: PointRole, points_m: Vec<Vec3>) -> Self {
+        let count = points_m.len();
+        Self {
+            role,
+            points_m,
+            count,
+        }
+    }
+
+    /// Keep every k-th point, k as small as possible for at most `max_points` (long timelines
+    /// of full frames would not fit in memory); [`PointLayer::count`] stays the full count.
+    pub fn thinned(mut self, max_points: usize) -> Self {
+        let stride = self.points_m.len().div_ceil(max_points.max(1)).max(1);
+        if stride > 1 {
+            self.points_m = self.points_m.into_iter().step_by(stride).collect();
+        }
+        self
+    }
 }
 
 /// A surface point with its outward normal (pointing from the body towards the HIP).
@@ -76,20 +102,34 @@ pub struct CameraView {
 }
 
 impl CameraView {
-    /// The points of one role (empty when the camera has no such layer).
+    /// The (displayed) points of one role (empty when the camera has no such layer).
     pub fn layer(&self, role: PointRole) -> &[Vec3] {
         self.layers
             .iter()
             .find(|l| l.role == role)
             .map_or(&[], |l| l.points_m.as_slice())
     }
+
+    /// How many points of one role the stages produced (before display thinning).
+    pub fn layer_count(&self, role: PointRole) -> usize {
+        self.layers
+            .iter()
+            .find(|l| l.role == role)
+            .map_or(0, |l| l.count)
+    }
 }
 
-/// One haptic constraint's state (paper section V): whether it bounds the motion now.
+/// One haptic constraint's state (paper section V) at one instant.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ConstraintSample {
+    /// `position` (eq. 9-11), `velocity` (eq. 12-14) or `force`.
     pub name: String,
+    /// In force: the constraint is enabled and the HIP is within the activation distance of
+    /// a tracking surface, so its row is in the controller's problem.
     pub active: bool,
+    /// The motion of this instant reaches the row's bound (`row . qdd >= bound`): the
+    /// constraint limits it. None when the joint accelerations are not known.
+    pub binding: Option<bool>,
 }
 
 /// Time spent in one processing stage for this frame.
@@ -106,6 +146,10 @@ pub struct FrameSamples {
     pub d_proj_m: Option<f64>,
     /// Its time derivative, metres per second (negative when approaching).
     pub d_proj_rate_m_per_s: Option<f64>,
+    /// State of the haptic constraints, when the source computed or recorded them.
+    pub haptic_status: Option<HapticStatus>,
+    /// Allowed approach speed `vc(d_proj)` of eq. 12, metres per second.
+    pub speed_limit_m_per_s: Option<f64>,
     pub constraints: Vec<ConstraintSample>,
     pub latencies: Vec<StageLatency>,
 }
@@ -157,9 +201,17 @@ impl ViewFrame {
         ))
     }
 
-    /// Number of points of one role over all cameras.
+    /// Number of points of one role over all cameras (before display thinning).
     pub fn point_count(&self, role: PointRole) -> usize {
-        self.cameras.iter().map(|c| c.layer(role).len()).sum()
+        self.cameras.iter().map(|c| c.layer_count(role)).sum()
+    }
+
+    /// The foot of the HIP centre on the fused surface's tangent plane (the point eq. 7
+    /// measures `d_proj` to, plus `r_HIP` along the normal), when a surface is fused.
+    pub fn hip_projection(&self) -> Option<Point3<f64>> {
+        let f = self.fused.as_ref()?;
+        let n = f.normal.into_inner();
+        Some(self.hip_m - (self.hip_m - f.point_m).dot(&n) * n)
     }
 }
 
@@ -206,13 +258,46 @@ mod tests {
         let cam = CameraView {
             camera_id: 0,
             world_from_camera: None,
-            layers: vec![PointLayer {
-                role: PointRole::Kept,
-                points_m: vec![Vec3::ZERO; 3],
-            }],
+            layers: vec![PointLayer::new(PointRole::Kept, vec![Vec3::ZERO; 3])],
             estimate: None,
         };
         assert_eq!(cam.layer(PointRole::Kept).len(), 3);
         assert!(cam.layer(PointRole::Memorised).is_empty());
+        assert_eq!(cam.layer_count(PointRole::Memorised), 0);
+    }
+
+    #[test]
+    fn thinning_keeps_the_count_and_at_most_max_points() {
+        let pts: Vec<Vec3> = (0..1001).map(|i| Vec3::splat(i as f32)).collect();
+        let layer = PointLayer::new(PointRole::Cropped, pts).thinned(100);
+        assert_eq!(layer.count, 1001);
+        assert_eq!(layer.points_m.len(), 91);
+        assert_eq!(layer.points_m[1], Vec3::splat(11.0));
+        let small = PointLayer::new(PointRole::Kept, vec![Vec3::ONE; 5]).thinned(100);
+        assert_eq!((small.count, small.points_m.len()), (5, 5));
+    }
+
+    #[test]
+    fn hip_projection_is_the_foot_on_the_tangent_plane() {
+        let frame = ViewFrame {
+            stamp_s: 0.0,
+            hip_m: Point3::new(0.3, 0.2, 0.5),
+            hip_radius_m: 0.04,
+            shell_radii_m: vec![],
+            cameras: vec![],
+            fused: Some(sp([0.0, 0.0, 0.1], [0.0, 0.0, 1.0])),
+            truth: None,
+            samples: FrameSamples::default(),
+        };
+        let foot = frame.hip_projection().unwrap();
+        assert!((foot - Point3::new(0.3, 0.2, 0.1)).norm() < 1e-12);
+        assert_eq!(
+            ViewFrame {
+                fused: None,
+                ..frame
+            }
+            .hip_projection(),
+            None
+        );
     }
 }

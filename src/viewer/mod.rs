@@ -15,12 +15,14 @@
 
 mod app;
 pub mod config;
+pub mod constraints;
 pub mod draw;
 pub mod frame;
 pub mod orbit;
 pub mod patch;
 pub mod plots;
 pub mod replay;
+pub mod simulated;
 pub mod source;
 mod window;
 

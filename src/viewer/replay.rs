@@ -21,7 +21,7 @@ use super::frame::{
     CameraView, FrameSamples, PointLayer, PointRole, StageLatency, SurfacePoint, ViewFrame,
 };
 use crate::camera::Frame;
-use crate::fusion::{Fusion, FusionConfig, FusionConfigError};
+use crate::fusion::{FusedSurface, Fusion, FusionConfig, FusionConfigError};
 use crate::geometry::Primitive;
 use crate::gpu::Backend;
 use crate::perception::crop::{CropError, CropScene, crop_cpu, finite_bits, mask_bit};
@@ -92,7 +92,11 @@ pub struct LayeredPerception {
     /// Each camera's newest view: cameras at different rates or phases all stay on screen.
     latest: BTreeMap<u32, CameraView>,
     fusion: Fusion,
+    /// The fused surface of the last [`LayeredPerception::step`] (tracking or not).
+    fused: Option<FusedSurface>,
     previous_d_proj: Option<(f64, f64)>,
+    /// Stage times of the frames pushed since the last tick.
+    pending: Vec<StageLatency>,
 }
 
 fn seconds_since(start: Instant) -> f64 {
@@ -111,9 +115,17 @@ impl LayeredPerception {
             )?,
             fusion: Fusion::new(config.fusion)?,
             latest: BTreeMap::new(),
+            fused: None,
             previous_d_proj: None,
+            pending: Vec::new(),
             config,
         })
+    }
+
+    /// The fused surface of the last step with its status and velocity (what the haptic
+    /// constraints of [`crate::haptics`] consume); None before the first step.
+    pub fn fused_surface(&self) -> Option<&FusedSurface> {
+        self.fused.as_ref()
     }
 
     /// One camera frame through the stages; returns the camera's view and the stage times.
@@ -164,22 +176,10 @@ impl LayeredPerception {
             camera_id: frame.camera_id,
             world_from_camera: Some(frame.world_from_camera),
             layers: vec![
-                PointLayer {
-                    role: PointRole::Cropped,
-                    points_m: cropped,
-                },
-                PointLayer {
-                    role: PointRole::ClusteredOut,
-                    points_m: clustered_out,
-                },
-                PointLayer {
-                    role: PointRole::Kept,
-                    points_m: cam.kept.clone(),
-                },
-                PointLayer {
-                    role: PointRole::Memorised,
-                    points_m: memorised,
-                },
+                PointLayer::new(PointRole::Cropped, cropped),
+                PointLayer::new(PointRole::ClusteredOut, clustered_out),
+                PointLayer::new(PointRole::Kept, cam.kept.clone()),
+                PointLayer::new(PointRole::Memorised, memorised),
             ],
             estimate: Some(estimate.clone()),
         };
@@ -196,6 +196,27 @@ impl LayeredPerception {
         Ok((view, estimate, latencies))
     }
 
+    /// One camera frame through the stages with the HIP and the posed robot primitives (world
+    /// frame) of its own instant; its estimate goes to fusion and its view replaces the
+    /// camera's previous one. The stage times add up until the next [`LayeredPerception::tick`].
+    pub fn push_frame(
+        &mut self,
+        frame: &Frame,
+        hip_m: &Point3<f64>,
+        robot: &[Primitive],
+    ) -> Result<(), ReplayError> {
+        let (view, estimate, lat) = self.camera(frame, hip_m, robot)?;
+        self.fusion.push(&estimate);
+        self.latest.insert(view.camera_id, view);
+        for l in lat {
+            match self.pending.iter_mut().find(|x| x.stage == l.stage) {
+                Some(x) => x.latency_s += l.latency_s,
+                None => self.pending.push(l),
+            }
+        }
+        Ok(())
+    }
+
     /// One instant: the frames that arrived (any subset of the cameras), the HIP and the
     /// posed robot primitives (world frame), and the ground truth when the source knows it.
     /// The view shows every camera's newest frame; fusion is evaluated at `stamp_s`.
@@ -207,24 +228,28 @@ impl LayeredPerception {
         robot: &[Primitive],
         truth: Option<SurfacePoint>,
     ) -> Result<ViewFrame, ReplayError> {
-        let mut latencies: Vec<StageLatency> = Vec::new();
         for frame in frames {
-            let (view, estimate, lat) = self.camera(frame, &hip_m, robot)?;
-            self.fusion.push(&estimate);
-            self.latest.insert(view.camera_id, view);
-            for l in lat {
-                match latencies.iter_mut().find(|x| x.stage == l.stage) {
-                    Some(x) => x.latency_s += l.latency_s,
-                    None => latencies.push(l),
-                }
-            }
+            self.push_frame(frame, &hip_m, robot)?;
         }
+        Ok(self.tick(stamp_s, hip_m, truth))
+    }
+
+    /// The view at `stamp_s` of the frames pushed so far: fusion evaluated at `stamp_s`, d_proj
+    /// of eq. 7 for the HIP at `hip_m`, the ground truth when the source knows it.
+    pub fn tick(
+        &mut self,
+        stamp_s: f64,
+        hip_m: Point3<f64>,
+        truth: Option<SurfacePoint>,
+    ) -> ViewFrame {
+        let mut latencies = std::mem::take(&mut self.pending);
         let start = Instant::now();
         let fused = self.fusion.tick(stamp_s);
         latencies.push(StageLatency {
             stage: "fusion".into(),
             latency_s: seconds_since(start),
         });
+        self.fused = Some(fused);
         let fused = fused.is_tracking().then_some(SurfacePoint {
             point_m: fused.centroid_m,
             normal: fused.normal,
@@ -237,7 +262,7 @@ impl LayeredPerception {
             _ => None,
         };
         self.previous_d_proj = d_proj_m.map(|d| (stamp_s, d));
-        Ok(ViewFrame {
+        ViewFrame {
             stamp_s,
             hip_m,
             hip_radius_m: self.config.hip_radius_m,
@@ -248,9 +273,9 @@ impl LayeredPerception {
             samples: FrameSamples {
                 d_proj_m,
                 d_proj_rate_m_per_s,
-                constraints: Vec::new(),
                 latencies,
+                ..FrameSamples::default()
             },
-        })
+        }
     }
 }

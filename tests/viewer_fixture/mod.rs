@@ -167,18 +167,15 @@ fn camera_view(camera_id: u32, eye: &Point3<f64>, hip: &Point3<f64>, stamp_s: f6
     let r_in = SHELL_RADII_M[0];
     let mut layers: Vec<PointLayer> = PointRole::ALL
         .iter()
-        .map(|&role| PointLayer {
-            role,
-            points_m: Vec::new(),
-        })
+        .map(|&role| PointLayer::new(role, Vec::new()))
         .collect();
     let mut push = |role: PointRole, p: &Point3<f64>| {
-        layers
+        let layer = layers
             .iter_mut()
             .find(|l| l.role == role)
-            .expect("every role has a layer")
-            .points_m
-            .push(v3(p));
+            .expect("every role has a layer");
+        layer.points_m.push(v3(p));
+        layer.count += 1;
     };
     let mut fit_points = Vec::new();
     for p in fibonacci_sphere(&o, HEAD_RADIUS_M, 5000) {
@@ -292,14 +289,18 @@ pub fn timeline() -> Vec<ViewFrame> {
             samples: FrameSamples {
                 d_proj_m,
                 d_proj_rate_m_per_s: rate,
+                haptic_status: None,
+                speed_limit_m_per_s: d_proj_m.map(|d| (d / 0.1).clamp(0.0, 1.0) * 2.0),
                 constraints: vec![
                     ConstraintSample {
                         name: "position".into(),
                         active: d_proj_m.is_some_and(|d| d < 0.02),
+                        binding: None,
                     },
                     ConstraintSample {
                         name: "velocity".into(),
                         active: d_proj_m.is_some_and(|d| d < 0.04),
+                        binding: None,
                     },
                 ],
                 latencies,
@@ -308,3 +309,42 @@ pub fn timeline() -> Vec<ViewFrame> {
     }
     frames
 }
+
+/// The simulated scene the viewer tests show: `head_sliding_realistic` (two D435 views with
+/// noise, holes and timing effects) as the HIP reaches the forehead, 1.5 s to 2.2 s at 10 view
+/// ticks per second, through `hapcloud::viewer::simulated` (ground truth and haptic
+/// constraints), with the stage latencies measured on this machine (wall-clock times).
+pub fn scene_timeline_wall_clock() -> Vec<ViewFrame> {
+    use hapcloud::scene::{Scene, Simulator};
+    use hapcloud::viewer::replay::ReplayConfig;
+    use hapcloud::viewer::simulated::{SceneViewConfig, timeline_from_scene};
+    static TIMELINE: std::sync::OnceLock<Vec<ViewFrame>> = std::sync::OnceLock::new();
+    TIMELINE
+        .get_or_init(|| {
+            let scene = Scene::from_builtin("head_sliding_realistic").expect("built-in scene");
+            let simulator = Simulator::new(&scene).expect("scene runs");
+            let config = SceneViewConfig {
+                start_s: 1.5,
+                duration_s: 0.7,
+                view_rate_hz: 10.0,
+                ..SceneViewConfig::default()
+            };
+            timeline_from_scene(&simulator, &ReplayConfig::default(), &config).unwrap()
+        })
+        .clone()
+}
+
+/// [`scene_timeline_wall_clock`] with each stage latency replaced by a fixed value (1 ms
+/// times the stage's position), so that snapshots do not depend on the machine's speed.
+pub fn scene_timeline() -> Vec<ViewFrame> {
+    let mut timeline = scene_timeline_wall_clock();
+    for f in &mut timeline {
+        for (i, l) in f.samples.latencies.iter_mut().enumerate() {
+            l.latency_s = (i + 1) as f64 * 1e-3;
+        }
+    }
+    timeline
+}
+
+/// Index of the frame of [`scene_timeline`] the tests look at: t = 2.2 s, the HIP at the skin.
+pub const SCENE_FRAME: usize = 7;
