@@ -4,19 +4,23 @@
 //! computed by the viewer for simulated scenes or recorded by the node) into the
 //! [`FrameSamples`] of a [`super::ViewFrame`]: `d_proj` of eq. 7 and its rate `J_c qd - n . v_s`
 //! (eq. 8), the allowed approach speed `vc(d)` of eq. 12, the status (in force, HIP too far,
-//! no tracking surface) and, per constraint, whether it is in force and whether the motion of
-//! that instant reaches its bound. A row `a . qdd <= b` is *binding* when the joint
+//! no tracking surface) and, per constraint, whether it is in force (its row exists: enabled,
+//! and the HIP within the activation distance of a tracking surface) and whether the motion
+//! of that instant reaches its bound. A row `a . qdd <= b` is *binding* when the joint
 //! accelerations `qdd` the robot actually had satisfy `a . qdd >= b`: the constraint is what
 //! limits the motion (or, for a scripted motion, what the controller would have had to
-//! enforce). The rows of [`HapticConstraints`] come in the order position, velocity, force,
-//! each only when enabled in the [`HapticConfig`].
+//! enforce).
 
 use super::frame::{ConstraintSample, FrameSamples};
-use crate::haptics::{HapticConfig, HapticConstraints, HapticStatus};
+use crate::haptics::{ConstraintKind, HapticConfig, HapticConstraints, HapticStatus};
 use crate::robot::JointVector;
 
-/// Names of the constraints, in the order of [`HapticConstraints::rows`].
-pub const CONSTRAINT_NAMES: [&str; 3] = ["position", "velocity", "force"];
+/// The constraints shown, with their names, in plotting order.
+pub const CONSTRAINTS: [(ConstraintKind, &str); 3] = [
+    (ConstraintKind::Position, "position"),
+    (ConstraintKind::Velocity, "velocity"),
+    (ConstraintKind::Force, "force"),
+];
 
 /// A row counts as reached within this relative tolerance of its bound (`|b|` or 1).
 const BINDING_TOLERANCE: f64 = 1e-9;
@@ -37,18 +41,11 @@ pub fn apply_haptics(
         samples.d_proj_rate_m_per_s = finite(constraints.d_rate_mps);
         samples.speed_limit_m_per_s = samples.d_proj_m.map(|d| config.speed_limit_mps(d));
     }
-    let enabled = [
-        config.enable_position,
-        config.enable_velocity,
-        config.enable_force,
-    ];
-    let in_force = constraints.status == HapticStatus::Active;
-    let mut rows = constraints.rows.iter();
-    samples.constraints = CONSTRAINT_NAMES
+    samples.constraints = CONSTRAINTS
         .iter()
-        .zip(enabled)
-        .map(|(name, on)| {
-            let row = (on && in_force).then(|| rows.next()).flatten();
+        .map(|(kind, name)| {
+            // A row exists only while its constraint is enabled and in force.
+            let row = constraints.row(*kind);
             ConstraintSample {
                 name: (*name).to_owned(),
                 active: row.is_some(),
@@ -103,7 +100,7 @@ mod tests {
         // eq. 12: 0.03 of the 0.1 m ramp to 2 m/s
         assert!((s.speed_limit_m_per_s.unwrap() - 0.6).abs() < 1e-12);
         let names: Vec<&str> = s.constraints.iter().map(|c| c.name.as_str()).collect();
-        assert_eq!(names, CONSTRAINT_NAMES);
+        assert_eq!(names, ["position", "velocity", "force"]);
         assert!(s.constraints.iter().all(|c| c.active));
         // At rest with zero acceleration nothing is reached.
         assert!(s.constraints.iter().all(|c| c.binding == Some(false)));
