@@ -149,21 +149,17 @@ impl LayeredPerception {
             .map(|(_, p)| *p)
             .collect();
 
-        // Paper IV-C: the points of the kept clusters go on; the rest were clustered out.
-        let mut in_cluster = vec![false; cam.front.voxel.points.len()];
-        for c in &cam.front.clusters.clusters {
-            for &i in &c.indices {
-                in_cluster[i as usize] = true;
-            }
-        }
+        // Paper IV-C: the points of the selected clusters go on (`cam.kept`, copies of voxel
+        // points, one per cell); every other voxel point was clustered out.
+        let bits = |p: &Vec3| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+        let kept: std::collections::HashSet<[u32; 3]> = cam.kept.iter().map(bits).collect();
         let clustered_out: Vec<Vec3> = cam
             .front
             .voxel
             .points
             .iter()
-            .zip(&in_cluster)
-            .filter(|(_, keep)| !**keep)
-            .map(|(p, _)| *p)
+            .filter(|p| !kept.contains(&bits(p)))
+            .copied()
             .collect();
         let surface = &cam.surface;
         let merged = surface
