@@ -122,13 +122,15 @@ fn node_recording_shows_the_nodes_own_estimates() {
     use hapcloud::viewer::source::timeline_from_recording;
     let (dir, recording) = node_recording();
     assert_eq!(recording.frames.len(), 3);
-    let timeline = timeline_from_recording(&recording, 0.04).unwrap();
+    let timeline = timeline_from_recording(&recording).unwrap();
     assert_eq!(timeline.len(), 3);
     let mut matched = 0;
     for (f, frame) in timeline.iter().zip(&recording.frames) {
         let cam = &f.cameras[0];
         assert!(cam.layer(PointRole::Kept).len() > 100);
-        assert_eq!(f.hip_m, recording.meta.config.hip_world_m);
+        // No joint states in a frame directory: the node's robot stands with its HIP at
+        // hip_world_m.
+        assert!((f.hip_m - recording.meta.config.hip_world_m).norm() < 1e-9);
         // Where the node recorded an estimate for this frame, that is the one shown, with
         // the fused surface of the tick that took it in.
         let Some((tick, recorded)) = recording
@@ -140,12 +142,24 @@ fn node_recording_shows_the_nodes_own_estimates() {
         };
         matched += 1;
         assert_eq!(cam.estimate.as_ref(), Some(recorded));
-        let fused = recording
-            .ticks
-            .iter()
-            .find(|t| t.index == *tick)
-            .unwrap()
-            .fused;
+        let tick = recording.ticks.iter().find(|t| t.index == *tick).unwrap();
+        let fused = tick.fused;
+        // The constraints are the node's: status, distance and which rows were in force.
+        let control = &tick.control;
+        assert_eq!(f.samples.haptic_status, Some(control.haptic_status));
+        let active = |name: &str| {
+            f.samples
+                .constraints
+                .iter()
+                .find(|c| c.name == name)
+                .is_some_and(|c| c.active)
+        };
+        assert_eq!(active("position"), control.position_active());
+        assert_eq!(active("velocity"), control.velocity_active());
+        assert_eq!(active("force"), control.force_active);
+        if control.d_proj_m.is_finite() {
+            assert_eq!(f.samples.d_proj_m, Some(control.d_proj_m));
+        }
         assert_eq!(f.fused.is_some(), fused.is_tracking());
         if fused.is_tracking() {
             assert_eq!(f.fused.unwrap().point_m, fused.centroid_m);

@@ -117,11 +117,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             bail!("--hip is for frame directories; a recording carries the node's HIP");
         }
         let recording = record::read(&args.source)?;
-        let hip = recording.meta.config.hip_world_m;
-        (
-            timeline_from_recording(&recording, file.replay.hip_radius_m)?,
-            hip,
-        )
+        let timeline = timeline_from_recording(&recording)?;
+        let hip = timeline.first().map_or_else(Point3::origin, |f| f.hip_m);
+        (timeline, hip)
     } else if args.source.is_dir() {
         let frames = read_cloud_dir(&args.source, args.rate_hz)?;
         let hip = match &args.hip {

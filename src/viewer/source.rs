@@ -11,11 +11,15 @@
 //! puts one in front of the surface point seen closest to the optical axis. Every frame
 //! then goes through [`LayeredPerception`].
 
+use super::constraints::apply_haptics;
 use super::frame::{StageLatency, SurfacePoint, ViewFrame};
 use super::replay::{LayeredPerception, ReplayConfig, ReplayError};
 use crate::camera::Frame;
+use crate::haptics::haptic_constraints;
 use crate::io;
 use crate::node::record::Recording;
+use crate::node::robot_state::RobotState;
+use crate::node::{NodeError, constraint_surface};
 use nalgebra::{Isometry3, Matrix3, Point3, Translation3, UnitQuaternion};
 use std::path::{Path, PathBuf};
 
@@ -36,6 +40,8 @@ pub enum SourceError {
     NoSurface(PathBuf),
     #[error(transparent)]
     Replay(#[from] ReplayError),
+    #[error("recording: {0}")]
+    Node(#[from] NodeError),
 }
 
 /// Seconds of the day from a PCL grabber file name (`frame_20121214T142255.814212`).
@@ -125,36 +131,50 @@ pub fn hip_on_axis(frame: &Frame, distance_m: f64) -> Option<Point3<f64>> {
 
 /// The viewer timeline of a node recording (`hapcloud run --record DIR`).
 ///
-/// The recorded frames go through [`LayeredPerception`] with the node's own stage configs
-/// and HIP (`NodeConfig::hip_world_m`) to recover the point layers; what the node decided is
-/// shown as recorded: each camera's estimate is the node's (matched by camera and stamp), and
-/// the fused surface is the one of the tick that took that estimate in, so d_proj and the
-/// error plots follow the node's own output. The tick's work time joins the latencies.
-pub fn timeline_from_recording(
-    recording: &Recording,
-    hip_radius_m: f64,
-) -> Result<Vec<ViewFrame>, SourceError> {
+/// The recorded frames go through [`LayeredPerception`] with the node's own stage configs,
+/// each with the HIP and the robot's collision primitives of the joints recorded with it
+/// ([`RobotState::perception_scene`]: primitives only when the source had joint states), to
+/// recover the point layers. What the node decided is shown as recorded: each camera's
+/// estimate is the node's (matched by camera and stamp), the fused surface is the one of the
+/// tick that took that estimate in, and the HIP and the haptic constraints are those of that
+/// tick's robot state: eq. 7-14 on the surface the node's constraints used
+/// ([`constraint_surface`]) with the node's haptic config, as the node's replay recomputes them
+/// bit for bit, and the binding flags from the joint accelerations the controller commanded.
+/// The tick's work time joins the latencies.
+pub fn timeline_from_recording(recording: &Recording) -> Result<Vec<ViewFrame>, SourceError> {
     let node = &recording.meta.config;
+    let robot = RobotState::recorded(&recording.meta.robot)?;
+    let model = robot.model();
+    let hip_radius_m = model.hip_radius_m();
     let config = ReplayConfig {
         frontend: node.frontend.clone(),
         surface: node.surface.clone(),
         fusion: node.fusion,
         hip_radius_m,
     };
-    let hip = node.hip_world_m;
+    let haptics = &node.controller.haptics;
     let mut perception = LayeredPerception::new(config)?;
     let mut previous: Option<(f64, f64)> = None;
     recording
         .frames
         .iter()
-        .map(|frame| {
-            let mut view =
-                perception.step(frame.stamp_s, std::slice::from_ref(frame), hip, &[], None)?;
+        .enumerate()
+        .map(|(i, frame)| {
+            let q = recording
+                .frame_joints
+                .get(i)
+                .copied()
+                .unwrap_or_else(|| robot.at(frame.stamp_s).q_rad);
+            let scene = robot.perception_scene(&q);
+            perception.push_frame(frame, &scene.hip_m, &scene.primitives)?;
+            let mut view = perception.tick(frame.stamp_s, scene.hip_m, None);
             let recorded = recording
                 .estimates
                 .iter()
                 .find(|(_, e)| e.camera_id == frame.camera_id && e.stamp_s == frame.stamp_s);
-            if let Some((tick_index, estimate)) = recorded {
+            let tick =
+                recorded.and_then(|(index, _)| recording.ticks.iter().find(|t| t.index == *index));
+            if let Some((_, estimate)) = recorded {
                 if let Some(cam) = view
                     .cameras
                     .iter_mut()
@@ -162,21 +182,15 @@ pub fn timeline_from_recording(
                 {
                     cam.estimate = Some(estimate.clone());
                 }
-                let tick = recording.ticks.iter().find(|t| t.index == *tick_index);
                 view.fused = tick
                     .filter(|t| t.fused.is_tracking())
                     .map(|t| SurfacePoint {
                         point_m: t.fused.centroid_m,
                         normal: t.fused.normal,
                     });
-                if let Some(t) = tick {
-                    view.samples.latencies.push(StageLatency {
-                        stage: "node tick work".into(),
-                        latency_s: t.work_s,
-                    });
-                }
             }
             // Paper eq. 7 on the fused surface shown.
+            let hip = view.hip_m;
             view.samples.d_proj_m = view
                 .fused
                 .map(|f| (f.point_m - hip).dot(&-f.normal.into_inner()) - hip_radius_m);
@@ -187,6 +201,33 @@ pub fn timeline_from_recording(
                 _ => None,
             };
             previous = view.samples.d_proj_m.map(|d| (view.stamp_s, d));
+            if let Some(t) = tick {
+                view.samples.latencies.push(StageLatency {
+                    stage: "node tick work".into(),
+                    latency_s: t.work_s,
+                });
+                // The tick's robot state and constraints (d_proj and its rate become the
+                // constraints' own, relative to the moving surface).
+                let c = &t.control;
+                let (q, qd) = (c.joints.q_rad, c.joints.qd_rad_per_s);
+                let kinematics = model.hip_kinematics(&q, &qd);
+                view.hip_m = kinematics.position_m;
+                let (surface, _) = constraint_surface(node, &t.fused);
+                let constraints = haptic_constraints(
+                    haptics,
+                    surface.as_ref(),
+                    &kinematics,
+                    hip_radius_m,
+                    &qd,
+                    &model.mass_matrix(&q),
+                );
+                apply_haptics(
+                    &mut view.samples,
+                    haptics,
+                    &constraints,
+                    Some(&c.qdd_rad_per_s2),
+                );
+            }
             Ok(view)
         })
         .collect()
