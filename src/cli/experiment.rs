@@ -5,13 +5,25 @@
 //!
 //! The `rising` experiment runs every speed twice: `paper` (the velocity constraint sees only
 //! the HIP's motion, as in the paper) and `surface_velocity` (the surface's own velocity
-//! enters the constraint, issue 5 item 3).
+//! enters the constraint, issue 5 item 3). `rising-sweep` runs 0.25 to 2.5 m/s both ways and
+//! writes the table of the worst penetration and margin per speed (`rising-sweep.csv`,
+//! `rising-sweep.png`) and the safe speed of each mode (the highest speed up to which the HIP
+//! centre stayed outside the surface).
+//!
+//! `perception-rising` and `perception-impacts` close the loop through perception
+//! ([`hapcloud::node::scene_loop`]): the built-in realistic scenes `rising_surface_realistic`
+//! (at 0.5, 1.0 and 1.5 m/s, both modes) and `forehead_impacts_realistic` are rendered at 30 Hz
+//! per camera with the robot where the loop put it, run through the per-camera chain and
+//! fusion, and the controller acts on the fused surface; the metrics come from the scene's
+//! ground truth. The plots show the controller's `d_proj` beside the true one.
 
 use anyhow::{Context, Result, anyhow, bail};
 use hapcloud::control::closed_loop::{
-    self, EXPERIMENTS, RISE_SPEEDS_MPS, Run, RunMetrics, SimConfig,
+    self, EXPERIMENTS, RISE_SPEEDS_MPS, Run, RunMetrics, SWEEP_SPEEDS_MPS, SimConfig, SweepRow,
 };
+use hapcloud::node::scene_loop::{self, SceneLoopOptions, SceneRun};
 use hapcloud::robot::RobotModel;
+use hapcloud::scene::{Scene, builtin};
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -39,11 +51,20 @@ fn register_font() -> Result<()> {
 
 pub fn run(args: ExperimentArgs) -> Result<()> {
     if args.list {
-        for name in EXPERIMENTS {
-            let what = match name {
+        for name in EXPERIMENTS.iter().chain(&scene_loop::EXPERIMENTS) {
+            let what = match *name {
                 "impacts" => "three direct impacts on a virtual horizontal plane (Fig. 11)",
                 "sliding" => "press onto the plane and slide along it (Fig. 11)",
-                _ => "plane rising at 0.1..1.5 m/s, paper vs surface-velocity constraint (Fig. 12)",
+                "rising" => {
+                    "plane rising at 0.1..1.5 m/s, paper vs surface-velocity constraint (Fig. 12)"
+                }
+                "rising-sweep" => {
+                    "safe speed: plane rising at 0.25..2.5 m/s with and without the surface-velocity feed"
+                }
+                "perception-rising" => {
+                    "rising_surface_realistic at 0.5/1.0/1.5 m/s through cameras, perception and fusion"
+                }
+                _ => "forehead_impacts_realistic through cameras, perception and fusion",
             };
             println!("{name:10} {what}");
         }
@@ -56,6 +77,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
     let model = RobotModel::anyexo()?;
     let cfg = SimConfig::default();
     let mut metrics: Vec<(String, RunMetrics)> = Vec::new();
+    let mut extra = serde_json::Value::Null;
     match name.as_str() {
         "impacts" | "sliding" => {
             let scenario = if name == "impacts" {
@@ -88,6 +110,68 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             }
             plot_fig12(&out.join("rising.png"), &runs)?;
         }
+        "rising-sweep" => {
+            let sweep = closed_loop::rising_sweep(&model, &cfg, &SWEEP_SPEEDS_MPS)?;
+            let rows: Vec<SweepRow> = sweep.iter().map(|(r, _)| r.clone()).collect();
+            write_rows(&out.join("rising-sweep.csv"), &rows)?;
+            plot_sweep(&out.join("rising-sweep.png"), &rows, model.hip_radius_m())?;
+            for (row, run) in sweep {
+                let mode = if row.surface_velocity_feed {
+                    "surface_velocity"
+                } else {
+                    "paper"
+                };
+                metrics.push((mode.into(), run.metrics));
+            }
+            extra = serde_json::json!({
+                "safe_speed_mps": {
+                    "paper": closed_loop::safe_speed_mps(&rows, false),
+                    "surface_velocity": closed_loop::safe_speed_mps(&rows, true),
+                },
+                "sweep": rows,
+            });
+        }
+        "perception-rising" | "perception-impacts" => {
+            let cases: Vec<(Scene, bool)> = if name == "perception-rising" {
+                let mut cases = Vec::new();
+                for speed in PERCEPTION_RISE_SPEEDS_MPS {
+                    for feed in [false, true] {
+                        cases.push((builtin::rising_surface(speed, true)?, feed));
+                    }
+                }
+                cases
+            } else {
+                vec![(Scene::from_builtin("forehead_impacts_realistic")?, true)]
+            };
+            let mut scene_metrics = Vec::new();
+            for (scene, feed) in cases {
+                let mode = if feed { "surface_velocity" } else { "paper" };
+                let mut options = SceneLoopOptions::default();
+                options.sim.controller.haptics.use_surface_velocity = feed;
+                let run = scene_loop::simulate_scene(&scene, &options)
+                    .with_context(|| format!("closed loop on {}", scene.origin))?;
+                let stem = format!("{name}-{mode}-{}", scene_stem(&scene));
+                write_rows(&out.join(format!("{stem}.csv")), &run.samples)?;
+                plot_scene(
+                    &out.join(format!("{stem}.png")),
+                    &format!("{} ({mode})", scene.origin),
+                    &run,
+                    model.hip_radius_m(),
+                )?;
+                metrics.push((
+                    mode.into(),
+                    RunMetrics {
+                        name: scene.origin.clone(),
+                        max_penetration_m: run.metrics.max_penetration_m,
+                        min_margin_m: run.metrics.min_margin_m,
+                        fallback_ticks: run.metrics.fallback_ticks,
+                        ticks: run.metrics.ticks,
+                    },
+                ));
+                scene_metrics.push(serde_json::json!({"mode": mode, "metrics": run.metrics}));
+            }
+            extra = serde_json::json!({ "perception": scene_metrics });
+        }
         other => bail!(closed_loop::SimError::UnknownExperiment(other.into())),
     }
     let max_pen = metrics
@@ -115,6 +199,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             "max_penetration_m": max_pen,
             "min_margin_m": min_margin,
             "runs": runs,
+            "details": extra,
         });
         println!("{obj}");
     } else {
@@ -124,18 +209,210 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 m.name, mode, m.max_penetration_m, m.min_margin_m, m.fallback_ticks
             );
         }
+        if let Some(safe) = extra.get("safe_speed_mps") {
+            println!(
+                "safe speed (HIP centre stays outside): paper {} m/s, surface_velocity {} m/s",
+                safe["paper"], safe["surface_velocity"]
+            );
+        }
         println!("wrote CSV and PNG files to {}", out.display());
     }
     Ok(())
 }
 
+/// Speeds of the `perception-rising` experiment, m/s.
+const PERCEPTION_RISE_SPEEDS_MPS: [f64; 3] = [0.5, 1.0, 1.5];
+
 fn write_csv(path: &Path, run: &Run) -> Result<()> {
+    write_rows(path, &run.samples)
+}
+
+fn write_rows<T: serde::Serialize>(path: &Path, rows: &[T]) -> Result<()> {
     let mut w =
         csv::Writer::from_path(path).with_context(|| format!("writing {}", path.display()))?;
-    for s in &run.samples {
-        w.serialize(s)?;
+    for r in rows {
+        w.serialize(r)?;
     }
     w.flush()?;
+    Ok(())
+}
+
+/// A file-name part for a scene: its name and, for a rising surface, the speed.
+fn scene_stem(scene: &Scene) -> String {
+    let speed = scene.file.bodies.iter().find_map(|b| match &b.motion {
+        hapcloud::scene::Motion::ConstantVelocity { velocity_m_s, .. } => Some(velocity_m_s.norm()),
+        _ => None,
+    });
+    match speed {
+        Some(v) => format!("{}-{v:.2}", scene.file.name),
+        None => scene.file.name.clone(),
+    }
+}
+
+/// Safe-speed sweep: worst margin and penetration per speed, both modes.
+fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
+    let root = BitMapBackend::new(path, (1100, 800)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let panels = root.split_evenly((2, 1));
+    let v_max = rows.iter().map(|r| r.speed_mps).fold(0.0, f64::max) + 0.1;
+    type Metric = (&'static str, fn(&SweepRow) -> f64);
+    let metrics: [Metric; 2] = [
+        ("min margin of the HIP centre [m]", |r| r.min_margin_m),
+        ("max penetration of the HIP sphere [m]", |r| {
+            r.max_penetration_m
+        }),
+    ];
+    for (i, (label, get)) in metrics.iter().enumerate() {
+        let (lo, hi) = range(rows.iter().map(get).chain([0.0, r_hip]));
+        let mut chart = ChartBuilder::on(&panels[i])
+            .caption(format!("rising surface: {label}"), (FONT, 22))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(0.0..v_max, lo..hi)?;
+        chart
+            .configure_mesh()
+            .x_desc("surface speed [m/s]")
+            .y_desc(*label)
+            .label_style((FONT, 15))
+            .draw()?;
+        chart
+            .draw_series(LineSeries::new(
+                [(0.0, 0.0), (v_max, 0.0)],
+                BLACK.stroke_width(1),
+            ))?
+            .label("0")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+        chart
+            .draw_series(LineSeries::new(
+                [(0.0, r_hip), (v_max, r_hip)],
+                GREEN.stroke_width(1),
+            ))?
+            .label("r_HIP")
+            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], GREEN));
+        for (feed, color, mode) in [(false, RED, "paper"), (true, BLUE, "surface velocity fed")] {
+            let pts: Vec<(f64, f64)> = rows
+                .iter()
+                .filter(|r| r.surface_velocity_feed == feed)
+                .map(|r| (r.speed_mps, get(r)))
+                .collect();
+            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))?;
+            chart
+                .draw_series(LineSeries::new(pts, color.stroke_width(2)))?
+                .label(mode)
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color));
+        }
+        chart
+            .configure_series_labels()
+            .label_font((FONT, 15))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()?;
+    }
+    root.present()?;
+    Ok(())
+}
+
+/// Perception in the loop: the controller's `d_proj` (fused surface) against the true one,
+/// and the HIP and nearest surface point heights, over time.
+fn plot_scene(path: &Path, title: &str, run: &SceneRun, r_hip: f64) -> Result<()> {
+    let root = BitMapBackend::new(path, (1100, 800)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let panels = root.split_evenly((2, 1));
+    let t_end = run.samples.last().map_or(1.0, |s| s.t_s);
+    // top: d_proj, true and fused
+    let finite = |v: f64| v.is_finite().then_some(v);
+    let (lo, hi) = range(
+        run.samples
+            .iter()
+            .flat_map(|s| [Some(s.true_d_proj_m), finite(s.fused_d_proj_m)])
+            .flatten()
+            .chain([-r_hip * 1.1]),
+    );
+    let mut chart = ChartBuilder::on(&panels[0])
+        .caption(format!("{title}: projected distance"), (FONT, 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0.0..t_end, lo..hi)?;
+    chart
+        .configure_mesh()
+        .x_desc("t [s]")
+        .y_desc("d_proj [m]")
+        .label_style((FONT, 15))
+        .draw()?;
+    chart.draw_series(run.samples.iter().filter(|s| s.constraint_active).map(|s| {
+        Rectangle::new(
+            [(s.t_s, lo), (s.t_s + 1.0 / 800.0, hi)],
+            RGBColor(225, 235, 250).filled(),
+        )
+    }))?;
+    chart
+        .draw_series(LineSeries::new(
+            [(0.0, -r_hip), (t_end, -r_hip)],
+            RED.stroke_width(1),
+        ))?
+        .label("-r_HIP (HIP centre on the surface)")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
+    chart
+        .draw_series(LineSeries::new(
+            run.samples.iter().map(|s| (s.t_s, s.true_d_proj_m)),
+            BLACK.stroke_width(2),
+        ))?
+        .label("true d_proj (scene ground truth)")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+    chart
+        .draw_series(
+            run.samples
+                .iter()
+                .filter(|s| s.fused_d_proj_m.is_finite())
+                .map(|s| Circle::new((s.t_s, s.fused_d_proj_m), 1, BLUE.filled())),
+        )?
+        .label("d_proj seen by the controller (fused surface)")
+        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLUE));
+    chart
+        .configure_series_labels()
+        .label_font((FONT, 14))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()?;
+    // bottom: heights
+    let (lo, hi) = range(run.samples.iter().flat_map(|s| [s.hip_z_m, s.closest_z_m]));
+    let mut chart = ChartBuilder::on(&panels[1])
+        .caption("HIP and nearest patient surface point (truth)", (FONT, 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(70)
+        .build_cartesian_2d(0.0..t_end, lo..hi)?;
+    chart
+        .configure_mesh()
+        .x_desc("t [s]")
+        .y_desc("z [m]")
+        .label_style((FONT, 15))
+        .draw()?;
+    for (label, color, get) in [
+        (
+            "HIP z",
+            BLUE,
+            (|s: &scene_loop::SceneSample| s.hip_z_m) as fn(&_) -> f64,
+        ),
+        ("nearest surface point z", BLACK, |s| s.closest_z_m),
+    ] {
+        chart
+            .draw_series(LineSeries::new(
+                run.samples.iter().map(|s| (s.t_s, get(s))),
+                color.stroke_width(2),
+            ))?
+            .label(label)
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color));
+    }
+    chart
+        .configure_series_labels()
+        .label_font((FONT, 14))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .draw()?;
+    root.present()?;
     Ok(())
 }
 

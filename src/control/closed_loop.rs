@@ -202,7 +202,7 @@ impl Scenario {
     }
 
     /// Reference hand offset, velocity and acceleration at time `t`.
-    fn reference(&self, t: f64) -> (Vector3<f64>, Vector3<f64>, Vector3<f64>) {
+    pub fn reference(&self, t: f64) -> HandReference {
         let mut x = Vector3::zeros();
         let mut v = Vector3::zeros();
         let mut a = Vector3::zeros();
@@ -222,10 +222,72 @@ pub fn start_pose() -> JointVector {
 }
 
 /// Names of the built-in experiments.
-pub const EXPERIMENTS: [&str; 3] = ["impacts", "sliding", "rising"];
+pub const EXPERIMENTS: [&str; 4] = ["impacts", "sliding", "rising", "rising-sweep"];
 
 /// Speeds of the rising-surface experiment, m/s (paper Fig. 12 range).
 pub const RISE_SPEEDS_MPS: [f64; 7] = [0.1, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5];
+
+/// Speeds of the safe-speed sweep (issue 5 item 3: past the paper's 1.0 m/s), m/s.
+pub const SWEEP_SPEEDS_MPS: [f64; 10] = [0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0, 2.25, 2.5];
+
+/// One run of the rising-surface sweep.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SweepRow {
+    /// Rise speed of the plane, m/s.
+    pub speed_mps: f64,
+    /// The surface's velocity fed into the velocity constraint (false: the paper's eq. 13).
+    pub surface_velocity_feed: bool,
+    pub max_penetration_m: f64,
+    pub min_margin_m: f64,
+    pub fallback_ticks: usize,
+}
+
+/// The rising-surface experiment at every speed, without and with the surface-velocity
+/// feed (`config`'s own setting of the feed is overridden), in that order per speed.
+pub fn rising_sweep(
+    model: &RobotModel,
+    config: &SimConfig,
+    speeds_mps: &[f64],
+) -> Result<Vec<(SweepRow, Run)>, SimError> {
+    let mut out = Vec::with_capacity(2 * speeds_mps.len());
+    for &speed in speeds_mps {
+        if !(speed > 0.0 && speed.is_finite()) {
+            return Err(SimError::Value(format!(
+                "rise speed must be positive, got {speed} m/s"
+            )));
+        }
+        let scenario = rising_scenario(model, speed);
+        for feed in [false, true] {
+            let mut c = config.clone();
+            c.controller.haptics.use_surface_velocity = feed;
+            let run = simulate(model, &c, &scenario)?;
+            let row = SweepRow {
+                speed_mps: speed,
+                surface_velocity_feed: feed,
+                max_penetration_m: run.metrics.max_penetration_m,
+                min_margin_m: run.metrics.min_margin_m,
+                fallback_ticks: run.metrics.fallback_ticks,
+            };
+            out.push((row, run));
+        }
+    }
+    Ok(out)
+}
+
+/// The highest speed of `rows` up to which every run with the given feed setting kept the
+/// HIP centre outside the surface (positive margin), m/s (0 when even the slowest failed).
+pub fn safe_speed_mps(rows: &[SweepRow], surface_velocity_feed: bool) -> f64 {
+    let mut of_mode: Vec<&SweepRow> = rows
+        .iter()
+        .filter(|r| r.surface_velocity_feed == surface_velocity_feed)
+        .collect();
+    of_mode.sort_by(|a, b| a.speed_mps.total_cmp(&b.speed_mps));
+    of_mode
+        .iter()
+        .take_while(|r| r.min_margin_m > 0.0)
+        .last()
+        .map_or(0.0, |r| r.speed_mps)
+}
 
 /// Three direct impacts on a plane 10 cm below the HIP sphere (paper Fig. 11, left): the
 /// patient aims 6 cm past the surface each time.
@@ -353,6 +415,109 @@ pub struct Run {
     pub metrics: RunMetrics,
 }
 
+/// The patient's intended hand motion at a time: offset from the start, velocity,
+/// acceleration (world frame).
+pub type HandReference = (Vector3<f64>, Vector3<f64>, Vector3<f64>);
+
+/// The plant: robot, series-elastic actuators and the patient's hand at the HIP (see the
+/// module doc), integrated with semi-implicit Euler at `substeps` per controller period.
+#[derive(Clone, Debug)]
+pub struct Plant<'a> {
+    model: &'a RobotModel,
+    config: &'a SimConfig,
+    q: JointVector,
+    qd: JointVector,
+    tau_act: JointVector,
+    hand_force: Vector3<f64>,
+    hip0: Vector3<f64>,
+}
+
+impl<'a> Plant<'a> {
+    /// The plant at rest in `q0`, the actuators holding gravity, the hand relaxed there.
+    pub fn new(model: &'a RobotModel, config: &'a SimConfig, q0: JointVector) -> Self {
+        Self {
+            model,
+            config,
+            q: q0,
+            qd: JointVector::zeros(),
+            tau_act: model.gravity_torques(&q0),
+            hand_force: Vector3::zeros(),
+            hip0: model.world_from_hip(&q0).translation.vector,
+        }
+    }
+
+    /// Joint positions, rad.
+    pub fn q(&self) -> &JointVector {
+        &self.q
+    }
+
+    /// Joint velocities, rad/s.
+    pub fn qd(&self) -> &JointVector {
+        &self.qd
+    }
+
+    /// The force the hand exerts on the handle (what the force sensor reports), world, N.
+    pub fn hand_force_n(&self) -> Vector3<f64> {
+        self.hand_force
+    }
+
+    /// Largest actuator torque magnitude, Nm.
+    pub fn max_torque_nm(&self) -> f64 {
+        self.tau_act.amax()
+    }
+
+    /// Advances one controller period from time `t_s` with the torque command `tau_cmd`; the
+    /// hand follows `reference(t)` (offsets from its start).
+    pub fn step(
+        &mut self,
+        t_s: f64,
+        tau_cmd: &JointVector,
+        reference: impl Fn(f64) -> HandReference,
+    ) -> Result<(), SimError> {
+        let (model, config) = (self.model, self.config);
+        let dt = config.controller.haptics.period_s / config.substeps as f64;
+        let lag = 1.0 - (-dt * 2.0 * PI * config.actuator.bandwidth_hz).exp();
+        let limit = config.actuator.torque_limit_nm;
+        let tau_cmd = tau_cmd.map(|v| v.clamp(-limit, limit));
+        let p = &config.patient;
+        let g = Vector3::new(0.0, 0.0, -GRAVITY_MPS2);
+        for sub in 0..config.substeps {
+            let ts = t_s + sub as f64 * dt;
+            let (q, qd) = (&mut self.q, &mut self.qd);
+            self.tau_act += (tau_cmd - self.tau_act) * lag;
+            let hk = model.hip_kinematics(q, qd);
+            let (x_ref, v_ref, a_ref) = reference(ts);
+            let muscle = (self.hip0 + x_ref - hk.position_m.coords) * p.stiffness_n_per_m
+                + (v_ref - hk.velocity_mps) * p.damping_ns_per_m
+                + a_ref * p.hand_mass_kg
+                - g * p.hand_mass_kg;
+            let jt = hk.jacobian.transpose();
+            let mass = model.mass_matrix(q) + jt * hk.jacobian * p.hand_mass_kg;
+            let rhs = self.tau_act
+                - model.bias_forces(q, qd)
+                - jt * hk.bias_acceleration_mps2 * p.hand_mass_kg
+                + jt * (muscle + g * p.hand_mass_kg);
+            let Some(chol) = mass.cholesky() else {
+                return Err(SimError::Value(format!(
+                    "plant mass matrix singular at t = {ts}"
+                )));
+            };
+            let qdd = chol.solve(&rhs);
+            self.hand_force = muscle + g * p.hand_mass_kg
+                - (hk.jacobian * qdd + hk.bias_acceleration_mps2) * p.hand_mass_kg;
+            *qd += qdd * dt;
+            *q += *qd * dt;
+            for (i, lim) in model.joint_limits().iter().enumerate() {
+                if q[i] < lim.lower_rad || q[i] > lim.upper_rad {
+                    q[i] = q[i].clamp(lim.lower_rad, lim.upper_rad);
+                    qd[i] = 0.0;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
 /// Simulates `scenario` in closed loop.
 pub fn simulate(
     model: &RobotModel,
@@ -362,29 +527,20 @@ pub fn simulate(
     config.validate()?;
     let controller = Controller::new(model.clone(), config.controller.clone())?;
     let period = config.controller.haptics.period_s;
-    let dt = period / config.substeps as f64;
-    let lag = 1.0 - (-dt * 2.0 * PI * config.actuator.bandwidth_hz).exp();
-    let limit = config.actuator.torque_limit_nm;
-    let p = &config.patient;
-    let g = Vector3::new(0.0, 0.0, -GRAVITY_MPS2);
     let r_hip = model.hip_radius_m();
-    let mut q = scenario.q0;
-    let mut qd = JointVector::zeros();
-    let mut tau_act = model.gravity_torques(&q);
-    let mut hand_force = Vector3::new(0.0, 0.0, 0.0);
-    let hip0 = model.world_from_hip(&q).translation.vector;
+    let mut plant = Plant::new(model, config, scenario.q0);
     let ticks = (scenario.duration_s / period).round() as usize;
     let mut samples = Vec::with_capacity(ticks);
     let (mut max_pen, mut min_margin, mut fallbacks) = (0.0f64, f64::INFINITY, 0usize);
     for k in 0..ticks {
         let t = k as f64 * period;
-        let hip = model.hip_kinematics(&q, &qd);
+        let hip = model.hip_kinematics(plant.q(), plant.qd());
         let surface = scenario.controller_surface(t, &hip.position_m);
         let out = controller.tick(&ControllerInput {
-            q,
-            qd,
+            q: *plant.q(),
+            qd: *plant.qd(),
             surface: Some(&surface),
-            interaction_force_n: hand_force,
+            interaction_force_n: plant.hand_force_n(),
             intent: Intent::Transparent,
         });
         let fallback = out.status != super::ControlStatus::Ok;
@@ -402,43 +558,11 @@ pub fn simulate(
             d_proj_m: d_proj,
             d_rate_mps: hip.velocity_mps.z - plane_v,
             constraint_active: out.haptics.status == crate::haptics::HapticStatus::Active,
-            hand_force_z_n: hand_force.z,
-            max_torque_nm: tau_act.amax(),
+            hand_force_z_n: plant.hand_force_n().z,
+            max_torque_nm: plant.max_torque_nm(),
             fallback,
         });
-        let tau_cmd = out.tau_nm.map(|v| v.clamp(-limit, limit));
-        for sub in 0..config.substeps {
-            let ts = t + sub as f64 * dt;
-            tau_act += (tau_cmd - tau_act) * lag;
-            let hk = model.hip_kinematics(&q, &qd);
-            let (x_ref, v_ref, a_ref) = scenario.reference(ts);
-            let muscle = (hip0 + x_ref - hk.position_m.coords) * p.stiffness_n_per_m
-                + (v_ref - hk.velocity_mps) * p.damping_ns_per_m
-                + a_ref * p.hand_mass_kg
-                - g * p.hand_mass_kg;
-            let jt = hk.jacobian.transpose();
-            let mass = model.mass_matrix(&q) + jt * hk.jacobian * p.hand_mass_kg;
-            let rhs = tau_act
-                - model.bias_forces(&q, &qd)
-                - jt * hk.bias_acceleration_mps2 * p.hand_mass_kg
-                + jt * (muscle + g * p.hand_mass_kg);
-            let Some(chol) = mass.cholesky() else {
-                return Err(SimError::Value(format!(
-                    "plant mass matrix singular at t = {ts}"
-                )));
-            };
-            let qdd = chol.solve(&rhs);
-            hand_force = muscle + g * p.hand_mass_kg
-                - (hk.jacobian * qdd + hk.bias_acceleration_mps2) * p.hand_mass_kg;
-            qd += qdd * dt;
-            q += qd * dt;
-            for (i, lim) in model.joint_limits().iter().enumerate() {
-                if q[i] < lim.lower_rad || q[i] > lim.upper_rad {
-                    q[i] = q[i].clamp(lim.lower_rad, lim.upper_rad);
-                    qd[i] = 0.0;
-                }
-            }
-        }
+        plant.step(t, &out.tau_nm, |ts| scenario.reference(ts))?;
     }
     Ok(Run {
         samples,
@@ -471,6 +595,27 @@ mod tests {
             first.hip_z_m,
             last.hip_z_m
         );
+    }
+
+    /// Issue 5 item 3: at 1.5 m/s, half again the paper's safe speed, the paper's velocity
+    /// constraint (HIP motion only) lets the HIP centre through the rising plane, while the
+    /// surface's velocity in the constraint keeps the HIP sphere outside it.
+    #[test]
+    fn surface_velocity_feed_keeps_the_hip_outside_at_one_and_a_half_metres_per_second() {
+        let model = RobotModel::anyexo().unwrap();
+        let sweep = rising_sweep(&model, &SimConfig::default(), &[1.5]).unwrap();
+        let (paper, fed) = (&sweep[0].0, &sweep[1].0);
+        assert!(!paper.surface_velocity_feed && fed.surface_velocity_feed);
+        assert!(paper.min_margin_m < 0.0, "paper: {paper:?}");
+        assert!(fed.min_margin_m > 0.0, "with the feed: {fed:?}");
+        assert!(
+            fed.max_penetration_m < 0.5 * model.hip_radius_m(),
+            "{fed:?}"
+        );
+        assert_eq!(fed.fallback_ticks, 0);
+        let rows: Vec<SweepRow> = sweep.into_iter().map(|(r, _)| r).collect();
+        assert_eq!(safe_speed_mps(&rows, true), 1.5);
+        assert_eq!(safe_speed_mps(&rows, false), 0.0);
     }
 
     #[test]

@@ -15,8 +15,18 @@
 //!    compensation with light damping, i.e. a transparent exoskeleton) or a HIP acceleration;
 //! 6. minimal joint accelerations, `qdd = -k qd` (`k = 0` is the paper's level 5).
 //!
-//! Table I puts minimal joint accelerations last; the intent task sits just above it because
-//! `qdd = -k qd` pins every DoF and would leave nothing to a task below it.
+//! Deviation from Table I, and why: Table I lists no task for the patient's own motion and
+//! puts "minimize joint accelerations" right below the online collision avoidance. That
+//! task, `qdd = -k qd`, has full rank: whatever comes after it gets no freedom at all. With
+//! the transparent intent (the exoskeleton follows the patient's push) in Table I's order,
+//! i.e. after the minimal accelerations, a patient pushing the handle at rest gets
+//! `qdd = 0`: the robot brakes the arm instead of following it, which contradicts the
+//! paper's experiments (the patient moves the handle into the surface). So the intent sits
+//! between the haptic constraints and the minimal accelerations, which stay last, and Table
+//! I's order of levels 1-4 above both is kept. The test
+//! `table_i_order_would_leave_the_intent_no_freedom` solves one tick in both orders and
+//! shows it: ours meets the torque intent exactly and the HIP gives way to the push; Table
+//! I's leaves the intent no freedom and the accelerations at zero.
 //!
 //! A failed solve or non-finite input never panics: the controller returns the safe command
 //! (gravity compensation and joint damping, saturated) with a status saying why.
@@ -530,6 +540,64 @@ mod tests {
         let hip = c.model().hip_kinematics(&q, &qd);
         let acc = hip.jacobian * out.qdd + hip.bias_acceleration_mps2;
         assert!((acc - target).norm() < 1e-6, "{acc}");
+    }
+
+    /// Why the intent task sits above "minimal joint accelerations" (module doc): in Table
+    /// I's order the full-rank task `qdd = -k qd` comes before the intent and takes every
+    /// degree of freedom, so the exoskeleton brakes the patient's arm instead of following
+    /// it. A patient pushing the handle down with 20 N at rest: in our order the HIP gives
+    /// way (transparent, the torque intent holds exactly); in Table I's order the intent has
+    /// no freedom left and the accelerations are exactly `-k qd` = 0: the robot stays rigid.
+    #[test]
+    fn table_i_order_would_leave_the_intent_no_freedom() {
+        let c = controller();
+        let q = pose();
+        let qd = JointVector::zeros();
+        let input = ControllerInput {
+            q,
+            qd,
+            surface: None,
+            interaction_force_n: Vector3::new(0.0, 0.0, -20.0),
+            intent: Intent::Transparent,
+        };
+        let model = c.model();
+        let hip = model.hip_kinematics(&q, &qd);
+        let mass = model.mass_matrix(&q);
+        let bias = model.bias_forces(&q, &qd);
+        let jtf = hip.jacobian.transpose() * input.interaction_force_n;
+        let haptic = haptics::haptic_constraints(
+            &c.config().haptics,
+            None,
+            &hip,
+            model.hip_radius_m(),
+            &qd,
+            &mass,
+        );
+        let mut tasks = c.tasks(&input, &hip, &mass, &bias, &jtf, &haptic);
+        assert_eq!(tasks[4].name, "intent: torque");
+        assert_eq!(tasks[5].name, "minimal joint accelerations");
+        let ours = c.solver.solve(&tasks).unwrap();
+        tasks.swap(4, 5);
+        let table_i = c.solver.solve(&tasks).unwrap();
+        let hip_acc = |x: &DVector<f64>| {
+            hip.jacobian * JointVector::from_column_slice(x.as_slice()) + hip.bias_acceleration_mps2
+        };
+        // ours: the torque intent is met and the hand's push accelerates the HIP downwards
+        assert!(
+            ours.levels[4].equality_residual < 1e-6,
+            "{:?}",
+            ours.levels[4]
+        );
+        assert!(hip_acc(&ours.x).z < -1.0, "{}", hip_acc(&ours.x));
+        // Table I: nothing is left to the intent, the push is resisted
+        assert_eq!(table_i.levels[4].freedom_left, 0);
+        assert_eq!(table_i.levels[5].method, hqp::LevelMethod::NoFreedom);
+        assert!(
+            table_i.levels[5].equality_residual > 1.0,
+            "{:?}",
+            table_i.levels[5]
+        );
+        assert!(table_i.x.norm() < 1e-6, "{}", table_i.x);
     }
 
     #[test]

@@ -41,6 +41,7 @@
 pub mod can_out;
 pub mod record;
 pub mod robot_state;
+pub mod scene_loop;
 pub mod stream;
 pub mod wire;
 

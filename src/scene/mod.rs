@@ -380,8 +380,19 @@ impl Simulator {
     /// Renders the frame with `timing` (from [`Simulator::timing`] or
     /// [`Simulator::arrivals`]).
     pub fn frame(&self, timing: &FrameTiming) -> SimFrame {
+        self.render_frame(timing, None)
+    }
+
+    /// Renders the frame with `timing` with the exoskeleton at `joints` instead of its
+    /// scripted trajectory: a closed-loop simulation drives the robot itself
+    /// ([`crate::node::scene_loop`]).
+    pub fn frame_with_joints(&self, timing: &FrameTiming, joints: &JointVector) -> SimFrame {
+        self.render_frame(timing, Some(joints))
+    }
+
+    fn render_frame(&self, timing: &FrameTiming, joints: Option<&JointVector>) -> SimFrame {
         let cam = &self.cameras[timing.camera_id as usize];
-        let (solids, label_names) = self.solids_in_camera(cam.id, timing.capture_s);
+        let (solids, label_names) = self.posed_in_camera(cam.id, timing.capture_s, joints);
         let key = FrameKey {
             seed: self.scene.file.seed,
             camera: cam.id,
@@ -420,10 +431,20 @@ impl Simulator {
     /// its label (`patient:<body>` or `robot:<link>`): what [`Simulator::frame`] ray casts,
     /// in the order of [`SimFrame::labels`].
     pub fn solids_in_camera(&self, camera_id: u32, t_s: f64) -> (Vec<Solid>, Vec<String>) {
+        self.posed_in_camera(camera_id, t_s, None)
+    }
+
+    /// [`Simulator::solids_in_camera`] with the robot at `joints` when given.
+    fn posed_in_camera(
+        &self,
+        camera_id: u32,
+        t_s: f64,
+        joints: Option<&JointVector>,
+    ) -> (Vec<Solid>, Vec<String>) {
         let camera_from_world = self.cameras[camera_id as usize]
             .world_from_camera_true
             .inverse();
-        self.posed_shapes(t_s)
+        self.posed_shapes(t_s, joints)
             .into_iter()
             .map(|p| {
                 (
@@ -434,8 +455,9 @@ impl Simulator {
             .unzip()
     }
 
-    /// Every visible shape at `t_s`, world-posed: patient bodies, then robot primitives.
-    fn posed_shapes(&self, t_s: f64) -> Vec<Posed> {
+    /// Every visible shape at `t_s`, world-posed: patient bodies, then robot primitives (at
+    /// `joints` when given, else on the scene's trajectory).
+    fn posed_shapes(&self, t_s: f64, joints: Option<&JointVector>) -> Vec<Posed> {
         let mut out: Vec<Posed> = self
             .scene
             .file
@@ -449,16 +471,15 @@ impl Simulator {
             })
             .collect();
         if let Some(robot) = self.robot.as_ref().filter(|r| r.visible()) {
-            out.extend(
-                robot
-                    .primitives_at(t_s)
-                    .into_iter()
-                    .map(|(link, prim)| Posed {
-                        shape: Shape::from(&prim),
-                        world_from_shape: Isometry3::identity(),
-                        label: format!("robot:{link}"),
-                    }),
-            );
+            let primitives = match joints {
+                Some(q) => robot.primitives_for(q),
+                None => robot.primitives_at(t_s),
+            };
+            out.extend(primitives.into_iter().map(|(link, prim)| Posed {
+                shape: Shape::from(&prim),
+                world_from_shape: Isometry3::identity(),
+                label: format!("robot:{link}"),
+            }));
         }
         out
     }

@@ -137,9 +137,14 @@ impl RobotTrack {
 
     /// Collision primitives in the world at `t_s`, with their link names.
     pub fn primitives_at(&self, t_s: f64) -> Vec<(String, Primitive)> {
+        self.primitives_for(&self.joints_at(t_s))
+    }
+
+    /// Collision primitives in the world at joint positions `q`, with their link names.
+    pub fn primitives_for(&self, q: &JointVector) -> Vec<(String, Primitive)> {
         let links = self.model.links();
         self.model
-            .collision_primitives_world(&self.joints_at(t_s))
+            .collision_primitives_world(q)
             .into_iter()
             .map(|(i, p)| (links[i].name.clone(), p))
             .collect()

@@ -9,6 +9,10 @@
 //! estimates of two cameras is evaluated in every tick as in the node. Prints median, p99 and
 //! max per case, and how many levels needed a QP.
 //!
+//! A second set of cases times the ticks of the closed-loop experiments themselves
+//! (`impacts`, and the plane rising at 1.5 m/s with the surface-velocity feed): the states a
+//! controller really meets, contact phases included.
+//!
 //! Two clocks per tick: wall time (`Instant`) and the thread's CPU time
 //! (`CLOCK_THREAD_CPUTIME_ID`). On a loaded machine the wall time's tail is the scheduler
 //! (a preempted tick waits for a whole time slice, milliseconds), while the CPU time counts
@@ -16,12 +20,14 @@
 //!
 //! Run: `cargo bench --bench control_tick`.
 
+use hapcloud::control::closed_loop::{self, Plant, SimConfig};
 use hapcloud::control::hqp::LevelMethod;
 use hapcloud::control::{Controller, ControllerConfig, ControllerInput, Intent};
 use hapcloud::fusion::{Fusion, FusionConfig};
 use hapcloud::haptics::known_surface;
 use hapcloud::robot::{JointVector, RobotModel};
 use hapcloud::surface::SurfaceEstimate;
+use hapcloud::timing::thread_cpu_s;
 use nalgebra::{Point3, Unit, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -30,18 +36,6 @@ use std::time::Instant;
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
-}
-
-/// CPU time of the calling thread, seconds.
-fn thread_cpu_s() -> f64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime writes one timespec through a valid pointer.
-    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    assert_eq!(rc, 0, "CLOCK_THREAD_CPUTIME_ID is unavailable");
-    ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
 }
 
 fn load_average() -> String {
@@ -59,7 +53,7 @@ fn main() {
     let tick_s = 1.0 / 800.0;
     let frame_s = 1.0 / 30.0;
     let mut next_frame = [0.0, 0.5 * frame_s];
-    let mut cases: Vec<(&str, Vec<f64>, Vec<f64>, usize)> = vec![
+    let mut cases: Vec<Case> = vec![
         ("free", Vec::new(), Vec::new(), 0),
         ("contact", Vec::new(), Vec::new(), 0),
         ("all", Vec::new(), Vec::new(), 0),
@@ -134,8 +128,9 @@ fn main() {
             cases[c].3 += qps;
         }
     }
+    cases.extend(closed_loop_cases(&model));
     println!(
-        "{:<8} {:>6} {:>7} {:>10} {:>10} {:>10} {:>14}",
+        "{:<10} {:>6} {:>7} {:>10} {:>10} {:>10} {:>14}",
         "case", "clock", "ticks", "median_us", "p99_us", "max_us", "QPs_per_tick"
     );
     for (name, wall, cpu, qps) in &mut cases {
@@ -143,7 +138,7 @@ fn main() {
         for (clock, times) in [("wall", wall), ("cpu", cpu)] {
             times.sort_by(f64::total_cmp);
             println!(
-                "{:<8} {:>6} {:>7} {:>10.2} {:>10.2} {:>10.2} {:>14.2}",
+                "{:<10} {:>6} {:>7} {:>10.2} {:>10.2} {:>10.2} {:>14.2}",
                 name,
                 clock,
                 times.len(),
@@ -155,4 +150,50 @@ fn main() {
         }
     }
     println!("load average (1, 5, 15 min) after: {}", load_average());
+}
+
+type Case = (&'static str, Vec<f64>, Vec<f64>, usize);
+
+/// Ticks of the closed-loop experiments, timed as they run (wall, CPU, QP count).
+fn closed_loop_cases(model: &RobotModel) -> Vec<Case> {
+    let config = SimConfig::default();
+    let controller =
+        Controller::new(model.clone(), config.controller.clone()).expect("default config");
+    let period = config.controller.haptics.period_s;
+    [
+        ("impacts", closed_loop::impacts_scenario(model)),
+        ("rise1.5", closed_loop::rising_scenario(model, 1.5)),
+    ]
+    .into_iter()
+    .map(|(name, scenario)| {
+        let mut case: Case = (name, Vec::new(), Vec::new(), 0);
+        let mut plant = Plant::new(model, &config, scenario.q0);
+        let ticks = (scenario.duration_s / period).round() as usize;
+        for k in 0..ticks {
+            let t = k as f64 * period;
+            let hip = model.world_from_hip(plant.q()).translation.vector.into();
+            let surface = scenario.controller_surface(t, &hip);
+            let start = Instant::now();
+            let cpu_start = thread_cpu_s();
+            let out = controller.tick(black_box(&ControllerInput {
+                q: *plant.q(),
+                qd: *plant.qd(),
+                surface: Some(&surface),
+                interaction_force_n: plant.hand_force_n(),
+                intent: Intent::Transparent,
+            }));
+            case.2.push((thread_cpu_s() - cpu_start) * 1e6);
+            case.1.push(start.elapsed().as_secs_f64() * 1e6);
+            case.3 += out
+                .levels
+                .iter()
+                .filter(|l| l.method == LevelMethod::Qp)
+                .count();
+            plant
+                .step(t, &out.tau_nm, |ts| scenario.reference(ts))
+                .expect("plant integrates");
+        }
+        case
+    })
+    .collect()
 }
