@@ -584,7 +584,7 @@ mod tests {
         };
         // ours: the torque intent is met and the hand's push accelerates the HIP downwards
         assert!(
-            ours.levels[4].equality_residual < 1e-6,
+            ours.levels[4].equality_residual < 1e-4,
             "{:?}",
             ours.levels[4]
         );
