@@ -39,16 +39,15 @@
 //! in the rising-surface experiment, has no closest point on the HIP's side any more). [`summarize`] restricts to frames in reach and, optionally, to a range of
 //! HIP-to-camera distances.
 
-use crate::camera::Frame;
 use crate::gpu::timing::StageTime;
 use crate::gpu::{Backend, GpuContext};
 use crate::perception::frontend::FrontendConfig;
 use crate::perception::pipeline::{CameraChain, ChainError, SurfaceConfig};
 use crate::robot::{RobotError, RobotModel};
-use crate::scene::{GroundTruth, Scene, SceneError, Simulator};
+use crate::scene::{GroundTruth, Scene, SceneError, SimFrame, Simulator};
 use crate::surface::SurfaceEstimate;
 use crate::timing::{SpanTime, Stopwatch};
-use nalgebra::{Isometry3, Point3, Vector3};
+use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -214,17 +213,7 @@ pub fn evaluate_scene(
         let sim_frame = sim.frame(&timing);
         let (out, total) = Stopwatch::time(|| chain.process(&sim_frame.frame, &hip, &primitives));
         let out = out?;
-        let bias = sim_frame.frame.world_from_camera * sim_frame.world_from_camera_true.inverse();
-        frames.push(judge(
-            &sim_frame.frame,
-            &bias,
-            timing.index,
-            hip,
-            truth,
-            reach_m,
-            &out,
-            total,
-        ));
+        frames.push(judge(&sim_frame, hip, truth, reach_m, &out, total));
     }
     Ok(SceneEvaluation {
         scene: scene.origin.clone(),
@@ -235,15 +224,16 @@ pub fn evaluate_scene(
 }
 
 fn judge(
-    frame: &Frame,
-    bias: &Isometry3<f64>,
-    index: u64,
+    sim_frame: &SimFrame,
     hip: Point3<f64>,
     truth: GroundTruth,
     reach_m: f64,
     out: &crate::perception::pipeline::ChainFrame,
     total: SpanTime,
 ) -> FrameEvaluation {
+    let frame = &sim_frame.frame;
+    // The camera's extrinsic calibration error: reported pose times the inverse true pose.
+    let bias = frame.world_from_camera * sim_frame.world_from_camera_true.inverse();
     let estimate = out.surface.abstraction.estimate.clone();
     let errors = |closest: &Point3<f64>, normal: &Vector3<f64>| {
         if estimate.valid {
@@ -261,7 +251,7 @@ fn judge(
     let camera = Point3::from(frame.world_from_camera.translation.vector);
     FrameEvaluation {
         camera_id: frame.camera_id,
-        index,
+        index: sim_frame.timing.index,
         t_s: frame.stamp_s,
         hip_camera_distance_m: (hip - camera).norm(),
         in_reach: truth.distance_m > 0.0 && truth.distance_m < reach_m,
