@@ -1,56 +1,65 @@
-//! What accuracy costs in time: a one-knob-at-a-time sweep over the pipeline's settings
-//! (issue 8; the design card's "show what accuracy costs in time").
+//! What accuracy costs in time: a one-knob-at-a-time sweep over the pipeline's settings on the
+//! simulator's built-in scenes (issue 8; the design card's "show what accuracy costs in time").
 //!
 //! # How it works
 //!
-//! A [`Recording`] holds camera frames, each with the HIP and the ground truth at its capture
-//! time, and the ground truth at every 800 Hz control tick. For every [`Setting`] (the
-//! defaults, then each knob varied alone) [`run_setting`] replays the recording through the
-//! pipeline the way the node will, top to bottom like the design card's data flow:
+//! [`Recording::from_scene`] renders a window of a scene once ([`crate::scene::Simulator`],
+//! with the effects the scene lists: D435 noise, holes, flying pixels, extrinsic bias, clock
+//! offsets, latency, dropped frames in the `_realistic` variants): every camera frame that
+//! arrives in the window, with what a node knows at the frame's stamp (the HIP and the
+//! exoskeleton's posed collision primitives) and the ground truth there, plus the ground truth
+//! at every 800 Hz control tick. The window starts shortly before the HIP first comes within
+//! 7 cm of the body (farther out the body is at the edge of the outermost 10 cm shell and the
+//! estimator sees only a fringe of it).
+//! A third camera, the mirror image of the paper's 45 degree camera, is added to the scene so
+//! the camera count can be varied (the defaults use the paper's two).
 //!
-//! 1. frames in arrival order; each frame's cloud to the world frame with the pose the camera
-//!    reports (an extrinsic bias stays in, as on a real rig),
-//! 2. the front end (crop around the HIP, voxel grid, Euclidean clusters; paper IV-A to IV-C)
-//!    on the chosen backend; the points of the kept clusters go on (paper IV-C: clusters
-//!    below the size threshold are noise),
-//! 3. one [`SurfaceEstimator`] per camera (memory, Alg. 1; shells and fits, Alg. 2),
-//! 4. [`Fusion`] of the cameras (paper IV-F), ticked at 800 Hz.
+//! For every [`Setting`] (the defaults, then each knob varied alone) [`run_setting`] replays
+//! the recordings the way the node runs, top to bottom like the design card's data flow:
 //!
-//! Measured per setting: per-frame time per stage (GPU timestamps of the front end's passes
-//! when the adapter has timestamp queries, the front end's wall time, the surface estimator's
-//! CPU wall time, the fusion tick's CPU wall time) and the error against ground truth of each
-//! camera's estimate (at its capture time) and of the fused surface (at each tick): RMS and
-//! maximum of the centroid distance and of the normal angle. The Pareto front ([`pareto_front`])
-//! is taken over (time per frame, fused centroid RMS error), both to be minimised.
+//! 1. frames in arrival order (a lower camera rate keeps every k-th frame of each camera),
+//! 2. [`CameraChain`]: frame to world, front end (crop around the HIP and the robot,
+//!    voxel grid, clusters; paper IV-A to IV-C), one surface estimator per camera (memory,
+//!    Alg. 1; shells and fits, Alg. 2),
+//! 3. [`Fusion`] of the cameras (paper IV-F), ticked at 800 Hz,
+//! 4. the closed loop ([`crate::control::closed_loop`], the rising-surface experiment of the
+//!    paper's Fig. 12) with the controller seeing the plane as this setting's fused surface
+//!    would report it: at every tick the fused surface's error against the truth (centroid
+//!    offset, normal, velocity and tracking status, expressed in the frame of the true
+//!    surface) is replayed onto the plane ([`SurfaceTrace`]). The margin and penetration are
+//!    measured against the true plane.
 //!
-//! # The recording
-//!
-//! [`SyntheticScene`] renders a head-sized sphere by exact ray casting in pinhole cameras,
-//! with Gaussian range noise, random speckle outliers, per-camera extrinsic bias (zero-sum
-//! over the cameras, the paper's assumption) and a sphere that moves towards and away from a
-//! fixed HIP; its ground truth is analytic (closest point `c + R (h - c) / |h - c|`, normal
-//! along `h - c`). It stands in for the scene simulator, which had not landed when the study
-//! was written; see the README's study section.
+//! Measured per setting: per-frame time per stage as thread CPU time
+//! ([`crate::timing`]: the front end, the surface estimator, the fusion tick) and as GPU time
+//! from timestamp queries (the front end's passes, GPU backend), wall times beside them; the
+//! error against ground truth of each camera's estimate (at its stamp) and of the fused
+//! surface (at each tick): RMS and maximum of the centroid distance and of the normal angle;
+//! the closed-loop minimum margin and maximum penetration. The Pareto front
+//! ([`pareto_front`]) is taken over (cost per frame, fused centroid RMS error), the cost
+//! being the thread CPU time of the front end and the estimator plus the front end's GPU
+//! time (zero on the CPU backend). The GPU shell moments carry no timestamps; on lavapipe
+//! their work runs on its own threads and is not in the cost.
 
 use crate::camera::Frame;
-use crate::cloud::PointCloud;
+use crate::control::closed_loop::{self, SimConfig, SimError};
+use crate::fusion::{FusedSurface, FusionStatus};
 use crate::fusion::{Fusion, FusionConfig, FusionConfigError};
+use crate::geometry::Primitive;
 use crate::gpu::{Backend, GpuContext};
+use crate::haptics::known_surface;
 use crate::perception::fit::CircleMethod;
 use crate::perception::frontend::{FrontendConfig, FrontendError};
 use crate::perception::pipeline::{CameraChain, ChainError, SurfaceConfig};
-use glam::Vec3;
-use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use crate::robot::{RobotError, RobotModel};
+use crate::scene::{CameraConfig, Scene, SceneError, Simulator};
+use crate::timing::{SpanTime, Stopwatch};
+use nalgebra::{Point3, Unit, UnitQuaternion, Vector3};
 use plotters::prelude::*;
-use rand::{RngExt, SeedableRng};
-use rand_chacha::ChaCha8Rng;
-use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 use std::sync::Arc;
-use std::time::Instant;
 
 /// Control rate at which fusion is ticked and judged, Hz (paper: 800 Hz).
 pub const TICK_RATE_HZ: f64 = 800.0;
@@ -63,6 +72,8 @@ pub struct Knobs {
     pub fusion: FusionConfig,
     /// Cameras used (the first `camera_count` of the recording).
     pub camera_count: u32,
+    /// Every `camera_rate_divisor`-th frame of each camera is used (1: the camera's rate).
+    pub camera_rate_divisor: u32,
 }
 
 impl Default for Knobs {
@@ -72,6 +83,7 @@ impl Default for Knobs {
             surface: SurfaceConfig::default(),
             fusion: FusionConfig::default(),
             camera_count: 2,
+            camera_rate_divisor: 1,
         }
     }
 }
@@ -159,6 +171,11 @@ pub fn settings() -> Vec<Setting> {
     for cams in [1u32, 3] {
         push("cameras", format!("{cams}"), &|k| k.camera_count = cams);
     }
+    for divisor in [2u32, 3] {
+        push("camera_rate", format!("1/{divisor} of 30 Hz"), &|k| {
+            k.camera_rate_divisor = divisor
+        });
+    }
     for window in [0.05, 0.1, 0.4] {
         push("fusion.window_s", format!("{window} s"), &|k| {
             k.fusion.window_s = window
@@ -188,10 +205,14 @@ pub struct Truth {
 #[derive(Clone, Debug)]
 pub struct RecordedFrame {
     pub frame: Frame,
+    /// The camera's frame index (a lower camera rate keeps every k-th).
+    pub index: u64,
     /// When the frame reaches the pipeline, seconds.
     pub arrival_s: f64,
-    /// Truth at the frame's capture time (the HIP the pipeline is told is `truth.hip_m`).
+    /// Truth at the frame's stamp (the HIP the pipeline is told is `truth.hip_m`).
     pub truth: Truth,
+    /// The exoskeleton's collision primitives at the frame's stamp, world frame (cropped).
+    pub robot: Vec<Primitive>,
 }
 
 /// Frames (in arrival order) and the truth at every control tick.
@@ -203,62 +224,105 @@ pub struct Recording {
     pub ticks: Vec<(f64, Truth)>,
 }
 
-/// A moving sphere seen by up to three pinhole cameras (see the module doc).
+/// What the study renders and runs.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct SyntheticScene {
-    pub sphere_radius_m: f64,
-    /// HIP distance from the sphere's surface at rest, metres.
-    pub hip_gap_m: f64,
-    /// The sphere moves along the HIP direction by `amplitude sin(2 pi f t)`.
-    pub motion_amplitude_m: f64,
-    pub motion_frequency_hz: f64,
-    pub camera_count: u32,
-    pub camera_distance_m: f64,
-    pub camera_rate_hz: f64,
-    /// Capture to arrival, seconds.
-    pub latency_s: f64,
-    pub image_width_px: u32,
-    pub image_height_px: u32,
-    pub focal_px: f64,
-    /// Standard deviation of the range noise, metres.
-    pub range_noise_m: f64,
-    /// Fraction of pixels replaced by a random point in front of the surface.
-    pub speckle_fraction: f64,
-    /// Size of each camera's extrinsic translation bias, metres (zero-sum over the cameras).
-    pub extrinsic_bias_m: f64,
-    pub duration_s: f64,
-    pub seed: u64,
+pub struct StudyConfig {
+    /// Built-in scene names (`hapcloud scenes`) or scene file paths.
+    pub scenes: Vec<String>,
+    /// Length of the window replayed from each scene, seconds.
+    pub window_s: f64,
+    /// The window starts this long before the HIP centre first comes within
+    /// `start_distance_m` of the body, seconds.
+    pub lead_s: f64,
+    /// HIP centre to body distance that marks the window's start, metres (well inside the
+    /// outermost shell radius, 0.10 m by default: at the shells' edge the estimator sees only
+    /// a fringe of the body).
+    pub start_distance_m: f64,
+    /// Add a third camera, the mirror image of the scene's second one (the `cameras` knob).
+    pub third_camera: bool,
+    /// Render every camera with its image size and focal lengths divided by this (1: the
+    /// scene's D435 resolution; 2: a quarter of the pixels, for a quick run).
+    pub image_divisor: u32,
+    /// Run the closed loop per setting (the margin columns are NaN without it).
+    pub closed_loop: bool,
+    /// Rise speed of the closed-loop experiment's plane, m/s (paper Fig. 12: up to 1.5).
+    pub closed_loop_rise_speed_mps: f64,
 }
 
-impl Default for SyntheticScene {
+impl Default for StudyConfig {
     fn default() -> Self {
         Self {
-            sphere_radius_m: 0.09,
-            hip_gap_m: 0.06,
-            motion_amplitude_m: 0.02,
-            motion_frequency_hz: 0.5,
-            camera_count: 3,
-            camera_distance_m: 0.8,
-            camera_rate_hz: 30.0,
-            latency_s: 0.02,
-            image_width_px: 320,
-            image_height_px: 240,
-            focal_px: 300.0,
-            range_noise_m: 0.001,
-            speckle_fraction: 0.01,
-            extrinsic_bias_m: 0.002,
-            duration_s: 2.0,
-            seed: 7,
+            scenes: vec![
+                "torso_approach_realistic".into(),
+                "forehead_impacts_realistic".into(),
+            ],
+            window_s: 1.5,
+            lead_s: 0.1,
+            start_distance_m: 0.07,
+            third_camera: true,
+            image_divisor: 1,
+            closed_loop: true,
+            closed_loop_rise_speed_mps: 1.0,
         }
+    }
+}
+
+impl StudyConfig {
+    /// A run small enough for a test: one scene, 0.15 s, 424x240, no closed loop (a
+    /// closed-loop run is about a second of controller ticks per setting).
+    pub fn quick() -> Self {
+        Self {
+            scenes: vec!["torso_approach_realistic".into()],
+            window_s: 0.15,
+            lead_s: 0.0,
+            image_divisor: 2,
+            closed_loop: false,
+            ..Self::default()
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), StudyError> {
+        let bad = |m: String| Err(StudyError::Config(m));
+        if self.scenes.is_empty() {
+            return bad("scenes must name at least one scene".into());
+        }
+        for (name, v) in [
+            ("window_s", self.window_s),
+            ("start_distance_m", self.start_distance_m),
+            (
+                "closed_loop_rise_speed_mps",
+                self.closed_loop_rise_speed_mps,
+            ),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return bad(format!("{name} must be finite and positive, got {v}"));
+            }
+        }
+        if self.image_divisor == 0 {
+            return bad("image_divisor must be at least 1".into());
+        }
+        if !(self.lead_s.is_finite() && self.lead_s >= 0.0) {
+            return bad(format!(
+                "lead_s must be finite and >= 0, got {}",
+                self.lead_s
+            ));
+        }
+        Ok(())
     }
 }
 
 /// Why a study could not run.
 #[derive(Debug, thiserror::Error)]
 pub enum StudyError {
-    #[error("synthetic scene: {0}")]
-    Scene(String),
+    #[error("study config: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Scene(#[from] SceneError),
+    #[error("scene {scene}: {message}")]
+    Recording { scene: String, message: String },
+    #[error("robot model: {0}")]
+    Robot(#[from] RobotError),
     #[error("setting {knob}={value}: {source}")]
     Pipeline {
         knob: String,
@@ -271,10 +335,19 @@ pub enum StudyError {
         value: String,
         source: FusionConfigError,
     },
-    #[error("setting {knob}={value} asks for {asked} cameras, the recording has {have}")]
+    #[error("setting {knob}={value}: closed loop: {source}")]
+    ClosedLoop {
+        knob: String,
+        value: String,
+        source: SimError,
+    },
+    #[error(
+        "setting {knob}={value} asks for {asked} cameras, the recording {recording} has {have}"
+    )]
     Cameras {
         knob: String,
         value: String,
+        recording: String,
         asked: u32,
         have: u32,
     },
@@ -282,211 +355,136 @@ pub enum StudyError {
     Write { path: String, message: String },
 }
 
-/// HIP direction from the sphere's centre (fixed, tilted off every camera axis).
-fn hip_direction() -> Vector3<f64> {
-    Vector3::new(0.3, -0.2, -1.0).normalize()
+impl Truth {
+    fn of(t: &crate::scene::GroundTruth) -> Self {
+        Self {
+            hip_m: t.hip_m,
+            closest_m: t.closest_m,
+            normal: t.normal,
+        }
+    }
 }
 
-impl SyntheticScene {
-    pub fn validate(&self) -> Result<(), StudyError> {
-        let bad = |m: String| Err(StudyError::Scene(m));
-        let positive = [
-            ("sphere_radius_m", self.sphere_radius_m),
-            ("hip_gap_m", self.hip_gap_m),
-            ("motion_frequency_hz", self.motion_frequency_hz),
-            ("camera_distance_m", self.camera_distance_m),
-            ("camera_rate_hz", self.camera_rate_hz),
-            ("focal_px", self.focal_px),
-            ("duration_s", self.duration_s),
-        ];
-        for (name, v) in positive {
-            if !(v.is_finite() && v > 0.0) {
-                return bad(format!("{name} must be finite and positive, got {v}"));
-            }
-        }
-        let non_negative = [
-            ("motion_amplitude_m", self.motion_amplitude_m),
-            ("latency_s", self.latency_s),
-            ("range_noise_m", self.range_noise_m),
-            ("extrinsic_bias_m", self.extrinsic_bias_m),
-        ];
-        for (name, v) in non_negative {
-            if !(v.is_finite() && v >= 0.0) {
-                return bad(format!("{name} must be finite and >= 0, got {v}"));
-            }
-        }
-        if self.motion_amplitude_m >= self.hip_gap_m {
-            return bad(format!(
-                "motion_amplitude_m ({}) must stay below hip_gap_m ({}): the HIP would enter the sphere",
-                self.motion_amplitude_m, self.hip_gap_m
-            ));
-        }
-        if !(1..=3).contains(&self.camera_count) {
-            return bad(format!(
-                "camera_count must be 1 to 3, got {}",
-                self.camera_count
-            ));
-        }
-        if self.image_width_px == 0 || self.image_height_px == 0 {
-            return bad("image size must be positive".into());
-        }
-        if !(0.0..=1.0).contains(&self.speckle_fraction) {
-            return bad(format!(
-                "speckle_fraction must lie in [0, 1], got {}",
-                self.speckle_fraction
-            ));
-        }
-        Ok(())
+/// The mirror image of `camera` across the world x-z plane (y -> -y), a third of a frame
+/// later.
+fn mirrored(camera: &CameraConfig, name: &str) -> CameraConfig {
+    let flip = |p: Point3<f64>| Point3::new(p.x, -p.y, p.z);
+    CameraConfig {
+        name: name.into(),
+        position_m: flip(camera.position_m),
+        look_at_m: flip(camera.look_at_m),
+        up: Vector3::new(camera.up.x, -camera.up.y, camera.up.z),
+        phase_s: camera.phase_s + 1.0 / (3.0 * camera.rate_hz),
+        ..camera.clone()
     }
+}
 
-    /// HIP (fixed) and sphere centre at `t_s`, world frame; the sphere rests at the origin.
-    fn sphere_centre(&self, t_s: f64) -> Point3<f64> {
-        let s = (2.0 * std::f64::consts::PI * self.motion_frequency_hz * t_s).sin();
-        Point3::from(hip_direction() * (self.motion_amplitude_m * s))
-    }
-
-    fn hip(&self) -> Point3<f64> {
-        Point3::from(hip_direction() * (self.sphere_radius_m + self.hip_gap_m))
-    }
-
-    /// Analytic ground truth at `t_s`.
-    pub fn truth(&self, t_s: f64) -> Truth {
-        let c = self.sphere_centre(t_s);
-        let hip = self.hip();
-        let normal = (hip - c).normalize();
-        Truth {
-            hip_m: hip,
-            closest_m: c + normal * self.sphere_radius_m,
-            normal,
-        }
-    }
-
-    /// Camera `k`'s true pose: on a cone of 35 degrees around the HIP direction, looking at
-    /// the sphere's rest position.
-    fn camera_pose(&self, k: u32) -> Isometry3<f64> {
-        let d = hip_direction();
-        let side = d.cross(&Vector3::z()).normalize();
-        let azimuth = 2.0 * std::f64::consts::PI * f64::from(k) / 3.0;
-        let tilt = if self.camera_count == 1 {
-            0.0
-        } else {
-            35f64.to_radians()
+impl Recording {
+    /// Renders the study window of `scene` (see the module doc).
+    pub fn from_scene(scene: &Scene, config: &StudyConfig) -> Result<Self, StudyError> {
+        config.validate()?;
+        let fail = |message: String| StudyError::Recording {
+            scene: scene.origin.clone(),
+            message,
         };
-        let around = UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(d), azimuth);
-        let off = UnitQuaternion::from_axis_angle(&nalgebra::Unit::new_normalize(side), tilt);
-        let dir = around * (off * d);
-        let eye = Point3::from(dir * self.camera_distance_m);
-        let up = if dir.cross(&Vector3::y()).norm() > 1e-3 {
-            Vector3::y()
-        } else {
-            Vector3::x()
-        };
-        // face_towards points the optical z axis at the target.
-        Isometry3::face_towards(&eye, &Point3::origin(), &up)
-    }
-
-    /// Extrinsic bias of camera `k`: translations summing to zero over the cameras.
-    fn bias(&self, k: u32) -> Vector3<f64> {
-        if self.camera_count == 1 {
-            return Vector3::zeros();
+        let mut file = scene.file.clone();
+        if config.third_camera {
+            let second = file
+                .cameras
+                .get(1)
+                .ok_or_else(|| fail("third_camera needs a scene with two cameras".into()))?;
+            let third = mirrored(second, "study_mirror");
+            file.cameras.push(third);
         }
-        let angle = 2.0 * std::f64::consts::PI * f64::from(k) / f64::from(self.camera_count);
-        Vector3::new(angle.cos(), angle.sin(), 0.0) * self.extrinsic_bias_m
-    }
-
-    /// Ray casts frame `index` of camera `k` (points in the camera's optical frame, NaN for
-    /// no return).
-    fn render(&self, k: u32, t_s: f64, rng: &mut ChaCha8Rng) -> Vec<Vec3> {
-        let world_from_camera = self.camera_pose(k);
-        let centre_cam = world_from_camera.inverse() * self.sphere_centre(t_s);
-        let c = centre_cam.coords;
-        let r2 = self.sphere_radius_m * self.sphere_radius_m;
-        let (w, h) = (self.image_width_px, self.image_height_px);
-        let (cx, cy) = (f64::from(w) / 2.0, f64::from(h) / 2.0);
-        let mut points = Vec::with_capacity((w * h) as usize);
-        for v in 0..h {
-            for u in 0..w {
-                let ray = Vector3::new(
-                    (f64::from(u) + 0.5 - cx) / self.focal_px,
-                    (f64::from(v) + 0.5 - cy) / self.focal_px,
-                    1.0,
-                );
-                let a = ray.norm_squared();
-                let b = ray.dot(&c);
-                let disc = b * b - a * (c.norm_squared() - r2);
-                if disc < 0.0 {
-                    points.push(Vec3::NAN);
-                    continue;
-                }
-                let mut t = (b - disc.sqrt()) / a;
-                if rng.random_range(0.0..1.0) < self.speckle_fraction {
-                    // A flying pixel somewhere between the camera and the surface.
-                    t *= rng.random_range(0.5..0.97);
-                } else {
-                    let n: f64 = rng.sample(StandardNormal);
-                    t += n * self.range_noise_m / a.sqrt();
-                }
-                let p = ray * t;
-                points.push(Vec3::new(p.x as f32, p.y as f32, p.z as f32));
-            }
-        }
-        points
-    }
-
-    /// Renders the recording: every camera at `camera_rate_hz` with evenly spread phases.
-    pub fn record(&self) -> Result<Recording, StudyError> {
-        self.validate()?;
-        let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
-        let mut frames = Vec::new();
-        let period = 1.0 / self.camera_rate_hz;
-        for k in 0..self.camera_count {
-            let phase = period * f64::from(k) / f64::from(self.camera_count);
-            let true_pose = self.camera_pose(k);
-            let reported = Translation3::from(self.bias(k)) * true_pose;
-            let mut index = 0u32;
-            loop {
-                let t = phase + f64::from(index) * period;
-                if t > self.duration_s {
-                    break;
-                }
-                let points = self.render(k, t, &mut rng);
-                let cloud =
-                    PointCloud::organized(points, self.image_width_px, self.image_height_px)
-                        .ok_or_else(|| StudyError::Scene("image size mismatch".into()))?;
-                frames.push(RecordedFrame {
-                    frame: Frame {
-                        camera_id: k,
-                        stamp_s: t,
-                        world_from_camera: reported,
-                        cloud,
-                        depth: None,
-                    },
-                    arrival_s: t + self.latency_s,
-                    truth: self.truth(t),
+        if config.image_divisor > 1 {
+            let d = config.image_divisor;
+            for c in &mut file.cameras {
+                let k = c.intrinsics();
+                let s = f64::from(d);
+                c.intrinsics = Some(crate::camera::PinholeIntrinsics {
+                    width: k.width / d,
+                    height: k.height / d,
+                    fx: k.fx / s,
+                    fy: k.fy / s,
+                    cx: k.cx / s,
+                    cy: k.cy / s,
                 });
-                index += 1;
             }
         }
-        frames.sort_by(|a, b| {
-            a.arrival_s
-                .total_cmp(&b.arrival_s)
-                .then(a.frame.camera_id.cmp(&b.frame.camera_id))
-        });
-        let tick_count = (self.duration_s * TICK_RATE_HZ).floor() as u32;
-        let ticks = (1..=tick_count)
-            .map(|i| {
-                let t = f64::from(i) / TICK_RATE_HZ;
-                (t, self.truth(t))
+        let scene = Scene::new(file, &scene.origin)?;
+        let sim = Simulator::new(&scene)?;
+        let robot_config = scene
+            .file
+            .robot
+            .as_ref()
+            .ok_or_else(|| fail("no robot: no HIP and no ground truth".into()))?;
+        let robot = RobotModel::anyexo()?.with_base(robot_config.world_from_base());
+        let tick = 1.0 / TICK_RATE_HZ;
+        let truth_at = |t: f64| {
+            sim.ground_truth(t)
+                .ok_or_else(|| fail(format!("no ground truth at t = {t} s")))
+        };
+        // First tick at which the body is within `start_distance_m`.
+        let ticks_total = (sim.duration_s() * TICK_RATE_HZ).floor() as u64;
+        let mut first = None;
+        for k in 0..=ticks_total {
+            let t = k as f64 * tick;
+            if truth_at(t)?.distance_m < config.start_distance_m {
+                first = Some(t);
+                break;
+            }
+        }
+        let first = first.ok_or_else(|| {
+            fail(format!(
+                "the HIP never comes within {} m of the body in {} s",
+                config.start_distance_m,
+                sim.duration_s()
+            ))
+        })?;
+        let start = (first - config.lead_s).max(0.0);
+        let end = (start + config.window_s).min(sim.duration_s());
+        let mut frames = Vec::new();
+        for timing in sim.arrivals(start, end) {
+            let t = timing.stamp_s;
+            let Some(joints) = sim.joints_at(t) else {
+                return Err(fail("no robot state".into()));
+            };
+            let truth = truth_at(t)?;
+            let robot = robot
+                .collision_primitives_world(&joints)
+                .into_iter()
+                .map(|(_, p)| p)
+                .collect();
+            frames.push(RecordedFrame {
+                frame: sim.frame(&timing).frame,
+                index: timing.index,
+                arrival_s: timing.arrival_s,
+                truth: Truth::of(&truth),
+                robot,
+            });
+        }
+        let k0 = (start * TICK_RATE_HZ).ceil() as u64;
+        let k1 = (end * TICK_RATE_HZ).floor() as u64;
+        let ticks = (k0..=k1)
+            .map(|k| {
+                let t = k as f64 * tick;
+                truth_at(t).map(|g| (t, Truth::of(&g)))
             })
-            .collect();
-        Ok(Recording {
-            name: format!(
-                "synthetic sphere r={} m, {} cameras, {} s",
-                self.sphere_radius_m, self.camera_count, self.duration_s
-            ),
+            .collect::<Result<_, _>>()?;
+        Ok(Self {
+            name: format!("{} [{start:.2}, {end:.2}] s", scene.origin),
             frames,
             ticks,
         })
+    }
+
+    /// Cameras in the recording.
+    pub fn camera_count(&self) -> u32 {
+        self.frames
+            .iter()
+            .map(|f| f.frame.camera_id + 1)
+            .max()
+            .unwrap_or(0)
     }
 }
 
@@ -516,6 +514,63 @@ impl ErrorStats {
     }
 }
 
+/// The fused surface's error at one tick, in the frame of the true surface (z along the true
+/// outward normal): what [`SurfaceTrace`] replays onto the closed loop's plane.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SurfaceError {
+    /// Fused centroid minus the true closest point, metres.
+    pub offset_m: Vector3<f64>,
+    /// The fused normal.
+    pub normal: Unit<Vector3<f64>>,
+    /// Fused surface velocity minus the true closest point's velocity, m/s.
+    pub velocity_m_per_s: Vector3<f64>,
+    pub status: FusionStatus,
+    pub age_s: f64,
+}
+
+/// A setting's fused-surface errors, tick by tick from each recording's first tracking tick.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SurfaceTrace {
+    pub errors: Vec<SurfaceError>,
+}
+
+/// Rotation taking `normal` to world z (a half turn about x for the opposite direction).
+fn surface_frame(normal: &Vector3<f64>) -> UnitQuaternion<f64> {
+    UnitQuaternion::rotation_between(normal, &Vector3::z()).unwrap_or_else(|| {
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI)
+    })
+}
+
+impl SurfaceTrace {
+    /// The surface the controller sees at closed-loop tick `tick`: the horizontal plane at
+    /// height `plane_z_m` (rising at `plane_vz_mps`) under the HIP, displaced, tilted and
+    /// moved by the recorded error of tick `tick` (cyclically), with its tracking status.
+    pub fn surface(
+        &self,
+        tick: usize,
+        t_s: f64,
+        hip_m: &Point3<f64>,
+        plane_z_m: f64,
+        plane_vz_mps: f64,
+    ) -> FusedSurface {
+        let centre = Point3::new(hip_m.x, hip_m.y, plane_z_m);
+        let velocity = Vector3::new(0.0, 0.0, plane_vz_mps);
+        let Some(e) = (!self.errors.is_empty()).then(|| self.errors[tick % self.errors.len()])
+        else {
+            return known_surface(t_s, centre, Vector3::z_axis(), velocity);
+        };
+        let mut s = known_surface(
+            t_s,
+            centre + e.offset_m,
+            e.normal,
+            velocity + e.velocity_m_per_s,
+        );
+        s.status = e.status;
+        s.age_s = e.age_s;
+        s
+    }
+}
+
 /// What one setting measured.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct StudyRow {
@@ -530,17 +585,17 @@ pub struct StudyRow {
     pub kept_points_mean: f64,
     /// Mean GPU time per frame of each front-end pass (empty without timestamp queries), ms.
     pub gpu_stage_ms: BTreeMap<String, f64>,
-    /// Mean wall time per frame of the front end (upload, passes, readback), ms.
-    pub frontend_ms: f64,
-    /// Mean CPU wall time per frame of the surface estimator (memory + shells + fits), ms.
-    pub surface_ms: f64,
-    /// `frontend_ms + surface_ms`: the per-frame cost on the Pareto plot, ms.
+    /// Mean per frame of the front end: thread CPU and wall time, ms.
+    pub frontend: SpanTime,
+    /// Mean per frame of the surface estimator (memory + shells + fits), ms.
+    pub surface: SpanTime,
+    /// The cost on the Pareto plot: front end + estimator thread CPU + front-end GPU, ms.
     pub frame_ms: f64,
-    /// Mean CPU wall time of a fusion tick, microseconds.
+    /// Mean thread CPU time of a fusion tick, microseconds.
     pub fusion_tick_us: f64,
     /// Fraction of frames with a valid estimate.
     pub valid_fraction: f64,
-    /// Per-camera estimates against the truth at their capture time (mm, deg).
+    /// Per-camera estimates against the truth at their stamp (mm, deg).
     pub camera_centroid_mm: ErrorStats,
     pub camera_normal_deg: ErrorStats,
     /// Fused surface against the truth at each tick while tracking (mm, deg).
@@ -548,6 +603,10 @@ pub struct StudyRow {
     pub fused_normal_deg: ErrorStats,
     /// Fraction of ticks after the first tracking one on which fusion was tracking.
     pub tracking_fraction: f64,
+    /// Closed loop with this setting's surface: smallest distance of the HIP centre above the
+    /// true plane and deepest entry of the HIP sphere into it, mm.
+    pub min_margin_mm: f64,
+    pub max_penetration_mm: f64,
     /// Set by [`mark_pareto`]: on the (frame_ms, fused centroid RMS) front.
     pub pareto: bool,
 }
@@ -564,114 +623,201 @@ fn mean(sum: f64, n: usize) -> f64 {
     if n == 0 { f64::NAN } else { sum / n as f64 }
 }
 
-/// Replays `recording` through the pipeline configured by `setting` on `backend` (`ctx` is
-/// shared between settings on the GPU).
+/// The closed-loop experiment every setting is judged on, and the model it runs.
+pub struct ClosedLoop {
+    pub model: RobotModel,
+    pub config: SimConfig,
+    pub scenario: closed_loop::Scenario,
+}
+
+impl ClosedLoop {
+    /// The rising-surface experiment (paper Fig. 12) at `speed_mps`, ending 0.3 s after the
+    /// plane stops (the closest approach is over by then).
+    pub fn rising(speed_mps: f64) -> Result<Self, StudyError> {
+        let model = RobotModel::anyexo()?;
+        let mut scenario = closed_loop::rising_scenario(&model, speed_mps);
+        scenario.duration_s = scenario.rise_start_s + scenario.rise_m / speed_mps + 0.3;
+        Ok(Self {
+            model,
+            config: SimConfig::default(),
+            scenario,
+        })
+    }
+
+    /// Runs it with the controller seeing `trace` (the exact plane for an empty trace).
+    pub fn run(&self, trace: &SurfaceTrace) -> Result<closed_loop::RunMetrics, SimError> {
+        closed_loop::simulate_with_surface(
+            &self.model,
+            &self.config,
+            &self.scenario,
+            |k, t, hip| {
+                let (z, vz) = self.scenario.plane_at(t);
+                trace.surface(k, t, hip, z, vz)
+            },
+        )
+        .map(|run| run.metrics)
+    }
+}
+
+/// Replays `recordings` through the pipeline configured by `setting` on `backend` (`ctx` is
+/// shared between settings on the GPU), then runs `closed_loop` (when given) with its fused
+/// surface.
 pub fn run_setting(
-    recording: &Recording,
+    recordings: &[Recording],
     setting: &Setting,
     backend: Backend,
     ctx: Option<Arc<GpuContext>>,
+    closed_loop: Option<&ClosedLoop>,
 ) -> Result<StudyRow, StudyError> {
     let knobs = &setting.knobs;
     let (knob, value) = (setting.knob.clone(), setting.value.clone());
-    let have = recording
-        .frames
-        .iter()
-        .map(|f| f.frame.camera_id + 1)
-        .max()
-        .unwrap_or(0);
-    if knobs.camera_count == 0 || knobs.camera_count > have {
-        return Err(StudyError::Cameras {
-            knob,
-            value,
-            asked: knobs.camera_count,
-            have,
-        });
-    }
-    let mut pipeline =
-        CameraChain::new(backend, knobs.frontend.clone(), knobs.surface.clone(), ctx).map_err(
-            |source| StudyError::Pipeline {
-                knob: knob.clone(),
-                value: value.clone(),
-                source,
-            },
-        )?;
-    let mut fusion = Fusion::new(knobs.fusion).map_err(|source| StudyError::Fusion {
+    let pipeline_error = |source| StudyError::Pipeline {
         knob: knob.clone(),
         value: value.clone(),
         source,
-    })?;
-
+    };
     let mut gpu_stage_sum: BTreeMap<String, f64> = BTreeMap::new();
-    let (mut frontend_sum, mut surface_sum, mut fusion_sum) = (0.0, 0.0, 0.0);
-    let (mut voxel_sum, mut kept_sum) = (0usize, 0usize);
+    let (mut frontend_sum, mut surface_sum) = (SpanTime::default(), SpanTime::default());
+    let mut fusion_cpu_ms = 0.0;
+    let (mut voxel_sum, mut kept_sum, mut tick_count) = (0usize, 0usize, 0usize);
     let (mut cam_c, mut cam_n) = (Vec::new(), Vec::new());
     let (mut fused_c, mut fused_n) = (Vec::new(), Vec::new());
     let (mut frames, mut valid, mut tracking_ticks, mut ticks_since_first) = (0, 0, 0, 0);
-    let mut next = recording
-        .frames
-        .iter()
-        .filter(|f| f.frame.camera_id < knobs.camera_count)
-        .peekable();
-    for (t, truth) in &recording.ticks {
-        while let Some(rec) = next.next_if(|f| f.arrival_s <= *t) {
-            let cam = pipeline
-                .process(&rec.frame, &rec.truth.hip_m, &[])
-                .map_err(|source| StudyError::Pipeline {
-                    knob: knob.clone(),
-                    value: value.clone(),
-                    source,
-                })?;
-            frontend_sum += cam.frontend_time.wall_ms;
-            for st in &cam.front.gpu_times {
-                *gpu_stage_sum.entry(st.stage.to_string()).or_default() += st.gpu_ms;
+    let mut trace = SurfaceTrace::default();
+    let mut chain_backend = backend;
+    for recording in recordings {
+        let have = recording.camera_count();
+        if knobs.camera_count == 0 || knobs.camera_count > have {
+            return Err(StudyError::Cameras {
+                knob,
+                value,
+                recording: recording.name.clone(),
+                asked: knobs.camera_count,
+                have,
+            });
+        }
+        // Fresh state per recording: surface memories, leaf adaptation, fusion window.
+        let mut chain = CameraChain::new(
+            backend,
+            knobs.frontend.clone(),
+            knobs.surface.clone(),
+            ctx.clone(),
+        )
+        .map_err(pipeline_error)?;
+        let mut fusion = Fusion::new(knobs.fusion).map_err(|source| StudyError::Fusion {
+            knob: knob.clone(),
+            value: value.clone(),
+            source,
+        })?;
+        let mut next = recording
+            .frames
+            .iter()
+            .filter(|f| {
+                f.frame.camera_id < knobs.camera_count
+                    && f.index % u64::from(knobs.camera_rate_divisor) == 0
+            })
+            .peekable();
+        let mut tracking_started = false;
+        let ticks = &recording.ticks;
+        for (k, (t, truth)) in ticks.iter().enumerate() {
+            while let Some(rec) = next.next_if(|f| f.arrival_s <= *t) {
+                let cam = chain
+                    .process(&rec.frame, &rec.truth.hip_m, &rec.robot)
+                    .map_err(pipeline_error)?;
+                frontend_sum += cam.frontend_time;
+                surface_sum += cam.surface_time;
+                for st in &cam.front.gpu_times {
+                    *gpu_stage_sum.entry(st.stage.to_string()).or_default() += st.gpu_ms;
+                }
+                voxel_sum += cam.front.voxel.points.len();
+                kept_sum += cam.kept.len();
+                frames += 1;
+                let e = cam.estimate();
+                if e.valid {
+                    valid += 1;
+                    cam_c.push((e.centroid_m - rec.truth.closest_m).norm() * 1e3);
+                    cam_n.push(angle_deg(&e.normal, &rec.truth.normal));
+                }
+                fusion.push(e);
             }
-            voxel_sum += cam.front.voxel.points.len();
-            kept_sum += cam.kept.len();
-            surface_sum += cam.surface_time.wall_ms;
-            frames += 1;
-            let e = cam.estimate();
-            if e.valid {
-                valid += 1;
-                cam_c.push((e.centroid_m - rec.truth.closest_m).norm() * 1e3);
-                cam_n.push(angle_deg(&e.normal, &rec.truth.normal));
+            let (fused, span) = Stopwatch::time(|| fusion.tick(*t));
+            fusion_cpu_ms += span.cpu_ms;
+            tick_count += 1;
+            if fused.is_tracking() {
+                tracking_ticks += 1;
+                fused_c.push((fused.centroid_m - truth.closest_m).norm() * 1e3);
+                fused_n.push(angle_deg(&fused.normal, &truth.normal));
+                tracking_started = true;
             }
-            fusion.push(e);
+            if tracking_started {
+                ticks_since_first += 1;
+                // The true closest point's velocity by central differences over the ticks.
+                let (i0, i1) = (k.saturating_sub(1), (k + 1).min(ticks.len() - 1));
+                let dt = ticks[i1].0 - ticks[i0].0;
+                let v_true = if dt > 0.0 {
+                    (ticks[i1].1.closest_m - ticks[i0].1.closest_m) / dt
+                } else {
+                    Vector3::zeros()
+                };
+                let to_surface = surface_frame(&truth.normal);
+                trace.errors.push(SurfaceError {
+                    offset_m: to_surface * (fused.centroid_m - truth.closest_m),
+                    normal: to_surface * fused.normal,
+                    velocity_m_per_s: to_surface * (fused.velocity_m_per_s - v_true),
+                    status: fused.status,
+                    age_s: fused.age_s,
+                });
+            }
         }
-        let start = Instant::now();
-        let fused = fusion.tick(*t);
-        fusion_sum += start.elapsed().as_secs_f64() * 1e6;
-        if fused.is_tracking() {
-            tracking_ticks += 1;
-            fused_c.push((fused.centroid_m - truth.closest_m).norm() * 1e3);
-            fused_n.push(angle_deg(&fused.normal, &truth.normal));
-        }
-        if tracking_ticks > 0 {
-            ticks_since_first += 1;
-        }
+        chain_backend = chain.backend();
     }
+    // Without a closed loop asked for, or never tracking (the controller would see no
+    // surface at all), there is no margin to report.
+    let metrics = match closed_loop {
+        Some(cl) if !trace.errors.is_empty() => {
+            Some(cl.run(&trace).map_err(|source| StudyError::ClosedLoop {
+                knob: knob.clone(),
+                value: value.clone(),
+                source,
+            })?)
+        }
+        _ => None,
+    };
+    let gpu_stage_ms: BTreeMap<String, f64> = gpu_stage_sum
+        .into_iter()
+        .map(|(k, v)| (k, mean(v, frames)))
+        .collect();
+    let frontend = SpanTime {
+        wall_ms: mean(frontend_sum.wall_ms, frames),
+        cpu_ms: mean(frontend_sum.cpu_ms, frames),
+    };
+    let surface = SpanTime {
+        wall_ms: mean(surface_sum.wall_ms, frames),
+        cpu_ms: mean(surface_sum.cpu_ms, frames),
+    };
     Ok(StudyRow {
         knob: setting.knob.clone(),
         value: setting.value.clone(),
         is_default: setting.is_default(),
-        backend,
+        backend: chain_backend,
         frames,
         voxel_points_mean: mean(voxel_sum as f64, frames),
         kept_points_mean: mean(kept_sum as f64, frames),
-        gpu_stage_ms: gpu_stage_sum
-            .into_iter()
-            .map(|(k, v)| (k, mean(v, frames)))
-            .collect(),
-        frontend_ms: mean(frontend_sum, frames),
-        surface_ms: mean(surface_sum, frames),
-        frame_ms: mean(frontend_sum + surface_sum, frames),
-        fusion_tick_us: mean(fusion_sum, recording.ticks.len()),
+        frame_ms: frontend.cpu_ms + surface.cpu_ms + gpu_stage_ms.values().fold(0.0, |a, b| a + b),
+        gpu_stage_ms,
+        frontend,
+        surface,
+        fusion_tick_us: mean(fusion_cpu_ms * 1e3, tick_count),
         valid_fraction: mean(valid as f64, frames),
         camera_centroid_mm: ErrorStats::of(&cam_c),
         camera_normal_deg: ErrorStats::of(&cam_n),
         fused_centroid_mm: ErrorStats::of(&fused_c),
         fused_normal_deg: ErrorStats::of(&fused_n),
         tracking_fraction: mean(tracking_ticks as f64, ticks_since_first),
+        min_margin_mm: metrics.as_ref().map_or(f64::NAN, |m| m.min_margin_m * 1e3),
+        max_penetration_mm: metrics
+            .as_ref()
+            .map_or(f64::NAN, |m| m.max_penetration_m * 1e3),
         pareto: false,
     })
 }
@@ -708,12 +854,25 @@ pub fn mark_pareto(rows: &mut [StudyRow]) {
     }
 }
 
-/// Runs every setting on `recording` and marks the Pareto front.
+/// A finished study: what was replayed and one row per setting.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StudyReport {
+    /// The recordings' names (scene and window).
+    pub recordings: Vec<String>,
+    /// Camera frames in the recordings (all cameras, full rate).
+    pub frames: usize,
+    /// The closed-loop experiment and its result with the exact surface (None: not run).
+    pub closed_loop: Option<(String, closed_loop::RunMetrics)>,
+    pub rows: Vec<StudyRow>,
+}
+
+/// Runs every setting on `recordings` and marks the Pareto front.
 pub fn run_study(
-    recording: &Recording,
+    recordings: &[Recording],
     settings: &[Setting],
     backend: Backend,
-) -> Result<Vec<StudyRow>, StudyError> {
+    closed_loop: Option<&ClosedLoop>,
+) -> Result<StudyReport, StudyError> {
     let ctx = match backend {
         Backend::Gpu => Some(Arc::new(GpuContext::new().map_err(|e| {
             StudyError::Pipeline {
@@ -724,12 +883,28 @@ pub fn run_study(
         })?)),
         Backend::Cpu => None,
     };
+    let exact = closed_loop
+        .map(|cl| {
+            cl.run(&SurfaceTrace::default())
+                .map(|m| (cl.scenario.name.clone(), m))
+                .map_err(|source| StudyError::ClosedLoop {
+                    knob: "exact surface".into(),
+                    value: "-".into(),
+                    source,
+                })
+        })
+        .transpose()?;
     let mut rows = settings
         .iter()
-        .map(|s| run_setting(recording, s, backend, ctx.clone()))
+        .map(|s| run_setting(recordings, s, backend, ctx.clone(), closed_loop))
         .collect::<Result<Vec<_>, _>>()?;
     mark_pareto(&mut rows);
-    Ok(rows)
+    Ok(StudyReport {
+        recordings: recordings.iter().map(|r| r.name.clone()).collect(),
+        frames: recordings.iter().map(|r| r.frames.len()).sum(),
+        closed_loop: exact,
+        rows,
+    })
 }
 
 /// GPU stage names present in any row, sorted.
@@ -761,8 +936,10 @@ pub fn csv_header(rows: &[StudyRow]) -> Vec<String> {
         "frames",
         "voxel_points_mean",
         "kept_points_mean",
-        "frontend_ms",
-        "surface_ms",
+        "frontend_cpu_ms",
+        "frontend_wall_ms",
+        "surface_cpu_ms",
+        "surface_wall_ms",
         "frame_ms",
         "fusion_tick_us",
         "valid_fraction",
@@ -775,6 +952,8 @@ pub fn csv_header(rows: &[StudyRow]) -> Vec<String> {
         "fused_normal_rms_deg",
         "fused_normal_max_deg",
         "tracking_fraction",
+        "min_margin_mm",
+        "max_penetration_mm",
     ]
     .iter()
     .map(|s| s.to_string())
@@ -802,8 +981,10 @@ pub fn write_csv(path: &Path, rows: &[StudyRow]) -> Result<(), StudyError> {
             [
                 r.voxel_points_mean,
                 r.kept_points_mean,
-                r.frontend_ms,
-                r.surface_ms,
+                r.frontend.cpu_ms,
+                r.frontend.wall_ms,
+                r.surface.cpu_ms,
+                r.surface.wall_ms,
                 r.frame_ms,
                 r.fusion_tick_us,
                 r.valid_fraction,
@@ -816,6 +997,8 @@ pub fn write_csv(path: &Path, rows: &[StudyRow]) -> Result<(), StudyError> {
                 r.fused_normal_deg.rms,
                 r.fused_normal_deg.max,
                 r.tracking_fraction,
+                r.min_margin_mm,
+                r.max_penetration_mm,
             ]
             .iter()
             .map(|v| format!("{v:.6}")),
@@ -831,32 +1014,45 @@ pub fn write_csv(path: &Path, rows: &[StudyRow]) -> Result<(), StudyError> {
 }
 
 /// A markdown table: one row per setting, the front marked with `*`, the defaults in bold.
-pub fn markdown_table(recording: &Recording, rows: &[StudyRow]) -> String {
+pub fn markdown_table(report: &StudyReport) -> String {
+    let rows = &report.rows;
     let mut s = String::new();
+    let closed = match &report.closed_loop {
+        Some((name, m)) => format!(
+            "Closed loop: {name} with the controller seeing each setting's fused-surface \
+             error; with the exact surface its minimum margin is {:.1} mm and its maximum \
+             penetration {:.1} mm.",
+            m.min_margin_m * 1e3,
+            m.max_penetration_m * 1e3
+        ),
+        None => "Closed loop not run (margin columns NaN).".into(),
+    };
     let _ = writeln!(
         s,
-        "Study on {} ({} frames, backend {}). `*` = on the Pareto front of (frame time, fused \
-         centroid RMS); times are means per camera frame.\n",
-        recording.name,
-        recording.frames.len(),
+        "Study on {} ({} camera frames, backend {}). `*` = on the Pareto front of (cost per \
+         frame, fused centroid RMS). Cost = thread CPU time of the front end and the surface \
+         estimator plus the front end's GPU time, mean per camera frame. {closed}\n",
+        report.recordings.join(", "),
+        report.frames,
         rows.first().map_or("-".into(), |r| r.backend.to_string()),
     );
     let _ = writeln!(
         s,
-        "| knob | value | front | frame ms | front end ms | surface ms | valid | camera c RMS/max mm | camera n RMS deg | fused c RMS/max mm | fused n RMS/max deg |"
+        "| knob | value | front | cost ms | front end CPU / GPU ms | surface CPU ms | valid | camera c RMS/max mm | camera n RMS deg | fused c RMS/max mm | fused n RMS/max deg | margin min mm | penetration max mm |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for r in rows {
         let b = if r.is_default { "**" } else { "" };
         let _ = writeln!(
             s,
-            "| {b}{}{b} | {} | {} | {:.2} | {:.2} | {:.2} | {:.0}% | {:.2} / {:.2} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} |",
+            "| {b}{}{b} | {} | {} | {:.2} | {:.2} / {:.2} | {:.2} | {:.0}% | {:.2} / {:.2} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.1} | {:.1} |",
             r.knob,
             r.value,
             if r.pareto { "*" } else { "" },
             r.frame_ms,
-            r.frontend_ms,
-            r.surface_ms,
+            r.frontend.cpu_ms,
+            r.gpu_stage_ms.values().fold(0.0, |a, b| a + b),
+            r.surface.cpu_ms,
             r.valid_fraction * 100.0,
             r.camera_centroid_mm.rms,
             r.camera_centroid_mm.max,
@@ -865,6 +1061,8 @@ pub fn markdown_table(recording: &Recording, rows: &[StudyRow]) -> String {
             r.fused_centroid_mm.max,
             r.fused_normal_deg.rms,
             r.fused_normal_deg.max,
+            r.min_margin_mm,
+            r.max_penetration_mm,
         );
     }
     s
@@ -907,7 +1105,7 @@ pub fn plot_pareto(path: &Path, rows: &[StudyRow]) -> Result<(), StudyError> {
         .map_err(|e| draw(&e))?;
     chart
         .configure_mesh()
-        .x_desc("time per camera frame (front end + surface), ms")
+        .x_desc("cost per camera frame (thread CPU of front end + surface, plus GPU), ms")
         .y_desc("fused centroid RMS error, mm")
         .label_style((FONT, 14))
         .draw()
@@ -954,16 +1152,12 @@ pub fn plot_pareto(path: &Path, rows: &[StudyRow]) -> Result<(), StudyError> {
 }
 
 /// Writes `study.csv`, `study.md` and `pareto.png` into `dir`.
-pub fn write_outputs(
-    dir: &Path,
-    recording: &Recording,
-    rows: &[StudyRow],
-) -> Result<(), StudyError> {
+pub fn write_outputs(dir: &Path, report: &StudyReport) -> Result<(), StudyError> {
     std::fs::create_dir_all(dir).map_err(|e| write_err(dir, e))?;
-    write_csv(&dir.join("study.csv"), rows)?;
+    write_csv(&dir.join("study.csv"), &report.rows)?;
     let md = dir.join("study.md");
-    std::fs::write(&md, markdown_table(recording, rows)).map_err(|e| write_err(&md, e))?;
-    plot_pareto(&dir.join("pareto.png"), rows)
+    std::fs::write(&md, markdown_table(report)).map_err(|e| write_err(&md, e))?;
+    plot_pareto(&dir.join("pareto.png"), &report.rows)
 }
 
 #[cfg(test)]
@@ -1011,61 +1205,83 @@ mod tests {
     }
 
     #[test]
-    fn synthetic_truth_is_on_the_sphere_and_faces_the_hip() {
-        let s = SyntheticScene::default();
-        for t in [0.0, 0.3, 0.77, 1.5] {
-            let truth = s.truth(t);
-            let c = s.sphere_centre(t);
-            assert!(((truth.closest_m - c).norm() - s.sphere_radius_m).abs() < 1e-12);
-            let gap = (truth.hip_m - truth.closest_m).norm();
-            assert!(gap >= s.hip_gap_m - s.motion_amplitude_m - 1e-12);
-            assert!((truth.normal.dot(&(truth.hip_m - truth.closest_m)) - gap).abs() < 1e-12);
-        }
+    fn an_exact_trace_is_the_plane_and_errors_move_it_in_the_surface_frame() {
+        let hip = Point3::new(0.1, 0.2, 0.5);
+        let exact = SurfaceTrace::default().surface(3, 0.1, &hip, 0.3, 0.5);
+        assert_eq!(exact.centroid_m, Point3::new(0.1, 0.2, 0.3));
+        assert_eq!(exact.normal, Vector3::z_axis());
+        assert!(exact.is_tracking());
+        // A fused surface 5 mm deeper than the truth along its normal, on a tilted body,
+        // becomes a plane 5 mm lower; the error's tangential part stays tangential.
+        let n = Vector3::new(1.0, -2.0, 0.5).normalize();
+        let to_surface = surface_frame(&n);
+        assert!((to_surface * n - Vector3::z()).norm() < 1e-12);
+        let tangent = n.cross(&Vector3::x()).normalize();
+        let trace = SurfaceTrace {
+            errors: vec![SurfaceError {
+                offset_m: to_surface * (n * -0.005 + tangent * 0.002),
+                normal: Unit::new_normalize(to_surface * n),
+                velocity_m_per_s: Vector3::zeros(),
+                status: FusionStatus::Stale,
+                age_s: 0.2,
+            }],
+        };
+        let s = trace.surface(7, 0.1, &hip, 0.3, 0.0);
+        assert!((s.centroid_m.z - 0.295).abs() < 1e-12);
+        let lateral = (s.centroid_m - Point3::new(0.1, 0.2, 0.295)).norm();
+        assert!((lateral - 0.002).abs() < 1e-12);
+        assert!((s.normal.into_inner() - Vector3::z()).norm() < 1e-12);
+        assert_eq!((s.status, s.age_s), (FusionStatus::Stale, 0.2));
+        // The opposite direction has a frame too.
+        assert!((surface_frame(&-Vector3::z()) * -Vector3::z() - Vector3::z()).norm() < 1e-12);
     }
 
     #[test]
-    fn synthetic_frames_lie_on_the_sphere_in_the_true_pose() {
-        let s = SyntheticScene {
-            range_noise_m: 0.0,
-            speckle_fraction: 0.0,
-            image_width_px: 64,
-            image_height_px: 48,
-            focal_px: 60.0,
-            duration_s: 0.06,
-            ..SyntheticScene::default()
+    fn a_surface_estimated_too_deep_costs_closed_loop_margin() {
+        let cl = ClosedLoop::rising(1.0).unwrap();
+        let shifted = |dz: f64| SurfaceTrace {
+            errors: vec![SurfaceError {
+                offset_m: Vector3::new(0.0, 0.0, dz),
+                normal: Vector3::z_axis(),
+                velocity_m_per_s: Vector3::zeros(),
+                status: FusionStatus::Tracking,
+                age_s: 0.0,
+            }],
         };
-        let rec = s.record().unwrap();
-        assert_eq!(rec.frames.len(), 3 * 2);
-        for f in &rec.frames {
-            let pose = s.camera_pose(f.frame.camera_id);
-            let c = s.sphere_centre(f.frame.stamp_s);
-            let hits: Vec<_> = f
-                .frame
-                .cloud
-                .points
-                .iter()
-                .filter(|p| p.is_finite())
-                .collect();
-            assert!(
-                hits.len() > 50,
-                "camera {} sees the sphere",
-                f.frame.camera_id
-            );
-            for p in hits {
-                let w = pose * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-                assert!(((w - c).norm() - s.sphere_radius_m).abs() < 1e-5);
-            }
-        }
+        let exact = cl.run(&SurfaceTrace::default()).unwrap();
+        let deep = cl.run(&shifted(-0.01)).unwrap();
+        let shallow = cl.run(&shifted(0.01)).unwrap();
+        assert!(exact.min_margin_m > 0.0, "{exact:?}");
+        assert!(
+            deep.min_margin_m < exact.min_margin_m - 0.005,
+            "{deep:?} vs {exact:?}"
+        );
+        assert!(
+            shallow.min_margin_m > exact.min_margin_m + 0.005,
+            "{shallow:?} vs {exact:?}"
+        );
     }
 
     #[test]
-    fn bad_scene_is_rejected_with_a_clear_error() {
-        let s = SyntheticScene {
-            motion_amplitude_m: 0.1,
-            ..SyntheticScene::default()
+    fn the_mirrored_camera_sees_the_same_point_from_the_other_side() {
+        let scene = Scene::from_builtin("torso_approach_realistic").unwrap();
+        let right = &scene.file.cameras[1];
+        let left = mirrored(right, "m");
+        assert_eq!(left.position_m.y, -right.position_m.y);
+        assert_eq!(left.look_at_m.y, -right.look_at_m.y);
+        assert_eq!(
+            (left.resolution, left.rate_hz),
+            (right.resolution, right.rate_hz)
+        );
+        let mut file = scene.file.clone();
+        file.cameras.push(left);
+        Scene::new(file, "mirrored").unwrap();
+        assert!(StudyConfig::default().validate().is_ok());
+        let bad = StudyConfig {
+            window_s: 0.0,
+            ..StudyConfig::quick()
         };
-        let e = s.record().unwrap_err().to_string();
-        assert!(e.contains("motion_amplitude_m"), "{e}");
+        assert!(bad.validate().unwrap_err().to_string().contains("window_s"));
     }
 
     #[test]
@@ -1080,6 +1296,6 @@ mod tests {
             s.knobs.fusion.validate().unwrap();
         }
         let knobs: std::collections::BTreeSet<_> = all.iter().map(|s| s.knob.as_str()).collect();
-        assert!(knobs.len() >= 12, "{knobs:?}");
+        assert!(knobs.len() >= 13, "{knobs:?}");
     }
 }

@@ -26,6 +26,14 @@ pub fn thread_cpu_s() -> f64 {
     ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9
 }
 
+/// The load average over 1, 5 and 15 minutes as `/proc/loadavg` gives it ("unknown" where it
+/// cannot be read): printed by the benchmarks, since wall times depend on it.
+pub fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "unknown".into())
+}
+
 /// Wall and thread CPU time of one measured span, milliseconds.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct SpanTime {

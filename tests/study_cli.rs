@@ -1,5 +1,5 @@
-//! `hapcloud study --quick`: the sweep runs end to end and writes a well-formed CSV (one row
-//! per setting, finite errors), a markdown table and a PNG.
+//! `hapcloud study --quick`: the sweep runs end to end on a built-in scene and writes a
+//! well-formed CSV (one row per setting, finite errors), a markdown table and a PNG.
 
 use std::process::Command;
 
@@ -37,9 +37,9 @@ fn quick_study_writes_csv_markdown_and_png() {
         assert!(num("frame_ms") > 0.0 && num("frame_ms").is_finite());
         assert!((0.0..=1.0).contains(&num("valid_fraction")));
     }
-    // The defaults and most settings find the surface: their errors are finite and small
-    // next to the 9 cm sphere. (A setting may legitimately find nothing, e.g. three shells
-    // up to 4 cm when the HIP is farther than that from the surface: NaN, and no front.)
+    // The defaults and most settings find the surface: their errors are finite. (A setting
+    // may legitimately find nothing, e.g. three shells up to 4 cm when the HIP is farther
+    // than that from the surface: NaN, and no front.)
     let default = &rows[0];
     assert_eq!(&default[col("is_default")], "true");
     let finite: Vec<_> = rows
@@ -57,15 +57,29 @@ fn quick_study_writes_csv_markdown_and_png() {
         finite.len(),
         rows.len()
     );
-    for name in [
-        "camera_centroid_rms_mm",
-        "camera_normal_rms_deg",
-        "fused_centroid_rms_mm",
-        "fused_normal_rms_deg",
-    ] {
+    // Each camera's estimate of the torso is within a few centimetres of the truth (the
+    // realistic scene's D435 noise and calibration bias stay in the error).
+    for name in ["camera_centroid_rms_mm", "camera_normal_rms_deg"] {
         let v: f64 = default[col(name)].parse().unwrap();
         assert!(v.is_finite() && v < 30.0, "default {name} = {v}");
     }
+    for name in ["fused_centroid_rms_mm", "fused_normal_rms_deg"] {
+        let v: f64 = default[col(name)].parse().unwrap();
+        assert!(v.is_finite(), "default {name} = {v}");
+    }
+    // --quick skips the closed loop: its columns are there, empty of numbers.
+    assert!(
+        default[col("min_margin_mm")]
+            .parse::<f64>()
+            .unwrap()
+            .is_nan()
+    );
+    assert!(
+        default[col("max_penetration_mm")]
+            .parse::<f64>()
+            .unwrap()
+            .is_nan()
+    );
     let front: Vec<_> = rows
         .iter()
         .filter(|r| &r[col("pareto")] == "true")

@@ -9,7 +9,7 @@
 //! excluded; median of the runs). hapcloud's times are steady-state times of the voxel stage
 //! alone (median after two warm-up runs): GPU wall (upload, one submit, readback), GPU stage
 //! time (timestamp queries) and the CPU reference's wall time. Voxel + clustering against
-//! PCL is `cargo bench --bench cluster_vs_pcl`. Exits non-zero when a count differs.
+//! PCL is `cargo bench --bench stages_vs_pcl`. Exits non-zero when a count differs.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, ExitCode};

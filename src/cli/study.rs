@@ -1,22 +1,23 @@
-//! `hapcloud study [--quick] [--out DIR] [--backend gpu|cpu]`: what accuracy costs in time
-//! (issue 8). Replays a recording through the pipeline once per setting (the defaults, then
-//! one knob varied at a time; [`hapcloud::study::settings`]) and writes `study.csv`,
-//! `study.md` (a markdown table) and `pareto.png` (fused centroid error against time per
-//! frame, the Pareto front highlighted, the defaults marked) into `--out`.
+//! `hapcloud study [--quick] [--out DIR] [--backend gpu|cpu] [--config FILE.toml]`: what
+//! accuracy costs in time (issue 8). Renders a window of each built-in scene once, replays it
+//! through the pipeline once per setting (the defaults, then one knob varied at a time;
+//! [`hapcloud::study::settings`]), runs the closed loop with each setting's fused surface, and
+//! writes `study.csv`, `study.md` (a markdown table) and `pareto.png` (fused centroid error
+//! against cost per frame, the Pareto front highlighted, the defaults marked) into `--out`.
 //!
-//! `--quick` uses a small image and a short recording (a few frames per camera) so a test can
-//! run the whole sweep in seconds.
+//! `--quick` renders one scene for 0.15 s at 424x240 so a test can run the whole sweep.
 
 use anyhow::Context;
 use clap::Args as ClapArgs;
 use hapcloud::gpu::Backend;
-use hapcloud::study::{self, SyntheticScene};
+use hapcloud::scene::Scene;
+use hapcloud::study::{self, ClosedLoop, Recording, StudyConfig};
 use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(ClapArgs, Debug)]
 pub struct Args {
-    /// Small images and 0.15 s of recording: the whole sweep in seconds.
+    /// One scene, 0.15 s, 424x240, no closed loop: the whole sweep in a test's time.
     #[arg(long)]
     pub quick: bool,
     /// Output directory for study.csv, study.md and pareto.png.
@@ -25,40 +26,52 @@ pub struct Args {
     /// Front end and shell moments on the GPU (timestamps per pass) or the CPU references.
     #[arg(long, value_enum, default_value = "gpu")]
     pub backend: Backend,
-    /// Synthetic scene settings (TOML of `SyntheticScene`); `--quick` still shortens it.
+    /// Study settings (TOML of `StudyConfig`: scenes, window_s, lead_s, third_camera,
+    /// image_divisor, closed_loop, closed_loop_rise_speed_mps); default: the built-in study, or the
+    /// quick one with --quick.
     #[arg(long)]
-    pub scene: Option<PathBuf>,
+    pub config: Option<PathBuf>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut scene: SyntheticScene = match &args.scene {
+    let config: StudyConfig = match &args.config {
         Some(path) => {
             let text = std::fs::read_to_string(path)
                 .with_context(|| format!("reading {}", path.display()))?;
             toml::from_str(&text)
-                .with_context(|| format!("{}: bad synthetic scene", path.display()))?
+                .with_context(|| format!("{}: bad study config", path.display()))?
         }
-        None => SyntheticScene::default(),
+        None if args.quick => StudyConfig::quick(),
+        None => StudyConfig::default(),
     };
-    if args.quick {
-        scene.image_width_px = 96;
-        scene.image_height_px = 72;
-        scene.focal_px = 90.0;
-        scene.duration_s = scene.duration_s.min(0.15);
-    }
+    config.validate()?;
     let start = Instant::now();
-    let recording = scene.record()?;
+    let mut recordings = Vec::new();
+    for name in &config.scenes {
+        let scene = Scene::from_name_or_path(name)?;
+        let recording = Recording::from_scene(&scene, &config)?;
+        eprintln!(
+            "{}: {} frames, {} ticks",
+            recording.name,
+            recording.frames.len(),
+            recording.ticks.len()
+        );
+        recordings.push(recording);
+    }
     let settings = study::settings();
+    let closed_loop = config
+        .closed_loop
+        .then(|| ClosedLoop::rising(config.closed_loop_rise_speed_mps))
+        .transpose()?;
     eprintln!(
-        "{}: {} frames, {} settings, backend {}",
-        recording.name,
-        recording.frames.len(),
+        "rendered in {:.1} s; {} settings, backend {}",
+        start.elapsed().as_secs_f64(),
         settings.len(),
         args.backend
     );
-    let rows = study::run_study(&recording, &settings, args.backend)?;
-    study::write_outputs(&args.out, &recording, &rows)?;
-    print!("{}", study::markdown_table(&recording, &rows));
+    let report = study::run_study(&recordings, &settings, args.backend, closed_loop.as_ref())?;
+    study::write_outputs(&args.out, &report)?;
+    print!("{}", study::markdown_table(&report));
     eprintln!(
         "wrote {}/study.csv, study.md, pareto.png in {:.1} s",
         args.out.display(),

@@ -15,7 +15,8 @@
 //! The controller runs at `period_s` (800 Hz) in transparent mode (gravity compensation and
 //! damping) with the haptic constraints against the plane. Today the plane reaches the
 //! controller exactly (a virtual surface, as in the paper's closed-loop tests); experiments
-//! on the perception pipeline's surface replace [`Scenario::controller_surface`].
+//! on the perception pipeline's surface replace [`Scenario::controller_surface`] through
+//! [`simulate_with_surface`].
 //!
 //! Metrics: the margin is the distance of the HIP point (the sphere's centre) above the
 //! plane, `d_proj + r_HIP`; the penetration is `max(0, -d_proj)`, how deep the HIP sphere
@@ -524,6 +525,21 @@ pub fn simulate(
     config: &SimConfig,
     scenario: &Scenario,
 ) -> Result<Run, SimError> {
+    simulate_with_surface(model, config, scenario, |_, t, hip| {
+        scenario.controller_surface(t, hip)
+    })
+}
+
+/// Simulates `scenario` in closed loop; `surface(tick, t_s, hip_m)` gives the surface the
+/// controller sees at each tick (the plane of [`Scenario::plane_at`] stays the truth the
+/// metrics are measured against): e.g. the plane as a perception setting would estimate it
+/// (`crate::study`).
+pub fn simulate_with_surface(
+    model: &RobotModel,
+    config: &SimConfig,
+    scenario: &Scenario,
+    mut surface: impl FnMut(usize, f64, &Point3<f64>) -> FusedSurface,
+) -> Result<Run, SimError> {
     config.validate()?;
     let controller = Controller::new(model.clone(), config.controller.clone())?;
     let period = config.controller.haptics.period_s;
@@ -535,7 +551,7 @@ pub fn simulate(
     for k in 0..ticks {
         let t = k as f64 * period;
         let hip = model.hip_kinematics(plant.q(), plant.qd());
-        let surface = scenario.controller_surface(t, &hip.position_m);
+        let surface = surface(k, t, &hip.position_m);
         let out = controller.tick(&ControllerInput {
             q: *plant.q(),
             qd: *plant.qd(),

@@ -27,7 +27,7 @@ use hapcloud::fusion::{Fusion, FusionConfig};
 use hapcloud::haptics::known_surface;
 use hapcloud::robot::{JointVector, RobotModel};
 use hapcloud::surface::SurfaceEstimate;
-use hapcloud::timing::thread_cpu_s;
+use hapcloud::timing::{load_average, thread_cpu_s};
 use nalgebra::{Point3, Unit, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -36,12 +36,6 @@ use std::time::Instant;
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
-}
-
-fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_else(|_| "unknown".into())
 }
 
 fn main() {
