@@ -26,10 +26,6 @@
 //!   aims at the closest point, and this error measures whether it gets there. An extrinsic
 //!   calibration bias (realistic scenes) stays in the error, as on a real rig.
 //! - **normal error**: angle between the estimated and the true outward normal, radians.
-//! - **unbiased errors**: the same against the truth moved by the camera's extrinsic
-//!   calibration error (what this camera's cloud shows at best); a realistic scene's bias of a
-//!   few mm and mrad is a rig error that fusion over cameras averages (paper IV-F), not an
-//!   error of the surface method.
 //! - **jump**: distance between consecutive valid estimates of one camera (consecutive frame
 //!   indices), and the part of it the truth's own motion does not explain.
 //!
@@ -39,12 +35,13 @@
 //! in the rising-surface experiment, has no closest point on the HIP's side any more). [`summarize`] restricts to frames in reach and, optionally, to a range of
 //! HIP-to-camera distances.
 
+use crate::camera::Frame;
 use crate::gpu::timing::StageTime;
 use crate::gpu::{Backend, GpuContext};
 use crate::perception::frontend::FrontendConfig;
 use crate::perception::pipeline::{CameraChain, ChainError, SurfaceConfig};
 use crate::robot::{RobotError, RobotModel};
-use crate::scene::{GroundTruth, Scene, SceneError, SimFrame, Simulator};
+use crate::scene::{GroundTruth, Scene, SceneError, Simulator};
 use crate::surface::SurfaceEstimate;
 use crate::timing::{SpanTime, Stopwatch};
 use nalgebra::{Point3, Vector3};
@@ -137,12 +134,6 @@ pub struct FrameEvaluation {
     pub centroid_error_m: Option<f64>,
     /// Angle between estimated and true normal for a valid estimate, radians.
     pub normal_error_rad: Option<f64>,
-    /// The same two errors against the truth as the camera reports it: the true closest point
-    /// and normal moved by the camera's extrinsic calibration error (reported pose times the
-    /// inverse true pose). What the chain could at best find from this camera's cloud; equal
-    /// to the errors above without an extrinsic bias.
-    pub centroid_error_unbiased_m: Option<f64>,
-    pub normal_error_unbiased_rad: Option<f64>,
     /// Points the surface stages received (selected clusters) and used (plus memory).
     pub kept_points: usize,
     pub surface_points: usize,
@@ -213,7 +204,15 @@ pub fn evaluate_scene(
         let sim_frame = sim.frame(&timing);
         let (out, total) = Stopwatch::time(|| chain.process(&sim_frame.frame, &hip, &primitives));
         let out = out?;
-        frames.push(judge(&sim_frame, hip, truth, reach_m, &out, total));
+        frames.push(judge(
+            &sim_frame.frame,
+            timing.index,
+            hip,
+            truth,
+            reach_m,
+            &out,
+            total,
+        ));
     }
     Ok(SceneEvaluation {
         scene: scene.origin.clone(),
@@ -224,34 +223,27 @@ pub fn evaluate_scene(
 }
 
 fn judge(
-    sim_frame: &SimFrame,
+    frame: &Frame,
+    index: u64,
     hip: Point3<f64>,
     truth: GroundTruth,
     reach_m: f64,
     out: &crate::perception::pipeline::ChainFrame,
     total: SpanTime,
 ) -> FrameEvaluation {
-    let frame = &sim_frame.frame;
-    // The camera's extrinsic calibration error: reported pose times the inverse true pose.
-    let bias = frame.world_from_camera * sim_frame.world_from_camera_true.inverse();
     let estimate = out.surface.abstraction.estimate.clone();
-    let errors = |closest: &Point3<f64>, normal: &Vector3<f64>| {
-        if estimate.valid {
-            (
-                Some((estimate.centroid_m - closest).norm()),
-                Some(angle_rad(&estimate.normal, normal)),
-            )
-        } else {
-            (None, None)
-        }
+    let (centroid_error_m, normal_error_rad) = if estimate.valid {
+        (
+            Some((estimate.centroid_m - truth.closest_m).norm()),
+            Some(angle_rad(&estimate.normal, &truth.normal)),
+        )
+    } else {
+        (None, None)
     };
-    let (centroid_error_m, normal_error_rad) = errors(&truth.closest_m, &truth.normal);
-    let (centroid_error_unbiased_m, normal_error_unbiased_rad) =
-        errors(&(bias * truth.closest_m), &(bias * truth.normal));
     let camera = Point3::from(frame.world_from_camera.translation.vector);
     FrameEvaluation {
         camera_id: frame.camera_id,
-        index: sim_frame.timing.index,
+        index,
         t_s: frame.stamp_s,
         hip_camera_distance_m: (hip - camera).norm(),
         in_reach: truth.distance_m > 0.0 && truth.distance_m < reach_m,
@@ -259,8 +251,6 @@ fn judge(
         estimate,
         centroid_error_m,
         normal_error_rad,
-        centroid_error_unbiased_m,
-        normal_error_unbiased_rad,
         kept_points: out.kept.len(),
         surface_points: out.surface.memory.points.len(),
         memory_merged: out.surface.memory.merged_points,
@@ -322,10 +312,6 @@ pub struct CameraSummary {
     pub centroid_mm: ErrorStats,
     /// Normal error, degrees.
     pub normal_deg: ErrorStats,
-    /// The same against the truth moved by the camera's extrinsic calibration error
-    /// ([`FrameEvaluation::centroid_error_unbiased_m`]).
-    pub centroid_unbiased_mm: ErrorStats,
-    pub normal_unbiased_deg: ErrorStats,
     /// Largest distance between consecutive valid estimates (consecutive frames), mm.
     pub max_jump_mm: f64,
     /// Largest jump minus the truth's own motion over the same frames, mm.
@@ -355,7 +341,6 @@ pub fn summarize(evaluation: &SceneEvaluation, filter: &FrameFilter) -> Vec<Came
                 ..CameraSummary::default()
             };
             let (mut c, mut n, mut time) = (Vec::new(), Vec::new(), SpanTime::default());
-            let (mut cu, mut nu) = (Vec::new(), Vec::new());
             for f in frames.iter().filter(|f| keep(f)) {
                 s.frames += 1;
                 time += f.times.total;
@@ -364,8 +349,6 @@ pub fn summarize(evaluation: &SceneEvaluation, filter: &FrameFilter) -> Vec<Came
                         s.valid += 1;
                         c.push(ce * 1e3);
                         n.push(ne.to_degrees());
-                        cu.extend(f.centroid_error_unbiased_m.map(|e| e * 1e3));
-                        nu.extend(f.normal_error_unbiased_rad.map(f64::to_degrees));
                     }
                     _ => s.invalid += 1,
                 }
@@ -384,8 +367,6 @@ pub fn summarize(evaluation: &SceneEvaluation, filter: &FrameFilter) -> Vec<Came
             }
             s.centroid_mm = ErrorStats::of(&c);
             s.normal_deg = ErrorStats::of(&n);
-            s.centroid_unbiased_mm = ErrorStats::of(&cu);
-            s.normal_unbiased_deg = ErrorStats::of(&nu);
             if s.frames > 0 {
                 s.mean_frame = SpanTime {
                     wall_ms: time.wall_ms / s.frames as f64,

@@ -25,8 +25,7 @@ pub struct ShellFit {
     /// Points that fell in the shell.
     pub point_count: u32,
     pub kind: ShellFitKind,
-    /// Centre of the fitted circle (for the plane: its mean point, or the HIP projected onto
-    /// it, per `shells.plane_centre`), world frame, metres.
+    /// Centre of the fitted circle (or the mean point for the plane), world frame, metres.
     pub center_m: Point3<f64>,
     /// Fitted normal, oriented towards the camera (paper eq. 2).
     pub normal: Unit<Vector3<f64>>,

@@ -81,8 +81,9 @@ fn can_log_of_a_scene_run_decodes_with_the_dbc_to_the_recorded_values() {
     let args: Vec<&OsStr> = vec![
         "--duration".as_ref(),
         "0.25".as_ref(),
+        // Slow enough for the unoptimised CPU stages to deliver estimates within the run.
         "--speed".as_ref(),
-        "0.25".as_ref(),
+        "0.1".as_ref(),
         "--can-log".as_ref(),
         log.as_os_str(),
         "--record".as_ref(),

@@ -156,22 +156,21 @@ fn print_scene(
         evaluation.reach_m * 1e3
     );
     println!(
-        "  {:<18} {:>5} {:>5} {:>7}  {:>17}  {:>17}  {:>17}  {:>7}  {:>6}",
+        "  {:<18} {:>6} {:>6} {:>7}  {:>16}  {:>16}  {:>8}  {:>8}",
         "camera / frames",
         "count",
         "valid",
         "invalid",
         "centroid mm rms/max",
         "normal deg rms/max",
-        "unbiased c mm / n deg",
         "jump mm",
-        "cpu ms"
+        "cpu ms/frame"
     );
     let label = format!("{:.1}-{:.1} m", range.0, range.1);
     for (rows, which) in [(all, "in reach"), (ranged, label.as_str())] {
         for s in rows {
             println!(
-                "  cam {} {:<12} {:>5} {:>5} {:>7}  {:>7.2} / {:>7.2}  {:>7.2} / {:>7.2}  {:>7.2} / {:>7.2}  {:>7.2}  {:>6.1}",
+                "  cam {} {:<12} {:>6} {:>6} {:>7}  {:>7.2} / {:>7.2}  {:>7.2} / {:>7.2}  {:>8.2}  {:>8.1}",
                 s.camera_id,
                 which,
                 s.frames,
@@ -181,8 +180,6 @@ fn print_scene(
                 s.centroid_mm.max,
                 s.normal_deg.rms,
                 s.normal_deg.max,
-                s.centroid_unbiased_mm.rms,
-                s.normal_unbiased_deg.rms,
                 s.max_jump_mm,
                 s.mean_frame.cpu_ms
             );

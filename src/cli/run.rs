@@ -45,6 +45,13 @@ pub struct Args {
     /// Write the CAN frames as a `candump -L` log to this file.
     #[arg(long)]
     can_log: Option<PathBuf>,
+    /// Show the shell overlay (egui window) while the node runs: each camera's layers, the
+    /// HIP and shells, fits, the fused surface, the ground truth of a simulated scene, and
+    /// the constraints over time. The node runs on a worker thread; closing the window stops
+    /// it.
+    #[cfg(feature = "viewer")]
+    #[arg(long)]
+    overlay: bool,
 }
 
 /// The scene `hapcloud run` plays when no source is given.
@@ -135,6 +142,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         can_log: args.can_log.clone(),
         ..RunOptions::new(args.backend)
     };
+    #[cfg(feature = "viewer")]
+    let summary = if args.overlay {
+        run_with_overlay(config, source, options)?
+    } else {
+        node::run(&config, source, &options, |_| {})?
+    };
+    #[cfg(not(feature = "viewer"))]
     let summary = node::run(&config, source, &options, |_| {})?;
     if args.json {
         println!("{}", serde_json::to_string(&summary)?);
@@ -142,6 +156,49 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         print_table(&summary);
     }
     Ok(())
+}
+
+/// The node on a worker thread feeding the overlay, the window on this (the main) thread:
+/// winit needs it. The node's events become view frames on a third thread
+/// ([`hapcloud::node::overlay::Overlay`]), so drawing never slows the node.
+#[cfg(feature = "viewer")]
+fn run_with_overlay(
+    config: NodeConfig,
+    source: Source,
+    mut options: RunOptions,
+) -> anyhow::Result<NodeSummary> {
+    use hapcloud::node::overlay::Overlay;
+    use hapcloud::viewer::{ViewerApp, ViewerConfig, ViewerSource, run_window};
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::mpsc;
+
+    let simulator = match &source {
+        Source::Simulated { simulator, .. } => Some(simulator.clone()),
+        _ => None,
+    };
+    let overlay = Overlay::new(&config, simulator)?;
+    // A short queue: frames the overlay is too slow for are dropped by the node.
+    let (event_tx, event_rx) = mpsc::sync_channel(4);
+    let (view_tx, view_rx) = mpsc::channel();
+    let stop = Arc::new(AtomicBool::new(false));
+    options.observer = Some(event_tx);
+    options.stop = Some(stop.clone());
+    let drawer = std::thread::spawn(move || overlay.run(event_rx, view_tx));
+    let node = std::thread::spawn(move || node::run(&config, source, &options, |_| {}));
+    let viewer = ViewerConfig::default();
+    let size = [viewer.window_width_px, viewer.window_height_px];
+    let window = ViewerApp::new(ViewerSource::Live(view_rx), viewer)
+        .map_err(anyhow::Error::from)
+        .and_then(|app| run_window(app, size, None).map_err(anyhow::Error::from));
+    stop.store(true, Ordering::Relaxed);
+    let summary = node
+        .join()
+        .map_err(|_| anyhow::anyhow!("the node thread panicked"))??;
+    drawer
+        .join()
+        .map_err(|_| anyhow::anyhow!("the overlay thread panicked"))?;
+    window?;
+    Ok(summary)
 }
 
 fn print_table(s: &NodeSummary) {
@@ -169,8 +226,8 @@ fn print_table(s: &NodeSummary) {
         s.frames, s.dropped_frames, s.malformed_records
     );
     println!(
-        "ticks {}  tracking {}  stale {}  deadline misses {}",
-        s.ticks, s.tracking_ticks, s.stale_ticks, s.deadline_misses
+        "ticks {}  tracking {}  stale {}  deadline misses {}  skipped slots {}",
+        s.ticks, s.tracking_ticks, s.stale_ticks, s.deadline_misses, s.skipped_ticks
     );
     println!(
         "constraints active {} ticks  held {}  controller fallbacks {}  robot {}",

@@ -7,8 +7,9 @@
 //!    stamps, or a TCP stream as bytes arrive, [`stream`]) into a short bounded queue; when
 //!    perception is behind, the frame is dropped and counted instead of queued (latest data
 //!    wins, no backlog),
-//! 2. **perception** (one thread, owning the GPU context): front end (crop, voxel grid) and
-//!    the per-camera surface estimator (one surface memory per camera), then hands each
+//! 2. **perception** (one thread, owning the GPU context): the per-camera chain
+//!    ([`CameraChain`]: crop, voxel grid, clusters, and one surface estimator with its memory
+//!    per camera), then hands each
 //!    [`SurfaceEstimate`] to the loop through a channel,
 //! 3. **control loop** (the calling thread): absolute deadlines `start + k / rate` (no drift:
 //!    a late tick does not push the later ones back; a loop more than one period behind skips
@@ -39,6 +40,8 @@
 //! file ([`record`]).
 
 pub mod can_out;
+#[cfg(feature = "viewer")]
+pub mod overlay;
 pub mod record;
 pub mod robot_state;
 pub mod scene_loop;
@@ -49,7 +52,6 @@ pub mod wire;
 mod tests;
 
 use crate::camera::Frame;
-use crate::cloud::PointCloud;
 use crate::control::{
     Controller, ControllerConfig, ControllerConfigError, ControllerInput, Intent,
 };
@@ -59,9 +61,10 @@ use crate::fusion::{
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticStatus;
 use crate::io::can::{CanError, fault};
-use crate::perception::crop::CropScene;
-use crate::perception::frontend::{FrameInput, Frontend, FrontendConfig, FrontendError};
-use crate::perception::pipeline::{SurfaceConfig, SurfaceConfigError, SurfaceEstimator};
+use crate::perception::frontend::{FrontendConfig, FrontendError};
+use crate::perception::pipeline::{
+    CameraChain, ChainError, ChainFrame, SurfaceConfig, SurfaceConfigError,
+};
 use crate::scene::Simulator;
 use crate::surface::SurfaceEstimate;
 use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
@@ -148,6 +151,8 @@ pub enum NodeError {
     Surface(#[from] SurfaceConfigError),
     #[error("front end: {0}")]
     Frontend(#[from] FrontendError),
+    #[error("perception: {0}")]
+    Chain(#[from] ChainError),
     #[error(transparent)]
     Record(#[from] RecordError),
     #[error("robot: {0}")]
@@ -179,6 +184,7 @@ impl NodeConfig {
                 self.stale_hold_max_s
             )));
         }
+        self.robot.validate()?;
         self.frontend.validate()?;
         self.surface.validate()?;
         self.fusion.validate()?;
@@ -229,6 +235,27 @@ pub struct RunOptions {
     pub can_log: Option<std::path::PathBuf>,
     /// Set from outside to end the run early (e.g. the overlay window was closed).
     pub stop: Option<Arc<AtomicBool>>,
+    /// An observer (the overlay) receives every processed frame and every
+    /// [`OBSERVER_TICK_EVERY`]-th tick; events it is too slow for are dropped, never waited
+    /// for.
+    pub observer: Option<SyncSender<NodeEvent>>,
+}
+
+/// Ticks between two [`NodeEvent::Tick`]s (100 Hz at 800 Hz: more than a display shows).
+pub const OBSERVER_TICK_EVERY: u64 = 8;
+
+/// What the node shows an observer.
+pub enum NodeEvent {
+    /// A frame perception processed: the chain's output (world points, front end, kept
+    /// points, surface memory, estimate), the camera pose, and the HIP and robot primitives
+    /// it cropped with (world frame).
+    Frame {
+        chain: Box<ChainFrame>,
+        world_from_camera: nalgebra::Isometry3<f64>,
+        scene: PerceptionScene,
+    },
+    /// A control tick: fused surface, robot state, constraints, torques.
+    Tick(Box<TickRecord>),
 }
 
 impl RunOptions {
@@ -244,6 +271,7 @@ impl RunOptions {
             can_interface: None,
             can_log: None,
             stop: None,
+            observer: None,
         }
     }
 }
@@ -423,126 +451,76 @@ struct PerceptionReport {
     gpu_fallback: Option<String>,
 }
 
-/// Perception on one thread: front end and per-camera estimators, GPU with CPU fallback.
+/// Perception on one thread: the per-camera chain ([`CameraChain`]: front end and one
+/// surface estimator per camera), GPU with CPU fallback (at start and mid-run, logged once).
 struct Perception {
-    config: NodeConfig,
-    frontend: Frontend,
-    ctx: Option<Arc<GpuContext>>,
-    estimators: BTreeMap<u32, SurfaceEstimator>,
-    gpu_fallback: Option<String>,
+    chain: CameraChain,
+    /// Why the GPU could not be opened at start, if it could not.
+    start_fallback: Option<String>,
+    warned: bool,
 }
 
 impl Perception {
-    fn new(config: NodeConfig, backend: Backend, adapter: Option<&str>) -> Result<Self, NodeError> {
-        let (frontend, ctx, gpu_fallback) = match backend {
-            Backend::Cpu => (
-                Frontend::new(Backend::Cpu, config.frontend.clone(), None)?,
-                None,
-                None,
+    fn new(
+        config: &NodeConfig,
+        backend: Backend,
+        adapter: Option<&str>,
+    ) -> Result<Self, NodeError> {
+        let chain = |backend, ctx| {
+            CameraChain::new(
+                backend,
+                config.frontend.clone(),
+                config.surface.clone(),
+                ctx,
+            )
+        };
+        let gpu = match backend {
+            Backend::Cpu => None,
+            Backend::Gpu => Some(
+                adapter
+                    .map_or_else(GpuContext::new, |name| {
+                        GpuContext::with_adapter_name(Some(name))
+                    })
+                    .map_err(|e| e.to_string())
+                    .and_then(|ctx| {
+                        chain(Backend::Gpu, Some(Arc::new(ctx))).map_err(|e| e.to_string())
+                    }),
             ),
-            Backend::Gpu => match adapter
-                .map_or_else(GpuContext::new, |name| {
-                    GpuContext::with_adapter_name(Some(name))
-                })
-                .map(Arc::new)
-            {
-                Ok(ctx) => (
-                    Frontend::new(Backend::Gpu, config.frontend.clone(), Some(ctx.clone()))?,
-                    Some(ctx),
-                    None,
-                ),
-                Err(e) => {
-                    eprintln!("warning: GPU unavailable ({e}); perception runs on the CPU");
-                    (
-                        Frontend::new(Backend::Cpu, config.frontend.clone(), None)?,
-                        None,
-                        Some(e.to_string()),
-                    )
-                }
-            },
+        };
+        let (chain, start_fallback) = match gpu {
+            None => (chain(Backend::Cpu, None)?, None),
+            Some(Ok(c)) => (c, None),
+            Some(Err(e)) => {
+                eprintln!("warning: GPU unavailable ({e}); perception runs on the CPU");
+                (chain(Backend::Cpu, None)?, Some(e))
+            }
         };
         Ok(Self {
-            config,
-            frontend,
-            ctx,
-            estimators: BTreeMap::new(),
-            gpu_fallback,
+            chain,
+            start_fallback,
+            warned: false,
         })
     }
 
     fn backend(&self) -> Backend {
-        if self.ctx.is_some() {
-            Backend::Gpu
-        } else {
-            Backend::Cpu
-        }
+        self.chain.backend()
     }
 
-    fn fall_back(&mut self, reason: String) -> Result<(), NodeError> {
-        if self.gpu_fallback.is_none() {
+    fn gpu_fallback(&self) -> Option<String> {
+        self.start_fallback
+            .clone()
+            .or_else(|| self.chain.gpu_fallback().map(str::to_string))
+    }
+
+    /// One frame through the chain, with the HIP and the robot's primitives of `scene`
+    /// (world frame).
+    fn process(&mut self, frame: &Frame, scene: &PerceptionScene) -> Result<ChainFrame, NodeError> {
+        let out = self.chain.process(frame, &scene.hip_m, &scene.primitives)?;
+        if let (Some(reason), false) = (self.chain.gpu_fallback(), self.warned) {
             eprintln!("warning: GPU failed ({reason}); perception continues on the CPU");
-            self.gpu_fallback = Some(reason);
+            self.warned = true;
         }
-        self.frontend = Frontend::new(Backend::Cpu, self.config.frontend.clone(), None)?;
-        self.ctx = None;
-        for estimator in self.estimators.values_mut() {
-            let fresh = SurfaceEstimator::new(self.config.surface.clone())?;
-            *estimator = fresh;
-        }
-        Ok(())
-    }
-
-    /// One frame to one estimate, with the HIP and the robot's primitives of `scene` (world).
-    fn process(
-        &mut self,
-        frame: &Frame,
-        scene: &PerceptionScene,
-    ) -> Result<SurfaceEstimate, NodeError> {
-        let hip = scene.hip_m;
-        let camera_from_world = frame.world_from_camera.inverse();
-        let hip_camera = camera_from_world * hip;
-        let robot: Vec<_> = scene
-            .primitives
-            .iter()
-            .map(|p| p.transformed(&camera_from_world))
-            .collect();
-        let input = FrameInput {
-            points: &frame.cloud.points,
-            crop: Some(CropScene {
-                hip_m: hip_camera,
-                robot: &robot,
-            }),
-        };
-        let output = match self.frontend.process(&input) {
-            Ok(o) => o,
-            Err(FrontendError::Gpu(e)) => {
-                self.fall_back(e.to_string())?;
-                self.frontend.process(&input)?
-            }
-            Err(e) => return Err(e.into()),
-        };
-        let cleaned = Frame {
-            camera_id: frame.camera_id,
-            stamp_s: frame.stamp_s,
-            world_from_camera: frame.world_from_camera,
-            cloud: PointCloud::from_points(output.voxel.points),
-            depth: None,
-        };
-        let estimator = match self.estimators.entry(frame.camera_id) {
-            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::btree_map::Entry::Vacant(v) => v.insert(match &self.ctx {
-                Some(ctx) => SurfaceEstimator::with_gpu(self.config.surface.clone(), ctx.clone())?,
-                None => SurfaceEstimator::new(self.config.surface.clone())?,
-            }),
-        };
-        let result = estimator.estimate_frame(&cleaned, &hip);
-        if let Some(e) = &result.gpu_error
-            && self.gpu_fallback.is_none()
-        {
-            // The estimator already answered on the CPU this frame; keep it there.
-            self.fall_back(e.clone())?;
-        }
-        Ok(result.abstraction.estimate)
+        Ok(out)
     }
 }
 
@@ -553,6 +531,7 @@ fn perception_thread(
     estimates: mpsc::Sender<SurfaceEstimate>,
     mut recorder: Option<FrameRecorder>,
     shared: &Shared,
+    observer: Option<SyncSender<NodeEvent>>,
 ) -> Result<PerceptionReport, NodeError> {
     let mut counts: BTreeMap<u32, (u64, u64)> = BTreeMap::new();
     let mut times_s = Vec::new();
@@ -560,13 +539,22 @@ fn perception_thread(
         let start = Instant::now();
         let q = robot.at(frame.stamp_s).q_rad;
         let scene = robot.perception_scene(&q);
-        let estimate = perception.process(&frame, &scene)?;
+        let chain = perception.process(&frame, &scene)?;
+        let estimate = chain.estimate().clone();
         times_s.push(start.elapsed().as_secs_f64());
-        if perception.gpu_fallback.is_some() {
+        if perception.gpu_fallback().is_some() {
             shared.gpu_fell_back.store(true, Ordering::Relaxed);
         }
         if let Some(r) = recorder.as_mut() {
             r.frame(&frame, &q)?;
+        }
+        if let Some(o) = &observer {
+            // Dropped when the observer is behind (or gone).
+            let _ = o.try_send(NodeEvent::Frame {
+                chain: Box::new(chain),
+                world_from_camera: frame.world_from_camera,
+                scene,
+            });
         }
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
@@ -582,8 +570,8 @@ fn perception_thread(
         frames: counts,
         times_s,
         backend: perception.backend(),
-        adapter: perception.ctx.as_ref().map(|c| c.adapter().name.clone()),
-        gpu_fallback: perception.gpu_fallback,
+        adapter: perception.chain.adapter().map(str::to_string),
+        gpu_fallback: perception.gpu_fallback(),
     })
 }
 
@@ -657,7 +645,7 @@ pub fn run(
         return Err(NodeError::Speed(options.speed));
     }
     let robot = match &source {
-        Source::Simulated { simulator, .. } => RobotState::simulated(simulator.clone()),
+        Source::Simulated { simulator, .. } => RobotState::simulated(config, simulator.clone()),
         _ => None,
     };
     let robot = match robot {
@@ -675,10 +663,10 @@ pub fn run(
         None
     };
     let mut fusion = Fusion::new(config.fusion)?;
-    let perception = Perception::new(config.clone(), options.backend, options.adapter.as_deref())?;
+    let perception = Perception::new(config, options.backend, options.adapter.as_deref())?;
     let start_backend = perception.backend();
     if options.progress_every_s.is_some() {
-        let adapter = perception.ctx.as_ref().map(|c| c.adapter().name.clone());
+        let adapter = perception.chain.adapter().map(str::to_string);
         eprintln!(
             "perception backend: {}{}; robot: {}",
             perception.backend(),
@@ -752,6 +740,7 @@ pub fn run(
     let result = std::thread::scope(|scope| {
         let robot = &robot;
         let shared = &shared;
+        let observer = options.observer.clone();
         let perception_handle = scope.spawn(move || {
             perception_thread(
                 perception,
@@ -760,6 +749,7 @@ pub fn run(
                 estimate_tx,
                 frame_recorder,
                 shared,
+                observer,
             )
         });
         let source_handle = scope.spawn(|| source_thread(source, &clock, frame_tx, shared));
@@ -840,6 +830,11 @@ pub fn run(
                 }
                 if let Some(r) = tick_recorder.as_mut() {
                     r.tick(&tick)?;
+                }
+                if let Some(o) = &options.observer
+                    && k.is_multiple_of(OBSERVER_TICK_EVERY)
+                {
+                    let _ = o.try_send(NodeEvent::Tick(Box::new(tick)));
                 }
                 if let Some(c) = can.as_mut() {
                     let mut flags = 0;
@@ -1030,9 +1025,9 @@ pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
     let recording = record::read(dir)?;
     let config = &recording.meta.config;
     config.validate()?;
-    let robot = RobotState::recorded(&recording.meta.robot)?;
+    let robot = RobotState::recorded(config, &recording.meta.robot)?;
     let controller = Controller::new(robot.model().clone(), config.controller.clone())?;
-    let mut perception = Perception::new(config.clone(), recording.meta.backend, None)?;
+    let mut perception = Perception::new(config, recording.meta.backend, None)?;
     let mut report = ReplayReport {
         frames: recording.frames.len() as u64,
         ..Default::default()
@@ -1049,7 +1044,10 @@ pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
         .zip(&recording.frame_joints)
         .enumerate()
     {
-        let estimate = perception.process(frame, &robot.perception_scene(q))?;
+        let estimate = perception
+            .process(frame, &robot.perception_scene(q))?
+            .estimate()
+            .clone();
         if let Some((_, recorded)) = recording.estimates.get(i) {
             let (mut a, mut b) = (Vec::new(), Vec::new());
             wire::encode_estimate(&mut a, &estimate);

@@ -31,6 +31,9 @@ use std::sync::Arc;
 pub struct RobotStateConfig {
     /// Joint positions of the standing robot, rad (ANYexo's 6 joints).
     pub fixed_joints_rad: [f64; DOF],
+    /// The robot's collision primitives are grown by this much for the crop, so that points
+    /// sensed on (or, with depth noise, just outside) the robot's surface are removed, m.
+    pub crop_margin_m: f64,
 }
 
 impl Default for RobotStateConfig {
@@ -38,7 +41,25 @@ impl Default for RobotStateConfig {
         // Elbow flexed, forearm forward and level (the closed-loop experiments' start pose).
         Self {
             fixed_joints_rad: crate::control::closed_loop::start_pose().into(),
+            crop_margin_m: 0.01,
         }
+    }
+}
+
+impl RobotStateConfig {
+    pub fn validate(&self) -> Result<(), NodeError> {
+        if !self.fixed_joints_rad.iter().all(|v| v.is_finite()) {
+            return Err(NodeError::Robot(
+                "robot.fixed_joints_rad must be finite".into(),
+            ));
+        }
+        if !(self.crop_margin_m.is_finite() && self.crop_margin_m >= 0.0) {
+            return Err(NodeError::Robot(format!(
+                "robot.crop_margin_m must be finite and not negative, got {}",
+                self.crop_margin_m
+            )));
+        }
+        Ok(())
     }
 }
 
@@ -71,6 +92,7 @@ enum Joints {
 pub struct RobotState {
     model: RobotModel,
     joints: Joints,
+    crop_margin_m: f64,
 }
 
 /// The HIP and the robot's primitives, world frame, for one camera frame.
@@ -83,12 +105,8 @@ pub struct PerceptionScene {
 impl RobotState {
     /// A robot standing at the config's fixed joints, its HIP at `hip_world_m`.
     pub fn fixed(config: &NodeConfig) -> Result<Self, NodeError> {
+        config.robot.validate()?;
         let q = JointVector::from_column_slice(&config.robot.fixed_joints_rad);
-        if !q.iter().all(|v| v.is_finite()) {
-            return Err(NodeError::Robot(
-                "robot.fixed_joints_rad must be finite".into(),
-            ));
-        }
         let model = RobotModel::anyexo().map_err(|e| NodeError::Robot(e.to_string()))?;
         let model = model.with_base(Isometry3::identity());
         let hip = model.world_from_hip(&q).translation.vector;
@@ -96,20 +114,23 @@ impl RobotState {
         Ok(Self {
             model: model.with_base(Isometry3::from_parts(base, Default::default())),
             joints: Joints::Fixed(q),
+            crop_margin_m: config.robot.crop_margin_m,
         })
     }
 
     /// The robot of a simulated scene (None when the scene has no robot).
-    pub fn simulated(simulator: Arc<Simulator>) -> Option<Self> {
+    pub fn simulated(config: &NodeConfig, simulator: Arc<Simulator>) -> Option<Self> {
         let model = simulator.robot_model()?.clone();
         Some(Self {
             model,
             joints: Joints::Simulated(simulator),
+            crop_margin_m: config.robot.crop_margin_m,
         })
     }
 
-    /// The robot of a recording: its model, states come from the records.
-    pub fn recorded(meta: &RobotMeta) -> Result<Self, NodeError> {
+    /// The robot of a recording made with `config`: its model, states come from the records.
+    pub fn recorded(config: &NodeConfig, meta: &RobotMeta) -> Result<Self, NodeError> {
+        config.robot.validate()?;
         let model = RobotModel::anyexo().map_err(|e| NodeError::Robot(e.to_string()))?;
         Ok(Self {
             model: model.with_base(meta.world_from_base),
@@ -118,6 +139,7 @@ impl RobotState {
             } else {
                 Joints::Fixed(JointVector::zeros())
             },
+            crop_margin_m: config.robot.crop_margin_m,
         })
     }
 
@@ -157,14 +179,14 @@ impl RobotState {
     }
 
     /// HIP (forward kinematics of `q`) and, with joint states, the robot's collision
-    /// primitives posed at `q`: what perception crops with.
+    /// primitives posed at `q` and grown by `crop_margin_m`: what perception crops with.
     pub fn perception_scene(&self, q: &JointVector) -> PerceptionScene {
         let hip_m = Point3::from(self.model.world_from_hip(q).translation.vector);
         let primitives = if self.has_joint_states() {
             self.model
                 .collision_primitives_world(q)
                 .into_iter()
-                .map(|(_, p)| p)
+                .map(|(_, p)| p.grown(self.crop_margin_m))
                 .collect()
         } else {
             Vec::new()
@@ -191,7 +213,7 @@ mod tests {
         assert!((scene.hip_m - config.hip_world_m).norm() < 1e-12);
         assert!(scene.primitives.is_empty());
         assert!(!robot.has_joint_states());
-        let back = RobotState::recorded(&robot.meta()).unwrap();
+        let back = RobotState::recorded(&NodeConfig::default(), &robot.meta()).unwrap();
         let again = back.perception_scene(&state.q_rad);
         assert_eq!(again.hip_m, scene.hip_m);
         assert!(again.primitives.is_empty());
@@ -201,7 +223,7 @@ mod tests {
     fn simulated_robot_follows_the_scene() {
         let scene = Scene::from_builtin("torso_approach_clean").unwrap();
         let sim = Arc::new(Simulator::new(&scene).unwrap());
-        let robot = RobotState::simulated(sim.clone()).unwrap();
+        let robot = RobotState::simulated(&NodeConfig::default(), sim.clone()).unwrap();
         assert!(robot.has_joint_states());
         for t in [0.0, 1.0, 2.5] {
             let state = robot.at(t);
@@ -221,7 +243,7 @@ mod tests {
             hip.velocity_mps
         );
         // A recording of it poses the same primitives from the same joints.
-        let back = RobotState::recorded(&robot.meta()).unwrap();
+        let back = RobotState::recorded(&NodeConfig::default(), &robot.meta()).unwrap();
         let a = robot.perception_scene(&state.q_rad);
         let b = back.perception_scene(&state.q_rad);
         assert_eq!(a.hip_m, b.hip_m);

@@ -2,6 +2,7 @@
 
 use super::stream::StreamSender;
 use super::*;
+use crate::cloud::PointCloud;
 use crate::fusion::FusionStatus;
 use glam::Vec3;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
@@ -246,7 +247,8 @@ fn run_gap(policy: StalePolicy) -> (NodeSummary, Vec<GapTick>) {
     let _serial = serial();
     let frames = plane_frames(1.5, Some((0.3, 1.0)));
     let mut ticks = Vec::new();
-    let summary = run(&config, Source::Timed(frames), &options(1.0), |t| {
+    // Half speed: frames stay fresh on a busy machine, so only the gap makes fusion stale.
+    let summary = run(&config, Source::Timed(frames), &options(0.5), |t| {
         ticks.push((
             t.fused.status,
             t.control.haptic_status,
@@ -341,4 +343,121 @@ fn recordings_of_an_older_format_are_refused_clearly() {
     let err = replay(&dir).unwrap_err().to_string();
     assert!(err.contains("robot"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The overlay's observer channel on a simulated scene (half-resolution cameras to keep the
+/// unoptimised test fast): the views carry the node's own layers and estimates, the HIP of
+/// the robot's joints at each frame's stamp, the robot's points cropped away, the ground
+/// truth, and the constraint samples of the node's ticks.
+#[cfg(feature = "viewer")]
+#[test]
+fn overlay_views_follow_the_robot_and_carry_truth_and_constraints() {
+    use crate::camera::PinholeIntrinsics;
+    use crate::scene::{Scene, Simulator};
+    use crate::viewer::{PointRole, ViewFrame};
+    let _serial = serial();
+    let mut scene = Scene::from_builtin("torso_approach_clean").unwrap();
+    for cam in &mut scene.file.cameras {
+        cam.intrinsics = Some(PinholeIntrinsics {
+            width: 424,
+            height: 240,
+            fx: 212.0,
+            fy: 212.0,
+            cx: 212.0,
+            cy: 120.0,
+        });
+    }
+    let sim = Arc::new(Simulator::new(&scene).unwrap());
+    let frames: Vec<Frame> = sim
+        .arrivals(2.3, 2.8)
+        .iter()
+        .map(|t| sim.frame(t).frame)
+        .collect();
+    // The surface is held over frames that come late on a busy machine, so that the views
+    // between frames show the constraint values.
+    let config = NodeConfig {
+        on_stale: StalePolicy::Hold,
+        stale_hold_max_s: 1.0,
+        ..config()
+    };
+    let (event_tx, event_rx) = mpsc::sync_channel(64);
+    let (view_tx, view_rx) = mpsc::channel::<ViewFrame>();
+    let overlay = overlay::Overlay::new(&config, Some(sim.clone())).unwrap();
+    let drawer = std::thread::spawn(move || overlay.run(event_rx, view_tx));
+    let opts = RunOptions {
+        observer: Some(event_tx),
+        ..options(0.1)
+    };
+    let source = Source::Simulated {
+        frames,
+        simulator: sim.clone(),
+    };
+    let summary = run(&config, source, &opts, |_| {}).unwrap();
+    drop(opts);
+    drawer.join().unwrap();
+    let views: Vec<ViewFrame> = view_rx.iter().collect();
+    assert!(summary.robot_joint_states);
+    assert!(views.len() >= 2, "{} views of {summary:?}", views.len());
+    let model = sim.robot_model().unwrap();
+    let mut robot_points_cropped = 0;
+    for v in &views {
+        // The HIP follows the robot: forward kinematics of the scene's joints at the stamp.
+        assert!((v.hip_m - sim.hip_at(v.stamp_s).unwrap()).norm() < 1e-9);
+        assert!(v.truth.is_some());
+        let primitives: Vec<_> = model
+            .collision_primitives_world(&sim.joints_at(v.stamp_s).unwrap())
+            .into_iter()
+            .map(|(_, p)| p)
+            .collect();
+        let distance = |p: &Vec3| {
+            let p = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+            primitives
+                .iter()
+                .map(|r| r.signed_distance(&p))
+                .fold(f64::INFINITY, f64::min)
+        };
+        // The camera of this frame (the others show their newest, older frames).
+        for cam in v
+            .cameras
+            .iter()
+            .filter(|c| c.estimate.as_ref().is_some_and(|e| e.stamp_s == v.stamp_s))
+        {
+            // The crop grows the primitives by 1 cm: nothing kept is near the robot.
+            assert!(
+                cam.layer(PointRole::Kept)
+                    .iter()
+                    .all(|p| distance(p) > 0.005)
+            );
+            // The robot's own rendered surface was there, and was cropped.
+            robot_points_cropped += cam
+                .layer(PointRole::Cropped)
+                .iter()
+                .filter(|p| distance(p).abs() < 0.002)
+                .count();
+        }
+    }
+    assert!(robot_points_cropped > 0, "the robot is in view and cropped");
+    assert!(
+        views
+            .iter()
+            .any(|v| v.samples.constraints.len() == 3 && v.samples.d_proj_m.is_some()),
+        "tick samples reach the views: {summary:?}, {:?}",
+        views
+            .iter()
+            .map(|v| (
+                v.stamp_s,
+                v.samples.constraints.len(),
+                v.samples.d_proj_m,
+                v.cameras
+                    .iter()
+                    .map(|c| c.estimate.as_ref().map(|e| e.valid))
+                    .collect::<Vec<_>>()
+            ))
+            .collect::<Vec<_>>()
+    );
+    assert!(views.iter().any(|v| {
+        v.cameras
+            .iter()
+            .any(|c| c.estimate.as_ref().is_some_and(|e| e.valid))
+    }));
 }

@@ -351,13 +351,17 @@ pub fn decode_frame(payload: &[u8]) -> Result<Frame, WireError> {
     } else {
         PointCloud::from_points(points)
     };
+    // A quaternion that is unit to rounding keeps its bits (renormalising would change the
+    // pose in the last bit, and a recording's replay must see the very pose the node saw).
+    let rotation = if (q.norm() - 1.0).abs() <= 1e-12 {
+        UnitQuaternion::new_unchecked(q)
+    } else {
+        UnitQuaternion::from_quaternion(q)
+    };
     Ok(Frame {
         camera_id,
         stamp_s,
-        world_from_camera: Isometry3::from_parts(
-            Translation3::from(t),
-            UnitQuaternion::from_quaternion(q),
-        ),
+        world_from_camera: Isometry3::from_parts(Translation3::from(t), rotation),
         cloud,
         depth: None,
     })

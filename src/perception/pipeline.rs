@@ -447,33 +447,6 @@ mod tests {
     use crate::perception::test_data::synthetic_frame;
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
 
-    /// Two surfaces at 5 cm and 6 cm from the HIP, the farther one bigger: `All` passes
-    /// both on (IV-E's limitation), `NearestToHip` only the nearer.
-    #[test]
-    fn cluster_selection_keeps_the_surface_nearest_the_hip() {
-        let patch = |z: f32, half: i32| {
-            (-half..=half).flat_map(move |i| {
-                (-half..=half).map(move |j| Vec3::new(i as f32 * 0.005, j as f32 * 0.005, z))
-            })
-        };
-        let points: Vec<Vec3> = patch(-0.06, 12).chain(patch(0.05, 8)).collect();
-        let config = crate::perception::cluster::ClusterConfig::default();
-        let clustering = crate::perception::cluster::cluster_cpu(&points, &config).unwrap();
-        assert_eq!(clustering.clusters.len(), 2);
-        let hip = Point3::origin();
-        let all = ClusterSelection::All.select(&points, &clustering, &hip);
-        assert_eq!(all.len(), points.len());
-        let near = ClusterSelection::NearestToHip.select(&points, &clustering, &hip);
-        assert_eq!(near.len(), 17 * 17);
-        assert!(near.iter().all(|p| p.z == 0.05));
-        let empty = crate::perception::cluster::cluster_cpu(&[], &config).unwrap();
-        assert!(
-            ClusterSelection::NearestToHip
-                .select(&[], &empty, &hip)
-                .is_empty()
-        );
-    }
-
     /// The test frame's sphere (camera frame): centre and radius.
     const CENTRE_CAM: [f64; 3] = [0.05, -0.05, 0.9];
     const RADIUS_M: f64 = 0.09;

@@ -17,9 +17,7 @@
 //! `shaders/shells.wgsl` computes the same [`ShellSums`] on the GPU (see `gpu_shells`).
 //!
 //! **Fits (Alg. 2).** The innermost shell with enough points gets `plane3d`, the others
-//! `circle3d` ([`super::fit`]); the plane's centre is its mean (the paper) or, by default, the
-//! HIP projected onto it ([`PlaneCentre`]: the mean slides off the axis when the robot hides
-//! part of the shell). Each normal is oriented against the camera's viewing
+//! `circle3d` ([`super::fit`]). Each normal is oriented against the camera's viewing
 //! direction `z` (eq. 2: `n <- -sign(n . z) n`). Fits whose residual is a large fraction of
 //! their shell radius (two surfaces in one shell) count as degenerate. With the camera's
 //! position known ([`Viewpoint::Position`]), `z` is the ray from the camera to the shell. The worst half by the
@@ -69,8 +67,6 @@ pub struct ShellConfig {
     pub radii_m: Vec<f64>,
     /// Centre estimator of `circle3d`.
     pub circle_method: CircleMethod,
-    /// Centre of the innermost (plane) shell.
-    pub plane_centre: PlaneCentre,
     /// Shells with fewer points are skipped (a plane needs 3).
     pub min_points_per_shell: u32,
     /// Reject the worst half of the shell estimates by the normal distance matrix.
@@ -97,8 +93,7 @@ impl Default for ShellConfig {
     fn default() -> Self {
         Self {
             radii_m: vec![0.02, 0.03, 0.04, 0.05, 0.06, 0.07, 0.08, 0.09, 0.10],
-            circle_method: CircleMethod::SphereCut,
-            plane_centre: PlaneCentre::HipProjection,
+            circle_method: CircleMethod::Taubin,
             min_points_per_shell: 3,
             reject_worst_half: true,
             curvature_correction: true,
@@ -108,21 +103,6 @@ impl Default for ShellConfig {
             correction_max_angle_rad: 10f64.to_radians(),
         }
     }
-}
-
-/// Where the innermost fitted shell (`plane3d`) puts its centre.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum PlaneCentre {
-    /// The mean of its points (paper Alg. 2). When the robot hides part of the shell (the
-    /// innermost shells are the ones it occludes), the mean slides sideways off the axis
-    /// through the HIP.
-    Mean,
-    /// The HIP projected onto the fitted plane: on the axis whatever part of the shell is
-    /// seen, at the mean's depth (the curvature correction works on the moments and is
-    /// unaffected). The closed-form sphere cut of the circles, applied to the plane.
-    #[default]
-    HipProjection,
 }
 
 /// A shell configuration that cannot work.
@@ -442,16 +422,9 @@ pub fn abstract_surface(
         let first = fits.is_empty();
         let fitted = if first {
             plane3d(m, &limits).map(|p| {
-                let centre = match config.plane_centre {
-                    PlaneCentre::Mean => p.centroid_m,
-                    PlaneCentre::HipProjection => {
-                        let n = p.normal.into_inner();
-                        m.origin + n.dot(&(p.centroid_m - m.origin)) * n
-                    }
-                };
                 (
                     ShellFitKind::Plane,
-                    centre,
+                    p.centroid_m,
                     p.normal,
                     None,
                     p.residual_rms_m(),
@@ -893,58 +866,6 @@ mod tests {
                 );
             }
         }
-    }
-
-    /// A sphere (a head, radius 9 cm) 4 cm below the HIP, everything within 6 cm of the HIP
-    /// and one side of the rest hidden (the robot's occlusion, as camera 1 sees the head in
-    /// the head-sliding scene): the innermost fitted shell is a partial ring. The paper's
-    /// mean-centred plane shell slides sideways; the HIP projected onto the ring's plane
-    /// stays on the axis (a sphere cut by a sphere is a planar circle around the axis).
-    #[test]
-    fn hip_projected_plane_centre_stays_on_the_axis_under_occlusion() {
-        let hip = Point3::new(0.3, -0.1, 0.8);
-        let radius = 0.09;
-        let centre = hip - Vector3::z() * (radius + 0.04);
-        let closest = hip - Vector3::z() * 0.04;
-        let mut points = Vec::new();
-        for i in 0..200 {
-            for j in 0..400 {
-                let polar = 0.9 * f64::from(i) / 200.0;
-                let azimuth = std::f64::consts::TAU * f64::from(j) / 400.0;
-                let d = Vector3::new(
-                    polar.sin() * azimuth.cos(),
-                    polar.sin() * azimuth.sin(),
-                    polar.cos(),
-                );
-                let p = centre + d * radius;
-                if (p - hip).norm() < 0.06 || d.x * radius > 0.01 {
-                    continue;
-                }
-                points.push(Vec3::new(p.x as f32, p.y as f32, p.z as f32));
-            }
-        }
-        let layout = ShellLayout::new(&hip, &ShellConfig::default().radii_m);
-        let moments = accumulate_cpu(&points, &layout).to_moments(&layout);
-        let camera = hip + Vector3::new(0.2, 0.0, 1.0);
-        let lateral = |plane_centre: PlaneCentre| {
-            let config = ShellConfig {
-                plane_centre,
-                ..ShellConfig::default()
-            };
-            let a = abstract_surface(&moments, &config, camera, 0, 0.0);
-            let plane = a
-                .estimate
-                .shells
-                .iter()
-                .find(|s| s.kind == ShellFitKind::Plane);
-            let offset = plane.expect("a plane shell").center_m - closest;
-            (offset.xy().norm(), (a.estimate.centroid_m - closest).norm())
-        };
-        let (mean_lateral, _) = lateral(PlaneCentre::Mean);
-        let (projected_lateral, error) = lateral(PlaneCentre::HipProjection);
-        assert!(mean_lateral > 0.005, "{mean_lateral}");
-        assert!(projected_lateral < 0.001, "{projected_lateral}");
-        assert!(error < 0.001, "{error}");
     }
 
     #[test]

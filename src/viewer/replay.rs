@@ -24,12 +24,14 @@ use crate::camera::Frame;
 use crate::fusion::{FusedSurface, Fusion, FusionConfig, FusionConfigError};
 use crate::geometry::Primitive;
 use crate::gpu::Backend;
-use crate::perception::crop::{CropError, CropScene, crop_cpu, finite_bits, mask_bit};
+use crate::perception::crop::{CropConfig, CropError, CropScene, crop_cpu, finite_bits, mask_bit};
 use crate::perception::frontend::{FrontendConfig, FrontendError};
-use crate::perception::pipeline::{CameraChain, ChainError, SurfaceConfig, SurfaceConfigError};
+use crate::perception::pipeline::{
+    CameraChain, ChainError, ChainFrame, SurfaceConfig, SurfaceConfigError,
+};
 use crate::surface::SurfaceEstimate;
 use glam::Vec3;
-use nalgebra::Point3;
+use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::time::Instant;
@@ -136,60 +138,14 @@ impl LayeredPerception {
         robot: &[Primitive],
     ) -> Result<(CameraView, SurfaceEstimate, Vec<StageLatency>), ReplayError> {
         let cam = self.pipeline.process(frame, hip_m, robot)?;
-        let scene = CropScene {
-            hip_m: *hip_m,
+        let (view, latencies) = camera_view(
+            &cam,
+            frame.world_from_camera,
+            &self.config.frontend.crop,
+            hip_m,
             robot,
-        };
-        let world = &cam.world_points;
-        let mask = crop_cpu(world, &self.config.frontend.crop, &scene)?;
-        let cropped: Vec<Vec3> = world
-            .iter()
-            .enumerate()
-            .filter(|(i, p)| finite_bits(**p) && !mask_bit(&mask, *i))
-            .map(|(_, p)| *p)
-            .collect();
-
-        // Paper IV-C: the points of the selected clusters go on (`cam.kept`, copies of voxel
-        // points, one per cell); every other voxel point was clustered out.
-        let bits = |p: &Vec3| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
-        let kept: std::collections::HashSet<[u32; 3]> = cam.kept.iter().map(bits).collect();
-        let clustered_out: Vec<Vec3> = cam
-            .front
-            .voxel
-            .points
-            .iter()
-            .filter(|p| !kept.contains(&bits(p)))
-            .copied()
-            .collect();
-        let surface = &cam.surface;
-        let merged = surface
-            .memory
-            .merged_points
-            .min(surface.memory.points.len());
-        let memorised = surface.memory.points[surface.memory.points.len() - merged..].to_vec();
-        let estimate = surface.abstraction.estimate.clone();
-        let view = CameraView {
-            camera_id: frame.camera_id,
-            world_from_camera: Some(frame.world_from_camera),
-            layers: vec![
-                PointLayer::new(PointRole::Cropped, cropped),
-                PointLayer::new(PointRole::ClusteredOut, clustered_out),
-                PointLayer::new(PointRole::Kept, cam.kept.clone()),
-                PointLayer::new(PointRole::Memorised, memorised),
-            ],
-            estimate: Some(estimate.clone()),
-        };
-        let latencies = vec![
-            StageLatency {
-                stage: "crop + voxel + cluster".into(),
-                latency_s: cam.frontend_time.wall_ms * 1e-3,
-            },
-            StageLatency {
-                stage: "memory + shells".into(),
-                latency_s: cam.surface_time.wall_ms * 1e-3,
-            },
-        ];
-        Ok((view, estimate, latencies))
+        )?;
+        Ok((view, cam.estimate().clone(), latencies))
     }
 
     /// One camera frame through the stages with the HIP and the posed robot primitives (world
@@ -274,4 +230,72 @@ impl LayeredPerception {
             },
         }
     }
+}
+
+/// The layers of one camera frame the chain processed ([`CameraChain::process`] with
+/// `hip_m` and `robot`, world frame): the crop's keep mask ([`crop_cpu`], the reference the
+/// front end runs) tells which finite points were cropped away, voxel points outside every
+/// kept cluster were clustered out, the memory points the estimator merged are the memorised
+/// layer; the view carries the chain's estimate. Used by the replay and by the node's live
+/// overlay (`hapcloud run --overlay`), which hands over its own chain's output.
+pub fn camera_view(
+    cam: &ChainFrame,
+    world_from_camera: Isometry3<f64>,
+    crop: &CropConfig,
+    hip_m: &Point3<f64>,
+    robot: &[Primitive],
+) -> Result<(CameraView, Vec<StageLatency>), CropError> {
+    let scene = CropScene {
+        hip_m: *hip_m,
+        robot,
+    };
+    let world = &cam.world_points;
+    let mask = crop_cpu(world, crop, &scene)?;
+    let cropped: Vec<Vec3> = world
+        .iter()
+        .enumerate()
+        .filter(|(i, p)| finite_bits(**p) && !mask_bit(&mask, *i))
+        .map(|(_, p)| *p)
+        .collect();
+
+    // Paper IV-C: the points of the selected clusters go on (`cam.kept`, copies of voxel
+    // points, one per cell); every other voxel point was clustered out.
+    let bits = |p: &Vec3| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
+    let kept: std::collections::HashSet<[u32; 3]> = cam.kept.iter().map(bits).collect();
+    let clustered_out: Vec<Vec3> = cam
+        .front
+        .voxel
+        .points
+        .iter()
+        .filter(|p| !kept.contains(&bits(p)))
+        .copied()
+        .collect();
+    let surface = &cam.surface;
+    let merged = surface
+        .memory
+        .merged_points
+        .min(surface.memory.points.len());
+    let memorised = surface.memory.points[surface.memory.points.len() - merged..].to_vec();
+    let view = CameraView {
+        camera_id: cam.camera_id,
+        world_from_camera: Some(world_from_camera),
+        layers: vec![
+            PointLayer::new(PointRole::Cropped, cropped),
+            PointLayer::new(PointRole::ClusteredOut, clustered_out),
+            PointLayer::new(PointRole::Kept, cam.kept.clone()),
+            PointLayer::new(PointRole::Memorised, memorised),
+        ],
+        estimate: Some(cam.estimate().clone()),
+    };
+    let latencies = vec![
+        StageLatency {
+            stage: "crop + voxel + cluster".into(),
+            latency_s: cam.frontend_time.wall_ms * 1e-3,
+        },
+        StageLatency {
+            stage: "memory + shells".into(),
+            latency_s: cam.surface_time.wall_ms * 1e-3,
+        },
+    ];
+    Ok((view, latencies))
 }

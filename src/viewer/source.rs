@@ -143,7 +143,7 @@ pub fn hip_on_axis(frame: &Frame, distance_m: f64) -> Option<Point3<f64>> {
 /// The tick's work time joins the latencies.
 pub fn timeline_from_recording(recording: &Recording) -> Result<Vec<ViewFrame>, SourceError> {
     let node = &recording.meta.config;
-    let robot = RobotState::recorded(&recording.meta.robot)?;
+    let robot = RobotState::recorded(node, &recording.meta.robot)?;
     let model = robot.model();
     let hip_radius_m = model.hip_radius_m();
     let config = ReplayConfig {
