@@ -240,4 +240,31 @@ mod tests {
         };
         assert_eq!(c.validate(), Err(PrimitiveError::NonFinite));
     }
+
+    #[test]
+    fn grown_moves_every_surface_out_by_the_margin() {
+        let p = Point3::new(0.1, 0.0, 0.0);
+        for prim in [
+            Primitive::Sphere {
+                center_m: Point3::origin(),
+                radius_m: 0.05,
+            },
+            Primitive::Capsule {
+                a_m: Point3::new(0.0, -0.1, 0.0),
+                b_m: Point3::new(0.0, 0.1, 0.0),
+                radius_m: 0.05,
+            },
+            Primitive::OrientedBox {
+                center_m: Point3::origin(),
+                rpy_rad: Vector3::new(0.0, 0.0, 0.3),
+                half_extents_m: Vector3::new(0.05, 0.05, 0.05),
+            },
+        ] {
+            let (d0, d1) = (
+                prim.signed_distance(&p),
+                prim.grown(0.02).signed_distance(&p),
+            );
+            assert!((d0 - d1 - 0.02).abs() < 1e-12, "{prim:?}: {d0} -> {d1}");
+        }
+    }
 }

@@ -645,7 +645,7 @@ pub fn run(
         return Err(NodeError::Speed(options.speed));
     }
     let robot = match &source {
-        Source::Simulated { simulator, .. } => RobotState::simulated(config, simulator.clone()),
+        Source::Simulated { simulator, .. } => RobotState::simulated(simulator.clone()),
         _ => None,
     };
     let robot = match robot {

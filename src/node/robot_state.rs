@@ -31,9 +31,6 @@ use std::sync::Arc;
 pub struct RobotStateConfig {
     /// Joint positions of the standing robot, rad (ANYexo's 6 joints).
     pub fixed_joints_rad: [f64; DOF],
-    /// The robot's collision primitives are grown by this much for the crop, so that points
-    /// sensed on (or, with depth noise, just outside) the robot's surface are removed, m.
-    pub crop_margin_m: f64,
 }
 
 impl Default for RobotStateConfig {
@@ -41,7 +38,6 @@ impl Default for RobotStateConfig {
         // Elbow flexed, forearm forward and level (the closed-loop experiments' start pose).
         Self {
             fixed_joints_rad: crate::control::closed_loop::start_pose().into(),
-            crop_margin_m: 0.01,
         }
     }
 }
@@ -52,12 +48,6 @@ impl RobotStateConfig {
             return Err(NodeError::Robot(
                 "robot.fixed_joints_rad must be finite".into(),
             ));
-        }
-        if !(self.crop_margin_m.is_finite() && self.crop_margin_m >= 0.0) {
-            return Err(NodeError::Robot(format!(
-                "robot.crop_margin_m must be finite and not negative, got {}",
-                self.crop_margin_m
-            )));
         }
         Ok(())
     }
@@ -92,7 +82,6 @@ enum Joints {
 pub struct RobotState {
     model: RobotModel,
     joints: Joints,
-    crop_margin_m: f64,
 }
 
 /// The HIP and the robot's primitives, world frame, for one camera frame.
@@ -114,17 +103,15 @@ impl RobotState {
         Ok(Self {
             model: model.with_base(Isometry3::from_parts(base, Default::default())),
             joints: Joints::Fixed(q),
-            crop_margin_m: config.robot.crop_margin_m,
         })
     }
 
     /// The robot of a simulated scene (None when the scene has no robot).
-    pub fn simulated(config: &NodeConfig, simulator: Arc<Simulator>) -> Option<Self> {
+    pub fn simulated(simulator: Arc<Simulator>) -> Option<Self> {
         let model = simulator.robot_model()?.clone();
         Some(Self {
             model,
             joints: Joints::Simulated(simulator),
-            crop_margin_m: config.robot.crop_margin_m,
         })
     }
 
@@ -139,7 +126,6 @@ impl RobotState {
             } else {
                 Joints::Fixed(JointVector::zeros())
             },
-            crop_margin_m: config.robot.crop_margin_m,
         })
     }
 
@@ -179,14 +165,15 @@ impl RobotState {
     }
 
     /// HIP (forward kinematics of `q`) and, with joint states, the robot's collision
-    /// primitives posed at `q` and grown by `crop_margin_m`: what perception crops with.
+    /// primitives posed at `q`: what perception crops with (the crop grows them by its
+    /// `robot_margin_m`).
     pub fn perception_scene(&self, q: &JointVector) -> PerceptionScene {
         let hip_m = Point3::from(self.model.world_from_hip(q).translation.vector);
         let primitives = if self.has_joint_states() {
             self.model
                 .collision_primitives_world(q)
                 .into_iter()
-                .map(|(_, p)| p.grown(self.crop_margin_m))
+                .map(|(_, p)| p)
                 .collect()
         } else {
             Vec::new()
@@ -223,7 +210,7 @@ mod tests {
     fn simulated_robot_follows_the_scene() {
         let scene = Scene::from_builtin("torso_approach_clean").unwrap();
         let sim = Arc::new(Simulator::new(&scene).unwrap());
-        let robot = RobotState::simulated(&NodeConfig::default(), sim.clone()).unwrap();
+        let robot = RobotState::simulated(sim.clone()).unwrap();
         assert!(robot.has_joint_states());
         for t in [0.0, 1.0, 2.5] {
             let state = robot.at(t);

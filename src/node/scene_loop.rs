@@ -39,7 +39,6 @@
 use crate::control::closed_loop::{HandReference, Plant, SimConfig, SimError};
 use crate::control::{ControlStatus, Controller, ControllerInput, Intent};
 use crate::fusion::{Fusion, FusionConfig, FusionConfigError, FusionStatus};
-use crate::geometry::Primitive;
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::perception::frontend::FrontendConfig;
@@ -65,7 +64,8 @@ pub struct SceneLoopOptions {
     /// The robot's collision primitives are grown by this much for the crop, metres: the
     /// rendered robot surface lies on its primitives up to the depth noise, so unpadded,
     /// about half of the handle's points (next to the HIP) would survive the crop and look
-    /// like a surface at the HIP (a robot self-filter's padding).
+    /// like a surface at the HIP (a robot self-filter's padding). The crop grows them again
+    /// by its own `robot_margin_m`.
     pub robot_padding_m: f64,
 }
 
@@ -249,7 +249,7 @@ pub fn simulate_scene(
             let robot_prims: Vec<_> = model
                 .collision_primitives_world(&q_capture)
                 .into_iter()
-                .map(|(_, p)| padded(&p, options.robot_padding_m))
+                .map(|(_, p)| p.grown(options.robot_padding_m))
                 .collect();
             let out = chain.process(&shot.frame, &hip_capture, &robot_prims)?;
             let estimate = out.estimate();
@@ -321,30 +321,6 @@ pub fn simulate_scene(
     Ok(SceneRun { samples, metrics })
 }
 
-/// `primitive` grown by `margin_m` on every side.
-fn padded(primitive: &Primitive, margin_m: f64) -> Primitive {
-    match primitive.clone() {
-        Primitive::Sphere { center_m, radius_m } => Primitive::Sphere {
-            center_m,
-            radius_m: radius_m + margin_m,
-        },
-        Primitive::Capsule { a_m, b_m, radius_m } => Primitive::Capsule {
-            a_m,
-            b_m,
-            radius_m: radius_m + margin_m,
-        },
-        Primitive::OrientedBox {
-            center_m,
-            rpy_rad,
-            half_extents_m,
-        } => Primitive::OrientedBox {
-            center_m,
-            rpy_rad,
-            half_extents_m: half_extents_m.add_scalar(margin_m),
-        },
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -377,30 +353,5 @@ mod tests {
         scene.file.robot = None;
         let err = simulate_scene(&scene, &SceneLoopOptions::default()).unwrap_err();
         assert!(err.to_string().contains("no robot"), "{err}");
-    }
-
-    #[test]
-    fn padding_grows_every_primitive() {
-        let p = Point3::new(0.1, 0.0, 0.0);
-        for prim in [
-            Primitive::Sphere {
-                center_m: Point3::origin(),
-                radius_m: 0.05,
-            },
-            Primitive::Capsule {
-                a_m: Point3::new(0.0, -0.1, 0.0),
-                b_m: Point3::new(0.0, 0.1, 0.0),
-                radius_m: 0.05,
-            },
-            Primitive::OrientedBox {
-                center_m: Point3::origin(),
-                rpy_rad: Vector3::new(0.0, 0.0, 0.3),
-                half_extents_m: Vector3::new(0.05, 0.05, 0.05),
-            },
-        ] {
-            let grown = padded(&prim, 0.02);
-            let (d0, d1) = (prim.signed_distance(&p), grown.signed_distance(&p));
-            assert!((d0 - d1 - 0.02).abs() < 1e-12, "{prim:?}: {d0} -> {d1}");
-        }
     }
 }
