@@ -231,3 +231,25 @@ fn a_missing_can_interface_is_a_clear_error() {
     assert!(err.contains("hapcloud_no_can7"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
 }
+
+/// With no `--backend`, the node runs the GPU stages on a hardware adapter and the CPU
+/// reference where the only adapter is a software rasteriser (lavapipe on CI).
+#[test]
+fn default_backend_follows_the_adapter() {
+    let info = run_ok(["gpu-info", "--json"]);
+    let expected = match serde_json::from_slice::<serde_json::Value>(&info.stdout) {
+        Ok(info) if info["device_type"] != "Cpu" => "gpu",
+        _ => "cpu",
+    };
+    let grabber = grabber_pcd();
+    let args: [&OsStr; 5] = [
+        "run".as_ref(),
+        "--json".as_ref(),
+        "--speed".as_ref(),
+        "4".as_ref(),
+        grabber.as_os_str(),
+    ];
+    let run = run_ok(args);
+    let summary: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+    assert_eq!(summary["backend"], expected, "{summary}");
+}
