@@ -24,6 +24,7 @@ use hapcloud::control::closed_loop::{
 use hapcloud::node::scene_loop::{self, SceneLoopOptions, SceneRun};
 use hapcloud::robot::RobotModel;
 use hapcloud::scene::{Scene, builtin};
+use plotters::chart::SeriesLabelStyle;
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
 
@@ -302,12 +303,7 @@ fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
                 .label(mode)
                 .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color));
         }
-        chart
-            .configure_series_labels()
-            .label_font((FONT, 15))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
+        legend_style(&mut chart, 15).draw()?;
     }
     root.present()?;
     Ok(())
@@ -370,12 +366,7 @@ fn plot_scene(path: &Path, title: &str, run: &SceneRun, r_hip: f64) -> Result<()
         )?
         .label("d_proj seen by the controller (fused surface)")
         .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLUE));
-    chart
-        .configure_series_labels()
-        .label_font((FONT, 14))
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()?;
+    legend_style(&mut chart, 14).draw()?;
     // bottom: heights
     let (lo, hi) = range(run.samples.iter().flat_map(|s| [s.hip_z_m, s.closest_z_m]));
     let mut chart = ChartBuilder::on(&panels[1])
@@ -406,14 +397,23 @@ fn plot_scene(path: &Path, title: &str, run: &SceneRun, r_hip: f64) -> Result<()
             .label(label)
             .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color));
     }
-    chart
-        .configure_series_labels()
-        .label_font((FONT, 14))
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()?;
+    legend_style(&mut chart, 14).draw()?;
     root.present()?;
     Ok(())
+}
+
+/// The legend box of every experiment plot: label font size in px, a translucent white
+/// background and a black border (the caller may still place it).
+fn legend_style<'a, 'b, DB: DrawingBackend + 'a, CT: CoordTranslate>(
+    chart: &'b mut ChartContext<'a, DB, CT>,
+    font_px: u32,
+) -> SeriesLabelStyle<'a, 'b, DB, CT> {
+    let mut style = chart.configure_series_labels();
+    style
+        .label_font((FONT, font_px))
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK);
+    style
 }
 
 fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
@@ -487,12 +487,7 @@ fn plot_fig11(path: &Path, name: &str, run: &Run, r_hip: f64) -> Result<()> {
             ))?
             .label(*label)
             .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLUE));
-        chart
-            .configure_series_labels()
-            .label_font((FONT, 15))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .draw()?;
+        legend_style(&mut chart, 15).draw()?;
     }
     root.present()?;
     Ok(())
@@ -543,12 +538,8 @@ fn plot_fig12(path: &Path, runs: &[(&str, f64, Run)]) -> Result<()> {
                 .label(format!("HIP, {mode}"))
                 .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color));
         }
-        chart
-            .configure_series_labels()
+        legend_style(&mut chart, 12)
             .position(SeriesLabelPosition::UpperLeft)
-            .label_font((FONT, 12))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
             .draw()?;
     }
     root.present()?;
