@@ -15,7 +15,7 @@ fn scenes_lists_every_builtin_and_prints_one() {
     assert!(out.status.success());
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let scenes = json["scenes"].as_array().unwrap();
-    assert_eq!(scenes.len(), 10);
+    assert_eq!(scenes.len(), 12);
     assert!(
         scenes
             .iter()

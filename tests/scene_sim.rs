@@ -711,7 +711,7 @@ fn bad_scene_files_give_clear_errors() {
 #[test]
 fn every_builtin_scene_loads_and_the_realistic_ones_differ_only_by_effects() {
     let names = builtin::names();
-    assert_eq!(names.len(), 10);
+    assert_eq!(names.len(), 12);
     for name in names.iter().filter(|n| n.ends_with("_clean")) {
         let clean = Scene::from_builtin(name).unwrap();
         let real = Scene::from_builtin(&name.replace("_clean", "_realistic")).unwrap();
@@ -720,6 +720,63 @@ fn every_builtin_scene_loads_and_the_realistic_ones_differ_only_by_effects() {
         assert_eq!(clean.file.bodies, real.file.bodies);
         assert_eq!(clean.file.cameras.len(), 2);
         Simulator::new(&real).unwrap();
+    }
+}
+
+/// forearm_close exists for issue 4's accuracy target (0.4-0.7 m from the HIP): while the
+/// handle touches the forearm both cameras are in that range and see the skin near the HIP,
+/// and nothing either camera sees is nearer than the D435's minimum depth (0.17 m at
+/// 848x480; the patient also beyond the 0.28 m Intel quotes at 1280x720).
+#[test]
+fn forearm_close_cameras_are_in_the_target_range_and_beyond_min_depth() {
+    // Clean: the realistic variant's speckle puts depths anywhere in 0.2-3 m on purpose.
+    let scene = Scene::from_builtin("forearm_close_clean").unwrap();
+    let sim = Simulator::new(&scene).unwrap();
+    for t_s in [0.0, 2.5, 3.8] {
+        let gt = sim.ground_truth(t_s).unwrap();
+        let touching = t_s > 2.0;
+        if touching {
+            assert_eq!(gt.body, "left_forearm");
+            assert!((gt.distance_m - 0.03).abs() < 2e-3, "{gt:?}");
+        }
+        for cam in sim.cameras() {
+            let position = Point3::from(cam.world_from_camera_true.translation.vector);
+            let hip_distance = (gt.hip_m - position).norm();
+            let timing = hapcloud::scene::FrameTiming {
+                camera_id: cam.id,
+                index: 0,
+                capture_s: t_s,
+                stamp_s: t_s,
+                arrival_s: t_s,
+            };
+            let f = sim.frame(&timing);
+            let (mut robot_min, mut patient_min, mut near_hip) = (f64::MAX, f64::MAX, 0);
+            for (p, &l) in f.frame.cloud.points.iter().zip(&f.labels) {
+                if l == NO_HIT || !p.is_finite() {
+                    continue;
+                }
+                let z = f64::from(p.z);
+                if f.label_names[l as usize].starts_with("robot:") {
+                    robot_min = robot_min.min(z);
+                } else {
+                    patient_min = patient_min.min(z);
+                    let w =
+                        cam.world_from_camera_true * Point3::new(f64::from(p.x), f64::from(p.y), z);
+                    near_hip += usize::from((w - gt.hip_m).norm() < 0.06);
+                }
+            }
+            println!(
+                "t={t_s} {}: HIP {hip_distance:.3} m, nearest robot {robot_min:.3} m, \
+                 patient {patient_min:.3} m, {near_hip} skin points within 6 cm of the HIP",
+                cam.name
+            );
+            assert!(robot_min > 0.2 && patient_min > 0.28, "{}", cam.name);
+            if touching {
+                assert!((0.4..0.7).contains(&hip_distance), "{}", cam.name);
+                // The handle's occlusion leaves hundreds of skin points in the shells.
+                assert!(near_hip > 300, "{}: {near_hip}", cam.name);
+            }
+        }
     }
 }
 
