@@ -124,6 +124,17 @@ fn holes_only(grazing: bool, edge_probability: f64, stereo_shadow: bool) -> Hole
 // ---------------------------------------------------------------------------------------
 // Clean scenes, ground truth, robot, determinism.
 
+/// A frame of camera `camera_id` captured, stamped and delivered at exactly `t_s`.
+fn exactly_at(camera_id: u32, t_s: f64) -> hapcloud::scene::FrameTiming {
+    hapcloud::scene::FrameTiming {
+        camera_id,
+        index: 0,
+        capture_s: t_s,
+        stamp_s: t_s,
+        arrival_s: t_s,
+    }
+}
+
 /// Every valid point of a clean frame lies on the analytic surface of the shape its ray hit.
 /// Points are stored as f32: at 0.5-2 m one f32 ulp is 3e-8..1.2e-7 m, so the honest claim is
 /// the f32 rounding of the exact f64 hit; we assert 1e-6 m and report the worst.
@@ -185,15 +196,7 @@ fn ground_truth_agrees_with_brute_force_over_rendered_points() {
             assert!(gt.distance_m > 0.0);
             let mut best = (f64::INFINITY, String::new());
             for cam in sim.cameras() {
-                // Render at exactly t_s (a frame timing with that capture time).
-                let timing = hapcloud::scene::FrameTiming {
-                    camera_id: cam.id,
-                    index: 0,
-                    capture_s: t_s,
-                    stamp_s: t_s,
-                    arrival_s: t_s,
-                };
-                let f = sim.frame(&timing);
+                let f = sim.frame(&exactly_at(cam.id, t_s));
                 for (i, p) in f.frame.cloud.points.iter().enumerate() {
                     let l = f.labels[i];
                     if l == NO_HIT || !f.label_names[l as usize].starts_with("patient:") {
@@ -742,14 +745,7 @@ fn forearm_close_cameras_are_in_the_target_range_and_beyond_min_depth() {
         for cam in sim.cameras() {
             let position = Point3::from(cam.world_from_camera_true.translation.vector);
             let hip_distance = (gt.hip_m - position).norm();
-            let timing = hapcloud::scene::FrameTiming {
-                camera_id: cam.id,
-                index: 0,
-                capture_s: t_s,
-                stamp_s: t_s,
-                arrival_s: t_s,
-            };
-            let f = sim.frame(&timing);
+            let f = sim.frame(&exactly_at(cam.id, t_s));
             let (mut robot_min, mut patient_min, mut near_hip) = (f64::MAX, f64::MAX, 0);
             for (p, &l) in f.frame.cloud.points.iter().zip(&f.labels) {
                 if l == NO_HIT || !p.is_finite() {
