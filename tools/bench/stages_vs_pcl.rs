@@ -1,5 +1,5 @@
 //! The front end's stages, hapcloud side by side with PCL's own tools on PCL's real frames, in
-//! one run (issue 8, item 2).
+//! one run (issue 8, item 2), and a simulated D435 frame through the whole per-camera chain.
 //!
 //! Per frame, the chain PCL's tools run, stage by stage, each stage of hapcloud on the very
 //! input PCL's stage got:
@@ -15,7 +15,17 @@
 //!    submission) against the sum of PCL's three.
 //!
 //! Output counts must equal PCL's (crop: points kept; voxel grid: cells; clustering: the
-//! cluster sizes); the program exits non-zero otherwise.
+//! cluster sizes); the program exits non-zero otherwise. Without PCL's tools on the PATH (a
+//! GPU machine without pcl-tools), the comparison is skipped with a line saying so: each stage
+//! then runs on hapcloud's own CPU output of the stage before, the GPU's counts must equal
+//! the CPU reference's, and the PCL times of the same files come from a run on a machine with
+//! pcl-tools.
+//!
+//! Then **D435 chain**: `--d435-frames` frames of the first camera of a built-in scene
+//! (848x480, rendered before timing) through [`CameraChain`] as the node runs it (HIP and robot
+//! primitives at each frame's stamp, the node's default stage configs), on the GPU and on the
+//! CPU reference: GPU time per pass from timestamp queries, wall and CPU time of the front end
+//! and of the surface stages (memory, shell moments, fits), counts per stage.
 //!
 //! Times. PCL: the compute time its tool prints (`[done, X ms ...]`: the filter alone; process
 //! start-up and file I/O excluded), best of the runs: a wall time, so on a loaded machine the
@@ -29,31 +39,51 @@
 //! 1, hapcloud is faster. lavapipe runs the "GPU" on the CPU's cores, so its timestamp times
 //! are CPU time spread over its worker threads.
 //!
-//! Run: `cargo bench --bench stages_vs_pcl [-- FILES...] [--radius R] [--leaf L]
-//! [--tolerance T] [--min-size A] [--max-size B] [--runs N]`. Needs pcl-tools (`.ci/run`
-//! installs it) and a Vulkan device (lavapipe is fine).
+//! Run: `cargo bench --bench stages_vs_pcl [-- FILES...] [--data DIR] [--radius R] [--leaf L]
+//! [--tolerance T] [--min-size A] [--max-size B] [--runs N] [--scene NAME]
+//! [--d435-frames N]`. The data folder is `--data`, else `$HAPCLOUD_PCL_DATA`, else
+//! `../shared/data/pcl` beside the crate. Needs a Vulkan device (lavapipe is fine) and, for
+//! the comparison, pcl-tools (`.ci/run` installs it). The built executable runs on its own
+//! (no cargo, no source tree): README "Benchmarks" says how to carry it to a GPU machine.
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use hapcloud::gpu::GpuContext;
-use hapcloud::gpu::timing::StageTimer;
+use glam::Vec3;
+use hapcloud::gpu::timing::{StageTime, StageTimer};
+use hapcloud::gpu::{Backend, GpuContext};
+use hapcloud::node::NodeConfig;
 use hapcloud::perception::cluster::{ClusterConfig, GpuClusterer, cluster_cpu};
 use hapcloud::perception::crop::{CropConfig, CropScene, GpuCrop, crop_cpu, kept_indices};
 use hapcloud::perception::frontend::{FrameInput, Frontend, FrontendConfig};
+use hapcloud::perception::pipeline::{CameraChain, ChainFrame};
 use hapcloud::perception::voxel::{GpuVoxel, VoxelConfig, voxel_cpu};
+use hapcloud::robot::RobotModel;
+use hapcloud::scene::{Scene, Simulator};
 use hapcloud::timing::{SpanTime, Stopwatch, load_average};
 use nalgebra::Point3;
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Arc;
 
+/// PCL's data beside the crate (CI checks the repo out with shared/ beside it).
 const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/pcl");
+/// The PCL tools of the comparison.
+const PCL_TOOLS: [&str; 3] = [
+    "pcl_radius_filter",
+    "pcl_voxel_grid",
+    "pcl_cluster_extraction",
+];
 
 #[derive(Parser)]
 struct Args {
-    /// Input clouds; default: PCL's real 640x480 frames in ../shared/data/pcl (table scene,
+    /// Input clouds; default: PCL's real 640x480 frames in the data folder (table scene,
     /// five people, the three grabber frames).
     files: Vec<PathBuf>,
+    /// Folder of PCL's data (default: $HAPCLOUD_PCL_DATA, else ../shared/data/pcl beside
+    /// the crate).
+    #[arg(long)]
+    data: Option<PathBuf>,
     /// Crop radius around the camera's origin, metres (pcl_radius_filter -radius R).
     #[arg(long, default_value_t = 2.0)]
     radius: f64,
@@ -70,6 +100,12 @@ struct Args {
     /// Timed repetitions per implementation.
     #[arg(long, default_value_t = 5)]
     runs: usize,
+    /// Built-in scene of the D435 chain.
+    #[arg(long, default_value = "torso_approach_realistic")]
+    scene: String,
+    /// Frames of the scene's first camera through the per-camera chain (0: skip it).
+    #[arg(long, default_value_t = 20)]
+    d435_frames: usize,
     /// Passed by `cargo bench`; ignored.
     #[arg(long, hide = true)]
     bench: bool,
@@ -90,6 +126,19 @@ fn pcl(tool: &str, args: &[&str]) -> anyhow::Result<String> {
         bail!("{tool} {args:?} failed: {text}");
     }
     Ok(text)
+}
+
+/// The PCL tools that cannot be started (not on the PATH).
+fn missing_pcl_tools() -> Vec<&'static str> {
+    PCL_TOOLS
+        .into_iter()
+        .filter(|tool| {
+            Command::new(tool)
+                .arg("-h")
+                .output()
+                .is_err_and(|e| e.kind() == std::io::ErrorKind::NotFound)
+        })
+        .collect()
 }
 
 /// The "[done, X ms : N <what>]" of PCL's compute step: (ms, N).
@@ -164,37 +213,73 @@ impl Times {
     }
 }
 
-/// A stage's row: PCL's time and count, hapcloud's CPU and GPU times and counts.
+/// GPU time per pass over the runs, in the order the passes first appeared.
+#[derive(Default)]
+struct PassTimes(Vec<(&'static str, Vec<f64>)>);
+
+impl PassTimes {
+    fn push(&mut self, times: &[StageTime]) {
+        for t in times {
+            match self.0.iter_mut().find(|(s, _)| *s == t.stage) {
+                Some((_, v)) => v.push(t.gpu_ms),
+                None => self.0.push((t.stage, vec![t.gpu_ms])),
+            }
+        }
+    }
+
+    fn line(&self) -> String {
+        self.0
+            .iter()
+            .map(|(s, v)| format!("{s} {:.3}", median(v.clone())))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
+/// A stage's row: the reference's time and count (PCL's, or the CPU reference's without
+/// PCL), hapcloud's CPU and GPU times and counts.
 struct Row {
     stage: &'static str,
     input: usize,
+    /// PCL's time; NaN without PCL.
     pcl_ms: f64,
-    pcl_out: String,
+    out: String,
     cpu: Times,
     gpu: Times,
     same: bool,
 }
 
 fn ratio(pcl_ms: f64, ms: f64) -> String {
-    if ms.is_finite() && ms > 0.0 {
+    if !(ms.is_finite() && ms > 0.0) {
+        "-".into()
+    } else if pcl_ms.is_finite() {
         format!("{ms:.2} (x{:.2})", pcl_ms / ms)
     } else {
-        "-".into()
+        format!("{ms:.2}")
     }
 }
 
-fn print_rows(rows: &[Row]) {
+fn print_rows(rows: &[Row], with_pcl: bool) {
+    let (reference, speedup) = if with_pcl {
+        ("PCL out | PCL ms", " (PCL/us)")
+    } else {
+        ("out (cpu ref) | PCL ms", "")
+    };
     println!(
-        "| stage | points in | PCL out | PCL ms | cpu ref: thread CPU ms (PCL/us) | gpu: timestamp ms (PCL/us) | gpu: submit thread CPU ms | gpu: wall ms (PCL/us) | same output |"
+        "| stage | points in | {reference} | cpu ref: thread CPU ms{speedup} | gpu: timestamp ms{speedup} | gpu: submit thread CPU ms | gpu: wall ms{speedup} | same output |"
     );
     println!("|---|---|---|---|---|---|---|---|---|");
     for r in rows {
         println!(
-            "| {} | {} | {} | {:.2} | {} | {} | {:.2} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {:.2} | {} | {} |",
             r.stage,
             r.input,
-            r.pcl_out,
-            r.pcl_ms,
+            r.out,
+            if with_pcl {
+                format!("{:.2}", r.pcl_ms)
+            } else {
+                "-".into()
+            },
             ratio(r.pcl_ms, median(r.cpu.cpu_ms.clone())),
             ratio(r.pcl_ms, median(r.gpu.gpu_ms.clone())),
             median(r.gpu.cpu_ms.clone()),
@@ -204,9 +289,275 @@ fn print_rows(rows: &[Row]) {
     }
 }
 
+/// PCL's chain on one file: best times, counts and the clouds it wrote between stages.
+struct PclChain {
+    crop_ms: f64,
+    voxel_ms: f64,
+    cluster_ms: f64,
+    cluster_sizes: Vec<usize>,
+    /// PCL's cropped cloud (the voxel grid's input) and voxel cloud (the clustering's input).
+    cropped: Vec<Vec3>,
+    voxels: Vec<Vec3>,
+}
+
+fn run_pcl_chain(file: &Path, work: &Path, args: &Args) -> anyhow::Result<PclChain> {
+    let (radius, leaf) = (args.radius.to_string(), format!("{0},{0},{0}", args.leaf));
+    let (tol, min, max) = (
+        args.tolerance.to_string(),
+        args.min_size.to_string(),
+        args.max_size.to_string(),
+    );
+    let path = |name: &str| work.join(name).to_string_lossy().into_owned();
+    let (cropped, voxel, clusters) = (path("crop.pcd"), path("voxel.pcd"), path("out.pcd"));
+    let input = file.to_string_lossy().into_owned();
+    let (mut crop_ms, mut voxel_ms, mut cluster_ms) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut crop_n, mut voxel_n, mut sizes) = (0, 0, Vec::new());
+    for _ in 0..args.runs {
+        let text = pcl(
+            "pcl_radius_filter",
+            &[&input, &cropped, "-radius", &radius, "-keep", "0"],
+        )?;
+        let (ms, n) = pcl_compute_line(&text, "points")?;
+        crop_ms.push(ms);
+        crop_n = n;
+        let text = pcl("pcl_voxel_grid", &[&cropped, &voxel, "-leaf", &leaf])?;
+        let (ms, n) = pcl_compute_line(&text, "points")?;
+        voxel_ms.push(ms);
+        voxel_n = n;
+        let text = pcl(
+            "pcl_cluster_extraction",
+            &[
+                &voxel,
+                &clusters,
+                "-tolerance",
+                &tol,
+                "-min",
+                &min,
+                "-max",
+                &max,
+            ],
+        )?;
+        cluster_ms.push(pcl_compute_line(&text, "clusters")?.0);
+        sizes = pcl_cluster_sizes(&text);
+        for old in std::fs::read_dir(work)? {
+            let p = old?.path();
+            if p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("out"))
+            {
+                std::fs::remove_file(p)?;
+            }
+        }
+    }
+    let crop_in = hapcloud::io::read_cloud(Path::new(&cropped))?.points;
+    let voxel_in = hapcloud::io::read_cloud(Path::new(&voxel))?.points;
+    if crop_in.len() != crop_n || voxel_in.len() != voxel_n {
+        bail!(
+            "{}: hapcloud read other point counts than PCL wrote",
+            file.display()
+        );
+    }
+    Ok(PclChain {
+        crop_ms: best(&crop_ms),
+        voxel_ms: best(&voxel_ms),
+        cluster_ms: best(&cluster_ms),
+        cluster_sizes: sizes,
+        cropped: crop_in,
+        voxels: voxel_in,
+    })
+}
+
+/// Without PCL: the same chain on hapcloud's CPU reference (no times: the reference is timed
+/// in the rows).
+fn run_cpu_chain(
+    raw: &[Vec3],
+    crop: &CropConfig,
+    scene: &CropScene<'_>,
+    voxel: &VoxelConfig,
+    cluster: &ClusterConfig,
+) -> anyhow::Result<PclChain> {
+    let mask = crop_cpu(raw, crop, scene)?;
+    let cropped: Vec<Vec3> = kept_indices(&mask, raw.len())
+        .into_iter()
+        .map(|i| raw[i])
+        .collect();
+    let voxels = voxel_cpu(&cropped, None, voxel)?.points;
+    let cluster_sizes = cluster_cpu(&voxels, cluster)?.cluster_sizes();
+    Ok(PclChain {
+        crop_ms: f64::NAN,
+        voxel_ms: f64::NAN,
+        cluster_ms: f64::NAN,
+        cluster_sizes,
+        cropped,
+        voxels,
+    })
+}
+
+/// Per frame of the D435 chain: what each backend produced and what it cost.
+fn chain_counts(c: &ChainFrame, finite: usize) -> [usize; 6] {
+    [
+        finite,
+        c.front.voxel.valid_in,
+        c.front.voxel.points.len(),
+        c.front.clusters.clusters.len(),
+        c.kept.len(),
+        usize::from(c.estimate().valid),
+    ]
+}
+
+/// A built-in scene's first camera through [`CameraChain`] on the GPU and the CPU reference.
+fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
+    let scene = Scene::from_builtin(&args.scene)?;
+    let sim = Simulator::new(&scene)?;
+    let robot_config = scene
+        .file
+        .robot
+        .as_ref()
+        .with_context(|| format!("scene {} has no robot", args.scene))?;
+    let robot = RobotModel::anyexo()?.with_base(robot_config.world_from_base());
+    // Render first (the simulator's time is not the chain's): frames spread evenly over the
+    // scene, so the HIP meets the body in some of them; a dropped frame is left out.
+    let Some(camera) = sim.cameras().first() else {
+        bail!("scene {} has no camera", args.scene);
+    };
+    let in_scene = (sim.duration_s() * camera.rate_hz).floor() as u64;
+    let step = (in_scene / args.d435_frames as u64).max(1);
+    let mut frames = Vec::new();
+    for index in (0..in_scene.max(1))
+        .step_by(step as usize)
+        .take(args.d435_frames)
+    {
+        if let Some(timing) = sim.timing(0, index) {
+            let t = timing.stamp_s;
+            let (Some(hip), Some(joints)) = (sim.hip_at(t), sim.joints_at(t)) else {
+                bail!("scene {} has no robot trajectory at {t} s", args.scene);
+            };
+            let primitives: Vec<_> = robot
+                .collision_primitives_world(&joints)
+                .into_iter()
+                .map(|(_, p)| p)
+                .collect();
+            frames.push((sim.frame(&timing).frame, hip, primitives));
+        }
+    }
+    let Some((first, _, _)) = frames.first() else {
+        bail!("scene {} rendered no frame of camera 0", args.scene);
+    };
+    let (width, height) = (first.cloud.width, first.cloud.height);
+    let config = NodeConfig::default();
+    let mut gpu = CameraChain::new(
+        Backend::Gpu,
+        config.frontend.clone(),
+        config.surface.clone(),
+        Some(Arc::clone(ctx)),
+    )?;
+    let mut cpu = CameraChain::new(Backend::Cpu, config.frontend, config.surface, None)?;
+    // Warm-up (lavapipe compiles shaders on their first dispatch), then a fresh memory.
+    gpu.process(&frames[0].0, &frames[0].1, &frames[0].2)?;
+    gpu.reset();
+    let mut passes = PassTimes::default();
+    let (mut front, mut surface, mut cpu_front, mut cpu_surface) = (
+        Times::default(),
+        Times::default(),
+        Times::default(),
+        Times::default(),
+    );
+    let (mut memory, mut moments, mut fits) = (Vec::new(), Vec::new(), Vec::new());
+    let mut counts = Vec::new();
+    let mut same = true;
+    for (frame, hip, primitives) in &frames {
+        let g = gpu.process(frame, hip, primitives)?;
+        let c = cpu.process(frame, hip, primitives)?;
+        let finite = frame.cloud.finite_count();
+        let (gc, cc) = (chain_counts(&g, finite), chain_counts(&c, finite));
+        same &= gc == cc && g.front.clusters.cluster_sizes() == c.front.clusters.cluster_sizes();
+        counts.push(gc);
+        passes.push(&g.front.gpu_times);
+        let gpu_ms: f64 = g.front.gpu_times.iter().map(|t| t.gpu_ms).sum();
+        front.push(
+            g.frontend_time,
+            (!g.front.gpu_times.is_empty()).then_some(gpu_ms),
+        );
+        surface.push(g.surface_time, None);
+        memory.push(g.surface.memory_time.wall_ms);
+        moments.push(g.surface.moments_time.wall_ms);
+        fits.push(g.surface.fits_time.wall_ms);
+        cpu_front.push(c.frontend_time, None);
+        cpu_surface.push(c.surface_time, None);
+    }
+    if gpu.backend() != Backend::Gpu {
+        bail!(
+            "the GPU chain fell back to the CPU: {}",
+            gpu.gpu_fallback().unwrap_or("?")
+        );
+    }
+    let count = |k: usize| median(counts.iter().map(|c| c[k] as f64).collect());
+    println!(
+        "\nD435 chain: {} frames of camera 0 of {} ({width}x{height}, spread over the scene), node default configs; medians per frame\n",
+        frames.len(),
+        args.scene
+    );
+    println!(
+        "counts: finite points {:.0}, after crop {:.0}, voxels {:.0}, clusters {:.0}, kept {:.0}; valid estimates {} of {}; GPU == CPU counts: {}",
+        count(0),
+        count(1),
+        count(2),
+        count(3),
+        count(4),
+        counts.iter().map(|c| c[5]).sum::<usize>(),
+        counts.len(),
+        if same { "yes" } else { "NO" }
+    );
+    println!("GPU passes (timestamp ms): {}\n", passes.line());
+    println!(
+        "| stage | gpu: timestamp ms | gpu: wall ms | gpu: submit thread CPU ms | cpu ref: wall ms | cpu ref: thread CPU ms |"
+    );
+    println!("|---|---|---|---|---|---|");
+    println!(
+        "| front end (crop+voxel+clusters) | {:.3} | {:.2} | {:.2} | {:.2} | {:.2} |",
+        median(front.gpu_ms.clone()),
+        median(front.wall_ms.clone()),
+        median(front.cpu_ms.clone()),
+        median(cpu_front.wall_ms.clone()),
+        median(cpu_front.cpu_ms.clone()),
+    );
+    println!(
+        "| surface (memory {:.2} + moments {:.2} + fits {:.2} ms wall on the GPU chain) | - | {:.2} | {:.2} | {:.2} | {:.2} |",
+        median(memory),
+        median(moments),
+        median(fits),
+        median(surface.wall_ms.clone()),
+        median(surface.cpu_ms.clone()),
+        median(cpu_surface.wall_ms.clone()),
+        median(cpu_surface.cpu_ms.clone()),
+    );
+    let total = |a: &Times, b: &Times, wall: bool| {
+        let pick = |t: &Times| {
+            if wall {
+                t.wall_ms.clone()
+            } else {
+                t.cpu_ms.clone()
+            }
+        };
+        median(pick(a).iter().zip(pick(b)).map(|(x, y)| x + y).collect())
+    };
+    println!(
+        "| whole chain | - | {:.2} | {:.2} | {:.2} | {:.2} |",
+        total(&front, &surface, true),
+        total(&front, &surface, false),
+        total(&cpu_front, &cpu_surface, true),
+        total(&cpu_front, &cpu_surface, false),
+    );
+    Ok(same)
+}
+
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     anyhow::ensure!(args.runs > 0, "--runs must be positive");
+    let data = args
+        .data
+        .clone()
+        .or_else(|| std::env::var_os("HAPCLOUD_PCL_DATA").map(PathBuf::from))
+        .unwrap_or_else(|| PathBuf::from(DATA));
     let files: Vec<PathBuf> = if args.files.is_empty() {
         [
             "table_scene_mug_stereo_textured.pcd",
@@ -216,11 +567,13 @@ fn main() -> anyhow::Result<()> {
             "grabber_sequences/pcd/frame_20121214T142256.332395.pcd",
         ]
         .iter()
-        .map(|f| Path::new(DATA).join(f))
+        .map(|f| data.join(f))
         .collect()
     } else {
         args.files.clone()
     };
+    let missing = missing_pcl_tools();
+    let with_pcl = missing.is_empty();
     let work = std::env::temp_dir().join(format!("hapcloud-stages-vs-pcl-{}", std::process::id()));
     std::fs::create_dir_all(&work)?;
     let crop_config = CropConfig {
@@ -253,19 +606,15 @@ fn main() -> anyhow::Result<()> {
     let mut gpu_crop = GpuCrop::new(&ctx)?;
     let mut gpu_voxel = GpuVoxel::new(&ctx)?;
     let mut gpu_cluster = GpuClusterer::new(&ctx)?;
-    let mut cpu_front = Frontend::new(hapcloud::gpu::Backend::Cpu, frontend_config.clone(), None)?;
-    let mut gpu_front = Frontend::new(
-        hapcloud::gpu::Backend::Gpu,
-        frontend_config,
-        Some(Arc::clone(&ctx)),
-    )?;
+    let mut cpu_front = Frontend::new(Backend::Cpu, frontend_config.clone(), None)?;
+    let mut gpu_front = Frontend::new(Backend::Gpu, frontend_config, Some(Arc::clone(&ctx)))?;
     println!(
         "load average (1, 5, 15 min) {} on {} CPUs",
         load_average(),
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     println!(
-        "crop radius {} m around the camera, leaf {} m, tolerance {} m, cluster size [{}, {}], {} runs; GPU: {}{}",
+        "crop radius {} m around the camera, leaf {} m, tolerance {} m, cluster size [{}, {}], {} runs; GPU: {} ({}){}",
         args.radius,
         args.leaf,
         args.tolerance,
@@ -273,79 +622,45 @@ fn main() -> anyhow::Result<()> {
         args.max_size,
         args.runs,
         ctx.adapter().name,
+        ctx.adapter().device_type,
         if crop_timer.is_some() {
             ""
         } else {
             " (no timestamp queries)"
         }
     );
-    let (radius, leaf) = (args.radius.to_string(), format!("{0},{0},{0}", args.leaf));
-    let (tol, min, max) = (
-        args.tolerance.to_string(),
-        args.min_size.to_string(),
-        args.max_size.to_string(),
-    );
-    let path = |name: &str| work.join(name).to_string_lossy().into_owned();
-    let (cropped, voxel, clusters) = (path("crop.pcd"), path("voxel.pcd"), path("out.pcd"));
+    if !with_pcl {
+        println!(
+            "PCL comparison skipped: {} not found on the PATH. Each stage runs on hapcloud's CPU \
+             reference output of the stage before; 'same output' compares the GPU with the CPU \
+             reference. PCL's times on these files come from a run on a machine with pcl-tools.",
+            missing.join(", ")
+        );
+    }
     let mut all_same = true;
     let mut summary: Vec<(String, Vec<Row>)> = Vec::new();
     for file in &files {
         let name = file
             .file_name()
             .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
-        let input = file.to_string_lossy().into_owned();
+        let raw = hapcloud::io::read_cloud(file)
+            .with_context(|| format!("reading {} (--data DIR)", file.display()))?
+            .points;
         // PCL's chain: radius filter -> voxel grid -> clusters, each on the previous output.
-        let (mut pcl_crop, mut pcl_voxel, mut pcl_cluster) = (Vec::new(), Vec::new(), Vec::new());
-        let (mut crop_n, mut voxel_n, mut pcl_sizes) = (0, 0, Vec::new());
-        for _ in 0..args.runs {
-            let text = pcl(
-                "pcl_radius_filter",
-                &[&input, &cropped, "-radius", &radius, "-keep", "0"],
-            )?;
-            let (ms, n) = pcl_compute_line(&text, "points")?;
-            pcl_crop.push(ms);
-            crop_n = n;
-            let text = pcl("pcl_voxel_grid", &[&cropped, &voxel, "-leaf", &leaf])?;
-            let (ms, n) = pcl_compute_line(&text, "points")?;
-            pcl_voxel.push(ms);
-            voxel_n = n;
-            let text = pcl(
-                "pcl_cluster_extraction",
-                &[
-                    &voxel,
-                    &clusters,
-                    "-tolerance",
-                    &tol,
-                    "-min",
-                    &min,
-                    "-max",
-                    &max,
-                ],
-            )?;
-            pcl_cluster.push(pcl_compute_line(&text, "clusters")?.0);
-            pcl_sizes = pcl_cluster_sizes(&text);
-            for old in std::fs::read_dir(&work)? {
-                let p = old?.path();
-                if p.file_name()
-                    .is_some_and(|n| n.to_string_lossy().starts_with("out"))
-                {
-                    std::fs::remove_file(p)?;
-                }
-            }
-        }
-        let raw = hapcloud::io::read_cloud(file)?.points;
-        let crop_in = hapcloud::io::read_cloud(Path::new(&cropped))?.points;
-        let voxel_in = hapcloud::io::read_cloud(Path::new(&voxel))?.points;
-        if crop_in.len() != crop_n || voxel_in.len() != voxel_n {
-            bail!("{name}: hapcloud read other point counts than PCL wrote");
-        }
+        let reference = if with_pcl {
+            run_pcl_chain(file, &work, &args)?
+        } else {
+            run_cpu_chain(&raw, &crop_config, &scene, &voxel_config, &cluster_config)?
+        };
+        let (crop_n, voxel_n) = (reference.cropped.len(), reference.voxels.len());
+        let ref_sizes = &reference.cluster_sizes;
 
         // Crop on the raw frame.
         let mut row = Row {
             stage: "crop",
             input: raw.len(),
-            pcl_ms: best(&pcl_crop),
-            pcl_out: crop_n.to_string(),
+            pcl_ms: reference.crop_ms,
+            out: crop_n.to_string(),
             cpu: Times::default(),
             gpu: Times::default(),
             same: true,
@@ -366,21 +681,22 @@ fn main() -> anyhow::Result<()> {
         }
         let mut rows = vec![row];
 
-        // Voxel grid on PCL's cropped cloud.
+        // Voxel grid on the cropped cloud.
+        let crop_in = &reference.cropped;
         let mut row = Row {
             stage: "voxel grid",
             input: crop_in.len(),
-            pcl_ms: best(&pcl_voxel),
-            pcl_out: voxel_n.to_string(),
+            pcl_ms: reference.voxel_ms,
+            out: voxel_n.to_string(),
             cpu: Times::default(),
             gpu: Times::default(),
             same: true,
         };
         for i in 0..=args.runs {
-            let (out, span) = Stopwatch::time(|| voxel_cpu(&crop_in, None, &voxel_config));
+            let (out, span) = Stopwatch::time(|| voxel_cpu(crop_in, None, &voxel_config));
             let cpu_n = out?.points.len();
             let (out, gpu_span) = Stopwatch::time(|| {
-                gpu_voxel.run(&ctx, &crop_in, &voxel_config, voxel_timer.as_ref())
+                gpu_voxel.run(&ctx, crop_in, &voxel_config, voxel_timer.as_ref())
             });
             let (out, gpu_ms) = out?;
             row.same &= cpu_n == voxel_n && out.points.len() == voxel_n;
@@ -391,23 +707,24 @@ fn main() -> anyhow::Result<()> {
         }
         rows.push(row);
 
-        // Clustering on PCL's voxel cloud.
+        // Clustering on the voxel cloud.
+        let voxel_in = &reference.voxels;
         let mut row = Row {
             stage: "clustering",
             input: voxel_in.len(),
-            pcl_ms: best(&pcl_cluster),
-            pcl_out: format!("{} clusters", pcl_sizes.len()),
+            pcl_ms: reference.cluster_ms,
+            out: format!("{} clusters", ref_sizes.len()),
             cpu: Times::default(),
             gpu: Times::default(),
             same: true,
         };
         for i in 0..=args.runs {
-            let (out, span) = Stopwatch::time(|| cluster_cpu(&voxel_in, &cluster_config));
+            let (out, span) = Stopwatch::time(|| cluster_cpu(voxel_in, &cluster_config));
             let cpu_sizes = out?.cluster_sizes();
             let (out, gpu_span) =
-                Stopwatch::time(|| gpu_cluster.cluster(&ctx, &voxel_in, &cluster_config));
+                Stopwatch::time(|| gpu_cluster.cluster(&ctx, voxel_in, &cluster_config));
             let (c, stats) = out?;
-            row.same &= cpu_sizes == pcl_sizes && c.cluster_sizes() == pcl_sizes;
+            row.same &= cpu_sizes == *ref_sizes && c.cluster_sizes() == *ref_sizes;
             if i > 0 {
                 row.cpu.push(span, None);
                 let passes: f64 = stats.gpu_times.iter().map(|s| s.gpu_ms).sum();
@@ -416,7 +733,7 @@ fn main() -> anyhow::Result<()> {
             }
         }
         if !row.same {
-            println!("{name}: cluster sizes PCL {pcl_sizes:?}");
+            println!("{name}: cluster sizes of the reference {ref_sizes:?}");
         }
         rows.push(row);
 
@@ -424,8 +741,8 @@ fn main() -> anyhow::Result<()> {
         let mut row = Row {
             stage: "front end (crop+voxel+clusters)",
             input: raw.len(),
-            pcl_ms: best(&pcl_crop) + best(&pcl_voxel) + best(&pcl_cluster),
-            pcl_out: format!("{voxel_n} voxels, {} clusters", pcl_sizes.len()),
+            pcl_ms: reference.crop_ms + reference.voxel_ms + reference.cluster_ms,
+            out: format!("{voxel_n} voxels, {} clusters", ref_sizes.len()),
             cpu: Times::default(),
             gpu: Times::default(),
             same: true,
@@ -434,6 +751,7 @@ fn main() -> anyhow::Result<()> {
             points: &raw,
             crop: Some(scene.clone()),
         };
+        let mut passes = PassTimes::default();
         for i in 0..=args.runs {
             let (out, span) = Stopwatch::time(|| cpu_front.process(&frame));
             let c = out?;
@@ -441,49 +759,73 @@ fn main() -> anyhow::Result<()> {
             let g = out?;
             for o in [&c, &g] {
                 row.same &=
-                    o.voxel.points.len() == voxel_n && o.clusters.cluster_sizes() == pcl_sizes;
+                    o.voxel.points.len() == voxel_n && o.clusters.cluster_sizes() == *ref_sizes;
             }
             if i > 0 {
                 row.cpu.push(span, None);
-                let passes: f64 = g.gpu_times.iter().map(|s| s.gpu_ms).sum();
+                passes.push(&g.gpu_times);
+                let total: f64 = g.gpu_times.iter().map(|s| s.gpu_ms).sum();
                 row.gpu
-                    .push(gpu_span, (!g.gpu_times.is_empty()).then_some(passes));
+                    .push(gpu_span, (!g.gpu_times.is_empty()).then_some(total));
             }
         }
         rows.push(row);
 
         println!("\n{name} ({} points)\n", raw.len());
-        print_rows(&rows);
+        print_rows(&rows, with_pcl);
+        println!("\nfront end GPU passes (timestamp ms): {}", passes.line());
         all_same &= rows.iter().all(|r| r.same);
         summary.push((name, rows));
     }
     std::fs::remove_dir_all(&work).ok();
 
-    // Per stage over the frames: the geometric mean of the ratios PCL / hapcloud.
-    println!(
-        "\nGeometric mean over {} frames of PCL time / hapcloud time\n",
-        summary.len()
-    );
+    // Per stage over the frames: the geometric mean of the ratios PCL / hapcloud (without
+    // PCL: of hapcloud's times).
+    if with_pcl {
+        println!(
+            "\nGeometric mean over {} frames of PCL time / hapcloud time\n",
+            summary.len()
+        );
+    } else {
+        println!(
+            "\nGeometric mean over {} frames of hapcloud's time, ms\n",
+            summary.len()
+        );
+    }
     println!("| stage | cpu ref (thread CPU) | gpu (timestamps) | gpu (wall) |");
     println!("|---|---|---|---|");
     let stages: Vec<&str> = summary
         .first()
         .map(|(_, rows)| rows.iter().map(|r| r.stage).collect())
         .unwrap_or_default();
+    let mut by_stage: BTreeMap<usize, Vec<&Row>> = BTreeMap::new();
+    for (_, rows) in &summary {
+        for (k, r) in rows.iter().enumerate() {
+            by_stage.entry(k).or_default().push(r);
+        }
+    }
     for (k, stage) in stages.iter().enumerate() {
+        let rows = by_stage.get(&k).map_or(&[][..], Vec::as_slice);
         let gmean = |pick: &dyn Fn(&Row) -> f64| {
-            let logs: Vec<f64> = summary
+            let logs: Vec<f64> = rows
                 .iter()
-                .map(|(_, rows)| (rows[k].pcl_ms / pick(&rows[k])).ln())
+                .map(|r| {
+                    if with_pcl {
+                        (r.pcl_ms / pick(r)).ln()
+                    } else {
+                        pick(r).ln()
+                    }
+                })
                 .filter(|v| v.is_finite())
                 .collect();
             if logs.is_empty() {
-                "-".to_string()
+                return "-".to_string();
+            }
+            let g = (logs.iter().sum::<f64>() / logs.len() as f64).exp();
+            if with_pcl {
+                format!("x{g:.2}")
             } else {
-                format!(
-                    "x{:.2}",
-                    (logs.iter().sum::<f64>() / logs.len() as f64).exp()
-                )
+                format!("{g:.3}")
             }
         };
         println!(
@@ -493,8 +835,11 @@ fn main() -> anyhow::Result<()> {
             gmean(&|r| median(r.gpu.wall_ms.clone())),
         );
     }
+    if args.d435_frames > 0 {
+        all_same &= d435_chain(&ctx, &args)?;
+    }
     if !all_same {
-        bail!("an output differs from PCL's (see the tables)");
+        bail!("an output differs from the reference (see the tables)");
     }
     Ok(())
 }
