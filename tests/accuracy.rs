@@ -6,8 +6,10 @@ use hapcloud::evaluation::{
     truth_moves_smoothly,
 };
 use hapcloud::gpu::Backend;
+mod common;
+
+use common::{run_err, run_json};
 use hapcloud::scene::Scene;
-use std::process::Command;
 
 /// Head sliding (paper Fig. 10), from touching the forehead (t = 2 s) into the slide.
 fn head_sliding(variant: &str, start_s: f64, end_s: f64) -> hapcloud::evaluation::SceneEvaluation {
@@ -87,17 +89,10 @@ fn bad_windows_are_errors() {
     }
 }
 
-fn accuracy(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_hapcloud"))
-        .arg("accuracy")
-        .args(args)
-        .output()
-        .expect("runs hapcloud")
-}
-
 #[test]
 fn cli_json_fields_and_errors() {
-    let out = accuracy(&[
+    let v = run_json([
+        "accuracy",
         "head_sliding_clean",
         "--start",
         "2.0",
@@ -109,12 +104,6 @@ fn cli_json_fields_and_errors() {
         "0.5,1.2",
         "--json",
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["range_m"], serde_json::json!([0.5, 1.2]));
     assert_eq!(v["target"]["centroid_rms_m"], 0.002);
     assert_eq!(v["target"]["max_jump_m"], 0.01);
@@ -156,12 +145,8 @@ fn cli_json_fields_and_errors() {
     assert!(frames >= 10 && frames <= s["frames"].as_u64().unwrap());
     assert!(s["cameras"][0]["centroid_mm"]["rms"].as_f64().unwrap() < 5.0);
 
-    let out = accuracy(&["no_such_scene"]);
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("built-in scenes"));
-    let out = accuracy(&["head_sliding_clean", "--range", "0.7,0.4"]);
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--range"));
+    assert!(run_err(["accuracy", "no_such_scene"]).contains("built-in scenes"));
+    assert!(run_err(["accuracy", "head_sliding_clean", "--range", "0.7,0.4"]).contains("--range"));
 }
 
 /// The rising plate (paper Fig. 12) passes the resting HIP at t = 1.1 s: from then on the

@@ -2,29 +2,21 @@
 //! the stages produced; bad input gives a clear error.
 #![cfg(feature = "viewer")]
 
-use std::process::Command;
+mod common;
 
-const GRABBER: &str = concat!(
-    env!("CARGO_MANIFEST_DIR"),
-    "/../shared/data/pcl/grabber_sequences/pcd"
-);
+use common::{TempDir, grabber_pcd, run_err, run_json};
+use std::ffi::OsStr;
 
-fn hapcloud(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_hapcloud"))
-        .args(args)
-        .output()
-        .expect("hapcloud runs")
+/// `hapcloud view GRABBER ARGS`.
+fn view_grabber(args: &[&str]) -> Vec<std::ffi::OsString> {
+    let mut all = vec!["view".into(), grabber_pcd().into_os_string()];
+    all.extend(args.iter().map(|a| OsStr::new(a).to_owned()));
+    all
 }
 
 #[test]
 fn json_summary_of_real_frames() {
-    let out = hapcloud(&["view", GRABBER, "--json", "--hip", "0.80,0,0"]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let v = run_json(view_grabber(&["--json", "--hip", "0.80,0,0"]));
     assert_eq!(v["frames"], 3);
     assert_eq!(v["hip_m"], serde_json::json!([0.8, 0.0, 0.0]));
     assert!(v["points"]["kept"].as_u64().unwrap() > 1000);
@@ -35,31 +27,23 @@ fn json_summary_of_real_frames() {
 
 #[test]
 fn bad_arguments_are_named() {
-    let out = hapcloud(&["view", GRABBER, "--json", "--hip", "1,2"]);
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--hip \"1,2\""));
+    assert!(run_err(view_grabber(&["--json", "--hip", "1,2"])).contains("--hip \"1,2\""));
+    let err = run_err(["view", "/nonexistent/frames", "--json"]);
+    assert!(err.contains("/nonexistent/frames"), "{err}");
 
-    let out = hapcloud(&["view", "/nonexistent/frames", "--json"]);
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/frames"));
-
-    let dir = std::env::temp_dir().join(format!("hapcloud_view_cfg_{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let cfg = dir.join("view.toml");
+    let dir = TempDir::new("view_cfg");
+    let cfg = dir.path.join("view.toml");
     std::fs::write(&cfg, "[viewer]\npoint_size = 3\n").unwrap();
-    let out = hapcloud(&["view", GRABBER, "--json", "--config", cfg.to_str().unwrap()]);
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
+    let err = run_err(view_grabber(&["--json", "--config", cfg.to_str().unwrap()]));
     assert!(
         err.contains("view.toml") && err.contains("point_size"),
         "{err}"
     );
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]
 fn json_summary_of_a_simulated_scene() {
-    let out = hapcloud(&[
+    let v = run_json([
         "view",
         "head_sliding_clean",
         "--json",
@@ -70,12 +54,6 @@ fn json_summary_of_a_simulated_scene() {
         "--view-rate-hz",
         "10",
     ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["frames"], 3);
     assert!(v["points"]["kept"].as_u64().unwrap() > 300);
     // Ground truth: the fused surface against the true closest point on the head.
@@ -88,10 +66,7 @@ fn json_summary_of_a_simulated_scene() {
         assert_eq!(v["constraints"][name]["active_frames"], 3, "{name}");
     }
 
-    let out = hapcloud(&["view", "head_sliding_clean", "--json", "--hip", "0,0,1"]);
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("a scene moves its own HIP"));
-    let out = hapcloud(&["view", "no_such_scene", "--json"]);
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("head_sliding_clean"));
+    let err = run_err(["view", "head_sliding_clean", "--json", "--hip", "0,0,1"]);
+    assert!(err.contains("a scene moves its own HIP"), "{err}");
+    assert!(run_err(["view", "no_such_scene", "--json"]).contains("head_sliding_clean"));
 }

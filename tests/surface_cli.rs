@@ -1,22 +1,15 @@
 //! `hapcloud surface` on a real PCL scan: JSON fields, both backends agree, bad input errors.
 
-use std::process::Command;
+mod common;
 
-fn surface(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_hapcloud"))
-        .arg("surface")
-        .args(args)
-        .output()
-        .expect("runs hapcloud")
-}
-
-const BUN0: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/pcl/bun0.pcd");
+use common::{BUN0, run_err, run_json};
 
 #[test]
 fn json_on_the_bunny_with_both_backends() {
     let mut results = Vec::new();
     for backend in ["cpu", "gpu"] {
-        let out = surface(&[
+        let v = run_json([
+            "surface",
             BUN0,
             "--hip",
             "-0.03,0.12,0.05",
@@ -26,12 +19,6 @@ fn json_on_the_bunny_with_both_backends() {
             backend,
             "--json",
         ]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
         assert_eq!(v["backend"], backend);
         assert_eq!(v["points_in"], 397);
         assert_eq!(v["valid"], true);
@@ -54,10 +41,7 @@ fn json_on_the_bunny_with_both_backends() {
 
 #[test]
 fn bad_arguments_and_files_are_errors() {
-    let out = surface(&[BUN0, "--hip", "1,2"]);
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--hip needs three"));
-    let out = surface(&["/nonexistent/cloud.pcd", "--hip", "0,0,0"]);
-    assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("cloud.pcd"));
+    assert!(run_err(["surface", BUN0, "--hip", "1,2"]).contains("--hip needs three"));
+    let err = run_err(["surface", "/nonexistent/cloud.pcd", "--hip", "0,0,0"]);
+    assert!(err.contains("cloud.pcd"), "{err}");
 }

@@ -17,7 +17,7 @@
 //! shapes and convert with [`Shape::from`].
 
 use crate::geometry::{Primitive, box_rotation, closest_point_on_segment};
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Vector2, Vector3};
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, SVector, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// A body part's shape in its body frame (scene-file form).
@@ -88,53 +88,52 @@ impl Shape {
     /// Checks that every value is finite and every size positive; the message names the
     /// offending value.
     pub fn validate(&self) -> Result<(), String> {
-        let mut values: Vec<(&str, f64)> = Vec::new();
-        let mut sizes: Vec<(&str, f64)> = Vec::new();
-        let push3 = |v: &mut Vec<(&str, f64)>, name: &'static str, x: &Vector3<f64>| {
-            v.extend(x.iter().map(|c| (name, *c)));
-        };
-        match self {
-            Shape::Sphere { center_m, radius_m } => {
-                push3(&mut values, "center_m", &center_m.coords);
-                sizes.push(("radius_m", *radius_m));
+        let values: Vec<(&str, &[f64])> = match self {
+            Shape::Sphere { center_m, .. } => vec![("center_m", center_m.coords.as_slice())],
+            Shape::Capsule { a_m, b_m, .. } => {
+                vec![
+                    ("a_m", a_m.coords.as_slice()),
+                    ("b_m", b_m.coords.as_slice()),
+                ]
             }
             Shape::Ellipsoid {
-                center_m,
-                radii_m,
-                rpy_rad,
-            } => {
-                push3(&mut values, "center_m", &center_m.coords);
-                push3(&mut values, "rpy_rad", rpy_rad);
-                push3(&mut sizes, "radii_m", radii_m);
+                center_m, rpy_rad, ..
             }
-            Shape::Capsule { a_m, b_m, radius_m } => {
-                push3(&mut values, "a_m", &a_m.coords);
-                push3(&mut values, "b_m", &b_m.coords);
-                sizes.push(("radius_m", *radius_m));
+            | Shape::Box {
+                center_m, rpy_rad, ..
             }
-            Shape::Box {
-                center_m,
-                half_extents_m,
-                rpy_rad,
-            } => {
-                push3(&mut values, "center_m", &center_m.coords);
-                push3(&mut values, "rpy_rad", rpy_rad);
-                push3(&mut sizes, "half_extents_m", half_extents_m);
+            | Shape::PlanePatch {
+                center_m, rpy_rad, ..
+            } => vec![
+                ("center_m", center_m.coords.as_slice()),
+                ("rpy_rad", rpy_rad.as_slice()),
+            ],
+        };
+        let sizes: (&str, &[f64]) = match self {
+            Shape::Sphere { radius_m, .. } | Shape::Capsule { radius_m, .. } => {
+                ("radius_m", std::slice::from_ref(radius_m))
             }
-            Shape::PlanePatch {
-                center_m,
-                half_extents_m,
-                rpy_rad,
-            } => {
-                push3(&mut values, "center_m", &center_m.coords);
-                push3(&mut values, "rpy_rad", rpy_rad);
-                sizes.extend(half_extents_m.iter().map(|c| ("half_extents_m", *c)));
+            Shape::Ellipsoid { radii_m, .. } => ("radii_m", radii_m.as_slice()),
+            Shape::Box { half_extents_m, .. } => ("half_extents_m", half_extents_m.as_slice()),
+            Shape::PlanePatch { half_extents_m, .. } => {
+                ("half_extents_m", half_extents_m.as_slice())
             }
+        };
+        /// Each value of a named group.
+        fn each<'a>(
+            &(name, v): &(&'static str, &'a [f64]),
+        ) -> impl Iterator<Item = (&'static str, f64)> + 'a {
+            v.iter().map(move |c| (name, *c))
         }
-        if let Some((name, v)) = values.iter().chain(&sizes).find(|(_, v)| !v.is_finite()) {
+        if let Some((name, v)) = values
+            .iter()
+            .chain([&sizes])
+            .flat_map(each)
+            .find(|(_, v)| !v.is_finite())
+        {
             return Err(format!("{name} has a non-finite value ({v})"));
         }
-        if let Some((name, v)) = sizes.iter().find(|(_, v)| *v <= 0.0) {
+        if let Some((name, v)) = each(&sizes).find(|(_, v)| *v <= 0.0) {
             return Err(format!("{name} must be positive, got {v} m"));
         }
         Ok(())
@@ -231,20 +230,20 @@ impl RayPre {
                     cap_b: b.norm_squared() - r * r,
                 }
             }
-            SolidKind::Box {
+            SolidKind::Box(Oriented {
                 c,
                 local_from_frame,
                 half,
-            } => RayPre::Box {
+            }) => RayPre::Box {
                 local_from_frame: *local_from_frame,
                 ol: -(local_from_frame * c),
                 half: *half,
             },
-            SolidKind::Plane {
+            SolidKind::Plane(Oriented {
                 c,
                 local_from_frame,
                 half,
-            } => {
+            }) => {
                 let n = local_from_frame.row(2).transpose();
                 RayPre::Plane {
                     local_from_frame: *local_from_frame,
@@ -277,16 +276,38 @@ enum SolidKind {
         b: Vector3<f64>,
         r: f64,
     },
-    Box {
-        c: Vector3<f64>,
-        local_from_frame: Matrix3<f64>,
-        half: Vector3<f64>,
-    },
-    Plane {
-        c: Vector3<f64>,
-        local_from_frame: Matrix3<f64>,
-        half: Vector2<f64>,
-    },
+    Box(Oriented<3>),
+    /// A rectangle in its local xy plane (normal: local +z).
+    Plane(Oriented<2>),
+}
+
+/// A box (`D` = 3) or plane patch (`D` = 2) posed in some frame: what the two share.
+#[derive(Clone, Debug)]
+struct Oriented<const D: usize> {
+    /// Centre in the posed frame.
+    c: Vector3<f64>,
+    /// Rotation from the posed frame into the shape's axes.
+    local_from_frame: Matrix3<f64>,
+    /// Half extents along the shape's first `D` axes.
+    half: SVector<f64, D>,
+}
+
+impl<const D: usize> Oriented<D> {
+    /// A shape stored in frame `b` at `center_m`, rotated by `rpy_rad`, expressed in frame
+    /// `a`.
+    fn new(
+        a_from_b: &Isometry3<f64>,
+        center_m: &Point3<f64>,
+        rpy_rad: &Vector3<f64>,
+        half: SVector<f64, D>,
+    ) -> Self {
+        let frame_from_local = a_from_b.rotation.to_rotation_matrix() * box_rotation(rpy_rad);
+        Self {
+            c: (a_from_b * center_m).coords,
+            local_from_frame: frame_from_local.inverse().into_inner(),
+            half,
+        }
+    }
 }
 
 impl Solid {
@@ -334,32 +355,18 @@ impl Solid {
                 half_extents_m,
                 rpy_rad,
             } => {
-                let c = pos(center_m);
-                (
-                    SolidKind::Box {
-                        c,
-                        local_from_frame: rot(rpy_rad).inverse().into_inner(),
-                        half: *half_extents_m,
-                    },
-                    c,
-                    half_extents_m.norm(),
-                )
+                let o = Oriented::new(a_from_b, center_m, rpy_rad, *half_extents_m);
+                let c = o.c;
+                (SolidKind::Box(o), c, half_extents_m.norm())
             }
             Shape::PlanePatch {
                 center_m,
                 half_extents_m,
                 rpy_rad,
             } => {
-                let c = pos(center_m);
-                (
-                    SolidKind::Plane {
-                        c,
-                        local_from_frame: rot(rpy_rad).inverse().into_inner(),
-                        half: *half_extents_m,
-                    },
-                    c,
-                    half_extents_m.norm(),
-                )
+                let o = Oriented::new(a_from_b, center_m, rpy_rad, *half_extents_m);
+                let c = o.c;
+                (SolidKind::Plane(o), c, half_extents_m.norm())
             }
         };
         Self {
@@ -397,16 +404,16 @@ impl Solid {
                 let hi = a.sup(b).add_scalar(*r);
                 oriented(&((lo + hi) * 0.5), &Matrix3::identity(), (hi - lo) * 0.5)
             }
-            SolidKind::Box {
+            SolidKind::Box(Oriented {
                 c,
                 local_from_frame,
                 half,
-            } => oriented(c, local_from_frame, *half),
-            SolidKind::Plane {
+            }) => oriented(c, local_from_frame, *half),
+            SolidKind::Plane(Oriented {
                 c,
                 local_from_frame,
                 half,
-            } => {
+            }) => {
                 let corners: Vec<Vector3<f64>> =
                     oriented(c, local_from_frame, Vector3::new(half.x, half.y, 0.0));
                 corners.into_iter().take(4).collect()
@@ -528,11 +535,11 @@ impl Solid {
                     closest_point_on_segment(&Point3::from(*a), &Point3::from(*b), &(*p).into());
                 (p - s.coords).normalize()
             }
-            SolidKind::Box {
+            SolidKind::Box(Oriented {
                 c,
                 local_from_frame,
                 half,
-            } => {
+            }) => {
                 let q = local_from_frame * (p - c);
                 let gap = half - q.abs();
                 let axis = gap.imin();
@@ -540,9 +547,9 @@ impl Solid {
                 n[axis] = q[axis].signum();
                 local_from_frame.transpose() * n
             }
-            SolidKind::Plane {
+            SolidKind::Plane(Oriented {
                 local_from_frame, ..
-            } => local_from_frame.row(2).transpose(),
+            }) => local_from_frame.row(2).transpose(),
         }
     }
 
@@ -578,11 +585,11 @@ impl Solid {
                     if inside { -dist } else { dist },
                 )
             }
-            SolidKind::Box {
+            SolidKind::Box(Oriented {
                 c,
                 local_from_frame,
                 half,
-            } => {
+            }) => {
                 let q = local_from_frame * (p - c);
                 let clamped = q.zip_map(half, |v, h| v.clamp(-h, h));
                 let world_from_local = local_from_frame.transpose();
@@ -604,11 +611,11 @@ impl Solid {
                     (c + world_from_local * x, world_from_local * n, -gap[axis])
                 }
             }
-            SolidKind::Plane {
+            SolidKind::Plane(Oriented {
                 c,
                 local_from_frame,
                 half,
-            } => {
+            }) => {
                 let q = local_from_frame * (p - c);
                 let x = Vector3::new(q.x.clamp(-half.x, half.x), q.y.clamp(-half.y, half.y), 0.0);
                 let world_from_local = local_from_frame.transpose();

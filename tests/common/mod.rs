@@ -1,5 +1,6 @@
-//! Shared by the integration tests that run the `hapcloud` binary: the command, PCL's real
-//! grabber frames, scratch directories, and running the node with a JSON summary.
+//! Shared by the integration tests that run the `hapcloud` binary: the command, its JSON
+//! output or its error message, PCL's real grabber frames and bunny scan, scratch
+//! directories, and running the node with a JSON summary.
 // Each test binary compiles this module and uses only part of it.
 #![allow(dead_code)]
 
@@ -19,6 +20,9 @@ pub fn grabber_pcd() -> PathBuf {
         "/../shared/data/pcl/grabber_sequences/pcd"
     ))
 }
+
+/// PCL's bunny scan `bun0.pcd` (397 points).
+pub const BUN0: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/pcl/bun0.pcd");
 
 /// A directory under the target's tmp dir, empty at the start, removed on drop.
 pub struct TempDir {
@@ -56,6 +60,26 @@ where
     out
 }
 
+/// Runs `hapcloud ARGS`, asserts success and parses its stdout as one JSON value.
+pub fn run_json<I, S>(args: I) -> serde_json::Value
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    serde_json::from_slice(&run_ok(args).stdout).unwrap()
+}
+
+/// Runs `hapcloud ARGS`, asserts that it fails and returns its stderr (the message).
+pub fn run_err<I, S>(args: I) -> String
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let out = hapcloud().args(args).output().unwrap();
+    assert!(!out.status.success(), "expected a failure");
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
 /// `hapcloud run --json --backend cpu ARGS SOURCE`: the node's JSON summary.
 pub fn run_node<S: AsRef<OsStr>>(source: S, args: &[&OsStr]) -> serde_json::Value {
     let mut all: Vec<&OsStr> = ["run", "--json", "--backend", "cpu"]
@@ -64,5 +88,5 @@ pub fn run_node<S: AsRef<OsStr>>(source: S, args: &[&OsStr]) -> serde_json::Valu
         .collect();
     all.extend_from_slice(args);
     all.push(source.as_ref());
-    serde_json::from_slice(&run_ok(all).stdout).unwrap()
+    run_json(all)
 }
