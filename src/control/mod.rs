@@ -33,6 +33,7 @@
 
 pub mod closed_loop;
 pub mod hqp;
+pub mod qp;
 
 use crate::fusion::FusedSurface;
 use crate::haptics::{self, HapticConfig, HapticConstraints};
@@ -182,6 +183,10 @@ pub struct ControllerOutput {
     pub haptics: HapticConstraints,
     /// Per-level report of the cascade (empty on fallback).
     pub levels: Vec<LevelReport>,
+    /// Levels whose QP the active-set method failed, solved by clarabel instead
+    /// ([`hqp::LevelMethod::QpFallback`]); the status stays Ok, the torques are the
+    /// hierarchy's.
+    pub qp_fallbacks: usize,
 }
 
 /// The controller: robot model, configuration, solver.
@@ -292,6 +297,11 @@ impl Controller {
                 let tau = mass * qdd + bias - jtf;
                 let effort = self.effort();
                 let tau_nm = JointVector::from_fn(|i, _| tau[i].clamp(-effort[i], effort[i]));
+                let qp_fallbacks = sol
+                    .levels
+                    .iter()
+                    .filter(|l| l.method == hqp::LevelMethod::QpFallback)
+                    .count();
                 ControllerOutput {
                     tau_nm,
                     qdd,
@@ -299,6 +309,7 @@ impl Controller {
                     message: String::new(),
                     haptics: haptic,
                     levels: sol.levels,
+                    qp_fallbacks,
                 }
             }
             Err(e) => self.fallback(
@@ -330,6 +341,7 @@ impl Controller {
                 rows: Vec::new(),
             }),
             levels: Vec::new(),
+            qp_fallbacks: 0,
         }
     }
 

@@ -1,5 +1,6 @@
 //! Benchmark of one 800 Hz control tick: fusion evaluation, haptic constraints (paper eq.
-//! 7-14) and the whole hierarchical solve (six levels, clarabel where a level needs a QP).
+//! 7-14) and the whole hierarchical solve (six levels, the Goldfarb-Idnani active-set method
+//! where a level needs a QP, clarabel if that fails).
 //! Budget (issue 5): median < 100 us, p99 < 250 us.
 //!
 //! States are drawn at random (seeded) over the joint ranges with joint speeds up to 1.5
@@ -7,7 +8,10 @@
 //! -3 cm .. 12 cm (constraints active) or beyond the activation distance (free motion), with a
 //! random outward normal and surface speed up to 1.5 m/s. A Fusion instance fed with 30 Hz
 //! estimates of two cameras is evaluated in every tick as in the node. Prints median, p99 and
-//! max per case, and how many levels needed a QP.
+//! max per case, how many levels needed a QP, the most active-set iterations one QP took,
+//! how many QPs fell back to clarabel, how many ticks returned the safe command (a failed
+//! solve), and the heap allocations per tick (a counting global
+//! allocator: one thread-local increment per allocation).
 //!
 //! A second set of cases times the ticks of the closed-loop experiments themselves
 //! (`impacts`, and the plane rising at 1.5 m/s with the surface-velocity feed): the states a
@@ -22,7 +26,9 @@
 
 use hapcloud::control::closed_loop::{self, Plant, SimConfig};
 use hapcloud::control::hqp::LevelMethod;
-use hapcloud::control::{Controller, ControllerConfig, ControllerInput, Intent};
+use hapcloud::control::{
+    ControlStatus, Controller, ControllerConfig, ControllerInput, ControllerOutput, Intent,
+};
 use hapcloud::fusion::{Fusion, FusionConfig};
 use hapcloud::haptics::known_surface;
 use hapcloud::robot::{JointVector, RobotModel};
@@ -31,8 +37,85 @@ use hapcloud::timing::{load_average, thread_cpu_s};
 use nalgebra::{Point3, Unit, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
 use std::hint::black_box;
 use std::time::Instant;
+
+thread_local! {
+    static ALLOCATIONS: Cell<u64> = const { Cell::new(0) };
+}
+
+/// The system allocator, counting allocations of the calling thread.
+struct Counting;
+
+// SAFETY: every call is forwarded unchanged to the system allocator; the counter is a
+// thread-local Cell with a const initialiser, which never allocates.
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.with(|c| c.set(c.get() + 1));
+        // SAFETY: the caller's contract for `alloc` is passed on as it is.
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: `ptr` came from `System` through this allocator with this layout.
+        unsafe { System.dealloc(ptr, layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        ALLOCATIONS.with(|c| c.set(c.get() + 1));
+        // SAFETY: as for `dealloc`; `new_size` is the caller's.
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+fn allocations() -> u64 {
+    ALLOCATIONS.with(Cell::get)
+}
+
+/// Timings and solver counts of one set of ticks.
+struct Case {
+    name: &'static str,
+    wall_us: Vec<f64>,
+    cpu_us: Vec<f64>,
+    qps: usize,
+    max_qp_iterations: usize,
+    fallbacks: usize,
+    safe_commands: usize,
+    allocations: u64,
+}
+
+impl Case {
+    fn new(name: &'static str) -> Self {
+        Self {
+            name,
+            wall_us: Vec::new(),
+            cpu_us: Vec::new(),
+            qps: 0,
+            max_qp_iterations: 0,
+            fallbacks: 0,
+            safe_commands: 0,
+            allocations: 0,
+        }
+    }
+
+    fn record(&mut self, wall_us: f64, cpu_us: f64, allocations: u64, out: &ControllerOutput) {
+        self.wall_us.push(wall_us);
+        self.cpu_us.push(cpu_us);
+        self.allocations += allocations;
+        self.fallbacks += out.qp_fallbacks;
+        self.safe_commands += usize::from(out.status != ControlStatus::Ok);
+        for l in &out.levels {
+            self.qps += usize::from(matches!(
+                l.method,
+                LevelMethod::Qp | LevelMethod::QpFallback
+            ));
+            self.max_qp_iterations = self.max_qp_iterations.max(l.qp_iterations);
+        }
+    }
+}
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
@@ -47,11 +130,7 @@ fn main() {
     let tick_s = 1.0 / 800.0;
     let frame_s = 1.0 / 30.0;
     let mut next_frame = [0.0, 0.5 * frame_s];
-    let mut cases: Vec<Case> = vec![
-        ("free", Vec::new(), Vec::new(), 0),
-        ("contact", Vec::new(), Vec::new(), 0),
-        ("all", Vec::new(), Vec::new(), 0),
-    ];
+    let mut cases = vec![Case::new("free"), Case::new("contact"), Case::new("all")];
     println!(
         "load average (1, 5, 15 min) before: {} on {} CPUs",
         load_average(),
@@ -98,6 +177,7 @@ fn main() {
                 *next += frame_s;
             }
         }
+        let allocations_start = allocations();
         let start = Instant::now();
         let cpu_start = thread_cpu_s();
         black_box(fusion.tick(black_box(t)));
@@ -110,45 +190,52 @@ fn main() {
         }));
         let cpu_us = (thread_cpu_s() - cpu_start) * 1e6;
         let us = start.elapsed().as_secs_f64() * 1e6;
-        let qps = out
-            .levels
-            .iter()
-            .filter(|l| l.method == LevelMethod::Qp)
-            .count();
-        let case = usize::from(contact);
-        for c in [case, 2] {
-            cases[c].1.push(us);
-            cases[c].2.push(cpu_us);
-            cases[c].3 += qps;
+        let allocated = allocations() - allocations_start;
+        for c in [usize::from(contact), 2] {
+            cases[c].record(us, cpu_us, allocated, &out);
         }
     }
     cases.extend(closed_loop_cases(&model));
     println!(
-        "{:<10} {:>6} {:>7} {:>10} {:>10} {:>10} {:>14}",
-        "case", "clock", "ticks", "median_us", "p99_us", "max_us", "QPs_per_tick"
+        "{:<10} {:>6} {:>7} {:>10} {:>10} {:>10} {:>8} {:>9} {:>9} {:>5} {:>12}",
+        "case",
+        "clock",
+        "ticks",
+        "median_us",
+        "p99_us",
+        "max_us",
+        "QPs/tick",
+        "max_iters",
+        "fallbacks",
+        "safe",
+        "allocs/tick"
     );
-    for (name, wall, cpu, qps) in &mut cases {
-        let per_tick = *qps as f64 / wall.len() as f64;
-        for (clock, times) in [("wall", wall), ("cpu", cpu)] {
+    for case in &mut cases {
+        let ticks = case.wall_us.len();
+        let per_tick = case.qps as f64 / ticks as f64;
+        let allocs = case.allocations as f64 / ticks as f64;
+        for (clock, times) in [("wall", &mut case.wall_us), ("cpu", &mut case.cpu_us)] {
             times.sort_by(f64::total_cmp);
             println!(
-                "{:<10} {:>6} {:>7} {:>10.2} {:>10.2} {:>10.2} {:>14.2}",
-                name,
+                "{:<10} {:>6} {:>7} {:>10.2} {:>10.2} {:>10.2} {:>8.2} {:>9} {:>9} {:>5} {:>12.1}",
+                case.name,
                 clock,
                 times.len(),
                 percentile(times, 0.5),
                 percentile(times, 0.99),
                 times.last().copied().unwrap_or(0.0),
-                per_tick
+                per_tick,
+                case.max_qp_iterations,
+                case.fallbacks,
+                case.safe_commands,
+                allocs
             );
         }
     }
     println!("load average (1, 5, 15 min) after: {}", load_average());
 }
 
-type Case = (&'static str, Vec<f64>, Vec<f64>, usize);
-
-/// Ticks of the closed-loop experiments, timed as they run (wall, CPU, QP count).
+/// Ticks of the closed-loop experiments, timed as they run.
 fn closed_loop_cases(model: &RobotModel) -> Vec<Case> {
     let config = SimConfig::default();
     let controller =
@@ -160,13 +247,14 @@ fn closed_loop_cases(model: &RobotModel) -> Vec<Case> {
     ]
     .into_iter()
     .map(|(name, scenario)| {
-        let mut case: Case = (name, Vec::new(), Vec::new(), 0);
+        let mut case = Case::new(name);
         let mut plant = Plant::new(model, &config, scenario.q0);
         let ticks = (scenario.duration_s / period).round() as usize;
         for k in 0..ticks {
             let t = k as f64 * period;
             let hip = model.world_from_hip(plant.q()).translation.vector.into();
             let surface = scenario.controller_surface(t, &hip);
+            let allocations_start = allocations();
             let start = Instant::now();
             let cpu_start = thread_cpu_s();
             let out = controller.tick(black_box(&ControllerInput {
@@ -176,13 +264,9 @@ fn closed_loop_cases(model: &RobotModel) -> Vec<Case> {
                 interaction_force_n: plant.hand_force_n(),
                 intent: Intent::Transparent,
             }));
-            case.2.push((thread_cpu_s() - cpu_start) * 1e6);
-            case.1.push(start.elapsed().as_secs_f64() * 1e6);
-            case.3 += out
-                .levels
-                .iter()
-                .filter(|l| l.method == LevelMethod::Qp)
-                .count();
+            let cpu_us = (thread_cpu_s() - cpu_start) * 1e6;
+            let us = start.elapsed().as_secs_f64() * 1e6;
+            case.record(us, cpu_us, allocations() - allocations_start, &out);
             plant
                 .step(t, &out.tau_nm, |ts| scenario.reference(ts))
                 .expect("plant integrates");
