@@ -714,7 +714,7 @@ fn bad_scene_files_give_clear_errors() {
 #[test]
 fn every_builtin_scene_loads_and_the_realistic_ones_differ_only_by_effects() {
     let names = builtin::names();
-    assert_eq!(names.len(), 12);
+    assert_eq!(names.len(), 14);
     for name in names.iter().filter(|n| n.ends_with("_clean")) {
         let clean = Scene::from_builtin(name).unwrap();
         let real = Scene::from_builtin(&name.replace("_clean", "_realistic")).unwrap();
@@ -726,21 +726,30 @@ fn every_builtin_scene_loads_and_the_realistic_ones_differ_only_by_effects() {
     }
 }
 
-/// forearm_close exists for issue 4's accuracy target (0.4-0.7 m from the HIP): while the
-/// handle touches the forearm both cameras are in that range and see the skin near the HIP,
-/// and nothing either camera sees is nearer than the D435's minimum depth (0.17 m at
+/// forearm_close and head_close exist for issue 4's accuracy target (0.4-0.7 m from the HIP):
+/// while the handle touches the skin both cameras are in that range and see the skin near the
+/// HIP, and nothing either camera sees is nearer than the D435's minimum depth (0.17 m at
 /// 848x480; the patient also beyond the 0.28 m Intel quotes at 1280x720).
 #[test]
-fn forearm_close_cameras_are_in_the_target_range_and_beyond_min_depth() {
-    // Clean: the realistic variant's speckle puts depths anywhere in 0.2-3 m on purpose.
-    let scene = Scene::from_builtin("forearm_close_clean").unwrap();
+fn close_scenes_cameras_are_in_the_target_range_and_beyond_min_depth() {
+    for (name, body, times) in [
+        ("forearm_close_clean", "left_forearm", [0.0, 2.5, 3.8]),
+        ("head_close_clean", "head", [0.0, 2.0, 3.5]),
+    ] {
+        close_scene_views(name, body, times);
+    }
+}
+
+// Clean: the realistic variants' speckle puts depths anywhere in 0.2-3 m on purpose.
+fn close_scene_views(name: &str, body: &str, times: [f64; 3]) {
+    let scene = Scene::from_builtin(name).unwrap();
     let sim = Simulator::new(&scene).unwrap();
-    for t_s in [0.0, 2.5, 3.8] {
+    for t_s in times {
         let gt = sim.ground_truth(t_s).unwrap();
-        let touching = t_s > 2.0;
+        let touching = t_s > 1.9;
         if touching {
-            assert_eq!(gt.body, "left_forearm");
-            assert!((gt.distance_m - 0.03).abs() < 2e-3, "{gt:?}");
+            assert_eq!(gt.body, body);
+            assert!((0.025..0.055).contains(&gt.distance_m), "{gt:?}");
         }
         for cam in sim.cameras() {
             let position = Point3::from(cam.world_from_camera_true.translation.vector);
@@ -762,15 +771,15 @@ fn forearm_close_cameras_are_in_the_target_range_and_beyond_min_depth() {
                 }
             }
             println!(
-                "t={t_s} {}: HIP {hip_distance:.3} m, nearest robot {robot_min:.3} m, \
+                "{name} t={t_s} {}: HIP {hip_distance:.3} m, nearest robot {robot_min:.3} m, \
                  patient {patient_min:.3} m, {near_hip} skin points within 6 cm of the HIP",
                 cam.name
             );
-            assert!(robot_min > 0.2 && patient_min > 0.28, "{}", cam.name);
+            assert!(robot_min > 0.2 && patient_min > 0.28, "{name} {}", cam.name);
             if touching {
-                assert!((0.4..0.7).contains(&hip_distance), "{}", cam.name);
+                assert!((0.4..0.7).contains(&hip_distance), "{name} {}", cam.name);
                 // The handle's occlusion leaves hundreds of skin points in the shells.
-                assert!(near_hip > 300, "{}: {near_hip}", cam.name);
+                assert!(near_hip > 300, "{name} {}: {near_hip}", cam.name);
             }
         }
     }
