@@ -8,7 +8,7 @@ use glam::Vec3;
 use hapcloud::perception::fit::CircleMethod;
 use hapcloud::perception::memory::MemoryConfig;
 use hapcloud::perception::pipeline::{SurfaceConfig, SurfaceEstimator, SurfaceFrame};
-use hapcloud::perception::shells::{ShellLayout, accumulate_cpu};
+use hapcloud::perception::shells::{InvalidReason, ShellLayout, accumulate_cpu};
 use hapcloud::surface::SurfaceEstimate;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
@@ -22,6 +22,14 @@ fn no_memory() -> SurfaceConfig {
         },
         ..SurfaceConfig::default()
     }
+}
+
+/// No memory, and a single shell of three points counts as a surface (the fits alone).
+fn lenient() -> SurfaceConfig {
+    let mut config = no_memory();
+    config.shells.min_accepted_shells = 1;
+    config.shells.min_points = 3;
+    config
 }
 
 fn run(
@@ -175,8 +183,18 @@ fn shells_with_zero_one_two_points_are_invalid() {
         let status = frame.abstraction.reports[0].status;
         assert_eq!(status, if n == 0 { "empty" } else { "too_few_points" });
     }
-    // Three points make a plane.
-    let e = run(&no_memory(), &pts, &hip, &view).abstraction.estimate;
+    // Three points make a plane, but one shell of three points is not a valid surface ...
+    let ab = run(&no_memory(), &pts, &hip, &view).abstraction;
+    assert!(!ab.estimate.valid);
+    assert_eq!(
+        ab.invalid,
+        Some(InvalidReason::TooFewShells {
+            accepted: 1,
+            required: 2
+        })
+    );
+    // ... unless the validity rules are relaxed to one shell of three points.
+    let e = run(&lenient(), &pts, &hip, &view).abstraction.estimate;
     assert!(e.valid);
     assert_finite(&e);
     assert_eq!(run(&no_memory(), &pts[..0], &hip, &view).sums.outside, 0);
@@ -294,10 +312,13 @@ fn point_counts_from_three_to_a_million() {
         Vec3::new(0.0, 0.01, 0.0),
         Vec3::new(-0.01, -0.01, 0.0),
     ];
-    let e = run(&no_memory(), &three, &hip, &-Vector3::z())
+    let e = run(&lenient(), &three, &hip, &-Vector3::z())
         .abstraction
         .estimate;
     assert!(e.valid && (e.centroid_m - Point3::origin()).norm() < 1e-6);
+    let ab = run(&no_memory(), &three, &hip, &-Vector3::z()).abstraction;
+    assert!(!ab.estimate.valid && ab.invalid.is_some());
+    assert_finite(&ab.estimate);
     // 10^6 points on the head (a fine ray grid), clean.
     let (hip, mut view) = head_scene(0.03);
     view.fx = 4600.0;
@@ -559,4 +580,81 @@ fn floor_seen_from_a_horizontal_camera_faces_up() {
     let (ce, ne) = errors(&e, &floor, &hip);
     assert!(e.valid && ce < 1e-4 && ne < 0.1, "{ce} {ne}");
     assert!(e.shells.iter().all(|s| s.normal.z > 0.0));
+}
+
+/// Points of the plane z = 0 whose distance from `hip` lies in `[r0, r1)`, on a 2 mm grid.
+fn plane_band(hip: &Point3<f64>, r0: f64, r1: f64) -> Vec<Vec3> {
+    let mut out = Vec::new();
+    for i in -60..=60 {
+        for j in -60..=60 {
+            let p = Point3::new(f64::from(i) * 0.002, f64::from(j) * 0.002, 0.0);
+            let r = (p - hip).norm();
+            if (r0..r1).contains(&r) {
+                out.push(Vec3::new(p.x as f32, p.y as f32, 0.0));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn a_few_points_at_the_edge_of_reach_are_not_a_surface() {
+    // The surface 9.5 cm below the HIP: only the outermost shell (9-10 cm) reaches it, with
+    // a small disc of points. Before the validity rules this was a valid estimate.
+    let hip = Point3::new(0.0, 0.0, 0.095);
+    let view = -Vector3::z();
+    let edge = plane_band(&hip, 0.0, 0.1);
+    assert!(edge.len() > 3 && edge.len() < 200, "{}", edge.len());
+    let ab = run(&no_memory(), &edge, &hip, &view).abstraction;
+    assert_finite(&ab.estimate);
+    assert!(!ab.estimate.valid);
+    assert_eq!(
+        ab.invalid,
+        Some(InvalidReason::TooFewShells {
+            accepted: 1,
+            required: 2
+        })
+    );
+    assert!(ab.reports.last().unwrap().status == "fitted");
+    // Two shells with 8 points in all: enough shells, too few points.
+    let hip = Point3::new(0.0, 0.0, 0.0);
+    let sparse: Vec<Vec3> = [0.045f32, 0.055]
+        .iter()
+        .flat_map(|&r| {
+            (0..4).map(move |k| {
+                let a = f32::from(k as u8) * std::f32::consts::FRAC_PI_2 + r * 10.0;
+                Vec3::new(r * a.cos(), r * a.sin(), 0.0)
+            })
+        })
+        .collect();
+    let ab = run(&no_memory(), &sparse, &hip, &-Vector3::z()).abstraction;
+    assert!(!ab.estimate.valid);
+    assert_eq!(
+        ab.invalid,
+        Some(InvalidReason::TooFewPoints {
+            points: 8,
+            required: 30
+        })
+    );
+    // Nothing at all: no shell.
+    let ab = run(&no_memory(), &[], &hip, &view).abstraction;
+    assert_eq!(ab.invalid, Some(InvalidReason::NoShell));
+    // The same plane well inside reach is valid, and says nothing is wrong.
+    let hip = Point3::new(0.0, 0.0, 0.045);
+    let near = plane_band(&hip, 0.0, 0.1);
+    let ab = run(&no_memory(), &near, &hip, &view).abstraction;
+    assert!(ab.estimate.valid && ab.invalid.is_none(), "{:?}", ab.invalid);
+    assert!((ab.estimate.centroid_m - Point3::origin()).norm() < 1e-6);
+}
+
+#[test]
+fn a_bad_validity_or_cap_config_is_a_clear_error() {
+    let mut config = no_memory();
+    config.shells.min_accepted_shells = 0;
+    let e = SurfaceEstimator::new(config).err().unwrap().to_string();
+    assert!(e.contains("min_accepted_shells"), "{e}");
+    let mut config = no_memory();
+    config.shells.cap_gap_m = -0.001;
+    let e = SurfaceEstimator::new(config).err().unwrap().to_string();
+    assert!(e.contains("cap_gap_m"), "{e}");
 }

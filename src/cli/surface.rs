@@ -130,6 +130,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "centroid": [e.centroid_m.x, e.centroid_m.y, e.centroid_m.z],
             "normal": [e.normal.x, e.normal.y, e.normal.z],
             "valid": e.valid,
+            "invalid_reason": ab.invalid.as_ref().map(|r| r.to_string()),
             "quality": e.quality,
             "paper_centroid": [ab.paper_centroid_m.x, ab.paper_centroid_m.y, ab.paper_centroid_m.z],
             "curvature_correction": ab.correction,
@@ -190,7 +191,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     } else {
-        println!("no valid surface near the HIP");
+        match &ab.invalid {
+            Some(reason) => println!("no valid surface near the HIP: {reason}"),
+            None => println!("no valid surface near the HIP"),
+        }
     }
     Ok(())
 }

@@ -4,6 +4,7 @@
 pub mod cluster;
 pub mod crop;
 pub mod fit;
+pub mod flying;
 pub mod frontend;
 pub mod memory;
 pub mod pipeline;

@@ -6,11 +6,13 @@
 //!
 //! 1. the frame's points to the world frame with the pose the camera reports (the HIP, the
 //!    robot primitives and the surface memory live there),
-//! 2. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
+//! 2. flying-pixel rejection on the organized image ([`super::flying`], CPU for both
+//!    backends): points hanging between a foreground and a background surface go,
+//! 3. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
 //!    the robot primitives, voxel grid, Euclidean clusters (paper IV-A to IV-C); the points of
 //!    the clusters the [`ClusterSelection`] picks go on (clusters below the size threshold are
 //!    noise, IV-C; keeping only the one nearest the HIP avoids IV-E's two-surface limitation),
-//! 3. the camera's [`SurfaceEstimator`] (one per camera id, so each keeps its memory):
+//! 4. the camera's [`SurfaceEstimator`] (one per camera id, so each keeps its memory):
 //!    memory (Alg. 1) and shells (Alg. 2), eq. 2 against the rays from the camera.
 //!
 //! Each frame reports wall and thread CPU time of the front end and of the estimator
@@ -29,6 +31,7 @@
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
 
 use super::cluster::Clustering;
+use super::flying::{FlyingPixelConfig, FlyingPixelConfigError, flying_pixels};
 use super::crop::finite_bits;
 use super::frontend::{FrameInput, Frontend, FrontendConfig, FrontendError, FrontendOutput};
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
@@ -53,6 +56,8 @@ use std::sync::Arc;
 pub struct SurfaceConfig {
     /// Which of the front end's clusters the estimator takes ([`CameraChain`]).
     pub clusters: ClusterSelection,
+    /// Flying-pixel rejection on the organized cloud before the front end ([`CameraChain`]).
+    pub flying_pixels: FlyingPixelConfig,
     pub memory: MemoryConfig,
     pub shells: ShellConfig,
 }
@@ -103,6 +108,8 @@ impl ClusterSelection {
 /// A surface configuration that cannot work, or a GPU stage that cannot be built.
 #[derive(Debug, thiserror::Error)]
 pub enum SurfaceConfigError {
+    #[error("flying_pixels: {0}")]
+    FlyingPixels(#[from] FlyingPixelConfigError),
     #[error("memory: {0}")]
     Memory(#[from] MemoryConfigError),
     #[error("shells: {0}")]
@@ -113,6 +120,7 @@ pub enum SurfaceConfigError {
 
 impl SurfaceConfig {
     pub fn validate(&self) -> Result<(), SurfaceConfigError> {
+        self.flying_pixels.validate()?;
         self.memory.validate()?;
         self.shells.validate()?;
         Ok(())
@@ -256,8 +264,11 @@ pub enum ChainError {
 pub struct ChainFrame {
     pub camera_id: u32,
     pub stamp_s: f64,
-    /// The frame's points in the world frame, in the frame's order (invalid points stay NaN).
+    /// The frame's points in the world frame, in the frame's order (invalid points and
+    /// rejected flying pixels are NaN): the front end's input.
     pub world_points: Vec<Vec3>,
+    /// Flying pixels rejected this frame (set to NaN in `world_points`).
+    pub flying_pixels: usize,
     /// The front end's output (voxel grid, clusters, GPU time per pass).
     pub front: FrontendOutput,
     /// The points of the selected clusters, world frame: the estimator's input.
@@ -388,7 +399,21 @@ impl CameraChain {
         robot: &[Primitive],
     ) -> Result<ChainFrame, ChainError> {
         let pose = frame.world_from_camera;
-        let world_points = to_world(&frame.cloud.points, &pose);
+        let mut world_points = to_world(&frame.cloud.points, &pose);
+        let hip_cam = pose.inverse() * hip_world;
+        let flags = flying_pixels(
+            &frame.cloud.points,
+            frame.cloud.width,
+            frame.cloud.height,
+            Vec3::new(hip_cam.x as f32, hip_cam.y as f32, hip_cam.z as f32),
+            self.frontend_config.crop.radius_m as f32,
+            &self.surface_config.flying_pixels,
+        );
+        let mut flying = 0;
+        for (p, _) in world_points.iter_mut().zip(&flags).filter(|(_, f)| **f) {
+            *p = Vec3::NAN;
+            flying += 1;
+        }
         let input = FrameInput {
             points: &world_points,
             crop: Some(super::crop::CropScene {
@@ -431,6 +456,7 @@ impl CameraChain {
             camera_id: frame.camera_id,
             stamp_s: frame.stamp_s,
             world_points,
+            flying_pixels: flying,
             front,
             kept,
             surface,

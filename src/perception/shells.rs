@@ -36,6 +36,19 @@
 //! plane and leaves the paper's estimate unchanged). The paper's centroid is moved along the
 //! normal to that depth. The correction is skipped (and reported) with fewer than two shells
 //! or an inconsistent line.
+//!
+//! **Noise truncation of the cap.** The innermost shells that reach the body are caps: the
+//! sphere of radius `r_i` cuts through the band of noisy depths, so only the points whose
+//! noise brings them towards the HIP get in, and the cap's mean depth sits above the skin (on
+//! the realistic head scenes, a cap 5 mm beyond the surface was 2 mm high with D435 noise).
+//! After a first line, the shells whose inner radius lies less than `cap_gap_m` beyond the
+//! corrected depth `D` are left out of the line and it is fitted again (when two shells
+//! remain).
+//!
+//! **Validity.** An estimate is valid only with at least `min_accepted_shells` fitted shells
+//! (before the rejection) holding at least `min_points` points together, normals that do not
+//! cancel and a finite centroid; otherwise [`ShellAbstraction::invalid`] says which rule
+//! failed. A lone outer shell with a handful of points at the edge of reach is not a surface.
 
 use super::crop::finite_bits;
 use super::fit::{
@@ -87,6 +100,14 @@ pub struct ShellConfig {
     /// Shells whose normal lies within this angle of the averaged normal feed the curvature
     /// correction, rejected or not (the rejection keeps half even of two good shells), rad.
     pub correction_max_angle_rad: f64,
+    /// Shells whose inner radius lies less than this beyond the corrected surface depth are
+    /// caps cut through the depth noise and stay out of the curvature correction's line
+    /// (module doc), metres; 0 keeps every agreeing shell.
+    pub cap_gap_m: f64,
+    /// Fewest fitted shells (before the rejection) for a valid estimate.
+    pub min_accepted_shells: u32,
+    /// Fewest points in the fitted shells together for a valid estimate.
+    pub min_points: u32,
 }
 
 impl Default for ShellConfig {
@@ -101,6 +122,9 @@ impl Default for ShellConfig {
             max_circle_radius_ratio: 20.0,
             max_residual_ratio: 0.2,
             correction_max_angle_rad: 10f64.to_radians(),
+            cap_gap_m: 0.005,
+            min_accepted_shells: 2,
+            min_points: 30,
         }
     }
 }
@@ -122,6 +146,10 @@ pub enum ShellConfigError {
     ResidualRatio(f64),
     #[error("correction_max_angle_rad must lie in [0, pi], got {0}")]
     CorrectionAngle(f64),
+    #[error("cap_gap_m must be finite and at least 0, got {0}")]
+    CapGap(f64),
+    #[error("min_accepted_shells must be at least 1, got 0")]
+    MinShells,
 }
 
 impl ShellConfig {
@@ -151,6 +179,12 @@ impl ShellConfig {
             return Err(ShellConfigError::CorrectionAngle(
                 self.correction_max_angle_rad,
             ));
+        }
+        if !(self.cap_gap_m.is_finite() && self.cap_gap_m >= 0.0) {
+            return Err(ShellConfigError::CapGap(self.cap_gap_m));
+        }
+        if self.min_accepted_shells == 0 {
+            return Err(ShellConfigError::MinShells);
         }
         Ok(())
     }
@@ -320,10 +354,28 @@ pub struct CurvatureCorrection {
     pub beta_per_m: f64,
 }
 
+/// Why an estimate is not valid.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, thiserror::Error)]
+#[serde(tag = "reason", rename_all = "snake_case")]
+pub enum InvalidReason {
+    #[error("no shell could be fitted")]
+    NoShell,
+    #[error("{accepted} fitted shell(s), {required} required")]
+    TooFewShells { accepted: u32, required: u32 },
+    #[error("{points} points in the fitted shells, {required} required")]
+    TooFewPoints { points: u64, required: u32 },
+    #[error("the shell normals cancel out: no consistent surface")]
+    NoConsensus,
+    #[error("the centroid is not finite")]
+    NonFinite,
+}
+
 /// Alg. 2's result with what a report or the overlay needs beyond the estimate.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ShellAbstraction {
     pub estimate: SurfaceEstimate,
+    /// Why `estimate.valid` is false (`None` when it is valid).
+    pub invalid: Option<InvalidReason>,
     /// One report per configured shell, innermost first.
     pub reports: Vec<ShellReport>,
     /// The paper's weighted average of the accepted shells' centres (before the curvature
@@ -521,10 +573,29 @@ pub fn abstract_surface(
         quality: 0.0,
         valid: false,
     };
+    let fitted_points: u64 = fits.iter().map(|a| u64::from(a.fit.point_count)).sum();
     let normal = Unit::try_new(sum_n, 1e-9);
-    let (Some(normal), true) = (normal, total_w > 0.0 && resultant > 1e-6) else {
+    let invalid = if fits.is_empty() {
+        Some(InvalidReason::NoShell)
+    } else if fits.len() < config.min_accepted_shells as usize {
+        Some(InvalidReason::TooFewShells {
+            accepted: fits.len() as u32,
+            required: config.min_accepted_shells,
+        })
+    } else if fitted_points < u64::from(config.min_points) {
+        Some(InvalidReason::TooFewPoints {
+            points: fitted_points,
+            required: config.min_points,
+        })
+    } else if normal.is_none() || !(total_w > 0.0 && resultant > 1e-6) {
+        Some(InvalidReason::NoConsensus)
+    } else {
+        None
+    };
+    let (Some(normal), None) = (normal, &invalid) else {
         return ShellAbstraction {
             estimate,
+            invalid,
             reports,
             paper_centroid_m: hip,
             correction: None,
@@ -543,6 +614,26 @@ pub fn abstract_surface(
             &paper_centroid,
             config.outer_radius_m(),
         )
+        .map(|first| {
+            // Leave out the caps cut through the depth noise (module doc) and fit again.
+            let full: Vec<&Accepted> = agreeing
+                .iter()
+                .copied()
+                .filter(|a| a.fit.inner_radius_m >= first.depth_m + config.cap_gap_m)
+                .collect();
+            if config.cap_gap_m > 0.0 && full.len() < agreeing.len() {
+                curvature_correction(
+                    &full,
+                    &normal,
+                    &hip,
+                    &paper_centroid,
+                    config.outer_radius_m(),
+                )
+                .unwrap_or(first)
+            } else {
+                first
+            }
+        })
     } else {
         None
     };
@@ -550,14 +641,18 @@ pub fn abstract_surface(
         Some(c) => paper_centroid + (c.paper_depth_m - c.depth_m) * normal.into_inner(),
         None => paper_centroid,
     };
-    if centroid.coords.iter().all(|c| c.is_finite()) {
+    let invalid = if centroid.coords.iter().all(|c| c.is_finite()) {
         estimate.centroid_m = centroid;
         estimate.normal = normal;
         estimate.quality = (resultant * (kept.len() as f64 / 2.0).min(1.0)).clamp(0.0, 1.0);
         estimate.valid = true;
-    }
+        None
+    } else {
+        Some(InvalidReason::NonFinite)
+    };
     ShellAbstraction {
         estimate,
+        invalid,
         reports,
         paper_centroid_m: paper_centroid,
         correction,

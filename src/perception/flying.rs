@@ -1,0 +1,247 @@
+//! Flying-pixel (veil) rejection on an organized cloud, before the front end.
+//!
+//! A stereo depth camera such as the D435 gives pixels on a depth edge a depth between the
+//! foreground and the background ("flying pixels", REFERENCE.md): points hanging in the air
+//! between, say, the robot's handle and the head behind it. They survive the robot crop (they
+//! lie outside the grown primitives) and the clustering (they touch both surfaces), and they
+//! sit right between the HIP and the body, where they pull the shells' fits towards the HIP.
+//!
+//! The test is the classic veil / shadow-point test of laser and depth pipelines (PCL's
+//! `ShadowPoints`, ROS `ScanShadowsFilter`), done on the organized image, in 3D, before the
+//! points go anywhere: for a pixel `p` (camera frame, camera at the origin) and each valid
+//! neighbour `q` in the `(2 w + 1)^2` window, the segment `q - p` is compared with the pixel's
+//! viewing ray `p / |p|`. A surface seen at incidence `theta` gives a segment at `90 deg -
+//! theta` from the ray; a flying pixel and its neighbours across the edge lie along the ray.
+//! The pixel is rejected when some neighbour's segment is within `min_ray_angle_rad` of the
+//! ray: a surface seen beyond `90 deg - min_ray_angle_rad` incidence, which a D435 returns as
+//! holes anyway. Both sides of a depth edge lose a pixel; that is the price of never keeping a
+//! point that hangs between two surfaces.
+//!
+//! Only pixels within `radius_m` of the HIP are tested (the caller passes the crop radius:
+//! nothing farther reaches the estimator), so the cost is a few neighbour tests per point near
+//! the HIP rather than per image pixel. Unorganized clouds have no neighbours and pass
+//! unchanged. The step runs on the CPU for both backends, so the GPU and CPU chains see the
+//! same points.
+
+use glam::Vec3;
+use serde::{Deserialize, Serialize};
+
+/// Settings of the flying-pixel rejection.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FlyingPixelConfig {
+    /// Run the test (off: every point goes on).
+    pub enabled: bool,
+    /// A pixel goes when the segment to a neighbour lies within this angle of its viewing ray,
+    /// radians (10 deg: surfaces seen beyond 80 deg incidence, which the D435 returns as holes).
+    pub min_ray_angle_rad: f64,
+    /// Half width of the neighbour window, pixels (1: the 8 neighbours).
+    pub window_px: u32,
+}
+
+impl Default for FlyingPixelConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            min_ray_angle_rad: 10f64.to_radians(),
+            window_px: 1,
+        }
+    }
+}
+
+/// A flying-pixel configuration that cannot work.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum FlyingPixelConfigError {
+    #[error("min_ray_angle_rad must lie in (0, pi/2), got {0}")]
+    Angle(f64),
+    #[error("window_px must lie in 1..=4, got {0}")]
+    Window(u32),
+}
+
+impl FlyingPixelConfig {
+    pub fn validate(&self) -> Result<(), FlyingPixelConfigError> {
+        if !(self.min_ray_angle_rad > 0.0 && self.min_ray_angle_rad < std::f64::consts::FRAC_PI_2)
+        {
+            return Err(FlyingPixelConfigError::Angle(self.min_ray_angle_rad));
+        }
+        if !(1..=4).contains(&self.window_px) {
+            return Err(FlyingPixelConfigError::Window(self.window_px));
+        }
+        Ok(())
+    }
+}
+
+fn valid(p: Vec3) -> bool {
+    p.is_finite() && p != Vec3::ZERO
+}
+
+/// Which pixels of the organized cloud `points` (`width` x `height`, camera frame, NaN
+/// invalid) are flying pixels, among those within `radius_m` of `near_cam` (camera frame).
+/// Returns one flag per point; an unorganized cloud (`height <= 1`) or a disabled config
+/// flags nothing.
+pub fn flying_pixels(
+    points: &[Vec3],
+    width: u32,
+    height: u32,
+    near_cam: Vec3,
+    radius_m: f32,
+    config: &FlyingPixelConfig,
+) -> Vec<bool> {
+    let mut flags = vec![false; points.len()];
+    let (w, h) = (width as usize, height as usize);
+    if !config.enabled || h <= 1 || w * h != points.len() {
+        return flags;
+    }
+    // |v x ray| < sin(min) |v|  <=>  the segment is within `min` of the ray's line.
+    let sin_min = config.min_ray_angle_rad.sin() as f32;
+    let k = config.window_px as usize;
+    let r2 = radius_m * radius_m;
+    for (i, flag) in flags.iter_mut().enumerate() {
+        let p = points[i];
+        if !valid(p) || p.distance_squared(near_cam) >= r2 {
+            continue;
+        }
+        let ray = p.normalize();
+        let (u, v) = (i % w, i / w);
+        let rows = v.saturating_sub(k)..(v + k + 1).min(h);
+        *flag = rows.into_iter().any(|y| {
+            (u.saturating_sub(k)..(u + k + 1).min(w)).any(|x| {
+                let q = points[y * w + x];
+                if (x, y) == (u, v) || !valid(q) {
+                    return false;
+                }
+                let d = q - p;
+                d.cross(ray).length() < sin_min * d.length()
+            })
+        });
+    }
+    flags
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// A `w x h` organized image of a fronto-parallel plane at depth `z` seen by a pinhole
+    /// camera with focal length `f` px, principal point at the centre.
+    fn plane(w: u32, h: u32, f: f32, depth: impl Fn(u32, u32) -> f32) -> Vec<Vec3> {
+        (0..h)
+            .flat_map(|v| (0..w).map(move |u| (u, v)))
+            .map(|(u, v)| {
+                let z = depth(u, v);
+                Vec3::new(
+                    (u as f32 - w as f32 / 2.0) * z / f,
+                    (v as f32 - h as f32 / 2.0) * z / f,
+                    z,
+                )
+            })
+            .collect()
+    }
+
+    const F: f32 = 430.0;
+
+    #[test]
+    fn a_pixel_between_a_foreground_and_a_background_goes_with_the_edge_pixels() {
+        // Columns 0..10 at 0.8 m (a handle), 10..20 at 0.9 m (the head); pixel (10, 5) is a
+        // flying pixel at 0.85 m.
+        let mut points = plane(20, 10, F, |u, _| if u < 10 { 0.8 } else { 0.9 });
+        let fly = 5 * 20 + 10;
+        let p = points[fly];
+        points[fly] = p * (0.85 / p.z);
+        let flags = flying_pixels(
+            &points,
+            20,
+            10,
+            Vec3::new(0.0, 0.0, 0.85),
+            1.0,
+            &FlyingPixelConfig::default(),
+        );
+        assert!(flags[fly]);
+        // Only the columns next to the edge go; the plane's interior stays.
+        for (i, &f) in flags.iter().enumerate() {
+            let u = i % 20;
+            if !(9..=11).contains(&u) {
+                assert!(!f, "pixel {i} (column {u}) flagged");
+            }
+        }
+        assert!(flags.iter().filter(|&&f| f).count() <= 3 * 10);
+    }
+
+    #[test]
+    fn a_slanted_plane_within_the_angle_stays_and_far_pixels_are_not_tested() {
+        // A plane at 60 deg incidence: its segments are 30 deg from the rays.
+        let slope = 60f32.to_radians().tan();
+        let points = plane(30, 30, F, |u, _| 0.9 + slope * (u as f32 - 15.0) * 0.9 / F);
+        let config = FlyingPixelConfig::default();
+        let flags = flying_pixels(&points, 30, 30, Vec3::new(0.0, 0.0, 0.9), 1.0, &config);
+        assert!(flags.iter().all(|&f| !f));
+        // The same at 85 deg goes, unless the pixels are beyond the radius.
+        let steep = 85f32.to_radians().tan();
+        let points = plane(30, 30, F, |u, _| 0.9 + steep * (u as f32 - 15.0) * 0.9 / F);
+        let flags = flying_pixels(&points, 30, 30, Vec3::new(0.0, 0.0, 0.9), 1.0, &config);
+        assert!(flags.iter().all(|&f| f));
+        let flags = flying_pixels(&points, 30, 30, Vec3::new(0.0, 0.0, 5.0), 1.0, &config);
+        assert!(flags.iter().all(|&f| !f));
+    }
+
+    #[test]
+    fn holes_unorganized_clouds_and_a_disabled_filter_flag_nothing() {
+        let mut points = plane(8, 8, F, |u, _| if u < 4 { 0.5 } else { 0.9 });
+        let config = FlyingPixelConfig::default();
+        let centre = Vec3::new(0.0, 0.0, 0.7);
+        let off = FlyingPixelConfig {
+            enabled: false,
+            ..config.clone()
+        };
+        assert!(flying_pixels(&points, 8, 8, centre, 1.0, &off)
+            .iter()
+            .all(|&f| !f));
+        assert!(flying_pixels(&points, 64, 1, centre, 1.0, &config)
+            .iter()
+            .all(|&f| !f));
+        // A wrong size is treated as unorganized, not indexed out of bounds.
+        assert!(flying_pixels(&points, 9, 8, centre, 1.0, &config)
+            .iter()
+            .all(|&f| !f));
+        // Columns 3 and 4 are NaN: nothing is left across the edge to compare with.
+        for v in 0..8 {
+            points[v * 8 + 3] = Vec3::NAN;
+            points[v * 8 + 4] = Vec3::NAN;
+        }
+        assert!(flying_pixels(&points, 8, 8, centre, 1.0, &config)
+            .iter()
+            .all(|&f| !f));
+    }
+
+    #[test]
+    fn bad_configs_are_clear_errors() {
+        let mut c = FlyingPixelConfig::default();
+        assert_eq!(c.validate(), Ok(()));
+        c.min_ray_angle_rad = 0.0;
+        assert!(c.validate().unwrap_err().to_string().contains("min_ray_angle_rad"));
+        c.min_ray_angle_rad = 0.1;
+        c.window_px = 0;
+        assert!(c.validate().unwrap_err().to_string().contains("window_px"));
+    }
+
+    proptest! {
+        /// A plane seen at any incidence below 80 deg - 1 deg, at any depth and noise-free,
+        /// loses no pixel.
+        #[test]
+        fn planes_below_the_limit_keep_every_pixel(
+            incidence_deg in 0f32..79.0, z in 0.2f32..3.0, vertical in any::<bool>()
+        ) {
+            let slope = incidence_deg.to_radians().tan();
+            let points = plane(12, 12, F, |u, v| {
+                let t = if vertical { v } else { u } as f32 - 6.0;
+                // z = z0 + slope * x, with x = t z / F: solved for z along the ray.
+                z / (1.0 - slope * t / F)
+            });
+            let flags = flying_pixels(
+                &points, 12, 12, Vec3::new(0.0, 0.0, z), 10.0, &FlyingPixelConfig::default(),
+            );
+            prop_assert!(flags.iter().all(|&f| !f));
+        }
+    }
+}
