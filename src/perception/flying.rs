@@ -60,8 +60,7 @@ pub enum FlyingPixelConfigError {
 
 impl FlyingPixelConfig {
     pub fn validate(&self) -> Result<(), FlyingPixelConfigError> {
-        if !(self.min_ray_angle_rad > 0.0 && self.min_ray_angle_rad < std::f64::consts::FRAC_PI_2)
-        {
+        if !(self.min_ray_angle_rad > 0.0 && self.min_ray_angle_rad < std::f64::consts::FRAC_PI_2) {
             return Err(FlyingPixelConfigError::Angle(self.min_ray_angle_rad));
         }
         if !(1..=4).contains(&self.window_px) {
@@ -194,24 +193,32 @@ mod tests {
             enabled: false,
             ..config.clone()
         };
-        assert!(flying_pixels(&points, 8, 8, centre, 1.0, &off)
-            .iter()
-            .all(|&f| !f));
-        assert!(flying_pixels(&points, 64, 1, centre, 1.0, &config)
-            .iter()
-            .all(|&f| !f));
+        assert!(
+            flying_pixels(&points, 8, 8, centre, 1.0, &off)
+                .iter()
+                .all(|&f| !f)
+        );
+        assert!(
+            flying_pixels(&points, 64, 1, centre, 1.0, &config)
+                .iter()
+                .all(|&f| !f)
+        );
         // A wrong size is treated as unorganized, not indexed out of bounds.
-        assert!(flying_pixels(&points, 9, 8, centre, 1.0, &config)
-            .iter()
-            .all(|&f| !f));
+        assert!(
+            flying_pixels(&points, 9, 8, centre, 1.0, &config)
+                .iter()
+                .all(|&f| !f)
+        );
         // Columns 3 and 4 are NaN: nothing is left across the edge to compare with.
         for v in 0..8 {
             points[v * 8 + 3] = Vec3::NAN;
             points[v * 8 + 4] = Vec3::NAN;
         }
-        assert!(flying_pixels(&points, 8, 8, centre, 1.0, &config)
-            .iter()
-            .all(|&f| !f));
+        assert!(
+            flying_pixels(&points, 8, 8, centre, 1.0, &config)
+                .iter()
+                .all(|&f| !f)
+        );
     }
 
     #[test]
@@ -219,7 +226,12 @@ mod tests {
         let mut c = FlyingPixelConfig::default();
         assert_eq!(c.validate(), Ok(()));
         c.min_ray_angle_rad = 0.0;
-        assert!(c.validate().unwrap_err().to_string().contains("min_ray_angle_rad"));
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("min_ray_angle_rad")
+        );
         c.min_ray_angle_rad = 0.1;
         c.window_px = 0;
         assert!(c.validate().unwrap_err().to_string().contains("window_px"));

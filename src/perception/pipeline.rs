@@ -31,8 +31,8 @@
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
 
 use super::cluster::Clustering;
-use super::flying::{FlyingPixelConfig, FlyingPixelConfigError, flying_pixels};
 use super::crop::finite_bits;
+use super::flying::{FlyingPixelConfig, FlyingPixelConfigError, flying_pixels};
 use super::frontend::{FrameInput, Frontend, FrontendConfig, FrontendError, FrontendOutput};
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
 use super::shells::{
@@ -598,5 +598,12 @@ mod tests {
             .expect("empty shell list rejected")
             .to_string();
         assert!(e.starts_with("surface: shells:"), "{e}");
+        let mut surface = SurfaceConfig::default();
+        surface.flying_pixels.window_px = 9;
+        let e = CameraChain::new(Backend::Cpu, FrontendConfig::default(), surface, None)
+            .err()
+            .expect("window rejected")
+            .to_string();
+        assert!(e.starts_with("surface: flying_pixels: window_px"), "{e}");
     }
 }
