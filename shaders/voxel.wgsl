@@ -1,14 +1,22 @@
 // Voxel grid (paper IV-B) with PCL VoxelGrid semantics, deterministic on the GPU.
 //
-// Passes (one compute pass, in this order; wgpu orders dispatches within a pass):
+// Dispatches, in this order (four timed compute passes: insert, compact, sort, reduce):
 //   bounds      - min/max of the valid points (32 points per thread, then integer atomics
 //                 on order keys)
 //   insert      - cell index (PCL's linear index relative to the min cell) into a hash table
 //                 with bounded linear probing; per cell: point count and the 64-bit fixed-point
 //                 sum of the points' offsets inside the cell (integer atomics: order-free).
 //                 A thread takes 8 consecutive points and merges runs in the same cell first.
-//   gather      - one sort key per table slot: cell index, or NONE when empty / too few points
-//   sort_local, sort_global, sort_merge - bitonic sort of the keys (ascending = PCL order)
+//   compact_count, compact_scan, compact_scatter - stream compaction of the kept slots
+//                 (occupied, at least min_points) into sort_keys, in slot order: kept count per
+//                 512-slot block, one workgroup's exclusive prefix sum over the blocks (also
+//                 out_count, the sort size P = the next power of two >= max(out_count, 512)
+//                 and the indirect dispatch arguments of the sort and reduce dispatches), then
+//                 each block's keys written at its offset plus their rank in the block (prefix
+//                 sums in workgroup memory, fixed order: no atomics, deterministic)
+//   sort_local, sort_global, sort_merge - bitonic sort of the first P keys (ascending = PCL
+//                 order; keys at out_count..P read as NONE), indirect: the stages with k > P
+//                 get no workgroups
 //   reduce      - output r = mean of the r-th smallest cell
 // The table is cleared with clear_buffer before `insert` (0 = empty slot, key = index + 1).
 
@@ -38,7 +46,8 @@ struct VoxelHeader {
     // ~order_key(min), so that atomicMax on a zero-cleared header finds the minimum.
     min_inv: array<atomic<u32>, 3>,
     max_key: array<atomic<u32>, 3>,
-    _pad0: u32,
+    // Keys the bitonic sort covers (a power of two >= 512), written by compact_scan.
+    sort_size: u32,
     _pad1: u32,
 }
 
@@ -59,9 +68,24 @@ struct SortStep {
 @group(0) @binding(6) var<storage, read_write> sort_keys: array<u32>;
 @group(0) @binding(7) var<storage, read_write> out_points: array<vec4<f32>>;
 @group(0) @binding(8) var<uniform> sort_step: SortStep;
+// Kept slots per 512-slot block, then (after compact_scan) the blocks' exclusive offsets.
+@group(0) @binding(9) var<storage, read_write> block_sums: array<u32>;
+
+// compact_scan only (its own bind group: the sort reads `dispatch_args` as indirect
+// arguments): per indirect dispatch, (kind, k) with kind SCHEDULE_BLOCKS (512-key blocks of
+// bitonic stage k: sort_local, sort_merge), SCHEDULE_GLOBAL (one thread per key pair of stage
+// k: sort_global) or SCHEDULE_REDUCE (one thread per output point).
+@group(1) @binding(0) var<storage, read> schedule: array<vec2<u32>>;
+@group(1) @binding(1) var<storage, read_write> dispatch_args: array<u32>;
 
 const SLOT_WORDS: u32 = 8u;
 const SORT_BLOCK: u32 = 512u;
+// Slots per thread and per workgroup of compact_count / compact_scatter.
+const COMPACT_PER_THREAD: u32 = 8u;
+const COMPACT_BLOCK: u32 = 512u;
+const SCHEDULE_BLOCKS: u32 = 0u;
+const SCHEDULE_GLOBAL: u32 = 1u;
+const SCHEDULE_REDUCE: u32 = 2u;
 // Points per thread of `bounds` and of `insert`.
 const BOUNDS_CHUNK: u32 = 32u;
 const INSERT_CHUNK: u32 = 8u;
@@ -235,18 +259,105 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let s = gid.x;
-    if s > params.table_mask {
-        return;
+// The slot is occupied by a cell with at least min_points points.
+fn kept(slot: u32) -> bool {
+    return atomicLoad(&table_keys[slot]) != 0u
+        && atomicLoad(&table_data[slot * SLOT_WORDS]) >= params.min_points;
+}
+
+var<workgroup> scan_words: array<u32, WORKGROUP_SIZE>;
+
+// Exclusive prefix sum of `v` over the workgroup's threads in thread order (Hillis-Steele in
+// workgroup memory): (sum of v over the threads before `lid`, sum over all). Called from
+// uniform control flow only (barriers inside).
+fn workgroup_scan(lid: u32, v: u32) -> vec2<u32> {
+    scan_words[lid] = v;
+    workgroupBarrier();
+    for (var d = 1u; d < WORKGROUP_SIZE; d = d << 1u) {
+        var before = 0u;
+        if lid >= d {
+            before = scan_words[lid - d];
+        }
+        workgroupBarrier();
+        scan_words[lid] += before;
+        workgroupBarrier();
     }
-    let key = atomicLoad(&table_keys[s]);
-    if key != 0u && atomicLoad(&table_data[s * SLOT_WORDS]) >= params.min_points {
-        sort_keys[s] = key - 1u;
-        atomicAdd(&header.out_count, 1u);
-    } else {
-        sort_keys[s] = NONE;
+    let inclusive = scan_words[lid];
+    let total = scan_words[WORKGROUP_SIZE - 1u];
+    workgroupBarrier();
+    return vec2<u32>(inclusive - v, total);
+}
+
+// Kept slots among the COMPACT_PER_THREAD slots of thread `lid` of block `block`.
+fn kept_in_run(block: u32, lid: u32) -> u32 {
+    let first = block * COMPACT_BLOCK + lid * COMPACT_PER_THREAD;
+    var n = 0u;
+    for (var k = 0u; k < COMPACT_PER_THREAD; k++) {
+        n += select(0u, 1u, kept(first + k));
+    }
+    return n;
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn compact_count(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+    let s = workgroup_scan(lid.x, kept_in_run(wid.x, lid.x));
+    if lid.x == 0u {
+        block_sums[wid.x] = s.y;
+    }
+}
+
+// One workgroup: block offsets, out_count, sort size and the indirect dispatch arguments.
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn compact_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
+    let blocks = (params.table_mask + 1u) / COMPACT_BLOCK;
+    let per = (blocks + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+    let first = min(lid.x * per, blocks);
+    let last = min(first + per, blocks);
+    var n = 0u;
+    for (var b = first; b < last; b++) {
+        n += block_sums[b];
+    }
+    let s = workgroup_scan(lid.x, n);
+    var offset = s.x;
+    for (var b = first; b < last; b++) {
+        let count = block_sums[b];
+        block_sums[b] = offset;
+        offset += count;
+    }
+    let total = s.y;
+    let size = 1u << (32u - countLeadingZeros(max(total, SORT_BLOCK) - 1u));
+    if lid.x == 0u {
+        atomicStore(&header.out_count, total);
+        header.sort_size = size;
+    }
+    for (var i = lid.x; i < arrayLength(&schedule); i += WORKGROUP_SIZE) {
+        let entry = schedule[i];
+        var groups = 0u;
+        if entry.x == SCHEDULE_REDUCE {
+            groups = (total + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+        } else if entry.y <= size {
+            if entry.x == SCHEDULE_BLOCKS {
+                groups = size / SORT_BLOCK;
+            } else {
+                groups = (size / 2u + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+            }
+        }
+        dispatch_args[3u * i] = groups;
+        dispatch_args[3u * i + 1u] = 1u;
+        dispatch_args[3u * i + 2u] = 1u;
+    }
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn compact_scatter(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+    let s = workgroup_scan(lid.x, kept_in_run(wid.x, lid.x));
+    var at = block_sums[wid.x] + s.x;
+    let first = wid.x * COMPACT_BLOCK + lid.x * COMPACT_PER_THREAD;
+    for (var k = 0u; k < COMPACT_PER_THREAD; k++) {
+        if kept(first + k) {
+            sort_keys[at] = atomicLoad(&table_keys[first + k]) - 1u;
+            at += 1u;
+        }
     }
 }
 
@@ -280,6 +391,14 @@ fn load_block(base: u32, t: u32) {
     workgroupBarrier();
 }
 
+// load_block for the first stages: keys from out_count on are padding (NONE sorts last).
+fn load_padded_block(base: u32, t: u32) {
+    let n = atomicLoad(&header.out_count);
+    block[t] = select(NONE, sort_keys[base + t], base + t < n);
+    block[t + 256u] = select(NONE, sort_keys[base + t + 256u], base + t + 256u < n);
+    workgroupBarrier();
+}
+
 fn store_block(base: u32, t: u32) {
     sort_keys[base + t] = block[t];
     sort_keys[base + t + 256u] = block[t + 256u];
@@ -289,7 +408,7 @@ fn store_block(base: u32, t: u32) {
 @compute @workgroup_size(256)
 fn sort_local(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
     let base = wid.x * SORT_BLOCK;
-    load_block(base, lid.x);
+    load_padded_block(base, lid.x);
     for (var k = 2u; k <= SORT_BLOCK; k = k << 1u) {
         block_steps(base, lid.x, k, k >> 1u);
     }
@@ -300,7 +419,7 @@ fn sort_local(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn sort_global(@builtin(global_invocation_id) gid: vec3<u32>) {
     let t = gid.x;
-    if t >= (params.table_mask + 1u) / 2u {
+    if t >= header.sort_size / 2u {
         return;
     }
     let j = sort_step.j;

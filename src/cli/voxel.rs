@@ -7,7 +7,6 @@ use super::timing::Timings;
 use anyhow::Context;
 use hapcloud::cloud::PointCloud;
 use hapcloud::gpu::Backend;
-use hapcloud::gpu::timing::{StageTime, StageTimer};
 use hapcloud::perception::voxel::{Axis, FilterLimits, GpuVoxel, VoxelConfig, voxel_cpu};
 
 #[derive(clap::Args)]
@@ -73,20 +72,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.backend,
         "voxel",
         || Ok(voxel_cpu(&cloud.points, None, &config)?),
-        |ctx| {
-            Ok((
-                GpuVoxel::new(ctx)?,
-                StageTimer::new(ctx, "voxel", &["voxel"])?,
-            ))
-        },
-        |(voxel, timer), ctx| {
-            let (out, gpu_ms) = voxel.run(ctx, &cloud.points, &config, timer.as_ref())?;
-            let passes = gpu_ms.map(|gpu_ms| StageTime {
-                stage: "voxel",
-                gpu_ms,
-            });
-            Ok((out, passes.into_iter().collect()))
-        },
+        |ctx| Ok(GpuVoxel::new(ctx)?),
+        |voxel, ctx| Ok(voxel.run(ctx, &cloud.points, &config)?),
     )?;
     if let Some(path) = &args.out {
         let mut result = PointCloud::from_points(out.points.clone());

@@ -66,7 +66,8 @@ pub struct VoxelHeader {
     pub min_inv: [u32; 3],
     /// Order keys of the maximum coordinates.
     pub max_key: [u32; 3],
-    pub _pad0: u32,
+    /// Keys the bitonic sort covered (a power of two >= 512).
+    pub sort_size: u32,
     pub _pad1: u32,
 }
 

@@ -6,7 +6,7 @@
 //! an indirect dispatch), resolve the timestamp queries, and copy the stage results into one
 //! readback buffer, which is mapped once. Only when a bounded union-find pass of the
 //! clustering ran out of steps does the cluster stage add small submissions of its own
-//! (see [`crate::perception::cluster`]). Each stage is one compute pass bracketed by
+//! (see [`crate::perception::cluster`]). Each stage is one or more compute passes bracketed by
 //! timestamps, so the frame reports the GPU time per stage. A voxel-table overflow (flag in the
 //! readback) re-records the frame once with a bigger table (see [`crate::perception::voxel`]).
 //!
@@ -164,8 +164,9 @@ impl CpuFrontend {
     }
 }
 
-/// Stages with a compute pass each, in recording order (timestamp pairs in this order).
-const STAGES: [&str; 2] = ["crop", "voxel"];
+/// The front end's own timed pass (the voxel and cluster stages time their passes
+/// themselves and read their timestamps back with their results).
+const STAGES: [&str; 1] = ["crop"];
 
 /// GPU front end: stages and buffers built once and reused every frame.
 pub struct GpuFrontend {
@@ -282,8 +283,7 @@ impl GpuFrontend {
                 self.crop.record(&ctx, &mut encoder, &self.input, writes(0));
             }
             let mask = frame.crop.as_ref().map(|_| self.crop.mask());
-            self.voxel
-                .record(&ctx, &mut encoder, &self.input, mask, writes(1));
+            self.voxel.record(&ctx, &mut encoder, &self.input, mask);
             self.cluster
                 .encode(&ctx, &mut encoder, &self.cluster_input())?;
             if let Some(t) = &self.timer {
@@ -309,10 +309,11 @@ impl GpuFrontend {
                     (voxel, times, b[cluster_at..].to_vec())
                 })?
             };
-            if let Some(v) = voxel? {
+            if let Some((v, voxel_times)) = voxel? {
                 let times = times
                     .into_iter()
-                    .filter(|t| t.stage != "crop" || frame.crop.is_some())
+                    .filter(|_| frame.crop.is_some())
+                    .chain(voxel_times)
                     .collect::<Vec<_>>();
                 break (v, times, cluster_bytes);
             }
@@ -399,7 +400,10 @@ mod tests {
                     stages,
                     [
                         "crop",
-                        "voxel",
+                        "voxel_insert",
+                        "voxel_compact",
+                        "voxel_sort",
+                        "voxel_reduce",
                         "cluster_grid",
                         "cluster_hook",
                         "cluster_compress"

@@ -16,8 +16,12 @@
 //! [`voxel_cpu`] is the reference (f64 sums). [`GpuVoxel`] runs `shaders/voxel.wgsl`: a hash
 //! table keyed by the linear index with bounded linear probing, per-cell sums of the points'
 //! offsets inside their cell as 64-bit fixed-point integers (2^-24 leaf resolution, integer
-//! atomics, so the result is byte-identical whatever the thread order), a bitonic sort of the
-//! occupied cell indices, and one mean per sorted cell. The overflow flag is read back every
+//! atomics, so the result is byte-identical whatever the thread order), a stream compaction of
+//! the kept cells' indices (prefix sums in a fixed order, no atomics), a bitonic sort of only
+//! those (padded to the next power of two, at least 512: the sort's dispatches are indirect,
+//! sized on the GPU from the compacted count), and one mean per sorted cell. Its four passes
+//! (insert, compact, sort, reduce) carry their own timestamp queries, read back with the
+//! results. The overflow flag is read back every
 //! frame: an overflowing table is retried with four times the slots up to
 //! `max_table_slots`, and beyond that the frame is an error, never a silently wrong result.
 //!
@@ -29,7 +33,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::gpu::mirrors::{SortStep, VoxelHeader, VoxelParams};
 use crate::gpu::shader::{self, BindingKind};
-use crate::gpu::timing::StageTimer;
+use crate::gpu::timing::{StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
 use crate::perception::crop::{entry, finite_bits, mask_bit};
 
@@ -394,17 +398,32 @@ impl LeafAdapter {
     }
 }
 
-/// Entry points of voxel.wgsl, in pipeline order.
-const ENTRY_POINTS: [&str; 7] = [
+/// Entry points of voxel.wgsl on the main bind group, in pipeline order.
+const ENTRY_POINTS: [&str; 8] = [
     "bounds",
     "insert",
-    "gather",
+    "compact_count",
+    "compact_scatter",
     "sort_local",
     "sort_global",
     "sort_merge",
     "reduce",
 ];
+/// The stage's timed compute passes, in recording order.
+const TIMED_PASSES: [&str; 4] = [
+    "voxel_insert",
+    "voxel_compact",
+    "voxel_sort",
+    "voxel_reduce",
+];
 const SORT_BLOCK: u32 = 512;
+/// Slots per workgroup of the compaction (voxel.wgsl `COMPACT_BLOCK`).
+const COMPACT_BLOCK: u32 = 512;
+/// Kinds of indirect dispatch in the schedule compact_scan turns into arguments
+/// (voxel.wgsl `SCHEDULE_*`).
+const SCHEDULE_BLOCKS: u32 = 0;
+const SCHEDULE_GLOBAL: u32 = 1;
+const SCHEDULE_REDUCE: u32 = 2;
 /// Points per thread of `bounds` and `insert` (voxel.wgsl constants).
 const BOUNDS_CHUNK: u32 = 32;
 const INSERT_CHUNK: u32 = 8;
@@ -413,15 +432,27 @@ const MIN_TABLE_SLOTS: u32 = 1024;
 /// Bytes of the header at the start of a voxel readback.
 pub const HEADER_BYTES: u64 = std::mem::size_of::<VoxelHeader>() as u64;
 
+/// A bitonic step after the local sort: the uniform step record and its indirect arguments
+/// (entry of the dispatch schedule).
 enum SortPass {
-    Global { step: u32 },
-    Merge { step: u32 },
+    Global { step: u32, entry: u32 },
+    Merge { step: u32, entry: u32 },
 }
 
 /// GPU voxel grid: pipelines built once, table and output buffers grown as needed.
 pub struct GpuVoxel {
     layout: wgpu::BindGroupLayout,
     pipelines: Vec<wgpu::ComputePipeline>,
+    /// compact_scan, with the schedule and dispatch-argument bind group.
+    scan_layout: wgpu::BindGroupLayout,
+    scan: wgpu::ComputePipeline,
+    scan_group: wgpu::BindGroup,
+    block_sums: wgpu::Buffer,
+    dispatch_args: wgpu::Buffer,
+    /// Indirect-argument entries of sort_local and reduce (the others are in `sort_passes`).
+    local_entry: u32,
+    reduce_entry: u32,
+    timer: Option<StageTimer>,
     params: wgpu::Buffer,
     header: wgpu::Buffer,
     no_mask: wgpu::Buffer,
@@ -463,6 +494,22 @@ fn slots_for(n: u64) -> u32 {
         .min(1 << 30) as u32
 }
 
+/// The bind group of compact_scan: the dispatch schedule and the indirect arguments.
+fn schedule_group(
+    ctx: &GpuContext,
+    layout: &wgpu::BindGroupLayout,
+    schedule: &wgpu::Buffer,
+    args: &wgpu::Buffer,
+) -> Result<wgpu::BindGroup, GpuError> {
+    ctx.scoped("voxel compaction schedule bind group", |device| {
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("voxel compaction schedule bind group"),
+            layout,
+            entries: &[entry(0, schedule), entry(1, args)],
+        })
+    })
+}
+
 impl GpuVoxel {
     pub fn new(ctx: &GpuContext) -> Result<Self, VoxelError> {
         use BindingKind::*;
@@ -479,9 +526,23 @@ impl GpuVoxel {
                 Storage,
                 Storage,
                 UniformDynamic,
+                Storage,
             ],
         )?;
         let pipelines = shader::compute_pipelines(ctx, &shader::VOXEL, &[&layout], &ENTRY_POINTS)?;
+        let scan_layout = shader::bind_group_layout(
+            ctx,
+            "voxel compaction schedule layout",
+            &[StorageReadOnly, Storage],
+        )?;
+        let scan = shader::compute_pipelines(
+            ctx,
+            &shader::VOXEL,
+            &[&layout, &scan_layout],
+            &["compact_scan"],
+        )?
+        .remove(0);
+        let timer = StageTimer::new(ctx, "voxel", &TIMED_PASSES)?;
         let step_stride = u64::from(ctx.device().limits().min_uniform_buffer_offset_alignment)
             .max(std::mem::size_of::<SortStep>() as u64);
         let buffers = ctx.scoped("voxel buffers", |device| {
@@ -497,9 +558,19 @@ impl GpuVoxel {
                 gpu_buffer(device, "voxel no mask", 16, STORAGE),
             )
         })?;
+        // Replaced with the table's by `resize_table` below.
+        let scan_group = schedule_group(ctx, &scan_layout, &buffers.2, &buffers.1)?;
         let mut voxel = Self {
             layout,
             pipelines,
+            scan_layout,
+            scan,
+            scan_group,
+            block_sums: buffers.2.clone(),
+            dispatch_args: buffers.2.clone(),
+            local_entry: 0,
+            reduce_entry: 0,
+            timer,
             params: buffers.0,
             header: buffers.1,
             no_mask: buffers.2.clone(),
@@ -542,17 +613,22 @@ impl GpuVoxel {
         }
         let s = u64::from(slots);
         ctx.check_storage_size("voxel table", s * SLOT_WORDS * 4)?;
-        // Bitonic schedule: local sort of 512-blocks, then for every k >= 1024 the global
-        // steps j >= 512 and one in-block merge of the steps j < 512.
+        // Bitonic schedule for up to `slots` keys: local sort of 512-blocks, then for every
+        // k >= 1024 the global steps j >= 512 and one in-block merge of the steps j < 512,
+        // then the reduce. Every dispatch is indirect; `schedule` says compact_scan how to size
+        // it from the compacted count (stages with k beyond the sort size get no workgroups).
         let mut steps: Vec<SortStep> = Vec::new();
         let mut passes = Vec::new();
+        let mut schedule: Vec<[u32; 2]> = vec![[SCHEDULE_BLOCKS, SORT_BLOCK]];
         let mut k = 2 * SORT_BLOCK;
         while k <= slots {
             let mut j = k / 2;
             while j >= SORT_BLOCK {
                 passes.push(SortPass::Global {
                     step: steps.len() as u32,
+                    entry: schedule.len() as u32,
                 });
+                schedule.push([SCHEDULE_GLOBAL, k]);
                 steps.push(SortStep {
                     k,
                     j,
@@ -562,7 +638,9 @@ impl GpuVoxel {
             }
             passes.push(SortPass::Merge {
                 step: steps.len() as u32,
+                entry: schedule.len() as u32,
             });
+            schedule.push([SCHEDULE_BLOCKS, k]);
             steps.push(SortStep {
                 k,
                 j: 0,
@@ -570,6 +648,8 @@ impl GpuVoxel {
             });
             k *= 2;
         }
+        let reduce_entry = schedule.len() as u32;
+        schedule.push([SCHEDULE_REDUCE, 0]);
         let stride = self.step_stride;
         let mut step_bytes = vec![0u8; (steps.len() as u64 * stride).max(stride) as usize];
         for (i, st) in steps.iter().enumerate() {
@@ -577,27 +657,49 @@ impl GpuVoxel {
             step_bytes[at..at + std::mem::size_of::<SortStep>()]
                 .copy_from_slice(bytemuck::bytes_of(st));
         }
-        let (keys, data, sort, out, step_buf) = ctx.scoped("voxel table", |device| {
-            (
-                gpu_buffer(device, "voxel table keys", 4 * s, STORAGE),
-                gpu_buffer(device, "voxel table sums", 4 * SLOT_WORDS * s, STORAGE),
-                gpu_buffer(device, "voxel sort keys", 4 * s, STORAGE),
-                gpu_buffer(device, "voxel output points", 16 * s, STORAGE),
-                gpu_buffer(
-                    device,
-                    "voxel sort steps",
-                    step_bytes.len() as u64,
-                    wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                ),
-            )
-        })?;
+        let blocks = u64::from(slots / COMPACT_BLOCK);
+        let (keys, data, sort, out, step_buf, block_sums, schedule_buf, args) =
+            ctx.scoped("voxel table", |device| {
+                (
+                    gpu_buffer(device, "voxel table keys", 4 * s, STORAGE),
+                    gpu_buffer(device, "voxel table sums", 4 * SLOT_WORDS * s, STORAGE),
+                    gpu_buffer(device, "voxel sort keys", 4 * s, STORAGE),
+                    gpu_buffer(device, "voxel output points", 16 * s, STORAGE),
+                    gpu_buffer(
+                        device,
+                        "voxel sort steps",
+                        step_bytes.len() as u64,
+                        wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                    ),
+                    gpu_buffer(device, "voxel block sums", 4 * blocks, STORAGE),
+                    gpu_buffer(
+                        device,
+                        "voxel dispatch schedule",
+                        8 * schedule.len() as u64,
+                        STORAGE,
+                    ),
+                    gpu_buffer(
+                        device,
+                        "voxel dispatch args",
+                        12 * schedule.len() as u64,
+                        wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT,
+                    ),
+                )
+            })?;
         ctx.queue().write_buffer(&step_buf, 0, &step_bytes);
+        ctx.queue()
+            .write_buffer(&schedule_buf, 0, bytemuck::cast_slice(&schedule));
+        self.scan_group = schedule_group(ctx, &self.scan_layout, &schedule_buf, &args)?;
         self.table_keys = keys;
         self.table_data = data;
         self.sort_keys = sort;
         self.out_points = out;
         self.steps = step_buf;
+        self.block_sums = block_sums;
+        self.dispatch_args = args;
         self.sort_passes = passes;
+        self.local_entry = 0;
+        self.reduce_entry = reduce_entry;
         self.table_slots = slots;
         Ok(())
     }
@@ -671,15 +773,14 @@ impl GpuVoxel {
         self.use_mask = use_mask;
     }
 
-    /// Records the whole voxel stage (clears, then one compute pass) over `points` (packed
-    /// xyz f32), using `mask` when [`Self::prepare`] was told so.
+    /// Records the whole voxel stage (clears, then its four timed compute passes) over
+    /// `points` (packed xyz f32), using `mask` when [`Self::prepare`] was told so.
     pub fn record(
         &self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         points: &wgpu::Buffer,
         mask: Option<&wgpu::Buffer>,
-        timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) {
         let mask = mask.filter(|_| self.use_mask).unwrap_or(&self.no_mask);
         let bind_group = ctx.device().create_bind_group(&wgpu::BindGroupDescriptor {
@@ -702,66 +803,95 @@ impl GpuVoxel {
                         size: wgpu::BufferSize::new(std::mem::size_of::<SortStep>() as u64),
                     }),
                 },
+                entry(9, &self.block_sums),
             ],
         });
         encoder.clear_buffer(&self.header, 0, None);
         encoder.clear_buffer(&self.table_keys, 0, None);
         encoder.clear_buffer(&self.table_data, 0, None);
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("voxel pass"),
-            timestamp_writes: timestamps,
-        });
-        let slot_groups = shader::workgroups_for(self.table_slots);
-        let blocks = self.table_slots / SORT_BLOCK;
         let [
             bounds,
             insert,
-            gather,
+            compact_count,
+            compact_scatter,
             sort_local,
             sort_global,
             sort_merge,
             reduce,
         ] = std::array::from_fn(|i| &self.pipelines[i]);
-        let mut dispatch = |pipeline: &wgpu::ComputePipeline, step: u32, groups: u32| {
-            pass.set_pipeline(pipeline);
-            pass.set_bind_group(
-                0,
-                &bind_group,
-                &[(u64::from(step) * self.step_stride) as u32],
+        let blocks = self.table_slots / COMPACT_BLOCK;
+        let timer = self.timer.as_ref();
+        fn timed_pass<'e>(
+            encoder: &'e mut wgpu::CommandEncoder,
+            timer: Option<&StageTimer>,
+            k: usize,
+            group: &wgpu::BindGroup,
+        ) -> wgpu::ComputePass<'e> {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(TIMED_PASSES[k]),
+                timestamp_writes: timer.map(|t| t.pass_writes(k)),
+            });
+            pass.set_bind_group(0, group, &[0]);
+            pass
+        }
+        let step_offset = |step: u32| (u64::from(step) * self.step_stride) as u32;
+        let args_at = |entry: u32| 12 * u64::from(entry);
+        {
+            let mut pass = timed_pass(encoder, timer, 0, &bind_group);
+            pass.set_pipeline(bounds);
+            pass.dispatch_workgroups(
+                shader::workgroups_for(self.point_count.div_ceil(BOUNDS_CHUNK)),
+                1,
+                1,
             );
-            pass.dispatch_workgroups(groups, 1, 1);
-        };
-        dispatch(
-            bounds,
-            0,
-            shader::workgroups_for(self.point_count.div_ceil(BOUNDS_CHUNK)),
-        );
-        dispatch(
-            insert,
-            0,
-            shader::workgroups_for(self.point_count.div_ceil(INSERT_CHUNK)),
-        );
-        dispatch(gather, 0, slot_groups);
-        dispatch(sort_local, 0, blocks);
-        for p in &self.sort_passes {
-            match p {
-                SortPass::Global { step } => dispatch(
-                    sort_global,
-                    *step,
-                    shader::workgroups_for(self.table_slots / 2),
-                ),
-                SortPass::Merge { step } => dispatch(sort_merge, *step, blocks),
+            pass.set_pipeline(insert);
+            pass.dispatch_workgroups(
+                shader::workgroups_for(self.point_count.div_ceil(INSERT_CHUNK)),
+                1,
+                1,
+            );
+        }
+        {
+            let mut pass = timed_pass(encoder, timer, 1, &bind_group);
+            pass.set_pipeline(compact_count);
+            pass.dispatch_workgroups(blocks, 1, 1);
+            pass.set_pipeline(&self.scan);
+            pass.set_bind_group(1, &self.scan_group, &[]);
+            pass.dispatch_workgroups(1, 1, 1);
+            pass.set_pipeline(compact_scatter);
+            pass.dispatch_workgroups(blocks, 1, 1);
+        }
+        {
+            let mut pass = timed_pass(encoder, timer, 2, &bind_group);
+            pass.set_pipeline(sort_local);
+            pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.local_entry));
+            for p in &self.sort_passes {
+                let (pipeline, step, entry) = match p {
+                    SortPass::Global { step, entry } => (sort_global, step, entry),
+                    SortPass::Merge { step, entry } => (sort_merge, step, entry),
+                };
+                pass.set_pipeline(pipeline);
+                pass.set_bind_group(0, &bind_group, &[step_offset(*step)]);
+                pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(*entry));
             }
         }
-        dispatch(reduce, 0, slot_groups);
+        let mut pass = timed_pass(encoder, timer, 3, &bind_group);
+        pass.set_pipeline(reduce);
+        pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.reduce_entry));
     }
 
-    /// Bytes of the voxel results in a readback buffer: header, then output capacity.
+    fn timer_bytes(&self) -> u64 {
+        self.timer.as_ref().map_or(0, StageTimer::readback_bytes)
+    }
+
+    /// Bytes of the voxel results in a readback buffer: header, pass timestamps, then the
+    /// output capacity.
     pub fn readback_bytes(&self) -> u64 {
-        HEADER_BYTES + 16 * u64::from(self.table_slots)
+        HEADER_BYTES + self.timer_bytes() + 16 * u64::from(self.table_slots)
     }
 
-    /// Copies header and output points into `dst` at `offset` (see [`Self::readback_bytes`]).
+    /// Copies header, timestamps and output points into `dst` at `offset` (see
+    /// [`Self::readback_bytes`]).
     pub fn copy_results(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -769,11 +899,14 @@ impl GpuVoxel {
         offset: u64,
     ) {
         encoder.copy_buffer_to_buffer(&self.header, 0, dst, offset, HEADER_BYTES);
+        if let Some(t) = &self.timer {
+            t.resolve_into(encoder, dst, offset + HEADER_BYTES);
+        }
         encoder.copy_buffer_to_buffer(
             &self.out_points,
             0,
             dst,
-            offset + HEADER_BYTES,
+            offset + HEADER_BYTES + self.timer_bytes(),
             16 * u64::from(self.table_slots),
         );
     }
@@ -787,8 +920,14 @@ impl GpuVoxel {
         bytes: &[u8],
         config: &VoxelConfig,
         leaf_m: f64,
-    ) -> Result<Option<VoxelOutput>, VoxelError> {
+    ) -> Result<Option<(VoxelOutput, Vec<StageTime>)>, VoxelError> {
         let header: VoxelHeader = bytemuck::pod_read_unaligned(&bytes[..HEADER_BYTES as usize]);
+        let points_at = (HEADER_BYTES + self.timer_bytes()) as usize;
+        let times = self
+            .timer
+            .as_ref()
+            .map(|t| t.read(&bytes[HEADER_BYTES as usize..points_at]))
+            .unwrap_or_default();
         if header.overflow != 0 {
             let max = slots_for(u64::from(config.max_table_slots));
             if self.table_slots >= max {
@@ -811,7 +950,7 @@ impl GpuVoxel {
             retries: 0,
         };
         if header.valid_count == 0 {
-            return Ok(Some(out));
+            return Ok(Some((out, times)));
         }
         let min_p: [f32; 3] = std::array::from_fn(|a| from_order_key(!header.min_inv[a]));
         let max_p: [f32; 3] = std::array::from_fn(|a| from_order_key(header.max_key[a]));
@@ -821,8 +960,7 @@ impl GpuVoxel {
         let need = slots_for(2 * u64::from(header.cells));
         self.next_slots = Some(need.min(slots_for(u64::from(config.max_table_slots))));
         let n = header.out_count as usize;
-        let raw: &[[u32; 4]] =
-            bytemuck::cast_slice(&bytes[HEADER_BYTES as usize..HEADER_BYTES as usize + 16 * n]);
+        let raw: &[[u32; 4]] = bytemuck::cast_slice(&bytes[points_at..points_at + 16 * n]);
         out.points = raw
             .iter()
             .map(|v| {
@@ -834,18 +972,18 @@ impl GpuVoxel {
             })
             .collect();
         out.counts = raw.iter().map(|v| v[3]).collect();
-        Ok(Some(out))
+        Ok(Some((out, times)))
     }
 
     /// Voxelises one cloud on its own: upload, one submit and readback per attempt (a table
-    /// overflow retries with a bigger table). Returns the output and the stage's GPU time.
+    /// overflow retries with a bigger table). Returns the output and the GPU time of the
+    /// stage's passes (empty without timestamp queries).
     pub fn run(
         &mut self,
         ctx: &GpuContext,
         points: &[Vec3],
         config: &VoxelConfig,
-        timer: Option<&StageTimer>,
-    ) -> Result<(VoxelOutput, Option<f64>), VoxelError> {
+    ) -> Result<(VoxelOutput, Vec<StageTime>), VoxelError> {
         self.prepare(ctx, points.len(), false, config, config.leaf_m)?;
         let input = ctx.scoped("voxel input", |device| {
             gpu_buffer(
@@ -861,12 +999,11 @@ impl GpuVoxel {
         }
         let mut retries = 0;
         loop {
-            let ts_bytes = timer.map_or(0, |t| t.readback_bytes());
             let readback = ctx.scoped("voxel readback", |device| {
                 gpu_buffer(
                     device,
                     "voxel readback",
-                    ts_bytes + self.readback_bytes(),
+                    self.readback_bytes(),
                     wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 )
             })?;
@@ -875,26 +1012,14 @@ impl GpuVoxel {
                     .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                         label: Some("voxel frame"),
                     });
-            self.record(
-                ctx,
-                &mut encoder,
-                &input,
-                None,
-                timer.map(|t| t.pass_writes(0)),
-            );
-            if let Some(t) = timer {
-                t.resolve_into(&mut encoder, &readback, 0);
-            }
-            self.copy_results(&mut encoder, &readback, ts_bytes);
-            let ts_len = ts_bytes as usize;
-            let (result, gpu_ms) =
-                ctx.submit_and_read("voxel", encoder.finish(), &readback, |b| {
-                    let ms = timer.map(|t| t.read(&b[..ts_len])[0].gpu_ms);
-                    (self.decode(ctx, &b[ts_len..], config, config.leaf_m), ms)
-                })?;
-            if let Some(mut out) = result? {
+            self.record(ctx, &mut encoder, &input, None);
+            self.copy_results(&mut encoder, &readback, 0);
+            let result = ctx.submit_and_read("voxel", encoder.finish(), &readback, |b| {
+                self.decode(ctx, b, config, config.leaf_m)
+            })?;
+            if let Some((mut out, times)) = result? {
                 out.retries = retries;
-                return Ok((out, gpu_ms));
+                return Ok((out, times));
             }
             retries += 1;
         }
@@ -937,9 +1062,7 @@ pub(crate) mod tests {
 
     fn gpu_run(points: &[Vec3], config: &VoxelConfig) -> Result<VoxelOutput, VoxelError> {
         let ctx = test_context();
-        GpuVoxel::new(ctx)?
-            .run(ctx, points, config, None)
-            .map(|(o, _)| o)
+        GpuVoxel::new(ctx)?.run(ctx, points, config).map(|(o, _)| o)
     }
 
     #[test]
@@ -1005,7 +1128,7 @@ pub(crate) mod tests {
             })
             .unwrap();
         let mut encoder = ctx.device().create_command_encoder(&Default::default());
-        voxel.record(ctx, &mut encoder, &input, Some(&mask_buf), None);
+        voxel.record(ctx, &mut encoder, &input, Some(&mask_buf));
         voxel.copy_results(&mut encoder, &readback, 0);
         let gpu = ctx
             .submit_and_read("test", encoder.finish(), &readback, |b| {
@@ -1013,7 +1136,8 @@ pub(crate) mod tests {
             })
             .unwrap()
             .unwrap()
-            .expect("no overflow");
+            .expect("no overflow")
+            .0;
         assert_same(&gpu, &cpu);
     }
 
@@ -1074,7 +1198,7 @@ pub(crate) mod tests {
                 };
                 let cpu = voxel_cpu(&cloud.points, None, &config).unwrap();
                 assert!(cpu.points.len() > 1000, "{name}: {}", cpu.points.len());
-                let (gpu, _) = voxel.run(ctx, &cloud.points, &config, None).unwrap();
+                let (gpu, _) = voxel.run(ctx, &cloud.points, &config).unwrap();
                 assert_same(&gpu, &cpu);
             }
         }
@@ -1135,6 +1259,10 @@ pub(crate) mod tests {
             ("BOUNDS_CHUNK", BOUNDS_CHUNK),
             ("INSERT_CHUNK", INSERT_CHUNK),
             ("SORT_BLOCK", SORT_BLOCK),
+            ("COMPACT_BLOCK", COMPACT_BLOCK),
+            ("SCHEDULE_BLOCKS", SCHEDULE_BLOCKS),
+            ("SCHEDULE_GLOBAL", SCHEDULE_GLOBAL),
+            ("SCHEDULE_REDUCE", SCHEDULE_REDUCE),
             ("SLOT_WORDS", SLOT_WORDS as u32),
         ] {
             let init = module
