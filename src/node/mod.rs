@@ -4,9 +4,10 @@
 //! Three kinds of threads, so a slow frame never blocks the control loop:
 //!
 //! 1. **source** (one thread): delivers frames when they are due (a recording paced by its
-//!    stamps, or a TCP stream as bytes arrive, [`stream`]) into a short bounded queue; when
-//!    perception is behind, the frame is dropped and counted instead of queued (latest data
-//!    wins, no backlog),
+//!    stamps, or a TCP stream as bytes arrive, [`stream`]) into a short bounded queue
+//!    ([`frame_queue`]); when perception is behind and the queue is full, the oldest queued
+//!    frame is dropped and counted, so the newest frame wins (no backlog, no stale frame
+//!    ahead of a fresh one),
 //! 2. **perception** (one thread, owning the GPU context): the per-camera chain
 //!    ([`CameraChain`]: crop, voxel grid, clusters, and one surface estimator with its memory
 //!    per camera), then hands each
@@ -40,6 +41,7 @@
 //! file ([`record`]).
 
 pub mod can_out;
+pub mod frame_queue;
 #[cfg(feature = "viewer")]
 pub mod overlay;
 pub mod record;
@@ -68,6 +70,7 @@ use crate::perception::pipeline::{
 use crate::scene::Simulator;
 use crate::surface::SurfaceEstimate;
 use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
+use frame_queue::{CloseOnDrop, FrameQueue};
 use nalgebra::{Point3, Vector3};
 use record::{ControlRecord, FrameRecorder, RecordError, TickRecord};
 use robot_state::{PerceptionScene, RobotState, RobotStateConfig};
@@ -75,7 +78,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc::{self, Receiver, SyncSender, TrySendError};
+use std::sync::mpsc::{self, SyncSender};
 use std::time::{Duration, Instant};
 
 /// Node settings: the loop and every stage's config.
@@ -86,7 +89,7 @@ pub struct NodeConfig {
     pub tick_rate_hz: f64,
     /// HIP position used by perception while no robot state is available, world frame, m.
     pub hip_world_m: Point3<f64>,
-    /// Frames waiting for perception; beyond this the source drops frames.
+    /// Frames waiting for perception; beyond this the oldest queued frame is dropped.
     pub frame_queue_count: usize,
     /// What the constraints do when fusion goes stale (a camera stopped).
     pub on_stale: StalePolicy,
@@ -310,7 +313,7 @@ pub struct CameraSummary {
 pub struct NodeSummary {
     /// Frames perception processed.
     pub frames: u64,
-    /// Frames the source dropped because perception was behind.
+    /// Queued frames dropped for a newer one because perception was behind.
     pub dropped_frames: u64,
     /// Malformed stream records dropped.
     pub malformed_records: u64,
@@ -527,7 +530,7 @@ impl Perception {
 fn perception_thread(
     mut perception: Perception,
     robot: &RobotState,
-    frames: Receiver<Frame>,
+    frames: &FrameQueue<Frame>,
     estimates: mpsc::Sender<SurfaceEstimate>,
     mut recorder: Option<FrameRecorder>,
     shared: &Shared,
@@ -535,7 +538,9 @@ fn perception_thread(
 ) -> Result<PerceptionReport, NodeError> {
     let mut counts: BTreeMap<u32, (u64, u64)> = BTreeMap::new();
     let mut times_s = Vec::new();
-    for frame in frames {
+    // The source stops once perception does, whatever the way out.
+    let _close = CloseOnDrop(frames);
+    while let Some(frame) = frames.pop() {
         let start = Instant::now();
         let q = robot.at(frame.stamp_s).q_rad;
         let scene = robot.perception_scene(&q);
@@ -575,17 +580,20 @@ fn perception_thread(
     })
 }
 
-fn source_thread(source: Source, clock: &Clock, queue: SyncSender<Frame>, shared: &Shared) {
-    let offer = |frame: Frame| match queue.try_send(frame) {
-        Ok(()) => {
+fn source_thread(source: Source, clock: &Clock, queue: &FrameQueue<Frame>, shared: &Shared) {
+    // Perception drains what is queued and ends once the source does.
+    let _close = CloseOnDrop(queue);
+    let offer = |frame: Frame| match queue.push(frame) {
+        Ok(None) => {
             shared.queued.fetch_add(1, Ordering::Relaxed);
             true
         }
-        Err(TrySendError::Full(_)) => {
+        // The oldest queued frame made room: one frame in, one out.
+        Ok(Some(_oldest)) => {
             shared.dropped.fetch_add(1, Ordering::Relaxed);
             true
         }
-        Err(TrySendError::Disconnected(_)) => false,
+        Err(_) => false,
     };
     match source {
         Source::Timed(frames) | Source::Simulated { frames, .. } => {
@@ -731,7 +739,7 @@ pub fn run(
         aligned: AtomicBool::new(timed_frames.is_some()),
     };
     let shared = Shared::default();
-    let (frame_tx, frame_rx) = mpsc::sync_channel::<Frame>(config.frame_queue_count);
+    let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
     let (estimate_tx, estimate_rx) = mpsc::channel::<SurfaceEstimate>();
     let tick_s = 1.0 / config.tick_rate_hz;
     let period = Duration::from_secs_f64(tick_s / options.speed);
@@ -745,14 +753,14 @@ pub fn run(
             perception_thread(
                 perception,
                 robot,
-                frame_rx,
+                frame_queue,
                 estimate_tx,
                 frame_recorder,
                 shared,
                 observer,
             )
         });
-        let source_handle = scope.spawn(|| source_thread(source, &clock, frame_tx, shared));
+        let source_handle = scope.spawn(|| source_thread(source, &clock, frame_queue, shared));
 
         let mut stats = LoopStats::default();
         let mut run_loop = || -> Result<u64, NodeError> {

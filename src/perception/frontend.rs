@@ -1,7 +1,9 @@
 //! The per-frame front end (paper IV-A to IV-C): crop -> voxel grid -> clustering.
 //!
 //! On the GPU ([`GpuFrontend`]) a frame is one command encoder and one submit: upload the
-//! points, record the crop pass (keep mask), the voxel pass (reads the mask; clears with
+//! finite points (an organized depth frame is mostly invalid pixels: 88 % of a simulated
+//! 848x480 D435 frame; the voxel grid and the clusters depend neither on the points' order nor
+//! on their indices, so dropping them first changes no result), record the crop pass (keep mask), the voxel pass (reads the mask; clears with
 //! `clear_buffer`), the cluster passes (read the voxel output and its GPU-side count through
 //! an indirect dispatch), resolve the timestamp queries, and copy the stage results into one
 //! readback buffer, which is mapped once. Only when a bounded union-find pass of the
@@ -26,7 +28,7 @@ use crate::gpu::{Backend, GpuContext, GpuError};
 use crate::perception::cluster::{
     ClusterConfig, ClusterError, ClusterInput, Clustering, GpuClusterer, cluster_cpu,
 };
-use crate::perception::crop::{CropConfig, CropError, CropScene, GpuCrop, crop_cpu};
+use crate::perception::crop::{CropConfig, CropError, CropScene, GpuCrop, crop_cpu, finite_bits};
 use crate::perception::voxel::{
     GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, voxel_cpu_with_leaf,
 };
@@ -179,6 +181,8 @@ pub struct GpuFrontend {
     input: wgpu::Buffer,
     readback: wgpu::Buffer,
     leaf: LeafAdapter,
+    /// The frame's finite points (reused between frames).
+    finite: Vec<Vec3>,
 }
 
 fn make_buffer(
@@ -221,6 +225,7 @@ impl GpuFrontend {
             timer,
             input,
             readback,
+            finite: Vec::new(),
         })
     }
 
@@ -245,7 +250,10 @@ impl GpuFrontend {
     pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
         let start = Instant::now();
         let ctx = Arc::clone(&self.ctx);
-        let n = frame.points.len();
+        self.finite.clear();
+        self.finite
+            .extend(frame.points.iter().copied().filter(|p| finite_bits(*p)));
+        let n = self.finite.len();
         let input_bytes = 12 * n as u64;
         ctx.check_storage_size("frontend input points", input_bytes)?;
         if self.input.size() < input_bytes {
@@ -253,7 +261,7 @@ impl GpuFrontend {
         }
         if n > 0 {
             ctx.queue()
-                .write_buffer(&self.input, 0, bytemuck::cast_slice(frame.points));
+                .write_buffer(&self.input, 0, bytemuck::cast_slice(&self.finite));
         }
         if let Some(scene) = &frame.crop {
             self.crop.prepare(&ctx, n, &self.config.crop, scene)?;
@@ -330,7 +338,7 @@ impl GpuFrontend {
         gpu_times.extend(cluster_stats.gpu_times);
         self.leaf.update(&self.config.voxel, voxel.points.len());
         Ok(FrontendOutput {
-            points_in: n,
+            points_in: frame.points.len(),
             voxel,
             clusters,
             gpu_times,
