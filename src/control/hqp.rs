@@ -226,7 +226,15 @@ impl HierarchicalSolver {
                     x += &basis * z_ls;
                     LevelMethod::LeastSquares
                 } else {
-                    let level_qp = level_qp(&hess, &grad, &dz, &s, &dhz, &sh);
+                    let level = Level {
+                        hess: &hess,
+                        grad: &grad,
+                        dz: &dz,
+                        s: &s,
+                        dhz: &dhz,
+                        sh: &sh,
+                    };
+                    let level_qp = level.qp();
                     match qp::solve_active_set(&level_qp, &self.settings.active_set) {
                         Ok(sol) if level_qp.max_violation(&sol.x) <= tol => {
                             x += &basis * sol.x.rows(0, nz);
@@ -238,9 +246,7 @@ impl HierarchicalSolver {
                                 Ok(sol) => QpError::Inaccurate(level_qp.max_violation(&sol.x)),
                                 Err(e) => e,
                             });
-                            let z = self.solve_qp_working_set(
-                                t.name, &hess, &grad, &z_ls, &dz, &s, &dhz, &sh,
-                            )?;
+                            let z = self.solve_qp_working_set(t.name, &level, &z_ls)?;
                             x += &basis * z;
                             LevelMethod::QpFallback
                         }
@@ -296,19 +302,14 @@ impl HierarchicalSolver {
     /// a handful of rows instead of all 20-30 of the hierarchy (its interior-point iterations
     /// factorise a KKT system of `nz + 2 * rows` unknowns, which dominates the tick). Each
     /// round adds at least one row, so the loop ends after at most `rows` rounds.
-    #[allow(clippy::too_many_arguments)]
     fn solve_qp_working_set(
         &self,
         name: &'static str,
-        hess: &DMatrix<f64>,
-        grad: &DVector<f64>,
+        level: &Level<'_>,
         z_ls: &DVector<f64>,
-        dz: &DMatrix<f64>,
-        s: &DVector<f64>,
-        dhz: &DMatrix<f64>,
-        sh: &DVector<f64>,
     ) -> Result<DVector<f64>, HqpError> {
         let tol = self.settings.feasibility_tolerance;
+        let Level { dz, s, dhz, sh, .. } = *level;
         let (k, kh) = (dz.nrows(), dhz.nrows());
         let violated = |z: &DVector<f64>, own: &[bool], high: &[bool]| {
             let own_v: Vec<usize> = (0..k)
@@ -331,65 +332,63 @@ impl HierarchicalSolver {
             };
             let (dzw, sw) = pick(dz, s, &own);
             let (dhw, shw) = pick(dhz, sh, &high);
-            let z = self.solve_qp(name, hess, grad, &dzw, &sw, &dhw, &shw)?;
+            let working = Level {
+                dz: &dzw,
+                s: &sw,
+                dhz: &dhw,
+                sh: &shw,
+                ..*level
+            };
+            let z = qp::solve_clarabel(&working.qp(), &self.qp_settings)
+                .map(|x| x.rows(0, level.hess.nrows()).into_owned())
+                .map_err(|e| HqpError::Solver {
+                    task: name,
+                    status: e.to_string(),
+                })?;
             (add_own, add_high) = violated(&z, &own, &high);
             if add_own.is_empty() && add_high.is_empty() {
                 return Ok(z);
             }
         }
     }
-
-    /// One level's QP over `[z; v]` (rows as given) with clarabel.
-    #[allow(clippy::too_many_arguments)]
-    fn solve_qp(
-        &self,
-        name: &'static str,
-        hess: &DMatrix<f64>,
-        grad: &DVector<f64>,
-        dz: &DMatrix<f64>,
-        s: &DVector<f64>,
-        dhz: &DMatrix<f64>,
-        sh: &DVector<f64>,
-    ) -> Result<DVector<f64>, HqpError> {
-        let problem = level_qp(hess, grad, dz, s, dhz, sh);
-        qp::solve_clarabel(&problem, &self.qp_settings)
-            .map(|x| x.rows(0, hess.nrows()).into_owned())
-            .map_err(|e| HqpError::Solver {
-                task: name,
-                status: e.to_string(),
-            })
-    }
 }
 
-/// A level's QP over `[z; v]` (module doc): `min 1/2 z^T hess z - grad^T z + 1/2 |v|^2`
-/// subject to `dz z - v <= s` (one slack per own row) and `dhz z <= sh`.
-fn level_qp(
-    hess: &DMatrix<f64>,
-    grad: &DVector<f64>,
-    dz: &DMatrix<f64>,
-    s: &DVector<f64>,
-    dhz: &DMatrix<f64>,
-    sh: &DVector<f64>,
-) -> DenseQp {
-    let nz = hess.nrows();
-    let k = dz.nrows();
-    let nv = nz + k;
-    let mut h = DMatrix::zeros(nv, nv);
-    h.view_mut((0, 0), (nz, nz)).copy_from(hess);
-    for i in 0..k {
-        h[(nz + i, nz + i)] = 1.0;
+/// One level's problem in the step `z` (module doc): Hessian and gradient of the equality
+/// objective, own rows `dz z <= s` and the higher rows `dhz z <= sh`.
+#[derive(Clone, Copy)]
+struct Level<'a> {
+    hess: &'a DMatrix<f64>,
+    grad: &'a DVector<f64>,
+    dz: &'a DMatrix<f64>,
+    s: &'a DVector<f64>,
+    dhz: &'a DMatrix<f64>,
+    sh: &'a DVector<f64>,
+}
+
+impl Level<'_> {
+    /// The level's QP over `[z; v]`: `min 1/2 z^T hess z - grad^T z + 1/2 |v|^2` subject to
+    /// `dz z - v <= s` (one slack per own row) and `dhz z <= sh`.
+    fn qp(&self) -> DenseQp {
+        let nz = self.hess.nrows();
+        let k = self.dz.nrows();
+        let kh = self.dhz.nrows();
+        let nv = nz + k;
+        let mut h = DMatrix::zeros(nv, nv);
+        h.view_mut((0, 0), (nz, nz)).copy_from(self.hess);
+        for i in 0..k {
+            h[(nz + i, nz + i)] = 1.0;
+        }
+        let mut c = DVector::zeros(nv);
+        c.rows_mut(0, nz).copy_from(&(-self.grad));
+        let mut a = DMatrix::zeros(k + kh, nv);
+        a.view_mut((0, 0), (k, nz)).copy_from(self.dz);
+        for i in 0..k {
+            a[(i, nz + i)] = -1.0;
+        }
+        a.view_mut((k, 0), (kh, nz)).copy_from(self.dhz);
+        let b = DVector::from_iterator(k + kh, self.s.iter().chain(self.sh.iter()).copied());
+        DenseQp { h, c, a, b }
     }
-    let mut c = DVector::zeros(nv);
-    c.rows_mut(0, nz).copy_from(&(-grad));
-    let m = k + dhz.nrows();
-    let mut a = DMatrix::zeros(m, nv);
-    a.view_mut((0, 0), (k, nz)).copy_from(dz);
-    for i in 0..k {
-        a[(i, nz + i)] = -1.0;
-    }
-    a.view_mut((k, 0), (dhz.nrows(), nz)).copy_from(dhz);
-    let b = DVector::from_iterator(m, s.iter().chain(sh.iter()).copied());
-    DenseQp { h, c, a, b }
 }
 
 #[cfg(test)]
