@@ -24,8 +24,11 @@ use hapcloud::control::closed_loop::{
 use hapcloud::node::scene_loop::{self, SceneLoopOptions, SceneRun};
 use hapcloud::robot::RobotModel;
 use hapcloud::scene::{Scene, builtin};
-use plotters::chart::SeriesLabelStyle;
+use plotters::chart::{SeriesAnno, SeriesLabelStyle};
+use plotters::coord::Shift;
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
@@ -252,8 +255,7 @@ fn scene_stem(scene: &Scene) -> String {
 
 /// Safe-speed sweep: worst margin and penetration per speed, both modes.
 fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
-    let root = BitMapBackend::new(path, (1100, 800)).into_drawing_area();
-    root.fill(&WHITE)?;
+    let root = canvas(path, (1100, 800))?;
     let panels = root.split_evenly((2, 1));
     let v_max = rows.iter().map(|r| r.speed_mps).fold(0.0, f64::max) + 0.1;
     type Metric = (&'static str, fn(&SweepRow) -> f64);
@@ -265,32 +267,19 @@ fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
     ];
     for (i, (label, get)) in metrics.iter().enumerate() {
         let (lo, hi) = range(rows.iter().map(get).chain([0.0, r_hip]));
-        let mut chart = ChartBuilder::on(&panels[i])
-            .caption(format!("rising surface: {label}"), (FONT, 22))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..v_max, lo..hi)?;
-        chart
-            .configure_mesh()
-            .x_desc("surface speed [m/s]")
-            .y_desc(*label)
-            .label_style((FONT, 15))
-            .draw()?;
-        chart
-            .draw_series(LineSeries::new(
-                [(0.0, 0.0), (v_max, 0.0)],
-                BLACK.stroke_width(1),
-            ))?
+        let mut chart = panel(
+            &panels[i],
+            PanelStyle::WIDE,
+            &format!("rising surface: {label}"),
+            (0.0..v_max, "surface speed [m/s]"),
+            (lo..hi, label),
+        )?;
+        hline(&mut chart, v_max, 0.0, BLACK)?
             .label("0")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
-        chart
-            .draw_series(LineSeries::new(
-                [(0.0, r_hip), (v_max, r_hip)],
-                GREEN.stroke_width(1),
-            ))?
+            .legend(swatch(BLACK));
+        hline(&mut chart, v_max, r_hip, GREEN)?
             .label("r_HIP")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], GREEN));
+            .legend(swatch(GREEN));
         for (feed, color, mode) in [(false, RED, "paper"), (true, BLUE, "surface velocity fed")] {
             let pts: Vec<(f64, f64)> = rows
                 .iter()
@@ -298,10 +287,7 @@ fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
                 .map(|r| (r.speed_mps, get(r)))
                 .collect();
             chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))?;
-            chart
-                .draw_series(LineSeries::new(pts, color.stroke_width(2)))?
-                .label(mode)
-                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color));
+            curve(&mut chart, pts, color, mode)?;
         }
         legend_style(&mut chart, 15).draw()?;
     }
@@ -312,10 +298,13 @@ fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
 /// Perception in the loop: the controller's `d_proj` (fused surface) against the true one,
 /// and the HIP and nearest surface point heights, over time.
 fn plot_scene(path: &Path, title: &str, run: &SceneRun, r_hip: f64) -> Result<()> {
-    let root = BitMapBackend::new(path, (1100, 800)).into_drawing_area();
-    root.fill(&WHITE)?;
+    let root = canvas(path, (1100, 800))?;
     let panels = root.split_evenly((2, 1));
     let t_end = run.samples.last().map_or(1.0, |s| s.t_s);
+    let style = PanelStyle {
+        caption_px: 20,
+        ..PanelStyle::WIDE
+    };
     // top: d_proj, true and fused
     let finite = |v: f64| v.is_finite().then_some(v);
     let (lo, hi) = range(
@@ -325,38 +314,24 @@ fn plot_scene(path: &Path, title: &str, run: &SceneRun, r_hip: f64) -> Result<()
             .flatten()
             .chain([-r_hip * 1.1]),
     );
-    let mut chart = ChartBuilder::on(&panels[0])
-        .caption(format!("{title}: projected distance"), (FONT, 20))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(70)
-        .build_cartesian_2d(0.0..t_end, lo..hi)?;
-    chart
-        .configure_mesh()
-        .x_desc("t [s]")
-        .y_desc("d_proj [m]")
-        .label_style((FONT, 15))
-        .draw()?;
-    chart.draw_series(run.samples.iter().filter(|s| s.constraint_active).map(|s| {
-        Rectangle::new(
-            [(s.t_s, lo), (s.t_s + 1.0 / 800.0, hi)],
-            RGBColor(225, 235, 250).filled(),
-        )
-    }))?;
-    chart
-        .draw_series(LineSeries::new(
-            [(0.0, -r_hip), (t_end, -r_hip)],
-            RED.stroke_width(1),
-        ))?
+    let mut chart = panel(
+        &panels[0],
+        style,
+        &format!("{title}: projected distance"),
+        (0.0..t_end, "t [s]"),
+        (lo..hi, "d_proj [m]"),
+    )?;
+    let active = run.samples.iter().filter(|s| s.constraint_active);
+    shade_ticks(&mut chart, active.map(|s| s.t_s), lo..hi)?;
+    hline(&mut chart, t_end, -r_hip, RED)?
         .label("-r_HIP (HIP centre on the surface)")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
-    chart
-        .draw_series(LineSeries::new(
-            run.samples.iter().map(|s| (s.t_s, s.true_d_proj_m)),
-            BLACK.stroke_width(2),
-        ))?
-        .label("true d_proj (scene ground truth)")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+        .legend(swatch(RED));
+    curve(
+        &mut chart,
+        run.samples.iter().map(|s| (s.t_s, s.true_d_proj_m)),
+        BLACK,
+        "true d_proj (scene ground truth)",
+    )?;
     chart
         .draw_series(
             run.samples
@@ -365,22 +340,17 @@ fn plot_scene(path: &Path, title: &str, run: &SceneRun, r_hip: f64) -> Result<()
                 .map(|s| Circle::new((s.t_s, s.fused_d_proj_m), 1, BLUE.filled())),
         )?
         .label("d_proj seen by the controller (fused surface)")
-        .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLUE));
+        .legend(swatch(BLUE));
     legend_style(&mut chart, 14).draw()?;
     // bottom: heights
     let (lo, hi) = range(run.samples.iter().flat_map(|s| [s.hip_z_m, s.closest_z_m]));
-    let mut chart = ChartBuilder::on(&panels[1])
-        .caption("HIP and nearest patient surface point (truth)", (FONT, 20))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(70)
-        .build_cartesian_2d(0.0..t_end, lo..hi)?;
-    chart
-        .configure_mesh()
-        .x_desc("t [s]")
-        .y_desc("z [m]")
-        .label_style((FONT, 15))
-        .draw()?;
+    let mut chart = panel(
+        &panels[1],
+        style,
+        "HIP and nearest patient surface point (truth)",
+        (0.0..t_end, "t [s]"),
+        (lo..hi, "z [m]"),
+    )?;
     for (label, color, get) in [
         (
             "HIP z",
@@ -389,16 +359,118 @@ fn plot_scene(path: &Path, title: &str, run: &SceneRun, r_hip: f64) -> Result<()
         ),
         ("nearest surface point z", BLACK, |s| s.closest_z_m),
     ] {
-        chart
-            .draw_series(LineSeries::new(
-                run.samples.iter().map(|s| (s.t_s, get(s))),
-                color.stroke_width(2),
-            ))?
-            .label(label)
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color));
+        curve(
+            &mut chart,
+            run.samples.iter().map(|s| (s.t_s, get(s))),
+            color,
+            label,
+        )?;
     }
     legend_style(&mut chart, 14).draw()?;
     root.present()?;
+    Ok(())
+}
+
+/// Text sizes and margins of one plot panel, px.
+#[derive(Clone, Copy)]
+struct PanelStyle {
+    caption_px: u32,
+    margin_px: u32,
+    x_label_area_px: u32,
+    y_label_area_px: u32,
+    tick_label_px: u32,
+}
+
+impl PanelStyle {
+    /// A panel of a two-panel 1100 px wide plot.
+    const WIDE: Self = Self {
+        caption_px: 22,
+        margin_px: 12,
+        x_label_area_px: 40,
+        y_label_area_px: 70,
+        tick_label_px: 15,
+    };
+}
+
+type Chart<'a, 'b> =
+    ChartContext<'a, BitMapBackend<'b>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
+
+/// A white bitmap plot of `size` px to be written to `path`.
+fn canvas(path: &Path, size: (u32, u32)) -> Result<DrawingArea<BitMapBackend<'_>, Shift>> {
+    let root = BitMapBackend::new(path, size).into_drawing_area();
+    root.fill(&WHITE)?;
+    Ok(root)
+}
+
+/// One panel of every experiment plot: its caption, the axes `x` and `y` (range and
+/// description) and the mesh, drawn.
+fn panel<'a, 'b>(
+    area: &'a DrawingArea<BitMapBackend<'b>, Shift>,
+    style: PanelStyle,
+    caption: &str,
+    x: (Range<f64>, &str),
+    y: (Range<f64>, &str),
+) -> Result<Chart<'a, 'b>> {
+    let mut chart = ChartBuilder::on(area)
+        .caption(caption, (FONT, style.caption_px))
+        .margin(style.margin_px)
+        .x_label_area_size(style.x_label_area_px)
+        .y_label_area_size(style.y_label_area_px)
+        .build_cartesian_2d(x.0, y.0)?;
+    chart
+        .configure_mesh()
+        .x_desc(x.1)
+        .y_desc(y.1)
+        .label_style((FONT, style.tick_label_px))
+        .draw()?;
+    Ok(chart)
+}
+
+/// The legend's line sample in `color`.
+fn swatch(color: RGBColor) -> impl Fn((i32, i32)) -> PathElement<(i32, i32)> {
+    move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color)
+}
+
+/// A 2 px line through `points` with its legend entry.
+fn curve(
+    chart: &mut Chart<'_, '_>,
+    points: impl IntoIterator<Item = (f64, f64)>,
+    color: RGBColor,
+    label: impl Into<String>,
+) -> Result<()> {
+    chart
+        .draw_series(LineSeries::new(points, color.stroke_width(2)))?
+        .label(label)
+        .legend(swatch(color));
+    Ok(())
+}
+
+/// A thin horizontal line at `y` from 0 to `x_end`.
+fn hline<'c, 'a, 'b>(
+    chart: &'c mut Chart<'a, 'b>,
+    x_end: f64,
+    y: f64,
+    color: RGBColor,
+) -> Result<&'c mut SeriesAnno<'a, BitMapBackend<'b>>> {
+    Ok(chart.draw_series(LineSeries::new(
+        [(0.0, y), (x_end, y)],
+        color.stroke_width(1),
+    ))?)
+}
+
+/// Shades the 800 Hz controller ticks starting at `ticks_s` (those with active haptic
+/// constraints) over the whole height `y`.
+fn shade_ticks(
+    chart: &mut Chart<'_, '_>,
+    ticks_s: impl Iterator<Item = f64>,
+    y: Range<f64>,
+) -> Result<()> {
+    chart.draw_series(ticks_s.map(|t| {
+        Rectangle::new(
+            [(t, y.start), (t + 1.0 / 800.0, y.end)],
+            RGBColor(225, 235, 250).filled(),
+        )
+    }))?;
     Ok(())
 }
 
@@ -426,8 +498,7 @@ fn range(values: impl Iterator<Item = f64>) -> (f64, f64) {
 
 /// Fig. 11: `d_proj` and its rate over time, active-constraint intervals shaded.
 fn plot_fig11(path: &Path, name: &str, run: &Run, r_hip: f64) -> Result<()> {
-    let root = BitMapBackend::new(path, (1100, 800)).into_drawing_area();
-    root.fill(&WHITE)?;
+    let root = canvas(path, (1100, 800))?;
     let panels = root.split_evenly((2, 1));
     let t_end = run.samples.last().map_or(1.0, |s| s.t_s);
     type Series = (&'static str, fn(&closed_loop::Sample) -> f64);
@@ -440,53 +511,33 @@ fn plot_fig11(path: &Path, name: &str, run: &Run, r_hip: f64) -> Result<()> {
         if i == 0 {
             lo = lo.min(-r_hip * 1.1);
         }
-        let mut chart = ChartBuilder::on(&panels[i])
-            .caption(
-                if i == 0 {
-                    format!("{name}: projected distance")
-                } else {
-                    format!("{name}: relative velocity")
-                },
-                (FONT, 22),
-            )
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(70)
-            .build_cartesian_2d(0.0..t_end, lo..hi)?;
-        chart
-            .configure_mesh()
-            .x_desc("t [s]")
-            .y_desc(*label)
-            .label_style((FONT, 15))
-            .draw()?;
+        let caption = if i == 0 {
+            format!("{name}: projected distance")
+        } else {
+            format!("{name}: relative velocity")
+        };
+        let mut chart = panel(
+            &panels[i],
+            PanelStyle::WIDE,
+            &caption,
+            (0.0..t_end, "t [s]"),
+            (lo..hi, label),
+        )?;
         // shade the ticks where the haptic constraints were active
         let active = run.samples.iter().filter(|s| s.constraint_active);
-        chart.draw_series(active.map(|s| {
-            Rectangle::new(
-                [(s.t_s, lo), (s.t_s + 1.0 / 800.0, hi)],
-                RGBColor(225, 235, 250).filled(),
-            )
-        }))?;
-        chart.draw_series(LineSeries::new(
-            [(0.0, 0.0), (t_end, 0.0)],
-            BLACK.stroke_width(1),
-        ))?;
+        shade_ticks(&mut chart, active.map(|s| s.t_s), lo..hi)?;
+        hline(&mut chart, t_end, 0.0, BLACK)?;
         if i == 0 {
-            chart
-                .draw_series(LineSeries::new(
-                    [(0.0, -r_hip), (t_end, -r_hip)],
-                    RED.stroke_width(1),
-                ))?
+            hline(&mut chart, t_end, -r_hip, RED)?
                 .label("-r_HIP (HIP point on the surface)")
-                .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], RED));
+                .legend(swatch(RED));
         }
-        chart
-            .draw_series(LineSeries::new(
-                run.samples.iter().map(|s| (s.t_s, get(s))),
-                BLUE.stroke_width(2),
-            ))?
-            .label(*label)
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLUE));
+        curve(
+            &mut chart,
+            run.samples.iter().map(|s| (s.t_s, get(s))),
+            BLUE,
+            *label,
+        )?;
         legend_style(&mut chart, 15).draw()?;
     }
     root.present()?;
@@ -495,9 +546,15 @@ fn plot_fig11(path: &Path, name: &str, run: &Run, r_hip: f64) -> Result<()> {
 
 /// Fig. 12: HIP and surface height over time, one panel per rise speed, both modes.
 fn plot_fig12(path: &Path, runs: &[(&str, f64, Run)]) -> Result<()> {
-    let root = BitMapBackend::new(path, (1400, 1100)).into_drawing_area();
-    root.fill(&WHITE)?;
+    let root = canvas(path, (1400, 1100))?;
     let panels = root.split_evenly((4, 2));
+    let style = PanelStyle {
+        caption_px: 18,
+        margin_px: 8,
+        x_label_area_px: 30,
+        y_label_area_px: 60,
+        tick_label_px: 12,
+    };
     for (k, speed) in RISE_SPEEDS_MPS.iter().enumerate() {
         let of_speed: Vec<_> = runs.iter().filter(|(_, s, _)| s == speed).collect();
         let Some((_, _, first)) = of_speed.first() else {
@@ -509,34 +566,27 @@ fn plot_fig12(path: &Path, runs: &[(&str, f64, Run)]) -> Result<()> {
                 .iter()
                 .flat_map(|(_, _, r)| r.samples.iter().flat_map(|s| [s.hip_z_m, s.surface_z_m])),
         );
-        let mut chart = ChartBuilder::on(&panels[k])
-            .caption(format!("surface rising at {speed:.2} m/s"), (FONT, 18))
-            .margin(8)
-            .x_label_area_size(30)
-            .y_label_area_size(60)
-            .build_cartesian_2d(0.0..t_end, lo..hi)?;
-        chart
-            .configure_mesh()
-            .x_desc("t [s]")
-            .y_desc("z [m]")
-            .label_style((FONT, 12))
-            .draw()?;
-        chart
-            .draw_series(LineSeries::new(
-                first.samples.iter().map(|s| (s.t_s, s.surface_z_m)),
-                BLACK.stroke_width(2),
-            ))?
-            .label("surface (HCP)")
-            .legend(|(x, y)| PathElement::new([(x, y), (x + 20, y)], BLACK));
+        let mut chart = panel(
+            &panels[k],
+            style,
+            &format!("surface rising at {speed:.2} m/s"),
+            (0.0..t_end, "t [s]"),
+            (lo..hi, "z [m]"),
+        )?;
+        curve(
+            &mut chart,
+            first.samples.iter().map(|s| (s.t_s, s.surface_z_m)),
+            BLACK,
+            "surface (HCP)",
+        )?;
         for (mode, _, run) in &of_speed {
             let color = if *mode == "paper" { RED } else { BLUE };
-            chart
-                .draw_series(LineSeries::new(
-                    run.samples.iter().map(|s| (s.t_s, s.hip_z_m)),
-                    color.stroke_width(2),
-                ))?
-                .label(format!("HIP, {mode}"))
-                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], color));
+            curve(
+                &mut chart,
+                run.samples.iter().map(|s| (s.t_s, s.hip_z_m)),
+                color,
+                format!("HIP, {mode}"),
+            )?;
         }
         legend_style(&mut chart, 12)
             .position(SeriesLabelPosition::UpperLeft)
