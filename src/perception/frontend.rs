@@ -1,12 +1,12 @@
 //! The per-frame front end (paper IV-A to IV-C): crop -> voxel grid -> clustering.
 //!
 //! On the GPU ([`GpuFrontend`]) a frame is one command encoder and one submit: upload the
-//! finite points (an organized depth frame is mostly invalid pixels: 88 % of a simulated
-//! 848x480 D435 frame; the voxel grid and the clusters depend neither on the points' order nor
-//! on their indices, so dropping them first changes no result), record the crop pass (keep mask), the voxel pass (reads the mask; clears with
-//! `clear_buffer`), the cluster passes (read the voxel output and its GPU-side count through
-//! an indirect dispatch), resolve the timestamp queries, and copy the stage results into one
-//! readback buffer, which is mapped once. Only when a bounded union-find pass of the
+//! points (all of them: dropping the invalid pixels first, 88 % of a simulated 848x480 D435
+//! frame, saved GPU time on lavapipe but cost more CPU time than it saved upload on an H100,
+//! measured with `stages_vs_pcl`), record the crop pass (keep mask), the voxel passes (read
+//! the mask; clears with `clear_buffer`), the cluster passes (read the voxel output and its
+//! GPU-side count through an indirect dispatch), resolve the timestamp queries, and copy the
+//! stage results into one readback buffer, which is mapped once. Only when a bounded union-find pass of the
 //! clustering ran out of steps does the cluster stage add small submissions of its own
 //! (see [`crate::perception::cluster`]). Each stage is one or more compute passes bracketed by
 //! timestamps, so the frame reports the GPU time per stage. A voxel-table overflow (flag in the
@@ -28,7 +28,7 @@ use crate::gpu::{Backend, GpuContext, GpuError};
 use crate::perception::cluster::{
     ClusterConfig, ClusterError, ClusterInput, Clustering, GpuClusterer, cluster_cpu,
 };
-use crate::perception::crop::{CropConfig, CropError, CropScene, GpuCrop, crop_cpu, finite_bits};
+use crate::perception::crop::{CropConfig, CropError, CropScene, GpuCrop, crop_cpu};
 use crate::perception::voxel::{
     GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, voxel_cpu_with_leaf,
 };
@@ -181,8 +181,6 @@ pub struct GpuFrontend {
     input: wgpu::Buffer,
     readback: wgpu::Buffer,
     leaf: LeafAdapter,
-    /// The frame's finite points (reused between frames).
-    finite: Vec<Vec3>,
 }
 
 fn make_buffer(
@@ -225,7 +223,6 @@ impl GpuFrontend {
             timer,
             input,
             readback,
-            finite: Vec::new(),
         })
     }
 
@@ -250,10 +247,7 @@ impl GpuFrontend {
     pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
         let start = Instant::now();
         let ctx = Arc::clone(&self.ctx);
-        self.finite.clear();
-        self.finite
-            .extend(frame.points.iter().copied().filter(|p| finite_bits(*p)));
-        let n = self.finite.len();
+        let n = frame.points.len();
         let input_bytes = 12 * n as u64;
         ctx.check_storage_size("frontend input points", input_bytes)?;
         if self.input.size() < input_bytes {
@@ -261,7 +255,7 @@ impl GpuFrontend {
         }
         if n > 0 {
             ctx.queue()
-                .write_buffer(&self.input, 0, bytemuck::cast_slice(&self.finite));
+                .write_buffer(&self.input, 0, bytemuck::cast_slice(frame.points));
         }
         if let Some(scene) = &frame.crop {
             self.crop.prepare(&ctx, n, &self.config.crop, scene)?;
