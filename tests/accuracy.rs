@@ -31,6 +31,12 @@ fn clean_head_sliding_is_accurate_on_both_cameras() {
         assert_eq!(f.truth.t_s, f.t_s);
         assert!(f.in_reach, "the HIP touches the head throughout");
         assert!(f.times.total.wall_ms > 0.0);
+        // No calibration bias in a clean scene.
+        let (a, b) = (
+            f.centroid_error_m.unwrap(),
+            f.centroid_error_unbiased_m.unwrap(),
+        );
+        assert!((a - b).abs() < 1e-9, "{a} vs {b}");
     }
     let summary = summarize(
         &evaluation,
@@ -64,6 +70,14 @@ fn realistic_head_sliding_normals_face_the_hip() {
         assert!(s.normal_deg.max < 45.0, "{s:?}");
         assert!(s.normal_deg.rms < 6.0, "{s:?}");
     }
+    // The extrinsic bias (3 mm, 3.5 mrad per axis) is in the rig's error and out of the
+    // unbiased one.
+    assert!(evaluation.frames.iter().any(|f| {
+        let (Some(a), Some(b)) = (f.centroid_error_m, f.centroid_error_unbiased_m) else {
+            return false;
+        };
+        (a - b).abs() > 1e-3
+    }));
     for f in evaluation.frames.iter().filter(|f| f.estimate.valid) {
         // The estimated normal points from the body towards the HIP.
         let towards_hip = f.truth.hip_m - f.estimate.centroid_m;
@@ -130,7 +144,12 @@ fn cli_json_fields_and_errors() {
             for part in ["met", "centroid", "normal", "jump"] {
                 assert!(c["target"][part].is_boolean(), "{key}.target.{part}: {c}");
             }
-            for stat in ["centroid_mm", "normal_deg"] {
+            for stat in [
+                "centroid_mm",
+                "normal_deg",
+                "centroid_unbiased_mm",
+                "normal_unbiased_deg",
+            ] {
                 assert!(c[stat]["rms"].as_f64().unwrap() >= 0.0);
                 assert!(c[stat]["max"].as_f64().unwrap() >= c[stat]["rms"].as_f64().unwrap());
             }
