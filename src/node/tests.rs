@@ -65,6 +65,8 @@ fn config() -> NodeConfig {
         ..Default::default()
     };
     config.fusion.stale_timeout_s = 0.4;
+    // ... and so is the fusion's extrapolation horizon.
+    config.fusion.max_extrapolation_s = 0.4;
     config
 }
 
