@@ -662,3 +662,38 @@ fn a_bad_validity_or_cap_config_is_a_clear_error() {
     let e = SurfaceEstimator::new(config).err().unwrap().to_string();
     assert!(e.contains("cap_gap_m"), "{e}");
 }
+
+/// Issue 4 lead: a plain wall with the HIP 1.5-3.5 cm away (D435 noise, the robot occluding
+/// the centre or not) must give a valid estimate with every shell that has points fitted (no
+/// shell flagged inconsistent: the innermost shells are discs, not rings).
+#[test]
+fn a_plain_wall_near_the_hip_is_valid_with_every_shell_fitted() {
+    let n = Vector3::new(0.2, 0.1, 1.0).normalize();
+    let wall = Shape::Plane {
+        point: Point3::new(0.1, 0.2, 0.3),
+        normal: n,
+    };
+    for gap in [0.015, 0.025, 0.035] {
+        for occluder in [0.0, 0.03] {
+            let hip = Point3::new(0.1, 0.2, 0.3) + gap * n;
+            let mut view = View::new(hip + 0.55 * Vector3::new(0.1, -0.1, 1.0).normalize());
+            view.d435_noise = true;
+            view.occluder_radius_m = occluder;
+            let cloud = view.render(&[wall], &hip);
+            let frame = run(&no_memory(), &cloud, &hip, &view.direction(&hip));
+            let ab = &frame.abstraction;
+            let (ce, ne) = errors(&ab.estimate, &wall, &hip);
+            assert!(ab.estimate.valid, "gap {gap}: {:?}", ab.invalid);
+            for r in &ab.reports {
+                assert!(
+                    r.point_count < 3 || r.status == "fitted",
+                    "gap {gap} occluder {occluder}: {r:?}"
+                );
+            }
+            assert!(
+                ce < 1e-3 && ne < 0.5,
+                "gap {gap} occluder {occluder}: {ce} m {ne} deg"
+            );
+        }
+    }
+}

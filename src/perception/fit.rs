@@ -549,6 +549,125 @@ fn sphere_cut_residual(m: &Moments, plane: &PlaneFit, radius_m: f64) -> f64 {
     (alg.max(0.0) / (4.0 * radius_m * radius_m) + out_of_plane).sqrt()
 }
 
+/// Result of [`height_field`]: the surface `z = f(x, y)` in a frame at the moments' origin,
+/// `x, y` along `e1, e2` and `z` along `axis` (into the surface), and its point closest to the
+/// origin.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HeightField {
+    /// `f = c0 + c1 x + c2 y + c3 x^2 + c4 x y + c5 y^2`, metres.
+    pub coefficients: [f64; 6],
+    /// The point of the surface closest to the origin.
+    pub closest_m: Point3<f64>,
+    /// Unit surface normal there, pointing to the origin's side (against `axis`).
+    pub normal: Unit<Vector3<f64>>,
+    /// RMS of `z - f(x, y)` over the points, metres.
+    pub residual_rms_m: f64,
+}
+
+/// Least-squares quadratic height field `z = f(x, y)` of the moments' point set over the
+/// plane through the origin perpendicular to `axis`, and Newton's closest point of it to the
+/// origin. The normal equations need the sums of products of `{1, x, y, x^2, xy, y^2}` and
+/// `z`: monomials of degree <= 4, all in [`Moments`]. Unlike a plane through a ring cut by a
+/// sphere, this stays right on a surface whose curvature differs between directions (a
+/// forearm: a cylinder) when only part of the ring is visible. Coordinates are scaled by
+/// `scale_m` (the point set's extent) so the 6x6 system is well conditioned.
+pub fn height_field(
+    m: &Moments,
+    axis: &Unit<Vector3<f64>>,
+    scale_m: f64,
+) -> Result<HeightField, FitError> {
+    if !(m.sums.iter().all(|s| s.is_finite()) && scale_m.is_finite() && scale_m > 0.0) {
+        return Err(FitError::NonFinite);
+    }
+    let count = m.count();
+    if count < 6.0 {
+        return Err(FitError::TooFewPoints {
+            count: count.max(0.0) as u64,
+        });
+    }
+    let rot = Rotation3::rotation_between(axis, &Vector3::z())
+        .unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
+    let e1 = rot.matrix().row(0).transpose();
+    let e2 = rot.matrix().row(1).transpose();
+    let inv = 1.0 / scale_m;
+    let (x, y) = (Poly::linear(&(e1 * inv)), Poly::linear(&(e2 * inv)));
+    let z = Poly::linear(&(axis.into_inner() * inv));
+    let basis = [Poly::constant(1.0), x, y, x.mul(&x), x.mul(&y), y.mul(&y)];
+    let mut ata = nalgebra::Matrix6::<f64>::zeros();
+    let mut atz = nalgebra::Vector6::<f64>::zeros();
+    for i in 0..6 {
+        for j in i..6 {
+            let v = m.sum_of(&basis[i].mul(&basis[j]));
+            ata[(i, j)] = v;
+            ata[(j, i)] = v;
+        }
+        atz[i] = m.sum_of(&basis[i].mul(&z));
+    }
+    // Scaled coordinates are O(1): a pivot this small means the points do not span the
+    // quadratic (a single ring, a line).
+    let chol = nalgebra::Cholesky::new(ata).ok_or(FitError::Collinear { ratio: 0.0 })?;
+    let diag_min = (0..6)
+        .map(|i| chol.l_dirty()[(i, i)])
+        .fold(f64::INFINITY, f64::min);
+    if diag_min.is_nan() || diag_min <= 1e-6 * count.sqrt() {
+        return Err(FitError::Collinear { ratio: diag_min });
+    }
+    let c = chol.solve(&atz);
+    let zz = m.sum_of(&z.mul(&z));
+    let residual2 = (zz - c.dot(&atz)).max(0.0) / count;
+    // Closest point of z = f(x, y) to the origin (scaled units): Newton on the gradient of
+    // x^2 + y^2 + f^2, from the foot of the axis.
+    let f =
+        |u: f64, v: f64| c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
+    let (mut u, mut v) = (0.0f64, 0.0f64);
+    for _ in 0..20 {
+        let fz = f(u, v);
+        let (fu, fv) = (
+            c[1] + 2.0 * c[3] * u + c[4] * v,
+            c[2] + c[4] * u + 2.0 * c[5] * v,
+        );
+        let g = nalgebra::Vector2::new(u + fz * fu, v + fz * fv);
+        let h = nalgebra::Matrix2::new(
+            1.0 + fu * fu + fz * 2.0 * c[3],
+            fu * fv + fz * c[4],
+            fu * fv + fz * c[4],
+            1.0 + fv * fv + fz * 2.0 * c[5],
+        );
+        let Some(step) = h.try_inverse().map(|hi| hi * g) else {
+            return Err(FitError::EigenFailed);
+        };
+        u -= step.x;
+        v -= step.y;
+        if !(u.is_finite() && v.is_finite()) || u.abs() > 1.0 || v.abs() > 1.0 {
+            return Err(FitError::NonFinite);
+        }
+        if step.norm() < 1e-12 {
+            break;
+        }
+    }
+    let fz = f(u, v);
+    let (fu, fv) = (
+        c[1] + 2.0 * c[3] * u + c[4] * v,
+        c[2] + c[4] * u + 2.0 * c[5] * v,
+    );
+    let closest_m = m.origin + scale_m * (u * e1 + v * e2 + fz * axis.into_inner());
+    let normal =
+        Unit::try_new(fu * e1 + fv * e2 - axis.into_inner(), 1e-12).ok_or(FitError::NonFinite)?;
+    Ok(HeightField {
+        coefficients: [
+            c[0] * scale_m,
+            c[1],
+            c[2],
+            c[3] / scale_m,
+            c[4] / scale_m,
+            c[5] / scale_m,
+        ],
+        closest_m,
+        normal,
+        residual_rms_m: residual2.sqrt() * scale_m,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -732,6 +851,47 @@ mod tests {
         );
         let c = fit.centroid_m;
         assert!((c - Point3::new(-0.0290809, 0.102653, 0.027302)).norm() < 1e-6);
+    }
+
+    #[test]
+    fn height_field_recovers_an_anisotropic_paraboloid_seen_from_one_side() {
+        // z = 0.03 + x^2 / (2 * 0.2) + y^2 / (2 * 0.035) along -w: a forearm-like surface,
+        // sampled only on one side (y > -0.01), with the frame's axis tilted 12 deg.
+        let w = Vector3::new(0.1, -0.2, 1.0).normalize();
+        let a = w.cross(&Vector3::x()).normalize();
+        let b = w.cross(&a);
+        let hip = Point3::new(0.2, -0.4, 1.1);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let pts: Vec<Point3<f64>> = (0..400)
+            .map(|_| {
+                let (x, y) = (rng.random_range(-0.05..0.05), rng.random_range(-0.01..0.03));
+                let z = 0.03 + x * x / 0.4 + y * y / 0.07;
+                hip + x * a + y * b - z * w
+            })
+            .collect();
+        let tilt = Rotation3::from_axis_angle(&Unit::new_normalize(a + b), 12f64.to_radians());
+        let axis = Unit::new_normalize(tilt * -w);
+        // In the tilted frame the paraboloid is no longer exactly a height field: close.
+        let first = height_field(&moments(hip, &pts), &axis, 0.05).unwrap();
+        assert!(
+            (first.closest_m - (hip - 0.03 * w)).norm() < 5e-4,
+            "{first:?}"
+        );
+        assert!(first.normal.angle(&w) < 1f64.to_radians(), "{first:?}");
+        // Refitted about its own normal it converges to the exact surface.
+        let mut fit = first;
+        for _ in 0..4 {
+            fit = height_field(&moments(hip, &pts), &-fit.normal, 0.05).unwrap();
+        }
+        assert!((fit.closest_m - (hip - 0.03 * w)).norm() < 1e-9, "{fit:?}");
+        assert!(fit.normal.angle(&w) < 1e-8, "{fit:?}");
+        assert!(fit.residual_rms_m < 1e-7, "{fit:?}");
+        // A plane through the same one-sided set tilts towards the seen side.
+        let plane = plane3d(&moments(hip, &pts), &LIMITS).unwrap();
+        assert!(plane.normal.angle(&w).min(plane.normal.angle(&-w)) > 5f64.to_radians());
+        // A single ring does not span the quadratic.
+        let ring = arc(hip - 0.03 * w, w, 0.02, 0.0, 6.0, 50, 0.0);
+        assert!(height_field(&moments(hip, &ring), &Unit::new_normalize(-w), 0.05).is_err());
     }
 
     #[test]

@@ -45,6 +45,19 @@
 //! `cap_gap_m` beyond the corrected depth `D` are left out of the line and it is fitted again
 //! (when two shells remain); off by default (see the field).
 //!
+//! **Quadric refinement.** A plane through the part of a shell's ring that the camera sees
+//! tilts towards the seen side whenever the surface curves differently in different
+//! directions (a forearm is a cylinder of 3.5 cm radius: the ring of a sphere around the HIP
+//! is a saddle, and camera 1 of `forearm_close`, seeing one flank, was 15-25 deg off); the
+//! sphere model of the curvature correction cannot see that either. With
+//! `quadric_refinement`, the fitted shells near the surface (inner radius within
+//! `quadric_reach_m` of the innermost fitted shell's, so a second body further out stays
+//! out) are merged, weighted `1 / r_i`, and a quadratic
+//! height field `z = f(x, y)` over the plane perpendicular to Alg. 2's normal is fitted to
+//! them by least squares from the same moments ([`super::fit::height_field`]); its point
+//! closest to the HIP and the normal there replace the estimate, unless the fit fails or
+//! tilts more than `quadric_max_tilt_rad` away from Alg. 2's normal.
+//!
 //! **Validity.** An estimate is valid only with at least `min_accepted_shells` fitted shells
 //! (before the rejection) holding at least `min_points` points together, normals that do not
 //! cancel and a finite centroid; otherwise [`ShellAbstraction::invalid`] says which rule
@@ -52,7 +65,8 @@
 
 use super::crop::finite_bits;
 use super::fit::{
-    self, AXIS, CircleMethod, FitError, FitLimits, MOMENT_COUNT, Moments, PARENT, circle3d, plane3d,
+    self, AXIS, CircleMethod, FitError, FitLimits, HeightField, MOMENT_COUNT, Moments, PARENT,
+    circle3d, plane3d,
 };
 use crate::gpu::mirrors::ShellParams;
 use crate::gpu::shader::{self, BindingKind};
@@ -106,6 +120,15 @@ pub struct ShellConfig {
     /// the realistic head but added 2 mm on the forearm (a cylinder, where the cap carries
     /// the curvature the sphere model misses).
     pub cap_gap_m: f64,
+    /// Replace the estimate by the closest point and normal of a quadratic height field
+    /// fitted to the shells near the surface (module doc, "Quadric refinement").
+    pub quadric_refinement: bool,
+    /// Shells whose inner radius lies less than this beyond the innermost fitted shell's feed
+    /// the height field, metres.
+    pub quadric_reach_m: f64,
+    /// A height-field normal further than this from its first axis (Alg. 2's normal) is not
+    /// trusted (the estimate stays Alg. 2's), rad.
+    pub quadric_max_tilt_rad: f64,
     /// Fewest fitted shells (before the rejection) for a valid estimate.
     pub min_accepted_shells: u32,
     /// Fewest points in the fitted shells together for a valid estimate.
@@ -125,6 +148,9 @@ impl Default for ShellConfig {
             max_residual_ratio: 0.2,
             correction_max_angle_rad: 10f64.to_radians(),
             cap_gap_m: 0.0,
+            quadric_refinement: true,
+            quadric_reach_m: 0.03,
+            quadric_max_tilt_rad: 30f64.to_radians(),
             min_accepted_shells: 2,
             min_points: 30,
         }
@@ -150,6 +176,10 @@ pub enum ShellConfigError {
     CorrectionAngle(f64),
     #[error("cap_gap_m must be finite and at least 0, got {0}")]
     CapGap(f64),
+    #[error("quadric_reach_m must be finite and positive, got {0}")]
+    QuadricReach(f64),
+    #[error("quadric_max_tilt_rad must lie in [0, pi/2], got {0}")]
+    QuadricTilt(f64),
     #[error("min_accepted_shells must be at least 1, got 0")]
     MinShells,
 }
@@ -184,6 +214,12 @@ impl ShellConfig {
         }
         if !(self.cap_gap_m.is_finite() && self.cap_gap_m >= 0.0) {
             return Err(ShellConfigError::CapGap(self.cap_gap_m));
+        }
+        if !(self.quadric_reach_m.is_finite() && self.quadric_reach_m > 0.0) {
+            return Err(ShellConfigError::QuadricReach(self.quadric_reach_m));
+        }
+        if !(0.0..=std::f64::consts::FRAC_PI_2).contains(&self.quadric_max_tilt_rad) {
+            return Err(ShellConfigError::QuadricTilt(self.quadric_max_tilt_rad));
         }
         if self.min_accepted_shells == 0 {
             return Err(ShellConfigError::MinShells);
@@ -385,6 +421,9 @@ pub struct ShellAbstraction {
     pub paper_centroid_m: Point3<f64>,
     /// `None` when disabled or not possible (fewer than two accepted shells, inconsistent).
     pub correction: Option<CurvatureCorrection>,
+    /// The height field that gave the estimate; `None` when disabled, not possible or not
+    /// trusted (the estimate is then Alg. 2's with the curvature correction).
+    pub refinement: Option<HeightField>,
 }
 
 struct Accepted {
@@ -601,6 +640,7 @@ pub fn abstract_surface(
             reports,
             paper_centroid_m: hip,
             correction: None,
+            refinement: None,
         };
     };
     let paper_centroid = Point3::from(sum_c / total_w);
@@ -643,6 +683,15 @@ pub fn abstract_surface(
         Some(c) => paper_centroid + (c.paper_depth_m - c.depth_m) * normal.into_inner(),
         None => paper_centroid,
     };
+    let refinement = if config.quadric_refinement {
+        quadric_refinement(&fits, &normal, &hip, config)
+    } else {
+        None
+    };
+    let (centroid, normal) = match &refinement {
+        Some(hf) => (hf.closest_m, hf.normal),
+        None => (centroid, normal),
+    };
     let invalid = if centroid.coords.iter().all(|c| c.is_finite()) {
         estimate.centroid_m = centroid;
         estimate.normal = normal;
@@ -658,7 +707,65 @@ pub fn abstract_surface(
         reports,
         paper_centroid_m: paper_centroid,
         correction,
+        refinement,
     }
+}
+
+/// Refits of the height field about its own normal after the first one.
+const QUADRIC_PASSES: usize = 3;
+
+/// Height field (module doc) over the fitted shells (rejected or not) whose inner radius lies
+/// within `quadric_reach_m` beyond the innermost fitted shell's (the closest surface lies in
+/// that shell: shells further out may reach a second body, the two-surface limitation of
+/// IV-E), each weighted `1 / r_i` like Alg. 2's average. The first frame's axis is Alg. 2's
+/// normal, or, where that disagrees by more than `quadric_max_tilt_rad` with the direction
+/// from the HIP to these points (Alg. 2 followed the second body), that direction; `None`
+/// when it cannot be fitted or ends more than `quadric_max_tilt_rad` from its first axis.
+fn quadric_refinement(
+    fits: &[Accepted],
+    normal: &Unit<Vector3<f64>>,
+    hip: &Point3<f64>,
+    config: &ShellConfig,
+) -> Option<HeightField> {
+    let innermost = fits
+        .iter()
+        .map(|a| a.fit.inner_radius_m)
+        .fold(f64::INFINITY, f64::min);
+    let near: Vec<&Accepted> = fits
+        .iter()
+        .filter(|a| a.fit.inner_radius_m < innermost + config.quadric_reach_m)
+        .collect();
+    let scale = near
+        .iter()
+        .map(|a| a.fit.outer_radius_m)
+        .fold(0.0, f64::max);
+    let mut merged = Moments::zero(*hip);
+    let mut unweighted = Moments::zero(*hip);
+    for a in &near {
+        let w = 1.0 / a.fit.outer_radius_m;
+        for (s, m) in merged.sums.iter_mut().zip(a.moments.sums) {
+            *s += w * m;
+        }
+        unweighted.merge(&a.moments);
+    }
+    // The weights scale the count too; the fit needs the real number of points.
+    if unweighted.count() < f64::from(config.min_points) {
+        return None;
+    }
+    let towards = Unit::try_new(hip - unweighted.mean(), 1e-12)?;
+    let seed = if towards.angle(normal) <= config.quadric_max_tilt_rad {
+        *normal
+    } else {
+        towards
+    };
+    // Refit about the height field's own normal: in that frame the surface is closest to a
+    // height field over the tangent plane (a tilted frame adds its own curvature terms).
+    let mut hf = fit::height_field(&merged, &-seed, scale).ok()?;
+    for _ in 0..QUADRIC_PASSES {
+        hf = fit::height_field(&merged, &-hf.normal, scale).ok()?;
+    }
+    (hf.normal.angle(&seed) <= config.quadric_max_tilt_rad && (hf.closest_m - hip).norm() <= scale)
+        .then_some(hf)
 }
 
 /// Weighted line `a = alpha + beta r^2` through the agreeing shells' mean depth and mean
