@@ -752,7 +752,13 @@ fn quadric_refinement(
     if unweighted.count() < f64::from(config.min_points) {
         return None;
     }
+    // Only the line matters: a HIP behind the surface (penetration) keeps eq. 2's side.
     let towards = Unit::try_new(hip - unweighted.mean(), 1e-12)?;
+    let towards = if towards.dot(normal) < 0.0 {
+        -towards
+    } else {
+        towards
+    };
     let seed = if towards.angle(normal) <= config.quadric_max_tilt_rad {
         *normal
     } else {
