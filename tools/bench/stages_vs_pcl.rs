@@ -249,6 +249,21 @@ struct Row {
     same: bool,
 }
 
+impl Row {
+    /// A stage's row before any run: no times yet, outputs assumed equal until a run differs.
+    fn new(stage: &'static str, input: usize, pcl_ms: f64, out: String) -> Self {
+        Self {
+            stage,
+            input,
+            pcl_ms,
+            out,
+            cpu: Times::default(),
+            gpu: Times::default(),
+            same: true,
+        }
+    }
+}
+
 fn ratio(pcl_ms: f64, ms: f64) -> String {
     if !(ms.is_finite() && ms > 0.0) {
         "-".into()
@@ -655,15 +670,7 @@ fn main() -> anyhow::Result<()> {
         let ref_sizes = &reference.cluster_sizes;
 
         // Crop on the raw frame.
-        let mut row = Row {
-            stage: "crop",
-            input: raw.len(),
-            pcl_ms: reference.crop_ms,
-            out: crop_n.to_string(),
-            cpu: Times::default(),
-            gpu: Times::default(),
-            same: true,
-        };
+        let mut row = Row::new("crop", raw.len(), reference.crop_ms, crop_n.to_string());
         for i in 0..=args.runs {
             let (mask, span) = Stopwatch::time(|| crop_cpu(&raw, &crop_config, &scene));
             let cpu_kept = kept_indices(&mask?, raw.len()).len();
@@ -682,15 +689,12 @@ fn main() -> anyhow::Result<()> {
 
         // Voxel grid on the cropped cloud.
         let crop_in = &reference.cropped;
-        let mut row = Row {
-            stage: "voxel grid",
-            input: crop_in.len(),
-            pcl_ms: reference.voxel_ms,
-            out: voxel_n.to_string(),
-            cpu: Times::default(),
-            gpu: Times::default(),
-            same: true,
-        };
+        let mut row = Row::new(
+            "voxel grid",
+            crop_in.len(),
+            reference.voxel_ms,
+            voxel_n.to_string(),
+        );
         for i in 0..=args.runs {
             let (out, span) = Stopwatch::time(|| voxel_cpu(crop_in, None, &voxel_config));
             let cpu_n = out?.points.len();
@@ -707,15 +711,12 @@ fn main() -> anyhow::Result<()> {
 
         // Clustering on the voxel cloud.
         let voxel_in = &reference.voxels;
-        let mut row = Row {
-            stage: "clustering",
-            input: voxel_in.len(),
-            pcl_ms: reference.cluster_ms,
-            out: format!("{} clusters", ref_sizes.len()),
-            cpu: Times::default(),
-            gpu: Times::default(),
-            same: true,
-        };
+        let mut row = Row::new(
+            "clustering",
+            voxel_in.len(),
+            reference.cluster_ms,
+            format!("{} clusters", ref_sizes.len()),
+        );
         for i in 0..=args.runs {
             let (out, span) = Stopwatch::time(|| cluster_cpu(voxel_in, &cluster_config));
             let cpu_sizes = out?.cluster_sizes();
@@ -736,15 +737,12 @@ fn main() -> anyhow::Result<()> {
         rows.push(row);
 
         // The whole front end on the raw frame against PCL's chain.
-        let mut row = Row {
-            stage: "front end (crop+voxel+clusters)",
-            input: raw.len(),
-            pcl_ms: reference.crop_ms + reference.voxel_ms + reference.cluster_ms,
-            out: format!("{voxel_n} voxels, {} clusters", ref_sizes.len()),
-            cpu: Times::default(),
-            gpu: Times::default(),
-            same: true,
-        };
+        let mut row = Row::new(
+            "front end (crop+voxel+clusters)",
+            raw.len(),
+            reference.crop_ms + reference.voxel_ms + reference.cluster_ms,
+            format!("{voxel_n} voxels, {} clusters", ref_sizes.len()),
+        );
         let frame = FrameInput {
             points: &raw,
             crop: Some(scene.clone()),
