@@ -697,3 +697,40 @@ fn a_plain_wall_near_the_hip_is_valid_with_every_shell_fitted() {
         }
     }
 }
+
+/// The limb-and-torso case of `forearm_close`: the closest surface (a body of 9 cm radius)
+/// 3 cm below the HIP with its nearest cap hidden behind the robot, and a second body (a wall,
+/// the torso's front face) 5.5 cm to the side that fills the outer shells. The height field
+/// keeps to the shells that continue the closest body (0.08 mm, 0.01 deg); without the
+/// trimming (an infinite residual bound) the wall's shell bends it (11 mm, 19 deg).
+#[test]
+fn a_second_body_in_the_outer_shells_does_not_bend_the_estimate() {
+    let limb = Shape::Sphere {
+        center: Point3::new(0.0, 0.0, -0.12),
+        radius: 0.09,
+    };
+    let wall = Shape::Plane {
+        point: Point3::new(0.0, -0.055, 0.0),
+        normal: Vector3::y(),
+    };
+    let hip = Point3::origin();
+    let mut view = View::new(Point3::new(0.25, 0.3, 0.45));
+    view.occluder_radius_m = 0.03;
+    view.extent_m = 0.15;
+    let cloud = view.render(&[limb, wall], &hip);
+    let estimate = |residual_m: f64| {
+        let mut config = no_memory();
+        config.shells.quadric_max_shell_residual_m = residual_m;
+        let ab = run(&config, &cloud, &hip, &view.direction(&hip)).abstraction;
+        assert_finite(&ab.estimate);
+        assert!(ab.estimate.valid, "{:?}", ab.invalid);
+        errors(&ab.estimate, &limb, &hip)
+    };
+    let (ce, ne) = estimate(SurfaceConfig::default().shells.quadric_max_shell_residual_m);
+    let (ce_all, ne_all) = estimate(f64::INFINITY);
+    assert!(ce < 1e-3 && ne < 2.0, "trimmed: {ce} m {ne} deg");
+    assert!(
+        ne_all > 2.0 * ne.max(1.0),
+        "untrimmed: {ce_all} m {ne_all} deg"
+    );
+}

@@ -562,6 +562,41 @@ pub struct HeightField {
     pub normal: Unit<Vector3<f64>>,
     /// RMS of `z - f(x, y)` over the points, metres.
     pub residual_rms_m: f64,
+    /// The frame's `z` axis (`x, y` follow from it as in the fit).
+    pub axis: Unit<Vector3<f64>>,
+}
+
+impl HeightField {
+    /// RMS of `z - f(x, y)` over another point set given by its moments (same origin),
+    /// metres: how far that set lies from this surface. `None` for an empty or non-finite
+    /// set.
+    pub fn residual_rms_of(&self, m: &Moments) -> Option<f64> {
+        let count = m.count();
+        if !(count > 0.0 && m.sums.iter().all(|s| s.is_finite())) {
+            return None;
+        }
+        let (e1, e2) = tangent_frame(&self.axis);
+        let (x, y) = (Poly::linear(&e1), Poly::linear(&e2));
+        let c = self.coefficients;
+        let f = Poly::constant(c[0])
+            .add(&x.scale(c[1]))
+            .add(&y.scale(c[2]))
+            .add(&x.mul(&x).scale(c[3]))
+            .add(&x.mul(&y).scale(c[4]))
+            .add(&y.mul(&y).scale(c[5]));
+        let residual = Poly::linear(&self.axis.into_inner()).add(&f.scale(-1.0));
+        Some((m.sum_of(&residual.mul(&residual)).max(0.0) / count).sqrt())
+    }
+}
+
+/// The tangent directions `x, y` of a height field over the plane perpendicular to `axis`.
+fn tangent_frame(axis: &Unit<Vector3<f64>>) -> (Vector3<f64>, Vector3<f64>) {
+    let rot = Rotation3::rotation_between(axis, &Vector3::z())
+        .unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
+    (
+        rot.matrix().row(0).transpose(),
+        rot.matrix().row(1).transpose(),
+    )
 }
 
 /// Least-squares quadratic height field `z = f(x, y)` of the moments' point set over the
@@ -585,10 +620,7 @@ pub fn height_field(
             count: count.max(0.0) as u64,
         });
     }
-    let rot = Rotation3::rotation_between(axis, &Vector3::z())
-        .unwrap_or_else(|| Rotation3::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI));
-    let e1 = rot.matrix().row(0).transpose();
-    let e2 = rot.matrix().row(1).transpose();
+    let (e1, e2) = tangent_frame(axis);
     let inv = 1.0 / scale_m;
     let (x, y) = (Poly::linear(&(e1 * inv)), Poly::linear(&(e2 * inv)));
     let z = Poly::linear(&(axis.into_inner() * inv));
@@ -665,6 +697,7 @@ pub fn height_field(
         closest_m,
         normal,
         residual_rms_m: residual2.sqrt() * scale_m,
+        axis: *axis,
     })
 }
 
@@ -886,6 +919,19 @@ mod tests {
         assert!((fit.closest_m - (hip - 0.03 * w)).norm() < 1e-9, "{fit:?}");
         assert!(fit.normal.angle(&w) < 1e-8, "{fit:?}");
         assert!(fit.residual_rms_m < 1e-7, "{fit:?}");
+        // Another point set's distance from the field follows from its moments: on the surface
+        // further out, nothing; shifted 4 mm along the normal, 4 mm.
+        let further: Vec<Point3<f64>> = (0..50)
+            .map(|i| {
+                let (x, y) = (0.06, -0.01 + 0.0008 * f64::from(i));
+                hip + x * a + y * b - (0.03 + x * x / 0.4 + y * y / 0.07) * w
+            })
+            .collect();
+        let shifted: Vec<Point3<f64>> = further.iter().map(|p| p + 0.004 * w).collect();
+        assert!(fit.residual_rms_of(&moments(hip, &further)).unwrap() < 1e-7);
+        let off = fit.residual_rms_of(&moments(hip, &shifted)).unwrap();
+        assert!((off - 0.004).abs() < 1e-7, "{off}");
+        assert_eq!(fit.residual_rms_of(&Moments::zero(hip)), None);
         // A plane through the same one-sided set tilts towards the seen side.
         let plane = plane3d(&moments(hip, &pts), &LIMITS).unwrap();
         assert!(plane.normal.angle(&w).min(plane.normal.angle(&-w)) > 5f64.to_radians());

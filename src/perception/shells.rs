@@ -56,7 +56,12 @@
 //! height field `z = f(x, y)` over the plane perpendicular to Alg. 2's normal is fitted to
 //! them by least squares from the same moments ([`super::fit::height_field`]); its point
 //! closest to the HIP and the normal there replace the estimate, unless the fit fails or
-//! tilts more than `quadric_max_tilt_rad` away from Alg. 2's normal.
+//! tilts more than `quadric_max_tilt_rad` away from Alg. 2's normal. The shells must continue
+//! one surface: while the outermost lies more than `quadric_max_shell_residual_m` RMS from
+//! the fitted field (its residual follows from its moments, [`HeightField::residual_rms_of`]),
+//! it is dropped and the field fitted again. On `forearm_close` the torso's front face, 6 cm
+//! from the HIP, entered the 6-7 cm shell while the robot hid the forearm's nearest cap, and
+//! turned the normal 41 deg for two frames.
 //!
 //! **Validity.** An estimate is valid only with at least `min_accepted_shells` fitted shells
 //! (before the rejection) holding at least `min_points` points together, normals that do not
@@ -129,6 +134,10 @@ pub struct ShellConfig {
     /// A height-field normal further than this from its first axis (Alg. 2's normal) is not
     /// trusted (the estimate stays Alg. 2's), rad.
     pub quadric_max_tilt_rad: f64,
+    /// The outermost shell feeding the height field must lie within this RMS distance of the
+    /// fitted surface, or it is dropped and the field fitted again (a second body or the
+    /// robot's edge in the shell), metres.
+    pub quadric_max_shell_residual_m: f64,
     /// Fewest fitted shells (before the rejection) for a valid estimate.
     pub min_accepted_shells: u32,
     /// Fewest points in the fitted shells together for a valid estimate.
@@ -151,6 +160,7 @@ impl Default for ShellConfig {
             quadric_refinement: true,
             quadric_reach_m: 0.03,
             quadric_max_tilt_rad: 30f64.to_radians(),
+            quadric_max_shell_residual_m: 0.005,
             min_accepted_shells: 2,
             min_points: 30,
         }
@@ -180,6 +190,8 @@ pub enum ShellConfigError {
     QuadricReach(f64),
     #[error("quadric_max_tilt_rad must lie in [0, pi/2], got {0}")]
     QuadricTilt(f64),
+    #[error("quadric_max_shell_residual_m must be positive (infinity keeps every shell), got {0}")]
+    QuadricShellResidual(f64),
     #[error("min_accepted_shells must be at least 1, got 0")]
     MinShells,
 }
@@ -220,6 +232,11 @@ impl ShellConfig {
         }
         if !(0.0..=std::f64::consts::FRAC_PI_2).contains(&self.quadric_max_tilt_rad) {
             return Err(ShellConfigError::QuadricTilt(self.quadric_max_tilt_rad));
+        }
+        if self.quadric_max_shell_residual_m.is_nan() || self.quadric_max_shell_residual_m <= 0.0 {
+            return Err(ShellConfigError::QuadricShellResidual(
+                self.quadric_max_shell_residual_m,
+            ));
         }
         if self.min_accepted_shells == 0 {
             return Err(ShellConfigError::MinShells);
@@ -717,10 +734,10 @@ const QUADRIC_PASSES: usize = 3;
 /// Height field (module doc) over the fitted shells (rejected or not) whose inner radius lies
 /// within `quadric_reach_m` beyond the innermost fitted shell's (the closest surface lies in
 /// that shell: shells further out may reach a second body, the two-surface limitation of
-/// IV-E), each weighted `1 / r_i` like Alg. 2's average. The first frame's axis is Alg. 2's
-/// normal, or, where that disagrees by more than `quadric_max_tilt_rad` with the direction
-/// from the HIP to these points (Alg. 2 followed the second body), that direction; `None`
-/// when it cannot be fitted or ends more than `quadric_max_tilt_rad` from its first axis.
+/// IV-E), each weighted `1 / r_i` like Alg. 2's average. While the outermost of them lies
+/// further than `quadric_max_shell_residual_m` (RMS) from the fitted surface, or no trusted
+/// field fits with it, it reaches something else (a second body, or the robot's edge) and
+/// is dropped before fitting again. `None` when no fit survives.
 fn quadric_refinement(
     fits: &[Accepted],
     normal: &Unit<Vector3<f64>>,
@@ -731,17 +748,45 @@ fn quadric_refinement(
         .iter()
         .map(|a| a.fit.inner_radius_m)
         .fold(f64::INFINITY, f64::min);
-    let near: Vec<&Accepted> = fits
+    let mut near: Vec<&Accepted> = fits
         .iter()
         .filter(|a| a.fit.inner_radius_m < innermost + config.quadric_reach_m)
         .collect();
+    near.sort_by(|a, b| a.fit.inner_radius_m.total_cmp(&b.fit.inner_radius_m));
+    loop {
+        let hf = height_field_over(&near, normal, hip, config);
+        let strays = match (&hf, near.last()) {
+            _ if near.len() < 2 => false,
+            (Some(hf), Some(outer)) => hf
+                .residual_rms_of(&outer.moments)
+                .is_none_or(|r| r > config.quadric_max_shell_residual_m),
+            // No trusted fit with the outermost shell: try without it.
+            _ => true,
+        };
+        if !strays {
+            return hf;
+        }
+        near.pop();
+    }
+}
+
+/// One height field over `near`: the first frame's axis is Alg. 2's normal, or, where that
+/// disagrees by more than `quadric_max_tilt_rad` with the direction from the HIP to these
+/// points (Alg. 2 followed the second body), that direction; `None` when it cannot be fitted
+/// or ends more than `quadric_max_tilt_rad` from its first axis.
+fn height_field_over(
+    near: &[&Accepted],
+    normal: &Unit<Vector3<f64>>,
+    hip: &Point3<f64>,
+    config: &ShellConfig,
+) -> Option<HeightField> {
     let scale = near
         .iter()
         .map(|a| a.fit.outer_radius_m)
         .fold(0.0, f64::max);
     let mut merged = Moments::zero(*hip);
     let mut unweighted = Moments::zero(*hip);
-    for a in &near {
+    for a in near {
         let w = 1.0 / a.fit.outer_radius_m;
         for (s, m) in merged.sums.iter_mut().zip(a.moments.sums) {
             *s += w * m;
@@ -752,14 +797,12 @@ fn quadric_refinement(
     if unweighted.count() < f64::from(config.min_points) {
         return None;
     }
-    // Only the line matters: a HIP behind the surface (penetration) keeps eq. 2's side.
+    // Agreement is judged on the line: a HIP behind the surface (penetration) points the
+    // other way and keeps eq. 2's normal. A normal that disagrees cannot vouch for its side
+    // either; the HIP lies on the outer side of the surface it is about to touch.
     let towards = Unit::try_new(hip - unweighted.mean(), 1e-12)?;
-    let towards = if towards.dot(normal) < 0.0 {
-        -towards
-    } else {
-        towards
-    };
-    let seed = if towards.angle(normal) <= config.quadric_max_tilt_rad {
+    let line_angle = towards.angle(normal).min((-towards).angle(normal));
+    let seed = if line_angle <= config.quadric_max_tilt_rad {
         *normal
     } else {
         towards

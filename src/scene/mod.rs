@@ -291,9 +291,14 @@ impl Simulator {
     /// Ground truth at `t_s`: the patient surface closest to the HIP (None without a robot
     /// or without bodies).
     pub fn ground_truth(&self, t_s: f64) -> Option<GroundTruth> {
-        let hip = self.hip_at(t_s)?;
+        self.ground_truth_for(t_s, &self.hip_at(t_s)?)
+    }
+
+    /// Ground truth at `t_s` for a HIP centre at `hip_m` instead of the robot's (None without
+    /// a robot or without bodies).
+    pub fn ground_truth_for(&self, t_s: f64, hip_m: &Point3<f64>) -> Option<GroundTruth> {
         let radius = self.hip_radius_m()?;
-        truth::closest(&self.scene.file.bodies, t_s, &hip, radius)
+        truth::closest(&self.scene.file.bodies, t_s, hip_m, radius)
     }
 
     /// Timing of frame `index` of camera `camera_id` (None when the frame is dropped).
