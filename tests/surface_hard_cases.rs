@@ -702,7 +702,7 @@ fn a_plain_wall_near_the_hip_is_valid_with_every_shell_fitted() {
 /// 3 cm below the HIP with its nearest cap hidden behind the robot, and a second body (a wall,
 /// the torso's front face) 5.5 cm to the side that fills the outer shells. The height field
 /// keeps to the shells that continue the closest body (0.08 mm, 0.01 deg); without the
-/// trimming (an infinite residual bound) the wall's shell bends it (11 mm, 19 deg).
+/// trimming (infinite residual bounds) the wall's shell bends it (11 mm, 19 deg).
 #[test]
 fn a_second_body_in_the_outer_shells_does_not_bend_the_estimate() {
     let limb = Shape::Sphere {
@@ -718,16 +718,19 @@ fn a_second_body_in_the_outer_shells_does_not_bend_the_estimate() {
     view.occluder_radius_m = 0.03;
     view.extent_m = 0.15;
     let cloud = view.render(&[limb, wall], &hip);
-    let estimate = |residual_m: f64| {
+    let estimate = |trim: bool| {
         let mut config = no_memory();
-        config.shells.quadric_max_shell_residual_m = residual_m;
+        if !trim {
+            config.shells.quadric_max_shell_residual_m = f64::INFINITY;
+            config.shells.quadric_max_shell_residual_ratio = f64::INFINITY;
+        }
         let ab = run(&config, &cloud, &hip, &view.direction(&hip)).abstraction;
         assert_finite(&ab.estimate);
         assert!(ab.estimate.valid, "{:?}", ab.invalid);
         errors(&ab.estimate, &limb, &hip)
     };
-    let (ce, ne) = estimate(SurfaceConfig::default().shells.quadric_max_shell_residual_m);
-    let (ce_all, ne_all) = estimate(f64::INFINITY);
+    let (ce, ne) = estimate(true);
+    let (ce_all, ne_all) = estimate(false);
     assert!(ce < 1e-3 && ne < 2.0, "trimmed: {ce} m {ne} deg");
     assert!(
         ne_all > 2.0 * ne.max(1.0),
