@@ -31,6 +31,11 @@ fn json_on_the_bunny_with_both_backends() {
             .collect();
         assert!(n[2] < 0.0, "eq. 2: normal against the view direction");
         assert!(((n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt() - 1.0).abs() < 1e-9);
+        // The quadric refinement gave the estimate: its closest point and normal are it.
+        let q = &v["quadric_refinement"];
+        assert_eq!(q["closest"], v["centroid"], "{q}");
+        assert_eq!(q["normal"], v["normal"], "{q}");
+        assert!(q["residual_rms_m"].as_f64().unwrap() < 0.01, "{q}");
         results.push((v["centroid"].clone(), v["normal"].clone()));
     }
     assert_eq!(

@@ -702,7 +702,7 @@ fn a_plain_wall_near_the_hip_is_valid_with_every_shell_fitted() {
 /// 3 cm below the HIP with its nearest cap hidden behind the robot, and a second body (a wall,
 /// the torso's front face) 5.5 cm to the side that fills the outer shells. The height field
 /// keeps to the shells that continue the closest body (0.08 mm, 0.01 deg); without the
-/// trimming (infinite residual bounds) the wall's shell bends it (11 mm, 19 deg).
+/// trimming (an infinite residual bound) the wall's shell bends it (11 mm, 19 deg).
 #[test]
 fn a_second_body_in_the_outer_shells_does_not_bend_the_estimate() {
     let limb = Shape::Sphere {
@@ -722,7 +722,6 @@ fn a_second_body_in_the_outer_shells_does_not_bend_the_estimate() {
         let mut config = no_memory();
         if !trim {
             config.shells.quadric_max_shell_residual_m = f64::INFINITY;
-            config.shells.quadric_max_shell_residual_ratio = f64::INFINITY;
         }
         let ab = run(&config, &cloud, &hip, &view.direction(&hip)).abstraction;
         assert_finite(&ab.estimate);

@@ -134,6 +134,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "quality": e.quality,
             "paper_centroid": [ab.paper_centroid_m.x, ab.paper_centroid_m.y, ab.paper_centroid_m.z],
             "curvature_correction": ab.correction,
+            "quadric_refinement": ab.refinement.as_ref().map(|hf| serde_json::json!({
+                "closest": [hf.closest_m.x, hf.closest_m.y, hf.closest_m.z],
+                "normal": [hf.normal.x, hf.normal.y, hf.normal.z],
+                "residual_rms_m": hf.residual_rms_m,
+                "coefficients": hf.coefficients,
+            })),
             "shells": shells,
             "timings_ms": { "surface": elapsed_ms },
         });
@@ -189,6 +195,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 c.paper_depth_m * 1e3,
                 c.depth_m * 1e3
             );
+        }
+        match &ab.refinement {
+            Some(hf) => println!(
+                "quadric refinement: gave the estimate, residual {:.2} mm RMS",
+                hf.residual_rms_m * 1e3
+            ),
+            None => println!("quadric refinement: not used (disabled, or no trusted fit)"),
         }
     } else {
         match &ab.invalid {
