@@ -168,6 +168,9 @@ pub fn settings() -> Vec<Setting> {
     push("shells.curvature_correction", "false".into(), &|k| {
         k.surface.shells.curvature_correction = false
     });
+    push("shells.quadric_refinement", "false".into(), &|k| {
+        k.surface.shells.quadric_refinement = false
+    });
     for cams in [1u32, 3] {
         push("cameras", format!("{cams}"), &|k| k.camera_count = cams);
     }

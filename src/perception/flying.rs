@@ -91,28 +91,31 @@ pub fn flying_pixels(
     if !config.enabled || h <= 1 || w * h != points.len() {
         return flags;
     }
-    // |v x ray| < sin(min) |v|  <=>  the segment is within `min` of the ray's line.
-    let sin_min = config.min_ray_angle_rad.sin() as f32;
+    // |d x ray| < sin(min) |d|  <=>  the segment d is within `min` of the ray's line; with
+    // ray = p / |p| and both sides squared: |d x p|^2 < sin^2(min) |d|^2 |p|^2 (no roots).
+    let sin2_min = config.min_ray_angle_rad.sin().powi(2) as f32;
     let k = config.window_px as usize;
     let r2 = radius_m * radius_m;
-    for (i, flag) in flags.iter_mut().enumerate() {
-        let p = points[i];
-        if !valid(p) || p.distance_squared(near_cam) >= r2 {
-            continue;
-        }
-        let ray = p.normalize();
-        let (u, v) = (i % w, i / w);
+    for v in 0..h {
         let rows = v.saturating_sub(k)..(v + k + 1).min(h);
-        *flag = rows.into_iter().any(|y| {
-            (u.saturating_sub(k)..(u + k + 1).min(w)).any(|x| {
-                let q = points[y * w + x];
-                if (x, y) == (u, v) || !valid(q) {
-                    return false;
-                }
-                let d = q - p;
-                d.cross(ray).length() < sin_min * d.length()
-            })
-        });
+        for u in 0..w {
+            let i = v * w + u;
+            let p = points[i];
+            if !valid(p) || p.distance_squared(near_cam) >= r2 {
+                continue;
+            }
+            let limit = sin2_min * p.length_squared();
+            let cols = u.saturating_sub(k)..(u + k + 1).min(w);
+            flags[i] = rows.clone().any(|y| {
+                points[y * w + cols.start..y * w + cols.end]
+                    .iter()
+                    .any(|&q| {
+                        let d = q - p;
+                        // The pixel itself (d = 0) and invalid neighbours never count.
+                        valid(q) && d.cross(p).length_squared() < limit * d.length_squared()
+                    })
+            });
+        }
     }
     flags
 }

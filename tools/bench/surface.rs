@@ -1,8 +1,12 @@
 //! Benchmark of the per-camera surface stages on a synthetic D435 view of a head (9 cm
 //! sphere, HIP 3 cm away, camera 0.55 m, 1 mm noise): shell moments on the CPU reference and
 //! on the GPU, the fits of Alg. 2 per circle method (what accuracy costs: Kasa vs Taubin vs
-//! the closed-form sphere cut), and one frame of the surface memory (Alg. 1) per ICP method.
-//! Prints the median and p90 of each, in microseconds.
+//! the closed-form sphere cut), and one frame of the surface memory (Alg. 1) per ICP method;
+//! then the two steps a full 848x480 frame goes through before the front end
+//! (`perception::pipeline`): the pose applied to every pixel and the flying-pixel test within
+//! the crop radius, on a simulated D435 frame of `head_close_realistic` and of
+//! `forehead_impacts_realistic` (cameras 0.5 m and 1 m from the HIP). Prints the median and
+//! p90 of each, in microseconds.
 //!
 //! Run: `cargo bench --bench surface`.
 
@@ -10,10 +14,15 @@
 #[allow(dead_code)]
 mod synthetic;
 
+use glam::Vec3;
 use hapcloud::gpu::GpuContext;
+use hapcloud::perception::crop::CropConfig;
 use hapcloud::perception::fit::CircleMethod;
+use hapcloud::perception::flying::{FlyingPixelConfig, flying_pixels};
 use hapcloud::perception::memory::{IcpMethod, MemoryConfig, SurfaceMemory};
+use hapcloud::perception::pipeline::to_world;
 use hapcloud::perception::shells::{self, GpuShells, ShellConfig, ShellLayout};
+use hapcloud::scene::{Scene, Simulator};
 use nalgebra::{Point3, Vector3};
 use std::hint::black_box;
 use std::time::Instant;
@@ -98,4 +107,45 @@ fn main() {
             black_box(memory.step(black_box(&next), &hip, &cfg));
         });
     }
+    for name in ["head_close_realistic", "forehead_impacts_realistic"] {
+        organized_frame_steps(name);
+    }
+}
+
+/// `to_world` and `flying_pixels` on camera 0's frame of `scene` at t = 2 s (the HIP at the
+/// body), as the camera chain runs them.
+fn organized_frame_steps(scene: &str) {
+    let scene = Scene::from_builtin(scene).expect("built-in scene");
+    let sim = Simulator::new(&scene).expect("simulator");
+    let timing = sim
+        .arrivals(2.0, 2.1)
+        .into_iter()
+        .find(|t| t.camera_id == 0)
+        .expect("a frame of camera 0");
+    let frame = sim.frame(&timing).frame;
+    let hip = sim.hip_at(timing.stamp_s).expect("robot");
+    let hip_cam = frame.world_from_camera.inverse() * hip;
+    let near = Vec3::new(hip_cam.x as f32, hip_cam.y as f32, hip_cam.z as f32);
+    let (cloud, radius) = (&frame.cloud, CropConfig::default().radius_m as f32);
+    let config = FlyingPixelConfig::default();
+    println!(
+        "{}: {}x{} frame, HIP {:.2} m from the camera",
+        scene.origin,
+        cloud.width,
+        cloud.height,
+        hip_cam.coords.norm()
+    );
+    time("  to_world (every pixel)", 30, || {
+        black_box(to_world(black_box(&cloud.points), &frame.world_from_camera));
+    });
+    time("  flying pixels (within the crop radius)", 30, || {
+        black_box(flying_pixels(
+            black_box(&cloud.points),
+            cloud.width,
+            cloud.height,
+            near,
+            radius,
+            &config,
+        ));
+    });
 }
