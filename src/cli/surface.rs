@@ -124,6 +124,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "points_in": cloud.len(),
             "finite_points": cloud.finite_count(),
             "outside_shells": frame.sums.outside,
+            "isolated_points": frame.isolated_points,
             "backend": frame.backend,
             "adapter": adapter,
             "circle_method": config.shells.circle_method,

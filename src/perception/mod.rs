@@ -7,6 +7,7 @@ pub mod fit;
 pub mod flying;
 pub mod frontend;
 pub mod memory;
+pub mod outliers;
 pub mod pipeline;
 pub mod shells;
 pub mod voxel;

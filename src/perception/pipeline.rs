@@ -13,7 +13,8 @@
 //!    the clusters the [`ClusterSelection`] picks go on (clusters below the size threshold are
 //!    noise, IV-C; keeping only the one nearest the HIP avoids IV-E's two-surface limitation),
 //! 4. the camera's [`SurfaceEstimator`] (one per camera id, so each keeps its memory):
-//!    memory (Alg. 1) and shells (Alg. 2), eq. 2 against the rays from the camera.
+//!    memory (Alg. 1), isolated-point removal, and shells (Alg. 2), eq. 2 against the rays
+//!    from the camera.
 //!
 //! Each frame reports wall and thread CPU time of the front end and of the estimator
 //! ([`crate::timing`]) next to the front end's per-pass GPU timestamp times. A GPU failure
@@ -25,6 +26,7 @@
 //!
 //! 1. points to the world frame (the HIP and the memory live there),
 //! 2. surface memory (Alg. 1): register the remembered annulus, fill the occluded centre,
+//!    then the isolated points within the shells' reach go ([`super::outliers`]),
 //! 3. per-shell moments around the HIP (GPU shader or its CPU reference, same integers; a GPU
 //!    failure falls back to the reference and is reported in [`SurfaceFrame::gpu_error`]),
 //! 4. shell fits, eq. 2 orientation, outlier rejection, weighted average and curvature
@@ -35,6 +37,7 @@ use super::crop::finite_bits;
 use super::flying::{FlyingPixelConfig, FlyingPixelConfigError, flying_pixels};
 use super::frontend::{FrameInput, Frontend, FrontendConfig, FrontendError, FrontendOutput};
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
+use super::outliers::{OutlierConfig, OutlierConfigError, remove_isolated};
 use super::shells::{
     self, GpuShells, ShellAbstraction, ShellConfig, ShellConfigError, ShellLayout, ShellSums,
     Viewpoint,
@@ -59,6 +62,8 @@ pub struct SurfaceConfig {
     /// Flying-pixel rejection on the organized cloud before the front end ([`CameraChain`]).
     pub flying_pixels: FlyingPixelConfig,
     pub memory: MemoryConfig,
+    /// Isolated points dropped before the shells ([`super::outliers`]).
+    pub outliers: OutlierConfig,
     pub shells: ShellConfig,
 }
 
@@ -112,6 +117,8 @@ pub enum SurfaceConfigError {
     FlyingPixels(#[from] FlyingPixelConfigError),
     #[error("memory: {0}")]
     Memory(#[from] MemoryConfigError),
+    #[error("outliers: {0}")]
+    Outliers(#[from] OutlierConfigError),
     #[error("shells: {0}")]
     Shells(#[from] ShellConfigError),
     #[error("GPU shell moments: {0}")]
@@ -122,6 +129,7 @@ impl SurfaceConfig {
     pub fn validate(&self) -> Result<(), SurfaceConfigError> {
         self.flying_pixels.validate()?;
         self.memory.validate()?;
+        self.outliers.validate()?;
         self.shells.validate()?;
         Ok(())
     }
@@ -132,6 +140,8 @@ impl SurfaceConfig {
 pub struct SurfaceFrame {
     pub abstraction: ShellAbstraction,
     pub memory: MemoryStep,
+    /// Isolated points of `memory.points` left out of the shells ([`super::outliers`]).
+    pub isolated_points: usize,
     pub sums: ShellSums,
     /// Where the shell moments were computed this frame.
     pub backend: Backend,
@@ -214,23 +224,25 @@ impl SurfaceEstimator {
     ) -> SurfaceFrame {
         let watch = Stopwatch::start();
         let memory = self.memory.step(cloud_world, hip, &self.config.memory);
+        let (points, isolated_points) = remove_isolated(
+            &memory.points,
+            hip,
+            self.config.shells.outer_radius_m(),
+            &self.config.outliers,
+        );
         let memory_time = watch.elapsed();
         let watch = Stopwatch::start();
         let layout = ShellLayout::new(hip, &self.config.shells.radii_m);
         let (sums, backend, gpu_error) = match &mut self.gpu {
-            Some((ctx, stage)) => match stage.accumulate(ctx, &memory.points, &layout) {
+            Some((ctx, stage)) => match stage.accumulate(ctx, &points, &layout) {
                 Ok(sums) => (sums, Backend::Gpu, None),
                 Err(e) => (
-                    shells::accumulate_cpu(&memory.points, &layout),
+                    shells::accumulate_cpu(&points, &layout),
                     Backend::Cpu,
                     Some(e.to_string()),
                 ),
             },
-            None => (
-                shells::accumulate_cpu(&memory.points, &layout),
-                Backend::Cpu,
-                None,
-            ),
+            None => (shells::accumulate_cpu(&points, &layout), Backend::Cpu, None),
         };
         let moments_time = watch.elapsed();
         let watch = Stopwatch::start();
@@ -240,6 +252,7 @@ impl SurfaceEstimator {
         SurfaceFrame {
             abstraction,
             memory,
+            isolated_points,
             sums,
             backend,
             gpu_error,
