@@ -21,7 +21,10 @@ fn json_on_the_bunny_with_both_backends() {
         ]);
         assert_eq!(v["backend"], backend);
         assert_eq!(v["points_in"], 397);
-        assert_eq!(v["isolated_points"], 0, "a real scan has no isolated points");
+        assert_eq!(
+            v["isolated_points"], 0,
+            "a real scan has no isolated points"
+        );
         assert_eq!(v["valid"], true);
         assert_eq!(v["shells"].as_array().unwrap().len(), 9);
         let n: Vec<f64> = v["normal"]
