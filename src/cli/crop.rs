@@ -25,9 +25,16 @@ pub struct Args {
     /// `[[primitive]]` tables with `shape = "sphere" | "capsule" | "oriented_box"`.
     #[arg(long)]
     robot: Option<PathBuf>,
-    /// Grow every robot primitive by this much before the test (m).
+    /// Grow every robot primitive by this much before the test (m) ...
     #[arg(long, default_value_t = CropConfig::default().robot_margin_m)]
     robot_margin: f64,
+    /// ... plus this times the squared distance from `--camera` to the HIP (m per m^2).
+    #[arg(long, default_value_t = CropConfig::default().robot_margin_per_m2)]
+    robot_margin_per_m2: f64,
+    /// The camera's optical centre `x,y,z` in the cloud frame (m); without it the margin is
+    /// `--robot-margin` alone.
+    #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
+    camera: Option<Point3<f64>>,
     /// Output cloud (.pcd or .ply, binary), the kept points with their fields.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -76,10 +83,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let config = CropConfig {
         radius_m: args.radius,
         robot_margin_m: args.robot_margin,
+        robot_margin_per_m2: args.robot_margin_per_m2,
     };
     let scene = CropScene {
         hip_m: args.hip,
         robot: &robot,
+        camera_m: args.camera,
     };
     let (mask, adapter) = timings.run_stage(
         args.backend,

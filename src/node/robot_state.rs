@@ -166,7 +166,7 @@ impl RobotState {
 
     /// HIP (forward kinematics of `q`) and, with joint states, the robot's collision
     /// primitives posed at `q`: what perception crops with (the crop grows them by its
-    /// `robot_margin_m`).
+    /// range-dependent robot margin, [`crate::perception::crop::CropConfig::robot_margin_for`]).
     pub fn perception_scene(&self, q: &JointVector) -> PerceptionScene {
         let hip_m = Point3::from(self.model.world_from_hip(q).translation.vector);
         let primitives = if self.has_joint_states() {

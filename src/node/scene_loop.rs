@@ -239,7 +239,7 @@ pub fn simulate_scene(
             let q_capture = joints_at(&history, timing.capture_s);
             let shot = sim.frame_with_joints(&timing, &q_capture);
             let hip_capture = model.world_from_hip(&q_capture).translation.vector.into();
-            // The crop grows them by its own `robot_margin_m` (one margin, as in the node).
+            // The crop grows them by its own range-dependent margin, as in the node.
             let robot_prims: Vec<_> = model
                 .collision_primitives_world(&q_capture)
                 .into_iter()

@@ -4,9 +4,10 @@
 //! the f32 bit pattern (exponent bits not all ones), (2) it lies within `radius_m` of the
 //! haptic interaction point (HIP), i.e. not outside the paper's "inverted sphere", and
 //! (3) it lies outside every robot collision primitive ([`Primitive`], posed in the cloud
-//! frame), each grown by `robot_margin_m` (the sensor's noise scatters the robot's own surface
-//! points to both sides of it; a primitive that only just encloses the robot leaves half of
-//! them, right next to the HIP). The result is a keep mask of 32-bit words, bit `i % 32` of word `i / 32` for point
+//! frame), each grown by `robot_margin_m` plus `robot_margin_per_m2` times the squared
+//! camera-to-HIP distance (the sensor's noise, which grows with the square of the range, and
+//! the calibration error scatter the robot's own surface points to both sides of it; a
+//! primitive that only just encloses the robot leaves half of them, right next to the HIP). The result is a keep mask of 32-bit words, bit `i % 32` of word `i / 32` for point
 //! `i`, which the voxel stage consumes directly on the GPU.
 //!
 //! [`crop_cpu`] is the reference (f64 geometry from [`crate::geometry`]); [`GpuCrop`] runs
@@ -29,16 +30,24 @@ use crate::gpu::{GpuContext, GpuError};
 pub struct CropConfig {
     /// Points farther than this from the HIP are dropped (m).
     pub radius_m: f64,
-    /// Robot primitives are grown by this much before the test (m): about three times the
-    /// D435's depth noise at 1 m, so the robot's own noisy surface points go too.
+    /// Robot primitives are grown by this much before the test (m) ...
     pub robot_margin_m: f64,
+    /// ... plus this times the squared distance from the camera to the HIP (m per m^2), when
+    /// the frame says where its camera is ([`CropScene::camera_m`]): the D435's depth noise
+    /// grows with the square of the range (3.8 mm per m^2 at 848x480, REFERENCE.md), and with
+    /// a calibration error of a few mm it scatters the robot's own surface past a fixed
+    /// margin. 11 mm/m^2 (three sigma) on 5 mm: 7.8 mm at 0.5 m, 16 mm at 1 m. At 1 m a flat
+    /// 10 mm left a sheet of the handle's points 6-10 cm from the HIP (torso_approach camera
+    /// 0: 9.9 -> 6.3 mm RMS); at 0.5 m it ate the body next to the contact.
+    pub robot_margin_per_m2: f64,
 }
 
 impl Default for CropConfig {
     fn default() -> Self {
         Self {
             radius_m: 0.3,
-            robot_margin_m: 0.01,
+            robot_margin_m: 0.005,
+            robot_margin_per_m2: 0.011,
         }
     }
 }
@@ -50,6 +59,10 @@ pub enum CropError {
     BadRadius(f64),
     #[error("crop robot_margin_m must be finite and at least 0, got {0}")]
     BadMargin(f64),
+    #[error("crop robot_margin_per_m2 must be finite and at least 0, got {0}")]
+    BadMarginGrowth(f64),
+    #[error("camera position must be finite")]
+    BadCamera,
     #[error("HIP position must be finite")]
     BadHip,
     #[error("robot primitive {index}: {source}")]
@@ -71,7 +84,20 @@ impl CropConfig {
         if !(self.robot_margin_m.is_finite() && self.robot_margin_m >= 0.0) {
             return Err(CropError::BadMargin(self.robot_margin_m));
         }
+        if !(self.robot_margin_per_m2.is_finite() && self.robot_margin_per_m2 >= 0.0) {
+            return Err(CropError::BadMarginGrowth(self.robot_margin_per_m2));
+        }
         Ok(())
+    }
+
+    /// The margin the robot primitives grow by in `scene`: `robot_margin_m`, plus
+    /// `robot_margin_per_m2` times the squared camera-to-HIP distance when the camera is
+    /// known, metres.
+    pub fn robot_margin_for(&self, scene: &CropScene<'_>) -> f64 {
+        self.robot_margin_m
+            + scene.camera_m.map_or(0.0, |c| {
+                self.robot_margin_per_m2 * (scene.hip_m - c).norm_squared()
+            })
     }
 }
 
@@ -82,12 +108,21 @@ pub struct CropScene<'a> {
     pub hip_m: Point3<f64>,
     /// Robot collision primitives posed in the cloud frame.
     pub robot: &'a [Primitive],
+    /// The camera's optical centre in the cloud frame, when known (the margin then grows
+    /// with its distance to the HIP, [`CropConfig::robot_margin_per_m2`]).
+    pub camera_m: Option<Point3<f64>>,
 }
 
 impl CropScene<'_> {
     fn validate(&self) -> Result<(), CropError> {
         if !self.hip_m.coords.iter().all(|v| v.is_finite()) {
             return Err(CropError::BadHip);
+        }
+        if self
+            .camera_m
+            .is_some_and(|c| !c.coords.iter().all(|v| v.is_finite()))
+        {
+            return Err(CropError::BadCamera);
         }
         for (index, p) in self.robot.iter().enumerate() {
             p.validate()
@@ -127,11 +162,8 @@ pub fn crop_cpu(
     config.validate()?;
     scene.validate()?;
     let r2 = config.radius_m * config.radius_m;
-    let robot: Vec<Primitive> = scene
-        .robot
-        .iter()
-        .map(|p| p.grown(config.robot_margin_m))
-        .collect();
+    let margin = config.robot_margin_for(scene);
+    let robot: Vec<Primitive> = scene.robot.iter().map(|p| p.grown(margin)).collect();
     let mut mask = vec![0u32; mask_words(points.len())];
     for (i, p) in points.iter().enumerate() {
         if !finite_bits(*p) {
@@ -270,10 +302,11 @@ impl GpuCrop {
         scene.validate()?;
         let n = u32::try_from(point_count).map_err(|_| CropError::TooManyPoints(point_count))?;
         let words = mask_words(point_count) as u64;
+        let margin = config.robot_margin_for(scene);
         let prims: Vec<CropPrimitive> = scene
             .robot
             .iter()
-            .map(|p| gpu_primitive(&p.grown(config.robot_margin_m)))
+            .map(|p| gpu_primitive(&p.grown(margin)))
             .collect();
         let prim_bytes = std::mem::size_of_val(prims.as_slice()) as u64;
         ctx.check_storage_size("crop keep mask", 4 * words)?;
@@ -416,6 +449,7 @@ mod tests {
         CropScene {
             hip_m: Point3::origin(),
             robot,
+            camera_m: None,
         }
     }
 
@@ -472,6 +506,46 @@ mod tests {
             ..CropConfig::default()
         };
         assert!(matches!(bad.validate(), Err(CropError::BadMargin(_))));
+        // With the camera known the margin grows with the square of its distance to the HIP:
+        // 5 mm + 11 mm/m^2 is 7.75 mm at 0.5 m (the point 15 mm out stays) and 16 mm at 1 m
+        // (it goes too), on both backends.
+        let config = CropConfig::default();
+        let ctx = crate::gpu::context::test_context();
+        for (distance, kept) in [(0.5, vec![2]), (1.0, vec![])] {
+            let scene = CropScene {
+                camera_m: Some(Point3::new(0.0, 0.0, distance)),
+                ..hip_scene(&robot)
+            };
+            assert!(
+                (config.robot_margin_for(&scene) - (0.005 + 0.011 * distance * distance)).abs()
+                    < 1e-12
+            );
+            let cpu = crop_cpu(&pts, &config, &scene).unwrap();
+            let gpu = GpuCrop::new(ctx)
+                .unwrap()
+                .run(ctx, &pts, &config, &scene, None)
+                .unwrap()
+                .0;
+            assert_eq!(cpu, gpu);
+            assert_eq!(
+                kept_indices(&cpu, pts.len()),
+                kept,
+                "camera {distance} m away"
+            );
+        }
+        let bad = CropConfig {
+            robot_margin_per_m2: f64::NAN,
+            ..CropConfig::default()
+        };
+        assert!(matches!(bad.validate(), Err(CropError::BadMarginGrowth(_))));
+        let nowhere = CropScene {
+            camera_m: Some(Point3::new(f64::INFINITY, 0.0, 0.0)),
+            ..hip_scene(&robot)
+        };
+        assert!(matches!(
+            crop_cpu(&pts, &config, &nowhere),
+            Err(CropError::BadCamera)
+        ));
     }
 
     #[test]
@@ -598,6 +672,7 @@ mod tests {
             let scene = CropScene {
                 hip_m: hip,
                 robot: &robot,
+                camera_m: None,
             };
             let config = CropConfig {
                 radius_m: 0.5,

@@ -381,6 +381,7 @@ mod tests {
                 crop: Some(CropScene {
                     hip_m: Point3::new(0.05, 0.0, 0.85),
                     robot: &robot,
+                    camera_m: None,
                 }),
             };
             let g = gpu.process(&frame).unwrap();

@@ -432,6 +432,7 @@ impl CameraChain {
             crop: Some(super::crop::CropScene {
                 hip_m: *hip_world,
                 robot,
+                camera_m: Some(Point3::from(pose.translation.vector)),
             }),
         };
         let watch = Stopwatch::start();

@@ -248,6 +248,7 @@ pub fn camera_view(
     let scene = CropScene {
         hip_m: *hip_m,
         robot,
+        camera_m: Some(Point3::from(world_from_camera.translation.vector)),
     };
     let world = &cam.world_points;
     let mask = crop_cpu(world, crop, &scene)?;

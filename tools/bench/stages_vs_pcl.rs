@@ -614,6 +614,7 @@ fn main() -> anyhow::Result<()> {
     let scene = CropScene {
         hip_m: Point3::origin(),
         robot: &[],
+        camera_m: None,
     };
     let ctx = Arc::new(GpuContext::new()?);
     let crop_timer = StageTimer::new(&ctx, "bench crop", &["crop"])?;
