@@ -61,7 +61,7 @@ use crate::robot::{RobotError, RobotModel};
 use crate::scene::{GroundTruth, Scene, SceneError, SimFrame, Simulator};
 use crate::surface::SurfaceEstimate;
 use crate::timing::{SpanTime, Stopwatch};
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -307,7 +307,10 @@ pub fn evaluate_scene(
             &sim_frame,
             hip,
             truth,
-            &truth_unbiased,
+            &Unbiased {
+                true_from_reported,
+                truth: truth_unbiased,
+            },
             reach_m,
             &out,
             total,
@@ -324,19 +327,25 @@ pub fn evaluate_scene(
     })
 }
 
+/// What the errors without the calibration bias compare: the estimate mapped through
+/// `true_from_reported` (the camera's true pose instead of the reported one) against `truth`,
+/// the truth for the HIP displaced the same way.
+struct Unbiased {
+    true_from_reported: Isometry3<f64>,
+    truth: GroundTruth,
+}
+
 fn judge(
     sim_frame: &SimFrame,
     hip: Point3<f64>,
     truth: GroundTruth,
-    truth_unbiased: &GroundTruth,
+    unbiased: &Unbiased,
     reach_m: f64,
     out: &crate::perception::pipeline::ChainFrame,
     total: SpanTime,
 ) -> FrameEvaluation {
     let frame = &sim_frame.frame;
     let estimate = out.surface.abstraction.estimate.clone();
-    // The estimate re-expressed through the camera's true pose instead of the reported one.
-    let true_from_reported = sim_frame.world_from_camera_true * frame.world_from_camera.inverse();
     let errors = |centroid: &Point3<f64>, normal: &Vector3<f64>, truth: &GroundTruth| {
         estimate.valid.then(|| {
             (
@@ -347,9 +356,9 @@ fn judge(
     };
     let biased = errors(&estimate.centroid_m, &estimate.normal, &truth);
     let unbiased = errors(
-        &(true_from_reported * estimate.centroid_m),
-        &(true_from_reported.rotation * estimate.normal.into_inner()),
-        truth_unbiased,
+        &(unbiased.true_from_reported * estimate.centroid_m),
+        &(unbiased.true_from_reported.rotation * estimate.normal.into_inner()),
+        &unbiased.truth,
     );
     let camera = Point3::from(frame.world_from_camera.translation.vector);
     FrameEvaluation {

@@ -76,34 +76,42 @@ pub fn remove_isolated(
     if !config.enabled {
         return (finite, 0);
     }
-    let distance =
-        |p: &Vec3| (Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)) - hip).norm();
-    let near: Vec<[f64; 3]> = finite
+    // Each point's f64 coordinates and distance from the HIP, computed once.
+    let located: Vec<([f64; 3], f64)> = finite
         .iter()
-        .filter(|p| distance(p) <= reach_m + config.radius_m)
-        .map(|p| [f64::from(p.x), f64::from(p.y), f64::from(p.z)])
+        .map(|p| {
+            let c = [f64::from(p.x), f64::from(p.y), f64::from(p.z)];
+            (c, (Point3::from(c) - hip).norm())
+        })
+        .collect();
+    let near: Vec<[f64; 3]> = located
+        .iter()
+        .filter(|(_, d)| *d <= reach_m + config.radius_m)
+        .map(|(c, _)| *c)
         .collect();
     if near.is_empty() {
         return (finite, 0);
     }
     // Construction only fails when the item index overflows u32 (over 4e9 points).
     let tree = ImmutableKdTree::new_from_slice(&near).expect("fewer than 2^32 points");
-    let k = config.min_neighbours as usize + 1;
+    // The point itself is its own nearest (distance 0): k = neighbours + 1.
+    let k = NonZeroUsize::new(config.min_neighbours as usize + 1).expect("k >= 2");
     let radius2 = config.radius_m * config.radius_m;
     let before = finite.len();
     let kept: Vec<Vec3> = finite
         .into_iter()
-        .filter(|p| {
-            if distance(p) > reach_m {
+        .zip(&located)
+        .filter(|(_, (c, d))| {
+            if *d > reach_m {
                 return true;
             }
-            // The point itself is its own nearest (distance 0): k = neighbours + 1.
             let found = tree
-                .query(&[f64::from(p.x), f64::from(p.y), f64::from(p.z)])
-                .nearest_n::<SquaredEuclidean<f64>>(NonZeroUsize::new(k).expect("k >= 2"))
+                .query(c)
+                .nearest_n::<SquaredEuclidean<f64>>(k)
                 .execute();
-            found.len() == k && found.iter().all(|n| n.distance <= radius2)
+            found.len() == k.get() && found.iter().all(|n| n.distance <= radius2)
         })
+        .map(|(p, _)| p)
         .collect();
     let removed = before - kept.len();
     (kept, removed)

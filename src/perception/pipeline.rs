@@ -147,8 +147,9 @@ pub struct SurfaceFrame {
     pub backend: Backend,
     /// A GPU failure this frame; the CPU reference answered instead (same integers).
     pub gpu_error: Option<String>,
-    /// Wall and thread CPU time of the surface memory (Alg. 1), of the shell moments (upload,
-    /// GPU pass and readback, or the CPU reference) and of the fits (Alg. 2).
+    /// Wall and thread CPU time of the surface memory (Alg. 1, with the isolated-point
+    /// removal), of the shell moments (upload, GPU pass and readback, or the CPU reference)
+    /// and of the fits (Alg. 2).
     pub memory_time: SpanTime,
     pub moments_time: SpanTime,
     pub fits_time: SpanTime,
