@@ -55,8 +55,11 @@
 
 use crate::gpu::timing::StageTime;
 use crate::gpu::{Backend, GpuContext};
+use crate::node::haptic_loop::Perception;
+use crate::node::robot_state::PerceptionScene;
+use crate::node::{NodeConfig, NodeError};
 use crate::perception::frontend::FrontendConfig;
-use crate::perception::pipeline::{CameraChain, ChainError, SurfaceConfig};
+use crate::perception::pipeline::SurfaceConfig;
 use crate::robot::{RobotError, RobotModel};
 use crate::scene::{GroundTruth, Scene, SceneError, SimFrame, Simulator};
 use crate::surface::SurfaceEstimate;
@@ -151,7 +154,7 @@ pub enum EvaluationError {
     #[error("robot model: {0}")]
     Robot(#[from] RobotError),
     #[error(transparent)]
-    Chain(#[from] ChainError),
+    Loop(#[from] NodeError),
 }
 
 impl EvaluationConfig {
@@ -162,14 +165,17 @@ impl EvaluationConfig {
             return Err(EvaluationError::Duration(d));
         }
         self.target.validate()?;
-        self.frontend
-            .validate()
-            .map_err(|e| ChainError::Frontend(e).into())
-            .and_then(|()| {
-                self.surface
-                    .validate()
-                    .map_err(|e| ChainError::Surface(e).into())
-            })
+        self.node_config().validate()?;
+        Ok(())
+    }
+
+    /// The haptic loop's config with these stages.
+    pub fn node_config(&self) -> NodeConfig {
+        NodeConfig {
+            frontend: self.frontend.clone(),
+            surface: self.surface.clone(),
+            ..NodeConfig::default()
+        }
     }
 }
 
@@ -255,12 +261,14 @@ pub fn evaluate_scene(
         .as_ref()
         .ok_or_else(|| EvaluationError::NoRobot(scene.origin.clone()))?;
     let robot = RobotModel::anyexo()?.with_base(robot_config.world_from_base());
-    let mut chain = CameraChain::new(
-        backend,
-        config.frontend.clone(),
-        config.surface.clone(),
-        ctx,
-    )?;
+    let ctx = match (backend, ctx) {
+        (Backend::Cpu, _) => None,
+        (Backend::Gpu, Some(ctx)) => Some(ctx),
+        (Backend::Gpu, None) => Some(Arc::new(
+            GpuContext::new().map_err(|e| NodeError::Frontend(e.into()))?,
+        )),
+    };
+    let mut perception = Perception::on_context(&config.node_config(), ctx)?;
     let duration = config.duration_s.unwrap_or(sim.duration_s());
     if !(config.start_s.is_finite() && config.start_s < duration) {
         return Err(EvaluationError::Start {
@@ -284,14 +292,17 @@ pub fn evaluate_scene(
         else {
             return Err(EvaluationError::NoRobot(scene.origin.clone()));
         };
-        let primitives: Vec<_> = robot
-            .collision_primitives_world(&joints)
-            .into_iter()
-            .map(|(_, p)| p)
-            .collect();
+        let robot_scene = PerceptionScene {
+            hip_m: hip,
+            primitives: robot
+                .collision_primitives_world(&joints)
+                .into_iter()
+                .map(|(_, p)| p)
+                .collect(),
+        };
         let sim_frame = sim.frame(&timing);
-        let (out, total) = Stopwatch::time(|| chain.process(&sim_frame.frame, &hip, &primitives));
-        let out = out?;
+        let (out, total) = Stopwatch::time(|| perception.process(&sim_frame.frame, &robot_scene));
+        let out = out?.chain;
         let truth_smooth = previous_stamp
             .insert(timing.camera_id, t)
             .is_some_and(|t0| truth_moves_smoothly(&sim, t0, t));
@@ -320,7 +331,7 @@ pub fn evaluate_scene(
     }
     Ok(SceneEvaluation {
         scene: scene.origin.clone(),
-        backend: chain.backend(),
+        backend: perception.backend(),
         reach_m,
         camera_names: sim.cameras().iter().map(|c| c.name.clone()).collect(),
         frames,

@@ -42,14 +42,17 @@
 
 use crate::camera::Frame;
 use crate::control::closed_loop::{self, SimConfig, SimError};
+use crate::fusion::FusionConfig;
 use crate::fusion::{FusedSurface, FusionStatus};
-use crate::fusion::{Fusion, FusionConfig, FusionConfigError};
 use crate::geometry::Primitive;
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::known_surface;
+use crate::node::haptic_loop::{HapticLoop, Perception};
+use crate::node::robot_state::PerceptionScene;
+use crate::node::{NodeConfig, NodeError};
 use crate::perception::fit::CircleMethod;
 use crate::perception::frontend::{FrontendConfig, FrontendError};
-use crate::perception::pipeline::{CameraChain, ChainError, SurfaceConfig};
+use crate::perception::pipeline::SurfaceConfig;
 use crate::robot::{RobotError, RobotModel};
 use crate::scene::{CameraConfig, Scene, SceneError, Simulator};
 use crate::timing::{SpanTime, Stopwatch};
@@ -327,16 +330,10 @@ pub enum StudyError {
     #[error("robot model: {0}")]
     Robot(#[from] RobotError),
     #[error("setting {knob}={value}: {source}")]
-    Pipeline {
+    Loop {
         knob: String,
         value: String,
-        source: ChainError,
-    },
-    #[error("setting {knob}={value}: fusion: {source}")]
-    Fusion {
-        knob: String,
-        value: String,
-        source: FusionConfigError,
+        source: NodeError,
     },
     #[error("setting {knob}={value}: closed loop: {source}")]
     ClosedLoop {
@@ -674,11 +671,18 @@ pub fn run_setting(
 ) -> Result<StudyRow, StudyError> {
     let knobs = &setting.knobs;
     let (knob, value) = (setting.knob.clone(), setting.value.clone());
-    let pipeline_error = |source| StudyError::Pipeline {
+    let loop_error = |source| StudyError::Loop {
         knob: knob.clone(),
         value: value.clone(),
         source,
     };
+    let node_config = NodeConfig {
+        frontend: knobs.frontend.clone(),
+        surface: knobs.surface.clone(),
+        fusion: knobs.fusion,
+        ..NodeConfig::default()
+    };
+    let model = RobotModel::anyexo()?;
     let mut gpu_stage_sum: BTreeMap<String, f64> = BTreeMap::new();
     let (mut frontend_sum, mut surface_sum) = (SpanTime::default(), SpanTime::default());
     let mut fusion_cpu_ms = 0.0;
@@ -700,18 +704,9 @@ pub fn run_setting(
             });
         }
         // Fresh state per recording: surface memories, leaf adaptation, fusion window.
-        let mut chain = CameraChain::new(
-            backend,
-            knobs.frontend.clone(),
-            knobs.surface.clone(),
-            ctx.clone(),
-        )
-        .map_err(pipeline_error)?;
-        let mut fusion = Fusion::new(knobs.fusion).map_err(|source| StudyError::Fusion {
-            knob: knob.clone(),
-            value: value.clone(),
-            source,
-        })?;
+        let mut haptic_loop = Perception::on_context(&node_config, ctx.clone())
+            .and_then(|p| HapticLoop::with_perception(&node_config, model.clone(), p))
+            .map_err(loop_error)?;
         let mut next = recording
             .frames
             .iter()
@@ -724,9 +719,14 @@ pub fn run_setting(
         let ticks = &recording.ticks;
         for (k, (t, truth)) in ticks.iter().enumerate() {
             while let Some(rec) = next.next_if(|f| f.arrival_s <= *t) {
-                let cam = chain
-                    .process(&rec.frame, &rec.truth.hip_m, &rec.robot)
-                    .map_err(pipeline_error)?;
+                let scene = PerceptionScene {
+                    hip_m: rec.truth.hip_m,
+                    primitives: rec.robot.clone(),
+                };
+                let record = haptic_loop
+                    .push_frame(&rec.frame, &scene)
+                    .map_err(loop_error)?;
+                let cam = &record.chain;
                 frontend_sum += cam.frontend_time;
                 surface_sum += cam.surface_time;
                 for st in &cam.front.gpu_times {
@@ -741,9 +741,8 @@ pub fn run_setting(
                     cam_c.push((e.centroid_m - rec.truth.closest_m).norm() * 1e3);
                     cam_n.push(angle_deg(&e.normal, &rec.truth.normal));
                 }
-                fusion.push(e);
             }
-            let (fused, span) = Stopwatch::time(|| fusion.tick(*t));
+            let (fused, span) = Stopwatch::time(|| haptic_loop.fuse(*t));
             fusion_cpu_ms += span.cpu_ms;
             tick_count += 1;
             if fused.is_tracking() {
@@ -772,7 +771,7 @@ pub fn run_setting(
                 });
             }
         }
-        chain_backend = chain.backend();
+        chain_backend = haptic_loop.perception().backend();
     }
     // Without a closed loop asked for, or never tracking (the controller would see no
     // surface at all), there is no margin to report.
@@ -878,10 +877,10 @@ pub fn run_study(
 ) -> Result<StudyReport, StudyError> {
     let ctx = match backend {
         Backend::Gpu => Some(Arc::new(GpuContext::new().map_err(|e| {
-            StudyError::Pipeline {
+            StudyError::Loop {
                 knob: "default".into(),
                 value: "-".into(),
-                source: ChainError::Frontend(FrontendError::Gpu(e)),
+                source: NodeError::Frontend(FrontendError::Gpu(e)),
             }
         })?)),
         Backend::Cpu => None,

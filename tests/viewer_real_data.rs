@@ -5,7 +5,7 @@
 #![cfg(feature = "viewer")]
 
 use egui_kittest::Harness;
-use hapcloud::viewer::replay::ReplayConfig;
+use hapcloud::node::NodeConfig;
 use hapcloud::viewer::source::{hip_on_axis, read_cloud_dir, timeline_from_frames};
 use hapcloud::viewer::{PointRole, ViewFrame, ViewerApp, ViewerConfig, ViewerSource};
 use nalgebra::Vector3;
@@ -16,7 +16,7 @@ use common::{TempDir, grabber_pcd as grabber_dir};
 fn timeline() -> Vec<ViewFrame> {
     let frames = read_cloud_dir(&grabber_dir(), 30.0).unwrap();
     let hip = hip_on_axis(&frames[0], 0.06).expect("the axis meets a surface");
-    timeline_from_frames(&frames, hip, ReplayConfig::default()).unwrap()
+    timeline_from_frames(&frames, hip, &NodeConfig::default()).unwrap()
 }
 
 #[test]
@@ -29,7 +29,7 @@ fn stages_run_on_real_frames_and_every_layer_is_filled() {
     assert!((dt - 0.254471).abs() < 1e-6, "{dt}");
 
     let hip = hip_on_axis(&frames[0], 0.06).unwrap();
-    let timeline = timeline_from_frames(&frames, hip, ReplayConfig::default()).unwrap();
+    let timeline = timeline_from_frames(&frames, hip, &NodeConfig::default()).unwrap();
     assert_eq!(timeline.len(), 3);
     for (k, f) in timeline.iter().enumerate() {
         let finite = frames[k].cloud.finite_count();

@@ -162,14 +162,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 /// The node on a worker thread feeding the overlay, the window on this (the main) thread:
 /// winit needs it. The node's events become view frames on a third thread
-/// ([`hapcloud::node::overlay::Overlay`]), so drawing never slows the node.
+/// ([`hapcloud::viewer::overlay::Overlay`]), so drawing never slows the node.
 #[cfg(feature = "viewer")]
 fn run_with_overlay(
     config: NodeConfig,
     source: Source,
     mut options: RunOptions,
 ) -> anyhow::Result<NodeSummary> {
-    use hapcloud::node::overlay::Overlay;
+    use hapcloud::viewer::overlay::Overlay;
     use hapcloud::viewer::{ViewerApp, ViewerConfig, ViewerSource, run_window};
     use std::sync::atomic::{AtomicBool, Ordering};
     use std::sync::mpsc;

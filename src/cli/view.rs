@@ -13,9 +13,10 @@
 //! `--json` prints a summary of the timeline instead of opening a window.
 
 use anyhow::{Context, bail};
+use hapcloud::node::NodeConfig;
 use hapcloud::node::record;
+use hapcloud::robot::RobotModel;
 use hapcloud::scene::{Scene, Simulator};
-use hapcloud::viewer::replay::ReplayConfig;
 use hapcloud::viewer::simulated::{SceneViewConfig, timeline_from_scene};
 use hapcloud::viewer::source::{
     hip_on_axis, read_cloud_dir, timeline_from_frames, timeline_from_recording,
@@ -55,9 +56,10 @@ pub struct Args {
     /// Frame rate for files whose names carry no time stamp (Hz).
     #[arg(long, default_value_t = 30.0)]
     rate_hz: f64,
-    /// TOML file with a [viewer] table (ViewerConfig), a [replay] table (front end, surface,
-    /// fusion and hip_radius_m) and a [scene] table (SceneViewConfig: start, duration, view
-    /// rate, stored points, haptics); unknown keys are rejected.
+    /// TOML file with a [viewer] table (ViewerConfig), a [node] table (the node config of
+    /// `hapcloud run --config`: the haptic loop's stages) and a [scene] table
+    /// (SceneViewConfig: start, duration, view rate, stored points); unknown keys are
+    /// rejected.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Frame shown first.
@@ -78,7 +80,7 @@ pub struct Args {
 #[serde(default, deny_unknown_fields)]
 struct ViewFile {
     viewer: ViewerConfig,
-    replay: ReplayConfig,
+    node: NodeConfig,
     scene: SceneViewConfig,
 }
 
@@ -104,7 +106,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         None => ViewFile::default(),
     };
     file.viewer.validate()?;
-    file.replay.validate()?;
+    file.node.validate()?;
     if !(args.hip_clearance_m.is_finite() && args.hip_clearance_m >= 0.0) {
         bail!(
             "--hip-clearance-m must be finite and not negative, got {}",
@@ -124,30 +126,30 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let frames = read_cloud_dir(&args.source, args.rate_hz)?;
         let hip = match &args.hip {
             Some(s) => parse_hip(s)?,
-            None => hip_on_axis(&frames[0], file.replay.hip_radius_m + args.hip_clearance_m)
-                .with_context(|| {
-                    format!(
-                        "{}: no finite point to place the HIP in front of; give --hip",
-                        args.source.display()
-                    )
-                })?,
+            None => hip_on_axis(
+                &frames[0],
+                RobotModel::anyexo()?.hip_radius_m() + args.hip_clearance_m,
+            )
+            .with_context(|| {
+                format!(
+                    "{}: no finite point to place the HIP in front of; give --hip",
+                    args.source.display()
+                )
+            })?,
         };
-        (
-            timeline_from_frames(&frames, hip, file.replay.clone())?,
-            hip,
-        )
+        (timeline_from_frames(&frames, hip, &file.node)?, hip)
     } else {
         if args.hip.is_some() {
             bail!("--hip is for frame directories; a scene moves its own HIP");
         }
         let name = args.source.to_string_lossy();
         let scene = Scene::from_name_or_path(&name)?;
-        let simulator = Simulator::new(&scene)?;
+        let simulator = std::sync::Arc::new(Simulator::new(&scene)?);
         let mut config = file.scene.clone();
         config.start_s = args.start_s.unwrap_or(config.start_s);
         config.duration_s = args.duration_s.unwrap_or(config.duration_s);
         config.view_rate_hz = args.view_rate_hz.unwrap_or(config.view_rate_hz);
-        let timeline = timeline_from_scene(&simulator, &file.replay, &config)?;
+        let timeline = timeline_from_scene(&simulator, &file.node, &config)?;
         let hip = timeline.first().map_or_else(Point3::origin, |f| f.hip_m);
         (timeline, hip)
     };

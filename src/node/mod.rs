@@ -42,8 +42,7 @@
 
 pub mod can_out;
 pub mod frame_queue;
-#[cfg(feature = "viewer")]
-pub mod overlay;
+pub mod haptic_loop;
 pub mod record;
 pub mod robot_state;
 pub mod scene_loop;
@@ -54,26 +53,21 @@ pub mod wire;
 mod tests;
 
 use crate::camera::Frame;
-use crate::control::{
-    Controller, ControllerConfig, ControllerConfigError, ControllerInput, Intent,
-};
-use crate::fusion::{
-    FusedSurface, Fusion, FusionConfig, FusionConfigError, FusionCounters, FusionStatus,
-};
-use crate::gpu::{Backend, GpuContext};
+use crate::control::{ControllerConfig, ControllerConfigError};
+use crate::fusion::{FusionConfig, FusionConfigError, FusionCounters, FusionStatus};
+use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::io::can::{CanError, fault};
 use crate::perception::frontend::{FrontendConfig, FrontendError};
-use crate::perception::pipeline::{
-    CameraChain, ChainError, ChainFrame, SurfaceConfig, SurfaceConfigError,
-};
+use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
 use crate::surface::SurfaceEstimate;
 use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
 use frame_queue::{CloseOnDrop, FrameQueue};
-use nalgebra::{Point3, Vector3};
-use record::{ControlRecord, FrameRecorder, RecordError, TickRecord};
-use robot_state::{PerceptionScene, RobotState, RobotStateConfig};
+use haptic_loop::{FrameRecord, HapticLoop, Perception, RobotInput};
+use nalgebra::Point3;
+use record::{FrameRecorder, RecordError, TickRecord};
+use robot_state::{RobotState, RobotStateConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -249,14 +243,9 @@ pub const OBSERVER_TICK_EVERY: u64 = 8;
 
 /// What the node shows an observer.
 pub enum NodeEvent {
-    /// A frame perception processed: the chain's output (world points, front end, kept
-    /// points, surface memory, estimate), the camera pose, and the HIP and robot primitives
-    /// it cropped with (world frame).
-    Frame {
-        chain: Box<ChainFrame>,
-        world_from_camera: nalgebra::Isometry3<f64>,
-        scene: PerceptionScene,
-    },
+    /// A frame perception processed: the chain's layers, the camera pose and the HIP and
+    /// robot primitives it cropped with.
+    Frame(Box<FrameRecord>),
     /// A control tick: fused surface, robot state, constraints, torques.
     Tick(Box<TickRecord>),
 }
@@ -361,49 +350,6 @@ pub struct CanSummary {
     pub bus_load: BusLoad,
 }
 
-/// The surface the constraints use at a tick, and whether it is held over stale cameras:
-/// the fused surface while it tracks; while fusion is stale and `on_stale = "hold"`, the
-/// last smoothed surface (fusion keeps it) standing still, for at most `stale_hold_max_s`
-/// past the stale timeout; otherwise none (the constraints switch off).
-pub fn constraint_surface(
-    config: &NodeConfig,
-    fused: &FusedSurface,
-) -> (Option<FusedSurface>, bool) {
-    match fused.status {
-        FusionStatus::Tracking => (Some(*fused), false),
-        FusionStatus::Stale
-            if config.on_stale == StalePolicy::Hold
-                && fused.age_s - config.fusion.stale_timeout_s <= config.stale_hold_max_s =>
-        {
-            let held = FusedSurface {
-                status: FusionStatus::Tracking,
-                velocity_m_per_s: Vector3::zeros(),
-                ..*fused
-            };
-            (Some(held), true)
-        }
-        _ => (None, false),
-    }
-}
-
-/// One control tick after fusion: constraints and controller for the robot state `joints`.
-fn control_tick(
-    config: &NodeConfig,
-    controller: &Controller,
-    fused: &FusedSurface,
-    joints: robot_state::JointState,
-) -> ControlRecord {
-    let (surface, held) = constraint_surface(config, fused);
-    let out = controller.tick(&ControllerInput {
-        q: joints.q_rad,
-        qd: joints.qd_rad_per_s,
-        surface: surface.as_ref(),
-        interaction_force_n: Vector3::zeros(),
-        intent: Intent::Transparent,
-    });
-    ControlRecord::new(joints, held, &out)
-}
-
 /// The node's clock: `t = offset + elapsed * speed`.
 struct Clock {
     start: Instant,
@@ -454,79 +400,6 @@ struct PerceptionReport {
     gpu_fallback: Option<String>,
 }
 
-/// Perception on one thread: the per-camera chain ([`CameraChain`]: front end and one
-/// surface estimator per camera), GPU with CPU fallback (at start and mid-run, logged once).
-struct Perception {
-    chain: CameraChain,
-    /// Why the GPU could not be opened at start, if it could not.
-    start_fallback: Option<String>,
-    warned: bool,
-}
-
-impl Perception {
-    fn new(
-        config: &NodeConfig,
-        backend: Backend,
-        adapter: Option<&str>,
-    ) -> Result<Self, NodeError> {
-        let chain = |backend, ctx| {
-            CameraChain::new(
-                backend,
-                config.frontend.clone(),
-                config.surface.clone(),
-                ctx,
-            )
-        };
-        let gpu = match backend {
-            Backend::Cpu => None,
-            Backend::Gpu => Some(
-                adapter
-                    .map_or_else(GpuContext::new, |name| {
-                        GpuContext::with_adapter_name(Some(name))
-                    })
-                    .map_err(|e| e.to_string())
-                    .and_then(|ctx| {
-                        chain(Backend::Gpu, Some(Arc::new(ctx))).map_err(|e| e.to_string())
-                    }),
-            ),
-        };
-        let (chain, start_fallback) = match gpu {
-            None => (chain(Backend::Cpu, None)?, None),
-            Some(Ok(c)) => (c, None),
-            Some(Err(e)) => {
-                eprintln!("warning: GPU unavailable ({e}); perception runs on the CPU");
-                (chain(Backend::Cpu, None)?, Some(e))
-            }
-        };
-        Ok(Self {
-            chain,
-            start_fallback,
-            warned: false,
-        })
-    }
-
-    fn backend(&self) -> Backend {
-        self.chain.backend()
-    }
-
-    fn gpu_fallback(&self) -> Option<String> {
-        self.start_fallback
-            .clone()
-            .or_else(|| self.chain.gpu_fallback().map(str::to_string))
-    }
-
-    /// One frame through the chain, with the HIP and the robot's primitives of `scene`
-    /// (world frame).
-    fn process(&mut self, frame: &Frame, scene: &PerceptionScene) -> Result<ChainFrame, NodeError> {
-        let out = self.chain.process(frame, &scene.hip_m, &scene.primitives)?;
-        if let (Some(reason), false) = (self.chain.gpu_fallback(), self.warned) {
-            eprintln!("warning: GPU failed ({reason}); perception continues on the CPU");
-            self.warned = true;
-        }
-        Ok(out)
-    }
-}
-
 fn perception_thread(
     mut perception: Perception,
     robot: &RobotState,
@@ -543,9 +416,8 @@ fn perception_thread(
     while let Some(frame) = frames.pop() {
         let start = Instant::now();
         let q = robot.at(frame.stamp_s).q_rad;
-        let scene = robot.perception_scene(&q);
-        let chain = perception.process(&frame, &scene)?;
-        let estimate = chain.estimate().clone();
+        let record = perception.process(&frame, &robot.perception_scene(&q))?;
+        let estimate = record.estimate().clone();
         times_s.push(start.elapsed().as_secs_f64());
         if perception.gpu_fallback().is_some() {
             shared.gpu_fell_back.store(true, Ordering::Relaxed);
@@ -555,11 +427,7 @@ fn perception_thread(
         }
         if let Some(o) = &observer {
             // Dropped when the observer is behind (or gone).
-            let _ = o.try_send(NodeEvent::Frame {
-                chain: Box::new(chain),
-                world_from_camera: frame.world_from_camera,
-                scene,
-            });
+            let _ = o.try_send(NodeEvent::Frame(Box::new(record)));
         }
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
@@ -575,7 +443,7 @@ fn perception_thread(
         frames: counts,
         times_s,
         backend: perception.backend(),
-        adapter: perception.chain.adapter().map(str::to_string),
+        adapter: perception.adapter().map(str::to_string),
         gpu_fallback: perception.gpu_fallback(),
     })
 }
@@ -660,7 +528,13 @@ pub fn run(
         Some(r) => r,
         None => RobotState::fixed(config)?,
     };
-    let controller = Controller::new(robot.model().clone(), config.controller.clone())?;
+    let (perception, mut control) = HapticLoop::new(
+        config,
+        robot.model().clone(),
+        options.backend,
+        options.adapter.as_deref(),
+    )?
+    .into_halves();
     let mut can = if options.can_interface.is_some() || options.can_log.is_some() {
         Some(CanOutput::open(
             &config.can,
@@ -670,11 +544,9 @@ pub fn run(
     } else {
         None
     };
-    let mut fusion = Fusion::new(config.fusion)?;
-    let perception = Perception::new(config, options.backend, options.adapter.as_deref())?;
     let start_backend = perception.backend();
     if options.progress_every_s.is_some() {
-        let adapter = perception.chain.adapter().map(str::to_string);
+        let adapter = perception.adapter().map(str::to_string);
         eprintln!(
             "perception backend: {}{}; robot: {}",
             perception.backend(),
@@ -801,20 +673,15 @@ pub fn run(
                     if let Some(c) = can.as_mut() {
                         c.estimate(t_tick, &estimate);
                     }
-                    fusion.push(&estimate);
+                    control.push_estimate(&estimate);
                     pending_latency.push(estimate.stamp_s);
                     received += 1;
                     *recent_per_camera.entry(estimate.camera_id).or_insert(0u64) += 1;
                 }
-                let fused = fusion.tick(t_tick);
-                let control = control_tick(config, &controller, &fused, robot.at(t_tick));
-                let mut tick = TickRecord {
-                    index: k,
-                    fused,
-                    control,
-                    late_s,
-                    work_s: 0.0,
-                };
+                let joints = robot.at(t_tick);
+                let out = control.tick(t_tick, &RobotInput::without_force(joints));
+                let mut tick = TickRecord::new(k, joints, &out, late_s);
+                let (fused, record) = (tick.fused, tick.control);
                 on_tick(&tick);
                 stats.ticks += 1;
                 match fused.status {
@@ -822,9 +689,9 @@ pub fn run(
                     FusionStatus::Stale => stats.stale += 1,
                     _ => {}
                 }
-                stats.active += u64::from(control.haptic_status == HapticStatus::Active);
-                stats.held += u64::from(control.held);
-                stats.fallbacks += u64::from(control.status != crate::control::ControlStatus::Ok);
+                stats.active += u64::from(record.haptic_status == HapticStatus::Active);
+                stats.held += u64::from(record.held);
+                stats.fallbacks += u64::from(record.status != crate::control::ControlStatus::Ok);
                 let finished = Instant::now();
                 tick.work_s = (finished - started).as_secs_f64();
                 stats.work_s.push(tick.work_s);
@@ -861,7 +728,7 @@ pub fn run(
                         fault::NETWORK_MALFORMED,
                     );
                     flag(misses_since_status, fault::DEADLINE_MISSED);
-                    flag(control.held, fault::CONSTRAINT_HELD);
+                    flag(record.held, fault::CONSTRAINT_HELD);
                     c.tick(
                         t_tick,
                         &tick,
@@ -900,9 +767,9 @@ pub fn run(
                         stats.ticks,
                         stats.deadline_misses,
                         fused.status,
-                        control.haptic_status,
-                        if control.held { " (held)" } else { "" },
-                        control.d_proj_m * 1e3,
+                        record.haptic_status,
+                        if record.held { " (held)" } else { "" },
+                        record.d_proj_m * 1e3,
                     );
                 }
                 k += 1;
@@ -978,7 +845,7 @@ pub fn run(
         backend: report.backend,
         adapter: report.adapter,
         gpu_fallback: report.gpu_fallback,
-        fusion: fusion.counters(),
+        fusion: control.fusion().counters(),
         can: can.map(|c| CanSummary {
             counters: c.finish(),
             bus_load: config.can.bus_load(config.tick_rate_hz),
@@ -1024,18 +891,17 @@ impl ReplayReport {
     }
 }
 
-/// Re-runs a recording: perception on its frames (same config and backend, the HIP and
-/// primitives of the recorded joints), then fusion with those estimates pushed at their
-/// recorded ticks and evaluated at the recorded tick times, then the constraints and the
-/// controller on the recorded robot states; compares estimates and ticks (fused surface,
-/// constraint values, torques) bit for bit with what was recorded.
+/// Re-runs a recording through the haptic loop: each recorded frame goes in (same config and
+/// backend, the HIP and primitives of its recorded joints) before the tick that consumed its
+/// estimate, and each tick runs at its recorded time on its recorded robot state; estimates
+/// and ticks (fused surface, constraint values, torques) are compared bit for bit with what
+/// was recorded.
 pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
     let recording = record::read(dir)?;
     let config = &recording.meta.config;
-    config.validate()?;
     let robot = RobotState::recorded(config, &recording.meta.robot)?;
-    let controller = Controller::new(robot.model().clone(), config.controller.clone())?;
-    let mut perception = Perception::new(config, recording.meta.backend, None)?;
+    let mut haptic_loop =
+        HapticLoop::new(config, robot.model().clone(), recording.meta.backend, None)?;
     let mut report = ReplayReport {
         frames: recording.frames.len() as u64,
         ..Default::default()
@@ -1045,52 +911,56 @@ pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
             report.first_mismatch = Some(what);
         }
     };
-    let mut estimates = Vec::with_capacity(recording.frames.len());
-    for (i, (frame, q)) in recording
+    // Recorded frames with the estimate the node consumed, in perception's order.
+    let mut consumed = recording
         .frames
         .iter()
         .zip(&recording.frame_joints)
+        .zip(&recording.estimates)
         .enumerate()
-    {
-        let estimate = perception
-            .process(frame, &robot.perception_scene(q))?
-            .estimate()
-            .clone();
-        if let Some((_, recorded)) = recording.estimates.get(i) {
-            let (mut a, mut b) = (Vec::new(), Vec::new());
-            wire::encode_estimate(&mut a, &estimate);
-            wire::encode_estimate(&mut b, recorded);
-            report.estimates_compared += 1;
-            if a != b {
-                report.estimate_mismatches += 1;
-                note(
-                    &mut report,
-                    format!(
-                        "estimate {i} (camera {}, stamp {} s)",
-                        recorded.camera_id, recorded.stamp_s
-                    ),
-                );
-            }
+        .peekable();
+    let push = |haptic_loop: &mut HapticLoop,
+                report: &mut ReplayReport,
+                i: usize,
+                frame: &Frame,
+                q: &crate::robot::JointVector,
+                recorded: &SurfaceEstimate|
+     -> Result<(), NodeError> {
+        let record = haptic_loop.push_frame(frame, &robot.perception_scene(q))?;
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        wire::encode_estimate(&mut a, record.estimate());
+        wire::encode_estimate(&mut b, recorded);
+        report.estimates_compared += 1;
+        if a != b {
+            report.estimate_mismatches += 1;
+            note(
+                report,
+                format!(
+                    "estimate {i} (camera {}, stamp {} s)",
+                    recorded.camera_id, recorded.stamp_s
+                ),
+            );
         }
-        estimates.push(estimate);
-    }
-    report.backend = perception.backend();
-    let mut fusion = Fusion::new(config.fusion)?;
-    let mut next = 0;
+        Ok(())
+    };
+    let mut ticks = Vec::with_capacity(recording.ticks.len());
     for tick in &recording.ticks {
-        while next < recording.estimates.len() && recording.estimates[next].0 <= tick.index {
-            if let Some(e) = estimates.get(next) {
-                fusion.push(e);
-            }
-            next += 1;
+        while let Some((i, ((frame, q), (_, recorded)))) =
+            consumed.next_if(|(_, (_, (index, _)))| *index <= tick.index)
+        {
+            push(&mut haptic_loop, &mut report, i, frame, q, recorded)?;
         }
-        let fused = fusion.tick(tick.fused.stamp_s);
-        let control = control_tick(config, &controller, &fused, tick.control.joints);
-        let again = TickRecord {
-            fused,
-            control,
-            ..*tick
-        };
+        let joints = tick.control.joints;
+        let again = haptic_loop.tick(tick.fused.stamp_s, &RobotInput::without_force(joints));
+        ticks.push((
+            tick,
+            TickRecord::new(tick.index, joints, &again, tick.late_s),
+        ));
+    }
+    for (i, ((frame, q), (_, recorded))) in consumed {
+        push(&mut haptic_loop, &mut report, i, frame, q, recorded)?;
+    }
+    for (tick, again) in ticks {
         report.ticks_compared += 1;
         if again.deterministic_bytes() != tick.deterministic_bytes() {
             report.tick_mismatches += 1;
@@ -1100,5 +970,6 @@ pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
             );
         }
     }
+    report.backend = haptic_loop.perception().backend();
     Ok(report)
 }

@@ -21,6 +21,7 @@
 //! constraints and the controller on the recorded robot states, and compares bit for bit.
 
 use super::NodeConfig;
+use super::haptic_loop::Tick;
 use super::robot_state::{JointState, RobotMeta};
 use super::wire::{self, Reader, RecordKind, WireError, put_vec3};
 use crate::camera::Frame;
@@ -200,6 +201,17 @@ pub struct TickRecord {
 }
 
 impl TickRecord {
+    /// The record of tick `index` of the haptic loop for the robot state `joints`.
+    pub fn new(index: u64, joints: JointState, tick: &Tick, late_s: f64) -> Self {
+        Self {
+            index,
+            fused: tick.fused,
+            control: ControlRecord::new(joints, tick.held, &tick.output),
+            late_s,
+            work_s: 0.0,
+        }
+    }
+
     /// The deterministic part (index, fused surface, controller) as bytes: what replay
     /// compares.
     pub fn deterministic_bytes(&self) -> Vec<u8> {

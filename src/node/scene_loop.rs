@@ -36,13 +36,16 @@
 //! (the scene's latency is in the arrival time; perception's own compute time is not added),
 //! and the CPU reference stages run by default (`backend`), which the GPU stages match.
 
+use super::haptic_loop::{HapticLoop, RobotInput};
+use super::robot_state::{JointState, PerceptionScene};
+use super::{NodeConfig, NodeError};
+use crate::control::ControlStatus;
 use crate::control::closed_loop::{HandReference, Plant, SimConfig, SimError};
-use crate::control::{ControlStatus, Controller, ControllerInput, Intent};
-use crate::fusion::{Fusion, FusionConfig, FusionConfigError, FusionStatus};
+use crate::fusion::{FusionConfig, FusionStatus};
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::perception::frontend::FrontendConfig;
-use crate::perception::pipeline::{CameraChain, ChainError, SurfaceConfig};
+use crate::perception::pipeline::SurfaceConfig;
 use crate::robot::JointVector;
 use crate::scene::{Scene, SceneError, Simulator, truth};
 use nalgebra::{Point3, Vector3};
@@ -87,9 +90,21 @@ pub enum SceneLoopError {
     #[error(transparent)]
     Sim(#[from] SimError),
     #[error(transparent)]
-    Fusion(#[from] FusionConfigError),
-    #[error("perception: {0}")]
-    Chain(#[from] ChainError),
+    Node(#[from] NodeError),
+}
+
+impl SceneLoopOptions {
+    /// The haptic loop's config: these stages, ticking at the controller's period.
+    pub fn node_config(&self) -> NodeConfig {
+        NodeConfig {
+            tick_rate_hz: 1.0 / self.sim.controller.haptics.period_s,
+            frontend: self.frontend.clone(),
+            surface: self.surface.clone(),
+            fusion: self.fusion,
+            controller: self.sim.controller.clone(),
+            ..NodeConfig::default()
+        }
+    }
 }
 
 /// One controller tick's record.
@@ -171,15 +186,8 @@ pub fn simulate_scene(
         .ok_or_else(|| SceneLoopError::NoRobot(scene.origin.clone()))?
         .clone();
     let r_hip = model.hip_radius_m();
-    let controller =
-        Controller::new(model.clone(), options.sim.controller.clone()).map_err(SimError::from)?;
-    let mut fusion = Fusion::new(options.fusion)?;
-    let mut chain = CameraChain::new(
-        options.backend,
-        options.frontend.clone(),
-        options.surface.clone(),
-        None,
-    )?;
+    let mut haptic_loop =
+        HapticLoop::new(&options.node_config(), model.clone(), options.backend, None)?;
     // the patient's intention: the scene's HIP path, as offsets from its start
     let path = |t: f64| {
         sim.hip_target_at(t)
@@ -238,29 +246,32 @@ pub fn simulate_scene(
         for timing in sim.arrivals(t - period, t) {
             let q_capture = joints_at(&history, timing.capture_s);
             let shot = sim.frame_with_joints(&timing, &q_capture);
-            let hip_capture = model.world_from_hip(&q_capture).translation.vector.into();
-            // The crop grows them by its own range-dependent margin, as in the node.
-            let robot_prims: Vec<_> = model
-                .collision_primitives_world(&q_capture)
-                .into_iter()
-                .map(|(_, p)| p)
-                .collect();
-            let out = chain.process(&shot.frame, &hip_capture, &robot_prims)?;
-            let estimate = out.estimate();
-            metrics.valid_estimates += usize::from(estimate.valid);
-            fusion.push(estimate);
+            // The crop grows the primitives by its own range-dependent margin, as in the node.
+            let scene = PerceptionScene {
+                hip_m: model.world_from_hip(&q_capture).translation.vector.into(),
+                primitives: model
+                    .collision_primitives_world(&q_capture)
+                    .into_iter()
+                    .map(|(_, p)| p)
+                    .collect(),
+            };
+            let record = haptic_loop.push_frame(&shot.frame, &scene)?;
+            metrics.valid_estimates += usize::from(record.estimate().valid);
             frames += 1;
         }
         metrics.frames += frames;
-        let fused = fusion.tick(t);
         let hip = model.hip_kinematics(plant.q(), plant.qd());
-        let out = controller.tick(&ControllerInput {
-            q: *plant.q(),
-            qd: *plant.qd(),
-            surface: Some(&fused),
-            interaction_force_n: plant.hand_force_n(),
-            intent: Intent::Transparent,
-        });
+        let tick = haptic_loop.tick(
+            t,
+            &RobotInput {
+                joints: JointState {
+                    q_rad: *plant.q(),
+                    qd_rad_per_s: *plant.qd(),
+                },
+                interaction_force_n: plant.hand_force_n(),
+            },
+        );
+        let (fused, out) = (tick.fused, &tick.output);
         let truth = truth::closest(&file.bodies, t, &hip.position_m, r_hip)
             .ok_or_else(|| SceneLoopError::NoBodies(scene.origin.clone()))?;
         let mut margin = truth.distance_m;

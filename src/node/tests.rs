@@ -384,7 +384,7 @@ fn overlay_views_follow_the_robot_and_carry_truth_and_constraints() {
     };
     let (event_tx, event_rx) = mpsc::sync_channel(64);
     let (view_tx, view_rx) = mpsc::channel::<ViewFrame>();
-    let overlay = overlay::Overlay::new(&config, Some(sim.clone())).unwrap();
+    let overlay = crate::viewer::overlay::Overlay::new(&config, Some(sim.clone())).unwrap();
     let drawer = std::thread::spawn(move || overlay.run(event_rx, view_tx));
     let opts = RunOptions {
         observer: Some(event_tx),

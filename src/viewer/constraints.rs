@@ -1,8 +1,8 @@
 //! The haptic constraints of one instant as the viewer shows them (paper section V).
 //!
-//! [`apply_haptics`] turns what [`crate::haptics::haptic_constraints`] returned (eq. 7 to 14,
-//! computed by the viewer for simulated scenes or recorded by the node) into the
-//! [`FrameSamples`] of a [`super::ViewFrame`]: `d_proj` of eq. 7 and its rate `J_c qd - n . v_s`
+//! [`apply_loop_tick`] shows a tick of the haptic loop (its constraints with their rows),
+//! [`apply_tick`] a recorded tick (the constraint values without the rows). Both write into
+//! the [`FrameSamples`] of a [`ViewFrame`]: `d_proj` of eq. 7 and its rate `J_c qd - n . v_s`
 //! (eq. 8), the allowed approach speed `vc(d)` of eq. 12, the status (in force, HIP too far,
 //! no tracking surface) and, per constraint, whether it is in force (its row exists: enabled,
 //! and the HIP within the activation distance of a tracking surface) and whether the motion
@@ -11,8 +11,11 @@
 //! limits the motion (or, for a scripted motion, what the controller would have had to
 //! enforce).
 
-use super::frame::{ConstraintSample, FrameSamples};
+use super::frame::{ConstraintSample, FrameSamples, StageLatency, SurfacePoint, ViewFrame};
+use crate::fusion::FusedSurface;
 use crate::haptics::{ConstraintKind, HapticConfig, HapticConstraints, HapticStatus};
+use crate::node::haptic_loop::Tick;
+use crate::node::record::TickRecord;
 use crate::robot::JointVector;
 
 /// The constraints shown, with their names, in plotting order.
@@ -25,9 +28,62 @@ pub const CONSTRAINTS: [(ConstraintKind, &str); 3] = [
 /// A row counts as reached within this relative tolerance of its bound (`|b|` or 1).
 const BINDING_TOLERANCE: f64 = 1e-9;
 
+/// The surface a tick's constraints used: the fused surface while it tracks or while it is
+/// held over stale cameras.
+fn surface_used(fused: &FusedSurface, held: bool) -> Option<SurfacePoint> {
+    (fused.is_tracking() || held).then_some(SurfacePoint {
+        point_m: fused.centroid_m,
+        normal: fused.normal,
+    })
+}
+
+/// Shows a tick of the haptic loop on `view`: the surface its constraints used and the
+/// constraints; `qdd` (rad/s^2) are the joint accelerations of the instant, when known, for
+/// the binding flags.
+pub fn apply_loop_tick(
+    view: &mut ViewFrame,
+    tick: &Tick,
+    haptics: &HapticConfig,
+    qdd: Option<&JointVector>,
+) {
+    view.fused = surface_used(&tick.fused, tick.held);
+    apply_haptics(&mut view.samples, haptics, tick.haptics(), qdd);
+}
+
+/// Shows a recorded tick on `view`: the surface its constraints used, their status, `d_proj`
+/// and its rate as the node computed them, the allowed approach speed of eq. 12, which
+/// constraints were in force, and the tick's work time. Whether a row was binding is not
+/// recorded (`binding: None`).
+pub fn apply_tick(view: &mut ViewFrame, tick: &TickRecord, haptics: &HapticConfig) {
+    let c = &tick.control;
+    view.fused = surface_used(&tick.fused, c.held);
+    let s = &mut view.samples;
+    s.haptic_status = Some(c.haptic_status);
+    let finite = |v: f64| v.is_finite().then_some(v);
+    s.d_proj_m = finite(c.d_proj_m);
+    s.d_proj_rate_m_per_s = finite(c.d_rate_mps);
+    s.speed_limit_m_per_s = s.d_proj_m.map(|d| haptics.speed_limit_mps(d));
+    s.constraints = CONSTRAINTS
+        .iter()
+        .map(|(kind, name)| ConstraintSample {
+            name: (*name).to_owned(),
+            active: match kind {
+                ConstraintKind::Position => c.position_active(),
+                ConstraintKind::Velocity => c.velocity_active(),
+                ConstraintKind::Force => c.force_active,
+            },
+            binding: None,
+        })
+        .collect();
+    s.latencies.push(StageLatency {
+        stage: "node tick work".into(),
+        latency_s: tick.work_s,
+    });
+}
+
 /// Write the state of `constraints` into `samples`; `qdd` (rad/s^2) are the joint
 /// accelerations of the instant, when known, for the binding flags.
-pub fn apply_haptics(
+fn apply_haptics(
     samples: &mut FrameSamples,
     config: &HapticConfig,
     constraints: &HapticConstraints,

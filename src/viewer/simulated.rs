@@ -1,32 +1,32 @@
 //! Viewer timelines of simulated scenes ([`crate::scene`]), with ground truth and the haptic
 //! constraints.
 //!
-//! The timeline has one [`ViewFrame`] per view tick `t_k = start_s + k / view_rate_hz`. At each
-//! tick, every camera frame the simulator delivers in `(t_{k-1}, t_k]`
-//! ([`Simulator::arrivals`], rendered by [`Simulator::frame`]) goes through
-//! [`LayeredPerception`] with the HIP and the robot's collision primitives posed at the
-//! joints of the frame's stamp ([`Simulator::joints_at`]), so the crop removes the
-//! exoskeleton as the node does; the fused surface is evaluated at `t_k` for the HIP at
-//! `t_k`. The frame then carries:
-//! - the ground truth at `t_k` ([`Simulator::ground_truth`]: the patient surface point closest
-//!   to the HIP and its outward normal), so the error plots show the fused surface against it;
-//! - the haptic constraints of paper section V (eq. 7-14, [`haptic_constraints`]) from the
-//!   fused surface and the robot's HIP kinematics and mass matrix at the scene's joint state,
-//!   turned into samples by [`apply_haptics`] with the scripted joint accelerations (a central
-//!   second difference of the trajectory), so a constraint shows as binding where the scene's
-//!   motion would need the controller to hold it back.
+//! The timeline has one [`ViewFrame`] per view tick `t_k = start_s + k / view_rate_hz`. The
+//! scene drives the haptic loop: every camera frame the simulator delivers in
+//! `(t_{k-1}, t_k]` ([`Simulator::arrivals`]) is pushed with the HIP and the robot's
+//! collision primitives at the joints of its stamp, so the crop removes the exoskeleton as
+//! the node does; then the loop ticks at `t_k` with the scene's joint state. The frame shows
+//! the loop's records, the ground truth at `t_k` ([`Simulator::ground_truth`]), and the
+//! constraints' binding flags for the scripted joint accelerations (a central second
+//! difference of the trajectory): where the scene's motion would need the controller to hold
+//! it back.
 //!
-//! Camera frames are stored thinned per layer ([`super::frame::PointLayer::thinned`]): a few seconds of two
-//! full D435 clouds per tick would not fit in memory.
+//! Camera frames are stored thinned per layer ([`super::frame::PointLayer::thinned`]): a few
+//! seconds of two full D435 clouds per tick would not fit in memory.
 
-use super::constraints::apply_haptics;
-use super::frame::{SurfacePoint, ViewFrame};
-use super::replay::{LayeredPerception, ReplayConfig, ReplayError};
-use crate::haptics::{HapticConfig, HapticConfigError, haptic_constraints};
-use crate::robot::JointVector;
+use super::constraints::apply_loop_tick;
+use super::frame::{StageLatency, SurfacePoint, ViewFrame};
+use super::records::CameraViews;
+use crate::gpu::Backend;
+use crate::node::haptic_loop::{HapticLoop, RobotInput};
+use crate::node::robot_state::RobotState;
+use crate::node::{NodeConfig, NodeError};
+use crate::perception::crop::CropError;
 use crate::scene::Simulator;
+use crate::timing::Stopwatch;
 use nalgebra::Unit;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// What part of a scene is shown and how it is evaluated.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -41,8 +41,6 @@ pub struct SceneViewConfig {
     /// Each stored point layer keeps at most this many points (every k-th); the counts shown
     /// stay the full ones.
     pub max_stored_points_per_layer: usize,
-    /// The haptic constraints evaluated on the fused surface.
-    pub haptics: HapticConfig,
 }
 
 impl Default for SceneViewConfig {
@@ -52,7 +50,6 @@ impl Default for SceneViewConfig {
             duration_s: 0.0,
             view_rate_hz: 15.0,
             max_stored_points_per_layer: 20_000,
-            haptics: HapticConfig::default(),
         }
     }
 }
@@ -65,14 +62,14 @@ pub enum SceneViewError {
         what: &'static str,
         value: f64,
     },
-    #[error("scene view: {0}")]
-    Haptics(#[from] HapticConfigError),
     #[error("scene {0} has no robot: the viewer needs its HIP")]
     NoRobot(String),
     #[error("scene view: start_s {start_s} is past the scene's end ({end_s} s)")]
     StartPastEnd { start_s: f64, end_s: f64 },
     #[error(transparent)]
-    Replay(#[from] ReplayError),
+    Loop(#[from] NodeError),
+    #[error("view: {0}")]
+    Crop(#[from] CropError),
 }
 
 impl SceneViewConfig {
@@ -103,7 +100,6 @@ impl SceneViewConfig {
                 return Err(SceneViewError::Value { field, what, value });
             }
         }
-        self.haptics.validate()?;
         Ok(())
     }
 }
@@ -111,18 +107,16 @@ impl SceneViewConfig {
 /// Step of the central differences of the scripted joint trajectory, seconds.
 const DIFF_STEP_S: f64 = 2e-3;
 
-/// The timeline of `simulator`'s scene; `replay.hip_radius_m` is replaced by the robot's HIP
-/// radius.
+/// The timeline of `simulator`'s scene through the haptic loop of `node` (CPU stages).
 pub fn timeline_from_scene(
-    simulator: &Simulator,
-    replay: &ReplayConfig,
+    simulator: &Arc<Simulator>,
+    node: &NodeConfig,
     config: &SceneViewConfig,
 ) -> Result<Vec<ViewFrame>, SceneViewError> {
     config.validate()?;
-    let origin = || simulator.scene().origin.clone();
-    let model = simulator
-        .robot_model()
-        .ok_or_else(|| SceneViewError::NoRobot(origin()))?;
+    let robot = RobotState::simulated(simulator.clone())
+        .ok_or_else(|| SceneViewError::NoRobot(simulator.scene().origin.clone()))?;
+    let model = robot.model().clone();
     let end_s = simulator.duration_s();
     if config.start_s > end_s {
         return Err(SceneViewError::StartPastEnd {
@@ -135,37 +129,23 @@ pub fn timeline_from_scene(
         _ => end_s,
     };
     let ticks = ((last_s - config.start_s) * config.view_rate_hz + 1e-9).floor() as usize + 1;
-    let mut perception = LayeredPerception::new(ReplayConfig {
-        hip_radius_m: model.hip_radius_m(),
-        ..replay.clone()
-    })?;
+    let mut haptic_loop = HapticLoop::new(node, model.clone(), Backend::Cpu, None)?;
+    let mut views = CameraViews::new(node.frontend.crop.clone());
     // Frames captured before the first tick warm up the surface memory and fusion window.
-    let mut previous_s = config.start_s - perception_warm_up_s(replay);
+    let mut previous_s = config.start_s - node.fusion.window_s;
     let mut timeline = Vec::with_capacity(ticks);
-    // The robot at time t: joints, collision primitives (world) and HIP kinematics.
-    let robot_at = |t_s: f64| {
-        let q = simulator.joints_at(t_s).unwrap_or_else(JointVector::zeros);
-        let qd = simulator
-            .joint_velocities_at(t_s)
-            .unwrap_or_else(JointVector::zeros);
-        let primitives: Vec<_> = model
-            .collision_primitives_world(&q)
-            .into_iter()
-            .map(|(_, p)| p)
-            .collect();
-        (q, qd, primitives, model.hip_kinematics(&q, &qd))
-    };
     for k in 0..ticks {
         let t_s = config.start_s + k as f64 / config.view_rate_hz;
-        // Each frame is cropped with the HIP and robot of its stamp, as the node does with
-        // the joint states of the frame's time.
         for timing in simulator.arrivals(previous_s, t_s) {
             let frame = simulator.frame(&timing).frame;
-            let (_, _, primitives, hip) = robot_at(frame.stamp_s);
-            perception.push_frame(&frame, &hip.position_m, &primitives)?;
+            let scene = robot.perception_scene(&robot.at(frame.stamp_s).q_rad);
+            views.record(&haptic_loop.push_frame(&frame, &scene)?)?;
         }
         previous_s = t_s;
-        let (q, qd, _, hip) = robot_at(t_s);
+        let joints = robot.at(t_s);
+        let q = joints.q_rad;
+        let (tick, tick_time) =
+            Stopwatch::time(|| haptic_loop.tick(t_s, &RobotInput::without_force(joints)));
         let qdd = (simulator.joints_at(t_s + DIFF_STEP_S).unwrap_or(q) - 2.0 * q
             + simulator.joints_at(t_s - DIFF_STEP_S).unwrap_or(q))
             / (DIFF_STEP_S * DIFF_STEP_S);
@@ -173,16 +153,19 @@ pub fn timeline_from_scene(
             point_m: g.closest_m,
             normal: Unit::new_normalize(g.normal),
         });
-        let mut view = perception.tick(t_s, hip.position_m, truth);
-        let constraints = haptic_constraints(
-            &config.haptics,
-            perception.fused_surface(),
-            &hip,
+        let hip_m = robot.perception_scene(&q).hip_m;
+        let mut view = views.frame_at(
+            t_s,
+            hip_m,
             model.hip_radius_m(),
-            &qd,
-            &model.mass_matrix(&q),
+            &node.surface.shells.radii_m,
+            truth,
         );
-        apply_haptics(&mut view.samples, &config.haptics, &constraints, Some(&qdd));
+        view.samples.latencies.push(StageLatency {
+            stage: "tick".into(),
+            latency_s: tick_time.wall_ms * 1e-3,
+        });
+        apply_loop_tick(&mut view, &tick, &node.controller.haptics, Some(&qdd));
         for cam in &mut view.cameras {
             cam.layers = std::mem::take(&mut cam.layers)
                 .into_iter()
@@ -192,12 +175,6 @@ pub fn timeline_from_scene(
         timeline.push(view);
     }
     Ok(timeline)
-}
-
-/// How long before the first tick frames are processed: the fusion window, so the first
-/// frame shown already has a fused surface when the cameras see one.
-fn perception_warm_up_s(replay: &ReplayConfig) -> f64 {
-    replay.fusion.window_s
 }
 
 #[cfg(test)]
@@ -230,14 +207,14 @@ mod tests {
     #[test]
     fn head_sliding_has_truth_fused_surface_and_constraints() {
         let scene = Scene::from_builtin("head_sliding_clean").unwrap();
-        let sim = Simulator::new(&scene).unwrap();
+        let sim = Arc::new(Simulator::new(&scene).unwrap());
         let config = SceneViewConfig {
             start_s: 2.0,
             duration_s: 0.4,
             view_rate_hz: 10.0,
             ..SceneViewConfig::default()
         };
-        let timeline = timeline_from_scene(&sim, &ReplayConfig::default(), &config).unwrap();
+        let timeline = timeline_from_scene(&sim, &NodeConfig::default(), &config).unwrap();
         assert_eq!(timeline.len(), 5);
         let last = timeline.last().unwrap();
         assert!((last.stamp_s - 2.4).abs() < 1e-9);

@@ -9,17 +9,19 @@
 //! not used (PCL's OpenNI grabber writes a display orientation there, which would put its own
 //! points behind the camera). Without a HIP from the user, [`hip_on_axis`]
 //! puts one in front of the surface point seen closest to the optical axis. Every frame
-//! then goes through [`LayeredPerception`].
+//! then goes through the haptic loop with a robot standing with its HIP there.
 
-use super::constraints::apply_haptics;
-use super::frame::{StageLatency, SurfacePoint, ViewFrame};
-use super::replay::{LayeredPerception, ReplayConfig, ReplayError};
+use super::constraints::{apply_loop_tick, apply_tick};
+use super::frame::ViewFrame;
+use super::records::CameraViews;
 use crate::camera::Frame;
-use crate::haptics::haptic_constraints;
+use crate::gpu::Backend;
 use crate::io;
+use crate::node::haptic_loop::{HapticLoop, RobotInput};
 use crate::node::record::Recording;
 use crate::node::robot_state::RobotState;
-use crate::node::{NodeError, constraint_surface};
+use crate::node::{NodeConfig, NodeError};
+use crate::perception::crop::CropError;
 use nalgebra::{Isometry3, Matrix3, Point3, Translation3, UnitQuaternion};
 use std::path::{Path, PathBuf};
 
@@ -39,9 +41,9 @@ pub enum SourceError {
     #[error("{0}: no finite point near the optical axis to place the HIP in front of")]
     NoSurface(PathBuf),
     #[error(transparent)]
-    Replay(#[from] ReplayError),
-    #[error("recording: {0}")]
-    Node(#[from] NodeError),
+    Loop(#[from] NodeError),
+    #[error("view: {0}")]
+    Crop(#[from] CropError),
 }
 
 /// Seconds of the day from a PCL grabber file name (`frame_20121214T142255.814212`).
@@ -129,32 +131,20 @@ pub fn hip_on_axis(frame: &Frame, distance_m: f64) -> Option<Point3<f64>> {
     Some(frame.world_from_camera * (p - distance_m * ray))
 }
 
-/// The viewer timeline of a node recording (`hapcloud run --record DIR`).
+/// The viewer timeline of a node recording (`hapcloud run --record DIR`): one view per
+/// recorded frame.
 ///
-/// The recorded frames go through [`LayeredPerception`] with the node's own stage configs,
-/// each with the HIP and the robot's collision primitives of the joints recorded with it
-/// ([`RobotState::perception_scene`]: primitives only when the source had joint states), to
-/// recover the point layers. What the node decided is shown as recorded: each camera's
-/// estimate is the node's (matched by camera and stamp), the fused surface is the one of the
-/// tick that took that estimate in, and the HIP and the haptic constraints are those of that
-/// tick's robot state: eq. 7-14 on the surface the node's constraints used
-/// ([`constraint_surface`]) with the node's haptic config, as the node's replay recomputes them
-/// bit for bit, and the binding flags from the joint accelerations the controller commanded.
-/// The tick's work time joins the latencies.
+/// The recorded frames go through the haptic loop with the node's own config, each with the
+/// HIP and the robot's collision primitives of the joints recorded with it, to recover the
+/// point layers. What the node decided is shown as recorded: each camera's estimate is the
+/// node's (matched by camera and stamp), and the fused surface, the HIP and the constraint
+/// samples are those of the recorded tick that took that estimate in ([`apply_tick`]).
 pub fn timeline_from_recording(recording: &Recording) -> Result<Vec<ViewFrame>, SourceError> {
     let node = &recording.meta.config;
     let robot = RobotState::recorded(node, &recording.meta.robot)?;
-    let model = robot.model();
-    let hip_radius_m = model.hip_radius_m();
-    let config = ReplayConfig {
-        frontend: node.frontend.clone(),
-        surface: node.surface.clone(),
-        fusion: node.fusion,
-        hip_radius_m,
-    };
-    let haptics = &node.controller.haptics;
-    let mut perception = LayeredPerception::new(config)?;
-    let mut previous: Option<(f64, f64)> = None;
+    let model = robot.model().clone();
+    let mut haptic_loop = HapticLoop::new(node, model.clone(), recording.meta.backend, None)?;
+    let mut views = CameraViews::new(node.frontend.crop.clone());
     recording
         .frames
         .iter()
@@ -166,15 +156,19 @@ pub fn timeline_from_recording(recording: &Recording) -> Result<Vec<ViewFrame>, 
                 .copied()
                 .unwrap_or_else(|| robot.at(frame.stamp_s).q_rad);
             let scene = robot.perception_scene(&q);
-            perception.push_frame(frame, &scene.hip_m, &scene.primitives)?;
-            let mut view = perception.tick(frame.stamp_s, scene.hip_m, None);
+            views.record(&haptic_loop.push_frame(frame, &scene)?)?;
+            let mut view = views.frame_at(
+                frame.stamp_s,
+                scene.hip_m,
+                model.hip_radius_m(),
+                &node.surface.shells.radii_m,
+                None,
+            );
             let recorded = recording
                 .estimates
                 .iter()
                 .find(|(_, e)| e.camera_id == frame.camera_id && e.stamp_s == frame.stamp_s);
-            let tick =
-                recorded.and_then(|(index, _)| recording.ticks.iter().find(|t| t.index == *index));
-            if let Some((_, estimate)) = recorded {
+            if let Some((index, estimate)) = recorded {
                 if let Some(cam) = view
                     .cameras
                     .iter_mut()
@@ -182,67 +176,48 @@ pub fn timeline_from_recording(recording: &Recording) -> Result<Vec<ViewFrame>, 
                 {
                     cam.estimate = Some(estimate.clone());
                 }
-                view.fused = tick
-                    .filter(|t| t.fused.is_tracking())
-                    .map(|t| SurfacePoint {
-                        point_m: t.fused.centroid_m,
-                        normal: t.fused.normal,
-                    });
-            }
-            // Paper eq. 7 on the fused surface shown.
-            let hip = view.hip_m;
-            view.samples.d_proj_m = view
-                .fused
-                .map(|f| (f.point_m - hip).dot(&-f.normal.into_inner()) - hip_radius_m);
-            view.samples.d_proj_rate_m_per_s = match (view.samples.d_proj_m, previous) {
-                (Some(d), Some((t0, d0))) if view.stamp_s > t0 => {
-                    Some((d - d0) / (view.stamp_s - t0))
+                if let Some(tick) = recording.ticks.iter().find(|t| t.index == *index) {
+                    view.hip_m = robot.perception_scene(&tick.control.joints.q_rad).hip_m;
+                    apply_tick(&mut view, tick, &node.controller.haptics);
                 }
-                _ => None,
-            };
-            previous = view.samples.d_proj_m.map(|d| (view.stamp_s, d));
-            if let Some(t) = tick {
-                view.samples.latencies.push(StageLatency {
-                    stage: "node tick work".into(),
-                    latency_s: t.work_s,
-                });
-                // The tick's robot state and constraints (d_proj and its rate become the
-                // constraints' own, relative to the moving surface).
-                let c = &t.control;
-                let (q, qd) = (c.joints.q_rad, c.joints.qd_rad_per_s);
-                let kinematics = model.hip_kinematics(&q, &qd);
-                view.hip_m = kinematics.position_m;
-                let (surface, _) = constraint_surface(node, &t.fused);
-                let constraints = haptic_constraints(
-                    haptics,
-                    surface.as_ref(),
-                    &kinematics,
-                    hip_radius_m,
-                    &qd,
-                    &model.mass_matrix(&q),
-                );
-                apply_haptics(
-                    &mut view.samples,
-                    haptics,
-                    &constraints,
-                    Some(&c.qdd_rad_per_s2),
-                );
             }
             Ok(view)
         })
         .collect()
 }
 
-/// The viewer timeline of one camera's frames with a fixed HIP.
+/// The viewer timeline of one camera's frames, with a robot standing with its HIP at `hip_m`:
+/// each frame goes through the haptic loop of `node`, which then ticks at the frame's stamp.
 pub fn timeline_from_frames(
     frames: &[Frame],
     hip_m: Point3<f64>,
-    config: ReplayConfig,
+    node: &NodeConfig,
 ) -> Result<Vec<ViewFrame>, SourceError> {
-    let mut perception = LayeredPerception::new(config)?;
+    let node = NodeConfig {
+        hip_world_m: hip_m,
+        ..node.clone()
+    };
+    let robot = RobotState::fixed(&node)?;
+    let model = robot.model().clone();
+    let mut haptic_loop = HapticLoop::new(&node, model.clone(), Backend::Cpu, None)?;
+    let mut views = CameraViews::new(node.frontend.crop.clone());
     frames
         .iter()
-        .map(|f| Ok(perception.step(f.stamp_s, std::slice::from_ref(f), hip_m, &[], None)?))
+        .map(|frame| {
+            let joints = robot.at(frame.stamp_s);
+            let scene = robot.perception_scene(&joints.q_rad);
+            views.record(&haptic_loop.push_frame(frame, &scene)?)?;
+            let tick = haptic_loop.tick(frame.stamp_s, &RobotInput::without_force(joints));
+            let mut view = views.frame_at(
+                frame.stamp_s,
+                scene.hip_m,
+                model.hip_radius_m(),
+                &node.surface.shells.radii_m,
+                None,
+            );
+            apply_loop_tick(&mut view, &tick, &node.controller.haptics, None);
+            Ok(view)
+        })
         .collect()
 }
 

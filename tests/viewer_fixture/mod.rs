@@ -315,21 +315,21 @@ pub fn timeline() -> Vec<ViewFrame> {
 /// ticks per second, through `hapcloud::viewer::simulated` (ground truth and haptic
 /// constraints), with the stage latencies measured on this machine (wall-clock times).
 pub fn scene_timeline_wall_clock() -> Vec<ViewFrame> {
+    use hapcloud::node::NodeConfig;
     use hapcloud::scene::{Scene, Simulator};
-    use hapcloud::viewer::replay::ReplayConfig;
     use hapcloud::viewer::simulated::{SceneViewConfig, timeline_from_scene};
     static TIMELINE: std::sync::OnceLock<Vec<ViewFrame>> = std::sync::OnceLock::new();
     TIMELINE
         .get_or_init(|| {
             let scene = Scene::from_builtin("head_sliding_realistic").expect("built-in scene");
-            let simulator = Simulator::new(&scene).expect("scene runs");
+            let simulator = std::sync::Arc::new(Simulator::new(&scene).expect("scene runs"));
             let config = SceneViewConfig {
                 start_s: 1.5,
                 duration_s: 0.7,
                 view_rate_hz: 10.0,
                 ..SceneViewConfig::default()
             };
-            timeline_from_scene(&simulator, &ReplayConfig::default(), &config).unwrap()
+            timeline_from_scene(&simulator, &NodeConfig::default(), &config).unwrap()
         })
         .clone()
 }

@@ -1,0 +1,330 @@
+//! The haptic loop: the one place where the stages are wired, from camera frames to a joint
+//! torque command (paper Fig. 3). It reads top to bottom with two verbs:
+//!
+//! - [`HapticLoop::push_frame`]: a camera frame, with the HIP and the robot's collision
+//!   primitives at its stamp, goes through the per-camera chain ([`CameraChain`]: crop, voxel
+//!   grid, clusters, surface memory, shells and fits; paper IV-A to IV-E, Alg. 1-2); its
+//!   estimate joins fusion's window.
+//! - [`HapticLoop::tick`]: fusion (IV-F, eq. 3-6) gives the surface at the tick's time, the
+//!   stale policy decides whether the constraints may use it, and the controller builds the
+//!   haptic constraints (eq. 7-14) and solves the Table I hierarchy for the robot state.
+//!
+//! The node's runtime runs the two halves on two threads ([`HapticLoop::into_halves`]);
+//! replay, the closed-loop experiments, the study, the evaluation and the viewer drive the
+//! whole loop in simulated time.
+
+use super::robot_state::{JointState, PerceptionScene};
+use super::{NodeConfig, NodeError, StalePolicy};
+use crate::camera::Frame;
+use crate::control::{Controller, ControllerInput, ControllerOutput, Intent};
+use crate::fusion::{FusedSurface, Fusion, FusionStatus};
+use crate::gpu::{Backend, GpuContext};
+use crate::haptics::HapticConstraints;
+use crate::perception::pipeline::{CameraChain, ChainFrame};
+use crate::robot::RobotModel;
+use crate::surface::SurfaceEstimate;
+use nalgebra::{Isometry3, Vector3};
+use std::sync::Arc;
+
+/// Everything one camera frame produced, with the pose and the robot it was cropped with.
+#[derive(Clone, Debug)]
+pub struct FrameRecord {
+    /// The chain's layers: world points, front end, kept points, memory, shells and fits,
+    /// the estimate, stage timings.
+    pub chain: ChainFrame,
+    pub world_from_camera: Isometry3<f64>,
+    /// The HIP and the robot primitives (world frame) at the frame's stamp.
+    pub scene: PerceptionScene,
+}
+
+impl FrameRecord {
+    pub fn estimate(&self) -> &SurfaceEstimate {
+        self.chain.estimate()
+    }
+}
+
+/// The robot at a tick: its joint state and the force the patient exerts on the handle.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RobotInput {
+    pub joints: JointState,
+    /// Interaction force on the HIP, world frame, N (zero without a force sensor).
+    pub interaction_force_n: Vector3<f64>,
+}
+
+impl RobotInput {
+    /// A robot without a force sensor.
+    pub fn without_force(joints: JointState) -> Self {
+        Self {
+            joints,
+            interaction_force_n: Vector3::zeros(),
+        }
+    }
+}
+
+/// What one tick produced.
+#[derive(Clone, Debug)]
+pub struct Tick {
+    /// Fusion's surface at the tick's time (tracking or not).
+    pub fused: FusedSurface,
+    /// True when the constraints used a surface held over stale cameras.
+    pub held: bool,
+    /// Torques, joint accelerations, status and the haptic constraints (eq. 7-14).
+    pub output: ControllerOutput,
+}
+
+impl Tick {
+    pub fn haptics(&self) -> &HapticConstraints {
+        &self.output.haptics
+    }
+}
+
+/// The perception half: the per-camera chain, on the GPU with a CPU fallback at start and
+/// mid-run (logged once).
+pub struct Perception {
+    chain: CameraChain,
+    /// Why the GPU could not be opened at start, if it could not.
+    start_fallback: Option<String>,
+    warned: bool,
+}
+
+impl Perception {
+    /// The chain of `config` on `backend`; `adapter` names the GPU (`None`: the best one).
+    /// A GPU that cannot be opened leaves perception on the CPU, logged.
+    pub fn new(
+        config: &NodeConfig,
+        backend: Backend,
+        adapter: Option<&str>,
+    ) -> Result<Self, NodeError> {
+        match backend {
+            Backend::Cpu => Self::start(config, None),
+            Backend::Gpu => {
+                let ctx = adapter.map_or_else(GpuContext::new, |name| {
+                    GpuContext::with_adapter_name(Some(name))
+                });
+                Self::start(config, Some(ctx.map(Arc::new).map_err(|e| e.to_string())))
+            }
+        }
+    }
+
+    /// The chain of `config` on the GPU context `ctx` (shared by several loops), or on the
+    /// CPU when `ctx` is `None`.
+    pub fn on_context(
+        config: &NodeConfig,
+        ctx: Option<Arc<GpuContext>>,
+    ) -> Result<Self, NodeError> {
+        Self::start(config, ctx.map(Ok))
+    }
+
+    fn start(
+        config: &NodeConfig,
+        gpu: Option<Result<Arc<GpuContext>, String>>,
+    ) -> Result<Self, NodeError> {
+        let chain = |backend, ctx| {
+            CameraChain::new(
+                backend,
+                config.frontend.clone(),
+                config.surface.clone(),
+                ctx,
+            )
+        };
+        let gpu = gpu.map(|ctx| {
+            ctx.and_then(|ctx| chain(Backend::Gpu, Some(ctx)).map_err(|e| e.to_string()))
+        });
+        let (chain, start_fallback) = match gpu {
+            None => (chain(Backend::Cpu, None)?, None),
+            Some(Ok(c)) => (c, None),
+            Some(Err(e)) => {
+                eprintln!("warning: GPU unavailable ({e}); perception runs on the CPU");
+                (chain(Backend::Cpu, None)?, Some(e))
+            }
+        };
+        Ok(Self {
+            chain,
+            start_fallback,
+            warned: false,
+        })
+    }
+
+    /// Where the stages run now (CPU after a GPU fallback).
+    pub fn backend(&self) -> Backend {
+        self.chain.backend()
+    }
+
+    pub fn adapter(&self) -> Option<&str> {
+        self.chain.adapter()
+    }
+
+    /// Why perception runs on the CPU although the GPU was asked for, if it does.
+    pub fn gpu_fallback(&self) -> Option<String> {
+        self.start_fallback
+            .clone()
+            .or_else(|| self.chain.gpu_fallback().map(str::to_string))
+    }
+
+    /// One frame through the chain with the HIP and robot primitives of `scene`.
+    pub fn process(
+        &mut self,
+        frame: &Frame,
+        scene: &PerceptionScene,
+    ) -> Result<FrameRecord, NodeError> {
+        let chain = self.chain.process(frame, &scene.hip_m, &scene.primitives)?;
+        if let (Some(reason), false) = (self.chain.gpu_fallback(), self.warned) {
+            eprintln!("warning: GPU failed ({reason}); perception continues on the CPU");
+            self.warned = true;
+        }
+        Ok(FrameRecord {
+            chain,
+            world_from_camera: frame.world_from_camera,
+            scene: scene.clone(),
+        })
+    }
+}
+
+/// The control half: fusion, the stale policy, the haptic constraints and the controller.
+pub struct ControlLoop {
+    fusion: Fusion,
+    controller: Controller,
+    on_stale: StalePolicy,
+    stale_timeout_s: f64,
+    stale_hold_max_s: f64,
+}
+
+impl ControlLoop {
+    pub fn new(config: &NodeConfig, model: RobotModel) -> Result<Self, NodeError> {
+        Ok(Self {
+            fusion: Fusion::new(config.fusion)?,
+            controller: Controller::new(model, config.controller.clone())?,
+            on_stale: config.on_stale,
+            stale_timeout_s: config.fusion.stale_timeout_s,
+            stale_hold_max_s: config.stale_hold_max_s,
+        })
+    }
+
+    pub fn fusion(&self) -> &Fusion {
+        &self.fusion
+    }
+
+    pub fn controller(&self) -> &Controller {
+        &self.controller
+    }
+
+    /// A camera's estimate joins fusion's window.
+    pub fn push_estimate(&mut self, estimate: &SurfaceEstimate) {
+        self.fusion.push(estimate);
+    }
+
+    /// Fusion at `t_s`, then the constraints and the controller for the robot state
+    /// (transparent intent: gravity compensation and damping, paper Table I).
+    pub fn tick(&mut self, t_s: f64, robot: &RobotInput) -> Tick {
+        let fused = self.fusion.tick(t_s);
+        let (surface, held) = self.constraint_surface(&fused);
+        let output = self.controller.tick(&ControllerInput {
+            q: robot.joints.q_rad,
+            qd: robot.joints.qd_rad_per_s,
+            surface: surface.as_ref(),
+            interaction_force_n: robot.interaction_force_n,
+            intent: Intent::Transparent,
+        });
+        Tick {
+            fused,
+            held,
+            output,
+        }
+    }
+
+    /// Fusion alone at `t_s`, for tools that judge the fused surface without a robot.
+    pub fn fuse(&mut self, t_s: f64) -> FusedSurface {
+        self.fusion.tick(t_s)
+    }
+
+    /// The surface the constraints use, and whether it is held over stale cameras: the fused
+    /// surface while it tracks; while fusion is stale and `on_stale = "hold"`, the last
+    /// smoothed surface standing still for at most `stale_hold_max_s` past the stale timeout;
+    /// otherwise none (the constraints switch off).
+    fn constraint_surface(&self, fused: &FusedSurface) -> (Option<FusedSurface>, bool) {
+        match fused.status {
+            FusionStatus::Tracking => (Some(*fused), false),
+            FusionStatus::Stale
+                if self.on_stale == StalePolicy::Hold
+                    && fused.age_s - self.stale_timeout_s <= self.stale_hold_max_s =>
+            {
+                let held = FusedSurface {
+                    status: FusionStatus::Tracking,
+                    velocity_m_per_s: Vector3::zeros(),
+                    ..*fused
+                };
+                (Some(held), true)
+            }
+            _ => (None, false),
+        }
+    }
+}
+
+/// The whole loop: perception and control, driven in simulated time.
+pub struct HapticLoop {
+    perception: Perception,
+    control: ControlLoop,
+}
+
+impl HapticLoop {
+    /// The loop of `config` for the robot `model`, perception on `backend` (`adapter` names
+    /// the GPU; `None`: the best one).
+    pub fn new(
+        config: &NodeConfig,
+        model: RobotModel,
+        backend: Backend,
+        adapter: Option<&str>,
+    ) -> Result<Self, NodeError> {
+        config.validate()?;
+        Self::with_perception(config, model, Perception::new(config, backend, adapter)?)
+    }
+
+    /// The loop of `config` for the robot `model` around a perception half already built
+    /// (e.g. on a shared GPU context, [`Perception::on_context`]).
+    pub fn with_perception(
+        config: &NodeConfig,
+        model: RobotModel,
+        perception: Perception,
+    ) -> Result<Self, NodeError> {
+        config.validate()?;
+        Ok(Self {
+            perception,
+            control: ControlLoop::new(config, model)?,
+        })
+    }
+
+    pub fn perception(&self) -> &Perception {
+        &self.perception
+    }
+
+    pub fn control(&self) -> &ControlLoop {
+        &self.control
+    }
+
+    /// One camera frame through the chain; its estimate joins fusion's window.
+    pub fn push_frame(
+        &mut self,
+        frame: &Frame,
+        scene: &PerceptionScene,
+    ) -> Result<FrameRecord, NodeError> {
+        let record = self.perception.process(frame, scene)?;
+        self.control.push_estimate(record.estimate());
+        Ok(record)
+    }
+
+    /// Fusion at `t_s`, the constraints and the controller for the robot state.
+    pub fn tick(&mut self, t_s: f64, robot: &RobotInput) -> Tick {
+        self.control.tick(t_s, robot)
+    }
+
+    /// Fusion alone at `t_s`, for tools that judge the fused surface without a robot.
+    pub fn fuse(&mut self, t_s: f64) -> FusedSurface {
+        self.control.fuse(t_s)
+    }
+
+    /// The halves, for a runtime that runs perception and control on their own threads and
+    /// hands the estimates over.
+    pub fn into_halves(self) -> (Perception, ControlLoop) {
+        (self.perception, self.control)
+    }
+}

@@ -1,0 +1,102 @@
+//! The node's live overlay (`hapcloud run --overlay`): the node's events ([`NodeEvent`])
+//! become [`ViewFrame`]s on their own thread, so drawing never slows the node (the node drops
+//! events the overlay is too slow for).
+//!
+//! A frame event carries the haptic loop's own frame record, so the layers are what the node
+//! did ([`CameraViews`]); the newest tick event gives the fused surface the constraints used
+//! and the constraint samples ([`apply_tick`]). With a simulated source the ground truth (the
+//! true closest patient surface point to the HIP) is added at the frame's stamp.
+
+use super::constraints::apply_tick;
+use super::records::CameraViews;
+use super::{SurfacePoint, ViewFrame};
+use crate::haptics::HapticConfig;
+use crate::node::record::TickRecord;
+use crate::node::{NodeConfig, NodeError, NodeEvent};
+use crate::perception::crop::CropError;
+use crate::robot::RobotModel;
+use crate::scene::Simulator;
+use nalgebra::Unit;
+use std::sync::Arc;
+use std::sync::mpsc::{Receiver, Sender};
+
+/// Builds view frames from node events.
+pub struct Overlay {
+    views: CameraViews,
+    haptics: HapticConfig,
+    hip_radius_m: f64,
+    shell_radii_m: Vec<f64>,
+    simulator: Option<Arc<Simulator>>,
+    tick: Option<TickRecord>,
+}
+
+impl Overlay {
+    /// For a node with `config`; `simulator` adds the ground truth of a simulated source.
+    pub fn new(config: &NodeConfig, simulator: Option<Arc<Simulator>>) -> Result<Self, NodeError> {
+        let hip_radius_m = match simulator.as_ref().and_then(|s| s.hip_radius_m()) {
+            Some(r) => r,
+            None => RobotModel::anyexo()
+                .map_err(|e| NodeError::Robot(e.to_string()))?
+                .hip_radius_m(),
+        };
+        Ok(Self {
+            views: CameraViews::new(config.frontend.crop.clone()),
+            haptics: config.controller.haptics.clone(),
+            hip_radius_m,
+            shell_radii_m: config.surface.shells.radii_m.clone(),
+            simulator,
+            tick: None,
+        })
+    }
+
+    /// Takes one event; a processed frame yields a view.
+    pub fn event(&mut self, event: NodeEvent) -> Result<Option<ViewFrame>, CropError> {
+        let record = match event {
+            NodeEvent::Tick(tick) => {
+                self.tick = Some(*tick);
+                return Ok(None);
+            }
+            NodeEvent::Frame(record) => record,
+        };
+        self.views.record(&record)?;
+        let stamp_s = record.chain.stamp_s;
+        let truth = self
+            .simulator
+            .as_ref()
+            .and_then(|s| s.ground_truth(stamp_s))
+            .map(|t| SurfacePoint {
+                point_m: t.closest_m,
+                normal: Unit::new_normalize(t.normal),
+            });
+        let mut view = self.views.frame_at(
+            stamp_s,
+            record.scene.hip_m,
+            self.hip_radius_m,
+            &self.shell_radii_m,
+            truth,
+        );
+        if let Some(tick) = &self.tick {
+            apply_tick(&mut view, tick, &self.haptics);
+        }
+        Ok(Some(view))
+    }
+
+    /// Turns events into views until the node ends (the event channel closes) or the viewer
+    /// is gone.
+    pub fn run(mut self, events: Receiver<NodeEvent>, views: Sender<ViewFrame>) {
+        for event in events {
+            match self.event(event) {
+                Ok(Some(view)) => {
+                    if views.send(view).is_err() {
+                        return;
+                    }
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    eprintln!("warning: overlay stopped: {e}");
+                    return;
+                }
+            }
+        }
+    }
+}
