@@ -16,7 +16,6 @@
 pub mod camera;
 pub mod cloud;
 pub mod control;
-pub mod evaluation;
 pub mod fusion;
 pub mod geometry;
 pub mod surface;
@@ -24,11 +23,12 @@ pub mod surface;
 pub mod gpu;
 pub mod haptics;
 pub mod io;
+#[cfg(feature = "lab")]
+pub mod lab;
 pub mod node;
 pub mod perception;
 pub mod robot;
 pub mod scene;
-pub mod study;
 pub mod timing;
 #[cfg(feature = "viewer")]
 pub mod viewer;

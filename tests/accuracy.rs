@@ -1,18 +1,23 @@
-//! Scene evaluation (`hapcloud::evaluation`) and the `hapcloud accuracy` tool: the per-camera
+//! Scene evaluation (`hapcloud::lab::evaluation`) and the `hapcloud accuracy` tool: the per-camera
 //! chain on built-in scenes against the simulator's ground truth.
+#![cfg(feature = "lab")]
 
-use hapcloud::evaluation::{
+use hapcloud::gpu::Backend;
+use hapcloud::lab::evaluation::{
     AccuracyTarget, EvaluationConfig, FrameFilter, evaluate_scene, in_reach, summarize,
     truth_moves_smoothly,
 };
-use hapcloud::gpu::Backend;
 mod common;
 
 use common::{run_err, run_json};
 use hapcloud::scene::Scene;
 
 /// Head sliding (paper Fig. 10), from touching the forehead (t = 2 s) into the slide.
-fn head_sliding(variant: &str, start_s: f64, end_s: f64) -> hapcloud::evaluation::SceneEvaluation {
+fn head_sliding(
+    variant: &str,
+    start_s: f64,
+    end_s: f64,
+) -> hapcloud::lab::evaluation::SceneEvaluation {
     let scene = Scene::from_builtin(&format!("head_sliding_{variant}")).unwrap();
     let config = EvaluationConfig {
         start_s,

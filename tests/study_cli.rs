@@ -1,5 +1,6 @@
 //! `hapcloud study --quick`: the sweep runs end to end on a built-in scene and writes a
 //! well-formed CSV (one row per setting, finite errors), a markdown table and a PNG.
+#![cfg(feature = "lab")]
 
 use std::process::Command;
 
@@ -17,7 +18,7 @@ fn quick_study_writes_csv_markdown_and_png() {
         String::from_utf8_lossy(&out.stderr)
     );
 
-    let settings = hapcloud::study::settings();
+    let settings = hapcloud::lab::study::settings();
     let mut reader = csv::Reader::from_path(dir.join("study.csv")).expect("study.csv");
     let header = reader.headers().expect("header").clone();
     let col = |name: &str| {

@@ -9,7 +9,7 @@ use hapcloud::perception::fit::CircleMethod;
 use hapcloud::perception::memory::MemoryConfig;
 use hapcloud::perception::outliers::OutlierConfig;
 use hapcloud::perception::pipeline::{SurfaceConfig, SurfaceEstimator, SurfaceFrame};
-use hapcloud::perception::shells::{InvalidReason, ShellLayout, accumulate_cpu};
+use hapcloud::perception::shells::{InvalidReason, ShellLayout, ShellStatus, accumulate_cpu};
 use hapcloud::surface::SurfaceEstimate;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
@@ -188,7 +188,14 @@ fn shells_with_zero_one_two_points_are_invalid() {
         assert_finite(&frame.abstraction.estimate);
         assert!(!frame.abstraction.estimate.valid, "{n} points");
         let status = frame.abstraction.reports[0].status;
-        assert_eq!(status, if n == 0 { "empty" } else { "too_few_points" });
+        assert_eq!(
+            status,
+            if n == 0 {
+                ShellStatus::Empty
+            } else {
+                ShellStatus::TooFewPoints
+            }
+        );
     }
     // Three points make a plane, but one shell of three points is not a valid surface ...
     let ab = run(&no_memory(), &pts, &hip, &view).abstraction;
@@ -221,7 +228,7 @@ fn collinear_points_are_flagged() {
             .abstraction
             .reports
             .iter()
-            .any(|r| r.status == "collinear")
+            .any(|r| r.status == ShellStatus::Collinear)
     );
 }
 
@@ -625,7 +632,7 @@ fn a_few_points_at_the_edge_of_reach_are_not_a_surface() {
             required: 2
         })
     );
-    assert!(ab.reports.last().unwrap().status == "fitted");
+    assert!(ab.reports.last().unwrap().status == ShellStatus::Fitted);
     // Two shells with 8 points in all: enough shells, too few points.
     let hip = Point3::new(0.0, 0.0, 0.0);
     let sparse: Vec<Vec3> = [0.045f32, 0.055]
@@ -696,7 +703,7 @@ fn a_plain_wall_near_the_hip_is_valid_with_every_shell_fitted() {
             assert!(ab.estimate.valid, "gap {gap}: {:?}", ab.invalid);
             for r in &ab.reports {
                 assert!(
-                    r.point_count < 3 || r.status == "fitted",
+                    r.point_count < 3 || r.status == ShellStatus::Fitted,
                     "gap {gap} occluder {occluder}: {r:?}"
                 );
             }

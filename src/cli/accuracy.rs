@@ -1,5 +1,5 @@
 //! `hapcloud accuracy [SCENE...]`: per-camera surface estimates of simulated scenes against
-//! their ground truth ([`hapcloud::evaluation`]): centroid error to the true closest point and
+//! their ground truth ([`hapcloud::lab::evaluation`]): centroid error to the true closest point and
 //! normal error (RMS, max), the largest jump between consecutive estimates beyond the truth's
 //! own motion while it moves smoothly and how many exceed the target's limit, valid and
 //! invalid counts, over the frames in reach (the true surface within the outermost shell of
@@ -9,11 +9,11 @@
 
 use anyhow::{Context, bail};
 use clap::Args as ClapArgs;
-use hapcloud::evaluation::{
+use hapcloud::gpu::{Backend, GpuContext};
+use hapcloud::lab::evaluation::{
     AccuracyTarget, CameraSummary, EvaluationConfig, FrameFilter, SceneEvaluation, evaluate_scene,
     summarize,
 };
-use hapcloud::gpu::{Backend, GpuContext};
 use hapcloud::perception::fit::CircleMethod;
 use hapcloud::scene::{Scene, builtin};
 use std::path::PathBuf;

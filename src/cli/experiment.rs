@@ -11,17 +11,17 @@
 //! centre stayed outside the surface).
 //!
 //! `perception-rising` and `perception-impacts` close the loop through perception
-//! ([`hapcloud::node::scene_loop`]): the built-in realistic scenes `rising_surface_realistic`
+//! ([`hapcloud::lab::scene_loop`]): the built-in realistic scenes `rising_surface_realistic`
 //! (at 0.5, 1.0 and 1.5 m/s, both modes) and `forehead_impacts_realistic` are rendered at 30 Hz
 //! per camera with the robot where the loop put it, run through the per-camera chain and
 //! fusion, and the controller acts on the fused surface; the metrics come from the scene's
 //! ground truth. The plots show the controller's `d_proj` beside the true one.
 
 use anyhow::{Context, Result, anyhow, bail};
-use hapcloud::control::closed_loop::{
+use hapcloud::lab::closed_loop::{
     self, EXPERIMENTS, RISE_SPEEDS_MPS, Run, RunMetrics, SWEEP_SPEEDS_MPS, SimConfig, SweepRow,
 };
-use hapcloud::node::scene_loop::{self, SceneLoopOptions, SceneRun};
+use hapcloud::lab::scene_loop::{self, SceneLoopOptions, SceneRun};
 use hapcloud::robot::RobotModel;
 use hapcloud::scene::{Scene, builtin};
 use plotters::chart::{SeriesAnno, SeriesLabelStyle};

@@ -1,9 +1,11 @@
 //! Subcommands of the `hapcloud` binary. Each subcommand lives in its own file here and
 //! only wires library stages together; `--json` output is one JSON object on stdout.
 
+#[cfg(feature = "lab")]
 mod accuracy;
 mod can_decode;
 mod convert;
+#[cfg(feature = "lab")]
 mod experiment;
 mod scenes;
 mod sim;
@@ -15,6 +17,7 @@ mod crop;
 mod gpu_info;
 mod replay;
 mod run;
+#[cfg(feature = "lab")]
 mod study;
 mod surface;
 mod timing;
@@ -43,6 +46,7 @@ enum Command {
     /// Open the GPU context and report the adapter (set WGPU_ADAPTER_NAME to choose one).
     GpuInfo(gpu_info::Args),
     /// Accuracy of the per-camera surface estimates on simulated scenes against ground truth.
+    #[cfg(feature = "lab")]
     Accuracy(accuracy::Args),
     /// Closest collision surface (centroid, normal, per-shell fits) of a cloud around a HIP.
     Surface(surface::Args),
@@ -52,6 +56,7 @@ enum Command {
     /// Voxel-grid a cloud with PCL VoxelGrid semantics (paper IV-B), like pcl_voxel_grid.
     Voxel(voxel::Args),
     /// Closed-loop experiments of the paper (section VI) in simulation: CSV, PNG, metrics.
+    #[cfg(feature = "lab")]
     Experiment(experiment::ExperimentArgs),
     /// Run the perception node: frames -> surface estimates -> 800 Hz fused surface, with
     /// stats, recording (--record DIR) and a JSON summary.
@@ -61,6 +66,7 @@ enum Command {
     /// Euclidean cluster extraction (PCL EuclideanClusterExtraction semantics).
     Cluster(cluster::Args),
     /// Sweep the knobs that trade accuracy for time: CSV, markdown table, Pareto plot.
+    #[cfg(feature = "lab")]
     Study(study::Args),
     /// Show clouds, shells, fits, estimates and time plots of a timeline of frames in a
     /// window (egui, wgpu).
@@ -78,14 +84,17 @@ pub fn main() -> ExitCode {
         Command::Convert(args) => convert::run(args),
         Command::CanDecode(args) => can_decode::run(args),
         Command::GpuInfo(args) => gpu_info::run(args),
+        #[cfg(feature = "lab")]
         Command::Accuracy(args) => accuracy::run(args),
         Command::Surface(args) => surface::run(args),
         Command::Crop(args) => crop::run(args),
         Command::Voxel(args) => voxel::run(args),
+        #[cfg(feature = "lab")]
         Command::Experiment(args) => experiment::run(args),
         Command::Run(args) => run::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Cluster(args) => cluster::run(args),
+        #[cfg(feature = "lab")]
         Command::Study(args) => study::run(args),
         #[cfg(feature = "viewer")]
         Command::View(args) => view::run(args),

@@ -1,7 +1,7 @@
 //! `hapcloud study [--quick] [--out DIR] [--backend gpu|cpu] [--config FILE.toml]`: what
 //! accuracy costs in time (issue 8). Renders a window of each built-in scene once, replays it
 //! through the pipeline once per setting (the defaults, then one knob varied at a time;
-//! [`hapcloud::study::settings`]), runs the closed loop with each setting's fused surface, and
+//! [`hapcloud::lab::study::settings`]), runs the closed loop with each setting's fused surface, and
 //! writes `study.csv`, `study.md` (a markdown table) and `pareto.png` (fused centroid error
 //! against cost per frame, the Pareto front highlighted, the defaults marked) into `--out`.
 //!
@@ -10,8 +10,8 @@
 use anyhow::Context;
 use clap::Args as ClapArgs;
 use hapcloud::gpu::Backend;
+use hapcloud::lab::study::{self, ClosedLoop, Recording, StudyConfig};
 use hapcloud::scene::Scene;
-use hapcloud::study::{self, ClosedLoop, Recording, StudyConfig};
 use std::path::PathBuf;
 use std::time::Instant;
 

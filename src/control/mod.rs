@@ -31,7 +31,6 @@
 //! A failed solve or non-finite input never panics: the controller returns the safe command
 //! (gravity compensation and joint damping, saturated) with a status saying why.
 
-pub mod closed_loop;
 pub mod hqp;
 pub mod qp;
 

@@ -45,7 +45,6 @@ pub mod frame_queue;
 pub mod haptic_loop;
 pub mod record;
 pub mod robot_state;
-pub mod scene_loop;
 pub mod stream;
 pub mod wire;
 

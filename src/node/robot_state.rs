@@ -37,7 +37,7 @@ impl Default for RobotStateConfig {
     fn default() -> Self {
         // Elbow flexed, forearm forward and level (the closed-loop experiments' start pose).
         Self {
-            fixed_joints_rad: crate::control::closed_loop::start_pose().into(),
+            fixed_joints_rad: crate::robot::start_pose().into(),
         }
     }
 }

@@ -387,15 +387,41 @@ pub fn accumulate_cpu(points: &[Vec3], layout: &ShellLayout) -> ShellSums {
     out
 }
 
+/// What became of one shell's fit (Alg. 2).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShellStatus {
+    Fitted,
+    Empty,
+    TooFewPoints,
+    Collinear,
+    NonFinite,
+    EigenFailed,
+    /// The residual is too large for one surface (two surfaces in one shell).
+    Inconsistent,
+}
+
+impl std::fmt::Display for ShellStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            ShellStatus::Fitted => "fitted",
+            ShellStatus::Empty => "empty",
+            ShellStatus::TooFewPoints => "too_few_points",
+            ShellStatus::Collinear => "collinear",
+            ShellStatus::NonFinite => "non_finite",
+            ShellStatus::EigenFailed => "eigen_failed",
+            ShellStatus::Inconsistent => "inconsistent",
+        })
+    }
+}
+
 /// Outcome of one shell, for reports and the overlay.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ShellReport {
     pub inner_radius_m: f64,
     pub outer_radius_m: f64,
     pub point_count: u64,
-    /// `fitted`, `empty`, `too_few_points`, `collinear`, `non_finite`, `eigen_failed` or
-    /// `inconsistent` (residual too large for one surface).
-    pub status: &'static str,
+    pub status: ShellStatus,
     /// The circle fit was degenerate (straight arc) and the sphere cut answered.
     pub fell_back: bool,
 }
@@ -516,16 +542,16 @@ pub fn abstract_surface(
             inner_radius_m: inner,
             outer_radius_m: outer,
             point_count: count,
-            status: "fitted",
+            status: ShellStatus::Fitted,
             fell_back: false,
         };
         if count == 0 {
-            report.status = "empty";
+            report.status = ShellStatus::Empty;
             reports.push(report);
             continue;
         }
         if count < u64::from(config.min_points_per_shell) {
-            report.status = "too_few_points";
+            report.status = ShellStatus::TooFewPoints;
             reports.push(report);
             continue;
         }
@@ -560,16 +586,16 @@ pub fn abstract_surface(
         match fitted {
             Err(e) => {
                 report.status = match e {
-                    FitError::TooFewPoints { .. } => "too_few_points",
-                    FitError::Collinear { .. } => "collinear",
-                    FitError::NonFinite => "non_finite",
-                    FitError::EigenFailed => "eigen_failed",
+                    FitError::TooFewPoints { .. } => ShellStatus::TooFewPoints,
+                    FitError::Collinear { .. } => ShellStatus::Collinear,
+                    FitError::NonFinite => ShellStatus::NonFinite,
+                    FitError::EigenFailed => ShellStatus::EigenFailed,
                 };
             }
             Ok((kind, center, normal, radius, residual, fell_back)) => {
                 report.fell_back = fell_back;
                 if residual.is_nan() || residual > config.max_residual_ratio * outer {
-                    report.status = "inconsistent";
+                    report.status = ShellStatus::Inconsistent;
                 } else {
                     // Eq. 2: orient against the camera's viewing direction.
                     let dot = normal.dot(&viewpoint.towards(&center));

@@ -40,6 +40,11 @@ pub const ANYEXO_URDF: &str = include_str!("../../robots/anyexo.urdf");
 /// Name of the link whose frame is the haptic interaction point.
 pub const HIP_LINK: &str = "hip";
 
+/// Start pose: elbow flexed, forearm forward and level, handle bar vertical.
+pub fn start_pose() -> JointVector {
+    JointVector::from_column_slice(&[0.0, 0.0, 0.15, 0.0, 0.3, 1.27])
+}
+
 /// Standard gravity, m/s^2, acting along world -z.
 pub const GRAVITY_MPS2: f64 = 9.81;
 

@@ -390,7 +390,7 @@ impl Simulator {
 
     /// Renders the frame with `timing` with the exoskeleton at `joints` instead of its
     /// scripted trajectory: a closed-loop simulation drives the robot itself
-    /// ([`crate::node::scene_loop`]).
+    /// (the lab's scene loop, `hapcloud::lab::scene_loop`).
     pub fn frame_with_joints(&self, timing: &FrameTiming, joints: &JointVector) -> SimFrame {
         self.render_frame(timing, Some(joints))
     }

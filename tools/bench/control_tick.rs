@@ -24,13 +24,13 @@
 //!
 //! Run: `cargo bench --bench control_tick`.
 
-use hapcloud::control::closed_loop::{self, Plant, SimConfig};
 use hapcloud::control::hqp::LevelMethod;
 use hapcloud::control::{
     ControlStatus, Controller, ControllerConfig, ControllerInput, ControllerOutput, Intent,
 };
 use hapcloud::fusion::{Fusion, FusionConfig};
 use hapcloud::haptics::known_surface;
+use hapcloud::lab::closed_loop::{self, Plant, SimConfig};
 use hapcloud::robot::{JointVector, RobotModel};
 use hapcloud::surface::SurfaceEstimate;
 use hapcloud::timing::{load_average, thread_cpu_s};

@@ -1,5 +1,5 @@
 //! Perception in the loop (issue 5 item 6, second half; paper section VI): the closed-loop
-//! experiments of [`crate::control::closed_loop`] with the collision surface coming out of
+//! experiments of [`crate::lab::closed_loop`] with the collision surface coming out of
 //! the perception pipeline on a simulated scene instead of an exact virtual plane.
 //!
 //! Every controller period (800 Hz), in simulated time, reading top to bottom like the node:
@@ -36,14 +36,14 @@
 //! (the scene's latency is in the arrival time; perception's own compute time is not added),
 //! and the CPU reference stages run by default (`backend`), which the GPU stages match.
 
-use super::haptic_loop::{HapticLoop, RobotInput};
-use super::robot_state::{JointState, PerceptionScene};
-use super::{NodeConfig, NodeError};
 use crate::control::ControlStatus;
-use crate::control::closed_loop::{HandReference, Plant, SimConfig, SimError};
 use crate::fusion::{FusionConfig, FusionStatus};
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
+use crate::lab::closed_loop::{HandReference, Plant, SimConfig, SimError};
+use crate::node::haptic_loop::{HapticLoop, RobotInput};
+use crate::node::robot_state::{JointState, PerceptionScene};
+use crate::node::{NodeConfig, NodeError};
 use crate::perception::frontend::FrontendConfig;
 use crate::perception::pipeline::SurfaceConfig;
 use crate::robot::JointVector;

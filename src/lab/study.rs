@@ -22,7 +22,7 @@
 //!    voxel grid, clusters; paper IV-A to IV-C), one surface estimator per camera (memory,
 //!    Alg. 1; shells and fits, Alg. 2),
 //! 3. [`Fusion`] of the cameras (paper IV-F), ticked at 800 Hz,
-//! 4. the closed loop ([`crate::control::closed_loop`], the rising-surface experiment of the
+//! 4. the closed loop ([`crate::lab::closed_loop`], the rising-surface experiment of the
 //!    paper's Fig. 12) with the controller seeing the plane as this setting's fused surface
 //!    would report it: at every tick the fused surface's error against the truth (centroid
 //!    offset, normal, velocity and tracking status, expressed in the frame of the true
@@ -40,13 +40,14 @@
 //! time (zero on the CPU backend). The GPU shell moments carry no timestamps; on lavapipe
 //! their work runs on its own threads and is not in the cost.
 
+use super::ErrorStats;
 use crate::camera::Frame;
-use crate::control::closed_loop::{self, SimConfig, SimError};
 use crate::fusion::FusionConfig;
 use crate::fusion::{FusedSurface, FusionStatus};
 use crate::geometry::Primitive;
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::known_surface;
+use crate::lab::closed_loop::{self, SimConfig, SimError};
 use crate::node::haptic_loop::{HapticLoop, Perception};
 use crate::node::robot_state::PerceptionScene;
 use crate::node::{NodeConfig, NodeError};
@@ -485,32 +486,6 @@ impl Recording {
             .map(|f| f.frame.camera_id + 1)
             .max()
             .unwrap_or(0)
-    }
-}
-
-/// RMS and maximum of a list of non-negative errors.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
-pub struct ErrorStats {
-    pub rms: f64,
-    pub max: f64,
-    pub count: usize,
-}
-
-impl ErrorStats {
-    fn of(values: &[f64]) -> Self {
-        if values.is_empty() {
-            return Self {
-                rms: f64::NAN,
-                max: f64::NAN,
-                count: 0,
-            };
-        }
-        let ms = values.iter().map(|v| v * v).sum::<f64>() / values.len() as f64;
-        Self {
-            rms: ms.sqrt(),
-            max: values.iter().copied().fold(0.0, f64::max),
-            count: values.len(),
-        }
     }
 }
 

@@ -53,6 +53,7 @@
 //! < 2 mm RMS, normal < 3 deg RMS, no jump > 10 mm while the surface moves smoothly), on the
 //! errors with the calibration bias removed.
 
+use super::ErrorStats;
 use crate::gpu::timing::StageTime;
 use crate::gpu::{Backend, GpuContext};
 use crate::node::haptic_loop::Perception;
@@ -452,25 +453,6 @@ fn angle_rad(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
     (a.dot(b) / (na * nb)).clamp(-1.0, 1.0).acos()
 }
 
-/// RMS and maximum of a sample (zero for an empty one).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
-pub struct ErrorStats {
-    pub rms: f64,
-    pub max: f64,
-}
-
-impl ErrorStats {
-    pub fn of(values: &[f64]) -> Self {
-        if values.is_empty() {
-            return Self::default();
-        }
-        Self {
-            rms: (values.iter().map(|v| v * v).sum::<f64>() / values.len() as f64).sqrt(),
-            max: values.iter().copied().fold(0.0, f64::max),
-        }
-    }
-}
-
 /// Which frames a summary counts.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct FrameFilter {
@@ -713,10 +695,26 @@ mod tests {
             valid: 10,
             // A calibration bias makes the rig's errors larger; the target is on the
             // estimator's own.
-            centroid_mm: ErrorStats { rms: 6.0, max: 9.0 },
-            normal_deg: ErrorStats { rms: 4.0, max: 9.0 },
-            centroid_unbiased_mm: ErrorStats { rms: 1.9, max: 5.0 },
-            normal_unbiased_deg: ErrorStats { rms: 2.9, max: 9.0 },
+            centroid_mm: ErrorStats {
+                rms: 6.0,
+                max: 9.0,
+                count: 10,
+            },
+            normal_deg: ErrorStats {
+                rms: 4.0,
+                max: 9.0,
+                count: 10,
+            },
+            centroid_unbiased_mm: ErrorStats {
+                rms: 1.9,
+                max: 5.0,
+                count: 10,
+            },
+            normal_unbiased_deg: ErrorStats {
+                rms: 2.9,
+                max: 9.0,
+                count: 10,
+            },
             jump_pairs: 9,
             max_jump_mm: 9.9,
             ..CameraSummary::default()

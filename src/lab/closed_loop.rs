@@ -22,9 +22,12 @@
 //! plane, `d_proj + r_HIP`; the penetration is `max(0, -d_proj)`, how deep the HIP sphere
 //! enters the surface. "Never penetrates beyond the HIP radius" means a positive margin.
 
-use super::{Controller, ControllerConfig, ControllerConfigError, ControllerInput, Intent};
+use crate::control::{
+    ControlStatus, Controller, ControllerConfig, ControllerConfigError, ControllerInput, Intent,
+};
 use crate::fusion::FusedSurface;
 use crate::haptics::known_surface;
+use crate::robot::start_pose;
 use crate::robot::{GRAVITY_MPS2, JointVector, RobotModel};
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -215,11 +218,6 @@ impl Scenario {
         }
         (x, v, a)
     }
-}
-
-/// Start pose: elbow flexed, forearm forward and level, handle bar vertical.
-pub fn start_pose() -> JointVector {
-    JointVector::from_column_slice(&[0.0, 0.0, 0.15, 0.0, 0.3, 1.27])
 }
 
 /// Names of the built-in experiments.
@@ -533,7 +531,7 @@ pub fn simulate(
 /// Simulates `scenario` in closed loop; `surface(tick, t_s, hip_m)` gives the surface the
 /// controller sees at each tick (the plane of [`Scenario::plane_at`] stays the truth the
 /// metrics are measured against): e.g. the plane as a perception setting would estimate it
-/// (`crate::study`).
+/// (`crate::lab::study`).
 pub fn simulate_with_surface(
     model: &RobotModel,
     config: &SimConfig,
@@ -559,7 +557,7 @@ pub fn simulate_with_surface(
             interaction_force_n: plant.hand_force_n(),
             intent: Intent::Transparent,
         });
-        let fallback = out.status != super::ControlStatus::Ok;
+        let fallback = out.status != ControlStatus::Ok;
         fallbacks += usize::from(fallback);
         let (plane_z, plane_v) = scenario.plane_at(t);
         let d_proj = hip.position_m.z - plane_z - r_hip;
