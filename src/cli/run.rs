@@ -16,7 +16,7 @@ pub struct Args {
     /// `.pcd`/`.ply` frames of one camera (PCL grabber names give the stamps, others are
     /// 30 Hz; the HIP is put 5 cm in front of the surface on the optical axis unless
     /// --config sets `hip_world_m`), or `tcp://HOST:PORT` to listen for a camera stream
-    /// (the format is in `hapcloud::node::wire`), or a scene (a built-in name, see `hapcloud
+    /// (the format is in `hapcloud::io::hcap`), or a scene (a built-in name, see `hapcloud
     /// scenes`, or a scene TOML file): rendered by the simulator and played, the robot
     /// following the scene's joint trajectory. Without one, the built-in realistic scene
     /// `torso_approach_realistic` (two simulated D435 cameras) is played.

@@ -16,6 +16,7 @@
 
 pub mod can;
 pub mod depth;
+pub mod hcap;
 pub mod pcd;
 pub mod ply;
 

@@ -37,7 +37,7 @@
 //! `on_stale`: `disable` switches them off at once, `hold` keeps the last fused surface for at
 //! most `stale_hold_max_s` (flagged as held in the record and on CAN), then switches them off;
 //! tracking resumes when frames return; malformed stream
-//! records are counted and dropped ([`wire`]); an unreadable recording is an error naming the
+//! records are counted and dropped ([`crate::io::hcap`]); an unreadable recording is an error naming the
 //! file ([`record`]).
 
 pub mod can_out;
@@ -46,7 +46,6 @@ pub mod haptic_loop;
 pub mod record;
 pub mod robot_state;
 pub mod stream;
-pub mod wire;
 
 #[cfg(test)]
 mod tests;
@@ -57,6 +56,7 @@ use crate::fusion::{FusionConfig, FusionConfigError, FusionCounters, FusionStatu
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::io::can::{CanError, fault};
+use crate::io::hcap;
 use crate::perception::frontend::{FrontendConfig, FrontendError};
 use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
@@ -927,8 +927,8 @@ pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
      -> Result<(), NodeError> {
         let record = haptic_loop.push_frame(frame, &robot.perception_scene(q))?;
         let (mut a, mut b) = (Vec::new(), Vec::new());
-        wire::encode_estimate(&mut a, record.estimate());
-        wire::encode_estimate(&mut b, recorded);
+        hcap::encode_estimate(&mut a, record.estimate());
+        hcap::encode_estimate(&mut b, recorded);
         report.estimates_compared += 1;
         if a != b {
             report.estimate_mismatches += 1;

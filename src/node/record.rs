@@ -8,12 +8,12 @@
 //! * `frame_joints.hcr`: per frame, in the same order, the robot's joint positions at its
 //!   stamp (kind 4: 6 x f64 rad), from which perception took the HIP and the primitives,
 //! * `estimates.hcr`: every surface estimate, with the index of the tick that pushed it into
-//!   fusion (kind 2: `u64 tick index`, then the estimate, see [`wire::encode_estimate`]),
+//!   fusion (kind 2: `u64 tick index`, then the estimate, see [`hcap::encode_estimate`]),
 //! * `ticks.hcr`: every control tick (kind 3): the fused surface, the robot state, the haptic
 //!   constraint values and status, the joint torque command ([`ControlRecord`]), and the
 //!   tick's timing.
 //!
-//! Each `.hcr` file is a plain sequence of [`wire`] records (16-byte header with length and
+//! Each `.hcr` file is a plain sequence of [`hcap`] records (16-byte header with length and
 //! CRC), written through a buffer and flushed at the end, so a recording cut short by a crash
 //! is still readable up to its last whole record. Reading is strict: a bad record is an error
 //! naming the file and the byte offset. `hapcloud replay DIR` re-runs perception on the frames
@@ -23,7 +23,7 @@
 use super::NodeConfig;
 use super::haptic_loop::Tick;
 use super::robot_state::{JointState, RobotMeta};
-use super::wire::{self, Reader, RecordKind, WireError, put_vec3};
+use crate::io::hcap::{self, Reader, RecordKind, WireError, put_vec3};
 use crate::camera::Frame;
 use crate::control::{ControlStatus, ControllerOutput};
 use crate::fusion::{FusedSurface, FusionStatus};
@@ -37,7 +37,7 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
-/// Recording format version (the record framing has its own, [`wire::VERSION`]).
+/// Recording format version (the record framing has its own, [`hcap::VERSION`]).
 /// Version 2 added the robot (`meta.json`'s `robot`, `frame_joints.hcr`) and the controller's
 /// outputs in every tick; version 1 recordings are refused with a clear error.
 pub const RECORDING_VERSION: u32 = 2;
@@ -329,7 +329,7 @@ impl Stream {
 
     fn append(&mut self, kind: RecordKind, payload: &[u8]) -> Result<(), RecordError> {
         self.buf.clear();
-        wire::write_record(&mut self.buf, kind, payload);
+        hcap::write_record(&mut self.buf, kind, payload);
         self.out.write_all(&self.buf).map_err(io_err(&self.path))
     }
 
@@ -377,7 +377,7 @@ pub fn create(
 impl FrameRecorder {
     pub fn frame(&mut self, frame: &Frame, q: &JointVector) -> Result<(), RecordError> {
         self.frames
-            .append(RecordKind::Frame, &wire::encode_frame(frame))?;
+            .append(RecordKind::Frame, &hcap::encode_frame(frame))?;
         let mut payload = Vec::with_capacity(48);
         put_joints(&mut payload, q);
         self.joints.append(RecordKind::FrameJoints, &payload)
@@ -392,7 +392,7 @@ impl FrameRecorder {
 impl TickRecorder {
     pub fn estimate(&mut self, tick: u64, e: &SurfaceEstimate) -> Result<(), RecordError> {
         let mut payload = tick.to_le_bytes().to_vec();
-        wire::encode_estimate(&mut payload, e);
+        hcap::encode_estimate(&mut payload, e);
         self.estimates.append(RecordKind::Estimate, &payload)
     }
 
@@ -418,9 +418,9 @@ pub struct Recording {
     pub ticks: Vec<TickRecord>,
 }
 
-fn read_records(path: &Path, kind: RecordKind) -> Result<Vec<wire::Record>, RecordError> {
+fn read_records(path: &Path, kind: RecordKind) -> Result<Vec<hcap::Record>, RecordError> {
     let bytes = std::fs::read(path).map_err(io_err(path))?;
-    let records = wire::read_all(&bytes).map_err(|(at, e)| RecordError::Format {
+    let records = hcap::read_all(&bytes).map_err(|(at, e)| RecordError::Format {
         path: path.to_path_buf(),
         reason: format!("byte {at}: {e}"),
     })?;
@@ -474,7 +474,7 @@ pub fn read(dir: &Path) -> Result<Recording, RecordError> {
     let frames: Vec<Frame> = read_records(&path, RecordKind::Frame)?
         .iter()
         .enumerate()
-        .map(|(i, r)| wire::decode_frame(&r.payload).map_err(payload_err(&path, i)))
+        .map(|(i, r)| hcap::decode_frame(&r.payload).map_err(payload_err(&path, i)))
         .collect::<Result<_, _>>()?;
     let path = dir.join("frame_joints.hcr");
     let frame_joints: Vec<JointVector> = read_records(&path, RecordKind::FrameJoints)?
@@ -498,7 +498,7 @@ pub fn read(dir: &Path) -> Result<Recording, RecordError> {
         .map(|r| {
             let mut reader = Reader::new(&r.payload);
             let tick = reader.u64()?;
-            let e = wire::decode_estimate(&mut reader)?;
+            let e = hcap::decode_estimate(&mut reader)?;
             reader.finish()?;
             Ok((tick, e))
         })

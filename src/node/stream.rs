@@ -1,4 +1,4 @@
-//! The network source: camera frames over TCP in the [`super::wire`] record format.
+//! The network source: camera frames over TCP in the [`crate::io::hcap`] record format.
 //!
 //! A camera driver (in another process or on another machine) connects and writes one
 //! frame record per frame ([`StreamSender`] is that side, used by tests and tools). The node
@@ -7,7 +7,7 @@
 //! the order and delivers whole clouds (a 848x480 cloud is 4.9 MB, far beyond one UDP
 //! datagram).
 
-use super::wire::{self, Decoder, RecordKind, WireError};
+use crate::io::hcap::{self, Decoder, RecordKind, WireError};
 use crate::camera::Frame;
 use std::io::{self, Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
@@ -31,7 +31,7 @@ impl StreamSender {
 
     pub fn send(&mut self, frame: &Frame) -> io::Result<()> {
         self.buf.clear();
-        wire::write_record(&mut self.buf, RecordKind::Frame, &wire::encode_frame(frame));
+        hcap::write_record(&mut self.buf, RecordKind::Frame, &hcap::encode_frame(frame));
         self.stream.write_all(&self.buf)
     }
 
@@ -116,7 +116,7 @@ impl StreamReceiver {
         loop {
             while let Some(record) = self.decoder.next_record() {
                 match record.kind {
-                    RecordKind::Frame => match wire::decode_frame(&record.payload) {
+                    RecordKind::Frame => match hcap::decode_frame(&record.payload) {
                         Ok(frame) => {
                             self.counters.frames += 1;
                             return Ok(Some(frame));
@@ -157,7 +157,7 @@ impl StreamReceiver {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::node::wire::tests::test_frame;
+    use crate::io::hcap::tests::test_frame;
 
     #[test]
     fn frames_cross_tcp_and_malformed_records_are_counted() {
@@ -171,13 +171,13 @@ mod tests {
                 if i == 1 {
                     // A record with a corrupted payload, and one of the wrong kind.
                     let mut bad = Vec::new();
-                    wire::write_record(&mut bad, RecordKind::Frame, b"short");
-                    wire::write_record(&mut bad, RecordKind::Tick, b"not a frame");
+                    hcap::write_record(&mut bad, RecordKind::Frame, b"short");
+                    hcap::write_record(&mut bad, RecordKind::Tick, b"not a frame");
                     let mut flipped = Vec::new();
-                    wire::write_record(
+                    hcap::write_record(
                         &mut flipped,
                         RecordKind::Frame,
-                        &wire::encode_frame(&test_frame(0, 9.0, 10)),
+                        &hcap::encode_frame(&test_frame(0, 9.0, 10)),
                     );
                     flipped[30] ^= 1;
                     bad.extend_from_slice(&flipped);

@@ -193,7 +193,7 @@ fn stream_source_counts_and_drops_malformed_records() {
             }
             if i % 5 == 2 {
                 let mut bad = Vec::new();
-                wire::write_record(&mut bad, wire::RecordKind::Frame, b"not a frame");
+                crate::io::hcap::write_record(&mut bad, crate::io::hcap::RecordKind::Frame, b"not a frame");
                 if s.send_raw(&bad).is_err() {
                     break;
                 }

@@ -1,4 +1,4 @@
-//! The node's record format: one framing for the network stream and for recordings.
+//! HCAP, hapcloud's record format: one framing for the network stream and for recordings.
 //!
 //! Every record is a 16-byte header and a payload, all little-endian:
 //!
