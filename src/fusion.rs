@@ -26,7 +26,7 @@
 //!    identifiable and the fit falls back to plain eq. 4-5.
 //!    The fit is evaluated at the tick time (an extrapolation over the frames' latency,
 //!    clamped to `max_extrapolation_s` past the newest stamp) and its derivative gives the
-//!    surface's own velocity, which the haptic velocity constraint uses (issue 5, item 3).
+//!    surface's own velocity, which the haptic velocity constraint uses.
 //!
 //!    **Robustness (beyond the paper).** Extrapolated 60-90 ms past its data, an
 //!    unconditional quadratic through estimates with ~10 mm of noise turns noise into

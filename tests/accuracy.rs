@@ -207,7 +207,7 @@ fn rising_surface_is_out_of_reach_once_past_the_hip_and_its_flip_is_not_smooth()
     assert!(truth_moves_smoothly(&forearm, 3.0, 3.0 + 1.0 / 30.0));
 }
 
-/// Issue 4's accuracy target (D435 noise and robot occlusion, HIP 0.4-0.7 m from the camera:
+/// The accuracy target (D435 noise and robot occlusion, HIP 0.4-0.7 m from the camera:
 /// centroid < 2 mm RMS, normal < 3 deg RMS, no jump > 10 mm while the surface moves
 /// smoothly), checked per camera on the calibration-bias-free errors over the whole of both
 /// close scenes, realistic and clean, with the shipped close-range configuration

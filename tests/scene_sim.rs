@@ -726,7 +726,7 @@ fn every_builtin_scene_loads_and_the_realistic_ones_differ_only_by_effects() {
     }
 }
 
-/// forearm_close and head_close exist for issue 4's accuracy target (0.4-0.7 m from the HIP):
+/// forearm_close and head_close exist for the accuracy target (0.4-0.7 m from the HIP):
 /// while the handle touches the skin both cameras are in that range and see the skin near the
 /// HIP, and nothing either camera sees is nearer than the D435's minimum depth (0.17 m at
 /// 848x480; the patient also beyond the 0.28 m Intel quotes at 1280x720).

@@ -1,4 +1,4 @@
-//! The hard-case suite of the surface estimator (issue 4 item 6): each case gives a finite,
+//! The hard-case suite of the surface estimator: each case gives a finite,
 //! sensible estimate or one clearly flagged invalid; never NaN, never a panic. Plus accuracy on
 //! analytic shapes and the property tests (rigid motion, permutation).
 
@@ -680,7 +680,7 @@ fn a_bad_validity_or_cap_config_is_a_clear_error() {
     assert!(e.contains("cap_gap_m"), "{e}");
 }
 
-/// Issue 4 lead: a plain wall with the HIP 1.5-3.5 cm away (D435 noise, the robot occluding
+/// A plain wall with the HIP 1.5-3.5 cm away (D435 noise, the robot occluding
 /// the centre or not) must give a valid estimate with every shell that has points fitted (no
 /// shell flagged inconsistent: the innermost shells are discs, not rings).
 #[test]

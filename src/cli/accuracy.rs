@@ -4,7 +4,7 @@
 //! own motion while it moves smoothly and how many exceed the target's limit, valid and
 //! invalid counts, over the frames in reach (the true surface within the outermost shell of
 //! the HIP, facing the camera), and again over those with the HIP 0.4-0.7 m from the camera
-//! (`--range`), where issue 4's target (centroid < 2 mm RMS, normal < 3 deg RMS, no jump
+//! (`--range`), where the accuracy target (centroid < 2 mm RMS, normal < 3 deg RMS, no jump
 //! > 10 mm) is checked per camera on the errors with the calibration bias removed.
 
 use anyhow::{Context, bail};

@@ -5,7 +5,7 @@
 //!
 //! The `rising` experiment runs every speed twice: `paper` (the velocity constraint sees only
 //! the HIP's motion, as in the paper) and `surface_velocity` (the surface's own velocity
-//! enters the constraint, issue 5 item 3). `rising-sweep` runs 0.25 to 2.5 m/s both ways and
+//! enters the constraint). `rising-sweep` runs 0.25 to 2.5 m/s both ways and
 //! writes the table of the worst penetration and margin per speed (`rising-sweep.csv`,
 //! `rising-sweep.png`) and the safe speed of each mode (the highest speed up to which the HIP
 //! centre stayed outside the surface).

@@ -1,4 +1,4 @@
-//! `hapcloud run [SOURCE]`: the perception node (issue 6). Wires a source to
+//! `hapcloud run [SOURCE]`: the perception node. Wires a source to
 //! `hapcloud::node::run` (perception, fusion, haptic constraints and the controller), the
 //! CAN outputs (`--can`, `--can-log`), prints a progress line while it runs and a summary at
 //! the end.

@@ -1,5 +1,5 @@
 //! `hapcloud study [--quick] [--out DIR] [--backend gpu|cpu] [--config FILE.toml]`: what
-//! accuracy costs in time (issue 8). Renders a window of each built-in scene once, replays it
+//! accuracy costs in time. Renders a window of each built-in scene once, replays it
 //! through the pipeline once per setting (the defaults, then one knob varied at a time;
 //! [`hapcloud::lab::study::settings`]), runs the closed loop with each setting's fused surface, and
 //! writes `study.csv`, `study.md` (a markdown table) and `pareto.png` (fused centroid error

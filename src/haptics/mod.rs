@@ -22,7 +22,7 @@
 //!   fused surface is not tracking (the grey areas of the paper's Fig. 9).
 //!
 //! Input: the [`FusedSurface`] of [`crate::fusion`] (or [`known_surface`] for virtual walls).
-//! - Beyond the paper (issue 5 item 3): with `use_surface_velocity`, `d' = J_c qd - n . v_s`
+//! - Beyond the paper: with `use_surface_velocity`, `d' = J_c qd - n . v_s`
 //!   uses the surface's own velocity from the fusion fit; the paper uses `d' = J_c qd`.
 
 use crate::fusion::{FusedSurface, FusionStatus};

@@ -226,7 +226,7 @@ pub const EXPERIMENTS: [&str; 4] = ["impacts", "sliding", "rising", "rising-swee
 /// Speeds of the rising-surface experiment, m/s (paper Fig. 12 range).
 pub const RISE_SPEEDS_MPS: [f64; 7] = [0.1, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5];
 
-/// Speeds of the safe-speed sweep (issue 5 item 3: past the paper's 1.0 m/s), m/s.
+/// Speeds of the safe-speed sweep (past the paper's 1.0 m/s), m/s.
 pub const SWEEP_SPEEDS_MPS: [f64; 10] = [0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0, 2.25, 2.5];
 
 /// One run of the rising-surface sweep.
@@ -611,7 +611,7 @@ mod tests {
         );
     }
 
-    /// Issue 5 item 3: at 1.5 m/s, half again the paper's safe speed, the paper's velocity
+    /// At 1.5 m/s, half again the paper's safe speed, the paper's velocity
     /// constraint (HIP motion only) lets the HIP centre through the rising plane, while the
     /// surface's velocity in the constraint keeps the HIP sphere outside it.
     #[test]

@@ -1,5 +1,5 @@
 //! Scene evaluation: the per-camera surface estimates of a simulated scene against its ground
-//! truth (issue 4, item 5: accuracy of paper IV-D/IV-E; reused by studies and experiments).
+//! truth (accuracy of paper IV-D/IV-E; reused by studies and experiments).
 //!
 //! # How it works
 //!
@@ -49,7 +49,7 @@
 //! centre): once the rising-surface plate has passed the HIP, the closest point is on its
 //! underside, which no camera above it sees. [`summarize`] restricts to frames in reach and,
 //! optionally, to a range of HIP-to-camera distances, and checks the result against
-//! [`AccuracyTarget`] (issue 4: with D435 noise and robot occlusion at 0.4-0.7 m, centroid
+//! [`AccuracyTarget`] (with D435 noise and robot occlusion at 0.4-0.7 m, centroid
 //! < 2 mm RMS, normal < 3 deg RMS, no jump > 10 mm while the surface moves smoothly), on the
 //! errors with the calibration bias removed.
 
@@ -85,7 +85,7 @@ pub struct EvaluationConfig {
     pub target: AccuracyTarget,
 }
 
-/// Issue 4's accuracy target for one camera over the frames in reach (and in range).
+/// The accuracy target for one camera over the frames in reach (and in range).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct AccuracyTarget {

@@ -1,4 +1,4 @@
-//! Perception in the loop (issue 5 item 6, second half; paper section VI): the closed-loop
+//! Perception in the loop (paper section VI): the closed-loop
 //! experiments of [`crate::lab::closed_loop`] with the collision surface coming out of
 //! the perception pipeline on a simulated scene instead of an exact virtual plane.
 //!

@@ -1,5 +1,5 @@
 //! What accuracy costs in time: a one-knob-at-a-time sweep over the pipeline's settings on the
-//! simulator's built-in scenes (issue 8; the design card's "show what accuracy costs in time").
+//! simulator's built-in scenes (the design card's "show what accuracy costs in time").
 //!
 //! # How it works
 //!

@@ -1,4 +1,4 @@
-//! The perception node (issue 6): camera frames in, the fused collision surface out at
+//! The perception node's runtime: camera frames in, the fused collision surface out at
 //! 800 Hz, reading top to bottom like the design card's data flow.
 //!
 //! Three kinds of threads, so a slow frame never blocks the control loop:

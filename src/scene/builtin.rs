@@ -2,7 +2,7 @@
 //! experiments (section VI): repeated direct impacts on the forehead, sliding along the head,
 //! an approach to the torso, a horizontal surface rising at constant speed, and reaching
 //! across to the other arm, all seen by the paper's two cameras about 1 m away; and two with
-//! the same two-camera mount brought 0.4-0.65 m from the handle (the range of issue 4's
+//! the same two-camera mount brought 0.4-0.65 m from the handle (the range of the accuracy target's
 //! accuracy target): `forearm_close`, touching and sliding along the left forearm, and
 //! `head_close`, touching the forehead and sliding to the right temple. Each comes in a
 //! `_clean` variant (no effects: the exact analytic surface) and a `_realistic` one (D435

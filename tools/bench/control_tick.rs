@@ -1,7 +1,7 @@
 //! Benchmark of one 800 Hz control tick: fusion evaluation, haptic constraints (paper eq.
 //! 7-14) and the whole hierarchical solve (six levels, the Goldfarb-Idnani active-set method
 //! where a level needs a QP, clarabel if that fails).
-//! Budget (issue 5): median < 100 us, p99 < 250 us.
+//! Budget: median < 100 us, p99 < 250 us.
 //!
 //! States are drawn at random (seeded) over the joint ranges with joint speeds up to 1.5
 //! rad/s, a measured hand force up to 40 N and a surface placed so that `d_proj` spans

@@ -1,5 +1,5 @@
 //! The front end's stages, hapcloud side by side with PCL's own tools on PCL's real frames, in
-//! one run (issue 8, item 2), and a simulated D435 frame through the whole per-camera chain.
+//! one run, and a simulated D435 frame through the whole per-camera chain.
 //!
 //! Per frame, the chain PCL's tools run, stage by stage, each stage of hapcloud on the very
 //! input PCL's stage got:
