@@ -68,6 +68,10 @@ pub struct VoxelHeader {
     pub max_key: [u32; 3],
     /// Keys the bitonic sort covered (a power of two >= 512).
     pub sort_size: u32,
+    /// 1 when the frame took the dense path (occupancy bitmap), 0 for the hash table.
+    pub mode: u32,
+    /// 32-bit words of the dense bitmap (0 on the hash path).
+    pub words: u32,
     pub _pad1: u32,
 }
 
@@ -103,7 +107,7 @@ pub struct ShellParams {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct ClusterParams {
-    /// 1 / cell size (cell = tolerance * margin), 1/m.
+    /// 1 / cell size (cell = tolerance * margin / 2), 1/m.
     pub inv_cell: f32,
     /// f32(tolerance)^2, m^2.
     pub r2: f32,
