@@ -41,7 +41,9 @@ struct ClusterParams {
     capacity: u32,
     // Index of the point count in point_count (the voxel header, or a buffer of its own).
     count_word: u32,
-    _pad: u32,
+    // Squared distance, in cells, beyond which a cell cannot hold a neighbour of a point
+    // (host: (2 / CELL_MARGIN + 2 * 0.008 rounding + margin)^2).
+    reach2_cells: f32,
 }
 
 struct Slot {
@@ -253,12 +255,20 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let c = cell_of(p);
+    // i's position inside its cell, in cells.
+    let f = p * params.inv_cell - floor(p * params.inv_cell);
     // A known member of i's set, kept close to its root.
     var member = i;
     // Half stencil: the 62 cells that follow i's own (k = 62) in (z, y, x) order. A pair of
     // neighbouring cells is scanned from the points of the earlier one only.
     for (var k = 63u; k < 125u; k++) {
         let offset = vec3<i32>(i32(k % 5u) - 2, i32(k / 5u % 5u) - 2, i32(k / 25u) - 2);
+        // Per axis, the gap from i to the cell (0 along an axis where the cell is level).
+        let o = vec3<f32>(offset);
+        let gap = max(max(o - f, -o - vec3<f32>(1.0) + f), vec3<f32>(0.0));
+        if dot(gap, gap) > params.reach2_cells {
+            continue;
+        }
         let s = find_slot(c + offset);
         if s == NONE {
             continue;

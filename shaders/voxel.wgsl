@@ -391,24 +391,10 @@ fn word_count(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
 // on the hash path, where `words` is 0).
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn word_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
-    let blocks = (header.words + COMPACT_BLOCK - 1u) / COMPACT_BLOCK;
-    let per = (blocks + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
-    let first = min(lid.x * per, blocks);
-    let last = min(first + per, blocks);
-    var n = 0u;
-    for (var b = first; b < last; b++) {
-        n += block_sums[b];
-    }
-    let s = workgroup_scan(lid.x, n);
-    var offset = s.x;
-    for (var b = first; b < last; b++) {
-        let count = block_sums[b];
-        block_sums[b] = offset;
-        offset += count;
-    }
+    let total = scan_blocks(lid.x, (header.words + COMPACT_BLOCK - 1u) / COMPACT_BLOCK);
     if lid.x == 0u && header.mode == 1u {
-        atomicStore(&header.cells, s.y);
-        if s.y > params.table_mask + 1u {
+        atomicStore(&header.cells, total);
+        if total > params.table_mask + 1u {
             atomicMax(&header.overflow, 1u);
         }
     }
@@ -455,6 +441,27 @@ fn workgroup_scan(lid: u32, v: u32) -> vec2<u32> {
     return vec2<u32>(inclusive - v, total);
 }
 
+// One workgroup: replaces the first `blocks` entries of block_sums with their exclusive
+// prefix sums (thread order, fixed) and returns their total. Called from uniform control
+// flow only (barriers inside).
+fn scan_blocks(lid: u32, blocks: u32) -> u32 {
+    let per = (blocks + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+    let first = min(lid * per, blocks);
+    let last = min(first + per, blocks);
+    var n = 0u;
+    for (var b = first; b < last; b++) {
+        n += block_sums[b];
+    }
+    let s = workgroup_scan(lid, n);
+    var offset = s.x;
+    for (var b = first; b < last; b++) {
+        let count = block_sums[b];
+        block_sums[b] = offset;
+        offset += count;
+    }
+    return s.y;
+}
+
 // Kept slots among the COMPACT_PER_THREAD slots of thread `lid` of block `block`.
 fn kept_in_run(block: u32, lid: u32) -> u32 {
     let first = block * COMPACT_BLOCK + lid * COMPACT_PER_THREAD;
@@ -476,22 +483,7 @@ fn compact_count(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgrou
 // One workgroup: block offsets, out_count, sort size and the indirect dispatch arguments.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn compact_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
-    let blocks = (params.table_mask + 1u) / COMPACT_BLOCK;
-    let per = (blocks + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
-    let first = min(lid.x * per, blocks);
-    let last = min(first + per, blocks);
-    var n = 0u;
-    for (var b = first; b < last; b++) {
-        n += block_sums[b];
-    }
-    let s = workgroup_scan(lid.x, n);
-    var offset = s.x;
-    for (var b = first; b < last; b++) {
-        let count = block_sums[b];
-        block_sums[b] = offset;
-        offset += count;
-    }
-    let total = s.y;
+    let total = scan_blocks(lid.x, (params.table_mask + 1u) / COMPACT_BLOCK);
     let size = 1u << (32u - countLeadingZeros(max(total, SORT_BLOCK) - 1u));
     if lid.x == 0u {
         atomicStore(&header.out_count, total);

@@ -118,7 +118,8 @@ pub struct ClusterParams {
     pub capacity: u32,
     /// Index of the point count in the count buffer.
     pub count_word: u32,
-    pub _pad: u32,
+    /// Squared distance, in cells, beyond which a cell cannot hold a neighbour.
+    pub reach2_cells: f32,
 }
 
 /// A mirrored struct: its WGSL name, the shader declaring it, and the Rust layout.

@@ -420,6 +420,9 @@ pub fn cluster_cpu(points: &[Vec3], config: &ClusterConfig) -> Result<Clustering
 /// (it lies in the 125 cells around a point) and two points of one cell are at most
 /// sqrt(3) * 1.016 * 1.05 / 2 = 0.92 tolerances apart (always neighbours).
 pub const CELL_MARGIN: f32 = 1.05;
+/// Farthest a neighbour's cell can be from a point, in cells: 2 / CELL_MARGIN plus twice the
+/// rounding of a cell coordinate (0.008) and a margin.
+const REACH_CELLS: f32 = 2.0 / CELL_MARGIN + 0.02;
 /// `GRID_LIMIT` in the shader: largest |cell coordinate| the GPU grid accepts.
 pub const GRID_LIMIT_CELLS: f32 = 65536.0;
 /// Bytes of one `Slot` in the shader (`rep`, `head`, `low`).
@@ -579,7 +582,7 @@ impl GpuClusterer {
             max_probes: config.gpu_hash_max_probes,
             capacity: b.capacity,
             count_word: 0,
-            _pad: 0,
+            reach2_cells: REACH_CELLS * REACH_CELLS,
         };
         Ok(())
     }

@@ -13,17 +13,31 @@
 //! 4. output: one point per cell with at least `min_points_per_voxel` points, the mean of its
 //!    points, ordered by linear index (x fastest, then y, then z).
 //!
-//! [`voxel_cpu`] is the reference (f64 sums). [`GpuVoxel`] runs `shaders/voxel.wgsl`: a hash
-//! table keyed by the linear index with bounded linear probing, per-cell sums of the points'
-//! offsets inside their cell as 64-bit fixed-point integers (2^-24 leaf resolution, integer
-//! atomics, so the result is byte-identical whatever the thread order), a stream compaction of
-//! the kept cells' indices (prefix sums in a fixed order, no atomics), a bitonic sort of only
-//! those (padded to the next power of two, at least 512: the sort's dispatches are indirect,
-//! sized on the GPU from the compacted count), and one mean per sorted cell. Its four passes
-//! (insert, compact, sort, reduce) carry their own timestamp queries, read back with the
-//! results. The overflow flag is read back every
-//! frame: an overflowing table is retried with four times the slots up to
-//! `max_table_slots`, and beyond that the frame is an error, never a silently wrong result.
+//! PCL's order without a comparison sort: when the grid of the valid points is small enough
+//! ([`dense_grid`]: at most [`DENSE_MAX_CELLS`] cells, and an occupancy bitmap of at most
+//! [`DENSE_WORDS_PER_POINT`] 32-bit words per valid point plus [`DENSE_MIN_WORDS`]; the crop
+//! bounds it), one bit per cell marks the occupied cells and an exclusive prefix count of the
+//! bitmap's words gives each occupied cell its rank in linear-index order
+//! (`prefix[word] + popcount(bits below)`): the rank is the cell's output slot. Larger grids
+//! sort the cell indices instead.
+//!
+//! [`voxel_cpu`] is the reference (f64 sums, each cell's points in input order on both
+//! paths). [`GpuVoxel`] runs `shaders/voxel.wgsl`; a `plan` pass after the bounds picks the
+//! path on the GPU and sizes the dense dispatches (indirect). Dense: clear the frame's bitmap
+//! words, mark, prefix-count the words (per 512-word block, one workgroup over the blocks,
+//! scatter), then add each point to slot = rank. Otherwise: a hash table keyed by the linear
+//! index with bounded linear probing. Either way the per-cell sums of the points' offsets
+//! inside their cell are 64-bit fixed-point integers (2^-24 leaf resolution, integer atomics,
+//! so the result is byte-identical whatever the thread order); a stream compaction of the
+//! kept slots (prefix sums in a fixed order, no atomics) follows; on the hash path only, a
+//! bitonic sort of the kept cells' indices (padded to the next power of two, at least 512:
+//! the sort's dispatches are indirect, sized on the GPU from the compacted count, and get no
+//! workgroups on the dense path); and one mean per output cell. Its four passes (insert with
+//! the bounds and the dense path's bitmap, compact, sort, reduce) carry their own timestamp
+//! queries, read back with the results. The overflow flag (probe budget exhausted, or more
+//! occupied cells than slots) is read back every frame: an overflowing table is retried with
+//! four times the slots up to `max_table_slots`, and beyond that the frame is an error, never
+//! a silently wrong result.
 //!
 //! [`LeafAdapter`] adapts the leaf between frames towards `target_points` (the paper keeps
 //! about 5000 points): surface points scale like `leaf^-2`.
