@@ -308,7 +308,7 @@ pub const DENSE_WORDS_PER_POINT: u64 = 8;
 pub const DENSE_MIN_WORDS: u64 = 1 << 16;
 
 /// Whether a grid of `cells` cells over `valid` points takes the dense path (occupancy bitmap
-/// + prefix sum: PCL's order without a comparison sort) rather than sorting cell indices.
+/// and prefix sum: PCL's order without a comparison sort) rather than sorting cell indices.
 /// The GPU decides with the same rule (voxel.wgsl `plan`).
 pub fn dense_grid(cells: u64, valid: u64) -> bool {
     cells <= DENSE_MAX_CELLS
