@@ -2,23 +2,31 @@
 //
 // Passes, one dispatch each, all in one compute pass of the frame's encoder:
 //   prepare  (1 thread)  indirect dispatch size from the point count (count may be GPU-side)
-//   insert   per point   cell = floor(p * inv_cell), cells a bit larger than the tolerance;
-//                        claim a hash slot for the cell (linear probing, at most max_probes,
-//                        overflow flag otherwise) and push the point on the slot's list
-//   hook     per point   for every neighbour j in a half stencil of the 27 surrounding cells
-//                        (each pair once) with (dx*dx + dy*dy) + dz*dz < r2: union(i, j) on
-//                        a lock-free union-find
-//                        (find with path halving; roots hooked larger-under-smaller by CAS)
+//   insert   per point   cell = floor(p * inv_cell), cells a bit larger than half the
+//                        tolerance, so that all points of a cell are neighbours of each other
+//                        and every neighbour of a point lies in the 5 x 5 x 5 cells around
+//                        it; claim a hash slot for the cell (linear probing, at most
+//                        max_probes, overflow flag otherwise), push the point on the slot's
+//                        list and lower the slot's smallest point index
+//   seed     per point   parent[i] = smallest index of i's cell: each cell is one set from the
+//                        start (coincident points cost nothing)
+//   hook     per point   for every cell B of a half stencil of the 125 cells around i's cell A
+//                        (each pair of cells once; A itself is already one set): unless B's
+//                        smallest point already shares i's parent, scan B for the first j with
+//                        (dx*dx + dy*dy) + dz*dz < r2 and union(i, j) on a lock-free
+//                        union-find (find with path halving; roots hooked larger-under-smaller
+//                        by CAS). One hit per (point, cell) suffices, B being one set.
 //   compress per point   parent[i] = root(i)
-// Roots are only ever hooked under smaller roots, so each final root is the smallest point
-// index of its component: the canonical id the CPU reference produces too. Every loop is
+// Roots are only ever hooked under smaller roots and each cell starts under its smallest
+// point, so each final root is the smallest point index of its component: the canonical id
+// the CPU reference produces too. Every loop is
 // bounded; a pass that hits a bound sets status[STATUS_INCOMPLETE] and the host re-submits
 // hook + compress (the union-find is monotone, so repeating it is safe). No thread ever waits
 // on another one. The slot table and status are cleared with clear_buffer by the host.
 // Uses common.wgsl (prepended): NONE, WORKGROUP_SIZE, finite_point, hash_u32.
 
 struct ClusterParams {
-    // 1 / cell size; cell size = tolerance * CELL_MARGIN (host side), metres^-1.
+    // 1 / cell size; cell size = tolerance * CELL_MARGIN / 2 (host side), metres^-1.
     inv_cell: f32,
     // f32(tolerance)^2, the strict neighbour threshold, m^2.
     r2: f32,
@@ -33,7 +41,9 @@ struct ClusterParams {
     capacity: u32,
     // Index of the point count in point_count (the voxel header, or a buffer of its own).
     count_word: u32,
-    _pad: u32,
+    // Squared distance, in cells, beyond which a cell cannot hold a neighbour of a point
+    // (host: (2 / CELL_MARGIN + 2 * 0.008 rounding + margin)^2).
+    reach2_cells: f32,
 }
 
 struct Slot {
@@ -41,6 +51,8 @@ struct Slot {
     rep: atomic<u32>,
     // 1 + index of the first point of the cell's list; 0 = empty list.
     head: atomic<u32>,
+    // ~(smallest point index of the cell) (atomicMax on a cleared slot).
+    low: atomic<u32>,
 }
 
 struct PointInfo {
@@ -53,7 +65,8 @@ struct PointInfo {
 const MAX_FIND: u32 = 256u;
 const MAX_HOOK: u32 = 64u;
 // |cell coordinate| must stay below this so floor(p * inv_cell) is exact enough that every
-// neighbour lies in the 27 surrounding cells (the host's CELL_MARGIN covers the rounding).
+// neighbour lies in the 125 surrounding cells and a cell's points are all neighbours (the
+// host's CELL_MARGIN covers the rounding).
 const GRID_LIMIT: f32 = 65536.0;
 
 const STATUS_OVERFLOW: u32 = 0u;
@@ -142,6 +155,7 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
         // another workgroup's plain stores are not ordered with its atomics.
         if all(cell_of(points[owner - 1u].xyz) == c) {
             info[i].next = atomicExchange(&slots[s].head, i + 1u);
+            atomicMax(&slots[s].low, ~i);
             return;
         }
         probe += 1u;
@@ -208,6 +222,27 @@ fn unite(a: u32, b: u32) -> u32 {
     return a;
 }
 
+// The cell of a finite, in-range point (its slot), or NONE.
+fn own_slot(i: u32) -> u32 {
+    let p = points[i].xyz;
+    if !finite_point(p) || !cell_in_range(p) {
+        return NONE;
+    }
+    return find_slot(cell_of(p));
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn seed(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if i >= count() {
+        return;
+    }
+    let s = own_slot(i);
+    if s != NONE {
+        atomicStore(&parent[i], ~atomicLoad(&slots[s].low));
+    }
+}
+
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     let n = count();
@@ -220,28 +255,36 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let c = cell_of(p);
+    // i's position inside its cell, in cells.
+    let f = p * params.inv_cell - floor(p * params.inv_cell);
     // A known member of i's set, kept close to its root.
     var member = i;
-    // Half stencil: the own cell (k = 13, only j < i) and the 13 cells that follow it in
-    // (z, y, x) order, k = 14..26. Every neighbour pair is then seen exactly once: in the
-    // same cell from its larger index, across cells from the cell the other one follows.
-    for (var k = 13u; k < 27u; k++) {
-        let offset = vec3<i32>(i32(k % 3u) - 1, i32(k / 3u % 3u) - 1, i32(k / 9u) - 1);
+    // Half stencil: the 62 cells that follow i's own (k = 62) in (z, y, x) order. A pair of
+    // neighbouring cells is scanned from the points of the earlier one only.
+    for (var k = 63u; k < 125u; k++) {
+        let offset = vec3<i32>(i32(k % 5u) - 2, i32(k / 5u % 5u) - 2, i32(k / 25u) - 2);
+        // Per axis, the gap from i to the cell (0 along an axis where the cell is level).
+        let o = vec3<f32>(offset);
+        let gap = max(max(o - f, -o - vec3<f32>(1.0) + f), vec3<f32>(0.0));
+        if dot(gap, gap) > params.reach2_cells {
+            continue;
+        }
         let s = find_slot(c + offset);
         if s == NONE {
             continue;
         }
-        let bound = select(n, i, k == 13u);
+        // Sets never split: a cell whose smallest point has member's parent is joined.
+        let low = ~atomicLoad(&slots[s].low);
+        if atomicLoad(&parent[low]) == atomicLoad(&parent[member]) {
+            continue;
+        }
         var link = atomicLoad(&slots[s].head);
         // A list holds at most n points.
         for (var step = 0u; step < n && link != 0u; step++) {
             let j = link - 1u;
-            if j < bound && is_neighbour(p, points[j].xyz) {
-                // Sets never split, so a j that is `member` or whose parent is `member` is
-                // already in i's set: skip the union (most neighbours, after the first).
-                if j != member && atomicLoad(&parent[j]) != member {
-                    member = unite(member, j);
-                }
+            if is_neighbour(p, points[j].xyz) {
+                member = unite(member, j);
+                break;
             }
             link = info[j].next;
         }

@@ -19,6 +19,15 @@
 //                 get no workgroups
 //   reduce      - output r = mean of the r-th smallest cell
 // The table is cleared with clear_buffer before `insert` (0 = empty slot, key = index + 1).
+//
+// Dense path (chosen on the GPU by `plan` when the grid is small enough; the crop bounds it):
+// the table slot of a cell is its rank among the occupied cells in linear-index order, so
+// the compaction already yields PCL's order and the sort gets no workgroups:
+//   plan        - grid size, path, indirect arguments of the dense dispatches
+//   dense_clear - zero the bitmap words of this frame's grid
+//   mark        - one bit per occupied cell (atomicOr)
+//   word_count, word_scan, word_scatter - exclusive prefix count of the words' set bits
+//   insert      - as on the hash path, but into slot = rank (no probing, no `cells` count)
 
 struct VoxelParams {
     inv_leaf: f32,
@@ -48,6 +57,10 @@ struct VoxelHeader {
     max_key: array<atomic<u32>, 3>,
     // Keys the bitonic sort covers (a power of two >= 512), written by compact_scan.
     sort_size: u32,
+    // Written by `plan`: 1 when the dense path runs this frame, 0 for the hash table.
+    mode: u32,
+    // 32-bit words of the dense occupancy bitmap this frame (0 on the hash path).
+    words: u32,
     _pad1: u32,
 }
 
@@ -70,6 +83,10 @@ struct SortStep {
 @group(0) @binding(8) var<uniform> sort_step: SortStep;
 // Kept slots per 512-slot block, then (after compact_scan) the blocks' exclusive offsets.
 @group(0) @binding(9) var<storage, read_write> block_sums: array<u32>;
+// Dense path: one bit per grid cell (linear index), and per word the number of occupied
+// cells before it.
+@group(0) @binding(10) var<storage, read_write> bitmap: array<atomic<u32>>;
+@group(0) @binding(11) var<storage, read_write> word_prefix: array<u32>;
 
 // compact_scan only (its own bind group: the sort reads `dispatch_args` as indirect
 // arguments): per indirect dispatch, (kind, k) with kind SCHEDULE_BLOCKS (512-key blocks of
@@ -86,6 +103,15 @@ const COMPACT_BLOCK: u32 = 512u;
 const SCHEDULE_BLOCKS: u32 = 0u;
 const SCHEDULE_GLOBAL: u32 = 1u;
 const SCHEDULE_REDUCE: u32 = 2u;
+// Written by `plan` (dense path only, else no workgroups): one thread per bitmap word
+// (dense_clear), one workgroup per COMPACT_BLOCK words (word_count, word_scatter).
+const SCHEDULE_WORDS: u32 = 3u;
+const SCHEDULE_WORD_BLOCKS: u32 = 4u;
+// The dense path runs when the grid has at most DENSE_MAX_CELLS cells and its bitmap at most
+// DENSE_WORDS_PER_POINT words per valid point plus DENSE_MIN_WORDS (voxel.rs `dense_grid`).
+const DENSE_MAX_CELLS: u32 = 134217728u;
+const DENSE_WORDS_PER_POINT: u32 = 8u;
+const DENSE_MIN_WORDS: u32 = 65536u;
 // Points per thread of `bounds` and of `insert`.
 const BOUNDS_CHUNK: u32 = 32u;
 const INSERT_CHUNK: u32 = 8u;
@@ -201,9 +227,19 @@ fn find_or_insert(index: u32) -> u32 {
     return NONE;
 }
 
-// Adds a run of `count` points of one cell with fixed-point sums (sx, sy, sz).
+// Adds a run of `count` points of one cell with fixed-point sums (sx, sy, sz): into the
+// cell's hash slot, or on the dense path into slot = its rank.
 fn flush(index: u32, count: u32, sx: vec2<u32>, sy: vec2<u32>, sz: vec2<u32>) {
-    let slot = find_or_insert(index);
+    var slot = NONE;
+    if header.mode == 1u {
+        let rank = dense_rank(index);
+        if rank <= params.table_mask {
+            slot = rank;
+            atomicStore(&table_keys[slot], index + 1u);
+        }
+    } else {
+        slot = find_or_insert(index);
+    }
     if slot == NONE {
         atomicMax(&header.overflow, 1u);
         return;
@@ -235,8 +271,7 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         let s = p * params.inv_leaf;
         let cell = floor(s);
-        let rel = vec3<u32>(vec3<i32>(cell) - g.min_b);
-        let index = rel.x + rel.y * g.div.x + rel.z * g.div.x * g.div.y;
+        let index = cell_index(g, p);
         if index != run_index {
             if run_count != 0u {
                 flush(run_index, run_count, sx, sy, sz);
@@ -256,6 +291,124 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     if run_count != 0u {
         flush(run_index, run_count, sx, sy, sz);
+    }
+}
+
+// The dense path's slot of an occupied cell: its rank among the occupied cells.
+fn dense_rank(index: u32) -> u32 {
+    let w = index >> 5u;
+    let below = (1u << (index & 31u)) - 1u;
+    return word_prefix[w] + countOneBits(atomicLoad(&bitmap[w]) & below);
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn plan(@builtin(local_invocation_id) lid: vec3<u32>) {
+    let valid = atomicLoad(&header.valid_count);
+    var words = 0u;
+    if valid > 0u {
+        let g = grid();
+        // cells = div.x * div.y * div.z <= DENSE_MAX_CELLS, without overflowing u32.
+        if g.div.x <= DENSE_MAX_CELLS && g.div.y <= DENSE_MAX_CELLS / g.div.x {
+            let xy = g.div.x * g.div.y;
+            if g.div.z <= DENSE_MAX_CELLS / xy {
+                let w = (xy * g.div.z + 31u) / 32u;
+                if w <= DENSE_WORDS_PER_POINT * valid + DENSE_MIN_WORDS {
+                    words = w;
+                }
+            }
+        }
+    }
+    if lid.x == 0u {
+        header.mode = select(0u, 1u, words > 0u);
+        header.words = words;
+    }
+    for (var i = lid.x; i < arrayLength(&schedule); i += WORKGROUP_SIZE) {
+        let kind = schedule[i].x;
+        if kind == SCHEDULE_WORDS || kind == SCHEDULE_WORD_BLOCKS {
+            let per = select(COMPACT_BLOCK, WORKGROUP_SIZE, kind == SCHEDULE_WORDS);
+            dispatch_args[3u * i] = (words + per - 1u) / per;
+            dispatch_args[3u * i + 1u] = 1u;
+            dispatch_args[3u * i + 2u] = 1u;
+        }
+    }
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn dense_clear(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if gid.x < header.words {
+        atomicStore(&bitmap[gid.x], 0u);
+    }
+}
+
+// Linear cell index of a valid point (grid `g`).
+fn cell_index(g: Grid, p: vec3<f32>) -> u32 {
+    let rel = vec3<u32>(vec3<i32>(floor(p * params.inv_leaf)) - g.min_b);
+    return rel.x + rel.y * g.div.x + rel.z * g.div.x * g.div.y;
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn mark(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let first = gid.x * INSERT_CHUNK;
+    let last = min(first + INSERT_CHUNK, params.point_count);
+    if first >= last || header.mode != 1u {
+        return;
+    }
+    let g = grid();
+    var last_index = NONE;
+    for (var i = first; i < last; i++) {
+        let p = load_point(i);
+        if !valid_point(i, p) {
+            continue;
+        }
+        let index = cell_index(g, p);
+        if index != last_index {
+            atomicOr(&bitmap[index >> 5u], 1u << (index & 31u));
+            last_index = index;
+        }
+    }
+}
+
+// Set bits among the COMPACT_PER_THREAD bitmap words of thread `lid` of block `block`.
+fn bits_in_run(block: u32, lid: u32) -> u32 {
+    let first = block * COMPACT_BLOCK + lid * COMPACT_PER_THREAD;
+    let last = min(first + COMPACT_PER_THREAD, header.words);
+    var n = 0u;
+    for (var w = first; w < last; w++) {
+        n += countOneBits(atomicLoad(&bitmap[w]));
+    }
+    return n;
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn word_count(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+    let s = workgroup_scan(lid.x, bits_in_run(wid.x, lid.x));
+    if lid.x == 0u {
+        block_sums[wid.x] = s.y;
+    }
+}
+
+// One workgroup: the word blocks' exclusive offsets and the occupied cell count (no blocks
+// on the hash path, where `words` is 0).
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn word_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
+    let total = scan_blocks(lid.x, (header.words + COMPACT_BLOCK - 1u) / COMPACT_BLOCK);
+    if lid.x == 0u && header.mode == 1u {
+        atomicStore(&header.cells, total);
+        if total > params.table_mask + 1u {
+            atomicMax(&header.overflow, 1u);
+        }
+    }
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn word_scatter(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
+    let s = workgroup_scan(lid.x, bits_in_run(wid.x, lid.x));
+    var at = block_sums[wid.x] + s.x;
+    let first = wid.x * COMPACT_BLOCK + lid.x * COMPACT_PER_THREAD;
+    let last = min(first + COMPACT_PER_THREAD, header.words);
+    for (var w = first; w < last; w++) {
+        word_prefix[w] = at;
+        at += countOneBits(atomicLoad(&bitmap[w]));
     }
 }
 
@@ -288,6 +441,27 @@ fn workgroup_scan(lid: u32, v: u32) -> vec2<u32> {
     return vec2<u32>(inclusive - v, total);
 }
 
+// One workgroup: replaces the first `blocks` entries of block_sums with their exclusive
+// prefix sums (thread order, fixed) and returns their total. Called from uniform control
+// flow only (barriers inside).
+fn scan_blocks(lid: u32, blocks: u32) -> u32 {
+    let per = (blocks + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+    let first = min(lid * per, blocks);
+    let last = min(first + per, blocks);
+    var n = 0u;
+    for (var b = first; b < last; b++) {
+        n += block_sums[b];
+    }
+    let s = workgroup_scan(lid, n);
+    var offset = s.x;
+    for (var b = first; b < last; b++) {
+        let count = block_sums[b];
+        block_sums[b] = offset;
+        offset += count;
+    }
+    return s.y;
+}
+
 // Kept slots among the COMPACT_PER_THREAD slots of thread `lid` of block `block`.
 fn kept_in_run(block: u32, lid: u32) -> u32 {
     let first = block * COMPACT_BLOCK + lid * COMPACT_PER_THREAD;
@@ -309,33 +483,22 @@ fn compact_count(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgrou
 // One workgroup: block offsets, out_count, sort size and the indirect dispatch arguments.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn compact_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
-    let blocks = (params.table_mask + 1u) / COMPACT_BLOCK;
-    let per = (blocks + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
-    let first = min(lid.x * per, blocks);
-    let last = min(first + per, blocks);
-    var n = 0u;
-    for (var b = first; b < last; b++) {
-        n += block_sums[b];
-    }
-    let s = workgroup_scan(lid.x, n);
-    var offset = s.x;
-    for (var b = first; b < last; b++) {
-        let count = block_sums[b];
-        block_sums[b] = offset;
-        offset += count;
-    }
-    let total = s.y;
+    let total = scan_blocks(lid.x, (params.table_mask + 1u) / COMPACT_BLOCK);
     let size = 1u << (32u - countLeadingZeros(max(total, SORT_BLOCK) - 1u));
     if lid.x == 0u {
         atomicStore(&header.out_count, total);
         header.sort_size = size;
     }
+    let dense = header.mode == 1u;
     for (var i = lid.x; i < arrayLength(&schedule); i += WORKGROUP_SIZE) {
         let entry = schedule[i];
+        if entry.x > SCHEDULE_REDUCE {
+            continue;
+        }
         var groups = 0u;
         if entry.x == SCHEDULE_REDUCE {
             groups = (total + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
-        } else if entry.y <= size {
+        } else if !dense && entry.y <= size {
             if entry.x == SCHEDULE_BLOCKS {
                 groups = size / SORT_BLOCK;
             } else {
@@ -457,12 +620,17 @@ fn reduce(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let index = sort_keys[r];
     let key = index + 1u;
-    var slot = hash_u32(index) & params.table_mask;
-    for (var n = 0u; n < 2u * params.max_probes; n++) {
-        if atomicLoad(&table_keys[slot]) == key {
-            break;
+    var slot = 0u;
+    if header.mode == 1u {
+        slot = min(dense_rank(index), params.table_mask);
+    } else {
+        slot = hash_u32(index) & params.table_mask;
+        for (var n = 0u; n < 2u * params.max_probes; n++) {
+            if atomicLoad(&table_keys[slot]) == key {
+                break;
+            }
+            slot = (slot + 1u) & params.table_mask;
         }
-        slot = (slot + 1u) & params.table_mask;
     }
     if atomicLoad(&table_keys[slot]) != key {
         atomicMax(&header.overflow, 1u);

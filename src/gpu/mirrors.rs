@@ -68,6 +68,10 @@ pub struct VoxelHeader {
     pub max_key: [u32; 3],
     /// Keys the bitonic sort covered (a power of two >= 512).
     pub sort_size: u32,
+    /// 1 when the frame took the dense path (occupancy bitmap), 0 for the hash table.
+    pub mode: u32,
+    /// 32-bit words of the dense bitmap (0 on the hash path).
+    pub words: u32,
     pub _pad1: u32,
 }
 
@@ -103,7 +107,7 @@ pub struct ShellParams {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 pub struct ClusterParams {
-    /// 1 / cell size (cell = tolerance * margin), 1/m.
+    /// 1 / cell size (cell = tolerance * margin / 2), 1/m.
     pub inv_cell: f32,
     /// f32(tolerance)^2, m^2.
     pub r2: f32,
@@ -114,7 +118,8 @@ pub struct ClusterParams {
     pub capacity: u32,
     /// Index of the point count in the count buffer.
     pub count_word: u32,
-    pub _pad: u32,
+    /// Squared distance, in cells, beyond which a cell cannot hold a neighbour.
+    pub reach2_cells: f32,
 }
 
 /// A mirrored struct: its WGSL name, the shader declaring it, and the Rust layout.

@@ -18,10 +18,12 @@
 //! sorts them too). Because connected components are unique, the canonical ids make the GPU
 //! and CPU results comparable element by element.
 //!
-//! * CPU reference ([`components_cpu`]): PCL's seeded region growing over the points in index
-//!   order, neighbours from a `kiddo` k-d tree queried with a slightly larger radius and then
-//!   filtered with the exact predicate above ([`is_neighbour`]), so the decision never depends
-//!   on how kiddo rounds.
+//! * CPU reference ([`components_cpu`]): a grid of cells a bit larger than the tolerance,
+//!   each split into 2 x 2 x 2 sub-cells short enough that all their points are neighbours (a
+//!   sub-cell is one set from the start, so coincident points cost nothing), and a union-find
+//!   over the sub-cells of neighbouring cells with the exact predicate above
+//!   ([`is_neighbour`]); O(n log n) for any cloud whose sub-cells are not dense on both sides
+//!   of a tolerance-wide gap.
 //! * GPU ([`GpuClusterer`], `shaders/cluster.wgsl`): a spatial hash grid whose cells are a bit
 //!   larger than the tolerance (so every neighbour lies in one of the 27 surrounding cells),
 //!   then a lock-free union-find over the neighbour edges (ECL-CC style: bounded `find` with
@@ -38,9 +40,6 @@ use crate::gpu::timing::{StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
-
-/// Component id of a point that has not been reached yet (CPU reference internals).
-const UNVISITED: u32 = u32::MAX;
 
 /// Errors of the clustering stage.
 #[derive(Debug, thiserror::Error)]
@@ -246,54 +245,163 @@ fn check_len(points: &[Vec3]) -> Result<(), ClusterError> {
     Ok(())
 }
 
-/// CPU reference: canonical component id per point (PCL's region growing over a k-d tree).
+/// Coarse cells of the CPU reference are this much larger than the tolerance (cell
+/// coordinates in f64, so rounding cannot move a neighbour out of the 27 cells around a
+/// point); each coarse cell is split into 2 x 2 x 2 sub-cells whose diagonal,
+/// `0.866 * 1.001` tolerances, is shorter than the tolerance.
+const CPU_CELL_MARGIN: f64 = 1.001;
+/// Relative margin of the box tests between sub-cells: the f32 squared distance of a pair
+/// differs from the exact one by less than 1e-6 relative.
+const BOX_MARGIN: f64 = 1e-5;
+/// Largest |sub-cell coordinate| of the CPU reference (exact in f64 and i64).
+const CPU_GRID_LIMIT: f64 = (1u64 << 52) as f64;
+
+/// The points of one sub-cell: a range of the sorted order, its smallest point index and
+/// its bounding box.
+struct SubCell {
+    start: usize,
+    end: usize,
+    min_index: u32,
+    lo: [f32; 3],
+    hi: [f32; 3],
+}
+
+/// Squared distances (f64) between the closest and the farthest corners of two boxes.
+fn box_distances(a: &SubCell, b: &SubCell) -> (f64, f64) {
+    let (mut near, mut far) = (0.0, 0.0);
+    for k in 0..3 {
+        let gap = (f64::from(b.lo[k]) - f64::from(a.hi[k]))
+            .max(f64::from(a.lo[k]) - f64::from(b.hi[k]))
+            .max(0.0);
+        let span =
+            (f64::from(b.hi[k]) - f64::from(a.lo[k])).max(f64::from(a.hi[k]) - f64::from(b.lo[k]));
+        near += gap * gap;
+        far += span * span;
+    }
+    (near, far)
+}
+
+fn find(parent: &mut [u32], mut x: u32) -> u32 {
+    while parent[x as usize] != x {
+        let up = parent[parent[x as usize] as usize];
+        parent[x as usize] = up;
+        x = up;
+    }
+    x
+}
+
+/// CPU reference: canonical component id per point.
 ///
-/// Seeds are taken in index order, so the seed of each component is its smallest index,
-/// which is the canonical id.
+/// Points are sorted into coarse grid cells (side: the tolerance times [`CPU_CELL_MARGIN`])
+/// split into 2 x 2 x 2 sub-cells. All points of a sub-cell are neighbours of each other, so
+/// a sub-cell is one set from the start (coincident or nearly coincident points cost
+/// nothing). A union-find over the sub-cells then joins each pair of sub-cells in
+/// neighbouring coarse cells (half stencil, each pair once) that holds at least one
+/// neighbour pair: decided by their bounding boxes when those are far enough apart or close
+/// enough together, else by testing point pairs with [`is_neighbour`] until the first hit.
+/// The canonical id of a set is its smallest point index.
 pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, ClusterError> {
-    use kiddo::{ImmutableKdTree, SquaredEuclidean};
     check_len(points)?;
     let r2 = tolerance_m * tolerance_m;
-    // Search slightly wider than r2 so that kiddo's own rounding can never lose a neighbour;
-    // `is_neighbour` then decides exactly.
-    let search_r2 = r2 * 1.001;
-    let finite: Vec<u32> = (0..points.len() as u32)
-        .filter(|&i| points[i as usize].is_finite())
-        .collect();
-    let coords: Vec<[f32; 3]> = finite
-        .iter()
-        .map(|&i| points[i as usize].to_array())
-        .collect();
-    let mut component = vec![UNVISITED; points.len()];
-    if coords.is_empty() {
-        return Ok((0..points.len() as u32).collect());
+    let cell = f64::from(tolerance_m) * CPU_CELL_MARGIN;
+    let inv_sub = 2.0 / cell;
+    // (coarse cell, octant of the sub-cell in it, point index), finite points only.
+    let mut order: Vec<([i64; 3], u8, u32)> = Vec::with_capacity(points.len());
+    for (i, p) in points.iter().enumerate() {
+        if !p.is_finite() {
+            continue;
+        }
+        let s = [p.x, p.y, p.z].map(|v| (f64::from(v) * inv_sub).floor());
+        if s.iter().any(|v| v.abs() >= CPU_GRID_LIMIT) {
+            return Err(ClusterError::OutOfGridRange {
+                limit_cells: (CPU_GRID_LIMIT / 2.0) as f32,
+                limit_m: (CPU_GRID_LIMIT / inv_sub) as f32,
+            });
+        }
+        let s = s.map(|v| v as i64);
+        // (z, y, x) order of the coarse cells; the octant's bits are x, y, z.
+        let coarse = [s[2] >> 1, s[1] >> 1, s[0] >> 1];
+        let octant = (s[0] & 1) | ((s[1] & 1) << 1) | ((s[2] & 1) << 2);
+        order.push((coarse, octant as u8, i as u32));
     }
-    let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(&coords)
-        .map_err(|e| ClusterError::Config(format!("k-d tree construction failed: {e}")))?;
-    let mut queue: Vec<u32> = Vec::new();
-    for seed in 0..points.len() as u32 {
-        if component[seed as usize] != UNVISITED {
-            continue;
+    order.sort_unstable();
+    let mut subs: Vec<SubCell> = Vec::new();
+    // Coarse cell -> range of its sub-cells in `subs`.
+    let mut coarse: std::collections::HashMap<[i64; 3], (u32, u32)> =
+        std::collections::HashMap::new();
+    let mut at = 0;
+    for run in order.chunk_by(|a, b| (a.0, a.1) == (b.0, b.1)) {
+        let start = subs.len();
+        let mut sub = SubCell {
+            start: at,
+            end: at + run.len(),
+            min_index: run[0].2,
+            lo: [f32::INFINITY; 3],
+            hi: [f32::NEG_INFINITY; 3],
+        };
+        at = sub.end;
+        for &(_, _, i) in run {
+            let p = points[i as usize];
+            for k in 0..3 {
+                sub.lo[k] = sub.lo[k].min(p[k]);
+                sub.hi[k] = sub.hi[k].max(p[k]);
+            }
         }
-        component[seed as usize] = seed;
-        if !points[seed as usize].is_finite() {
-            continue;
-        }
-        queue.clear();
-        queue.push(seed);
-        while let Some(q) = queue.pop() {
-            let p = points[q as usize];
-            tree.query(&p.to_array())
-                .within::<SquaredEuclidean<f32>>(search_r2)
-                .unsorted()
-                .visit(|item| {
-                    let j = finite[item.item as usize];
-                    if component[j as usize] == UNVISITED && is_neighbour(p, points[j as usize], r2)
-                    {
-                        component[j as usize] = seed;
-                        queue.push(j);
+        subs.push(sub);
+        coarse
+            .entry(run[0].0)
+            .and_modify(|r| r.1 = subs.len() as u32)
+            .or_insert((start as u32, subs.len() as u32));
+    }
+    let mut parent: Vec<u32> = (0..subs.len() as u32).collect();
+    let r2_64 = f64::from(r2);
+    let mut cells: Vec<([i64; 3], (u32, u32))> = coarse.iter().map(|(k, v)| (*k, *v)).collect();
+    cells.sort_unstable();
+    for (key, (a0, a1)) in cells {
+        // The own cell and the 13 cells after it in (z, y, x) order.
+        for k in 13..27i64 {
+            let off = [k / 9 - 1, k / 3 % 3 - 1, k % 3 - 1];
+            let other = [key[0] + off[0], key[1] + off[1], key[2] + off[2]];
+            let Some(&(b0, b1)) = coarse.get(&other) else {
+                continue;
+            };
+            for a in a0..a1 {
+                let first_b = if k == 13 { a + 1 } else { b0 };
+                for b in first_b..b1 {
+                    let (ra, rb) = (find(&mut parent, a), find(&mut parent, b));
+                    if ra == rb {
+                        continue;
                     }
-                });
+                    let (sa, sb) = (&subs[a as usize], &subs[b as usize]);
+                    let (near, far) = box_distances(sa, sb);
+                    if near > r2_64 * (1.0 + BOX_MARGIN) {
+                        continue;
+                    }
+                    let joined = far < r2_64 * (1.0 - BOX_MARGIN)
+                        || order[sa.start..sa.end].iter().any(|&(_, _, i)| {
+                            let p = points[i as usize];
+                            order[sb.start..sb.end]
+                                .iter()
+                                .any(|&(_, _, j)| is_neighbour(p, points[j as usize], r2))
+                        });
+                    if joined {
+                        parent[ra.max(rb) as usize] = ra.min(rb);
+                    }
+                }
+            }
+        }
+    }
+    // Smallest point index per set, then per point.
+    let mut min_index = vec![u32::MAX; subs.len()];
+    for s in 0..subs.len() as u32 {
+        let r = find(&mut parent, s) as usize;
+        min_index[r] = min_index[r].min(subs[s as usize].min_index);
+    }
+    let mut component: Vec<u32> = (0..points.len() as u32).collect();
+    for s in 0..subs.len() as u32 {
+        let id = min_index[find(&mut parent, s) as usize];
+        for &(_, _, i) in &order[subs[s as usize].start..subs[s as usize].end] {
+            component[i as usize] = id;
         }
     }
     Ok(component)
@@ -306,15 +414,19 @@ pub fn cluster_cpu(points: &[Vec3], config: &ClusterConfig) -> Result<Clustering
     Ok(Clustering::from_components(component, config))
 }
 
-/// Grid cells are this much larger than the tolerance, so that every neighbour lies in one of
-/// the 27 cells around a point despite the rounding of `floor(p * inv_cell)`: with cell
-/// coordinates below [`GRID_LIMIT_CELLS`] that rounding moves a point by at most
-/// 65536 * 2^-23 = 0.008 cells, and a neighbour is at most 1/1.05 + 2 * 0.008 < 1 cell away.
+/// GPU grid cells are `CELL_MARGIN / 2` tolerances wide. With cell coordinates below
+/// [`GRID_LIMIT_CELLS`] the rounding of `floor(p * inv_cell)` moves a point by at most
+/// 65536 * 2^-23 = 0.008 cells, so a neighbour is at most 2 / 1.05 + 2 * 0.008 < 2 cells away
+/// (it lies in the 125 cells around a point) and two points of one cell are at most
+/// sqrt(3) * 1.016 * 1.05 / 2 = 0.92 tolerances apart (always neighbours).
 pub const CELL_MARGIN: f32 = 1.05;
+/// Farthest a neighbour's cell can be from a point, in cells: 2 / CELL_MARGIN plus twice the
+/// rounding of a cell coordinate (0.008) and a margin.
+const REACH_CELLS: f32 = 2.0 / CELL_MARGIN + 0.02;
 /// `GRID_LIMIT` in the shader: largest |cell coordinate| the GPU grid accepts.
 pub const GRID_LIMIT_CELLS: f32 = 65536.0;
-/// Bytes of one `Slot` in the shader (`rep`, `head`).
-const SLOT_BYTES: u64 = 8;
+/// Bytes of one `Slot` in the shader (`rep`, `head`, `low`).
+const SLOT_BYTES: u64 = 12;
 /// Bytes of one `PointInfo` in the shader (`cell: vec3<i32>`, `next`).
 const INFO_BYTES: u64 = 16;
 /// Bytes of the `status` array (overflow, incomplete, out of range, spare).
@@ -375,6 +487,7 @@ pub struct GpuClusterer {
     args_layout: wgpu::BindGroupLayout,
     prepare: wgpu::ComputePipeline,
     insert: wgpu::ComputePipeline,
+    seed: wgpu::ComputePipeline,
     hook: wgpu::ComputePipeline,
     compress: wgpu::ComputePipeline,
     timer: Option<StageTimer>,
@@ -411,11 +524,11 @@ impl GpuClusterer {
             ctx,
             &shader::CLUSTER,
             &[&layout],
-            &["insert", "hook", "compress"],
+            &["insert", "seed", "hook", "compress"],
         )?
         .into_iter();
-        let (Some(insert), Some(hook), Some(compress)) =
-            (passes.next(), passes.next(), passes.next())
+        let (Some(insert), Some(seed), Some(hook), Some(compress)) =
+            (passes.next(), passes.next(), passes.next(), passes.next())
         else {
             unreachable!("compute_pipelines returns one pipeline per entry point");
         };
@@ -425,6 +538,7 @@ impl GpuClusterer {
             args_layout,
             prepare,
             insert,
+            seed,
             hook,
             compress,
             timer,
@@ -461,14 +575,14 @@ impl GpuClusterer {
         }
         let b = self.buffers.as_mut().expect("allocated above");
         b.params_value = ClusterParams {
-            inv_cell: 1.0 / (config.tolerance_m * CELL_MARGIN),
+            inv_cell: 2.0 / (config.tolerance_m * CELL_MARGIN),
             r2: config.tolerance_squared(),
             one: 1.0,
             table_mask: b.table_slots - 1,
             max_probes: config.gpu_hash_max_probes,
             capacity: b.capacity,
             count_word: 0,
-            _pad: 0,
+            reach2_cells: REACH_CELLS * REACH_CELLS,
         };
         Ok(())
     }
@@ -581,7 +695,7 @@ impl GpuClusterer {
         encoder.clear_buffer(&b.slots, 0, None);
         encoder.clear_buffer(&b.status, 0, None);
         let stages: [&[&wgpu::ComputePipeline]; 3] = [
-            &[&self.prepare, &self.insert],
+            &[&self.prepare, &self.insert, &self.seed],
             &[&self.hook],
             &[&self.compress],
         ];
@@ -674,7 +788,7 @@ impl GpuClusterer {
         if status[STATUS_OUT_OF_RANGE] != 0 {
             return Err(ClusterError::OutOfGridRange {
                 limit_cells: GRID_LIMIT_CELLS,
-                limit_m: GRID_LIMIT_CELLS * config.tolerance_m * CELL_MARGIN,
+                limit_m: GRID_LIMIT_CELLS * config.tolerance_m * CELL_MARGIN / 2.0,
             });
         }
         while status[STATUS_INCOMPLETE] != 0 {
@@ -934,6 +1048,44 @@ mod tests {
         assert_eq!(c.cluster_sizes(), vec![500]);
     }
 
+    /// 10^5 identical points and 10^5 points in a ball much smaller than the tolerance
+    /// (straddling cell boundaries): one sub-cell set each, so linear time, not quadratic.
+    #[test]
+    fn coincident_and_near_coincident_points_in_bounded_time() {
+        let same = vec![Vec3::new(0.1, 0.2, 0.3); 100_000];
+        let c = cluster_cpu(&same, &config(0.02, 1, 200_000)).unwrap();
+        assert_eq!(c.cluster_sizes(), vec![100_000]);
+        assert!(c.component.iter().all(|&l| l == 0));
+        let mut rng = rand::rngs::StdRng::seed_from_u64(9);
+        let ball: Vec<Vec3> = (0..100_000)
+            .map(|_| Vec3::splat(0.0) + Vec3::from(rng.random::<[f32; 3]>()) * 1e-4)
+            .collect();
+        let c = cluster_cpu(&ball, &config(0.02, 1, 200_000)).unwrap();
+        assert_eq!(c.cluster_sizes(), vec![100_000]);
+    }
+
+    /// The CPU grid decides exactly like the brute-force pair test where boxes are
+    /// borderline: points spaced at about the tolerance, several per sub-cell.
+    #[test]
+    fn cpu_grid_equals_brute_force_at_the_threshold() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(4);
+        let tol = 0.01f32;
+        let pts: Vec<Vec3> = (0..3000)
+            .map(|_| {
+                let cell = Vec3::new(
+                    rng.random_range(0..12) as f32,
+                    rng.random_range(0..12) as f32,
+                    rng.random_range(0..3) as f32,
+                );
+                cell * tol + Vec3::from(rng.random::<[f32; 3]>()) * (tol * 0.1)
+            })
+            .collect();
+        assert_eq!(
+            components_cpu(&pts, tol).unwrap(),
+            components_brute(&pts, tol)
+        );
+    }
+
     #[test]
     fn config_validation() {
         assert!(config(0.0, 1, 2).validate().is_err());
@@ -992,6 +1144,28 @@ mod tests {
         };
         assert_eq!(size_of("Slot"), SLOT_BYTES);
         assert_eq!(size_of("PointInfo"), INFO_BYTES);
+    }
+
+    /// Tens of thousands of coincident and nearly coincident points: the same labels as the
+    /// CPU every run (no "did not converge", no run-to-run differences).
+    #[test]
+    fn gpu_coincident_points_are_deterministic() {
+        let cfg = config(0.02, 1, 100_000);
+        let mut pts = vec![Vec3::new(0.5, -0.25, 1.0); 30_000];
+        // A second blob straddling a cell corner, and a few isolated points.
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        pts.extend(
+            (0..20_000)
+                .map(|_| Vec3::new(1.0, 1.0, 1.0) + Vec3::from(rng.random::<[f32; 3]>()) * 1e-5),
+        );
+        pts.extend((0..50).map(|k| Vec3::new(-1.0, 0.0, k as f32 * 0.1)));
+        pts.shuffle(&mut rng);
+        let cpu = cluster_cpu(&pts, &cfg).unwrap();
+        assert_eq!(cpu.component_count(), 52);
+        for _ in 0..3 {
+            let gpu = cluster_gpu(&pts, &cfg).unwrap();
+            assert_eq!(gpu.component, cpu.component);
+        }
     }
 
     #[test]

@@ -14,7 +14,8 @@
 //!
 //! [`CpuFrontend`] runs the CPU references of the same stages and produces the same
 //! [`FrontendOutput`]. Both adapt the voxel leaf between frames towards
-//! `voxel.target_points` ([`LeafAdapter`]).
+//! `voxel.target_points` ([`LeafAdapter`]). [`choose_backend`] times both on the first frames
+//! and picks the faster one for the machine at hand.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -28,7 +29,7 @@ use crate::gpu::{Backend, GpuContext, GpuError};
 use crate::perception::cluster::{
     ClusterConfig, ClusterError, ClusterInput, Clustering, GpuClusterer, cluster_cpu,
 };
-use crate::perception::crop::{CropConfig, CropError, CropScene, GpuCrop, crop_cpu};
+use crate::perception::crop::{CropConfig, CropError, CropScene, GpuCrop, crop_cpu, mask_words};
 use crate::perception::voxel::{
     GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, voxel_cpu_with_leaf,
 };
@@ -70,12 +71,19 @@ pub struct FrameInput<'a> {
     pub points: &'a [Vec3],
     /// `None` skips the crop (every finite point enters the voxel grid).
     pub crop: Option<CropScene<'a>>,
+    /// Hand the crop's keep mask back ([`FrontendOutput::crop_keep`]), e.g. for an overlay
+    /// that draws the cropped points; off, the mask stays on the GPU.
+    pub want_crop_keep: bool,
 }
 
 /// What the front end hands on.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrontendOutput {
     pub points_in: usize,
+    /// The crop's keep mask when the frame asked for it and was cropped: bit `i % 32` of
+    /// word `i / 32` is set when input point `i` survived the crop
+    /// ([`crate::perception::crop::mask_bit`]).
+    pub crop_keep: Option<Vec<u32>>,
     /// Voxel grid of the cropped points (`valid_in` = points that survived the crop).
     pub voxel: VoxelOutput,
     /// Euclidean clusters of the voxel points (indices into `voxel.points`).
@@ -158,12 +166,17 @@ impl CpuFrontend {
         let clusters = cluster_cpu(&voxel.points, &self.config.cluster)?;
         Ok(FrontendOutput {
             points_in: frame.points.len(),
+            crop_keep: mask.filter(|_| frame.want_crop_keep),
             voxel,
             clusters,
             gpu_times: Vec::new(),
             wall_ms: start.elapsed().as_secs_f64() * 1e3,
         })
     }
+}
+
+fn wants_crop_keep(frame: &FrameInput<'_>) -> bool {
+    frame.want_crop_keep && frame.crop.is_some()
 }
 
 /// The front end's own timed pass (the voxel and cluster stages time their passes
@@ -264,14 +277,21 @@ impl GpuFrontend {
         self.voxel
             .prepare(&ctx, n, frame.crop.is_some(), &self.config.voxel, leaf_m)?;
         let mut retries = 0;
-        let (mut voxel, mut gpu_times, cluster_bytes) = loop {
+        let (mut voxel, mut gpu_times, cluster_bytes, keep) = loop {
             let ts_bytes = self.timer.as_ref().map_or(0, |t| t.readback_bytes());
             // The cluster stage reads the voxel output in place: its capacity is the voxel
             // table's, its point count the header's `out_count`, known only on the GPU.
             let capacity = self.voxel.table_slots();
             self.cluster.reserve(&ctx, capacity, &self.config.cluster)?;
             let voxel_bytes = self.voxel.readback_bytes();
-            let needed = ts_bytes + voxel_bytes + self.cluster.readback_bytes(capacity);
+            let cluster_bytes = self.cluster.readback_bytes(capacity);
+            let keep_at = ts_bytes + voxel_bytes + cluster_bytes;
+            let keep_bytes = if wants_crop_keep(frame) {
+                4 * mask_words(n) as u64
+            } else {
+                0
+            };
+            let needed = keep_at + keep_bytes;
             if self.readback.size() < needed {
                 self.readback = make_buffer(&ctx, "frontend readback", needed, READBACK_USAGE)?;
             }
@@ -299,16 +319,28 @@ impl GpuFrontend {
                 ts_bytes + voxel_bytes,
                 capacity,
             );
+            if keep_bytes > 0 {
+                encoder.copy_buffer_to_buffer(
+                    self.crop.mask(),
+                    0,
+                    &self.readback,
+                    keep_at,
+                    keep_bytes,
+                );
+            }
             let ts = ts_bytes as usize;
             let cluster_at = (ts_bytes + voxel_bytes) as usize;
-            let (voxel, times, cluster_bytes) = {
+            let keep_at = keep_at as usize;
+            let (voxel, times, cluster_bytes, keep) = {
                 let voxel = &mut self.voxel;
                 let timer = self.timer.as_ref();
                 let config = &self.config.voxel;
                 ctx.submit_and_read("frontend frame", encoder.finish(), &self.readback, |b| {
                     let times = timer.map(|t| t.read(&b[..ts])).unwrap_or_default();
                     let voxel = voxel.decode(&ctx, &b[ts..cluster_at], config, leaf_m);
-                    (voxel, times, b[cluster_at..].to_vec())
+                    let keep: Vec<u32> =
+                        bytemuck::pod_collect_to_vec(&b[keep_at..keep_at + keep_bytes as usize]);
+                    (voxel, times, b[cluster_at..keep_at].to_vec(), keep)
                 })?
             };
             if let Some((v, voxel_times)) = voxel? {
@@ -317,7 +349,7 @@ impl GpuFrontend {
                     .filter(|_| frame.crop.is_some())
                     .chain(voxel_times)
                     .collect::<Vec<_>>();
-                break (v, times, cluster_bytes);
+                break (v, times, cluster_bytes, keep);
             }
             retries += 1;
         };
@@ -333,12 +365,79 @@ impl GpuFrontend {
         self.leaf.update(&self.config.voxel, voxel.points.len());
         Ok(FrontendOutput {
             points_in: frame.points.len(),
+            crop_keep: wants_crop_keep(frame).then_some(keep),
             voxel,
             clusters,
             gpu_times,
             wall_ms: start.elapsed().as_secs_f64() * 1e3,
         })
     }
+}
+
+/// Which backend runs the front end faster on this machine, and the measurements behind it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BackendChoice {
+    pub backend: Backend,
+    /// Median wall time per frame of the CPU front end (ms).
+    pub cpu_ms: f64,
+    /// Median wall time per frame of the GPU front end (ms), `None` without a usable GPU.
+    pub gpu_ms: Option<f64>,
+    /// Why the GPU was not measured (it failed to open or to run), if so.
+    pub gpu_error: Option<String>,
+}
+
+fn median_ms(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::INFINITY)
+}
+
+/// Picks the backend by speed, not by adapter type: both front ends (fresh ones, so the
+/// caller's state is untouched) process `frames` (typically the first frames of a camera),
+/// the GPU once more first as warm-up (shader compilation, buffer growth), and the backend
+/// with the lower median wall time per frame wins (upload, submission, wait and readback
+/// included: what the caller waits for). A tie goes to the GPU, which leaves the CPU cores
+/// to the control loop. Without a GPU, or when it fails, the CPU is chosen and
+/// `gpu_error` says why. An empty `frames` cannot be measured and chooses the CPU.
+pub fn choose_backend(
+    config: &FrontendConfig,
+    ctx: Option<Arc<GpuContext>>,
+    frames: &[FrameInput<'_>],
+) -> Result<BackendChoice, FrontendError> {
+    let time = |front: &mut Frontend| -> Result<f64, FrontendError> {
+        let times = frames
+            .iter()
+            .map(|f| {
+                let start = Instant::now();
+                front
+                    .process(f)
+                    .map(|_| start.elapsed().as_secs_f64() * 1e3)
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(median_ms(times))
+    };
+    let cpu_ms = time(&mut Frontend::new(Backend::Cpu, config.clone(), None)?)?;
+    let gpu = Frontend::new(Backend::Gpu, config.clone(), ctx).and_then(|mut front| {
+        for f in frames {
+            front.process(f)?;
+        }
+        time(&mut front)
+    });
+    let (gpu_ms, gpu_error) = match gpu {
+        Ok(ms) if !frames.is_empty() => (Some(ms), None),
+        Ok(_) => (None, Some("no frames to measure".to_string())),
+        // A bad config fails on the CPU above already; what is left is the GPU's.
+        Err(e) => (None, Some(e.to_string())),
+    };
+    let backend = match gpu_ms {
+        Some(g) if g <= cpu_ms => Backend::Gpu,
+        _ => Backend::Cpu,
+    };
+    Ok(BackendChoice {
+        backend,
+        cpu_ms,
+        gpu_ms,
+        gpu_error,
+    })
 }
 
 #[cfg(test)]
@@ -383,9 +482,19 @@ mod tests {
                     robot: &robot,
                     camera_m: None,
                 }),
+                want_crop_keep: seed % 2 == 0,
             };
             let g = gpu.process(&frame).unwrap();
             let c = cpu.process(&frame).unwrap();
+            assert_eq!(g.crop_keep, c.crop_keep);
+            if let Some(keep) = &c.crop_keep {
+                let kept = (0..points.len())
+                    .filter(|&i| crate::perception::crop::mask_bit(keep, i))
+                    .count();
+                assert_eq!(kept, g.voxel.valid_in);
+            } else {
+                assert_eq!(seed % 2, 1);
+            }
             assert_eq!(g.voxel.leaf_m, c.voxel.leaf_m);
             assert_same(&g.voxel, &c.voxel);
             assert_eq!(g.clusters, c.clusters);
@@ -419,20 +528,45 @@ mod tests {
     }
 
     #[test]
+    fn backend_choice_measures_both_and_picks_the_faster() {
+        let points = synthetic_frame(5);
+        let frames = [FrameInput {
+            points: &points,
+            crop: None,
+            want_crop_keep: false,
+        }];
+        let config = FrontendConfig::default();
+        let choice = choose_backend(&config, None, &frames).unwrap();
+        let gpu_ms = choice.gpu_ms.expect("GPU tests need Vulkan");
+        assert!(choice.cpu_ms > 0.0 && gpu_ms > 0.0);
+        let faster = if gpu_ms <= choice.cpu_ms {
+            Backend::Gpu
+        } else {
+            Backend::Cpu
+        };
+        assert_eq!(choice.backend, faster);
+        let none = choose_backend(&config, None, &[]).unwrap();
+        assert_eq!((none.backend, none.gpu_ms), (Backend::Cpu, None));
+    }
+
+    #[test]
     fn frontend_without_crop_and_with_an_empty_frame() {
         let mut gpu = Frontend::new(Backend::Gpu, FrontendConfig::default(), None).unwrap();
         let empty = gpu
             .process(&FrameInput {
                 points: &[],
                 crop: None,
+                want_crop_keep: true,
             })
             .unwrap();
         assert!(empty.voxel.points.is_empty());
+        assert_eq!(empty.crop_keep, None);
         let points = synthetic_frame(2);
         let out = gpu
             .process(&FrameInput {
                 points: &points,
                 crop: None,
+                want_crop_keep: true,
             })
             .unwrap();
         let cpu =

@@ -326,6 +326,7 @@ pub struct CameraChain {
     ctx: Option<Arc<GpuContext>>,
     estimators: BTreeMap<u32, SurfaceEstimator>,
     gpu_fallback: Option<String>,
+    want_crop_keep: bool,
 }
 
 impl CameraChain {
@@ -351,6 +352,7 @@ impl CameraChain {
             ctx,
             estimators: BTreeMap::new(),
             gpu_fallback: None,
+            want_crop_keep: false,
         })
     }
 
@@ -371,6 +373,12 @@ impl CameraChain {
     /// The GPU adapter's name (GPU backend) or `None`.
     pub fn adapter(&self) -> Option<&str> {
         self.frontend.adapter()
+    }
+
+    /// Whether each [`ChainFrame`] carries the crop's keep mask over `world_points`
+    /// (`front.crop_keep`; off by default: on the GPU it costs a copy and a larger readback).
+    pub fn set_crop_keep(&mut self, on: bool) {
+        self.want_crop_keep = on;
     }
 
     /// The GPU failure that moved the chain to the CPU, if one did.
@@ -435,6 +443,7 @@ impl CameraChain {
                 robot,
                 camera_m: Some(Point3::from(pose.translation.vector)),
             }),
+            want_crop_keep: self.want_crop_keep,
         };
         let watch = Stopwatch::start();
         let front = match self.frontend.process(&input) {
@@ -539,8 +548,13 @@ mod tests {
         assert_eq!((cpu.backend(), gpu.backend()), (Backend::Cpu, Backend::Gpu));
         for seed in 0..3 {
             let f = frame(seed, 0);
+            let layers = seed == 1;
+            cpu.set_crop_keep(layers);
+            gpu.set_crop_keep(layers);
             let c = cpu.process(&f, &hip, &[]).unwrap();
             let g = gpu.process(&f, &hip, &[]).unwrap();
+            assert_eq!(c.front.crop_keep.is_some(), layers);
+            assert_eq!(g.front.crop_keep, c.front.crop_keep);
             // The GPU front end equals its CPU reference (voxel means to f32 rounding, the
             // same cells and clusters), so the estimates agree to well below a millimetre.
             assert_eq!(g.kept.len(), c.kept.len());

@@ -13,17 +13,31 @@
 //! 4. output: one point per cell with at least `min_points_per_voxel` points, the mean of its
 //!    points, ordered by linear index (x fastest, then y, then z).
 //!
-//! [`voxel_cpu`] is the reference (f64 sums). [`GpuVoxel`] runs `shaders/voxel.wgsl`: a hash
-//! table keyed by the linear index with bounded linear probing, per-cell sums of the points'
-//! offsets inside their cell as 64-bit fixed-point integers (2^-24 leaf resolution, integer
-//! atomics, so the result is byte-identical whatever the thread order), a stream compaction of
-//! the kept cells' indices (prefix sums in a fixed order, no atomics), a bitonic sort of only
-//! those (padded to the next power of two, at least 512: the sort's dispatches are indirect,
-//! sized on the GPU from the compacted count), and one mean per sorted cell. Its four passes
-//! (insert, compact, sort, reduce) carry their own timestamp queries, read back with the
-//! results. The overflow flag is read back every
-//! frame: an overflowing table is retried with four times the slots up to
-//! `max_table_slots`, and beyond that the frame is an error, never a silently wrong result.
+//! PCL's order without a comparison sort: when the grid of the valid points is small enough
+//! ([`dense_grid`]: at most [`DENSE_MAX_CELLS`] cells, and an occupancy bitmap of at most
+//! [`DENSE_WORDS_PER_POINT`] 32-bit words per valid point plus [`DENSE_MIN_WORDS`]; the crop
+//! bounds it), one bit per cell marks the occupied cells and an exclusive prefix count of the
+//! bitmap's words gives each occupied cell its rank in linear-index order
+//! (`prefix[word] + popcount(bits below)`): the rank is the cell's output slot. Larger grids
+//! sort the cell indices instead.
+//!
+//! [`voxel_cpu`] is the reference (f64 sums, each cell's points in input order on both
+//! paths). [`GpuVoxel`] runs `shaders/voxel.wgsl`; a `plan` pass after the bounds picks the
+//! path on the GPU and sizes the dense dispatches (indirect). Dense: clear the frame's bitmap
+//! words, mark, prefix-count the words (per 512-word block, one workgroup over the blocks,
+//! scatter), then add each point to slot = rank. Otherwise: a hash table keyed by the linear
+//! index with bounded linear probing. Either way the per-cell sums of the points' offsets
+//! inside their cell are 64-bit fixed-point integers (2^-24 leaf resolution, integer atomics,
+//! so the result is byte-identical whatever the thread order); a stream compaction of the
+//! kept slots (prefix sums in a fixed order, no atomics) follows; on the hash path only, a
+//! bitonic sort of the kept cells' indices (padded to the next power of two, at least 512:
+//! the sort's dispatches are indirect, sized on the GPU from the compacted count, and get no
+//! workgroups on the dense path); and one mean per output cell. Its four passes (insert with
+//! the bounds and the dense path's bitmap, compact, sort, reduce) carry their own timestamp
+//! queries, read back with the results. The overflow flag (probe budget exhausted, or more
+//! occupied cells than slots) is read back every frame: an overflowing table is retried with
+//! four times the slots up to `max_table_slots`, and beyond that the frame is an error, never
+//! a silently wrong result.
 //!
 //! [`LeafAdapter`] adapts the leaf between frames towards `target_points` (the paper keeps
 //! about 5000 points): surface points scale like `leaf^-2`.
@@ -242,6 +256,9 @@ pub struct VoxelOutput {
     /// bigger table an overflow caused.
     pub table_slots: Option<u32>,
     pub retries: u32,
+    /// The output order came from the dense grid (occupancy bitmap + prefix sum, see
+    /// [`dense_grid`]) rather than from sorting cell indices.
+    pub dense: bool,
 }
 
 /// f32 bounds and PCL grid of the valid points, with PCL's checks.
@@ -282,6 +299,59 @@ fn inv_leaf(leaf_m: f64) -> f32 {
     1.0 / leaf_m as f32
 }
 
+/// Largest grid (cells of the valid points' bounding box) indexed densely.
+pub const DENSE_MAX_CELLS: u64 = 1 << 27;
+/// A dense grid is used while its occupancy bitmap has at most this many 32-bit words per
+/// valid point, plus [`DENSE_MIN_WORDS`]: beyond that, scanning the bitmap costs more than
+/// sorting the points' cell indices.
+pub const DENSE_WORDS_PER_POINT: u64 = 8;
+pub const DENSE_MIN_WORDS: u64 = 1 << 16;
+
+/// Whether a grid of `cells` cells over `valid` points takes the dense path (occupancy bitmap
+/// and prefix sum: PCL's order without a comparison sort) rather than sorting cell indices.
+/// The GPU decides with the same rule (voxel.wgsl `plan`).
+pub fn dense_grid(cells: u64, valid: u64) -> bool {
+    cells <= DENSE_MAX_CELLS
+        && cells.div_ceil(32) <= DENSE_WORDS_PER_POINT * valid + DENSE_MIN_WORDS
+}
+
+/// Occupancy bitmap of a dense grid and the exclusive prefix count of its words: the rank
+/// of an occupied cell among the occupied cells, in linear-index order, is
+/// `prefix[word] + popcount(bits below it)`.
+struct DenseRank {
+    bits: Vec<u64>,
+    prefix: Vec<u32>,
+    occupied: u32,
+}
+
+impl DenseRank {
+    fn new(cells: u64, keys: &[u32]) -> Self {
+        let mut bits = vec![0u64; cells.div_ceil(64) as usize];
+        for &k in keys {
+            bits[(k >> 6) as usize] |= 1 << (k & 63);
+        }
+        let mut occupied = 0u32;
+        let prefix = bits
+            .iter()
+            .map(|w| {
+                let before = occupied;
+                occupied += w.count_ones();
+                before
+            })
+            .collect();
+        Self {
+            bits,
+            prefix,
+            occupied,
+        }
+    }
+
+    fn rank(&self, k: u32) -> u32 {
+        let w = (k >> 6) as usize;
+        self.prefix[w] + (self.bits[w] & ((1u64 << (k & 63)) - 1)).count_ones()
+    }
+}
+
 /// CPU reference: the voxel grid of the points of `points` that are valid, set in `mask`
 /// (a crop keep mask, when given) and inside the filter limits.
 pub fn voxel_cpu(
@@ -317,6 +387,7 @@ pub fn voxel_cpu_with_leaf(
         leaf_m,
         table_slots: None,
         retries: 0,
+        dense: false,
     };
     if valid.is_empty() {
         return Ok(out);
@@ -331,38 +402,65 @@ pub fn voxel_cpu_with_leaf(
     }
     let inv = inv_leaf(leaf_m);
     let g = pcl_grid(min_p, max_p, inv, leaf_m)?;
-    let mut keyed: Vec<(i64, Vec3)> = valid
+    // The linear index fits in u32: PCL's check bounds dx * dy * dz by i32::MAX, and
+    // div <= d along each axis.
+    let keys: Vec<u32> = valid
         .iter()
         .map(|p| {
-            let rel = |a: usize| (p[a] * inv).floor() as i64 - i64::from(g.min_b[a]);
-            (
-                rel(0) + rel(1) * g.div[0] + rel(2) * g.div[0] * g.div[1],
-                *p,
-            )
+            let rel = |a: usize| ((p[a] * inv).floor() as i64 - i64::from(g.min_b[a])) as u64;
+            (rel(0) + rel(1) * g.div[0] as u64 + rel(2) * (g.div[0] * g.div[1]) as u64) as u32
         })
         .collect();
-    // Stable: within a cell the points keep their input order, so the f64 sums are
-    // reproducible.
-    keyed.sort_by_key(|(k, _)| *k);
-    let min_points = config.min_points_per_voxel.max(1) as usize;
-    for run in keyed.chunk_by(|a, b| a.0 == b.0) {
-        if run.len() < min_points {
-            continue;
+    let cells = (g.div[0] * g.div[1] * g.div[2]) as u64;
+    let min_points = config.min_points_per_voxel.max(1);
+    let mut emit = |count: u32, sum: [f64; 3]| {
+        if count >= min_points {
+            let n = f64::from(count);
+            out.points.push(Vec3::new(
+                (sum[0] / n) as f32,
+                (sum[1] / n) as f32,
+                (sum[2] / n) as f32,
+            ));
+            out.counts.push(count);
         }
-        let sum = run.iter().fold([0.0f64; 3], |s, (_, p)| {
-            [
-                s[0] + f64::from(p.x),
-                s[1] + f64::from(p.y),
-                s[2] + f64::from(p.z),
-            ]
-        });
-        let n = run.len() as f64;
-        out.points.push(Vec3::new(
-            (sum[0] / n) as f32,
-            (sum[1] / n) as f32,
-            (sum[2] / n) as f32,
-        ));
-        out.counts.push(run.len() as u32);
+    };
+    // Within a cell the points are summed in input order on both paths, so the f64 sums
+    // (and the means) are the same whichever path runs.
+    out.dense = dense_grid(cells, valid.len() as u64);
+    if out.dense {
+        let grid = DenseRank::new(cells, &keys);
+        let mut count = vec![0u32; grid.occupied as usize];
+        let mut sum = vec![[0.0f64; 3]; grid.occupied as usize];
+        for (p, &k) in valid.iter().zip(&keys) {
+            let r = grid.rank(k) as usize;
+            count[r] += 1;
+            for a in 0..3 {
+                sum[r][a] += f64::from(p[a]);
+            }
+        }
+        for (&c, &s) in count.iter().zip(&sum) {
+            emit(c, s);
+        }
+    } else {
+        // Key in the high half, input position in the low half: unique, so an unstable
+        // sort orders the points of a cell by input position.
+        let mut order: Vec<u64> = keys
+            .iter()
+            .enumerate()
+            .map(|(i, &k)| (u64::from(k) << 32) | i as u64)
+            .collect();
+        order.sort_unstable();
+        for run in order.chunk_by(|a, b| a >> 32 == b >> 32) {
+            let s = run.iter().fold([0.0f64; 3], |s, &e| {
+                let p = valid[(e & 0xffff_ffff) as usize];
+                [
+                    s[0] + f64::from(p.x),
+                    s[1] + f64::from(p.y),
+                    s[2] + f64::from(p.z),
+                ]
+            });
+            emit(run.len() as u32, s);
+        }
     }
     Ok(out)
 }
@@ -399,8 +497,13 @@ impl LeafAdapter {
 }
 
 /// Entry points of voxel.wgsl on the main bind group, in pipeline order.
-const ENTRY_POINTS: [&str; 8] = [
+const ENTRY_POINTS: [&str; 13] = [
     "bounds",
+    "dense_clear",
+    "mark",
+    "word_count",
+    "word_scan",
+    "word_scatter",
     "insert",
     "compact_count",
     "compact_scatter",
@@ -424,6 +527,12 @@ const COMPACT_BLOCK: u32 = 512;
 const SCHEDULE_BLOCKS: u32 = 0;
 const SCHEDULE_GLOBAL: u32 = 1;
 const SCHEDULE_REDUCE: u32 = 2;
+/// Dense-path dispatches `plan` sizes (voxel.wgsl): one thread per bitmap word, one
+/// workgroup per `COMPACT_BLOCK` words.
+const SCHEDULE_WORDS: u32 = 3;
+const SCHEDULE_WORD_BLOCKS: u32 = 4;
+/// Bitmap words of the largest dense grid.
+const DENSE_MAX_WORDS: u64 = DENSE_MAX_CELLS / 32;
 /// Points per thread of `bounds` and `insert` (voxel.wgsl constants).
 const BOUNDS_CHUNK: u32 = 32;
 const INSERT_CHUNK: u32 = 8;
@@ -443,15 +552,22 @@ enum SortPass {
 pub struct GpuVoxel {
     layout: wgpu::BindGroupLayout,
     pipelines: Vec<wgpu::ComputePipeline>,
-    /// compact_scan, with the schedule and dispatch-argument bind group.
+    /// compact_scan and plan, with the schedule and dispatch-argument bind group.
     scan_layout: wgpu::BindGroupLayout,
     scan: wgpu::ComputePipeline,
+    plan: wgpu::ComputePipeline,
     scan_group: wgpu::BindGroup,
     block_sums: wgpu::Buffer,
     dispatch_args: wgpu::Buffer,
     /// Indirect-argument entries of sort_local and reduce (the others are in `sort_passes`).
     local_entry: u32,
     reduce_entry: u32,
+    /// Indirect-argument entries of the dense path's per-word and per-block dispatches.
+    words_entry: u32,
+    word_blocks_entry: u32,
+    /// Dense path: occupancy bitmap and per-word prefix counts (sized for DENSE_MAX_CELLS).
+    bitmap: wgpu::Buffer,
+    word_prefix: wgpu::Buffer,
     timer: Option<StageTimer>,
     params: wgpu::Buffer,
     header: wgpu::Buffer,
@@ -527,6 +643,8 @@ impl GpuVoxel {
                 Storage,
                 UniformDynamic,
                 Storage,
+                Storage,
+                Storage,
             ],
         )?;
         let pipelines = shader::compute_pipelines(ctx, &shader::VOXEL, &[&layout], &ENTRY_POINTS)?;
@@ -535,13 +653,14 @@ impl GpuVoxel {
             "voxel compaction schedule layout",
             &[StorageReadOnly, Storage],
         )?;
-        let scan = shader::compute_pipelines(
+        let mut scheduling = shader::compute_pipelines(
             ctx,
             &shader::VOXEL,
             &[&layout, &scan_layout],
-            &["compact_scan"],
-        )?
-        .remove(0);
+            &["compact_scan", "plan"],
+        )?;
+        let plan = scheduling.pop().expect("two entry points");
+        let scan = scheduling.pop().expect("two entry points");
         let timer = StageTimer::new(ctx, "voxel", &TIMED_PASSES)?;
         let step_stride = u64::from(ctx.device().limits().min_uniform_buffer_offset_alignment)
             .max(std::mem::size_of::<SortStep>() as u64);
@@ -556,6 +675,13 @@ impl GpuVoxel {
                 ),
                 gpu_buffer(device, "voxel header", HEADER_BYTES, STORAGE),
                 gpu_buffer(device, "voxel no mask", 16, STORAGE),
+                gpu_buffer(device, "voxel dense bitmap", 4 * DENSE_MAX_WORDS, STORAGE),
+                gpu_buffer(
+                    device,
+                    "voxel dense word prefix",
+                    4 * DENSE_MAX_WORDS,
+                    STORAGE,
+                ),
             )
         })?;
         // Replaced with the table's by `resize_table` below.
@@ -565,11 +691,16 @@ impl GpuVoxel {
             pipelines,
             scan_layout,
             scan,
+            plan,
             scan_group,
             block_sums: buffers.2.clone(),
             dispatch_args: buffers.2.clone(),
             local_entry: 0,
             reduce_entry: 0,
+            words_entry: 0,
+            word_blocks_entry: 0,
+            bitmap: buffers.3,
+            word_prefix: buffers.4,
             timer,
             params: buffers.0,
             header: buffers.1,
@@ -650,6 +781,10 @@ impl GpuVoxel {
         }
         let reduce_entry = schedule.len() as u32;
         schedule.push([SCHEDULE_REDUCE, 0]);
+        let words_entry = schedule.len() as u32;
+        schedule.push([SCHEDULE_WORDS, 0]);
+        let word_blocks_entry = schedule.len() as u32;
+        schedule.push([SCHEDULE_WORD_BLOCKS, 0]);
         let stride = self.step_stride;
         let mut step_bytes = vec![0u8; (steps.len() as u64 * stride).max(stride) as usize];
         for (i, st) in steps.iter().enumerate() {
@@ -657,7 +792,9 @@ impl GpuVoxel {
             step_bytes[at..at + std::mem::size_of::<SortStep>()]
                 .copy_from_slice(bytemuck::bytes_of(st));
         }
-        let blocks = u64::from(slots / COMPACT_BLOCK);
+        // Shared by the table's compaction and the dense bitmap's word blocks.
+        let blocks =
+            u64::from(slots / COMPACT_BLOCK).max(DENSE_MAX_WORDS.div_ceil(COMPACT_BLOCK.into()));
         let (keys, data, sort, out, step_buf, block_sums, schedule_buf, args) =
             ctx.scoped("voxel table", |device| {
                 (
@@ -700,6 +837,8 @@ impl GpuVoxel {
         self.sort_passes = passes;
         self.local_entry = 0;
         self.reduce_entry = reduce_entry;
+        self.words_entry = words_entry;
+        self.word_blocks_entry = word_blocks_entry;
         self.table_slots = slots;
         Ok(())
     }
@@ -804,6 +943,8 @@ impl GpuVoxel {
                     }),
                 },
                 entry(9, &self.block_sums),
+                entry(10, &self.bitmap),
+                entry(11, &self.word_prefix),
             ],
         });
         encoder.clear_buffer(&self.header, 0, None);
@@ -811,6 +952,11 @@ impl GpuVoxel {
         encoder.clear_buffer(&self.table_data, 0, None);
         let [
             bounds,
+            dense_clear,
+            mark,
+            word_count,
+            word_scan,
+            word_scatter,
             insert,
             compact_count,
             compact_scatter,
@@ -838,18 +984,28 @@ impl GpuVoxel {
         let args_at = |entry: u32| 12 * u64::from(entry);
         {
             let mut pass = timed_pass(encoder, timer, 0, &bind_group);
+            let chunks = shader::workgroups_for(self.point_count.div_ceil(INSERT_CHUNK));
             pass.set_pipeline(bounds);
             pass.dispatch_workgroups(
                 shader::workgroups_for(self.point_count.div_ceil(BOUNDS_CHUNK)),
                 1,
                 1,
             );
+            pass.set_pipeline(&self.plan);
+            pass.set_bind_group(1, &self.scan_group, &[]);
+            pass.dispatch_workgroups(1, 1, 1);
+            pass.set_pipeline(dense_clear);
+            pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.words_entry));
+            pass.set_pipeline(mark);
+            pass.dispatch_workgroups(chunks, 1, 1);
+            pass.set_pipeline(word_count);
+            pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.word_blocks_entry));
+            pass.set_pipeline(word_scan);
+            pass.dispatch_workgroups(1, 1, 1);
+            pass.set_pipeline(word_scatter);
+            pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.word_blocks_entry));
             pass.set_pipeline(insert);
-            pass.dispatch_workgroups(
-                shader::workgroups_for(self.point_count.div_ceil(INSERT_CHUNK)),
-                1,
-                1,
-            );
+            pass.dispatch_workgroups(chunks, 1, 1);
         }
         {
             let mut pass = timed_pass(encoder, timer, 1, &bind_group);
@@ -948,6 +1104,7 @@ impl GpuVoxel {
             leaf_m,
             table_slots: Some(self.table_slots),
             retries: 0,
+            dense: header.mode == 1,
         };
         if header.valid_count == 0 {
             return Ok(Some((out, times)));
@@ -1204,6 +1361,29 @@ pub(crate) mod tests {
         }
     }
 
+    /// A real frame plus two far outliers: the grid is too large for the dense path, so both
+    /// implementations sort; without the outliers both take the dense path.
+    #[test]
+    fn sparse_grids_take_the_sorting_path_on_both_implementations() {
+        let ctx = test_context();
+        let mut voxel = GpuVoxel::new(ctx).unwrap();
+        let mut points = pcl_cloud(PCL_FRAMES[0]).points;
+        let config = VoxelConfig {
+            min_points_per_voxel: 2,
+            ..Default::default()
+        };
+        for far in [false, true] {
+            if far {
+                points.push(Vec3::new(-8.0, -6.0, -4.0));
+                points.push(Vec3::new(8.0, 6.0, 4.0));
+            }
+            let cpu = voxel_cpu(&points, None, &config).unwrap();
+            let (gpu, _) = voxel.run(ctx, &points, &config).unwrap();
+            assert_eq!((cpu.dense, gpu.dense), (!far, !far));
+            assert_same(&gpu, &cpu);
+        }
+    }
+
     #[test]
     fn gpu_output_is_byte_identical_across_runs() {
         let pts = synthetic_frame(3);
@@ -1263,6 +1443,11 @@ pub(crate) mod tests {
             ("SCHEDULE_BLOCKS", SCHEDULE_BLOCKS),
             ("SCHEDULE_GLOBAL", SCHEDULE_GLOBAL),
             ("SCHEDULE_REDUCE", SCHEDULE_REDUCE),
+            ("SCHEDULE_WORDS", SCHEDULE_WORDS),
+            ("SCHEDULE_WORD_BLOCKS", SCHEDULE_WORD_BLOCKS),
+            ("DENSE_MAX_CELLS", DENSE_MAX_CELLS as u32),
+            ("DENSE_WORDS_PER_POINT", DENSE_WORDS_PER_POINT as u32),
+            ("DENSE_MIN_WORDS", DENSE_MIN_WORDS as u32),
             ("SLOT_WORDS", SLOT_WORDS as u32),
         ] {
             let init = module

@@ -747,6 +747,7 @@ fn main() -> anyhow::Result<()> {
         let frame = FrameInput {
             points: &raw,
             crop: Some(scene.clone()),
+            want_crop_keep: false,
         };
         let mut passes = PassTimes::default();
         for i in 0..=args.runs {
