@@ -154,6 +154,12 @@ impl Perception {
         self.chain.adapter()
     }
 
+    /// Hand each frame's crop keep mask back in its record (for an overlay drawing the
+    /// cropped points; on the GPU it costs a larger readback).
+    pub fn keep_crop_mask(&mut self, on: bool) {
+        self.chain.set_crop_keep(on);
+    }
+
     /// Why perception runs on the CPU although the GPU was asked for, if it does.
     pub fn gpu_fallback(&self) -> Option<String> {
         self.start_fallback
@@ -295,6 +301,10 @@ impl HapticLoop {
 
     pub fn perception(&self) -> &Perception {
         &self.perception
+    }
+
+    pub fn perception_mut(&mut self) -> &mut Perception {
+        &mut self.perception
     }
 
     pub fn control(&self) -> &ControlLoop {

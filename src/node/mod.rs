@@ -527,13 +527,14 @@ pub fn run(
         Some(r) => r,
         None => RobotState::fixed(config)?,
     };
-    let (perception, mut control) = HapticLoop::new(
+    let (mut perception, mut control) = HapticLoop::new(
         config,
         robot.model().clone(),
         options.backend,
         options.adapter.as_deref(),
     )?
     .into_halves();
+    perception.keep_crop_mask(options.observer.is_some());
     let mut can = if options.can_interface.is_some() || options.can_log.is_some() {
         Some(CanOutput::open(
             &config.can,

@@ -23,12 +23,12 @@
 use super::NodeConfig;
 use super::haptic_loop::Tick;
 use super::robot_state::{JointState, RobotMeta};
-use crate::io::hcap::{self, Reader, RecordKind, WireError, put_vec3};
 use crate::camera::Frame;
 use crate::control::{ControlStatus, ControllerOutput};
 use crate::fusion::{FusedSurface, FusionStatus};
 use crate::gpu::Backend;
 use crate::haptics::{ConstraintKind, HapticStatus};
+use crate::io::hcap::{self, Reader, RecordKind, WireError, put_vec3};
 use crate::robot::JointVector;
 use crate::surface::SurfaceEstimate;
 use nalgebra::{Point3, Unit};

@@ -7,8 +7,8 @@
 //! the order and delivers whole clouds (a 848x480 cloud is 4.9 MB, far beyond one UDP
 //! datagram).
 
-use crate::io::hcap::{self, Decoder, RecordKind, WireError};
 use crate::camera::Frame;
+use crate::io::hcap::{self, Decoder, RecordKind, WireError};
 use std::io::{self, Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream, ToSocketAddrs};
 use std::time::{Duration, Instant};

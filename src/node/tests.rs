@@ -193,7 +193,11 @@ fn stream_source_counts_and_drops_malformed_records() {
             }
             if i % 5 == 2 {
                 let mut bad = Vec::new();
-                crate::io::hcap::write_record(&mut bad, crate::io::hcap::RecordKind::Frame, b"not a frame");
+                crate::io::hcap::write_record(
+                    &mut bad,
+                    crate::io::hcap::RecordKind::Frame,
+                    b"not a frame",
+                );
                 if s.send_raw(&bad).is_err() {
                     break;
                 }

@@ -13,7 +13,6 @@ use super::{SurfacePoint, ViewFrame};
 use crate::haptics::HapticConfig;
 use crate::node::record::TickRecord;
 use crate::node::{NodeConfig, NodeError, NodeEvent};
-use crate::perception::crop::CropError;
 use crate::robot::RobotModel;
 use crate::scene::Simulator;
 use nalgebra::Unit;
@@ -40,7 +39,7 @@ impl Overlay {
                 .hip_radius_m(),
         };
         Ok(Self {
-            views: CameraViews::new(config.frontend.crop.clone()),
+            views: CameraViews::default(),
             haptics: config.controller.haptics.clone(),
             hip_radius_m,
             shell_radii_m: config.surface.shells.radii_m.clone(),
@@ -50,15 +49,15 @@ impl Overlay {
     }
 
     /// Takes one event; a processed frame yields a view.
-    pub fn event(&mut self, event: NodeEvent) -> Result<Option<ViewFrame>, CropError> {
+    pub fn event(&mut self, event: NodeEvent) -> Option<ViewFrame> {
         let record = match event {
             NodeEvent::Tick(tick) => {
                 self.tick = Some(*tick);
-                return Ok(None);
+                return None;
             }
             NodeEvent::Frame(record) => record,
         };
-        self.views.record(&record)?;
+        self.views.record(&record);
         let stamp_s = record.chain.stamp_s;
         let truth = self
             .simulator
@@ -78,24 +77,17 @@ impl Overlay {
         if let Some(tick) = &self.tick {
             apply_tick(&mut view, tick, &self.haptics);
         }
-        Ok(Some(view))
+        Some(view)
     }
 
     /// Turns events into views until the node ends (the event channel closes) or the viewer
     /// is gone.
     pub fn run(mut self, events: Receiver<NodeEvent>, views: Sender<ViewFrame>) {
         for event in events {
-            match self.event(event) {
-                Ok(Some(view)) => {
-                    if views.send(view).is_err() {
-                        return;
-                    }
-                }
-                Ok(None) => {}
-                Err(e) => {
-                    eprintln!("warning: overlay stopped: {e}");
-                    return;
-                }
+            if let Some(view) = self.event(event)
+                && views.send(view).is_err()
+            {
+                return;
             }
         }
     }

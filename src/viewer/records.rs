@@ -6,32 +6,27 @@
 use super::FrameSamples;
 use super::frame::{CameraView, PointLayer, PointRole, StageLatency, SurfacePoint, ViewFrame};
 use crate::node::haptic_loop::FrameRecord;
-use crate::perception::crop::{CropConfig, CropError, CropScene, crop_cpu, finite_bits, mask_bit};
+use crate::perception::crop::{finite_bits, mask_bit};
 use glam::Vec3;
 use nalgebra::Point3;
 use std::collections::BTreeMap;
 
-/// The layers of one camera frame: the crop's keep mask tells which finite points were
-/// cropped away, voxel points outside every kept cluster were clustered out, the memory
+/// The layers of one camera frame: the front end's crop keep mask (when the loop was asked
+/// for it, [`crate::node::haptic_loop::Perception::keep_crop_mask`]) tells which finite points
+/// were cropped away, voxel points outside every kept cluster were clustered out, the memory
 /// points the estimator merged are the memorised layer; the view carries the estimate.
-pub fn camera_view(
-    record: &FrameRecord,
-    crop: &CropConfig,
-) -> Result<(CameraView, Vec<StageLatency>), CropError> {
+pub fn camera_view(record: &FrameRecord) -> (CameraView, Vec<StageLatency>) {
     let cam = &record.chain;
-    let scene = CropScene {
-        hip_m: record.scene.hip_m,
-        robot: &record.scene.primitives,
-        camera_m: Some(Point3::from(record.world_from_camera.translation.vector)),
-    };
     let world = &cam.world_points;
-    let mask = crop_cpu(world, crop, &scene)?;
-    let cropped: Vec<Vec3> = world
-        .iter()
-        .enumerate()
-        .filter(|(i, p)| finite_bits(**p) && !mask_bit(&mask, *i))
-        .map(|(_, p)| *p)
-        .collect();
+    let cropped: Vec<Vec3> = match &cam.front.crop_keep {
+        Some(mask) => world
+            .iter()
+            .enumerate()
+            .filter(|(i, p)| finite_bits(**p) && !mask_bit(mask, *i))
+            .map(|(_, p)| *p)
+            .collect(),
+        None => Vec::new(),
+    };
     // Paper IV-C: the points of the selected clusters go on (`cam.kept`, copies of voxel
     // points, one per cell); every other voxel point was clustered out.
     let bits = |p: &Vec3| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()];
@@ -68,31 +63,22 @@ pub fn camera_view(
             latency_s: cam.surface_time.wall_ms * 1e-3,
         },
     ];
-    Ok((view, latencies))
+    (view, latencies)
 }
 
 /// Each camera's newest view (cameras at different rates or phases all stay on screen) and
 /// the stage times of the frames taken since the last view.
+#[derive(Default)]
 pub struct CameraViews {
-    crop: CropConfig,
     cameras: BTreeMap<u32, CameraView>,
     pending: Vec<StageLatency>,
 }
 
 impl CameraViews {
-    /// Views of frames cropped with `crop` (the loop's front-end crop config).
-    pub fn new(crop: CropConfig) -> Self {
-        Self {
-            crop,
-            cameras: BTreeMap::new(),
-            pending: Vec::new(),
-        }
-    }
-
     /// A processed frame replaces its camera's view; its stage times add up until the next
     /// [`CameraViews::frame_at`].
-    pub fn record(&mut self, record: &FrameRecord) -> Result<(), CropError> {
-        let (view, latencies) = camera_view(record, &self.crop)?;
+    pub fn record(&mut self, record: &FrameRecord) {
+        let (view, latencies) = camera_view(record);
         self.cameras.insert(view.camera_id, view);
         for l in latencies {
             match self.pending.iter_mut().find(|x| x.stage == l.stage) {
@@ -100,7 +86,6 @@ impl CameraViews {
                 None => self.pending.push(l),
             }
         }
-        Ok(())
     }
 
     /// The view at `stamp_s` of every camera's newest frame, with the HIP, the shells and the

@@ -21,7 +21,6 @@ use crate::gpu::Backend;
 use crate::node::haptic_loop::{HapticLoop, RobotInput};
 use crate::node::robot_state::RobotState;
 use crate::node::{NodeConfig, NodeError};
-use crate::perception::crop::CropError;
 use crate::scene::Simulator;
 use crate::timing::Stopwatch;
 use nalgebra::Unit;
@@ -68,8 +67,6 @@ pub enum SceneViewError {
     StartPastEnd { start_s: f64, end_s: f64 },
     #[error(transparent)]
     Loop(#[from] NodeError),
-    #[error("view: {0}")]
-    Crop(#[from] CropError),
 }
 
 impl SceneViewConfig {
@@ -130,7 +127,8 @@ pub fn timeline_from_scene(
     };
     let ticks = ((last_s - config.start_s) * config.view_rate_hz + 1e-9).floor() as usize + 1;
     let mut haptic_loop = HapticLoop::new(node, model.clone(), Backend::Cpu, None)?;
-    let mut views = CameraViews::new(node.frontend.crop.clone());
+    haptic_loop.perception_mut().keep_crop_mask(true);
+    let mut views = CameraViews::default();
     // Frames captured before the first tick warm up the surface memory and fusion window.
     let mut previous_s = config.start_s - node.fusion.window_s;
     let mut timeline = Vec::with_capacity(ticks);
@@ -139,7 +137,7 @@ pub fn timeline_from_scene(
         for timing in simulator.arrivals(previous_s, t_s) {
             let frame = simulator.frame(&timing).frame;
             let scene = robot.perception_scene(&robot.at(frame.stamp_s).q_rad);
-            views.record(&haptic_loop.push_frame(&frame, &scene)?)?;
+            views.record(&haptic_loop.push_frame(&frame, &scene)?);
         }
         previous_s = t_s;
         let joints = robot.at(t_s);

@@ -21,7 +21,6 @@ use crate::node::haptic_loop::{HapticLoop, RobotInput};
 use crate::node::record::Recording;
 use crate::node::robot_state::RobotState;
 use crate::node::{NodeConfig, NodeError};
-use crate::perception::crop::CropError;
 use nalgebra::{Isometry3, Matrix3, Point3, Translation3, UnitQuaternion};
 use std::path::{Path, PathBuf};
 
@@ -42,8 +41,6 @@ pub enum SourceError {
     NoSurface(PathBuf),
     #[error(transparent)]
     Loop(#[from] NodeError),
-    #[error("view: {0}")]
-    Crop(#[from] CropError),
 }
 
 /// Seconds of the day from a PCL grabber file name (`frame_20121214T142255.814212`).
@@ -144,7 +141,8 @@ pub fn timeline_from_recording(recording: &Recording) -> Result<Vec<ViewFrame>, 
     let robot = RobotState::recorded(node, &recording.meta.robot)?;
     let model = robot.model().clone();
     let mut haptic_loop = HapticLoop::new(node, model.clone(), recording.meta.backend, None)?;
-    let mut views = CameraViews::new(node.frontend.crop.clone());
+    haptic_loop.perception_mut().keep_crop_mask(true);
+    let mut views = CameraViews::default();
     recording
         .frames
         .iter()
@@ -156,7 +154,7 @@ pub fn timeline_from_recording(recording: &Recording) -> Result<Vec<ViewFrame>, 
                 .copied()
                 .unwrap_or_else(|| robot.at(frame.stamp_s).q_rad);
             let scene = robot.perception_scene(&q);
-            views.record(&haptic_loop.push_frame(frame, &scene)?)?;
+            views.record(&haptic_loop.push_frame(frame, &scene)?);
             let mut view = views.frame_at(
                 frame.stamp_s,
                 scene.hip_m,
@@ -200,13 +198,14 @@ pub fn timeline_from_frames(
     let robot = RobotState::fixed(&node)?;
     let model = robot.model().clone();
     let mut haptic_loop = HapticLoop::new(&node, model.clone(), Backend::Cpu, None)?;
-    let mut views = CameraViews::new(node.frontend.crop.clone());
+    haptic_loop.perception_mut().keep_crop_mask(true);
+    let mut views = CameraViews::default();
     frames
         .iter()
         .map(|frame| {
             let joints = robot.at(frame.stamp_s);
             let scene = robot.perception_scene(&joints.q_rad);
-            views.record(&haptic_loop.push_frame(frame, &scene)?)?;
+            views.record(&haptic_loop.push_frame(frame, &scene)?);
             let tick = haptic_loop.tick(frame.stamp_s, &RobotInput::without_force(joints));
             let mut view = views.frame_at(
                 frame.stamp_s,
