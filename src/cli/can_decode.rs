@@ -1,10 +1,12 @@
 //! `hapcloud can-decode LOG`: decode a `candump -L` log (e.g. written by `--can-log`) with
-//! the protocol's DBC file, signal by signal.
+//! the protocol's DBC file, signal by signal. A reader that stops early (`| head`) ends the
+//! output quietly.
 
 use anyhow::Context;
 use clap::Args as ClapArgs;
 use hapcloud::io::can;
 use socketcan::Frame;
+use std::io::{ErrorKind, Write};
 use std::path::PathBuf;
 
 #[derive(ClapArgs, Debug)]
@@ -33,12 +35,27 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .with_context(|| format!("cannot open {}", args.log.display()))?;
     let logged = can::read_candump(std::io::BufReader::new(file))
         .with_context(|| args.log.display().to_string())?;
+    let mut out = std::io::BufWriter::new(std::io::stdout().lock());
+    match print(&args, &dbc, &logged, &mut out).and_then(|()| out.flush()) {
+        // The reader has all it wanted (e.g. `| head`): not an error.
+        Err(e) if e.kind() == ErrorKind::BrokenPipe => Ok(()),
+        result => result.context("writing the decoded frames to standard output"),
+    }
+}
+
+/// Writes each frame's decoded signals, one line each, or the one JSON object.
+fn print(
+    args: &Args,
+    dbc: &can_dbc::Dbc,
+    logged: &[can::LoggedFrame],
+    out: &mut impl Write,
+) -> std::io::Result<()> {
     let mut unknown = 0;
     let mut messages = Vec::new();
-    for entry in &logged {
+    for entry in logged {
         let t_s = entry.stamp_us as f64 * 1e-6;
         let id = entry.frame.raw_id();
-        match can::decode_with_dbc(&dbc, &entry.frame) {
+        match can::decode_with_dbc(dbc, &entry.frame) {
             Some((name, signals)) => {
                 if args.json {
                     let signals: serde_json::Map<String, serde_json::Value> = signals
@@ -52,17 +69,22 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 } else {
                     let list: Vec<String> =
                         signals.iter().map(|(n, v)| format!("{n}={v}")).collect();
-                    println!(
+                    writeln!(
+                        out,
                         "{t_s:.6} {} {id:03X} {name} {}",
                         entry.interface,
                         list.join(" ")
-                    );
+                    )?;
                 }
             }
             None => {
                 unknown += 1;
                 if !args.json {
-                    println!("{t_s:.6} {} {id:03X} (not in the DBC)", entry.interface);
+                    writeln!(
+                        out,
+                        "{t_s:.6} {} {id:03X} (not in the DBC)",
+                        entry.interface
+                    )?;
                 }
             }
         }
@@ -71,7 +93,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let summary = serde_json::json!({
             "frames": logged.len(), "unknown": unknown, "messages": messages,
         });
-        println!("{summary}");
+        writeln!(out, "{summary}")?;
     }
     Ok(())
 }

@@ -714,12 +714,14 @@ fn dbc_raw(signal: &can_dbc::Signal, data: &[u8]) -> Option<u64> {
 pub fn dbc_signal_value(signal: &can_dbc::Signal, data: &[u8]) -> Option<f64> {
     let raw = dbc_raw(signal, data)?;
     let value = match signal.value_type {
-        can_dbc::ValueType::Signed if signal.size < 64 && (raw >> (signal.size - 1)) & 1 == 1 => {
-            raw as i64 - (1i64 << signal.size)
+        // Two's complement of `size` bits: shift the sign bit to bit 63 and back.
+        can_dbc::ValueType::Signed => {
+            let unused = 64 - signal.size as u32;
+            ((raw << unused) as i64 >> unused) as f64
         }
-        _ => raw as i64,
+        can_dbc::ValueType::Unsigned => raw as f64,
     };
-    Some(value as f64 * signal.factor + signal.offset)
+    Some(value * signal.factor + signal.offset)
 }
 
 /// Decode a frame with a DBC: the message's name and each signal's name and value.
@@ -896,5 +898,41 @@ mod tests {
             Some(-19.0 * 0.5 + 1.0)
         );
         assert_eq!(dbc_signal_value(&signal, &[0xFE]), None);
+    }
+
+    #[test]
+    fn wide_signals_decode_without_overflow() {
+        let signal = |start_bit, size, byte_order, value_type| can_dbc::Signal {
+            name: "s".into(),
+            multiplexer_indicator: can_dbc::MultiplexIndicator::Plain,
+            start_bit,
+            size,
+            byte_order,
+            value_type,
+            factor: 1.0,
+            offset: 0.0,
+            min: can_dbc::NumericValue::Double(0.0),
+            max: can_dbc::NumericValue::Double(0.0),
+            unit: String::new(),
+            receivers: Vec::new(),
+        };
+        use can_dbc::{ByteOrder::LittleEndian, ValueType::*};
+        let data = [0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0x3F];
+        // 63 signed bits with the sign bit clear and bit 61 set.
+        let value = dbc_signal_value(&signal(0, 63, LittleEndian, Signed), &data);
+        assert_eq!(value, Some(((1u64 << 62) - 1) as f64));
+        let ones = [0xFF; 8];
+        assert_eq!(
+            dbc_signal_value(&signal(0, 63, LittleEndian, Signed), &ones),
+            Some(-1.0)
+        );
+        assert_eq!(
+            dbc_signal_value(&signal(0, 64, LittleEndian, Unsigned), &ones),
+            Some(u64::MAX as f64)
+        );
+        assert_eq!(
+            dbc_signal_value(&signal(0, 64, LittleEndian, Signed), &ones),
+            Some(-1.0)
+        );
     }
 }
