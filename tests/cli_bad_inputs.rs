@@ -113,4 +113,19 @@ fn can_decode_into_a_closed_pipe_ends_quietly() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{:?}: {stderr}", out.status);
     assert!(stderr.is_empty(), "{stderr}");
+    // A bad line: the frames before it are printed, then an error names the line.
+    let mut text = std::fs::read_to_string(&path).unwrap();
+    text.push_str("(1700000099.000000) can0 not-a-frame\n");
+    std::fs::write(&path, text).unwrap();
+    let out = hapcloud()
+        .args(["can-decode".as_ref(), path.as_os_str()])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert_eq!(String::from_utf8_lossy(&out.stdout).lines().count(), 20_000);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("long.log: candump log: line 20001"),
+        "{stderr}"
+    );
 }

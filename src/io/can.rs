@@ -644,32 +644,40 @@ pub struct LoggedFrame {
 
 /// Read a `candump -L` log (classic frames only; an FD frame is an error).
 pub fn read_candump<R: BufRead>(input: R) -> Result<Vec<LoggedFrame>, CanError> {
+    candump_frames(input).collect()
+}
+
+/// The frames of a `candump -L` log one line at a time, in constant memory however long the
+/// log is; the first bad line ends it with an error naming the line.
+pub fn candump_frames<R: BufRead>(input: R) -> impl Iterator<Item = Result<LoggedFrame, CanError>> {
     let mut reader = Reader::from_reader(input);
-    let mut frames = Vec::new();
-    loop {
-        let record = reader
-            .next_record()
-            .map_err(|e| CanError::Log(format!("line {}: {e}", frames.len() + 1)))?;
-        let Some(record) = record else {
-            return Ok(frames);
-        };
-        let frame = match record.frame {
-            CanAnyFrame::Normal(f) => CanFrame::Data(f),
-            CanAnyFrame::Remote(f) => CanFrame::Remote(f),
-            CanAnyFrame::Error(f) => CanFrame::Error(f),
-            CanAnyFrame::Fd(_) => {
-                return Err(CanError::Log(format!(
-                    "line {}: CAN FD frame in a classic CAN log",
-                    frames.len() + 1
-                )));
+    let mut line = 0usize;
+    let mut failed = false;
+    std::iter::from_fn(move || {
+        if failed {
+            return None;
+        }
+        line += 1;
+        let result = match reader.next_record() {
+            Err(e) => Err(CanError::Log(format!("line {line}: {e}"))),
+            Ok(None) => return None,
+            Ok(Some(record)) => match record.frame {
+                CanAnyFrame::Normal(f) => Ok(CanFrame::Data(f)),
+                CanAnyFrame::Remote(f) => Ok(CanFrame::Remote(f)),
+                CanAnyFrame::Error(f) => Ok(CanFrame::Error(f)),
+                CanAnyFrame::Fd(_) => Err(CanError::Log(format!(
+                    "line {line}: CAN FD frame in a classic CAN log"
+                ))),
             }
+            .map(|frame| LoggedFrame {
+                stamp_us: record.t_us,
+                interface: record.device,
+                frame,
+            }),
         };
-        frames.push(LoggedFrame {
-            stamp_us: record.t_us,
-            interface: record.device,
-            frame,
-        });
-    }
+        failed = result.is_err();
+        Some(result)
+    })
 }
 
 /// Parse a DBC text with the `can-dbc` crate.
@@ -898,6 +906,21 @@ mod tests {
             Some(-19.0 * 0.5 + 1.0)
         );
         assert_eq!(dbc_signal_value(&signal, &[0xFE]), None);
+    }
+
+    #[test]
+    fn candump_frames_stream_and_stop_at_the_first_bad_line() {
+        let log = "(1700000000.000000) can0 120#0102030405060708\n\
+                   (1700000000.000100) can0 140#0000000000000000\n\
+                   not a candump line\n\
+                   (1700000000.000200) can0 120#0102030405060708\n";
+        let items: Vec<_> = candump_frames(log.as_bytes()).collect();
+        assert_eq!(items.len(), 3);
+        assert_eq!(items[1].as_ref().unwrap().stamp_us, 1_700_000_000_000_100);
+        let err = items[2].as_ref().unwrap_err().to_string();
+        assert!(err.starts_with("candump log: line 3:"), "{err}");
+        assert!(read_candump(log.as_bytes()).is_err());
+        assert_eq!(read_candump(&log.as_bytes()[..92]).unwrap().len(), 2);
     }
 
     #[test]

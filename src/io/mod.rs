@@ -351,6 +351,27 @@ mod tests {
     }
 
     #[test]
+    fn read_limits_default_and_validate() {
+        let limits = ReadLimits::default();
+        assert!(limits.validate().is_ok());
+        let parsed: ReadLimits = toml::from_str("max_pixels = 1000").unwrap();
+        assert_eq!(parsed.max_pixels, 1000);
+        assert_eq!(parsed.max_points, limits.max_points);
+        let zero = ReadLimits {
+            max_points: 0,
+            ..limits
+        };
+        let err = zero.validate().unwrap_err();
+        assert!(err.to_string().contains("max_points is 0"), "{err}");
+        assert!(ReadLimits::check("points", 5, 5).is_ok());
+        let err = ReadLimits::check("points", 6, 5).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "over a read limit: 6 points declared, the limit is 5"
+        );
+    }
+
+    #[test]
     fn missing_file_names_the_file() {
         let err = read_cloud(Path::new("/nonexistent/dir/x.pcd")).unwrap_err();
         assert!(err.to_string().contains("/nonexistent/dir/x.pcd"), "{err}");
