@@ -30,7 +30,7 @@ fn write(target: &str, name: &str, bytes: &[u8]) {
 fn head(cloud: &PointCloud, n: usize) -> PointCloud {
     let n = n.min(cloud.len());
     let mut out = PointCloud::from_points(cloud.points[..n].to_vec());
-    if cloud.is_organized() && n % 6 == 0 {
+    if cloud.is_organized() && n.is_multiple_of(6) {
         out.width = 6;
         out.height = (n / 6) as u32;
     }
