@@ -1,10 +1,12 @@
 //! `hapcloud can-decode LOG`: decode a `candump -L` log (e.g. written by `--can-log`) with
-//! the protocol's DBC file, signal by signal.
+//! the protocol's DBC file, signal by signal. A reader that stops early (`| head`) ends the
+//! output quietly.
 
 use anyhow::Context;
 use clap::Args as ClapArgs;
 use hapcloud::io::can;
 use socketcan::Frame;
+use std::io::{ErrorKind, Write};
 use std::path::PathBuf;
 
 #[derive(ClapArgs, Debug)]
@@ -31,14 +33,47 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     })?;
     let file = std::fs::File::open(&args.log)
         .with_context(|| format!("cannot open {}", args.log.display()))?;
-    let logged = can::read_candump(std::io::BufReader::new(file))
-        .with_context(|| args.log.display().to_string())?;
+    let frames = can::candump_frames(std::io::BufReader::new(file));
+    let mut out = std::io::BufWriter::new(std::io::stdout().lock());
+    let printed = print(&args, &dbc, frames, &mut out).and_then(|()| Ok(out.flush()?));
+    match printed {
+        Ok(()) => Ok(()),
+        // The reader has all it wanted (e.g. `| head`): not an error.
+        Err(Failure::Write(e)) if e.kind() == ErrorKind::BrokenPipe => Ok(()),
+        Err(Failure::Write(e)) => Err(e).context("writing the decoded frames to standard output"),
+        Err(Failure::Log(e)) => Err(e).with_context(|| args.log.display().to_string()),
+    }
+}
+
+/// Why printing stopped: the log has a bad line, or standard output failed.
+enum Failure {
+    Log(can::CanError),
+    Write(std::io::Error),
+}
+
+impl From<std::io::Error> for Failure {
+    fn from(e: std::io::Error) -> Self {
+        Self::Write(e)
+    }
+}
+
+/// Writes each frame's decoded signals as it is read, one line each (constant memory), or
+/// the one JSON object at the end.
+fn print(
+    args: &Args,
+    dbc: &can_dbc::Dbc,
+    frames: impl Iterator<Item = Result<can::LoggedFrame, can::CanError>>,
+    out: &mut impl Write,
+) -> Result<(), Failure> {
     let mut unknown = 0;
+    let mut count = 0;
     let mut messages = Vec::new();
-    for entry in &logged {
+    for entry in frames {
+        let entry = entry.map_err(Failure::Log)?;
+        count += 1;
         let t_s = entry.stamp_us as f64 * 1e-6;
         let id = entry.frame.raw_id();
-        match can::decode_with_dbc(&dbc, &entry.frame) {
+        match can::decode_with_dbc(dbc, &entry.frame) {
             Some((name, signals)) => {
                 if args.json {
                     let signals: serde_json::Map<String, serde_json::Value> = signals
@@ -52,26 +87,31 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 } else {
                     let list: Vec<String> =
                         signals.iter().map(|(n, v)| format!("{n}={v}")).collect();
-                    println!(
+                    writeln!(
+                        out,
                         "{t_s:.6} {} {id:03X} {name} {}",
                         entry.interface,
                         list.join(" ")
-                    );
+                    )?;
                 }
             }
             None => {
                 unknown += 1;
                 if !args.json {
-                    println!("{t_s:.6} {} {id:03X} (not in the DBC)", entry.interface);
+                    writeln!(
+                        out,
+                        "{t_s:.6} {} {id:03X} (not in the DBC)",
+                        entry.interface
+                    )?;
                 }
             }
         }
     }
     if args.json {
         let summary = serde_json::json!({
-            "frames": logged.len(), "unknown": unknown, "messages": messages,
+            "frames": count, "unknown": unknown, "messages": messages,
         });
-        println!("{summary}");
+        writeln!(out, "{summary}")?;
     }
     Ok(())
 }

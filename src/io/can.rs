@@ -644,32 +644,40 @@ pub struct LoggedFrame {
 
 /// Read a `candump -L` log (classic frames only; an FD frame is an error).
 pub fn read_candump<R: BufRead>(input: R) -> Result<Vec<LoggedFrame>, CanError> {
+    candump_frames(input).collect()
+}
+
+/// The frames of a `candump -L` log one line at a time, in constant memory however long the
+/// log is; the first bad line ends it with an error naming the line.
+pub fn candump_frames<R: BufRead>(input: R) -> impl Iterator<Item = Result<LoggedFrame, CanError>> {
     let mut reader = Reader::from_reader(input);
-    let mut frames = Vec::new();
-    loop {
-        let record = reader
-            .next_record()
-            .map_err(|e| CanError::Log(format!("line {}: {e}", frames.len() + 1)))?;
-        let Some(record) = record else {
-            return Ok(frames);
-        };
-        let frame = match record.frame {
-            CanAnyFrame::Normal(f) => CanFrame::Data(f),
-            CanAnyFrame::Remote(f) => CanFrame::Remote(f),
-            CanAnyFrame::Error(f) => CanFrame::Error(f),
-            CanAnyFrame::Fd(_) => {
-                return Err(CanError::Log(format!(
-                    "line {}: CAN FD frame in a classic CAN log",
-                    frames.len() + 1
-                )));
+    let mut line = 0usize;
+    let mut failed = false;
+    std::iter::from_fn(move || {
+        if failed {
+            return None;
+        }
+        line += 1;
+        let result = match reader.next_record() {
+            Err(e) => Err(CanError::Log(format!("line {line}: {e}"))),
+            Ok(None) => return None,
+            Ok(Some(record)) => match record.frame {
+                CanAnyFrame::Normal(f) => Ok(CanFrame::Data(f)),
+                CanAnyFrame::Remote(f) => Ok(CanFrame::Remote(f)),
+                CanAnyFrame::Error(f) => Ok(CanFrame::Error(f)),
+                CanAnyFrame::Fd(_) => Err(CanError::Log(format!(
+                    "line {line}: CAN FD frame in a classic CAN log"
+                ))),
             }
+            .map(|frame| LoggedFrame {
+                stamp_us: record.t_us,
+                interface: record.device,
+                frame,
+            }),
         };
-        frames.push(LoggedFrame {
-            stamp_us: record.t_us,
-            interface: record.device,
-            frame,
-        });
-    }
+        failed = result.is_err();
+        Some(result)
+    })
 }
 
 /// Parse a DBC text with the `can-dbc` crate.
@@ -714,12 +722,14 @@ fn dbc_raw(signal: &can_dbc::Signal, data: &[u8]) -> Option<u64> {
 pub fn dbc_signal_value(signal: &can_dbc::Signal, data: &[u8]) -> Option<f64> {
     let raw = dbc_raw(signal, data)?;
     let value = match signal.value_type {
-        can_dbc::ValueType::Signed if signal.size < 64 && (raw >> (signal.size - 1)) & 1 == 1 => {
-            raw as i64 - (1i64 << signal.size)
+        // Two's complement of `size` bits: shift the sign bit to bit 63 and back.
+        can_dbc::ValueType::Signed => {
+            let unused = 64 - signal.size as u32;
+            ((raw << unused) as i64 >> unused) as f64
         }
-        _ => raw as i64,
+        can_dbc::ValueType::Unsigned => raw as f64,
     };
-    Some(value as f64 * signal.factor + signal.offset)
+    Some(value * signal.factor + signal.offset)
 }
 
 /// Decode a frame with a DBC: the message's name and each signal's name and value.
@@ -896,5 +906,56 @@ mod tests {
             Some(-19.0 * 0.5 + 1.0)
         );
         assert_eq!(dbc_signal_value(&signal, &[0xFE]), None);
+    }
+
+    #[test]
+    fn candump_frames_stream_and_stop_at_the_first_bad_line() {
+        let log = "(1700000000.000000) can0 120#0102030405060708\n\
+                   (1700000000.000100) can0 140#0000000000000000\n\
+                   not a candump line\n\
+                   (1700000000.000200) can0 120#0102030405060708\n";
+        let items: Vec<_> = candump_frames(log.as_bytes()).collect();
+        assert_eq!(items.len(), 3);
+        assert_eq!(items[1].as_ref().unwrap().stamp_us, 1_700_000_000_000_100);
+        let err = items[2].as_ref().unwrap_err().to_string();
+        assert!(err.starts_with("candump log: line 3:"), "{err}");
+        assert!(read_candump(log.as_bytes()).is_err());
+        assert_eq!(read_candump(&log.as_bytes()[..92]).unwrap().len(), 2);
+    }
+
+    #[test]
+    fn wide_signals_decode_without_overflow() {
+        let signal = |start_bit, size, byte_order, value_type| can_dbc::Signal {
+            name: "s".into(),
+            multiplexer_indicator: can_dbc::MultiplexIndicator::Plain,
+            start_bit,
+            size,
+            byte_order,
+            value_type,
+            factor: 1.0,
+            offset: 0.0,
+            min: can_dbc::NumericValue::Double(0.0),
+            max: can_dbc::NumericValue::Double(0.0),
+            unit: String::new(),
+            receivers: Vec::new(),
+        };
+        use can_dbc::{ByteOrder::LittleEndian, ValueType::*};
+        let data = [0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0x3F];
+        // 63 signed bits with the sign bit clear and bit 61 set.
+        let value = dbc_signal_value(&signal(0, 63, LittleEndian, Signed), &data);
+        assert_eq!(value, Some(((1u64 << 62) - 1) as f64));
+        let ones = [0xFF; 8];
+        assert_eq!(
+            dbc_signal_value(&signal(0, 63, LittleEndian, Signed), &ones),
+            Some(-1.0)
+        );
+        assert_eq!(
+            dbc_signal_value(&signal(0, 64, LittleEndian, Unsigned), &ones),
+            Some(u64::MAX as f64)
+        );
+        assert_eq!(
+            dbc_signal_value(&signal(0, 64, LittleEndian, Signed), &ones),
+            Some(-1.0)
+        );
     }
 }

@@ -13,6 +13,8 @@
 //!   sender and `candump -L` logs.
 //!
 //! [`read_cloud`] and [`write_cloud`] pick the point-cloud format from the file extension.
+//! Every reader checks the sizes a file declares against the bytes it holds and against
+//! [`ReadLimits`] before allocating, so a small file that lies cannot exhaust memory or time.
 
 pub mod can;
 pub mod depth;
@@ -22,6 +24,58 @@ pub mod ply;
 
 use crate::cloud::PointCloud;
 use std::path::{Path, PathBuf};
+
+/// Caps on what one file may make a reader allocate. The defaults hold every real sensor's
+/// frame with a wide margin; a file declaring more is refused with an error before any
+/// buffer of that size exists.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ReadLimits {
+    /// Most points a PCD or PLY cloud may declare (2^24, 16.8 million: 200 MB of
+    /// coordinates; an RGB-D frame has 0.3-1 million).
+    pub max_points: u64,
+    /// Most pixels a depth image may declare (2^24, e.g. 4096 x 4096; depth cameras deliver
+    /// about 1 Mpx).
+    pub max_pixels: u64,
+    /// Most bytes a compressed block (PCD `binary_compressed`) may expand to (1 GiB).
+    pub max_decoded_bytes: u64,
+}
+
+impl Default for ReadLimits {
+    fn default() -> Self {
+        Self {
+            max_points: 1 << 24,
+            max_pixels: 1 << 24,
+            max_decoded_bytes: 1 << 30,
+        }
+    }
+}
+
+impl ReadLimits {
+    /// Every cap must be at least 1.
+    pub fn validate(&self) -> Result<(), FormatError> {
+        for (name, value) in [
+            ("max_points", self.max_points),
+            ("max_pixels", self.max_pixels),
+            ("max_decoded_bytes", self.max_decoded_bytes),
+        ] {
+            if value == 0 {
+                return Err(FormatError::Limit(format!("read limit {name} is 0")));
+            }
+        }
+        Ok(())
+    }
+
+    /// `Ok` when a file's `declared` count of `what` is within `limit`.
+    pub(crate) fn check(what: &str, declared: u128, limit: u64) -> Result<(), FormatError> {
+        if declared > u128::from(limit) {
+            return Err(FormatError::Limit(format!(
+                "{declared} {what} declared, the limit is {limit}"
+            )));
+        }
+        Ok(())
+    }
+}
 
 /// A file that could not be read or written: which file, and what is wrong with it.
 #[derive(Debug, thiserror::Error)]
@@ -54,6 +108,8 @@ pub enum FormatError {
     Codec(String),
     #[error("invalid cloud: {0}")]
     InvalidCloud(String),
+    #[error("over a read limit: {0}")]
+    Limit(String),
 }
 
 impl FormatError {
@@ -292,6 +348,27 @@ mod tests {
         assert!(
             err.to_string().starts_with("cloud.xyz: unsupported"),
             "{err}"
+        );
+    }
+
+    #[test]
+    fn read_limits_default_and_validate() {
+        let limits = ReadLimits::default();
+        assert!(limits.validate().is_ok());
+        let parsed: ReadLimits = toml::from_str("max_pixels = 1000").unwrap();
+        assert_eq!(parsed.max_pixels, 1000);
+        assert_eq!(parsed.max_points, limits.max_points);
+        let zero = ReadLimits {
+            max_points: 0,
+            ..limits
+        };
+        let err = zero.validate().unwrap_err();
+        assert!(err.to_string().contains("max_points is 0"), "{err}");
+        assert!(ReadLimits::check("points", 5, 5).is_ok());
+        let err = ReadLimits::check("points", 6, 5).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "over a read limit: 6 points declared, the limit is 5"
         );
     }
 

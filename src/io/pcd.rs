@@ -15,7 +15,9 @@
 //! The writer stores `x y z` (F4), `rgba` (U4) and the normals (F4) in any of the three
 //! encodings; what it writes loads in PCL (`pcl_voxel_grid` reads its `binary_compressed`).
 
-use super::{Encoding, Error, FormatError, Scalar, check_cloud, read_bytes, write_bytes};
+use super::{
+    Encoding, Error, FormatError, ReadLimits, Scalar, check_cloud, read_bytes, write_bytes,
+};
 use crate::cloud::PointCloud;
 use glam::Vec3;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
@@ -375,6 +377,7 @@ fn read_compressed(
     header: &Header,
     wanted: &Wanted,
     data: &[u8],
+    limits: &ReadLimits,
 ) -> Result<PointCloud, FormatError> {
     let word = |at: usize| -> Result<u32, FormatError> {
         data.get(at..at + 4)
@@ -411,6 +414,11 @@ fn read_compressed(
                 "{compressed} compressed bytes cannot hold {uncompressed} bytes"
             )));
         }
+        ReadLimits::check(
+            "decompressed bytes",
+            uncompressed as u128,
+            limits.max_decoded_bytes,
+        )?;
         let out =
             lzf::decompress(payload, uncompressed).map_err(|e| FormatError::Lzf(e.to_string()))?;
         if out.len() != uncompressed {
@@ -439,31 +447,57 @@ fn read_ascii(header: &Header, wanted: &Wanted, data: &[u8]) -> Result<PointClou
         .map_err(|_| FormatError::BadValue("ascii data is not text".into()))?;
     // Token index of each field's first element.
     let mut first = Vec::with_capacity(header.fields.len());
-    let mut total = 0;
+    let mut total = 0usize;
     for f in &header.fields {
         first.push(total);
         total += f.count;
     }
     let n = header.points;
+    // Each value is a token of at least one character and a separator: a header whose
+    // values cannot fit in the text is refused before anything is allocated for them.
+    let need = (n as u128) * (2 * total as u128 - 1);
+    if n > 0 && need > data.len() as u128 {
+        return Err(FormatError::Truncated(format!(
+            "{n} points of {total} values need at least {need} bytes of text, the data has {}",
+            data.len()
+        )));
+    }
+    // The fields the reader keeps, in slots: x y z, colour, normal x y z. `picked` holds each
+    // slot's token of the current line (no per-line allocation, whatever `total` is).
+    let slots: [Option<usize>; 7] = [
+        Some(wanted.xyz[0]),
+        Some(wanted.xyz[1]),
+        Some(wanted.xyz[2]),
+        wanted.color.map(|(f, _)| f),
+        wanted.normal.map(|n| n[0]),
+        wanted.normal.map(|n| n[1]),
+        wanted.normal.map(|n| n[2]),
+    ];
     let mut lines = text.lines().filter(|l| !l.trim().is_empty());
     let mut points = Vec::with_capacity(n.min(data.len() / 2));
     let mut rgba = wanted.color.map(|_| Vec::with_capacity(points.capacity()));
     let mut normals = wanted.normal.map(|_| Vec::with_capacity(points.capacity()));
-    let mut tokens = Vec::with_capacity(total);
+    let mut picked = [""; 7];
     for i in 0..n {
         let line = lines.next().ok_or_else(|| {
             FormatError::CountMismatch(format!("POINTS {n}, but the data has {i} lines"))
         })?;
-        tokens.clear();
-        tokens.extend(line.split_whitespace());
-        if tokens.len() != total {
+        let mut count = 0;
+        for (k, token) in line.split_whitespace().enumerate() {
+            for (slot, field) in picked.iter_mut().zip(slots) {
+                if field.is_some_and(|f| first[f] == k) {
+                    *slot = token;
+                }
+            }
+            count += 1;
+        }
+        if count != total {
             return Err(FormatError::CountMismatch(format!(
-                "point {i} has {} values, the header declares {total}",
-                tokens.len()
+                "point {i} has {count} values, the header declares {total}"
             )));
         }
-        let value = |f: usize| -> Result<f32, FormatError> {
-            let token = tokens[first[f]];
+        let value = |slot: usize, f: usize| -> Result<f32, FormatError> {
+            let token = picked[slot];
             header.fields[f]
                 .scalar
                 .parse(token)
@@ -475,19 +509,23 @@ fn read_ascii(header: &Header, wanted: &Wanted, data: &[u8]) -> Result<PointClou
                     ))
                 })
         };
-        let vec3 = |[a, b, c]: [usize; 3]| -> Result<Vec3, FormatError> {
-            Ok(Vec3::new(value(a)?, value(b)?, value(c)?))
+        let vec3 = |first_slot: usize, [a, b, c]: [usize; 3]| -> Result<Vec3, FormatError> {
+            Ok(Vec3::new(
+                value(first_slot, a)?,
+                value(first_slot + 1, b)?,
+                value(first_slot + 2, c)?,
+            ))
         };
-        points.push(vec3(wanted.xyz)?);
+        points.push(vec3(0, wanted.xyz)?);
         if let (Some(out), Some((f, force_alpha))) = (rgba.as_mut(), wanted.color) {
-            let token = tokens[first[f]];
+            let token = picked[3];
             let raw = packed_color(header.fields[f].scalar, token).ok_or_else(|| {
                 FormatError::BadValue(format!("point {i}: {token:?} is not a packed colour"))
             })?;
             out.push(if force_alpha { raw | 0xFF00_0000 } else { raw });
         }
         if let (Some(out), Some(idx)) = (normals.as_mut(), wanted.normal) {
-            out.push(vec3(idx)?);
+            out.push(vec3(4, idx)?);
         }
     }
     if lines.next().is_some() {
@@ -513,15 +551,21 @@ fn packed_color(scalar: Scalar, token: &str) -> Option<u32> {
     None
 }
 
-/// Parse a PCD file's bytes.
+/// Parse a PCD file's bytes within the default [`ReadLimits`].
 pub fn from_bytes(bytes: &[u8]) -> Result<PointCloud, FormatError> {
+    from_bytes_within(bytes, &ReadLimits::default())
+}
+
+/// Parse a PCD file's bytes; a file declaring more than `limits` allow is an error.
+pub fn from_bytes_within(bytes: &[u8], limits: &ReadLimits) -> Result<PointCloud, FormatError> {
     let header = parse_header(bytes)?;
+    ReadLimits::check("points", header.points as u128, limits.max_points)?;
     let wanted = header.wanted()?;
     let data = &bytes[header.data_start..];
     match header.encoding {
         Encoding::Ascii => read_ascii(&header, &wanted, data),
         Encoding::Binary => read_binary(&header, &wanted, data),
-        Encoding::BinaryCompressed => read_compressed(&header, &wanted, data),
+        Encoding::BinaryCompressed => read_compressed(&header, &wanted, data, limits),
     }
 }
 
@@ -809,11 +853,11 @@ mod tests {
                 "count mismatch",
             ),
             (
-                "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nDATA ascii\n1 2 3\n",
+                "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nDATA ascii\n10.5 20.5 30.5\n",
                 "data has 1 lines",
             ),
             (
-                "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nDATA ascii\n1 2\n",
+                "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nDATA ascii\n10 20\n",
                 "has 2 values",
             ),
             (
@@ -860,6 +904,71 @@ mod tests {
                  WIDTH 4294967295\nHEIGHT 4294967295\nDATA {data}\n\0\0\0\0\0\0\0\0"
             );
             assert!(from_bytes(text.as_bytes()).is_err(), "{data}");
+        }
+    }
+
+    #[test]
+    fn values_the_text_cannot_hold_fail_before_allocating() {
+        // 3000 fields of 2^20 values each: 3e9 values per point, in a 100-byte text.
+        let names: Vec<String> = (0..3000).map(|i| format!("f{i}")).collect();
+        let text = format!(
+            "FIELDS x y z {}\nSIZE 4 4 4 {}\nTYPE F F F {}\nCOUNT 1 1 1 {}\nWIDTH 1\n\
+             DATA ascii\n1 2 3 4 5 6\n",
+            names.join(" "),
+            vec!["4"; 3000].join(" "),
+            vec!["F"; 3000].join(" "),
+            vec!["1048576"; 3000].join(" "),
+        );
+        let err = from_bytes(text.as_bytes()).unwrap_err();
+        assert!(matches!(err, FormatError::Truncated(_)), "{err}");
+        assert!(
+            err.to_string().contains("3145728003 values need at least"),
+            "{err}"
+        );
+        // A line with many values the reader skips is still read (no per-line buffer).
+        let text = "FIELDS x y z h\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 5000\nWIDTH 1\n\
+                    DATA ascii\n";
+        let line = format!("1 2 3 {}\n", vec!["0"; 5000].join(" "));
+        let cloud = from_bytes(format!("{text}{line}").as_bytes()).unwrap();
+        assert_eq!(cloud.points, vec![Vec3::new(1.0, 2.0, 3.0)]);
+    }
+
+    #[test]
+    fn declared_sizes_above_the_limits_are_refused() {
+        let text = "FIELDS x y z\nSIZE 1 1 1\nTYPE U U U\nWIDTH 16777217\nDATA binary\n";
+        let err = from_bytes(text.as_bytes()).unwrap_err();
+        assert!(matches!(err, FormatError::Limit(_)), "{err}");
+        assert!(
+            err.to_string().contains("16777217 points declared"),
+            "{err}"
+        );
+        // The decompressed block of binary_compressed is capped too.
+        let cloud = cloud3();
+        let packed = to_bytes(&cloud, Encoding::BinaryCompressed).unwrap();
+        let tight = ReadLimits {
+            max_decoded_bytes: 64,
+            ..ReadLimits::default()
+        };
+        let err = from_bytes_within(&packed, &tight).unwrap_err();
+        assert!(
+            err.to_string().contains("decompressed bytes declared"),
+            "{err}"
+        );
+        let tight = ReadLimits {
+            max_points: 3,
+            ..ReadLimits::default()
+        };
+        for enc in [
+            Encoding::Ascii,
+            Encoding::Binary,
+            Encoding::BinaryCompressed,
+        ] {
+            let bytes = to_bytes(&cloud, enc).unwrap();
+            assert!(from_bytes(&bytes).is_ok());
+            assert!(matches!(
+                from_bytes_within(&bytes, &tight),
+                Err(FormatError::Limit(_))
+            ));
         }
     }
 

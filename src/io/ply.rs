@@ -14,7 +14,7 @@
 //! PCL's `camera` element (written by `pcl_pcd2ply`) gives the layout too (`viewportx`,
 //! `viewporty`) and the sensor pose (`view_p*` origin, `*_axis*` rotation rows).
 
-use super::{Error, FormatError, Scalar, check_cloud, read_bytes, write_bytes};
+use super::{Error, FormatError, ReadLimits, Scalar, check_cloud, read_bytes, write_bytes};
 use crate::cloud::PointCloud;
 use glam::Vec3;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
@@ -293,6 +293,19 @@ fn read_vertices(src: &mut dyn Source, element: &Element) -> Result<PointCloud, 
         .iter()
         .map(|p| slot_of(&p.name))
         .collect();
+    // A coordinate, normal or colour is one value: a list in its place has no meaning here.
+    if let Some(p) = element
+        .properties
+        .iter()
+        .zip(&slots)
+        .find(|(p, slot)| matches!(p.kind, Kind::List { .. }) && !matches!(slot, Slot::Skip))
+        .map(|(p, _)| p)
+    {
+        return Err(FormatError::Unsupported(format!(
+            "vertex property {:?} is a list; coordinates, normals and colours must be scalars",
+            p.name
+        )));
+    }
     let has = |want: fn(&Slot) -> bool| {
         let mut seen = [false; 4];
         for s in slots.iter().filter(|s| want(s)) {
@@ -364,9 +377,17 @@ fn read_vertices(src: &mut dyn Source, element: &Element) -> Result<PointCloud, 
     Ok(cloud)
 }
 
-/// Parse a PLY file's bytes.
+/// Parse a PLY file's bytes within the default [`ReadLimits`].
 pub fn from_bytes(bytes: &[u8]) -> Result<PointCloud, FormatError> {
+    from_bytes_within(bytes, &ReadLimits::default())
+}
+
+/// Parse a PLY file's bytes; a vertex count above `limits` is an error.
+pub fn from_bytes_within(bytes: &[u8], limits: &ReadLimits) -> Result<PointCloud, FormatError> {
     let header = parse_header(bytes)?;
+    if let Some(vertex) = header.elements.iter().find(|e| e.name == "vertex") {
+        ReadLimits::check("vertices", vertex.count as u128, limits.max_points)?;
+    }
     let data = &bytes[header.data_start..];
     let text;
     let mut ascii;
@@ -773,6 +794,55 @@ mod tests {
         let text = "ply\nformat binary_little_endian 1.0\nelement vertex 4000000000000\n\
                     property float x\nproperty float y\nproperty float z\nend_header\n";
         let err = from_bytes(text.as_bytes()).unwrap_err();
+        assert!(matches!(err, FormatError::Limit(_)), "{err}");
+        assert!(err.to_string().contains("4000000000000 vertices"), "{err}");
+        // Within the limit, the count is still checked against the bytes present.
+        let text = text.replace("4000000000000", "16000000");
+        let err = from_bytes(text.as_bytes()).unwrap_err();
         assert!(matches!(err, FormatError::Truncated(_)), "{err}");
+        let tight = ReadLimits {
+            max_points: 1,
+            ..ReadLimits::default()
+        };
+        let bytes = to_bytes(&sample(), Encoding::Ascii).unwrap();
+        assert!(from_bytes(&bytes).is_ok());
+        let err = from_bytes_within(&bytes, &tight).unwrap_err();
+        assert!(matches!(err, FormatError::Limit(_)), "{err}");
+    }
+
+    #[test]
+    fn a_list_in_place_of_a_coordinate_is_an_error() {
+        for (property, name) in [
+            (
+                "property list uchar float x\nproperty float y\nproperty float z",
+                "\"x\"",
+            ),
+            (
+                "property float x\nproperty float y\nproperty float z\nproperty list uchar float nx\n\
+              property float ny\nproperty float nz",
+                "\"nx\"",
+            ),
+            (
+                "property float x\nproperty float y\nproperty float z\nproperty list uchar uchar red\n\
+              property uchar green\nproperty uchar blue",
+                "\"red\"",
+            ),
+        ] {
+            let text = format!(
+                "ply\nformat ascii 1.0\nelement vertex 1\n{property}\nend_header\n\
+                 1 2 3 4 5 6 7 8 9 10\n"
+            );
+            let err = from_bytes(text.as_bytes()).unwrap_err();
+            assert!(matches!(err, FormatError::Unsupported(_)), "{err}");
+            assert!(err.to_string().contains(name), "{err}");
+            assert!(err.to_string().contains("is a list"), "{err}");
+        }
+        // A list under another name is skipped as before.
+        let text = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
+                    property float z\nproperty list uchar int extra\nend_header\n1 2 3 2 7 8\n";
+        assert_eq!(
+            from_bytes(text.as_bytes()).unwrap().points,
+            vec![Vec3::new(1.0, 2.0, 3.0)]
+        );
     }
 }

@@ -149,18 +149,49 @@ pub struct IcpResult {
 }
 
 /// Nearest-neighbour search over a fixed point set (kiddo's immutable k-d tree).
+///
+/// The tree holds each distinct position once, with the number of points there: a k-d tree
+/// cannot split coincident points, and a query among 10^5 of them would visit every one
+/// (quadratic work over a degenerate cloud). Without coincident points the tree holds the
+/// points themselves, in their order, and every answer is the same as a tree over all of them.
 pub struct NearestSearch {
     tree: ImmutableKdTree<f64, 3>,
     points: Vec<Point3<f64>>,
+    /// Per tree item: its first point's index and how many points lie at its position.
+    items: Vec<(usize, usize)>,
+    /// Per point: its tree item.
+    item_of: Vec<usize>,
 }
 
 impl NearestSearch {
     /// `points` must be finite.
     pub fn new(points: Vec<Point3<f64>>) -> Self {
-        let coords: Vec<[f64; 3]> = points.iter().map(|p| [p.x, p.y, p.z]).collect();
+        let mut items: Vec<(usize, usize)> = Vec::new();
+        let mut item_of = Vec::with_capacity(points.len());
+        // Keyed by the coordinates' bits (+0.0 turns -0.0 into 0.0, the same position).
+        let mut index = rustc_hash::FxHashMap::default();
+        index.reserve(points.len());
+        for (i, p) in points.iter().enumerate() {
+            let key = [p.x, p.y, p.z].map(|c| (c + 0.0).to_bits());
+            let item = *index.entry(key).or_insert_with(|| {
+                items.push((i, 0));
+                items.len() - 1
+            });
+            items[item].1 += 1;
+            item_of.push(item);
+        }
+        let coords: Vec<[f64; 3]> = items
+            .iter()
+            .map(|&(i, _)| [points[i].x, points[i].y, points[i].z])
+            .collect();
         // Construction only fails when the item index overflows u32 (over 4e9 points).
         let tree = ImmutableKdTree::new_from_slice(&coords).expect("fewer than 2^32 points");
-        Self { tree, points }
+        Self {
+            tree,
+            points,
+            items,
+            item_of,
+        }
     }
 
     pub fn points(&self) -> &[Point3<f64>] {
@@ -174,30 +205,54 @@ impl NearestSearch {
             .query(&[q.x, q.y, q.z])
             .nearest_one::<SquaredEuclidean<f64>>()
             .execute();
-        (nn.item as usize, nn.distance)
+        (self.items[nn.item as usize].0, nn.distance)
     }
 
-    /// Indices of the `k` nearest points.
+    /// Indices of the `k` nearest points (coincident points as one index, repeated).
     pub fn nearest_k(&self, q: &Point3<f64>, k: NonZeroUsize) -> Vec<usize> {
-        self.tree
+        let mut out = Vec::with_capacity(k.get());
+        // k distinct positions hold at least k points.
+        for r in self
+            .tree
             .query(&[q.x, q.y, q.z])
             .nearest_n::<SquaredEuclidean<f64>>(k)
             .execute()
-            .into_iter()
-            .map(|r| r.item as usize)
-            .collect()
+        {
+            let (first, count) = self.items[r.item as usize];
+            let take = count.min(k.get() - out.len());
+            out.extend(std::iter::repeat_n(first, take));
+            if out.len() == k.get() {
+                break;
+            }
+        }
+        out
+    }
+
+    /// How many points lie within squared distance `radius2` of `q`, counted up to at least
+    /// `at_least` (the count may stop once it reaches it).
+    pub fn count_within(&self, q: &Point3<f64>, radius2: f64, at_least: NonZeroUsize) -> usize {
+        // The `at_least` nearest positions hold every point within the radius, or enough.
+        self.tree
+            .query(&[q.x, q.y, q.z])
+            .nearest_n::<SquaredEuclidean<f64>>(at_least)
+            .execute()
+            .iter()
+            .filter(|r| r.distance <= radius2)
+            .map(|r| self.items[r.item as usize].1)
+            .sum()
     }
 }
 
 /// Normals of `search`'s points from the PCA of their `k` nearest neighbours (zero where the
 /// neighbourhood is degenerate, which excludes the point from point-to-plane updates).
+/// Coincident points share one neighbourhood, computed once.
 fn estimate_normals(search: &NearestSearch, k: usize) -> Vec<Vector3<f64>> {
     let k = NonZeroUsize::new(k.min(search.points.len()).max(1)).unwrap_or(NonZeroUsize::MIN);
-    search
-        .points
+    let per_item: Vec<Vector3<f64>> = search
+        .items
         .iter()
-        .map(|p| {
-            let idx = search.nearest_k(p, k);
+        .map(|&(first, _)| {
+            let idx = search.nearest_k(&search.points[first], k);
             if idx.len() < 3 {
                 return Vector3::zeros();
             }
@@ -224,7 +279,8 @@ fn estimate_normals(search: &NearestSearch, k: usize) -> Vec<Vector3<f64>> {
                 _ => Vector3::zeros(),
             }
         })
-        .collect()
+        .collect();
+    search.item_of.iter().map(|&u| per_item[u]).collect()
 }
 
 /// Kabsch/Umeyama: the rigid transform minimising `sum |T src_i - dst_i|^2`.

@@ -10,12 +10,13 @@
 //!
 //! Each point within `reach_m` of the HIP (the shells' outer radius: nothing farther reaches
 //! the fits) is kept when at least `min_neighbours` other points lie within `radius_m`
-//! (kiddo k-d tree over the points within `reach_m + radius_m`). Points farther out pass
-//! unchanged. The test depends only on the point set, not its order, so the shells' sums stay
-//! bit for bit independent of the point order.
+//! ([`NearestSearch`] over the points within `reach_m + radius_m`; it holds coincident points
+//! once with their count, so a degenerate cloud of 10^5 identical points takes linear time).
+//! Points farther out pass unchanged. The test depends only on the point set, not its order,
+//! so the shells' sums stay bit for bit independent of the point order.
 
+use super::memory::NearestSearch;
 use glam::Vec3;
-use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 use std::num::NonZeroUsize;
@@ -84,17 +85,16 @@ pub fn remove_isolated(
             (c, (Point3::from(c) - hip).norm())
         })
         .collect();
-    let near: Vec<[f64; 3]> = located
+    let near: Vec<Point3<f64>> = located
         .iter()
         .filter(|(_, d)| *d <= reach_m + config.radius_m)
-        .map(|(c, _)| *c)
+        .map(|(c, _)| Point3::from(*c))
         .collect();
     if near.is_empty() {
         return (finite, 0);
     }
-    // Construction only fails when the item index overflows u32 (over 4e9 points).
-    let tree = ImmutableKdTree::new_from_slice(&near).expect("fewer than 2^32 points");
-    // The point itself is its own nearest (distance 0): k = neighbours + 1.
+    let search = NearestSearch::new(near);
+    // The point itself is within the radius (distance 0): it needs neighbours + 1 points.
     let k = NonZeroUsize::new(config.min_neighbours as usize + 1).expect("k >= 2");
     let radius2 = config.radius_m * config.radius_m;
     let before = finite.len();
@@ -102,14 +102,7 @@ pub fn remove_isolated(
         .into_iter()
         .zip(&located)
         .filter(|(_, (c, d))| {
-            if *d > reach_m {
-                return true;
-            }
-            let found = tree
-                .query(c)
-                .nearest_n::<SquaredEuclidean<f64>>(k)
-                .execute();
-            found.len() == k.get() && found.iter().all(|n| n.distance <= radius2)
+            *d > reach_m || search.count_within(&Point3::from(*c), radius2, k) >= k.get()
         })
         .map(|(p, _)| p)
         .collect();

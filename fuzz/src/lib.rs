@@ -1,0 +1,201 @@
+//! The fuzz targets: one function per parser or decoder of hapcloud's file and wire inputs,
+//! each taking arbitrary bytes and calling the library's public entry points the way the
+//! command line and the node do. A target must return for every input; a panic, an abort
+//! (allocation failure) or a hang is a bug. The AFL++ binaries in `fuzz_targets/` call these,
+//! and the main crate's `tests/fuzz_corpus.rs` replays the committed corpus and crash files
+//! through the very same functions (it includes this file as a module), so a regression
+//! fails `cargo test` without a fuzzer installed. No part of the paper is implemented here.
+
+use hapcloud::io::{can, depth, pcd, ply};
+use hapcloud::node::record::{self, RecordingMeta};
+use hapcloud::node::robot_state::RobotMeta;
+use hapcloud::node::wire::{self, RecordKind};
+use hapcloud::node::{NodeConfig, wire::Decoder};
+use hapcloud::perception::pipeline::SurfaceConfig;
+use hapcloud::scene::Scene;
+use socketcan::{CanFrame, EmbeddedFrame, ExtendedId, StandardId};
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+/// A fuzz target: takes any bytes, must return.
+pub type Target = fn(&[u8]);
+
+/// Every target by name (the directory names under `fuzz/corpus/` and `fuzz/regressions/`).
+pub const TARGETS: [(&str, Target); 9] = [
+    ("pcd", pcd),
+    ("ply", ply),
+    ("depth_png", depth_png),
+    ("depth_tiff", depth_tiff),
+    ("candump", candump),
+    ("dbc", dbc),
+    ("scene_toml", scene_toml),
+    ("config_toml", config_toml),
+    ("recording", recording),
+];
+
+/// PCD (`ascii`, `binary`, `binary_compressed`), as `hapcloud convert` reads it.
+pub fn pcd(data: &[u8]) {
+    let _ = pcd::from_bytes(data);
+}
+
+/// PLY (`ascii`, both binary byte orders), as `hapcloud convert` reads it.
+pub fn ply(data: &[u8]) {
+    let _ = ply::from_bytes(data);
+}
+
+/// A 16-bit depth PNG.
+pub fn depth_png(data: &[u8]) {
+    let _ = depth::png_from_bytes(data, 0.001);
+}
+
+/// A 16-bit depth TIFF.
+pub fn depth_tiff(data: &[u8]) {
+    let _ = depth::tiff_from_bytes(data, 0.001);
+}
+
+/// The built-in protocol description, parsed once.
+fn builtin_dbc() -> &'static can_dbc::Dbc {
+    static DBC: OnceLock<can_dbc::Dbc> = OnceLock::new();
+    DBC.get_or_init(|| can::parse_dbc(can::DBC_TEXT).expect("the built-in DBC parses"))
+}
+
+/// A `candump -L` log, as `hapcloud can-decode` reads it: every frame decoded with the
+/// built-in DBC and fed to the typed protocol decoder.
+pub fn candump(data: &[u8]) {
+    let Ok(frames) = can::read_candump(data) else {
+        return;
+    };
+    let dbc = builtin_dbc();
+    let mut decoder = can::Decoder::new();
+    for entry in &frames {
+        let _ = can::decode_with_dbc(dbc, &entry.frame);
+        let _ = decoder.push(&entry.frame);
+    }
+}
+
+/// A DBC text, as `hapcloud can-decode --dbc` reads it; every message it defines is decoded
+/// from frames of all-ones and alternating bits, of its declared length and of 8 bytes.
+pub fn dbc(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    let Ok(dbc) = can::parse_dbc(text) else {
+        return;
+    };
+    for message in &dbc.messages {
+        let id: socketcan::Id = match message.id {
+            can_dbc::MessageId::Standard(id) => match StandardId::new(id) {
+                Some(id) => id.into(),
+                None => continue,
+            },
+            can_dbc::MessageId::Extended(id) => match ExtendedId::new(id) {
+                Some(id) => id.into(),
+                None => continue,
+            },
+        };
+        let len = usize::try_from(message.size).unwrap_or(8).min(8);
+        for fill in [0xFFu8, 0x55] {
+            for data in [&[fill; 8][..len], &[fill; 8][..]] {
+                if let Some(frame) = CanFrame::new(id, data) {
+                    let _ = can::decode_with_dbc(&dbc, &frame);
+                }
+            }
+        }
+    }
+}
+
+/// A scene file (`hapcloud sim/run --scene FILE`): TOML parsed and validated.
+pub fn scene_toml(data: &[u8]) {
+    if let Ok(text) = std::str::from_utf8(data) {
+        let _ = Scene::from_toml_str(text, "fuzz");
+    }
+}
+
+/// The node's and the surface estimator's TOML configurations (`hapcloud run --config`,
+/// `hapcloud surface --config`), each parsed and validated.
+pub fn config_toml(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    if let Ok(config) = toml::from_str::<NodeConfig>(text) {
+        let _ = config.validate();
+    }
+    if let Ok(config) = toml::from_str::<SurfaceConfig>(text) {
+        let _ = config.validate();
+    }
+}
+
+/// Separates the four record files of a recording in one fuzz input.
+pub const RECORDING_SEPARATOR: &[u8] = b"\n--hcr--\n";
+
+/// The four record files of a recording directory, in the order a fuzz input holds them.
+const RECORD_FILES: [&str; 4] = [
+    "frames.hcr",
+    "frame_joints.hcr",
+    "estimates.hcr",
+    "ticks.hcr",
+];
+
+/// A recording directory of this process (in the system's temporary directory) with a valid
+/// `meta.json`, made once; the `recording` target rewrites its record files.
+pub fn recording_dir() -> &'static PathBuf {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("hapcloud-fuzz-{}", std::process::id()));
+        let meta = RecordingMeta {
+            version: record::RECORDING_VERSION,
+            config: NodeConfig::default(),
+            backend: hapcloud::gpu::Backend::Cpu,
+            robot: RobotMeta {
+                world_from_base: nalgebra::Isometry3::identity(),
+                joint_states: true,
+            },
+        };
+        let (frames, ticks) = record::create(&dir, &meta).expect("temporary recording");
+        frames.finish().expect("temporary recording");
+        ticks.finish().expect("temporary recording");
+        dir
+    })
+}
+
+/// A recording: the input's parts (split at [`RECORDING_SEPARATOR`]) become `frames.hcr`,
+/// `frame_joints.hcr`, `estimates.hcr` and `ticks.hcr`, read back with
+/// `record::read` (as `hapcloud replay` does); the whole input also goes through the strict
+/// record reader and the streaming decoder of the network source, which decodes its frames.
+pub fn recording(data: &[u8]) {
+    let _ = wire::read_all(data);
+    let mut decoder = Decoder::new();
+    for chunk in data.chunks(4096) {
+        decoder.feed(chunk);
+        while let Some(r) = decoder.next_record() {
+            if r.kind == RecordKind::Frame {
+                let _ = wire::decode_frame(&r.payload);
+            }
+        }
+    }
+    let dir = recording_dir();
+    let mut parts = split(data, RECORDING_SEPARATOR);
+    for name in RECORD_FILES {
+        let part = parts.next().unwrap_or_default();
+        std::fs::write(dir.join(name), part).expect("temporary recording");
+    }
+    let _ = record::read(dir);
+}
+
+/// `data` split at every `sep`.
+fn split<'a>(data: &'a [u8], sep: &'a [u8]) -> impl Iterator<Item = &'a [u8]> + 'a {
+    let mut rest = Some(data);
+    std::iter::from_fn(move || {
+        let d = rest?;
+        match d.windows(sep.len()).position(|w| w == sep) {
+            Some(i) => {
+                rest = Some(&d[i + sep.len()..]);
+                Some(&d[..i])
+            }
+            None => {
+                rest = None;
+                Some(d)
+            }
+        }
+    })
+}

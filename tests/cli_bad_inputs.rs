@@ -1,0 +1,131 @@
+//! Bad inputs a new user may hand the command line, against the real binary: each ends in a
+//! clear error naming the problem (no abort, no panic, no gigabyte allocation), and
+//! `can-decode` piped into a reader that stops early ends quietly.
+
+mod common;
+
+use common::{TempDir, hapcloud, run_err};
+use hapcloud::camera::DepthImage;
+use hapcloud::io::can::{CanConstraint, CanValue, CandumpWriter};
+use hapcloud::io::depth;
+use std::io::{BufRead, BufReader};
+use std::process::Stdio;
+
+#[test]
+fn convert_refuses_lying_cloud_headers() {
+    let dir = TempDir::new("cli_bad_clouds");
+    // 3000 fields of 2^20 values each: the text cannot hold them.
+    let names: Vec<String> = (0..3000).map(|i| format!("f{i}")).collect();
+    let pcd = format!(
+        "FIELDS x y z {}\nSIZE 4 4 4 {}\nTYPE F F F {}\nCOUNT 1 1 1 {}\nWIDTH 1\nDATA ascii\n1 2 3\n",
+        names.join(" "),
+        vec!["4"; 3000].join(" "),
+        vec!["F"; 3000].join(" "),
+        vec!["1048576"; 3000].join(" "),
+    );
+    let path = dir.path.join("fields.pcd");
+    std::fs::write(&path, pcd).unwrap();
+    let out = dir.path.join("out.pcd");
+    let err = run_err(["convert".as_ref(), path.as_os_str(), out.as_os_str()]);
+    assert!(err.contains("fields.pcd: truncated"), "{err}");
+    assert!(err.contains("values need at least"), "{err}");
+    // A PLY whose x is a list.
+    let ply = "ply\nformat ascii 1.0\nelement vertex 1\nproperty list uchar float x\n\
+               property float y\nproperty float z\nend_header\n2 1 2 3 4\n";
+    let path = dir.path.join("list.ply");
+    std::fs::write(&path, ply).unwrap();
+    let err = run_err(["convert".as_ref(), path.as_os_str(), out.as_os_str()]);
+    assert!(err.contains("vertex property \"x\" is a list"), "{err}");
+}
+
+#[test]
+fn convert_refuses_bad_depth_inputs() {
+    let dir = TempDir::new("cli_bad_depth");
+    let image = DepthImage {
+        width: 4,
+        height: 3,
+        depth_scale_m: 0.001,
+        data: vec![1000; 12],
+    };
+    let png = dir.path.join("depth.png");
+    depth::write(&png, &image).unwrap();
+    let out = dir.path.join("out.pcd");
+    let err = run_err([
+        "convert".as_ref(),
+        png.as_os_str(),
+        out.as_os_str(),
+        "--intrinsics=525,525,2,1.5".as_ref(),
+        "--depth-scale-m=1e300".as_ref(),
+    ]);
+    assert!(err.contains("depth scale 1e300 m per unit"), "{err}");
+    // The same image declaring 8192 x 8192 pixels (a 151 kB file of this size took 1.6 GB).
+    let mut bytes = std::fs::read(&png).unwrap();
+    bytes[16..20].copy_from_slice(&8192u32.to_be_bytes());
+    bytes[20..24].copy_from_slice(&8192u32.to_be_bytes());
+    let crc = crc32fast::hash(&bytes[12..29]);
+    bytes[29..33].copy_from_slice(&crc.to_be_bytes());
+    let big = dir.path.join("big.png");
+    std::fs::write(&big, bytes).unwrap();
+    let err = run_err([
+        "convert".as_ref(),
+        big.as_os_str(),
+        out.as_os_str(),
+        "--intrinsics=525,525,4096,4096".as_ref(),
+    ]);
+    assert!(err.contains("over a read limit"), "{err}");
+    assert!(err.contains("67108864 pixels"), "{err}");
+}
+
+#[test]
+fn can_decode_into_a_closed_pipe_ends_quietly() {
+    let dir = TempDir::new("cli_can_pipe");
+    let path = dir.path.join("long.log");
+    let mut log = CandumpWriter::new(std::fs::File::create(&path).unwrap(), "can0");
+    let value = CanValue::Constraint(CanConstraint {
+        d_proj_m: 0.0421,
+        alpha_p_m: -0.0032,
+        alpha_v_m_s: 0.25,
+        position_active: true,
+        velocity_active: true,
+        force_active: false,
+        surface_valid: true,
+        counter: 7,
+    });
+    // Far more output than a pipe buffers (each line ~90 bytes).
+    for i in 0..20_000 {
+        log.write_value(1_700_000_000.0 + f64::from(i) * 1e-3, &value)
+            .unwrap();
+    }
+    log.flush().unwrap();
+    let mut child = hapcloud()
+        .args(["can-decode".as_ref(), path.as_os_str()])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Read one line, like `| head -1`, then close the pipe.
+    let mut first = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut first)
+        .unwrap();
+    assert!(first.contains("HapticConstraint"), "{first}");
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{:?}: {stderr}", out.status);
+    assert!(stderr.is_empty(), "{stderr}");
+    // A bad line: the frames before it are printed, then an error names the line.
+    let mut text = std::fs::read_to_string(&path).unwrap();
+    text.push_str("(1700000099.000000) can0 not-a-frame\n");
+    std::fs::write(&path, text).unwrap();
+    let out = hapcloud()
+        .args(["can-decode".as_ref(), path.as_os_str()])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert_eq!(String::from_utf8_lossy(&out.stdout).lines().count(), 20_000);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("long.log: candump log: line 20001"),
+        "{stderr}"
+    );
+}
