@@ -6,11 +6,12 @@
 //! through the very same functions (it includes this file as a module), so a regression
 //! fails `cargo test` without a fuzzer installed. No part of the paper is implemented here.
 
+use hapcloud::io::hcap::Decoder;
+use hapcloud::io::hcap::{self as wire, RecordKind};
 use hapcloud::io::{can, depth, pcd, ply};
+use hapcloud::node::NodeConfig;
 use hapcloud::node::record::{self, RecordingMeta};
 use hapcloud::node::robot_state::RobotMeta;
-use hapcloud::node::wire::{self, RecordKind};
-use hapcloud::node::{NodeConfig, wire::Decoder};
 use hapcloud::perception::pipeline::SurfaceConfig;
 use hapcloud::scene::Scene;
 use socketcan::{CanFrame, EmbeddedFrame, ExtendedId, StandardId};

@@ -60,6 +60,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             cx,
             cy,
         };
+        depth::check_intrinsics(&intrinsics).context("--intrinsics")?;
         image
             .deproject(&intrinsics)
             .context("depth image and intrinsics disagree on the size")?

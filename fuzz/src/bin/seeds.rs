@@ -14,7 +14,7 @@ use hapcloud::camera::DepthImage;
 use hapcloud::cloud::PointCloud;
 use hapcloud::io::{Encoding, can, depth, pcd, ply};
 use hapcloud::node::NodeConfig;
-use hapcloud::node::wire::{self, RecordKind};
+use hapcloud::io::hcap::{self as wire, RecordKind};
 use hapcloud::perception::pipeline::SurfaceConfig;
 use hapcloud::scene::builtin;
 use hapcloud_fuzz::RECORDING_SEPARATOR;
