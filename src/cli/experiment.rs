@@ -21,7 +21,8 @@ use anyhow::{Context, Result, anyhow, bail};
 use hapcloud::lab::closed_loop::{
     self, EXPERIMENTS, RISE_SPEEDS_MPS, Run, RunMetrics, SWEEP_SPEEDS_MPS, SimConfig, SweepRow,
 };
-use hapcloud::lab::scene_loop::{self, SceneLoopOptions, SceneRun};
+use hapcloud::lab::safe_speed;
+use hapcloud::lab::scene_loop::{self, SceneLoopOptions, SceneRun, SurfaceSource};
 use hapcloud::robot::RobotModel;
 use hapcloud::scene::{Scene, builtin};
 use plotters::chart::{SeriesAnno, SeriesLabelStyle};
@@ -44,6 +45,15 @@ pub struct ExperimentArgs {
     /// List the experiments and exit.
     #[arg(long)]
     list: bool,
+    /// safe-speed: the scene (built-in name or scene file) whose moving body is swept.
+    #[arg(long)]
+    scene: Option<String>,
+    /// safe-speed: the speeds of the moving body, m/s.
+    #[arg(long, value_delimiter = ',', default_value = "0.5,1,1.5,2,2.5")]
+    speeds: Vec<f64>,
+    /// safe-speed: the cameras' depth rate (the D435's 30, 60 or 90 Hz at 848x480).
+    #[arg(long, default_value_t = 30.0)]
+    camera_rate_hz: f64,
 }
 
 const FONT: &str = "sans-serif";
@@ -55,7 +65,11 @@ fn register_font() -> Result<()> {
 
 pub fn run(args: ExperimentArgs) -> Result<()> {
     if args.list {
-        for name in EXPERIMENTS.iter().chain(&scene_loop::EXPERIMENTS) {
+        for name in EXPERIMENTS
+            .iter()
+            .chain(&scene_loop::EXPERIMENTS)
+            .chain(&["safe-speed"])
+        {
             let what = match *name {
                 "impacts" => "three direct impacts on a virtual horizontal plane (Fig. 11)",
                 "sliding" => "press onto the plane and slide along it (Fig. 11)",
@@ -67,6 +81,9 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 }
                 "perception-rising" => {
                     "rising_surface_realistic at 0.5/1.0/1.5 m/s through cameras, perception and fusion"
+                }
+                "safe-speed" => {
+                    "--scene's moving body at --speeds through perception and on the exact surface"
                 }
                 _ => "forehead_impacts_realistic through cameras, perception and fusion",
             };
@@ -176,6 +193,62 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             }
             extra = serde_json::json!({ "perception": scene_metrics });
         }
+        "safe-speed" => {
+            let scene_name = args
+                .scene
+                .context("safe-speed needs --scene NAME|FILE (a scene with a constant_velocity body)")?;
+            if args.speeds.is_empty()
+                || !args.speeds.iter().all(|v| v.is_finite() && *v > 0.0 && *v <= 20.0)
+            {
+                bail!("--speeds must be finite and in (0, 20] m/s, got {:?}", args.speeds);
+            }
+            let scene = Scene::from_name_or_path(&scene_name)?;
+            let sweep = safe_speed::sweep(
+                &scene,
+                &args.speeds,
+                args.camera_rate_hz,
+                &SceneLoopOptions::default(),
+            )
+            .with_context(|| format!("safe-speed sweep of {}", scene.origin))?;
+            let stem = format!("safe-speed-{}-{}hz", sweep.scene, sweep.camera_rate_hz);
+            write_rows(&out.join(format!("{stem}.csv")), &sweep.rows)?;
+            let series = [SurfaceSource::Perception, SurfaceSource::Exact].map(|source| {
+                let points = sweep
+                    .rows
+                    .iter()
+                    .filter(|r| r.source == source)
+                    .map(|r| (r.speed_mps, r.min_margin_m, r.max_penetration_m))
+                    .collect();
+                match source {
+                    SurfaceSource::Perception => ("perception", RED, points),
+                    SurfaceSource::Exact => ("exact surface", BLUE, points),
+                }
+            });
+            plot_speeds(
+                &out.join(format!("{stem}.png")),
+                &format!("{} at {} Hz", sweep.scene, sweep.camera_rate_hz),
+                &series,
+                model.hip_radius_m(),
+            )?;
+            for r in &sweep.rows {
+                metrics.push((
+                    format!("{:?}", r.source).to_lowercase(),
+                    RunMetrics {
+                        name: format!("{} {} m/s", sweep.scene, r.speed_mps),
+                        max_penetration_m: r.max_penetration_m,
+                        min_margin_m: r.min_margin_m,
+                        fallback_ticks: r.fallback_ticks,
+                        ticks: 0,
+                    },
+                ));
+            }
+            extra = serde_json::json!({
+                "safe_speed_mps": sweep.safe_speed_mps,
+                "exact_safe_speed_mps": sweep.exact_safe_speed_mps,
+                "camera_rate_hz": sweep.camera_rate_hz,
+                "sweep": sweep.rows,
+            });
+        }
         other => bail!(closed_loop::SimError::UnknownExperiment(other.into())),
     }
     let max_pen = metrics
@@ -213,7 +286,12 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 m.name, mode, m.max_penetration_m, m.min_margin_m, m.fallback_ticks
             );
         }
-        if let Some(safe) = extra.get("safe_speed_mps") {
+        if let (Some(safe), Some(exact)) = (
+            extra.get("safe_speed_mps"),
+            extra.get("exact_safe_speed_mps"),
+        ) {
+            println!("safe speed: perception {safe} m/s, exact surface {exact} m/s");
+        } else if let Some(safe) = extra.get("safe_speed_mps") {
             println!(
                 "safe speed (HIP centre stays outside): paper {} m/s, surface_velocity {} m/s",
                 safe["paper"], safe["surface_velocity"]
@@ -255,22 +333,40 @@ fn scene_stem(scene: &Scene) -> String {
 
 /// Safe-speed sweep: worst margin and penetration per speed, both modes.
 fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
+    let series = [(false, RED, "paper"), (true, BLUE, "surface velocity fed")].map(
+        |(feed, color, mode)| {
+            let points = rows
+                .iter()
+                .filter(|r| r.surface_velocity_feed == feed)
+                .map(|r| (r.speed_mps, r.min_margin_m, r.max_penetration_m))
+                .collect();
+            (mode, color, points)
+        },
+    );
+    plot_speeds(path, "rising surface", &series, r_hip)
+}
+
+/// Points of one curve over speed: (speed m/s, min margin m, max penetration m).
+type SpeedSeries = (&'static str, RGBColor, Vec<(f64, f64, f64)>);
+
+/// Min margin of the HIP centre and max penetration of the HIP sphere over speed, one curve
+/// per series.
+fn plot_speeds(path: &Path, title: &str, series: &[SpeedSeries], r_hip: f64) -> Result<()> {
     let root = canvas(path, (1100, 800))?;
     let panels = root.split_evenly((2, 1));
-    let v_max = rows.iter().map(|r| r.speed_mps).fold(0.0, f64::max) + 0.1;
-    type Metric = (&'static str, fn(&SweepRow) -> f64);
+    let all = || series.iter().flat_map(|s| s.2.iter());
+    let v_max = all().map(|p| p.0).fold(0.0, f64::max) + 0.1;
+    type Metric = (&'static str, fn(&(f64, f64, f64)) -> f64);
     let metrics: [Metric; 2] = [
-        ("min margin of the HIP centre [m]", |r| r.min_margin_m),
-        ("max penetration of the HIP sphere [m]", |r| {
-            r.max_penetration_m
-        }),
+        ("min margin of the HIP centre [m]", |p| p.1),
+        ("max penetration of the HIP sphere [m]", |p| p.2),
     ];
     for (i, (label, get)) in metrics.iter().enumerate() {
-        let (lo, hi) = range(rows.iter().map(get).chain([0.0, r_hip]));
+        let (lo, hi) = range(all().map(get).chain([0.0, r_hip]));
         let mut chart = panel(
             &panels[i],
             PanelStyle::WIDE,
-            &format!("rising surface: {label}"),
+            &format!("{title}: {label}"),
             (0.0..v_max, "surface speed [m/s]"),
             (lo..hi, label),
         )?;
@@ -280,14 +376,10 @@ fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
         hline(&mut chart, v_max, r_hip, GREEN)?
             .label("r_HIP")
             .legend(swatch(GREEN));
-        for (feed, color, mode) in [(false, RED, "paper"), (true, BLUE, "surface velocity fed")] {
-            let pts: Vec<(f64, f64)> = rows
-                .iter()
-                .filter(|r| r.surface_velocity_feed == feed)
-                .map(|r| (r.speed_mps, get(r)))
-                .collect();
+        for (name, color, points) in series {
+            let pts: Vec<(f64, f64)> = points.iter().map(|p| (p.0, get(p))).collect();
             chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))?;
-            curve(&mut chart, pts, color, mode)?;
+            curve(&mut chart, pts, *color, *name)?;
         }
         legend_style(&mut chart, 15).draw()?;
     }

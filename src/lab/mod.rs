@@ -6,9 +6,11 @@
 //! - [`study`]: what accuracy costs in time, knob by knob (`hapcloud study`).
 //! - [`closed_loop`]: the paper's closed-loop experiments (section VI) on a simulated plant.
 //! - [`scene_loop`]: the same with perception in the loop on a simulated scene.
+//! - [`safe_speed`]: the highest safe speed of a scene, perception against the exact surface.
 
 pub mod closed_loop;
 pub mod evaluation;
+pub mod safe_speed;
 pub mod scene_loop;
 pub mod study;
 

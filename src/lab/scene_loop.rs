@@ -37,7 +37,8 @@
 //! and the CPU reference stages run by default (`backend`), which the GPU stages match.
 
 use crate::control::ControlStatus;
-use crate::fusion::{FusionConfig, FusionStatus};
+use crate::fusion::{FusedSurface, FusionConfig, FusionStatus};
+use crate::haptics::known_surface;
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::lab::closed_loop::{HandReference, Plant, SimConfig, SimError};
@@ -48,7 +49,7 @@ use crate::perception::frontend::FrontendConfig;
 use crate::perception::pipeline::SurfaceConfig;
 use crate::robot::JointVector;
 use crate::scene::{Scene, SceneError, Simulator, truth};
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// The perception-in-the-loop experiments of `hapcloud experiment`.
@@ -64,6 +65,20 @@ pub struct SceneLoopOptions {
     pub surface: SurfaceConfig,
     /// Where the perception stages run (CPU reference by default).
     pub backend: Backend,
+    /// Where the constraints' surface comes from.
+    pub surface_source: SurfaceSource,
+}
+
+/// Where the constraints' surface comes from in a closed-loop scene run.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SurfaceSource {
+    /// Cameras, the per-camera chain and fusion, as the node runs them.
+    #[default]
+    Perception,
+    /// The exact nearest patient surface (ground truth) and its velocity: the ceiling that
+    /// perception is measured against.
+    Exact,
 }
 
 impl Default for SceneLoopOptions {
@@ -74,6 +89,7 @@ impl Default for SceneLoopOptions {
             frontend: FrontendConfig::default(),
             surface: SurfaceConfig::default(),
             backend: Backend::Cpu,
+            surface_source: SurfaceSource::Perception,
         }
     }
 }
@@ -148,6 +164,9 @@ pub struct SceneRunMetrics {
     pub frames: usize,
     /// Frames whose estimate was valid.
     pub valid_estimates: usize,
+    /// Margin of the HIP centre to the true surface when the first valid estimate came in,
+    /// metres (None: no valid estimate, or the exact surface).
+    pub first_valid_margin_m: Option<f64>,
     /// Ticks with a tracking fused surface.
     pub tracking_ticks: usize,
     /// Ticks with active haptic constraints.
@@ -229,6 +248,7 @@ pub fn simulate_scene(
         min_margin_m: f64::INFINITY,
         frames: 0,
         valid_estimates: 0,
+        first_valid_margin_m: None,
         tracking_ticks: 0,
         active_ticks: 0,
         max_active_d_proj_error_m: 0.0,
@@ -243,7 +263,11 @@ pub fn simulate_scene(
         let t = k as f64 * period;
         history.push(*plant.q());
         let mut frames = 0;
-        for timing in sim.arrivals(t - period, t) {
+        let arrivals = match options.surface_source {
+            SurfaceSource::Perception => sim.arrivals(t - period, t),
+            SurfaceSource::Exact => Vec::new(),
+        };
+        for timing in arrivals {
             let q_capture = joints_at(&history, timing.capture_s);
             let shot = sim.frame_with_joints(&timing, &q_capture);
             // The crop grows the primitives by its own range-dependent margin, as in the node.
@@ -256,21 +280,33 @@ pub fn simulate_scene(
                     .collect(),
             };
             let record = haptic_loop.push_frame(&shot.frame, &scene)?;
-            metrics.valid_estimates += usize::from(record.estimate().valid);
+            if record.estimate().valid {
+                metrics.valid_estimates += 1;
+                if metrics.first_valid_margin_m.is_none() {
+                    metrics.first_valid_margin_m = samples
+                        .last()
+                        .map(|s: &SceneSample| s.margin_m);
+                }
+            }
             frames += 1;
         }
         metrics.frames += frames;
         let hip = model.hip_kinematics(plant.q(), plant.qd());
-        let tick = haptic_loop.tick(
-            t,
-            &RobotInput {
-                joints: JointState {
-                    q_rad: *plant.q(),
-                    qd_rad_per_s: *plant.qd(),
-                },
-                interaction_force_n: plant.hand_force_n(),
+        let robot = RobotInput {
+            joints: JointState {
+                q_rad: *plant.q(),
+                qd_rad_per_s: *plant.qd(),
             },
-        );
+            interaction_force_n: plant.hand_force_n(),
+        };
+        let tick = match options.surface_source {
+            SurfaceSource::Perception => haptic_loop.tick(t, &robot),
+            SurfaceSource::Exact => {
+                let surface = exact_surface(&file.bodies, t, &hip.position_m, r_hip)
+                    .ok_or_else(|| SceneLoopError::NoBodies(scene.origin.clone()))?;
+                haptic_loop.tick_on(surface, &robot)
+            }
+        };
         let (fused, out) = (tick.fused, &tick.output);
         let truth = truth::closest(&file.bodies, t, &hip.position_m, r_hip)
             .ok_or_else(|| SceneLoopError::NoBodies(scene.origin.clone()))?;
@@ -324,6 +360,26 @@ pub fn simulate_scene(
         metrics.mean_active_d_proj_error_m = error_sum / metrics.active_ticks as f64;
     }
     Ok(SceneRun { samples, metrics })
+}
+
+/// The exact nearest patient surface to `hip_m` at `t_s` as a tracking surface, its velocity
+/// by a central difference of the closest point over [`REFERENCE_STEP_S`].
+fn exact_surface(
+    bodies: &[crate::scene::BodyConfig],
+    t_s: f64,
+    hip_m: &Point3<f64>,
+    r_hip: f64,
+) -> Option<FusedSurface> {
+    let h = REFERENCE_STEP_S;
+    let now = truth::closest(bodies, t_s, hip_m, r_hip)?;
+    let before = truth::closest(bodies, t_s - h, hip_m, r_hip)?;
+    let after = truth::closest(bodies, t_s + h, hip_m, r_hip)?;
+    Some(known_surface(
+        t_s,
+        now.closest_m,
+        Unit::new_normalize(now.normal),
+        (after.closest_m - before.closest_m) / (2.0 * h),
+    ))
 }
 
 #[cfg(test)]

@@ -223,6 +223,12 @@ impl ControlLoop {
     /// (transparent intent: gravity compensation and damping, paper Table I).
     pub fn tick(&mut self, t_s: f64, robot: &RobotInput) -> Tick {
         let fused = self.fusion.tick(t_s);
+        self.tick_on(fused, robot)
+    }
+
+    /// The constraints and the controller on a surface given from outside instead of
+    /// fusion's (a virtual wall, or the exact surface of a simulation).
+    pub fn tick_on(&self, fused: FusedSurface, robot: &RobotInput) -> Tick {
         let (surface, held) = self.constraint_surface(&fused);
         let output = self.controller.tick(&ControllerInput {
             q: robot.joints.q_rad,
@@ -330,6 +336,12 @@ impl HapticLoop {
     /// Fusion alone at `t_s`, for tools that judge the fused surface without a robot.
     pub fn fuse(&mut self, t_s: f64) -> FusedSurface {
         self.control.fuse(t_s)
+    }
+
+    /// The constraints and the controller on a surface given from outside (see
+    /// [`ControlLoop::tick_on`]).
+    pub fn tick_on(&self, surface: FusedSurface, robot: &RobotInput) -> Tick {
+        self.control.tick_on(surface, robot)
     }
 
     /// The halves, for a runtime that runs perception and control on their own threads and

@@ -1,0 +1,129 @@
+//! The safe speed of a scene with perception in the loop: the scene's moving body (the one
+//! with `constant_velocity` motion) runs at each speed along its own direction through the
+//! closed loop of [`super::scene_loop`] (cameras at the chosen rate with the scene's effects,
+//! the per-camera chain, fusion, constraints, controller, plant), and again on the exact
+//! surface, the ceiling perception is measured against. Paper section VII's limit comes from
+//! eq. 1, `v <= (r_out - r_in) / dt`.
+//!
+//! A speed is safe when the true surface never reaches the HIP centre (minimum margin > 0,
+//! i.e. the HIP sphere is entered by less than `r_HIP`) and the controller never falls back;
+//! the safe speed is the highest tested speed below which every tested speed is safe.
+
+use super::scene_loop::{SceneLoopError, SceneLoopOptions, SurfaceSource, simulate_scene};
+use crate::scene::Scene;
+use serde::Serialize;
+
+/// One run of the sweep.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SpeedRow {
+    pub speed_mps: f64,
+    pub camera_rate_hz: f64,
+    pub source: SurfaceSource,
+    /// Smallest signed distance of the HIP centre to the true surface, metres.
+    pub min_margin_m: f64,
+    /// Deepest entry of the HIP sphere into the true surface, metres.
+    pub max_penetration_m: f64,
+    /// Margin when the first valid estimate came in, metres (perception only).
+    pub first_valid_margin_m: Option<f64>,
+    pub valid_estimates: usize,
+    pub fallback_ticks: usize,
+    pub safe: bool,
+}
+
+/// A finished sweep.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SafeSpeed {
+    pub scene: String,
+    pub camera_rate_hz: f64,
+    pub rows: Vec<SpeedRow>,
+    /// Highest safe speed with perception in the loop, m/s (0: the slowest was unsafe).
+    pub safe_speed_mps: f64,
+    /// The same on the exact surface.
+    pub exact_safe_speed_mps: f64,
+}
+
+/// Runs `scene` at every speed of `speeds_mps` (ascending after sorting) with its cameras at
+/// `camera_rate_hz`, through perception and on the exact surface.
+pub fn sweep(
+    scene: &Scene,
+    speeds_mps: &[f64],
+    camera_rate_hz: f64,
+    options: &SceneLoopOptions,
+) -> Result<SafeSpeed, SceneLoopError> {
+    let mut speeds = speeds_mps.to_vec();
+    speeds.sort_by(f64::total_cmp);
+    let at_rate = scene.with_camera_rate_hz(camera_rate_hz)?;
+    let mut rows = Vec::with_capacity(2 * speeds.len());
+    for source in [SurfaceSource::Perception, SurfaceSource::Exact] {
+        for &speed in &speeds {
+            let run = simulate_scene(
+                &at_rate.with_moving_body_speed(speed)?,
+                &SceneLoopOptions {
+                    surface_source: source,
+                    ..options.clone()
+                },
+            )?;
+            let m = run.metrics;
+            rows.push(SpeedRow {
+                speed_mps: speed,
+                camera_rate_hz,
+                source,
+                min_margin_m: m.min_margin_m,
+                max_penetration_m: m.max_penetration_m,
+                first_valid_margin_m: m.first_valid_margin_m,
+                valid_estimates: m.valid_estimates,
+                fallback_ticks: m.fallback_ticks,
+                safe: m.min_margin_m > 0.0 && m.fallback_ticks == 0,
+            });
+        }
+    }
+    Ok(SafeSpeed {
+        scene: scene.file.name.clone(),
+        camera_rate_hz,
+        safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::Perception),
+        exact_safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::Exact),
+        rows,
+    })
+}
+
+/// The highest speed of `source`'s rows (ascending) below which every row is safe.
+pub fn safe_speed_mps(rows: &[SpeedRow], source: SurfaceSource) -> f64 {
+    rows.iter()
+        .filter(|r| r.source == source)
+        .take_while(|r| r.safe)
+        .map(|r| r.speed_mps)
+        .fold(0.0, f64::max)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn row(speed_mps: f64, source: SurfaceSource, safe: bool) -> SpeedRow {
+        SpeedRow {
+            speed_mps,
+            camera_rate_hz: 30.0,
+            source,
+            min_margin_m: if safe { 0.01 } else { -0.01 },
+            max_penetration_m: 0.0,
+            first_valid_margin_m: None,
+            valid_estimates: 0,
+            fallback_ticks: 0,
+            safe,
+        }
+    }
+
+    #[test]
+    fn the_safe_speed_stops_at_the_first_unsafe_speed() {
+        use SurfaceSource::{Exact, Perception};
+        let rows = [
+            row(0.5, Perception, true),
+            row(1.0, Perception, true),
+            row(1.5, Perception, false),
+            row(2.0, Perception, true),
+            row(0.5, Exact, false),
+        ];
+        assert_eq!(safe_speed_mps(&rows, Perception), 1.0);
+        assert_eq!(safe_speed_mps(&rows, Exact), 0.0);
+    }
+}
