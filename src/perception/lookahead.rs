@@ -165,6 +165,10 @@ pub fn far_field(
     })
 }
 
+/// A patch's plane: its point closest to the HIP, the normal towards the HIP, the HIP's
+/// distance from the plane and the RMS residual.
+type PatchPlane = (Vector3<f64>, Unit<Vector3<f64>>, f64, f64);
+
 /// The plane of a patch: its point closest to `h` (within the patch radius of the mean), the
 /// normal towards `h`, the distance of `h` from the plane and the RMS residual. `None` for a
 /// patch too small, not flat, or with `h` on its plane.
@@ -172,7 +176,7 @@ fn patch_plane(
     config: &LookaheadConfig,
     patch: &[&Vector3<f64>],
     h: &Vector3<f64>,
-) -> Option<(Vector3<f64>, Unit<Vector3<f64>>, f64, f64)> {
+) -> Option<PatchPlane> {
     if patch.len() < config.min_patch_points_count {
         return None;
     }
@@ -190,7 +194,7 @@ fn patch_plane(
         .enumerate()
         .min_by(|a, b| a.1.total_cmp(b.1))?;
     let rms = eig.eigenvalues[smallest].max(0.0).sqrt();
-    if !(rms <= config.max_residual_m) {
+    if rms.is_nan() || rms > config.max_residual_m {
         return None;
     }
     let mut n = eig.eigenvectors.column(smallest).into_owned();
@@ -200,7 +204,7 @@ fn patch_plane(
         n = -n;
     }
     let distance = distance.abs();
-    if !(distance > 1e-6) {
+    if distance.is_nan() || distance <= 1e-6 {
         return None;
     }
     // The plane's point under the HIP, kept within the patch.
