@@ -56,3 +56,28 @@ pub struct SurfaceEstimate {
     /// be used.
     pub valid: bool,
 }
+
+/// One camera's coarse estimate of the nearest surface beyond the shells' reach (the
+/// look-ahead of [`crate::perception::lookahead`]): a plane through the nearest patch of the
+/// cropped points, and the point of that plane closest to the HIP. It warns of an approaching
+/// surface before the shells see it; fusion uses it only while no shell estimate covers the
+/// same time ([`crate::fusion::Fusion::push_far_field`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FarFieldEstimate {
+    /// Which camera produced it.
+    pub camera_id: u32,
+    /// Sensor time of the frame it came from (the capture stamp), seconds.
+    pub stamp_s: f64,
+    /// The patch plane's point closest to the HIP, world frame, metres.
+    pub centroid_m: Point3<f64>,
+    /// Normal of the patch plane, pointing from the body towards the HIP, world frame.
+    pub normal: Unit<Vector3<f64>>,
+    /// Distance of the HIP centre from the patch plane, metres.
+    pub distance_m: f64,
+    /// Points in the patch.
+    pub point_count: u32,
+    /// RMS distance of the patch points from the plane, metres.
+    pub residual_rms_m: f64,
+    /// Quality in [0, 1] (patch population and flatness).
+    pub quality: f64,
+}

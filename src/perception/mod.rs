@@ -6,6 +6,7 @@ pub mod crop;
 pub mod fit;
 pub mod flying;
 pub mod frontend;
+pub mod lookahead;
 pub mod memory;
 pub mod outliers;
 pub mod pipeline;

@@ -252,15 +252,29 @@ impl CameraConfig {
 }
 
 fn finite3(v: &Vector3<f64>) -> bool {
-    v.iter().all(|c| c.is_finite())
+    v.iter().all(|c| c.is_finite() && c.abs() <= MAX_POSITION_M)
 }
+
+/// Longest scene, seconds (one day): beyond it a duration is a typo, and the simulation's
+/// per-tick drivers would try to allocate for it.
+pub const MAX_DURATION_S: f64 = 86_400.0;
+/// Longest stretch of a HIP path that is solved (at 1 kHz, until the path ends: a longer scene
+/// holds the path's end for free), seconds: 600 s of samples take about 30 MB.
+pub const MAX_SOLVED_PATH_S: f64 = 600.0;
+/// Largest magnitude of a position, metres.
+pub const MAX_POSITION_M: f64 = 100.0;
+/// Largest image side of an intrinsics override, pixels.
+pub const MAX_IMAGE_SIDE_PX: u32 = 4096;
 
 impl SceneFile {
     /// Checks every value; the error names the item and the problem.
     pub fn validate(&self) -> Result<(), String> {
-        if !(self.duration_s.is_finite() && self.duration_s > 0.0) {
+        if !(self.duration_s.is_finite()
+            && self.duration_s > 0.0
+            && self.duration_s <= MAX_DURATION_S)
+        {
             return Err(format!(
-                "duration_s must be positive, got {}",
+                "duration_s must be positive and at most {MAX_DURATION_S} s, got {}",
                 self.duration_s
             ));
         }
@@ -279,9 +293,20 @@ impl SceneFile {
         if let Some(robot) = &self.robot {
             let ctx = |e: String| format!("robot: {e}");
             if !finite3(&robot.base_xyz_m) || !finite3(&robot.base_rpy_rad) {
-                return Err(ctx("base pose has a non-finite value".into()));
+                return Err(ctx(format!(
+                    "base pose has a non-finite value or one beyond {MAX_POSITION_M}"
+                )));
             }
             validate_robot_motion(&robot.motion).map_err(ctx)?;
+            if let RobotMotion::HipPath { segments, .. } = &robot.motion {
+                let solved = solved_path_s(segments, self.duration_s);
+                if solved > MAX_SOLVED_PATH_S {
+                    return Err(ctx(format!(
+                        "the HIP path moves for {solved} s within the scene; at most \
+                         {MAX_SOLVED_PATH_S} s are solved"
+                    )));
+                }
+            }
         }
         if self.cameras.is_empty() {
             return Err("a scene needs at least one [[camera]]".into());
@@ -292,6 +317,12 @@ impl SceneFile {
             if !cam_names.insert(cam.name.as_str()) {
                 return Err(format!("two cameras are called `{}`", cam.name));
             }
+            if !(cam.phase_s.is_finite() && (0.0..=1.0).contains(&cam.phase_s)) {
+                return Err(ctx(format!(
+                    "phase_s must lie within [0, 1] s, got {}",
+                    cam.phase_s
+                )));
+            }
             if ![30.0, 60.0, 90.0].contains(&cam.rate_hz) {
                 return Err(ctx(format!(
                     "rate_hz must be 30, 60 or 90 (D435 depth rates), got {}",
@@ -301,9 +332,10 @@ impl SceneFile {
             if !finite3(&cam.position_m.coords)
                 || !finite3(&cam.look_at_m.coords)
                 || !finite3(&cam.up)
-                || !cam.phase_s.is_finite()
             {
-                return Err(ctx("pose has a non-finite value".into()));
+                return Err(ctx(format!(
+                    "pose has a non-finite value or one beyond {MAX_POSITION_M}"
+                )));
             }
             let axis = cam.look_at_m - cam.position_m;
             if axis.norm() < 1e-6 {
@@ -313,11 +345,12 @@ impl SceneFile {
                 return Err(ctx("up is parallel to the viewing direction".into()));
             }
             if let Some(k) = &cam.intrinsics {
-                let ok = k.width > 0
-                    && k.height > 0
-                    && [k.fx, k.fy].iter().all(|f| f.is_finite() && *f > 0.0)
-                    && k.cx.is_finite()
-                    && k.cy.is_finite();
+                let ok = (1..=MAX_IMAGE_SIDE_PX).contains(&k.width)
+                    && (1..=MAX_IMAGE_SIDE_PX).contains(&k.height)
+                    && [k.fx, k.fy]
+                        .iter()
+                        .all(|f| f.is_finite() && *f > 0.0 && *f <= 1e5)
+                    && [k.cx, k.cy].iter().all(|c| c.is_finite() && c.abs() <= 1e5);
                 if !ok {
                     return Err(ctx(format!("bad intrinsics {k:?}")));
                 }
@@ -381,8 +414,11 @@ fn validate_robot_motion(motion: &RobotMotion) -> Result<(), String> {
             }
             for (i, seg) in segments.iter().enumerate() {
                 let d = seg.duration_s();
-                if !(d.is_finite() && d > 0.0) {
-                    return Err(format!("segment {i}: duration must be positive, got {d} s"));
+                if !(d.is_finite() && d > 0.0 && d <= MAX_DURATION_S) {
+                    return Err(format!(
+                        "segment {i}: duration must be positive and at most {MAX_DURATION_S} s, \
+                         got {d} s"
+                    ));
                 }
                 let ok = match seg {
                     HipSegment::Move { to_m, .. } => finite3(&to_m.coords),
@@ -395,7 +431,13 @@ fn validate_robot_motion(motion: &RobotMotion) -> Result<(), String> {
                         axis,
                         angle_rad,
                         ..
-                    } => finite3(&center_m.coords) && axis.norm() > 1e-9 && angle_rad.is_finite(),
+                    } => {
+                        finite3(&center_m.coords)
+                            && finite3(axis)
+                            && axis.norm() > 1e-9
+                            && angle_rad.is_finite()
+                            && angle_rad.abs() <= MAX_POSITION_M
+                    }
                 };
                 if !ok {
                     return Err(format!(
@@ -406,4 +448,14 @@ fn validate_robot_motion(motion: &RobotMotion) -> Result<(), String> {
         }
     }
     Ok(())
+}
+
+/// Seconds of a HIP path that are solved within a scene of `duration_s`: until the path ends
+/// (the robot then holds its last pose), at most the scene.
+pub fn solved_path_s(segments: &[HipSegment], duration_s: f64) -> f64 {
+    segments
+        .iter()
+        .map(HipSegment::duration_s)
+        .sum::<f64>()
+        .min(duration_s)
 }

@@ -26,7 +26,8 @@
 //!   drawn once (translation `N(0, translation_std_m)` per axis, rotation vector
 //!   `N(0, rotation_std_rad)` per axis); images are rendered from the true pose.
 //! - `time_offset`: a per-camera clock offset `N(0, std_s)` added to every stamp.
-//! - `latency`: frames arrive `mean_s` plus jitter `N(0, jitter_std_s)` (clamped to 0.45
+//! - `latency`: frames arrive `mean_s` (default per frame rate, [`Latency::d435_mean_s`])
+//!   plus jitter `N(0, jitter_std_s)` (clamped to 0.45
 //!   frame periods so a camera's frames stay in order) after capture.
 //! - `dropped_frames`: each frame is lost with `probability`.
 //!
@@ -236,17 +237,42 @@ impl Default for TimeOffset {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Latency {
-    pub mean_s: f64,
+    /// Mean capture-to-arrival delay, seconds; `None`: the D435's at the camera's rate
+    /// ([`Latency::d435_mean_s`]).
+    pub mean_s: Option<f64>,
     pub jitter_std_s: f64,
 }
 
 impl Default for Latency {
-    /// Glass-to-host latency of about two frame periods at 30 Hz (REFERENCE.md: 50-90 ms).
     fn default() -> Self {
         Self {
-            mean_s: 0.06,
+            mean_s: None,
             jitter_std_s: 0.004,
         }
+    }
+}
+
+/// Largest accepted latency, time offset or jitter of a scene, seconds.
+pub const MAX_DELAY_S: f64 = 1.0;
+
+impl Latency {
+    /// Glass-to-host depth latency of a D435 at `rate_hz`, seconds (REFERENCE.md,
+    /// librealsense issue 4955: it falls with the frame rate, about 1.5-3 frame periods;
+    /// 48-62 ms measured at 60 fps): 60 ms at 30 Hz, 50 ms at 60 Hz, 45 ms at 90 Hz (no
+    /// measurement at 90 Hz: kept at the 45 ms floor rather than extrapolated down).
+    pub fn d435_mean_s(rate_hz: f64) -> f64 {
+        if rate_hz <= 30.0 {
+            0.06
+        } else if rate_hz <= 60.0 {
+            0.05
+        } else {
+            0.045
+        }
+    }
+
+    /// The mean delay for a camera at `rate_hz`, seconds.
+    pub fn mean_for_rate_s(&self, rate_hz: f64) -> f64 {
+        self.mean_s.unwrap_or_else(|| Self::d435_mean_s(rate_hz))
     }
 }
 
@@ -262,19 +288,30 @@ impl Default for DroppedFrames {
     }
 }
 
+/// Largest magnitude any effect length, pixel count or factor may have (beyond it a value is
+/// a typo, and 1e300 would run and produce nothing).
+const MAX_EFFECT_VALUE: f64 = 100.0;
+
 fn non_negative(name: &str, v: f64) -> Result<(), String> {
-    if v.is_finite() && v >= 0.0 {
-        Ok(())
-    } else {
-        Err(format!("{name} must be finite and >= 0, got {v}"))
-    }
+    in_range(name, v, 0.0, MAX_EFFECT_VALUE)
 }
 
 fn positive(name: &str, v: f64) -> Result<(), String> {
-    if v.is_finite() && v > 0.0 {
-        Ok(())
+    if v > 0.0 {
+        in_range(name, v, 0.0, MAX_EFFECT_VALUE)
     } else {
         Err(format!("{name} must be finite and > 0, got {v}"))
+    }
+}
+
+/// `v` finite and within `[lo, hi]`; the error names it.
+pub(crate) fn in_range(name: &str, v: f64, lo: f64, hi: f64) -> Result<(), String> {
+    if v.is_finite() && (lo..=hi).contains(&v) {
+        Ok(())
+    } else {
+        Err(format!(
+            "{name} must be finite and within [{lo}, {hi}], got {v}"
+        ))
     }
 }
 
@@ -348,13 +385,15 @@ impl Effect {
                 Ok(())
             }
             Effect::ExtrinsicBias(b) => {
-                non_negative("translation_std_m", b.translation_std_m)?;
-                non_negative("rotation_std_rad", b.rotation_std_rad)
+                in_range("translation_std_m", b.translation_std_m, 0.0, 0.1)?;
+                in_range("rotation_std_rad", b.rotation_std_rad, 0.0, 0.2)
             }
-            Effect::TimeOffset(t) => non_negative("std_s", t.std_s),
+            Effect::TimeOffset(t) => in_range("std_s", t.std_s, 0.0, MAX_DELAY_S),
             Effect::Latency(l) => {
-                non_negative("mean_s", l.mean_s)?;
-                non_negative("jitter_std_s", l.jitter_std_s)
+                if let Some(m) = l.mean_s {
+                    in_range("mean_s", m, 0.0, MAX_DELAY_S)?;
+                }
+                in_range("jitter_std_s", l.jitter_std_s, 0.0, MAX_DELAY_S)
             }
             Effect::DroppedFrames(d) => probability("probability", d.probability),
         }
@@ -468,7 +507,7 @@ impl Timing {
         self.latency.as_ref().map_or(0.0, |l| {
             let mut rng = rng_for(seed, camera, frame, STREAM_LATENCY, 0);
             let bound = 0.45 / rate_hz;
-            l.mean_s + (normal(&mut rng) * l.jitter_std_s).clamp(-bound, bound)
+            l.mean_for_rate_s(rate_hz) + (normal(&mut rng) * l.jitter_std_s).clamp(-bound, bound)
         })
     }
 
@@ -484,6 +523,6 @@ impl Timing {
     pub fn max_delay_s(&self, rate_hz: f64) -> f64 {
         self.latency
             .as_ref()
-            .map_or(0.0, |l| l.mean_s + 0.45 / rate_hz)
+            .map_or(0.0, |l| l.mean_for_rate_s(rate_hz) + 0.45 / rate_hz)
     }
 }

@@ -121,6 +121,65 @@ impl Scene {
     }
 }
 
+impl Scene {
+    /// The scene with its moving body (the one with `constant_velocity` motion) moving at
+    /// `speed_m_s` along its own velocity's direction, and the duration scaled so that the
+    /// body travels as far as before (a safe-speed sweep runs one scene at several speeds).
+    pub fn with_moving_body_speed(&self, speed_m_s: f64) -> Result<Self, SceneError> {
+        let origin = format!("{} at {speed_m_s} m/s", self.origin);
+        let invalid = |message: String| SceneError::Invalid {
+            origin: origin.clone(),
+            message,
+        };
+        if !(speed_m_s.is_finite() && speed_m_s > 0.0 && speed_m_s <= motion::MAX_BODY_SPEED_M_S) {
+            return Err(invalid(format!(
+                "the moving body's speed must be positive and at most {} m/s, got {speed_m_s}",
+                motion::MAX_BODY_SPEED_M_S
+            )));
+        }
+        let mut file = self.file.clone();
+        let mut moving = file.bodies.iter_mut().filter_map(|b| match &mut b.motion {
+            Motion::ConstantVelocity {
+                velocity_m_s,
+                start_s,
+            } => Some((velocity_m_s, *start_s)),
+            _ => None,
+        });
+        let (velocity, start_s) = moving.next().ok_or_else(|| {
+            invalid("no body moves with constant_velocity: nothing to run at a speed".into())
+        })?;
+        if moving.next().is_some() {
+            return Err(invalid(
+                "more than one body moves with constant_velocity: the moving body is ambiguous"
+                    .into(),
+            ));
+        }
+        let old_speed = velocity.norm();
+        if old_speed <= 0.0 {
+            return Err(invalid(
+                "the constant_velocity body is at rest: it has no direction".into(),
+            ));
+        }
+        *velocity *= speed_m_s / old_speed;
+        let travel_s = (file.duration_s - start_s).max(0.0);
+        file.duration_s = start_s + travel_s * old_speed / speed_m_s;
+        Scene::new(file, &origin)
+    }
+
+    /// The scene with every camera at `rate_hz` (30, 60 or 90: the D435's depth rates at
+    /// 848x480), each camera's phase scaled by the change of period so unsynchronised cameras
+    /// stay the same fraction of a frame apart. The latency effect's default follows the rate
+    /// ([`effects::Latency::d435_mean_s`]).
+    pub fn with_camera_rate_hz(&self, rate_hz: f64) -> Result<Self, SceneError> {
+        let mut file = self.file.clone();
+        for cam in &mut file.cameras {
+            cam.phase_s *= cam.rate_hz / rate_hz;
+            cam.rate_hz = rate_hz;
+        }
+        Scene::new(file, &format!("{} at {rate_hz} Hz", self.origin))
+    }
+}
+
 /// One camera as the simulator runs it.
 #[derive(Clone, Debug)]
 pub struct CameraRig {
@@ -487,5 +546,143 @@ impl Simulator {
             }));
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn invalid(text: &str) -> String {
+        Scene::from_toml_str(text, "test").unwrap_err().to_string()
+    }
+
+    /// The oblique-head scene's text with one line replaced.
+    fn oblique_with(from: &str, to: &str) -> String {
+        let text = builtin::text("oblique_head_realistic").unwrap();
+        assert!(text.contains(from), "{from}");
+        text.replacen(from, to, 1)
+    }
+
+    #[test]
+    fn out_of_range_values_are_rejected_with_their_name() {
+        let cases = [
+            (
+                "jitter_std_s = 0.004",
+                "jitter_std_s = 0.004\nmean_s = 1e300",
+                "mean_s",
+            ),
+            ("std_s = 0.002", "std_s = 1e300", "std_s"),
+            ("phase_s = 0.011", "phase_s = 1e300", "phase_s"),
+            (
+                "translation_std_m = 0.003",
+                "translation_std_m = 1e300",
+                "translation_std_m",
+            ),
+            (
+                "rotation_std_rad = 0.0035",
+                "rotation_std_rad = 1e300",
+                "rotation_std_rad",
+            ),
+            ("duration_s = 1.7", "duration_s = 1e12", "duration_s"),
+            (
+                "frequency_hz = 0.25",
+                "frequency_hz = 1e300",
+                "sinusoid frequency_hz",
+            ),
+            (
+                "amplitude_m = [0.003, 0.0, 0.0], frequency_hz = 0.25",
+                "amplitude_m = [0.003, 0.0, 0.0], frequency_hz = 0.25, phase_rad = 1e300",
+                "phase_rad",
+            ),
+            ("radius_m = 0.09", "radius_m = 1e300", "radius_m"),
+        ];
+        for (from, to, name) in cases {
+            let err = invalid(&oblique_with(from, to));
+            assert!(err.contains(name), "{to}: {err}");
+        }
+        // The defaults pass.
+        Scene::from_builtin("oblique_head_realistic").unwrap();
+    }
+
+    #[test]
+    fn a_long_scene_solves_only_its_path() {
+        // Ten hours: the path (a 1.7 s hold) is solved, the rest holds its end.
+        let text = oblique_with("duration_s = 1.7\n", "duration_s = 36000.0\n");
+        let scene = Scene::from_toml_str(&text, "ten hours").unwrap();
+        let sim = Simulator::new(&scene).unwrap();
+        assert_eq!(sim.duration_s(), 36000.0);
+        let (a, b) = (sim.hip_at(1.0).unwrap(), sim.hip_at(30000.0).unwrap());
+        assert!((a - b).norm() < 1e-9);
+        assert_eq!(sim.latest_timings(30000.0).len(), 2);
+        // A path that moves longer than the solved bound is refused.
+        let text = oblique_with(
+            "kind = \"hold\"\nduration_s = 1.7",
+            "kind = \"slide\"\ncenter_m = [0.3, -0.16, 0.46]\naxis = [0.0, 0.0, 1.0]\nangle_rad = 0.1\nduration_s = 36000.0",
+        );
+        let err = invalid(&text.replace("duration_s = 1.7\n", "duration_s = 36000.0\n"));
+        assert!(err.contains("HIP path"), "{err}");
+    }
+
+    #[test]
+    fn the_moving_body_runs_at_any_speed_along_its_direction() {
+        let scene = Scene::from_builtin("oblique_head_clean").unwrap();
+        let fast = scene.with_moving_body_speed(2.0).unwrap();
+        let velocity = |s: &Scene| match &s.file.bodies[0].motion {
+            Motion::ConstantVelocity { velocity_m_s, .. } => *velocity_m_s,
+            m => panic!("{m:?}"),
+        };
+        let (v0, v1) = (velocity(&scene), velocity(&fast));
+        assert!((v1.norm() - 2.0).abs() < 1e-12);
+        assert!(v0.normalize().dot(&v1.normalize()) > 1.0 - 1e-12);
+        // The same travel: 1.2 s at 0.5 m/s, 0.3 s at 2 m/s.
+        assert!(
+            (fast.file.duration_s - 0.8).abs() < 1e-3,
+            "{}",
+            fast.file.duration_s
+        );
+        // The body moves straight at the resting HIP and passes its centre by 0.1 m.
+        let sim = Simulator::new(&fast).unwrap();
+        let hip = sim.hip_at(0.0).unwrap();
+        let body = &fast.file.bodies[0];
+        let Shape::Sphere { center_m, .. } = body.geometry else {
+            panic!("{:?}", body.geometry)
+        };
+        let centre = |t: f64| center_m + body.motion.offset_at(t);
+        assert!(((centre(0.4) - hip).norm() - 0.5).abs() < 2e-3);
+        assert!(((centre(fast.file.duration_s) - hip).norm() - 0.1).abs() < 2e-3);
+        assert!((sim.hip_at(fast.file.duration_s).unwrap() - hip).norm() < 1e-3);
+        // Errors: a bad speed, a scene without (or with two) moving bodies.
+        assert!(scene.with_moving_body_speed(f64::NAN).is_err());
+        assert!(scene.with_moving_body_speed(1e6).is_err());
+        let err = Scene::from_builtin("head_close_clean")
+            .unwrap()
+            .with_moving_body_speed(1.0)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("constant_velocity"), "{err}");
+        // The rising surface keeps its own speed rule (0.5 + 0.45 / v).
+        let rising = builtin::rising_surface(1.5, true).unwrap();
+        assert!((rising.file.duration_s - 0.8).abs() < 1e-12);
+    }
+
+    #[test]
+    fn camera_rates_change_period_phase_and_default_latency() {
+        let scene = Scene::from_builtin("rising_surface_realistic").unwrap();
+        for (rate, latency) in [(30.0, 0.06), (60.0, 0.05), (90.0, 0.045)] {
+            let fast = scene.with_camera_rate_hz(rate).unwrap();
+            let sim = Simulator::new(&fast).unwrap();
+            let cams = sim.cameras();
+            assert!(cams.iter().all(|c| c.rate_hz == rate));
+            // Still a third of a frame apart.
+            assert!((cams[1].phase_s * rate - 0.011 * 30.0).abs() < 1e-12);
+            let t = sim.timing(0, 10).or_else(|| sim.timing(0, 11)).unwrap();
+            assert!((t.capture_s - t.index as f64 / rate).abs() < 1e-12);
+            let delay = t.arrival_s - t.capture_s;
+            assert!((delay - latency).abs() <= 0.45 / rate, "{rate} Hz: {delay}");
+            assert!(delay >= 0.045 - 0.45 / rate);
+        }
+        assert!(scene.with_camera_rate_hz(45.0).is_err());
+        assert_eq!(effects::Latency::d435_mean_s(30.0), 0.06);
     }
 }

@@ -10,6 +10,13 @@ use super::config::HipSegment;
 use nalgebra::{Point3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
+/// Fastest body motion a scene may declare, m/s (the safe-speed sweeps go to 2.5 m/s).
+pub const MAX_BODY_SPEED_M_S: f64 = 20.0;
+/// Largest offset or amplitude of a body motion, metres.
+pub const MAX_OFFSET_M: f64 = 100.0;
+/// Highest sinusoid frequency of a body, Hz (breathing 0.25 Hz, tremor up to about 12 Hz).
+pub const MAX_BODY_FREQUENCY_HZ: f64 = 50.0;
+
 /// Rigid translation of a body part over time (its offset from the scene-file position).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
@@ -65,17 +72,24 @@ impl Motion {
     }
 
     pub fn validate(&self) -> Result<(), String> {
+        use super::config::MAX_DURATION_S;
+        use super::effects::in_range;
         match self {
             Motion::Static => Ok(()),
             Motion::ConstantVelocity {
                 velocity_m_s,
                 start_s,
             } => {
-                if velocity_m_s.iter().chain([start_s]).all(|v| v.is_finite()) {
-                    Ok(())
-                } else {
-                    Err("constant_velocity has a non-finite value".into())
+                if !velocity_m_s.iter().chain([start_s]).all(|v| v.is_finite()) {
+                    return Err("constant_velocity has a non-finite value".into());
                 }
+                in_range(
+                    "constant_velocity speed (m/s)",
+                    velocity_m_s.norm(),
+                    0.0,
+                    MAX_BODY_SPEED_M_S,
+                )?;
+                in_range("start_s", *start_s, 0.0, MAX_DURATION_S)
             }
             Motion::Waypoints { times_s, offsets_m } => {
                 if times_s.is_empty() || times_s.len() != offsets_m.len() {
@@ -90,12 +104,11 @@ impl Motion {
                 {
                     return Err("waypoint times_s must be finite and strictly increasing".into());
                 }
-                if offsets_m
-                    .iter()
-                    .flat_map(|o| o.iter())
-                    .any(|v| !v.is_finite())
-                {
-                    return Err("waypoint offsets_m has a non-finite value".into());
+                for t in times_s {
+                    in_range("waypoint times_s", *t, -MAX_DURATION_S, MAX_DURATION_S)?;
+                }
+                for v in offsets_m.iter().flat_map(|o| o.iter()) {
+                    in_range("waypoint offsets_m", *v, -MAX_OFFSET_M, MAX_OFFSET_M)?;
                 }
                 Ok(())
             }
@@ -107,12 +120,17 @@ impl Motion {
                 if !amplitude_m.iter().chain([phase_rad]).all(|v| v.is_finite()) {
                     return Err("sinusoid has a non-finite value".into());
                 }
-                if !(frequency_hz.is_finite() && *frequency_hz >= 0.0) {
-                    return Err(format!(
-                        "sinusoid frequency_hz must be >= 0, got {frequency_hz}"
-                    ));
+                for v in amplitude_m.iter() {
+                    in_range("sinusoid amplitude_m", *v, -MAX_OFFSET_M, MAX_OFFSET_M)?;
                 }
-                Ok(())
+                let turn = std::f64::consts::TAU;
+                in_range("sinusoid phase_rad", *phase_rad, -turn, turn)?;
+                in_range(
+                    "sinusoid frequency_hz",
+                    *frequency_hz,
+                    0.0,
+                    MAX_BODY_FREQUENCY_HZ,
+                )
             }
         }
     }

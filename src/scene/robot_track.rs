@@ -4,7 +4,7 @@
 //! limits). The path is solved once at [`IK_RATE_HZ`], each sample warm-started from the
 //! previous one, so every query is a cheap interpolation and independent of call order.
 
-use super::config::{HipSegment, RobotConfig, RobotMotion};
+use super::config::{HipSegment, MAX_SOLVED_PATH_S, RobotConfig, RobotMotion, solved_path_s};
 use super::motion::{hip_path_at, joints_at};
 use crate::geometry::Primitive;
 use crate::robot::{JointVector, RobotModel};
@@ -55,7 +55,10 @@ impl RobotTrack {
                 initial_joints_rad,
                 segments,
             } => {
-                let n = (duration_s * IK_RATE_HZ).ceil() as usize + 1;
+                // Solved until the path ends (then the last pose holds), so a long scene
+                // costs no more than its path; the scene's validation bounds this stretch.
+                let solved_s = solved_path_s(segments, duration_s).min(MAX_SOLVED_PATH_S);
+                let n = (solved_s * IK_RATE_HZ).ceil() as usize + 1;
                 let mut q =
                     model.clamp_to_limits(&JointVector::from_column_slice(initial_joints_rad));
                 let mut samples = Vec::with_capacity(n);

@@ -21,6 +21,9 @@ use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, SVector, Vector2, Vector3}
 use serde::{Deserialize, Serialize};
 
 /// A body part's shape in its body frame (scene-file form).
+/// Largest magnitude of a shape's coordinate, size or angle (metres, radians).
+pub const MAX_SHAPE_VALUE: f64 = 100.0;
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "shape", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Shape {
@@ -85,8 +88,8 @@ impl From<&Primitive> for Shape {
 }
 
 impl Shape {
-    /// Checks that every value is finite and every size positive; the message names the
-    /// offending value.
+    /// Checks that every value is finite (and within [`MAX_SHAPE_VALUE`]) and every size
+    /// positive; the message names the offending value.
     pub fn validate(&self) -> Result<(), String> {
         let values: Vec<(&str, &[f64])> = match self {
             Shape::Sphere { center_m, .. } => vec![("center_m", center_m.coords.as_slice())],
@@ -132,6 +135,16 @@ impl Shape {
             .find(|(_, v)| !v.is_finite())
         {
             return Err(format!("{name} has a non-finite value ({v})"));
+        }
+        if let Some((name, v)) = values
+            .iter()
+            .chain([&sizes])
+            .flat_map(each)
+            .find(|(_, v)| v.abs() > MAX_SHAPE_VALUE)
+        {
+            return Err(format!(
+                "{name} = {v} is beyond {MAX_SHAPE_VALUE} (metres or radians)"
+            ));
         }
         if let Some((name, v)) = each(&sizes).find(|(_, v)| *v <= 0.0) {
             return Err(format!("{name} must be positive, got {v} m"));
