@@ -22,7 +22,8 @@ use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticConstraints;
 use crate::perception::pipeline::{CameraChain, ChainFrame};
 use crate::robot::RobotModel;
-use crate::surface::SurfaceEstimate;
+use crate::perception::lookahead::{LookaheadConfig, far_field};
+use crate::surface::{FarFieldEstimate, SurfaceEstimate};
 use nalgebra::{Isometry3, Vector3};
 use std::sync::Arc;
 
@@ -35,6 +36,8 @@ pub struct FrameRecord {
     pub world_from_camera: Isometry3<f64>,
     /// The HIP and the robot primitives (world frame) at the frame's stamp.
     pub scene: PerceptionScene,
+    /// Without a surface in the shells: the nearest surface patch beyond them (look-ahead).
+    pub far_field: Option<FarFieldEstimate>,
 }
 
 impl FrameRecord {
@@ -82,6 +85,7 @@ impl Tick {
 /// mid-run (logged once).
 pub struct Perception {
     chain: CameraChain,
+    lookahead: LookaheadConfig,
     /// Why the GPU could not be opened at start, if it could not.
     start_fallback: Option<String>,
     warned: bool,
@@ -140,6 +144,7 @@ impl Perception {
         };
         Ok(Self {
             chain,
+            lookahead: config.lookahead.clone(),
             start_fallback,
             warned: false,
         })
@@ -178,10 +183,25 @@ impl Perception {
             eprintln!("warning: GPU failed ({reason}); perception continues on the CPU");
             self.warned = true;
         }
+        // The HIP's motion relative to the surface is fusion's business; the patch nearest
+        // the HIP (zero relative velocity) is the one reported.
+        let far_field = (!chain.estimate().valid)
+            .then(|| {
+                far_field(
+                    &self.lookahead,
+                    &chain.kept,
+                    &scene.hip_m,
+                    &Vector3::zeros(),
+                    frame.camera_id,
+                    frame.stamp_s,
+                )
+            })
+            .flatten();
         Ok(FrameRecord {
             chain,
             world_from_camera: frame.world_from_camera,
             scene: scene.clone(),
+            far_field,
         })
     }
 }
@@ -214,9 +234,18 @@ impl ControlLoop {
         &self.controller
     }
 
-    /// A camera's estimate joins fusion's window.
-    pub fn push_estimate(&mut self, estimate: &SurfaceEstimate) {
-        self.fusion.push(estimate);
+    /// A camera's estimate (and its far-field estimate, if any) joins fusion's window,
+    /// having arrived at `arrival_s` (for the latency statistics).
+    pub fn push_estimate(
+        &mut self,
+        estimate: &SurfaceEstimate,
+        far_field: Option<&FarFieldEstimate>,
+        arrival_s: f64,
+    ) {
+        self.fusion.push_arrived(estimate, arrival_s);
+        if let Some(f) = far_field {
+            self.fusion.push_far_field(f);
+        }
     }
 
     /// Fusion at `t_s`, then the constraints and the controller for the robot state
@@ -324,7 +353,8 @@ impl HapticLoop {
         scene: &PerceptionScene,
     ) -> Result<FrameRecord, NodeError> {
         let record = self.perception.process(frame, scene)?;
-        self.control.push_estimate(record.estimate());
+        self.control
+            .push_estimate(record.estimate(), record.far_field.as_ref(), frame.stamp_s);
         Ok(record)
     }
 

@@ -52,15 +52,18 @@ mod tests;
 
 use crate::camera::Frame;
 use crate::control::{ControllerConfig, ControllerConfigError};
-use crate::fusion::{FusionConfig, FusionConfigError, FusionCounters, FusionStatus};
+use crate::fusion::{
+    CameraLatency, FusionConfig, FusionConfigError, FusionCounters, FusionStatus,
+};
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::io::can::{CanError, fault};
 use crate::io::hcap;
 use crate::perception::frontend::{FrontendConfig, FrontendError};
+use crate::perception::lookahead::LookaheadConfig;
 use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
-use crate::surface::SurfaceEstimate;
+use crate::surface::{FarFieldEstimate, SurfaceEstimate};
 use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
 use frame_queue::{CloseOnDrop, FrameQueue};
 use haptic_loop::{FrameRecord, HapticLoop, Perception, RobotInput};
@@ -93,6 +96,8 @@ pub struct NodeConfig {
     pub robot: RobotStateConfig,
     pub frontend: FrontendConfig,
     pub surface: SurfaceConfig,
+    /// The far-field estimate beyond the shells (look-ahead), for frames without a surface.
+    pub lookahead: LookaheadConfig,
     pub fusion: FusionConfig,
     /// Haptic constraints and the hierarchical controller (`haptics.period_s` must be the
     /// tick period).
@@ -123,6 +128,7 @@ impl Default for NodeConfig {
             robot: RobotStateConfig::default(),
             frontend: FrontendConfig::default(),
             surface: SurfaceConfig::default(),
+            lookahead: LookaheadConfig::default(),
             fusion: FusionConfig::default(),
             controller: ControllerConfig::default(),
             can: CanOutputConfig::default(),
@@ -183,6 +189,9 @@ impl NodeConfig {
         self.robot.validate()?;
         self.frontend.validate()?;
         self.surface.validate()?;
+        self.lookahead
+            .validate()
+            .map_err(|e| NodeError::Config(e.to_string()))?;
         self.fusion.validate()?;
         self.controller.validate()?;
         let period = self.controller.haptics.period_s;
@@ -336,6 +345,8 @@ pub struct NodeSummary {
     /// The GPU failure that made perception fall back to the CPU, if any.
     pub gpu_fallback: Option<String>,
     pub fusion: FusionCounters,
+    /// Per camera: estimate arrival at the loop minus the frame's capture stamp.
+    pub camera_latency: Vec<CameraLatency>,
     /// CAN output, when `--can` or `--can-log` was given.
     pub can: Option<CanSummary>,
     pub duration_s: f64,
@@ -403,7 +414,7 @@ fn perception_thread(
     mut perception: Perception,
     robot: &RobotState,
     frames: &FrameQueue<Frame>,
-    estimates: mpsc::Sender<SurfaceEstimate>,
+    estimates: mpsc::Sender<(SurfaceEstimate, Option<FarFieldEstimate>)>,
     mut recorder: Option<FrameRecorder>,
     shared: &Shared,
     observer: Option<SyncSender<NodeEvent>>,
@@ -424,6 +435,7 @@ fn perception_thread(
         if let Some(r) = recorder.as_mut() {
             r.frame(&frame, &q)?;
         }
+        let far_field = record.far_field.clone();
         if let Some(o) = &observer {
             // Dropped when the observer is behind (or gone).
             let _ = o.try_send(NodeEvent::Frame(Box::new(record)));
@@ -431,7 +443,7 @@ fn perception_thread(
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
         entry.1 += u64::from(estimate.valid);
-        if estimates.send(estimate).is_err() {
+        if estimates.send((estimate, far_field)).is_err() {
             break;
         }
     }
@@ -612,7 +624,8 @@ pub fn run(
     };
     let shared = Shared::default();
     let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
-    let (estimate_tx, estimate_rx) = mpsc::channel::<SurfaceEstimate>();
+    let (estimate_tx, estimate_rx) =
+        mpsc::channel::<(SurfaceEstimate, Option<FarFieldEstimate>)>();
     let tick_s = 1.0 / config.tick_rate_hz;
     let period = Duration::from_secs_f64(tick_s / options.speed);
     let status_every = u64::from(config.can.status_every_ticks);
@@ -666,14 +679,14 @@ pub fn run(
                 // The tick's time on the node clock: absolute, from the tick index.
                 let t_tick =
                     f64::from_bits(clock.offset_bits.load(Ordering::Acquire)) + k as f64 * tick_s;
-                while let Ok(estimate) = estimate_rx.try_recv() {
+                while let Ok((estimate, far_field)) = estimate_rx.try_recv() {
                     if let Some(r) = tick_recorder.as_mut() {
                         r.estimate(k, &estimate)?;
                     }
                     if let Some(c) = can.as_mut() {
                         c.estimate(t_tick, &estimate);
                     }
-                    control.push_estimate(&estimate);
+                    control.push_estimate(&estimate, far_field.as_ref(), t_tick);
                     pending_latency.push(estimate.stamp_s);
                     received += 1;
                     *recent_per_camera.entry(estimate.camera_id).or_insert(0u64) += 1;
@@ -846,6 +859,7 @@ pub fn run(
         adapter: report.adapter,
         gpu_fallback: report.gpu_fallback,
         fusion: control.fusion().counters(),
+        camera_latency: control.fusion().latency_stats(),
         can: can.map(|c| CanSummary {
             counters: c.finish(),
             bus_load: config.can.bus_load(config.tick_rate_hz),
