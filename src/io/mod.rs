@@ -16,8 +16,12 @@
 
 pub mod can;
 pub mod depth;
+pub mod mcap;
 pub mod pcd;
 pub mod ply;
+pub mod ros2;
+#[cfg(feature = "ros2")]
+pub mod zenoh;
 
 use crate::cloud::PointCloud;
 use std::path::{Path, PathBuf};
