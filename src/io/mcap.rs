@@ -11,9 +11,10 @@
 //!
 //! Reading streams the file (bounded memory; chunks decompressed one at a time with zstd or
 //! lz4) through [`FrameAssembler`]: cameras are named in the config or found from the
-//! channels (each `Image` topic with a `camera_info` beside it; `PointCloud2` topics only in a
-//! file without depth images). A file cut off mid-write (a crash) reads up to its last
-//! complete record and reports the cut ([`McapReader::truncated`]); the writer closes a chunk
+//! channels (each `Image` topic with a `camera_info` beside it, hapcloud's `PointCloud2`
+//! topics, and other `PointCloud2` topics only before a depth camera is found). A file cut
+//! off mid-write (a crash) reads up to its last complete record and reports the cut
+//! ([`McapReader::truncated`]); the writer closes a chunk
 //! after every frame so at most the frame being written is lost.
 
 use super::ros2::assemble::{Assembled, CameraTopics, FrameAssembler};
@@ -432,7 +433,8 @@ impl<R: Read> McapReader<R> {
     }
 
     /// Adds the cameras the declared channels make (auto mode): every `Image` topic with a
-    /// `CameraInfo` beside it, and `PointCloud2` topics while no depth camera exists.
+    /// `CameraInfo` beside it, hapcloud's `PointCloud2` topics, and other `PointCloud2`
+    /// topics while no depth camera exists (a realsense bag may hold both for one camera).
     fn discover(&mut self) -> Result<(), McapError> {
         if !self.auto {
             return Ok(());
@@ -462,7 +464,7 @@ impl<R: Read> McapReader<R> {
                     continue;
                 }
                 c
-            } else if ch.schema == POINT_CLOUD2.name && !has_depth {
+            } else if ch.schema == POINT_CLOUD2.name && (!has_depth || hapcloud_id.is_some()) {
                 CameraTopics::points(camera_id, &ch.topic)
             } else {
                 continue;
