@@ -54,11 +54,13 @@ fn zerr(e: zenoh::Error) -> ZenohError {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Mode {
-    /// Like rmw_zenoh's nodes: connects to the router, may link to other peers directly.
+    /// Everything goes through one router (the one in `connect`): works across machines
+    /// with nothing but the router's address.
     #[default]
-    Peer,
-    /// Talks to one router only.
     Client,
+    /// Like rmw_zenoh's nodes: the router only introduces peers, which then exchange data
+    /// directly, so a peer needs a `listen` endpoint the other peers can reach.
+    Peer,
 }
 
 /// Which key expressions topics map to.
@@ -79,7 +81,7 @@ pub struct ZenohConfig {
     pub mode: Mode,
     /// Endpoints to connect to, e.g. `tcp/192.168.1.10:7447` (a router).
     pub connect: Vec<String>,
-    /// Endpoints to listen on (empty: none; all traffic goes through `connect`).
+    /// Endpoints to listen on (peers only; e.g. `tcp/0.0.0.0:0`, a free port).
     pub listen: Vec<String>,
     /// ROS domain id (the first chunk of rmw_zenoh's keys).
     pub domain_id: u32,
@@ -89,7 +91,7 @@ pub struct ZenohConfig {
 impl Default for ZenohConfig {
     fn default() -> Self {
         Self {
-            mode: Mode::Peer,
+            mode: Mode::Client,
             connect: vec!["tcp/127.0.0.1:7447".into()],
             listen: Vec::new(),
             domain_id: 0,
@@ -114,10 +116,20 @@ impl ZenohConfig {
                 "set connect or listen endpoints (multicast scouting is off)".into(),
             ));
         }
-        if self.mode == Mode::Client && self.connect.is_empty() {
-            return Err(ZenohError::Config(
-                "a client needs a connect endpoint".into(),
-            ));
+        match self.mode {
+            Mode::Client if self.connect.len() != 1 || !self.listen.is_empty() => {
+                return Err(ZenohError::Config(
+                    "a client connects to exactly one router and listens on nothing".into(),
+                ));
+            }
+            Mode::Peer if self.listen.is_empty() => {
+                return Err(ZenohError::Config(
+                    "a peer needs a listen endpoint the other peers can reach \
+                     (or use mode = \"client\")"
+                        .into(),
+                ));
+            }
+            _ => {}
         }
         if self.domain_id > 232 {
             return Err(ZenohError::Config(format!(
@@ -128,10 +140,9 @@ impl ZenohConfig {
         Ok(())
     }
 
-    /// The Zenoh configuration: mode, endpoints, multicast scouting off. A peer connects in
-    /// the background and retries forever (a router that is not up yet is no error); a
-    /// client's `open` fails when its router is not there. Both reconnect by themselves after
-    /// losing a connection.
+    /// The Zenoh configuration: mode, endpoints, multicast scouting off. A client's `open`
+    /// fails when its router is not there; a peer connects in the background and retries
+    /// forever. Both reconnect by themselves after losing a connection.
     pub fn zenoh_config(&self) -> Result<zenoh::Config, ZenohError> {
         self.validate()?;
         let json = |v: &[String]| serde_json::to_string(v).unwrap_or_default();

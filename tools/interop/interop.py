@@ -112,7 +112,6 @@ def session(port, mode):
         conf.insert_json5("connect/endpoints", "[]")
     else:
         conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-        conf.insert_json5("listen/endpoints", "[]")
     return zenoh.open(conf)
 
 
@@ -133,7 +132,7 @@ def wait_matching(pubs, seconds=10.0):
 
 
 def cmd_publish(port, n):
-    s = session(port, "peer")
+    s = session(port, "client")
     import zenoh
     block = zenoh.CongestionControl.BLOCK
     pubs = {t: s.declare_publisher(key(t, m), congestion_control=block) for t, m in (
@@ -175,7 +174,7 @@ def cmd_listen(port, n, seconds, msg_dir):
     for t in STORE.types:
         pkg, kind, name = t.split("/")
         by_dds[f"{pkg}::{kind}::dds_::{name}_"] = t
-    s = session(port, "peer")
+    s = session(port, "client")
     got = []
 
     def on_sample(sample):

@@ -15,9 +15,10 @@ fn free_port() -> u16 {
         .port()
 }
 
-/// A listening peer (stands in for the router) and a connecting one.
+/// A listening peer (stands in for the router) and a client of it.
 fn configs(port: u16) -> (ZenohConfig, ZenohConfig) {
     let listen = ZenohConfig {
+        mode: Mode::Peer,
         connect: Vec::new(),
         listen: vec![format!("tcp/127.0.0.1:{port}")],
         ..ZenohConfig::default()
@@ -151,6 +152,13 @@ fn keys_follow_rmw_zenoh_and_the_bridge() {
 }
 
 #[test]
+fn a_client_without_its_router_is_a_clear_error() {
+    let (_, b) = configs(free_port());
+    let e = open_session(&b).err().expect("no router");
+    assert!(e.to_string().contains("127.0.0.1"), "{e}");
+}
+
+#[test]
 fn config_is_validated() {
     let ok = ZenohConfig::default();
     ok.validate().unwrap();
@@ -169,6 +177,14 @@ fn config_is_validated() {
         },
         ZenohConfig {
             domain_id: 300,
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            mode: Mode::Peer,
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            connect: vec!["tcp/127.0.0.1:1".into(), "tcp/127.0.0.1:2".into()],
             ..ZenohConfig::default()
         },
     ] {
@@ -317,10 +333,10 @@ fn a_flooding_publisher_costs_counted_drops() {
 fn a_router_that_goes_away_and_comes_back() {
     let port = free_port();
     let (a, b) = configs(port);
+    let sa = open_session(&a).unwrap();
     let sb = open_session(&b).unwrap();
     let mut publ = ZenohPublisher::new(&sb, &b, &ZenohPublisherConfig::default()).unwrap();
     {
-        let sa = open_session(&a).unwrap();
         let mut src = ZenohSource::new(&sa, &a, &cameras()).unwrap();
         first_frame(&mut publ, &mut src, &depth_frame(0, 0.0));
         sa.close().wait().unwrap();
@@ -331,7 +347,7 @@ fn a_router_that_goes_away_and_comes_back() {
         publ.publish_frame(&depth_frame(0, f64::from(i))).unwrap();
     }
     assert!(t0.elapsed() < Duration::from_secs(2), "{:?}", t0.elapsed());
-    // The listener comes back on the same port; the connecting side reconnects by itself.
+    // The listener comes back on the same port; the client reconnects by itself.
     let sa = open_session(&a).unwrap();
     let mut src = ZenohSource::new(&sa, &a, &cameras()).unwrap();
     let f = first_frame(&mut publ, &mut src, &depth_frame(0, 42.0));
