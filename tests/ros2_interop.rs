@@ -21,7 +21,7 @@ use hapcloud::node::robot_state::JointState;
 use hapcloud::robot::JointVector;
 use nalgebra::{Point3, Quaternion, Unit, UnitQuaternion, Vector3};
 use serde_json::Value;
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -117,7 +117,7 @@ fn expected_depth(i: u32) -> Vec<u16> {
     let mut out = Vec::new();
     for v in 0..H {
         for u in 0..W {
-            out.push(if (u + v + i) % 9 == 0 {
+            out.push(if (u + v + i).is_multiple_of(9) {
                 0
             } else {
                 (400 + 7 * u + 11 * v + 13 * i) as u16

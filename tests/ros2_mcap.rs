@@ -40,7 +40,7 @@ fn depth_frame(id: u32, stamp_s: f64, scale: f64) -> Frame {
         depth_scale_m: scale,
         data: (0..108u32)
             .map(|i| {
-                if i % 5 == 0 {
+                if i.is_multiple_of(5) {
                     0
                 } else {
                     (300 + i * 37 % 900) as u16
@@ -102,7 +102,7 @@ fn estimate(i: u32) -> SurfaceEstimate {
         normal: Unit::new_normalize(Vector3::new(0.1, 0.2, 1.0)),
         shells: Vec::new(),
         quality: 0.75,
-        valid: i % 3 != 0,
+        valid: !i.is_multiple_of(3),
     }
 }
 

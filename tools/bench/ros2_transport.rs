@@ -35,7 +35,7 @@ fn frame(stamp_s: f64, depth: bool) -> Frame {
         depth_scale_m: 0.001,
         data: (0..848 * 480u32)
             .map(|i| {
-                if i % 13 == 0 {
+                if i.is_multiple_of(13) {
                     0
                 } else {
                     (500 + i % 700) as u16

@@ -265,9 +265,7 @@ pub fn image_from_depth(header: Header, depth: &DepthImage) -> Image {
 pub fn intrinsics_from_camera_info(info: &CameraInfo) -> Result<PinholeIntrinsics, Ros2Error> {
     let k = &info.k;
     let (fx, fy, cx, cy) = (k[0], k[4], k[2], k[5]);
-    if !(fx > 0.0 && fy > 0.0 && fx.is_finite() && fy.is_finite())
-        || !(cx.is_finite() && cy.is_finite())
-    {
+    if !(fx > 0.0 && fy > 0.0 && [fx, fy, cx, cy].iter().all(|v| v.is_finite())) {
         return Err(Ros2Error::CameraInfo(format!(
             "K = {k:?} has no positive finite focal lengths"
         )));
