@@ -1,0 +1,517 @@
+//! Recordings in MCAP (profile `ros2`, schema encoding `ros2msg`, message encoding `cdr`),
+//! readable by Foxglove, rosbags and `ros2 bag`, and ROS 2 bags read back as camera frames.
+//!
+//! A hapcloud recording holds, per camera `N` under `/hapcloud/cameraN/`, each frame as
+//! `depth/image_rect_raw` + `depth/camera_info` (a frame with a depth image) or `depth/points`
+//! (`PointCloud2`), preceded by `frame_meta` (`hapcloud_msgs/FrameMeta`: the unrounded stamp,
+//! the pose, the depth unit and the robot joints perception used) and followed by the pose on
+//! `/tf`; the node's estimates (`/hapcloud/estimates`, `hapcloud_msgs/SurfaceEstimate` with the
+//! pushing tick) and ticks (`/hapcloud/ticks`, `hapcloud_msgs/ControlTick`). Every value that
+//! replay compares is stored unrounded, so frames, estimates and ticks read back bit for bit.
+//!
+//! Reading streams the file (bounded memory; chunks decompressed one at a time with zstd or
+//! lz4) through [`FrameAssembler`]: cameras are named in the config or found from the
+//! channels (each `Image` topic with a `camera_info` beside it, hapcloud's `PointCloud2`
+//! topics, and other `PointCloud2` topics only before a depth camera is found). A file cut
+//! off mid-write (a crash) reads up to its last complete record and reports the cut
+//! ([`McapReader::truncated`]); the writer closes a chunk
+//! after every frame so at most the frame being written is lost.
+
+use super::ros2::assemble::{Assembled, CameraTopics, FrameAssembler};
+use super::ros2::convert::{
+    camera_info_from_intrinsics, image_from_depth, pointcloud2_from_cloud, transform_from_isometry,
+};
+use super::ros2::hapcloud::{ControlTick, FrameMeta, SurfaceEstimate as EstimateMsg};
+use super::ros2::msgs::{CAMERA_INFO, Header, IMAGE, POINT_CLOUD2, TfMessage, TransformStamped};
+use super::ros2::{Ros2Error, RosMessage, decode, encode, time_from_seconds, topics};
+use crate::camera::Frame;
+use crate::node::record::TickRecord;
+use crate::surface::SurfaceEstimate;
+use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
+use std::io::{BufWriter, Read, Seek, Write};
+use std::path::{Path, PathBuf};
+
+/// Largest record accepted when reading (a forged length cannot exhaust memory).
+pub const MAX_RECORD_BYTES: usize = 512 << 20;
+
+/// Why a recording cannot be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum McapError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("MCAP: {0}")]
+    Mcap(#[from] mcap::McapError),
+    #[error("I/O: {0}")]
+    Read(#[from] std::io::Error),
+    #[error("{topic}: {source}")]
+    Message { topic: String, source: Ros2Error },
+    #[error("config: {0}")]
+    Config(String),
+}
+
+/// How chunks are compressed.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ChunkCompression {
+    None,
+    /// rosbag2's default.
+    #[default]
+    Zstd,
+    Lz4,
+}
+
+/// How frames are stored.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FrameEncoding {
+    /// Image + CameraInfo when the frame has a depth image (0.8 MB for 848x480 before
+    /// compression), else PointCloud2. The frame read back has the deprojected image as its
+    /// cloud.
+    #[default]
+    DepthImage,
+    /// Always the cloud as PointCloud2 (4.9 MB for 848x480): the frame's own cloud, bit for
+    /// bit, when it is not the deprojected image (the simulator's unrounded depths).
+    PointCloud,
+}
+
+/// Recording settings.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct McapWriterConfig {
+    pub compression: ChunkCompression,
+    pub frames: FrameEncoding,
+}
+
+/// Reading settings.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct McapReaderConfig {
+    /// The cameras; empty: found from the channels.
+    pub cameras: Vec<CameraTopics>,
+    /// Frame the `/tf_static` poses are expressed in; empty: the root of the tree.
+    pub world_frame: String,
+}
+
+impl McapReaderConfig {
+    pub fn validate(&self) -> Result<(), String> {
+        self.cameras.iter().try_for_each(CameraTopics::validate)
+    }
+}
+
+/// Writes a recording.
+pub struct McapWriter<W: Write + Seek> {
+    out: mcap::Writer<W>,
+    config: McapWriterConfig,
+    schemas: HashMap<&'static str, u16>,
+    channels: HashMap<String, u16>,
+    sequence: u32,
+}
+
+fn ns(stamp_s: f64) -> u64 {
+    let t = time_from_seconds(stamp_s);
+    t.sec as u64 * 1_000_000_000 + u64::from(t.nanosec)
+}
+
+impl McapWriter<BufWriter<File>> {
+    /// Creates `path`.
+    pub fn create(path: &Path, config: McapWriterConfig) -> Result<Self, McapError> {
+        let file = File::create(path).map_err(|source| McapError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::new(BufWriter::with_capacity(1 << 20, file), config)
+    }
+}
+
+impl<W: Write + Seek> McapWriter<W> {
+    pub fn new(out: W, config: McapWriterConfig) -> Result<Self, McapError> {
+        let compression = match config.compression {
+            ChunkCompression::None => None,
+            ChunkCompression::Zstd => Some(mcap::Compression::Zstd),
+            ChunkCompression::Lz4 => Some(mcap::Compression::Lz4),
+        };
+        let out = mcap::WriteOptions::new()
+            .profile("ros2")
+            .library(concat!("hapcloud ", env!("CARGO_PKG_VERSION")))
+            .compression(compression)
+            .create(out)?;
+        Ok(Self {
+            out,
+            config,
+            schemas: HashMap::new(),
+            channels: HashMap::new(),
+            sequence: 0,
+        })
+    }
+
+    fn channel(
+        &mut self,
+        topic: &str,
+        desc: &'static super::ros2::typedesc::MsgDesc,
+    ) -> Result<u16, McapError> {
+        if let Some(&id) = self.channels.get(topic) {
+            return Ok(id);
+        }
+        let schema = match self.schemas.get(desc.name) {
+            Some(&id) => id,
+            None => {
+                let id =
+                    self.out
+                        .add_schema(desc.name, "ros2msg", desc.schema_text().as_bytes())?;
+                self.schemas.insert(desc.name, id);
+                id
+            }
+        };
+        let id = self
+            .out
+            .add_channel(schema, topic, "cdr", &BTreeMap::new())?;
+        self.channels.insert(topic.to_string(), id);
+        Ok(id)
+    }
+
+    fn write_bytes(
+        &mut self,
+        topic: &str,
+        desc: &'static super::ros2::typedesc::MsgDesc,
+        stamp_s: f64,
+        data: &[u8],
+    ) -> Result<(), McapError> {
+        let channel_id = self.channel(topic, desc)?;
+        self.sequence = self.sequence.wrapping_add(1);
+        let header = mcap::records::MessageHeader {
+            channel_id,
+            sequence: self.sequence,
+            log_time: ns(stamp_s),
+            publish_time: ns(stamp_s),
+        };
+        Ok(self.out.write_to_known_channel(&header, data)?)
+    }
+
+    /// Writes one message on `topic`, logged at `stamp_s`.
+    pub fn write<M: RosMessage>(
+        &mut self,
+        topic: &str,
+        stamp_s: f64,
+        msg: &M,
+    ) -> Result<(), McapError> {
+        let data = encode(msg).map_err(|source| McapError::Message {
+            topic: topic.into(),
+            source,
+        })?;
+        self.write_bytes(topic, M::DESC, stamp_s, &data)
+    }
+
+    /// Writes a camera frame and the robot joint positions perception used for it (empty
+    /// when none), then closes the chunk.
+    pub fn write_frame(
+        &mut self,
+        frame: &Frame,
+        joint_positions_rad: &[f64],
+    ) -> Result<(), McapError> {
+        let id = frame.camera_id;
+        let header = Header {
+            stamp: time_from_seconds(frame.stamp_s),
+            frame_id: topics::camera_frame_id(id),
+        };
+        let pose = &frame.world_from_camera;
+        let q = pose.rotation.quaternion();
+        let depth = match self.config.frames {
+            FrameEncoding::DepthImage => frame.depth.as_ref(),
+            FrameEncoding::PointCloud => None,
+        };
+        let meta = FrameMeta {
+            header: header.clone(),
+            camera_id: id,
+            stamp_s: frame.stamp_s,
+            world_from_camera_translation_m: pose.translation.vector.into(),
+            world_from_camera_rotation_wxyz: [q.w, q.i, q.j, q.k],
+            depth_scale_m: depth.map_or(0.0, |(d, _)| d.depth_scale_m),
+            joint_positions_rad: joint_positions_rad.to_vec(),
+        };
+        // All of the camera's channels are declared before its first message, so a reader
+        // knows the camera (and its metadata topic) when the metadata arrives.
+        self.channel(&topics::frame_meta(id), FrameMeta::DESC)?;
+        if depth.is_some() {
+            self.channel(&topics::depth_image(id), &IMAGE)?;
+            self.channel(&topics::camera_info(id), &CAMERA_INFO)?;
+        } else {
+            self.channel(&topics::points(id), &POINT_CLOUD2)?;
+        }
+        let t = frame.stamp_s;
+        self.write(&topics::frame_meta(id), t, &meta)?;
+        match depth {
+            Some((d, k)) => {
+                let img = image_from_depth(header.clone(), d);
+                self.write(&topics::depth_image(id), t, &img)?;
+                let info = camera_info_from_intrinsics(header.clone(), k);
+                self.write(&topics::camera_info(id), t, &info)?;
+            }
+            None => {
+                let cloud = pointcloud2_from_cloud(header.clone(), &frame.cloud);
+                self.write(&topics::points(id), t, &cloud)?;
+            }
+        }
+        let tf = TfMessage {
+            transforms: vec![TransformStamped {
+                header: Header {
+                    stamp: header.stamp,
+                    frame_id: topics::WORLD_FRAME.into(),
+                },
+                child_frame_id: header.frame_id,
+                transform: transform_from_isometry(pose),
+            }],
+        };
+        self.write(topics::TF, t, &tf)?;
+        self.flush()
+    }
+
+    /// Writes a surface estimate and the index of the tick that pushed it into fusion.
+    pub fn write_estimate(&mut self, tick: u64, e: &SurfaceEstimate) -> Result<(), McapError> {
+        let header = Header {
+            stamp: time_from_seconds(e.stamp_s),
+            frame_id: topics::WORLD_FRAME.into(),
+        };
+        self.write(
+            topics::ESTIMATES,
+            e.stamp_s,
+            &EstimateMsg::new(header, tick, e),
+        )
+    }
+
+    /// Writes a control tick.
+    pub fn write_tick(&mut self, t: &TickRecord) -> Result<(), McapError> {
+        let header = Header {
+            stamp: time_from_seconds(t.fused.stamp_s),
+            frame_id: topics::WORLD_FRAME.into(),
+        };
+        self.write(topics::TICKS, t.fused.stamp_s, &ControlTick::new(header, t))
+    }
+
+    /// Closes the current chunk, so everything written so far survives a crash.
+    pub fn flush(&mut self) -> Result<(), McapError> {
+        Ok(self.out.flush()?)
+    }
+
+    /// Writes the summary and the footer; returns the output.
+    pub fn finish(mut self) -> Result<W, McapError> {
+        self.out.finish()?;
+        Ok(self.out.into_inner())
+    }
+}
+
+/// One item of a recording, in file order.
+#[derive(Clone, Debug)]
+pub enum McapItem {
+    Frame(Assembled),
+    /// A surface estimate and the tick that pushed it.
+    Estimate(u64, SurfaceEstimate),
+    Tick(TickRecord),
+    /// Any other message (decode it with [`decode`] by its schema name).
+    Other {
+        topic: String,
+        schema: String,
+        log_time_ns: u64,
+        data: Vec<u8>,
+    },
+}
+
+struct ChannelInfo {
+    topic: String,
+    schema: String,
+}
+
+/// Reads a recording or a ROS 2 bag, streaming.
+pub struct McapReader<R: Read> {
+    input: R,
+    reader: LinearReader,
+    schemas: HashMap<u16, String>,
+    channels: HashMap<u16, ChannelInfo>,
+    assembler: FrameAssembler,
+    auto: bool,
+    truncated: Option<String>,
+    bytes_read: u64,
+}
+
+impl McapReader<std::io::BufReader<File>> {
+    pub fn open(path: &Path, config: &McapReaderConfig) -> Result<Self, McapError> {
+        let file = File::open(path).map_err(|source| McapError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::new(std::io::BufReader::with_capacity(1 << 20, file), config)
+    }
+}
+
+impl<R: Read> McapReader<R> {
+    pub fn new(input: R, config: &McapReaderConfig) -> Result<Self, McapError> {
+        config.validate().map_err(McapError::Config)?;
+        let assembler = FrameAssembler::new(config.cameras.clone(), &config.world_frame)
+            .map_err(McapError::Config)?;
+        Ok(Self {
+            input,
+            reader: LinearReader::new_with_options(
+                LinearReaderOptions::default().with_record_length_limit(MAX_RECORD_BYTES),
+            ),
+            schemas: HashMap::new(),
+            channels: HashMap::new(),
+            assembler,
+            auto: config.cameras.is_empty(),
+            truncated: None,
+            bytes_read: 0,
+        })
+    }
+
+    /// Where and why the file ended early, once the reader got there (`None` for a whole
+    /// file).
+    pub fn truncated(&self) -> Option<&str> {
+        self.truncated.as_deref()
+    }
+
+    /// The frame assembler (cameras found so far, counters of malformed or unpaired messages).
+    pub fn assembler(&self) -> &FrameAssembler {
+        &self.assembler
+    }
+
+    /// The next item; `Ok(None)` at the end of the file or at the cut of a truncated one.
+    pub fn next_item(&mut self) -> Result<Option<McapItem>, McapError> {
+        loop {
+            let event = match self.reader.next_event() {
+                None => return Ok(None),
+                Some(Err(mcap::McapError::UnexpectedEof)) => {
+                    self.truncated = Some(format!(
+                        "the file ends inside a record after {} bytes",
+                        self.bytes_read
+                    ));
+                    return Ok(None);
+                }
+                Some(Err(e)) => return Err(e.into()),
+                Some(Ok(event)) => event,
+            };
+            let message = match event {
+                LinearReadEvent::ReadRequest(need) => {
+                    let n = self.input.read(self.reader.insert(need))?;
+                    self.bytes_read += n as u64;
+                    self.reader.notify_read(n);
+                    continue;
+                }
+                LinearReadEvent::Record { opcode, data } => match mcap::parse_record(opcode, data)?
+                {
+                    mcap::records::Record::Schema { header, .. } => {
+                        self.schemas.insert(header.id, header.name);
+                        None
+                    }
+                    mcap::records::Record::Channel(c) => {
+                        let schema = self.schemas.get(&c.schema_id).cloned().unwrap_or_default();
+                        self.channels.insert(
+                            c.id,
+                            ChannelInfo {
+                                topic: c.topic,
+                                schema,
+                            },
+                        );
+                        self.discover()?;
+                        None
+                    }
+                    mcap::records::Record::Message { header, data } => {
+                        Some((header.channel_id, header.log_time, data.into_owned()))
+                    }
+                    _ => None,
+                },
+            };
+            if let Some((channel, log_time_ns, data)) = message
+                && let Some(item) = self.item(channel, log_time_ns, data)?
+            {
+                return Ok(Some(item));
+            }
+        }
+    }
+
+    /// Adds the cameras the declared channels make (auto mode): every `Image` topic with a
+    /// `CameraInfo` beside it, hapcloud's `PointCloud2` topics, and other `PointCloud2`
+    /// topics while no depth camera exists (a realsense bag may hold both for one camera).
+    fn discover(&mut self) -> Result<(), McapError> {
+        if !self.auto {
+            return Ok(());
+        }
+        let mut ids: Vec<_> = self.channels.keys().copied().collect();
+        ids.sort_unstable();
+        for id in ids {
+            let ch = &self.channels[&id];
+            if self.assembler.role(&ch.topic).is_some() {
+                continue;
+            }
+            let has_depth = self
+                .assembler
+                .cameras()
+                .iter()
+                .any(|c| !c.depth_image.is_empty());
+            let hapcloud_id = topics::camera_id_of(&ch.topic);
+            let camera_id = hapcloud_id.unwrap_or(self.assembler.cameras().len() as u32);
+            let mut camera = if ch.schema == IMAGE.name {
+                let c = CameraTopics::depth(camera_id, &ch.topic);
+                let info = c.info_topic();
+                if !self
+                    .channels
+                    .values()
+                    .any(|o| o.topic == info && o.schema == CAMERA_INFO.name)
+                {
+                    continue;
+                }
+                c
+            } else if ch.schema == POINT_CLOUD2.name && (!has_depth || hapcloud_id.is_some()) {
+                CameraTopics::points(camera_id, &ch.topic)
+            } else {
+                continue;
+            };
+            if hapcloud_id.is_some() {
+                camera.frame_meta = topics::frame_meta(camera_id);
+            }
+            self.assembler
+                .add_camera(camera)
+                .map_err(McapError::Config)?;
+        }
+        Ok(())
+    }
+
+    fn item(
+        &mut self,
+        channel: u16,
+        log_time_ns: u64,
+        data: Vec<u8>,
+    ) -> Result<Option<McapItem>, McapError> {
+        let Some(ch) = self.channels.get(&channel) else {
+            return Err(McapError::Config(format!(
+                "message on channel {channel}, which was never declared"
+            )));
+        };
+        let (topic, schema) = (ch.topic.clone(), ch.schema.clone());
+        let bad = |source| McapError::Message {
+            topic: topic.clone(),
+            source,
+        };
+        if self.assembler.role(&topic).is_some() {
+            return Ok(self.assembler.push(&topic, &data).map(McapItem::Frame));
+        }
+        if topic == topics::ESTIMATES && schema == EstimateMsg::DESC.name {
+            let m: EstimateMsg = decode(&data).map_err(bad)?;
+            let (tick, e) = m.to_estimate().map_err(bad)?;
+            return Ok(Some(McapItem::Estimate(tick, e)));
+        }
+        if topic == topics::TICKS && schema == ControlTick::DESC.name {
+            let m: ControlTick = decode(&data).map_err(bad)?;
+            return Ok(Some(McapItem::Tick(m.to_tick_record().map_err(bad)?)));
+        }
+        Ok(Some(McapItem::Other {
+            topic,
+            schema,
+            log_time_ns,
+            data,
+        }))
+    }
+}

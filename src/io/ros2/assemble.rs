@@ -1,0 +1,422 @@
+//! Camera frames from a stream of ROS 2 messages, whatever carries them (Zenoh samples, MCAP
+//! records): which topics are which camera, depth images paired with their camera info by
+//! header stamp, and each camera's pose from the config, from `/tf_static`, or from a
+//! recording's `hapcloud_msgs/FrameMeta`.
+//!
+//! Pairing keeps at most [`MAX_PENDING`] unpaired images and infos per camera; an older one
+//! that never finds its partner is dropped and counted. The pose of a camera without a
+//! configured one is the chain of static transforms from the image's `frame_id` up to
+//! `world_frame` (or to the root of the tree when `world_frame` is empty); frames that come
+//! before the transforms are dropped and counted (`no_pose`).
+
+use super::convert::{
+    frame_from_depth, frame_from_pointcloud2, intrinsics_from_camera_info, isometry_from_transform,
+};
+use super::hapcloud::FrameMeta;
+use super::msgs::{CameraInfo, Image, PointCloud2, Time};
+use super::{Ros2Error, decode, seconds_from_time};
+use crate::camera::Frame;
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+use std::collections::{HashMap, VecDeque};
+
+/// Unpaired images or infos kept per camera.
+pub const MAX_PENDING: usize = 4;
+
+/// A rigid pose: translation and unit quaternion.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Pose {
+    pub translation_m: [f64; 3],
+    /// Unit quaternion x, y, z, w (ROS order).
+    pub rotation_xyzw: [f64; 4],
+}
+
+impl Default for Pose {
+    fn default() -> Self {
+        Self {
+            translation_m: [0.0; 3],
+            rotation_xyzw: [0.0, 0.0, 0.0, 1.0],
+        }
+    }
+}
+
+impl Pose {
+    pub fn validate(&self) -> Result<(), String> {
+        let q = self.rotation_xyzw;
+        let norm = q.iter().map(|c| c * c).sum::<f64>().sqrt();
+        if !self.translation_m.iter().chain(&q).all(|c| c.is_finite()) || (norm - 1.0).abs() > 1e-6
+        {
+            return Err(format!(
+                "pose {self:?} must be finite with a unit quaternion"
+            ));
+        }
+        Ok(())
+    }
+
+    pub fn isometry(&self) -> Isometry3<f64> {
+        let [x, y, z, w] = self.rotation_xyzw;
+        Isometry3::from_parts(
+            Translation3::from(Vector3::from(self.translation_m)),
+            UnitQuaternion::new_normalize(Quaternion::new(w, x, y, z)),
+        )
+    }
+}
+
+/// Which topics make one camera. Topics are ROS names (`/camera/camera/depth/image_rect_raw`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraTopics {
+    pub camera_id: u32,
+    /// Depth image topic (`sensor_msgs/Image`, 16UC1 mm or 32FC1 m); empty with `points`.
+    pub depth_image: String,
+    /// Its `sensor_msgs/CameraInfo` topic; empty: `camera_info` beside the image topic.
+    pub camera_info: String,
+    /// `sensor_msgs/PointCloud2` topic, used when `depth_image` is empty.
+    pub points: String,
+    /// `hapcloud_msgs/FrameMeta` topic of a hapcloud recording (exact stamp, pose, joints).
+    pub frame_meta: String,
+    /// Pose of the camera's optical frame in the world; none: from `/tf_static`.
+    pub world_from_camera: Option<Pose>,
+}
+
+impl CameraTopics {
+    /// A depth camera whose info is beside its image.
+    pub fn depth(camera_id: u32, depth_image: &str) -> Self {
+        Self {
+            camera_id,
+            depth_image: depth_image.into(),
+            ..Self::default()
+        }
+    }
+
+    /// A point-cloud camera.
+    pub fn points(camera_id: u32, points: &str) -> Self {
+        Self {
+            camera_id,
+            points: points.into(),
+            ..Self::default()
+        }
+    }
+
+    /// The camera info topic (given, or the image topic's sibling `camera_info`).
+    pub fn info_topic(&self) -> String {
+        if !self.camera_info.is_empty() || self.depth_image.is_empty() {
+            return self.camera_info.clone();
+        }
+        match self.depth_image.rsplit_once('/') {
+            Some((prefix, _)) => format!("{prefix}/camera_info"),
+            None => "camera_info".into(),
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if self.depth_image.is_empty() == self.points.is_empty() {
+            return Err(format!(
+                "camera {}: set exactly one of depth_image and points",
+                self.camera_id
+            ));
+        }
+        if let Some(p) = &self.world_from_camera {
+            p.validate()
+                .map_err(|e| format!("camera {}: {e}", self.camera_id))?;
+        }
+        Ok(())
+    }
+
+    /// Every topic this camera reads.
+    pub fn topics(&self) -> Vec<String> {
+        [
+            self.depth_image.clone(),
+            self.info_topic(),
+            self.points.clone(),
+            self.frame_meta.clone(),
+        ]
+        .into_iter()
+        .filter(|t| !t.is_empty())
+        .collect()
+    }
+}
+
+/// The static transform topic.
+pub const TF_STATIC: &str = "/tf_static";
+
+/// What a topic carries for the assembler.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Role {
+    Image(usize),
+    Info(usize),
+    Points(usize),
+    Meta(usize),
+    TfStatic,
+}
+
+/// A frame and the robot joint positions recorded with it (empty when none).
+#[derive(Clone, Debug)]
+pub struct Assembled {
+    pub frame: Frame,
+    pub joint_positions_rad: Vec<f64>,
+}
+
+/// Counters of what did not become a frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct AssemblyCounters {
+    pub frames: u64,
+    /// Messages that did not decode or convert.
+    pub malformed: u64,
+    /// Images or infos dropped without a partner of the same stamp.
+    pub unpaired: u64,
+    /// Frames dropped because no pose was known for them yet.
+    pub no_pose: u64,
+}
+
+#[derive(Default)]
+struct Pending {
+    images: VecDeque<Image>,
+    infos: VecDeque<CameraInfo>,
+    metas: VecDeque<FrameMeta>,
+}
+
+/// Builds frames from the messages of the configured cameras.
+pub struct FrameAssembler {
+    cameras: Vec<CameraTopics>,
+    roles: HashMap<String, Role>,
+    pending: Vec<Pending>,
+    /// child frame -> (parent frame, parent_from_child).
+    tf: HashMap<String, (String, Isometry3<f64>)>,
+    world_frame: String,
+    counters: AssemblyCounters,
+    last_error: Option<String>,
+}
+
+impl FrameAssembler {
+    /// An assembler for `cameras`; poses from `/tf_static` are expressed in `world_frame`
+    /// (empty: the root of the transform tree).
+    pub fn new(cameras: Vec<CameraTopics>, world_frame: &str) -> Result<Self, String> {
+        let mut roles = HashMap::new();
+        roles.insert(TF_STATIC.into(), Role::TfStatic);
+        let mut out = Self {
+            cameras: Vec::new(),
+            roles,
+            pending: Vec::new(),
+            tf: HashMap::new(),
+            world_frame: world_frame.into(),
+            counters: AssemblyCounters::default(),
+            last_error: None,
+        };
+        for c in cameras {
+            out.add_camera(c)?;
+        }
+        Ok(out)
+    }
+
+    /// Adds a camera; its topics must not be read already.
+    pub fn add_camera(&mut self, c: CameraTopics) -> Result<(), String> {
+        c.validate()?;
+        let i = self.cameras.len();
+        let roles = if c.depth_image.is_empty() {
+            vec![(c.points.clone(), Role::Points(i))]
+        } else {
+            vec![
+                (c.depth_image.clone(), Role::Image(i)),
+                (c.info_topic(), Role::Info(i)),
+            ]
+        };
+        let roles: Vec<_> = roles
+            .into_iter()
+            .chain([(c.frame_meta.clone(), Role::Meta(i))])
+            .filter(|(t, _)| !t.is_empty())
+            .collect();
+        if let Some((t, _)) = roles.iter().find(|(t, _)| self.roles.contains_key(t)) {
+            return Err(format!("topic {t} is read twice"));
+        }
+        self.roles.extend(roles);
+        self.cameras.push(c);
+        self.pending.push(Pending::default());
+        Ok(())
+    }
+
+    pub fn cameras(&self) -> &[CameraTopics] {
+        &self.cameras
+    }
+
+    /// The role of a topic, `None` when no camera reads it.
+    pub fn role(&self, topic: &str) -> Option<Role> {
+        self.roles.get(topic).copied()
+    }
+
+    pub fn counters(&self) -> AssemblyCounters {
+        self.counters
+    }
+
+    /// Why the most recent message was counted as malformed.
+    pub fn last_error(&self) -> Option<&str> {
+        self.last_error.as_deref()
+    }
+
+    /// Takes one serialized message of `topic`; returns a frame when one is complete.
+    /// Malformed messages are counted (and their error kept), never returned as errors.
+    pub fn push(&mut self, topic: &str, payload: &[u8]) -> Option<Assembled> {
+        let role = self.role(topic)?;
+        match self.push_role(role, payload) {
+            Ok(frame) => frame,
+            Err(e) => {
+                self.counters.malformed += 1;
+                self.last_error = Some(format!("{topic}: {e}"));
+                None
+            }
+        }
+    }
+
+    fn push_role(&mut self, role: Role, payload: &[u8]) -> Result<Option<Assembled>, Ros2Error> {
+        match role {
+            Role::TfStatic => {
+                let tf: super::msgs::TfMessage = decode(payload)?;
+                for t in tf.transforms {
+                    let pose = isometry_from_transform(&t.transform)?;
+                    self.tf.insert(t.child_frame_id, (t.header.frame_id, pose));
+                }
+                Ok(None)
+            }
+            Role::Meta(i) => {
+                push_bounded(&mut self.pending[i].metas, decode(payload)?);
+                Ok(None)
+            }
+            Role::Points(i) => {
+                let msg: PointCloud2 = decode(payload)?;
+                let stamp = msg.header.stamp;
+                let Some((stamp_s, pose, meta)) = self.pose(i, &stamp, &msg.header.frame_id) else {
+                    return Ok(None);
+                };
+                let frame = frame_from_pointcloud2(self.cameras[i].camera_id, stamp_s, pose, &msg)?;
+                Ok(Some(self.done(frame, meta)))
+            }
+            Role::Image(i) => {
+                let img: Image = decode(payload)?;
+                let p = &mut self.pending[i];
+                let (info, skipped) =
+                    take_matching(&mut p.infos, |m| m.header.stamp == img.header.stamp);
+                self.counters.unpaired += skipped;
+                match info {
+                    Some(info) => self.depth_frame(i, img, info),
+                    None => {
+                        self.counters.unpaired += push_bounded(&mut p.images, img);
+                        Ok(None)
+                    }
+                }
+            }
+            Role::Info(i) => {
+                let info: CameraInfo = decode(payload)?;
+                // Checked now, so a bad info is counted once, not with every image.
+                intrinsics_from_camera_info(&info)?;
+                let p = &mut self.pending[i];
+                let (img, skipped) =
+                    take_matching(&mut p.images, |m| m.header.stamp == info.header.stamp);
+                self.counters.unpaired += skipped;
+                match img {
+                    Some(img) => self.depth_frame(i, img, info),
+                    None => {
+                        self.counters.unpaired += push_bounded(&mut p.infos, info);
+                        Ok(None)
+                    }
+                }
+            }
+        }
+    }
+
+    fn depth_frame(
+        &mut self,
+        i: usize,
+        img: Image,
+        info: CameraInfo,
+    ) -> Result<Option<Assembled>, Ros2Error> {
+        let Some((stamp_s, pose, meta)) = self.pose(i, &img.header.stamp, &img.header.frame_id)
+        else {
+            return Ok(None);
+        };
+        let scale = meta.as_ref().map(|m| m.depth_scale_m);
+        let id = self.cameras[i].camera_id;
+        let frame = frame_from_depth(id, stamp_s, pose, &img, &info, scale)?;
+        Ok(Some(self.done(frame, meta)))
+    }
+
+    fn done(&mut self, frame: Frame, meta: Option<FrameMeta>) -> Assembled {
+        self.counters.frames += 1;
+        Assembled {
+            frame,
+            joint_positions_rad: meta.map(|m| m.joint_positions_rad).unwrap_or_default(),
+        }
+    }
+
+    /// Stamp, pose and recorded metadata of camera `i`'s frame stamped `stamp` in `frame_id`;
+    /// `None` (counted) when no pose is known.
+    fn pose(
+        &mut self,
+        i: usize,
+        stamp: &Time,
+        frame_id: &str,
+    ) -> Option<(f64, Isometry3<f64>, Option<FrameMeta>)> {
+        if let (Some(meta), _) =
+            take_matching(&mut self.pending[i].metas, |m| m.header.stamp == *stamp)
+        {
+            let [w, x, y, z] = meta.world_from_camera_rotation_wxyz;
+            let pose = Isometry3::from_parts(
+                Translation3::from(Vector3::from(meta.world_from_camera_translation_m)),
+                UnitQuaternion::new_unchecked(Quaternion::new(w, x, y, z)),
+            );
+            return Some((meta.stamp_s, pose, Some(meta)));
+        }
+        let stamp_s = seconds_from_time(stamp);
+        if let Some(p) = &self.cameras[i].world_from_camera {
+            return Some((stamp_s, p.isometry(), None));
+        }
+        match self.tf_pose(frame_id) {
+            Some(pose) => Some((stamp_s, pose, None)),
+            None => {
+                self.counters.no_pose += 1;
+                None
+            }
+        }
+    }
+
+    /// `world_from_frame` through the static transforms (at most 64 links).
+    fn tf_pose(&self, frame_id: &str) -> Option<Isometry3<f64>> {
+        let mut pose = Isometry3::identity();
+        let mut frame = frame_id;
+        for _ in 0..64 {
+            if frame == self.world_frame {
+                return Some(pose);
+            }
+            match self.tf.get(frame) {
+                Some((parent, parent_from_child)) => {
+                    pose = parent_from_child * pose;
+                    frame = parent;
+                }
+                // The root of the tree: the world when no world frame is named.
+                None => return (self.world_frame.is_empty() && frame != frame_id).then_some(pose),
+            }
+        }
+        None
+    }
+}
+
+/// Appends `item`, dropping the oldest beyond [`MAX_PENDING`]; returns how many were dropped.
+fn push_bounded<T>(q: &mut VecDeque<T>, item: T) -> u64 {
+    q.push_back(item);
+    let mut dropped = 0;
+    while q.len() > MAX_PENDING {
+        q.pop_front();
+        dropped += 1;
+    }
+    dropped
+}
+
+/// Removes and returns the first item matching `pred`, dropping the older ones queued before
+/// it (returns how many).
+fn take_matching<T>(q: &mut VecDeque<T>, pred: impl Fn(&T) -> bool) -> (Option<T>, u64) {
+    let Some(at) = q.iter().position(pred) else {
+        return (None, 0);
+    };
+    q.drain(..at);
+    (q.pop_front(), at as u64)
+}

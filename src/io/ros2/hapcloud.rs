@@ -1,0 +1,553 @@
+//! hapcloud's own messages (package `hapcloud_msgs`, definitions shipped in `msg/`): the
+//! node's outputs where no standard message fits (the fused surface of paper IV-F, the haptic
+//! constraint of eq. 7-14, the node status) and what a recording needs for a bit-for-bit
+//! replay (per-frame metadata, surface estimates of Alg. 2, control ticks).
+//!
+//! Every value is `float64` with its unit in the field name, and every stamp is also carried
+//! as `float64 stamp_s` beside the header's `Time` (which rounds to nanoseconds), so nothing
+//! hapcloud compares on replay is rounded. Conversions to and from the node's values are
+//! exact (bit for bit).
+
+use super::Ros2Error;
+use super::msgs::{HEADER, Header, RosMessage};
+use super::typedesc::{Elem, MsgDesc, Prim, Shape, constant, field, msg, prim};
+use crate::control::ControlStatus;
+use crate::fusion::{FusedSurface as Fused, FusionStatus};
+use crate::haptics::HapticStatus;
+use crate::node::record::{ControlRecord, TickRecord};
+use crate::node::robot_state::JointState as Joints;
+use crate::robot::JointVector;
+use crate::surface::{ShellFit as Shell, ShellFitKind, SurfaceEstimate as Estimate};
+use nalgebra::{Point3, Unit, Vector3};
+use serde::{Deserialize, Serialize};
+
+const F64: Elem = Elem::Prim(Prim::Float64);
+
+pub static FUSED_SURFACE: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/FusedSurface",
+    constants: &[
+        constant(Prim::UInt8, "TRACKING", "0"),
+        constant(Prim::UInt8, "STALE", "1"),
+        constant(Prim::UInt8, "INCONSISTENT", "2"),
+        constant(Prim::UInt8, "NO_DATA", "3"),
+    ],
+    fields: &[
+        msg("header", &HEADER),
+        prim("stamp_s", Prim::Float64),
+        field("centroid_m", F64, Shape::Array(3)),
+        field("normal", F64, Shape::Array(3)),
+        field("velocity_m_per_s", F64, Shape::Array(3)),
+        prim("status", Prim::UInt8),
+        prim("age_s", Prim::Float64),
+        field("fit_centroid_m", F64, Shape::Array(3)),
+        field("fit_normal", F64, Shape::Array(3)),
+        prim("fit_degree", Prim::UInt8),
+        prim("sample_count", Prim::UInt32),
+        prim("camera_count", Prim::UInt32),
+    ],
+};
+
+/// `hapcloud_msgs/msg/FusedSurface`: [`crate::fusion::FusedSurface`] at one tick.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FusedSurface {
+    pub header: Header,
+    pub stamp_s: f64,
+    pub centroid_m: [f64; 3],
+    pub normal: [f64; 3],
+    pub velocity_m_per_s: [f64; 3],
+    pub status: u8,
+    pub age_s: f64,
+    pub fit_centroid_m: [f64; 3],
+    pub fit_normal: [f64; 3],
+    pub fit_degree: u8,
+    pub sample_count: u32,
+    pub camera_count: u32,
+}
+
+fn arr(v: &Vector3<f64>) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}
+
+impl FusedSurface {
+    pub fn new(header: Header, f: &Fused) -> Self {
+        Self {
+            header,
+            stamp_s: f.stamp_s,
+            centroid_m: arr(&f.centroid_m.coords),
+            normal: arr(&f.normal),
+            velocity_m_per_s: arr(&f.velocity_m_per_s),
+            status: match f.status {
+                FusionStatus::Tracking => 0,
+                FusionStatus::Stale => 1,
+                FusionStatus::Inconsistent => 2,
+                FusionStatus::NoData => 3,
+            },
+            age_s: f.age_s,
+            fit_centroid_m: arr(&f.fit_centroid_m.coords),
+            fit_normal: arr(&f.fit_normal),
+            fit_degree: f.fit_degree,
+            sample_count: f.sample_count,
+            camera_count: f.camera_count,
+        }
+    }
+
+    /// The node's value back, bit for bit.
+    pub fn to_fused(&self) -> Result<Fused, Ros2Error> {
+        Ok(Fused {
+            stamp_s: self.stamp_s,
+            centroid_m: Point3::from(self.centroid_m),
+            normal: Unit::new_unchecked(Vector3::from(self.normal)),
+            velocity_m_per_s: Vector3::from(self.velocity_m_per_s),
+            status: match self.status {
+                0 => FusionStatus::Tracking,
+                1 => FusionStatus::Stale,
+                2 => FusionStatus::Inconsistent,
+                3 => FusionStatus::NoData,
+                s => return Err(Ros2Error::Value(format!("unknown fusion status {s}"))),
+            },
+            age_s: self.age_s,
+            fit_centroid_m: Point3::from(self.fit_centroid_m),
+            fit_normal: Unit::new_unchecked(Vector3::from(self.fit_normal)),
+            fit_degree: self.fit_degree,
+            sample_count: self.sample_count,
+            camera_count: self.camera_count,
+        })
+    }
+}
+
+pub static HAPTIC_CONSTRAINT: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/HapticConstraint",
+    constants: &[
+        constant(Prim::UInt8, "ACTIVE", "0"),
+        constant(Prim::UInt8, "FAR", "1"),
+        constant(Prim::UInt8, "NO_SURFACE", "2"),
+    ],
+    fields: &[
+        msg("header", &HEADER),
+        prim("stamp_s", Prim::Float64),
+        prim("status", Prim::UInt8),
+        prim("held", Prim::Bool),
+        prim("d_proj_m", Prim::Float64),
+        prim("d_rate_mps", Prim::Float64),
+        prim("position_active", Prim::Bool),
+        prim("alpha_p_m", Prim::Float64),
+        prim("velocity_active", Prim::Bool),
+        prim("alpha_v_mps", Prim::Float64),
+        prim("force_active", Prim::Bool),
+    ],
+};
+
+/// `hapcloud_msgs/msg/HapticConstraint`: `d_proj` (eq. 7), its rate, and the bounds
+/// `alpha_P` (eq. 9) and `alpha_V` (eq. 13); a bound is NaN when its row is off.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct HapticConstraint {
+    pub header: Header,
+    pub stamp_s: f64,
+    pub status: u8,
+    pub held: bool,
+    pub d_proj_m: f64,
+    pub d_rate_mps: f64,
+    pub position_active: bool,
+    pub alpha_p_m: f64,
+    pub velocity_active: bool,
+    pub alpha_v_mps: f64,
+    pub force_active: bool,
+}
+
+impl HapticConstraint {
+    pub fn new(header: Header, stamp_s: f64, c: &ControlRecord) -> Self {
+        Self {
+            header,
+            stamp_s,
+            status: match c.haptic_status {
+                HapticStatus::Active => 0,
+                HapticStatus::Far => 1,
+                HapticStatus::NoSurface => 2,
+            },
+            held: c.held,
+            d_proj_m: c.d_proj_m,
+            d_rate_mps: c.d_rate_mps,
+            position_active: c.position_active(),
+            alpha_p_m: c.alpha_p_m,
+            velocity_active: c.velocity_active(),
+            alpha_v_mps: c.alpha_v_mps,
+            force_active: c.force_active,
+        }
+    }
+
+    fn haptic_status(&self) -> Result<HapticStatus, Ros2Error> {
+        Ok(match self.status {
+            0 => HapticStatus::Active,
+            1 => HapticStatus::Far,
+            2 => HapticStatus::NoSurface,
+            s => return Err(Ros2Error::Value(format!("unknown haptic status {s}"))),
+        })
+    }
+}
+
+pub static SHELL_FIT: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/ShellFit",
+    constants: &[
+        constant(Prim::UInt8, "PLANE", "0"),
+        constant(Prim::UInt8, "CIRCLE", "1"),
+    ],
+    fields: &[
+        prim("inner_radius_m", Prim::Float64),
+        prim("outer_radius_m", Prim::Float64),
+        prim("point_count", Prim::UInt32),
+        prim("kind", Prim::UInt8),
+        field("center_m", F64, Shape::Array(3)),
+        field("normal", F64, Shape::Array(3)),
+        prim("has_circle_radius", Prim::Bool),
+        prim("circle_radius_m", Prim::Float64),
+        prim("residual_rms_m", Prim::Float64),
+        prim("rejected", Prim::Bool),
+    ],
+};
+
+/// `hapcloud_msgs/msg/ShellFit`: one concentric shell's fit (Alg. 2).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ShellFit {
+    pub inner_radius_m: f64,
+    pub outer_radius_m: f64,
+    pub point_count: u32,
+    pub kind: u8,
+    pub center_m: [f64; 3],
+    pub normal: [f64; 3],
+    pub has_circle_radius: bool,
+    pub circle_radius_m: f64,
+    pub residual_rms_m: f64,
+    pub rejected: bool,
+}
+
+pub static SURFACE_ESTIMATE: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/SurfaceEstimate",
+    constants: &[],
+    fields: &[
+        msg("header", &HEADER),
+        prim("tick", Prim::UInt64),
+        prim("camera_id", Prim::UInt32),
+        prim("stamp_s", Prim::Float64),
+        field("centroid_m", F64, Shape::Array(3)),
+        field("normal", F64, Shape::Array(3)),
+        field("shells", Elem::Msg(&SHELL_FIT), Shape::Seq),
+        prim("quality", Prim::Float64),
+        prim("valid", Prim::Bool),
+    ],
+};
+
+/// `hapcloud_msgs/msg/SurfaceEstimate`: one camera's estimate (Alg. 2 output) and the index
+/// of the control tick that pushed it into fusion.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct SurfaceEstimate {
+    pub header: Header,
+    pub tick: u64,
+    pub camera_id: u32,
+    pub stamp_s: f64,
+    pub centroid_m: [f64; 3],
+    pub normal: [f64; 3],
+    pub shells: Vec<ShellFit>,
+    pub quality: f64,
+    pub valid: bool,
+}
+
+impl SurfaceEstimate {
+    pub fn new(header: Header, tick: u64, e: &Estimate) -> Self {
+        Self {
+            header,
+            tick,
+            camera_id: e.camera_id,
+            stamp_s: e.stamp_s,
+            centroid_m: arr(&e.centroid_m.coords),
+            normal: arr(&e.normal),
+            shells: e
+                .shells
+                .iter()
+                .map(|s| ShellFit {
+                    inner_radius_m: s.inner_radius_m,
+                    outer_radius_m: s.outer_radius_m,
+                    point_count: s.point_count,
+                    kind: match s.kind {
+                        ShellFitKind::Plane => 0,
+                        ShellFitKind::Circle => 1,
+                    },
+                    center_m: arr(&s.center_m.coords),
+                    normal: arr(&s.normal),
+                    has_circle_radius: s.circle_radius_m.is_some(),
+                    circle_radius_m: s.circle_radius_m.unwrap_or(f64::NAN),
+                    residual_rms_m: s.residual_rms_m,
+                    rejected: s.rejected,
+                })
+                .collect(),
+            quality: e.quality,
+            valid: e.valid,
+        }
+    }
+
+    /// The tick index and the node's estimate back, bit for bit.
+    pub fn to_estimate(&self) -> Result<(u64, Estimate), Ros2Error> {
+        let shells = self
+            .shells
+            .iter()
+            .map(|s| {
+                Ok(Shell {
+                    inner_radius_m: s.inner_radius_m,
+                    outer_radius_m: s.outer_radius_m,
+                    point_count: s.point_count,
+                    kind: match s.kind {
+                        0 => ShellFitKind::Plane,
+                        1 => ShellFitKind::Circle,
+                        k => return Err(Ros2Error::Value(format!("unknown shell fit kind {k}"))),
+                    },
+                    center_m: Point3::from(s.center_m),
+                    normal: Unit::new_unchecked(Vector3::from(s.normal)),
+                    circle_radius_m: s.has_circle_radius.then_some(s.circle_radius_m),
+                    residual_rms_m: s.residual_rms_m,
+                    rejected: s.rejected,
+                })
+            })
+            .collect::<Result<_, _>>()?;
+        Ok((
+            self.tick,
+            Estimate {
+                camera_id: self.camera_id,
+                stamp_s: self.stamp_s,
+                centroid_m: Point3::from(self.centroid_m),
+                normal: Unit::new_unchecked(Vector3::from(self.normal)),
+                shells,
+                quality: self.quality,
+                valid: self.valid,
+            },
+        ))
+    }
+}
+
+pub static FRAME_META: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/FrameMeta",
+    constants: &[],
+    fields: &[
+        msg("header", &HEADER),
+        prim("camera_id", Prim::UInt32),
+        prim("stamp_s", Prim::Float64),
+        field("world_from_camera_translation_m", F64, Shape::Array(3)),
+        field("world_from_camera_rotation_wxyz", F64, Shape::Array(4)),
+        prim("depth_scale_m", Prim::Float64),
+        field("joint_positions_rad", F64, Shape::Seq),
+    ],
+};
+
+/// `hapcloud_msgs/msg/FrameMeta`: what a recorded camera frame needs beyond its Image or
+/// PointCloud2 for a bit-for-bit replay: the unrounded stamp, the camera pose, the depth unit,
+/// and the robot's joint positions perception used for it (empty when none).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FrameMeta {
+    pub header: Header,
+    pub camera_id: u32,
+    pub stamp_s: f64,
+    pub world_from_camera_translation_m: [f64; 3],
+    pub world_from_camera_rotation_wxyz: [f64; 4],
+    pub depth_scale_m: f64,
+    pub joint_positions_rad: Vec<f64>,
+}
+
+pub static CONTROL_TICK: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/ControlTick",
+    constants: &[
+        constant(Prim::UInt8, "OK", "0"),
+        constant(Prim::UInt8, "BAD_INPUT", "1"),
+        constant(Prim::UInt8, "SOLVER_FAILED", "2"),
+    ],
+    fields: &[
+        msg("header", &HEADER),
+        prim("index", Prim::UInt64),
+        msg("fused", &FUSED_SURFACE),
+        msg("constraint", &HAPTIC_CONSTRAINT),
+        field("joint_positions_rad", F64, Shape::Seq),
+        field("joint_velocities_rad_per_s", F64, Shape::Seq),
+        prim("control_status", Prim::UInt8),
+        field("tau_nm", F64, Shape::Seq),
+        field("qdd_rad_per_s2", F64, Shape::Seq),
+        prim("late_s", Prim::Float64),
+        prim("work_s", Prim::Float64),
+    ],
+};
+
+/// `hapcloud_msgs/msg/ControlTick`: one control tick as recorded (fused surface, robot
+/// state, constraint, torque command, timing).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ControlTick {
+    pub header: Header,
+    pub index: u64,
+    pub fused: FusedSurface,
+    pub constraint: HapticConstraint,
+    pub joint_positions_rad: Vec<f64>,
+    pub joint_velocities_rad_per_s: Vec<f64>,
+    pub control_status: u8,
+    pub tau_nm: Vec<f64>,
+    pub qdd_rad_per_s2: Vec<f64>,
+    pub late_s: f64,
+    pub work_s: f64,
+}
+
+fn joints(name: &str, v: &[f64]) -> Result<JointVector, Ros2Error> {
+    if v.len() != JointVector::zeros().len() {
+        return Err(Ros2Error::Value(format!(
+            "{name} has {} values, the robot has {} joints",
+            v.len(),
+            JointVector::zeros().len()
+        )));
+    }
+    Ok(JointVector::from_column_slice(v))
+}
+
+impl ControlTick {
+    pub fn new(header: Header, t: &TickRecord) -> Self {
+        let c = &t.control;
+        Self {
+            fused: FusedSurface::new(header.clone(), &t.fused),
+            constraint: HapticConstraint::new(header.clone(), t.fused.stamp_s, c),
+            header,
+            index: t.index,
+            joint_positions_rad: c.joints.q_rad.as_slice().to_vec(),
+            joint_velocities_rad_per_s: c.joints.qd_rad_per_s.as_slice().to_vec(),
+            control_status: match c.status {
+                ControlStatus::Ok => 0,
+                ControlStatus::BadInput => 1,
+                ControlStatus::SolverFailed => 2,
+            },
+            tau_nm: c.tau_nm.as_slice().to_vec(),
+            qdd_rad_per_s2: c.qdd_rad_per_s2.as_slice().to_vec(),
+            late_s: t.late_s,
+            work_s: t.work_s,
+        }
+    }
+
+    /// The node's tick record back, bit for bit.
+    pub fn to_tick_record(&self) -> Result<TickRecord, Ros2Error> {
+        let k = &self.constraint;
+        Ok(TickRecord {
+            index: self.index,
+            fused: self.fused.to_fused()?,
+            control: ControlRecord {
+                joints: Joints {
+                    q_rad: joints("joint_positions_rad", &self.joint_positions_rad)?,
+                    qd_rad_per_s: joints(
+                        "joint_velocities_rad_per_s",
+                        &self.joint_velocities_rad_per_s,
+                    )?,
+                },
+                held: k.held,
+                haptic_status: k.haptic_status()?,
+                d_proj_m: k.d_proj_m,
+                d_rate_mps: k.d_rate_mps,
+                alpha_p_m: k.alpha_p_m,
+                alpha_v_mps: k.alpha_v_mps,
+                force_active: k.force_active,
+                status: match self.control_status {
+                    0 => ControlStatus::Ok,
+                    1 => ControlStatus::BadInput,
+                    2 => ControlStatus::SolverFailed,
+                    s => return Err(Ros2Error::Value(format!("unknown control status {s}"))),
+                },
+                tau_nm: joints("tau_nm", &self.tau_nm)?,
+                qdd_rad_per_s2: joints("qdd_rad_per_s2", &self.qdd_rad_per_s2)?,
+            },
+            late_s: self.late_s,
+            work_s: self.work_s,
+        })
+    }
+}
+
+pub static CAMERA_STATUS: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/CameraStatus",
+    constants: &[],
+    fields: &[
+        prim("camera_id", Prim::UInt32),
+        prim("frames", Prim::UInt64),
+        prim("drops", Prim::UInt64),
+        prim("malformed", Prim::UInt64),
+        prim("rate_hz", Prim::Float64),
+        prim("latency_p50_s", Prim::Float64),
+        prim("latency_p99_s", Prim::Float64),
+    ],
+};
+
+/// `hapcloud_msgs/msg/CameraStatus`: one camera's counters as the node sees them.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CameraStatus {
+    pub camera_id: u32,
+    pub frames: u64,
+    pub drops: u64,
+    pub malformed: u64,
+    pub rate_hz: f64,
+    pub latency_p50_s: f64,
+    pub latency_p99_s: f64,
+}
+
+pub static NODE_STATUS: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/NodeStatus",
+    constants: &[],
+    fields: &[
+        msg("header", &HEADER),
+        prim("stamp_s", Prim::Float64),
+        prim("ticks", Prim::UInt64),
+        prim("missed_ticks", Prim::UInt64),
+        prim("fusion_status", Prim::UInt8),
+        prim("haptic_status", Prim::UInt8),
+        prim("control_status", Prim::UInt8),
+        prim("backend", Prim::String),
+        field("cameras", Elem::Msg(&CAMERA_STATUS), Shape::Seq),
+    ],
+};
+
+/// `hapcloud_msgs/msg/NodeStatus`: the node's health, published at a low rate. The status
+/// codes are those of FusedSurface, HapticConstraint and ControlTick.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct NodeStatus {
+    pub header: Header,
+    pub stamp_s: f64,
+    pub ticks: u64,
+    pub missed_ticks: u64,
+    pub fusion_status: u8,
+    pub haptic_status: u8,
+    pub control_status: u8,
+    pub backend: String,
+    pub cameras: Vec<CameraStatus>,
+}
+
+impl RosMessage for FusedSurface {
+    const DESC: &'static MsgDesc = &FUSED_SURFACE;
+}
+impl RosMessage for HapticConstraint {
+    const DESC: &'static MsgDesc = &HAPTIC_CONSTRAINT;
+}
+impl RosMessage for ShellFit {
+    const DESC: &'static MsgDesc = &SHELL_FIT;
+}
+impl RosMessage for SurfaceEstimate {
+    const DESC: &'static MsgDesc = &SURFACE_ESTIMATE;
+}
+impl RosMessage for FrameMeta {
+    const DESC: &'static MsgDesc = &FRAME_META;
+}
+impl RosMessage for ControlTick {
+    const DESC: &'static MsgDesc = &CONTROL_TICK;
+}
+impl RosMessage for CameraStatus {
+    const DESC: &'static MsgDesc = &CAMERA_STATUS;
+}
+impl RosMessage for NodeStatus {
+    const DESC: &'static MsgDesc = &NODE_STATUS;
+}
+
+/// Every hapcloud message type, for shipping and checking the `msg/` definitions.
+pub static ALL: [&MsgDesc; 8] = [
+    &FUSED_SURFACE,
+    &HAPTIC_CONSTRAINT,
+    &SHELL_FIT,
+    &SURFACE_ESTIMATE,
+    &FRAME_META,
+    &CONTROL_TICK,
+    &CAMERA_STATUS,
+    &NODE_STATUS,
+];

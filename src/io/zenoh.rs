@@ -1,0 +1,575 @@
+//! ROS 2 messages over Zenoh: a camera source that yields [`Frame`]s and a publisher of the
+//! node's outputs, speaking rmw_zenoh's key expressions (or the plain topic keys of
+//! zenoh-plugin-ros2dds), so hapcloud joins a ROS 2 system running rmw_zenoh unchanged.
+//!
+//! Sessions use TCP only, multicast scouting off and explicit `connect` / `listen` endpoints
+//! (a router at `tcp/HOST:7447`, where `rmw_zenohd` listens). A topic's key is
+//! `<domain_id>/<topic without leading or trailing />/<DDS type name>/<RIHS01 hash>`; the
+//! source subscribes with `*` in the hash slot, so Humble's `TypeHashNotSupported` matches
+//! too. Payloads are CDR with the encapsulation header; rmw_zenoh's attachment (sequence
+//! number, source time stamp, publisher GID) is written by the publisher and ignored by the
+//! source (its layout changed between releases).
+//!
+//! The subscriber callbacks (Zenoh's threads) only move the payload into a bounded queue;
+//! decoding and pairing happen in [`ZenohSource::recv`] on the caller's thread. When the
+//! queue is full the oldest sample is dropped and counted, so a flooding publisher costs
+//! drops, never memory. A router that goes away and comes back is Zenoh's business: it
+//! reconnects in the background, `recv` times out meanwhile and `put`s are dropped
+//! (congestion control `Drop`), so the caller never blocks or panics.
+
+use super::ros2::assemble::{Assembled, CameraTopics, FrameAssembler, TF_STATIC};
+use super::ros2::convert::{camera_info_from_intrinsics, image_from_depth, pointcloud2_from_cloud};
+use super::ros2::hapcloud::{FusedSurface, HapticConstraint, NodeStatus};
+use super::ros2::msgs::{CameraInfo, Header, Image, JointState, PointCloud2, TfMessage};
+use super::ros2::typedesc::MsgDesc;
+use super::ros2::{Ros2Error, RosMessage, encode, time_from_seconds, topics};
+use crate::camera::Frame;
+use crate::node::record::TickRecord;
+use serde::{Deserialize, Serialize};
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::str::FromStr;
+use std::sync::{Arc, Condvar, Mutex, PoisonError};
+use std::time::{Duration, Instant};
+use zenoh::Wait;
+use zenoh::bytes::ZBytes;
+use zenoh::pubsub::{Publisher, Subscriber};
+use zenoh::qos::CongestionControl;
+
+/// Why a Zenoh session, source or publisher failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ZenohError {
+    #[error("zenoh config: {0}")]
+    Config(String),
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+    #[error("{topic}: {source}")]
+    Message { topic: String, source: Ros2Error },
+}
+
+fn zerr(e: zenoh::Error) -> ZenohError {
+    ZenohError::Zenoh(e.to_string())
+}
+
+/// How a Zenoh node takes part.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Mode {
+    /// Everything goes through one router (the one in `connect`): works across machines
+    /// with nothing but the router's address.
+    #[default]
+    Client,
+    /// Like rmw_zenoh's nodes: the router only introduces peers, which then exchange data
+    /// directly, so a peer needs a `listen` endpoint the other peers can reach.
+    Peer,
+}
+
+/// Which key expressions topics map to.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum KeyStyle {
+    /// rmw_zenoh: `<domain_id>/<topic>/<DDS type name>/<type hash>`.
+    #[default]
+    RmwZenoh,
+    /// zenoh-plugin-ros2dds (the DDS bridge): the bare topic.
+    Ros2dds,
+}
+
+/// The session: endpoints and key style.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ZenohConfig {
+    pub mode: Mode,
+    /// Endpoints to connect to, e.g. `tcp/192.168.1.10:7447` (a router).
+    pub connect: Vec<String>,
+    /// Endpoints to listen on (peers only; e.g. `tcp/0.0.0.0:0`, a free port).
+    pub listen: Vec<String>,
+    /// ROS domain id (the first chunk of rmw_zenoh's keys).
+    pub domain_id: u32,
+    pub keys: KeyStyle,
+}
+
+impl Default for ZenohConfig {
+    fn default() -> Self {
+        Self {
+            mode: Mode::Client,
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            listen: Vec::new(),
+            domain_id: 0,
+            keys: KeyStyle::RmwZenoh,
+        }
+    }
+}
+
+impl ZenohConfig {
+    pub fn validate(&self) -> Result<(), ZenohError> {
+        for e in self.connect.iter().chain(&self.listen) {
+            zenoh::config::EndPoint::from_str(e)
+                .map_err(|err| ZenohError::Config(format!("endpoint {e:?}: {err}")))?;
+            if !e.starts_with("tcp/") {
+                return Err(ZenohError::Config(format!(
+                    "endpoint {e:?}: only tcp/ endpoints are built in"
+                )));
+            }
+        }
+        if self.connect.is_empty() && self.listen.is_empty() {
+            return Err(ZenohError::Config(
+                "set connect or listen endpoints (multicast scouting is off)".into(),
+            ));
+        }
+        match self.mode {
+            Mode::Client if self.connect.len() != 1 || !self.listen.is_empty() => {
+                return Err(ZenohError::Config(
+                    "a client connects to exactly one router and listens on nothing".into(),
+                ));
+            }
+            Mode::Peer if self.listen.is_empty() => {
+                return Err(ZenohError::Config(
+                    "a peer needs a listen endpoint the other peers can reach \
+                     (or use mode = \"client\")"
+                        .into(),
+                ));
+            }
+            _ => {}
+        }
+        if self.domain_id > 232 {
+            return Err(ZenohError::Config(format!(
+                "domain_id {} is outside ROS 2's 0..=232",
+                self.domain_id
+            )));
+        }
+        Ok(())
+    }
+
+    /// The Zenoh configuration: mode, endpoints, multicast scouting off. A client's `open`
+    /// fails when its router is not there; a peer connects in the background and retries
+    /// forever. Both reconnect by themselves after losing a connection.
+    pub fn zenoh_config(&self) -> Result<zenoh::Config, ZenohError> {
+        self.validate()?;
+        let json = |v: &[String]| serde_json::to_string(v).unwrap_or_default();
+        let mode = match self.mode {
+            Mode::Peer => "peer",
+            Mode::Client => "client",
+        };
+        let mut c = zenoh::Config::default();
+        for (key, value) in [
+            ("mode", format!("\"{mode}\"")),
+            ("connect/endpoints", json(&self.connect)),
+            ("listen/endpoints", json(&self.listen)),
+            ("scouting/multicast/enabled", "false".into()),
+            (
+                "connect/timeout_ms",
+                if self.mode == Mode::Peer { "-1" } else { "0" }.into(),
+            ),
+            ("connect/exit_on_failure", "false".into()),
+        ] {
+            c.insert_json5(key, &value)
+                .map_err(|e| ZenohError::Config(format!("{key} = {value}: {e}")))?;
+        }
+        Ok(c)
+    }
+
+    /// The key of `topic` carrying `desc`; `hash` false puts `*` in the hash slot.
+    pub fn key(&self, topic: &str, desc: &MsgDesc, hash: bool) -> String {
+        let topic = topic.trim_matches('/');
+        match self.keys {
+            KeyStyle::Ros2dds => topic.to_string(),
+            KeyStyle::RmwZenoh => format!(
+                "{}/{topic}/{}/{}",
+                self.domain_id,
+                desc.dds_name(),
+                if hash { desc.rihs01() } else { "*".into() }
+            ),
+        }
+    }
+}
+
+/// Opens a session (returns at once; connections are made and remade in the background).
+pub fn open_session(config: &ZenohConfig) -> Result<zenoh::Session, ZenohError> {
+    zenoh::open(config.zenoh_config()?).wait().map_err(zerr)
+}
+
+/// Camera source settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ZenohSourceConfig {
+    pub cameras: Vec<CameraTopics>,
+    /// Frame `/tf_static` poses are expressed in (empty: the root of the tree).
+    pub world_frame: String,
+    /// Samples waiting to be decoded; beyond this the oldest is dropped.
+    pub queue_samples: usize,
+}
+
+impl Default for ZenohSourceConfig {
+    fn default() -> Self {
+        Self {
+            cameras: vec![CameraTopics::depth(
+                0,
+                "/camera/camera/depth/image_rect_raw",
+            )],
+            world_frame: String::new(),
+            queue_samples: 8,
+        }
+    }
+}
+
+impl ZenohSourceConfig {
+    pub fn validate(&self) -> Result<(), ZenohError> {
+        if self.cameras.is_empty() {
+            return Err(ZenohError::Config("no cameras".into()));
+        }
+        if self.queue_samples == 0 {
+            return Err(ZenohError::Config(
+                "queue_samples must be at least 1".into(),
+            ));
+        }
+        for c in &self.cameras {
+            c.validate().map_err(ZenohError::Config)?;
+        }
+        Ok(())
+    }
+}
+
+/// One camera's counters.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CameraCounters {
+    pub frames: u64,
+    /// Samples dropped because the queue was full.
+    pub drops: u64,
+    /// Samples that did not decode or convert.
+    pub malformed: u64,
+}
+
+struct Queue {
+    items: Mutex<VecDeque<(usize, ZBytes)>>,
+    ready: Condvar,
+    capacity: usize,
+    /// Drops per subscribed topic.
+    drops: Vec<std::sync::atomic::AtomicU64>,
+}
+
+/// Camera frames from Zenoh.
+pub struct ZenohSource {
+    _subscribers: Vec<Subscriber<()>>,
+    topics: Vec<String>,
+    /// The camera id of each subscribed topic (none for `/tf_static`).
+    topic_camera: Vec<Option<u32>>,
+    queue: Arc<Queue>,
+    assembler: FrameAssembler,
+    counters: BTreeMap<u32, CameraCounters>,
+}
+
+impl ZenohSource {
+    /// Subscribes to every camera topic and `/tf_static` on `session`.
+    pub fn new(
+        session: &zenoh::Session,
+        zenoh: &ZenohConfig,
+        config: &ZenohSourceConfig,
+    ) -> Result<Self, ZenohError> {
+        config.validate()?;
+        let assembler = FrameAssembler::new(config.cameras.clone(), &config.world_frame)
+            .map_err(ZenohError::Config)?;
+        let mut topics: Vec<(String, &'static MsgDesc, Option<u32>)> = Vec::new();
+        for c in &config.cameras {
+            let id = Some(c.camera_id);
+            if c.depth_image.is_empty() {
+                topics.push((c.points.clone(), PointCloud2::DESC, id));
+            } else {
+                topics.push((c.depth_image.clone(), Image::DESC, id));
+                topics.push((c.info_topic(), CameraInfo::DESC, id));
+            }
+            if !c.frame_meta.is_empty() {
+                topics.push((
+                    c.frame_meta.clone(),
+                    super::ros2::hapcloud::FrameMeta::DESC,
+                    id,
+                ));
+            }
+        }
+        topics.push((TF_STATIC.into(), TfMessage::DESC, None));
+        let queue = Arc::new(Queue {
+            items: Mutex::new(VecDeque::with_capacity(config.queue_samples)),
+            ready: Condvar::new(),
+            capacity: config.queue_samples,
+            drops: topics.iter().map(|_| Default::default()).collect(),
+        });
+        let mut subscribers = Vec::new();
+        for (i, (topic, desc, _)) in topics.iter().enumerate() {
+            let q = Arc::clone(&queue);
+            let sub = session
+                .declare_subscriber(zenoh.key(topic, desc, false))
+                .callback(move |sample| {
+                    let mut items = q.items.lock().unwrap_or_else(PoisonError::into_inner);
+                    if items.len() >= q.capacity
+                        && let Some((t, _)) = items.pop_front()
+                    {
+                        q.drops[t].fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    }
+                    items.push_back((i, sample.payload().clone()));
+                    q.ready.notify_one();
+                })
+                .wait()
+                .map_err(zerr)?;
+            subscribers.push(sub);
+        }
+        Ok(Self {
+            _subscribers: subscribers,
+            counters: config
+                .cameras
+                .iter()
+                .map(|c| (c.camera_id, CameraCounters::default()))
+                .collect(),
+            topic_camera: topics.iter().map(|t| t.2).collect(),
+            topics: topics.into_iter().map(|t| t.0).collect(),
+            queue,
+            assembler,
+        })
+    }
+
+    /// The next complete frame, waiting at most `timeout`; `None` on timeout.
+    pub fn recv(&mut self, timeout: Duration) -> Option<Assembled> {
+        let until = Instant::now() + timeout;
+        loop {
+            let (topic, payload) = {
+                let mut items = self
+                    .queue
+                    .items
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner);
+                loop {
+                    if let Some(item) = items.pop_front() {
+                        break item;
+                    }
+                    let left = until.saturating_duration_since(Instant::now());
+                    if left.is_zero() {
+                        return None;
+                    }
+                    items = self
+                        .queue
+                        .ready
+                        .wait_timeout(items, left)
+                        .unwrap_or_else(PoisonError::into_inner)
+                        .0;
+                }
+            };
+            let bytes = payload.to_bytes();
+            let before = self.assembler.counters().malformed;
+            let frame = self.assembler.push(&self.topics[topic], &bytes);
+            if let Some(id) = self.topic_camera[topic]
+                && let Some(c) = self.counters.get_mut(&id)
+            {
+                c.malformed += self.assembler.counters().malformed - before;
+            }
+            if let Some(f) = frame {
+                if let Some(c) = self.counters.get_mut(&f.frame.camera_id) {
+                    c.frames += 1;
+                }
+                return Some(f);
+            }
+        }
+    }
+
+    /// Per-camera counters (frames delivered, samples dropped, malformed samples).
+    pub fn counters(&self) -> BTreeMap<u32, CameraCounters> {
+        let mut out = self.counters.clone();
+        for (i, id) in self.topic_camera.iter().enumerate() {
+            if let Some(c) = id.and_then(|id| out.get_mut(&id)) {
+                c.drops += self.queue.drops[i].load(std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+        out
+    }
+
+    /// The assembler (unpaired images, frames without a pose, the last malformed message).
+    pub fn assembler(&self) -> &FrameAssembler {
+        &self.assembler
+    }
+}
+
+/// Publisher settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ZenohPublisherConfig {
+    /// Largest rate of the per-tick outputs, Hz (0: every tick).
+    pub tick_rate_hz: f64,
+    /// Joint names of the torque command's JointState.
+    pub joint_names: Vec<String>,
+    /// Attach rmw_zenoh's sequence number, source time stamp and GID to every sample.
+    pub attachment: bool,
+}
+
+impl Default for ZenohPublisherConfig {
+    fn default() -> Self {
+        Self {
+            tick_rate_hz: 0.0,
+            joint_names: (1..=crate::robot::DOF)
+                .map(|i| format!("joint{i}"))
+                .collect(),
+            attachment: true,
+        }
+    }
+}
+
+impl ZenohPublisherConfig {
+    pub fn validate(&self) -> Result<(), ZenohError> {
+        if !(self.tick_rate_hz >= 0.0 && self.tick_rate_hz.is_finite()) {
+            return Err(ZenohError::Config(format!(
+                "tick_rate_hz {} must be finite and >= 0",
+                self.tick_rate_hz
+            )));
+        }
+        if self.joint_names.len() != crate::robot::DOF {
+            return Err(ZenohError::Config(format!(
+                "{} joint names for {} joints",
+                self.joint_names.len(),
+                crate::robot::DOF
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Publishes the node's outputs (and, for camera-side tools, frames).
+pub struct ZenohPublisher {
+    session: zenoh::Session,
+    zenoh: ZenohConfig,
+    config: ZenohPublisherConfig,
+    publishers: HashMap<String, Publisher<'static>>,
+    sequence: i64,
+    gid: [u8; 16],
+    last_tick_s: Option<f64>,
+}
+
+impl ZenohPublisher {
+    pub fn new(
+        session: &zenoh::Session,
+        zenoh: &ZenohConfig,
+        config: &ZenohPublisherConfig,
+    ) -> Result<Self, ZenohError> {
+        config.validate()?;
+        let zid = session.zid().to_le_bytes();
+        let mut gid = [0u8; 16];
+        gid.copy_from_slice(&zid[..16]);
+        Ok(Self {
+            session: session.clone(),
+            zenoh: zenoh.clone(),
+            config: config.clone(),
+            publishers: HashMap::new(),
+            sequence: 0,
+            gid,
+            last_tick_s: None,
+        })
+    }
+
+    /// rmw_zenoh's attachment: i64 sequence number, i64 source time stamp (ns), the GID's
+    /// length (16) and the GID.
+    fn attachment(&mut self) -> Vec<u8> {
+        self.sequence += 1;
+        let now_ns = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as i64);
+        let mut out = Vec::with_capacity(33);
+        out.extend_from_slice(&self.sequence.to_le_bytes());
+        out.extend_from_slice(&now_ns.to_le_bytes());
+        out.push(16);
+        out.extend_from_slice(&self.gid);
+        out
+    }
+
+    /// Publishes one message on `topic`. A sample that cannot be sent now (no route, full
+    /// queues) is dropped, never waited for.
+    pub fn publish<M: RosMessage>(&mut self, topic: &str, msg: &M) -> Result<(), ZenohError> {
+        let payload = encode(msg).map_err(|source| ZenohError::Message {
+            topic: topic.into(),
+            source,
+        })?;
+        if !self.publishers.contains_key(topic) {
+            let p = self
+                .session
+                .declare_publisher(self.zenoh.key(topic, M::DESC, true))
+                .congestion_control(CongestionControl::Drop)
+                .wait()
+                .map_err(zerr)?;
+            self.publishers.insert(topic.to_string(), p);
+        }
+        let attachment = self.config.attachment.then(|| self.attachment());
+        let publisher = &self.publishers[topic];
+        let put = publisher.put(payload);
+        match attachment {
+            Some(a) => put.attachment(a).wait(),
+            None => put.wait(),
+        }
+        .map_err(zerr)
+    }
+
+    /// Publishes a tick's fused surface, haptic constraint and joint torque command (effort,
+    /// with the joint positions and velocities it was computed for), at most at
+    /// `tick_rate_hz` on the tick clock. Returns whether it published.
+    pub fn publish_tick(&mut self, t: &TickRecord) -> Result<bool, ZenohError> {
+        let stamp_s = t.fused.stamp_s;
+        if self.config.tick_rate_hz > 0.0
+            && let Some(last) = self.last_tick_s
+            && stamp_s - last < 1.0 / self.config.tick_rate_hz
+        {
+            return Ok(false);
+        }
+        self.last_tick_s = Some(stamp_s);
+        let header = Header {
+            stamp: time_from_seconds(stamp_s),
+            frame_id: topics::WORLD_FRAME.into(),
+        };
+        self.publish(
+            topics::FUSED_SURFACE,
+            &FusedSurface::new(header.clone(), &t.fused),
+        )?;
+        self.publish(
+            topics::HAPTIC_CONSTRAINT,
+            &HapticConstraint::new(header.clone(), stamp_s, &t.control),
+        )?;
+        let c = &t.control;
+        let joints = JointState {
+            header: Header {
+                frame_id: String::new(),
+                ..header
+            },
+            name: self.config.joint_names.clone(),
+            position: c.joints.q_rad.as_slice().to_vec(),
+            velocity: c.joints.qd_rad_per_s.as_slice().to_vec(),
+            effort: c.tau_nm.as_slice().to_vec(),
+        };
+        self.publish(topics::JOINT_COMMAND, &joints)?;
+        Ok(true)
+    }
+
+    pub fn publish_status(&mut self, status: &NodeStatus) -> Result<(), ZenohError> {
+        self.publish(topics::STATUS, status)
+    }
+
+    /// Publishes a camera frame on camera `frame.camera_id`'s hapcloud topics: Image +
+    /// CameraInfo when it has a depth image, else PointCloud2.
+    pub fn publish_frame(&mut self, frame: &Frame) -> Result<(), ZenohError> {
+        let id = frame.camera_id;
+        let header = Header {
+            stamp: time_from_seconds(frame.stamp_s),
+            frame_id: topics::camera_frame_id(id),
+        };
+        match &frame.depth {
+            Some((d, k)) => {
+                self.publish(
+                    &topics::depth_image(id),
+                    &image_from_depth(header.clone(), d),
+                )?;
+                self.publish(
+                    &topics::camera_info(id),
+                    &camera_info_from_intrinsics(header, k),
+                )
+            }
+            None => self.publish(
+                &topics::points(id),
+                &pointcloud2_from_cloud(header, &frame.cloud),
+            ),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,357 @@
+use super::*;
+use crate::camera::{DepthImage, PinholeIntrinsics};
+use crate::cloud::PointCloud;
+use crate::io::ros2::assemble::Pose;
+use crate::io::ros2::convert::transform_from_isometry;
+use crate::io::ros2::msgs::TransformStamped;
+use glam::Vec3;
+use nalgebra::{Isometry3, Vector3};
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A listening peer (stands in for the router) and a client of it.
+fn configs(port: u16) -> (ZenohConfig, ZenohConfig) {
+    let listen = ZenohConfig {
+        mode: Mode::Peer,
+        connect: Vec::new(),
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        ..ZenohConfig::default()
+    };
+    let connect = ZenohConfig {
+        connect: vec![format!("tcp/127.0.0.1:{port}")],
+        ..ZenohConfig::default()
+    };
+    (listen, connect)
+}
+
+fn depth_frame(id: u32, stamp_s: f64) -> Frame {
+    let k = PinholeIntrinsics {
+        width: 8,
+        height: 6,
+        fx: 60.0,
+        fy: 61.0,
+        cx: 3.5,
+        cy: 2.5,
+    };
+    let d = DepthImage {
+        width: 8,
+        height: 6,
+        depth_scale_m: 0.001,
+        data: (0..48u16)
+            .map(|i| if i.is_multiple_of(7) { 0 } else { 400 + i * 3 })
+            .collect(),
+    };
+    Frame {
+        camera_id: id,
+        stamp_s,
+        world_from_camera: pose().isometry(),
+        cloud: d.deproject(&k).unwrap(),
+        depth: Some((d, k)),
+    }
+}
+
+fn points_frame(id: u32, stamp_s: f64) -> Frame {
+    let points = (0..30)
+        .map(|i| Vec3::new(i as f32 * 0.01, 0.2, if i == 3 { f32::NAN } else { 0.7 }))
+        .collect();
+    Frame {
+        camera_id: id,
+        stamp_s,
+        world_from_camera: pose().isometry(),
+        cloud: PointCloud::from_points(points),
+        depth: None,
+    }
+}
+
+fn pose() -> Pose {
+    Pose {
+        translation_m: [0.5, -0.25, 1.0],
+        rotation_xyzw: [0.0, 0.0, 0.6, 0.8],
+    }
+}
+
+fn cameras() -> ZenohSourceConfig {
+    let mut depth = CameraTopics::depth(0, &topics::depth_image(0));
+    depth.world_from_camera = Some(pose());
+    let mut points = CameraTopics::points(1, &topics::points(1));
+    points.world_from_camera = Some(pose());
+    ZenohSourceConfig {
+        cameras: vec![depth, points],
+        queue_samples: 64,
+        ..ZenohSourceConfig::default()
+    }
+}
+
+fn same_frame(a: &Frame, b: &Frame) {
+    assert_eq!(a.camera_id, b.camera_id);
+    assert_eq!(a.stamp_s, b.stamp_s);
+    assert_eq!(a.world_from_camera, b.world_from_camera);
+    assert_eq!(
+        (a.cloud.width, a.cloud.height),
+        (b.cloud.width, b.cloud.height)
+    );
+    for (p, q) in a.cloud.points.iter().zip(&b.cloud.points) {
+        for (x, y) in p.to_array().iter().zip(q.to_array()) {
+            assert_eq!(x.to_bits(), y.to_bits());
+        }
+    }
+    assert_eq!(a.depth, b.depth);
+}
+
+/// Receives until `n` frames arrived or `wait` passed.
+fn collect(src: &mut ZenohSource, n: usize, wait: Duration) -> Vec<Frame> {
+    let until = Instant::now() + wait;
+    let mut out = Vec::new();
+    while out.len() < n && Instant::now() < until {
+        if let Some(f) = src.recv(Duration::from_millis(100)) {
+            out.push(f.frame);
+        }
+    }
+    out
+}
+
+/// Publishes `frame` until the source delivers one (subscriptions take a moment to
+/// propagate), then returns it.
+fn first_frame(pub_: &mut ZenohPublisher, src: &mut ZenohSource, frame: &Frame) -> Frame {
+    for _ in 0..300 {
+        pub_.publish_frame(frame).unwrap();
+        if let Some(f) = src.recv(Duration::from_millis(100)) {
+            return f.frame;
+        }
+    }
+    panic!("no frame within 30 s");
+}
+
+#[test]
+fn keys_follow_rmw_zenoh_and_the_bridge() {
+    let c = ZenohConfig {
+        domain_id: 3,
+        ..ZenohConfig::default()
+    };
+    let key = c.key("/camera/camera/depth/image_rect_raw/", Image::DESC, true);
+    assert_eq!(
+        key,
+        "3/camera/camera/depth/image_rect_raw/sensor_msgs::msg::dds_::Image_/RIHS01_\
+         d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
+    );
+    assert!(
+        c.key("/a/b", Image::DESC, false)
+            .ends_with("dds_::Image_/*")
+    );
+    let bridge = ZenohConfig {
+        keys: KeyStyle::Ros2dds,
+        ..c
+    };
+    assert_eq!(bridge.key("/a/b", Image::DESC, true), "a/b");
+}
+
+#[test]
+fn a_client_without_its_router_is_a_clear_error() {
+    let (_, b) = configs(free_port());
+    let Err(e) = open_session(&b) else {
+        panic!("a session without its router");
+    };
+    assert!(e.to_string().contains("127.0.0.1"), "{e}");
+}
+
+#[test]
+fn config_is_validated() {
+    let ok = ZenohConfig::default();
+    ok.validate().unwrap();
+    for bad in [
+        ZenohConfig {
+            connect: vec!["udp/127.0.0.1:7447".into()],
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            connect: vec!["not an endpoint".into()],
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            connect: Vec::new(),
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            domain_id: 300,
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            mode: Mode::Peer,
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            connect: vec!["tcp/127.0.0.1:1".into(), "tcp/127.0.0.1:2".into()],
+            ..ZenohConfig::default()
+        },
+    ] {
+        assert!(bad.validate().is_err(), "{bad:?}");
+    }
+    let mut src = cameras();
+    src.queue_samples = 0;
+    assert!(src.validate().is_err());
+    let mut src = cameras();
+    src.cameras[0].points = "/x".into();
+    assert!(src.validate().is_err());
+    let publ = ZenohPublisherConfig {
+        tick_rate_hz: f64::NAN,
+        ..ZenohPublisherConfig::default()
+    };
+    assert!(publ.validate().is_err());
+}
+
+#[test]
+fn frames_cross_zenoh_bit_for_bit() {
+    let (a, b) = configs(free_port());
+    let sa = open_session(&a).unwrap();
+    let sb = open_session(&b).unwrap();
+    let mut src = ZenohSource::new(&sa, &a, &cameras()).unwrap();
+    let mut publ = ZenohPublisher::new(&sb, &b, &ZenohPublisherConfig::default()).unwrap();
+    let f = first_frame(&mut publ, &mut src, &depth_frame(0, 1.5));
+    same_frame(&f, &depth_frame(0, 1.5));
+    // The rest in order, both kinds.
+    let sent: Vec<Frame> = (0..5)
+        .map(|i| {
+            if i % 2 == 0 {
+                depth_frame(0, 2.0 + f64::from(i) * 0.033)
+            } else {
+                points_frame(1, 2.0 + f64::from(i) * 0.033)
+            }
+        })
+        .collect();
+    // Anything still queued from the warm-up goes first.
+    while src.recv(Duration::from_millis(300)).is_some() {}
+    for f in &sent {
+        publ.publish_frame(f).unwrap();
+    }
+    let got = collect(&mut src, sent.len(), Duration::from_secs(10));
+    assert_eq!(got.len(), sent.len());
+    for (g, s) in got.iter().zip(&sent) {
+        same_frame(g, s);
+    }
+    let c = src.counters();
+    assert_eq!(c[&1].frames, 2);
+    assert_eq!((c[&0].drops, c[&0].malformed), (0, 0));
+}
+
+#[test]
+fn humble_keys_malformed_samples_and_tf_static() {
+    let (a, b) = configs(free_port());
+    let sa = open_session(&a).unwrap();
+    let sb = open_session(&b).unwrap();
+    let mut cfg = cameras();
+    cfg.cameras[1].world_from_camera = None; // from /tf_static
+    cfg.world_frame = "world".into();
+    let mut src = ZenohSource::new(&sa, &a, &cfg).unwrap();
+    let mut publ = ZenohPublisher::new(&sb, &b, &ZenohPublisherConfig::default()).unwrap();
+    first_frame(&mut publ, &mut src, &depth_frame(0, 0.5));
+
+    // A Humble publisher: no type hash in the key.
+    let humble = format!(
+        "0/hapcloud/camera1/depth/points/{}/TypeHashNotSupported",
+        PointCloud2::DESC.dds_name()
+    );
+    let frame = points_frame(1, 3.0);
+    let header = Header {
+        stamp: time_from_seconds(3.0),
+        frame_id: topics::camera_frame_id(1),
+    };
+    let bytes = encode(&pointcloud2_from_cloud(header.clone(), &frame.cloud)).unwrap();
+    // Without a pose the frame is dropped and counted.
+    sb.put(&humble, bytes.clone()).wait().unwrap();
+    assert!(src.recv(Duration::from_millis(500)).is_none());
+    assert_eq!(src.assembler().counters().no_pose, 1);
+    let world_from_camera =
+        Isometry3::new(Vector3::new(1.0, 2.0, 3.0), Vector3::new(0.1, 0.2, 0.3));
+    let tf = TfMessage {
+        transforms: vec![TransformStamped {
+            header: Header {
+                stamp: time_from_seconds(0.0),
+                frame_id: "world".into(),
+            },
+            child_frame_id: topics::camera_frame_id(1),
+            transform: transform_from_isometry(&world_from_camera),
+        }],
+    };
+    publ.publish(TF_STATIC, &tf).unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+    sb.put(&humble, bytes).wait().unwrap();
+    let f = collect(&mut src, 1, Duration::from_secs(5));
+    assert_eq!(f.len(), 1);
+    assert!(
+        (f[0].world_from_camera.to_homogeneous() - world_from_camera.to_homogeneous())
+            .abs()
+            .max()
+            < 1e-12
+    );
+
+    // Garbage on a camera topic is counted, not fatal.
+    let image_key = a.key(&topics::depth_image(0), Image::DESC, true);
+    sb.put(&image_key, vec![0u8, 1, 0, 0, 9, 9]).wait().unwrap();
+    sb.put(&image_key, Vec::<u8>::new()).wait().unwrap();
+    assert!(src.recv(Duration::from_millis(500)).is_none());
+    assert_eq!(src.counters()[&0].malformed, 2);
+    assert!(
+        src.assembler()
+            .last_error()
+            .unwrap()
+            .contains("malformed CDR")
+    );
+}
+
+#[test]
+fn a_flooding_publisher_costs_counted_drops() {
+    let (a, b) = configs(free_port());
+    let sa = open_session(&a).unwrap();
+    let sb = open_session(&b).unwrap();
+    let mut cfg = cameras();
+    cfg.queue_samples = 4;
+    let mut src = ZenohSource::new(&sa, &a, &cfg).unwrap();
+    let mut publ = ZenohPublisher::new(&sb, &b, &ZenohPublisherConfig::default()).unwrap();
+    first_frame(&mut publ, &mut src, &points_frame(1, 0.0));
+    let n = 300;
+    for i in 0..n {
+        publ.publish_frame(&points_frame(1, 1.0 + f64::from(i)))
+            .unwrap();
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    let got = collect(&mut src, n as usize, Duration::from_secs(1));
+    let c = src.counters()[&1];
+    assert!(got.len() <= 4 + 1, "{} frames queued", got.len());
+    assert!(c.drops > 0, "{c:?}");
+    // Whatever was neither dropped by Zenoh nor by the queue arrived, newest last.
+    assert!(
+        got.last()
+            .is_some_and(|f| f.stamp_s == 1.0 + f64::from(n - 1))
+    );
+}
+
+#[test]
+fn a_router_that_goes_away_and_comes_back() {
+    let port = free_port();
+    let (a, b) = configs(port);
+    let sa = open_session(&a).unwrap();
+    let sb = open_session(&b).unwrap();
+    let mut publ = ZenohPublisher::new(&sb, &b, &ZenohPublisherConfig::default()).unwrap();
+    {
+        let mut src = ZenohSource::new(&sa, &a, &cameras()).unwrap();
+        first_frame(&mut publ, &mut src, &depth_frame(0, 0.0));
+        sa.close().wait().unwrap();
+    }
+    // Nobody listens: publishing and receiving neither block nor fail.
+    let t0 = Instant::now();
+    for i in 0..20 {
+        publ.publish_frame(&depth_frame(0, f64::from(i))).unwrap();
+    }
+    assert!(t0.elapsed() < Duration::from_secs(2), "{:?}", t0.elapsed());
+    // The listener comes back on the same port; the client reconnects by itself.
+    let sa = open_session(&a).unwrap();
+    let mut src = ZenohSource::new(&sa, &a, &cameras()).unwrap();
+    let f = first_frame(&mut publ, &mut src, &depth_frame(0, 42.0));
+    assert_eq!(f.stamp_s, 42.0);
+}

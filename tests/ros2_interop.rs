@@ -1,0 +1,459 @@
+//! Interop with software hapcloud did not write (tools/interop/interop.py): Python
+//! `eclipse-zenoh` (a router in `mode: "router"` standing in for rmw_zenohd, a publisher, a
+//! subscriber) and `rosbags` (CDR, RIHS01 hashes, rosbag2 MCAP). Skipped, with a message,
+//! only when those Python modules are missing (`pip install -r tools/interop/requirements.txt`).
+
+use glam::Vec3;
+use hapcloud::camera::Frame;
+use hapcloud::control::ControlStatus;
+use hapcloud::fusion::{FusedSurface, FusionStatus};
+use hapcloud::haptics::HapticStatus;
+use hapcloud::io::mcap::{McapItem, McapReader, McapReaderConfig, McapWriter, McapWriterConfig};
+use hapcloud::io::ros2::assemble::{CameraTopics, Pose};
+use hapcloud::io::ros2::hapcloud as msgs_hc;
+use hapcloud::io::ros2::msgs as msgs_std;
+use hapcloud::io::ros2::typedesc::MsgDesc;
+use hapcloud::io::zenoh::{
+    ZenohConfig, ZenohPublisher, ZenohPublisherConfig, ZenohSource, ZenohSourceConfig, open_session,
+};
+use hapcloud::node::record::{ControlRecord, TickRecord};
+use hapcloud::node::robot_state::JointState;
+use hapcloud::robot::JointVector;
+use nalgebra::{Point3, Quaternion, Unit, UnitQuaternion, Vector3};
+use serde_json::Value;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const W: u32 = 16;
+const H: u32 = 12;
+
+fn script() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/interop/interop.py")
+}
+
+fn msg_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("msg")
+}
+
+/// True when python3 with zenoh and rosbags is there; otherwise says why the test is skipped.
+fn python_ready() -> bool {
+    let ok = Command::new("python3")
+        .args(["-c", "import zenoh, rosbags, numpy"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !ok {
+        eprintln!(
+            "SKIPPED: python3 with eclipse-zenoh and rosbags is missing \
+             (pip install -r tools/interop/requirements.txt)"
+        );
+    }
+    ok
+}
+
+fn python(args: &[&str]) -> String {
+    let out = Command::new("python3")
+        .arg(script())
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "interop.py {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).unwrap()
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// A Python process that printed `{"ready": true}`; killed on drop.
+struct Proc(Child);
+
+impl Proc {
+    fn start(args: &[&str]) -> (Self, BufReader<std::process::ChildStdout>) {
+        let mut child = Command::new("python3")
+            .arg(script())
+            .args(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut out = BufReader::new(child.stdout.take().unwrap());
+        let mut line = String::new();
+        out.read_line(&mut line).unwrap();
+        assert!(line.contains("ready"), "interop.py {args:?} said {line:?}");
+        (Self(child), out)
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        drop(self.0.stdin.take());
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn router() -> (Proc, ZenohConfig) {
+    let port = free_port();
+    let (p, _) = Proc::start(&["router", &port.to_string()]);
+    let config = ZenohConfig {
+        connect: vec![format!("tcp/127.0.0.1:{port}")],
+        ..ZenohConfig::default()
+    };
+    (p, config)
+}
+
+/// Frame `i` as interop.py builds it: depth in mm and the cloud's points.
+fn expected_depth(i: u32) -> Vec<u16> {
+    let mut out = Vec::new();
+    for v in 0..H {
+        for u in 0..W {
+            out.push(if (u + v + i).is_multiple_of(9) {
+                0
+            } else {
+                (400 + 7 * u + 11 * v + 13 * i) as u16
+            });
+        }
+    }
+    out
+}
+
+fn expected_points(i: u32) -> Vec<Vec3> {
+    (0..20 + i)
+        .map(|k| {
+            let k = k as f32;
+            if k == 3.0 {
+                Vec3::splat(f32::NAN)
+            } else {
+                Vec3::new(0.01 * k, -0.02 * k + i as f32, 0.5 + 0.001 * k * k)
+            }
+        })
+        .collect()
+}
+
+fn expected_stamp(i: u32) -> f64 {
+    f64::from(100 + i) + f64::from(250_000_000 + i) * 1e-9
+}
+
+fn check_depth_frame(f: &Frame, i: u32) {
+    assert_eq!(f.stamp_s, expected_stamp(i));
+    let (d, k) = f.depth.as_ref().expect("a depth frame");
+    assert_eq!(d.data, expected_depth(i));
+    assert_eq!(d.depth_scale_m, 0.001);
+    assert_eq!(
+        (k.fx, k.fy, k.cx, k.cy, k.width, k.height),
+        (20.0, 21.0, 7.5, 5.5, W, H)
+    );
+    let cloud = d.deproject(k).unwrap();
+    assert_eq!((f.cloud.width, f.cloud.height), (cloud.width, cloud.height));
+    for (p, q) in f.cloud.points.iter().zip(&cloud.points) {
+        for (x, y) in p.to_array().iter().zip(q.to_array()) {
+            assert_eq!(x.to_bits(), y.to_bits());
+        }
+    }
+}
+
+fn same_points(a: &[Vec3], b: &[Vec3]) {
+    assert_eq!(a.len(), b.len());
+    for (p, q) in a.iter().zip(b) {
+        if q.x.is_nan() {
+            assert!(p.is_nan());
+        } else {
+            assert_eq!(p, q);
+        }
+    }
+}
+
+#[test]
+fn type_hashes_match_rosbags() {
+    if !python_ready() {
+        return;
+    }
+    let hashes: Value =
+        serde_json::from_str(&python(&["hashes", msg_dir().to_str().unwrap()])).unwrap();
+    let standard: [&MsgDesc; 12] = [
+        &msgs_std::TIME,
+        &msgs_std::HEADER,
+        &msgs_std::POINT_FIELD,
+        &msgs_std::POINT_CLOUD2,
+        &msgs_std::IMAGE,
+        &msgs_std::REGION_OF_INTEREST,
+        &msgs_std::CAMERA_INFO,
+        &msgs_std::JOINT_STATE,
+        &msgs_std::VECTOR3,
+        &msgs_std::QUATERNION,
+        &msgs_std::TRANSFORM_STAMPED,
+        &msgs_std::TF_MESSAGE,
+    ];
+    for desc in standard.iter().chain(msgs_hc::ALL.iter()) {
+        assert_eq!(
+            hashes[desc.name].as_str(),
+            Some(desc.rihs01().as_str()),
+            "{}",
+            desc.name
+        );
+    }
+}
+
+#[test]
+fn frames_published_by_python_through_a_router() {
+    if !python_ready() {
+        return;
+    }
+    let (_router, zenoh) = router();
+    let session = open_session(&zenoh).unwrap();
+    let mut depth = CameraTopics::depth(0, "/camera/camera/depth/image_rect_raw");
+    depth.world_from_camera = Some(Pose::default());
+    let mut points = CameraTopics::points(1, "/lidar/points");
+    points.world_from_camera = Some(Pose::default());
+    let config = ZenohSourceConfig {
+        cameras: vec![depth, points],
+        queue_samples: 64,
+        ..ZenohSourceConfig::default()
+    };
+    let mut source = ZenohSource::new(&session, &zenoh, &config).unwrap();
+    let n = 5u32;
+    let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
+    let publisher = std::thread::spawn(move || python(&["publish", &port, &n.to_string()]));
+    let until = Instant::now() + Duration::from_secs(20);
+    let mut frames = Vec::new();
+    while frames.len() < 2 * n as usize && Instant::now() < until {
+        if let Some(a) = source.recv(Duration::from_millis(200)) {
+            frames.push(a.frame);
+        }
+    }
+    assert!(publisher.join().unwrap().contains("\"sent\": 5"));
+    let (d, p): (Vec<_>, Vec<_>) = frames.iter().partition(|f| f.camera_id == 0);
+    assert_eq!(
+        (d.len(), p.len()),
+        (n as usize, n as usize),
+        "{:?}",
+        source.counters()
+    );
+    for (i, f) in d.iter().enumerate() {
+        check_depth_frame(f, i as u32);
+    }
+    for (i, f) in p.iter().enumerate() {
+        assert_eq!(f.stamp_s, expected_stamp(i as u32));
+        assert!(!f.cloud.is_organized());
+        same_points(&f.cloud.points, &expected_points(i as u32));
+    }
+    let c = source.counters();
+    assert_eq!((c[&0].malformed, c[&1].malformed, c[&0].drops), (0, 0, 0));
+}
+
+fn tick(i: u64) -> TickRecord {
+    let v = |k: f64| JointVector::from_fn(|r, _| k * (r as f64 + 1.0));
+    TickRecord {
+        index: i,
+        fused: FusedSurface {
+            stamp_s: 10.0 + i as f64 / 800.0,
+            centroid_m: Point3::new(0.3, 0.2, 0.1 + i as f64),
+            normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
+            velocity_m_per_s: Vector3::new(0.0, 0.01, 0.0),
+            status: FusionStatus::Tracking,
+            age_s: 0.04,
+            fit_centroid_m: Point3::new(0.31, 0.2, 0.1),
+            fit_normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
+            fit_degree: 2,
+            sample_count: 12,
+            camera_count: 2,
+        },
+        control: ControlRecord {
+            joints: JointState {
+                q_rad: v(0.1),
+                qd_rad_per_s: v(0.01),
+            },
+            held: false,
+            haptic_status: HapticStatus::Active,
+            d_proj_m: 0.05,
+            d_rate_mps: -0.01,
+            alpha_p_m: 0.02,
+            alpha_v_mps: 0.3,
+            force_active: false,
+            status: ControlStatus::Ok,
+            tau_nm: v(1.5),
+            qdd_rad_per_s2: v(-0.2),
+        },
+        late_s: 0.0,
+        work_s: 0.0,
+    }
+}
+
+#[test]
+fn rosbags_decodes_what_hapcloud_publishes() {
+    if !python_ready() {
+        return;
+    }
+    let (_router, zenoh) = router();
+    let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
+    let wanted = 12;
+    let (mut listener, out) = Proc::start(&[
+        "listen",
+        &port,
+        &wanted.to_string(),
+        "15",
+        msg_dir().to_str().unwrap(),
+    ]);
+    let session = open_session(&zenoh).unwrap();
+    let mut publisher =
+        ZenohPublisher::new(&session, &zenoh, &ZenohPublisherConfig::default()).unwrap();
+    // Publish until the listener has what it wants (routes take a moment to form).
+    let until = Instant::now() + Duration::from_secs(15);
+    let mut i = 0;
+    while listener.0.try_wait().unwrap().is_none() && Instant::now() < until {
+        publisher.publish_tick(&tick(i)).unwrap();
+        i += 1;
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    drop(listener.0.stdin.take());
+    let lines: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(&l.unwrap()).unwrap())
+        .collect();
+    assert!(lines.len() >= wanted, "{} messages: {lines:?}", lines.len());
+    let mut kinds = std::collections::BTreeSet::new();
+    for l in &lines {
+        assert_eq!(l["hash_ok"], true, "{l}");
+        assert_eq!(l["attachment_len"], 33, "{l}");
+        let m = &l["msg"];
+        let index = ((m["header"]["stamp"]["sec"].as_f64().unwrap()
+            + m["header"]["stamp"]["nanosec"].as_f64().unwrap() * 1e-9
+            - 10.0)
+            * 800.0)
+            .round() as u64;
+        let t = tick(index);
+        match l["type"].as_str().unwrap() {
+            "hapcloud_msgs/msg/FusedSurface" => {
+                assert_eq!(m["stamp_s"].as_f64(), Some(t.fused.stamp_s));
+                assert_eq!(m["centroid_m"][2].as_f64(), Some(t.fused.centroid_m.z));
+                assert_eq!(m["status"], 0);
+            }
+            "hapcloud_msgs/msg/HapticConstraint" => {
+                assert_eq!(m["d_proj_m"].as_f64(), Some(0.05));
+                assert_eq!(m["alpha_v_mps"].as_f64(), Some(0.3));
+                assert_eq!(m["position_active"], true);
+            }
+            "sensor_msgs/msg/JointState" => {
+                let effort: Vec<f64> = m["effort"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|v| v.as_f64().unwrap())
+                    .collect();
+                assert_eq!(effort, t.control.tau_nm.as_slice());
+                assert_eq!(m["name"][0], "joint1");
+            }
+            other => panic!("unexpected {other}"),
+        }
+        kinds.insert(l["type"].as_str().unwrap().to_string());
+    }
+    assert_eq!(kinds.len(), 3, "{kinds:?}");
+}
+
+#[test]
+fn rosbags_reads_a_hapcloud_recording() {
+    if !python_ready() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("hapcloud_ros2_interop_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("rec.mcap");
+    let mut w = McapWriter::create(&path, McapWriterConfig::default()).unwrap();
+    let (d, k) = (
+        hapcloud::camera::DepthImage {
+            width: W,
+            height: H,
+            depth_scale_m: 0.001,
+            data: expected_depth(0),
+        },
+        hapcloud::camera::PinholeIntrinsics {
+            width: W,
+            height: H,
+            fx: 20.0,
+            fy: 21.0,
+            cx: 7.5,
+            cy: 5.5,
+        },
+    );
+    let frame = Frame {
+        camera_id: 2,
+        stamp_s: 1.0 / 3.0,
+        world_from_camera: nalgebra::Isometry3::translation(0.0, 0.0, 1.0),
+        cloud: d.deproject(&k).unwrap(),
+        depth: Some((d, k)),
+    };
+    w.write_frame(&frame, &[0.5; 6]).unwrap();
+    for i in 0..3 {
+        w.write_tick(&tick(i)).unwrap();
+    }
+    w.finish().unwrap();
+    let out: Value = serde_json::from_str(&python(&["read-mcap", path.to_str().unwrap()])).unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+    let topics = &out["topics"];
+    let count = |t: &str| topics[t]["count"].as_u64().unwrap_or(0);
+    assert_eq!(count("/hapcloud/camera2/depth/image_rect_raw"), 1, "{out}");
+    assert_eq!(count("/hapcloud/camera2/depth/camera_info"), 1);
+    assert_eq!(count("/hapcloud/camera2/frame_meta"), 1);
+    assert_eq!(count("/hapcloud/ticks"), 3);
+    let first = &out["first"];
+    assert_eq!(
+        first["/hapcloud/camera2/frame_meta"]["stamp_s"].as_f64(),
+        Some(1.0 / 3.0)
+    );
+    let img = &first["/hapcloud/camera2/depth/image_rect_raw"];
+    assert_eq!(
+        (img["encoding"].as_str(), img["data_len"].as_u64()),
+        (Some("16UC1"), Some(u64::from(W * H * 2)))
+    );
+    assert_eq!(
+        first["/hapcloud/camera2/depth/camera_info"]["k"][0].as_f64(),
+        Some(20.0)
+    );
+    let tau = &first["/hapcloud/ticks"]["tau_nm"];
+    assert_eq!(tau[5].as_f64(), Some(tick(0).control.tau_nm[5]));
+}
+
+#[test]
+fn hapcloud_reads_a_rosbags_bag() {
+    if !python_ready() {
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("hapcloud_ros2_bag_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let n = 4;
+    let out: Value = serde_json::from_str(&python(&[
+        "write-bag",
+        dir.to_str().unwrap(),
+        &n.to_string(),
+    ]))
+    .unwrap();
+    let bag = PathBuf::from(out["bag"].as_str().unwrap());
+    let mut r = McapReader::open(&bag, &McapReaderConfig::default()).unwrap();
+    let mut frames = Vec::new();
+    while let Some(item) = r.next_item().unwrap() {
+        if let McapItem::Frame(a) = item {
+            assert!(a.joint_positions_rad.is_empty());
+            frames.push(a.frame);
+        }
+    }
+    assert!(r.truncated().is_none());
+    std::fs::remove_dir_all(&dir).unwrap();
+    assert_eq!(frames.len(), n, "{:?}", r.assembler().counters());
+    // The pose: camera_link (the tree's root) from the optical frame, as realsense-ros has it.
+    let optical = UnitQuaternion::from_quaternion(Quaternion::new(0.5, -0.5, 0.5, -0.5));
+    for (i, f) in frames.iter().enumerate() {
+        check_depth_frame(f, i as u32);
+        assert_eq!(f.camera_id, 0);
+        assert!(f.world_from_camera.rotation.angle_to(&optical) < 1e-12);
+    }
+}

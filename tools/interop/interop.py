@@ -1,0 +1,283 @@
+#!/usr/bin/env python3
+"""ROS 2 interop counterpart for tests/ros2_interop.rs, built on software hapcloud did not
+write: eclipse-zenoh (router, publisher, subscriber) and rosbags (CDR, RIHS01 hashes, MCAP).
+
+Subcommands (all print JSON on stdout, diagnostics on stderr):
+  router PORT                 a Zenoh router on tcp/127.0.0.1:PORT (stands in for rmw_zenohd);
+                              prints {"ready": true}, runs until stdin closes
+  publish PORT N              N depth Image + CameraInfo pairs (camera topic
+                              /camera/camera/depth/...) and N PointCloud2 (/lidar/points),
+                              serialized by rosbags, on rmw_zenoh keys through the router
+  listen PORT N SECONDS       decodes what hapcloud publishes on 0/hapcloud/** with rosbags;
+                              prints one JSON line per message, stops after N or SECONDS
+  hashes MSG_DIR              rosbags' hash_rihs01 of the standard types and of hapcloud_msgs
+  write-bag DIR N             a realsense-like rosbag2 MCAP bag (zstd chunks): N depth frames
+  read-mcap FILE              reads an MCAP with rosbags' AnyReader; prints per-topic counts
+                              and decoded fields
+The frames follow frame_values() so the Rust side can rebuild them independently.
+"""
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+STORE = get_typestore(Stores.ROS2_JAZZY)
+DEPTH_TOPIC = "/camera/camera/depth/image_rect_raw"
+INFO_TOPIC = "/camera/camera/depth/camera_info"
+POINTS_TOPIC = "/lidar/points"
+W, H = 16, 12
+
+
+def log(*a):
+    print(*a, file=sys.stderr, flush=True)
+
+
+def register_hapcloud(msg_dir):
+    types = {}
+    for path in sorted(Path(msg_dir).glob("*.msg")):
+        types.update(get_types_from_msg(path.read_text(), f"hapcloud_msgs/msg/{path.stem}"))
+    STORE.register(types)
+
+
+def key(topic, msgtype):
+    pkg, kind, name = msgtype.split("/")
+    dds = f"{pkg}::{kind}::dds_::{name}_"
+    return f"0/{topic.strip('/')}/{dds}/{STORE.hash_rihs01(msgtype)}"
+
+
+def frame_values(i):
+    """Depth in mm of frame i (0 = no return) and the points of cloud i."""
+    v, u = np.mgrid[0:H, 0:W]
+    depth = (400 + 7 * u + 11 * v + 13 * i).astype(np.uint16)
+    depth[(u + v + i) % 9 == 0] = 0
+    n = 20 + i
+    k = np.arange(n, dtype=np.float32)
+    pts = np.stack([0.01 * k, -0.02 * k + i, 0.5 + 0.001 * k * k], axis=1).astype(np.float32)
+    pts[3] = np.nan
+    return depth, pts
+
+
+def stamp(i):
+    T = STORE.types["builtin_interfaces/msg/Time"]
+    return T(sec=100 + i, nanosec=250_000_000 + i)
+
+
+def image_msgs(i):
+    Header = STORE.types["std_msgs/msg/Header"]
+    Image = STORE.types["sensor_msgs/msg/Image"]
+    Info = STORE.types["sensor_msgs/msg/CameraInfo"]
+    Roi = STORE.types["sensor_msgs/msg/RegionOfInterest"]
+    depth, _ = frame_values(i)
+    h = Header(stamp=stamp(i), frame_id="camera_depth_optical_frame")
+    img = Image(header=h, height=H, width=W, encoding="16UC1", is_bigendian=0, step=W * 2,
+                data=np.frombuffer(depth.astype("<u2").tobytes(), dtype=np.uint8))
+    fx, fy, cx, cy = 20.0, 21.0, 7.5, 5.5
+    info = Info(header=h, height=H, width=W, distortion_model="plumb_bob",
+                d=np.zeros(5), k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
+                r=np.eye(3).flatten(), p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
+                binning_x=0, binning_y=0,
+                roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+    return img, info
+
+
+def cloud_msg(i):
+    """x, y, z at offsets 0, 4, 8 and an intensity at 16 in a 32-byte point (padding)."""
+    Header = STORE.types["std_msgs/msg/Header"]
+    PC2 = STORE.types["sensor_msgs/msg/PointCloud2"]
+    PF = STORE.types["sensor_msgs/msg/PointField"]
+    _, pts = frame_values(i)
+    n = len(pts)
+    rec = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("_", "<f4"),
+                             ("intensity", "<f4"), ("pad", "V12")])
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rec["intensity"] = 1.0
+    fields = [PF(name=nm, offset=o, datatype=7, count=1)
+              for nm, o in (("x", 0), ("y", 4), ("z", 8), ("intensity", 16))]
+    return PC2(header=Header(stamp=stamp(i), frame_id="lidar"), height=1, width=n,
+               fields=fields, is_bigendian=False, point_step=32, row_step=32 * n,
+               data=np.frombuffer(rec.tobytes(), dtype=np.uint8), is_dense=False)
+
+
+def session(port, mode):
+    import zenoh
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if mode == "router":
+        conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+        conf.insert_json5("connect/endpoints", "[]")
+    else:
+        conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    return zenoh.open(conf)
+
+
+def cmd_router(port):
+    s = session(port, "router")
+    print(json.dumps({"ready": True}), flush=True)
+    sys.stdin.read()
+    s.close()
+
+
+def wait_matching(pubs, seconds=10.0):
+    end = time.time() + seconds
+    while time.time() < end:
+        if all(p.matching_status.matching for p in pubs):
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def cmd_publish(port, n):
+    s = session(port, "client")
+    import zenoh
+    block = zenoh.CongestionControl.BLOCK
+    pubs = {t: s.declare_publisher(key(t, m), congestion_control=block) for t, m in (
+        (DEPTH_TOPIC, "sensor_msgs/msg/Image"),
+        (INFO_TOPIC, "sensor_msgs/msg/CameraInfo"),
+        (POINTS_TOPIC, "sensor_msgs/msg/PointCloud2"))}
+    if not wait_matching(list(pubs.values())):
+        log("no subscriber matched")
+        sys.exit(2)
+    sent = 0
+    for i in range(n):
+        img, info = image_msgs(i)
+        pubs[DEPTH_TOPIC].put(bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")))
+        pubs[INFO_TOPIC].put(bytes(STORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
+        pubs[POINTS_TOPIC].put(bytes(STORE.serialize_cdr(cloud_msg(i),
+                                                         "sensor_msgs/msg/PointCloud2")))
+        sent += 1
+        time.sleep(0.01)
+    print(json.dumps({"sent": sent}), flush=True)
+    time.sleep(0.2)
+    s.close()
+
+
+def plain(v):
+    if isinstance(v, np.ndarray):
+        return [plain(x) for x in v.tolist()]
+    if isinstance(v, float):
+        return v if np.isfinite(v) else str(v)
+    if isinstance(v, (list, tuple)):
+        return [plain(x) for x in v]
+    if hasattr(v, "__dataclass_fields__"):
+        return {f: plain(getattr(v, f)) for f in v.__dataclass_fields__ if f != "__msgtype__"}
+    return v
+
+
+def cmd_listen(port, n, seconds, msg_dir):
+    register_hapcloud(msg_dir)
+    by_dds = {}
+    for t in STORE.types:
+        pkg, kind, name = t.split("/")
+        by_dds[f"{pkg}::{kind}::dds_::{name}_"] = t
+    s = session(port, "client")
+    got = []
+
+    def on_sample(sample):
+        k = str(sample.key_expr)
+        parts = k.split("/")
+        msgtype = by_dds[parts[-2]]
+        expected = STORE.hash_rihs01(msgtype)
+        msg = STORE.deserialize_cdr(bytes(sample.payload.to_bytes()), msgtype)
+        att = sample.attachment
+        got.append({"key": k, "type": msgtype, "hash_ok": parts[-1] == expected,
+                    "attachment_len": len(att.to_bytes()) if att is not None else 0,
+                    "msg": plain(msg)})
+
+    sub = s.declare_subscriber("0/hapcloud/**", on_sample)
+    print(json.dumps({"ready": True}), flush=True)
+    end = time.time() + seconds
+    while time.time() < end and len(got) < n:
+        time.sleep(0.02)
+    sub.undeclare()
+    for g in list(got):
+        print(json.dumps(g), flush=True)
+    s.close()
+
+
+def cmd_hashes(msg_dir):
+    register_hapcloud(msg_dir)
+    print(json.dumps({t: STORE.hash_rihs01(t) for t in sorted(STORE.types)
+                      if t.startswith(("sensor_msgs/", "std_msgs/msg/Header", "builtin_interfaces/",
+                                       "geometry_msgs/", "tf2_msgs/", "hapcloud_msgs/"))}))
+
+
+def cmd_write_bag(path, n):
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+    writer = Writer(Path(path), version=9, storage_plugin=StoragePlugin.MCAP)
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    with writer:
+        TS = STORE.types["geometry_msgs/msg/TransformStamped"]
+        TF = STORE.types["tf2_msgs/msg/TFMessage"]
+        Header = STORE.types["std_msgs/msg/Header"]
+        T = STORE.types["geometry_msgs/msg/Transform"]
+        V = STORE.types["geometry_msgs/msg/Vector3"]
+        Q = STORE.types["geometry_msgs/msg/Quaternion"]
+        tf_conn = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=STORE)
+        img_conn = writer.add_connection(DEPTH_TOPIC, "sensor_msgs/msg/Image", typestore=STORE)
+        info_conn = writer.add_connection(INFO_TOPIC, "sensor_msgs/msg/CameraInfo",
+                                          typestore=STORE)
+        # camera_link -> camera_depth_frame -> camera_depth_optical_frame, as realsense-ros.
+        tf = TF(transforms=[
+            TS(header=Header(stamp=stamp(0), frame_id="camera_link"),
+               child_frame_id="camera_depth_frame",
+               transform=T(translation=V(x=0.0, y=0.0, z=0.0),
+                           rotation=Q(x=0.0, y=0.0, z=0.0, w=1.0))),
+            TS(header=Header(stamp=stamp(0), frame_id="camera_depth_frame"),
+               child_frame_id="camera_depth_optical_frame",
+               transform=T(translation=V(x=0.0, y=0.0, z=0.0),
+                           rotation=Q(x=-0.5, y=0.5, z=-0.5, w=0.5))),
+        ])
+        writer.write(tf_conn, 100 * 10**9,
+                     bytes(STORE.serialize_cdr(tf, "tf2_msgs/msg/TFMessage")))
+        for i in range(n):
+            img, info = image_msgs(i)
+            t = (100 + i) * 10**9 + 250_000_000 + i
+            writer.write(img_conn, t, bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")))
+            writer.write(info_conn, t,
+                         bytes(STORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
+    print(json.dumps({"bag": str(next(Path(path).glob("*.mcap")))}))
+
+
+def cmd_read_mcap(path):
+    from rosbags.highlevel import AnyReader
+    out = {"topics": {}, "first": {}}
+    with AnyReader([Path(path)]) as reader:
+        for conn, _t, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            out["topics"].setdefault(conn.topic, {"type": conn.msgtype, "count": 0})
+            out["topics"][conn.topic]["count"] += 1
+            if conn.topic not in out["first"]:
+                m = plain(msg)
+                if "data" in m and isinstance(m["data"], list):
+                    m["data_len"] = len(m["data"])
+                    m["data_head"] = m["data"][:16]
+                    del m["data"]
+                out["first"][conn.topic] = m
+    print(json.dumps(out))
+
+
+def main():
+    cmd, args = sys.argv[1], sys.argv[2:]
+    if cmd == "router":
+        cmd_router(int(args[0]))
+    elif cmd == "publish":
+        cmd_publish(int(args[0]), int(args[1]))
+    elif cmd == "listen":
+        cmd_listen(int(args[0]), int(args[1]), float(args[2]), args[3])
+    elif cmd == "hashes":
+        cmd_hashes(args[0])
+    elif cmd == "write-bag":
+        cmd_write_bag(args[0], int(args[1]))
+    elif cmd == "read-mcap":
+        cmd_read_mcap(args[0])
+    else:
+        sys.exit(f"unknown command {cmd}")
+
+
+if __name__ == "__main__":
+    main()
