@@ -194,13 +194,19 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             extra = serde_json::json!({ "perception": scene_metrics });
         }
         "safe-speed" => {
-            let scene_name = args
-                .scene
-                .context("safe-speed needs --scene NAME|FILE (a scene with a constant_velocity body)")?;
+            let scene_name = args.scene.context(
+                "safe-speed needs --scene NAME|FILE (a scene with a constant_velocity body)",
+            )?;
             if args.speeds.is_empty()
-                || !args.speeds.iter().all(|v| v.is_finite() && *v > 0.0 && *v <= 20.0)
+                || !args
+                    .speeds
+                    .iter()
+                    .all(|v| v.is_finite() && *v > 0.0 && *v <= 20.0)
             {
-                bail!("--speeds must be finite and in (0, 20] m/s, got {:?}", args.speeds);
+                bail!(
+                    "--speeds must be finite and in (0, 20] m/s, got {:?}",
+                    args.speeds
+                );
             }
             let scene = Scene::from_name_or_path(&scene_name)?;
             let sweep = safe_speed::sweep(
@@ -333,16 +339,15 @@ fn scene_stem(scene: &Scene) -> String {
 
 /// Safe-speed sweep: worst margin and penetration per speed, both modes.
 fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
-    let series = [(false, RED, "paper"), (true, BLUE, "surface velocity fed")].map(
-        |(feed, color, mode)| {
+    let series =
+        [(false, RED, "paper"), (true, BLUE, "surface velocity fed")].map(|(feed, color, mode)| {
             let points = rows
                 .iter()
                 .filter(|r| r.surface_velocity_feed == feed)
                 .map(|r| (r.speed_mps, r.min_margin_m, r.max_penetration_m))
                 .collect();
             (mode, color, points)
-        },
-    );
+        });
     plot_speeds(path, "rising surface", &series, r_hip)
 }
 

@@ -38,9 +38,9 @@
 
 use crate::control::ControlStatus;
 use crate::fusion::{FusedSurface, FusionConfig, FusionStatus};
-use crate::haptics::known_surface;
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
+use crate::haptics::known_surface;
 use crate::lab::closed_loop::{HandReference, Plant, SimConfig, SimError};
 use crate::node::haptic_loop::{HapticLoop, RobotInput};
 use crate::node::robot_state::{JointState, PerceptionScene};
@@ -283,9 +283,7 @@ pub fn simulate_scene(
             if record.estimate().valid {
                 metrics.valid_estimates += 1;
                 if metrics.first_valid_margin_m.is_none() {
-                    metrics.first_valid_margin_m = samples
-                        .last()
-                        .map(|s: &SceneSample| s.margin_m);
+                    metrics.first_valid_margin_m = samples.last().map(|s: &SceneSample| s.margin_m);
                 }
             }
             frames += 1;

@@ -52,9 +52,7 @@ mod tests;
 
 use crate::camera::Frame;
 use crate::control::{ControllerConfig, ControllerConfigError};
-use crate::fusion::{
-    CameraLatency, FusionConfig, FusionConfigError, FusionCounters, FusionStatus,
-};
+use crate::fusion::{CameraLatency, FusionConfig, FusionConfigError, FusionCounters, FusionStatus};
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::io::can::{CanError, fault};
@@ -624,8 +622,7 @@ pub fn run(
     };
     let shared = Shared::default();
     let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
-    let (estimate_tx, estimate_rx) =
-        mpsc::channel::<(SurfaceEstimate, Option<FarFieldEstimate>)>();
+    let (estimate_tx, estimate_rx) = mpsc::channel::<(SurfaceEstimate, Option<FarFieldEstimate>)>();
     let tick_s = 1.0 / config.tick_rate_hz;
     let period = Duration::from_secs_f64(tick_s / options.speed);
     let status_every = u64::from(config.can.status_every_ticks);

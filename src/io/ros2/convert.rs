@@ -15,7 +15,7 @@ use super::msgs::{
 };
 use crate::camera::{DepthImage, Frame, PinholeIntrinsics};
 use crate::cloud::PointCloud;
-use crate::io::depth::MAX_PIXELS;
+use crate::io::ReadLimits;
 use glam::Vec3;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
@@ -143,9 +143,10 @@ pub fn depth_from_image_scaled(
         other => return Err(Ros2Error::Encoding(other.into())),
     };
     let (w, h) = (u64::from(img.width), u64::from(img.height));
-    if w * h > MAX_PIXELS {
+    let max_pixels = ReadLimits::default().max_pixels;
+    if w * h > max_pixels {
         return Err(Ros2Error::Value(format!(
-            "{w} x {h} image is larger than {MAX_PIXELS} pixels"
+            "{w} x {h} image is larger than {max_pixels} pixels"
         )));
     }
     if u64::from(img.step) < w * bytes_per_px {
