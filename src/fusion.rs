@@ -171,6 +171,10 @@ pub struct FusionConfig {
     pub max_samples_count: usize,
     /// Two estimates of one camera closer in time than this are duplicates, seconds.
     pub duplicate_tolerance_s: f64,
+    /// An estimate stamped more than this after its arrival is refused (a camera clock
+    /// ahead of the node's, or a corrupt stamp): held in the window it would keep the
+    /// surface "fresh" after its camera died and make every later real frame too old, s.
+    pub max_future_stamp_s: f64,
     /// Estimates whose centroid is farther than this from the world origin are implausible
     /// and skipped, metres.
     pub max_centroid_norm_m: f64,
@@ -242,6 +246,7 @@ impl Default for FusionConfig {
             min_samples_linear_count: 2,
             max_samples_count: 256,
             duplicate_tolerance_s: 1e-6,
+            max_future_stamp_s: 0.05,
             max_centroid_norm_m: 10.0,
             min_normal_fit_norm_unitless: 0.5,
             camera_offsets: true,
@@ -307,6 +312,7 @@ impl FusionConfig {
             ("weight_age_scale_s", self.weight_age_scale_s),
             ("stale_timeout_s", self.stale_timeout_s),
             ("duplicate_tolerance_s", self.duplicate_tolerance_s),
+            ("max_future_stamp_s", self.max_future_stamp_s),
             ("max_centroid_norm_m", self.max_centroid_norm_m),
             (
                 "max_noise_gain_linear_unitless",
@@ -457,6 +463,9 @@ pub enum PushOutcome {
     Duplicate,
     /// Older than the window behind the newest sample: dropped.
     TooOld,
+    /// Stamped after its arrival by more than `max_future_stamp_s`, or at a non-finite time:
+    /// refused.
+    Future,
 }
 
 /// Running counts of what happened to pushed estimates.
@@ -466,6 +475,8 @@ pub struct FusionCounters {
     pub invalid: u64,
     pub duplicate: u64,
     pub too_old: u64,
+    /// Estimates refused for a stamp in the future of their arrival (or not finite).
+    pub future: u64,
     /// Samples evicted because the buffer was full.
     pub evicted: u64,
     /// Far-field (look-ahead) estimates accepted (also counted in `accepted`).
@@ -706,7 +717,13 @@ impl Fusion {
     /// [`Fusion::push`] for an estimate that reached the node at `arrival_s` (same clock as
     /// the stamps): its latency `arrival_s - stamp_s` is added to its camera's statistics
     /// (whatever the estimate's validity: the frame arrived).
+    /// An estimate stamped in the future of its arrival is refused ([`PushOutcome::Future`]).
     pub fn push_arrived(&mut self, estimate: &SurfaceEstimate, arrival_s: f64) -> PushOutcome {
+        if !(estimate.stamp_s.is_finite()
+            && estimate.stamp_s <= arrival_s + self.config.max_future_stamp_s)
+        {
+            return self.count(PushOutcome::Future);
+        }
         self.record_latency(estimate.camera_id, arrival_s - estimate.stamp_s);
         self.push(estimate)
     }
@@ -735,6 +752,7 @@ impl Fusion {
             PushOutcome::Invalid => self.counters.invalid += 1,
             PushOutcome::Duplicate => self.counters.duplicate += 1,
             PushOutcome::TooOld => self.counters.too_old += 1,
+            PushOutcome::Future => self.counters.future += 1,
         }
         outcome
     }
@@ -1457,6 +1475,34 @@ mod tests {
         }
     }
 
+    /// A frame stamped far in the future is refused where it arrives: the surface still goes
+    /// stale once its camera stops, and the real frames after it are not "too old".
+    #[test]
+    fn a_future_stamp_is_refused_and_cannot_hold_the_surface_fresh() {
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let (c, n) = (Vector3::new(0.0, 0.0, 0.5), Vector3::z());
+        for k in 0..6 {
+            let t = k as f64 / 30.0;
+            assert_eq!(
+                f.push_arrived(&estimate(0, t, c, n), t + 0.06),
+                PushOutcome::Accepted
+            );
+        }
+        for bad in [1e300, 50.0, f64::NAN, f64::INFINITY] {
+            assert_eq!(
+                f.push_arrived(&estimate(0, bad, c, n), 0.3),
+                PushOutcome::Future
+            );
+        }
+        assert_eq!(f.counters().future, 4);
+        assert_eq!(
+            f.push_arrived(&estimate(0, 0.2, c, n), 0.26),
+            PushOutcome::Accepted
+        );
+        assert!(f.tick(0.3).is_tracking());
+        assert_eq!(f.tick(0.6).status, FusionStatus::Stale);
+    }
+
     fn quadratic(t: f64) -> Vector3<f64> {
         Vector3::new(
             0.3 + 0.2 * t - 0.5 * t * t,
@@ -2165,9 +2211,10 @@ mod tests {
             let late = 0.08 + 0.0001 * f64::from(i % 90);
             f.push_arrived(&estimate(3, t + 0.01, c, Vector3::z()), t + 0.01 + late);
         }
-        // Odd arrival times are counted, never measured.
+        // Odd arrival times are counted, never measured: no arrival time refuses the
+        // estimate; one a little before its stamp (within max_future_stamp_s) is kept.
         f.push_arrived(&estimate(0, 9.0, c, Vector3::z()), f64::NAN);
-        f.push_arrived(&estimate(0, 9.1, c, Vector3::z()), 9.0);
+        f.push_arrived(&estimate(0, 9.02, c, Vector3::z()), 9.0);
         let stats = f.latency_stats();
         assert_eq!(stats.len(), 2);
         let (a, b) = (stats[0], stats[1]);
@@ -2177,7 +2224,8 @@ mod tests {
         assert!((b.min_s - 0.08).abs() < 1e-9 && (b.max_s - 0.0889).abs() < 1e-9);
         assert!(b.p50_s >= 0.08 && b.p50_s <= 0.086, "{b:?}");
         assert!(b.p95_s >= 0.087 && b.p95_s <= 0.0889 + 1e-12, "{b:?}");
-        assert_eq!(f.counters().latency_rejected, 2);
+        assert_eq!(f.counters().latency_rejected, 1);
+        assert_eq!(f.counters().future, 1);
     }
 
     fn far(camera_id: u32, stamp_s: f64, c: Vector3<f64>) -> FarFieldEstimate {

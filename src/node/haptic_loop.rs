@@ -17,7 +17,7 @@ use super::robot_state::{JointState, PerceptionScene};
 use super::{NodeConfig, NodeError, StalePolicy};
 use crate::camera::Frame;
 use crate::control::{Controller, ControllerInput, ControllerOutput, Intent};
-use crate::fusion::{FusedSurface, Fusion, FusionStatus};
+use crate::fusion::{FusedSurface, Fusion, FusionStatus, PushOutcome};
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticConstraints;
 use crate::perception::lookahead::{LookaheadConfig, far_field};
@@ -242,8 +242,8 @@ impl ControlLoop {
         far_field: Option<&FarFieldEstimate>,
         arrival_s: f64,
     ) {
-        self.fusion.push_arrived(estimate, arrival_s);
-        if let Some(f) = far_field {
+        let outcome = self.fusion.push_arrived(estimate, arrival_s);
+        if let Some(f) = far_field.filter(|_| outcome != PushOutcome::Future) {
             self.fusion.push_far_field(f);
         }
     }

@@ -244,6 +244,10 @@ pub struct RunOptions {
     pub observer: Option<SyncSender<NodeEvent>>,
 }
 
+/// Largest frame stamp a timed source may carry, s (ten years of seconds: any real clock;
+/// 1e300 is a corrupt record).
+const MAX_STAMP_S: f64 = 3.2e8;
+
 /// Ticks between two [`NodeEvent::Tick`]s (100 Hz at 800 Hz: more than a display shows).
 pub const OBSERVER_TICK_EVERY: u64 = 8;
 
@@ -380,9 +384,13 @@ impl Clock {
         }
     }
 
+    /// The wall instant the clock reads `t_s`; a stamp beyond a day (or not finite) is a
+    /// day away, so a corrupt stamp cannot overflow the instant.
     fn wall_at(&self, t_s: f64) -> Instant {
+        const DAY_S: f64 = 86_400.0;
         let offset = f64::from_bits(self.offset_bits.load(Ordering::Acquire));
-        self.start + Duration::from_secs_f64(((t_s - offset) / self.speed).max(0.0))
+        let wait_s = ((t_s - offset) / self.speed).clamp(0.0, DAY_S);
+        self.start + Duration::from_secs_f64(if wait_s.is_nan() { DAY_S } else { wait_s })
     }
 }
 
@@ -595,6 +603,17 @@ pub fn run(
         Source::Timed(frames) | Source::Simulated { frames, .. } => Some(frames),
         Source::Stream(_) => None,
     };
+    if let Some(frames) = timed_frames
+        && let Some((i, f)) = frames
+            .iter()
+            .enumerate()
+            .find(|(_, f)| !f.stamp_s.is_finite() || f.stamp_s.abs() > MAX_STAMP_S)
+    {
+        return Err(NodeError::Config(format!(
+            "frame {i} (camera {}) is stamped {} s: stamps must be finite and within {MAX_STAMP_S} s",
+            f.camera_id, f.stamp_s
+        )));
+    }
     let (t_first, t_end) = match timed_frames {
         Some(frames) => {
             let first = frames
