@@ -2,7 +2,8 @@
 //! to fusion and control (paper Alg. 2 output: centroid `c^k`, normal `n^k`).
 //!
 //! Plain data only: fusion, haptics and the controller depend on this module, never on the
-//! perception code that fills it.
+//! perception code that fills it. The fused surface ([`FusedSurface`], fusion's output, eq. 6)
+//! lives here too, so haptics and the controller need none of fusion's machinery.
 
 use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
@@ -80,4 +81,53 @@ pub struct FarFieldEstimate {
     pub residual_rms_m: f64,
     /// Quality in [0, 1] (patch population and flatness).
     pub quality: f64,
+}
+
+/// Whether the fused surface may be used.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FusionStatus {
+    /// Fresh data: the surface follows the cameras.
+    Tracking,
+    /// The newest estimate is older than the stale timeout: the last surface is held and the
+    /// constraint must be disabled (or held, per the consumer's config).
+    Stale,
+    /// The estimates in the window disagree on the normal: the last surface is held.
+    Inconsistent,
+    /// No valid estimate has ever arrived: centroid and normal are placeholders.
+    NoData,
+}
+
+/// The fused surface at one control tick: what haptics and the controller consume.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FusedSurface {
+    /// Tick time the surface is valid for, seconds (same clock as the estimates' stamps).
+    pub stamp_s: f64,
+    /// Smoothed surface centroid `c`, world frame, metres (eq. 6 output).
+    pub centroid_m: Point3<f64>,
+    /// Smoothed outward normal `n` (from the body towards the HIP), world frame.
+    pub normal: Unit<Vector3<f64>>,
+    /// The surface's own velocity: derivative of the centroid fit at the tick, world frame,
+    /// m/s. Zero unless tracking.
+    pub velocity_m_per_s: Vector3<f64>,
+    pub status: FusionStatus,
+    /// Tick time minus the newest estimate's stamp, seconds (infinite with no data).
+    pub age_s: f64,
+    /// The regression's centroid at the tick, before PID smoothing (Fig. 8's "planned
+    /// trajectory"), metres.
+    pub fit_centroid_m: Point3<f64>,
+    /// The regression's normal at the tick, before PID smoothing.
+    pub fit_normal: Unit<Vector3<f64>>,
+    /// Degree of the polynomial actually fitted (2, or 1/0 with too few samples).
+    pub fit_degree: u8,
+    /// Samples and distinct cameras in the regression window.
+    pub sample_count: u32,
+    pub camera_count: u32,
+}
+
+impl FusedSurface {
+    /// True when the surface is fresh and consistent and may drive a constraint.
+    pub fn is_tracking(&self) -> bool {
+        self.status == FusionStatus::Tracking
+    }
 }

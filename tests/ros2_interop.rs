@@ -6,7 +6,6 @@
 use glam::Vec3;
 use hapcloud::camera::Frame;
 use hapcloud::control::ControlStatus;
-use hapcloud::fusion::{FusedSurface, FusionStatus};
 use hapcloud::haptics::HapticStatus;
 use hapcloud::io::mcap::{McapItem, McapReader, McapReaderConfig, McapWriter, McapWriterConfig};
 use hapcloud::io::ros2::assemble::{CameraTopics, Pose};
@@ -19,6 +18,7 @@ use hapcloud::io::zenoh::{
 use hapcloud::node::record::{ControlRecord, TickRecord};
 use hapcloud::node::robot_state::JointState;
 use hapcloud::robot::JointVector;
+use hapcloud::surface::{FusedSurface, FusionStatus};
 use nalgebra::{Point3, Quaternion, Unit, UnitQuaternion, Vector3};
 use serde_json::Value;
 use std::io::{BufRead, BufReader};

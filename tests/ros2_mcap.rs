@@ -5,7 +5,6 @@ use glam::Vec3;
 use hapcloud::camera::{DepthImage, Frame, PinholeIntrinsics};
 use hapcloud::cloud::PointCloud;
 use hapcloud::control::ControlStatus;
-use hapcloud::fusion::{FusedSurface, FusionStatus};
 use hapcloud::haptics::HapticStatus;
 use hapcloud::io::mcap::{
     ChunkCompression, FrameEncoding, McapItem, McapReader, McapReaderConfig, McapWriter,
@@ -15,6 +14,7 @@ use hapcloud::node::record::{ControlRecord, TickRecord};
 use hapcloud::node::robot_state::JointState;
 use hapcloud::robot::JointVector;
 use hapcloud::surface::SurfaceEstimate;
+use hapcloud::surface::{FusedSurface, FusionStatus};
 use nalgebra::{Isometry3, Point3, Unit, Vector3};
 use std::io::Cursor;
 

@@ -34,9 +34,9 @@
 pub mod hqp;
 pub mod qp;
 
-use crate::fusion::FusedSurface;
 use crate::haptics::{self, HapticConfig, HapticConstraints};
 use crate::robot::{DOF, HipKinematics, JointMatrix, JointVector, RobotModel};
+use crate::surface::FusedSurface;
 use hqp::{HierarchicalSolver, HqpSettings, LevelReport, Task};
 use nalgebra::{DMatrix, DVector, Point3, RowSVector, Unit, Vector3};
 use serde::{Deserialize, Serialize};

@@ -25,8 +25,8 @@
 //! - Beyond the paper: with `use_surface_velocity`, `d' = J_c qd - n . v_s`
 //!   uses the surface's own velocity from the fusion fit; the paper uses `d' = J_c qd`.
 
-use crate::fusion::{FusedSurface, FusionStatus};
 use crate::robot::{HipKinematics, JointMatrix, JointVector};
+use crate::surface::{FusedSurface, FusionStatus};
 use nalgebra::{Point3, RowSVector, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 

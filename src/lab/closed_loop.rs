@@ -25,10 +25,10 @@
 use crate::control::{
     ControlStatus, Controller, ControllerConfig, ControllerConfigError, ControllerInput, Intent,
 };
-use crate::fusion::FusedSurface;
 use crate::haptics::known_surface;
 use crate::robot::start_pose;
 use crate::robot::{GRAVITY_MPS2, JointVector, RobotModel};
+use crate::surface::FusedSurface;
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;

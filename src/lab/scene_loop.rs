@@ -37,7 +37,7 @@
 //! and the CPU reference stages run by default (`backend`), which the GPU stages match.
 
 use crate::control::ControlStatus;
-use crate::fusion::{FusedSurface, FusionConfig, FusionStatus};
+use crate::fusion::FusionConfig;
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::haptics::known_surface;
@@ -49,6 +49,7 @@ use crate::perception::frontend::FrontendConfig;
 use crate::perception::pipeline::SurfaceConfig;
 use crate::robot::JointVector;
 use crate::scene::{Scene, SceneError, Simulator, truth};
+use crate::surface::{FusedSurface, FusionStatus};
 use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 

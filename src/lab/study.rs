@@ -43,7 +43,6 @@
 use super::ErrorStats;
 use crate::camera::Frame;
 use crate::fusion::FusionConfig;
-use crate::fusion::{FusedSurface, FusionStatus};
 use crate::geometry::Primitive;
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::known_surface;
@@ -56,6 +55,7 @@ use crate::perception::frontend::{FrontendConfig, FrontendError};
 use crate::perception::pipeline::SurfaceConfig;
 use crate::robot::{RobotError, RobotModel};
 use crate::scene::{CameraConfig, Scene, SceneError, Simulator};
+use crate::surface::{FusedSurface, FusionStatus};
 use crate::timing::{SpanTime, Stopwatch};
 use nalgebra::{Point3, Unit, UnitQuaternion, Vector3};
 use plotters::prelude::*;

@@ -17,13 +17,14 @@ use super::robot_state::{JointState, PerceptionScene};
 use super::{NodeConfig, NodeError, StalePolicy};
 use crate::camera::Frame;
 use crate::control::{Controller, ControllerInput, ControllerOutput, Intent};
-use crate::fusion::{FusedSurface, Fusion, FusionStatus, PushOutcome};
+use crate::fusion::{Fusion, PushOutcome};
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticConstraints;
 use crate::perception::lookahead::{LookaheadConfig, far_field};
 use crate::perception::pipeline::{CameraChain, ChainFrame};
 use crate::robot::RobotModel;
 use crate::surface::{FarFieldEstimate, SurfaceEstimate};
+use crate::surface::{FusedSurface, FusionStatus};
 use nalgebra::{Isometry3, Vector3};
 use std::sync::Arc;
 

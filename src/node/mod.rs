@@ -52,7 +52,7 @@ mod tests;
 
 use crate::camera::Frame;
 use crate::control::{ControllerConfig, ControllerConfigError};
-use crate::fusion::{CameraLatency, FusionConfig, FusionConfigError, FusionCounters, FusionStatus};
+use crate::fusion::{CameraLatency, FusionConfig, FusionConfigError, FusionCounters};
 use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::io::can::{CanError, fault};
@@ -61,6 +61,7 @@ use crate::perception::frontend::{FrontendConfig, FrontendError};
 use crate::perception::lookahead::LookaheadConfig;
 use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
+use crate::surface::FusionStatus;
 use crate::surface::{FarFieldEstimate, SurfaceEstimate};
 use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
 use frame_queue::{CloseOnDrop, FrameQueue};

@@ -3,7 +3,7 @@
 use super::stream::StreamSender;
 use super::*;
 use crate::cloud::PointCloud;
-use crate::fusion::FusionStatus;
+use crate::surface::FusionStatus;
 use glam::Vec3;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use std::path::PathBuf;

@@ -12,11 +12,11 @@
 //! enforce).
 
 use super::frame::{ConstraintSample, FrameSamples, StageLatency, SurfacePoint, ViewFrame};
-use crate::fusion::FusedSurface;
 use crate::haptics::{ConstraintKind, HapticConfig, HapticConstraints, HapticStatus};
 use crate::node::haptic_loop::Tick;
 use crate::node::record::TickRecord;
 use crate::robot::JointVector;
+use crate::surface::FusedSurface;
 
 /// The constraints shown, with their names, in plotting order.
 pub const CONSTRAINTS: [(ConstraintKind, &str); 3] = [
@@ -123,7 +123,7 @@ mod tests {
     use nalgebra::{Unit, Vector3};
 
     /// The real robot at a bent pose, and a plane `gap_m` in front of its HIP sphere facing it.
-    fn setup(gap_m: f64) -> (RobotModel, JointVector, crate::fusion::FusedSurface) {
+    fn setup(gap_m: f64) -> (RobotModel, JointVector, crate::surface::FusedSurface) {
         let m = RobotModel::anyexo().unwrap();
         let q = JointVector::from_column_slice(&[0.1, 0.0, 0.3, 0.2, 0.8, 1.4]);
         let hip = m.hip_kinematics(&q, &JointVector::zeros());

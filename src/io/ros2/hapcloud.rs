@@ -12,11 +12,11 @@ use super::Ros2Error;
 use super::msgs::{HEADER, Header, RosMessage};
 use super::typedesc::{Elem, MsgDesc, Prim, Shape, constant, field, msg, prim};
 use crate::control::ControlStatus;
-use crate::fusion::{FusedSurface as Fused, FusionStatus};
 use crate::haptics::HapticStatus;
 use crate::node::record::{ControlRecord, TickRecord};
 use crate::node::robot_state::JointState as Joints;
 use crate::robot::JointVector;
+use crate::surface::{FusedSurface as Fused, FusionStatus};
 use crate::surface::{ShellFit as Shell, ShellFitKind, SurfaceEstimate as Estimate};
 use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
@@ -47,7 +47,7 @@ pub static FUSED_SURFACE: MsgDesc = MsgDesc {
     ],
 };
 
-/// `hapcloud_msgs/msg/FusedSurface`: [`crate::fusion::FusedSurface`] at one tick.
+/// `hapcloud_msgs/msg/FusedSurface`: [`crate::surface::FusedSurface`] at one tick.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct FusedSurface {
     pub header: Header,

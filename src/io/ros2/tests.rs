@@ -344,7 +344,7 @@ fn transforms_round_trip() {
 
 #[test]
 fn hapcloud_messages_round_trip() {
-    use crate::fusion::{FusedSurface as Fused, FusionStatus};
+    use crate::surface::{FusedSurface as Fused, FusionStatus};
     use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate as Estimate};
     use nalgebra::{Point3, Unit};
     let fused = Fused {
