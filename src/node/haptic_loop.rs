@@ -318,7 +318,10 @@ impl HapticLoop {
         adapter: Option<&str>,
     ) -> Result<Self, NodeError> {
         config.validate()?;
-        Self::with_perception(config, model, Perception::new(config, backend, adapter)?)
+        Ok(Self {
+            perception: Perception::new(config, backend, adapter)?,
+            control: ControlLoop::new(config, model)?,
+        })
     }
 
     /// The loop of `config` for the robot `model` around a perception half already built

@@ -23,8 +23,6 @@ use std::sync::mpsc::{Receiver, Sender};
 pub struct Overlay {
     views: CameraViews,
     haptics: HapticConfig,
-    hip_radius_m: f64,
-    shell_radii_m: Vec<f64>,
     simulator: Option<Arc<Simulator>>,
     tick: Option<TickRecord>,
 }
@@ -39,10 +37,8 @@ impl Overlay {
                 .hip_radius_m(),
         };
         Ok(Self {
-            views: CameraViews::default(),
+            views: CameraViews::new(hip_radius_m, config.surface.shells.radii_m.clone()),
             haptics: config.controller.haptics.clone(),
-            hip_radius_m,
-            shell_radii_m: config.surface.shells.radii_m.clone(),
             simulator,
             tick: None,
         })
@@ -67,13 +63,7 @@ impl Overlay {
                 point_m: t.closest_m,
                 normal: Unit::new_normalize(t.normal),
             });
-        let mut view = self.views.frame_at(
-            stamp_s,
-            record.scene.hip_m,
-            self.hip_radius_m,
-            &self.shell_radii_m,
-            truth,
-        );
+        let mut view = self.views.frame_at(stamp_s, record.scene.hip_m, truth);
         if let Some(tick) = &self.tick {
             apply_tick(&mut view, tick, &self.haptics);
         }

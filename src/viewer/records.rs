@@ -68,13 +68,24 @@ pub fn camera_view(record: &FrameRecord) -> (CameraView, Vec<StageLatency>) {
 
 /// Each camera's newest view (cameras at different rates or phases all stay on screen) and
 /// the stage times of the frames taken since the last view.
-#[derive(Default)]
 pub struct CameraViews {
+    hip_radius_m: f64,
+    shell_radii_m: Vec<f64>,
     cameras: BTreeMap<u32, CameraView>,
     pending: Vec<StageLatency>,
 }
 
 impl CameraViews {
+    /// Views drawn with the HIP sphere's radius and the loop's shell radii.
+    pub fn new(hip_radius_m: f64, shell_radii_m: Vec<f64>) -> Self {
+        Self {
+            hip_radius_m,
+            shell_radii_m,
+            cameras: BTreeMap::new(),
+            pending: Vec::new(),
+        }
+    }
+
     /// A processed frame replaces its camera's view; its stage times add up until the next
     /// [`CameraViews::frame_at`].
     pub fn record(&mut self, record: &FrameRecord) {
@@ -95,15 +106,13 @@ impl CameraViews {
         &mut self,
         stamp_s: f64,
         hip_m: Point3<f64>,
-        hip_radius_m: f64,
-        shell_radii_m: &[f64],
         truth: Option<SurfacePoint>,
     ) -> ViewFrame {
         ViewFrame {
             stamp_s,
             hip_m,
-            hip_radius_m,
-            shell_radii_m: shell_radii_m.to_vec(),
+            hip_radius_m: self.hip_radius_m,
+            shell_radii_m: self.shell_radii_m.clone(),
             cameras: self.cameras.values().cloned().collect(),
             fused: None,
             truth,

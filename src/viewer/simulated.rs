@@ -113,7 +113,6 @@ pub fn timeline_from_scene(
     config.validate()?;
     let robot = RobotState::simulated(simulator.clone())
         .ok_or_else(|| SceneViewError::NoRobot(simulator.scene().origin.clone()))?;
-    let model = robot.model().clone();
     let end_s = simulator.duration_s();
     if config.start_s > end_s {
         return Err(SceneViewError::StartPastEnd {
@@ -126,9 +125,12 @@ pub fn timeline_from_scene(
         _ => end_s,
     };
     let ticks = ((last_s - config.start_s) * config.view_rate_hz + 1e-9).floor() as usize + 1;
-    let mut haptic_loop = HapticLoop::new(node, model.clone(), Backend::Cpu, None)?;
+    let mut haptic_loop = HapticLoop::new(node, robot.model().clone(), Backend::Cpu, None)?;
     haptic_loop.perception_mut().keep_crop_mask(true);
-    let mut views = CameraViews::default();
+    let mut views = CameraViews::new(
+        robot.model().hip_radius_m(),
+        node.surface.shells.radii_m.clone(),
+    );
     // Frames captured before the first tick warm up the surface memory and fusion window.
     let mut previous_s = config.start_s - node.fusion.window_s;
     let mut timeline = Vec::with_capacity(ticks);
@@ -152,13 +154,7 @@ pub fn timeline_from_scene(
             normal: Unit::new_normalize(g.normal),
         });
         let hip_m = robot.perception_scene(&q).hip_m;
-        let mut view = views.frame_at(
-            t_s,
-            hip_m,
-            model.hip_radius_m(),
-            &node.surface.shells.radii_m,
-            truth,
-        );
+        let mut view = views.frame_at(t_s, hip_m, truth);
         view.samples.latencies.push(StageLatency {
             stage: "tick".into(),
             latency_s: tick_time.wall_ms * 1e-3,

@@ -139,10 +139,13 @@ pub fn hip_on_axis(frame: &Frame, distance_m: f64) -> Option<Point3<f64>> {
 pub fn timeline_from_recording(recording: &Recording) -> Result<Vec<ViewFrame>, SourceError> {
     let node = &recording.meta.config;
     let robot = RobotState::recorded(node, &recording.meta.robot)?;
-    let model = robot.model().clone();
-    let mut haptic_loop = HapticLoop::new(node, model.clone(), recording.meta.backend, None)?;
+    let mut haptic_loop =
+        HapticLoop::new(node, robot.model().clone(), recording.meta.backend, None)?;
     haptic_loop.perception_mut().keep_crop_mask(true);
-    let mut views = CameraViews::default();
+    let mut views = CameraViews::new(
+        robot.model().hip_radius_m(),
+        node.surface.shells.radii_m.clone(),
+    );
     recording
         .frames
         .iter()
@@ -155,13 +158,7 @@ pub fn timeline_from_recording(recording: &Recording) -> Result<Vec<ViewFrame>, 
                 .unwrap_or_else(|| robot.at(frame.stamp_s).q_rad);
             let scene = robot.perception_scene(&q);
             views.record(&haptic_loop.push_frame(frame, &scene)?);
-            let mut view = views.frame_at(
-                frame.stamp_s,
-                scene.hip_m,
-                model.hip_radius_m(),
-                &node.surface.shells.radii_m,
-                None,
-            );
+            let mut view = views.frame_at(frame.stamp_s, scene.hip_m, None);
             let recorded = recording
                 .estimates
                 .iter()
@@ -196,10 +193,12 @@ pub fn timeline_from_frames(
         ..node.clone()
     };
     let robot = RobotState::fixed(&node)?;
-    let model = robot.model().clone();
-    let mut haptic_loop = HapticLoop::new(&node, model.clone(), Backend::Cpu, None)?;
+    let mut haptic_loop = HapticLoop::new(&node, robot.model().clone(), Backend::Cpu, None)?;
     haptic_loop.perception_mut().keep_crop_mask(true);
-    let mut views = CameraViews::default();
+    let mut views = CameraViews::new(
+        robot.model().hip_radius_m(),
+        node.surface.shells.radii_m.clone(),
+    );
     frames
         .iter()
         .map(|frame| {
@@ -207,13 +206,7 @@ pub fn timeline_from_frames(
             let scene = robot.perception_scene(&joints.q_rad);
             views.record(&haptic_loop.push_frame(frame, &scene)?);
             let tick = haptic_loop.tick(frame.stamp_s, &RobotInput::without_force(joints));
-            let mut view = views.frame_at(
-                frame.stamp_s,
-                scene.hip_m,
-                model.hip_radius_m(),
-                &node.surface.shells.radii_m,
-                None,
-            );
+            let mut view = views.frame_at(frame.stamp_s, scene.hip_m, None);
             apply_loop_tick(&mut view, &tick, &node.controller.haptics, None);
             Ok(view)
         })
