@@ -54,6 +54,7 @@ use hapcloud::gpu::{Backend, GpuContext};
 use hapcloud::node::NodeConfig;
 use hapcloud::perception::cluster::{ClusterConfig, GpuClusterer, cluster_cpu};
 use hapcloud::perception::crop::{CropConfig, CropScene, GpuCrop, crop_cpu, kept_indices};
+use hapcloud::perception::frontend::FramePoints;
 use hapcloud::perception::frontend::{FrameInput, Frontend, FrontendConfig};
 use hapcloud::perception::pipeline::{CameraChain, ChainFrame};
 use hapcloud::perception::voxel::{GpuVoxel, VoxelConfig, voxel_cpu};
@@ -745,7 +746,7 @@ fn main() -> anyhow::Result<()> {
             format!("{voxel_n} voxels, {} clusters", ref_sizes.len()),
         );
         let frame = FrameInput {
-            points: &raw,
+            points: FramePoints::Points(&raw),
             crop: Some(scene.clone()),
             want_crop_keep: false,
         };
