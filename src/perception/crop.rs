@@ -475,9 +475,24 @@ impl GpuCrop {
         &self.depth_counts
     }
 
+    /// Bytes of GPU memory the stage's buffers hold now.
+    pub fn gpu_bytes(&self) -> u64 {
+        [
+            &self.params,
+            &self.depth_params,
+            &self.primitives,
+            &self.mask,
+            &self.depth,
+            &self.depth_counts,
+        ]
+        .iter()
+        .map(|b| b.size())
+        .sum()
+    }
+
     /// Sizes the mask and the depth image for frames of up to `points` points / pixels, so
-    /// that no frame up to that size allocates. Returns the bytes those two buffers hold.
-    pub fn reserve(&mut self, ctx: &GpuContext, points: usize) -> Result<u64, CropError> {
+    /// that no frame up to that size allocates.
+    pub fn reserve(&mut self, ctx: &GpuContext, points: usize) -> Result<(), CropError> {
         let words = 4 * mask_words(points) as u64;
         let depth = depth_bytes(points);
         ctx.check_storage_size("crop keep mask", words)?;
@@ -499,7 +514,7 @@ impl GpuCrop {
                 );
             }
         })?;
-        Ok(self.mask.size() + self.depth.size())
+        Ok(())
     }
 
     /// Uploads this frame's parameters and grows buffers for `point_count` points.

@@ -183,6 +183,23 @@ impl Frontend {
         }
     }
 
+    /// Sizes the GPU buffers for frames of up to `points` points or pixels
+    /// ([`GpuFrontend::reserve`]); nothing on the CPU.
+    pub fn reserve(&mut self, points: usize) -> Result<(), FrontendError> {
+        match self {
+            Frontend::Gpu(g) => g.reserve(points).map(|_| ()),
+            Frontend::Cpu(_) => Ok(()),
+        }
+    }
+
+    /// GPU memory the front end holds (GPU) or `None` (CPU).
+    pub fn gpu_bytes(&self) -> Option<u64> {
+        match self {
+            Frontend::Gpu(g) => Some(g.gpu_bytes()),
+            Frontend::Cpu(_) => None,
+        }
+    }
+
     /// The adapter name (GPU) or `None` (CPU).
     pub fn adapter(&self) -> Option<&str> {
         match self {
@@ -343,7 +360,7 @@ impl GpuFrontend {
         if self.input.size() < input_bytes {
             self.input = make_buffer(&ctx, "frontend input points", input_bytes, INPUT_USAGE)?;
         }
-        let crop = self.crop.reserve(&ctx, points)?;
+        self.crop.reserve(&ctx, points)?;
         self.voxel
             .prepare(&ctx, points, true, &self.config.voxel, self.leaf.leaf_m)?;
         let capacity = self.voxel.table_slots();
@@ -353,11 +370,16 @@ impl GpuFrontend {
         if self.readback.size() < needed {
             self.readback = make_buffer(&ctx, "frontend readback", needed, READBACK_USAGE)?;
         }
-        Ok(self.input.size()
-            + crop
+        Ok(self.gpu_bytes())
+    }
+
+    /// Bytes of GPU memory the front end's buffers hold now.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.input.size()
+            + self.crop.gpu_bytes()
             + self.voxel.gpu_bytes()
             + self.cluster.gpu_bytes()
-            + self.readback.size())
+            + self.readback.size()
     }
 
     /// Offsets in the readback buffer for a frame of `n` points.
@@ -532,15 +554,32 @@ struct Readback {
 }
 
 /// Which backend runs the front end faster on this machine, and the measurements behind it.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct BackendChoice {
     pub backend: Backend,
+    /// Frames measured on each backend.
+    pub frames: usize,
     /// Median wall time per frame of the CPU front end (ms).
     pub cpu_ms: f64,
     /// Median wall time per frame of the GPU front end (ms), `None` without a usable GPU.
     pub gpu_ms: Option<f64>,
     /// Why the GPU was not measured (it failed to open or to run), if so.
     pub gpu_error: Option<String>,
+}
+
+impl BackendChoice {
+    /// One line: the choice and the times behind it.
+    pub fn describe(&self) -> String {
+        let gpu = match (&self.gpu_ms, &self.gpu_error) {
+            (Some(ms), _) => format!("{ms:.2} ms"),
+            (None, Some(e)) => format!("not measured ({e})"),
+            (None, None) => "not measured".to_string(),
+        };
+        format!(
+            " (picked by speed on {} frames: front end cpu {:.2} ms, gpu {gpu} per frame)",
+            self.frames, self.cpu_ms
+        )
+    }
 }
 
 fn median_ms(mut v: Vec<f64>) -> f64 {
@@ -591,6 +630,7 @@ pub fn choose_backend(
     };
     Ok(BackendChoice {
         backend,
+        frames: frames.len(),
         cpu_ms,
         gpu_ms,
         gpu_error,

@@ -323,6 +323,8 @@ pub struct CameraChain {
     estimators: BTreeMap<u32, SurfaceEstimator>,
     gpu_fallback: Option<String>,
     want_crop_keep: bool,
+    /// Frame size the front end's buffers are sized for.
+    reserved_points: usize,
 }
 
 impl CameraChain {
@@ -349,6 +351,7 @@ impl CameraChain {
             estimators: BTreeMap::new(),
             gpu_fallback: None,
             want_crop_keep: false,
+            reserved_points: 0,
         })
     }
 
@@ -369,6 +372,12 @@ impl CameraChain {
     /// The GPU adapter's name (GPU backend) or `None`.
     pub fn adapter(&self) -> Option<&str> {
         self.frontend.adapter()
+    }
+
+    /// GPU memory the front end holds (GPU backend): sized once for the largest frame seen
+    /// (a bigger voxel table after an overflow excepted).
+    pub fn gpu_buffer_bytes(&self) -> Option<u64> {
+        self.frontend.gpu_bytes()
     }
 
     /// Whether each [`ChainFrame`] carries the crop's keep mask over `world_points`
@@ -465,6 +474,14 @@ impl CameraChain {
             want_crop_keep: self.want_crop_keep,
         };
         let watch = Stopwatch::start();
+        if input.points.len() > self.reserved_points {
+            // Every buffer for a frame this size (layers and points readback included), once;
+            // an error other than the GPU's is the frame's and comes from `process` below.
+            self.reserved_points = input.points.len();
+            if let Err(FrontendError::Gpu(e)) = self.frontend.reserve(self.reserved_points) {
+                self.fall_back(e.to_string())?;
+            }
+        }
         let mut front = match self.frontend.process(&input) {
             Ok(o) => o,
             Err(FrontendError::Gpu(e)) => {
