@@ -174,29 +174,41 @@ fn is_flying(u: u32, v: u32, p: vec3<f32>) -> bool {
     return false;
 }
 
+// crop_depth's mask words per workgroup (WORKGROUP_SIZE is a multiple of 32) and its
+// counters, gathered in workgroup memory (OR and sums: the same whatever the thread order).
+const WG_WORDS: u32 = WORKGROUP_SIZE / 32u;
+var<workgroup> wg_keep: array<atomic<u32>, WG_WORDS>;
+var<workgroup> wg_valid: atomic<u32>;
+var<workgroup> wg_flying: atomic<u32>;
+
+// One thread per pixel (neighbouring threads read and write neighbouring memory); the
+// workgroup ORs its threads' keep bits into whole mask words.
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn crop_depth(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let w = gid.x;
-    if w >= params.word_count {
-        return;
+fn crop_depth(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    if lid < WG_WORDS {
+        atomicStore(&wg_keep[lid], 0u);
     }
-    var bits = 0u;
-    var valid = 0u;
-    var flying = 0u;
-    let first = 32u * w;
-    let last = min(first + 32u, params.point_count);
-    for (var i = first; i < last; i++) {
+    if lid == 0u {
+        atomicStore(&wg_valid, 0u);
+        atomicStore(&wg_flying, 0u);
+    }
+    workgroupBarrier();
+    let i = gid.x;
+    if i < params.point_count {
         let raw = raw_depth(i);
         var q = vec3<u32>(NAN_BITS, NAN_BITS, NAN_BITS);
         if raw != 0u {
-            valid += 1u;
+            atomicAdd(&wg_valid, 1u);
             let u = i % depth_params.width;
             let v = i / depth_params.width;
             let p = deproject(u, v, raw);
             let n = p - depth_params.near_r2.xyz;
             if depth_params.window > 0u && dot(n, n) < depth_params.near_r2.w
                 && is_flying(u, v, p) {
-                flying += 1u;
+                atomicAdd(&wg_flying, 1u);
             } else {
                 let c = vec3<f32>(
                     dot(depth_params.row_x.xyz, p) + depth_params.row_x.w,
@@ -205,7 +217,7 @@ fn crop_depth(@builtin(global_invocation_id) gid: vec3<u32>) {
                 );
                 q = bitcast<vec3<u32>>(c);
                 if keep_cloud_point(c) {
-                    bits = bits | (1u << (i - first));
+                    atomicOr(&wg_keep[lid / 32u], 1u << (lid % 32u));
                 }
             }
         }
@@ -213,11 +225,19 @@ fn crop_depth(@builtin(global_invocation_id) gid: vec3<u32>) {
         out_points[3u * i + 1u] = q.y;
         out_points[3u * i + 2u] = q.z;
     }
-    keep[w] = bits;
-    if valid > 0u {
-        atomicAdd(&depth_counts[0], valid);
+    workgroupBarrier();
+    // Workgroups start at multiples of WORKGROUP_SIZE: lid % 32 == 0 starts a mask word.
+    if i < params.point_count && lid % 32u == 0u {
+        keep[i / 32u] = atomicLoad(&wg_keep[lid / 32u]);
     }
-    if flying > 0u {
-        atomicAdd(&depth_counts[1], flying);
+    if lid == 0u {
+        let valid = atomicLoad(&wg_valid);
+        let flying = atomicLoad(&wg_flying);
+        if valid > 0u {
+            atomicAdd(&depth_counts[0], valid);
+        }
+        if flying > 0u {
+            atomicAdd(&depth_counts[1], flying);
+        }
     }
 }

@@ -371,6 +371,7 @@ pub struct GpuCrop {
     /// Pixels with a depth and flying pixels of the last depth pass.
     depth_counts: wgpu::Buffer,
     word_count: u32,
+    point_count: u32,
 }
 
 fn storage(
@@ -462,6 +463,7 @@ impl GpuCrop {
             depth,
             depth_counts,
             word_count: 0,
+            point_count: 0,
         })
     }
 
@@ -544,6 +546,10 @@ impl GpuCrop {
         depth.validate()?;
         if let Some(scene) = scene {
             scene.validate()?;
+        }
+        // One thread per pixel, at most 65535 workgroups in a dispatch.
+        if depth.len() as u64 > 65_535 * u64::from(shader::WORKGROUP_SIZE) {
+            return Err(CropError::TooManyPoints(depth.len()));
         }
         self.write_params(ctx, depth.len(), config, scene)?;
         let data = &depth.image.data;
@@ -652,6 +658,7 @@ impl GpuCrop {
                 .write_buffer(&self.primitives, 0, bytemuck::cast_slice(&prims));
         }
         self.word_count = words as u32;
+        self.point_count = n;
         Ok(())
     }
 
@@ -688,7 +695,8 @@ impl GpuCrop {
         });
         pass.set_pipeline(&self.depth_pipeline);
         pass.set_bind_group(0, &bind_group, &[]);
-        pass.dispatch_workgroups(shader::workgroups_for(self.word_count), 1, 1);
+        // One thread per pixel.
+        pass.dispatch_workgroups(shader::workgroups_for(self.point_count), 1, 1);
     }
 
     /// Records the crop pass over `points` (packed xyz f32, as uploaded from [`Vec3`]s).

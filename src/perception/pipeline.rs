@@ -10,9 +10,10 @@
 //!    between a foreground and a background surface go. On the GPU a frame that carries its
 //!    depth image skips steps 1 and 2 here: the image itself is the front end's input, and
 //!    its first pass deprojects, moves, tests and crops every pixel
-//!    ([`super::crop::DepthInput`]). The simulator's cloud is its unquantised depth, its
-//!    image the 1 mm one a D435 delivers: in simulation the CPU path sees the former;
-//!    for real sources the cloud is the image's deprojection,
+//!    ([`super::crop::DepthInput`]). For a real source the cloud is the image's
+//!    deprojection, so both paths see the same points (to the f32 deprojection's rounding);
+//!    the simulator's cloud is its unquantised depth and its image the 1 mm one a D435
+//!    delivers, so in simulation the two paths differ by that quantisation,
 //! 3. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
 //!    the robot primitives, voxel grid, Euclidean clusters (paper IV-A to IV-C); the points of
 //!    the clusters the [`ClusterSelection`] picks go on (clusters below the size threshold are
