@@ -59,11 +59,11 @@ use crate::haptics::HapticStatus;
 use crate::io::can::{CanError, fault};
 use crate::io::hcap;
 use crate::perception::crop::{CropScene, DepthInput};
+use crate::perception::flying::veil_cloud;
 use crate::perception::frontend::{
     BackendChoice, FrameInput, FramePoints, FrontendConfig, FrontendError, choose_backend,
 };
 use crate::perception::lookahead::LookaheadConfig;
-use crate::perception::pipeline::to_world;
 use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
 use crate::surface::FusionStatus;
@@ -437,10 +437,12 @@ pub const BACKEND_CHOICE_FRAMES: usize = 5;
 
 /// The start-up rule of [`RunOptions::pick_backend`]: the front end on both backends
 /// ([`choose_backend`]) on the first [`BACKEND_CHOICE_FRAMES`] frames, each with the HIP and
-/// the robot primitives at its stamp and entering as perception takes it on the GPU (a
-/// frame's depth image, else its cloud in the world frame); the faster by median wall time
-/// wins. The CPU side then includes the deprojection, which a depth source does before the
-/// CPU chain. `None` when the GPU does not open.
+/// the robot primitives at its stamp and in the form each path takes it: the GPU a frame's
+/// depth image (deprojection and flying pixels in its first pass), the CPU the world-frame
+/// cloud after the flying-pixel test, as [`crate::perception::pipeline::CameraChain`] feeds
+/// them. The faster by median wall time wins; the CPU's world transform and flying-pixel
+/// test before its front end are not in its time (a bias towards the CPU of about a
+/// millisecond per frame here). `None` when the GPU does not open.
 pub fn measure_backends(
     config: &NodeConfig,
     frames: &[Frame],
@@ -457,46 +459,60 @@ pub fn measure_backends(
         .iter()
         .map(|f| robot.perception_scene(&robot.at(f.stamp_s).q_rad))
         .collect();
-    fn depth_of(
-        f: &Frame,
-    ) -> Option<&(crate::camera::DepthImage, crate::camera::PinholeIntrinsics)> {
-        f.depth
-            .as_ref()
-            .filter(|(image, k)| (k.width, k.height) == (image.width, image.height))
-    }
+    let flying = &config.surface.flying_pixels;
+    // The CPU path's input: the cloud in the world frame, flying pixels set to NaN.
     let world: Vec<Vec<_>> = frames
         .iter()
-        .map(|f| match depth_of(f) {
-            Some(_) => Vec::new(),
-            None => to_world(&f.cloud.points, &f.world_from_camera),
+        .zip(&scenes)
+        .map(|(f, scene)| {
+            let hip = f.world_from_camera.inverse() * scene.hip_m;
+            let near = glam::Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32);
+            let radius = config.frontend.crop.radius_m as f32;
+            veil_cloud(&f.cloud, &f.world_from_camera, near, radius, flying).0
         })
         .collect();
-    let inputs: Vec<FrameInput<'_>> = frames
-        .iter()
-        .zip(&scenes)
-        .zip(&world)
-        .map(|((f, scene), world)| FrameInput {
-            points: match depth_of(f) {
-                Some((image, intrinsics)) => FramePoints::Depth(DepthInput {
-                    image,
-                    intrinsics,
-                    cloud_from_camera: f.world_from_camera,
-                    flying: &config.surface.flying_pixels,
-                }),
-                None => FramePoints::Points(world),
-            },
+    fn input<'a>(
+        f: &Frame,
+        scene: &'a robot_state::PerceptionScene,
+        points: FramePoints<'a>,
+    ) -> FrameInput<'a> {
+        FrameInput {
+            points,
             crop: Some(CropScene {
                 hip_m: scene.hip_m,
                 robot: &scene.primitives,
                 camera_m: Some(Point3::from(f.world_from_camera.translation.vector)),
             }),
             want_crop_keep: false,
+        }
+    }
+    let cpu: Vec<FrameInput<'_>> = (0..frames.len())
+        .map(|i| input(&frames[i], &scenes[i], FramePoints::Points(&world[i])))
+        .collect();
+    let gpu: Vec<FrameInput<'_>> = (0..frames.len())
+        .map(|i| {
+            let f = &frames[i];
+            let points = match &f.depth {
+                Some((image, intrinsics))
+                    if (intrinsics.width, intrinsics.height) == (image.width, image.height) =>
+                {
+                    FramePoints::Depth(DepthInput {
+                        image,
+                        intrinsics,
+                        cloud_from_camera: f.world_from_camera,
+                        flying,
+                    })
+                }
+                _ => FramePoints::Points(&world[i]),
+            };
+            input(f, &scenes[i], points)
         })
         .collect();
     Ok(Some(choose_backend(
         &config.frontend,
         Some(Arc::new(ctx)),
-        &inputs,
+        &cpu,
+        &gpu,
     )?))
 }
 

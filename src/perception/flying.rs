@@ -28,6 +28,7 @@
 //! ([`DepthImage::deproject`]), this test on the camera-frame points, the camera's pose.
 
 use crate::camera::{DepthImage, PinholeIntrinsics};
+use crate::cloud::PointCloud;
 use crate::perception::crop::finite_bits;
 use glam::Vec3;
 use nalgebra::{Isometry3, Point3};
@@ -142,21 +143,17 @@ pub fn to_world(points: &[Vec3], cloud_from_camera: &Isometry3<f64>) -> Vec<Vec3
         .collect()
 }
 
-/// CPU reference of a depth frame's first pass before its crop: the image deprojected
-/// ([`DepthImage::deproject`], f64), the flying pixels within `radius_m` of `near_cam`
-/// (camera frame) flagged on the camera-frame points, every point moved to the cloud frame
-/// with `cloud_from_camera`. Returns the cloud-frame points (NaN where the depth is 0 or the
-/// pixel is flying) and the number of flying pixels; `None` when the intrinsics' size is
-/// not the image's.
-pub fn veil_points(
-    image: &DepthImage,
-    intrinsics: &PinholeIntrinsics,
+/// The flying-pixel test and the pose on the CPU: the pixels of the organized `camera`
+/// cloud (camera frame) within `radius_m` of `near_cam` (camera frame) flagged, every point
+/// moved to the cloud frame with `cloud_from_camera`. Returns the cloud-frame points (NaN
+/// where invalid or flying) and the number of flying pixels.
+pub fn veil_cloud(
+    camera: &PointCloud,
     cloud_from_camera: &Isometry3<f64>,
     near_cam: Vec3,
     radius_m: f32,
     config: &FlyingPixelConfig,
-) -> Option<(Vec<Vec3>, usize)> {
-    let camera = image.deproject(intrinsics)?;
+) -> (Vec<Vec3>, usize) {
     let flags = flying_pixels(
         &camera.points,
         camera.width,
@@ -171,7 +168,28 @@ pub fn veil_points(
         *p = Vec3::NAN;
         flying += 1;
     }
-    Some((points, flying))
+    (points, flying)
+}
+
+/// CPU reference of a depth frame's first pass before its crop: the image deprojected
+/// ([`DepthImage::deproject`], f64), then [`veil_cloud`]. `None` when the intrinsics' size is
+/// not the image's.
+pub fn veil_points(
+    image: &DepthImage,
+    intrinsics: &PinholeIntrinsics,
+    cloud_from_camera: &Isometry3<f64>,
+    near_cam: Vec3,
+    radius_m: f32,
+    config: &FlyingPixelConfig,
+) -> Option<(Vec<Vec3>, usize)> {
+    let camera = image.deproject(intrinsics)?;
+    Some(veil_cloud(
+        &camera,
+        cloud_from_camera,
+        near_cam,
+        radius_m,
+        config,
+    ))
 }
 
 #[cfg(test)]

@@ -588,18 +588,21 @@ fn median_ms(mut v: Vec<f64>) -> f64 {
 }
 
 /// Picks the backend by speed, not by adapter type: both front ends (fresh ones, so the
-/// caller's state is untouched) process `frames` (typically the first frames of a camera),
-/// the GPU once more first as warm-up (shader compilation, buffer growth), and the backend
-/// with the lower median wall time per frame wins (upload, submission, wait and readback
-/// included: what the caller waits for). A tie goes to the GPU, which leaves the CPU cores
-/// to the control loop. Without a GPU, or when it fails, the CPU is chosen and
-/// `gpu_error` says why. An empty `frames` cannot be measured and chooses the CPU.
+/// caller's state is untouched) process the same frames (typically the first frames of a
+/// camera), each in the form its path takes them (`cpu_frames`, `gpu_frames`: a depth
+/// frame's cloud on the CPU, its image on the GPU), the GPU once more first as warm-up
+/// (shader compilation, buffer growth), and the backend with the lower median wall time per
+/// frame wins (upload, submission, wait and readback included: what the caller waits for). A
+/// tie goes to the GPU, which leaves the CPU cores to the control loop. Without a GPU, or when
+/// it fails, the CPU is chosen and `gpu_error` says why. No frames, or two lists of different
+/// lengths, cannot be compared and choose the CPU.
 pub fn choose_backend(
     config: &FrontendConfig,
     ctx: Option<Arc<GpuContext>>,
-    frames: &[FrameInput<'_>],
+    cpu_frames: &[FrameInput<'_>],
+    gpu_frames: &[FrameInput<'_>],
 ) -> Result<BackendChoice, FrontendError> {
-    let time = |front: &mut Frontend| -> Result<f64, FrontendError> {
+    let time = |front: &mut Frontend, frames: &[FrameInput<'_>]| -> Result<f64, FrontendError> {
         let times = frames
             .iter()
             .map(|f| {
@@ -611,16 +614,27 @@ pub fn choose_backend(
             .collect::<Result<Vec<_>, _>>()?;
         Ok(median_ms(times))
     };
-    let cpu_ms = time(&mut Frontend::new(Backend::Cpu, config.clone(), None)?)?;
+    let cpu_ms = time(
+        &mut Frontend::new(Backend::Cpu, config.clone(), None)?,
+        cpu_frames,
+    )?;
+    let comparable = !cpu_frames.is_empty() && cpu_frames.len() == gpu_frames.len();
     let gpu = Frontend::new(Backend::Gpu, config.clone(), ctx).and_then(|mut front| {
-        for f in frames {
+        for f in gpu_frames {
             front.process(f)?;
         }
-        time(&mut front)
+        time(&mut front, gpu_frames)
     });
     let (gpu_ms, gpu_error) = match gpu {
-        Ok(ms) if !frames.is_empty() => (Some(ms), None),
-        Ok(_) => (None, Some("no frames to measure".to_string())),
+        Ok(ms) if comparable => (Some(ms), None),
+        Ok(_) => (
+            None,
+            Some(format!(
+                "{} CPU and {} GPU frames cannot be compared",
+                cpu_frames.len(),
+                gpu_frames.len()
+            )),
+        ),
         // A bad config fails on the CPU above already; what is left is the GPU's.
         Err(e) => (None, Some(e.to_string())),
     };
@@ -630,7 +644,7 @@ pub fn choose_backend(
     };
     Ok(BackendChoice {
         backend,
-        frames: frames.len(),
+        frames: cpu_frames.len(),
         cpu_ms,
         gpu_ms,
         gpu_error,
@@ -962,7 +976,7 @@ mod tests {
             want_crop_keep: false,
         }];
         let config = FrontendConfig::default();
-        let choice = choose_backend(&config, None, &frames).unwrap();
+        let choice = choose_backend(&config, None, &frames, &frames).unwrap();
         let gpu_ms = choice.gpu_ms.expect("GPU tests need Vulkan");
         assert!(choice.cpu_ms > 0.0 && gpu_ms > 0.0);
         let faster = if gpu_ms <= choice.cpu_ms {
@@ -971,8 +985,11 @@ mod tests {
             Backend::Cpu
         };
         assert_eq!(choice.backend, faster);
-        let none = choose_backend(&config, None, &[]).unwrap();
+        let none = choose_backend(&config, None, &[], &[]).unwrap();
         assert_eq!((none.backend, none.gpu_ms), (Backend::Cpu, None));
+        let uneven = choose_backend(&config, None, &frames, &[]).unwrap();
+        assert_eq!((uneven.backend, uneven.gpu_ms), (Backend::Cpu, None));
+        assert!(uneven.gpu_error.unwrap().contains("1 CPU and 0 GPU frames"));
     }
 
     #[test]

@@ -41,7 +41,7 @@
 use super::cluster::Clustering;
 use super::crop::DepthInput;
 pub use super::flying::to_world;
-use super::flying::{FlyingPixelConfig, FlyingPixelConfigError, flying_pixels};
+use super::flying::{FlyingPixelConfig, FlyingPixelConfigError, veil_cloud};
 use super::frontend::{
     FrameInput, FramePoints, Frontend, FrontendConfig, FrontendError, FrontendOutput,
 };
@@ -444,24 +444,19 @@ impl CameraChain {
             }
             _ => None,
         };
-        let mut world_points = Vec::new();
-        let mut flying = 0;
-        if depth.is_none() {
-            world_points = to_world(&frame.cloud.points, &pose);
-            let hip_cam = pose.inverse() * hip_world;
-            let flags = flying_pixels(
-                &frame.cloud.points,
-                frame.cloud.width,
-                frame.cloud.height,
-                Vec3::new(hip_cam.x as f32, hip_cam.y as f32, hip_cam.z as f32),
-                self.frontend_config.crop.radius_m as f32,
-                &flying_config,
-            );
-            for (p, _) in world_points.iter_mut().zip(&flags).filter(|(_, f)| **f) {
-                *p = Vec3::NAN;
-                flying += 1;
+        let (mut world_points, mut flying) = match depth {
+            Some(_) => (Vec::new(), 0),
+            None => {
+                let hip_cam = pose.inverse() * hip_world;
+                veil_cloud(
+                    &frame.cloud,
+                    &pose,
+                    Vec3::new(hip_cam.x as f32, hip_cam.y as f32, hip_cam.z as f32),
+                    self.frontend_config.crop.radius_m as f32,
+                    &flying_config,
+                )
             }
-        }
+        };
         let input = FrameInput {
             points: match depth {
                 Some(d) => FramePoints::Depth(d),
