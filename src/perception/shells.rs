@@ -17,8 +17,13 @@
 //! `shaders/shells.wgsl` computes the same [`ShellSums`] on the GPU (see `gpu_shells`).
 //!
 //! **Fits (Alg. 2).** The innermost shell with enough points gets `plane3d`, the others
-//! `circle3d` ([`super::fit`]). Each normal is oriented against the camera's viewing
-//! direction `z` (eq. 2: `n <- -sign(n . z) n`). Fits whose residual is a large fraction of
+//! `circle3d` ([`super::fit`]). Each normal is oriented towards the HIP's side of the fit
+//! (the HIP is outside the body it approaches; the plane's mean point and the circles'
+//! centres lie on the body). The paper's eq. 2 (`n <- -sign(n . z) n`, against the camera's
+//! viewing direction `z`) orients towards the camera instead, which is wrong when the side of
+//! a body facing the HIP faces away from the cameras (a head coming at the handle from below
+//! the cameras' line of sight: only its far side is seen, and eq. 2 turned the normal into
+//! the head); it decides only when the HIP lies on a fit's plane. Fits whose residual is a large fraction of
 //! their shell radius (two surfaces in one shell) count as degenerate. With the camera's
 //! position known ([`Viewpoint::Position`]), `z` is the ray from the camera to the shell. The worst half by the
 //! summed normal distance `S_j = sum_i |n_j - n_i|` is rejected, and the rest are averaged
@@ -518,8 +523,31 @@ impl From<Point3<f64>> for Viewpoint {
     }
 }
 
-/// Alg. 2: shell fits, eq. 2 orientation, rejection of the worst half, weighted average,
-/// curvature correction.
+/// A shell fit's normal turned towards the HIP's side of the surface: the HIP is outside
+/// the body it is about to touch, and the shell's centre (the mean point of a plane, the
+/// circle's centre) lies between them, on the body. Only when the HIP is within
+/// [`HIP_SIDE_MIN_M`] of the fit's plane does eq. 2 (against the camera's view) decide.
+fn orient(
+    normal: Unit<Vector3<f64>>,
+    center: &Point3<f64>,
+    hip: &Point3<f64>,
+    viewpoint: &Viewpoint,
+) -> Unit<Vector3<f64>> {
+    let side = normal.dot(&(hip - center));
+    let flip = if side.abs() > HIP_SIDE_MIN_M {
+        side < 0.0
+    } else {
+        normal.dot(&viewpoint.towards(center)) > 0.0
+    };
+    if flip { -normal } else { normal }
+}
+
+/// Below this distance of the HIP from a shell fit's plane, its side is left to eq. 2,
+/// metres.
+const HIP_SIDE_MIN_M: f64 = 0.002;
+
+/// Alg. 2: shell fits, orientation towards the HIP (eq. 2 as the tie-break), rejection of
+/// the worst half, weighted average, curvature correction.
 pub fn abstract_surface(
     moments: &[Moments],
     config: &ShellConfig,
@@ -597,9 +625,7 @@ pub fn abstract_surface(
                 if residual.is_nan() || residual > config.max_residual_ratio * outer {
                     report.status = ShellStatus::Inconsistent;
                 } else {
-                    // Eq. 2: orient against the camera's viewing direction.
-                    let dot = normal.dot(&viewpoint.towards(&center));
-                    let normal = if dot > 0.0 { -normal } else { normal };
+                    let normal = orient(normal, &center, &hip, &viewpoint);
                     fits.push(Accepted {
                         fit: ShellFit {
                             inner_radius_m: inner,
