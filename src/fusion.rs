@@ -37,8 +37,11 @@
 //!    estimates of [`crate::perception::lookahead`], weighted by `far_field_weight_unitless`.
 //!    They enter the fit only before the window's first shell estimate: an approaching surface
 //!    is tracked (with its velocity) from 0.3 m, and when the shells take over, the far-field
-//!    history keeps the velocity continuous; once shell estimates exist, newer far-field
-//!    samples (another camera's view of a farther body) are left out. A far-field sample of
+//!    history keeps the velocity continuous; once shell estimates exist, a newer far-field
+//!    sample is kept only where it continues the newest shell estimate before it (centroid
+//!    within `far_field_switch_m`, normal within `far_field_switch_rad`: the shells lost a
+//!    surface in contact, seen only on its far side, that the look-ahead still fits), and left
+//!    out otherwise (another camera's view of a farther body). A far-field sample of
 //!    another surface (normal turned by more than `far_field_switch_rad` and centroid moved
 //!    by more than `far_field_switch_m` from the last one kept) restarts the far-field history
 //!    when it is nearer to the HIP (a body coming in front of the one tracked so far: the
@@ -1414,16 +1417,19 @@ fn fit_window(samples: &[Sample], config: &FusionConfig) -> Option<Fit> {
     })
 }
 
-/// The samples the fit uses: all shell estimates, and the far-field ones older than the
-/// first shell estimate of the window (the history of a surface before the shells saw it)
-/// and not older than the newest switch to another surface (`far_field_switch_*`; see the
-/// module doc), and the stamp of that switch (`-inf`: none).
+/// The samples the fit uses: all shell estimates; the far-field ones older than the first
+/// shell estimate of the window (the history of a surface before the shells saw it) and not
+/// older than the newest switch to another surface (`far_field_switch_*`); and the newer
+/// far-field ones that continue the newest shell estimate before them (within both switch
+/// bounds: the shells lost a surface the look-ahead still sees). Also the stamp of that
+/// switch (`-inf`: none). See the module doc.
 fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) {
     let first_shell_s = samples
         .iter()
         .find(|s| !s.far_field)
         .map_or(f64::INFINITY, |s| s.stamp_s);
-    let switched = |a: &Sample, b: &Sample| {
+    // (centroid moved beyond far_field_switch_m, normal turned beyond far_field_switch_rad)
+    let apart = |a: &Sample, b: &Sample| {
         let (ca, cb) = (
             Vector3::new(a.channels[0], a.channels[1], a.channels[2]),
             Vector3::new(b.channels[0], b.channels[1], b.channels[2]),
@@ -1432,8 +1438,14 @@ fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) 
             Vector3::new(a.channels[3], a.channels[4], a.channels[5]),
             Vector3::new(b.channels[3], b.channels[4], b.channels[5]),
         );
-        (ca - cb).norm() > config.far_field_switch_m
-            && na.dot(&nb).clamp(-1.0, 1.0).acos() > config.far_field_switch_rad
+        (
+            (ca - cb).norm() > config.far_field_switch_m,
+            na.dot(&nb).clamp(-1.0, 1.0).acos() > config.far_field_switch_rad,
+        )
+    };
+    let switched = |a: &Sample, b: &Sample| {
+        let (moved, turned) = apart(a, b);
+        moved && turned
     };
     // Far-field samples in stamp order: one from another surface than the last kept starts
     // the history afresh when that surface is nearer, and is left out when it is farther
@@ -1441,9 +1453,15 @@ fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) 
     let mut keep = vec![true; samples.len()];
     let mut last: Option<usize> = None;
     let mut switch_s = f64::NEG_INFINITY;
+    let mut last_shell: Option<usize> = None;
     for (i, s) in samples.iter().enumerate() {
-        if !s.far_field || s.stamp_s >= first_shell_s {
-            keep[i] = !s.far_field;
+        if !s.far_field {
+            last_shell = Some(i);
+            continue;
+        }
+        if s.stamp_s >= first_shell_s {
+            // after the shells took over: only where they lost the surface it continues
+            keep[i] = last_shell.is_some_and(|j| apart(&samples[j], s) == (false, false));
             continue;
         }
         match last {

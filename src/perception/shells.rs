@@ -1150,6 +1150,47 @@ mod tests {
         );
     }
 
+    /// A head 2 cm from the HIP sphere's surface seen only on its far side (the camera's side,
+    /// +x; the HIP waits below-behind it): every fitted shell's normal and the estimate face
+    /// the HIP. Eq. 2 alone (towards the camera) turned them into the head.
+    #[test]
+    fn a_body_seen_from_behind_gets_normals_towards_the_hip() {
+        let hip = Point3::new(0.36, -0.16, 0.46);
+        let dir = Vector3::new(0.717, -0.358, -0.597).normalize();
+        let (r, gap) = (0.09, 0.06);
+        let centre = hip + dir * (gap + r);
+        let camera = Point3::new(1.05, 0.05, 0.85);
+        let mut points = Vec::new();
+        for i in 0..200 {
+            for j in 0..400 {
+                let theta = f64::from(i) / 200.0 * std::f64::consts::PI;
+                let phi = f64::from(j) / 400.0 * 2.0 * std::f64::consts::PI;
+                let u = Vector3::new(
+                    theta.sin() * phi.cos(),
+                    theta.sin() * phi.sin(),
+                    theta.cos(),
+                );
+                let p = centre + u * r;
+                // seen from the camera: the side facing it
+                if u.dot(&(camera - p)) > 0.0 {
+                    points.push(Vec3::new(p.x as f32, p.y as f32, p.z as f32));
+                }
+            }
+        }
+        let config = ShellConfig::default();
+        let layout = ShellLayout::new(&hip, &config.radii_m);
+        let moments = accumulate_cpu(&points, &layout).to_moments(&layout);
+        let a = abstract_surface(&moments, &config, camera, 0, 0.0);
+        let e = &a.estimate;
+        assert!(e.valid, "{:?}", a.invalid);
+        assert!(e.shells.iter().all(|s| s.normal.dot(&-dir) > 0.9), "{e:?}");
+        assert!(e.normal.dot(&-dir) > 0.95, "{e:?}");
+        // the estimate lies between the HIP and the head, as eq. 7 needs it
+        assert!((e.centroid_m - hip).dot(&dir) > 0.0, "{e:?}");
+        // the camera really looks at the head's far side: eq. 2 would have flipped it
+        assert!((-dir).dot(&(hip + dir * 0.05 - camera)) > 0.0);
+    }
+
     #[test]
     fn fixed_point_moments_match_f64_moments() {
         let hip = Point3::new(0.3, -0.2, 0.8);
