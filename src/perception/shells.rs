@@ -23,7 +23,8 @@
 //! viewing direction `z`) orients towards the camera instead, which is wrong when the side of
 //! a body facing the HIP faces away from the cameras (a head coming at the handle from below
 //! the cameras' line of sight: only its far side is seen, and eq. 2 turned the normal into
-//! the head); it decides only when the HIP lies on a fit's plane. Fits whose residual is a large fraction of
+//! the head); it decides when the HIP lies within the HIP radius (4 cm) of a fit's plane,
+//! where the HIP may have passed through the surface. Fits whose residual is a large fraction of
 //! their shell radius (two surfaces in one shell) count as degenerate. With the camera's
 //! position known ([`Viewpoint::Position`]), `z` is the ray from the camera to the shell. The worst half by the
 //! summed normal distance `S_j = sum_i |n_j - n_i|` is rejected, and the rest are averaged
@@ -525,8 +526,8 @@ impl From<Point3<f64>> for Viewpoint {
 
 /// A shell fit's normal turned towards the HIP's side of the surface: the HIP is outside
 /// the body it is about to touch, and the shell's centre (the mean point of a plane, the
-/// circle's centre) lies between them, on the body. Only when the HIP is within
-/// [`HIP_SIDE_MIN_M`] of the fit's plane does eq. 2 (against the camera's view) decide.
+/// circle's centre) lies between them, on the body. When the HIP is within
+/// [`HIP_SIDE_MIN_M`] of the fit's plane eq. 2 (against the camera's view) decides.
 fn orient(
     normal: Unit<Vector3<f64>>,
     center: &Point3<f64>,
@@ -543,8 +544,11 @@ fn orient(
 }
 
 /// Below this distance of the HIP from a shell fit's plane, its side is left to eq. 2,
-/// metres.
-const HIP_SIDE_MIN_M: f64 = 0.002;
+/// metres: the paper's HIP radius. A HIP centre that near a fitted surface may have passed
+/// through it (a thin plate rising through the HIP, a surface moving faster than the robot),
+/// and then the camera's side, the body's outside, is the better guess; a body seen only
+/// from behind puts its fits 4.5 cm or more from the HIP even in contact.
+const HIP_SIDE_MIN_M: f64 = 0.04;
 
 /// Alg. 2: shell fits, orientation towards the HIP (eq. 2 as the tie-break), rejection of
 /// the worst half, weighted average, curvature correction.
