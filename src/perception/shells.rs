@@ -1183,7 +1183,10 @@ mod tests {
         let moments = accumulate_cpu(&points, &layout).to_moments(&layout);
         let a = abstract_surface(&moments, &config, camera, 0, 0.0);
         let e = &a.estimate;
-        let surface = e.surface.as_ref().unwrap_or_else(|| panic!("{:?}", a.invalid));
+        let surface = e
+            .surface
+            .as_ref()
+            .unwrap_or_else(|| panic!("{:?}", a.invalid));
         assert!(e.shells.iter().all(|s| s.normal.dot(&-dir) > 0.9), "{e:?}");
         assert!(surface.normal.dot(&-dir) > 0.95, "{e:?}");
         // the estimate lies between the HIP and the head, as eq. 7 needs it
