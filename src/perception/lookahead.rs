@@ -208,21 +208,15 @@ fn patch_sphere(
     patch: &[&Vector3<f64>],
     h: &Vector3<f64>,
 ) -> Option<PatchPlane> {
-    if patch.len() < config.min_patch_points_count {
-        return None;
-    }
-    let count = patch.len() as f64;
-    let mean = patch.iter().map(|p| *p - h).sum::<Vector3<f64>>() / count;
+    let (count, mean, cov) = patch_moments(config, patch, h)?;
     // Kasa: |q|^2 = 2 c . q + k for q = p - h - mean, linear in (c, k); normal equations.
     let mut ata = Matrix4::zeros();
     let mut atb = Vector4::zeros();
-    let mut cov = Matrix3::zeros();
     for p in patch {
         let q = (*p - h) - mean;
         let row = Vector4::new(2.0 * q.x, 2.0 * q.y, 2.0 * q.z, 1.0);
         ata += row * row.transpose();
         atb += row * q.norm_squared();
-        cov += q * q.transpose();
     }
     let x = ata.cholesky()?.solve(&atb);
     let centre = Vector3::new(x[0], x[1], x[2]);
@@ -238,7 +232,7 @@ fn patch_sphere(
         .sum::<f64>()
         / count)
         .sqrt();
-    let plane_rms = SymmetricEigen::try_new(cov / count, f64::EPSILON, 1_000)?
+    let plane_rms = SymmetricEigen::try_new(cov, f64::EPSILON, 1_000)?
         .eigenvalues
         .min()
         .max(0.0)
@@ -257,6 +251,26 @@ fn patch_sphere(
     Some((closest, n, reach - radius, rms))
 }
 
+/// A patch's point count, mean and covariance about the mean, relative to the HIP `h`
+/// (centred on the HIP first: the moments stay well conditioned whatever the world origin);
+/// `None` for fewer than `min_patch_points_count` points.
+fn patch_moments(
+    config: &LookaheadConfig,
+    patch: &[&Vector3<f64>],
+    h: &Vector3<f64>,
+) -> Option<(f64, Vector3<f64>, Matrix3<f64>)> {
+    if patch.len() < config.min_patch_points_count {
+        return None;
+    }
+    let count = patch.len() as f64;
+    let mean = patch.iter().map(|p| *p - h).sum::<Vector3<f64>>() / count;
+    let cov = patch.iter().fold(Matrix3::zeros(), |acc, p| {
+        let d = (*p - h) - mean;
+        acc + d * d.transpose()
+    }) / count;
+    Some((count, mean, cov))
+}
+
 /// A patch's plane: its point closest to the HIP, the normal towards the HIP, the HIP's
 /// distance from the plane and the RMS residual.
 type PatchPlane = (Vector3<f64>, Unit<Vector3<f64>>, f64, f64);
@@ -269,16 +283,7 @@ fn patch_plane(
     patch: &[&Vector3<f64>],
     h: &Vector3<f64>,
 ) -> Option<PatchPlane> {
-    if patch.len() < config.min_patch_points_count {
-        return None;
-    }
-    let count = patch.len() as f64;
-    // Centred on the HIP first: the moments stay well conditioned whatever the world origin.
-    let mean = patch.iter().map(|p| *p - h).sum::<Vector3<f64>>() / count;
-    let cov = patch.iter().fold(Matrix3::zeros(), |acc, p| {
-        let d = (*p - h) - mean;
-        acc + d * d.transpose()
-    }) / count;
+    let (_, mean, cov) = patch_moments(config, patch, h)?;
     let eig = SymmetricEigen::try_new(cov, f64::EPSILON, 1_000)?;
     let (smallest, _) = eig
         .eigenvalues
