@@ -37,8 +37,15 @@
 //!    estimates of [`crate::perception::lookahead`], weighted by `far_field_weight_unitless`.
 //!    They enter the fit only before the window's first shell estimate: an approaching surface
 //!    is tracked (with its velocity) from 0.3 m, and when the shells take over, the far-field
-//!    history keeps the velocity continuous; once shell estimates exist, newer far-field
-//!    samples (another camera's view of a farther body) are left out.
+//!    history keeps the velocity continuous; once shell estimates exist, a newer far-field
+//!    sample is kept only where it continues the newest shell estimate before it (centroid
+//!    within `far_field_switch_m`, normal within `far_field_switch_rad`: the shells lost a
+//!    surface in contact, seen only on its far side, that the look-ahead still fits), and left
+//!    out otherwise (another camera's view of a farther body). A far-field sample of
+//!    another surface (normal turned by more than `far_field_switch_rad` and centroid moved
+//!    by more than `far_field_switch_m` from the last one kept) restarts the far-field history
+//!    when it is nearer to the HIP (a body coming in front of the one tracked so far: the
+//!    regression must not average the two) and is left out when it is farther.
 //!
 //!    **Robustness (beyond the paper).** Extrapolated 60-90 ms past its data, an
 //!    unconditional quadratic through estimates with ~10 mm of noise turns noise into
@@ -229,6 +236,13 @@ pub struct FusionConfig {
     /// Weight of a far-field (look-ahead) estimate relative to a shell estimate of the same
     /// quality, in (0, 1] (it is a coarse plane through the nearest patch).
     pub far_field_weight_unitless: f64,
+    /// A far-field estimate whose normal turns by more than this angle from the previous
+    /// one's and whose centroid moves more than `far_field_switch_m` is another surface (a
+    /// body coming nearer than the one seen so far): the far-field history before it leaves
+    /// the fit, radians.
+    pub far_field_switch_rad: f64,
+    /// See `far_field_switch_rad`, metres.
+    pub far_field_switch_m: f64,
     /// Weight of the fit's own motion since the previous tick, fed forward into the PID
     /// state before the error is taken, dimensionless (0..1; 1 tracks a polynomial exactly).
     pub velocity_feedforward_unitless: f64,
@@ -264,6 +278,8 @@ impl Default for FusionConfig {
             outlier_min_centroid_m: 0.015,
             outlier_min_normal_rad: 0.35,
             far_field_weight_unitless: 0.5,
+            far_field_switch_rad: 0.6,
+            far_field_switch_m: 0.03,
             velocity_feedforward_unitless: 1.0,
             centroid_pid: PidGains {
                 kp_per_s: 150.0,
@@ -374,6 +390,12 @@ impl FusionConfig {
         if !(self.far_field_weight_unitless > 0.0 && self.far_field_weight_unitless <= 1.0) {
             return bad("far_field_weight_unitless", self.far_field_weight_unitless);
         }
+        if !(self.far_field_switch_rad > 0.0 && self.far_field_switch_rad <= PI) {
+            return bad("far_field_switch_rad", self.far_field_switch_rad);
+        }
+        if !(self.far_field_switch_m > 0.0 && self.far_field_switch_m.is_finite()) {
+            return bad("far_field_switch_m", self.far_field_switch_m);
+        }
         if !(self.outlier_median_factor_unitless >= 1.0
             && self.outlier_median_factor_unitless.is_finite())
         {
@@ -448,6 +470,9 @@ struct Sample {
     channels: [f64; CHANNELS],
     /// A look-ahead estimate ([`Fusion::push_far_field`]) rather than a shell estimate.
     far_field: bool,
+    /// A look-ahead estimate's distance of the HIP from its patch, metres (infinite for a
+    /// shell estimate).
+    far_distance_m: f64,
 }
 
 /// How the last tick predicted the surface over the estimates' latency.
@@ -602,6 +627,9 @@ pub struct Fusion {
     smoothed: Option<Smoothed>,
     /// Whether the previous tick was tracking (a return to tracking restarts the PID).
     was_tracking: bool,
+    /// Stamp of the newest far-field switch to a nearer surface the fit has seen (the PID
+    /// restarts on the new surface).
+    switch_s: f64,
     counters: FusionCounters,
     prediction: Prediction,
     /// Per-camera latency, in order of first arrival.
@@ -619,6 +647,7 @@ impl Fusion {
             fit_dirty: false,
             smoothed: None,
             was_tracking: false,
+            switch_s: f64::NEG_INFINITY,
             counters: FusionCounters::default(),
             prediction: Prediction::default(),
             latency: Vec::new(),
@@ -659,7 +688,7 @@ impl Fusion {
                 estimate.quality,
                 &surface.centroid_m,
                 &surface.normal,
-                false,
+                None,
             ),
             None => PushOutcome::Invalid,
         };
@@ -690,7 +719,7 @@ impl Fusion {
             estimate.quality * self.config.far_field_weight_unitless,
             &estimate.centroid_m,
             &estimate.normal,
-            true,
+            Some(estimate.distance_m),
         );
         if outcome == PushOutcome::Accepted {
             self.counters.far_field += 1;
@@ -733,7 +762,7 @@ impl Fusion {
         quality: f64,
         centroid_m: &Point3<f64>,
         normal: &Unit<Vector3<f64>>,
-        far_field: bool,
+        far_distance_m: Option<f64>,
     ) -> PushOutcome {
         let c = centroid_m.coords;
         let n = normal.into_inner();
@@ -770,7 +799,8 @@ impl Fusion {
                 stamp_s,
                 quality: quality.min(1.0),
                 channels: [c.x, c.y, c.z, n.x, n.y, n.z],
-                far_field,
+                far_field: far_distance_m.is_some(),
+                far_distance_m: far_distance_m.unwrap_or(f64::INFINITY),
             },
         );
         // Keep only the window behind the newest sample, and at most the buffer bound.
@@ -796,8 +826,15 @@ impl Fusion {
             self.fit_dirty = false;
             // A failed solve keeps the previous window's fit (it cannot fail with finite
             // samples; the guard keeps the control path panic-free regardless).
-            if let Some(fit) = fit_window(&fit_samples(&self.samples), &self.config) {
+            let (samples, switch_s) = fit_samples(&self.samples, &self.config);
+            if let Some(fit) = fit_window(&samples, &self.config) {
                 self.fit = Some(fit);
+            }
+            // Smoothing from one surface to another would pair the new centroid with the
+            // old normal on the way: the PID restarts on the nearer surface.
+            if switch_s > self.switch_s {
+                self.switch_s = switch_s;
+                self.smoothed = None;
             }
         }
         let Some(fit) = self.fit else {
@@ -1381,19 +1418,75 @@ fn fit_window(samples: &[Sample], config: &FusionConfig) -> Option<Fit> {
     })
 }
 
-/// The samples the fit uses: all shell estimates, and the far-field ones older than the
-/// first shell estimate of the window (the history of a surface before the shells saw it;
-/// see the module doc).
-fn fit_samples(samples: &[Sample]) -> Vec<Sample> {
+/// The samples the fit uses: all shell estimates; the far-field ones older than the first
+/// shell estimate of the window (the history of a surface before the shells saw it) and not
+/// older than the newest switch to another surface (`far_field_switch_*`); and the newer
+/// far-field ones that continue the newest shell estimate before them (within both switch
+/// bounds: the shells lost a surface the look-ahead still sees). Also the stamp of that
+/// switch (`-inf`: none). See the module doc.
+fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) {
     let first_shell_s = samples
         .iter()
         .find(|s| !s.far_field)
         .map_or(f64::INFINITY, |s| s.stamp_s);
-    samples
+    // (centroid moved beyond far_field_switch_m, normal turned beyond far_field_switch_rad)
+    let apart = |a: &Sample, b: &Sample| {
+        let (ca, cb) = (
+            Vector3::new(a.channels[0], a.channels[1], a.channels[2]),
+            Vector3::new(b.channels[0], b.channels[1], b.channels[2]),
+        );
+        let (na, nb) = (
+            Vector3::new(a.channels[3], a.channels[4], a.channels[5]),
+            Vector3::new(b.channels[3], b.channels[4], b.channels[5]),
+        );
+        (
+            (ca - cb).norm() > config.far_field_switch_m,
+            na.dot(&nb).clamp(-1.0, 1.0).acos() > config.far_field_switch_rad,
+        )
+    };
+    let switched = |a: &Sample, b: &Sample| {
+        let (moved, turned) = apart(a, b);
+        moved && turned
+    };
+    // Far-field samples in stamp order: one from another surface than the last kept starts
+    // the history afresh when that surface is nearer, and is left out when it is farther
+    // (a camera still seeing the body the others have lost sight of behind a nearer one).
+    let mut keep = vec![true; samples.len()];
+    let mut last: Option<usize> = None;
+    let mut switch_s = f64::NEG_INFINITY;
+    let mut last_shell: Option<usize> = None;
+    for (i, s) in samples.iter().enumerate() {
+        if !s.far_field {
+            last_shell = Some(i);
+            continue;
+        }
+        if s.stamp_s >= first_shell_s {
+            // after the shells took over: only where they lost the surface it continues
+            keep[i] = last_shell.is_some_and(|j| apart(&samples[j], s) == (false, false));
+            continue;
+        }
+        match last {
+            Some(j) if switched(&samples[j], s) => {
+                if s.far_distance_m < samples[j].far_distance_m {
+                    for (k, other) in samples.iter().enumerate().take(i) {
+                        keep[k] &= !other.far_field;
+                    }
+                    last = Some(i);
+                    switch_s = s.stamp_s;
+                } else {
+                    keep[i] = false;
+                }
+            }
+            _ => last = Some(i),
+        }
+    }
+    let kept = samples
         .iter()
-        .filter(|s| !s.far_field || s.stamp_s < first_shell_s)
-        .copied()
-        .collect()
+        .zip(keep)
+        .filter(|(_, k)| *k)
+        .map(|(s, _)| *s)
+        .collect();
+    (kept, switch_s)
 }
 
 #[cfg(test)]
@@ -2238,6 +2331,46 @@ mod tests {
         }
         assert!(first_shell_velocity.is_some_and(|v| (v - speed).abs() < 0.02));
         assert_eq!(f.counters().far_field, 12);
+    }
+
+    /// The look-ahead tracks a resting torso 0.26 m from the HIP; a head comes in front of it
+    /// along the diagonal at 1 m/s, first seen by camera 0 while camera 1 still reports the
+    /// torso: from the head's first sample on, the fit follows the head alone (position and
+    /// velocity), and camera 1's torso samples are left out.
+    #[test]
+    fn a_nearer_surface_in_the_far_field_replaces_the_one_tracked() {
+        let hip = Vector3::new(0.36, -0.16, 0.46);
+        let dir = Vector3::new(0.717, -0.358, -0.597).normalize();
+        let head = |t: f64| hip + dir * (0.24 - 1.0 * (t - 0.1));
+        let torso = hip - Vector3::new(0.26, 0.0, 0.0);
+        let far_at = |camera_id, t: f64, c: Vector3<f64>, n: Vector3<f64>| FarFieldEstimate {
+            normal: Unit::new_normalize(n),
+            distance_m: (c - hip).norm(),
+            ..far(camera_id, t, c)
+        };
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        for i in 0..12 {
+            let t = f64::from(i) / 60.0;
+            let camera = (i % 2) as u32;
+            if t < 0.1 || (camera == 1 && t < 0.15) {
+                f.push_far_field(&far_at(camera, t, torso, Vector3::x()));
+            } else {
+                f.push_far_field(&far_at(camera, t, head(t), -dir));
+            }
+            let out = f.tick(t);
+            if t >= 0.12 {
+                assert_eq!(out.status, FusionStatus::Tracking);
+                assert!(
+                    (out.fit_centroid_m.coords - head(t)).norm() < 0.01,
+                    "at {t}: {out:?}"
+                );
+                assert!(out.fit_normal.dot(&-dir) > 0.99, "at {t}: {out:?}");
+            }
+            if t >= 0.14 {
+                let v = out.velocity_m_per_s;
+                assert!((v + dir).norm() < 0.1, "at {t}: {v:?}");
+            }
+        }
     }
 
     /// A normal turning at `rate` rad/s in the plane spanned by `a` and `b`.

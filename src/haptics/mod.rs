@@ -13,13 +13,24 @@
 //!   `vc(d)` from `v_min` (inside `d_offset`) to `v_max` (beyond `d_offset + d_width`), and the
 //!   rate predicted over `T_v = k_v dt` obeys `d' + T_v d'' >= -vc(d)`: the row
 //!   `-T_v J_c qdd <= vc(d) + d' + T_v n . Jdot qd` (eq. 14: `J_t,V = k_v dt J_c`).
+//!   Beyond the paper, the ramp is capped by a braking envelope: following the ramp
+//!   `vc = v_min + k (d - d_offset)` (slope `k = (v_max - v_min) / d_width`) at speed `v` takes
+//!   the deceleration `k v`, so above `v_1 = a_b / k` (`a_b` = `braking_decel_mps2`) the limit
+//!   is the constant-deceleration curve `vc(d) = sqrt(v_1^2 + 2 a_b (d - d_1))` tangent to the
+//!   ramp at `v_1`: a speed allowed at `d` can always be braked to the ramp's gentle contact
+//!   speed before the surface.
+//! - Activation: the constraints are on while `d_proj` is within `activation_distance_m` plus
+//!   the braking distance of the closing speed `c = max(0, -d')`, `c^2 / (2 a_b)`: a surface
+//!   approaching fast (the HIP's motion and the surface's own, with the surface velocity) is
+//!   braked for from far enough; one moving away or sliding past (`d' >= 0`) switches them on
+//!   no earlier than before.
 //! - Force constraint (the paper names it without detail): the force that pushes the HIP out
 //!   of the surface, taken as the robot's apparent mass along `n`,
 //!   `m_n = 1 / (J_c M^-1 J_c^T)`, times the outward acceleration, stays below `F_max`:
 //!   `m_n (J_c qdd + n . Jdot qd) <= F_max`. It bounds how hard the constraint may shove the
 //!   patient's arm when the surface jumps.
-//! - The constraints switch off when the HIP is farther than `activation_distance_m` or the
-//!   fused surface is not tracking (the grey areas of the paper's Fig. 9).
+//! - The constraints switch off when the HIP is farther than the activation distance above or
+//!   the fused surface is not tracking (the grey areas of the paper's Fig. 9).
 //!
 //! Input: the [`FusedSurface`] of [`crate::fusion`] (or [`known_surface`] for virtual walls).
 //! - Beyond the paper: with `use_surface_velocity`, `d' = J_c qd - n . v_s`
@@ -73,8 +84,13 @@ pub struct HapticConfig {
     pub ramp_width_m: f64,
     /// Largest push-out force the constraint may command, N.
     pub max_force_n: f64,
-    /// The constraints are off while `d_proj` exceeds this distance, metres.
+    /// The constraints are off while `d_proj` exceeds this distance plus the braking
+    /// distance of the closing speed, metres.
     pub activation_distance_m: f64,
+    /// Deceleration of the approach the velocity limit plans with (braking envelope of
+    /// `vc(d)` and the activation's braking distance), m/s^2: what the robot can do against
+    /// the patient's arm. Very large values give the paper's plain ramp.
+    pub braking_decel_mps2: f64,
     /// Use the surface's velocity in the rate of `d_proj` (beyond the paper).
     pub use_surface_velocity: bool,
     pub enable_position: bool,
@@ -94,6 +110,7 @@ impl Default for HapticConfig {
             ramp_width_m: 0.1,
             max_force_n: 150.0,
             activation_distance_m: 0.15,
+            braking_decel_mps2: 7.0,
             use_surface_velocity: true,
             enable_position: true,
             enable_velocity: true,
@@ -116,6 +133,7 @@ impl HapticConfig {
             ("ramp_width_m", self.ramp_width_m),
             ("max_force_n", self.max_force_n),
             ("activation_distance_m", self.activation_distance_m),
+            ("braking_decel_mps2", self.braking_decel_mps2),
         ];
         for (name, v) in positive {
             if !(v > 0.0 && v.is_finite()) {
@@ -138,10 +156,30 @@ impl HapticConfig {
         Ok(())
     }
 
-    /// The speed ramp `vc(d)` of eq. 12, m/s.
+    /// The speed limit `vc(d)`: eq. 12's ramp, capped by the braking envelope (module doc),
+    /// m/s.
     pub fn speed_limit_mps(&self, d_proj_m: f64) -> f64 {
         let t = ((d_proj_m - self.ramp_offset_m) / self.ramp_width_m).clamp(0.0, 1.0);
-        self.min_speed_mps + t * (self.max_speed_mps - self.min_speed_mps)
+        let ramp = self.min_speed_mps + t * (self.max_speed_mps - self.min_speed_mps);
+        let slope = (self.max_speed_mps - self.min_speed_mps) / self.ramp_width_m;
+        let a = self.braking_decel_mps2;
+        // where following the ramp needs more than `a`: the envelope's tangent point
+        let v1 = (a / slope).max(self.min_speed_mps);
+        if slope <= 0.0 || ramp <= v1 {
+            return ramp;
+        }
+        let d1 = self.ramp_offset_m + (v1 - self.min_speed_mps) / slope;
+        ramp.min((v1 * v1 + 2.0 * a * (d_proj_m - d1).max(0.0)).sqrt())
+    }
+
+    /// Distance within which the constraints are on at a rate of `d_proj` of
+    /// `d_rate_mps`: the activation distance plus the braking distance of the closing speed.
+    pub fn activation_reach_m(&self, d_rate_mps: f64) -> f64 {
+        let closing = (-d_rate_mps).max(0.0);
+        if !closing.is_finite() {
+            return self.activation_distance_m;
+        }
+        self.activation_distance_m + closing * closing / (2.0 * self.braking_decel_mps2)
     }
 }
 
@@ -151,7 +189,8 @@ impl HapticConfig {
 pub enum HapticStatus {
     /// Constraints are in force.
     Active,
-    /// The HIP is farther than the activation distance.
+    /// The HIP is farther than the activation distance (with the braking distance of the
+    /// closing speed).
     Far,
     /// No tracking surface (no data, stale or inconsistent fusion): constraints off.
     NoSurface,
@@ -247,7 +286,7 @@ pub fn haptic_constraints(
     };
     let d_rate_mps = (jacobian * qd)[0] - surface_rate;
     let bias = n.dot(&hip.bias_acceleration_mps2);
-    if d_proj_m > config.activation_distance_m {
+    if d_proj_m > config.activation_reach_m(d_rate_mps) {
         return HapticConstraints {
             status: HapticStatus::Far,
             d_proj_m,
@@ -342,9 +381,11 @@ mod tests {
         assert!((pos.bound - (0.06 - tp * 0.7 + 0.5 * tp * tp * 0.3)).abs() < 1e-15);
         let tv = 8.0 / 800.0;
         let vel = &c.rows[1];
-        // vc(0.06) = 0.6 * 2.0 m/s
+        // vc(0.06): the ramp's 1.2 m/s capped by the 7 m/s^2 braking envelope, tangent to
+        // the 20 /s ramp at 0.35 m/s (d = 0.0175): sqrt(0.35^2 + 2 * 7 * 0.0425)
+        let vc = (0.1225f64 + 14.0 * 0.0425).sqrt();
         assert!((vel.row[0] + tv).abs() < 1e-15);
-        assert!((vel.bound - (1.2 - 0.7 + tv * 0.3)).abs() < 1e-12);
+        assert!((vel.bound - (vc - 0.7 + tv * 0.3)).abs() < 1e-12);
         // apparent mass along z is 2 kg
         let force = &c.rows[2];
         assert!((force.row[0] - 2.0).abs() < 1e-12);
@@ -358,12 +399,65 @@ mod tests {
             max_speed_mps: 1.1,
             ramp_offset_m: 0.01,
             ramp_width_m: 0.1,
+            braking_decel_mps2: 1e9,
             ..HapticConfig::default()
         };
         assert_eq!(cfg.speed_limit_mps(-0.5), 0.1);
         assert_eq!(cfg.speed_limit_mps(0.01), 0.1);
         assert!((cfg.speed_limit_mps(0.06) - 0.6).abs() < 1e-12);
         assert_eq!(cfg.speed_limit_mps(0.2), 1.1);
+    }
+
+    /// The braking envelope: below the ramp everywhere, equal to it up to the tangent speed
+    /// `a_b / k`, and never asking for more deceleration than `a_b` (`v dvc/dd <= a_b`).
+    #[test]
+    fn the_speed_limit_can_be_braked_to_with_the_configured_deceleration() {
+        let cfg = HapticConfig::default();
+        let paper = HapticConfig {
+            braking_decel_mps2: 1e9,
+            ..cfg.clone()
+        };
+        let a = cfg.braking_decel_mps2;
+        let h = 1e-6;
+        for i in 0..400 {
+            let d = f64::from(i) * 0.001;
+            let (vc, ramp) = (cfg.speed_limit_mps(d), paper.speed_limit_mps(d));
+            assert!(vc <= ramp + 1e-12, "{d}: {vc} > {ramp}");
+            if ramp <= a / 20.0 {
+                assert_eq!(vc, ramp, "{d}");
+            }
+            let slope = (cfg.speed_limit_mps(d + h) - cfg.speed_limit_mps(d - h)) / (2.0 * h);
+            if d > h {
+                assert!(vc * slope <= a * (1.0 + 1e-4), "{d}: {} m/s^2", vc * slope);
+            }
+        }
+        // 2 m/s is reached at 0.0175 + (4 - 0.35^2) / 14 m; the paper's ramp at 0.1 m
+        assert!((cfg.speed_limit_mps(0.0175 + 3.8775 / 14.0) - 2.0).abs() < 1e-9);
+        assert!(cfg.speed_limit_mps(0.1) < 1.6);
+    }
+
+    /// The constraints switch on early for a surface closing fast, and no earlier than the
+    /// activation distance for one moving away or sliding past.
+    #[test]
+    fn activation_grows_with_the_closing_speed_only() {
+        let cfg = HapticConfig::default();
+        let qd = JointVector::zeros();
+        let mass = JointMatrix::identity();
+        let hip = hip_at(0.3, 0.0);
+        let at = |surface: FusedSurface| {
+            haptic_constraints(&cfg, Some(&surface), &hip, 0.04, &qd, &mass).status
+        };
+        // d_proj = 0.26 m; rising at 2 m/s: braking distance 4 / 14 = 0.29 m on top of 0.15 m
+        assert_eq!(at(floor(0.0, 2.0)), HapticStatus::Active);
+        assert_eq!(at(floor(0.0, -2.0)), HapticStatus::Far);
+        let mut sliding = floor(0.0, 0.0);
+        sliding.velocity_m_per_s = Vector3::new(2.0, 0.0, 0.0);
+        assert_eq!(at(sliding), HapticStatus::Far);
+        // 0.5 m/s closing adds 18 mm: still off at 0.26 m
+        assert_eq!(at(floor(0.0, 0.5)), HapticStatus::Far);
+        assert!((cfg.activation_reach_m(-2.0) - (0.15 + 2.0 / 7.0)).abs() < 1e-12);
+        assert_eq!(cfg.activation_reach_m(1.0), 0.15);
+        assert_eq!(cfg.activation_reach_m(f64::NEG_INFINITY), 0.15);
     }
 
     #[test]

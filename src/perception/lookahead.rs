@@ -11,8 +11,13 @@
 //! flat gives a plane (mean and smallest-eigenvalue eigenvector of the patch covariance, f64,
 //! oriented towards the HIP); the estimate is the plane's point closest to the HIP (kept
 //! within the patch), the plane normal and the HIP's distance from the plane: the same
-//! `(c, n)` the shells give (paper Alg. 2 output), coarser. When the nearest kept point lies
-//! within `min_distance_m` the surface is the shells' business and nothing is returned.
+//! `(c, n)` the shells give (paper Alg. 2 output), coarser. A curved body (a head) is seen
+//! only on its camera side, which may not be the side facing the HIP: a sphere fitted to the
+//! wider patch (`sphere_patch_radius_m`; algebraic Kasa fit, f64) replaces the plane when its
+//! radius is body-like and it explains the patch clearly better than a plane, and its point
+//! nearest the HIP (hidden from the cameras, or not) gives `(c, n)` and the distance. When the
+//! nearest kept point lies within `min_distance_m` the surface is the shells' business and
+//! nothing is returned.
 //!
 //! The estimate is a warning, not a contact model: fusion fits it only until the shells see
 //! the surface ([`crate::fusion::Fusion::push_far_field`]). It adds no constraint of its own:
@@ -21,7 +26,7 @@
 
 use crate::surface::FarFieldEstimate;
 use glam::Vec3;
-use nalgebra::{Matrix3, Point3, SymmetricEigen, Unit, Vector3};
+use nalgebra::{Matrix3, Matrix4, Point3, SymmetricEigen, Unit, Vector3, Vector4};
 use serde::{Deserialize, Serialize};
 
 /// Settings of the look-ahead.
@@ -46,6 +51,14 @@ pub struct LookaheadConfig {
     pub min_closing_speed_mps: f64,
     /// Best-scored points tried as patch centres (bounds the work to this many passes).
     pub max_candidates_count: usize,
+    /// Radius of the wider patch around the chosen point that a sphere is fitted to, metres.
+    pub sphere_patch_radius_m: f64,
+    /// Fitted sphere radii accepted as a body's curvature, metres (outside: the plane).
+    pub min_sphere_radius_m: f64,
+    pub max_sphere_radius_m: f64,
+    /// The sphere replaces the plane when its RMS residual is below this fraction of the
+    /// wider patch's plane residual (and below `max_residual_m`).
+    pub sphere_residual_ratio_unitless: f64,
 }
 
 impl Default for LookaheadConfig {
@@ -58,6 +71,10 @@ impl Default for LookaheadConfig {
             max_residual_m: 0.01,
             min_closing_speed_mps: 0.5,
             max_candidates_count: 32,
+            sphere_patch_radius_m: 0.06,
+            min_sphere_radius_m: 0.03,
+            max_sphere_radius_m: 0.3,
+            sphere_residual_ratio_unitless: 0.5,
         }
     }
 }
@@ -78,6 +95,13 @@ impl LookaheadConfig {
             ("patch_radius_m", self.patch_radius_m),
             ("max_residual_m", self.max_residual_m),
             ("min_closing_speed_mps", self.min_closing_speed_mps),
+            ("sphere_patch_radius_m", self.sphere_patch_radius_m),
+            ("min_sphere_radius_m", self.min_sphere_radius_m),
+            ("max_sphere_radius_m", self.max_sphere_radius_m),
+            (
+                "sphere_residual_ratio_unitless",
+                self.sphere_residual_ratio_unitless,
+            ),
         ] {
             if !(value.is_finite() && value > 0.0 && value < 10.0) {
                 return bad(field, value);
@@ -91,6 +115,9 @@ impl LookaheadConfig {
                 "full_quality_points_count",
                 self.full_quality_points_count as f64,
             );
+        }
+        if self.max_sphere_radius_m <= self.min_sphere_radius_m {
+            return bad("max_sphere_radius_m", self.max_sphere_radius_m);
         }
         if !(1..=10_000).contains(&self.max_candidates_count) {
             return bad("max_candidates_count", self.max_candidates_count as f64);
@@ -148,21 +175,100 @@ pub fn far_field(
             .iter()
             .filter(|p| (*p - centre).norm_squared() <= r2)
             .collect();
-        patch_plane(config, &patch, &h).map(|(c, n, distance, rms)| {
-            let count = patch.len();
-            let fill = (count as f64 / config.full_quality_points_count as f64).min(1.0);
-            FarFieldEstimate {
-                camera_id,
-                stamp_s,
-                centroid_m: Point3::from(c),
-                normal: n,
-                distance_m: distance,
-                point_count: u32::try_from(count).unwrap_or(u32::MAX),
-                residual_rms_m: rms,
-                quality: fill * (1.0 - rms / config.max_residual_m),
-            }
+        let plane = patch_plane(config, &patch, &h)?;
+        let wide_r2 = config.sphere_patch_radius_m * config.sphere_patch_radius_m;
+        let wide: Vec<&Vector3<f64>> = finite
+            .iter()
+            .filter(|p| (*p - centre).norm_squared() <= wide_r2)
+            .collect();
+        let (c, n, distance, rms, count) = match patch_sphere(config, &wide, &h) {
+            Some((c, n, distance, rms)) => (c, n, distance, rms, wide.len()),
+            None => (plane.0, plane.1, plane.2, plane.3, patch.len()),
+        };
+        let fill = (count as f64 / config.full_quality_points_count as f64).min(1.0);
+        Some(FarFieldEstimate {
+            camera_id,
+            stamp_s,
+            centroid_m: Point3::from(c),
+            normal: n,
+            distance_m: distance,
+            point_count: u32::try_from(count).unwrap_or(u32::MAX),
+            residual_rms_m: rms,
+            quality: fill * (1.0 - rms / config.max_residual_m),
         })
     })
+}
+
+/// The sphere through a wider patch, when it describes the patch clearly better than a plane
+/// (module doc): its point closest to `h`, the outward normal there, the distance of `h`
+/// from the sphere and the RMS residual. `None`: too few points, a radius outside the body
+/// range, no clear gain over the plane, or `h` inside the sphere.
+fn patch_sphere(
+    config: &LookaheadConfig,
+    patch: &[&Vector3<f64>],
+    h: &Vector3<f64>,
+) -> Option<PatchPlane> {
+    let (count, mean, cov) = patch_moments(config, patch, h)?;
+    // Kasa: |q|^2 = 2 c . q + k for q = p - h - mean, linear in (c, k); normal equations.
+    let mut ata = Matrix4::zeros();
+    let mut atb = Vector4::zeros();
+    for p in patch {
+        let q = (*p - h) - mean;
+        let row = Vector4::new(2.0 * q.x, 2.0 * q.y, 2.0 * q.z, 1.0);
+        ata += row * row.transpose();
+        atb += row * q.norm_squared();
+    }
+    let x = ata.cholesky()?.solve(&atb);
+    let centre = Vector3::new(x[0], x[1], x[2]);
+    let radius = (x[3] + centre.norm_squared()).sqrt();
+    if !(radius.is_finite()
+        && (config.min_sphere_radius_m..=config.max_sphere_radius_m).contains(&radius))
+    {
+        return None;
+    }
+    let rms = (patch
+        .iter()
+        .map(|p| (((*p - h) - mean - centre).norm() - radius).powi(2))
+        .sum::<f64>()
+        / count)
+        .sqrt();
+    let plane_rms = SymmetricEigen::try_new(cov, f64::EPSILON, 1_000)?
+        .eigenvalues
+        .min()
+        .max(0.0)
+        .sqrt();
+    if !(rms <= config.max_residual_m && rms < config.sphere_residual_ratio_unitless * plane_rms) {
+        return None;
+    }
+    // The sphere's centre relative to the HIP, and the HIP's distance from its surface.
+    let to_hip = -(mean + centre);
+    let reach = to_hip.norm();
+    if reach <= radius + 1e-6 {
+        return None;
+    }
+    let n = Unit::new_normalize(to_hip);
+    let closest = h + mean + centre + n.into_inner() * radius;
+    Some((closest, n, reach - radius, rms))
+}
+
+/// A patch's point count, mean and covariance about the mean, relative to the HIP `h`
+/// (centred on the HIP first: the moments stay well conditioned whatever the world origin);
+/// `None` for fewer than `min_patch_points_count` points.
+fn patch_moments(
+    config: &LookaheadConfig,
+    patch: &[&Vector3<f64>],
+    h: &Vector3<f64>,
+) -> Option<(f64, Vector3<f64>, Matrix3<f64>)> {
+    if patch.len() < config.min_patch_points_count {
+        return None;
+    }
+    let count = patch.len() as f64;
+    let mean = patch.iter().map(|p| *p - h).sum::<Vector3<f64>>() / count;
+    let cov = patch.iter().fold(Matrix3::zeros(), |acc, p| {
+        let d = (*p - h) - mean;
+        acc + d * d.transpose()
+    }) / count;
+    Some((count, mean, cov))
 }
 
 /// A patch's plane: its point closest to the HIP, the normal towards the HIP, the HIP's
@@ -177,16 +283,7 @@ fn patch_plane(
     patch: &[&Vector3<f64>],
     h: &Vector3<f64>,
 ) -> Option<PatchPlane> {
-    if patch.len() < config.min_patch_points_count {
-        return None;
-    }
-    let count = patch.len() as f64;
-    // Centred on the HIP first: the moments stay well conditioned whatever the world origin.
-    let mean = patch.iter().map(|p| *p - h).sum::<Vector3<f64>>() / count;
-    let cov = patch.iter().fold(Matrix3::zeros(), |acc, p| {
-        let d = (*p - h) - mean;
-        acc + d * d.transpose()
-    }) / count;
+    let (_, mean, cov) = patch_moments(config, patch, h)?;
     let eig = SymmetricEigen::try_new(cov, f64::EPSILON, 1_000)?;
     let (smallest, _) = eig
         .eigenvalues
@@ -299,6 +396,31 @@ mod tests {
         assert!((e.centroid_m.coords - truth).norm() < 3e-3, "{e:?}");
         assert!((e.distance_m - 0.15).abs() < 3e-3, "{e:?}");
         assert!(e.normal.x > 0.99, "{e:?}");
+    }
+
+    /// A head seen only on its far side (the cameras' side, +x) while the HIP waits on the
+    /// other (-x, below): the sphere fit finds the hidden point nearest the HIP, where a plane
+    /// through the visible rim was 20-30 mm short and 30 deg off.
+    #[test]
+    fn a_head_seen_from_behind_gives_its_hidden_closest_point() {
+        let config = LookaheadConfig::default();
+        let r = 0.09;
+        let dir = Vector3::new(0.717, -0.358, -0.597).normalize();
+        let mut centre = HIP.coords + Vector3::new(0.3, 0.0, 0.0);
+        for gap in [0.2, 0.12, 0.07] {
+            centre = HIP.coords + dir * (gap + r);
+            // only the cap facing +x (x offset > 0.02 m from the centre) is seen
+            let seen: Vec<Vec3> = sphere(centre, r)
+                .into_iter()
+                .filter(|p| f64::from(p.x) - centre.x > 0.02)
+                .collect();
+            let e = far_field(&config, &seen, &HIP, &Vector3::zeros(), 0, 0.0).unwrap();
+            let truth = centre - dir * r;
+            assert!((e.distance_m - gap).abs() < 3e-3, "{gap}: {e:?}");
+            assert!((e.centroid_m.coords - truth).norm() < 3e-3, "{gap}: {e:?}");
+            assert!(e.normal.dot(&-dir) > 0.999, "{gap}: {e:?}");
+        }
+        assert!(centre.x > HIP.x);
     }
 
     #[test]

@@ -19,8 +19,8 @@
 //!    the clusters the [`ClusterSelection`] picks go on (clusters below the size threshold are
 //!    noise, IV-C; keeping only the one nearest the HIP avoids IV-E's two-surface limitation),
 //! 4. the camera's [`SurfaceEstimator`] (one per camera id, so each keeps its memory):
-//!    memory (Alg. 1), isolated-point removal, and shells (Alg. 2), eq. 2 against the rays
-//!    from the camera.
+//!    memory (Alg. 1), isolated-point removal, and shells (Alg. 2), normals towards the HIP's
+//!    side (eq. 2, against the rays from the camera, as the tie-break).
 //!
 //! Each frame reports wall and thread CPU time of the front end and of the estimator
 //! ([`crate::timing`]) next to the front end's per-pass GPU timestamp times. A GPU failure
@@ -35,7 +35,7 @@
 //!    then the isolated points within the shells' reach go ([`super::outliers`]),
 //! 3. per-shell moments around the HIP (GPU shader or its CPU reference, same integers; a GPU
 //!    failure falls back to the reference and is reported in [`SurfaceFrame::gpu_error`]),
-//! 4. shell fits, eq. 2 orientation, outlier rejection, weighted average and curvature
+//! 4. shell fits, orientation (HIP side; eq. 2), outlier rejection, weighted average and curvature
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
 
 use super::cluster::Clustering;
@@ -215,7 +215,8 @@ impl SurfaceEstimator {
     }
 
     /// Estimate from a camera frame whose cloud is the front end's cleaned cloud in the
-    /// camera's optical frame; eq. 2 orients normals against the rays from the camera.
+    /// camera's optical frame; normals face the HIP's side, eq. 2 (against the rays from the
+    /// camera) breaking ties.
     pub fn estimate_frame(&mut self, frame: &Frame, hip_world: &Point3<f64>) -> SurfaceFrame {
         let pose = frame.world_from_camera;
         let world = to_world(&frame.cloud.points, &pose);
@@ -500,7 +501,7 @@ impl CameraChain {
                 None => SurfaceEstimator::new(self.surface_config.clone())?,
             }),
         };
-        // Eq. 2 against the rays from the camera (Viewpoint::Position).
+        // The tie-break of the shells' orientation: eq. 2 against the rays from the camera.
         let camera = Point3::from(pose.translation.vector);
         let surface = estimator.estimate(&kept, hip_world, camera, frame.camera_id, frame.stamp_s);
         let surface_time = watch.elapsed();

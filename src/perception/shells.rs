@@ -17,8 +17,14 @@
 //! `shaders/shells.wgsl` computes the same [`ShellSums`] on the GPU (see `gpu_shells`).
 //!
 //! **Fits (Alg. 2).** The innermost shell with enough points gets `plane3d`, the others
-//! `circle3d` ([`super::fit`]). Each normal is oriented against the camera's viewing
-//! direction `z` (eq. 2: `n <- -sign(n . z) n`). Fits whose residual is a large fraction of
+//! `circle3d` ([`super::fit`]). Each normal is oriented towards the HIP's side of the fit
+//! (the HIP is outside the body it approaches; the plane's mean point and the circles'
+//! centres lie on the body). The paper's eq. 2 (`n <- -sign(n . z) n`, against the camera's
+//! viewing direction `z`) orients towards the camera instead, which is wrong when the side of
+//! a body facing the HIP faces away from the cameras (a head coming at the handle from below
+//! the cameras' line of sight: only its far side is seen, and eq. 2 turned the normal into
+//! the head); it decides when the HIP lies within the HIP radius (4 cm) of a fit's plane,
+//! where the HIP may have passed through the surface. Fits whose residual is a large fraction of
 //! their shell radius (two surfaces in one shell) count as degenerate. With the camera's
 //! position known ([`Viewpoint::Position`]), `z` is the ray from the camera to the shell. The worst half by the
 //! summed normal distance `S_j = sum_i |n_j - n_i|` is rejected, and the rest are averaged
@@ -518,8 +524,34 @@ impl From<Point3<f64>> for Viewpoint {
     }
 }
 
-/// Alg. 2: shell fits, eq. 2 orientation, rejection of the worst half, weighted average,
-/// curvature correction.
+/// A shell fit's normal turned towards the HIP's side of the surface: the HIP is outside
+/// the body it is about to touch, and the shell's centre (the mean point of a plane, the
+/// circle's centre) lies between them, on the body. When the HIP is within
+/// [`HIP_SIDE_MIN_M`] of the fit's plane eq. 2 (against the camera's view) decides.
+fn orient(
+    normal: Unit<Vector3<f64>>,
+    center: &Point3<f64>,
+    hip: &Point3<f64>,
+    viewpoint: &Viewpoint,
+) -> Unit<Vector3<f64>> {
+    let side = normal.dot(&(hip - center));
+    let flip = if side.abs() > HIP_SIDE_MIN_M {
+        side < 0.0
+    } else {
+        normal.dot(&viewpoint.towards(center)) > 0.0
+    };
+    if flip { -normal } else { normal }
+}
+
+/// Below this distance of the HIP from a shell fit's plane, its side is left to eq. 2,
+/// metres: the paper's HIP radius. A HIP centre that near a fitted surface may have passed
+/// through it (a thin plate rising through the HIP, a surface moving faster than the robot),
+/// and then the camera's side, the body's outside, is the better guess; a body seen only
+/// from behind puts its fits 4.5 cm or more from the HIP even in contact.
+const HIP_SIDE_MIN_M: f64 = 0.04;
+
+/// Alg. 2: shell fits, orientation towards the HIP (eq. 2 as the tie-break), rejection of
+/// the worst half, weighted average, curvature correction.
 pub fn abstract_surface(
     moments: &[Moments],
     config: &ShellConfig,
@@ -597,9 +629,7 @@ pub fn abstract_surface(
                 if residual.is_nan() || residual > config.max_residual_ratio * outer {
                     report.status = ShellStatus::Inconsistent;
                 } else {
-                    // Eq. 2: orient against the camera's viewing direction.
-                    let dot = normal.dot(&viewpoint.towards(&center));
-                    let normal = if dot > 0.0 { -normal } else { normal };
+                    let normal = orient(normal, &center, &hip, &viewpoint);
                     fits.push(Accepted {
                         fit: ShellFit {
                             inner_radius_m: inner,
@@ -1119,6 +1149,50 @@ mod tests {
             constant("SHELL_COUNTERS"),
             naga::Expression::Literal(naga::Literal::U32((RESULT_WORDS - 2) as u32))
         );
+    }
+
+    /// A head 2 cm from the HIP sphere's surface seen only on its far side (the camera's side,
+    /// +x; the HIP waits below-behind it): every fitted shell's normal and the estimate face
+    /// the HIP. Eq. 2 alone (towards the camera) turned them into the head.
+    #[test]
+    fn a_body_seen_from_behind_gets_normals_towards_the_hip() {
+        let hip = Point3::new(0.36, -0.16, 0.46);
+        let dir = Vector3::new(0.717, -0.358, -0.597).normalize();
+        let (r, gap) = (0.09, 0.06);
+        let centre = hip + dir * (gap + r);
+        let camera = Point3::new(1.05, 0.05, 0.85);
+        let mut points = Vec::new();
+        for i in 0..200 {
+            for j in 0..400 {
+                let theta = f64::from(i) / 200.0 * std::f64::consts::PI;
+                let phi = f64::from(j) / 400.0 * 2.0 * std::f64::consts::PI;
+                let u = Vector3::new(
+                    theta.sin() * phi.cos(),
+                    theta.sin() * phi.sin(),
+                    theta.cos(),
+                );
+                let p = centre + u * r;
+                // seen from the camera: the side facing it
+                if u.dot(&(camera - p)) > 0.0 {
+                    points.push(Vec3::new(p.x as f32, p.y as f32, p.z as f32));
+                }
+            }
+        }
+        let config = ShellConfig::default();
+        let layout = ShellLayout::new(&hip, &config.radii_m);
+        let moments = accumulate_cpu(&points, &layout).to_moments(&layout);
+        let a = abstract_surface(&moments, &config, camera, 0, 0.0);
+        let e = &a.estimate;
+        let surface = e
+            .surface
+            .as_ref()
+            .unwrap_or_else(|| panic!("{:?}", a.invalid));
+        assert!(e.shells.iter().all(|s| s.normal.dot(&-dir) > 0.9), "{e:?}");
+        assert!(surface.normal.dot(&-dir) > 0.95, "{e:?}");
+        // the estimate lies between the HIP and the head, as eq. 7 needs it
+        assert!((surface.centroid_m - hip).dot(&dir) > 0.0, "{e:?}");
+        // the camera really looks at the head's far side: eq. 2 would have flipped it
+        assert!((-dir).dot(&(hip + dir * 0.05 - camera)) > 0.0);
     }
 
     #[test]
