@@ -1,122 +1,26 @@
 //! Fusion of all cameras' surface estimates into one surface at the control rate (paper IV-F,
-//! eq. 3-6, Fig. 8).
+//! eq. 3-6, Fig. 8). Details, defaults and measurements: `docs/fusion.md`.
 //!
-//! # How it works
+//! Every camera's [`SurfaceEstimate`] with a surface enters one buffer sorted by capture stamp
+//! ([`Fusion::push`], [`Fusion::push_arrived`] which also measures latency and refuses future
+//! stamps). At each control tick ([`Fusion::tick`]):
 //!
-//! Every valid [`SurfaceEstimate`] of every camera is pushed into one buffer sorted by stamp
-//! ([`Fusion::push`]). At each control tick ([`Fusion::tick`], 800 Hz in the node) two steps
-//! run, as in the paper:
+//! 1. **Regression (eq. 3-5).** The samples of the last `window_s` of all cameras are fitted
+//!    per coordinate by a weighted polynomial in capture time, weights falling with age and
+//!    scaled by quality. Beyond the paper: per-camera zero-sum offsets absorb calibration
+//!    bias; the degree (0, 1, 2) is the lowest the data cannot reject (Lepski's rule);
+//!    outliers are rejected against the common polynomial. The fit is evaluated at the tick's
+//!    time, predicting the surface over the frames' latency (clamped to
+//!    `max_extrapolation_s`, reported by [`Fusion::prediction`]); its derivative is the
+//!    surface's own velocity. Far-field (look-ahead) samples ([`Fusion::push_far_field`])
+//!    track an approaching surface before the shells see it.
+//! 2. **PID smoothing (eq. 6)** with velocity feed-forward moves the output towards the fitted
+//!    target; the normal is smoothed as angles of a chart re-centred on it every tick, so it
+//!    is continuous through the pole and the wrap.
 //!
-//! 1. **Regression (eq. 3-5).** The samples of the last `window_s` seconds (the paper's
-//!    duration `d`, counted back from the newest stamp) of *all* cameras are fitted per
-//!    coordinate by a 2nd-degree polynomial `x(t) = a2 t^2 + a1 t + a0` with weighted least
-//!    squares `(WA) x = (W b)`. The weight of a sample falls with its age relative to the
-//!    newest sample, `w = q / (1 + age / weight_age_scale_s)`: the paper's "inverse
-//!    proportional to the arrival time compared to the last measurement", regularised so the
-//!    newest sample has a finite weight, times the estimate's quality `q`. Because the
-//!    samples of all cameras enter the same fit, a camera's calibration bias is averaged out
-//!    under the paper's assumption of zero-mean bias over the cameras. Plain eq. 4-5 does
-//!    that exactly only for synchronised cameras: free-running cameras alternate in the
-//!    window, the alternating bias leaks into the polynomial's end, and the evaluation at the
-//!    newest end is where it leaks most (measured in the tests: 66 % of the bias remains at worst
-//!    for two 30 Hz cameras half a frame apart). With `camera_offsets` (the default) the
-//!    fit therefore also estimates one constant offset per camera in the window, constrained
-//!    to sum to zero: the same zero-mean assumption, made explicit, so the bias is removed
-//!    whatever the interleaving. When the cameras do not overlap in time the offsets are not
-//!    identifiable and the fit falls back to plain eq. 4-5.
-//!    **Latency compensation.** Every estimate carries its capture stamp, so the fit is in
-//!    capture time and is evaluated at the tick time: the surface is predicted over the
-//!    frames' latency with its own fitted motion (clamped to `max_extrapolation_s` past the
-//!    newest stamp; [`Fusion::prediction`] says how far each tick extrapolated and whether it
-//!    hit the clamp). Its derivative gives the surface's own velocity, which the haptic
-//!    velocity constraint uses. The latency itself (arrival minus stamp) is measured per
-//!    camera when the caller passes arrival times ([`Fusion::push_arrived`],
-//!    [`Fusion::latency_stats`]).
-//!
-//!    **Far field (look-ahead).** [`Fusion::push_far_field`] takes the coarse nearest-patch
-//!    estimates of [`crate::perception::lookahead`], weighted by `far_field_weight_unitless`.
-//!    They enter the fit only before the window's first shell estimate: an approaching surface
-//!    is tracked (with its velocity) from 0.3 m, and when the shells take over, the far-field
-//!    history keeps the velocity continuous; once shell estimates exist, a newer far-field
-//!    sample is kept only where it continues the newest shell estimate before it (centroid
-//!    within `far_field_switch_m`, normal within `far_field_switch_rad`: the shells lost a
-//!    surface in contact, seen only on its far side, that the look-ahead still fits), and left
-//!    out otherwise (another camera's view of a farther body). A far-field sample of
-//!    another surface (normal turned by more than `far_field_switch_rad` and centroid moved
-//!    by more than `far_field_switch_m` from the last one kept) restarts the far-field history
-//!    when it is nearer to the HIP (a body coming in front of the one tracked so far: the
-//!    regression must not average the two) and is left out when it is farther.
-//!
-//!    **Robustness (beyond the paper).** Extrapolated 60-90 ms past its data, an
-//!    unconditional quadratic through estimates with ~10 mm of noise turns noise into
-//!    excursions of 100-450 mm (measured on the study's realistic scenes: fused 23 / 31 /
-//!    55 mm RMS with 1 / 2 / 3 cameras against 10-14 mm for the raw estimates). So:
-//!    * the **degree** is the lowest one that the data cannot reject (Lepski's rule): the
-//!      fits of degree 0, 1, 2 are compared at the horizon `newest + degree_horizon_s`;
-//!      a lower degree is used unless a higher one differs from it there by more than
-//!      `degree_significance_unitless` of the higher one's standard deviation (noise from
-//!      its weighted residuals, `σ √(xᵀ(AᵀWA)⁻¹x)`), and a degree whose noise gain
-//!      `√(xᵀ(AᵀWA)⁻¹x)` exceeds `max_noise_gain_{linear,quadratic}_unitless` is never used. Still noisy data
-//!      thus get a weighted mean, a real motion (a rising plate) a line or a parabola;
-//!    * **outliers** are rejected against the common polynomial (camera offsets not
-//!      removed, so a whole camera that is off is caught): a sample whose centroid or normal
-//!      residual exceeds `outlier_median_factor_unitless` times the window's median
-//!      residual (and an absolute floor) is dropped and the fit repeated (two passes);
-//!    * the estimate's `quality` scales its weight (as before).
-//! 2. **PID smoothing (eq. 6).** A PID loop with velocity feed-forward moves the output state
-//!    `x̄` towards the fitted target `x`. Each tick the state first moves as the fit itself
-//!    moved since the previous tick (feed-forward, weight `f`), then the PID acts on what is
-//!    left, `e = x - x̄`: `x̄ += (kp e + ki ∫e + kd ė) dt`. A target that follows the
-//!    polynomial is thus tracked without lag, and the PID smooths only the jumps of the target
-//!    when a new estimate changes the fit. The centroid and the normal have separate gains
-//!    (the normal changes more slowly, paper IV-F); the defaults are critically damped
-//!    (`ki = kp² / 4`).
-//!
-//! # Numerics
-//!
-//! The fit is solved in f64 by an SVD of the weighted Vandermonde matrix (never the normal
-//! equations), with time centred on the newest stamp and scaled by the window, `τ = (t -
-//! t_newest) / window_s ∈ [-1, 0]`, so the columns `1, τ, τ²` are of order one whatever the
-//! absolute clock is. With too few samples or distinct stamps (or a numerically rank-deficient
-//! matrix) the degree falls back to 1, then 0. The evaluation time is clamped to
-//! `[newest - window_s, newest + max_extrapolation_s]`, so a polynomial is never
-//! extrapolated far.
-//!
-//! # The normal, its angles, the pole and the wrap
-//!
-//! The paper smooths the normal as the spherical angles `[n_θ, n_φ]`. In one fixed chart
-//! these angles break down at the pole (`θ = 0`: `φ` is undefined and jumps) and at the wrap
-//! (`φ = ±π`). Here:
-//!
-//! * The **fit** treats the normal as a vector: each of its three components is fitted like a
-//!   centroid coordinate and the result is renormalised. Normals of one window differ by a
-//!   few degrees, so the fitted vector is far from zero; when it is not (the window's normals
-//!   disagree, fitted length below `min_normal_fit_norm`) the status is
-//!   [`FusionStatus::Inconsistent`] and the output holds.
-//! * The **PID** runs on `[n_θ, n_φ]` of a chart that is re-centred on the current smoothed
-//!   normal every tick: its reference axis is perpendicular to the smoothed normal, which
-//!   therefore always sits on the chart's equator, where the angles are orthonormal
-//!   coordinates of the tangent plane and far from the pole and the wrap. Concretely the
-//!   error is the rotation vector taking the smoothed normal to the target (its two
-//!   tangent components are the chart's `Δθ, Δφ`), the commanded angular rate rotates the
-//!   smoothed normal, and the integral and previous-error states are carried along by the
-//!   same rotation (parallel transport), so re-centring the chart leaves them consistent.
-//!   The output normal is therefore continuous through any world direction, including
-//!   `θ = 0` and `φ = ±π` of the world chart.
-//!
-//! # Robustness and status
-//!
-//! Invalid estimates (`valid == false`, quality ≤ 0, non-finite or implausible values) are
-//! skipped and counted; duplicates (same camera, same stamp within `duplicate_tolerance_s`)
-//! are dropped; out-of-order estimates are inserted at their place when still inside the
-//! window and dropped as too old otherwise. A camera that stops simply contributes no new
-//! samples. When the newest sample is older than `stale_timeout_s` at the tick time the
-//! status is [`FusionStatus::Stale`]: the last smoothed surface is held (velocity zero) and
-//! the consumer disables or holds its constraint. When data returns, the PID state restarts
-//! at the fitted target: the constraint was off meanwhile, so there is no jump to feel, and a
-//! lagging state would render a wrong surface.
-//!
-//! Clocks: estimate stamps and tick times must be on the same clock (seconds).
+//! Numerics: f64, SVD of the weighted Vandermonde matrix in scaled time. Status: `tracking`,
+//! `stale` (newest sample older than `stale_timeout_s`: surface held), `inconsistent` or
+//! `no_data` ([`FusionStatus`]).
 
 #[cfg(test)]
 use crate::surface::SurfacePoint;

@@ -154,8 +154,10 @@ mod tests {
         assert_eq!(s.haptic_status, Some(HapticStatus::Active));
         assert!((s.d_proj_m.unwrap() - 0.03).abs() < 1e-12);
         assert_eq!(s.d_proj_rate_m_per_s, Some(0.0));
-        // eq. 12: 0.03 of the 0.1 m ramp to 2 m/s
-        assert!((s.speed_limit_m_per_s.unwrap() - 0.6).abs() < 1e-12);
+        // eq. 12's ramp (0.6 m/s at 0.03 of its 0.1 m to 2 m/s) capped by the 7 m/s^2 braking
+        // envelope, tangent to the ramp at 0.35 m/s (d = 0.0175): sqrt(0.35^2 + 2 * 7 * 0.0125)
+        let braked = (0.1225f64 + 14.0 * 0.0125).sqrt();
+        assert!((s.speed_limit_m_per_s.unwrap() - braked).abs() < 1e-12);
         let names: Vec<&str> = s.constraints.iter().map(|c| c.name.as_str()).collect();
         assert_eq!(names, ["position", "velocity", "force"]);
         assert!(s.constraints.iter().all(|c| c.active));
