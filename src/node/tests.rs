@@ -574,7 +574,7 @@ fn overlay_views_follow_the_robot_and_carry_truth_and_constraints() {
                 v.samples.d_proj_m,
                 v.cameras
                     .iter()
-                    .map(|c| c.estimate.as_ref().map(|e| e.valid))
+                    .map(|c| c.estimate.as_ref().map(|e| e.surface.is_some()))
                     .collect::<Vec<_>>()
             ))
             .collect::<Vec<_>>()
@@ -582,6 +582,6 @@ fn overlay_views_follow_the_robot_and_carry_truth_and_constraints() {
     assert!(views.iter().any(|v| {
         v.cameras
             .iter()
-            .any(|c| c.estimate.as_ref().is_some_and(|e| e.valid))
+            .any(|c| c.estimate.as_ref().is_some_and(|e| e.surface.is_some()))
     }));
 }
