@@ -142,7 +142,8 @@ impl ZenohConfig {
 
     /// The Zenoh configuration: mode, endpoints, multicast scouting off. A client's `open`
     /// fails when its router is not there; a peer connects in the background and retries
-    /// forever. Both reconnect by themselves after losing a connection.
+    /// forever. Both reconnect by themselves after losing a connection (retried every
+    /// 0.25-1 s).
     pub fn zenoh_config(&self) -> Result<zenoh::Config, ZenohError> {
         self.validate()?;
         let json = |v: &[String]| serde_json::to_string(v).unwrap_or_default();
@@ -161,6 +162,12 @@ impl ZenohConfig {
                 if self.mode == Mode::Peer { "-1" } else { "0" }.into(),
             ),
             ("connect/exit_on_failure", "false".into()),
+            // A lost router is retried every 250 ms at first, every second at most, so the
+            // node takes frames again within a second of the router's return.
+            (
+                "connect/retry",
+                r#"{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }"#.into(),
+            ),
         ] {
             c.insert_json5(key, &value)
                 .map_err(|e| ZenohError::Config(format!("{key} = {value}: {e}")))?;
