@@ -193,7 +193,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 );
             }
             session = Some(s);
-            Source::Zenoh(source)
+            Source::Zenoh(Box::new(source))
         }
         #[cfg(not(feature = "ros2"))]
         Some("zenoh") => anyhow::bail!("the zenoh source needs the ros2 feature"),

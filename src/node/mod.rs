@@ -216,7 +216,7 @@ pub enum Source {
     },
     /// ROS 2 camera messages over Zenoh, used as they arrive; the clock is the wall clock.
     #[cfg(feature = "ros2")]
-    Zenoh(crate::io::zenoh::ZenohSource),
+    Zenoh(Box<crate::io::zenoh::ZenohSource>),
 }
 
 /// How to run.

@@ -331,7 +331,7 @@ fn zenoh_source_runs_the_node_and_outputs_are_published() {
         ..options(1.0)
     };
     let mut tracking = 0;
-    let summary = run(&config(), Source::Zenoh(source), &opts, |t| {
+    let summary = run(&config(), Source::Zenoh(Box::new(source)), &opts, |t| {
         tracking += usize::from(t.fused.is_tracking());
         outputs.offer(t);
     })
