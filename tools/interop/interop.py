@@ -76,19 +76,22 @@ def stamp(i):
 def image_msgs(i):
     Header = STORE.types["std_msgs/msg/Header"]
     Image = STORE.types["sensor_msgs/msg/Image"]
-    Info = STORE.types["sensor_msgs/msg/CameraInfo"]
-    Roi = STORE.types["sensor_msgs/msg/RegionOfInterest"]
     depth, _ = frame_values(i)
     h = Header(stamp=stamp(i), frame_id="camera_depth_optical_frame")
     img = Image(header=h, height=H, width=W, encoding="16UC1", is_bigendian=0, step=W * 2,
                 data=np.frombuffer(depth.astype("<u2").tobytes(), dtype=np.uint8))
-    fx, fy, cx, cy = 20.0, 21.0, 7.5, 5.5
-    info = Info(header=h, height=H, width=W, distortion_model="plumb_bob",
+    return img, camera_info(h, W, H, 20.0, 21.0, 7.5, 5.5)
+
+
+def camera_info(header, w, h, fx, fy, cx, cy):
+    """A rectified pinhole CameraInfo as realsense-ros publishes it."""
+    Info = STORE.types["sensor_msgs/msg/CameraInfo"]
+    Roi = STORE.types["sensor_msgs/msg/RegionOfInterest"]
+    return Info(header=header, height=h, width=w, distortion_model="plumb_bob",
                 d=np.zeros(5), k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
                 r=np.eye(3).flatten(), p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
                 binning_x=0, binning_y=0,
                 roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
-    return img, info
 
 
 def cloud_msg(i):
@@ -184,8 +187,6 @@ def cmd_stream(port, seconds, rate, w, h, garbage):
     drop = zenoh.CongestionControl.DROP
     Header = STORE.types["std_msgs/msg/Header"]
     Image = STORE.types["sensor_msgs/msg/Image"]
-    Info = STORE.types["sensor_msgs/msg/CameraInfo"]
-    Roi = STORE.types["sensor_msgs/msg/RegionOfInterest"]
     Time = STORE.types["builtin_interfaces/msg/Time"]
     TF = STORE.types["tf2_msgs/msg/TFMessage"]
     TS = STORE.types["geometry_msgs/msg/TransformStamped"]
@@ -229,12 +230,7 @@ def cmd_stream(port, seconds, rate, w, h, garbage):
             hd = Header(stamp=st, frame_id=f"cam{n}_depth_optical_frame")
             img = Image(header=hd, height=h, width=w, encoding="16UC1", is_bigendian=0,
                         step=w * 2, data=frames[int((t - start) * 8) % 8])
-            info = Info(header=hd, height=h, width=w, distortion_model="plumb_bob",
-                        d=np.zeros(5), k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
-                        r=np.eye(3).flatten(),
-                        p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
-                        binning_x=0, binning_y=0,
-                        roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+            info = camera_info(hd, w, h, fx, fy, cx, cy)
             if garbage and n == 0 and k % 10 == 5:
                 img_pub.put(b"\x00\x01\x00\x00\x07\x00\x00\x00garbage")
             else:
