@@ -447,6 +447,46 @@ fn hapcloud_reads_a_rosbags_bag() {
         }
     }
     assert!(r.truncated().is_none());
+    // The command line plays the bag through the node (the HIP put on the optical axis):
+    // every frame is processed, with no hapcloud message in the bag.
+    let out = Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .args(["run", "--json", "--backend", "cpu", "--speed", "4"])
+        .arg(&bag)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let summary: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(
+        summary["frames"].as_u64().unwrap() + summary["dropped_frames"].as_u64().unwrap(),
+        n as u64,
+        "{summary}"
+    );
+    assert_eq!(summary["robot_joint_states"], false);
+    // The viewer takes it too (its timeline summary; no window).
+    #[cfg(feature = "viewer")]
+    {
+        let out = Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+            .args(["view", "--json"])
+            .arg(&bag)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{stderr}");
+        let view: Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(view["frames"].as_u64(), Some(n as u64), "{view}");
+    }
+    // Replay wants a node recording, and says what to do with a bag.
+    let out = Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .arg("replay")
+        .arg(&bag)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && stderr.contains("hapcloud run FILE.mcap"),
+        "{stderr}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
     assert_eq!(frames.len(), n, "{:?}", r.assembler().counters());
     // The pose: camera_link (the tree's root) from the optical frame, as realsense-ros has it.
