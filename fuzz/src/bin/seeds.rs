@@ -13,9 +13,9 @@
 use glam::Vec3;
 use hapcloud::camera::DepthImage;
 use hapcloud::cloud::PointCloud;
+use hapcloud::io::mcap::McapWriter;
 use hapcloud::io::{Encoding, can, depth, pcd, ply};
 use hapcloud::node::NodeConfig;
-use hapcloud::io::mcap::McapWriter;
 use hapcloud::node::record::{self, RecordingMeta};
 use hapcloud::node::robot_state::RobotMeta;
 use hapcloud::perception::pipeline::SurfaceConfig;
