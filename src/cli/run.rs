@@ -39,8 +39,9 @@ pub struct Args {
     #[arg(long, default_value_t = 1.0)]
     speed: f64,
     /// Perception backend; `gpu` falls back to `cpu` (logged once) when the GPU fails.
-    /// Default: `gpu` on a hardware adapter, `cpu` when the only Vulkan device is a software
-    /// rasteriser such as lavapipe.
+    /// Default: the faster front end on the source's first frames, measured at start-up; for
+    /// a stream, `gpu` on a hardware adapter and `cpu` when the only Vulkan device is a
+    /// software rasteriser such as lavapipe.
     #[arg(long, value_enum)]
     backend: Option<Backend>,
     /// Record frames, estimates, ticks and robot states into this MCAP file (`FILE.mcap`;
@@ -250,6 +251,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         progress_every_s: (!args.json).then_some(1.0),
         can_interface: args.can.clone(),
         can_log: args.can_log.clone(),
+        // Without --backend: the faster on this machine, measured on the first frames (a
+        // stream, which cannot be measured before it starts, by the adapter rule).
+        pick_backend: args.backend.is_none(),
         ..RunOptions::new(args.backend.unwrap_or_else(default_backend))
     };
     #[cfg(feature = "ros2")]
@@ -267,7 +271,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             &s,
             &run_config.zenoh,
             &run_config.publish,
-            options.backend.to_string(),
+            // A timed source without --backend picks its backend by measuring at start.
+            if options.pick_backend && stats.is_none() {
+                "auto".into()
+            } else {
+                options.backend.to_string()
+            },
             stats,
         )?;
         Some((s, thread))
@@ -389,6 +398,12 @@ fn print_table(s: &NodeSummary) {
     );
     if let Some(e) = &s.gpu_fallback {
         println!("GPU fallback: {e}");
+    }
+    if let Some(c) = &s.backend_choice {
+        println!("backend choice: {}{}", c.backend, c.describe());
+    }
+    if let Some(bytes) = s.gpu_buffer_bytes {
+        println!("GPU buffers: {:.1} MB", bytes as f64 / 1e6);
     }
     println!("node time: {:.2} s at speed {}", s.duration_s, s.speed);
     println!("camera  frames  rate_hz  valid_estimates  dropped  malformed  latency p50/p95 ms");

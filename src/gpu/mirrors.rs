@@ -35,6 +35,33 @@ pub struct CropPrimitive {
     pub axis_z: [f32; 4],
 }
 
+/// `DepthParams` in crop.wgsl: the depth image's camera, pose and flying-pixel test.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct DepthParams {
+    /// Rows of `cloud_from_camera`: rotation row (xyz) and translation (w), m.
+    pub row_x: [f32; 4],
+    pub row_y: [f32; 4],
+    pub row_z: [f32; 4],
+    /// Centre of the flying-pixel test in the camera frame (xyz, m), squared radius (w, m^2).
+    pub near_r2: [f32; 4],
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    /// Metres per depth unit.
+    pub depth_scale: f32,
+    /// sin^2 of the flying-pixel test's angle to the viewing ray.
+    pub sin2_min: f32,
+    pub width: u32,
+    pub height: u32,
+    /// Half width of the neighbour window (px); 0: no flying-pixel test.
+    pub window: u32,
+    pub _pad0: u32,
+    pub _pad1: u32,
+    pub _pad2: u32,
+}
+
 /// `VoxelParams` in voxel.wgsl.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
@@ -143,6 +170,7 @@ const fn mirror<T>(shader: StageShader, wgsl_name: &'static str) -> Mirror {
 pub const MIRRORS: &[Mirror] = &[
     mirror::<CropParams>(shader::CROP, "CropParams"),
     mirror::<CropPrimitive>(shader::CROP, "CropPrimitive"),
+    mirror::<DepthParams>(shader::CROP, "DepthParams"),
     mirror::<VoxelParams>(shader::VOXEL, "VoxelParams"),
     mirror::<VoxelHeader>(shader::VOXEL, "VoxelHeader"),
     mirror::<SortStep>(shader::VOXEL, "SortStep"),

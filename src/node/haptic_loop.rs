@@ -160,6 +160,11 @@ impl Perception {
         self.chain.adapter()
     }
 
+    /// GPU memory the front end holds (GPU backend).
+    pub fn gpu_buffer_bytes(&self) -> Option<u64> {
+        self.chain.gpu_buffer_bytes()
+    }
+
     /// Hand each frame's crop keep mask back in its record (for an overlay drawing the
     /// cropped points; on the GPU it costs a larger readback).
     pub fn keep_crop_mask(&mut self, on: bool) {

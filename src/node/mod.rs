@@ -54,9 +54,14 @@ use crate::camera::Frame;
 use crate::control::{ControllerConfig, ControllerConfigError};
 use crate::fusion::{CameraLatency, FusionConfig, FusionConfigError, FusionCounters};
 use crate::gpu::Backend;
+use crate::gpu::GpuContext;
 use crate::haptics::HapticStatus;
 use crate::io::can::{CanError, fault};
-use crate::perception::frontend::{FrontendConfig, FrontendError};
+use crate::perception::crop::{CropScene, DepthInput};
+use crate::perception::flying::veil_cloud;
+use crate::perception::frontend::{
+    BackendChoice, FrameInput, FramePoints, FrontendConfig, FrontendError, choose_backend,
+};
 use crate::perception::lookahead::LookaheadConfig;
 use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
@@ -228,6 +233,10 @@ pub struct RunOptions {
     /// Clock rate relative to real time.
     pub speed: f64,
     pub backend: Backend,
+    /// Time the front end on both backends on a timed source's first frames and run
+    /// perception on the faster ([`measure_backends`]); `backend` then applies only to a
+    /// stream, which cannot be measured before it starts.
+    pub pick_backend: bool,
     /// GPU adapter to open (substring of its name); `None`: `WGPU_ADAPTER_NAME` or the best.
     pub adapter: Option<String>,
     pub record: Option<std::path::PathBuf>,
@@ -268,6 +277,7 @@ impl RunOptions {
             duration_s: None,
             speed: 1.0,
             backend,
+            pick_backend: false,
             adapter: None,
             record: None,
             progress_every_s: None,
@@ -351,6 +361,10 @@ pub struct NodeSummary {
     pub adapter: Option<String>,
     /// The GPU failure that made perception fall back to the CPU, if any.
     pub gpu_fallback: Option<String>,
+    /// The start-up measurement that picked the backend ([`RunOptions::pick_backend`]).
+    pub backend_choice: Option<BackendChoice>,
+    /// GPU memory the front end holds at the end (buffers sized once for the largest frame).
+    pub gpu_buffer_bytes: Option<u64>,
     pub fusion: FusionCounters,
     /// Per camera: estimate arrival at the loop minus the frame's capture stamp.
     pub camera_latency: Vec<CameraLatency>,
@@ -413,6 +427,91 @@ struct PerceptionReport {
     backend: Backend,
     adapter: Option<String>,
     gpu_fallback: Option<String>,
+    gpu_buffer_bytes: Option<u64>,
+}
+
+/// Frames of a timed source that [`measure_backends`] times.
+pub const BACKEND_CHOICE_FRAMES: usize = 5;
+
+/// The start-up rule of [`RunOptions::pick_backend`]: the front end on both backends
+/// ([`choose_backend`]) on the first [`BACKEND_CHOICE_FRAMES`] frames, each with the HIP and
+/// the robot primitives at its stamp and in the form each path takes it: the GPU a frame's
+/// depth image (deprojection and flying pixels in its first pass), the CPU the world-frame
+/// cloud after the flying-pixel test, as [`crate::perception::pipeline::CameraChain`] feeds
+/// them. The faster by median wall time wins; the CPU's world transform and flying-pixel
+/// test before its front end are not in its time (a bias towards the CPU of about a
+/// millisecond per frame here). `None` when the GPU does not open.
+pub fn measure_backends(
+    config: &NodeConfig,
+    frames: &[Frame],
+    robot: &RobotState,
+    adapter: Option<&str>,
+) -> Result<Option<BackendChoice>, NodeError> {
+    let Ok(ctx) = adapter.map_or_else(GpuContext::new, |name| {
+        GpuContext::with_adapter_name(Some(name))
+    }) else {
+        return Ok(None);
+    };
+    let frames = &frames[..frames.len().min(BACKEND_CHOICE_FRAMES)];
+    let scenes: Vec<_> = frames
+        .iter()
+        .map(|f| robot.perception_scene(&robot.at(f.stamp_s).q_rad))
+        .collect();
+    let flying = &config.surface.flying_pixels;
+    // The CPU path's input: the cloud in the world frame, flying pixels set to NaN.
+    let world: Vec<Vec<_>> = frames
+        .iter()
+        .zip(&scenes)
+        .map(|(f, scene)| {
+            let hip = f.world_from_camera.inverse() * scene.hip_m;
+            let near = glam::Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32);
+            let radius = config.frontend.crop.radius_m as f32;
+            veil_cloud(&f.cloud, &f.world_from_camera, near, radius, flying).0
+        })
+        .collect();
+    fn input<'a>(
+        f: &Frame,
+        scene: &'a robot_state::PerceptionScene,
+        points: FramePoints<'a>,
+    ) -> FrameInput<'a> {
+        FrameInput {
+            points,
+            crop: Some(CropScene {
+                hip_m: scene.hip_m,
+                robot: &scene.primitives,
+                camera_m: Some(Point3::from(f.world_from_camera.translation.vector)),
+            }),
+            want_crop_keep: false,
+        }
+    }
+    let cpu: Vec<FrameInput<'_>> = (0..frames.len())
+        .map(|i| input(&frames[i], &scenes[i], FramePoints::Points(&world[i])))
+        .collect();
+    let gpu: Vec<FrameInput<'_>> = (0..frames.len())
+        .map(|i| {
+            let f = &frames[i];
+            let points = match &f.depth {
+                Some((image, intrinsics))
+                    if (intrinsics.width, intrinsics.height) == (image.width, image.height) =>
+                {
+                    FramePoints::Depth(DepthInput {
+                        image,
+                        intrinsics,
+                        cloud_from_camera: f.world_from_camera,
+                        flying,
+                    })
+                }
+                _ => FramePoints::Points(&world[i]),
+            };
+            input(f, &scenes[i], points)
+        })
+        .collect();
+    Ok(Some(choose_backend(
+        &config.frontend,
+        Some(Arc::new(ctx)),
+        &cpu,
+        &gpu,
+    )?))
 }
 
 fn perception_thread(
@@ -461,6 +560,7 @@ fn perception_thread(
         backend: perception.backend(),
         adapter: perception.adapter().map(str::to_string),
         gpu_fallback: perception.gpu_fallback(),
+        gpu_buffer_bytes: perception.gpu_buffer_bytes(),
     })
 }
 
@@ -561,10 +661,20 @@ pub fn run(
         Some(r) => r,
         None => RobotState::fixed(config)?,
     };
+    let (backend, backend_choice) = match (&source, options.pick_backend) {
+        (Source::Timed(frames) | Source::Simulated { frames, .. }, true) => {
+            match measure_backends(config, frames, &robot, options.adapter.as_deref())? {
+                Some(choice) => (choice.backend, Some(choice)),
+                // The GPU does not open: perception's own fallback reports why.
+                None => (Backend::Gpu, None),
+            }
+        }
+        _ => (options.backend, None),
+    };
     let (mut perception, mut control) = HapticLoop::new(
         config,
         robot.model().clone(),
-        options.backend,
+        backend,
         options.adapter.as_deref(),
     )?
     .into_halves();
@@ -582,9 +692,13 @@ pub fn run(
     if options.progress_every_s.is_some() {
         let adapter = perception.adapter().map(str::to_string);
         eprintln!(
-            "perception backend: {}{}; robot: {}",
+            "perception backend: {}{}{}; robot: {}",
             perception.backend(),
             adapter.map(|a| format!(" on {a}")).unwrap_or_default(),
+            backend_choice
+                .as_ref()
+                .map(BackendChoice::describe)
+                .unwrap_or_default(),
             if robot.has_joint_states() {
                 "joint states from the source"
             } else {
@@ -901,6 +1015,8 @@ pub fn run(
         backend: report.backend,
         adapter: report.adapter,
         gpu_fallback: report.gpu_fallback,
+        backend_choice,
+        gpu_buffer_bytes: report.gpu_buffer_bytes,
         fusion: control.fusion().counters(),
         camera_latency: control.fusion().latency_stats(),
         can: can.map(|c| CanSummary {

@@ -380,6 +380,41 @@ fn missing_gpu_falls_back_to_the_cpu() {
     assert!(summary.frames > 0);
 }
 
+#[test]
+fn the_node_picks_the_faster_backend_on_the_first_frames_and_reports_it() {
+    let _serial = serial();
+    let opts = RunOptions {
+        pick_backend: true,
+        ..options(4.0)
+    };
+    let frames = plane_frames(0.2, None);
+    let summary = run(&config(), Source::Timed(frames), &opts, |_| {}).unwrap();
+    let choice = summary.backend_choice.expect("a timed source is measured");
+    assert_eq!(choice.frames, super::BACKEND_CHOICE_FRAMES);
+    let gpu_ms = choice.gpu_ms.expect("GPU tests need Vulkan");
+    assert!(choice.cpu_ms > 0.0 && gpu_ms > 0.0);
+    // Perception runs where the measurement was faster (a tie goes to the GPU).
+    assert_eq!(summary.backend, choice.backend);
+    let on_gpu = choice.backend == Backend::Gpu;
+    assert_eq!(on_gpu, gpu_ms <= choice.cpu_ms);
+    // The GPU front end reports its buffers, sized for the largest frame.
+    assert_eq!(summary.gpu_buffer_bytes.is_some(), on_gpu);
+    // A named adapter that does not open: not measured, perception's fallback says why.
+    let opts = RunOptions {
+        adapter: Some("no-such-adapter-xyz".into()),
+        ..opts
+    };
+    let summary = run(
+        &config(),
+        Source::Timed(plane_frames(0.2, None)),
+        &opts,
+        |_| {},
+    )
+    .unwrap();
+    assert!(summary.backend_choice.is_none() && summary.gpu_fallback.is_some());
+    assert_eq!(summary.backend, Backend::Cpu);
+}
+
 /// Per tick: fusion status, haptic status, held, fused age (s).
 type GapTick = (FusionStatus, crate::haptics::HapticStatus, bool, f64);
 

@@ -546,6 +546,25 @@ impl GpuClusterer {
         })
     }
 
+    /// Bytes of GPU memory the stage's buffers hold now.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.buffers.as_ref().map_or(0, |b| {
+            [
+                &b.params,
+                &b.points,
+                &b.count,
+                &b.slots,
+                &b.info,
+                &b.parent,
+                &b.status,
+                &b.dispatch_args,
+            ]
+            .iter()
+            .map(|b| b.size())
+            .sum()
+        })
+    }
+
     /// Makes room for `capacity` points with `config`'s table settings; reuses the buffers
     /// when they are large enough and the table size is unchanged.
     pub fn reserve(

@@ -13,16 +13,27 @@
 //! [`crop_cpu`] is the reference (f64 geometry from [`crate::geometry`]); [`GpuCrop`] runs
 //! `shaders/crop.wgsl` (f32, one thread per mask word, no atomics). Both agree exactly except
 //! for points within f32 rounding (about 1e-6 m) of a boundary.
+//!
+//! A frame can also come as the camera delivers it ([`DepthInput`]: 16-bit depth image,
+//! intrinsics, pose): then the same pass deprojects each pixel (f32 on the GPU), runs the
+//! flying-pixel test ([`super::flying`]) and writes the cloud-frame points the voxel stage
+//! reads, so the organized cloud never crosses the bus. [`crop_depth_cpu`] is its reference
+//! (deprojection in f64). The points agree within [`DEPTH_POINT_TOLERANCE`]; the keep mask
+//! exactly, except for pixels whose crop or flying-pixel decision lies within that rounding
+//! of its threshold.
 
 use glam::Vec3;
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
+use crate::camera::{DepthImage, PinholeIntrinsics};
 use crate::geometry::{Primitive, PrimitiveError, box_rotation};
-use crate::gpu::mirrors::{CropParams, CropPrimitive};
+use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams};
 use crate::gpu::shader::{self, BindingKind};
 use crate::gpu::timing::StageTimer;
 use crate::gpu::{GpuContext, GpuError};
+use crate::perception::flying::{FlyingPixelConfig, veil_points};
+use nalgebra::Isometry3;
 
 /// Crop settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -70,6 +81,8 @@ pub enum CropError {
         index: usize,
         source: PrimitiveError,
     },
+    #[error("depth frame: {0}")]
+    BadDepth(String),
     #[error("cloud of {0} points is too large for one crop pass")]
     TooManyPoints(usize),
     #[error(transparent)]
@@ -130,6 +143,126 @@ impl CropScene<'_> {
         }
         Ok(())
     }
+}
+
+/// A frame as a depth camera delivers it, for the front end's first pass.
+#[derive(Clone, Copy, Debug)]
+pub struct DepthInput<'a> {
+    pub image: &'a DepthImage,
+    pub intrinsics: &'a PinholeIntrinsics,
+    /// Pose of the camera's optical frame in the cloud frame (where the crop scene lives).
+    pub cloud_from_camera: Isometry3<f64>,
+    /// The flying-pixel (veil) test, run within the crop radius of the HIP (every pixel
+    /// without a crop).
+    pub flying: &'a FlyingPixelConfig,
+}
+
+/// Largest difference of a GPU-deprojected point (f32) from the CPU reference's (f64, then
+/// rounded), per metre of `|p_camera| + |camera position| + 1`: a few f32 roundings of the
+/// deprojection and the pose (worst case measured on lavapipe: 1.4e-7 m/m on the test frames).
+pub const DEPTH_POINT_TOLERANCE: f32 = 2e-6;
+
+impl DepthInput<'_> {
+    /// Pixels of the frame.
+    pub fn len(&self) -> usize {
+        self.image.data.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.image.data.is_empty()
+    }
+
+    fn validate(&self) -> Result<(), CropError> {
+        let bad = |e: crate::io::FormatError| CropError::BadDepth(e.to_string());
+        crate::io::depth::check_intrinsics(self.intrinsics).map_err(bad)?;
+        crate::io::depth::check_depth_scale(self.image.depth_scale_m).map_err(bad)?;
+        let (w, h) = (self.image.width, self.image.height);
+        if (self.intrinsics.width, self.intrinsics.height) != (w, h) {
+            return Err(CropError::BadDepth(format!(
+                "intrinsics for {} x {} pixels, image is {w} x {h}",
+                self.intrinsics.width, self.intrinsics.height
+            )));
+        }
+        if self.image.data.len() as u64 != u64::from(w) * u64::from(h) {
+            return Err(CropError::BadDepth(format!(
+                "{w} x {h} image holds {} pixels",
+                self.image.data.len()
+            )));
+        }
+        let pose = self.cloud_from_camera.to_homogeneous();
+        if !pose.iter().all(|v| v.is_finite()) {
+            return Err(CropError::BadDepth("camera pose is not finite".into()));
+        }
+        self.flying
+            .validate()
+            .map_err(|e| CropError::BadDepth(format!("flying pixels: {e}")))
+    }
+
+    /// Where the flying-pixel test looks: the HIP in the camera frame and the crop radius
+    /// (both f32, as the GPU takes them); without a crop, everywhere.
+    fn veil_region(&self, config: &CropConfig, scene: Option<&CropScene<'_>>) -> (Vec3, f32) {
+        match scene {
+            Some(scene) => {
+                let hip = self.cloud_from_camera.inverse() * scene.hip_m;
+                (
+                    Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32),
+                    config.radius_m as f32,
+                )
+            }
+            // The largest radius whose square is finite (WGSL may assume no infinities).
+            None => (Vec3::ZERO, f32::MAX.sqrt()),
+        }
+    }
+}
+
+/// What the first pass of a depth frame produced (CPU reference or GPU readback).
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthCrop {
+    /// Cloud-frame point per pixel, NaN where the depth is 0 or the pixel is flying.
+    pub points: Vec<Vec3>,
+    /// Keep mask over the pixels (valid, not flying, kept by the crop).
+    pub mask: Vec<u32>,
+    /// Pixels with a depth.
+    pub valid: usize,
+    /// Flying pixels rejected.
+    pub flying: usize,
+}
+
+/// CPU reference of a depth frame's first pass: deprojection, flying pixels and pose
+/// ([`veil_points`]), then [`crop_cpu`] (every finite point kept without a scene).
+pub fn crop_depth_cpu(
+    depth: &DepthInput<'_>,
+    config: &CropConfig,
+    scene: Option<&CropScene<'_>>,
+) -> Result<DepthCrop, CropError> {
+    config.validate()?;
+    depth.validate()?;
+    let (near, radius) = depth.veil_region(config, scene);
+    let (points, flying) = veil_points(
+        depth.image,
+        depth.intrinsics,
+        &depth.cloud_from_camera,
+        near,
+        radius,
+        depth.flying,
+    )
+    .ok_or_else(|| CropError::BadDepth("intrinsics do not match the image".into()))?;
+    let mask = match scene {
+        Some(scene) => crop_cpu(&points, config, scene)?,
+        None => {
+            let mut mask = vec![0u32; mask_words(points.len())];
+            for (i, _) in points.iter().enumerate().filter(|(_, p)| finite_bits(**p)) {
+                mask[i / 32] |= 1 << (i % 32);
+            }
+            mask
+        }
+    };
+    Ok(DepthCrop {
+        points,
+        mask,
+        valid: depth.image.data.iter().filter(|&&d| d != 0).count(),
+        flying,
+    })
 }
 
 /// True when all three coordinates are finite, decided on the bit patterns.
@@ -222,14 +355,23 @@ pub fn gpu_primitive(p: &Primitive) -> CropPrimitive {
     }
 }
 
-/// GPU crop: pipeline built once, buffers grown as needed.
+/// GPU crop: pipelines built once, buffers grown as needed (or reserved up front with
+/// [`GpuCrop::reserve`]).
 pub struct GpuCrop {
     layout: wgpu::BindGroupLayout,
     pipeline: wgpu::ComputePipeline,
+    depth_layout: wgpu::BindGroupLayout,
+    depth_pipeline: wgpu::ComputePipeline,
     params: wgpu::Buffer,
+    depth_params: wgpu::Buffer,
     primitives: wgpu::Buffer,
     mask: wgpu::Buffer,
+    /// The depth image, two pixels per word.
+    depth: wgpu::Buffer,
+    /// Pixels with a depth and flying pixels of the last depth pass.
+    depth_counts: wgpu::Buffer,
     word_count: u32,
+    point_count: u32,
 }
 
 fn storage(
@@ -246,48 +388,135 @@ fn storage(
     })
 }
 
+fn uniform(device: &wgpu::Device, label: &str, bytes: usize) -> wgpu::Buffer {
+    device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: bytes as u64,
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
+/// Bytes of the depth pass's counters (pixels with a depth, flying pixels).
+pub const DEPTH_COUNT_BYTES: u64 = 8;
+
+/// Bytes of a depth image of `pixels` pixels on the GPU (two per word).
+fn depth_bytes(pixels: usize) -> u64 {
+    4 * pixels.div_ceil(2) as u64
+}
+
 impl GpuCrop {
     pub fn new(ctx: &GpuContext) -> Result<Self, CropError> {
         use BindingKind::*;
-        let layout = shader::bind_group_layout(
+        let base = [Uniform, StorageReadOnly, StorageReadOnly, Storage];
+        let layout = shader::bind_group_layout(ctx, "crop bind group layout", &base)?;
+        let depth_layout = shader::bind_group_layout(
             ctx,
-            "crop bind group layout",
-            &[Uniform, StorageReadOnly, StorageReadOnly, Storage],
+            "crop depth bind group layout",
+            &[
+                base.as_slice(),
+                &[Uniform, StorageReadOnly, Storage, Storage],
+            ]
+            .concat(),
         )?;
         let pipeline =
             shader::compute_pipelines(ctx, &shader::CROP, &[&layout], &["crop_mask"])?.remove(0);
-        let (params, primitives, mask) = ctx.scoped("crop buffers", |device| {
-            (
-                device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("crop params"),
-                    size: std::mem::size_of::<CropParams>() as u64,
-                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                }),
-                // A runtime-sized array binding must hold at least one element, even when
-                // no primitive is posed.
-                storage(
-                    device,
-                    "crop primitives",
-                    std::mem::size_of::<CropPrimitive>() as u64,
-                    wgpu::BufferUsages::empty(),
-                ),
-                storage(device, "crop keep mask", 0, wgpu::BufferUsages::COPY_SRC),
-            )
-        })?;
+        let depth_pipeline =
+            shader::compute_pipelines(ctx, &shader::CROP, &[&depth_layout], &["crop_depth"])?
+                .remove(0);
+        let (params, depth_params, primitives, mask, depth, depth_counts) =
+            ctx.scoped("crop buffers", |device| {
+                (
+                    uniform(device, "crop params", std::mem::size_of::<CropParams>()),
+                    uniform(
+                        device,
+                        "crop depth params",
+                        std::mem::size_of::<DepthParams>(),
+                    ),
+                    // A runtime-sized array binding must hold at least one element, even when
+                    // no primitive is posed.
+                    storage(
+                        device,
+                        "crop primitives",
+                        std::mem::size_of::<CropPrimitive>() as u64,
+                        wgpu::BufferUsages::empty(),
+                    ),
+                    storage(device, "crop keep mask", 0, wgpu::BufferUsages::COPY_SRC),
+                    storage(device, "crop depth image", 0, wgpu::BufferUsages::empty()),
+                    storage(
+                        device,
+                        "crop depth counts",
+                        DEPTH_COUNT_BYTES,
+                        wgpu::BufferUsages::COPY_SRC,
+                    ),
+                )
+            })?;
         Ok(Self {
             layout,
             pipeline,
+            depth_layout,
+            depth_pipeline,
             params,
+            depth_params,
             primitives,
             mask,
+            depth,
+            depth_counts,
             word_count: 0,
+            point_count: 0,
         })
     }
 
     /// The keep mask written by the last recorded pass (one bit per point).
     pub fn mask(&self) -> &wgpu::Buffer {
         &self.mask
+    }
+
+    /// The depth pass's counters (`[pixels with a depth, flying pixels]`, u32 each).
+    pub fn depth_counts(&self) -> &wgpu::Buffer {
+        &self.depth_counts
+    }
+
+    /// Bytes of GPU memory the stage's buffers hold now.
+    pub fn gpu_bytes(&self) -> u64 {
+        [
+            &self.params,
+            &self.depth_params,
+            &self.primitives,
+            &self.mask,
+            &self.depth,
+            &self.depth_counts,
+        ]
+        .iter()
+        .map(|b| b.size())
+        .sum()
+    }
+
+    /// Sizes the mask and the depth image for frames of up to `points` points / pixels, so
+    /// that no frame up to that size allocates.
+    pub fn reserve(&mut self, ctx: &GpuContext, points: usize) -> Result<(), CropError> {
+        let words = 4 * mask_words(points) as u64;
+        let depth = depth_bytes(points);
+        ctx.check_storage_size("crop keep mask", words)?;
+        ctx.scoped("crop buffers", |device| {
+            if self.mask.size() < words {
+                self.mask = storage(
+                    device,
+                    "crop keep mask",
+                    words,
+                    wgpu::BufferUsages::COPY_SRC,
+                );
+            }
+            if self.depth.size() < depth {
+                self.depth = storage(
+                    device,
+                    "crop depth image",
+                    depth,
+                    wgpu::BufferUsages::empty(),
+                );
+            }
+        })?;
+        Ok(())
     }
 
     /// Uploads this frame's parameters and grows buffers for `point_count` points.
@@ -300,42 +529,123 @@ impl GpuCrop {
     ) -> Result<(), CropError> {
         config.validate()?;
         scene.validate()?;
+        self.write_params(ctx, point_count, config, Some(scene))
+    }
+
+    /// Uploads a depth frame (the 16-bit image, 2 bytes per pixel) and this frame's
+    /// parameters for [`GpuCrop::record_depth`]; without a scene every valid pixel that is
+    /// not flying is kept.
+    pub fn prepare_depth(
+        &mut self,
+        ctx: &GpuContext,
+        depth: &DepthInput<'_>,
+        config: &CropConfig,
+        scene: Option<&CropScene<'_>>,
+    ) -> Result<(), CropError> {
+        config.validate()?;
+        depth.validate()?;
+        if let Some(scene) = scene {
+            scene.validate()?;
+        }
+        // One thread per pixel, at most 65535 workgroups in a dispatch.
+        if depth.len() as u64 > 65_535 * u64::from(shader::WORKGROUP_SIZE) {
+            return Err(CropError::TooManyPoints(depth.len()));
+        }
+        self.write_params(ctx, depth.len(), config, scene)?;
+        let data = &depth.image.data;
+        let even = data.len() & !1;
+        if even > 0 {
+            ctx.queue()
+                .write_buffer(&self.depth, 0, bytemuck::cast_slice(&data[..even]));
+        }
+        if even < data.len() {
+            // The last pixel of an odd count shares its word with a zero.
+            ctx.queue().write_buffer(
+                &self.depth,
+                2 * even as u64,
+                bytemuck::cast_slice(&[data[even], 0u16]),
+            );
+        }
+        let (near, radius) = depth.veil_region(config, scene);
+        let k = depth.intrinsics;
+        let m = depth.cloud_from_camera.to_homogeneous();
+        let row = |r: usize| {
+            [
+                m[(r, 0)] as f32,
+                m[(r, 1)] as f32,
+                m[(r, 2)] as f32,
+                m[(r, 3)] as f32,
+            ]
+        };
+        let params = DepthParams {
+            row_x: row(0),
+            row_y: row(1),
+            row_z: row(2),
+            near_r2: [near.x, near.y, near.z, radius * radius],
+            fx: k.fx as f32,
+            fy: k.fy as f32,
+            cx: k.cx as f32,
+            cy: k.cy as f32,
+            depth_scale: depth.image.depth_scale_m as f32,
+            sin2_min: depth.flying.min_ray_angle_rad.sin().powi(2) as f32,
+            width: depth.image.width,
+            height: depth.image.height,
+            window: if depth.flying.enabled {
+                depth.flying.window_px
+            } else {
+                0
+            },
+            ..Default::default()
+        };
+        ctx.queue()
+            .write_buffer(&self.depth_params, 0, bytemuck::bytes_of(&params));
+        Ok(())
+    }
+
+    fn write_params(
+        &mut self,
+        ctx: &GpuContext,
+        point_count: usize,
+        config: &CropConfig,
+        scene: Option<&CropScene<'_>>,
+    ) -> Result<(), CropError> {
         let n = u32::try_from(point_count).map_err(|_| CropError::TooManyPoints(point_count))?;
         let words = mask_words(point_count) as u64;
-        let margin = config.robot_margin_for(scene);
-        let prims: Vec<CropPrimitive> = scene
-            .robot
-            .iter()
-            .map(|p| gpu_primitive(&p.grown(margin)))
-            .collect();
+        let prims: Vec<CropPrimitive> = scene.map_or_else(Vec::new, |scene| {
+            let margin = config.robot_margin_for(scene);
+            scene
+                .robot
+                .iter()
+                .map(|p| gpu_primitive(&p.grown(margin)))
+                .collect()
+        });
         let prim_bytes = std::mem::size_of_val(prims.as_slice()) as u64;
-        ctx.check_storage_size("crop keep mask", 4 * words)?;
-        ctx.scoped("crop buffers", |device| {
-            if self.mask.size() < 4 * words {
-                self.mask = storage(
-                    device,
-                    "crop keep mask",
-                    4 * words,
-                    wgpu::BufferUsages::COPY_SRC,
-                );
-            }
-            if self.primitives.size() < prim_bytes {
-                self.primitives = storage(
+        self.reserve(ctx, point_count)?;
+        if self.primitives.size() < prim_bytes {
+            self.primitives = ctx.scoped("crop buffers", |device| {
+                storage(
                     device,
                     "crop primitives",
                     prim_bytes,
                     wgpu::BufferUsages::empty(),
-                );
+                )
+            })?;
+        }
+        // Without a scene: no primitive and a radius no finite point exceeds.
+        let hip_r2 = match scene {
+            Some(scene) => {
+                let hip = scene.hip_m;
+                [
+                    hip.x as f32,
+                    hip.y as f32,
+                    hip.z as f32,
+                    (config.radius_m * config.radius_m) as f32,
+                ]
             }
-        })?;
-        let hip = scene.hip_m;
+            None => [0.0, 0.0, 0.0, f32::MAX],
+        };
         let params = CropParams {
-            hip_r2: [
-                hip.x as f32,
-                hip.y as f32,
-                hip.z as f32,
-                (config.radius_m * config.radius_m) as f32,
-            ],
+            hip_r2,
             point_count: n,
             primitive_count: prims.len() as u32,
             word_count: words as u32,
@@ -348,7 +658,45 @@ impl GpuCrop {
                 .write_buffer(&self.primitives, 0, bytemuck::cast_slice(&prims));
         }
         self.word_count = words as u32;
+        self.point_count = n;
         Ok(())
+    }
+
+    /// Records the first pass of a depth frame ([`GpuCrop::prepare_depth`]): the
+    /// cloud-frame points into `out_points` (12 bytes per pixel), the keep mask and the
+    /// counters (cleared here).
+    pub fn record_depth(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        out_points: &wgpu::Buffer,
+        timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
+    ) {
+        encoder.clear_buffer(&self.depth_counts, 0, None);
+        let bind_group = ctx.device().create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("crop depth bind group"),
+            layout: &self.depth_layout,
+            entries: &[
+                entry(0, &self.params),
+                // Binding 1 (crop_mask's input points) is unused here; the read-only depth
+                // image fills it without a conflicting usage.
+                entry(1, &self.depth),
+                entry(2, &self.primitives),
+                entry(3, &self.mask),
+                entry(4, &self.depth_params),
+                entry(5, &self.depth),
+                entry(6, out_points),
+                entry(7, &self.depth_counts),
+            ],
+        });
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("crop depth pass"),
+            timestamp_writes: timestamps,
+        });
+        pass.set_pipeline(&self.depth_pipeline);
+        pass.set_bind_group(0, &bind_group, &[]);
+        // One thread per pixel.
+        pass.dispatch_workgroups(shader::workgroups_for(self.point_count), 1, 1);
     }
 
     /// Records the crop pass over `points` (packed xyz f32, as uploaded from [`Vec3`]s).

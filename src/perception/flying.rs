@@ -20,10 +20,18 @@
 //! Only pixels within `radius_m` of the HIP are tested (the caller passes the crop radius:
 //! nothing farther reaches the estimator), so the cost is a few neighbour tests per point near
 //! the HIP rather than per image pixel. Unorganized clouds have no neighbours and pass
-//! unchanged. The step runs on the CPU for both backends, so the GPU and CPU chains see the
-//! same points.
+//! unchanged.
+//!
+//! A frame that arrives as a depth image gets this test on the GPU, in the front end's first
+//! pass (`crop_depth` in `shaders/crop.wgsl`, beside deprojection and crop);
+//! [`veil_points`] is that pass's CPU reference up to the crop: deprojection in f64
+//! ([`DepthImage::deproject`]), this test on the camera-frame points, the camera's pose.
 
+use crate::camera::{DepthImage, PinholeIntrinsics};
+use crate::cloud::PointCloud;
+use crate::perception::crop::finite_bits;
 use glam::Vec3;
+use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 
 /// Settings of the flying-pixel rejection.
@@ -118,6 +126,70 @@ pub fn flying_pixels(
         }
     }
     flags
+}
+
+/// `cloud_from_camera` applied to every finite point (f64, then rounded to f32); invalid
+/// points stay as they are.
+pub fn to_world(points: &[Vec3], cloud_from_camera: &Isometry3<f64>) -> Vec<Vec3> {
+    points
+        .iter()
+        .map(|p| {
+            if !finite_bits(*p) {
+                return *p;
+            }
+            let q = cloud_from_camera * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+            Vec3::new(q.x as f32, q.y as f32, q.z as f32)
+        })
+        .collect()
+}
+
+/// The flying-pixel test and the pose on the CPU: the pixels of the organized `camera`
+/// cloud (camera frame) within `radius_m` of `near_cam` (camera frame) flagged, every point
+/// moved to the cloud frame with `cloud_from_camera`. Returns the cloud-frame points (NaN
+/// where invalid or flying) and the number of flying pixels.
+pub fn veil_cloud(
+    camera: &PointCloud,
+    cloud_from_camera: &Isometry3<f64>,
+    near_cam: Vec3,
+    radius_m: f32,
+    config: &FlyingPixelConfig,
+) -> (Vec<Vec3>, usize) {
+    let flags = flying_pixels(
+        &camera.points,
+        camera.width,
+        camera.height,
+        near_cam,
+        radius_m,
+        config,
+    );
+    let mut points = to_world(&camera.points, cloud_from_camera);
+    let mut flying = 0;
+    for (p, _) in points.iter_mut().zip(&flags).filter(|(_, f)| **f) {
+        *p = Vec3::NAN;
+        flying += 1;
+    }
+    (points, flying)
+}
+
+/// CPU reference of a depth frame's first pass before its crop: the image deprojected
+/// ([`DepthImage::deproject`], f64), then [`veil_cloud`]. `None` when the intrinsics' size is
+/// not the image's.
+pub fn veil_points(
+    image: &DepthImage,
+    intrinsics: &PinholeIntrinsics,
+    cloud_from_camera: &Isometry3<f64>,
+    near_cam: Vec3,
+    radius_m: f32,
+    config: &FlyingPixelConfig,
+) -> Option<(Vec<Vec3>, usize)> {
+    let camera = image.deproject(intrinsics)?;
+    Some(veil_cloud(
+        &camera,
+        cloud_from_camera,
+        near_cam,
+        radius_m,
+        config,
+    ))
 }
 
 #[cfg(test)]

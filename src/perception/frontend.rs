@@ -1,10 +1,13 @@
 //! The per-frame front end (paper IV-A to IV-C): crop -> voxel grid -> clustering.
 //!
-//! On the GPU ([`GpuFrontend`]) a frame is one command encoder and one submit: upload the
-//! points (all of them: dropping the invalid pixels first, 88 % of a simulated 848x480 D435
-//! frame, saved GPU time on lavapipe but cost more CPU time than it saved upload on an H100,
-//! measured with `stages_vs_pcl`), record the crop pass (keep mask), the voxel passes (read
-//! the mask; clears with `clear_buffer`), the cluster passes (read the voxel output and its
+//! On the GPU ([`GpuFrontend`]) a frame is one command encoder and one submit. A frame that
+//! comes as a depth image ([`FramePoints::Depth`]: 2 bytes per pixel, 0.8 MB at 848x480)
+//! is uploaded as such, and the first pass deprojects it, rejects flying pixels and crops
+//! ([`crate::perception::crop`]), writing the cloud-frame points on the GPU; a point cloud
+//! (PCD, PointCloud2) is uploaded as points (all of them: dropping the invalid pixels first
+//! saved GPU time on lavapipe but cost more CPU time than it saved upload on an H100) and
+//! the first pass crops it. Then the voxel passes (read the mask; clears with
+//! `clear_buffer`), the cluster passes (read the voxel output and its
 //! GPU-side count through an indirect dispatch), resolve the timestamp queries, and copy the
 //! stage results into one readback buffer, which is mapped once. Only when a bounded union-find pass of the
 //! clustering ran out of steps does the cluster stage add small submissions of its own
@@ -29,7 +32,10 @@ use crate::gpu::{Backend, GpuContext, GpuError};
 use crate::perception::cluster::{
     ClusterConfig, ClusterError, ClusterInput, Clustering, GpuClusterer, cluster_cpu,
 };
-use crate::perception::crop::{CropConfig, CropError, CropScene, GpuCrop, crop_cpu, mask_words};
+use crate::perception::crop::{
+    CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop, crop_cpu,
+    crop_depth_cpu, mask_words,
+};
 use crate::perception::voxel::{
     GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, voxel_cpu_with_leaf,
 };
@@ -64,26 +70,77 @@ pub enum FrontendError {
     Gpu(#[from] GpuError),
 }
 
-/// One frame's input: points in the cloud frame (NaN = invalid) and, when the crop runs,
-/// the HIP and the posed robot primitives.
+/// The points of a frame, as its source delivers them.
+#[derive(Clone, Copy, Debug)]
+pub enum FramePoints<'a> {
+    /// Points in the cloud frame, NaN = invalid (PCD and PLY files, PointCloud2).
+    Points(&'a [Vec3]),
+    /// A depth image with its camera and pose: the first pass deprojects it, rejects flying
+    /// pixels and crops ([`crop_depth_cpu`] is its reference).
+    Depth(DepthInput<'a>),
+}
+
+impl FramePoints<'_> {
+    /// Points (or pixels) of the frame.
+    pub fn len(&self) -> usize {
+        match self {
+            FramePoints::Points(p) => p.len(),
+            FramePoints::Depth(d) => d.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// One frame's input: its points and, when the crop runs, the HIP and the posed robot
+/// primitives.
 #[derive(Clone, Debug)]
 pub struct FrameInput<'a> {
-    pub points: &'a [Vec3],
-    /// `None` skips the crop (every finite point enters the voxel grid).
+    pub points: FramePoints<'a>,
+    /// `None` skips the crop (every finite point, and of a depth frame every valid pixel
+    /// that is not flying, enters the voxel grid).
     pub crop: Option<CropScene<'a>>,
-    /// Hand the crop's keep mask back ([`FrontendOutput::crop_keep`]), e.g. for an overlay
-    /// that draws the cropped points; off, the mask stays on the GPU.
+    /// Hand the crop's keep mask back ([`FrontendOutput::crop_keep`]) and, for a depth
+    /// frame, its cloud-frame points ([`FrontendOutput::points`]), e.g. for an overlay that
+    /// draws the cropped points; off, both stay on the GPU.
     pub want_crop_keep: bool,
+}
+
+impl FrameInput<'_> {
+    /// Whether the frame is cropped or deprojected: the first pass runs and writes a mask.
+    fn first_pass(&self) -> bool {
+        self.crop.is_some() || matches!(self.points, FramePoints::Depth(_))
+    }
+
+    fn wants_crop_keep(&self) -> bool {
+        self.want_crop_keep && self.first_pass()
+    }
+}
+
+/// A depth frame's counts from the first pass.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DepthCounts {
+    /// Pixels with a depth.
+    pub valid: usize,
+    /// Flying pixels rejected.
+    pub flying: usize,
 }
 
 /// What the front end hands on.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FrontendOutput {
     pub points_in: usize,
-    /// The crop's keep mask when the frame asked for it and was cropped: bit `i % 32` of
-    /// word `i / 32` is set when input point `i` survived the crop
+    /// The crop's keep mask when the frame asked for it and was cropped or deprojected: bit
+    /// `i % 32` of word `i / 32` is set when input point `i` survived
     /// ([`crate::perception::crop::mask_bit`]).
     pub crop_keep: Option<Vec<u32>>,
+    /// A depth frame's cloud-frame point per pixel (NaN: no depth or flying) when the frame
+    /// asked for the keep mask.
+    pub points: Option<Vec<Vec3>>,
+    /// A depth frame's counts.
+    pub depth: Option<DepthCounts>,
     /// Voxel grid of the cropped points (`valid_in` = points that survived the crop).
     pub voxel: VoxelOutput,
     /// Euclidean clusters of the voxel points (indices into `voxel.points`).
@@ -126,6 +183,23 @@ impl Frontend {
         }
     }
 
+    /// Sizes the GPU buffers for frames of up to `points` points or pixels
+    /// ([`GpuFrontend::reserve`]); nothing on the CPU.
+    pub fn reserve(&mut self, points: usize) -> Result<(), FrontendError> {
+        match self {
+            Frontend::Gpu(g) => g.reserve(points).map(|_| ()),
+            Frontend::Cpu(_) => Ok(()),
+        }
+    }
+
+    /// GPU memory the front end holds (GPU) or `None` (CPU).
+    pub fn gpu_bytes(&self) -> Option<u64> {
+        match self {
+            Frontend::Gpu(g) => Some(g.gpu_bytes()),
+            Frontend::Cpu(_) => None,
+        }
+    }
+
     /// The adapter name (GPU) or `None` (CPU).
     pub fn adapter(&self) -> Option<&str> {
         match self {
@@ -152,31 +226,48 @@ impl CpuFrontend {
 
     pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
         let start = Instant::now();
-        let mask = match &frame.crop {
-            Some(scene) => Some(crop_cpu(frame.points, &self.config.crop, scene)?),
-            None => None,
+        let (depth_points, mask, depth) = match &frame.points {
+            FramePoints::Points(points) => match &frame.crop {
+                Some(scene) => (
+                    None,
+                    Some(crop_cpu(points, &self.config.crop, scene)?),
+                    None,
+                ),
+                None => (None, None, None),
+            },
+            FramePoints::Depth(input) => {
+                let c = crop_depth_cpu(input, &self.config.crop, frame.crop.as_ref())?;
+                let counts = DepthCounts {
+                    valid: c.valid,
+                    flying: c.flying,
+                };
+                (Some(c.points), Some(c.mask), Some(counts))
+            }
+        };
+        let points: &[Vec3] = match &frame.points {
+            FramePoints::Points(p) => p,
+            FramePoints::Depth(_) => depth_points.as_deref().unwrap_or_default(),
         };
         let voxel = voxel_cpu_with_leaf(
-            frame.points,
+            points,
             mask.as_deref(),
             &self.config.voxel,
             self.leaf.leaf_m,
         )?;
         self.leaf.update(&self.config.voxel, voxel.points.len());
         let clusters = cluster_cpu(&voxel.points, &self.config.cluster)?;
+        let keep = frame.wants_crop_keep();
         Ok(FrontendOutput {
             points_in: frame.points.len(),
-            crop_keep: mask.filter(|_| frame.want_crop_keep),
+            crop_keep: mask.filter(|_| keep),
+            points: depth_points.filter(|_| keep),
+            depth,
             voxel,
             clusters,
             gpu_times: Vec::new(),
             wall_ms: start.elapsed().as_secs_f64() * 1e3,
         })
     }
-}
-
-fn wants_crop_keep(frame: &FrameInput<'_>) -> bool {
-    frame.want_crop_keep && frame.crop.is_some()
 }
 
 /// The front end's own timed pass (the voxel and cluster stages time their passes
@@ -212,8 +303,10 @@ fn make_buffer(
     })
 }
 
-const INPUT_USAGE: wgpu::BufferUsages =
-    wgpu::BufferUsages::STORAGE.union(wgpu::BufferUsages::COPY_DST);
+/// Written by an upload (points) or by the depth pass; read back for a depth frame's layers.
+const INPUT_USAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+    .union(wgpu::BufferUsages::COPY_DST)
+    .union(wgpu::BufferUsages::COPY_SRC);
 const READBACK_USAGE: wgpu::BufferUsages =
     wgpu::BufferUsages::MAP_READ.union(wgpu::BufferUsages::COPY_DST);
 
@@ -257,6 +350,57 @@ impl GpuFrontend {
         }
     }
 
+    /// Sizes every per-frame buffer for frames of up to `points` points (or pixels), so that
+    /// no such frame allocates (bigger voxel tables after an overflow excepted). Returns the
+    /// bytes of GPU memory the front end holds.
+    pub fn reserve(&mut self, points: usize) -> Result<u64, FrontendError> {
+        let ctx = Arc::clone(&self.ctx);
+        let input_bytes = 12 * points as u64;
+        ctx.check_storage_size("frontend input points", input_bytes)?;
+        if self.input.size() < input_bytes {
+            self.input = make_buffer(&ctx, "frontend input points", input_bytes, INPUT_USAGE)?;
+        }
+        self.crop.reserve(&ctx, points)?;
+        self.voxel
+            .prepare(&ctx, points, true, &self.config.voxel, self.leaf.leaf_m)?;
+        let capacity = self.voxel.table_slots();
+        self.cluster.reserve(&ctx, capacity, &self.config.cluster)?;
+        // The largest readback: timestamps, voxel and cluster results, keep mask, points.
+        let needed = self.readback_layout(points, capacity, true, true).end;
+        if self.readback.size() < needed {
+            self.readback = make_buffer(&ctx, "frontend readback", needed, READBACK_USAGE)?;
+        }
+        Ok(self.gpu_bytes())
+    }
+
+    /// Bytes of GPU memory the front end's buffers hold now.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.input.size()
+            + self.crop.gpu_bytes()
+            + self.voxel.gpu_bytes()
+            + self.cluster.gpu_bytes()
+            + self.readback.size()
+    }
+
+    /// Offsets in the readback buffer for a frame of `n` points.
+    fn readback_layout(&self, n: usize, capacity: u32, keep: bool, points: bool) -> Readback {
+        let ts = self.timer.as_ref().map_or(0, |t| t.readback_bytes());
+        let cluster = ts + self.voxel.readback_bytes();
+        let keep_at = cluster + self.cluster.readback_bytes(capacity);
+        let keep_bytes = if keep { 4 * mask_words(n) as u64 } else { 0 };
+        let points_at = keep_at + keep_bytes;
+        let points_bytes = if points { 12 * n as u64 } else { 0 };
+        let counts_at = points_at + points_bytes;
+        Readback {
+            voxel: ts,
+            cluster,
+            keep: keep_at,
+            points: points_at,
+            counts: counts_at,
+            end: counts_at + DEPTH_COUNT_BYTES,
+        }
+    }
+
     pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
         let start = Instant::now();
         let ctx = Arc::clone(&self.ctx);
@@ -266,34 +410,37 @@ impl GpuFrontend {
         if self.input.size() < input_bytes {
             self.input = make_buffer(&ctx, "frontend input points", input_bytes, INPUT_USAGE)?;
         }
-        if n > 0 {
-            ctx.queue()
-                .write_buffer(&self.input, 0, bytemuck::cast_slice(frame.points));
-        }
-        if let Some(scene) = &frame.crop {
-            self.crop.prepare(&ctx, n, &self.config.crop, scene)?;
-        }
+        let depth = match &frame.points {
+            FramePoints::Points(points) => {
+                if n > 0 {
+                    ctx.queue()
+                        .write_buffer(&self.input, 0, bytemuck::cast_slice(points));
+                }
+                if let Some(scene) = &frame.crop {
+                    self.crop.prepare(&ctx, n, &self.config.crop, scene)?;
+                }
+                false
+            }
+            FramePoints::Depth(input) => {
+                self.crop
+                    .prepare_depth(&ctx, input, &self.config.crop, frame.crop.as_ref())?;
+                true
+            }
+        };
+        let first_pass = frame.first_pass();
+        let keep = frame.wants_crop_keep();
         let leaf_m = self.leaf.leaf_m;
         self.voxel
-            .prepare(&ctx, n, frame.crop.is_some(), &self.config.voxel, leaf_m)?;
+            .prepare(&ctx, n, first_pass, &self.config.voxel, leaf_m)?;
         let mut retries = 0;
-        let (mut voxel, mut gpu_times, cluster_bytes, keep) = loop {
-            let ts_bytes = self.timer.as_ref().map_or(0, |t| t.readback_bytes());
+        let (mut voxel, mut gpu_times, cluster_bytes, keep_mask, points, counts) = loop {
             // The cluster stage reads the voxel output in place: its capacity is the voxel
             // table's, its point count the header's `out_count`, known only on the GPU.
             let capacity = self.voxel.table_slots();
             self.cluster.reserve(&ctx, capacity, &self.config.cluster)?;
-            let voxel_bytes = self.voxel.readback_bytes();
-            let cluster_bytes = self.cluster.readback_bytes(capacity);
-            let keep_at = ts_bytes + voxel_bytes + cluster_bytes;
-            let keep_bytes = if wants_crop_keep(frame) {
-                4 * mask_words(n) as u64
-            } else {
-                0
-            };
-            let needed = keep_at + keep_bytes;
-            if self.readback.size() < needed {
-                self.readback = make_buffer(&ctx, "frontend readback", needed, READBACK_USAGE)?;
+            let at = self.readback_layout(n, capacity, keep, keep && depth);
+            if self.readback.size() < at.end {
+                self.readback = make_buffer(&ctx, "frontend readback", at.end, READBACK_USAGE)?;
             }
             let mut encoder =
                 ctx.device()
@@ -301,10 +448,13 @@ impl GpuFrontend {
                         label: Some("frontend frame"),
                     });
             let writes = |i: usize| self.timer.as_ref().map(|t| t.pass_writes(i));
-            if frame.crop.is_some() {
+            if depth {
+                self.crop
+                    .record_depth(&ctx, &mut encoder, &self.input, writes(0));
+            } else if frame.crop.is_some() {
                 self.crop.record(&ctx, &mut encoder, &self.input, writes(0));
             }
-            let mask = frame.crop.as_ref().map(|_| self.crop.mask());
+            let mask = first_pass.then(|| self.crop.mask());
             self.voxel.record(&ctx, &mut encoder, &self.input, mask);
             self.cluster
                 .encode(&ctx, &mut encoder, &self.cluster_input())?;
@@ -312,44 +462,58 @@ impl GpuFrontend {
                 t.resolve_into(&mut encoder, &self.readback, 0);
             }
             self.voxel
-                .copy_results(&mut encoder, &self.readback, ts_bytes);
-            self.cluster.encode_readback(
-                &mut encoder,
-                &self.readback,
-                ts_bytes + voxel_bytes,
-                capacity,
-            );
-            if keep_bytes > 0 {
+                .copy_results(&mut encoder, &self.readback, at.voxel);
+            self.cluster
+                .encode_readback(&mut encoder, &self.readback, at.cluster, capacity);
+            for (buffer, from, bytes) in [
+                (self.crop.mask(), at.keep, at.points - at.keep),
+                (&self.input, at.points, at.counts - at.points),
+            ] {
+                if bytes > 0 {
+                    encoder.copy_buffer_to_buffer(buffer, 0, &self.readback, from, bytes);
+                }
+            }
+            if depth {
                 encoder.copy_buffer_to_buffer(
-                    self.crop.mask(),
+                    self.crop.depth_counts(),
                     0,
                     &self.readback,
-                    keep_at,
-                    keep_bytes,
+                    at.counts,
+                    DEPTH_COUNT_BYTES,
                 );
             }
-            let ts = ts_bytes as usize;
-            let cluster_at = (ts_bytes + voxel_bytes) as usize;
-            let keep_at = keep_at as usize;
-            let (voxel, times, cluster_bytes, keep) = {
+            let r = |a: u64, b: u64| a as usize..b as usize;
+            let result = {
                 let voxel = &mut self.voxel;
                 let timer = self.timer.as_ref();
                 let config = &self.config.voxel;
                 ctx.submit_and_read("frontend frame", encoder.finish(), &self.readback, |b| {
-                    let times = timer.map(|t| t.read(&b[..ts])).unwrap_or_default();
-                    let voxel = voxel.decode(&ctx, &b[ts..cluster_at], config, leaf_m);
-                    let keep: Vec<u32> =
-                        bytemuck::pod_collect_to_vec(&b[keep_at..keep_at + keep_bytes as usize]);
-                    (voxel, times, b[cluster_at..keep_at].to_vec(), keep)
+                    let times = timer
+                        .map(|t| t.read(&b[..at.voxel as usize]))
+                        .unwrap_or_default();
+                    let voxel = voxel.decode(&ctx, &b[r(at.voxel, at.cluster)], config, leaf_m);
+                    let keep: Vec<u32> = bytemuck::pod_collect_to_vec(&b[r(at.keep, at.points)]);
+                    let points: Vec<Vec3> =
+                        bytemuck::pod_collect_to_vec(&b[r(at.points, at.counts)]);
+                    let counts: [u32; 2] = bytemuck::pod_read_unaligned(&b[r(at.counts, at.end)]);
+                    (
+                        voxel,
+                        times,
+                        b[r(at.cluster, at.keep)].to_vec(),
+                        keep,
+                        points,
+                        counts,
+                    )
                 })?
             };
+            let (voxel, times, cluster_bytes, keep_mask, points, counts) = result;
             if let Some((v, voxel_times)) = voxel? {
                 let times = times
                     .into_iter()
-                    .filter(|_| frame.crop.is_some())
+                    .filter(|_| first_pass)
                     .chain(voxel_times)
                     .collect::<Vec<_>>();
-                break (v, times, cluster_bytes, keep);
+                break (v, times, cluster_bytes, keep_mask, points, counts);
             }
             retries += 1;
         };
@@ -364,8 +528,13 @@ impl GpuFrontend {
         gpu_times.extend(cluster_stats.gpu_times);
         self.leaf.update(&self.config.voxel, voxel.points.len());
         Ok(FrontendOutput {
-            points_in: frame.points.len(),
-            crop_keep: wants_crop_keep(frame).then_some(keep),
+            points_in: n,
+            crop_keep: keep.then_some(keep_mask),
+            points: (keep && depth).then_some(points),
+            depth: depth.then_some(DepthCounts {
+                valid: counts[0] as usize,
+                flying: counts[1] as usize,
+            }),
             voxel,
             clusters,
             gpu_times,
@@ -374,10 +543,22 @@ impl GpuFrontend {
     }
 }
 
+/// Byte offsets of one frame's results in the front end's readback buffer.
+struct Readback {
+    voxel: u64,
+    cluster: u64,
+    keep: u64,
+    points: u64,
+    counts: u64,
+    end: u64,
+}
+
 /// Which backend runs the front end faster on this machine, and the measurements behind it.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct BackendChoice {
     pub backend: Backend,
+    /// Frames measured on each backend.
+    pub frames: usize,
     /// Median wall time per frame of the CPU front end (ms).
     pub cpu_ms: f64,
     /// Median wall time per frame of the GPU front end (ms), `None` without a usable GPU.
@@ -386,24 +567,42 @@ pub struct BackendChoice {
     pub gpu_error: Option<String>,
 }
 
+impl BackendChoice {
+    /// One line: the choice and the times behind it.
+    pub fn describe(&self) -> String {
+        let gpu = match (&self.gpu_ms, &self.gpu_error) {
+            (Some(ms), _) => format!("{ms:.2} ms"),
+            (None, Some(e)) => format!("not measured ({e})"),
+            (None, None) => "not measured".to_string(),
+        };
+        format!(
+            " (picked by speed on {} frames: front end cpu {:.2} ms, gpu {gpu} per frame)",
+            self.frames, self.cpu_ms
+        )
+    }
+}
+
 fn median_ms(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v.get(v.len() / 2).copied().unwrap_or(f64::INFINITY)
 }
 
 /// Picks the backend by speed, not by adapter type: both front ends (fresh ones, so the
-/// caller's state is untouched) process `frames` (typically the first frames of a camera),
-/// the GPU once more first as warm-up (shader compilation, buffer growth), and the backend
-/// with the lower median wall time per frame wins (upload, submission, wait and readback
-/// included: what the caller waits for). A tie goes to the GPU, which leaves the CPU cores
-/// to the control loop. Without a GPU, or when it fails, the CPU is chosen and
-/// `gpu_error` says why. An empty `frames` cannot be measured and chooses the CPU.
+/// caller's state is untouched) process the same frames (typically the first frames of a
+/// camera), each in the form its path takes them (`cpu_frames`, `gpu_frames`: a depth
+/// frame's cloud on the CPU, its image on the GPU), the GPU once more first as warm-up
+/// (shader compilation, buffer growth), and the backend with the lower median wall time per
+/// frame wins (upload, submission, wait and readback included: what the caller waits for). A
+/// tie goes to the GPU, which leaves the CPU cores to the control loop. Without a GPU, or when
+/// it fails, the CPU is chosen and `gpu_error` says why. No frames, or two lists of different
+/// lengths, cannot be compared and choose the CPU.
 pub fn choose_backend(
     config: &FrontendConfig,
     ctx: Option<Arc<GpuContext>>,
-    frames: &[FrameInput<'_>],
+    cpu_frames: &[FrameInput<'_>],
+    gpu_frames: &[FrameInput<'_>],
 ) -> Result<BackendChoice, FrontendError> {
-    let time = |front: &mut Frontend| -> Result<f64, FrontendError> {
+    let time = |front: &mut Frontend, frames: &[FrameInput<'_>]| -> Result<f64, FrontendError> {
         let times = frames
             .iter()
             .map(|f| {
@@ -415,16 +614,27 @@ pub fn choose_backend(
             .collect::<Result<Vec<_>, _>>()?;
         Ok(median_ms(times))
     };
-    let cpu_ms = time(&mut Frontend::new(Backend::Cpu, config.clone(), None)?)?;
+    let cpu_ms = time(
+        &mut Frontend::new(Backend::Cpu, config.clone(), None)?,
+        cpu_frames,
+    )?;
+    let comparable = !cpu_frames.is_empty() && cpu_frames.len() == gpu_frames.len();
     let gpu = Frontend::new(Backend::Gpu, config.clone(), ctx).and_then(|mut front| {
-        for f in frames {
+        for f in gpu_frames {
             front.process(f)?;
         }
-        time(&mut front)
+        time(&mut front, gpu_frames)
     });
     let (gpu_ms, gpu_error) = match gpu {
-        Ok(ms) if !frames.is_empty() => (Some(ms), None),
-        Ok(_) => (None, Some("no frames to measure".to_string())),
+        Ok(ms) if comparable => (Some(ms), None),
+        Ok(_) => (
+            None,
+            Some(format!(
+                "{} CPU and {} GPU frames cannot be compared",
+                cpu_frames.len(),
+                gpu_frames.len()
+            )),
+        ),
         // A bad config fails on the CPU above already; what is left is the GPU's.
         Err(e) => (None, Some(e.to_string())),
     };
@@ -434,6 +644,7 @@ pub fn choose_backend(
     };
     Ok(BackendChoice {
         backend,
+        frames: cpu_frames.len(),
         cpu_ms,
         gpu_ms,
         gpu_error,
@@ -443,10 +654,239 @@ pub fn choose_backend(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::camera::PinholeIntrinsics;
     use crate::geometry::Primitive;
-    use crate::perception::test_data::synthetic_frame;
+    use crate::perception::crop::{DEPTH_POINT_TOLERANCE, finite_bits, mask_bit};
+    use crate::perception::flying::FlyingPixelConfig;
+    use crate::perception::test_data::{synthetic_depth, synthetic_frame};
     use crate::perception::voxel::tests::assert_same;
-    use nalgebra::Point3;
+    use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
+
+    /// Whether pixel `i`'s flying-pixel decision lies within f32 rounding of its threshold:
+    /// the smallest sin^2 of a neighbour segment's angle to the ray (f64, from the f64
+    /// deprojection) within 5 % of the limit.
+    fn flying_near_threshold(
+        cam: &[nalgebra::Vector3<f64>],
+        w: usize,
+        i: usize,
+        sin2: f64,
+    ) -> bool {
+        let (u, v) = ((i % w) as i64, (i / w) as i64);
+        let p = cam[i];
+        let h = (cam.len() / w) as i64;
+        let mut best = f64::INFINITY;
+        for y in (v - 1).max(0)..(v + 2).min(h) {
+            for x in (u - 1).max(0)..(u + 2).min(w as i64) {
+                let q = cam[(y * w as i64 + x) as usize];
+                let d = q - p;
+                if !q.iter().all(|c| c.is_finite()) || d.norm_squared() == 0.0 {
+                    continue;
+                }
+                best = best.min(d.cross(&p).norm_squared() / (d.norm_squared() * p.norm_squared()));
+            }
+        }
+        (best / sin2 - 1.0).abs() < 0.05
+    }
+
+    #[test]
+    fn gpu_depth_frames_match_the_cpu_reference_within_the_stated_tolerance() {
+        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
+        let config = FrontendConfig {
+            crop: CropConfig {
+                radius_m: 0.5,
+                ..CropConfig::default()
+            },
+            ..FrontendConfig::default()
+        };
+        let pose = Isometry3::from_parts(
+            Translation3::new(0.3, -0.2, 1.1),
+            UnitQuaternion::from_euler_angles(0.4, -0.3, 1.2),
+        );
+        let k = PinholeIntrinsics::PCL_GRABBER;
+        let flying = FlyingPixelConfig::default();
+        // HIP 5 cm in front of the synthetic frame's sphere, a robot link beside it.
+        let hip = pose * Point3::new(0.05, -0.05, 0.76);
+        let robot = [Primitive::Capsule {
+            a_m: pose * Point3::new(-0.05, 0.05, 0.8),
+            b_m: pose * Point3::new(0.1, 0.1, 0.85),
+            radius_m: 0.03,
+        }];
+        let scene = CropScene {
+            hip_m: hip,
+            robot: &robot,
+            camera_m: None,
+        };
+        let mut gpu = Frontend::new(Backend::Gpu, config.clone(), Some(ctx)).unwrap();
+        let mut cpu = Frontend::new(Backend::Cpu, config.clone(), None).unwrap();
+        let sin2 = flying.min_ray_angle_rad.sin().powi(2);
+        let t = pose.translation.vector.norm() as f32;
+        for seed in 0..2 {
+            let image = synthetic_depth(seed);
+            let frame = FrameInput {
+                points: FramePoints::Depth(DepthInput {
+                    image: &image,
+                    intrinsics: &k,
+                    cloud_from_camera: pose,
+                    flying: &flying,
+                }),
+                crop: Some(scene.clone()),
+                want_crop_keep: true,
+            };
+            let g = gpu.process(&frame).unwrap();
+            let c = cpu.process(&frame).unwrap();
+            let (gd, cd) = (g.depth.unwrap(), c.depth.unwrap());
+            // Whether a pixel has a depth is an integer test: exact.
+            assert_eq!(gd.valid, cd.valid);
+            assert!(cd.valid > 250_000, "{cd:?}");
+            // The sphere's rim against the wall and the table's edge are depth edges.
+            assert!(cd.flying > 50, "{cd:?}");
+            let (gp, cp) = (g.points.unwrap(), c.points.unwrap());
+            let (gk, ck) = (g.crop_keep.unwrap(), c.crop_keep.unwrap());
+            assert_eq!((gp.len(), cp.len()), (image.data.len(), image.data.len()));
+            let cam: Vec<nalgebra::Vector3<f64>> = image
+                .data
+                .iter()
+                .enumerate()
+                .map(|(i, &raw)| {
+                    let z = if raw == 0 {
+                        f64::NAN
+                    } else {
+                        f64::from(raw) * 1e-3
+                    };
+                    let (u, v) = ((i % 640) as f64, (i / 640) as f64);
+                    nalgebra::Vector3::new((u - k.cx) * z / k.fx, (v - k.cy) * z / k.fy, z)
+                })
+                .collect();
+            let (mut worst, mut differing) = (0f32, 0);
+            for i in 0..gp.len() {
+                let (a, b) = (gp[i], cp[i]);
+                let scale = cam[i].norm() as f32 + t + 1.0;
+                if finite_bits(a) && finite_bits(b) {
+                    let err = (a - b).abs().max_element();
+                    assert!(
+                        err <= DEPTH_POINT_TOLERANCE * scale,
+                        "pixel {i}: {a} vs {b}"
+                    );
+                    worst = worst.max(err / scale);
+                }
+                if finite_bits(a) != finite_bits(b) || mask_bit(&gk, i) != mask_bit(&ck, i) {
+                    differing += 1;
+                    let q = Point3::new(f64::from(b.x), f64::from(b.y), f64::from(b.z));
+                    let near_crop = finite_bits(a) == finite_bits(b)
+                        && (((q - hip).norm() - 0.5).abs() < 1e-5
+                            || robot[0]
+                                .grown(config.crop.robot_margin_m)
+                                .signed_distance(&q)
+                                .abs()
+                                < 1e-5);
+                    assert!(
+                        near_crop || flying_near_threshold(&cam, 640, i, sin2),
+                        "pixel {i}: GPU {a} (kept {}), CPU {b} (kept {})",
+                        mask_bit(&gk, i),
+                        mask_bit(&ck, i)
+                    );
+                }
+            }
+            eprintln!(
+                "seed {seed}: worst GPU deprojection error {worst:e} m per m, {differing} pixels decided differently at a threshold"
+            );
+            assert!(differing <= 20, "{differing}");
+            assert!(gd.flying.abs_diff(cd.flying) <= differing);
+            // Downstream the voxel means move by the points' rounding; a cell flips only for
+            // a point within that rounding of a cell face.
+            let (gn, cn) = (g.voxel.points.len(), c.voxel.points.len());
+            assert!(
+                cn > 1000 && gn.abs_diff(cn) <= cn / 200,
+                "{gn} vs {cn} voxels"
+            );
+            assert_eq!(g.clusters.clusters.len(), c.clusters.clusters.len());
+        }
+    }
+
+    #[test]
+    fn odd_sized_depth_images_without_a_crop_keep_every_valid_pixel() {
+        let k = PinholeIntrinsics {
+            width: 5,
+            height: 3,
+            fx: 4.0,
+            fy: 4.0,
+            cx: 2.0,
+            cy: 1.0,
+        };
+        let image = crate::camera::DepthImage {
+            width: 5,
+            height: 3,
+            depth_scale_m: 0.001,
+            data: vec![
+                1000, 0, 1001, 999, 1000, 1000, 1002, 0, 1000, 998, 1000, 1001, 1000, 999, 1003,
+            ],
+        };
+        let flying = FlyingPixelConfig::default();
+        let frame = FrameInput {
+            points: FramePoints::Depth(DepthInput {
+                image: &image,
+                intrinsics: &k,
+                cloud_from_camera: Isometry3::translation(0.1, 0.0, -0.2),
+                flying: &flying,
+            }),
+            crop: None,
+            want_crop_keep: true,
+        };
+        let config = FrontendConfig::default();
+        let g = Frontend::new(Backend::Gpu, config.clone(), None)
+            .unwrap()
+            .process(&frame)
+            .unwrap();
+        let c = Frontend::new(Backend::Cpu, config, None)
+            .unwrap()
+            .process(&frame)
+            .unwrap();
+        // A flat wall: no flying pixel; the last (odd) pixel is read from its half word.
+        assert_eq!(
+            c.depth,
+            Some(DepthCounts {
+                valid: 13,
+                flying: 0
+            })
+        );
+        assert_eq!(g.depth, c.depth);
+        assert_eq!(g.crop_keep, c.crop_keep);
+        assert_eq!(c.crop_keep, Some(vec![0b111_1111_0111_1101]));
+        let (gp, cp) = (g.points.unwrap(), c.points.unwrap());
+        for (a, b) in gp.iter().zip(&cp) {
+            assert_eq!(finite_bits(*a), finite_bits(*b));
+            if finite_bits(*a) {
+                assert!((*a - *b).abs().max_element() <= DEPTH_POINT_TOLERANCE * 2.5);
+            }
+        }
+        assert!((cp[14].z - 0.803).abs() < 1e-6, "{}", cp[14]);
+        // A bad image is a clear error on both backends.
+        let short = crate::camera::DepthImage {
+            data: vec![1000; 14],
+            ..image.clone()
+        };
+        let bad = FrameInput {
+            points: FramePoints::Depth(DepthInput {
+                image: &short,
+                intrinsics: &k,
+                cloud_from_camera: Isometry3::identity(),
+                flying: &flying,
+            }),
+            crop: None,
+            want_crop_keep: false,
+        };
+        for backend in [Backend::Gpu, Backend::Cpu] {
+            let e = Frontend::new(backend, FrontendConfig::default(), None)
+                .unwrap()
+                .process(&bad)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("depth frame: 5 x 3 image holds 14 pixels"),
+                "{e}"
+            );
+        }
+    }
 
     #[test]
     fn gpu_frontend_equals_cpu_frontend_over_frames_with_leaf_adaptation() {
@@ -476,7 +916,7 @@ mod tests {
         for seed in 0..4 {
             let points = synthetic_frame(seed);
             let frame = FrameInput {
-                points: &points,
+                points: FramePoints::Points(&points),
                 crop: Some(CropScene {
                     hip_m: Point3::new(0.05, 0.0, 0.85),
                     robot: &robot,
@@ -531,12 +971,12 @@ mod tests {
     fn backend_choice_measures_both_and_picks_the_faster() {
         let points = synthetic_frame(5);
         let frames = [FrameInput {
-            points: &points,
+            points: FramePoints::Points(&points),
             crop: None,
             want_crop_keep: false,
         }];
         let config = FrontendConfig::default();
-        let choice = choose_backend(&config, None, &frames).unwrap();
+        let choice = choose_backend(&config, None, &frames, &frames).unwrap();
         let gpu_ms = choice.gpu_ms.expect("GPU tests need Vulkan");
         assert!(choice.cpu_ms > 0.0 && gpu_ms > 0.0);
         let faster = if gpu_ms <= choice.cpu_ms {
@@ -545,8 +985,11 @@ mod tests {
             Backend::Cpu
         };
         assert_eq!(choice.backend, faster);
-        let none = choose_backend(&config, None, &[]).unwrap();
+        let none = choose_backend(&config, None, &[], &[]).unwrap();
         assert_eq!((none.backend, none.gpu_ms), (Backend::Cpu, None));
+        let uneven = choose_backend(&config, None, &frames, &[]).unwrap();
+        assert_eq!((uneven.backend, uneven.gpu_ms), (Backend::Cpu, None));
+        assert!(uneven.gpu_error.unwrap().contains("1 CPU and 0 GPU frames"));
     }
 
     #[test]
@@ -554,7 +997,7 @@ mod tests {
         let mut gpu = Frontend::new(Backend::Gpu, FrontendConfig::default(), None).unwrap();
         let empty = gpu
             .process(&FrameInput {
-                points: &[],
+                points: FramePoints::Points(&[]),
                 crop: None,
                 want_crop_keep: true,
             })
@@ -564,7 +1007,7 @@ mod tests {
         let points = synthetic_frame(2);
         let out = gpu
             .process(&FrameInput {
-                points: &points,
+                points: FramePoints::Points(&points),
                 crop: None,
                 want_crop_keep: true,
             })

@@ -6,8 +6,14 @@
 //!
 //! 1. the frame's points to the world frame with the pose the camera reports (the HIP, the
 //!    robot primitives and the surface memory live there),
-//! 2. flying-pixel rejection on the organized image ([`super::flying`], CPU for both
-//!    backends): points hanging between a foreground and a background surface go,
+//! 2. flying-pixel rejection on the organized image ([`super::flying`]): points hanging
+//!    between a foreground and a background surface go. On the GPU a frame that carries its
+//!    depth image skips steps 1 and 2 here: the image itself is the front end's input, and
+//!    its first pass deprojects, moves, tests and crops every pixel
+//!    ([`super::crop::DepthInput`]). For a real source the cloud is the image's
+//!    deprojection, so both paths see the same points (to the f32 deprojection's rounding);
+//!    the simulator's cloud is its unquantised depth and its image the 1 mm one a D435
+//!    delivers, so in simulation the two paths differ by that quantisation,
 //! 3. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
 //!    the robot primitives, voxel grid, Euclidean clusters (paper IV-A to IV-C); the points of
 //!    the clusters the [`ClusterSelection`] picks go on (clusters below the size threshold are
@@ -33,9 +39,12 @@
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
 
 use super::cluster::Clustering;
-use super::crop::finite_bits;
-use super::flying::{FlyingPixelConfig, FlyingPixelConfigError, flying_pixels};
-use super::frontend::{FrameInput, Frontend, FrontendConfig, FrontendError, FrontendOutput};
+use super::crop::DepthInput;
+pub use super::flying::to_world;
+use super::flying::{FlyingPixelConfig, FlyingPixelConfigError, veil_cloud};
+use super::frontend::{
+    FrameInput, FramePoints, Frontend, FrontendConfig, FrontendError, FrontendOutput,
+};
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
 use super::outliers::{OutlierConfig, OutlierConfigError, remove_isolated};
 use super::shells::{
@@ -48,7 +57,7 @@ use crate::gpu::{Backend, GpuContext, GpuError};
 use crate::surface::SurfaceEstimate;
 use crate::timing::{SpanTime, Stopwatch};
 use glam::Vec3;
-use nalgebra::{Isometry3, Point3};
+use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -279,7 +288,9 @@ pub struct ChainFrame {
     pub camera_id: u32,
     pub stamp_s: f64,
     /// The frame's points in the world frame, in the frame's order (invalid points and
-    /// rejected flying pixels are NaN): the front end's input.
+    /// rejected flying pixels are NaN). Empty when the frame entered the GPU as a depth
+    /// image and the crop keep mask was not asked for ([`CameraChain::set_crop_keep`]): the
+    /// points then stay on the GPU.
     pub world_points: Vec<Vec3>,
     /// Flying pixels rejected this frame (set to NaN in `world_points`).
     pub flying_pixels: usize,
@@ -301,20 +312,6 @@ impl ChainFrame {
     }
 }
 
-/// `world_from_camera` applied to every finite point; invalid points stay as they are.
-pub fn to_world(points: &[Vec3], world_from_camera: &Isometry3<f64>) -> Vec<Vec3> {
-    points
-        .iter()
-        .map(|p| {
-            if !finite_bits(*p) {
-                return *p;
-            }
-            let q = world_from_camera * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-            Vec3::new(q.x as f32, q.y as f32, q.z as f32)
-        })
-        .collect()
-}
-
 /// The per-camera chain of a node (paper Fig. 3, one camera's column) for any number of
 /// cameras: one front end (its stages and buffers built once; it keeps no per-camera state
 /// beyond the adapted voxel leaf) and one [`SurfaceEstimator`] per camera id, created at the
@@ -327,6 +324,8 @@ pub struct CameraChain {
     estimators: BTreeMap<u32, SurfaceEstimator>,
     gpu_fallback: Option<String>,
     want_crop_keep: bool,
+    /// Frame size the front end's buffers are sized for.
+    reserved_points: usize,
 }
 
 impl CameraChain {
@@ -353,6 +352,7 @@ impl CameraChain {
             estimators: BTreeMap::new(),
             gpu_fallback: None,
             want_crop_keep: false,
+            reserved_points: 0,
         })
     }
 
@@ -373,6 +373,12 @@ impl CameraChain {
     /// The GPU adapter's name (GPU backend) or `None`.
     pub fn adapter(&self) -> Option<&str> {
         self.frontend.adapter()
+    }
+
+    /// GPU memory the front end holds (GPU backend): sized once for the largest frame seen
+    /// (a bigger voxel table after an overflow excepted).
+    pub fn gpu_buffer_bytes(&self) -> Option<u64> {
+        self.frontend.gpu_bytes()
     }
 
     /// Whether each [`ChainFrame`] carries the crop's keep mask over `world_points`
@@ -421,23 +427,41 @@ impl CameraChain {
         robot: &[Primitive],
     ) -> Result<ChainFrame, ChainError> {
         let pose = frame.world_from_camera;
-        let mut world_points = to_world(&frame.cloud.points, &pose);
-        let hip_cam = pose.inverse() * hip_world;
-        let flags = flying_pixels(
-            &frame.cloud.points,
-            frame.cloud.width,
-            frame.cloud.height,
-            Vec3::new(hip_cam.x as f32, hip_cam.y as f32, hip_cam.z as f32),
-            self.frontend_config.crop.radius_m as f32,
-            &self.surface_config.flying_pixels,
-        );
-        let mut flying = 0;
-        for (p, _) in world_points.iter_mut().zip(&flags).filter(|(_, f)| **f) {
-            *p = Vec3::NAN;
-            flying += 1;
-        }
+        // On the GPU a frame that carries its depth image enters as the image: the first
+        // pass deprojects it, rejects flying pixels and crops. Otherwise (CPU, or a source
+        // without an image) the cloud goes to the world frame and through the veil test here.
+        let flying_config = self.surface_config.flying_pixels.clone();
+        let depth = match (&self.ctx, &frame.depth) {
+            (Some(_), Some((image, intrinsics)))
+                if (intrinsics.width, intrinsics.height) == (image.width, image.height) =>
+            {
+                Some(DepthInput {
+                    image,
+                    intrinsics,
+                    cloud_from_camera: pose,
+                    flying: &flying_config,
+                })
+            }
+            _ => None,
+        };
+        let (mut world_points, mut flying) = match depth {
+            Some(_) => (Vec::new(), 0),
+            None => {
+                let hip_cam = pose.inverse() * hip_world;
+                veil_cloud(
+                    &frame.cloud,
+                    &pose,
+                    Vec3::new(hip_cam.x as f32, hip_cam.y as f32, hip_cam.z as f32),
+                    self.frontend_config.crop.radius_m as f32,
+                    &flying_config,
+                )
+            }
+        };
         let input = FrameInput {
-            points: &world_points,
+            points: match depth {
+                Some(d) => FramePoints::Depth(d),
+                None => FramePoints::Points(&world_points),
+            },
             crop: Some(super::crop::CropScene {
                 hip_m: *hip_world,
                 robot,
@@ -446,7 +470,15 @@ impl CameraChain {
             want_crop_keep: self.want_crop_keep,
         };
         let watch = Stopwatch::start();
-        let front = match self.frontend.process(&input) {
+        if input.points.len() > self.reserved_points {
+            // Every buffer for a frame this size (layers and points readback included), once;
+            // an error other than the GPU's is the frame's and comes from `process` below.
+            self.reserved_points = input.points.len();
+            if let Err(FrontendError::Gpu(e)) = self.frontend.reserve(self.reserved_points) {
+                self.fall_back(e.to_string())?;
+            }
+        }
+        let mut front = match self.frontend.process(&input) {
             Ok(o) => o,
             Err(FrontendError::Gpu(e)) => {
                 self.fall_back(e.to_string())?;
@@ -476,6 +508,10 @@ impl CameraChain {
             // This frame was already answered on the CPU; keep every stage there.
             self.fall_back(e.clone())?;
         }
+        if let Some(counts) = front.depth {
+            flying = counts.flying;
+            world_points = front.points.take().unwrap_or_default();
+        }
         Ok(ChainFrame {
             camera_id: frame.camera_id,
             stamp_s: frame.stamp_s,
@@ -494,8 +530,8 @@ impl CameraChain {
 mod tests {
     use super::*;
     use crate::cloud::PointCloud;
-    use crate::perception::test_data::synthetic_frame;
-    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+    use crate::perception::test_data::{synthetic_depth, synthetic_frame};
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
     /// The test frame's sphere (camera frame): centre and radius.
     const CENTRE_CAM: [f64; 3] = [0.05, -0.05, 0.9];
@@ -579,6 +615,66 @@ mod tests {
             assert!(err_mm < 8.0, "seed {seed}: centroid off by {err_mm} mm");
             assert!(angle < 5.0, "seed {seed}: normal off by {angle} deg");
             assert!(c.frontend_time.wall_ms > 0.0 && c.surface_time.cpu_ms >= 0.0);
+        }
+        assert!(gpu.gpu_fallback().is_none());
+    }
+
+    #[test]
+    fn on_the_gpu_a_depth_frame_enters_as_its_image_and_agrees_with_the_cpu_chain() {
+        let (hip, closest, _) = hip_and_truth();
+        let new = |backend| {
+            CameraChain::new(
+                backend,
+                FrontendConfig::default(),
+                SurfaceConfig::default(),
+                None,
+            )
+        };
+        let mut cpu = new(Backend::Cpu).unwrap();
+        let mut gpu = new(Backend::Gpu).expect("GPU tests need Vulkan");
+        for seed in 0..2 {
+            let mut f = frame(seed, 0);
+            // For a real source the cloud is the image's deprojection (f64), as here.
+            f.depth = Some((
+                synthetic_depth(seed),
+                crate::camera::PinholeIntrinsics::PCL_GRABBER,
+            ));
+            let layers = seed == 1;
+            cpu.set_crop_keep(layers);
+            gpu.set_crop_keep(layers);
+            let c = cpu.process(&f, &hip, &[]).unwrap();
+            let g = gpu.process(&f, &hip, &[]).unwrap();
+            // The CPU chain took the cloud, the GPU chain the image.
+            assert!(c.front.depth.is_none());
+            let counts = g.front.depth.expect("the GPU took the depth image");
+            assert_eq!(counts.valid, f.cloud.finite_count());
+            assert_eq!(g.flying_pixels, counts.flying);
+            assert!(g.flying_pixels.abs_diff(c.flying_pixels) <= 20);
+            assert!(c.flying_pixels > 0);
+            // The points stay on the GPU unless the layers are asked for.
+            if layers {
+                assert_eq!(g.world_points.len(), c.world_points.len());
+                let keep = g.front.crop_keep.as_ref().unwrap();
+                let differ = (0..f.cloud.len())
+                    .filter(|&i| {
+                        super::super::crop::mask_bit(keep, i)
+                            != super::super::crop::mask_bit(c.front.crop_keep.as_ref().unwrap(), i)
+                    })
+                    .count();
+                assert!(differ <= 20, "{differ} keep bits differ");
+            } else {
+                assert!(g.world_points.is_empty());
+            }
+            let (gn, cn) = (g.front.voxel.points.len(), c.front.voxel.points.len());
+            assert!(gn.abs_diff(cn) <= cn / 200, "{gn} vs {cn}");
+            let (ge, ce) = (
+                g.estimate().surface.expect("GPU surface"),
+                c.estimate().surface.expect("CPU surface"),
+            );
+            let apart_mm = (ge.centroid_m - ce.centroid_m).norm() * 1e3;
+            assert!(apart_mm < 0.5, "seed {seed}: estimates {apart_mm} mm apart");
+            assert!(ge.normal.dot(&ce.normal) > 0.2f64.to_radians().cos());
+            assert!((ge.centroid_m - closest).norm() < 8e-3);
         }
         assert!(gpu.gpu_fallback().is_none());
     }

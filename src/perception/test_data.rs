@@ -8,6 +8,14 @@ use rand::{RngExt, SeedableRng};
 /// A wall at 1.5 m, a tilted table plane and a 9 cm sphere (a head) at 0.9 m; 5 % of the
 /// pixels have no return.
 pub fn synthetic_frame(seed: u64) -> Vec<Vec3> {
+    synthetic_depth(seed)
+        .deproject(&PinholeIntrinsics::PCL_GRABBER)
+        .expect("sizes match")
+        .points
+}
+
+/// The depth image behind [`synthetic_frame`] (1 mm units, [`PinholeIntrinsics::PCL_GRABBER`]).
+pub fn synthetic_depth(seed: u64) -> DepthImage {
     let k = PinholeIntrinsics::PCL_GRABBER;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut data = Vec::with_capacity((k.width * k.height) as usize);
@@ -49,9 +57,6 @@ pub fn synthetic_frame(seed: u64) -> Vec<Vec3> {
         depth_scale_m: 0.001,
         data,
     }
-    .deproject(&k)
-    .expect("sizes match")
-    .points
 }
 
 /// Uniform random points in a cube of side `side_m` centred at the origin, with a few

@@ -722,6 +722,27 @@ impl GpuVoxel {
     }
 
     /// Current hash table slots (also the capacity of the output buffer).
+    /// Bytes of GPU memory the stage's buffers hold now.
+    pub fn gpu_bytes(&self) -> u64 {
+        [
+            &self.block_sums,
+            &self.dispatch_args,
+            &self.bitmap,
+            &self.word_prefix,
+            &self.params,
+            &self.header,
+            &self.no_mask,
+            &self.table_keys,
+            &self.table_data,
+            &self.sort_keys,
+            &self.out_points,
+            &self.steps,
+        ]
+        .iter()
+        .map(|b| b.size())
+        .sum()
+    }
+
     pub fn table_slots(&self) -> u32 {
         self.table_slots
     }
