@@ -13,7 +13,7 @@ use std::ffi::OsStr;
 #[test]
 fn run_records_real_frames_and_replay_reproduces_them() {
     let tmp = TempDir::new("cli_run");
-    let dir = tmp.path.join("rec");
+    let dir = tmp.path.join("rec.mcap");
     let summary = run_node(
         grabber_pcd(),
         &[
@@ -46,13 +46,32 @@ fn run_records_real_frames_and_replay_reproduces_them() {
     assert_eq!(report["tick_mismatches"], 0);
     assert_eq!(report["ticks_compared"], summary["ticks"]);
 
+    // The recording is also a source: the same frames, played with its recorded config.
+    let again = run_node(dir.as_os_str(), &["--speed".as_ref(), "2".as_ref()]);
+    assert_eq!(
+        again["frames"].as_u64().unwrap() + again["dropped_frames"].as_u64().unwrap(),
+        summary["frames"].as_u64().unwrap(),
+        "{again}"
+    );
+
     // An unreadable recording is a clear error naming the file, not a panic.
-    std::fs::write(dir.join("estimates.hcr"), b"HCAP garbage").unwrap();
+    let mut bytes = std::fs::read(&dir).unwrap();
+    let middle = bytes.len() / 2;
+    bytes[middle..middle + 64].fill(0xA5);
+    std::fs::write(&dir, &bytes).unwrap();
     let out = hapcloud().arg("replay").arg(&dir).output().unwrap();
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("estimates.hcr"), "{err}");
+    assert!(err.contains("rec.mcap"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
+    // The TCP stream source is gone, with a pointer to its replacement.
+    let out = hapcloud()
+        .args(["run", "tcp://127.0.0.1:7400", "--duration", "1"])
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("hapcloud run zenoh"), "{err}");
 }
 
 /// `expected` as the bus carries it: saturated to the signal's range, NaN sent as 0.
@@ -77,7 +96,7 @@ fn assert_signal(signals: &BTreeMap<&str, f64>, name: &str, expected: f64, lsb: 
 fn can_log_of_a_scene_run_decodes_with_the_dbc_to_the_recorded_values() {
     let tmp = TempDir::new("cli_run_can");
     let log = tmp.path.join("node.log");
-    let dir = tmp.path.join("rec");
+    let dir = tmp.path.join("rec.mcap");
     let args: Vec<&OsStr> = vec![
         "--duration".as_ref(),
         "0.25".as_ref(),

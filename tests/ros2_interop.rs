@@ -447,6 +447,46 @@ fn hapcloud_reads_a_rosbags_bag() {
         }
     }
     assert!(r.truncated().is_none());
+    // The command line plays the bag through the node (the HIP put on the optical axis):
+    // every frame is processed, with no hapcloud message in the bag.
+    let out = Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .args(["run", "--json", "--backend", "cpu", "--speed", "4"])
+        .arg(&bag)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let summary: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(
+        summary["frames"].as_u64().unwrap() + summary["dropped_frames"].as_u64().unwrap(),
+        n as u64,
+        "{summary}"
+    );
+    assert_eq!(summary["robot_joint_states"], false);
+    // The viewer takes it too (its timeline summary; no window).
+    #[cfg(feature = "viewer")]
+    {
+        let out = Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+            .args(["view", "--json"])
+            .arg(&bag)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{stderr}");
+        let view: Value = serde_json::from_slice(&out.stdout).unwrap();
+        assert_eq!(view["frames"].as_u64(), Some(n as u64), "{view}");
+    }
+    // Replay wants a node recording, and says what to do with a bag.
+    let out = Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .arg("replay")
+        .arg(&bag)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && stderr.contains("hapcloud run FILE.mcap"),
+        "{stderr}"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
     assert_eq!(frames.len(), n, "{:?}", r.assembler().counters());
     // The pose: camera_link (the tree's root) from the optical frame, as realsense-ros has it.
@@ -456,4 +496,153 @@ fn hapcloud_reads_a_rosbags_bag() {
         assert_eq!(f.camera_id, 0);
         assert!(f.world_from_camera.rotation.angle_to(&optical) < 1e-12);
     }
+}
+
+/// `hapcloud run zenoh --config FILE` on two live depth cameras published by Python through
+/// the router: returns the node process (its JSON summary on stdout when it ends).
+fn start_node(dir: &Path, port: &str, duration_s: f64) -> Child {
+    let config = dir.join("node.toml");
+    std::fs::write(
+        &config,
+        format!(
+            r#"hip_world_m = [0.0, 0.0, 1.55]
+[zenoh]
+connect = ["tcp/127.0.0.1:{port}"]
+[zenoh_source]
+world_frame = "world"
+[[zenoh_source.cameras]]
+camera_id = 0
+depth_image = "/cam0/depth/image_rect_raw"
+[[zenoh_source.cameras]]
+camera_id = 1
+depth_image = "/cam1/depth/image_rect_raw"
+[publish]
+tick_rate_hz = 50.0
+"#
+        ),
+    )
+    .unwrap();
+    Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .args(["run", "zenoh", "--json", "--backend", "cpu", "--duration"])
+        .arg(duration_s.to_string())
+        .arg("--config")
+        .arg(&config)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn node_summary(node: Child) -> Value {
+    let out = node.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "hapcloud run zenoh failed: {stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("hapcloud-interop-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// The node runs on frames Python publishes as realsense-ros does (Image 16UC1 +
+/// CameraInfo, poses on /tf_static, wall-clock stamps, some malformed images), and rosbags
+/// decodes the outputs it publishes while it runs.
+#[test]
+fn the_node_runs_on_python_cameras_and_rosbags_decodes_its_outputs() {
+    if !python_ready() {
+        return;
+    }
+    let (_router, zenoh) = router();
+    let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
+    let dir = temp_dir("node");
+    let node = start_node(&dir, &port, 5.0);
+    let (mut listener, out) =
+        Proc::start(&["listen", &port, "400", "6", msg_dir().to_str().unwrap()]);
+    let sent = python(&["stream", &port, "4", "30", "64", "48", "garbage"]);
+    assert!(sent.contains("sent"), "{sent}");
+    let summary = node_summary(node);
+    drop(listener.0.stdin.take());
+    // Read before waiting: the listener prints everything when it stops.
+    let lines: Vec<Value> = out
+        .lines()
+        .map(|l| serde_json::from_str(&l.unwrap()).unwrap())
+        .collect();
+    let _ = listener.0.wait();
+    for id in ["0", "1"] {
+        let c = &summary["cameras"][id];
+        assert!(c["frames"].as_u64().unwrap() > 30, "{summary}");
+        assert!(c["valid_estimates"].as_u64().unwrap() > 20, "{summary}");
+    }
+    assert!(
+        summary["cameras"]["0"]["malformed"].as_u64().unwrap() >= 3,
+        "{summary}"
+    );
+    assert_eq!(summary["cameras"]["1"]["malformed"], 0, "{summary}");
+    assert!(
+        summary["constraint_active_ticks"].as_u64().unwrap() > 800,
+        "{summary}"
+    );
+    assert!(
+        summary["latency_ms"]["p50"].as_f64().unwrap() > 0.0,
+        "{summary}"
+    );
+    assert!(
+        summary["published"]["ticks_published"].as_u64().unwrap() > 100,
+        "{summary}"
+    );
+    let of = |t: &str| lines.iter().filter(|l| l["type"] == t).collect::<Vec<_>>();
+    let joints = of("sensor_msgs/msg/JointState");
+    assert!(joints.len() > 20, "{} messages", lines.len());
+    assert!(lines.iter().all(|l| l["hash_ok"] == true));
+    assert_eq!(joints[0]["msg"]["effort"].as_array().unwrap().len(), 6);
+    let active = of("hapcloud_msgs/msg/HapticConstraint")
+        .iter()
+        .filter(|l| l["msg"]["status"] == 0)
+        .count();
+    assert!(active > 0, "no active constraint published");
+    let surfaces = of("hapcloud_msgs/msg/FusedSurface");
+    assert!(surfaces.iter().any(|l| l["msg"]["status"] == 0));
+    let status = of("hapcloud_msgs/msg/NodeStatus");
+    assert!(!status.is_empty());
+    let last = &status.last().unwrap()["msg"];
+    assert_eq!(last["cameras"].as_array().unwrap().len(), 2, "{last}");
+    assert!(last["cameras"][0]["frames"].as_u64().unwrap() > 0, "{last}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The router goes away mid-run and comes back on the same port: the node keeps its loop
+/// (no error, no panic, ticks go on), and takes the cameras' frames again once both sides
+/// have reconnected.
+#[test]
+fn a_router_that_goes_away_and_comes_back() {
+    if !python_ready() {
+        return;
+    }
+    let (router, zenoh) = router();
+    let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
+    let dir = temp_dir("restart");
+    let node = start_node(&dir, &port, 10.0);
+    let sent = python(&["stream", &port, "2.5", "30", "32", "24"]);
+    assert!(sent.contains("sent"), "{sent}");
+    drop(router);
+    std::thread::sleep(Duration::from_millis(1500));
+    let (_router, _) = Proc::start(&["router", &port]);
+    // The node's client session retries its router every second at most; the publisher
+    // waits until the node's subscribers match, then publishes again.
+    let sent = python(&["stream", &port, "3", "30", "32", "24"]);
+    assert!(sent.contains("sent"), "{sent}");
+    let summary = node_summary(node);
+    // Before the restart at most 2.5 s x 30 Hz = 75 frames per camera reached the node.
+    for id in ["0", "1"] {
+        let frames = summary["cameras"][id]["frames"].as_u64().unwrap();
+        assert!(frames > 100, "camera {id}: {frames} frames: {summary}");
+    }
+    assert!(
+        summary["ticks"].as_u64().unwrap() > 9 * 800 / 2,
+        "{summary}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
 }

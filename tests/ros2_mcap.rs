@@ -196,6 +196,7 @@ fn read(bytes: &[u8]) -> Read {
             McapItem::Estimate(t, e) => out.estimates.push((t, e)),
             McapItem::Tick(t) => out.ticks.push(t),
             McapItem::Other { topic, .. } => out.others.push(topic),
+            McapItem::Metadata { name, .. } => out.others.push(name),
         }
     }
     out.truncated = r.truncated().map(str::to_string);
@@ -238,20 +239,35 @@ fn frames_estimates_and_ticks_read_back_bit_for_bit() {
 
 #[test]
 fn a_cloud_that_is_not_the_deprojected_image_is_kept_as_points() {
-    // The simulator's clouds come from unrounded depths; the image is rounded to mm.
+    // The simulator's clouds come from unrounded depths; the image is rounded to mm. The
+    // default encoding sees it and stores the cloud; `PointCloud` always does.
     let mut f = depth_frame(0, 2.0, 0.001);
     for p in &mut f.cloud.points {
         *p *= 1.0001;
     }
+    for frames in [FrameEncoding::Auto, FrameEncoding::PointCloud] {
+        let config = McapWriterConfig {
+            frames,
+            ..McapWriterConfig::default()
+        };
+        let got = read(&write(config, std::slice::from_ref(&f)));
+        let back = &got.frames[0].0;
+        assert!(back.depth.is_none());
+        let mut expected = f.clone();
+        expected.depth = None;
+        assert_same_frame(back, &expected);
+    }
+    // `DepthImage` stores the image whatever the cloud: it reads back deprojected.
     let config = McapWriterConfig {
-        frames: FrameEncoding::PointCloud,
+        frames: FrameEncoding::DepthImage,
         ..McapWriterConfig::default()
     };
     let got = read(&write(config, std::slice::from_ref(&f)));
-    let back = &got.frames[0].0;
-    assert!(back.depth.is_none());
-    f.depth = None;
-    assert_same_frame(back, &f);
+    assert!(got.frames[0].0.depth.is_some());
+    assert_ne!(
+        got.frames[0].0.cloud.points[1].to_array(),
+        f.cloud.points[1].to_array()
+    );
 }
 
 #[test]

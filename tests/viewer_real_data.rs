@@ -103,7 +103,7 @@ fn real_frames_in_the_viewer() {
 /// the optical axis in front of the surface.
 fn node_recording() -> (TempDir, hapcloud::node::record::Recording) {
     let dir = TempDir::new("viewer_recording");
-    let record = dir.path.join("rec");
+    let record = dir.path.join("rec.mcap");
     // Slow enough for the CPU stages of a debug build to keep up with the frames.
     common::run_node(
         grabber_dir(),
@@ -186,7 +186,7 @@ fn node_recording_shows_the_nodes_own_estimates() {
     // The command line opens the same recording.
     let out = common::run_ok([
         "view".as_ref(),
-        dir.path.join("rec").as_os_str(),
+        dir.path.join("rec.mcap").as_os_str(),
         "--json".as_ref(),
     ]);
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();

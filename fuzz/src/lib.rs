@@ -6,12 +6,10 @@
 //! through the very same functions (it includes this file as a module), so a regression
 //! fails `cargo test` without a fuzzer installed. No part of the paper is implemented here.
 
-use hapcloud::io::hcap::Decoder;
-use hapcloud::io::hcap::{self as wire, RecordKind};
+use hapcloud::io::mcap::{McapItem, McapReader};
 use hapcloud::io::{can, depth, pcd, ply};
 use hapcloud::node::NodeConfig;
-use hapcloud::node::record::{self, RecordingMeta};
-use hapcloud::node::robot_state::RobotMeta;
+use hapcloud::node::record;
 use hapcloud::perception::pipeline::SurfaceConfig;
 use hapcloud::scene::Scene;
 use socketcan::{CanFrame, EmbeddedFrame, ExtendedId, StandardId};
@@ -126,77 +124,27 @@ pub fn config_toml(data: &[u8]) {
     }
 }
 
-/// Separates the four record files of a recording in one fuzz input.
-pub const RECORDING_SEPARATOR: &[u8] = b"\n--hcr--\n";
-
-/// The four record files of a recording directory, in the order a fuzz input holds them.
-const RECORD_FILES: [&str; 4] = [
-    "frames.hcr",
-    "frame_joints.hcr",
-    "estimates.hcr",
-    "ticks.hcr",
-];
-
-/// A recording directory of this process (in the system's temporary directory) with a valid
-/// `meta.json`, made once; the `recording` target rewrites its record files.
-pub fn recording_dir() -> &'static PathBuf {
-    static DIR: OnceLock<PathBuf> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let dir = std::env::temp_dir().join(format!("hapcloud-fuzz-{}", std::process::id()));
-        let meta = RecordingMeta {
-            version: record::RECORDING_VERSION,
-            config: NodeConfig::default(),
-            backend: hapcloud::gpu::Backend::Cpu,
-            robot: RobotMeta {
-                world_from_base: nalgebra::Isometry3::identity(),
-                joint_states: true,
-            },
-        };
-        let (frames, ticks) = record::create(&dir, &meta).expect("temporary recording");
-        frames.finish().expect("temporary recording");
-        ticks.finish().expect("temporary recording");
-        dir
+/// The file the `recording` target writes its input to (in the system's temporary
+/// directory, one per process).
+pub fn recording_file() -> &'static PathBuf {
+    static FILE: OnceLock<PathBuf> = OnceLock::new();
+    FILE.get_or_init(|| {
+        std::env::temp_dir().join(format!("hapcloud-fuzz-{}.mcap", std::process::id()))
     })
 }
 
-/// A recording: the input's parts (split at [`RECORDING_SEPARATOR`]) become `frames.hcr`,
-/// `frame_joints.hcr`, `estimates.hcr` and `ticks.hcr`, read back with
-/// `record::read` (as `hapcloud replay` does); the whole input also goes through the strict
-/// record reader and the streaming decoder of the network source, which decodes its frames.
+/// A recording or ROS 2 bag (MCAP): streamed through the reader as `hapcloud run FILE.mcap`
+/// does (frames assembled from Image + CameraInfo or PointCloud2, estimates, ticks, every
+/// other message kept), and read as a node recording as `hapcloud replay` does.
 pub fn recording(data: &[u8]) {
-    let _ = wire::read_all(data);
-    let mut decoder = Decoder::new();
-    for chunk in data.chunks(4096) {
-        decoder.feed(chunk);
-        while let Some(r) = decoder.next_record() {
-            if r.kind == RecordKind::Frame {
-                let _ = wire::decode_frame(&r.payload);
+    if let Ok(mut reader) = McapReader::new(std::io::Cursor::new(data), &Default::default()) {
+        while let Ok(Some(item)) = reader.next_item() {
+            if let McapItem::Frame(a) = item {
+                let _ = a.frame.cloud.points.len();
             }
         }
     }
-    let dir = recording_dir();
-    let mut parts = split(data, RECORDING_SEPARATOR);
-    for name in RECORD_FILES {
-        let part = parts.next().unwrap_or_default();
-        std::fs::write(dir.join(name), part).expect("temporary recording");
-    }
-    let _ = record::read(dir);
-}
-
-/// `data` split at every `sep`.
-fn split<'a>(data: &'a [u8], sep: &'a [u8]) -> impl Iterator<Item = &'a [u8]> + 'a {
-    let mut rest = Some(data);
-    std::iter::from_fn(move || {
-        let d = rest?;
-        match d.windows(sep.len()).position(|w| w == sep) {
-            Some(i) => {
-                rest = Some(&d[i + sep.len()..]);
-                Some(&d[..i])
-            }
-            None => {
-                rest = None;
-                Some(d)
-            }
-        }
-    })
+    let file = recording_file();
+    std::fs::write(file, data).expect("temporary recording");
+    let _ = record::read(file);
 }

@@ -59,9 +59,9 @@ enum Command {
     #[cfg(feature = "lab")]
     Experiment(experiment::ExperimentArgs),
     /// Run the perception node: frames -> surface estimates -> 800 Hz fused surface, with
-    /// stats, recording (--record DIR) and a JSON summary.
+    /// stats, recording (--record FILE.mcap), Zenoh outputs and a JSON summary.
     Run(run::Args),
-    /// Re-run a recording and check estimates and fused surfaces bit for bit.
+    /// Re-run an MCAP recording and check estimates, fused surfaces and torques bit for bit.
     Replay(replay::Args),
     /// Euclidean cluster extraction (PCL EuclideanClusterExtraction semantics).
     Cluster(cluster::Args),

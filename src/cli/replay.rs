@@ -1,20 +1,21 @@
-//! `hapcloud replay DIR`: re-runs a recording and checks that estimates and fused surfaces
-//! come out bit for bit as recorded. Exits with failure when anything differs.
+//! `hapcloud replay FILE.mcap`: re-runs a node recording and checks that estimates, fused
+//! surfaces, constraints and torques come out bit for bit as recorded. Exits with failure
+//! when anything differs.
 
 use hapcloud::node;
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// The recording directory (`hapcloud run --record DIR`).
-    dir: PathBuf,
+    /// The recording (`hapcloud run --record FILE.mcap`).
+    file: PathBuf,
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let report = node::replay(&args.dir)?;
+    let report = node::replay(&args.file)?;
     if args.json {
         println!("{}", serde_json::to_string(&report)?);
     } else {

@@ -1,24 +1,35 @@
-//! `hapcloud run [SOURCE]`: the perception node. Wires a source to
+//! `hapcloud run [SOURCE]`: the perception node. Wires a source (a scene, an MCAP recording
+//! or ROS 2 bag, a frame directory, or live ROS 2 cameras over Zenoh) to
 //! `hapcloud::node::run` (perception, fusion, haptic constraints and the controller), the
-//! CAN outputs (`--can`, `--can-log`), prints a progress line while it runs and a summary at
-//! the end.
+//! CAN outputs (`--can`, `--can-log`), the Zenoh outputs (`--publish`, on by default with the
+//! `zenoh` source), prints a progress line while it runs and a summary at the end.
+//!
+//! The `--config` TOML is the node's config plus, optionally, `[zenoh]` (the session:
+//! `hapcloud::io::zenoh::ZenohConfig`), `[zenoh_source]` (the cameras' topics and poses:
+//! `ZenohSourceConfig`), `[publish]` (`ZenohPublisherConfig`: output rate, status rate, joint
+//! names) and `[mcap]` (the cameras of a ROS 2 bag: `hapcloud::io::mcap::McapReaderConfig`).
 
 use anyhow::Context;
 use hapcloud::gpu::Backend;
-use hapcloud::node::{self, NodeConfig, NodeSummary, RunOptions, Source, record, stream};
+use hapcloud::io::mcap::McapReaderConfig;
+use hapcloud::node::{self, NodeConfig, NodeSummary, RunOptions, Source, record};
 use hapcloud::scene::{Scene, Simulator};
 use std::path::PathBuf;
 use std::sync::Arc;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// A recording directory (its frames are played at their stamps), a directory of
-    /// `.pcd`/`.ply` frames of one camera (PCL grabber names give the stamps, others are
-    /// 30 Hz; the HIP is put 5 cm in front of the surface on the optical axis unless
-    /// --config sets `hip_world_m`), or `tcp://HOST:PORT` to listen for a camera stream
-    /// (the format is in `hapcloud::io::hcap`), or a scene (a built-in name, see `hapcloud
-    /// scenes`, or a scene TOML file): rendered by the simulator and played, the robot
-    /// following the scene's joint trajectory. Without one, the built-in realistic scene
+    /// `zenoh`: live ROS 2 depth cameras (Image + CameraInfo or PointCloud2 on rmw_zenoh
+    /// keys) through the router of the config's `[zenoh]` (default `tcp/127.0.0.1:7447`),
+    /// topics and poses in `[zenoh_source]`, until --duration. Or an MCAP file (`FILE.mcap`:
+    /// a node recording, or a ROS 2 bag such as one recorded from realsense-ros; its frames
+    /// are played at their stamps; cameras from `[mcap]` or found from the topics, poses
+    /// from the config or `/tf_static`), a directory of `.pcd`/`.ply` frames of one camera
+    /// (PCL grabber names give the stamps, others are 30 Hz), or a scene (a built-in name,
+    /// see `hapcloud scenes`, or a scene TOML file): rendered by the simulator and played,
+    /// the robot following the scene's joint trajectory. For frames of other programs the
+    /// HIP is put 5 cm in front of the surface on the optical axis unless --config is given
+    /// (`hip_world_m`). Without a source, the built-in realistic scene
     /// `torso_approach_realistic` (two simulated D435 cameras) is played.
     source: Option<String>,
     /// Stop after this many seconds of node time (default: the end of a recording).
@@ -33,9 +44,14 @@ pub struct Args {
     /// software rasteriser such as lavapipe.
     #[arg(long, value_enum)]
     backend: Option<Backend>,
-    /// Record inputs, estimates, fused surfaces and timing into this directory.
+    /// Record frames, estimates, ticks and robot states into this MCAP file (`FILE.mcap`;
+    /// replay it with `hapcloud replay FILE.mcap`, open it in Foxglove or rosbags).
     #[arg(long)]
     record: Option<PathBuf>,
+    /// Publish the fused surface, haptic constraint, joint torque command and node status
+    /// over Zenoh (`[zenoh]`, `[publish]` in --config); on by default with the `zenoh` source.
+    #[arg(long)]
+    publish: bool,
     /// Node configuration (TOML, `hapcloud::node::NodeConfig`; missing fields default).
     #[arg(long)]
     config: Option<PathBuf>,
@@ -88,31 +104,123 @@ fn as_scene(arg: &str) -> Option<anyhow::Result<Scene>> {
     (builtin || file).then(|| Scene::from_name_or_path(arg).map_err(Into::into))
 }
 
-pub fn run(args: Args) -> anyhow::Result<()> {
-    let mut config: NodeConfig = match &args.config {
-        Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("reading {}", path.display()))?;
-            toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?
-        }
-        None => NodeConfig::default(),
+/// `--config`: the node's config and the tables of the other parts.
+#[derive(Default)]
+struct RunConfig {
+    node: NodeConfig,
+    mcap: McapReaderConfig,
+    #[cfg(feature = "ros2")]
+    zenoh: zenoh_io::ZenohConfig,
+    #[cfg(feature = "ros2")]
+    zenoh_source: zenoh_io::ZenohSourceConfig,
+    #[cfg(feature = "ros2")]
+    publish: zenoh_io::ZenohPublisherConfig,
+}
+
+#[cfg(feature = "ros2")]
+use hapcloud::io::zenoh as zenoh_io;
+
+/// Takes `[name]` out of `table` as a `T` (default when absent).
+fn take<T: serde::de::DeserializeOwned + Default>(
+    table: &mut toml::Table,
+    name: &str,
+) -> anyhow::Result<T> {
+    match table.remove(name) {
+        Some(v) => v.try_into().with_context(|| format!("[{name}]")),
+        None => Ok(T::default()),
+    }
+}
+
+fn read_config(path: &std::path::Path) -> anyhow::Result<RunConfig> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let parse = || -> anyhow::Result<RunConfig> {
+        let mut table: toml::Table = toml::from_str(&text)?;
+        let mcap: McapReaderConfig = take(&mut table, "mcap")?;
+        mcap.validate().map_err(anyhow::Error::msg)?;
+        #[cfg(feature = "ros2")]
+        let (zenoh, zenoh_source, publish) = (
+            take(&mut table, "zenoh")?,
+            take(&mut table, "zenoh_source")?,
+            take(&mut table, "publish")?,
+        );
+        Ok(RunConfig {
+            node: table.try_into()?,
+            mcap,
+            #[cfg(feature = "ros2")]
+            zenoh,
+            #[cfg(feature = "ros2")]
+            zenoh_source,
+            #[cfg(feature = "ros2")]
+            publish,
+        })
     };
+    parse().with_context(|| format!("parsing {}", path.display()))
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut run_config = match &args.config {
+        Some(path) => read_config(path)?,
+        None => RunConfig::default(),
+    };
+    let config = &mut run_config.node;
+    #[cfg(feature = "ros2")]
+    let mut session = None;
     let source = match args.source.as_deref() {
         Some(addr) if addr.starts_with("tcp://") => {
-            let addr = &addr["tcp://".len()..];
-            let receiver = stream::StreamReceiver::bind(addr)
-                .with_context(|| format!("listening on {addr}"))?;
-            if !args.json {
-                eprintln!("listening for camera frames on {}", receiver.local_addr()?);
-            }
-            Source::Stream(receiver)
+            anyhow::bail!(
+                "{addr}: the TCP stream source is gone; cameras publish ROS 2 messages over \
+                 Zenoh: `hapcloud run zenoh` (see docs/ros2.md)"
+            )
         }
+        #[cfg(feature = "ros2")]
+        Some("zenoh") => {
+            let s = zenoh_io::open_session(&run_config.zenoh)
+                .context("opening the Zenoh session ([zenoh] in --config)")?;
+            let source =
+                zenoh_io::ZenohSource::new(&s, &run_config.zenoh, &run_config.zenoh_source)?;
+            if !args.json {
+                eprintln!(
+                    "subscribed to {} camera(s) through {:?} ({:?} keys, domain {})",
+                    run_config.zenoh_source.cameras.len(),
+                    run_config
+                        .zenoh
+                        .connect
+                        .iter()
+                        .chain(&run_config.zenoh.listen)
+                        .collect::<Vec<_>>(),
+                    run_config.zenoh.keys,
+                    run_config.zenoh.domain_id
+                );
+            }
+            session = Some(s);
+            Source::Zenoh(Box::new(source))
+        }
+        #[cfg(not(feature = "ros2"))]
+        Some("zenoh") => anyhow::bail!("the zenoh source needs the ros2 feature"),
         Some(arg) if as_scene(arg).is_some() => {
             let scene = as_scene(arg).expect("checked")?;
             render_scene(&scene, args.duration)?
         }
-        Some(dir) if std::path::Path::new(dir).join("meta.json").exists() => {
-            Source::Timed(record::read(std::path::Path::new(dir))?.frames)
+        Some(file) if file.ends_with(".mcap") || record::is_old_recording(file.as_ref()) => {
+            let path = std::path::Path::new(file);
+            let read = record::read_frames(path, &run_config.mcap)?;
+            if let Some(cut) = &read.truncated {
+                eprintln!("warning: {file}: {cut}; playing the frames before the cut");
+            }
+            // A node recording without --config runs with the config it was recorded with.
+            if let (Some(meta), None) = (&read.meta, &args.config) {
+                *config = meta.config.clone();
+            }
+            #[cfg(feature = "viewer")]
+            if read.meta.is_none() && args.config.is_none() {
+                config.hip_world_m = read
+                    .frames
+                    .first()
+                    .and_then(|f| hapcloud::viewer::source::hip_on_axis(f, 0.05))
+                    .with_context(|| format!("{file}: no surface to put the HIP on"))?;
+            }
+            Source::Timed(read.frames)
         }
         // The cloud-directory reader lives with the viewer (feature "viewer", on by default).
         #[cfg(feature = "viewer")]
@@ -129,7 +237,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         #[cfg(not(feature = "viewer"))]
         Some(dir) => {
-            anyhow::bail!("{dir}: not a recording (cloud directories need the viewer feature)")
+            anyhow::bail!("{dir}: not an MCAP file (cloud directories need the viewer feature)")
         }
         None => render_scene(&Scene::from_builtin(DEFAULT_SCENE)?, args.duration)?,
     };
@@ -148,18 +256,87 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         pick_backend: args.backend.is_none(),
         ..RunOptions::new(args.backend.unwrap_or_else(default_backend))
     };
+    #[cfg(feature = "ros2")]
+    let outputs = if args.publish || session.is_some() {
+        let s = match session.take() {
+            Some(s) => s,
+            None => zenoh_io::open_session(&run_config.zenoh)
+                .context("opening the Zenoh session ([zenoh] in --config)")?,
+        };
+        let stats = match &source {
+            Source::Zenoh(z) => Some(z.stats()),
+            _ => None,
+        };
+        let thread = zenoh_io::OutputThread::spawn(
+            &s,
+            &run_config.zenoh,
+            &run_config.publish,
+            // A timed source without --backend picks its backend by measuring at start.
+            if options.pick_backend && stats.is_none() {
+                "auto".into()
+            } else {
+                options.backend.to_string()
+            },
+            stats,
+        )?;
+        Some((s, thread))
+    } else {
+        None
+    };
+    #[cfg(not(feature = "ros2"))]
+    if args.publish {
+        anyhow::bail!("--publish needs the ros2 feature");
+    }
+    #[cfg(feature = "ros2")]
+    let on_tick = {
+        let thread = outputs.as_ref().map(|(_, t)| t);
+        move |t: &record::TickRecord| {
+            if let Some(o) = thread {
+                o.offer(t);
+            }
+        }
+    };
+    #[cfg(not(feature = "ros2"))]
+    let on_tick = |_: &record::TickRecord| {};
+    let config = config.clone();
     #[cfg(feature = "viewer")]
     let summary = if args.overlay {
-        run_with_overlay(config, source, options)?
+        run_with_overlay(config, source, options, on_tick)?
     } else {
-        node::run(&config, source, &options, |_| {})?
+        node::run(&config, source, &options, on_tick)?
     };
     #[cfg(not(feature = "viewer"))]
-    let summary = node::run(&config, source, &options, |_| {})?;
+    let summary = node::run(&config, source, &options, on_tick)?;
+    #[cfg(feature = "ros2")]
+    let published = outputs.map(|(session, thread)| {
+        let counters = thread.finish();
+        drop(session);
+        counters
+    });
+    #[cfg(not(feature = "ros2"))]
+    let published: Option<()> = None;
     if args.json {
-        println!("{}", serde_json::to_string(&summary)?);
+        let mut value = serde_json::to_value(&summary)?;
+        if let Some(p) = &published {
+            value["published"] = serde_json::to_value(p)?;
+        }
+        println!("{value}");
     } else {
         print_table(&summary);
+        #[cfg(feature = "ros2")]
+        if let Some(p) = &published {
+            println!(
+                "published: {} ticks, {} statuses, {} ticks dropped, {} errors{}",
+                p.ticks_published,
+                p.status_published,
+                p.ticks_dropped,
+                p.errors,
+                p.first_error
+                    .as_deref()
+                    .map(|e| format!(" (first: {e})"))
+                    .unwrap_or_default()
+            );
+        }
     }
     Ok(())
 }
@@ -172,6 +349,7 @@ fn run_with_overlay(
     config: NodeConfig,
     source: Source,
     mut options: RunOptions,
+    on_tick: impl FnMut(&record::TickRecord) + Send,
 ) -> anyhow::Result<NodeSummary> {
     use hapcloud::viewer::overlay::Overlay;
     use hapcloud::viewer::{ViewerApp, ViewerConfig, ViewerSource, run_window};
@@ -190,16 +368,18 @@ fn run_with_overlay(
     options.observer = Some(event_tx);
     options.stop = Some(stop.clone());
     let drawer = std::thread::spawn(move || overlay.run(event_rx, view_tx));
-    let node = std::thread::spawn(move || node::run(&config, source, &options, |_| {}));
-    let viewer = ViewerConfig::default();
-    let size = [viewer.window_width_px, viewer.window_height_px];
-    let window = ViewerApp::new(ViewerSource::Live(view_rx), viewer)
-        .map_err(anyhow::Error::from)
-        .and_then(|app| run_window(app, size, None).map_err(anyhow::Error::from));
-    stop.store(true, Ordering::Relaxed);
-    let summary = node
-        .join()
-        .map_err(|_| anyhow::anyhow!("the node thread panicked"))??;
+    let node = std::thread::scope(|scope| {
+        let node = scope.spawn(move || node::run(&config, source, &options, on_tick));
+        let viewer = ViewerConfig::default();
+        let size = [viewer.window_width_px, viewer.window_height_px];
+        let window = ViewerApp::new(ViewerSource::Live(view_rx), viewer)
+            .map_err(anyhow::Error::from)
+            .and_then(|app| run_window(app, size, None).map_err(anyhow::Error::from));
+        stop.store(true, Ordering::Relaxed);
+        (node.join(), window)
+    });
+    let (node, window) = node;
+    let summary = node.map_err(|_| anyhow::anyhow!("the node thread panicked"))??;
     drawer
         .join()
         .map_err(|_| anyhow::anyhow!("the overlay thread panicked"))?;
@@ -226,11 +406,17 @@ fn print_table(s: &NodeSummary) {
         println!("GPU buffers: {:.1} MB", bytes as f64 / 1e6);
     }
     println!("node time: {:.2} s at speed {}", s.duration_s, s.speed);
-    println!("camera  frames  rate_hz  valid_estimates");
+    println!("camera  frames  rate_hz  valid_estimates  dropped  malformed  latency p50/p95 ms");
     for (id, c) in &s.cameras {
+        let latency = s
+            .camera_latency
+            .iter()
+            .find(|l| l.camera_id == *id)
+            .map(|l| format!("{:.1} / {:.1}", l.p50_s * 1e3, l.p95_s * 1e3))
+            .unwrap_or_default();
         println!(
-            "{id:>6}  {:>6}  {:>7.1}  {:>15}",
-            c.frames, c.rate_hz, c.valid_estimates
+            "{id:>6}  {:>6}  {:>7.1}  {:>15}  {:>7}  {:>9}  {latency}",
+            c.frames, c.rate_hz, c.valid_estimates, c.dropped, c.malformed
         );
     }
     println!(

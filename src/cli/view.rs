@@ -4,10 +4,10 @@
 //! file): it is rendered, every camera frame runs through the stages with the scene's HIP and
 //! the robot cropped at its joint state, and each view tick shows the ground truth and the
 //! haptic constraints computed on the fused surface (`hapcloud::viewer::simulated`). Or a
-//! node recording (`hapcloud run --record DIR`): its frames run through the
+//! node recording (`hapcloud run --record FILE.mcap`): its frames run through the
 //! stages again for the point layers, and the node's recorded estimates and fused surfaces are
-//! shown; or a directory of PCD/PLY frames of one camera (e.g. PCL's grabber sequences): the
-//! stages run on every frame with the HIP fixed (`--hip`, or placed in front of the surface
+//! shown; or the frames of a ROS 2 bag (MCAP, e.g. realsense-ros) or of a directory of
+//! PCD/PLY frames of one camera (e.g. PCL's grabber sequences): the stages run on every frame with the HIP fixed (`--hip`, or placed in front of the surface
 //! point nearest the optical axis). `--screenshot`
 //! saves what the window shows as PNG and closes it (run under `xvfb-run` without a display);
 //! `--json` prints a summary of the timeline instead of opening a window.
@@ -31,9 +31,10 @@ use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// A simulated scene (built-in name, see `hapcloud scenes`, or a scene .toml), a node
-    /// recording (`hapcloud run --record DIR`: has meta.json), or a directory of .pcd/.ply
-    /// frames of one camera in name order.
+    /// A simulated scene (built-in name, see `hapcloud scenes`, or a scene .toml), an MCAP
+    /// file (a node recording, `hapcloud run --record FILE.mcap`, or a ROS 2 bag such as one
+    /// recorded from realsense-ros: cameras from the config's `[mcap]` or found from the
+    /// topics), or a directory of .pcd/.ply frames of one camera in name order.
     source: PathBuf,
     /// Scenes: first view tick, seconds of scene time (overrides [scene] start_s).
     #[arg(long)]
@@ -82,6 +83,8 @@ struct ViewFile {
     viewer: ViewerConfig,
     node: NodeConfig,
     scene: SceneViewConfig,
+    /// The cameras of a ROS 2 bag (default: found from its topics).
+    mcap: hapcloud::io::mcap::McapReaderConfig,
 }
 
 fn parse_hip(s: &str) -> anyhow::Result<Point3<f64>> {
@@ -114,16 +117,29 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
 
-    let (timeline, hip) = if args.source.join("meta.json").is_file() {
+    let mcap = args.source.extension().is_some_and(|e| e == "mcap");
+    let frames = if mcap || record::is_old_recording(&args.source) {
+        let read = record::read_frames(&args.source, &file.mcap)?;
+        if read.meta.is_some() {
+            None
+        } else {
+            // A ROS 2 bag of another program: its frames, like a frame directory.
+            Some(read.frames)
+        }
+    } else if args.source.is_dir() {
+        Some(read_cloud_dir(&args.source, args.rate_hz)?)
+    } else {
+        None
+    };
+    let (timeline, hip) = if mcap && frames.is_none() {
         if args.hip.is_some() {
-            bail!("--hip is for frame directories; a recording carries the node's HIP");
+            bail!("--hip is for frames of other programs; a node recording carries the HIP");
         }
         let recording = record::read(&args.source)?;
         let timeline = timeline_from_recording(&recording)?;
         let hip = timeline.first().map_or_else(Point3::origin, |f| f.hip_m);
         (timeline, hip)
-    } else if args.source.is_dir() {
-        let frames = read_cloud_dir(&args.source, args.rate_hz)?;
+    } else if let Some(frames) = frames {
         let hip = match &args.hip {
             Some(s) => parse_hip(s)?,
             None => hip_on_axis(

@@ -40,10 +40,10 @@ pub const MAX_RECORD_BYTES: usize = 512 << 20;
 /// Why a recording cannot be written or read.
 #[derive(Debug, thiserror::Error)]
 pub enum McapError {
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
     #[error("MCAP: {0}")]
     Mcap(#[from] mcap::McapError),
@@ -70,10 +70,14 @@ pub enum ChunkCompression {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FrameEncoding {
-    /// Image + CameraInfo when the frame has a depth image (0.8 MB for 848x480 before
-    /// compression), else PointCloud2. The frame read back has the deprojected image as its
-    /// cloud.
+    /// Image + CameraInfo when the frame's cloud is exactly its depth image deprojected (a
+    /// camera's frame: 0.8 MB for 848x480 before compression), else PointCloud2 (the
+    /// simulator's unrounded depths, clouds without an image): every frame reads back bit for
+    /// bit, the node's recordings replay exactly.
     #[default]
+    Auto,
+    /// Image + CameraInfo when the frame has a depth image, else PointCloud2. The frame read
+    /// back has the deprojected image as its cloud.
     DepthImage,
     /// Always the cloud as PointCloud2 (4.9 MB for 848x480): the frame's own cloud, bit for
     /// bit, when it is not the deprojected image (the simulator's unrounded depths).
@@ -121,9 +125,9 @@ fn ns(stamp_s: f64) -> u64 {
 impl McapWriter<BufWriter<File>> {
     /// Creates `path`.
     pub fn create(path: &Path, config: McapWriterConfig) -> Result<Self, McapError> {
-        let file = File::create(path).map_err(|source| McapError::Io {
+        let file = File::create(path).map_err(|error| McapError::Io {
             path: path.to_path_buf(),
-            source,
+            error,
         })?;
         Self::new(BufWriter::with_capacity(1 << 20, file), config)
     }
@@ -223,6 +227,10 @@ impl<W: Write + Seek> McapWriter<W> {
         let q = pose.rotation.quaternion();
         let depth = match self.config.frames {
             FrameEncoding::DepthImage => frame.depth.as_ref(),
+            FrameEncoding::Auto => frame
+                .depth
+                .as_ref()
+                .filter(|(d, k)| cloud_is_deprojection(&frame.cloud, d, k)),
             FrameEncoding::PointCloud => None,
         };
         let meta = FrameMeta {
@@ -271,6 +279,18 @@ impl<W: Write + Seek> McapWriter<W> {
         self.flush()
     }
 
+    /// Writes a metadata record (name and string pairs), e.g. the node's config.
+    pub fn write_metadata(
+        &mut self,
+        name: &str,
+        metadata: BTreeMap<String, String>,
+    ) -> Result<(), McapError> {
+        Ok(self.out.write_metadata(&mcap::records::Metadata {
+            name: name.into(),
+            metadata,
+        })?)
+    }
+
     /// Writes a surface estimate and the index of the tick that pushed it into fusion.
     pub fn write_estimate(&mut self, tick: u64, e: &SurfaceEstimate) -> Result<(), McapError> {
         let header = Header {
@@ -305,6 +325,25 @@ impl<W: Write + Seek> McapWriter<W> {
     }
 }
 
+/// Whether `cloud` is bit for bit the deprojection of `depth` with `k` (then the image
+/// carries the frame exactly, at a sixth of the cloud's bytes).
+fn cloud_is_deprojection(
+    cloud: &crate::cloud::PointCloud,
+    depth: &crate::camera::DepthImage,
+    k: &crate::camera::PinholeIntrinsics,
+) -> bool {
+    depth.deproject(k).is_some_and(|d| {
+        (d.width, d.height) == (cloud.width, cloud.height)
+            && d.points.len() == cloud.points.len()
+            && d.points.iter().zip(&cloud.points).all(|(a, b)| {
+                a.to_array()
+                    .iter()
+                    .zip(b.to_array())
+                    .all(|(x, y)| x.to_bits() == y.to_bits())
+            })
+    })
+}
+
 /// One item of a recording, in file order.
 #[derive(Clone, Debug)]
 pub enum McapItem {
@@ -312,6 +351,11 @@ pub enum McapItem {
     /// A surface estimate and the tick that pushed it.
     Estimate(u64, SurfaceEstimate),
     Tick(TickRecord),
+    /// A metadata record (name, string pairs).
+    Metadata {
+        name: String,
+        metadata: BTreeMap<String, String>,
+    },
     /// Any other message (decode it with [`decode`] by its schema name).
     Other {
         topic: String,
@@ -340,9 +384,9 @@ pub struct McapReader<R: Read> {
 
 impl McapReader<std::io::BufReader<File>> {
     pub fn open(path: &Path, config: &McapReaderConfig) -> Result<Self, McapError> {
-        let file = File::open(path).map_err(|source| McapError::Io {
+        let file = File::open(path).map_err(|error| McapError::Io {
             path: path.to_path_buf(),
-            source,
+            error,
         })?;
         Self::new(std::io::BufReader::with_capacity(1 << 20, file), config)
     }
@@ -356,7 +400,11 @@ impl<R: Read> McapReader<R> {
         Ok(Self {
             input,
             reader: LinearReader::new_with_options(
-                LinearReaderOptions::default().with_record_length_limit(MAX_RECORD_BYTES),
+                // A chunk is checked against its CRC before any of its messages is used:
+                // a damaged file is an error, never frames of garbage.
+                LinearReaderOptions::default()
+                    .with_record_length_limit(MAX_RECORD_BYTES)
+                    .with_prevalidate_chunk_crcs(true),
             ),
             schemas: HashMap::new(),
             channels: HashMap::new(),
@@ -420,6 +468,12 @@ impl<R: Read> McapReader<R> {
                     }
                     mcap::records::Record::Message { header, data } => {
                         Some((header.channel_id, header.log_time, data.into_owned()))
+                    }
+                    mcap::records::Record::Metadata(m) => {
+                        return Ok(Some(McapItem::Metadata {
+                            name: m.name,
+                            metadata: m.metadata,
+                        }));
                     }
                     _ => None,
                 },

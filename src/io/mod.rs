@@ -11,8 +11,8 @@
 //! - [`depth`]: 16-bit depth images as PNG or TIFF, to and from [`crate::camera::DepthImage`].
 //! - [`can`]: the node's CAN protocol (`hapcloud.dbc`): typed values <-> frames, a SocketCAN
 //!   sender and `candump -L` logs.
-//! - [`hcap`]: hapcloud's own record codec (TCP stream, `.hcr` recordings).
-//! - [`ros2`], [`mcap`], `zenoh`: ROS 2 messages in CDR, MCAP recordings, the Zenoh transport.
+//! - [`ros2`], [`mcap`], `zenoh`: ROS 2 messages in CDR, MCAP recordings (the node's
+//!   recording format), the Zenoh transport.
 //!
 //! [`read_cloud`] and [`write_cloud`] pick the point-cloud format from the file extension.
 //! Every reader checks the sizes a file declares against the bytes it holds and against
@@ -20,7 +20,6 @@
 
 pub mod can;
 pub mod depth;
-pub mod hcap;
 pub mod mcap;
 pub mod pcd;
 pub mod ply;

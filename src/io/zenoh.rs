@@ -142,7 +142,8 @@ impl ZenohConfig {
 
     /// The Zenoh configuration: mode, endpoints, multicast scouting off. A client's `open`
     /// fails when its router is not there; a peer connects in the background and retries
-    /// forever. Both reconnect by themselves after losing a connection.
+    /// forever. Both reconnect by themselves after losing a connection (retried every
+    /// 0.25-1 s).
     pub fn zenoh_config(&self) -> Result<zenoh::Config, ZenohError> {
         self.validate()?;
         let json = |v: &[String]| serde_json::to_string(v).unwrap_or_default();
@@ -161,6 +162,12 @@ impl ZenohConfig {
                 if self.mode == Mode::Peer { "-1" } else { "0" }.into(),
             ),
             ("connect/exit_on_failure", "false".into()),
+            // A lost router is retried every 250 ms at first, every second at most, so the
+            // node takes frames again within a second of the router's return.
+            (
+                "connect/retry",
+                r#"{ period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2 }"#.into(),
+            ),
         ] {
             c.insert_json5(key, &value)
                 .map_err(|e| ZenohError::Config(format!("{key} = {value}: {e}")))?;
@@ -230,13 +237,72 @@ impl ZenohSourceConfig {
 }
 
 /// One camera's counters.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CameraCounters {
     pub frames: u64,
     /// Samples dropped because the queue was full.
     pub drops: u64,
     /// Samples that did not decode or convert.
     pub malformed: u64,
+    /// Frame stamp to the frame's delivery by [`ZenohSource::recv`] on this machine's wall
+    /// clock, s, over the last [`LATENCY_WINDOW`] frames: p50 and p99 (0 before any frame).
+    pub delivery_latency_p50_s: f64,
+    pub delivery_latency_p99_s: f64,
+}
+
+/// Frames per camera the delivery latency percentiles are taken over.
+pub const LATENCY_WINDOW: usize = 256;
+
+#[derive(Default)]
+struct CameraStats {
+    counters: CameraCounters,
+    latencies_s: VecDeque<f64>,
+}
+
+/// The source's counters, shared with whoever reports on it while the source runs (the
+/// node's status publisher).
+#[derive(Clone)]
+pub struct SourceStats {
+    queue: Arc<Queue>,
+    topic_camera: Arc<[Option<u32>]>,
+    cameras: Arc<Mutex<BTreeMap<u32, CameraStats>>>,
+}
+
+impl SourceStats {
+    /// Per-camera counters (frames delivered, samples dropped, malformed samples, delivery
+    /// latency).
+    pub fn counters(&self) -> BTreeMap<u32, CameraCounters> {
+        let cameras = self.cameras.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut out: BTreeMap<u32, CameraCounters> = cameras
+            .iter()
+            .map(|(&id, c)| {
+                let mut counters = c.counters;
+                let mut l: Vec<f64> = c.latencies_s.iter().copied().collect();
+                l.sort_by(f64::total_cmp);
+                let at = |p: f64| {
+                    l.get(((l.len().max(1) - 1) as f64 * p).round() as usize)
+                        .copied()
+                        .unwrap_or(0.0)
+                };
+                counters.delivery_latency_p50_s = at(0.5);
+                counters.delivery_latency_p99_s = at(0.99);
+                (id, counters)
+            })
+            .collect();
+        for (i, id) in self.topic_camera.iter().enumerate() {
+            if let Some(c) = id.and_then(|id| out.get_mut(&id)) {
+                c.drops += self.queue.drops[i].load(std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+        out
+    }
+}
+
+/// Seconds since the UNIX epoch on this machine's clock (ROS 2 stamps' clock).
+pub fn unix_now_s() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
 }
 
 struct Queue {
@@ -251,11 +317,8 @@ struct Queue {
 pub struct ZenohSource {
     _subscribers: Vec<Subscriber<()>>,
     topics: Vec<String>,
-    /// The camera id of each subscribed topic (none for `/tf_static`).
-    topic_camera: Vec<Option<u32>>,
-    queue: Arc<Queue>,
     assembler: FrameAssembler,
-    counters: BTreeMap<u32, CameraCounters>,
+    stats: SourceStats,
 }
 
 impl ZenohSource {
@@ -313,14 +376,18 @@ impl ZenohSource {
         }
         Ok(Self {
             _subscribers: subscribers,
-            counters: config
-                .cameras
-                .iter()
-                .map(|c| (c.camera_id, CameraCounters::default()))
-                .collect(),
-            topic_camera: topics.iter().map(|t| t.2).collect(),
+            stats: SourceStats {
+                queue,
+                topic_camera: topics.iter().map(|t| t.2).collect(),
+                cameras: Arc::new(Mutex::new(
+                    config
+                        .cameras
+                        .iter()
+                        .map(|c| (c.camera_id, CameraStats::default()))
+                        .collect(),
+                )),
+            },
             topics: topics.into_iter().map(|t| t.0).collect(),
-            queue,
             assembler,
         })
     }
@@ -331,6 +398,7 @@ impl ZenohSource {
         loop {
             let (topic, payload) = {
                 let mut items = self
+                    .stats
                     .queue
                     .items
                     .lock()
@@ -344,6 +412,7 @@ impl ZenohSource {
                         return None;
                     }
                     items = self
+                        .stats
                         .queue
                         .ready
                         .wait_timeout(items, left)
@@ -354,14 +423,24 @@ impl ZenohSource {
             let bytes = payload.to_bytes();
             let before = self.assembler.counters().malformed;
             let frame = self.assembler.push(&self.topics[topic], &bytes);
-            if let Some(id) = self.topic_camera[topic]
-                && let Some(c) = self.counters.get_mut(&id)
+            let malformed = self.assembler.counters().malformed - before;
+            let mut cameras = self
+                .stats
+                .cameras
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            if let Some(id) = self.stats.topic_camera[topic]
+                && let Some(c) = cameras.get_mut(&id)
             {
-                c.malformed += self.assembler.counters().malformed - before;
+                c.counters.malformed += malformed;
             }
             if let Some(f) = frame {
-                if let Some(c) = self.counters.get_mut(&f.frame.camera_id) {
-                    c.frames += 1;
+                if let Some(c) = cameras.get_mut(&f.frame.camera_id) {
+                    c.counters.frames += 1;
+                    if c.latencies_s.len() == LATENCY_WINDOW {
+                        c.latencies_s.pop_front();
+                    }
+                    c.latencies_s.push_back(unix_now_s() - f.frame.stamp_s);
                 }
                 return Some(f);
             }
@@ -370,13 +449,12 @@ impl ZenohSource {
 
     /// Per-camera counters (frames delivered, samples dropped, malformed samples).
     pub fn counters(&self) -> BTreeMap<u32, CameraCounters> {
-        let mut out = self.counters.clone();
-        for (i, id) in self.topic_camera.iter().enumerate() {
-            if let Some(c) = id.and_then(|id| out.get_mut(&id)) {
-                c.drops += self.queue.drops[i].load(std::sync::atomic::Ordering::Relaxed);
-            }
-        }
-        out
+        self.stats.counters()
+    }
+
+    /// A handle on the counters that outlives moving the source into the node.
+    pub fn stats(&self) -> SourceStats {
+        self.stats.clone()
     }
 
     /// The assembler (unpaired images, frames without a pose, the last malformed message).
@@ -391,6 +469,10 @@ impl ZenohSource {
 pub struct ZenohPublisherConfig {
     /// Largest rate of the per-tick outputs, Hz (0: every tick).
     pub tick_rate_hz: f64,
+    /// Rate of the node status, Hz.
+    pub status_rate_hz: f64,
+    /// Ticks waiting for the output thread; beyond this a tick is not published (counted).
+    pub queue_ticks: usize,
     /// Joint names of the torque command's JointState.
     pub joint_names: Vec<String>,
     /// Attach rmw_zenoh's sequence number, source time stamp and GID to every sample.
@@ -401,6 +483,8 @@ impl Default for ZenohPublisherConfig {
     fn default() -> Self {
         Self {
             tick_rate_hz: 0.0,
+            status_rate_hz: 10.0,
+            queue_ticks: 64,
             joint_names: (1..=crate::robot::DOF)
                 .map(|i| format!("joint{i}"))
                 .collect(),
@@ -416,6 +500,15 @@ impl ZenohPublisherConfig {
                 "tick_rate_hz {} must be finite and >= 0",
                 self.tick_rate_hz
             )));
+        }
+        if !(self.status_rate_hz > 0.0 && self.status_rate_hz.is_finite()) {
+            return Err(ZenohError::Config(format!(
+                "status_rate_hz {} must be finite and > 0",
+                self.status_rate_hz
+            )));
+        }
+        if self.queue_ticks == 0 {
+            return Err(ZenohError::Config("queue_ticks must be at least 1".into()));
         }
         if self.joint_names.len() != crate::robot::DOF {
             return Err(ZenohError::Config(format!(
@@ -568,6 +661,149 @@ impl ZenohPublisher {
                 &pointcloud2_from_cloud(header, &frame.cloud),
             ),
         }
+    }
+}
+
+/// What the output thread did.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct OutputCounters {
+    /// Ticks whose outputs were published (at most `tick_rate_hz`).
+    pub ticks_published: u64,
+    pub status_published: u64,
+    /// Ticks the control loop could not hand over (the output thread was behind).
+    pub ticks_dropped: u64,
+    /// Publications that failed, and the first failure.
+    pub errors: u64,
+    pub first_error: Option<String>,
+}
+
+/// The node's outputs on their own thread: the control loop hands each tick over without
+/// waiting ([`OutputThread::offer`]; a full queue drops the tick, counted), and this thread
+/// publishes the fused surface, haptic constraint and joint torque command
+/// ([`ZenohPublisher::publish_tick`]) and, at `status_rate_hz` on the tick clock, the node
+/// status (statuses of the last tick, tick slots without a tick, and per camera of a live
+/// source frames, drops, malformed messages, rate and stamp-to-arrival latency).
+pub struct OutputThread {
+    tx: std::sync::mpsc::SyncSender<TickRecord>,
+    dropped: Arc<std::sync::atomic::AtomicU64>,
+    handle: std::thread::JoinHandle<OutputCounters>,
+}
+
+impl OutputThread {
+    /// Starts publishing on `session`; `backend` names perception's backend in the status,
+    /// `source` is the live camera source's counters, if any.
+    pub fn spawn(
+        session: &zenoh::Session,
+        zenoh: &ZenohConfig,
+        config: &ZenohPublisherConfig,
+        backend: String,
+        source: Option<SourceStats>,
+    ) -> Result<Self, ZenohError> {
+        let mut publisher = ZenohPublisher::new(session, zenoh, config)?;
+        let (tx, rx) = std::sync::mpsc::sync_channel::<TickRecord>(config.queue_ticks);
+        let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let status_period_s = 1.0 / config.status_rate_hz;
+        let thread_dropped = dropped.clone();
+        let handle = std::thread::Builder::new()
+            .name("zenoh-outputs".into())
+            .spawn(move || {
+                let mut out = OutputCounters::default();
+                let note = |out: &mut OutputCounters, r: Result<(), ZenohError>| {
+                    if let Err(e) = r {
+                        out.errors += 1;
+                        out.first_error.get_or_insert_with(|| e.to_string());
+                    }
+                };
+                let mut last_index: Option<u64> = None;
+                let mut gaps = 0u64;
+                let mut last_status: Option<(f64, BTreeMap<u32, CameraCounters>)> = None;
+                for t in rx {
+                    if let Some(last) = last_index {
+                        gaps += t.index.saturating_sub(last + 1);
+                    }
+                    last_index = Some(t.index);
+                    match publisher.publish_tick(&t) {
+                        Ok(true) => out.ticks_published += 1,
+                        Ok(false) => {}
+                        Err(e) => note(&mut out, Err(e)),
+                    }
+                    let now_s = t.fused.stamp_s;
+                    if last_status
+                        .as_ref()
+                        .is_some_and(|(at, _)| now_s - at < status_period_s)
+                    {
+                        continue;
+                    }
+                    let counters = source
+                        .as_ref()
+                        .map(SourceStats::counters)
+                        .unwrap_or_default();
+                    let cameras = counters
+                        .iter()
+                        .map(|(&id, c)| {
+                            let rate_hz = last_status
+                                .as_ref()
+                                .and_then(|(at, before)| {
+                                    let span = now_s - at;
+                                    let n = c.frames - before.get(&id)?.frames;
+                                    (span > 0.0).then(|| n as f64 / span)
+                                })
+                                .unwrap_or(0.0);
+                            super::ros2::hapcloud::CameraStatus {
+                                camera_id: id,
+                                frames: c.frames,
+                                drops: c.drops,
+                                malformed: c.malformed,
+                                rate_hz,
+                                latency_p50_s: c.delivery_latency_p50_s,
+                                latency_p99_s: c.delivery_latency_p99_s,
+                            }
+                        })
+                        .collect();
+                    let status = NodeStatus::new(
+                        &t,
+                        gaps + thread_dropped.load(std::sync::atomic::Ordering::Relaxed),
+                        backend.clone(),
+                        cameras,
+                    );
+                    let r = publisher.publish_status(&status);
+                    out.status_published += u64::from(r.is_ok());
+                    note(&mut out, r);
+                    last_status = Some((now_s, counters));
+                }
+                out
+            })
+            .map_err(|e| ZenohError::Zenoh(format!("output thread: {e}")))?;
+        Ok(Self {
+            tx,
+            dropped,
+            handle,
+        })
+    }
+
+    /// Hands a tick over without waiting; dropped (counted) when the thread is behind.
+    pub fn offer(&self, t: &TickRecord) {
+        if self.tx.try_send(*t).is_err() {
+            self.dropped
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+
+    /// Publishes what is queued, stops, and returns the counters.
+    pub fn finish(self) -> OutputCounters {
+        let Self {
+            tx,
+            dropped,
+            handle,
+        } = self;
+        drop(tx);
+        let mut out = handle.join().unwrap_or_else(|_| OutputCounters {
+            first_error: Some("the output thread panicked".into()),
+            errors: 1,
+            ..Default::default()
+        });
+        out.ticks_dropped = dropped.load(std::sync::atomic::Ordering::Relaxed);
+        out
     }
 }
 

@@ -4,7 +4,7 @@
 //! Three kinds of threads, so a slow frame never blocks the control loop:
 //!
 //! 1. **source** (one thread): delivers frames when they are due (a recording paced by its
-//!    stamps, or a TCP stream as bytes arrive, [`stream`]) into a short bounded queue
+//!    stamps, or ROS 2 messages from Zenoh as they arrive, `crate::io::zenoh`) into a short bounded queue
 //!    ([`frame_queue`]); when perception is behind and the queue is full, the oldest queued
 //!    frame is dropped and counted, so the newest frame wins (no backlog, no stale frame
 //!    ahead of a fresh one),
@@ -26,7 +26,8 @@
 //!
 //! Time: the node keeps a simulated clock `t = offset + elapsed * speed` (`--speed` runs
 //! faster than real time); stamps are on that clock. A recording starts the clock at its
-//! first stamp; a stream aligns it at its first frame. Latency is measured from a frame's
+//! first stamp; a live Zenoh source runs it on the wall clock (UNIX time, the stamps of ROS 2
+//! cameras). Latency is measured from a frame's
 //! stamp to the end of the tick that first used its estimate, on that clock.
 //!
 //! Perception takes the HIP and the robot's collision primitives (for the crop) from the
@@ -36,8 +37,8 @@
 //! stages, logged once; a camera that stops makes fusion go stale and the constraints follow
 //! `on_stale`: `disable` switches them off at once, `hold` keeps the last fused surface for at
 //! most `stale_hold_max_s` (flagged as held in the record and on CAN), then switches them off;
-//! tracking resumes when frames return; malformed stream
-//! records are counted and dropped ([`crate::io::hcap`]); an unreadable recording is an error naming the
+//! tracking resumes when frames return; malformed messages
+//! are counted and dropped per camera; an unreadable recording is an error naming the
 //! file ([`record`]).
 
 pub mod can_out;
@@ -45,7 +46,6 @@ pub mod frame_queue;
 pub mod haptic_loop;
 pub mod record;
 pub mod robot_state;
-pub mod stream;
 
 #[cfg(test)]
 mod tests;
@@ -57,7 +57,6 @@ use crate::gpu::Backend;
 use crate::gpu::GpuContext;
 use crate::haptics::HapticStatus;
 use crate::io::can::{CanError, fault};
-use crate::io::hcap;
 use crate::perception::crop::{CropScene, DepthInput};
 use crate::perception::flying::veil_cloud;
 use crate::perception::frontend::{
@@ -212,7 +211,7 @@ impl NodeConfig {
 
 /// Where frames come from.
 pub enum Source {
-    /// Frames delivered when the clock reaches their stamp (a recording's `frames.hcr`).
+    /// Frames delivered when the clock reaches their stamp (an MCAP recording's or bag's).
     Timed(Vec<Frame>),
     /// Frames of a simulated scene, delivered like [`Source::Timed`]; the robot follows the
     /// scene's joint trajectory.
@@ -220,8 +219,9 @@ pub enum Source {
         frames: Vec<Frame>,
         simulator: Arc<Simulator>,
     },
-    /// A TCP stream; frames are used as they arrive.
-    Stream(stream::StreamReceiver),
+    /// ROS 2 camera messages over Zenoh, used as they arrive; the clock is the wall clock.
+    #[cfg(feature = "ros2")]
+    Zenoh(Box<crate::io::zenoh::ZenohSource>),
 }
 
 /// How to run.
@@ -254,9 +254,9 @@ pub struct RunOptions {
     pub observer: Option<SyncSender<NodeEvent>>,
 }
 
-/// Largest frame stamp a timed source may carry, s (ten years of seconds: any real clock;
-/// 1e300 is a corrupt record).
-const MAX_STAMP_S: f64 = 3.2e8;
+/// Largest frame stamp a timed source may carry, s (UNIX time of the year 2286: any real
+/// clock, ROS 2 stamps included; 1e300 is a corrupt record).
+const MAX_STAMP_S: f64 = 1e10;
 
 /// Ticks between two [`NodeEvent::Tick`]s (100 Hz at 800 Hz: more than a display shows).
 pub const OBSERVER_TICK_EVERY: u64 = 8;
@@ -310,12 +310,16 @@ impl Percentiles {
     }
 }
 
-/// Per camera: frames processed and their rate over the run's clock time.
+/// Per camera: frames processed and their rate over the run's clock time, frames dropped
+/// (the source's queue or perception's were full: the oldest went) and messages that did not
+/// decode (a live source).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct CameraSummary {
     pub frames: u64,
     pub rate_hz: f64,
     pub valid_estimates: u64,
+    pub dropped: u64,
+    pub malformed: u64,
 }
 
 /// What a run did (the `--json` object of `hapcloud run`).
@@ -325,7 +329,7 @@ pub struct NodeSummary {
     pub frames: u64,
     /// Queued frames dropped for a newer one because perception was behind.
     pub dropped_frames: u64,
-    /// Malformed stream records dropped.
+    /// Malformed messages of a live source, dropped.
     pub malformed_records: u64,
     pub cameras: BTreeMap<u32, CameraSummary>,
     pub ticks: u64,
@@ -382,21 +386,12 @@ struct Clock {
     start: Instant,
     speed: f64,
     offset_bits: AtomicU64,
-    aligned: AtomicBool,
 }
 
 impl Clock {
     fn now_s(&self) -> f64 {
         f64::from_bits(self.offset_bits.load(Ordering::Acquire))
             + self.start.elapsed().as_secs_f64() * self.speed
-    }
-
-    /// Sets the clock so that now reads `t_s` (once; later calls do nothing).
-    fn align(&self, t_s: f64) {
-        if !self.aligned.swap(true, Ordering::AcqRel) {
-            let offset = t_s - self.start.elapsed().as_secs_f64() * self.speed;
-            self.offset_bits.store(offset.to_bits(), Ordering::Release);
-        }
     }
 
     /// The wall instant the clock reads `t_s`; a stamp beyond a day (or not finite) is a
@@ -418,6 +413,9 @@ struct Shared {
     queued: AtomicU64,
     source_finished: AtomicBool,
     malformed: AtomicU64,
+    /// Per camera: frames dropped from the queue, and (a live source) samples dropped and
+    /// malformed messages (`dropped`, `malformed`).
+    per_camera: std::sync::Mutex<BTreeMap<u32, (u64, u64)>>,
     /// Perception fell back from the GPU to the CPU.
     gpu_fell_back: AtomicBool,
 }
@@ -575,8 +573,15 @@ fn source_thread(source: Source, clock: &Clock, queue: &FrameQueue<Frame>, share
             true
         }
         // The oldest queued frame made room: one frame in, one out.
-        Ok(Some(_oldest)) => {
+        Ok(Some(oldest)) => {
             shared.dropped.fetch_add(1, Ordering::Relaxed);
+            shared
+                .per_camera
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                .entry(oldest.camera_id)
+                .or_default()
+                .0 += 1;
             true
         }
         Err(_) => false,
@@ -602,24 +607,34 @@ fn source_thread(source: Source, clock: &Clock, queue: &FrameQueue<Frame>, share
             }
             shared.source_finished.store(true, Ordering::Release);
         }
-        Source::Stream(mut receiver) => {
+        #[cfg(feature = "ros2")]
+        Source::Zenoh(mut source) => {
+            let stats = source.stats();
             while !shared.stop.load(Ordering::Relaxed) {
-                match receiver.recv(Duration::from_millis(20)) {
-                    Ok(Some(frame)) => {
-                        clock.align(frame.stamp_s);
-                        if !offer(frame) {
-                            break;
-                        }
-                    }
-                    Ok(None) => {}
-                    Err(e) => {
-                        eprintln!("warning: stream source stopped: {e}");
-                        break;
-                    }
+                if let Some(assembled) = source.recv(Duration::from_millis(20))
+                    && !offer(assembled.frame)
+                {
+                    break;
                 }
-                shared
-                    .malformed
-                    .store(receiver.counters().malformed, Ordering::Relaxed);
+                let counters = stats.counters();
+                shared.malformed.store(
+                    counters.values().map(|c| c.malformed).sum(),
+                    Ordering::Relaxed,
+                );
+                let mut per_camera = shared
+                    .per_camera
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+                for (id, c) in counters {
+                    per_camera.entry(id).or_default().1 = c.malformed;
+                }
+            }
+            let mut per_camera = shared
+                .per_camera
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            for (id, c) in stats.counters() {
+                per_camera.entry(id).or_default().0 += c.drops;
             }
         }
     }
@@ -716,7 +731,8 @@ pub fn run(
     };
     let timed_frames = match &source {
         Source::Timed(frames) | Source::Simulated { frames, .. } => Some(frames),
-        Source::Stream(_) => None,
+        #[cfg(feature = "ros2")]
+        Source::Zenoh(_) => None,
     };
     if let Some(frames) = timed_frames
         && let Some((i, f)) = frames
@@ -746,13 +762,18 @@ pub fn run(
             );
             (first, end)
         }
-        None => (0.0, options.duration_s.unwrap_or(f64::INFINITY)),
+        // A live source: the wall clock, on which the cameras stamp their frames.
+        None => {
+            let now_s = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64());
+            (now_s, now_s + options.duration_s.unwrap_or(f64::INFINITY))
+        }
     };
     let clock = Clock {
         start: Instant::now(),
         speed: options.speed,
         offset_bits: AtomicU64::new(t_first.to_bits()),
-        aligned: AtomicBool::new(timed_frames.is_some()),
     };
     let shared = Shared::default();
     let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
@@ -949,24 +970,29 @@ pub fn run(
     });
     let (report, mut stats) = result?;
     let duration_s = stats.duration_s;
-    let cameras = report
-        .frames
-        .iter()
-        .map(|(&id, &(frames, valid))| {
-            (
-                id,
-                CameraSummary {
-                    frames,
-                    rate_hz: if duration_s > 0.0 {
-                        frames as f64 / duration_s
-                    } else {
-                        0.0
-                    },
-                    valid_estimates: valid,
+    let per_camera = shared
+        .per_camera
+        .into_inner()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let mut cameras = BTreeMap::new();
+    for &id in report.frames.keys().chain(per_camera.keys()) {
+        let (frames, valid) = report.frames.get(&id).copied().unwrap_or_default();
+        let (dropped, malformed) = per_camera.get(&id).copied().unwrap_or_default();
+        cameras.insert(
+            id,
+            CameraSummary {
+                frames,
+                rate_hz: if duration_s > 0.0 {
+                    frames as f64 / duration_s
+                } else {
+                    0.0
                 },
-            )
-        })
-        .collect::<BTreeMap<_, _>>();
+                valid_estimates: valid,
+                dropped,
+                malformed,
+            },
+        );
+    }
     let mut perception_times = report.times_s;
     Ok(NodeSummary {
         frames: cameras.values().map(|c| c.frames).sum(),
@@ -1043,8 +1069,8 @@ impl ReplayReport {
 /// estimate, and each tick runs at its recorded time on its recorded robot state; estimates
 /// and ticks (fused surface, constraint values, torques) are compared bit for bit with what
 /// was recorded.
-pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
-    let recording = record::read(dir)?;
+pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
+    let recording = record::read(path)?;
     let config = &recording.meta.config;
     let robot = RobotState::recorded(config, &recording.meta.robot)?;
     let mut haptic_loop =
@@ -1074,9 +1100,16 @@ pub fn replay(dir: &std::path::Path) -> Result<ReplayReport, NodeError> {
                 recorded: &SurfaceEstimate|
      -> Result<(), NodeError> {
         let record = haptic_loop.push_frame(frame, &robot.perception_scene(q))?;
-        let (mut a, mut b) = (Vec::new(), Vec::new());
-        hcap::encode_estimate(&mut a, record.estimate());
-        hcap::encode_estimate(&mut b, recorded);
+        // Every value of an estimate, unrounded, as its recorded message.
+        let bytes = |e: &SurfaceEstimate| {
+            crate::io::ros2::encode(&crate::io::ros2::hapcloud::SurfaceEstimate::new(
+                Default::default(),
+                0,
+                e,
+            ))
+            .map_err(|e| NodeError::Config(format!("estimate: {e}")))
+        };
+        let (a, b) = (bytes(record.estimate())?, bytes(recorded)?);
         report.estimates_compared += 1;
         if a != b {
             report.estimate_mismatches += 1;

@@ -1,24 +1,16 @@
-//! Recordings: what the node saw and did, append-only, one file per stream, readable back.
+//! The node's recording: one MCAP file (profile `ros2`, schemas `ros2msg`, messages `cdr`;
+//! [`crate::io::mcap`]) that Foxglove, rosbags and `ros2 bag` open, and that `hapcloud
+//! replay` re-runs bit for bit.
 //!
-//! A recording directory holds
-//!
-//! * `meta.json`: format version, the node config, the perception backend and the robot
-//!   (base pose, whether the source had joint states),
-//! * `frames.hcr`: every camera frame perception processed, in processing order (kind 1),
-//! * `frame_joints.hcr`: per frame, in the same order, the robot's joint positions at its
-//!   stamp (kind 4: 6 x f64 rad), from which perception took the HIP and the primitives,
-//! * `estimates.hcr`: every surface estimate, with the index of the tick that pushed it into
-//!   fusion (kind 2: `u64 tick index`, then the estimate, see [`hcap::encode_estimate`]),
-//! * `ticks.hcr`: every control tick (kind 3): the fused surface, the robot state, the haptic
-//!   constraint values and status, the joint torque command ([`ControlRecord`]), and the
-//!   tick's timing.
-//!
-//! Each `.hcr` file is a plain sequence of [`hcap`] records (16-byte header with length and
-//! CRC), written through a buffer and flushed at the end, so a recording cut short by a crash
-//! is still readable up to its last whole record. Reading is strict: a bad record is an error
-//! naming the file and the byte offset. `hapcloud replay DIR` re-runs perception on the frames
-//! (with the recorded joints), fusion on the estimates at their recorded ticks, and the
-//! constraints and the controller on the recorded robot states, and compares bit for bit.
+//! It holds a metadata record `hapcloud` (`meta`: [`RecordingMeta`] as JSON: format version,
+//! node config, perception backend, robot base), every camera frame perception processed
+//! (Image + CameraInfo, or PointCloud2 when the cloud is not its image's deprojection) with
+//! its `hapcloud_msgs/FrameMeta` (unrounded stamp, pose, the robot joints perception used)
+//! and its pose on `/tf`, every surface estimate with the tick that pushed it into fusion,
+//! and every control tick (fused surface, robot state, constraint values, torque command,
+//! timing). The perception thread and the control loop hand their items to a writer thread
+//! over a channel, so neither waits for the disk; each frame closes an MCAP chunk, so a
+//! recording cut short by a crash reads back up to its last whole frame.
 
 use super::NodeConfig;
 use super::haptic_loop::Tick;
@@ -27,22 +19,27 @@ use crate::camera::Frame;
 use crate::control::{ControlStatus, ControllerOutput};
 use crate::gpu::Backend;
 use crate::haptics::{ConstraintKind, HapticStatus};
-use crate::io::hcap::{self, Reader, RecordKind, WireError, put_vec3};
+use crate::io::mcap::{McapError, McapItem, McapReader, McapReaderConfig, McapWriter};
+use crate::io::ros2::encode;
+use crate::io::ros2::hapcloud::ControlTick;
+use crate::io::ros2::msgs::Header;
 use crate::robot::JointVector;
+use crate::surface::FusedSurface;
 use crate::surface::SurfaceEstimate;
-use crate::surface::{FusedSurface, FusionStatus};
-use nalgebra::{Point3, Unit};
 use serde::{Deserialize, Serialize};
-use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::mpsc;
+use std::sync::{Arc, Mutex, PoisonError};
 
-/// Recording format version (the record framing has its own, [`hcap::VERSION`]).
-/// Version 2 added the robot (`meta.json`'s `robot`, `frame_joints.hcr`) and the controller's
-/// outputs in every tick; version 1 recordings are refused with a clear error.
-pub const RECORDING_VERSION: u32 = 2;
+/// Recording format version, in the `hapcloud` metadata record. Version 3 is the MCAP file;
+/// versions 1 and 2 were directories of `.hcr` files, refused with a clear error.
+pub const RECORDING_VERSION: u32 = 3;
 
-/// `meta.json` of a recording.
+/// Name of the MCAP metadata record holding [`RecordingMeta`] (key `meta`, JSON).
+pub const METADATA_NAME: &str = "hapcloud";
+
+/// The recording's metadata.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RecordingMeta {
@@ -105,86 +102,6 @@ impl ControlRecord {
     pub fn velocity_active(&self) -> bool {
         !self.alpha_v_mps.is_nan()
     }
-
-    fn encode(&self, out: &mut Vec<u8>) {
-        put_joints(out, &self.joints.q_rad);
-        put_joints(out, &self.joints.qd_rad_per_s);
-        out.push(u8::from(self.held));
-        out.push(match self.haptic_status {
-            HapticStatus::Active => 0,
-            HapticStatus::Far => 1,
-            HapticStatus::NoSurface => 2,
-        });
-        for v in [
-            self.d_proj_m,
-            self.d_rate_mps,
-            self.alpha_p_m,
-            self.alpha_v_mps,
-        ] {
-            out.extend_from_slice(&v.to_le_bytes());
-        }
-        out.push(u8::from(self.force_active));
-        out.push(match self.status {
-            ControlStatus::Ok => 0,
-            ControlStatus::BadInput => 1,
-            ControlStatus::SolverFailed => 2,
-        });
-        put_joints(out, &self.tau_nm);
-        put_joints(out, &self.qdd_rad_per_s2);
-    }
-
-    fn decode(r: &mut Reader<'_>) -> Result<Self, WireError> {
-        let q_rad = read_joints(r)?;
-        let qd_rad_per_s = read_joints(r)?;
-        let held = r.u8()? != 0;
-        let haptic_status = match r.u8()? {
-            0 => HapticStatus::Active,
-            1 => HapticStatus::Far,
-            2 => HapticStatus::NoSurface,
-            _ => return Err(WireError::Payload("unknown haptic status")),
-        };
-        let d_proj_m = r.f64()?;
-        let d_rate_mps = r.f64()?;
-        let alpha_p_m = r.f64()?;
-        let alpha_v_mps = r.f64()?;
-        let force_active = r.u8()? != 0;
-        let status = match r.u8()? {
-            0 => ControlStatus::Ok,
-            1 => ControlStatus::BadInput,
-            2 => ControlStatus::SolverFailed,
-            _ => return Err(WireError::Payload("unknown control status")),
-        };
-        Ok(Self {
-            joints: JointState {
-                q_rad,
-                qd_rad_per_s,
-            },
-            held,
-            haptic_status,
-            d_proj_m,
-            d_rate_mps,
-            alpha_p_m,
-            alpha_v_mps,
-            force_active,
-            status,
-            tau_nm: read_joints(r)?,
-            qdd_rad_per_s2: read_joints(r)?,
-        })
-    }
-}
-
-fn put_joints(out: &mut Vec<u8>, v: &JointVector) {
-    for c in v.iter() {
-        out.extend_from_slice(&c.to_le_bytes());
-    }
-}
-
-fn read_joints(r: &mut Reader<'_>) -> Result<JointVector, WireError> {
-    let mut v = JointVector::zeros();
-    for c in v.iter_mut() {
-        *c = r.f64()?;
-    }
-    Ok(v)
 }
 
 /// One control tick as recorded.
@@ -212,197 +129,175 @@ impl TickRecord {
         }
     }
 
-    /// The deterministic part (index, fused surface, controller) as bytes: what replay
-    /// compares.
+    /// The deterministic part (index, fused surface, controller; not the timing) as bytes:
+    /// what replay compares (the tick's CDR message with zero timing, every value unrounded).
     pub fn deterministic_bytes(&self) -> Vec<u8> {
-        let f = &self.fused;
-        let mut out = Vec::with_capacity(400);
-        out.extend_from_slice(&self.index.to_le_bytes());
-        out.extend_from_slice(&f.stamp_s.to_le_bytes());
-        put_vec3(&mut out, &f.centroid_m.coords);
-        put_vec3(&mut out, &f.normal);
-        put_vec3(&mut out, &f.velocity_m_per_s);
-        out.push(match f.status {
-            FusionStatus::Tracking => 0,
-            FusionStatus::Stale => 1,
-            FusionStatus::Inconsistent => 2,
-            FusionStatus::NoData => 3,
-        });
-        out.extend_from_slice(&f.age_s.to_le_bytes());
-        put_vec3(&mut out, &f.fit_centroid_m.coords);
-        put_vec3(&mut out, &f.fit_normal);
-        out.push(f.fit_degree);
-        out.extend_from_slice(&f.sample_count.to_le_bytes());
-        out.extend_from_slice(&f.camera_count.to_le_bytes());
-        self.control.encode(&mut out);
-        out
-    }
-
-    fn encode(&self) -> Vec<u8> {
-        let mut out = self.deterministic_bytes();
-        out.extend_from_slice(&self.late_s.to_le_bytes());
-        out.extend_from_slice(&self.work_s.to_le_bytes());
-        out
-    }
-
-    fn decode(payload: &[u8]) -> Result<Self, WireError> {
-        let mut r = Reader::new(payload);
-        let index = r.u64()?;
-        let stamp_s = r.f64()?;
-        let centroid_m = Point3::from(r.vec3()?);
-        let normal = Unit::new_unchecked(r.vec3()?);
-        let velocity_m_per_s = r.vec3()?;
-        let status = match r.u8()? {
-            0 => FusionStatus::Tracking,
-            1 => FusionStatus::Stale,
-            2 => FusionStatus::Inconsistent,
-            3 => FusionStatus::NoData,
-            _ => return Err(WireError::Payload("unknown fusion status")),
+        let timeless = Self {
+            late_s: 0.0,
+            work_s: 0.0,
+            ..*self
         };
-        let age_s = r.f64()?;
-        let fit_centroid_m = Point3::from(r.vec3()?);
-        let fit_normal = Unit::new_unchecked(r.vec3()?);
-        let fit_degree = r.u8()?;
-        let sample_count = r.u32()?;
-        let camera_count = r.u32()?;
-        let control = ControlRecord::decode(&mut r)?;
-        let late_s = r.f64()?;
-        let work_s = r.f64()?;
-        r.finish()?;
-        Ok(Self {
-            index,
-            fused: FusedSurface {
-                stamp_s,
-                centroid_m,
-                normal,
-                velocity_m_per_s,
-                status,
-                age_s,
-                fit_centroid_m,
-                fit_normal,
-                fit_degree,
-                sample_count,
-                camera_count,
-            },
-            control,
-            late_s,
-            work_s,
-        })
+        encode(&ControlTick::new(Header::default(), &timeless))
+            .expect("a ControlTick always serializes: fixed fields, six joints")
     }
 }
 
 /// Why a recording cannot be written or read.
 #[derive(Debug, thiserror::Error)]
 pub enum RecordError {
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        source: std::io::Error,
-    },
+    /// The file could not be opened, written or parsed (the error names the file).
+    #[error("{0}")]
+    Mcap(String),
     #[error("{path}: not a readable recording: {reason}")]
     Format { path: PathBuf, reason: String },
+    #[error(
+        "{path}: a recording directory of an older hapcloud (.hcr files); this build records \
+         and replays MCAP files: record it again with `hapcloud run SOURCE --record FILE.mcap`"
+    )]
+    OldFormat { path: PathBuf },
+    #[error("{path}: the recording writer stopped: {reason}")]
+    Writer { path: PathBuf, reason: String },
 }
 
-fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> RecordError + '_ {
-    move |source| RecordError::Io {
-        path: path.to_path_buf(),
-        source,
-    }
+/// An MCAP error, naming the file once.
+fn mcap_error(path: &Path, e: McapError) -> RecordError {
+    RecordError::Mcap(match e {
+        McapError::Io { .. } => e.to_string(),
+        e => format!("{}: {e}", path.display()),
+    })
 }
 
-/// One append-only record file.
-struct Stream {
+/// What the two recorders hand the writer thread.
+enum Item {
+    Frame(Box<Frame>, JointVector),
+    Estimate(u64, Box<SurfaceEstimate>),
+    Tick(Box<TickRecord>),
+}
+
+/// The writer thread's first error, for whoever finds the channel closed.
+type WriterError = Arc<Mutex<Option<String>>>;
+
+struct Sink {
     path: PathBuf,
-    out: BufWriter<File>,
-    buf: Vec<u8>,
+    tx: mpsc::Sender<Item>,
+    error: WriterError,
 }
 
-impl Stream {
-    fn create(path: PathBuf) -> Result<Self, RecordError> {
-        let file = File::create(&path).map_err(io_err(&path))?;
-        Ok(Self {
-            path,
-            out: BufWriter::with_capacity(1 << 20, file),
-            buf: Vec::new(),
+impl Sink {
+    fn send(&self, item: Item) -> Result<(), RecordError> {
+        self.tx.send(item).map_err(|_| RecordError::Writer {
+            path: self.path.clone(),
+            reason: self
+                .error
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .clone()
+                .unwrap_or_else(|| "gone".into()),
         })
     }
-
-    fn append(&mut self, kind: RecordKind, payload: &[u8]) -> Result<(), RecordError> {
-        self.buf.clear();
-        hcap::write_record(&mut self.buf, kind, payload);
-        self.out.write_all(&self.buf).map_err(io_err(&self.path))
-    }
-
-    fn finish(mut self) -> Result<(), RecordError> {
-        self.out.flush().map_err(io_err(&self.path))
-    }
 }
 
-/// Writes the frames perception processed and their joints (owned by the perception thread).
-pub struct FrameRecorder {
-    frames: Stream,
-    joints: Stream,
-}
+/// Records the frames perception processed and their joints (owned by the perception thread).
+pub struct FrameRecorder(Sink);
 
-/// Writes estimates and ticks (owned by the control loop).
+/// Records estimates and ticks (owned by the control loop); its `finish` waits for the file.
 pub struct TickRecorder {
-    estimates: Stream,
-    ticks: Stream,
+    sink: Sink,
+    writer: std::thread::JoinHandle<()>,
 }
 
-/// Creates a recording directory with its `meta.json` and the two writers.
+/// Creates the recording `path` (an `.mcap` file) with its metadata, and the two recorders
+/// feeding its writer thread.
 pub fn create(
-    dir: &Path,
+    path: &Path,
     meta: &RecordingMeta,
 ) -> Result<(FrameRecorder, TickRecorder), RecordError> {
-    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
-    let meta_path = dir.join("meta.json");
-    let text = serde_json::to_string_pretty(meta).map_err(|e| RecordError::Format {
-        path: meta_path.clone(),
+    if path.extension().is_none_or(|e| e != "mcap") || path.is_dir() {
+        return Err(RecordError::Format {
+            path: path.into(),
+            reason: "recordings are MCAP files: give a FILE.mcap".into(),
+        });
+    }
+    let mcap_err = |e: McapError| mcap_error(path, e);
+    let mut writer = McapWriter::create(path, Default::default()).map_err(mcap_err)?;
+    let json = serde_json::to_string(meta).map_err(|e| RecordError::Format {
+        path: path.into(),
         reason: e.to_string(),
     })?;
-    std::fs::write(&meta_path, text).map_err(io_err(&meta_path))?;
+    writer
+        .write_metadata(METADATA_NAME, BTreeMap::from([("meta".into(), json)]))
+        .map_err(mcap_err)?;
+    let (tx, rx) = mpsc::channel::<Item>();
+    let error = WriterError::default();
+    let thread_error = error.clone();
+    let writer = std::thread::Builder::new()
+        .name("recording".into())
+        .spawn(move || {
+            let result = (|| {
+                for item in rx {
+                    match item {
+                        Item::Frame(frame, q) => writer.write_frame(&frame, q.as_slice())?,
+                        Item::Estimate(k, e) => writer.write_estimate(k, &e)?,
+                        Item::Tick(t) => writer.write_tick(&t)?,
+                    }
+                }
+                writer.finish().map(drop)
+            })();
+            if let Err(e) = result {
+                *thread_error.lock().unwrap_or_else(PoisonError::into_inner) = Some(e.to_string());
+            }
+        })
+        .map_err(|e| RecordError::Writer {
+            path: path.into(),
+            reason: e.to_string(),
+        })?;
+    let sink = |tx| Sink {
+        path: path.into(),
+        tx,
+        error: error.clone(),
+    };
     Ok((
-        FrameRecorder {
-            frames: Stream::create(dir.join("frames.hcr"))?,
-            joints: Stream::create(dir.join("frame_joints.hcr"))?,
-        },
+        FrameRecorder(sink(tx.clone())),
         TickRecorder {
-            estimates: Stream::create(dir.join("estimates.hcr"))?,
-            ticks: Stream::create(dir.join("ticks.hcr"))?,
+            sink: sink(tx),
+            writer,
         },
     ))
 }
 
 impl FrameRecorder {
     pub fn frame(&mut self, frame: &Frame, q: &JointVector) -> Result<(), RecordError> {
-        self.frames
-            .append(RecordKind::Frame, &hcap::encode_frame(frame))?;
-        let mut payload = Vec::with_capacity(48);
-        put_joints(&mut payload, q);
-        self.joints.append(RecordKind::FrameJoints, &payload)
+        self.0.send(Item::Frame(Box::new(frame.clone()), *q))
     }
 
     pub fn finish(self) -> Result<(), RecordError> {
-        self.frames.finish()?;
-        self.joints.finish()
+        Ok(())
     }
 }
 
 impl TickRecorder {
     pub fn estimate(&mut self, tick: u64, e: &SurfaceEstimate) -> Result<(), RecordError> {
-        let mut payload = tick.to_le_bytes().to_vec();
-        hcap::encode_estimate(&mut payload, e);
-        self.estimates.append(RecordKind::Estimate, &payload)
+        self.sink.send(Item::Estimate(tick, Box::new(e.clone())))
     }
 
     pub fn tick(&mut self, t: &TickRecord) -> Result<(), RecordError> {
-        self.ticks.append(RecordKind::Tick, &t.encode())
+        self.sink.send(Item::Tick(Box::new(*t)))
     }
 
+    /// Closes the file once the frame recorder is gone too; the writer's error, if any.
     pub fn finish(self) -> Result<(), RecordError> {
-        self.estimates.finish()?;
-        self.ticks.finish()
+        let Sink { path, tx, error } = self.sink;
+        drop(tx);
+        if self.writer.join().is_err() {
+            return Err(RecordError::Writer {
+                path,
+                reason: "its thread panicked".into(),
+            });
+        }
+        match error.lock().unwrap_or_else(PoisonError::into_inner).take() {
+            Some(reason) => Err(RecordError::Writer { path, reason }),
+            None => Ok(()),
+        }
     }
 }
 
@@ -416,106 +311,161 @@ pub struct Recording {
     /// (tick index that pushed it, estimate), in push order.
     pub estimates: Vec<(u64, SurfaceEstimate)>,
     pub ticks: Vec<TickRecord>,
+    /// Where and why the file ended early (a crash mid-write), if it did.
+    pub truncated: Option<String>,
 }
 
-fn read_records(path: &Path, kind: RecordKind) -> Result<Vec<hcap::Record>, RecordError> {
-    let bytes = std::fs::read(path).map_err(io_err(path))?;
-    let records = hcap::read_all(&bytes).map_err(|(at, e)| RecordError::Format {
-        path: path.to_path_buf(),
-        reason: format!("byte {at}: {e}"),
-    })?;
-    if let Some((i, r)) = records.iter().enumerate().find(|(_, r)| r.kind != kind) {
-        return Err(RecordError::Format {
-            path: path.to_path_buf(),
-            reason: format!("record {i} is a {:?} record, expected {kind:?}", r.kind),
-        });
+/// Whether `path` is a recording directory of an older hapcloud.
+pub fn is_old_recording(path: &Path) -> bool {
+    path.is_dir() && (path.join("meta.json").is_file() || path.join("frames.hcr").is_file())
+}
+
+/// Reads a recording; a file that is not one (a ROS 2 bag without hapcloud's metadata, an
+/// old recording directory, a malformed message) is an error naming it.
+pub fn read(path: &Path) -> Result<Recording, RecordError> {
+    if is_old_recording(path) {
+        return Err(RecordError::OldFormat { path: path.into() });
     }
-    Ok(records)
-}
-
-fn payload_err(path: &Path, i: usize) -> impl FnOnce(WireError) -> RecordError + '_ {
-    move |e| RecordError::Format {
-        path: path.to_path_buf(),
-        reason: format!("record {i}: {e}"),
-    }
-}
-
-fn decode_joints(payload: &[u8]) -> Result<JointVector, WireError> {
-    let mut reader = Reader::new(payload);
-    let q = read_joints(&mut reader)?;
-    reader.finish()?;
-    Ok(q)
-}
-
-/// Reads a recording directory; any missing or malformed part is an error naming the file.
-pub fn read(dir: &Path) -> Result<Recording, RecordError> {
-    let meta_path = dir.join("meta.json");
-    let text = std::fs::read_to_string(&meta_path).map_err(io_err(&meta_path))?;
-    let format_err = |reason: String| RecordError::Format {
-        path: meta_path.clone(),
+    let format = |reason: String| RecordError::Format {
+        path: path.into(),
         reason,
     };
-    // The version first: an older meta.json lacks fields this build requires.
-    let value: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format_err(e.to_string()))?;
-    match value.get("version").and_then(serde_json::Value::as_u64) {
-        Some(v) if v == u64::from(RECORDING_VERSION) => {}
-        Some(v) => {
-            return Err(format_err(format!(
-                "recording version {v}, this build reads version {RECORDING_VERSION} only \
-                 (record it again with this build's `hapcloud run --record`)"
-            )));
+    let mcap_err = |e: McapError| mcap_error(path, e);
+    let mut reader = McapReader::open(path, &McapReaderConfig::default()).map_err(mcap_err)?;
+    let mut meta = None;
+    let (mut frames, mut frame_joints, mut estimates, mut ticks) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    while let Some(item) = reader.next_item().map_err(mcap_err)? {
+        match item {
+            McapItem::Metadata { name, metadata } if name == METADATA_NAME => {
+                meta = Some(parse_meta(&metadata).map_err(format)?);
+            }
+            // Frames before the metadata: not a node recording (said below).
+            McapItem::Frame(_) if meta.is_none() => {}
+            McapItem::Frame(a) => {
+                let q: &[f64] = &a.joint_positions_rad;
+                if q.len() != crate::robot::DOF {
+                    return Err(format(format!(
+                        "frame of camera {} at {} s has {} joint positions, not {}",
+                        a.frame.camera_id,
+                        a.frame.stamp_s,
+                        q.len(),
+                        crate::robot::DOF
+                    )));
+                }
+                frame_joints.push(JointVector::from_column_slice(q));
+                frames.push(a.frame);
+            }
+            McapItem::Estimate(k, e) => estimates.push((k, e)),
+            McapItem::Tick(t) => ticks.push(t),
+            McapItem::Metadata { .. } | McapItem::Other { .. } => {}
         }
-        None => return Err(format_err("no format version".into())),
     }
-    let meta: RecordingMeta =
-        serde_json::from_value(value).map_err(|e| format_err(e.to_string()))?;
-    let path = dir.join("frames.hcr");
-    let frames: Vec<Frame> = read_records(&path, RecordKind::Frame)?
-        .iter()
-        .enumerate()
-        .map(|(i, r)| hcap::decode_frame(&r.payload).map_err(payload_err(&path, i)))
-        .collect::<Result<_, _>>()?;
-    let path = dir.join("frame_joints.hcr");
-    let frame_joints: Vec<JointVector> = read_records(&path, RecordKind::FrameJoints)?
-        .iter()
-        .enumerate()
-        .map(|(i, r)| decode_joints(&r.payload).map_err(payload_err(&path, i)))
-        .collect::<Result<_, _>>()?;
-    if frame_joints.len() != frames.len() {
-        return Err(RecordError::Format {
-            path,
-            reason: format!(
-                "{} joint records for {} frames",
-                frame_joints.len(),
-                frames.len()
-            ),
-        });
-    }
-    let path = dir.join("estimates.hcr");
-    let estimates = read_records(&path, RecordKind::Estimate)?
-        .iter()
-        .map(|r| {
-            let mut reader = Reader::new(&r.payload);
-            let tick = reader.u64()?;
-            let e = hcap::decode_estimate(&mut reader)?;
-            reader.finish()?;
-            Ok((tick, e))
-        })
-        .enumerate()
-        .map(|(i, r)| r.map_err(payload_err(&path, i)))
-        .collect::<Result<_, _>>()?;
-    let path = dir.join("ticks.hcr");
-    let ticks = read_records(&path, RecordKind::Tick)?
-        .iter()
-        .enumerate()
-        .map(|(i, r)| TickRecord::decode(&r.payload).map_err(payload_err(&path, i)))
-        .collect::<Result<_, _>>()?;
+    let Some(meta) = meta else {
+        return Err(format(
+            "no hapcloud metadata: not a node recording (`hapcloud run FILE.mcap` plays the \
+             camera frames of any ROS 2 bag)"
+                .into(),
+        ));
+    };
     Ok(Recording {
         meta,
         frames,
         frame_joints,
         estimates,
         ticks,
+        truncated: reader.truncated().map(str::to_string),
+    })
+}
+
+fn parse_meta(metadata: &BTreeMap<String, String>) -> Result<RecordingMeta, String> {
+    let text = metadata
+        .get("meta")
+        .ok_or("the hapcloud metadata record has no `meta`")?;
+    // The version first: another version's meta lacks fields this build requires.
+    let value: serde_json::Value = serde_json::from_str(text).map_err(|e| e.to_string())?;
+    match value.get("version").and_then(serde_json::Value::as_u64) {
+        Some(v) if v == u64::from(RECORDING_VERSION) => {}
+        Some(v) => {
+            return Err(format!(
+                "recording version {v}, this build reads version {RECORDING_VERSION} only \
+                 (record it again with this build's `hapcloud run --record`)"
+            ));
+        }
+        None => return Err("no format version".into()),
+    }
+    serde_json::from_value(value).map_err(|e| format!("metadata: {e}"))
+}
+
+/// The camera frames of an MCAP file and what else it told.
+#[derive(Clone, Debug)]
+pub struct McapFrames {
+    pub frames: Vec<Frame>,
+    /// The node recording's metadata; `None` for a ROS 2 bag of another program.
+    pub meta: Option<RecordingMeta>,
+    /// Messages that did not make a frame (malformed, unpaired, no pose yet).
+    pub counters: crate::io::ros2::assemble::AssemblyCounters,
+    /// Where and why the file ended early, if it did.
+    pub truncated: Option<String>,
+}
+
+/// The camera frames of any MCAP file: a node recording, or a ROS 2 bag (e.g. recorded from
+/// realsense-ros: Image + CameraInfo or PointCloud2 topics, found from the channels unless
+/// `config` names them; poses from `config` or `/tf_static`). No frame at all is an error
+/// saying why.
+pub fn read_frames(path: &Path, config: &McapReaderConfig) -> Result<McapFrames, RecordError> {
+    if is_old_recording(path) {
+        return Err(RecordError::OldFormat { path: path.into() });
+    }
+    let mcap_err = |e: McapError| mcap_error(path, e);
+    let mut reader = McapReader::open(path, config).map_err(mcap_err)?;
+    let (mut frames, mut meta) = (Vec::new(), None);
+    while let Some(item) = reader.next_item().map_err(mcap_err)? {
+        match item {
+            McapItem::Frame(a) => frames.push(a.frame),
+            McapItem::Metadata { name, metadata } if name == METADATA_NAME => {
+                meta = parse_meta(&metadata).ok();
+            }
+            _ => {}
+        }
+    }
+    let counters = reader.assembler().counters();
+    if frames.is_empty() {
+        let cameras = reader.assembler().cameras();
+        let reason = if cameras.is_empty() {
+            "no camera topics (a sensor_msgs/Image with a camera_info beside it, or a \
+             sensor_msgs/PointCloud2)"
+                .to_string()
+        } else if counters.no_pose > 0 {
+            format!(
+                "{} frames without a camera pose: record /tf_static, or give the camera's \
+                 world_from_camera in the config's [[mcap.cameras]]",
+                counters.no_pose
+            )
+        } else {
+            format!(
+                "no complete frame on {} ({counters:?}{})",
+                cameras
+                    .iter()
+                    .flat_map(|c| c.topics())
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                reader
+                    .assembler()
+                    .last_error()
+                    .map(|e| format!("; last error: {e}"))
+                    .unwrap_or_default()
+            )
+        };
+        return Err(RecordError::Format {
+            path: path.into(),
+            reason,
+        });
+    }
+    Ok(McapFrames {
+        frames,
+        meta,
+        counters,
+        truncated: reader.truncated().map(str::to_string),
     })
 }

@@ -1,6 +1,5 @@
 //! Node tests: a synthetic two-camera stream of a moving plane through the whole node.
 
-use super::stream::StreamSender;
 use super::*;
 use crate::cloud::PointCloud;
 use crate::surface::FusionStatus;
@@ -135,8 +134,10 @@ fn node_tracks_a_moving_plane_from_two_cameras() {
 fn recording_replays_bit_for_bit_and_bad_recordings_are_clear_errors() {
     let _serial = serial();
     let dir = temp_dir("replay");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("run.mcap");
     let opts = RunOptions {
-        record: Some(dir.clone()),
+        record: Some(file.clone()),
         ..options(1.0)
     };
     let summary = run(
@@ -146,78 +147,217 @@ fn recording_replays_bit_for_bit_and_bad_recordings_are_clear_errors() {
         |_| {},
     )
     .unwrap();
-    let report = replay(&dir).unwrap();
+    let report = replay(&file).unwrap();
     assert!(report.identical(), "{report:?}");
     assert_eq!(report.ticks_compared, summary.ticks);
     assert_eq!(report.frames, summary.frames);
     assert!(report.estimates_compared > 3, "{report:?}");
 
     // A recording re-used as a source gives the same frames.
-    let back = record::read(&dir).unwrap();
+    let back = record::read(&file).unwrap();
     assert_eq!(back.frames.len() as u64, summary.frames);
+    assert!(back.truncated.is_none());
+    let frames = record::read_frames(&file, &Default::default()).unwrap();
+    assert_eq!(frames.frames.len() as u64, summary.frames);
+    assert!(frames.meta.is_some());
 
-    // Corrupt one byte of the ticks: a clear error naming the file.
-    let ticks = dir.join("ticks.hcr");
-    let mut bytes = std::fs::read(&ticks).unwrap();
-    bytes[40] ^= 0xff;
-    std::fs::write(&ticks, &bytes).unwrap();
-    let err = replay(&dir).unwrap_err().to_string();
-    assert!(err.contains("ticks.hcr") && err.contains("CRC"), "{err}");
-    // Truncated frames.
-    let frames = dir.join("frames.hcr");
-    let len = std::fs::metadata(&frames).unwrap().len();
-    let bytes = std::fs::read(&frames).unwrap();
-    std::fs::write(&frames, &bytes[..len as usize - 3]).unwrap();
-    let err = record::read(&dir).unwrap_err().to_string();
+    // Cut mid-file (a crash): the frames before the cut replay, the cut is reported.
+    let bytes = std::fs::read(&file).unwrap();
+    let cut = dir.join("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let back = record::read(&cut).unwrap();
+    assert!(back.truncated.is_some());
+    assert!(!back.frames.is_empty() && (back.frames.len() as u64) < summary.frames);
+    // Another format version, and an MCAP file without the node's metadata.
+    let other = dir.join("v2.mcap");
+    let mut w = crate::io::mcap::McapWriter::create(&other, Default::default()).unwrap();
+    w.write_metadata(
+        record::METADATA_NAME,
+        BTreeMap::from([("meta".into(), r#"{"version":2}"#.into())]),
+    )
+    .unwrap();
+    w.finish().unwrap();
+    let err = replay(&other).unwrap_err().to_string();
     assert!(
-        err.contains("frames.hcr") && err.contains("cut short"),
+        err.contains("version 2") && err.contains("version 3"),
         "{err}"
     );
+    let mut w = crate::io::mcap::McapWriter::create(&other, Default::default()).unwrap();
+    w.write_frame(&plane_frame(0, 1.0), &[]).unwrap();
+    w.finish().unwrap();
+    let err = replay(&other).unwrap_err().to_string();
+    assert!(err.contains("not a node recording"), "{err}");
+    // Garbage: a clear error naming the file.
+    let bad = dir.join("bad.mcap");
+    std::fs::write(&bad, b"not an mcap file at all").unwrap();
+    let err = replay(&bad).unwrap_err().to_string();
+    assert!(err.contains("bad.mcap"), "{err}");
+    // An old recording directory: how to get an MCAP recording.
+    std::fs::write(dir.join("meta.json"), "{}").unwrap();
+    let err = replay(&dir).unwrap_err().to_string();
+    assert!(
+        err.contains(".hcr") && err.contains("--record FILE.mcap"),
+        "{err}"
+    );
+    // Recording into a directory name is refused before the run.
+    let err = run(
+        &config(),
+        Source::Timed(plane_frames(0.1, None)),
+        &RunOptions {
+            record: Some(dir.clone()),
+            ..options(1.0)
+        },
+        |_| {},
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("FILE.mcap"), "{err}");
     // No recording at all.
-    let err = replay(&dir.join("missing")).unwrap_err().to_string();
-    assert!(err.contains("meta.json"), "{err}");
+    let err = replay(&dir.join("missing.mcap")).unwrap_err().to_string();
+    assert!(err.contains("missing.mcap"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// Live cameras over Zenoh (a listening peer stands in for the router): the node runs on the
+/// wall clock, tracks the plane, counts malformed messages per camera, and publishes its
+/// outputs, which a subscriber on the router side receives.
+#[cfg(feature = "ros2")]
 #[test]
-fn stream_source_counts_and_drops_malformed_records() {
+fn zenoh_source_runs_the_node_and_outputs_are_published() {
+    use crate::io::ros2::assemble::{CameraTopics, Pose};
+    use crate::io::ros2::{RosMessage, msgs, topics};
+    use crate::io::zenoh::{
+        Mode, OutputThread, ZenohConfig, ZenohPublisher, ZenohPublisherConfig, ZenohSource,
+        ZenohSourceConfig, open_session, unix_now_s,
+    };
+    use zenoh::Wait;
     let _serial = serial();
-    let receiver = stream::StreamReceiver::bind("127.0.0.1:0").unwrap();
-    let addr = receiver.local_addr().unwrap();
-    let sender = std::thread::spawn(move || {
-        let mut s = StreamSender::connect(addr).unwrap();
-        // The node may stop first (its duration is up): then the sends fail and we stop.
-        for (i, frame) in plane_frames(0.4, None).iter().enumerate() {
-            if s.send(frame).is_err() {
-                break;
-            }
-            if i % 5 == 2 {
-                let mut bad = Vec::new();
-                crate::io::hcap::write_record(
-                    &mut bad,
-                    crate::io::hcap::RecordKind::Frame,
-                    b"not a frame",
-                );
-                if s.send_raw(&bad).is_err() {
-                    break;
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let router = ZenohConfig {
+        mode: Mode::Peer,
+        connect: Vec::new(),
+        listen: vec![format!("tcp/127.0.0.1:{port}")],
+        ..ZenohConfig::default()
+    };
+    let client = ZenohConfig {
+        connect: vec![format!("tcp/127.0.0.1:{port}")],
+        ..ZenohConfig::default()
+    };
+    let router_session = open_session(&router).unwrap();
+    let node_session = open_session(&client).unwrap();
+    let cameras = ZenohSourceConfig {
+        cameras: (0..2u32)
+            .map(|id| {
+                let pose = world_from_camera(id);
+                let q = pose.rotation.quaternion();
+                CameraTopics {
+                    world_from_camera: Some(Pose {
+                        translation_m: pose.translation.vector.into(),
+                        rotation_xyzw: [q.i, q.j, q.k, q.w],
+                    }),
+                    ..CameraTopics::points(id, &topics::points(id))
                 }
+            })
+            .collect(),
+        ..ZenohSourceConfig::default()
+    };
+    let source = ZenohSource::new(&node_session, &client, &cameras).unwrap();
+    let outputs = OutputThread::spawn(
+        &node_session,
+        &client,
+        &ZenohPublisherConfig {
+            tick_rate_hz: 100.0,
+            ..ZenohPublisherConfig::default()
+        },
+        "cpu".into(),
+        Some(source.stats()),
+    )
+    .unwrap();
+    let received = Arc::new(std::sync::Mutex::new(Vec::<f64>::new()));
+    let sink = received.clone();
+    let _sub = router_session
+        .declare_subscriber(client.key(topics::JOINT_COMMAND, msgs::JointState::DESC, false))
+        .callback(move |sample| {
+            let msg: msgs::JointState =
+                crate::io::ros2::decode(&sample.payload().to_bytes()).unwrap();
+            sink.lock().unwrap().push(msg.effort[0]);
+        })
+        .wait()
+        .unwrap();
+    let statuses = Arc::new(AtomicU64::new(0));
+    let status_count = statuses.clone();
+    let _status_sub = router_session
+        .declare_subscriber(client.key(
+            topics::STATUS,
+            crate::io::ros2::hapcloud::NodeStatus::DESC,
+            false,
+        ))
+        .callback(move |_| {
+            status_count.fetch_add(1, Ordering::Relaxed);
+        })
+        .wait()
+        .unwrap();
+    let stop = Arc::new(AtomicBool::new(false));
+    let publisher_stop = stop.clone();
+    let camera_side = router_session.clone();
+    let router_cfg = router.clone();
+    let publisher = std::thread::spawn(move || {
+        let mut publ =
+            ZenohPublisher::new(&camera_side, &router_cfg, &ZenohPublisherConfig::default())
+                .unwrap();
+        let t0 = unix_now_s();
+        let mut sent = 0;
+        while !publisher_stop.load(Ordering::Relaxed) {
+            let t = unix_now_s() - t0;
+            for cam in 0..2u32 {
+                let mut frame = plane_frame(cam, t);
+                frame.stamp_s = unix_now_s();
+                publ.publish_frame(&frame).unwrap();
             }
-            std::thread::sleep(Duration::from_millis(8));
+            if sent % 5 == 2 {
+                let key = router_cfg.key(&topics::points(0), msgs::PointCloud2::DESC, true);
+                camera_side.put(key, vec![0u8, 1, 0, 0, 7]).wait().unwrap();
+            }
+            sent += 1;
+            std::thread::sleep(Duration::from_millis(33));
         }
     });
     let opts = RunOptions {
-        duration_s: Some(1.5),
+        duration_s: Some(2.0),
         ..options(1.0)
     };
     let mut tracking = 0;
-    let summary = run(&config(), Source::Stream(receiver), &opts, |t| {
+    let summary = run(&config(), Source::Zenoh(Box::new(source)), &opts, |t| {
         tracking += usize::from(t.fused.is_tracking());
+        outputs.offer(t);
     })
     .unwrap();
-    sender.join().unwrap();
-    assert!(summary.malformed_records >= 4, "{summary:?}");
-    assert!(summary.frames > 3, "{summary:?}");
-    assert!(tracking > 0);
+    stop.store(true, Ordering::Relaxed);
+    publisher.join().unwrap();
+    let published = outputs.finish();
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(summary.frames > 10, "{summary:?}");
+    assert!(summary.cameras[&0].malformed >= 2, "{summary:?}");
+    assert_eq!(summary.malformed_records, summary.cameras[&0].malformed);
+    assert!(summary.cameras[&1].frames > 5, "{summary:?}");
+    assert!(tracking > 0, "{summary:?}");
+    // Stamps are wall-clock: the latency is the real one, small on loopback.
+    assert!(
+        summary.latency_ms.p50 > 0.0 && summary.latency_ms.p50 < 1000.0,
+        "{summary:?}"
+    );
+    assert!(published.ticks_published > 50, "{published:?}");
+    assert_eq!(published.errors, 0, "{published:?}");
+    let got = received.lock().unwrap().len() as u64;
+    assert!(
+        got > 20 && got <= published.ticks_published,
+        "{got} of {published:?}"
+    );
+    assert!(statuses.load(Ordering::Relaxed) >= 5, "{published:?}");
 }
 
 #[test]
@@ -362,28 +502,6 @@ fn stale_cameras_hold_the_surface_for_at_most_the_hold_time_then_disable() {
             .any(|t| t.0 == FusionStatus::Tracking && t.1 == HapticStatus::Active && !t.2),
         "recovers"
     );
-}
-
-#[test]
-fn recordings_of_an_older_format_are_refused_clearly() {
-    let dir = temp_dir("old-version");
-    std::fs::create_dir_all(&dir).unwrap();
-    let mut meta = serde_json::json!({
-        "version": 1,
-        "config": NodeConfig::default(),
-        "backend": "cpu",
-    });
-    std::fs::write(dir.join("meta.json"), meta.to_string()).unwrap();
-    let err = replay(&dir).unwrap_err().to_string();
-    assert!(
-        err.contains("meta.json") && err.contains("version 1") && err.contains("version 2"),
-        "{err}"
-    );
-    meta["version"] = serde_json::json!(record::RECORDING_VERSION);
-    std::fs::write(dir.join("meta.json"), meta.to_string()).unwrap();
-    let err = replay(&dir).unwrap_err().to_string();
-    assert!(err.contains("robot"), "{err}");
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// The overlay's observer channel on a simulated scene (half-resolution cameras to keep the

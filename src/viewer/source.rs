@@ -128,7 +128,7 @@ pub fn hip_on_axis(frame: &Frame, distance_m: f64) -> Option<Point3<f64>> {
     Some(frame.world_from_camera * (p - distance_m * ray))
 }
 
-/// The viewer timeline of a node recording (`hapcloud run --record DIR`): one view per
+/// The viewer timeline of a node recording (`hapcloud run --record FILE.mcap`): one view per
 /// recorded frame.
 ///
 /// The recorded frames go through the haptic loop with the node's own config, each with the

@@ -10,6 +10,13 @@ Subcommands (all print JSON on stdout, diagnostics on stderr):
                               serialized by rosbags, on rmw_zenoh keys through the router
   listen PORT N SECONDS       decodes what hapcloud publishes on 0/hapcloud/** with rosbags;
                               prints one JSON line per message, stops after N or SECONDS
+  stream PORT SECONDS RATE W H [garbage]
+                              two live depth cameras as realsense-ros publishes them: Image
+                              16UC1 + CameraInfo of a tilted plane 0.6 m ahead, W x H at RATE
+                              Hz, stamped with the wall clock, on /cam0/depth/... and
+                              /cam1/depth/..., their poses on /tf_static (world ->
+                              camN_depth_optical_frame); with `garbage`, every 10th image of
+                              cam0 is replaced by malformed CDR; prints {"sent": N}
   hashes MSG_DIR              rosbags' hash_rihs01 of the standard types and of hapcloud_msgs
   write-bag DIR N             a realsense-like rosbag2 MCAP bag (zstd chunks): N depth frames
   read-mcap FILE              reads an MCAP with rosbags' AnyReader; prints per-topic counts
@@ -69,19 +76,22 @@ def stamp(i):
 def image_msgs(i):
     Header = STORE.types["std_msgs/msg/Header"]
     Image = STORE.types["sensor_msgs/msg/Image"]
-    Info = STORE.types["sensor_msgs/msg/CameraInfo"]
-    Roi = STORE.types["sensor_msgs/msg/RegionOfInterest"]
     depth, _ = frame_values(i)
     h = Header(stamp=stamp(i), frame_id="camera_depth_optical_frame")
     img = Image(header=h, height=H, width=W, encoding="16UC1", is_bigendian=0, step=W * 2,
                 data=np.frombuffer(depth.astype("<u2").tobytes(), dtype=np.uint8))
-    fx, fy, cx, cy = 20.0, 21.0, 7.5, 5.5
-    info = Info(header=h, height=H, width=W, distortion_model="plumb_bob",
+    return img, camera_info(h, W, H, 20.0, 21.0, 7.5, 5.5)
+
+
+def camera_info(header, w, h, fx, fy, cx, cy):
+    """A rectified pinhole CameraInfo as realsense-ros publishes it."""
+    Info = STORE.types["sensor_msgs/msg/CameraInfo"]
+    Roi = STORE.types["sensor_msgs/msg/RegionOfInterest"]
+    return Info(header=header, height=h, width=w, distortion_model="plumb_bob",
                 d=np.zeros(5), k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]),
                 r=np.eye(3).flatten(), p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]),
                 binning_x=0, binning_y=0,
                 roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
-    return img, info
 
 
 def cloud_msg(i):
@@ -151,6 +161,83 @@ def cmd_publish(port, n):
                                                          "sensor_msgs/msg/PointCloud2")))
         sent += 1
         time.sleep(0.01)
+    print(json.dumps({"sent": sent}), flush=True)
+    time.sleep(0.2)
+    s.close()
+
+
+# Camera N's optical frame sits at CAM_POSES[N] (world, m; rotation identity: it looks down
+# world +z), so a plane 0.6 m ahead is at world z = 1.6; the node's HIP is 5 cm before it.
+CAM_POSES = [(0.0, 0.0, 1.0), (0.02, 0.0, 1.0)]
+
+
+def plane_depth_mm(w, h, fx, fy, cx, cy, t):
+    """Depth (mm) of a plane through (0, 0, 0.6) m in the camera frame, tilted and
+    swaying slowly, for each pixel."""
+    v, u = np.mgrid[0:h, 0:w]
+    x, y = (u - cx) / fx, (v - cy) / fy
+    a, b = 0.15, 0.1 + 0.05 * np.sin(t)
+    z = 0.6 / (1.0 - a * x - b * y)
+    return np.clip(z * 1000.0, 0, 65535).astype(np.uint16)
+
+
+def cmd_stream(port, seconds, rate, w, h, garbage):
+    s = session(port, "client")
+    import zenoh
+    drop = zenoh.CongestionControl.DROP
+    Header = STORE.types["std_msgs/msg/Header"]
+    Image = STORE.types["sensor_msgs/msg/Image"]
+    Time = STORE.types["builtin_interfaces/msg/Time"]
+    TF = STORE.types["tf2_msgs/msg/TFMessage"]
+    TS = STORE.types["geometry_msgs/msg/TransformStamped"]
+    Tr = STORE.types["geometry_msgs/msg/Transform"]
+    V3 = STORE.types["geometry_msgs/msg/Vector3"]
+    Q = STORE.types["geometry_msgs/msg/Quaternion"]
+    fx = fy = 0.7 * w
+    cx, cy = (w - 1) / 2, (h - 1) / 2
+    pubs = []
+    for n in range(2):
+        pubs.append((
+            s.declare_publisher(key(f"/cam{n}/depth/image_rect_raw", "sensor_msgs/msg/Image"),
+                                congestion_control=drop),
+            s.declare_publisher(key(f"/cam{n}/depth/camera_info", "sensor_msgs/msg/CameraInfo"),
+                                congestion_control=drop)))
+    tf = TF(transforms=[TS(header=Header(stamp=Time(sec=0, nanosec=0), frame_id="world"),
+                           child_frame_id=f"cam{n}_depth_optical_frame",
+                           transform=Tr(translation=V3(x=p[0], y=p[1], z=p[2]),
+                                        rotation=Q(x=0.0, y=0.0, z=0.0, w=1.0)))
+                        for n, p in enumerate(CAM_POSES)])
+    tf_pub = s.declare_publisher(key("/tf_static", "tf2_msgs/msg/TFMessage"))
+    tf_bytes = bytes(STORE.serialize_cdr(tf, "tf2_msgs/msg/TFMessage"))
+    wait_matching([p for pair in pubs for p in pair], 10.0)
+    # A second of the swaying plane, computed up front so the publisher keeps its rate.
+    frames = [np.frombuffer(plane_depth_mm(w, h, fx, fy, cx, cy, j / 8).astype("<u2").tobytes(),
+                            dtype=np.uint8) for j in range(8)]
+    start = time.time()
+    period = 1.0 / rate
+    sent = 0
+    k = 0
+    while time.time() - start < seconds:
+        due = start + k * period
+        now = time.time()
+        if due > now:
+            time.sleep(due - now)
+        if k % int(rate) == 0:
+            tf_pub.put(tf_bytes)  # transient-local in ROS; repeated here for late joiners
+        for n, (img_pub, info_pub) in enumerate(pubs):
+            t = time.time()
+            st = Time(sec=int(t), nanosec=int((t - int(t)) * 1e9))
+            hd = Header(stamp=st, frame_id=f"cam{n}_depth_optical_frame")
+            img = Image(header=hd, height=h, width=w, encoding="16UC1", is_bigendian=0,
+                        step=w * 2, data=frames[int((t - start) * 8) % 8])
+            info = camera_info(hd, w, h, fx, fy, cx, cy)
+            if garbage and n == 0 and k % 10 == 5:
+                img_pub.put(b"\x00\x01\x00\x00\x07\x00\x00\x00garbage")
+            else:
+                img_pub.put(bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")))
+            info_pub.put(bytes(STORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
+            sent += 1
+        k += 1
     print(json.dumps({"sent": sent}), flush=True)
     time.sleep(0.2)
     s.close()
@@ -269,6 +356,9 @@ def main():
         cmd_publish(int(args[0]), int(args[1]))
     elif cmd == "listen":
         cmd_listen(int(args[0]), int(args[1]), float(args[2]), args[3])
+    elif cmd == "stream":
+        cmd_stream(int(args[0]), float(args[1]), float(args[2]), int(args[3]), int(args[4]),
+                   len(args) > 5 and args[5] == "garbage")
     elif cmd == "hashes":
         cmd_hashes(args[0])
     elif cmd == "write-bag":

@@ -5,19 +5,21 @@
 //! of every record kind written by hapcloud's own writers, the protocol DBC with a
 //! big-endian/extended variant, the built-in scenes and the repository's configs.
 //!
-//! `seeds [DATA_DIR [RECORDING_DIR]]`: DATA_DIR defaults to `../shared/data/pcl` (from the
-//! repository root); RECORDING_DIR, a directory written by `hapcloud run --record`, adds a
-//! real recording to the `recording` seeds.
+//! `seeds [DATA_DIR [RECORDING]]`: DATA_DIR defaults to `../shared/data/pcl` (from the
+//! repository root); RECORDING, an MCAP file written by `hapcloud run --record`, adds a
+//! real recording (its first frames, cut small, estimates and ticks) to the `recording`
+//! seeds.
 
 use glam::Vec3;
 use hapcloud::camera::DepthImage;
 use hapcloud::cloud::PointCloud;
+use hapcloud::io::mcap::McapWriter;
 use hapcloud::io::{Encoding, can, depth, pcd, ply};
 use hapcloud::node::NodeConfig;
-use hapcloud::io::hcap::{self as wire, RecordKind};
+use hapcloud::node::record::{self, RecordingMeta};
+use hapcloud::node::robot_state::RobotMeta;
 use hapcloud::perception::pipeline::SurfaceConfig;
 use hapcloud::scene::builtin;
-use hapcloud_fuzz::RECORDING_SEPARATOR;
 use std::path::{Path, PathBuf};
 
 fn write(target: &str, name: &str, bytes: &[u8]) {
@@ -320,9 +322,28 @@ fn tomls(repo: &Path) {
     write("config_toml", "surface_default.toml", surface.as_bytes());
 }
 
+/// An MCAP recording in memory: the node's metadata, then `frames` (with six joint
+/// positions each), `estimates` and `ticks`.
+fn mcap_recording(
+    meta: &RecordingMeta,
+    frames: &[hapcloud::camera::Frame],
+    rest: impl FnOnce(&mut McapWriter<std::io::Cursor<Vec<u8>>>),
+) -> Vec<u8> {
+    let mut w = McapWriter::new(std::io::Cursor::new(Vec::new()), Default::default())
+        .expect("an MCAP writer");
+    let json = serde_json::to_string(meta).expect("the metadata");
+    w.write_metadata(record::METADATA_NAME, [("meta".to_string(), json)].into())
+        .expect("the metadata");
+    for f in frames {
+        w.write_frame(f, &[0.1; 6]).expect("a frame");
+    }
+    rest(&mut w);
+    w.finish().expect("the file").into_inner()
+}
+
 fn recordings(recording: Option<&Path>) {
-    // Frames of every shape the decoder takes: unorganized, organized with NaN, empty.
-    let mut stream = Vec::new();
+    // Frames of every shape: unorganized, organized with NaN, empty, a depth image.
+    let mut frames = Vec::new();
     for (i, (w, h)) in [(5u32, 1u32), (3, 2), (0, 1)].into_iter().enumerate() {
         let mut cloud = PointCloud::from_points(
             (0..w * h)
@@ -339,49 +360,74 @@ fn recordings(recording: Option<&Path>) {
             cloud.width = w;
             cloud.height = h;
         }
-        let frame = hapcloud::camera::Frame {
+        frames.push(hapcloud::camera::Frame {
             camera_id: i as u32,
             stamp_s: 0.5 + i as f64 / 30.0,
             world_from_camera: nalgebra::Isometry3::translation(0.1, 0.0, 0.5),
             cloud,
             depth: None,
-        };
-        wire::write_record(&mut stream, RecordKind::Frame, &wire::encode_frame(&frame));
+        });
     }
-    write("recording", "frames_only.hcr", &stream);
-    let Some(dir) = recording else {
+    let k = hapcloud::camera::PinholeIntrinsics {
+        width: 4,
+        height: 3,
+        fx: 3.0,
+        fy: 3.0,
+        cx: 2.0,
+        cy: 1.5,
+    };
+    let d = DepthImage {
+        width: 4,
+        height: 3,
+        depth_scale_m: 0.001,
+        data: vec![0, 800, 801, 802, 900, 0, 903, 904, 1000, 1001, 0, 1003],
+    };
+    frames.push(hapcloud::camera::Frame {
+        camera_id: 3,
+        stamp_s: 0.7,
+        world_from_camera: nalgebra::Isometry3::translation(0.0, 0.1, 0.6),
+        cloud: d.deproject(&k).expect("a depth frame"),
+        depth: Some((d, k)),
+    });
+    let meta = RecordingMeta {
+        version: record::RECORDING_VERSION,
+        config: NodeConfig::default(),
+        backend: hapcloud::gpu::Backend::Cpu,
+        robot: RobotMeta {
+            world_from_base: nalgebra::Isometry3::identity(),
+            joint_states: true,
+        },
+    };
+    write(
+        "recording",
+        "frames_only.mcap",
+        &mcap_recording(&meta, &frames, |_| {}),
+    );
+    let Some(path) = recording else {
         return;
     };
-    let mut all = Vec::new();
-    for (k, name) in [
-        "frames.hcr",
-        "frame_joints.hcr",
-        "estimates.hcr",
-        "ticks.hcr",
-    ]
-    .iter()
-    .enumerate()
-    {
-        let bytes = std::fs::read(dir.join(name)).expect("a recording made by hapcloud run");
-        // A few whole records of each stream keep the seed small.
-        let records = wire::read_all(&bytes).expect("a readable recording");
-        let mut part = Vec::new();
-        for r in records.iter().take(if k <= 1 { 2 } else { 8 }) {
-            if r.kind == RecordKind::Frame {
-                // A whole camera frame is megabytes: keep its first 48 points.
-                let mut frame = wire::decode_frame(&r.payload).expect("a recorded frame");
-                frame.cloud = head(&frame.cloud, 48);
-                wire::write_record(&mut part, r.kind, &wire::encode_frame(&frame));
-            } else {
-                wire::write_record(&mut part, r.kind, &r.payload);
-            }
+    let real = record::read(path).expect("a recording made by hapcloud run --record");
+    // A few frames, estimates and ticks keep the seed small; a whole camera frame is
+    // megabytes: keep its first 48 points.
+    let frames: Vec<_> = real
+        .frames
+        .iter()
+        .take(2)
+        .map(|f| hapcloud::camera::Frame {
+            cloud: head(&f.cloud, 48),
+            depth: None,
+            ..f.clone()
+        })
+        .collect();
+    let bytes = mcap_recording(&real.meta, &frames, |w| {
+        for (tick, e) in real.estimates.iter().take(8) {
+            w.write_estimate(*tick, e).expect("an estimate");
         }
-        if k > 0 {
-            all.extend_from_slice(RECORDING_SEPARATOR);
+        for t in real.ticks.iter().take(8) {
+            w.write_tick(t).expect("a tick");
         }
-        all.extend_from_slice(&part);
-    }
-    write("recording", "run_record.hcr", &all);
+    });
+    write("recording", "run_record.mcap", &bytes);
 }
 
 fn main() {

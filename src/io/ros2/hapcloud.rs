@@ -516,6 +516,40 @@ pub struct NodeStatus {
     pub cameras: Vec<CameraStatus>,
 }
 
+impl NodeStatus {
+    /// The status after tick `t`: its statuses, `missed_ticks` tick slots without a tick,
+    /// the backend and the cameras' counters.
+    pub fn new(
+        t: &TickRecord,
+        missed_ticks: u64,
+        backend: String,
+        cameras: Vec<CameraStatus>,
+    ) -> Self {
+        let stamp_s = t.fused.stamp_s;
+        let header = Header {
+            stamp: super::time_from_seconds(stamp_s),
+            frame_id: super::topics::WORLD_FRAME.into(),
+        };
+        let fused = FusedSurface::new(header.clone(), &t.fused);
+        let constraint = HapticConstraint::new(header.clone(), stamp_s, &t.control);
+        Self {
+            header,
+            stamp_s,
+            ticks: t.index + 1,
+            missed_ticks,
+            fusion_status: fused.status,
+            haptic_status: constraint.status,
+            control_status: match t.control.status {
+                ControlStatus::Ok => 0,
+                ControlStatus::BadInput => 1,
+                ControlStatus::SolverFailed => 2,
+            },
+            backend,
+            cameras,
+        }
+    }
+}
+
 impl RosMessage for FusedSurface {
     const DESC: &'static MsgDesc = &FUSED_SURFACE;
 }
