@@ -128,6 +128,7 @@ impl ControlRecord {
             ControlStatus::Ok => 0,
             ControlStatus::BadInput => 1,
             ControlStatus::SolverFailed => 2,
+            ControlStatus::Stopped => 3,
         });
         put_joints(out, &self.tau_nm);
         put_joints(out, &self.qdd_rad_per_s2);
@@ -152,6 +153,7 @@ impl ControlRecord {
             0 => ControlStatus::Ok,
             1 => ControlStatus::BadInput,
             2 => ControlStatus::SolverFailed,
+            3 => ControlStatus::Stopped,
             _ => return Err(WireError::Payload("unknown control status")),
         };
         Ok(Self {
