@@ -22,10 +22,10 @@ pub struct Args {
     /// `torso_approach_realistic` (two simulated D435 cameras) is played.
     source: Option<String>,
     /// Stop after this many seconds of node time (default: the end of a recording).
-    #[arg(long, value_parser = super::numbers::positive)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
     duration: Option<f64>,
     /// Node clock rate relative to real time (2 = twice as fast).
-    #[arg(long, value_parser = super::numbers::speed, default_value_t = 1.0)]
+    #[arg(long, value_parser = super::numbers::speed, allow_negative_numbers = true, default_value_t = 1.0)]
     speed: f64,
     /// Perception backend; `gpu` falls back to `cpu` (logged once) when the GPU fails.
     /// Default: `gpu` on a hardware adapter, `cpu` when the only Vulkan device is a software

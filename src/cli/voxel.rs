@@ -14,7 +14,7 @@ pub struct Args {
     /// Input cloud (.pcd or .ply).
     input: PathBuf,
     /// Cubic leaf size (m).
-    #[arg(long, value_parser = super::numbers::positive)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
     leaf: f64,
     /// Drop cells with fewer points (PCL setMinimumPointsNumberPerVoxel).
     #[arg(long, default_value_t = 1)]

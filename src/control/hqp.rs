@@ -247,7 +247,8 @@ fn symmetric_eigen_in_place(a: &mut DMatrixViewMut<'_, f64>, v: &mut DMatrixView
             .map(|(p, q)| a[(p, q)] * a[(p, q)])
             .sum();
         let diag: f64 = (0..n).map(|i| a[(i, i)] * a[(i, i)]).sum();
-        if !(off > f64::EPSILON * f64::EPSILON * (diag + off)) {
+        // converged (or not a number: the sweeps would not help)
+        if off.is_nan() || off <= f64::EPSILON * f64::EPSILON * (diag + off) {
             return;
         }
         for p in 0..n {

@@ -67,7 +67,7 @@ use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
 use frame_queue::{CloseOnDrop, FrameQueue};
 use haptic_loop::{FrameRecord, FusionWindow, HapticLoop, Perception, RobotInput};
 use nalgebra::Point3;
-use record::{FrameRecorder, RecordError, TickRecord};
+use record::{FrameRecorder, RecordError, TickRecord, TickRecorder};
 use robot_state::{RobotState, RobotStateConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -388,6 +388,11 @@ pub struct NodeSummary {
     pub perception_ms: Percentiles,
     /// Real-time scheduling and memory locking of the control loop, and what was refused.
     pub realtime: RealtimeStatus,
+    /// With `--record`: the write error that stopped the recording (the node went on
+    /// controlling), and the frames and ticks it could not record.
+    pub recording_error: Option<String>,
+    pub unrecorded_frames: u64,
+    pub unrecorded_ticks: u64,
     /// Backend perception ended on (`gpu` or `cpu`).
     pub backend: Backend,
     pub adapter: Option<String>,
@@ -460,6 +465,10 @@ struct Shared {
     /// tick. The first failure's thread and cause are in `failure`.
     failed: AtomicBool,
     failure: Mutex<Option<(&'static str, String)>>,
+    /// The recording's first write error (the disk is full, the directory went away): the
+    /// node goes on controlling without recording and counts what it did not record.
+    recording_error: Mutex<Option<String>>,
+    unrecorded_frames: AtomicU64,
 }
 
 impl Shared {
@@ -469,6 +478,18 @@ impl Shared {
         failure.get_or_insert((thread, cause));
         self.failed.store(true, Ordering::Release);
         self.stop.store(true, Ordering::Release);
+    }
+
+    /// Records a recording write error (logged once); the caller drops its recorder.
+    fn recording_failed(&self, error: &RecordError) {
+        let mut first = self
+            .recording_error
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if first.is_none() {
+            eprintln!("warning: recording stopped ({error}); the node goes on without it");
+            *first = Some(error.to_string());
+        }
     }
 
     fn failure(&self) -> Option<(&'static str, String)> {
@@ -568,6 +589,7 @@ fn perception_thread(
     // The source stops once perception does, whatever the way out.
     let _close = CloseOnDrop(frames);
     let mut processed = 0u64;
+    let recording = recorder.is_some();
     while let Some(frame) = frames.pop() {
         processed += 1;
         injected(inject, Worker::Perception, processed);
@@ -579,8 +601,16 @@ fn perception_thread(
         if perception.gpu_fallback().is_some() {
             shared.gpu_fell_back.store(true, Ordering::Relaxed);
         }
-        if let Some(r) = recorder.as_mut() {
-            r.frame(&frame, &q)?;
+        match recorder.as_mut().map(|r| r.frame(&frame, &q)) {
+            Some(Err(e)) => {
+                shared.recording_failed(&e);
+                recorder = None;
+                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
+            }
+            None if recording => {
+                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
+            }
+            _ => {}
         }
         // Fusion's window is fitted here, off the control loop's thread.
         let fit = window.push(&estimate, record.far_field.as_ref(), clock.now_s());
@@ -595,8 +625,8 @@ fn perception_thread(
             break;
         }
     }
-    if let Some(r) = recorder {
-        r.finish()?;
+    if let Some(Err(e)) = recorder.map(FrameRecorder::finish) {
+        shared.recording_failed(&e);
     }
     Ok(PerceptionReport {
         frames: counts,
@@ -1038,7 +1068,7 @@ pub fn run(
                 if shared.failed.load(Ordering::Acquire) {
                     return Ok(());
                 }
-                injected(inject, Worker::Control, k + 1);
+                injected(inject, Worker::Control, stats.ticks + 1);
                 let now = Instant::now();
                 let behind = now.saturating_duration_since(loop_start + period.mul_f64(k as f64));
                 if behind > period {
@@ -1062,8 +1092,9 @@ pub fn run(
                 // Estimates are handed over without blocking; fusion's window was fitted on
                 // the perception thread, the tick evaluates the newest fit.
                 while let Ok((estimate, fit)) = estimate_rx.try_recv() {
-                    if let Some(r) = tick_recorder.as_mut() {
-                        r.estimate(k, &estimate)?;
+                    if let Some(Err(e)) = tick_recorder.as_mut().map(|r| r.estimate(k, &estimate)) {
+                        shared.recording_failed(&e);
+                        tick_recorder = None;
                     }
                     if let Some(c) = can.as_mut() {
                         c.estimate(t_tick, &estimate);
@@ -1104,8 +1135,14 @@ pub fn run(
                     stats.deadline_misses += 1;
                     misses_since_status = true;
                 }
-                if let Some(r) = tick_recorder.as_mut() {
-                    r.tick(&tick)?;
+                match tick_recorder.as_mut().map(|r| r.tick(&tick)) {
+                    Some(Err(e)) => {
+                        shared.recording_failed(&e);
+                        tick_recorder = None;
+                        stats.unrecorded_ticks += 1;
+                    }
+                    None if options.record.is_some() => stats.unrecorded_ticks += 1,
+                    _ => {}
                 }
                 if let Some(o) = &options.observer
                     && k.is_multiple_of(OBSERVER_TICK_EVERY)
@@ -1232,8 +1269,8 @@ pub fn run(
             thread: Worker::Perception.name(),
             cause: "ended without a report".into(),
         })?;
-        if let Some(r) = tick_recorder.take() {
-            r.finish()?;
+        if let Some(Err(e)) = tick_recorder.take().map(TickRecorder::finish) {
+            shared.recording_failed(&e);
         }
         stats.duration_s = k as f64 * tick_s;
         Ok::<_, NodeError>((report, stats))
@@ -1280,6 +1317,13 @@ pub fn run(
         tick_work_ms: stats.work.percentiles(),
         perception_ms: Percentiles::of_seconds(&mut perception_times),
         realtime: stats.realtime,
+        recording_error: shared
+            .recording_error
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone(),
+        unrecorded_frames: shared.unrecorded_frames.load(Ordering::Relaxed),
+        unrecorded_ticks: stats.unrecorded_ticks,
         backend: report.backend,
         adapter: report.adapter,
         gpu_fallback: report.gpu_fallback,
@@ -1303,6 +1347,7 @@ struct LoopStats {
     skipped: u64,
     fallbacks: u64,
     deadline_misses: u64,
+    unrecorded_ticks: u64,
     latency: Histogram,
     last_latency_s: f64,
     jitter: Histogram,
@@ -1322,6 +1367,7 @@ impl LoopStats {
             skipped: 0,
             fallbacks: 0,
             deadline_misses: 0,
+            unrecorded_ticks: 0,
             // 0.1 ms bins up to 10 s; 1 us bins up to 50 ms
             latency: Histogram::new(1e-4, 10.0),
             last_latency_s: f64::NAN,

@@ -566,3 +566,71 @@ fn frames_out_of_order_per_camera_are_refused_and_counted() {
     assert_eq!(summary.frames + summary.dropped_frames, count);
     assert!(tracking_after > 0, "the cameras were held back");
 }
+
+/// The disk fills while recording (the frame stream written to `/dev/full`, which fails
+/// every write with ENOSPC): the node goes on controlling to the end, says what stopped the
+/// recording, and counts the frames it did not record.
+#[test]
+fn a_full_disk_stops_the_recording_not_the_node() {
+    let _serial = serial();
+    if !std::path::Path::new("/dev/full").exists() {
+        eprintln!("no /dev/full: skipped");
+        return;
+    }
+    let dir = temp_dir("disk-full");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::os::unix::fs::symlink("/dev/full", dir.join("frames.hcr")).unwrap();
+    let opts = RunOptions {
+        record: Some(dir.clone()),
+        ..options(1.0)
+    };
+    let frames = plane_frames(1.0, None);
+    let count = frames.len() as u64;
+    let summary = run(&config(), Source::Timed(frames), &opts, |_| {}).unwrap();
+    let error = summary.recording_error.clone().expect("a recording error");
+    assert!(error.contains("frames.hcr"), "{error}");
+    assert!(summary.unrecorded_frames > 0, "{summary:?}");
+    assert!(summary.unrecorded_frames <= summary.frames);
+    assert_eq!(summary.frames + summary.dropped_frames, count);
+    assert!(summary.tracking_ticks > summary.ticks / 3, "{summary:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The GPU is lost mid-run (its device destroyed between two frames, as a driver reset or an
+/// unplugged GPU would leave it): perception goes on on the CPU from that frame, with the
+/// reason kept (and logged once), and the estimates keep coming.
+#[test]
+fn a_gpu_lost_mid_run_leaves_perception_on_the_cpu() {
+    let ctx = match crate::gpu::GpuContext::new() {
+        Ok(ctx) => Arc::new(ctx),
+        Err(e) => {
+            eprintln!("no GPU ({e}): skipped");
+            return;
+        }
+    };
+    let config = config();
+    let mut perception = Perception::on_context(&config, Some(ctx.clone())).unwrap();
+    let scene = robot_state::PerceptionScene {
+        hip_m: config.hip_world_m,
+        primitives: Vec::new(),
+    };
+    let frames = plane_frames(0.4, None);
+    perception.process(&frames[0], &scene).unwrap();
+    assert_eq!(perception.backend(), Backend::Gpu);
+    assert!(perception.gpu_fallback().is_none());
+    ctx.device().destroy();
+    let mut valid = 0;
+    let mut reasons = std::collections::BTreeSet::new();
+    for frame in &frames[1..] {
+        let record = perception.process(frame, &scene).unwrap();
+        valid += u32::from(record.estimate().valid);
+        reasons.insert(perception.gpu_fallback().expect("a fallback reason"));
+    }
+    assert_eq!(perception.backend(), Backend::Cpu);
+    assert_eq!(reasons.len(), 1, "{reasons:?}");
+    assert!(
+        valid as usize > frames.len() / 2,
+        "{valid} of {}",
+        frames.len()
+    );
+}
