@@ -111,6 +111,8 @@
 //!
 //! Clocks: estimate stamps and tick times must be on the same clock (seconds).
 
+#[cfg(test)]
+use crate::surface::SurfacePoint;
 use crate::surface::{FarFieldEstimate, FusedSurface, FusionStatus, SurfaceEstimate};
 use nalgebra::{DMatrix, Point3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
@@ -652,17 +654,16 @@ impl Fusion {
 
     /// Adds one camera's estimate (any order of stamps and cameras).
     pub fn push(&mut self, estimate: &SurfaceEstimate) -> PushOutcome {
-        let outcome = if estimate.valid {
-            self.insert(
+        let outcome = match &estimate.surface {
+            Some(surface) => self.insert(
                 estimate.camera_id,
                 estimate.stamp_s,
                 estimate.quality,
-                &estimate.centroid_m,
-                &estimate.normal,
+                &surface.centroid_m,
+                &surface.normal,
                 false,
-            )
-        } else {
-            PushOutcome::Invalid
+            ),
+            None => PushOutcome::Invalid,
         };
         self.count(outcome)
     }
@@ -1423,11 +1424,12 @@ mod tests {
         SurfaceEstimate {
             camera_id,
             stamp_s,
-            centroid_m: Point3::from(c),
-            normal: Unit::new_normalize(n),
+            surface: Some(SurfacePoint {
+                centroid_m: Point3::from(c),
+                normal: Unit::new_normalize(n),
+            }),
             shells: Vec::new(),
             quality: 1.0,
-            valid: true,
         }
     }
 
@@ -1784,21 +1786,26 @@ mod tests {
         let mut f = Fusion::new(FusionConfig::default()).unwrap();
         let good = estimate(0, 0.0, Vector3::new(0.0, 0.0, 0.5), Vector3::z());
         let mut bad = vec![good.clone(); 5];
-        bad[0].valid = false;
+        fn surface(e: &mut SurfaceEstimate) -> &mut SurfacePoint {
+            e.surface.as_mut().unwrap()
+        }
+        bad[0].surface = None;
         bad[1].quality = 0.0;
-        bad[2].centroid_m.x = f64::NAN;
+        surface(&mut bad[2]).centroid_m.x = f64::NAN;
         bad[3].stamp_s = f64::INFINITY;
-        bad[4].normal = Unit::new_unchecked(Vector3::zeros());
+        surface(&mut bad[4]).normal = Unit::new_unchecked(Vector3::zeros());
         for (i, e) in bad.iter_mut().enumerate() {
             e.stamp_s += i as f64 * 0.01;
-            e.centroid_m.y = 5.0; // would move the fit if it were used
+            if let Some(s) = &mut e.surface {
+                s.centroid_m.y = 5.0; // would move the fit if it were used
+            }
             assert_eq!(f.push(e), PushOutcome::Invalid);
         }
         assert_eq!(f.tick(0.0).status, FusionStatus::NoData);
         f.push(&good);
         let out = f.tick(0.01);
         assert_eq!(out.status, FusionStatus::Tracking);
-        assert_eq!(out.centroid_m, good.centroid_m);
+        assert_eq!(out.centroid_m, good.surface.unwrap().centroid_m);
         assert_eq!(f.counters().invalid, 5);
     }
 
@@ -1869,7 +1876,7 @@ mod tests {
         pending.sort_by(|a, b| a.stamp_s.total_cmp(&b.stamp_s));
         let raw: Vec<f64> = pending
             .iter()
-            .map(|e| (e.centroid_m.coords - truth(e.stamp_s)).norm_squared())
+            .map(|e| (e.surface.unwrap().centroid_m.coords - truth(e.stamp_s)).norm_squared())
             .collect();
         let mut f = Fusion::new(config).unwrap();
         let mut next = pending.iter().peekable();
@@ -1879,7 +1886,7 @@ mod tests {
             let t = i as f64 * TICK_S;
             while let Some(e) = next.next_if(|e| e.stamp_s + latency_s <= t) {
                 f.push(e);
-                newest = Some(e.centroid_m.coords);
+                newest = Some(e.surface.unwrap().centroid_m.coords);
             }
             let out = f.tick(t);
             if let (true, Some(c)) = (t > 0.3, newest) {
@@ -2130,7 +2137,7 @@ mod tests {
                 assert!((0.06..=0.13).contains(&p.extrapolated_s), "{p:?} at {t}");
                 most_extrapolated = most_extrapolated.max(p.extrapolated_s);
                 worst = worst.max((out.centroid_m.coords - truth(t)).norm());
-                let held = newest.as_ref().unwrap().centroid_m.coords;
+                let held = newest.as_ref().unwrap().surface.unwrap().centroid_m.coords;
                 worst_held = worst_held.max((held - truth(t)).norm());
             }
         }
@@ -2333,11 +2340,12 @@ mod tests {
                 let e = SurfaceEstimate {
                     camera_id: cam,
                     stamp_s: stamp,
-                    centroid_m: Point3::new(c[0], c[1], c[2]),
-                    normal: Unit::new_unchecked(Vector3::new(n[0], n[1], n[2])),
+                    surface: valid.then(|| SurfacePoint {
+                        centroid_m: Point3::new(c[0], c[1], c[2]),
+                        normal: Unit::new_unchecked(Vector3::new(n[0], n[1], n[2])),
+                    }),
                     shells: Vec::new(),
                     quality: q,
-                    valid,
                 };
                 f.push(&e);
                 t += dt;

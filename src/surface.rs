@@ -38,6 +38,15 @@ pub struct ShellFit {
     pub rejected: bool,
 }
 
+/// A point of the body surface with its outward normal (pointing from the body towards the
+/// HIP), world frame: an estimate's centroid `c^k` and normal `n^k`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SurfacePoint {
+    /// Metres.
+    pub centroid_m: Point3<f64>,
+    pub normal: Unit<Vector3<f64>>,
+}
+
 /// One camera's estimate of the closest collision surface at one instant.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SurfaceEstimate {
@@ -45,17 +54,12 @@ pub struct SurfaceEstimate {
     pub camera_id: u32,
     /// Sensor time of the frame it came from, seconds.
     pub stamp_s: f64,
-    /// Surface centroid `c`, world frame, metres.
-    pub centroid_m: Point3<f64>,
-    /// Outward surface normal `n` (pointing from the body towards the HIP), world frame.
-    pub normal: Unit<Vector3<f64>>,
+    /// The surface, or `None` when no trustworthy surface was found (the shells say why).
+    pub surface: Option<SurfacePoint>,
     /// Per-shell fits, innermost first (rejected ones included and marked).
     pub shells: Vec<ShellFit>,
-    /// Quality in [0, 1]: 1 for a consistent, well-populated estimate, 0 when unusable.
+    /// Quality in [0, 1]: 1 for a consistent, well-populated estimate, 0 without a surface.
     pub quality: f64,
-    /// False when no trustworthy surface was found; then `centroid_m` and `normal` must not
-    /// be used.
-    pub valid: bool,
 }
 
 /// One camera's coarse estimate of the nearest surface beyond the shells' reach (the

@@ -83,10 +83,17 @@ fn realistic_head_sliding_normals_face_the_hip() {
         };
         (a - b).abs() > 1e-3
     }));
-    for f in evaluation.frames.iter().filter(|f| f.estimate.valid) {
+    for f in evaluation
+        .frames
+        .iter()
+        .filter(|f| f.estimate.surface.is_some())
+    {
         // The estimated normal points from the body towards the HIP.
-        let towards_hip = f.truth.hip_m - f.estimate.centroid_m;
-        assert!(f.estimate.normal.dot(&towards_hip) > 0.0, "{f:?}");
+        let towards_hip = f.truth.hip_m - f.estimate.surface.unwrap().centroid_m;
+        assert!(
+            f.estimate.surface.unwrap().normal.dot(&towards_hip) > 0.0,
+            "{f:?}"
+        );
     }
 }
 

@@ -188,13 +188,14 @@ fn can_log_of_a_scene_run_decodes_with_the_dbc_to_the_recorded_values() {
                     .iter()
                     .find(|e| f64::from(e.camera_id) == signals["CentroidCameraId"])
                     .expect("an estimate of this camera at this tick");
-                for (axis, v) in ["CentroidX", "CentroidY", "CentroidZ"]
-                    .iter()
-                    .zip(e.centroid_m.iter())
-                {
+                for (axis, v) in ["CentroidX", "CentroidY", "CentroidZ"].iter().zip(
+                    e.surface
+                        .map_or([0.0; 3], |s| s.centroid_m.coords.into())
+                        .iter(),
+                ) {
                     assert_signal(&signals, axis, *v, 1e-4);
                 }
-                assert_eq!(signals["EstimateValid"], f64::from(e.valid));
+                assert_eq!(signals["EstimateValid"], f64::from(e.surface.is_some()));
                 surfaces += 1;
             }
             "SurfaceNormal" => {}

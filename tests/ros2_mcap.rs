@@ -13,8 +13,8 @@ use hapcloud::io::mcap::{
 use hapcloud::node::record::{ControlRecord, TickRecord};
 use hapcloud::node::robot_state::JointState;
 use hapcloud::robot::JointVector;
-use hapcloud::surface::SurfaceEstimate;
 use hapcloud::surface::{FusedSurface, FusionStatus};
+use hapcloud::surface::{SurfaceEstimate, SurfacePoint};
 use nalgebra::{Isometry3, Point3, Unit, Vector3};
 use std::io::Cursor;
 
@@ -98,11 +98,12 @@ fn estimate(i: u32) -> SurfaceEstimate {
     SurfaceEstimate {
         camera_id: i % 2,
         stamp_s: 0.1 * f64::from(i) + 1e-13,
-        centroid_m: Point3::new(0.3, 0.1 * f64::from(i), 0.9),
-        normal: Unit::new_normalize(Vector3::new(0.1, 0.2, 1.0)),
+        surface: (!i.is_multiple_of(3)).then(|| SurfacePoint {
+            centroid_m: Point3::new(0.3, 0.1 * f64::from(i), 0.9),
+            normal: Unit::new_normalize(Vector3::new(0.1, 0.2, 1.0)),
+        }),
         shells: Vec::new(),
         quality: 0.75,
-        valid: !i.is_multiple_of(3),
     }
 }
 

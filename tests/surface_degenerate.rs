@@ -118,7 +118,7 @@ fn memory_and_estimator_on_coincident_points_are_invalid_not_hung() {
         let view = Viewpoint::Direction(Vector3::z());
         for frame in 0..2 {
             let out = estimator.estimate(&cloud, &hip(), view, 0, frame as f64 / 30.0);
-            assert!(!out.abstraction.estimate.valid, "frame {frame}");
+            assert!(out.abstraction.estimate.surface.is_none(), "frame {frame}");
         }
     }
 }

@@ -50,10 +50,12 @@ fn run(
         .estimate(cloud, hip, view, 0, 0.0)
 }
 
-/// Never NaN, whatever the validity.
+/// Never NaN, with or without a surface.
 fn assert_finite(e: &SurfaceEstimate) {
-    assert!(e.centroid_m.coords.iter().all(|c| c.is_finite()), "{e:?}");
-    assert!(e.normal.iter().all(|c| c.is_finite()), "{e:?}");
+    if let Some(s) = &e.surface {
+        assert!(s.centroid_m.coords.iter().all(|c| c.is_finite()), "{e:?}");
+        assert!(s.normal.iter().all(|c| c.is_finite()), "{e:?}");
+    }
     assert!(
         e.quality.is_finite() && (0.0..=1.0).contains(&e.quality),
         "{e:?}"
@@ -71,7 +73,10 @@ fn assert_finite(e: &SurfaceEstimate) {
 /// Centroid error (m) and normal error (deg) against the analytic closest point.
 fn errors(e: &SurfaceEstimate, shape: &Shape, hip: &Point3<f64>) -> (f64, f64) {
     let (c, n) = shape.closest(hip);
-    ((e.centroid_m - c).norm(), angle_deg(&e.normal, &n))
+    (
+        (e.surface.unwrap().centroid_m - c).norm(),
+        angle_deg(&e.surface.unwrap().normal, &n),
+    )
 }
 
 fn head() -> Shape {
@@ -99,7 +104,7 @@ fn head_with_noise_is_accurate_for_every_circle_method() {
         config.shells.circle_method = method;
         let frame = run(&config, &cloud, &hip, &view.direction(&hip));
         let e = &frame.abstraction.estimate;
-        assert!(e.valid, "{method:?}");
+        assert!(e.surface.is_some(), "{method:?}");
         let (ce, ne) = errors(e, &head(), &hip);
         let paper = (frame.abstraction.paper_centroid_m - head().closest(&hip).0).norm();
         eprintln!(
@@ -139,7 +144,10 @@ fn plane_without_noise_is_exact() {
         } else {
             1e-4
         };
-        assert!(e.valid && ce < tol && ne < 1e-3, "{method:?} {ce} {ne}");
+        assert!(
+            e.surface.is_some() && ce < tol && ne < 1e-3,
+            "{method:?} {ce} {ne}"
+        );
     }
 }
 
@@ -170,7 +178,10 @@ fn far_from_the_origin() {
         );
         // f32 points 10 km out are quantised to ~1 mm: the error follows that resolution.
         let tol = if offset > 1000.0 { 4e-3 } else { 2e-3 };
-        assert!(e.valid && ce < tol && ne < 2.0, "{offset}: {ce} {ne}");
+        assert!(
+            e.surface.is_some() && ce < tol && ne < 2.0,
+            "{offset}: {ce} {ne}"
+        );
     }
 }
 
@@ -186,7 +197,7 @@ fn shells_with_zero_one_two_points_are_invalid() {
     for n in 0..3 {
         let frame = run(&no_memory(), &pts[..n], &hip, &view);
         assert_finite(&frame.abstraction.estimate);
-        assert!(!frame.abstraction.estimate.valid, "{n} points");
+        assert!(frame.abstraction.estimate.surface.is_none(), "{n} points");
         let status = frame.abstraction.reports[0].status;
         assert_eq!(
             status,
@@ -199,7 +210,7 @@ fn shells_with_zero_one_two_points_are_invalid() {
     }
     // Three points make a plane, but one shell of three points is not a valid surface ...
     let ab = run(&no_memory(), &pts, &hip, &view).abstraction;
-    assert!(!ab.estimate.valid);
+    assert!(ab.estimate.surface.is_none());
     assert_eq!(
         ab.invalid,
         Some(InvalidReason::TooFewShells {
@@ -209,7 +220,7 @@ fn shells_with_zero_one_two_points_are_invalid() {
     );
     // ... unless the validity rules are relaxed to one shell of three points.
     let e = run(&lenient(), &pts, &hip, &view).abstraction.estimate;
-    assert!(e.valid);
+    assert!(e.surface.is_some());
     assert_finite(&e);
     assert_eq!(run(&no_memory(), &pts[..0], &hip, &view).sums.outside, 0);
 }
@@ -222,7 +233,7 @@ fn collinear_points_are_flagged() {
         .collect();
     let frame = run(&no_memory(), &cloud, &hip, &Vector3::z());
     assert_finite(&frame.abstraction.estimate);
-    assert!(!frame.abstraction.estimate.valid);
+    assert!(frame.abstraction.estimate.surface.is_none());
     assert!(
         frame
             .abstraction
@@ -244,26 +255,28 @@ fn coplanar_and_duplicated_points() {
     let e = run(&no_memory(), &grid, &hip, &-Vector3::z())
         .abstraction
         .estimate;
-    assert!(e.valid);
+    assert!(e.surface.is_some());
     assert!(
-        (e.centroid_m - Point3::origin()).norm() < 1e-6,
+        (e.surface.unwrap().centroid_m - Point3::origin()).norm() < 1e-6,
         "{:?}",
-        e.centroid_m
+        e.surface.unwrap().centroid_m
     );
-    assert!((e.normal.into_inner() - Vector3::z()).norm() < 1e-9);
+    assert!((e.surface.unwrap().normal.into_inner() - Vector3::z()).norm() < 1e-9);
     // Every point five times: the same surface.
     let dup: Vec<Vec3> = grid.iter().flat_map(|p| [*p; 5]).collect();
     let d = run(&no_memory(), &dup, &hip, &-Vector3::z())
         .abstraction
         .estimate;
     assert!(
-        (d.centroid_m - e.centroid_m).norm() < 1e-9
-            && (d.normal.into_inner() - e.normal.into_inner()).norm() < 1e-9
+        (d.surface.unwrap().centroid_m - e.surface.unwrap().centroid_m).norm() < 1e-9
+            && (d.surface.unwrap().normal.into_inner() - e.surface.unwrap().normal.into_inner())
+                .norm()
+                < 1e-9
     );
     // All points identical: no normal, flagged.
     let same = vec![Vec3::new(0.0, 0.0, 0.0); 1000];
     let s = run(&no_memory(), &same, &hip, &-Vector3::z()).abstraction;
-    assert!(!s.estimate.valid);
+    assert!(s.estimate.surface.is_none());
     assert_finite(&s.estimate);
 }
 
@@ -286,9 +299,13 @@ fn nearly_straight_arcs_fall_back() {
         let frame = run(&config, &cloud, &hip, &-Vector3::z());
         let e = &frame.abstraction.estimate;
         assert_finite(e);
-        assert!(e.valid);
-        assert!(e.centroid_m.coords.norm() < 1e-4, "{:?}", e.centroid_m);
-        assert!(angle_deg(&e.normal, &Vector3::z()) < 0.01);
+        assert!(e.surface.is_some());
+        assert!(
+            e.surface.unwrap().centroid_m.coords.norm() < 1e-4,
+            "{:?}",
+            e.surface.unwrap().centroid_m
+        );
+        assert!(angle_deg(&e.surface.unwrap().normal, &Vector3::z()) < 0.01);
     }
 }
 
@@ -312,7 +329,7 @@ fn two_equidistant_surfaces_are_flagged() {
     );
     assert_finite(&frame.abstraction.estimate);
     assert!(
-        !frame.abstraction.estimate.valid,
+        frame.abstraction.estimate.surface.is_none(),
         "{:?}",
         frame.abstraction.reports
     );
@@ -329,9 +346,11 @@ fn point_counts_from_three_to_a_million() {
     let e = run(&lenient(), &three, &hip, &-Vector3::z())
         .abstraction
         .estimate;
-    assert!(e.valid && (e.centroid_m - Point3::origin()).norm() < 1e-6);
+    assert!(
+        e.surface.is_some() && (e.surface.unwrap().centroid_m - Point3::origin()).norm() < 1e-6
+    );
     let ab = run(&no_memory(), &three, &hip, &-Vector3::z()).abstraction;
-    assert!(!ab.estimate.valid && ab.invalid.is_some());
+    assert!(ab.estimate.surface.is_none() && ab.invalid.is_some());
     assert_finite(&ab.estimate);
     // 10^6 points on the head (a fine ray grid), clean.
     let (hip, mut view) = head_scene(0.03);
@@ -342,7 +361,7 @@ fn point_counts_from_three_to_a_million() {
         .abstraction
         .estimate;
     let (ce, ne) = errors(&e, &head(), &hip);
-    assert!(e.valid && ce < 1e-3 && ne < 0.2, "{ce} {ne}");
+    assert!(e.surface.is_some() && ce < 1e-3 && ne < 0.2, "{ce} {ne}");
 }
 
 #[test]
@@ -353,7 +372,7 @@ fn zero_and_huge_noise() {
         .abstraction
         .estimate;
     let (ce, ne) = errors(&e, &head(), &hip);
-    assert!(e.valid && ce < 1e-3 && ne < 0.2, "{ce} {ne}");
+    assert!(e.surface.is_some() && ce < 1e-3 && ne < 0.2, "{ce} {ne}");
     view.extra_noise_m = 0.05;
     let noisy = view.render(&[head()], &hip);
     let e = run(&no_memory(), &noisy, &hip, &view.direction(&hip))
@@ -428,9 +447,9 @@ proptest! {
             Vec3::new(q.x as f32, q.y as f32, q.z as f32)
         }).collect();
         let e = run(&no_memory(), &moved, &(motion * hip), &(motion * view.direction(&hip))).abstraction.estimate;
-        prop_assert!(base.valid && e.valid);
-        prop_assert!((e.centroid_m - motion * base.centroid_m).norm() < 3e-4, "{:?} vs {:?}", e.centroid_m, motion * base.centroid_m);
-        prop_assert!(angle_deg(&e.normal, &(motion * base.normal.into_inner())) < 0.05);
+        prop_assert!(base.surface.is_some() && e.surface.is_some());
+        prop_assert!((e.surface.unwrap().centroid_m - motion * base.surface.unwrap().centroid_m).norm() < 3e-4, "{:?} vs {:?}", e.surface.unwrap().centroid_m, motion * base.surface.unwrap().centroid_m);
+        prop_assert!(angle_deg(&e.surface.unwrap().normal, &(motion * base.surface.unwrap().normal.into_inner())) < 0.05);
     }
 
     /// Permuting the points changes nothing, bit for bit (integer moment sums).
@@ -502,7 +521,7 @@ fn memory_fills_the_occluded_centre_on_an_approach() {
         merged += a.memory.merged_points;
         sq_with += ea * ea;
         sq_without += eb * eb;
-        let c = a.abstraction.estimate.centroid_m;
+        let c = a.abstraction.estimate.surface.unwrap().centroid_m;
         if let Some(l) = last {
             max_jump = max_jump.max((c - l).norm());
         }
@@ -595,7 +614,7 @@ fn floor_seen_from_a_horizontal_camera_faces_up() {
         .abstraction
         .estimate;
     let (ce, ne) = errors(&e, &floor, &hip);
-    assert!(e.valid && ce < 1e-4 && ne < 0.1, "{ce} {ne}");
+    assert!(e.surface.is_some() && ce < 1e-4 && ne < 0.1, "{ce} {ne}");
     assert!(e.shells.iter().all(|s| s.normal.z > 0.0));
 }
 
@@ -624,7 +643,7 @@ fn a_few_points_at_the_edge_of_reach_are_not_a_surface() {
     assert!(edge.len() > 3, "{}", edge.len());
     let ab = run(&no_memory(), &edge, &hip, &view).abstraction;
     assert_finite(&ab.estimate);
-    assert!(!ab.estimate.valid);
+    assert!(ab.estimate.surface.is_none());
     assert_eq!(
         ab.invalid,
         Some(InvalidReason::TooFewShells {
@@ -645,7 +664,7 @@ fn a_few_points_at_the_edge_of_reach_are_not_a_surface() {
         })
         .collect();
     let ab = run(&no_memory(), &sparse, &hip, &-Vector3::z()).abstraction;
-    assert!(!ab.estimate.valid);
+    assert!(ab.estimate.surface.is_none());
     assert_eq!(
         ab.invalid,
         Some(InvalidReason::TooFewPoints {
@@ -661,11 +680,11 @@ fn a_few_points_at_the_edge_of_reach_are_not_a_surface() {
     let near = plane_band(&hip, 0.0, 0.1);
     let ab = run(&no_memory(), &near, &hip, &view).abstraction;
     assert!(
-        ab.estimate.valid && ab.invalid.is_none(),
+        ab.estimate.surface.is_some() && ab.invalid.is_none(),
         "{:?}",
         ab.invalid
     );
-    assert!((ab.estimate.centroid_m - Point3::origin()).norm() < 1e-6);
+    assert!((ab.estimate.surface.unwrap().centroid_m - Point3::origin()).norm() < 1e-6);
 }
 
 #[test]
@@ -700,7 +719,7 @@ fn a_plain_wall_near_the_hip_is_valid_with_every_shell_fitted() {
             let frame = run(&no_memory(), &cloud, &hip, &view.direction(&hip));
             let ab = &frame.abstraction;
             let (ce, ne) = errors(&ab.estimate, &wall, &hip);
-            assert!(ab.estimate.valid, "gap {gap}: {:?}", ab.invalid);
+            assert!(ab.estimate.surface.is_some(), "gap {gap}: {:?}", ab.invalid);
             for r in &ab.reports {
                 assert!(
                     r.point_count < 3 || r.status == ShellStatus::Fitted,
@@ -742,7 +761,7 @@ fn a_second_body_in_the_outer_shells_does_not_bend_the_estimate() {
         }
         let ab = run(&config, &cloud, &hip, &view.direction(&hip)).abstraction;
         assert_finite(&ab.estimate);
-        assert!(ab.estimate.valid, "{:?}", ab.invalid);
+        assert!(ab.estimate.surface.is_some(), "{:?}", ab.invalid);
         errors(&ab.estimate, &limb, &hip)
     };
     let (ce, ne) = estimate(true);

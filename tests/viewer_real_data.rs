@@ -43,10 +43,10 @@ fn stages_run_on_real_frames_and_every_layer_is_filled() {
         );
         assert!(kept > 100 && kept < finite - cropped, "frame {k}: {kept}");
         let est = cam.estimate.as_ref().unwrap();
-        assert!(est.valid, "frame {k}: {est:?}");
+        assert!(est.surface.is_some(), "frame {k}: {est:?}");
         assert!(est.shells.iter().any(|s| !s.rejected));
         // The estimate lies on the cloud: within 1 cm of a kept point, normal towards the camera.
-        let c = est.centroid_m.coords.cast::<f32>();
+        let c = est.surface.unwrap().centroid_m.coords.cast::<f32>();
         let nearest = cam
             .layer(PointRole::Kept)
             .iter()
@@ -56,12 +56,13 @@ fn stages_run_on_real_frames_and_every_layer_is_filled() {
             nearest < 0.01,
             "frame {k}: centroid {nearest} m from the cloud"
         );
-        let to_camera =
-            (frames[k].world_from_camera.translation.vector - est.centroid_m.coords).normalize();
+        let to_camera = (frames[k].world_from_camera.translation.vector
+            - est.surface.unwrap().centroid_m.coords)
+            .normalize();
         assert!(
-            est.normal.dot(&to_camera) > 0.5,
+            est.surface.unwrap().normal.dot(&to_camera) > 0.5,
             "frame {k}: normal {:?}",
-            est.normal
+            est.surface.unwrap().normal
         );
         // d_proj: the HIP was put 6 cm in front of the surface with a 4 cm radius.
         let d = f.samples.d_proj_m.expect("fused surface");
@@ -162,7 +163,7 @@ fn node_recording_shows_the_nodes_own_estimates() {
         }
         assert_eq!(f.fused.is_some(), fused.is_tracking());
         if fused.is_tracking() {
-            assert_eq!(f.fused.unwrap().point_m, fused.centroid_m);
+            assert_eq!(f.fused.unwrap().centroid_m, fused.centroid_m);
             assert!(f.samples.d_proj_m.is_some());
         }
         assert!(

@@ -128,9 +128,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "backend": frame.backend,
             "adapter": adapter,
             "circle_method": config.shells.circle_method,
-            "centroid": [e.centroid_m.x, e.centroid_m.y, e.centroid_m.z],
-            "normal": [e.normal.x, e.normal.y, e.normal.z],
-            "valid": e.valid,
+            "centroid": e.surface.map(|s| [s.centroid_m.x, s.centroid_m.y, s.centroid_m.z]),
+            "normal": e.surface.map(|s| [s.normal.x, s.normal.y, s.normal.z]),
+            "valid": e.surface.is_some(),
             "invalid_reason": ab.invalid.as_ref().map(|r| r.to_string()),
             "quality": e.quality,
             "paper_centroid": [ab.paper_centroid_m.x, ab.paper_centroid_m.y, ab.paper_centroid_m.z],
@@ -179,15 +179,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             r.inner_radius_m, r.outer_radius_m, r.point_count, r.status, detail
         );
     }
-    if e.valid {
+    if let Some(s) = &e.surface {
         println!(
             "centroid ({:.5}, {:.5}, {:.5}) m, normal ({:.4}, {:.4}, {:.4}), quality {:.2}",
-            e.centroid_m.x,
-            e.centroid_m.y,
-            e.centroid_m.z,
-            e.normal.x,
-            e.normal.y,
-            e.normal.z,
+            s.centroid_m.x,
+            s.centroid_m.y,
+            s.centroid_m.z,
+            s.normal.x,
+            s.normal.y,
+            s.normal.z,
             e.quality
         );
         if let Some(c) = ab.correction {

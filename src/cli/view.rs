@@ -175,7 +175,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "memorised": count(PointRole::Memorised),
             },
             "estimates": estimates.len(),
-            "valid_estimates": estimates.iter().filter(|e| e.valid).count(),
+            "valid_estimates": estimates.iter().filter(|e| e.surface.is_some()).count(),
             "rejected_shells": estimates.iter().flat_map(|e| &e.shells).filter(|s| s.rejected).count(),
             "d_proj_m": d_proj,
             "fused_error": error_summary(&timeline),

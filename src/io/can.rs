@@ -221,10 +221,14 @@ impl CanSurface {
         Self {
             camera_id: (estimate.camera_id & 0xF) as u8,
             counter: counter & 0xF,
-            centroid_m: estimate.centroid_m.coords.into(),
-            normal: estimate.normal.into_inner().into(),
+            centroid_m: estimate
+                .surface
+                .map_or([0.0; 3], |s| s.centroid_m.coords.into()),
+            normal: estimate
+                .surface
+                .map_or([0.0; 3], |s| s.normal.into_inner().into()),
             quality: estimate.quality,
-            valid: estimate.valid,
+            valid: estimate.surface.is_some(),
         }
     }
 }
@@ -856,11 +860,12 @@ mod tests {
         let estimate = SurfaceEstimate {
             camera_id: 17,
             stamp_s: 1.0,
-            centroid_m: Point3::new(0.1, -0.2, 0.9),
-            normal: Unit::new_normalize(Vector3::new(0.0, 3.0, 4.0)),
+            surface: Some(crate::surface::SurfacePoint {
+                centroid_m: Point3::new(0.1, -0.2, 0.9),
+                normal: Unit::new_normalize(Vector3::new(0.0, 3.0, 4.0)),
+            }),
             shells: Vec::new(),
             quality: 0.8,
-            valid: true,
         };
         let s = CanSurface::from_estimate(&estimate, 18);
         assert_eq!((s.camera_id, s.counter), (1, 2));

@@ -29,7 +29,7 @@
 
 use crate::camera::Frame;
 use crate::cloud::PointCloud;
-use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate};
+use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate, SurfacePoint};
 use glam::Vec3;
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, Unit, UnitQuaternion, Vector3};
 
@@ -371,10 +371,18 @@ pub fn decode_frame(payload: &[u8]) -> Result<Frame, WireError> {
 pub fn encode_estimate(out: &mut Vec<u8>, e: &SurfaceEstimate) {
     out.extend_from_slice(&e.camera_id.to_le_bytes());
     out.extend_from_slice(&e.stamp_s.to_le_bytes());
-    put_vec3(out, &e.centroid_m.coords);
-    put_vec3(out, &e.normal);
+    put_vec3(
+        out,
+        &e.surface
+            .map_or_else(Vector3::zeros, |s| s.centroid_m.coords),
+    );
+    put_vec3(
+        out,
+        &e.surface
+            .map_or_else(Vector3::zeros, |s| s.normal.into_inner()),
+    );
     out.extend_from_slice(&e.quality.to_le_bytes());
-    out.push(u8::from(e.valid));
+    out.push(u8::from(e.surface.is_some()));
     out.extend_from_slice(&(e.shells.len() as u32).to_le_bytes());
     for s in &e.shells {
         out.extend_from_slice(&s.inner_radius_m.to_le_bytes());
@@ -402,7 +410,7 @@ pub(crate) fn decode_estimate(r: &mut Reader<'_>) -> Result<SurfaceEstimate, Wir
     let camera_id = r.u32()?;
     let stamp_s = r.f64()?;
     let centroid_m = Point3::from(r.vec3()?);
-    let normal = Unit::new_unchecked(r.vec3()?);
+    let surface_normal = Unit::new_unchecked(r.vec3()?);
     let quality = r.f64()?;
     let valid = flag(r.u8()?)?;
     let count = r.u32()? as usize;
@@ -441,11 +449,12 @@ pub(crate) fn decode_estimate(r: &mut Reader<'_>) -> Result<SurfaceEstimate, Wir
     Ok(SurfaceEstimate {
         camera_id,
         stamp_s,
-        centroid_m,
-        normal,
+        surface: valid.then_some(SurfacePoint {
+            centroid_m,
+            normal: surface_normal,
+        }),
         shells,
         quality,
-        valid,
     })
 }
 
@@ -555,8 +564,10 @@ pub(crate) mod tests {
         let e = SurfaceEstimate {
             camera_id: 1,
             stamp_s: 0.1 + 0.2,
-            centroid_m: Point3::new(0.1, -0.0, 1.0 / 3.0),
-            normal: Vector3::z_axis(),
+            surface: Some(SurfacePoint {
+                centroid_m: Point3::new(0.1, -0.0, 1.0 / 3.0),
+                normal: Vector3::z_axis(),
+            }),
             shells: vec![ShellFit {
                 inner_radius_m: 0.0,
                 outer_radius_m: 0.02,
@@ -569,7 +580,6 @@ pub(crate) mod tests {
                 rejected: true,
             }],
             quality: 0.75,
-            valid: true,
         };
         let mut bytes = Vec::new();
         encode_estimate(&mut bytes, &e);

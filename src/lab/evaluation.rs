@@ -359,19 +359,21 @@ fn judge(
     let frame = &sim_frame.frame;
     let estimate = out.surface.abstraction.estimate.clone();
     let errors = |centroid: &Point3<f64>, normal: &Vector3<f64>, truth: &GroundTruth| {
-        estimate.valid.then(|| {
-            (
-                (centroid - truth.closest_m).norm(),
-                angle_rad(normal, &truth.normal),
-            )
-        })
+        (
+            (centroid - truth.closest_m).norm(),
+            angle_rad(normal, &truth.normal),
+        )
     };
-    let biased = errors(&estimate.centroid_m, &estimate.normal, &truth);
-    let unbiased = errors(
-        &(unbiased.true_from_reported * estimate.centroid_m),
-        &(unbiased.true_from_reported.rotation * estimate.normal.into_inner()),
-        &unbiased.truth,
-    );
+    let biased = estimate
+        .surface
+        .map(|s| errors(&s.centroid_m, &s.normal, &truth));
+    let unbiased = estimate.surface.map(|s| {
+        errors(
+            &(unbiased.true_from_reported * s.centroid_m),
+            &(unbiased.true_from_reported.rotation * s.normal.into_inner()),
+            &unbiased.truth,
+        )
+    });
     let camera = Point3::from(frame.world_from_camera.translation.vector);
     FrameEvaluation {
         camera_id: frame.camera_id,
@@ -548,13 +550,13 @@ pub fn summarize(
             }
             for w in frames.windows(2) {
                 let (a, b) = (w[0], w[1]);
-                if b.index != a.index + 1
-                    || !(keep(a) && keep(b) && a.estimate.valid && b.estimate.valid)
-                    || !b.truth_smooth
-                {
+                let (Some(sa), Some(sb)) = (a.estimate.surface, b.estimate.surface) else {
+                    continue;
+                };
+                if b.index != a.index + 1 || !(keep(a) && keep(b)) || !b.truth_smooth {
                     continue;
                 }
-                let step = b.estimate.centroid_m - a.estimate.centroid_m;
+                let step = sb.centroid_m - sa.centroid_m;
                 let truth = b.truth.closest_m - a.truth.closest_m;
                 let jump = (step - truth).norm();
                 s.jump_pairs += 1;
@@ -606,11 +608,12 @@ mod tests {
             estimate: SurfaceEstimate {
                 camera_id: 0,
                 stamp_s: index as f64 / 30.0,
-                centroid_m: centroid,
-                normal: Unit::new_normalize(Vector3::z()),
+                surface: Some(crate::surface::SurfacePoint {
+                    centroid_m: centroid,
+                    normal: Unit::new_normalize(Vector3::z()),
+                }),
                 shells: Vec::new(),
                 quality: 1.0,
-                valid: true,
             },
             centroid_error_m: Some((centroid - closest).norm()),
             normal_error_rad: Some(0.0),
@@ -682,7 +685,7 @@ mod tests {
         assert_eq!((s.jump_pairs, s.jumps_over_limit), (2, 0));
         // A dropped frame (indices 1, 3) or an invalid estimate breaks the pair too.
         frames.remove(2);
-        frames[1].estimate.valid = false;
+        frames[1].estimate.surface = None;
         let s = summary(frames);
         assert_eq!(s.jump_pairs, 0);
     }

@@ -281,7 +281,7 @@ pub fn simulate_scene(
                     .collect(),
             };
             let record = haptic_loop.push_frame(&shot.frame, &scene)?;
-            if record.estimate().valid {
+            if record.estimate().surface.is_some() {
                 metrics.valid_estimates += 1;
                 if metrics.first_valid_margin_m.is_none() {
                     metrics.first_valid_margin_m = samples.last().map(|s: &SceneSample| s.margin_m);

@@ -711,10 +711,10 @@ pub fn run_setting(
                 kept_sum += cam.kept.len();
                 frames += 1;
                 let e = cam.estimate();
-                if e.valid {
+                if let Some(s) = &e.surface {
                     valid += 1;
-                    cam_c.push((e.centroid_m - rec.truth.closest_m).norm() * 1e3);
-                    cam_n.push(angle_deg(&e.normal, &rec.truth.normal));
+                    cam_c.push((s.centroid_m - rec.truth.closest_m).norm() * 1e3);
+                    cam_n.push(angle_deg(&s.normal, &rec.truth.normal));
                 }
             }
             let (fused, span) = Stopwatch::time(|| haptic_loop.fuse(*t));

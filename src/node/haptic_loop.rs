@@ -186,7 +186,10 @@ impl Perception {
         }
         // The HIP's motion relative to the surface is fusion's business; the patch nearest
         // the HIP (zero relative velocity) is the one reported.
-        let far_field = (!chain.estimate().valid)
+        let far_field = chain
+            .estimate()
+            .surface
+            .is_none()
             .then(|| {
                 far_field(
                     &self.lookahead,

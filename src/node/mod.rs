@@ -620,7 +620,7 @@ fn perception_thread(
         }
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
-        entry.1 += u64::from(estimate.valid);
+        entry.1 += u64::from(estimate.surface.is_some());
         if estimates.send((estimate, fit)).is_err() {
             break;
         }

@@ -456,7 +456,7 @@ fn overlay_views_follow_the_robot_and_carry_truth_and_constraints() {
                 v.samples.d_proj_m,
                 v.cameras
                     .iter()
-                    .map(|c| c.estimate.as_ref().map(|e| e.valid))
+                    .map(|c| c.estimate.as_ref().map(|e| e.surface.is_some()))
                     .collect::<Vec<_>>()
             ))
             .collect::<Vec<_>>()
@@ -464,7 +464,7 @@ fn overlay_views_follow_the_robot_and_carry_truth_and_constraints() {
     assert!(views.iter().any(|v| {
         v.cameras
             .iter()
-            .any(|c| c.estimate.as_ref().is_some_and(|e| e.valid))
+            .any(|c| c.estimate.as_ref().is_some_and(|e| e.surface.is_some()))
     }));
 }
 
@@ -623,7 +623,7 @@ fn a_gpu_lost_mid_run_leaves_perception_on_the_cpu() {
     let mut reasons = std::collections::BTreeSet::new();
     for frame in &frames[1..] {
         let record = perception.process(frame, &scene).unwrap();
-        valid += u32::from(record.estimate().valid);
+        valid += u32::from(record.estimate().surface.is_some());
         reasons.insert(perception.gpu_fallback().expect("a fallback reason"));
     }
     assert_eq!(perception.backend(), Backend::Cpu);

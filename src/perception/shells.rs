@@ -76,7 +76,7 @@ use super::fit::{
 use crate::gpu::mirrors::ShellParams;
 use crate::gpu::shader::{self, BindingKind};
 use crate::gpu::{GpuContext, GpuError};
-use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate};
+use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate, SurfacePoint};
 use glam::Vec3;
 use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
@@ -459,7 +459,7 @@ pub enum InvalidReason {
 #[derive(Clone, Debug, PartialEq)]
 pub struct ShellAbstraction {
     pub estimate: SurfaceEstimate,
-    /// Why `estimate.valid` is false (`None` when it is valid).
+    /// Why `estimate.surface` is `None` (`None` when there is a surface).
     pub invalid: Option<InvalidReason>,
     /// One report per configured shell, innermost first.
     pub reports: Vec<ShellReport>,
@@ -650,16 +650,12 @@ pub fn abstract_surface(
     } else {
         0.0
     };
-    let fallback_normal =
-        Unit::try_new(-viewpoint.towards(&hip), 1e-12).unwrap_or(Vector3::z_axis());
     let mut estimate = SurfaceEstimate {
         camera_id,
         stamp_s,
-        centroid_m: hip,
-        normal: fallback_normal,
+        surface: None,
         shells: fits.iter().map(|a| a.fit.clone()).collect(),
         quality: 0.0,
-        valid: false,
     };
     let fitted_points: u64 = fits.iter().map(|a| u64::from(a.fit.point_count)).sum();
     let normal = Unit::try_new(sum_n, 1e-9);
@@ -740,10 +736,11 @@ pub fn abstract_surface(
         None => (centroid, normal),
     };
     let invalid = if centroid.coords.iter().all(|c| c.is_finite()) {
-        estimate.centroid_m = centroid;
-        estimate.normal = normal;
+        estimate.surface = Some(SurfacePoint {
+            centroid_m: centroid,
+            normal,
+        });
         estimate.quality = (resultant * (kept.len() as f64 / 2.0).min(1.0)).clamp(0.0, 1.0);
-        estimate.valid = true;
         None
     } else {
         Some(InvalidReason::NonFinite)

@@ -9,7 +9,7 @@
 
 use super::config::{ViewerConfig, ViewerConfigError};
 use super::draw::{self, DrawStats, DrawStyle, Layers};
-use super::frame::{PointRole, SurfacePoint, ViewFrame, ViewerSource};
+use super::frame::{PointRole, ViewFrame, ViewerSource};
 use super::orbit::OrbitCamera;
 use super::patch::{SurfacePatch, triangulate_patch};
 use super::plots::{PlotData, show_plots};
@@ -460,10 +460,10 @@ fn frame_details(ui: &mut egui::Ui, f: &ViewFrame) {
             ui.label(format!("camera {}: no estimate", cam.camera_id));
             continue;
         };
-        let status = if est.valid {
+        let status = if est.surface.is_some() {
             format!("quality {:.2}", est.quality)
         } else {
-            "invalid".to_owned()
+            "no surface".to_owned()
         };
         ui.label(RichText::new(format!("camera {}: {status}", cam.camera_id)).strong());
         egui::Grid::new(("shell_table", cam.camera_id))
@@ -513,13 +513,11 @@ fn frame_patches(frame: &ViewFrame, max_edge_m: f64) -> Vec<(u32, SurfacePatch)>
         .cameras
         .iter()
         .filter_map(|cam| {
-            let centre = match &cam.estimate {
-                Some(e) if e.valid => SurfacePoint {
-                    point_m: e.centroid_m,
-                    normal: e.normal,
-                },
-                _ => frame.fused?,
-            };
+            let centre = cam
+                .estimate
+                .as_ref()
+                .and_then(|e| e.surface)
+                .or(frame.fused)?;
             let pts = cam
                 .layer(PointRole::Kept)
                 .iter()
@@ -541,7 +539,12 @@ fn initial_orbit(frame: &ViewFrame) -> OrbitCamera {
     );
     let target = match &frame.fused {
         Some(f) => {
-            0.5 * (hip + Vec3::new(f.point_m.x as f32, f.point_m.y as f32, f.point_m.z as f32))
+            0.5 * (hip
+                + Vec3::new(
+                    f.centroid_m.x as f32,
+                    f.centroid_m.y as f32,
+                    f.centroid_m.z as f32,
+                ))
         }
         None => hip,
     };

@@ -11,12 +11,13 @@
 //! limits the motion (or, for a scripted motion, what the controller would have had to
 //! enforce).
 
-use super::frame::{ConstraintSample, FrameSamples, StageLatency, SurfacePoint, ViewFrame};
+use super::frame::{ConstraintSample, FrameSamples, StageLatency, ViewFrame};
 use crate::haptics::{ConstraintKind, HapticConfig, HapticConstraints, HapticStatus};
 use crate::node::haptic_loop::Tick;
 use crate::node::record::TickRecord;
 use crate::robot::JointVector;
 use crate::surface::FusedSurface;
+use crate::surface::SurfacePoint;
 
 /// The constraints shown, with their names, in plotting order.
 pub const CONSTRAINTS: [(ConstraintKind, &str); 3] = [
@@ -32,7 +33,7 @@ const BINDING_TOLERANCE: f64 = 1e-9;
 /// held over stale cameras.
 fn surface_used(fused: &FusedSurface, held: bool) -> Option<SurfacePoint> {
     (fused.is_tracking() || held).then_some(SurfacePoint {
-        point_m: fused.centroid_m,
+        centroid_m: fused.centroid_m,
         normal: fused.normal,
     })
 }

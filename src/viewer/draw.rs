@@ -11,10 +11,11 @@
 //! projection on the fused surface plane; the HIP sphere takes the colour of the haptic
 //! constraint state ([`hip_color`]). The returned [`DrawStats`] count what was actually drawn.
 
-use super::frame::{PointRole, SurfacePoint, ViewFrame};
+use super::frame::{PointRole, ViewFrame};
 use super::orbit::{OrbitCamera, Projector};
 use super::patch::SurfacePatch;
 use crate::haptics::HapticStatus;
+use crate::surface::SurfacePoint;
 use crate::surface::{ShellFit, ShellFitKind};
 use egui::{Color32, Mesh, Painter, Pos2, Shape, Stroke, Vec2};
 use glam::Vec3;
@@ -131,9 +132,9 @@ pub struct DrawStats {
     pub shell_spheres: usize,
     pub fits: usize,
     pub rejected_fits: usize,
-    /// Valid camera estimates drawn.
+    /// Camera estimates drawn.
     pub estimates: usize,
-    /// Camera estimates marked as rejected (not valid) drawn.
+    /// Camera estimates without a surface (nothing to draw).
     pub rejected_estimates: usize,
     pub patch_triangles: usize,
     pub fused: bool,
@@ -210,7 +211,7 @@ fn paint_surface_point(
     stroke: Stroke,
 ) -> bool {
     let dir = d3(&s.normal.into_inner()) * style.normal_length_m as f32;
-    paint_vector(painter, proj, v3(&s.point_m), dir, stroke)
+    paint_vector(painter, proj, v3(&s.centroid_m), dir, stroke)
 }
 
 fn paint_points(
@@ -481,26 +482,17 @@ pub fn paint_frame(
                 }
             }
         }
-        let finite = est.centroid_m.coords.iter().all(|v| v.is_finite());
-        if layers.camera_estimates && finite {
-            let s = SurfacePoint {
-                point_m: est.centroid_m,
-                normal: est.normal,
-            };
-            let color = if est.valid {
-                CAMERA_ESTIMATE_COLOR
-            } else {
-                REJECTED_COLOR
-            };
-            if paint_surface_point(painter, proj, &s, style, Stroke::new(2.0, color)) {
-                if est.valid {
+        match &est.surface {
+            Some(s)
+                if layers.camera_estimates && s.centroid_m.coords.iter().all(|v| v.is_finite()) =>
+            {
+                let stroke = Stroke::new(2.0, CAMERA_ESTIMATE_COLOR);
+                if paint_surface_point(painter, proj, s, style, stroke) {
                     stats.estimates += 1;
-                } else {
-                    // An estimate the camera rejected (too few shells agreed): crossed out.
-                    paint_cross(painter, proj, v3(&est.centroid_m));
-                    stats.rejected_estimates += 1;
                 }
             }
+            Some(_) => {}
+            None => stats.rejected_estimates += 1,
         }
     }
 

@@ -13,8 +13,9 @@
 
 use crate::haptics::HapticStatus;
 use crate::surface::SurfaceEstimate;
+use crate::surface::SurfacePoint;
 use glam::Vec3;
-use nalgebra::{Isometry3, Point3, Unit, Vector3};
+use nalgebra::{Isometry3, Point3};
 use std::sync::mpsc::Receiver;
 
 /// The role a point played in the per-camera pipeline (paper Fig. 4).
@@ -80,13 +81,6 @@ impl PointLayer {
         }
         self
     }
-}
-
-/// A surface point with its outward normal (pointing from the body towards the HIP).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SurfacePoint {
-    pub point_m: Point3<f64>,
-    pub normal: Unit<Vector3<f64>>,
 }
 
 /// Everything one camera contributed at one instant.
@@ -186,7 +180,7 @@ impl EstimateError {
     pub fn between(estimate: &SurfacePoint, truth: &SurfacePoint) -> Self {
         let cos = estimate.normal.dot(&truth.normal).clamp(-1.0, 1.0);
         Self {
-            centroid_m: (estimate.point_m - truth.point_m).norm(),
+            centroid_m: (estimate.centroid_m - truth.centroid_m).norm(),
             normal_rad: cos.acos(),
         }
     }
@@ -211,7 +205,7 @@ impl ViewFrame {
     pub fn hip_projection(&self) -> Option<Point3<f64>> {
         let f = self.fused.as_ref()?;
         let n = f.normal.into_inner();
-        Some(self.hip_m - (self.hip_m - f.point_m).dot(&n) * n)
+        Some(self.hip_m - (self.hip_m - f.centroid_m).dot(&n) * n)
     }
 }
 
@@ -226,10 +220,11 @@ pub enum ViewerSource {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::{Unit, Vector3};
 
     fn sp(p: [f64; 3], n: [f64; 3]) -> SurfacePoint {
         SurfacePoint {
-            point_m: Point3::from(p),
+            centroid_m: Point3::from(p),
             normal: Unit::new_normalize(Vector3::from(n)),
         }
     }

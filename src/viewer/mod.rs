@@ -31,6 +31,6 @@ pub use app::ViewerApp;
 pub use config::{ViewerConfig, ViewerConfigError};
 pub use frame::{
     CameraView, ConstraintSample, EstimateError, FrameSamples, PointLayer, PointRole, StageLatency,
-    SurfacePoint, ViewFrame, ViewerSource,
+    ViewFrame, ViewerSource,
 };
 pub use window::{ScreenshotRequest, WindowError, run_window};

@@ -7,14 +7,15 @@
 //! and the constraint samples ([`apply_tick`]). With a simulated source the ground truth (the
 //! true closest patient surface point to the HIP) is added at the frame's stamp.
 
+use super::ViewFrame;
 use super::constraints::apply_tick;
 use super::records::CameraViews;
-use super::{SurfacePoint, ViewFrame};
 use crate::haptics::HapticConfig;
 use crate::node::record::TickRecord;
 use crate::node::{NodeConfig, NodeError, NodeEvent};
 use crate::robot::RobotModel;
 use crate::scene::Simulator;
+use crate::surface::SurfacePoint;
 use nalgebra::Unit;
 use std::sync::Arc;
 use std::sync::mpsc::{Receiver, Sender};
@@ -60,7 +61,7 @@ impl Overlay {
             .as_ref()
             .and_then(|s| s.ground_truth(stamp_s))
             .map(|t| SurfacePoint {
-                point_m: t.closest_m,
+                centroid_m: t.closest_m,
                 normal: Unit::new_normalize(t.normal),
             });
         let mut view = self.views.frame_at(stamp_s, record.scene.hip_m, truth);

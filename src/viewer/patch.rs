@@ -7,7 +7,7 @@
 //! near the closest point, so this gives the surface's own connectivity. Triangles with an
 //! edge longer than `max_edge_m` (3D) bridge holes or the rim of the patch and are dropped.
 
-use super::frame::SurfacePoint;
+use crate::surface::SurfacePoint;
 use glam::Vec3;
 use nalgebra::Vector3;
 use spade::{DelaunayTriangulation, HasPosition, InsertionError, Point2, Triangulation};
@@ -59,7 +59,7 @@ pub fn triangulate_patch<'a>(
             continue;
         }
         let d = p.as_dvec3();
-        let rel = Vector3::new(d.x, d.y, d.z) - centre.point_m.coords;
+        let rel = Vector3::new(d.x, d.y, d.z) - centre.centroid_m.coords;
         if rel.norm() > radius_m {
             continue;
         }
@@ -95,7 +95,7 @@ mod tests {
 
     fn up(point: [f64; 3]) -> SurfacePoint {
         SurfacePoint {
-            point_m: Point3::from(point),
+            centroid_m: Point3::from(point),
             normal: Unit::new_normalize(Vector3::new(0.0, 0.0, 1.0)),
         }
     }

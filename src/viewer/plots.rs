@@ -83,7 +83,8 @@ impl PlotData {
             }
             if let Some(truth) = &f.truth {
                 // eq. 7 with the true surface point and normal
-                let v = (truth.point_m - f.hip_m).dot(&-truth.normal.into_inner()) - f.hip_radius_m;
+                let v =
+                    (truth.centroid_m - f.hip_m).dot(&-truth.normal.into_inner()) - f.hip_radius_m;
                 d.true_d_proj_mm.points.push([t, v * 1e3]);
             }
             if let Some(v) = s.d_proj_rate_m_per_s {
@@ -212,7 +213,8 @@ pub fn show_plots(ui: &mut egui::Ui, data: &PlotData, now_s: f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::viewer::frame::{ConstraintSample, FrameSamples, StageLatency, SurfacePoint};
+    use crate::surface::SurfacePoint;
+    use crate::viewer::frame::{ConstraintSample, FrameSamples, StageLatency};
     use nalgebra::{Point3, Unit, Vector3};
 
     fn frame(t: f64, d: f64, active: bool, truth: bool) -> ViewFrame {
@@ -224,11 +226,11 @@ mod tests {
             shell_radii_m: vec![],
             cameras: vec![],
             fused: Some(SurfacePoint {
-                point_m: Point3::new(0.0, 0.0, d),
+                centroid_m: Point3::new(0.0, 0.0, d),
                 normal: up,
             }),
             truth: truth.then_some(SurfacePoint {
-                point_m: Point3::new(0.0, 0.0, 0.0),
+                centroid_m: Point3::new(0.0, 0.0, 0.0),
                 normal: up,
             }),
             samples: FrameSamples {

@@ -4,9 +4,10 @@
 //! stage: layers, estimates, `d_proj` (eq. 7) and constraint rows are the loop's own.
 
 use super::FrameSamples;
-use super::frame::{CameraView, PointLayer, PointRole, StageLatency, SurfacePoint, ViewFrame};
+use super::frame::{CameraView, PointLayer, PointRole, StageLatency, ViewFrame};
 use crate::node::haptic_loop::FrameRecord;
 use crate::perception::crop::{finite_bits, mask_bit};
+use crate::surface::SurfacePoint;
 use glam::Vec3;
 use nalgebra::Point3;
 use std::collections::BTreeMap;

@@ -15,13 +15,14 @@
 //! seconds of two full D435 clouds per tick would not fit in memory.
 
 use super::constraints::apply_loop_tick;
-use super::frame::{StageLatency, SurfacePoint, ViewFrame};
+use super::frame::{StageLatency, ViewFrame};
 use super::records::CameraViews;
 use crate::gpu::Backend;
 use crate::node::haptic_loop::{HapticLoop, RobotInput};
 use crate::node::robot_state::RobotState;
 use crate::node::{NodeConfig, NodeError};
 use crate::scene::Simulator;
+use crate::surface::SurfacePoint;
 use crate::timing::Stopwatch;
 use nalgebra::Unit;
 use serde::{Deserialize, Serialize};
@@ -150,7 +151,7 @@ pub fn timeline_from_scene(
             + simulator.joints_at(t_s - DIFF_STEP_S).unwrap_or(q))
             / (DIFF_STEP_S * DIFF_STEP_S);
         let truth = simulator.ground_truth(t_s).map(|g| SurfacePoint {
-            point_m: g.closest_m,
+            centroid_m: g.closest_m,
             normal: Unit::new_normalize(g.normal),
         });
         let hip_m = robot.perception_scene(&q).hip_m;

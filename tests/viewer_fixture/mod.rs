@@ -11,10 +11,9 @@
 //! it sits deeper than the true closest point, as DESIGN.md's pitfall describes.
 
 use glam::Vec3;
-use hapcloud::surface::{ShellFit, ShellFitKind, SurfaceEstimate};
+use hapcloud::surface::{ShellFit, ShellFitKind, SurfaceEstimate, SurfacePoint};
 use hapcloud::viewer::{
-    CameraView, ConstraintSample, FrameSamples, PointLayer, PointRole, StageLatency, SurfacePoint,
-    ViewFrame,
+    CameraView, ConstraintSample, FrameSamples, PointLayer, PointRole, StageLatency, ViewFrame,
 };
 use nalgebra::{Isometry3, Point3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
 
@@ -146,19 +145,12 @@ fn estimate(camera_id: u32, stamp_s: f64, shells: Vec<ShellFit>) -> SurfaceEstim
     SurfaceEstimate {
         camera_id,
         stamp_s,
-        centroid_m: if valid {
-            Point3::from(centroid / total)
-        } else {
-            Point3::origin()
-        },
-        normal: if valid {
-            Unit::new_normalize(normal)
-        } else {
-            Vector3::z_axis()
-        },
+        surface: valid.then(|| SurfacePoint {
+            centroid_m: Point3::from(centroid / total),
+            normal: Unit::new_normalize(normal),
+        }),
         shells,
         quality: if valid { quality } else { 0.0 },
-        valid,
     }
 }
 
@@ -237,13 +229,12 @@ pub fn timeline() -> Vec<ViewFrame> {
             .enumerate()
             .map(|(i, eye)| camera_view(i as u32, eye, &hip, stamp_s))
             .collect();
-        let valid: Vec<&SurfaceEstimate> = cameras
+        let valid: Vec<SurfacePoint> = cameras
             .iter()
-            .filter_map(|c| c.estimate.as_ref())
-            .filter(|e| e.valid)
+            .filter_map(|c| c.estimate.as_ref()?.surface)
             .collect();
         let fused = (!valid.is_empty()).then(|| SurfacePoint {
-            point_m: Point3::from(
+            centroid_m: Point3::from(
                 valid
                     .iter()
                     .fold(Vector3::zeros(), |s, e| s + e.centroid_m.coords)
@@ -255,7 +246,8 @@ pub fn timeline() -> Vec<ViewFrame> {
                     .fold(Vector3::zeros(), |s, e| s + e.normal.into_inner()),
             ),
         });
-        let d_proj_m = fused.map(|f| (f.point_m - hip).dot(&-f.normal.into_inner()) - HIP_RADIUS_M);
+        let d_proj_m =
+            fused.map(|f| (f.centroid_m - hip).dot(&-f.normal.into_inner()) - HIP_RADIUS_M);
         let rate = match (d_proj_m, frames.last().and_then(|f| f.samples.d_proj_m)) {
             (Some(d), Some(prev)) => Some((d - prev) / PERIOD_S),
             _ => None,
@@ -283,7 +275,7 @@ pub fn timeline() -> Vec<ViewFrame> {
             cameras,
             fused,
             truth: Some(SurfacePoint {
-                point_m: o + HEAD_RADIUS_M * u.into_inner(),
+                centroid_m: o + HEAD_RADIUS_M * u.into_inner(),
                 normal: u,
             }),
             samples: FrameSamples {

@@ -32,7 +32,7 @@ use hapcloud::fusion::{Fusion, FusionConfig};
 use hapcloud::haptics::known_surface;
 use hapcloud::lab::closed_loop::{self, Plant, SimConfig};
 use hapcloud::robot::{JointVector, RobotModel};
-use hapcloud::surface::SurfaceEstimate;
+use hapcloud::surface::{SurfaceEstimate, SurfacePoint};
 use hapcloud::timing::{load_average, thread_cpu_s};
 use nalgebra::{Point3, Unit, Vector3};
 use rand::{RngExt, SeedableRng};
@@ -168,11 +168,12 @@ fn main() {
                 fusion.push(&SurfaceEstimate {
                     camera_id: k as u32,
                     stamp_s: *next,
-                    centroid_m: Point3::new(0.3, -0.2, -0.6 + 0.2 * next.sin()),
-                    normal: Vector3::z_axis(),
+                    surface: Some(SurfacePoint {
+                        centroid_m: Point3::new(0.3, -0.2, -0.6 + 0.2 * next.sin()),
+                        normal: Vector3::z_axis(),
+                    }),
                     shells: Vec::new(),
                     quality: 1.0,
-                    valid: true,
                 });
                 *next += frame_s;
             }

@@ -9,7 +9,7 @@
 //! Run: `cargo bench --bench fusion`.
 
 use hapcloud::fusion::{Fusion, FusionConfig};
-use hapcloud::surface::SurfaceEstimate;
+use hapcloud::surface::{SurfaceEstimate, SurfacePoint};
 use nalgebra::{Point3, Unit, Vector3};
 use std::hint::black_box;
 use std::time::Instant;
@@ -25,11 +25,12 @@ fn estimate(camera_id: u32, t: f64) -> SurfaceEstimate {
     SurfaceEstimate {
         camera_id,
         stamp_s: t,
-        centroid_m: Point3::from(c.add_scalar(bias)),
-        normal: Unit::new_normalize(n),
+        surface: Some(SurfacePoint {
+            centroid_m: Point3::from(c.add_scalar(bias)),
+            normal: Unit::new_normalize(n),
+        }),
         shells: Vec::new(),
         quality: 1.0,
-        valid: true,
     }
 }
 

@@ -415,7 +415,7 @@ fn chain_counts(c: &ChainFrame, finite: usize) -> [usize; 6] {
         c.front.voxel.points.len(),
         c.front.clusters.clusters.len(),
         c.kept.len(),
-        usize::from(c.estimate().valid),
+        usize::from(c.estimate().surface.is_some()),
     ]
 }
 

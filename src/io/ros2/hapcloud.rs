@@ -17,7 +17,7 @@ use crate::node::record::{ControlRecord, TickRecord};
 use crate::node::robot_state::JointState as Joints;
 use crate::robot::JointVector;
 use crate::surface::{FusedSurface as Fused, FusionStatus};
-use crate::surface::{ShellFit as Shell, ShellFitKind, SurfaceEstimate as Estimate};
+use crate::surface::{ShellFit as Shell, ShellFitKind, SurfaceEstimate as Estimate, SurfacePoint};
 use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -258,8 +258,8 @@ impl SurfaceEstimate {
             tick,
             camera_id: e.camera_id,
             stamp_s: e.stamp_s,
-            centroid_m: arr(&e.centroid_m.coords),
-            normal: arr(&e.normal),
+            centroid_m: e.surface.map_or([0.0; 3], |s| arr(&s.centroid_m.coords)),
+            normal: e.surface.map_or([0.0; 3], |s| arr(&s.normal)),
             shells: e
                 .shells
                 .iter()
@@ -280,7 +280,7 @@ impl SurfaceEstimate {
                 })
                 .collect(),
             quality: e.quality,
-            valid: e.valid,
+            valid: e.surface.is_some(),
         }
     }
 
@@ -312,11 +312,12 @@ impl SurfaceEstimate {
             Estimate {
                 camera_id: self.camera_id,
                 stamp_s: self.stamp_s,
-                centroid_m: Point3::from(self.centroid_m),
-                normal: Unit::new_unchecked(Vector3::from(self.normal)),
+                surface: self.valid.then(|| SurfacePoint {
+                    centroid_m: Point3::from(self.centroid_m),
+                    normal: Unit::new_unchecked(Vector3::from(self.normal)),
+                }),
                 shells,
                 quality: self.quality,
-                valid: self.valid,
             },
         ))
     }

@@ -367,8 +367,10 @@ fn hapcloud_messages_round_trip() {
     let e = Estimate {
         camera_id: 1,
         stamp_s: 3.0 + 1e-12,
-        centroid_m: Point3::new(0.5, 0.6, 0.7),
-        normal: Unit::new_normalize(Vector3::new(0.0, 0.0, 1.0)),
+        surface: Some(crate::surface::SurfacePoint {
+            centroid_m: Point3::new(0.5, 0.6, 0.7),
+            normal: Unit::new_normalize(Vector3::new(0.0, 0.0, 1.0)),
+        }),
         shells: vec![
             ShellFit {
                 inner_radius_m: 0.0,
@@ -394,7 +396,6 @@ fn hapcloud_messages_round_trip() {
             },
         ],
         quality: 0.875,
-        valid: true,
     };
     let m = SurfaceEstimate::new(header(e.stamp_s), 99, &e);
     let back: SurfaceEstimate = decode(&encode(&m).unwrap()).unwrap();
