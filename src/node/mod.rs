@@ -819,8 +819,10 @@ pub struct RealtimeStatus {
     pub refused: Vec<String>,
 }
 
-/// Asks for SCHED_FIFO on the calling thread and locked memory; undone by [`RealtimeGuard`]'s
-/// drop (the thread that called `run` gets its scheduling back).
+/// Locked memory and SCHED_FIFO for the calling thread ([`RealtimeConfig`]), given back when
+/// dropped (the thread that called `run` gets its scheduling back). Memory is locked before
+/// the clock starts (locking a large process takes a while); SCHED_FIFO is asked for after
+/// the workers are spawned (they would inherit it).
 struct RealtimeGuard {
     status: RealtimeStatus,
     old_policy: libc::c_int,
@@ -828,27 +830,14 @@ struct RealtimeGuard {
 }
 
 impl RealtimeGuard {
-    fn acquire(config: &RealtimeConfig) -> Self {
+    /// Locks memory if `config` asks for it.
+    fn lock_memory(config: &RealtimeConfig) -> Self {
         let mut status = RealtimeStatus::default();
         // SAFETY: plain syscalls on the calling thread with valid pointers to locals.
         let (old_policy, old_param) = unsafe {
-            let thread = libc::pthread_self();
             let mut policy = 0;
             let mut param: libc::sched_param = std::mem::zeroed();
-            libc::pthread_getschedparam(thread, &mut policy, &mut param);
-            if config.fifo_priority > 0 {
-                let fifo = libc::sched_param {
-                    sched_priority: libc::c_int::from(config.fifo_priority),
-                };
-                match libc::pthread_setschedparam(thread, libc::SCHED_FIFO, &fifo) {
-                    0 => status.fifo_priority = Some(config.fifo_priority),
-                    e => status.refused.push(format!(
-                        "SCHED_FIFO priority {}: {}",
-                        config.fifo_priority,
-                        std::io::Error::from_raw_os_error(e)
-                    )),
-                }
-            }
+            libc::pthread_getschedparam(libc::pthread_self(), &mut policy, &mut param);
             if config.lock_memory {
                 let flags = libc::MCL_CURRENT | libc::MCL_FUTURE | libc::MCL_ONFAULT;
                 if libc::mlockall(flags) == 0 {
@@ -861,16 +850,37 @@ impl RealtimeGuard {
             }
             (policy, param)
         };
-        if !status.refused.is_empty() {
-            eprintln!(
-                "warning: real time refused ({}); the control loop runs without it",
-                status.refused.join("; ")
-            );
-        }
         Self {
             status,
             old_policy,
             old_param,
+        }
+    }
+
+    /// Asks for SCHED_FIFO on the calling thread if `config` does, then says once what was
+    /// refused.
+    fn fifo(&mut self, config: &RealtimeConfig) {
+        if config.fifo_priority > 0 {
+            let fifo = libc::sched_param {
+                sched_priority: libc::c_int::from(config.fifo_priority),
+            };
+            // SAFETY: the calling thread, a valid pointer to a local.
+            match unsafe {
+                libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &fifo)
+            } {
+                0 => self.status.fifo_priority = Some(config.fifo_priority),
+                e => self.status.refused.push(format!(
+                    "SCHED_FIFO priority {}: {}",
+                    config.fifo_priority,
+                    std::io::Error::from_raw_os_error(e)
+                )),
+            }
+        }
+        if !self.status.refused.is_empty() {
+            eprintln!(
+                "warning: real time refused ({}); the control loop runs without it",
+                self.status.refused.join("; ")
+            );
         }
     }
 }
@@ -1005,6 +1015,7 @@ pub fn run(
         }
         None => (0.0, options.duration_s.unwrap_or(f64::INFINITY)),
     };
+    let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
     let clock = Clock {
         start: Instant::now(),
         speed: options.speed,
@@ -1047,9 +1058,8 @@ pub fn run(
                 Ok(())
             })
         });
-        // Real time for this thread only, asked for after the workers were spawned (they
-        // would inherit it).
-        let realtime = RealtimeGuard::acquire(&config.realtime);
+        // SCHED_FIFO for this thread only, asked for after the workers were spawned.
+        realtime.fifo(&config.realtime);
 
         let mut stats = LoopStats::new();
         // The last tick's robot state, for the safe command if the node has to stop.
@@ -1238,7 +1248,6 @@ pub fn run(
             ),
         }
         stats.realtime = realtime.status.clone();
-        drop(realtime);
         shared.stop.store(true, Ordering::Release);
         // A failed worker stops the node safely: the constraints off and the safe command
         // (gravity compensation and damping, torque command disabled) sent on CAN.
@@ -1275,6 +1284,7 @@ pub fn run(
         stats.duration_s = k as f64 * tick_s;
         Ok::<_, NodeError>((report, stats))
     });
+    drop(realtime);
     let (report, stats) = result?;
     let duration_s = stats.duration_s;
     let cameras = report
