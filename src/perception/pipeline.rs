@@ -448,7 +448,7 @@ impl CameraChain {
         let watch = Stopwatch::start();
         let front = match self.frontend.process(&input) {
             Ok(o) => o,
-            Err(FrontendError::Gpu(e)) => {
+            Err(e) if e.gpu().is_some() => {
                 self.fall_back(e.to_string())?;
                 self.frontend.process(&input)?
             }

@@ -88,7 +88,7 @@ fn main() -> std::io::Result<()> {
             sent += 1;
         }
         let t = k as f64 / 30.0;
-        if k > 0 && k % 300 == 0 {
+        if k > 0 && k.is_multiple_of(300) {
             // a record that is not a frame, and one whose CRC is broken
             let mut junk = Vec::new();
             hcap::write_record(&mut junk, RecordKind::Frame, b"not a frame");
@@ -104,7 +104,7 @@ fn main() -> std::io::Result<()> {
             sender.send_raw(&broken)?;
             bad += 2;
         }
-        if k > 0 && k % 450 == 0 {
+        if k > 0 && k.is_multiple_of(450) {
             sender.send(&frame(0, t - 1.0))?;
             bad += 1;
         }
