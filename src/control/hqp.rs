@@ -376,17 +376,17 @@ impl HierarchicalSolver {
             } else {
                 let bm = DMatrixView::from_slice(&basis[..n * nz], n, nz);
                 let mut azm = view_mut(az, me, nz);
-                qp::mul_into(&mut azm, &t.a, &bm);
+                qp::product_into(&mut azm, &t.a, false, &bm);
                 let mut rv = vector_mut(r, me);
                 rv.copy_from(&t.b);
                 rv.gemv(-1.0, &t.a, &*x, 1.0);
                 let mut hm = view_mut(hess, nz, nz);
-                qp::tr_mul_into(&mut hm, &azm, &azm);
+                qp::product_into(&mut hm, &azm, true, &azm);
                 for i in 0..nz {
                     hm[(i, i)] += self.settings.regularization;
                 }
                 let mut gv = vector_mut(grad, nz);
-                qp::tr_mul_into(&mut gv, &azm, &rv);
+                qp::product_into(&mut gv, &azm, true, &rv);
                 let mut zv = vector_mut(z_ls, nz);
                 zv.fill(0.0);
                 if me > 0 {
@@ -398,14 +398,14 @@ impl HierarchicalSolver {
                     }
                 }
                 let mut dzm = view_mut(dz, k, nz);
-                qp::mul_into(&mut dzm, &t.d, &bm);
+                qp::product_into(&mut dzm, &t.d, false, &bm);
                 let mut sv = vector_mut(s, k);
                 sv.copy_from(&t.f);
                 sv.gemv(-1.0, &t.d, &*x, 1.0);
                 let dh_all = DMatrixView::from_slice(&dh[..total_rows * n], total_rows, n);
                 let dhv = dh_all.rows(0, rows_h);
                 let mut dhzm = view_mut(dhz, rows_h, nz);
-                qp::mul_into(&mut dhzm, &dhv, &bm);
+                qp::product_into(&mut dhzm, &dhv, false, &bm);
                 let mut shv = vector_mut(sh, rows_h);
                 shv.copy_from(&DVectorView::from_slice(&fh[..rows_h], rows_h));
                 shv.gemv(-1.0, &dhv, &*x, 1.0);
@@ -476,7 +476,7 @@ impl HierarchicalSolver {
                 // basis * null(A basis), via the eigen-decomposition of (A basis)^T (A basis)
                 let azm = DMatrixView::from_slice(&az[..me * nz], me, nz);
                 let mut gm = view_mut(gram, nz, nz);
-                qp::tr_mul_into(&mut gm, &azm, &azm);
+                qp::product_into(&mut gm, &azm, true, &azm);
                 let mut vm = view_mut(eigenvectors, nz, nz);
                 symmetric_eigen_in_place(&mut gm, &mut vm);
                 let scale = (0..nz).map(|i| gm[(i, i)]).fold(1.0f64, f64::max);

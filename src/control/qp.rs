@@ -197,12 +197,13 @@ pub(crate) fn cholesky_in_place(m: &mut DMatrixViewMut<'_, f64>) -> bool {
     true
 }
 
-/// `out = a b` by plain loops. nalgebra hands products of dynamic matrices beyond a few rows
-/// to `matrixmultiply`, which allocates a packing buffer per call; these are at most a few
-/// tens of rows.
-pub(crate) fn mul_into<CB, SA, SB, SO>(
+/// `out = a b`, or `a^T b` with `transpose_a`, by plain loops. nalgebra hands products of
+/// dynamic matrices beyond a few rows to `matrixmultiply`, which allocates a packing buffer
+/// per call; these are at most a few tens of rows.
+pub(crate) fn product_into<CB, SA, SB, SO>(
     out: &mut Matrix<f64, Dyn, CB, SO>,
     a: &Matrix<f64, Dyn, Dyn, SA>,
+    transpose_a: bool,
     b: &Matrix<f64, Dyn, CB, SB>,
 ) where
     CB: Dim,
@@ -210,27 +211,15 @@ pub(crate) fn mul_into<CB, SA, SB, SO>(
     SB: RawStorage<f64, Dyn, CB>,
     SO: RawStorageMut<f64, Dyn, CB>,
 {
+    let (rows, inner) = if transpose_a {
+        (a.ncols(), a.nrows())
+    } else {
+        (a.nrows(), a.ncols())
+    };
+    let at = |r: usize, k: usize| if transpose_a { a[(k, r)] } else { a[(r, k)] };
     for c in 0..b.ncols() {
-        for r in 0..a.nrows() {
-            out[(r, c)] = (0..a.ncols()).map(|k| a[(r, k)] * b[(k, c)]).sum();
-        }
-    }
-}
-
-/// `out = a^T b` by plain loops (see [`mul_into`]).
-pub(crate) fn tr_mul_into<CB, SA, SB, SO>(
-    out: &mut Matrix<f64, Dyn, CB, SO>,
-    a: &Matrix<f64, Dyn, Dyn, SA>,
-    b: &Matrix<f64, Dyn, CB, SB>,
-) where
-    CB: Dim,
-    SA: RawStorage<f64, Dyn, Dyn>,
-    SB: RawStorage<f64, Dyn, CB>,
-    SO: RawStorageMut<f64, Dyn, CB>,
-{
-    for c in 0..b.ncols() {
-        for r in 0..a.ncols() {
-            out[(r, c)] = (0..a.nrows()).map(|k| a[(k, r)] * b[(k, c)]).sum();
+        for r in 0..rows {
+            out[(r, c)] = (0..inner).map(|k| at(r, k) * b[(k, c)]).sum();
         }
     }
 }
@@ -468,7 +457,7 @@ pub fn solve_active_set_in(
                 return Err(QpError::MaxIterations(settings.max_iterations));
             }
             let q = f.active.len();
-            tr_mul_into(&mut d, &f.j, &np);
+            product_into(&mut d, &f.j, true, &np);
             z.fill(0.0);
             for k in q..n {
                 z.axpy(d[k], &f.j.column(k), 1.0);

@@ -324,20 +324,6 @@ pub struct Percentiles {
     pub p99: f64,
 }
 
-impl Percentiles {
-    fn of_seconds(samples: &mut [f64]) -> Self {
-        if samples.is_empty() {
-            return Self::default();
-        }
-        samples.sort_by(f64::total_cmp);
-        let at = |p: f64| samples[((samples.len() - 1) as f64 * p).round() as usize] * 1e3;
-        Self {
-            p50: at(0.5),
-            p99: at(0.99),
-        }
-    }
-}
-
 /// Per camera: frames processed and their rate over the run's clock time.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct CameraSummary {
@@ -560,7 +546,7 @@ fn injected(inject: Option<(Worker, u64)>, worker: Worker, count: u64) {
 /// What the perception thread reports at the end.
 struct PerceptionReport {
     frames: BTreeMap<u32, (u64, u64)>,
-    times_s: Vec<f64>,
+    times: Histogram,
     backend: Backend,
     adapter: Option<String>,
     gpu_fallback: Option<String>,
@@ -585,7 +571,8 @@ fn perception_thread(
     inject: Option<(Worker, u64)>,
 ) -> Result<PerceptionReport, NodeError> {
     let mut counts: BTreeMap<u32, (u64, u64)> = BTreeMap::new();
-    let mut times_s = Vec::new();
+    // 0.1 ms bins up to 10 s
+    let mut times = Histogram::new(1e-4, 10.0);
     // The source stops once perception does, whatever the way out.
     let _close = CloseOnDrop(frames);
     let mut processed = 0u64;
@@ -597,7 +584,7 @@ fn perception_thread(
         let q = robot.at(frame.stamp_s).q_rad;
         let record = perception.process(&frame, &robot.perception_scene(&q))?;
         let estimate = record.estimate().clone();
-        times_s.push(start.elapsed().as_secs_f64());
+        times.add(start.elapsed().as_secs_f64());
         if perception.gpu_fallback().is_some() {
             shared.gpu_fell_back.store(true, Ordering::Relaxed);
         }
@@ -630,7 +617,7 @@ fn perception_thread(
     }
     Ok(PerceptionReport {
         frames: counts,
-        times_s,
+        times,
         backend: perception.backend(),
         adapter: perception.adapter().map(str::to_string),
         gpu_fallback: perception.gpu_fallback(),
@@ -1305,7 +1292,6 @@ pub fn run(
             )
         })
         .collect::<BTreeMap<_, _>>();
-    let mut perception_times = report.times_s;
     Ok(NodeSummary {
         frames: cameras.values().map(|c| c.frames).sum(),
         dropped_frames: shared.dropped.load(Ordering::Relaxed),
@@ -1325,7 +1311,7 @@ pub fn run(
         latency_ms: stats.latency.percentiles(),
         jitter_ms: stats.jitter.percentiles(),
         tick_work_ms: stats.work.percentiles(),
-        perception_ms: Percentiles::of_seconds(&mut perception_times),
+        perception_ms: report.times.percentiles(),
         realtime: stats.realtime,
         recording_error: shared
             .recording_error
