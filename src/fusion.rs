@@ -474,9 +474,11 @@ impl LatencyHistogram {
 
 const CHANNELS: usize = 6;
 
-/// The weighted polynomial of the current window, in `τ = (t - ref_stamp_s) / scale_s`.
-#[derive(Clone, Copy, Debug)]
-struct Fit {
+/// The weighted polynomial of the current window, in `τ = (t - ref_stamp_s) / scale_s`: made
+/// by [`Fusion::refit`] where the window is kept, evaluated by [`Fusion::tick`] (possibly of
+/// another `Fusion`, [`Fusion::use_fit`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Fit {
     ref_stamp_s: f64,
     scale_s: f64,
     /// `coeffs[k][j]`: coefficient of `τ^k` for channel `j`; unused degrees are zero.
@@ -722,10 +724,10 @@ impl Fusion {
         PushOutcome::Accepted
     }
 
-    /// Evaluates the fused surface at tick time `t_s` and advances the PID smoothing by the
-    /// time since the previous tick. Never panics; the output is always finite with a unit
-    /// normal.
-    pub fn tick(&mut self, t_s: f64) -> FusedSurface {
+    /// Fits the window now if estimates joined it since the last fit (the regression
+    /// allocates; [`Fusion::tick`] does this itself when needed), and returns the fit (`None`
+    /// before the first).
+    pub fn refit(&mut self) -> Option<Fit> {
         if self.fit_dirty {
             self.fit_dirty = false;
             // A failed solve keeps the previous window's fit (it cannot fail with finite
@@ -741,6 +743,21 @@ impl Fusion {
                 self.smoothed = None;
             }
         }
+        self.fit
+    }
+
+    /// Evaluates `fit`, made by the [`Fusion::refit`] of the `Fusion` that keeps the window,
+    /// from the next tick on: the threaded node fits on the perception thread and the 800 Hz
+    /// tick only evaluates the polynomial and steps the PID, which allocates nothing.
+    pub fn use_fit(&mut self, fit: Fit) {
+        self.fit = Some(fit);
+    }
+
+    /// Evaluates the fused surface at tick time `t_s` and advances the PID smoothing by the
+    /// time since the previous tick. Never panics; the output is always finite with a unit
+    /// normal.
+    pub fn tick(&mut self, t_s: f64) -> FusedSurface {
+        self.refit();
         let Some(fit) = self.fit else {
             self.was_tracking = false;
             self.prediction = Prediction::default();

@@ -129,3 +129,36 @@ fn can_decode_into_a_closed_pipe_ends_quietly() {
         "{stderr}"
     );
 }
+
+/// Every numeric argument refuses NaN, infinity and values it cannot mean (a negative or zero
+/// duration, length or rate, a clock rate the loop cannot follow) with an error naming the
+/// argument, before any work starts (`--duration nan` and `--speed 1e7` used to run for ever,
+/// `--duration -1` to succeed).
+#[test]
+fn numeric_arguments_are_checked_and_named() {
+    let cases: &[(&[&str], &str)] = &[
+        (&["run", "--duration", "nan"], "--duration"),
+        (&["run", "--duration", "-1"], "--duration"),
+        (&["run", "--duration", "0"], "--duration"),
+        (&["run", "--duration", "inf"], "--duration"),
+        (&["run", "--speed", "1e7"], "--speed"),
+        (&["run", "--speed", "0"], "--speed"),
+        (&["run", "--speed", "NaN"], "--speed"),
+        (&["run", "--speed", "-2"], "--speed"),
+        (&["cluster", "--tolerance", "nan"], "--tolerance"),
+        (&["voxel", "--leaf", "-0.01"], "--leaf"),
+        (&["voxel", "--fmin", "inf"], "--fmin"),
+        (&["crop", "--radius", "0"], "--radius"),
+        (&["crop", "--robot-margin", "-1"], "--robot-margin"),
+        (&["convert", "--depth-scale-m", "nan"], "--depth-scale-m"),
+        (&["surface", "--hip", "0,nan,0"], "--hip"),
+        (&["sim", "--rising-speed", "-0.5"], "--rising-speed"),
+    ];
+    for (args, name) in cases {
+        let err = run_err(*args);
+        assert!(
+            err.contains(name) && err.contains("invalid value"),
+            "{args:?}: {err}"
+        );
+    }
+}

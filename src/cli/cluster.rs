@@ -14,7 +14,7 @@ pub struct Args {
     /// Input cloud (.pcd or .ply).
     input: PathBuf,
     /// Neighbour distance in metres: points closer than this are connected (PCL -tolerance).
-    #[arg(long, default_value_t = 0.02)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, default_value_t = 0.02)]
     tolerance: f64,
     /// Smallest cluster kept, points (PCL -min).
     #[arg(long, default_value_t = 100)]

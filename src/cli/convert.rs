@@ -30,7 +30,7 @@ pub struct Args {
     #[arg(long, value_delimiter = ',')]
     pub intrinsics: Option<Vec<f64>>,
     /// Metres per depth unit of a depth-image input.
-    #[arg(long, default_value_t = 0.001)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, default_value_t = 0.001)]
     pub depth_scale_m: f64,
     /// Print one JSON object describing the conversion.
     #[arg(long)]

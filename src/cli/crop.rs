@@ -19,14 +19,14 @@ pub struct Args {
     #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
     hip: Point3<f64>,
     /// Keep points within this distance of the HIP (m).
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
     radius: f64,
     /// TOML file with the robot's collision primitives in the cloud frame:
     /// `[[primitive]]` tables with `shape = "sphere" | "capsule" | "oriented_box"`.
     #[arg(long)]
     robot: Option<PathBuf>,
     /// Grow every robot primitive by this much before the test (m) ...
-    #[arg(long, default_value_t = CropConfig::default().robot_margin_m)]
+    #[arg(long, value_parser = super::numbers::non_negative, allow_negative_numbers = true, default_value_t = CropConfig::default().robot_margin_m)]
     robot_margin: f64,
     /// ... plus this times the squared distance from `--camera` to the HIP (m per m^2).
     #[arg(long, default_value_t = CropConfig::default().robot_margin_per_m2)]

@@ -49,10 +49,10 @@ pub struct ExperimentArgs {
     #[arg(long)]
     scene: Option<String>,
     /// safe-speed: the speeds of the moving body, m/s.
-    #[arg(long, value_delimiter = ',', default_value = "0.5,1,1.5,2,2.5")]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, value_delimiter = ',', default_value = "0.5,1,1.5,2,2.5")]
     speeds: Vec<f64>,
     /// safe-speed: the cameras' depth rate (the D435's 30, 60 or 90 Hz at 848x480).
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, default_value_t = 30.0)]
     camera_rate_hz: f64,
 }
 

@@ -26,6 +26,55 @@ mod view;
 mod voxel;
 use std::process::ExitCode;
 
+/// Parsers of numeric arguments: each refuses what its argument cannot mean (NaN, infinity,
+/// a negative or zero length, an absurd clock rate); clap's error names the argument.
+mod numbers {
+    fn finite_number(s: &str) -> Result<f64, String> {
+        let v: f64 = s.trim().parse().map_err(|e| format!("{e}"))?;
+        if v.is_finite() {
+            Ok(v)
+        } else {
+            Err(format!("must be a finite number, got {v}"))
+        }
+    }
+
+    /// Any finite number (a coordinate).
+    pub fn finite(s: &str) -> Result<f64, String> {
+        finite_number(s)
+    }
+
+    /// A finite number above zero (a length, a duration, a rate).
+    pub fn positive(s: &str) -> Result<f64, String> {
+        let v = finite_number(s)?;
+        if v > 0.0 {
+            Ok(v)
+        } else {
+            Err(format!("must be positive, got {v}"))
+        }
+    }
+
+    /// A finite number, zero or above (a margin, a start time).
+    pub fn non_negative(s: &str) -> Result<f64, String> {
+        let v = finite_number(s)?;
+        if v >= 0.0 {
+            Ok(v)
+        } else {
+            Err(format!("must not be negative, got {v}"))
+        }
+    }
+
+    /// The node clock's rate against real time: above zero, at most 1000 (beyond, an 800 Hz
+    /// tick lasts less than the loop's own work and the timing means nothing).
+    pub fn speed(s: &str) -> Result<f64, String> {
+        let v = positive(s)?;
+        if v <= 1000.0 {
+            Ok(v)
+        } else {
+            Err(format!("must be at most 1000, got {v}"))
+        }
+    }
+}
+
 #[derive(Parser)]
 #[command(
     name = "hapcloud",

@@ -33,10 +33,10 @@ pub struct Args {
     /// `torso_approach_realistic` (two simulated D435 cameras) is played.
     source: Option<String>,
     /// Stop after this many seconds of node time (default: the end of a recording).
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
     duration: Option<f64>,
     /// Node clock rate relative to real time (2 = twice as fast).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, value_parser = super::numbers::speed, allow_negative_numbers = true, default_value_t = 1.0)]
     speed: f64,
     /// Perception backend; `gpu` falls back to `cpu` (logged once) when the GPU fails.
     /// Default: the faster front end on the source's first frames, measured at start-up; for
@@ -77,14 +77,16 @@ pub struct Args {
 const DEFAULT_SCENE: &str = "torso_approach_realistic";
 
 /// Renders every frame of scene `scene` (a built-in name or a TOML file) up to `duration_s`
-/// (default: the whole scene), before the node starts (rendering is not what the node's
+/// (at most the whole scene), before the node starts (rendering is not what the node's
 /// timing measures). The node's robot follows the scene's joint trajectory.
 fn render_scene(scene: &Scene, duration_s: Option<f64>) -> anyhow::Result<Source> {
     let simulator = Simulator::new(scene)?;
     if simulator.robot_model().is_none() {
         anyhow::bail!("scene {}: has no robot to run the node for", scene.origin);
     }
-    let end_s = duration_s.unwrap_or_else(|| simulator.duration_s());
+    // Never past the scene's end: a longer --duration runs on without frames (the cameras
+    // stop), instead of rendering frames of nothing into memory.
+    let end_s = duration_s.map_or(simulator.duration_s(), |d| d.min(simulator.duration_s()));
     let frames = simulator
         .arrivals(0.0, end_s)
         .iter()

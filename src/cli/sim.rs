@@ -21,7 +21,7 @@ pub struct Args {
     #[arg(long)]
     seed: Option<u64>,
     /// For rising_surface_clean / _realistic: the surface's speed, m/s (paper: 0.1 to 1.5).
-    #[arg(long, value_name = "M_PER_S")]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, value_name = "M_PER_S")]
     rising_speed: Option<f64>,
     /// One JSON object on stdout.
     #[arg(long)]

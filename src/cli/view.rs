@@ -37,14 +37,14 @@ pub struct Args {
     /// topics), or a directory of .pcd/.ply frames of one camera in name order.
     source: PathBuf,
     /// Scenes: first view tick, seconds of scene time (overrides [scene] start_s).
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::non_negative, allow_negative_numbers = true)]
     start_s: Option<f64>,
     /// Scenes: seconds shown from --start-s (default: to the scene's end; overrides [scene]
     /// duration_s).
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
     duration_s: Option<f64>,
     /// Scenes: view ticks per second (overrides [scene] view_rate_hz).
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
     view_rate_hz: Option<f64>,
     /// HIP position "x,y,z" in metres (world frame: camera at the origin looking along x,
     /// z up); default: hip radius + --hip-clearance-m in front of the surface point seen
@@ -52,10 +52,10 @@ pub struct Args {
     #[arg(long, allow_hyphen_values = true)]
     hip: Option<String>,
     /// Gap between the HIP sphere and the surface when the HIP is placed automatically (m).
-    #[arg(long, default_value_t = 0.02)]
+    #[arg(long, value_parser = super::numbers::non_negative, allow_negative_numbers = true, default_value_t = 0.02)]
     hip_clearance_m: f64,
     /// Frame rate for files whose names carry no time stamp (Hz).
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, default_value_t = 30.0)]
     rate_hz: f64,
     /// TOML file with a [viewer] table (ViewerConfig), a [node] table (the node config of
     /// `hapcloud run --config`: the haptic loop's stages) and a [scene] table

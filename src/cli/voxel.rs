@@ -14,7 +14,7 @@ pub struct Args {
     /// Input cloud (.pcd or .ply).
     input: PathBuf,
     /// Cubic leaf size (m).
-    #[arg(long)]
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
     leaf: f64,
     /// Drop cells with fewer points (PCL setMinimumPointsNumberPerVoxel).
     #[arg(long, default_value_t = 1)]
@@ -23,10 +23,10 @@ pub struct Args {
     #[arg(long, value_enum, default_value = "z")]
     field: FieldArg,
     /// Lower filter limit (m); no filter unless --fmin or --fmax is given.
-    #[arg(long, allow_hyphen_values = true)]
+    #[arg(long, value_parser = super::numbers::finite, allow_hyphen_values = true)]
     fmin: Option<f64>,
     /// Upper filter limit (m).
-    #[arg(long, allow_hyphen_values = true)]
+    #[arg(long, value_parser = super::numbers::finite, allow_hyphen_values = true)]
     fmax: Option<f64>,
     /// Keep the points outside the filter limits instead.
     #[arg(long)]

@@ -30,9 +30,10 @@
 //! `(A Z)^T (A Z)` with eigenvalues below a relative tolerance; when no freedom is left, the
 //! remaining levels only report slacks.
 
-use super::qp::{self, ActiveSetSettings, DenseQp, QpError};
+use super::qp::{self, ActiveSetSettings, DenseQp, QpError, QpWorkspace};
+use arrayvec::ArrayVec;
 use clarabel::solver::DefaultSettings;
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{DMatrix, DMatrixView, DMatrixViewMut, DVector, DVectorView, DVectorViewMut};
 
 /// One priority level: equalities `a x = b` and inequalities `d x <= f`.
 #[derive(Clone, Debug)]
@@ -110,6 +111,11 @@ pub enum LevelMethod {
     NoFreedom,
 }
 
+/// Most levels a hierarchy may have, and most inequality rows one level may have (the
+/// reports are fixed-size, so a solve allocates nothing).
+pub const MAX_LEVELS: usize = 8;
+pub const MAX_LEVEL_ROWS: usize = 32;
+
 /// Outcome of one level.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LevelReport {
@@ -118,7 +124,7 @@ pub struct LevelReport {
     /// `|A_p x_p - b_p|` after the level.
     pub equality_residual: f64,
     /// Optimal slacks `v_p*` of the level's inequalities (zero when all are met).
-    pub slacks: Vec<f64>,
+    pub slacks: ArrayVec<f64, MAX_LEVEL_ROWS>,
     /// Dimension of the null space left for the levels below.
     pub freedom_left: usize,
     /// Iterations (row additions and removals) of the active-set method, 0 without a QP.
@@ -131,7 +137,7 @@ pub struct LevelReport {
 #[derive(Clone, Debug, PartialEq)]
 pub struct HqpSolution {
     pub x: DVector<f64>,
-    pub levels: Vec<LevelReport>,
+    pub levels: ArrayVec<LevelReport, MAX_LEVELS>,
 }
 
 /// Why a hierarchy could not be solved.
@@ -143,6 +149,10 @@ pub enum HqpError {
     NonFinite { task: &'static str },
     #[error("QP of task `{task}` failed: {status}")]
     Solver { task: &'static str, status: String },
+    #[error(
+        "hierarchy too large: at most {MAX_LEVELS} levels of at most {MAX_LEVEL_ROWS} inequalities (task `{task}`)"
+    )]
+    TooLarge { task: &'static str },
 }
 
 /// Solves task hierarchies over `n` variables; holds the solver settings between calls.
@@ -151,6 +161,125 @@ pub struct HierarchicalSolver {
     n: usize,
     settings: HqpSettings,
     qp_settings: DefaultSettings<f64>,
+}
+
+/// Reusable buffers of [`HierarchicalSolver::solve_in`] and its solution, grown to the
+/// largest hierarchy seen: solving hierarchies of the same shapes again (the controller,
+/// every tick) allocates nothing. Only the clarabel fallback allocates.
+#[derive(Clone, Debug)]
+pub struct HqpWorkspace {
+    solution: HqpSolution,
+    basis: Vec<f64>,
+    basis_next: Vec<f64>,
+    dh: Vec<f64>,
+    fh: Vec<f64>,
+    az: Vec<f64>,
+    r: Vec<f64>,
+    hess: Vec<f64>,
+    chol: Vec<f64>,
+    grad: Vec<f64>,
+    z_ls: Vec<f64>,
+    dz: Vec<f64>,
+    s: Vec<f64>,
+    dhz: Vec<f64>,
+    sh: Vec<f64>,
+    qp_h: Vec<f64>,
+    qp_c: Vec<f64>,
+    qp_a: Vec<f64>,
+    qp_b: Vec<f64>,
+    gram: Vec<f64>,
+    eigenvectors: Vec<f64>,
+    qp: QpWorkspace,
+}
+
+impl Default for HqpWorkspace {
+    fn default() -> Self {
+        Self {
+            solution: HqpSolution {
+                x: DVector::zeros(0),
+                levels: ArrayVec::new(),
+            },
+            basis: Vec::new(),
+            basis_next: Vec::new(),
+            dh: Vec::new(),
+            fh: Vec::new(),
+            az: Vec::new(),
+            r: Vec::new(),
+            hess: Vec::new(),
+            chol: Vec::new(),
+            grad: Vec::new(),
+            z_ls: Vec::new(),
+            dz: Vec::new(),
+            s: Vec::new(),
+            dhz: Vec::new(),
+            sh: Vec::new(),
+            qp_h: Vec::new(),
+            qp_c: Vec::new(),
+            qp_a: Vec::new(),
+            qp_b: Vec::new(),
+            gram: Vec::new(),
+            eigenvectors: Vec::new(),
+            qp: QpWorkspace::default(),
+        }
+    }
+}
+
+/// A `rows x cols` matrix view on the first entries of `buf` (grown when short).
+fn view_mut(buf: &mut Vec<f64>, rows: usize, cols: usize) -> DMatrixViewMut<'_, f64> {
+    DMatrixViewMut::from_slice(qp::sized(buf, rows * cols), rows, cols)
+}
+
+/// A vector view of length `len` on the first entries of `buf` (grown when short).
+fn vector_mut(buf: &mut Vec<f64>, len: usize) -> DVectorViewMut<'_, f64> {
+    DVectorViewMut::from_slice(qp::sized(buf, len), len)
+}
+
+/// Eigen-decomposition of the symmetric `a` by cyclic Jacobi rotations: `a` ends diagonal
+/// (the eigenvalues), the columns of `v` are the eigenvectors. Hand-written because
+/// nalgebra's `SymmetricEigen` allocates its results; these matrices have at most a dozen
+/// rows, where Jacobi is accurate to rounding in a few sweeps.
+fn symmetric_eigen_in_place(a: &mut DMatrixViewMut<'_, f64>, v: &mut DMatrixViewMut<'_, f64>) {
+    let n = a.nrows();
+    v.fill_with_identity();
+    for _sweep in 0..64 {
+        let off: f64 = (0..n)
+            .flat_map(|p| (p + 1..n).map(move |q| (p, q)))
+            .map(|(p, q)| a[(p, q)] * a[(p, q)])
+            .sum();
+        let diag: f64 = (0..n).map(|i| a[(i, i)] * a[(i, i)]).sum();
+        // converged (or not a number: the sweeps would not help)
+        if off.is_nan() || off <= f64::EPSILON * f64::EPSILON * (diag + off) {
+            return;
+        }
+        for p in 0..n {
+            for q in p + 1..n {
+                let apq = a[(p, q)];
+                if apq == 0.0 {
+                    continue;
+                }
+                // the rotation that zeroes a[p][q] (Numerical Recipes, `jacobi`)
+                let theta = (a[(q, q)] - a[(p, p)]) / (2.0 * apq);
+                let t = theta.signum() / (theta.abs() + theta.hypot(1.0));
+                let c = 1.0 / t.hypot(1.0);
+                let s = t * c;
+                for k in 0..n {
+                    let (akp, akq) = (a[(k, p)], a[(k, q)]);
+                    a[(k, p)] = c * akp - s * akq;
+                    a[(k, q)] = s * akp + c * akq;
+                }
+                for k in 0..n {
+                    let (apk, aqk) = (a[(p, k)], a[(q, k)]);
+                    a[(p, k)] = c * apk - s * aqk;
+                    a[(q, k)] = s * apk + c * aqk;
+                }
+                for k in 0..n {
+                    let (vkp, vkq) = (v[(k, p)], v[(k, q)]);
+                    v[(k, p)] = c * vkp - s * vkq;
+                    v[(k, q)] = s * vkp + c * vkq;
+                }
+            }
+        }
+    }
 }
 
 impl HierarchicalSolver {
@@ -165,7 +294,21 @@ impl HierarchicalSolver {
 
     /// Solves the hierarchy `tasks` (highest priority first).
     pub fn solve(&self, tasks: &[Task]) -> Result<HqpSolution, HqpError> {
+        let mut workspace = HqpWorkspace::default();
+        self.solve_in(tasks, &mut workspace).cloned()
+    }
+
+    /// [`HierarchicalSolver::solve`] in the buffers of `ws`: no allocation once they have
+    /// grown to the hierarchy's shapes (unless a level needs the clarabel fallback).
+    pub fn solve_in<'w>(
+        &self,
+        tasks: &[Task],
+        ws: &'w mut HqpWorkspace,
+    ) -> Result<&'w HqpSolution, HqpError> {
         let n = self.n;
+        if let Some(t) = tasks.get(MAX_LEVELS) {
+            return Err(HqpError::TooLarge { task: t.name });
+        }
         for t in tasks {
             if t.a.ncols() != n
                 || t.d.ncols() != n
@@ -173,6 +316,9 @@ impl HierarchicalSolver {
                 || t.d.nrows() != t.f.len()
             {
                 return Err(HqpError::Dimensions { task: t.name });
+            }
+            if t.d.nrows() > MAX_LEVEL_ROWS {
+                return Err(HqpError::TooLarge { task: t.name });
             }
             let finite =
                 t.a.iter()
@@ -184,114 +330,183 @@ impl HierarchicalSolver {
             }
         }
         let tol = self.settings.feasibility_tolerance;
-        let mut x = DVector::zeros(n);
-        let mut basis = DMatrix::identity(n, n);
+        let HqpWorkspace {
+            solution,
+            basis,
+            basis_next,
+            dh,
+            fh,
+            az,
+            r,
+            hess,
+            chol,
+            grad,
+            z_ls,
+            dz,
+            s,
+            dhz,
+            sh,
+            qp_h,
+            qp_c,
+            qp_a,
+            qp_b,
+            gram,
+            eigenvectors,
+            qp,
+        } = ws;
+        if solution.x.len() != n {
+            solution.x = DVector::zeros(n);
+        }
+        let x = &mut solution.x;
+        x.fill(0.0);
+        solution.levels.clear();
+        view_mut(basis, n, n).fill_with_identity();
+        let mut nz = n;
         // accumulated higher inequalities with their relaxed right-hand sides
         let total_rows: usize = tasks.iter().map(|t| t.d.nrows()).sum();
-        let mut dh = DMatrix::zeros(total_rows, n);
-        let mut fh = DVector::zeros(total_rows);
+        qp::sized(dh, total_rows * n);
+        qp::sized(fh, total_rows);
         let mut rows_h = 0;
-        let mut levels = Vec::with_capacity(tasks.len());
         for (p, t) in tasks.iter().enumerate() {
-            let nz = basis.ncols();
             let k = t.d.nrows();
+            let me = t.a.nrows();
             let (mut qp_iterations, mut qp_failure) = (0, None);
             let method = if nz == 0 {
                 LevelMethod::NoFreedom
             } else {
-                let az = &t.a * &basis;
-                let r = &t.b - &t.a * &x;
-                let mut hess = az.transpose() * &az;
+                let bm = DMatrixView::from_slice(&basis[..n * nz], n, nz);
+                let mut azm = view_mut(az, me, nz);
+                qp::product_into(&mut azm, &t.a, false, &bm);
+                let mut rv = vector_mut(r, me);
+                rv.copy_from(&t.b);
+                rv.gemv(-1.0, &t.a, &*x, 1.0);
+                let mut hm = view_mut(hess, nz, nz);
+                qp::product_into(&mut hm, &azm, true, &azm);
                 for i in 0..nz {
-                    hess[(i, i)] += self.settings.regularization;
+                    hm[(i, i)] += self.settings.regularization;
                 }
-                let grad = az.transpose() * &r;
-                let z_ls = if t.a.nrows() == 0 {
-                    DVector::zeros(nz)
-                } else {
-                    hess.clone()
-                        .cholesky()
-                        .map(|c| c.solve(&grad))
-                        .unwrap_or_else(|| DVector::zeros(nz))
+                let mut gv = vector_mut(grad, nz);
+                qp::product_into(&mut gv, &azm, true, &rv);
+                let mut zv = vector_mut(z_ls, nz);
+                zv.fill(0.0);
+                if me > 0 {
+                    let mut cm = view_mut(chol, nz, nz);
+                    cm.copy_from(&hm);
+                    if qp::cholesky_in_place(&mut cm) {
+                        zv.copy_from(&gv);
+                        qp::cholesky_solve(&cm, &mut zv);
+                    }
+                }
+                let mut dzm = view_mut(dz, k, nz);
+                qp::product_into(&mut dzm, &t.d, false, &bm);
+                let mut sv = vector_mut(s, k);
+                sv.copy_from(&t.f);
+                sv.gemv(-1.0, &t.d, &*x, 1.0);
+                let dh_all = DMatrixView::from_slice(&dh[..total_rows * n], total_rows, n);
+                let dhv = dh_all.rows(0, rows_h);
+                let mut dhzm = view_mut(dhz, rows_h, nz);
+                qp::product_into(&mut dhzm, &dhv, false, &bm);
+                let mut shv = vector_mut(sh, rows_h);
+                shv.copy_from(&DVectorView::from_slice(&fh[..rows_h], rows_h));
+                shv.gemv(-1.0, &dhv, &*x, 1.0);
+                let meets = |dm: &DMatrixViewMut<'_, f64>, rhs: &DVectorViewMut<'_, f64>| {
+                    (0..dm.nrows()).all(|i| dm.row(i).tr_dot(&zv) - rhs[i] <= tol)
                 };
-                let dz = &t.d * &basis;
-                let s = &t.f - &t.d * &x;
-                let dhv = dh.rows(0, rows_h);
-                let dhz = dhv * &basis;
-                let sh = fh.rows(0, rows_h) - dhv * &x;
-                let meets = |dm: &DMatrix<f64>, rhs: &DVector<f64>| {
-                    (dm * &z_ls - rhs).iter().all(|&e| e <= tol)
-                };
-                if meets(&dz, &s) && meets(&dhz, &sh) {
-                    x += &basis * z_ls;
+                if meets(&dzm, &sv) && meets(&dhzm, &shv) {
+                    x.gemv(1.0, &bm, &zv, 1.0);
                     LevelMethod::LeastSquares
                 } else {
                     let level = Level {
-                        hess: &hess,
-                        grad: &grad,
-                        dz: &dz,
-                        s: &s,
-                        dhz: &dhz,
-                        sh: &sh,
+                        hess: hm.as_view(),
+                        grad: gv.as_view(),
+                        dz: dzm.as_view(),
+                        s: sv.as_view(),
+                        dhz: dhzm.as_view(),
+                        sh: shv.as_view(),
                     };
-                    let level_qp = level.qp();
-                    match qp::solve_active_set(&level_qp, &self.settings.active_set) {
-                        Ok(sol) if level_qp.max_violation(&sol.x) <= tol => {
-                            x += &basis * sol.x.rows(0, nz);
-                            qp_iterations = sol.iterations;
+                    let (nv, rows) = (nz + k, k + rows_h);
+                    let mut qh = view_mut(qp_h, nv, nv);
+                    let mut qc = vector_mut(qp_c, nv);
+                    let mut qa = view_mut(qp_a, rows, nv);
+                    let mut qb = vector_mut(qp_b, rows);
+                    level.fill(&mut qh, &mut qc, &mut qa, &mut qb);
+                    let (qh, qc): (DMatrixView<'_, f64>, DVectorView<'_, f64>) =
+                        (qh.as_view(), qc.as_view());
+                    let (qa, qb): (DMatrixView<'_, f64>, DVectorView<'_, f64>) =
+                        (qa.as_view(), qb.as_view());
+                    let solved =
+                        qp::solve_active_set_in(&qh, &qc, &qa, &qb, &self.settings.active_set, qp);
+                    let violation = |xq: &[f64]| {
+                        (0..rows).fold(0.0f64, |m, i| {
+                            let v: f64 = (0..nv).map(|c| qa[(i, c)] * xq[c]).sum();
+                            m.max(v - qb[i])
+                        })
+                    };
+                    match solved {
+                        Ok(iterations) if violation(qp.x(nv)) <= tol => {
+                            let zq = DVectorView::from_slice(&qp.x(nv)[..nz], nz);
+                            x.gemv(1.0, &bm, &zq, 1.0);
+                            qp_iterations = iterations;
                             LevelMethod::Qp
                         }
                         failed => {
                             qp_failure = Some(match failed {
-                                Ok(sol) => QpError::Inaccurate(level_qp.max_violation(&sol.x)),
+                                Ok(_) => QpError::Inaccurate(violation(qp.x(nv))),
                                 Err(e) => e,
                             });
-                            let z = self.solve_qp_working_set(t.name, &level, &z_ls)?;
-                            x += &basis * z;
+                            let z = self.solve_qp_working_set(t.name, &level, &zv)?;
+                            x.gemv(1.0, &bm, &z, 1.0);
                             LevelMethod::QpFallback
                         }
                     }
                 }
             };
             // optimal slacks from the final x of this level
-            let viol = &t.d * &x - &t.f;
-            let slacks: Vec<f64> = viol.iter().map(|v| v.max(0.0)).collect();
-            for (i, v) in slacks.iter().enumerate() {
-                dh.row_mut(rows_h + i).copy_from(&t.d.row(i));
+            let mut slacks = ArrayVec::new();
+            let mut dh_all = DMatrixViewMut::from_slice(&mut dh[..total_rows * n], total_rows, n);
+            for i in 0..k {
+                let v = (t.d.row(i).tr_dot(&*x) - t.f[i]).max(0.0);
+                slacks.push(v);
+                dh_all.row_mut(rows_h + i).copy_from(&t.d.row(i));
                 fh[rows_h + i] = t.f[i] + v + tol;
             }
             rows_h += k;
             let last = p + 1 == tasks.len();
-            if t.a.nrows() > 0 && !last && basis.ncols() > 0 {
-                basis = self.null_space_basis(&(&t.a * &basis), &basis);
+            if me > 0 && !last && nz > 0 {
+                // basis * null(A basis), via the eigen-decomposition of (A basis)^T (A basis)
+                let azm = DMatrixView::from_slice(&az[..me * nz], me, nz);
+                let mut gm = view_mut(gram, nz, nz);
+                qp::product_into(&mut gm, &azm, true, &azm);
+                let mut vm = view_mut(eigenvectors, nz, nz);
+                symmetric_eigen_in_place(&mut gm, &mut vm);
+                let scale = (0..nz).map(|i| gm[(i, i)]).fold(1.0f64, f64::max);
+                let bound = self.settings.null_space_tolerance * scale;
+                let bm = DMatrixView::from_slice(&basis[..n * nz], n, nz);
+                let mut next = view_mut(basis_next, n, nz);
+                let mut kept = 0;
+                for i in (0..nz).filter(|&i| gm[(i, i)] <= bound) {
+                    next.column_mut(kept).gemv(1.0, &bm, &vm.column(i), 0.0);
+                    kept += 1;
+                }
+                // the kept columns, packed at the front, are the new basis
+                std::mem::swap(basis, basis_next);
+                nz = kept;
             }
-            levels.push(LevelReport {
+            let residual = (0..me)
+                .map(|i| (t.a.row(i).tr_dot(&*x) - t.b[i]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            solution.levels.push(LevelReport {
                 name: t.name,
                 method,
-                equality_residual: (&t.a * &x - &t.b).norm(),
+                equality_residual: residual,
                 slacks,
-                freedom_left: basis.ncols(),
+                freedom_left: nz,
                 qp_iterations,
                 qp_failure,
             });
         }
-        Ok(HqpSolution { x, levels })
-    }
-
-    /// `basis * null(az)` via the eigen-decomposition of `az^T az`.
-    fn null_space_basis(&self, az: &DMatrix<f64>, basis: &DMatrix<f64>) -> DMatrix<f64> {
-        let gram = az.transpose() * az;
-        let dim = gram.nrows();
-        let eig = gram.symmetric_eigen();
-        let scale = eig.eigenvalues.max().max(1.0);
-        let keep: Vec<usize> = (0..eig.eigenvalues.len())
-            .filter(|&i| eig.eigenvalues[i] <= self.settings.null_space_tolerance * scale)
-            .collect();
-        let mut null = DMatrix::zeros(dim, keep.len());
-        for (c, &i) in keep.iter().enumerate() {
-            null.set_column(c, &eig.eigenvectors.column(i));
-        }
-        basis * null
+        Ok(solution)
     }
 
     /// One level's QP, solved on a working set of its rows: first the rows (own and higher)
@@ -306,37 +521,37 @@ impl HierarchicalSolver {
         &self,
         name: &'static str,
         level: &Level<'_>,
-        z_ls: &DVector<f64>,
+        z_ls: &DVectorViewMut<'_, f64>,
     ) -> Result<DVector<f64>, HqpError> {
         let tol = self.settings.feasibility_tolerance;
         let Level { dz, s, dhz, sh, .. } = *level;
         let (k, kh) = (dz.nrows(), dhz.nrows());
         let violated = |z: &DVector<f64>, own: &[bool], high: &[bool]| {
             let own_v: Vec<usize> = (0..k)
-                .filter(|&i| !own[i] && dz.row(i).dot(&z.transpose()) - s[i] > tol)
+                .filter(|&i| !own[i] && dz.row(i).tr_dot(z) - s[i] > tol)
                 .collect();
             let high_v: Vec<usize> = (0..kh)
-                .filter(|&i| !high[i] && dhz.row(i).dot(&z.transpose()) - sh[i] > tol)
+                .filter(|&i| !high[i] && dhz.row(i).tr_dot(z) - sh[i] > tol)
                 .collect();
             (own_v, high_v)
         };
         let mut own = vec![false; k];
         let mut high = vec![false; kh];
-        let (mut add_own, mut add_high) = violated(z_ls, &own, &high);
+        let (mut add_own, mut add_high) = violated(&z_ls.clone_owned(), &own, &high);
         loop {
             add_own.iter().for_each(|&i| own[i] = true);
             add_high.iter().for_each(|&i| high[i] = true);
-            let pick = |m: &DMatrix<f64>, v: &DVector<f64>, sel: &[bool]| {
+            let pick = |m: &DMatrixView<'_, f64>, v: &DVectorView<'_, f64>, sel: &[bool]| {
                 let idx: Vec<usize> = (0..sel.len()).filter(|&i| sel[i]).collect();
                 (m.select_rows(idx.iter()), v.select_rows(idx.iter()))
             };
-            let (dzw, sw) = pick(dz, s, &own);
-            let (dhw, shw) = pick(dhz, sh, &high);
+            let (dzw, sw) = pick(&dz, &s, &own);
+            let (dhw, shw) = pick(&dhz, &sh, &high);
             let working = Level {
-                dz: &dzw,
-                s: &sw,
-                dhz: &dhw,
-                sh: &shw,
+                dz: dzw.as_view(),
+                s: sw.as_view(),
+                dhz: dhw.as_view(),
+                sh: shw.as_view(),
                 ..*level
             };
             let z = qp::solve_clarabel(&working.qp(), &self.qp_settings)
@@ -357,12 +572,12 @@ impl HierarchicalSolver {
 /// objective, own rows `dz z <= s` and the higher rows `dhz z <= sh`.
 #[derive(Clone, Copy)]
 struct Level<'a> {
-    hess: &'a DMatrix<f64>,
-    grad: &'a DVector<f64>,
-    dz: &'a DMatrix<f64>,
-    s: &'a DVector<f64>,
-    dhz: &'a DMatrix<f64>,
-    sh: &'a DVector<f64>,
+    hess: DMatrixView<'a, f64>,
+    grad: DVectorView<'a, f64>,
+    dz: DMatrixView<'a, f64>,
+    s: DVectorView<'a, f64>,
+    dhz: DMatrixView<'a, f64>,
+    sh: DVectorView<'a, f64>,
 }
 
 impl Level<'_> {
@@ -370,24 +585,52 @@ impl Level<'_> {
     /// `dz z - v <= s` (one slack per own row) and `dhz z <= sh`.
     fn qp(&self) -> DenseQp {
         let nz = self.hess.nrows();
-        let k = self.dz.nrows();
-        let kh = self.dhz.nrows();
-        let nv = nz + k;
-        let mut h = DMatrix::zeros(nv, nv);
-        h.view_mut((0, 0), (nz, nz)).copy_from(self.hess);
+        let (k, kh) = (self.dz.nrows(), self.dhz.nrows());
+        let (nv, rows) = (nz + k, k + kh);
+        let mut qp = DenseQp {
+            h: DMatrix::zeros(nv, nv),
+            c: DVector::zeros(nv),
+            a: DMatrix::zeros(rows, nv),
+            b: DVector::zeros(rows),
+        };
+        self.fill(
+            &mut qp.h.view_mut((0, 0), (nv, nv)),
+            &mut qp.c.rows_mut(0, nv),
+            &mut qp.a.view_mut((0, 0), (rows, nv)),
+            &mut qp.b.rows_mut(0, rows),
+        );
+        qp
+    }
+
+    /// Writes [`Level::qp`] into views of its shape (`nz + k` variables, `k + kh` rows).
+    fn fill(
+        &self,
+        h: &mut DMatrixViewMut<'_, f64>,
+        c: &mut DVectorViewMut<'_, f64>,
+        a: &mut DMatrixViewMut<'_, f64>,
+        b: &mut DVectorViewMut<'_, f64>,
+    ) {
+        let nz = self.hess.nrows();
+        let (k, kh) = (self.dz.nrows(), self.dhz.nrows());
+        h.fill(0.0);
+        h.view_mut((0, 0), (nz, nz)).copy_from(&self.hess);
         for i in 0..k {
             h[(nz + i, nz + i)] = 1.0;
         }
-        let mut c = DVector::zeros(nv);
-        c.rows_mut(0, nz).copy_from(&(-self.grad));
-        let mut a = DMatrix::zeros(k + kh, nv);
-        a.view_mut((0, 0), (k, nz)).copy_from(self.dz);
+        c.fill(0.0);
+        for i in 0..nz {
+            c[i] = -self.grad[i];
+        }
+        a.fill(0.0);
+        a.view_mut((0, 0), (k, nz)).copy_from(&self.dz);
         for i in 0..k {
             a[(i, nz + i)] = -1.0;
+            b[i] = self.s[i];
         }
-        a.view_mut((k, 0), (kh, nz)).copy_from(self.dhz);
-        let b = DVector::from_iterator(k + kh, self.s.iter().chain(self.sh.iter()).copied());
-        DenseQp { h, c, a, b }
+        a.view_mut((k, 0), (kh, nz)).copy_from(&self.dhz);
+        for i in 0..kh {
+            b[k + i] = self.sh[i];
+        }
     }
 }
 

@@ -37,9 +37,11 @@ pub mod qp;
 use crate::haptics::{self, HapticConfig, HapticConstraints};
 use crate::robot::{DOF, HipKinematics, JointMatrix, JointVector, RobotModel};
 use crate::surface::FusedSurface;
-use hqp::{HierarchicalSolver, HqpSettings, LevelReport, Task};
+use arrayvec::ArrayVec;
+use hqp::{HierarchicalSolver, HqpSettings, HqpWorkspace, LevelReport, MAX_LEVELS, Task};
 use nalgebra::{DMatrix, DVector, Point3, RowSVector, Unit, Vector3};
 use serde::{Deserialize, Serialize};
+use std::cell::RefCell;
 
 /// A fixed plane the HIP must stay in front of (level 3), world frame.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -120,6 +122,13 @@ impl ControllerConfig {
                 )));
             }
         }
+        if self.fixed_planes.len() > hqp::MAX_LEVEL_ROWS {
+            return Err(ControllerConfigError::Value(format!(
+                "at most {} fixed_planes, got {}",
+                hqp::MAX_LEVEL_ROWS,
+                self.fixed_planes.len()
+            )));
+        }
         if self
             .fixed_planes
             .iter()
@@ -166,6 +175,8 @@ pub enum ControlStatus {
     BadInput,
     /// The hierarchy failed: safe command.
     SolverFailed,
+    /// The node stopped on a fault: safe command, no constraints.
+    Stopped,
 }
 
 /// Result of one tick.
@@ -181,43 +192,50 @@ pub struct ControllerOutput {
     /// The haptic constraints of this tick (d_proj, rate, status).
     pub haptics: HapticConstraints,
     /// Per-level report of the cascade (empty on fallback).
-    pub levels: Vec<LevelReport>,
+    pub levels: ArrayVec<LevelReport, MAX_LEVELS>,
     /// Levels whose QP the active-set method failed, solved by clarabel instead
     /// ([`hqp::LevelMethod::QpFallback`]); the status stays Ok, the torques are the
     /// hierarchy's.
     pub qp_fallbacks: usize,
 }
 
-/// The controller: robot model, configuration, solver.
+/// The controller: robot model, configuration, solver, and the buffers a tick works in.
 #[derive(Clone, Debug)]
 pub struct Controller {
     model: RobotModel,
     config: ControllerConfig,
     solver: HierarchicalSolver,
+    /// Borrowed by one tick at a time (a tick never calls another).
+    workspace: RefCell<Workspace>,
 }
 
-fn row_task(name: &'static str, rows: &[(RowSVector<f64, DOF>, f64)]) -> Task {
-    let mut d = DMatrix::zeros(rows.len(), DOF);
-    let mut f = DVector::zeros(rows.len());
-    for (i, (r, b)) in rows.iter().enumerate() {
-        d.row_mut(i).copy_from(r);
-        f[i] = *b;
+/// What a tick writes into instead of allocating: the six levels (shapes fixed by the
+/// configuration, rewritten in place each tick) and the solver's buffers.
+#[derive(Clone, Debug)]
+struct Workspace {
+    tasks: [Task; 6],
+    /// The intent level of the other shape (a joint torque: 6 equalities, a HIP
+    /// acceleration: 3), swapped in when the intent changes.
+    other_intent: Task,
+    hqp: HqpWorkspace,
+}
+
+/// The level of the inequalities `rows`, with `capacity` rows: the unused ones are `0 <= 0`,
+/// met by every `qdd` with a zero slack, so they change nothing.
+fn fill_rows(task: &mut Task, rows: impl Iterator<Item = (RowSVector<f64, DOF>, f64)>) {
+    task.d.fill(0.0);
+    task.f.fill(0.0);
+    for (i, (r, b)) in rows.take(task.f.len()).enumerate() {
+        task.d.row_mut(i).copy_from(&r);
+        task.f[i] = b;
     }
-    Task::new(name, DOF).inequalities(d, f)
-}
-
-fn dense(m: &JointMatrix) -> DMatrix<f64> {
-    DMatrix::from_column_slice(DOF, DOF, m.as_slice())
-}
-
-fn dvec(v: &JointVector) -> DVector<f64> {
-    DVector::from_column_slice(v.as_slice())
 }
 
 impl Controller {
     pub fn new(model: RobotModel, config: ControllerConfig) -> Result<Self, ControllerConfigError> {
         config.validate()?;
         Ok(Self {
+            workspace: RefCell::new(Workspace::new(&config)),
             model,
             config,
             solver: HierarchicalSolver::new(DOF, HqpSettings::default()),
@@ -289,8 +307,10 @@ impl Controller {
             qd,
             &mass,
         );
-        let tasks = self.tasks(input, &hip, &mass, &bias, &jtf, &haptic);
-        match self.solver.solve(&tasks) {
+        let mut workspace = self.workspace.borrow_mut();
+        let ws = &mut *workspace;
+        self.fill_tasks(ws, input, &hip, &mass, &bias, &jtf, &haptic);
+        match self.solver.solve_in(&ws.tasks, &mut ws.hqp) {
             Ok(sol) => {
                 let qdd = JointVector::from_column_slice(sol.x.as_slice());
                 let tau = mass * qdd + bias - jtf;
@@ -307,7 +327,7 @@ impl Controller {
                     status: ControlStatus::Ok,
                     message: String::new(),
                     haptics: haptic,
-                    levels: sol.levels,
+                    levels: sol.levels.clone(),
                     qp_fallbacks,
                 }
             }
@@ -320,6 +340,12 @@ impl Controller {
         }
     }
 
+    /// The output of a node stopping on a fault at the robot state `q`, `qd`: the safe
+    /// command, no constraints ([`ControlStatus::Stopped`]).
+    pub fn stopped(&self, q: &JointVector, qd: &JointVector) -> ControllerOutput {
+        self.safe_output(q, qd, ControlStatus::Stopped, "node stopped".into(), None)
+    }
+
     fn fallback(
         &self,
         input: &ControllerInput<'_>,
@@ -327,8 +353,19 @@ impl Controller {
         message: String,
         haptic: Option<HapticConstraints>,
     ) -> ControllerOutput {
+        self.safe_output(&input.q, &input.qd, status, message, haptic)
+    }
+
+    fn safe_output(
+        &self,
+        q: &JointVector,
+        qd: &JointVector,
+        status: ControlStatus,
+        message: String,
+        haptic: Option<HapticConstraints>,
+    ) -> ControllerOutput {
         ControllerOutput {
-            tau_nm: self.safe_command(&input.q, &input.qd),
+            tau_nm: self.safe_command(q, qd),
             qdd: JointVector::zeros(),
             status,
             message,
@@ -337,67 +374,52 @@ impl Controller {
                 d_proj_m: f64::NAN,
                 d_rate_mps: f64::NAN,
                 jacobian: RowSVector::zeros(),
-                rows: Vec::new(),
+                rows: ArrayVec::new(),
             }),
-            levels: Vec::new(),
+            levels: ArrayVec::new(),
             qp_fallbacks: 0,
         }
     }
 
-    /// The six levels for this tick (see the module doc).
-    fn tasks(
+    /// Writes the six levels of this tick (see the module doc) into `ws`.
+    #[allow(clippy::too_many_arguments)]
+    fn fill_tasks(
         &self,
+        ws: &mut Workspace,
         input: &ControllerInput<'_>,
         hip: &HipKinematics,
         mass: &JointMatrix,
         bias: &JointVector,
         jtf: &JointVector,
         haptic: &HapticConstraints,
-    ) -> Vec<Task> {
+    ) {
         let (q, qd) = (&input.q, &input.qd);
         let effort = self.effort();
-        let md = dense(mass);
-        // 1. torque limits: -tau_max <= M qdd + h - J^T F <= tau_max
         let free = bias - jtf;
-        let mut d1 = DMatrix::zeros(2 * DOF, DOF);
-        d1.rows_mut(0, DOF).copy_from(&md);
-        d1.rows_mut(DOF, DOF).copy_from(&(-&md));
-        let f1 = DVector::from_iterator(
-            2 * DOF,
-            (0..DOF)
-                .map(|i| effort[i] - free[i])
-                .chain((0..DOF).map(|i| effort[i] + free[i])),
-        );
-        let t1 = Task::new("equation of motion, torque limits", DOF).inequalities(d1, f1);
+        let [t1, t2, t3, t4, t5, t6] = &mut ws.tasks;
+        // 1. torque limits: -tau_max <= M qdd + h - J^T F <= tau_max
+        t1.d.view_mut((0, 0), (DOF, DOF)).copy_from(mass);
+        t1.d.view_mut((DOF, 0), (DOF, DOF)).copy_from(&(-mass));
+        for i in 0..DOF {
+            t1.f[i] = effort[i] - free[i];
+            t1.f[DOF + i] = effort[i] + free[i];
+        }
         // 2. joint position (predicted) and velocity limits as bounds on qdd
         let tl = self.config.joint_limit_horizon_s;
         let tv = self.config.joint_velocity_horizon_s;
-        let mut upper = JointVector::zeros();
-        let mut lower = JointVector::zeros();
         for (i, lim) in self.model.joint_limits().iter().enumerate() {
             let pos_up = 2.0 * (lim.upper_rad - q[i] - tl * qd[i]) / (tl * tl);
             let pos_lo = 2.0 * (lim.lower_rad - q[i] - tl * qd[i]) / (tl * tl);
             let vel_up = (lim.velocity_rad_s - qd[i]) / tv;
             let vel_lo = (-lim.velocity_rad_s - qd[i]) / tv;
-            upper[i] = pos_up.min(vel_up);
-            lower[i] = pos_lo.max(vel_lo);
+            t2.f[i] = pos_up.min(vel_up);
+            t2.f[DOF + i] = -pos_lo.max(vel_lo);
         }
-        let mut d2 = DMatrix::zeros(2 * DOF, DOF);
-        d2.view_mut((0, 0), (DOF, DOF)).fill_with_identity();
-        d2.view_mut((DOF, 0), (DOF, DOF))
-            .copy_from(&(-DMatrix::identity(DOF, DOF)));
-        let f2 = DVector::from_iterator(
-            2 * DOF,
-            upper.iter().copied().chain(lower.iter().map(|v| -v)),
-        );
-        let t2 = Task::new("joint position and velocity limits", DOF).inequalities(d2, f2);
         // 3. fixed planes: the same positional constraint as eq. 9 against a static surface
         let horizon = self.config.haptics.position_gain * self.config.haptics.period_s;
-        let rows3: Vec<_> = self
-            .config
-            .fixed_planes
-            .iter()
-            .map(|p| {
+        fill_rows(
+            t3,
+            self.config.fixed_planes.iter().map(|p| {
                 let n = p.normal.into_inner();
                 let d = (hip.position_m - p.point_m).dot(&n) - self.model.hip_radius_m();
                 let jc = n.transpose() * hip.jacobian;
@@ -409,35 +431,72 @@ impl Controller {
                     n.dot(&hip.bias_acceleration_mps2),
                 );
                 (r.row, r.bound)
-            })
-            .collect();
-        let t3 = row_task("fixed collision constraint", &rows3);
+            }),
+        );
         // 4. haptic constraints
-        let rows4: Vec<_> = haptic.rows.iter().map(|r| (r.row, r.bound)).collect();
-        let t4 = row_task("online collision avoidance", &rows4);
+        fill_rows(t4, haptic.rows.iter().map(|r| (r.row, r.bound)));
         // 5. intent
-        let t5 = match &input.intent {
+        let hip_rows = matches!(input.intent, Intent::HipAcceleration(_));
+        if (t5.a.nrows() == 3) != hip_rows {
+            std::mem::swap(t5, &mut ws.other_intent);
+        }
+        match &input.intent {
             Intent::Transparent | Intent::Torque(_) => {
                 let tau_des = match &input.intent {
                     Intent::Torque(t) => *t,
                     _ => self.model.gravity_torques(q) - qd * self.config.damping_nms_per_rad,
                 };
                 // M qdd + h - J^T F = tau_des
-                Task::new("intent: torque", DOF).equalities(md, dvec(&(tau_des - free)))
+                t5.a.copy_from(mass);
+                t5.b.copy_from(&(tau_des - free));
             }
             Intent::HipAcceleration(a) => {
-                let jd = DMatrix::from_column_slice(3, DOF, hip.jacobian.as_slice());
-                let b = a - hip.bias_acceleration_mps2;
-                Task::new("intent: HIP acceleration", DOF)
-                    .equalities(jd, DVector::from_column_slice(b.as_slice()))
+                t5.a.copy_from(&hip.jacobian);
+                t5.b.copy_from(&(a - hip.bias_acceleration_mps2));
             }
-        };
+        }
         // 6. minimal joint accelerations
-        let t6 = Task::new("minimal joint accelerations", DOF).equalities(
-            DMatrix::identity(DOF, DOF),
-            dvec(&(-qd * self.config.min_acceleration_damping_per_s)),
-        );
-        vec![t1, t2, t3, t4, t5, t6]
+        t6.b.copy_from(&(-qd * self.config.min_acceleration_damping_per_s));
+    }
+}
+
+impl Workspace {
+    /// The six levels in the shapes of `config` (the constant rows already written).
+    fn new(config: &ControllerConfig) -> Self {
+        let mut limits = DMatrix::zeros(2 * DOF, DOF);
+        limits.view_mut((0, 0), (DOF, DOF)).fill_with_identity();
+        limits
+            .view_mut((DOF, 0), (DOF, DOF))
+            .copy_from(&(-DMatrix::<f64>::identity(DOF, DOF)));
+        let haptics = &config.haptics;
+        let haptic_rows = [
+            haptics.enable_position,
+            haptics.enable_velocity,
+            haptics.enable_force,
+        ]
+        .into_iter()
+        .filter(|&on| on)
+        .count();
+        let inequalities = |name, rows| {
+            Task::new(name, DOF).inequalities(DMatrix::zeros(rows, DOF), DVector::zeros(rows))
+        };
+        let equalities = |name, rows| {
+            Task::new(name, DOF).equalities(DMatrix::zeros(rows, DOF), DVector::zeros(rows))
+        };
+        Self {
+            tasks: [
+                inequalities("equation of motion, torque limits", 2 * DOF),
+                Task::new("joint position and velocity limits", DOF)
+                    .inequalities(limits, DVector::zeros(2 * DOF)),
+                inequalities("fixed collision constraint", config.fixed_planes.len()),
+                inequalities("online collision avoidance", haptic_rows),
+                equalities("intent: torque", DOF),
+                Task::new("minimal joint accelerations", DOF)
+                    .equalities(DMatrix::identity(DOF, DOF), DVector::zeros(DOF)),
+            ],
+            other_intent: equalities("intent: HIP acceleration", 3),
+            hqp: HqpWorkspace::default(),
+        }
     }
 }
 
@@ -584,7 +643,9 @@ mod tests {
             &qd,
             &mass,
         );
-        let mut tasks = c.tasks(&input, &hip, &mass, &bias, &jtf, &haptic);
+        let mut ws = Workspace::new(c.config());
+        c.fill_tasks(&mut ws, &input, &hip, &mass, &bias, &jtf, &haptic);
+        let mut tasks = ws.tasks;
         assert_eq!(tasks[4].name, "intent: torque");
         assert_eq!(tasks[5].name, "minimal joint accelerations");
         let ours = c.solver.solve(&tasks).unwrap();

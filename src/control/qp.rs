@@ -34,7 +34,10 @@
 
 use clarabel::algebra::CscMatrix;
 use clarabel::solver::{DefaultSettings, DefaultSolver, IPSolver, NonnegativeConeT, SolverStatus};
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{
+    DMatrix, DMatrixView, DMatrixViewMut, DVector, DVectorView, DVectorViewMut, Dim, Dyn, Matrix,
+    RawStorage, RawStorageMut,
+};
 
 /// `min 1/2 x^T h x + c^T x` subject to `a x <= b` (dense).
 #[derive(Clone, Debug, PartialEq)]
@@ -130,12 +133,116 @@ pub enum QpError {
     Clarabel(String),
 }
 
-/// Factors of the active set: `J^T N = [R; 0]`, `J J^T = H^{-1}`.
-struct Factors {
-    j: DMatrix<f64>,
-    r: DMatrix<f64>,
-    /// Active rows, in the order of `r`'s columns.
+/// Reusable buffers of [`solve_active_set_in`], grown to the largest problem seen: a caller
+/// that solves problems of the same shapes again (the controller, every tick) allocates
+/// nothing after the first solves.
+#[derive(Clone, Debug, Default)]
+pub struct QpWorkspace {
+    a: Vec<f64>,
+    b: Vec<f64>,
+    usable: Vec<bool>,
+    l: Vec<f64>,
+    j: Vec<f64>,
+    r: Vec<f64>,
+    x: Vec<f64>,
     active: Vec<usize>,
+    u: Vec<f64>,
+    dual: Vec<f64>,
+    d: Vec<f64>,
+    z: Vec<f64>,
+    np: Vec<f64>,
+}
+
+impl QpWorkspace {
+    /// The solution of the last successful [`solve_active_set_in`] (its first `n` entries).
+    pub fn x(&self, n: usize) -> &[f64] {
+        &self.x[..n]
+    }
+}
+
+/// The first `len` entries of `buf`, grown (with `T::default()`) when shorter.
+pub(crate) fn sized<T: Clone + Default>(buf: &mut Vec<T>, len: usize) -> &mut [T] {
+    if buf.len() < len {
+        buf.resize(len, T::default());
+    }
+    &mut buf[..len]
+}
+
+/// `m = L L^T` in place: the lower triangle becomes `L`, the upper is zeroed; false when `m`
+/// is not (numerically) positive definite. Hand-written: nalgebra's `Cholesky` takes its
+/// matrix by value, a copy per solve, and these matrices have at most a few tens of rows.
+pub(crate) fn cholesky_in_place(m: &mut DMatrixViewMut<'_, f64>) -> bool {
+    let n = m.nrows();
+    for j in 0..n {
+        let mut diag = m[(j, j)];
+        for k in 0..j {
+            diag -= m[(j, k)] * m[(j, k)];
+        }
+        if !(diag > 0.0 && diag.is_finite()) {
+            return false;
+        }
+        let ljj = diag.sqrt();
+        m[(j, j)] = ljj;
+        for i in j + 1..n {
+            let mut v = m[(i, j)];
+            for k in 0..j {
+                v -= m[(i, k)] * m[(j, k)];
+            }
+            m[(i, j)] = v / ljj;
+        }
+        for i in 0..j {
+            m[(i, j)] = 0.0;
+        }
+    }
+    true
+}
+
+/// `out = a b`, or `a^T b` with `transpose_a`, by plain loops. nalgebra hands products of
+/// dynamic matrices beyond a few rows to `matrixmultiply`, which allocates a packing buffer
+/// per call; these are at most a few tens of rows.
+pub(crate) fn product_into<CB, SA, SB, SO>(
+    out: &mut Matrix<f64, Dyn, CB, SO>,
+    a: &Matrix<f64, Dyn, Dyn, SA>,
+    transpose_a: bool,
+    b: &Matrix<f64, Dyn, CB, SB>,
+) where
+    CB: Dim,
+    SA: RawStorage<f64, Dyn, Dyn>,
+    SB: RawStorage<f64, Dyn, CB>,
+    SO: RawStorageMut<f64, Dyn, CB>,
+{
+    let (rows, inner) = if transpose_a {
+        (a.ncols(), a.nrows())
+    } else {
+        (a.nrows(), a.ncols())
+    };
+    let at = |r: usize, k: usize| if transpose_a { a[(k, r)] } else { a[(r, k)] };
+    for c in 0..b.ncols() {
+        for r in 0..rows {
+            out[(r, c)] = (0..inner).map(|k| at(r, k) * b[(k, c)]).sum();
+        }
+    }
+}
+
+/// Solves `L L^T y = x` in place for the factor of [`cholesky_in_place`].
+pub(crate) fn cholesky_solve(l: &DMatrixViewMut<'_, f64>, x: &mut DVectorViewMut<'_, f64>) {
+    let n = l.nrows();
+    for i in 0..n {
+        let known: f64 = (0..i).map(|k| l[(i, k)] * x[k]).sum();
+        x[i] = (x[i] - known) / l[(i, i)];
+    }
+    for i in (0..n).rev() {
+        let known: f64 = (i + 1..n).map(|k| l[(k, i)] * x[k]).sum();
+        x[i] = (x[i] - known) / l[(i, i)];
+    }
+}
+
+/// Factors of the active set: `J^T N = [R; 0]`, `J J^T = H^{-1}`.
+struct Factors<'a> {
+    j: DMatrixViewMut<'a, f64>,
+    r: DMatrixViewMut<'a, f64>,
+    /// Active rows, in the order of `r`'s columns.
+    active: &'a mut Vec<usize>,
 }
 
 /// The rotation `(c, s)` with `c a + s b = hypot(a, b)` and `-s a + c b = 0`.
@@ -145,7 +252,7 @@ fn givens(a: f64, b: f64) -> Option<(f64, f64, f64)> {
 }
 
 /// Rotates columns `i`, `k` of `m`: `(c m_i + s m_k, -s m_i + c m_k)`.
-fn rotate_columns(m: &mut DMatrix<f64>, i: usize, k: usize, c: f64, s: f64) {
+fn rotate_columns(m: &mut DMatrixViewMut<'_, f64>, i: usize, k: usize, c: f64, s: f64) {
     for row in 0..m.nrows() {
         let (u, v) = (m[(row, i)], m[(row, k)]);
         m[(row, i)] = c * u + s * v;
@@ -153,10 +260,10 @@ fn rotate_columns(m: &mut DMatrix<f64>, i: usize, k: usize, c: f64, s: f64) {
     }
 }
 
-impl Factors {
+impl Factors<'_> {
     /// Makes the row with `d = J^T n` active: rotates `d[q..]` into `d[q]` (columns of `J`
     /// beyond the active ones, so `R` is untouched) and appends `d[..=q]` to `R`.
-    fn add(&mut self, row: usize, d: &mut DVector<f64>) {
+    fn add(&mut self, row: usize, d: &mut DVectorViewMut<'_, f64>) {
         let q = self.active.len();
         for k in (q + 1..d.len()).rev() {
             if let Some((c, s, h)) = givens(d[k - 1], d[k]) {
@@ -199,7 +306,7 @@ impl Factors {
     }
 
     /// `R^{-1} d[..q]` by back substitution.
-    fn dual_direction(&self, d: &DVector<f64>, out: &mut Vec<f64>) {
+    fn dual_direction(&self, d: &DVectorViewMut<'_, f64>, out: &mut Vec<f64>) {
         let q = self.active.len();
         out.clear();
         out.resize(q, 0.0);
@@ -214,12 +321,65 @@ impl Factors {
 pub fn solve_active_set(qp: &DenseQp, settings: &ActiveSetSettings) -> Result<QpSolution, QpError> {
     qp.check()?;
     let n = qp.h.nrows();
-    let m = qp.a.nrows();
+    let mut ws = QpWorkspace::default();
+    let iterations = solve_active_set_in(
+        &qp.h.columns(0, n),
+        &qp.c.rows(0, n),
+        &qp.a.columns(0, n),
+        &qp.b.rows(0, qp.b.len()),
+        settings,
+        &mut ws,
+    )?;
+    Ok(QpSolution {
+        x: DVector::from_column_slice(ws.x(n)),
+        iterations,
+        active: ws.active,
+    })
+}
+
+/// [`solve_active_set`] on views of `min 1/2 x^T h x + c^T x  s.t.  a x <= b`, in the
+/// buffers of `ws` (no allocation once they have grown to the problem's size): returns the
+/// iterations taken, the solution is [`QpWorkspace::x`].
+pub fn solve_active_set_in(
+    h: &DMatrixView<'_, f64>,
+    c: &DVectorView<'_, f64>,
+    a_in: &DMatrixView<'_, f64>,
+    b_in: &DVectorView<'_, f64>,
+    settings: &ActiveSetSettings,
+    ws: &mut QpWorkspace,
+) -> Result<usize, QpError> {
+    let n = h.nrows();
+    let m = a_in.nrows();
+    if h.ncols() != n || c.len() != n || a_in.ncols() != n || b_in.len() != m {
+        return Err(QpError::Dimensions);
+    }
+    let all = h.iter().chain(c.iter()).chain(a_in.iter());
+    if !all.chain(b_in.iter()).all(|v| v.is_finite()) {
+        return Err(QpError::NonFinite);
+    }
+    let QpWorkspace {
+        a,
+        b,
+        usable,
+        l,
+        j,
+        r,
+        x,
+        active,
+        u,
+        dual,
+        d,
+        z,
+        np,
+    } = ws;
     // unit-norm rows; an all-zero row is met or infeasible by its sign alone
-    let mut a = qp.a.clone();
-    let mut b = qp.b.clone();
-    let mut usable = vec![true; m];
+    let mut a = DMatrixViewMut::from_slice(sized(a, m * n), m, n);
+    a.copy_from(a_in);
+    let b = sized(b, m);
+    let usable = sized(usable, m);
     for i in 0..m {
+        b[i] = b_in[i];
+        usable[i] = true;
         let norm = a.row(i).norm();
         if norm > 0.0 {
             a.row_mut(i).unscale_mut(norm);
@@ -230,36 +390,53 @@ pub fn solve_active_set(qp: &DenseQp, settings: &ActiveSetSettings) -> Result<Qp
             usable[i] = false;
         }
     }
-    let chol =
-        qp.h.clone()
-            .cholesky()
-            .ok_or(QpError::NotPositiveDefinite)?;
-    // J = L^{-T}
-    let mut linv = DMatrix::identity(n, n);
-    if !chol.l_dirty().solve_lower_triangular_mut(&mut linv) {
+    let mut l = DMatrixViewMut::from_slice(sized(l, n * n), n, n);
+    l.copy_from(h);
+    if !cholesky_in_place(&mut l) {
         return Err(QpError::NotPositiveDefinite);
     }
+    let mut d = DVectorViewMut::from_slice(sized(d, n), n);
+    // J = L^{-T}: column c of L^{-1} by forward substitution is row c of J
+    let mut jm = DMatrixViewMut::from_slice(sized(j, n * n), n, n);
+    jm.fill(0.0);
+    for col in 0..n {
+        for i in col..n {
+            let known: f64 = (col..i).map(|k| l[(i, k)] * d[k]).sum();
+            let identity = if i == col { 1.0 } else { 0.0 };
+            d[i] = (identity - known) / l[(i, i)];
+            jm[(col, i)] = d[i];
+        }
+    }
+    let mut rm = DMatrixViewMut::from_slice(sized(r, n * n), n, n);
+    rm.fill(0.0);
+    active.clear();
+    active.reserve(n);
     let mut f = Factors {
-        j: linv.transpose(),
-        r: DMatrix::zeros(n, n),
-        active: Vec::with_capacity(n),
+        j: jm,
+        r: rm,
+        active,
     };
-    let mut x = -chol.solve(&qp.c);
+    let mut x = DVectorViewMut::from_slice(sized(x, n), n);
+    x.copy_from(c);
+    x.neg_mut();
+    cholesky_solve(&l, &mut x);
     // multipliers of the active rows, plus the one of the row being added (last)
-    let mut u: Vec<f64> = Vec::with_capacity(n + 1);
-    let mut dual = Vec::with_capacity(n);
-    let mut d = DVector::zeros(n);
-    let mut z = DVector::zeros(n);
+    u.clear();
+    u.reserve(n + 1);
+    dual.clear();
+    dual.reserve(n);
+    let mut z = DVectorViewMut::from_slice(sized(z, n), n);
+    let mut np = DVectorViewMut::from_slice(sized(np, n), n);
     let mut iterations = 0;
-    let slack = |x: &DVector<f64>, i: usize, a: &DMatrix<f64>, b: &DVector<f64>| {
-        b[i] - a.row(i).transpose().dot(x)
+    let slack = |x: &DVectorViewMut<'_, f64>, i: usize, a: &DMatrixViewMut<'_, f64>| {
+        b[i] - a.row(i).tr_dot(x)
     };
     loop {
         // most violated row
         let xnorm = x.norm();
         let mut pick: Option<(usize, f64)> = None;
         for i in (0..m).filter(|&i| usable[i] && !f.active.contains(&i)) {
-            let s = slack(&x, i, &a, &b);
+            let s = slack(&x, i, &a);
             if s < -settings.feasibility_tolerance * (1.0 + b[i].abs() + xnorm)
                 && pick.is_none_or(|(_, best)| s < best)
             {
@@ -267,14 +444,12 @@ pub fn solve_active_set(qp: &DenseQp, settings: &ActiveSetSettings) -> Result<Qp
             }
         }
         let Some((p, mut sp)) = pick else {
-            return Ok(QpSolution {
-                x,
-                iterations,
-                active: f.active,
-            });
+            return Ok(iterations);
         };
         // the row's normal for `n^T x >= -b` is `-a_p`
-        let np = -a.row(p).transpose();
+        for k in 0..n {
+            np[k] = -a[(p, k)];
+        }
         u.push(0.0);
         loop {
             iterations += 1;
@@ -282,12 +457,12 @@ pub fn solve_active_set(qp: &DenseQp, settings: &ActiveSetSettings) -> Result<Qp
                 return Err(QpError::MaxIterations(settings.max_iterations));
             }
             let q = f.active.len();
-            f.j.tr_mul_to(&np, &mut d);
+            product_into(&mut d, &f.j, true, &np);
             z.fill(0.0);
             for k in q..n {
                 z.axpy(d[k], &f.j.column(k), 1.0);
             }
-            f.dual_direction(&d, &mut dual);
+            f.dual_direction(&d, dual);
             // partial step: the first active multiplier to reach zero
             let mut partial: Option<(usize, f64)> = None;
             for (k, &rk) in dual.iter().enumerate() {
@@ -328,7 +503,7 @@ pub fn solve_active_set(qp: &DenseQp, settings: &ActiveSetSettings) -> Result<Qp
                 Step::Partial(l, _) => {
                     f.drop(l);
                     u.remove(l);
-                    sp = slack(&x, p, &a, &b);
+                    sp = slack(&x, p, &a);
                 }
             }
         }

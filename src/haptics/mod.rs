@@ -38,6 +38,7 @@
 
 use crate::robot::{HipKinematics, JointMatrix, JointVector};
 use crate::surface::{FusedSurface, FusionStatus};
+use arrayvec::ArrayVec;
 use nalgebra::{Point3, RowSVector, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -216,6 +217,9 @@ pub struct ConstraintRow {
     pub bound: f64,
 }
 
+/// Most rows one tick's constraints have (one per kind).
+pub const MAX_ROWS: usize = 3;
+
 /// The haptic constraints for one controller tick.
 #[derive(Clone, Debug, PartialEq)]
 pub struct HapticConstraints {
@@ -227,7 +231,7 @@ pub struct HapticConstraints {
     /// `J_c` of eq. 8.
     pub jacobian: RowSVector<f64, 6>,
     /// Inequalities on `qdd` (positional, velocity, force as enabled); empty when inactive.
-    pub rows: Vec<ConstraintRow>,
+    pub rows: ArrayVec<ConstraintRow, MAX_ROWS>,
 }
 
 impl HapticConstraints {
@@ -269,7 +273,7 @@ pub fn haptic_constraints(
         d_proj_m: f64::NAN,
         d_rate_mps: f64::NAN,
         jacobian: RowSVector::zeros(),
-        rows: Vec::new(),
+        rows: ArrayVec::new(),
     };
     let Some(surface) = surface.filter(|s| s.is_tracking()) else {
         return inactive(HapticStatus::NoSurface);
@@ -292,10 +296,10 @@ pub fn haptic_constraints(
             d_proj_m,
             d_rate_mps,
             jacobian,
-            rows: Vec::new(),
+            rows: ArrayVec::new(),
         };
     }
-    let mut rows = Vec::with_capacity(3);
+    let mut rows = ArrayVec::new();
     if config.enable_position {
         let horizon = config.position_gain * config.period_s;
         rows.push(positional_row(

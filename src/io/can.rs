@@ -58,6 +58,8 @@ pub mod fault {
     pub const NETWORK_MALFORMED: u16 = 1 << 2;
     pub const DEADLINE_MISSED: u16 = 1 << 3;
     pub const CONSTRAINT_HELD: u16 = 1 << 4;
+    /// The node stopped on a fault (a worker thread failed): safe command, no constraints.
+    pub const NODE_STOPPED: u16 = 1 << 5;
 }
 
 /// Errors of the CAN protocol, socket and logs.

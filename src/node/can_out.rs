@@ -213,8 +213,24 @@ impl CanOutput {
 
     /// The messages of control tick `record.index` at node time `t_s`.
     pub fn tick(&mut self, t_s: f64, record: &TickRecord, health: &Health) {
+        self.send(t_s, record, health, false);
+    }
+
+    /// The last messages of a node stopping on a fault: the torque command (the safe
+    /// command, disabled), the constraint (inactive) and the status, whatever their rates;
+    /// the log is flushed.
+    pub fn safe_stop(&mut self, t_s: f64, record: &TickRecord, health: &Health) {
+        self.send(t_s, record, health, true);
+        if let Some(log) = self.log.as_mut()
+            && let Err(e) = log.flush()
+        {
+            self.close(format!("candump log: {e}"), false);
+        }
+    }
+
+    fn send(&mut self, t_s: f64, record: &TickRecord, health: &Health, every_message: bool) {
         let k = record.index;
-        let due = |every: u32| k.is_multiple_of(u64::from(every));
+        let due = |every: u32| every_message || k.is_multiple_of(u64::from(every));
         let c = &record.control;
         let counter = (k % 256) as u8;
         if due(self.config.torque_every_ticks) {

@@ -17,7 +17,7 @@ use super::robot_state::{JointState, PerceptionScene};
 use super::{NodeConfig, NodeError, StalePolicy};
 use crate::camera::Frame;
 use crate::control::{Controller, ControllerInput, ControllerOutput, Intent};
-use crate::fusion::{Fusion, PushOutcome};
+use crate::fusion::{Fit, Fusion, PushOutcome};
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticConstraints;
 use crate::perception::lookahead::{LookaheadConfig, far_field};
@@ -251,10 +251,13 @@ impl ControlLoop {
         far_field: Option<&FarFieldEstimate>,
         arrival_s: f64,
     ) {
-        let outcome = self.fusion.push_arrived(estimate, arrival_s);
-        if let Some(f) = far_field.filter(|_| outcome != PushOutcome::Future) {
-            self.fusion.push_far_field(f);
-        }
+        push_into(&mut self.fusion, estimate, far_field, arrival_s);
+    }
+
+    /// Evaluates `fit` (made by a [`FusionWindow`] on the perception thread) from this tick
+    /// on, instead of fitting a window of its own.
+    pub fn use_fit(&mut self, fit: Fit) {
+        self.fusion.use_fit(fit);
     }
 
     /// Fusion at `t_s`, then the constraints and the controller for the robot state
@@ -287,6 +290,18 @@ impl ControlLoop {
         self.fusion.tick(t_s)
     }
 
+    /// The tick of a node stopping on a fault: fusion as usual, no constraints, the
+    /// controller's safe command.
+    pub fn stop(&mut self, t_s: f64, robot: &RobotInput) -> Tick {
+        Tick {
+            fused: self.fusion.tick(t_s),
+            held: false,
+            output: self
+                .controller
+                .stopped(&robot.joints.q_rad, &robot.joints.qd_rad_per_s),
+        }
+    }
+
     /// The surface the constraints use, and whether it is held over stale cameras: the fused
     /// surface while it tracks; while fusion is stale and `on_stale = "hold"`, the last
     /// smoothed surface standing still for at most `stale_hold_max_s` past the stale timeout;
@@ -307,6 +322,53 @@ impl ControlLoop {
             }
             _ => (None, false),
         }
+    }
+}
+
+/// An estimate (and its far-field estimate, if any) into fusion's window, having arrived at
+/// `arrival_s`; the far field only with an estimate whose stamp is not in the future.
+fn push_into(
+    fusion: &mut Fusion,
+    estimate: &SurfaceEstimate,
+    far_field: Option<&FarFieldEstimate>,
+    arrival_s: f64,
+) {
+    let outcome = fusion.push_arrived(estimate, arrival_s);
+    if let Some(f) = far_field.filter(|_| outcome != PushOutcome::Future) {
+        fusion.push_far_field(f);
+    }
+}
+
+/// Fusion's window where the threaded node keeps it, on the perception thread: estimates join
+/// it as perception finishes them and it is fitted there (the regression allocates), so the
+/// 800 Hz tick only evaluates the latest fit ([`ControlLoop::use_fit`]). The fits are the ones
+/// a [`ControlLoop`] fitting its own window makes from the same estimates.
+pub struct FusionWindow {
+    fusion: Fusion,
+}
+
+impl FusionWindow {
+    pub fn new(config: &NodeConfig) -> Result<Self, NodeError> {
+        Ok(Self {
+            fusion: Fusion::new(config.fusion)?,
+        })
+    }
+
+    /// The estimate joins the window (see [`ControlLoop::push_estimate`]); returns the fit of
+    /// the window with it.
+    pub fn push(
+        &mut self,
+        estimate: &SurfaceEstimate,
+        far_field: Option<&FarFieldEstimate>,
+        arrival_s: f64,
+    ) -> Option<Fit> {
+        push_into(&mut self.fusion, estimate, far_field, arrival_s);
+        self.fusion.refit()
+    }
+
+    /// The window's counters and latency statistics.
+    pub fn fusion(&self) -> &Fusion {
+        &self.fusion
     }
 }
 

@@ -52,7 +52,7 @@ mod tests;
 
 use crate::camera::Frame;
 use crate::control::{ControllerConfig, ControllerConfigError};
-use crate::fusion::{CameraLatency, FusionConfig, FusionConfigError, FusionCounters};
+use crate::fusion::{CameraLatency, Fit, FusionConfig, FusionConfigError, FusionCounters};
 use crate::gpu::Backend;
 use crate::gpu::GpuContext;
 use crate::haptics::HapticStatus;
@@ -66,18 +66,19 @@ use crate::perception::lookahead::LookaheadConfig;
 use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
 use crate::surface::FusionStatus;
-use crate::surface::{FarFieldEstimate, SurfaceEstimate};
+use crate::surface::SurfaceEstimate;
 use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
 use frame_queue::{CloseOnDrop, FrameQueue};
-use haptic_loop::{FrameRecord, HapticLoop, Perception, RobotInput};
+use haptic_loop::{FrameRecord, FusionWindow, HapticLoop, Perception, RobotInput};
 use nalgebra::Point3;
-use record::{FrameRecorder, RecordError, TickRecord};
+use record::{FrameRecorder, RecordError, TickRecord, TickRecorder};
 use robot_state::{RobotState, RobotStateConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::sync::Arc;
+use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{self, SyncSender};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
 /// Node settings: the loop and every stage's config.
@@ -107,6 +108,30 @@ pub struct NodeConfig {
     pub controller: ControllerConfig,
     /// Rates of the CAN messages (`--can`, `--can-log`).
     pub can: CanOutputConfig,
+    /// Real-time scheduling and memory locking of the control loop's thread.
+    pub realtime: RealtimeConfig,
+}
+
+/// What the control loop's thread asks the system for (Linux; refused without the
+/// privilege, e.g. `CAP_SYS_NICE` / `CAP_IPC_LOCK` or an `rtprio` / `memlock` limit, which the
+/// summary reports).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RealtimeConfig {
+    /// SCHED_FIFO priority of the control loop's thread (1-99; 0: normal scheduling).
+    pub fifo_priority: u8,
+    /// Lock the process's memory (`mlockall`, pages locked as they are touched), so the loop
+    /// never waits for a page fault.
+    pub lock_memory: bool,
+}
+
+impl Default for RealtimeConfig {
+    fn default() -> Self {
+        Self {
+            fifo_priority: 80,
+            lock_memory: true,
+        }
+    }
 }
 
 /// What the constraints do while the cameras are stale.
@@ -135,6 +160,7 @@ impl Default for NodeConfig {
             fusion: FusionConfig::default(),
             controller: ControllerConfig::default(),
             can: CanOutputConfig::default(),
+            realtime: RealtimeConfig::default(),
         }
     }
 }
@@ -168,8 +194,10 @@ pub enum NodeError {
     Config(String),
     #[error(transparent)]
     Can(#[from] CanError),
-    #[error("a node thread panicked")]
-    Thread,
+    /// A worker thread panicked or failed: the node stopped (constraints off, the safe
+    /// command sent on CAN).
+    #[error("node stopped: the {thread} thread failed: {cause}")]
+    Worker { thread: &'static str, cause: String },
 }
 
 impl NodeConfig {
@@ -205,6 +233,12 @@ impl NodeConfig {
             )));
         }
         self.can.validate().map_err(NodeError::Config)?;
+        if self.realtime.fifo_priority > 99 {
+            return Err(NodeError::Config(format!(
+                "realtime.fifo_priority must be 0 (off) to 99, got {}",
+                self.realtime.fifo_priority
+            )));
+        }
         Ok(())
     }
 }
@@ -248,6 +282,9 @@ pub struct RunOptions {
     pub can_log: Option<std::path::PathBuf>,
     /// Set from outside to end the run early (e.g. the overlay window was closed).
     pub stop: Option<Arc<AtomicBool>>,
+    /// Fault injection (tests, soak runs): the worker panics at its `n`-th item (a frame for
+    /// the source and perception, a tick for the control loop); the node must stop safely.
+    pub inject_panic: Option<(Worker, u64)>,
     /// An observer (the overlay) receives every processed frame and every
     /// [`OBSERVER_TICK_EVERY`]-th tick; events it is too slow for are dropped, never waited
     /// for.
@@ -284,6 +321,7 @@ impl RunOptions {
             can_interface: None,
             can_log: None,
             stop: None,
+            inject_panic: None,
             observer: None,
         }
     }
@@ -294,20 +332,6 @@ impl RunOptions {
 pub struct Percentiles {
     pub p50: f64,
     pub p99: f64,
-}
-
-impl Percentiles {
-    fn of_seconds(samples: &mut [f64]) -> Self {
-        if samples.is_empty() {
-            return Self::default();
-        }
-        samples.sort_by(f64::total_cmp);
-        let at = |p: f64| samples[((samples.len() - 1) as f64 * p).round() as usize] * 1e3;
-        Self {
-            p50: at(0.5),
-            p99: at(0.99),
-        }
-    }
 }
 
 /// Per camera: frames processed and their rate over the run's clock time, frames dropped
@@ -331,6 +355,12 @@ pub struct NodeSummary {
     pub dropped_frames: u64,
     /// Malformed messages of a live source, dropped.
     pub malformed_records: u64,
+    /// Frames refused where they entered because their camera had already delivered a
+    /// frame stamped as late or later (stamps must increase per camera).
+    pub out_of_order_frames: u64,
+    /// Streamed frames refused for a stamp that is not finite or more than 10 s from the
+    /// node clock.
+    pub bad_stamp_frames: u64,
     pub cameras: BTreeMap<u32, CameraSummary>,
     pub ticks: u64,
     pub tracking_ticks: u64,
@@ -356,6 +386,13 @@ pub struct NodeSummary {
     pub tick_work_ms: Percentiles,
     /// Perception time per frame.
     pub perception_ms: Percentiles,
+    /// Real-time scheduling and memory locking of the control loop, and what was refused.
+    pub realtime: RealtimeStatus,
+    /// With `--record`: the write error that stopped the recording (the node went on
+    /// controlling), and the frames and ticks it could not record.
+    pub recording_error: Option<String>,
+    pub unrecorded_frames: u64,
+    pub unrecorded_ticks: u64,
     /// Backend perception ended on (`gpu` or `cpu`).
     pub backend: Backend,
     pub adapter: Option<String>,
@@ -416,18 +453,118 @@ struct Shared {
     /// Per camera: frames dropped from the queue, and (a live source) samples dropped and
     /// malformed messages (`dropped`, `malformed`).
     per_camera: std::sync::Mutex<BTreeMap<u32, (u64, u64)>>,
+    /// Frames refused where they entered: stamped before (or at) their camera's last
+    /// accepted frame, or with a stamp that is not finite or far from the node clock.
+    out_of_order: AtomicU64,
+    bad_stamps: AtomicU64,
     /// Perception fell back from the GPU to the CPU.
     gpu_fell_back: AtomicBool,
+    /// A worker thread failed (panicked or returned an error): the loop stops at its next
+    /// tick. The first failure's thread and cause are in `failure`.
+    failed: AtomicBool,
+    failure: Mutex<Option<(&'static str, String)>>,
+    /// The recording's first write error (the disk is full, the directory went away): the
+    /// node goes on controlling without recording and counts what it did not record.
+    recording_error: Mutex<Option<String>>,
+    unrecorded_frames: AtomicU64,
+}
+
+impl Shared {
+    /// Records the failure of `thread` (the first one is kept) and stops the node.
+    fn fail(&self, thread: &'static str, cause: String) {
+        let mut failure = self.failure.lock().unwrap_or_else(PoisonError::into_inner);
+        failure.get_or_insert((thread, cause));
+        self.failed.store(true, Ordering::Release);
+        self.stop.store(true, Ordering::Release);
+    }
+
+    /// Records a recording write error (logged once); the caller drops its recorder.
+    fn recording_failed(&self, error: &RecordError) {
+        let mut first = self
+            .recording_error
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if first.is_none() {
+            eprintln!("warning: recording stopped ({error}); the node goes on without it");
+            *first = Some(error.to_string());
+        }
+    }
+
+    fn failure(&self) -> Option<(&'static str, String)> {
+        self.failure
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+}
+
+/// A node thread that can fail (fault injection names it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Worker {
+    Source,
+    Perception,
+    Control,
+}
+
+impl Worker {
+    fn name(self) -> &'static str {
+        match self {
+            Self::Source => "source",
+            Self::Perception => "perception",
+            Self::Control => "control",
+        }
+    }
+}
+
+/// The text of a panic's payload.
+fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| (*s).to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "panic".into())
+}
+
+/// Runs a worker's body: a panic or an error is recorded in `shared` (the loop then stops
+/// the node) instead of unwinding into the scope.
+fn guarded<T>(
+    shared: &Shared,
+    worker: Worker,
+    body: impl FnOnce() -> Result<T, NodeError>,
+) -> Option<T> {
+    match catch_unwind(AssertUnwindSafe(body)) {
+        Ok(Ok(value)) => Some(value),
+        Ok(Err(e)) => {
+            shared.fail(worker.name(), e.to_string());
+            None
+        }
+        Err(payload) => {
+            shared.fail(
+                worker.name(),
+                format!("panicked: {}", panic_message(&*payload)),
+            );
+            None
+        }
+    }
+}
+
+/// Panics when `inject` names `worker` and `count` reached its item number (fault injection).
+fn injected(inject: Option<(Worker, u64)>, worker: Worker, count: u64) {
+    if inject == Some((worker, count)) {
+        panic!("injected fault in the {} thread", worker.name());
+    }
 }
 
 /// What the perception thread reports at the end.
 struct PerceptionReport {
     frames: BTreeMap<u32, (u64, u64)>,
-    times_s: Vec<f64>,
+    times: Histogram,
     backend: Backend,
     adapter: Option<String>,
     gpu_fallback: Option<String>,
     gpu_buffer_bytes: Option<u64>,
+    fusion: FusionCounters,
+    camera_latency: Vec<CameraLatency>,
 }
 
 /// Frames of a timed source that [`measure_backends`] times.
@@ -514,32 +651,53 @@ pub fn measure_backends(
     )?))
 }
 
+/// An estimate handed to the control loop, with the fit of fusion's window that includes it.
+type Handover = (SurfaceEstimate, Option<Fit>);
+
+#[allow(clippy::too_many_arguments)]
 fn perception_thread(
     mut perception: Perception,
+    mut window: FusionWindow,
     robot: &RobotState,
+    clock: &Clock,
     frames: &FrameQueue<Frame>,
-    estimates: mpsc::Sender<(SurfaceEstimate, Option<FarFieldEstimate>)>,
+    estimates: mpsc::Sender<Handover>,
     mut recorder: Option<FrameRecorder>,
     shared: &Shared,
     observer: Option<SyncSender<NodeEvent>>,
+    inject: Option<(Worker, u64)>,
 ) -> Result<PerceptionReport, NodeError> {
     let mut counts: BTreeMap<u32, (u64, u64)> = BTreeMap::new();
-    let mut times_s = Vec::new();
+    // 0.1 ms bins up to 10 s
+    let mut times = Histogram::new(1e-4, 10.0);
     // The source stops once perception does, whatever the way out.
     let _close = CloseOnDrop(frames);
+    let mut processed = 0u64;
+    let recording = recorder.is_some();
     while let Some(frame) = frames.pop() {
+        processed += 1;
+        injected(inject, Worker::Perception, processed);
         let start = Instant::now();
         let q = robot.at(frame.stamp_s).q_rad;
         let record = perception.process(&frame, &robot.perception_scene(&q))?;
         let estimate = record.estimate().clone();
-        times_s.push(start.elapsed().as_secs_f64());
+        times.add(start.elapsed().as_secs_f64());
         if perception.gpu_fallback().is_some() {
             shared.gpu_fell_back.store(true, Ordering::Relaxed);
         }
-        if let Some(r) = recorder.as_mut() {
-            r.frame(&frame, &q)?;
+        match recorder.as_mut().map(|r| r.frame(&frame, &q)) {
+            Some(Err(e)) => {
+                shared.recording_failed(&e);
+                recorder = None;
+                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
+            }
+            None if recording => {
+                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
+            }
+            _ => {}
         }
-        let far_field = record.far_field.clone();
+        // Fusion's window is fitted here, off the control loop's thread.
+        let fit = window.push(&estimate, record.far_field.as_ref(), clock.now_s());
         if let Some(o) = &observer {
             // Dropped when the observer is behind (or gone).
             let _ = o.try_send(NodeEvent::Frame(Box::new(record)));
@@ -547,44 +705,91 @@ fn perception_thread(
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
         entry.1 += u64::from(estimate.surface.is_some());
-        if estimates.send((estimate, far_field)).is_err() {
+        if estimates.send((estimate, fit)).is_err() {
             break;
         }
     }
-    if let Some(r) = recorder {
-        r.finish()?;
+    if let Some(Err(e)) = recorder.map(FrameRecorder::finish) {
+        shared.recording_failed(&e);
     }
     Ok(PerceptionReport {
         frames: counts,
-        times_s,
+        times,
         backend: perception.backend(),
         adapter: perception.adapter().map(str::to_string),
         gpu_fallback: perception.gpu_fallback(),
         gpu_buffer_bytes: perception.gpu_buffer_bytes(),
+        fusion: window.fusion().counters(),
+        camera_latency: window.fusion().latency_stats(),
     })
 }
 
-fn source_thread(source: Source, clock: &Clock, queue: &FrameQueue<Frame>, shared: &Shared) {
+/// How far a streamed frame's stamp may be from the node clock, s (a camera driver's clock
+/// against the node's: anything further is a corrupt or foreign stamp).
+const STREAM_STAMP_WINDOW_S: f64 = 10.0;
+
+/// Where frames enter: each camera's stamps must increase (a frame stamped at or before its
+/// camera's last accepted one is refused and counted, and never holds the camera back), and
+/// a streamed frame's stamp must be finite and near the node clock.
+struct StampGate {
+    last: Vec<(u32, f64)>,
+}
+
+impl StampGate {
+    fn admit(&mut self, frame: &Frame, shared: &Shared) -> bool {
+        match self.last.iter_mut().find(|(id, _)| *id == frame.camera_id) {
+            Some((_, last)) if frame.stamp_s <= *last => {
+                shared.out_of_order.fetch_add(1, Ordering::Relaxed);
+                false
+            }
+            Some((_, last)) => {
+                *last = frame.stamp_s;
+                true
+            }
+            None => {
+                self.last.push((frame.camera_id, frame.stamp_s));
+                true
+            }
+        }
+    }
+}
+
+fn source_thread(
+    source: Source,
+    clock: &Clock,
+    queue: &FrameQueue<Frame>,
+    shared: &Shared,
+    inject: Option<(Worker, u64)>,
+) {
     // Perception drains what is queued and ends once the source does.
     let _close = CloseOnDrop(queue);
-    let offer = |frame: Frame| match queue.push(frame) {
-        Ok(None) => {
-            shared.queued.fetch_add(1, Ordering::Relaxed);
-            true
+    let mut gate = StampGate { last: Vec::new() };
+    let mut offered = 0u64;
+    let mut offer = |frame: Frame| {
+        offered += 1;
+        injected(inject, Worker::Source, offered);
+        if !gate.admit(&frame, shared) {
+            return true;
         }
-        // The oldest queued frame made room: one frame in, one out.
-        Ok(Some(oldest)) => {
-            shared.dropped.fetch_add(1, Ordering::Relaxed);
-            shared
-                .per_camera
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner)
-                .entry(oldest.camera_id)
-                .or_default()
-                .0 += 1;
-            true
+        match queue.push(frame) {
+            Ok(None) => {
+                shared.queued.fetch_add(1, Ordering::Relaxed);
+                true
+            }
+            // The oldest queued frame made room: one frame in, one out.
+            Ok(Some(oldest)) => {
+                shared.dropped.fetch_add(1, Ordering::Relaxed);
+                shared
+                    .per_camera
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .entry(oldest.camera_id)
+                    .or_default()
+                    .0 += 1;
+                true
+            }
+            Err(_) => false,
         }
-        Err(_) => false,
     };
     match source {
         Source::Timed(frames) | Source::Simulated { frames, .. } => {
@@ -611,10 +816,18 @@ fn source_thread(source: Source, clock: &Clock, queue: &FrameQueue<Frame>, share
         Source::Zenoh(mut source) => {
             let stats = source.stats();
             while !shared.stop.load(Ordering::Relaxed) {
-                if let Some(assembled) = source.recv(Duration::from_millis(20))
-                    && !offer(assembled.frame)
-                {
-                    break;
+                if let Some(assembled) = source.recv(Duration::from_millis(20)) {
+                    // The node runs on the wall clock with a live source: the cameras'
+                    // stamps must be near it.
+                    let stamp_s = assembled.frame.stamp_s;
+                    if !(stamp_s.is_finite()
+                        && stamp_s.abs() <= MAX_STAMP_S
+                        && (stamp_s - clock.now_s()).abs() <= STREAM_STAMP_WINDOW_S)
+                    {
+                        shared.bad_stamps.fetch_add(1, Ordering::Relaxed);
+                    } else if !offer(assembled.frame) {
+                        break;
+                    }
                 }
                 let counters = stats.counters();
                 shared.malformed.store(
@@ -640,6 +853,154 @@ fn source_thread(source: Source, clock: &Clock, queue: &FrameQueue<Frame>, share
     }
 }
 
+/// Percentiles of a duration without keeping the samples: counts in fixed bins (the loop
+/// adds one per tick for hours without growing or allocating).
+struct Histogram {
+    bin_s: f64,
+    counts: Vec<u32>,
+    /// Largest sample, reported for the percentiles beyond the last bin.
+    max_s: f64,
+    total: u64,
+}
+
+impl Histogram {
+    /// Bins of `bin_s` up to `range_s`.
+    fn new(bin_s: f64, range_s: f64) -> Self {
+        Self {
+            bin_s,
+            counts: vec![0; (range_s / bin_s).ceil() as usize],
+            max_s: 0.0,
+            total: 0,
+        }
+    }
+
+    fn add(&mut self, s: f64) {
+        let s = if s.is_finite() { s.max(0.0) } else { f64::MAX };
+        let bin = ((s / self.bin_s) as usize).min(self.counts.len() - 1);
+        self.counts[bin] += 1;
+        self.max_s = self.max_s.max(s);
+        self.total += 1;
+    }
+
+    /// p50 and p99 in milliseconds: the upper edge of the bin holding the percentile (the
+    /// largest sample for the last bin).
+    fn percentiles(&self) -> Percentiles {
+        if self.total == 0 {
+            return Percentiles::default();
+        }
+        let at = |p: f64| {
+            let rank = ((self.total - 1) as f64 * p).round() as u64 + 1;
+            let mut seen = 0u64;
+            for (i, &c) in self.counts.iter().enumerate() {
+                seen += u64::from(c);
+                if seen >= rank {
+                    return if i + 1 == self.counts.len() {
+                        self.max_s
+                    } else {
+                        ((i + 1) as f64 * self.bin_s).min(self.max_s)
+                    } * 1e3;
+                }
+            }
+            self.max_s * 1e3
+        };
+        Percentiles {
+            p50: at(0.5),
+            p99: at(0.99),
+        }
+    }
+}
+
+/// What the control loop's thread got from the system ([`RealtimeConfig`]).
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct RealtimeStatus {
+    /// The SCHED_FIFO priority the loop ran at (`None`: normal scheduling).
+    pub fifo_priority: Option<u8>,
+    /// Whether the process's memory was locked.
+    pub memory_locked: bool,
+    /// What was asked for and refused, with the system's reason.
+    pub refused: Vec<String>,
+}
+
+/// Locked memory and SCHED_FIFO for the calling thread ([`RealtimeConfig`]), given back when
+/// dropped (the thread that called `run` gets its scheduling back). Memory is locked before
+/// the clock starts (locking a large process takes a while); SCHED_FIFO is asked for after
+/// the workers are spawned (they would inherit it).
+struct RealtimeGuard {
+    status: RealtimeStatus,
+    old_policy: libc::c_int,
+    old_param: libc::sched_param,
+}
+
+impl RealtimeGuard {
+    /// Locks memory if `config` asks for it.
+    fn lock_memory(config: &RealtimeConfig) -> Self {
+        let mut status = RealtimeStatus::default();
+        // SAFETY: plain syscalls on the calling thread with valid pointers to locals.
+        let (old_policy, old_param) = unsafe {
+            let mut policy = 0;
+            let mut param: libc::sched_param = std::mem::zeroed();
+            libc::pthread_getschedparam(libc::pthread_self(), &mut policy, &mut param);
+            if config.lock_memory {
+                let flags = libc::MCL_CURRENT | libc::MCL_FUTURE | libc::MCL_ONFAULT;
+                if libc::mlockall(flags) == 0 {
+                    status.memory_locked = true;
+                } else {
+                    status
+                        .refused
+                        .push(format!("mlockall: {}", std::io::Error::last_os_error()));
+                }
+            }
+            (policy, param)
+        };
+        Self {
+            status,
+            old_policy,
+            old_param,
+        }
+    }
+
+    /// Asks for SCHED_FIFO on the calling thread if `config` does, then says once what was
+    /// refused.
+    fn fifo(&mut self, config: &RealtimeConfig) {
+        if config.fifo_priority > 0 {
+            let fifo = libc::sched_param {
+                sched_priority: libc::c_int::from(config.fifo_priority),
+            };
+            // SAFETY: the calling thread, a valid pointer to a local.
+            match unsafe {
+                libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &fifo)
+            } {
+                0 => self.status.fifo_priority = Some(config.fifo_priority),
+                e => self.status.refused.push(format!(
+                    "SCHED_FIFO priority {}: {}",
+                    config.fifo_priority,
+                    std::io::Error::from_raw_os_error(e)
+                )),
+            }
+        }
+        if !self.status.refused.is_empty() {
+            eprintln!(
+                "warning: real time refused ({}); the control loop runs without it",
+                self.status.refused.join("; ")
+            );
+        }
+    }
+}
+
+impl Drop for RealtimeGuard {
+    fn drop(&mut self) {
+        // SAFETY: restores what `acquire` read, on the same thread.
+        unsafe {
+            if self.status.fifo_priority.is_some() {
+                libc::pthread_setschedparam(libc::pthread_self(), self.old_policy, &self.old_param);
+            }
+            if self.status.memory_locked {
+                libc::munlockall();
+            }
+        }
+    }
+}
+
 /// Runs the node until the duration is reached (or a timed source is exhausted), calling
 /// `on_tick` with every tick's record (fused surface, robot state, constraints, torques).
 /// Returns the summary.
@@ -652,6 +1013,13 @@ pub fn run(
     config.validate()?;
     if !(options.speed.is_finite() && options.speed > 0.0) {
         return Err(NodeError::Speed(options.speed));
+    }
+    if let Some(d) = options.duration_s
+        && !(d.is_finite() && d > 0.0 && d <= MAX_STAMP_S)
+    {
+        return Err(NodeError::Config(format!(
+            "--duration must be positive and finite (at most {MAX_STAMP_S} s), got {d}"
+        )));
     }
     let robot = match &source {
         Source::Simulated { simulator, .. } => RobotState::simulated(simulator.clone()),
@@ -770,6 +1138,7 @@ pub fn run(
             (now_s, now_s + options.duration_s.unwrap_or(f64::INFINITY))
         }
     };
+    let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
     let clock = Clock {
         start: Instant::now(),
         speed: options.speed,
@@ -777,40 +1146,61 @@ pub fn run(
     };
     let shared = Shared::default();
     let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
-    let (estimate_tx, estimate_rx) = mpsc::channel::<(SurfaceEstimate, Option<FarFieldEstimate>)>();
+    let (estimate_tx, estimate_rx) = mpsc::channel::<Handover>();
+    let window = FusionWindow::new(config)?;
     let tick_s = 1.0 / config.tick_rate_hz;
     let period = Duration::from_secs_f64(tick_s / options.speed);
     let status_every = u64::from(config.can.status_every_ticks);
+    let inject = options.inject_panic;
 
     let result = std::thread::scope(|scope| {
         let robot = &robot;
         let shared = &shared;
+        let clock = &clock;
         let observer = options.observer.clone();
         let perception_handle = scope.spawn(move || {
-            perception_thread(
-                perception,
-                robot,
-                frame_queue,
-                estimate_tx,
-                frame_recorder,
-                shared,
-                observer,
-            )
+            guarded(shared, Worker::Perception, || {
+                perception_thread(
+                    perception,
+                    window,
+                    robot,
+                    clock,
+                    frame_queue,
+                    estimate_tx,
+                    frame_recorder,
+                    shared,
+                    observer,
+                    inject,
+                )
+            })
         });
-        let source_handle = scope.spawn(|| source_thread(source, &clock, frame_queue, shared));
+        let source_handle = scope.spawn(move || {
+            guarded(shared, Worker::Source, || {
+                source_thread(source, clock, frame_queue, shared, inject);
+                Ok(())
+            })
+        });
+        // SCHED_FIFO for this thread only, asked for after the workers were spawned.
+        realtime.fifo(&config.realtime);
 
-        let mut stats = LoopStats::default();
-        let mut run_loop = || -> Result<u64, NodeError> {
+        let mut stats = LoopStats::new();
+        // The last tick's robot state, for the safe command if the node has to stop.
+        let mut last_joints = robot.at(t_first);
+        let mut k: u64 = 0;
+        let mut run_loop = || -> Result<(), NodeError> {
             let mut last_progress = Instant::now();
-            let mut pending_latency: Vec<f64> = Vec::new();
+            let mut pending_latency: Vec<f64> = Vec::with_capacity(64);
             let mut received: u64 = 0;
             let mut recent_per_camera: BTreeMap<u32, u64> = BTreeMap::new();
             let mut progress_t = t_first;
             let mut misses_since_status = false;
             let loop_start = clock.start;
             let stream_length_s = t_end - t_first;
-            let mut k: u64 = 0;
             loop {
+                if shared.failed.load(Ordering::Acquire) {
+                    return Ok(());
+                }
+                injected(inject, Worker::Control, stats.ticks + 1);
                 let now = Instant::now();
                 let behind = now.saturating_duration_since(loop_start + period.mul_f64(k as f64));
                 if behind > period {
@@ -827,23 +1217,31 @@ pub fn run(
                 }
                 let started = Instant::now();
                 let late_s = started.saturating_duration_since(deadline).as_secs_f64();
-                stats.jitter_s.push(late_s);
+                stats.jitter.add(late_s);
                 // The tick's time on the node clock: absolute, from the tick index.
                 let t_tick =
                     f64::from_bits(clock.offset_bits.load(Ordering::Acquire)) + k as f64 * tick_s;
-                while let Ok((estimate, far_field)) = estimate_rx.try_recv() {
-                    if let Some(r) = tick_recorder.as_mut() {
-                        r.estimate(k, &estimate)?;
+                // Estimates are handed over without blocking; fusion's window was fitted on
+                // the perception thread, the tick evaluates the newest fit.
+                while let Ok((estimate, fit)) = estimate_rx.try_recv() {
+                    if let Some(Err(e)) = tick_recorder.as_mut().map(|r| r.estimate(k, &estimate)) {
+                        shared.recording_failed(&e);
+                        tick_recorder = None;
                     }
                     if let Some(c) = can.as_mut() {
                         c.estimate(t_tick, &estimate);
                     }
-                    control.push_estimate(&estimate, far_field.as_ref(), t_tick);
-                    pending_latency.push(estimate.stamp_s);
+                    if let Some(fit) = fit {
+                        control.use_fit(fit);
+                    }
+                    if pending_latency.len() < pending_latency.capacity() {
+                        pending_latency.push(estimate.stamp_s);
+                    }
                     received += 1;
                     *recent_per_camera.entry(estimate.camera_id).or_insert(0u64) += 1;
                 }
                 let joints = robot.at(t_tick);
+                last_joints = joints;
                 let out = control.tick(t_tick, &RobotInput::without_force(joints));
                 let mut tick = TickRecord::new(k, joints, &out, late_s);
                 let (fused, record) = (tick.fused, tick.control);
@@ -859,17 +1257,24 @@ pub fn run(
                 stats.fallbacks += u64::from(record.status != crate::control::ControlStatus::Ok);
                 let finished = Instant::now();
                 tick.work_s = (finished - started).as_secs_f64();
-                stats.work_s.push(tick.work_s);
+                stats.work.add(tick.work_s);
                 let t_done = clock.now_s();
                 for stamp in pending_latency.drain(..) {
-                    stats.latency_s.push(t_done - stamp);
+                    stats.last_latency_s = t_done - stamp;
+                    stats.latency.add(stats.last_latency_s);
                 }
                 if finished > deadline + period {
                     stats.deadline_misses += 1;
                     misses_since_status = true;
                 }
-                if let Some(r) = tick_recorder.as_mut() {
-                    r.tick(&tick)?;
+                match tick_recorder.as_mut().map(|r| r.tick(&tick)) {
+                    Some(Err(e)) => {
+                        shared.recording_failed(&e);
+                        tick_recorder = None;
+                        stats.unrecorded_ticks += 1;
+                    }
+                    None if options.record.is_some() => stats.unrecorded_ticks += 1,
+                    _ => {}
                 }
                 if let Some(o) = &options.observer
                     && k.is_multiple_of(OBSERVER_TICK_EVERY)
@@ -902,7 +1307,7 @@ pub fn run(
                             fault_flags: flags,
                             gpu: start_backend == Backend::Gpu
                                 && !shared.gpu_fell_back.load(Ordering::Relaxed),
-                            latency_ms: stats.latency_s.last().map_or(0.0, |l| l * 1e3),
+                            latency_ms: stats.last_latency_s * 1e3,
                         },
                     );
                     if k.is_multiple_of(status_every) {
@@ -928,7 +1333,7 @@ pub fn run(
                         } else {
                             rates.join(", ")
                         },
-                        stats.latency_s.last().map_or(f64::NAN, |l| l * 1e3),
+                        stats.last_latency_s * 1e3,
                         stats.ticks,
                         stats.deadline_misses,
                         fused.status,
@@ -943,7 +1348,7 @@ pub fn run(
                     .as_ref()
                     .is_some_and(|s| s.load(Ordering::Relaxed))
                 {
-                    break;
+                    return Ok(());
                 }
                 // Without --duration a timed source runs until its last stamp plus the stale
                 // timeout, and on until perception has delivered every queued frame.
@@ -952,23 +1357,57 @@ pub fn run(
                     || (shared.source_finished.load(Ordering::Acquire)
                         && received >= shared.queued.load(Ordering::Relaxed));
                 if k as f64 * tick_s >= stream_length_s && drained {
-                    break;
+                    return Ok(());
                 }
             }
-            Ok(k)
         };
-        let loop_result = run_loop();
+        match catch_unwind(AssertUnwindSafe(&mut run_loop)) {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => shared.fail(Worker::Control.name(), e.to_string()),
+            Err(payload) => shared.fail(
+                Worker::Control.name(),
+                format!("panicked: {}", panic_message(&*payload)),
+            ),
+        }
+        stats.realtime = realtime.status.clone();
         shared.stop.store(true, Ordering::Release);
-        source_handle.join().map_err(|_| NodeError::Thread)?;
-        let report = perception_handle.join().map_err(|_| NodeError::Thread)??;
-        let k = loop_result?;
-        if let Some(r) = tick_recorder.take() {
-            r.finish()?;
+        // A failed worker stops the node safely: the constraints off and the safe command
+        // (gravity compensation and damping, torque command disabled) sent on CAN.
+        let failure = shared.failure();
+        if failure.is_some()
+            && let Some(c) = can.as_mut()
+        {
+            let t_stop = clock.now_s();
+            let out = control.stop(t_stop, &RobotInput::without_force(last_joints));
+            let tick = TickRecord::new(k, last_joints, &out, 0.0);
+            c.safe_stop(
+                t_stop,
+                &tick,
+                &can_out::Health {
+                    deadline_misses: stats.deadline_misses,
+                    fault_flags: fault::NODE_STOPPED,
+                    gpu: false,
+                    latency_ms: f64::NAN,
+                },
+            );
+        }
+        let _ = source_handle.join();
+        let report = perception_handle.join().ok().flatten();
+        if let Some((thread, cause)) = failure {
+            return Err(NodeError::Worker { thread, cause });
+        }
+        let report = report.ok_or_else(|| NodeError::Worker {
+            thread: Worker::Perception.name(),
+            cause: "ended without a report".into(),
+        })?;
+        if let Some(Err(e)) = tick_recorder.take().map(TickRecorder::finish) {
+            shared.recording_failed(&e);
         }
         stats.duration_s = k as f64 * tick_s;
         Ok::<_, NodeError>((report, stats))
     });
-    let (report, mut stats) = result?;
+    drop(realtime);
+    let (report, stats) = result?;
     let duration_s = stats.duration_s;
     let per_camera = shared
         .per_camera
@@ -993,11 +1432,12 @@ pub fn run(
             },
         );
     }
-    let mut perception_times = report.times_s;
     Ok(NodeSummary {
         frames: cameras.values().map(|c| c.frames).sum(),
         dropped_frames: shared.dropped.load(Ordering::Relaxed),
         malformed_records: shared.malformed.load(Ordering::Relaxed),
+        out_of_order_frames: shared.out_of_order.load(Ordering::Relaxed),
+        bad_stamp_frames: shared.bad_stamps.load(Ordering::Relaxed),
         cameras,
         ticks: stats.ticks,
         tracking_ticks: stats.tracking,
@@ -1008,17 +1448,25 @@ pub fn run(
         robot_joint_states: robot.has_joint_states(),
         deadline_misses: stats.deadline_misses,
         skipped_ticks: stats.skipped,
-        latency_ms: Percentiles::of_seconds(&mut stats.latency_s),
-        jitter_ms: Percentiles::of_seconds(&mut stats.jitter_s),
-        tick_work_ms: Percentiles::of_seconds(&mut stats.work_s),
-        perception_ms: Percentiles::of_seconds(&mut perception_times),
+        latency_ms: stats.latency.percentiles(),
+        jitter_ms: stats.jitter.percentiles(),
+        tick_work_ms: stats.work.percentiles(),
+        perception_ms: report.times.percentiles(),
+        realtime: stats.realtime,
+        recording_error: shared
+            .recording_error
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone(),
+        unrecorded_frames: shared.unrecorded_frames.load(Ordering::Relaxed),
+        unrecorded_ticks: stats.unrecorded_ticks,
         backend: report.backend,
         adapter: report.adapter,
         gpu_fallback: report.gpu_fallback,
         backend_choice,
         gpu_buffer_bytes: report.gpu_buffer_bytes,
-        fusion: control.fusion().counters(),
-        camera_latency: control.fusion().latency_stats(),
+        fusion: report.fusion,
+        camera_latency: report.camera_latency,
         can: can.map(|c| CanSummary {
             counters: c.finish(),
             bus_load: config.can.bus_load(config.tick_rate_hz),
@@ -1028,7 +1476,6 @@ pub fn run(
     })
 }
 
-#[derive(Default)]
 struct LoopStats {
     ticks: u64,
     tracking: u64,
@@ -1038,10 +1485,36 @@ struct LoopStats {
     skipped: u64,
     fallbacks: u64,
     deadline_misses: u64,
-    latency_s: Vec<f64>,
-    jitter_s: Vec<f64>,
-    work_s: Vec<f64>,
+    unrecorded_ticks: u64,
+    latency: Histogram,
+    last_latency_s: f64,
+    jitter: Histogram,
+    work: Histogram,
+    realtime: RealtimeStatus,
     duration_s: f64,
+}
+
+impl LoopStats {
+    fn new() -> Self {
+        Self {
+            ticks: 0,
+            tracking: 0,
+            stale: 0,
+            active: 0,
+            held: 0,
+            skipped: 0,
+            fallbacks: 0,
+            deadline_misses: 0,
+            unrecorded_ticks: 0,
+            // 0.1 ms bins up to 10 s; 1 us bins up to 50 ms
+            latency: Histogram::new(1e-4, 10.0),
+            last_latency_s: f64::NAN,
+            jitter: Histogram::new(1e-6, 0.05),
+            work: Histogram::new(1e-6, 0.05),
+            realtime: RealtimeStatus::default(),
+            duration_s: 0.0,
+        }
+    }
 }
 
 /// What `hapcloud replay` found.

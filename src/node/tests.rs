@@ -620,3 +620,170 @@ fn overlay_views_follow_the_robot_and_carry_truth_and_constraints() {
             .any(|c| c.estimate.as_ref().is_some_and(|e| e.surface.is_some()))
     }));
 }
+
+/// The last torque command and status a candump log holds.
+fn last_torque_and_status(
+    log: &std::path::Path,
+) -> (
+    Option<crate::io::can::CanTorqueCommand>,
+    Option<crate::io::can::CanStatus>,
+) {
+    use crate::io::can::{self, CanValue};
+    let file = std::io::BufReader::new(std::fs::File::open(log).unwrap());
+    let mut decoder = can::Decoder::new();
+    let (mut torque, mut status) = (None, None);
+    for entry in can::read_candump(file).unwrap() {
+        match decoder.push(&entry.frame).unwrap() {
+            Some(CanValue::TorqueCommand(t)) => torque = Some(t),
+            Some(CanValue::Status(s)) => status = Some(s),
+            _ => {}
+        }
+    }
+    (torque, status)
+}
+
+/// A worker thread that panics (source, perception or the control loop itself) stops the
+/// node at once: an error naming the thread and the cause, never a hang (the stream source
+/// below would wait forever for frames that never come), and the last messages on CAN are
+/// the safe command with the torques disabled and the "node stopped" fault flag.
+#[test]
+fn a_panicking_worker_stops_the_node_safely() {
+    let _serial = serial();
+    for worker in [Worker::Source, Worker::Perception, Worker::Control] {
+        let dir = temp_dir(&format!("panic-{worker:?}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        let log = dir.join("can.log");
+        let frames = plane_frames(1.0, None);
+        // The timed source runs for ever once its frames are out (a duration far away): only
+        // the fault can end the run early.
+        let opts = RunOptions {
+            inject_panic: Some((worker, 5)),
+            duration_s: Some(3600.0),
+            can_log: Some(log.clone()),
+            ..options(1.0)
+        };
+        let started = Instant::now();
+        let err = run(&config(), Source::Timed(frames), &opts, |_| {}).unwrap_err();
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "{worker:?}: stopping took {:?}",
+            started.elapsed()
+        );
+        match &err {
+            NodeError::Worker { thread, cause } => {
+                assert_eq!(*thread, worker.name(), "{err}");
+                assert!(cause.contains("injected fault"), "{err}");
+            }
+            other => panic!("{worker:?}: {other}"),
+        }
+        let (torque, status) = last_torque_and_status(&log);
+        let torque = torque.expect("a torque command was sent");
+        assert!(
+            !torque.enabled,
+            "{worker:?}: the last command is not disabled"
+        );
+        assert!(torque.torques_nm.iter().all(|t| t.is_finite()));
+        let status = status.expect("a status was sent");
+        assert_ne!(status.fault_flags & crate::io::can::fault::NODE_STOPPED, 0);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
+
+/// A frame stamped at or before its camera's last accepted frame is refused and counted where
+/// it enters; the camera's later frames go on as before (it is never held back).
+#[test]
+fn frames_out_of_order_per_camera_are_refused_and_counted() {
+    let _serial = serial();
+    let mut frames = plane_frames(1.0, None);
+    let count = frames.len() as u64;
+    // Three of camera 0's frames re-sent after later ones (a stale duplicate, a clock step
+    // back), and one frame stamped exactly like its predecessor.
+    let mut injected = 0;
+    for at in [10, 20, 30] {
+        let mut old = frames[at - 8].clone();
+        assert_eq!(old.camera_id, frames[at].camera_id);
+        old.stamp_s = frames[at].stamp_s - 0.2;
+        frames.insert(at + 1, old);
+        injected += 1;
+    }
+    let mut same = frames[40].clone();
+    same.cloud = frames[42].cloud.clone();
+    frames.insert(41, same);
+    injected += 1;
+    let mut tracking_after = 0;
+    let summary = run(&config(), Source::Timed(frames), &options(0.5), |t| {
+        tracking_after += u64::from(t.fused.is_tracking() && t.fused.stamp_s > 1.8);
+    })
+    .unwrap();
+    assert_eq!(summary.out_of_order_frames, injected, "{summary:?}");
+    assert_eq!(summary.frames + summary.dropped_frames, count);
+    assert!(tracking_after > 0, "the cameras were held back");
+}
+
+/// The disk fills while recording (the frame stream written to `/dev/full`, which fails
+/// every write with ENOSPC): the node goes on controlling to the end, says what stopped the
+/// recording, and counts the frames it did not record.
+#[test]
+fn a_full_disk_stops_the_recording_not_the_node() {
+    let _serial = serial();
+    if !std::path::Path::new("/dev/full").exists() {
+        eprintln!("no /dev/full: skipped");
+        return;
+    }
+    let dir = temp_dir("disk-full");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::os::unix::fs::symlink("/dev/full", dir.join("frames.hcr")).unwrap();
+    let opts = RunOptions {
+        record: Some(dir.clone()),
+        ..options(1.0)
+    };
+    let frames = plane_frames(1.0, None);
+    let count = frames.len() as u64;
+    let summary = run(&config(), Source::Timed(frames), &opts, |_| {}).unwrap();
+    let error = summary.recording_error.clone().expect("a recording error");
+    assert!(error.contains("frames.hcr"), "{error}");
+    assert!(summary.unrecorded_frames > 0, "{summary:?}");
+    assert!(summary.unrecorded_frames <= summary.frames);
+    assert_eq!(summary.frames + summary.dropped_frames, count);
+    assert!(summary.tracking_ticks > summary.ticks / 3, "{summary:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The GPU is lost mid-run (its device destroyed between two frames, as a driver reset or an
+/// unplugged GPU would leave it): perception goes on on the CPU from that frame, with the
+/// reason kept (and logged once), and the estimates keep coming.
+#[test]
+fn a_gpu_lost_mid_run_leaves_perception_on_the_cpu() {
+    let ctx = match crate::gpu::GpuContext::new() {
+        Ok(ctx) => Arc::new(ctx),
+        Err(e) => {
+            eprintln!("no GPU ({e}): skipped");
+            return;
+        }
+    };
+    let config = config();
+    let mut perception = Perception::on_context(&config, Some(ctx.clone())).unwrap();
+    let scene = robot_state::PerceptionScene {
+        hip_m: config.hip_world_m,
+        primitives: Vec::new(),
+    };
+    let frames = plane_frames(0.4, None);
+    perception.process(&frames[0], &scene).unwrap();
+    assert_eq!(perception.backend(), Backend::Gpu);
+    assert!(perception.gpu_fallback().is_none());
+    ctx.device().destroy();
+    let mut valid = 0;
+    let mut reasons = std::collections::BTreeSet::new();
+    for frame in &frames[1..] {
+        let record = perception.process(frame, &scene).unwrap();
+        valid += u32::from(record.estimate().surface.is_some());
+        reasons.insert(perception.gpu_fallback().expect("a fallback reason"));
+    }
+    assert_eq!(perception.backend(), Backend::Cpu);
+    assert_eq!(reasons.len(), 1, "{reasons:?}");
+    assert!(
+        valid as usize > frames.len() / 2,
+        "{valid} of {}",
+        frames.len()
+    );
+}

@@ -94,6 +94,20 @@ impl FramePoints<'_> {
     }
 }
 
+impl FrontendError {
+    /// The GPU failure behind this error, whichever stage met it (a lost device fails the
+    /// first stage that touches it): the front end may go on on the CPU.
+    pub fn gpu(&self) -> Option<&GpuError> {
+        match self {
+            Self::Gpu(e)
+            | Self::Voxel(VoxelError::Gpu(e))
+            | Self::Cluster(ClusterError::Gpu(e))
+            | Self::Crop(CropError::Gpu(e)) => Some(e),
+            _ => None,
+        }
+    }
+}
+
 /// One frame's input: its points and, when the crop runs, the HIP and the posed robot
 /// primitives.
 #[derive(Clone, Debug)]

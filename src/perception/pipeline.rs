@@ -481,7 +481,7 @@ impl CameraChain {
         }
         let mut front = match self.frontend.process(&input) {
             Ok(o) => o,
-            Err(FrontendError::Gpu(e)) => {
+            Err(e) if e.gpu().is_some() => {
                 self.fall_back(e.to_string())?;
                 self.frontend.process(&input)?
             }

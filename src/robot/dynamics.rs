@@ -15,7 +15,7 @@
 //! check it against finite differences of the kinetic energy and against energy
 //! conservation in a passive simulation.
 
-use super::{GRAVITY_MPS2, JointKind, JointMatrix, JointVector, RobotModel, skew};
+use super::{GRAVITY_MPS2, JointKind, JointMatrix, JointVector, PerLink, RobotModel, skew};
 use nalgebra::{Matrix3, Matrix6, Vector3, Vector6};
 
 /// Motion transform from a parent's coordinates to a child's: `[E 0; -E r^ E]` with `E` the
@@ -64,11 +64,11 @@ fn spatial_inertia(mass: f64, com: &Vector3<f64>, inertia_com: &Matrix3<f64>) ->
 /// Per-link quantities shared by RNEA and CRBA for one `q`.
 struct LinkStates {
     /// Motion transform parent -> link (identity-sized zero for the root, unused).
-    x: Vec<Matrix6<f64>>,
+    x: PerLink<Matrix6<f64>>,
     /// Motion subspace (unit twist of the joint) or zero for fixed joints.
-    s: Vec<Vector6<f64>>,
+    s: PerLink<Vector6<f64>>,
     /// DoF index of the link's joint.
-    dof: Vec<Option<usize>>,
+    dof: PerLink<Option<usize>>,
 }
 
 /// Why a dynamics query failed.
@@ -80,10 +80,7 @@ pub enum DynamicsError {
 
 impl RobotModel {
     fn link_states(&self, q: &JointVector) -> LinkStates {
-        let n = self.links.len();
-        let mut x = Vec::with_capacity(n);
-        let mut s = Vec::with_capacity(n);
-        let mut dof = Vec::with_capacity(n);
+        let (mut x, mut s, mut dof) = (PerLink::new(), PerLink::new(), PerLink::new());
         for (i, link) in self.links.iter().enumerate() {
             let parent_from_link = self.parent_from_link(i, q);
             let e = parent_from_link
@@ -127,9 +124,8 @@ impl RobotModel {
     ) -> JointVector {
         let st = self.link_states(q);
         let n = self.links.len();
-        let mut v = vec![Vector6::zeros(); n];
-        let mut a = vec![Vector6::zeros(); n];
-        let mut f = vec![Vector6::zeros(); n];
+        let zeros = || (0..n).map(|_| Vector6::zeros()).collect::<PerLink<_>>();
+        let (mut v, mut a, mut f) = (zeros(), zeros(), zeros());
         a[0] = self.base_acceleration(gravity_scale);
         for i in 1..n {
             let Some(p) = self.links[i].parent else {
@@ -179,7 +175,7 @@ impl RobotModel {
     pub fn mass_matrix(&self, q: &JointVector) -> JointMatrix {
         let st = self.link_states(q);
         let n = self.links.len();
-        let mut ic: Vec<Matrix6<f64>> = (0..n).map(|i| self.link_inertia(i)).collect();
+        let mut ic: PerLink<Matrix6<f64>> = (0..n).map(|i| self.link_inertia(i)).collect();
         for i in (1..n).rev() {
             if let Some(p) = self.links[i].parent {
                 let add = st.x[i].transpose() * ic[i] * st.x[i];

@@ -21,6 +21,7 @@
 pub mod dynamics;
 
 use crate::geometry::Primitive;
+use arrayvec::ArrayVec;
 use nalgebra::{
     Isometry3, Matrix3, Point3, SMatrix, SVector, Translation3, Unit, UnitQuaternion, Vector3,
 };
@@ -79,7 +80,16 @@ pub enum RobotError {
     WrongDof(usize),
     #[error("no link named `{HIP_LINK}` with a visual sphere giving the HIP radius")]
     NoHip,
+    #[error("the URDF has {0} links; at most {MAX_LINKS} are supported")]
+    TooManyLinks(usize),
 }
+
+/// Most links a robot model may have: the per-link quantities of kinematics and dynamics
+/// live in fixed-size arrays ([`PerLink`]), so the 800 Hz control tick allocates nothing.
+pub const MAX_LINKS: usize = 32;
+
+/// One value per link, in topological order.
+pub type PerLink<T> = ArrayVec<T, MAX_LINKS>;
 
 /// How a link hangs off its parent.
 #[derive(Clone, Debug, PartialEq)]
@@ -245,6 +255,9 @@ impl RobotModel {
             return Err(RobotError::Disconnected(urdf.links[lost].name.clone()));
         }
 
+        if order.len() > MAX_LINKS {
+            return Err(RobotError::TooManyLinks(order.len()));
+        }
         let mut links = Vec::with_capacity(order.len());
         let mut limits = Vec::new();
         for &u in &order {
@@ -424,8 +437,8 @@ impl RobotModel {
     }
 
     /// `world_from_link` for every link (topological order) at joint positions `q`.
-    pub fn forward_kinematics(&self, q: &JointVector) -> Vec<Isometry3<f64>> {
-        let mut out: Vec<Isometry3<f64>> = Vec::with_capacity(self.links.len());
+    pub fn forward_kinematics(&self, q: &JointVector) -> PerLink<Isometry3<f64>> {
+        let mut out = PerLink::new();
         for (i, link) in self.links.iter().enumerate() {
             let pose = match link.parent {
                 None => self.world_from_base,
@@ -504,9 +517,8 @@ impl RobotModel {
         let jacobian = self.point_jacobian_from_poses(&poses, self.hip_link, &Point3::origin());
         // classical forward recursion with qdd = 0 (world coordinates)
         let n = self.links.len();
-        let mut w = vec![Vector3::zeros(); n];
-        let mut wd = vec![Vector3::zeros(); n];
-        let mut a = vec![Vector3::zeros(); n];
+        let zeros = || (0..n).map(|_| Vector3::zeros()).collect::<PerLink<_>>();
+        let (mut w, mut wd, mut a) = (zeros(), zeros(), zeros());
         for i in 1..n {
             let Some(p) = self.links[i].parent else {
                 continue;

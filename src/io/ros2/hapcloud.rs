@@ -411,11 +411,7 @@ impl ControlTick {
             index: t.index,
             joint_positions_rad: c.joints.q_rad.as_slice().to_vec(),
             joint_velocities_rad_per_s: c.joints.qd_rad_per_s.as_slice().to_vec(),
-            control_status: match c.status {
-                ControlStatus::Ok => 0,
-                ControlStatus::BadInput => 1,
-                ControlStatus::SolverFailed => 2,
-            },
+            control_status: control_status_code(c.status),
             tau_nm: c.tau_nm.as_slice().to_vec(),
             qdd_rad_per_s2: c.qdd_rad_per_s2.as_slice().to_vec(),
             late_s: t.late_s,
@@ -448,6 +444,7 @@ impl ControlTick {
                     0 => ControlStatus::Ok,
                     1 => ControlStatus::BadInput,
                     2 => ControlStatus::SolverFailed,
+                    3 => ControlStatus::Stopped,
                     s => return Err(Ros2Error::Value(format!("unknown control status {s}"))),
                 },
                 tau_nm: joints("tau_nm", &self.tau_nm)?,
@@ -539,14 +536,20 @@ impl NodeStatus {
             missed_ticks,
             fusion_status: fused.status,
             haptic_status: constraint.status,
-            control_status: match t.control.status {
-                ControlStatus::Ok => 0,
-                ControlStatus::BadInput => 1,
-                ControlStatus::SolverFailed => 2,
-            },
+            control_status: control_status_code(t.control.status),
             backend,
             cameras,
         }
+    }
+}
+
+/// The `control_status` field of `ControlTick` and `NodeStatus`.
+fn control_status_code(status: ControlStatus) -> u8 {
+    match status {
+        ControlStatus::Ok => 0,
+        ControlStatus::BadInput => 1,
+        ControlStatus::SolverFailed => 2,
+        ControlStatus::Stopped => 3,
     }
 }
 

@@ -1,0 +1,139 @@
+//! The 800 Hz control tick allocates nothing: a counting global allocator (this test binary's
+//! own) counts the heap allocations made on the tick's thread while the default scene
+//! (`torso_approach_realistic`, two simulated D435) runs through the haptic loop in simulated
+//! time with the node's split: perception processes each frame and fusion's window is fitted
+//! outside the count (the node's perception thread), and the control half's work per tick
+//! (the robot state at the tick, the fits handed over, fusion's evaluation and PID, the
+//! stale policy, the haptic constraints and the hierarchical controller) is counted. After a warm-up (the first estimates, the first fit, the first active
+//! constraint) every tick must make zero allocations, with the constraints active.
+
+use hapcloud::gpu::Backend;
+use hapcloud::haptics::HapticStatus;
+use hapcloud::node::NodeConfig;
+use hapcloud::node::haptic_loop::{FusionWindow, HapticLoop, RobotInput};
+use hapcloud::node::robot_state::RobotState;
+use hapcloud::scene::{Scene, Simulator};
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::cell::Cell;
+use std::sync::Arc;
+
+/// The system allocator, counting the allocations of a thread while its flag is on.
+struct Counting;
+
+thread_local! {
+    static COUNTING: Cell<bool> = const { Cell::new(false) };
+    static COUNT: Cell<u64> = const { Cell::new(0) };
+}
+
+fn note() {
+    // `try_with`: a thread's allocations after its locals are gone are not counted.
+    let _ = COUNTING.try_with(|on| {
+        if on.get() {
+            let _ = COUNT.try_with(|c| c.set(c.get() + 1));
+        }
+    });
+}
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        note();
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        note();
+        unsafe { System.alloc_zeroed(layout) }
+    }
+    unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        note();
+        unsafe { System.realloc(ptr, layout, new_size) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static ALLOCATOR: Counting = Counting;
+
+/// Allocations `f` makes on this thread.
+fn allocations<T>(f: impl FnOnce() -> T) -> (T, u64) {
+    COUNT.with(|c| c.set(0));
+    COUNTING.with(|on| on.set(true));
+    let out = f();
+    COUNTING.with(|on| on.set(false));
+    (out, COUNT.with(Cell::get))
+}
+
+#[test]
+fn a_control_tick_allocates_nothing_after_warm_up() {
+    let scene = Scene::from_builtin("torso_approach_realistic").unwrap();
+    let simulator = Arc::new(Simulator::new(&scene).unwrap());
+    let robot = RobotState::simulated(simulator.clone()).unwrap();
+    let config = NodeConfig::default();
+    let (mut perception, mut control) =
+        HapticLoop::new(&config, robot.model().clone(), Backend::Cpu, None)
+            .unwrap()
+            .into_halves();
+    let mut window = FusionWindow::new(&config).unwrap();
+    let frames: Vec<_> = simulator
+        .arrivals(0.0, simulator.duration_s())
+        .iter()
+        .map(|timing| simulator.frame(timing).frame)
+        .collect();
+    let tick_s = 1.0 / config.tick_rate_hz;
+    let t_first = frames.first().unwrap().stamp_s;
+    let t_end = frames.last().unwrap().stamp_s;
+    let mut next = frames.iter().peekable();
+    // Fits perception made, handed to the loop at the next tick (as the node does).
+    let mut ready = Vec::with_capacity(frames.len());
+    let (mut counted, mut active, mut with_estimates, mut total) = (0u64, 0u64, 0u64, 0u64);
+    let mut worst: Vec<(u64, f64, u64)> = Vec::new();
+    let mut warm = false;
+    let mut k = 0u64;
+    loop {
+        let t = t_first + k as f64 * tick_s;
+        if t > t_end {
+            break;
+        }
+        while let Some(frame) = next.next_if(|f| f.stamp_s <= t) {
+            let q = robot.at(frame.stamp_s).q_rad;
+            let record = perception
+                .process(frame, &robot.perception_scene(&q))
+                .unwrap();
+            ready.push(window.push(record.estimate(), record.far_field.as_ref(), t));
+        }
+        let handed = ready.len() as u64;
+        let (status, n) = allocations(|| {
+            for fit in ready.iter().flatten() {
+                control.use_fit(*fit);
+            }
+            let joints = robot.at(t);
+            let tick = control.tick(t, &RobotInput::without_force(joints));
+            tick.output.haptics.status
+        });
+        ready.clear();
+        if warm {
+            counted += 1;
+            total += n;
+            active += u64::from(status == HapticStatus::Active);
+            with_estimates += u64::from(handed > 0);
+            if n > 0 && worst.len() < 10 {
+                worst.push((k, t, n));
+            }
+        }
+        // Warm: fusion has fitted and the constraint has been active once.
+        warm |= status == HapticStatus::Active;
+        k += 1;
+    }
+    println!(
+        "{counted} ticks counted after warm-up, {active} with the constraint active, \
+         {with_estimates} with new estimates, {total} allocations; allocating ticks (index, t, allocations): {worst:?}"
+    );
+    assert!(counted > 1000, "only {counted} ticks after warm-up");
+    assert!(active > 100, "constraint active in {active} ticks only");
+    assert!(with_estimates > 20, "{with_estimates} ticks with estimates");
+    assert!(
+        worst.is_empty(),
+        "ticks allocated (tick index, t, allocations): {worst:?}"
+    );
+}
