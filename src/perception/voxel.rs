@@ -325,11 +325,15 @@ struct DenseRank {
 }
 
 impl DenseRank {
-    fn new(cells: u64, keys: &[u32]) -> Self {
+    /// Marks the cells of `keys` (computed here, one per point, so the points are read once
+    /// for both) and counts the words.
+    fn new(cells: u64, points: &[Vec3], key: &CellKey, keys: &mut Vec<u32>) -> Self {
         let mut bits = vec![0u64; cells.div_ceil(64) as usize];
-        for &k in keys {
+        keys.extend(points.iter().map(|p| {
+            let k = key.of(p);
             bits[(k >> 6) as usize] |= 1 << (k & 63);
-        }
+            k
+        }));
         let mut occupied = 0u32;
         let prefix = bits
             .iter()
@@ -352,8 +356,56 @@ impl DenseRank {
     }
 }
 
+/// `floor(x)` as an integer, for `x` whose floor fits in i32 (PCL's checks in [`pcl_grid`]
+/// bound every valid point's). Written out because `f32::floor` is a libm call on the
+/// baseline x86-64 target (no SSE4.1 `roundss`), three per point: truncation, then one
+/// down for negative non-integers. Exact: where `|x| >= 2^23` the f32 is an integer, so the
+/// truncation converts back to `x` itself.
+#[inline]
+fn floor_i32(x: f32) -> i32 {
+    let t = x as i32;
+    t - i32::from(t as f32 > x)
+}
+
+/// PCL's linear cell index of a point, with the grid's constants hoisted.
+struct CellKey {
+    inv: f32,
+    min_b: [i32; 3],
+    stride_y: u32,
+    stride_z: u32,
+}
+
+impl CellKey {
+    fn new(g: &Grid, inv: f32) -> Self {
+        // The linear index fits in u32: PCL's check bounds dx * dy * dz by i32::MAX, and
+        // div <= d along each axis, so each term and their sum stay below 2^31.
+        Self {
+            inv,
+            min_b: g.min_b,
+            stride_y: g.div[0] as u32,
+            stride_z: (g.div[0] * g.div[1]) as u32,
+        }
+    }
+
+    #[inline]
+    fn of(&self, p: &Vec3) -> u32 {
+        let rel = |a: usize| floor_i32(p[a] * self.inv).wrapping_sub(self.min_b[a]) as u32;
+        rel(0)
+            .wrapping_add(rel(1).wrapping_mul(self.stride_y))
+            .wrapping_add(rel(2).wrapping_mul(self.stride_z))
+    }
+}
+
+/// One cell's running sum (f64, its points in input order) and count, side by side so a
+/// point's update touches one cache line.
+#[derive(Clone, Copy, Default)]
+struct CellSum {
+    sum: [f64; 3],
+    count: u32,
+}
+
 /// CPU reference: the voxel grid of the points of `points` that are valid, set in `mask`
-/// (a crop keep mask, when given) and inside the filter limits.
+/// (a crop keep mask, when given) and inside the filter limits. Single-threaded.
 pub fn voxel_cpu(
     points: &[Vec3],
     mask: Option<&[u32]>,
@@ -370,16 +422,22 @@ pub fn voxel_cpu_with_leaf(
     leaf_m: f64,
 ) -> Result<VoxelOutput, VoxelError> {
     config.validate()?;
-    let valid: Vec<Vec3> = points
-        .iter()
-        .enumerate()
-        .filter(|&(i, p)| {
-            finite_bits(*p)
-                && mask.is_none_or(|m| mask_bit(m, i))
-                && config.filter.as_ref().is_none_or(|f| f.keeps(*p))
-        })
-        .map(|(_, p)| *p)
-        .collect();
+    // One pass: the valid points and their bounds.
+    let mut valid: Vec<Vec3> = Vec::with_capacity(points.len());
+    let mut min_p = [f32::INFINITY; 3];
+    let mut max_p = [f32::NEG_INFINITY; 3];
+    for (i, p) in points.iter().enumerate() {
+        if finite_bits(*p)
+            && mask.is_none_or(|m| mask_bit(m, i))
+            && config.filter.as_ref().is_none_or(|f| f.keeps(*p))
+        {
+            valid.push(*p);
+            for a in 0..3 {
+                min_p[a] = min_p[a].min(p[a]);
+                max_p[a] = max_p[a].max(p[a]);
+            }
+        }
+    }
     let mut out = VoxelOutput {
         points: Vec::new(),
         counts: Vec::new(),
@@ -392,25 +450,9 @@ pub fn voxel_cpu_with_leaf(
     if valid.is_empty() {
         return Ok(out);
     }
-    let mut min_p = [f32::INFINITY; 3];
-    let mut max_p = [f32::NEG_INFINITY; 3];
-    for p in &valid {
-        for a in 0..3 {
-            min_p[a] = min_p[a].min(p[a]);
-            max_p[a] = max_p[a].max(p[a]);
-        }
-    }
     let inv = inv_leaf(leaf_m);
     let g = pcl_grid(min_p, max_p, inv, leaf_m)?;
-    // The linear index fits in u32: PCL's check bounds dx * dy * dz by i32::MAX, and
-    // div <= d along each axis.
-    let keys: Vec<u32> = valid
-        .iter()
-        .map(|p| {
-            let rel = |a: usize| ((p[a] * inv).floor() as i64 - i64::from(g.min_b[a])) as u64;
-            (rel(0) + rel(1) * g.div[0] as u64 + rel(2) * (g.div[0] * g.div[1]) as u64) as u32
-        })
-        .collect();
+    let key = CellKey::new(&g, inv);
     let cells = (g.div[0] * g.div[1] * g.div[2]) as u64;
     let min_points = config.min_points_per_voxel.max(1);
     let mut emit = |count: u32, sum: [f64; 3]| {
@@ -428,26 +470,26 @@ pub fn voxel_cpu_with_leaf(
     // (and the means) are the same whichever path runs.
     out.dense = dense_grid(cells, valid.len() as u64);
     if out.dense {
-        let grid = DenseRank::new(cells, &keys);
-        let mut count = vec![0u32; grid.occupied as usize];
-        let mut sum = vec![[0.0f64; 3]; grid.occupied as usize];
+        let mut keys = Vec::with_capacity(valid.len());
+        let grid = DenseRank::new(cells, &valid, &key, &mut keys);
+        let mut acc = vec![CellSum::default(); grid.occupied as usize];
         for (p, &k) in valid.iter().zip(&keys) {
-            let r = grid.rank(k) as usize;
-            count[r] += 1;
+            let c = &mut acc[grid.rank(k) as usize];
+            c.count += 1;
             for a in 0..3 {
-                sum[r][a] += f64::from(p[a]);
+                c.sum[a] += f64::from(p[a]);
             }
         }
-        for (&c, &s) in count.iter().zip(&sum) {
-            emit(c, s);
+        for c in &acc {
+            emit(c.count, c.sum);
         }
     } else {
         // Key in the high half, input position in the low half: unique, so an unstable
         // sort orders the points of a cell by input position.
-        let mut order: Vec<u64> = keys
+        let mut order: Vec<u64> = valid
             .iter()
             .enumerate()
-            .map(|(i, &k)| (u64::from(k) << 32) | i as u64)
+            .map(|(i, p)| (u64::from(key.of(p)) << 32) | i as u64)
             .collect();
         order.sort_unstable();
         for run in order.chunk_by(|a, b| a >> 32 == b >> 32) {
@@ -1513,6 +1555,24 @@ pub(crate) mod tests {
             gpu_run(&pts, &config),
             Err(VoxelError::GridOverflow { .. })
         ));
+    }
+
+    #[test]
+    fn integer_floor_equals_f32_floor() {
+        let mut xs = vec![
+            0.0f32, -0.0, 0.5, -0.5, 1.0, -1.0, 1.5, -1.5, 8388607.5, -8388607.5, 16777217.0,
+            -16777217.0, 2147483520.0, -2147483648.0, f32::MIN_POSITIVE, -f32::MIN_POSITIVE,
+        ];
+        // Every magnitude and both signs: a sweep over the f32 bit patterns.
+        xs.extend(
+            (0..u32::MAX)
+                .step_by(4099)
+                .map(f32::from_bits)
+                .filter(|x| x.is_finite() && x.abs() < 2147483520.0),
+        );
+        for x in xs {
+            assert_eq!(floor_i32(x), x.floor() as i32, "floor of {x}");
+        }
     }
 
     #[test]
