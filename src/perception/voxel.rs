@@ -325,11 +325,21 @@ struct DenseRank {
 }
 
 impl DenseRank {
-    /// Marks the cells of `keys` (computed here, one per point, so the points are read once
-    /// for both) and counts the words.
-    fn new(cells: u64, points: &[Vec3], key: &CellKey, keys: &mut Vec<u32>) -> Self {
+    /// Marks the cells of the points `valid` keeps and counts the words; `keys` gets each
+    /// point's cell index ([`NOT_VALID`] for the others), computed here so the points are
+    /// read once for both.
+    fn new(
+        cells: u64,
+        points: &[Vec3],
+        valid: impl Fn(usize, &Vec3) -> bool,
+        key: &CellKey,
+        keys: &mut Vec<u32>,
+    ) -> Self {
         let mut bits = vec![0u64; cells.div_ceil(64) as usize];
-        keys.extend(points.iter().map(|p| {
+        keys.extend(points.iter().enumerate().map(|(i, p)| {
+            if !valid(i, p) {
+                return NOT_VALID;
+            }
             let k = key.of(p);
             bits[(k >> 6) as usize] |= 1 << (k & 63);
             k
@@ -396,6 +406,9 @@ impl CellKey {
     }
 }
 
+/// Cell index of a point that does not enter the grid (linear indices stay below 2^31).
+const NOT_VALID: u32 = u32::MAX;
+
 /// One cell's running sum (f64, its points in input order) and count, side by side so a
 /// point's update touches one cache line.
 #[derive(Clone, Copy, Default)]
@@ -422,32 +435,41 @@ pub fn voxel_cpu_with_leaf(
     leaf_m: f64,
 ) -> Result<VoxelOutput, VoxelError> {
     config.validate()?;
-    // One pass: the valid points and their bounds.
-    let mut valid: Vec<Vec3> = Vec::with_capacity(points.len());
+    let valid = |i: usize, p: &Vec3| {
+        finite_bits(*p)
+            && mask.is_none_or(|m| mask_bit(m, i))
+            && config.filter.as_ref().is_none_or(|f| f.keeps(*p))
+    };
+    // First pass: how many points are valid and their bounds (no copy of them: the later
+    // passes test each point again, which costs less than writing and reading a copy).
+    let mut valid_in = 0usize;
     let mut min_p = [f32::INFINITY; 3];
     let mut max_p = [f32::NEG_INFINITY; 3];
     for (i, p) in points.iter().enumerate() {
-        if finite_bits(*p)
-            && mask.is_none_or(|m| mask_bit(m, i))
-            && config.filter.as_ref().is_none_or(|f| f.keeps(*p))
-        {
-            valid.push(*p);
+        if valid(i, p) {
+            valid_in += 1;
+            // Plain comparisons: the values are finite, and a signed zero picked either
+            // way gives the same cell and the same extent.
             for a in 0..3 {
-                min_p[a] = min_p[a].min(p[a]);
-                max_p[a] = max_p[a].max(p[a]);
+                if p[a] < min_p[a] {
+                    min_p[a] = p[a];
+                }
+                if p[a] > max_p[a] {
+                    max_p[a] = p[a];
+                }
             }
         }
     }
     let mut out = VoxelOutput {
         points: Vec::new(),
         counts: Vec::new(),
-        valid_in: valid.len(),
+        valid_in,
         leaf_m,
         table_slots: None,
         retries: 0,
         dense: false,
     };
-    if valid.is_empty() {
+    if valid_in == 0 {
         return Ok(out);
     }
     let inv = inv_leaf(leaf_m);
@@ -468,13 +490,22 @@ pub fn voxel_cpu_with_leaf(
     };
     // Within a cell the points are summed in input order on both paths, so the f64 sums
     // (and the means) are the same whichever path runs.
-    out.dense = dense_grid(cells, valid.len() as u64);
+    out.dense = dense_grid(cells, valid_in as u64);
     if out.dense {
-        let mut keys = Vec::with_capacity(valid.len());
-        let grid = DenseRank::new(cells, &valid, &key, &mut keys);
+        let mut keys = Vec::with_capacity(points.len());
+        let grid = DenseRank::new(cells, points, valid, &key, &mut keys);
         let mut acc = vec![CellSum::default(); grid.occupied as usize];
-        for (p, &k) in valid.iter().zip(&keys) {
-            let c = &mut acc[grid.rank(k) as usize];
+        // Consecutive points of a scan often share a cell: its rank is looked up once.
+        let (mut last, mut r) = (NOT_VALID, 0usize);
+        for (p, &k) in points.iter().zip(&keys) {
+            if k == NOT_VALID {
+                continue;
+            }
+            if k != last {
+                r = grid.rank(k) as usize;
+                last = k;
+            }
+            let c = &mut acc[r];
             c.count += 1;
             for a in 0..3 {
                 c.sum[a] += f64::from(p[a]);
@@ -486,15 +517,16 @@ pub fn voxel_cpu_with_leaf(
     } else {
         // Key in the high half, input position in the low half: unique, so an unstable
         // sort orders the points of a cell by input position.
-        let mut order: Vec<u64> = valid
+        let mut order: Vec<u64> = points
             .iter()
             .enumerate()
+            .filter(|&(i, p)| valid(i, p))
             .map(|(i, p)| (u64::from(key.of(p)) << 32) | i as u64)
             .collect();
         order.sort_unstable();
         for run in order.chunk_by(|a, b| a >> 32 == b >> 32) {
             let s = run.iter().fold([0.0f64; 3], |s, &e| {
-                let p = valid[(e & 0xffff_ffff) as usize];
+                let p = points[(e & 0xffff_ffff) as usize];
                 [
                     s[0] + f64::from(p.x),
                     s[1] + f64::from(p.y),
@@ -1560,8 +1592,22 @@ pub(crate) mod tests {
     #[test]
     fn integer_floor_equals_f32_floor() {
         let mut xs = vec![
-            0.0f32, -0.0, 0.5, -0.5, 1.0, -1.0, 1.5, -1.5, 8388607.5, -8388607.5, 16777217.0,
-            -16777217.0, 2147483520.0, -2147483648.0, f32::MIN_POSITIVE, -f32::MIN_POSITIVE,
+            0.0f32,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            1.5,
+            -1.5,
+            8388607.5,
+            -8388607.5,
+            16777217.0,
+            -16777217.0,
+            2147483520.0,
+            -2147483648.0,
+            f32::MIN_POSITIVE,
+            -f32::MIN_POSITIVE,
         ];
         // Every magnitude and both signs: a sweep over the f32 bit patterns.
         xs.extend(
