@@ -325,11 +325,25 @@ struct DenseRank {
 }
 
 impl DenseRank {
-    fn new(cells: u64, keys: &[u32]) -> Self {
+    /// Marks the cells of the points `valid` keeps and counts the words; `keys` gets each
+    /// point's cell index ([`NOT_VALID`] for the others), computed here so the points are
+    /// read once for both.
+    fn new(
+        cells: u64,
+        points: &[Vec3],
+        valid: impl Fn(usize, &Vec3) -> bool,
+        key: &CellKey,
+        keys: &mut Vec<u32>,
+    ) -> Self {
         let mut bits = vec![0u64; cells.div_ceil(64) as usize];
-        for &k in keys {
+        keys.extend(points.iter().enumerate().map(|(i, p)| {
+            if !valid(i, p) {
+                return NOT_VALID;
+            }
+            let k = key.of(p);
             bits[(k >> 6) as usize] |= 1 << (k & 63);
-        }
+            k
+        }));
         let mut occupied = 0u32;
         let prefix = bits
             .iter()
@@ -352,8 +366,59 @@ impl DenseRank {
     }
 }
 
+/// `floor(x)` as an integer, for `x` whose floor fits in i32 (PCL's checks in [`pcl_grid`]
+/// bound every valid point's). Written out because `f32::floor` is a libm call on the
+/// baseline x86-64 target (no SSE4.1 `roundss`), three per point: truncation, then one
+/// down for negative non-integers. Exact: where `|x| >= 2^23` the f32 is an integer, so the
+/// truncation converts back to `x` itself.
+#[inline]
+fn floor_i32(x: f32) -> i32 {
+    let t = x as i32;
+    t - i32::from(t as f32 > x)
+}
+
+/// PCL's linear cell index of a point, with the grid's constants hoisted.
+struct CellKey {
+    inv: f32,
+    min_b: [i32; 3],
+    stride_y: u32,
+    stride_z: u32,
+}
+
+impl CellKey {
+    fn new(g: &Grid, inv: f32) -> Self {
+        // The linear index fits in u32: PCL's check bounds dx * dy * dz by i32::MAX, and
+        // div <= d along each axis, so each term and their sum stay below 2^31.
+        Self {
+            inv,
+            min_b: g.min_b,
+            stride_y: g.div[0] as u32,
+            stride_z: (g.div[0] * g.div[1]) as u32,
+        }
+    }
+
+    #[inline]
+    fn of(&self, p: &Vec3) -> u32 {
+        let rel = |a: usize| floor_i32(p[a] * self.inv).wrapping_sub(self.min_b[a]) as u32;
+        rel(0)
+            .wrapping_add(rel(1).wrapping_mul(self.stride_y))
+            .wrapping_add(rel(2).wrapping_mul(self.stride_z))
+    }
+}
+
+/// Cell index of a point that does not enter the grid (linear indices stay below 2^31).
+const NOT_VALID: u32 = u32::MAX;
+
+/// One cell's running sum (f64, its points in input order) and count, side by side so a
+/// point's update touches one cache line.
+#[derive(Clone, Copy, Default)]
+struct CellSum {
+    sum: [f64; 3],
+    count: u32,
+}
+
 /// CPU reference: the voxel grid of the points of `points` that are valid, set in `mask`
-/// (a crop keep mask, when given) and inside the filter limits.
+/// (a crop keep mask, when given) and inside the filter limits. Single-threaded.
 pub fn voxel_cpu(
     points: &[Vec3],
     mask: Option<&[u32]>,
@@ -370,47 +435,46 @@ pub fn voxel_cpu_with_leaf(
     leaf_m: f64,
 ) -> Result<VoxelOutput, VoxelError> {
     config.validate()?;
-    let valid: Vec<Vec3> = points
-        .iter()
-        .enumerate()
-        .filter(|&(i, p)| {
-            finite_bits(*p)
-                && mask.is_none_or(|m| mask_bit(m, i))
-                && config.filter.as_ref().is_none_or(|f| f.keeps(*p))
-        })
-        .map(|(_, p)| *p)
-        .collect();
+    let valid = |i: usize, p: &Vec3| {
+        finite_bits(*p)
+            && mask.is_none_or(|m| mask_bit(m, i))
+            && config.filter.as_ref().is_none_or(|f| f.keeps(*p))
+    };
+    // First pass: how many points are valid and their bounds (no copy of them: the later
+    // passes test each point again, which costs less than writing and reading a copy).
+    let mut valid_in = 0usize;
+    let mut min_p = [f32::INFINITY; 3];
+    let mut max_p = [f32::NEG_INFINITY; 3];
+    for (i, p) in points.iter().enumerate() {
+        if valid(i, p) {
+            valid_in += 1;
+            // Plain comparisons: the values are finite, and a signed zero picked either
+            // way gives the same cell and the same extent.
+            for a in 0..3 {
+                if p[a] < min_p[a] {
+                    min_p[a] = p[a];
+                }
+                if p[a] > max_p[a] {
+                    max_p[a] = p[a];
+                }
+            }
+        }
+    }
     let mut out = VoxelOutput {
         points: Vec::new(),
         counts: Vec::new(),
-        valid_in: valid.len(),
+        valid_in,
         leaf_m,
         table_slots: None,
         retries: 0,
         dense: false,
     };
-    if valid.is_empty() {
+    if valid_in == 0 {
         return Ok(out);
-    }
-    let mut min_p = [f32::INFINITY; 3];
-    let mut max_p = [f32::NEG_INFINITY; 3];
-    for p in &valid {
-        for a in 0..3 {
-            min_p[a] = min_p[a].min(p[a]);
-            max_p[a] = max_p[a].max(p[a]);
-        }
     }
     let inv = inv_leaf(leaf_m);
     let g = pcl_grid(min_p, max_p, inv, leaf_m)?;
-    // The linear index fits in u32: PCL's check bounds dx * dy * dz by i32::MAX, and
-    // div <= d along each axis.
-    let keys: Vec<u32> = valid
-        .iter()
-        .map(|p| {
-            let rel = |a: usize| ((p[a] * inv).floor() as i64 - i64::from(g.min_b[a])) as u64;
-            (rel(0) + rel(1) * g.div[0] as u64 + rel(2) * (g.div[0] * g.div[1]) as u64) as u32
-        })
-        .collect();
+    let key = CellKey::new(&g, inv);
     let cells = (g.div[0] * g.div[1] * g.div[2]) as u64;
     let min_points = config.min_points_per_voxel.max(1);
     let mut emit = |count: u32, sum: [f64; 3]| {
@@ -426,33 +490,43 @@ pub fn voxel_cpu_with_leaf(
     };
     // Within a cell the points are summed in input order on both paths, so the f64 sums
     // (and the means) are the same whichever path runs.
-    out.dense = dense_grid(cells, valid.len() as u64);
+    out.dense = dense_grid(cells, valid_in as u64);
     if out.dense {
-        let grid = DenseRank::new(cells, &keys);
-        let mut count = vec![0u32; grid.occupied as usize];
-        let mut sum = vec![[0.0f64; 3]; grid.occupied as usize];
-        for (p, &k) in valid.iter().zip(&keys) {
-            let r = grid.rank(k) as usize;
-            count[r] += 1;
+        let mut keys = Vec::with_capacity(points.len());
+        let grid = DenseRank::new(cells, points, valid, &key, &mut keys);
+        let mut acc = vec![CellSum::default(); grid.occupied as usize];
+        // Consecutive points of a scan often share a cell: its rank is looked up once.
+        let (mut last, mut r) = (NOT_VALID, 0usize);
+        for (p, &k) in points.iter().zip(&keys) {
+            if k == NOT_VALID {
+                continue;
+            }
+            if k != last {
+                r = grid.rank(k) as usize;
+                last = k;
+            }
+            let c = &mut acc[r];
+            c.count += 1;
             for a in 0..3 {
-                sum[r][a] += f64::from(p[a]);
+                c.sum[a] += f64::from(p[a]);
             }
         }
-        for (&c, &s) in count.iter().zip(&sum) {
-            emit(c, s);
+        for c in &acc {
+            emit(c.count, c.sum);
         }
     } else {
         // Key in the high half, input position in the low half: unique, so an unstable
         // sort orders the points of a cell by input position.
-        let mut order: Vec<u64> = keys
+        let mut order: Vec<u64> = points
             .iter()
             .enumerate()
-            .map(|(i, &k)| (u64::from(k) << 32) | i as u64)
+            .filter(|&(i, p)| valid(i, p))
+            .map(|(i, p)| (u64::from(key.of(p)) << 32) | i as u64)
             .collect();
         order.sort_unstable();
         for run in order.chunk_by(|a, b| a >> 32 == b >> 32) {
             let s = run.iter().fold([0.0f64; 3], |s, &e| {
-                let p = valid[(e & 0xffff_ffff) as usize];
+                let p = points[(e & 0xffff_ffff) as usize];
                 [
                     s[0] + f64::from(p.x),
                     s[1] + f64::from(p.y),
@@ -1513,6 +1587,38 @@ pub(crate) mod tests {
             gpu_run(&pts, &config),
             Err(VoxelError::GridOverflow { .. })
         ));
+    }
+
+    #[test]
+    fn integer_floor_equals_f32_floor() {
+        let mut xs = vec![
+            0.0f32,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            1.5,
+            -1.5,
+            8388607.5,
+            -8388607.5,
+            16777217.0,
+            -16777217.0,
+            2147483520.0,
+            -2147483648.0,
+            f32::MIN_POSITIVE,
+            -f32::MIN_POSITIVE,
+        ];
+        // Every magnitude and both signs: a sweep over the f32 bit patterns.
+        xs.extend(
+            (0..u32::MAX)
+                .step_by(4099)
+                .map(f32::from_bits)
+                .filter(|x| x.is_finite() && x.abs() < 2147483520.0),
+        );
+        for x in xs {
+            assert_eq!(floor_i32(x), x.floor() as i32, "floor of {x}");
+        }
     }
 
     #[test]
