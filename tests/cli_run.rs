@@ -5,8 +5,9 @@
 mod common;
 
 use common::{TempDir, grabber_pcd, hapcloud, run_node, run_ok};
+use hapcloud::control::record::TickRecord;
 use hapcloud::io::can;
-use hapcloud::node::record::{self, TickRecord};
+use hapcloud::node::record;
 use std::collections::BTreeMap;
 use std::ffi::OsStr;
 
@@ -272,4 +273,59 @@ fn default_backend_follows_the_adapter() {
     let run = run_ok(args);
     let summary: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
     assert_eq!(summary["backend"], expected, "{summary}");
+}
+
+/// The disk fills while recording (the file-size limit `ulimit -f` of 2 MB: writes beyond it
+/// fail with EFBIG): the recording stops, the node goes on controlling to the end and says
+/// what it did not record.
+#[test]
+fn a_recording_that_hits_the_file_size_limit_stops_but_the_node_goes_on() {
+    use std::os::unix::process::CommandExt;
+    let dir = TempDir::new("file_size_limit");
+    let file = dir.path.join("run.mcap");
+    let mut command = hapcloud();
+    command.args([
+        "run",
+        "--json",
+        "--backend",
+        "cpu",
+        "--duration",
+        "3",
+        "--record",
+    ]);
+    command.arg(&file);
+    // SAFETY: setrlimit is async-signal-safe; nothing else runs between fork and exec.
+    unsafe {
+        command.pre_exec(|| {
+            let limit = libc::rlimit {
+                rlim_cur: 2 << 20,
+                rlim_max: 2 << 20,
+            };
+            if libc::setrlimit(libc::RLIMIT_FSIZE, &limit) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let out = command.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let error = summary["recording_error"]
+        .as_str()
+        .expect("a recording error");
+    assert!(error.contains("run.mcap"), "{error}");
+    let unrecorded = summary["unrecorded_frames"].as_u64().unwrap()
+        + summary["unrecorded_ticks"].as_u64().unwrap();
+    assert!(unrecorded > 0, "{summary}");
+    let ticks = summary["ticks"].as_u64().unwrap();
+    assert!(ticks > 2000, "{summary}");
+    assert!(
+        summary["tracking_ticks"].as_u64().unwrap() > ticks / 3,
+        "{summary}"
+    );
+    assert!(std::fs::metadata(&file).unwrap().len() <= 2 << 20);
 }

@@ -6,6 +6,7 @@
 use glam::Vec3;
 use hapcloud::camera::Frame;
 use hapcloud::control::ControlStatus;
+use hapcloud::control::record::{ControlRecord, TickRecord};
 use hapcloud::haptics::HapticStatus;
 use hapcloud::io::mcap::{McapItem, McapReader, McapReaderConfig, McapWriter, McapWriterConfig};
 use hapcloud::io::ros2::assemble::{CameraTopics, Pose};
@@ -15,8 +16,7 @@ use hapcloud::io::ros2::typedesc::MsgDesc;
 use hapcloud::io::zenoh::{
     ZenohConfig, ZenohPublisher, ZenohPublisherConfig, ZenohSource, ZenohSourceConfig, open_session,
 };
-use hapcloud::node::record::{ControlRecord, TickRecord};
-use hapcloud::node::robot_state::JointState;
+use hapcloud::robot::JointState;
 use hapcloud::robot::JointVector;
 use hapcloud::surface::{FusedSurface, FusionStatus};
 use nalgebra::{Point3, Quaternion, Unit, UnitQuaternion, Vector3};

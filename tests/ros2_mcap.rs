@@ -5,13 +5,13 @@ use glam::Vec3;
 use hapcloud::camera::{DepthImage, Frame, PinholeIntrinsics};
 use hapcloud::cloud::PointCloud;
 use hapcloud::control::ControlStatus;
+use hapcloud::control::record::{ControlRecord, TickRecord};
 use hapcloud::haptics::HapticStatus;
 use hapcloud::io::mcap::{
     ChunkCompression, FrameEncoding, McapItem, McapReader, McapReaderConfig, McapWriter,
     McapWriterConfig,
 };
-use hapcloud::node::record::{ControlRecord, TickRecord};
-use hapcloud::node::robot_state::JointState;
+use hapcloud::robot::JointState;
 use hapcloud::robot::JointVector;
 use hapcloud::surface::{FusedSurface, FusionStatus};
 use hapcloud::surface::{SurfaceEstimate, SurfacePoint};
@@ -147,7 +147,10 @@ fn tick(i: u64) -> TickRecord {
 
 fn assert_same_tick(a: &TickRecord, b: &TickRecord) {
     // NaN fields make PartialEq useless; replay compares these bytes.
-    assert_eq!(a.deterministic_bytes(), b.deterministic_bytes());
+    assert_eq!(
+        hapcloud::node::record::deterministic_bytes(a),
+        hapcloud::node::record::deterministic_bytes(b)
+    );
     assert_eq!((a.late_s, a.work_s), (b.late_s, b.work_s));
 }
 

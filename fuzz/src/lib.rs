@@ -7,6 +7,7 @@
 //! fails `cargo test` without a fuzzer installed. No part of the paper is implemented here.
 
 use hapcloud::io::mcap::{McapItem, McapReader};
+use hapcloud::io::ros2::assemble::{CameraTopics, FrameAssembler, Pose};
 use hapcloud::io::{can, depth, pcd, ply};
 use hapcloud::node::NodeConfig;
 use hapcloud::node::record;
@@ -20,7 +21,7 @@ use std::sync::OnceLock;
 pub type Target = fn(&[u8]);
 
 /// Every target by name (the directory names under `fuzz/corpus/` and `fuzz/regressions/`).
-pub const TARGETS: [(&str, Target); 9] = [
+pub const TARGETS: [(&str, Target); 10] = [
     ("pcd", pcd),
     ("ply", ply),
     ("depth_png", depth_png),
@@ -30,6 +31,7 @@ pub const TARGETS: [(&str, Target); 9] = [
     ("scene_toml", scene_toml),
     ("config_toml", config_toml),
     ("recording", recording),
+    ("ros2_messages", ros2_messages),
 ];
 
 /// PCD (`ascii`, `binary`, `binary_compressed`), as `hapcloud convert` reads it.
@@ -147,4 +149,37 @@ pub fn recording(data: &[u8]) {
     let file = recording_file();
     std::fs::write(file, data).expect("temporary recording");
     let _ = record::read(file);
+}
+
+/// The topics of the `ros2_messages` target: a depth camera with its info (posed in the
+/// config), a point-cloud camera (posed by `/tf_static`), and `/tf_static`.
+pub const ROS2_TOPICS: [&str; 4] = [
+    "/cam0/depth/image_rect_raw",
+    "/cam0/depth/camera_info",
+    "/cam1/depth/points",
+    "/tf_static",
+];
+
+/// ROS 2 messages as the Zenoh source receives them (`hapcloud run zenoh`): the input is a
+/// sequence of `[topic index byte][u32 LE length][CDR payload]` records, each payload handed
+/// to the frame assembler on the [`ROS2_TOPICS`] topic it picks, which decodes the CDR
+/// (Image, CameraInfo, PointCloud2, TFMessage), checks it, pairs images with their info and
+/// deprojects or converts them to frames.
+pub fn ros2_messages(data: &[u8]) {
+    let mut depth = CameraTopics::depth(0, ROS2_TOPICS[0]);
+    depth.world_from_camera = Some(Pose::default());
+    let cameras = vec![depth, CameraTopics::points(1, ROS2_TOPICS[2])];
+    let mut assembler = FrameAssembler::new(cameras, "").expect("valid topics");
+    let mut rest = data;
+    while let [topic, tail @ ..] = rest {
+        let Some((len, tail)) = tail.split_first_chunk::<4>() else {
+            break;
+        };
+        let n = (u32::from_le_bytes(*len) as usize).min(tail.len());
+        let topic = ROS2_TOPICS[usize::from(*topic) % ROS2_TOPICS.len()];
+        if let Some(assembled) = assembler.push(topic, &tail[..n]) {
+            let _ = assembled.frame.cloud.points.len();
+        }
+        rest = &tail[n..];
+    }
 }

@@ -161,6 +161,12 @@ fn read_config(path: &std::path::Path) -> anyhow::Result<RunConfig> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    // A recording that reaches the file-size limit (`ulimit -f`) must fail its writes with
+    // EFBIG, which stops the recording, not the node: SIGXFSZ's default action would kill it.
+    // SAFETY: setting a signal's disposition to SIG_IGN installs no handler code.
+    unsafe {
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+    }
     let mut run_config = match &args.config {
         Some(path) => read_config(path)?,
         None => RunConfig::default(),
@@ -292,14 +298,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     #[cfg(feature = "ros2")]
     let on_tick = {
         let thread = outputs.as_ref().map(|(_, t)| t);
-        move |t: &record::TickRecord| {
+        move |t: &hapcloud::control::record::TickRecord| {
             if let Some(o) = thread {
                 o.offer(t);
             }
         }
     };
     #[cfg(not(feature = "ros2"))]
-    let on_tick = |_: &record::TickRecord| {};
+    let on_tick = |_: &hapcloud::control::record::TickRecord| {};
     let config = config.clone();
     #[cfg(feature = "viewer")]
     let summary = if args.overlay {
@@ -351,7 +357,7 @@ fn run_with_overlay(
     config: NodeConfig,
     source: Source,
     mut options: RunOptions,
-    on_tick: impl FnMut(&record::TickRecord) + Send,
+    on_tick: impl FnMut(&hapcloud::control::record::TickRecord) + Send,
 ) -> anyhow::Result<NodeSummary> {
     use hapcloud::viewer::overlay::Overlay;
     use hapcloud::viewer::{ViewerApp, ViewerConfig, ViewerSource, run_window};

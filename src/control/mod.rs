@@ -33,6 +33,7 @@
 
 pub mod hqp;
 pub mod qp;
+pub mod record;
 
 use crate::haptics::{self, HapticConfig, HapticConstraints};
 use crate::robot::{DOF, HipKinematics, JointMatrix, JointVector, RobotModel};

@@ -25,7 +25,7 @@ use super::ros2::hapcloud::{ControlTick, FrameMeta, SurfaceEstimate as EstimateM
 use super::ros2::msgs::{CAMERA_INFO, Header, IMAGE, POINT_CLOUD2, TfMessage, TransformStamped};
 use super::ros2::{Ros2Error, RosMessage, decode, encode, time_from_seconds, topics};
 use crate::camera::Frame;
-use crate::node::record::TickRecord;
+use crate::control::record::TickRecord;
 use crate::surface::SurfaceEstimate;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use serde::{Deserialize, Serialize};

@@ -24,7 +24,7 @@ use super::ros2::msgs::{CameraInfo, Header, Image, JointState, PointCloud2, TfMe
 use super::ros2::typedesc::MsgDesc;
 use super::ros2::{Ros2Error, RosMessage, encode, time_from_seconds, topics};
 use crate::camera::Frame;
-use crate::node::record::TickRecord;
+use crate::control::record::TickRecord;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::str::FromStr;

@@ -25,8 +25,8 @@
 //! drops and counts the frame); a write error on the log or the socket is reported once and
 //! the output is closed, the control loop goes on.
 
-use super::record::TickRecord;
 use crate::control::ControlStatus;
+use crate::control::record::TickRecord;
 use crate::haptics::HapticStatus;
 use crate::io::can::{
     CanBackend, CanConstraint, CanError, CanJointState, CanSender, CanStatus, CanSurface,

@@ -13,16 +13,17 @@
 //! replay, the closed-loop experiments, the study, the evaluation and the viewer drive the
 //! whole loop in simulated time.
 
-use super::robot_state::{JointState, PerceptionScene};
+use super::robot_state::PerceptionScene;
 use super::{NodeConfig, NodeError, StalePolicy};
 use crate::camera::Frame;
+use crate::control::record::{ControlRecord, TickRecord};
 use crate::control::{Controller, ControllerInput, ControllerOutput, Intent};
 use crate::fusion::{Fit, Fusion, PushOutcome};
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticConstraints;
 use crate::perception::lookahead::{LookaheadConfig, far_field};
 use crate::perception::pipeline::{CameraChain, ChainFrame};
-use crate::robot::RobotModel;
+use crate::robot::{JointState, RobotModel};
 use crate::surface::{FarFieldEstimate, SurfaceEstimate};
 use crate::surface::{FusedSurface, FusionStatus};
 use nalgebra::{Isometry3, Vector3};
@@ -79,6 +80,17 @@ pub struct Tick {
 impl Tick {
     pub fn haptics(&self) -> &HapticConstraints {
         &self.output.haptics
+    }
+
+    /// The record of this tick, number `index` of the loop, for the robot state `joints`.
+    pub fn record(&self, index: u64, joints: JointState, late_s: f64) -> TickRecord {
+        TickRecord {
+            index,
+            fused: self.fused,
+            control: ControlRecord::new(joints, self.held, &self.output),
+            late_s,
+            work_s: 0.0,
+        }
     }
 }
 

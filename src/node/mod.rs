@@ -20,7 +20,7 @@
 //!    [`crate::haptics`]) and the hierarchical controller ([`crate::control`]) turn it into
 //!    a joint torque command for the robot state at the tick ([`robot_state`]: the scene's
 //!    joint trajectory for a simulated source, a standing robot otherwise). The tick's outputs
-//!    go to the recording ([`record::ControlRecord`]) and to CAN ([`can_out`]). The patient's
+//!    go to the recording ([`crate::control::record::ControlRecord`]) and to CAN ([`can_out`]). The patient's
 //!    interaction force is taken as zero (the simulated robot has no force sensor), and the
 //!    intent is the transparent mode (gravity compensation and damping, paper Table I).
 //!
@@ -51,6 +51,7 @@ pub mod robot_state;
 mod tests;
 
 use crate::camera::Frame;
+use crate::control::record::TickRecord;
 use crate::control::{ControllerConfig, ControllerConfigError};
 use crate::fusion::{CameraLatency, Fit, FusionConfig, FusionConfigError, FusionCounters};
 use crate::gpu::Backend;
@@ -71,7 +72,7 @@ use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
 use frame_queue::{CloseOnDrop, FrameQueue};
 use haptic_loop::{FrameRecord, FusionWindow, HapticLoop, Perception, RobotInput};
 use nalgebra::Point3;
-use record::{FrameRecorder, RecordError, TickRecord, TickRecorder};
+use record::{FrameRecorder, RecordError, TickRecorder};
 use robot_state::{RobotState, RobotStateConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -1113,6 +1114,9 @@ pub fn run(
             f.camera_id, f.stamp_s
         )));
     }
+    // Memory is locked first: locking a large process takes a while, and a live source's
+    // clock starts at the wall time read below.
+    let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
     let (t_first, t_end) = match timed_frames {
         Some(frames) => {
             let first = frames
@@ -1138,7 +1142,6 @@ pub fn run(
             (now_s, now_s + options.duration_s.unwrap_or(f64::INFINITY))
         }
     };
-    let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
     let clock = Clock {
         start: Instant::now(),
         speed: options.speed,
@@ -1243,7 +1246,7 @@ pub fn run(
                 let joints = robot.at(t_tick);
                 last_joints = joints;
                 let out = control.tick(t_tick, &RobotInput::without_force(joints));
-                let mut tick = TickRecord::new(k, joints, &out, late_s);
+                let mut tick = out.record(k, joints, late_s);
                 let (fused, record) = (tick.fused, tick.control);
                 on_tick(&tick);
                 stats.ticks += 1;
@@ -1379,7 +1382,7 @@ pub fn run(
         {
             let t_stop = clock.now_s();
             let out = control.stop(t_stop, &RobotInput::without_force(last_joints));
-            let tick = TickRecord::new(k, last_joints, &out, 0.0);
+            let tick = out.record(k, last_joints, 0.0);
             c.safe_stop(
                 t_stop,
                 &tick,
@@ -1605,17 +1608,14 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
         }
         let joints = tick.control.joints;
         let again = haptic_loop.tick(tick.fused.stamp_s, &RobotInput::without_force(joints));
-        ticks.push((
-            tick,
-            TickRecord::new(tick.index, joints, &again, tick.late_s),
-        ));
+        ticks.push((tick, again.record(tick.index, joints, tick.late_s)));
     }
     for (i, ((frame, q), (_, recorded))) in consumed {
         push(&mut haptic_loop, &mut report, i, frame, q, recorded)?;
     }
     for (tick, again) in ticks {
         report.ticks_compared += 1;
-        if again.deterministic_bytes() != tick.deterministic_bytes() {
+        if record::deterministic_bytes(&again) != record::deterministic_bytes(tick) {
             report.tick_mismatches += 1;
             note(
                 &mut report,

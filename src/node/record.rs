@@ -13,18 +13,15 @@
 //! recording cut short by a crash reads back up to its last whole frame.
 
 use super::NodeConfig;
-use super::haptic_loop::Tick;
-use super::robot_state::{JointState, RobotMeta};
+use super::robot_state::RobotMeta;
 use crate::camera::Frame;
-use crate::control::{ControlStatus, ControllerOutput};
+use crate::control::record::TickRecord;
 use crate::gpu::Backend;
-use crate::haptics::{ConstraintKind, HapticStatus};
 use crate::io::mcap::{McapError, McapItem, McapReader, McapReaderConfig, McapWriter};
 use crate::io::ros2::encode;
 use crate::io::ros2::hapcloud::ControlTick;
 use crate::io::ros2::msgs::Header;
 use crate::robot::JointVector;
-use crate::surface::FusedSurface;
 use crate::surface::SurfaceEstimate;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -51,95 +48,17 @@ pub struct RecordingMeta {
     pub robot: RobotMeta,
 }
 
-/// What the controller did in one tick (everything replay recomputes and compares).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct ControlRecord {
-    /// Robot state the tick used.
-    pub joints: JointState,
-    /// True when the constraints used a surface held over a stale camera (`on_stale = hold`).
-    pub held: bool,
-    pub haptic_status: HapticStatus,
-    /// `d_proj` of eq. 7, m (NaN without a surface).
-    pub d_proj_m: f64,
-    /// Its rate, m/s (NaN without a surface).
-    pub d_rate_mps: f64,
-    /// Constraint value `alpha_P` of eq. 9 (the positional row's bound), m; NaN when off.
-    pub alpha_p_m: f64,
-    /// Constraint value `alpha_V` of eq. 13 (the velocity row's bound), m/s; NaN when off.
-    pub alpha_v_mps: f64,
-    pub force_active: bool,
-    pub status: ControlStatus,
-    /// Joint torque command, Nm.
-    pub tau_nm: JointVector,
-    /// Joint accelerations the torques realise, rad/s^2.
-    pub qdd_rad_per_s2: JointVector,
-}
-
-impl ControlRecord {
-    /// The record of a controller output for the robot state `joints`.
-    pub fn new(joints: JointState, held: bool, out: &ControllerOutput) -> Self {
-        let h = &out.haptics;
-        let bound = |kind| h.row(kind).map_or(f64::NAN, |r| r.bound);
-        Self {
-            joints,
-            held,
-            haptic_status: h.status,
-            d_proj_m: h.d_proj_m,
-            d_rate_mps: h.d_rate_mps,
-            alpha_p_m: bound(ConstraintKind::Position),
-            alpha_v_mps: bound(ConstraintKind::Velocity),
-            force_active: h.row(ConstraintKind::Force).is_some(),
-            status: out.status,
-            tau_nm: out.tau_nm,
-            qdd_rad_per_s2: out.qdd,
-        }
-    }
-
-    pub fn position_active(&self) -> bool {
-        !self.alpha_p_m.is_nan()
-    }
-
-    pub fn velocity_active(&self) -> bool {
-        !self.alpha_v_mps.is_nan()
-    }
-}
-
-/// One control tick as recorded.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct TickRecord {
-    pub index: u64,
-    pub fused: FusedSurface,
-    pub control: ControlRecord,
-    /// How late the tick started after its absolute deadline, seconds (timing only: not
-    /// compared by replay).
-    pub late_s: f64,
-    /// Wall time the tick's work took, seconds (timing only).
-    pub work_s: f64,
-}
-
-impl TickRecord {
-    /// The record of tick `index` of the haptic loop for the robot state `joints`.
-    pub fn new(index: u64, joints: JointState, tick: &Tick, late_s: f64) -> Self {
-        Self {
-            index,
-            fused: tick.fused,
-            control: ControlRecord::new(joints, tick.held, &tick.output),
-            late_s,
-            work_s: 0.0,
-        }
-    }
-
-    /// The deterministic part (index, fused surface, controller; not the timing) as bytes:
-    /// what replay compares (the tick's CDR message with zero timing, every value unrounded).
-    pub fn deterministic_bytes(&self) -> Vec<u8> {
-        let timeless = Self {
-            late_s: 0.0,
-            work_s: 0.0,
-            ..*self
-        };
-        encode(&ControlTick::new(Header::default(), &timeless))
-            .expect("a ControlTick always serializes: fixed fields, six joints")
-    }
+/// The deterministic part of a tick (index, fused surface, controller; not the timing) as
+/// bytes: what replay compares (the tick's CDR message with zero timing, every value
+/// unrounded).
+pub fn deterministic_bytes(tick: &TickRecord) -> Vec<u8> {
+    let timeless = TickRecord {
+        late_s: 0.0,
+        work_s: 0.0,
+        ..*tick
+    };
+    encode(&ControlTick::new(Header::default(), &timeless))
+        .expect("a ControlTick always serializes: fixed fields, six joints")
 }
 
 /// Why a recording cannot be written or read.

@@ -19,7 +19,7 @@
 
 use super::{NodeConfig, NodeError};
 use crate::geometry::Primitive;
-use crate::robot::{DOF, JointVector, RobotModel};
+use crate::robot::{DOF, JointState, JointVector, RobotModel};
 use crate::scene::Simulator;
 use nalgebra::{Isometry3, Point3, Translation3};
 use serde::{Deserialize, Serialize};
@@ -51,13 +51,6 @@ impl RobotStateConfig {
         }
         Ok(())
     }
-}
-
-/// Joint positions and velocities at one instant.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct JointState {
-    pub q_rad: JointVector,
-    pub qd_rad_per_s: JointVector,
 }
 
 /// How a recording describes the robot (in `meta.json`), enough to pose it again on replay.

@@ -1,78 +1,18 @@
 //! Concentric-shell abstraction (paper IV-E, Alg. 2): per-shell moments, per-shell fits, the
-//! outlier rejection and the weighted average that make one [`SurfaceEstimate`].
+//! outlier rejection and the weighted average that make one [`SurfaceEstimate`]; details,
+//! measurements and the reasons behind each step: `docs/perception.md` ("Shell abstraction").
 //!
-//! **Moments.** Shell `i` holds the points with `r_{i-1} <= |p - h| < r_i` around the HIP `h`
-//! (`r_{-1} = 0`). Per shell we need the count, the first and second moments (centroid and
-//! covariance: the plane and the normal) and the third and fourth moments (Kasa needs
-//! `sum u z`, Taubin `sum z^2`, `z = u^2 + v^2`): all 35 monomials of degree <= 4 of the
-//! HIP-centred offset `d = p - h` (see [`super::fit::Moments`]). To stay deterministic and free
-//! of cancellation on the GPU, every point contributes in **fixed point**: `d` is computed in
-//! f32 next to the HIP (exact by Sterbenz for nearby points), scaled by the shell's outer
-//! radius into `s = d / r_i` (`|s| <= 1`), each monomial of `s` is formed by the fixed product
-//! chain [`super::fit::PARENT`]/[`super::fit::AXIS`] and rounded to an `i32` in units of
-//! `2^-30`; these integers are summed in 64 bits. Integer sums are exact and associative, so
-//! the result is the same bits for any point order or thread schedule. Shell membership is
-//! decided on integers too: `d` is quantised to `2^15` steps across `r_out` and the squared
-//! integer length is compared with integer bounds. [`accumulate_cpu`] is the reference;
-//! `shaders/shells.wgsl` computes the same [`ShellSums`] on the GPU (see `gpu_shells`).
-//!
-//! **Fits (Alg. 2).** The innermost shell with enough points gets `plane3d`, the others
-//! `circle3d` ([`super::fit`]). Each normal is oriented towards the HIP's side of the fit
-//! (the HIP is outside the body it approaches; the plane's mean point and the circles'
-//! centres lie on the body). The paper's eq. 2 (`n <- -sign(n . z) n`, against the camera's
-//! viewing direction `z`) orients towards the camera instead, which is wrong when the side of
-//! a body facing the HIP faces away from the cameras (a head coming at the handle from below
-//! the cameras' line of sight: only its far side is seen, and eq. 2 turned the normal into
-//! the head); it decides when the HIP lies within the HIP radius (4 cm) of a fit's plane,
-//! where the HIP may have passed through the surface. Fits whose residual is a large fraction of
-//! their shell radius (two surfaces in one shell) count as degenerate. With the camera's
-//! position known ([`Viewpoint::Position`]), `z` is the ray from the camera to the shell. The worst half by the
-//! summed normal distance `S_j = sum_i |n_j - n_i|` is rejected, and the rest are averaged
-//! with weights `1 / r_i` (the shell's outer radius).
-//!
-//! **Curvature correction** (design note: the circles' centres lie on the axis through the
-//! HIP, deeper the larger the shell, so on a convex body the paper's average sits inside the
-//! body and overestimates the distance). For a sphere every point obeys
-//! `a = alpha + beta r^2` exactly, where `a = n . (h - p)` is its depth along the normal and
-//! `r = |p - h|` (`beta = 1 / (2 L)`, `L` the HIP-to-centre distance); for other smooth convex
-//! bodies it holds locally. A weighted least-squares line through the mean `(r^2, a)` of the
-//! shells whose normal agrees with the average (within `correction_max_angle_rad`) gives
-//! `alpha, beta`; the closest point lies on the axis at the depth `D` where
-//! `r = a`: `D = 2 alpha / (1 + sqrt(1 - 4 alpha beta))` (the stable root; `beta = 0` is a
-//! plane and leaves the paper's estimate unchanged). The paper's centroid is moved along the
-//! normal to that depth. The correction is skipped (and reported) with fewer than two shells
-//! or an inconsistent line.
-//!
-//! **Noise truncation of the cap.** The innermost shells that reach the body are caps: the
-//! sphere of radius `r_i` cuts through the band of noisy depths, so only the points whose
-//! noise brings them towards the HIP get in, and the cap's mean depth sits above the skin (on
-//! the realistic head scenes, a cap 5 mm beyond the surface was 2 mm high with D435 noise).
-//! With `cap_gap_m > 0`, after a first line the shells whose inner radius lies less than
-//! `cap_gap_m` beyond the corrected depth `D` are left out of the line and it is fitted again
-//! (when two shells remain); off by default (see the field).
-//!
-//! **Quadric refinement.** A plane through the part of a shell's ring that the camera sees
-//! tilts towards the seen side whenever the surface curves differently in different
-//! directions (a forearm is a cylinder of 3.5 cm radius: the ring of a sphere around the HIP
-//! is a saddle, and camera 1 of `forearm_close`, seeing one flank, was 15-25 deg off); the
-//! sphere model of the curvature correction cannot see that either. With
-//! `quadric_refinement`, the fitted shells near the surface (inner radius within
-//! `quadric_reach_m` of the innermost fitted shell's, so a second body further out stays
-//! out) are merged, weighted `1 / r_i`, and a quadratic
-//! height field `z = f(x, y)` over the plane perpendicular to Alg. 2's normal is fitted to
-//! them by least squares from the same moments ([`super::fit::height_field`]); its point
-//! closest to the HIP and the normal there replace the estimate, unless the fit fails or
-//! tilts more than `quadric_max_tilt_rad` away from Alg. 2's normal. The shells must continue
-//! one surface: while the outermost lies more than `quadric_max_shell_residual_m` RMS from
-//! the fitted field (its residual follows from its moments, [`HeightField::residual_rms_of`]),
-//! it is dropped and the field fitted again. On `forearm_close` the torso's front face, 6 cm
-//! from the HIP, entered the 6-7 cm shell while the robot hid the forearm's nearest cap, and
-//! turned the normal 41 deg for two frames.
-//!
-//! **Validity.** An estimate is valid only with at least `min_accepted_shells` fitted shells
-//! (before the rejection) holding at least `min_points` points together, normals that do not
-//! cancel and a finite centroid; otherwise [`ShellAbstraction::invalid`] says which rule
-//! failed. A lone outer shell with a handful of points at the edge of reach is not a surface.
+//! - **Moments**: count and monomials up to degree 4 of the HIP-centred offsets per shell,
+//!   summed in fixed point (`i32` in units of `2^-30`, 64-bit sums) so CPU
+//!   ([`accumulate_cpu`]) and GPU (`shaders/shells.wgsl`) give the same bits in any order.
+//! - **Fits (Alg. 2)**: `plane3d` for the innermost shell, `circle3d` for the others; normals
+//!   point to the HIP's side of each fit (the paper's eq. 2 decides only near a fit's plane);
+//!   the worst half by summed normal distance is rejected, the rest averaged with `1 / r_i`.
+//! - **Curvature correction**, optional **cap trimming** and **quadric refinement** move the
+//!   paper's average onto the skin of convex and saddle-shaped bodies.
+//! - **Validity**: enough fitted shells and points, normals that do not cancel, a finite
+//!   centroid; otherwise `estimate.surface` is `None` and [`ShellAbstraction::invalid`] says
+//!   which rule failed.
 
 use super::crop::finite_bits;
 use super::fit::{

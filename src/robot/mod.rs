@@ -30,6 +30,13 @@ use nalgebra::{
 pub const DOF: usize = 6;
 /// A joint-space vector (positions rad, velocities rad/s, torques Nm, ...).
 pub type JointVector = SVector<f64, DOF>;
+
+/// Joint positions and velocities at one instant.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JointState {
+    pub q_rad: JointVector,
+    pub qd_rad_per_s: JointVector,
+}
 /// A joint-space matrix (mass matrix, ...).
 pub type JointMatrix = SMatrix<f64, DOF, DOF>;
 /// Translational Jacobian of a point, world frame, m/rad.

@@ -12,9 +12,9 @@
 //! enforce).
 
 use super::frame::{ConstraintSample, FrameSamples, StageLatency, ViewFrame};
+use crate::control::record::TickRecord;
 use crate::haptics::{ConstraintKind, HapticConfig, HapticConstraints, HapticStatus};
 use crate::node::haptic_loop::Tick;
-use crate::node::record::TickRecord;
 use crate::robot::JointVector;
 use crate::surface::FusedSurface;
 use crate::surface::SurfacePoint;

@@ -10,8 +10,8 @@
 use super::ViewFrame;
 use super::constraints::apply_tick;
 use super::records::CameraViews;
+use crate::control::record::TickRecord;
 use crate::haptics::HapticConfig;
-use crate::node::record::TickRecord;
 use crate::node::{NodeConfig, NodeError, NodeEvent};
 use crate::robot::RobotModel;
 use crate::scene::Simulator;
