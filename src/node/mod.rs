@@ -727,6 +727,7 @@ fn perception_thread(
 
 /// How far a streamed frame's stamp may be from the node clock, s (a camera driver's clock
 /// against the node's: anything further is a corrupt or foreign stamp).
+#[cfg(feature = "ros2")]
 const STREAM_STAMP_WINDOW_S: f64 = 10.0;
 
 /// Where frames enter: each camera's stamps must increase (a frame stamped at or before its
