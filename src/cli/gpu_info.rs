@@ -19,6 +19,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "device_type": adapter.device_type,
             "driver": adapter.driver,
             "timestamp_period_ns": period,
+            "host_clock": ctx.host_clock(),
         });
         println!("{out}");
     } else {
@@ -28,6 +29,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             Some(p) => println!("timestamp queries: yes, {p} ns per tick"),
             None => println!("timestamp queries: not supported (no per-stage GPU times)"),
         }
+        println!("GPU pass times: {}", ctx.host_clock());
     }
     Ok(())
 }

@@ -12,9 +12,15 @@
 //!
 //! Timestamp queries ([`wgpu::Features::TIMESTAMP_QUERY`], supported by lavapipe) are enabled
 //! when the adapter has them; [`GpuContext::timestamp_period_ns`] is `None` otherwise and
-//! stages then report no GPU times.
+//! stages then report no GPU times. With the `vulkan-calibrated` feature the device is opened
+//! with calibrated timestamps where the adapter has them ([`super::clock`]), so those times can
+//! be placed on the host clock ([`GpuContext::host_clock`], [`GpuContext::clock_sample`]).
 
 use std::sync::{Arc, Mutex};
+
+#[cfg(feature = "vulkan-calibrated")]
+use super::clock::Calibrator;
+use super::clock::{ClockSample, HostClock, open_device};
 
 /// Environment variable that selects the adapter by (case-insensitive) name substring.
 pub const ADAPTER_ENV: &str = "WGPU_ADAPTER_NAME";
@@ -68,6 +74,9 @@ pub struct GpuContext {
     queue: wgpu::Queue,
     adapter: AdapterSummary,
     timestamp_period_ns: Option<f32>,
+    host_clock: HostClock,
+    #[cfg(feature = "vulkan-calibrated")]
+    calibrator: Option<Calibrator>,
     uncaptured: Arc<Mutex<Vec<wgpu::Error>>>,
 }
 
@@ -89,8 +98,14 @@ impl GpuContext {
     }
 
     /// Opens the first adapter whose name contains `wanted` (case-insensitive), or the best
-    /// available one when `wanted` is `None`.
+    /// available one when `wanted` is `None`; with calibrated timestamps where it can.
     pub fn with_adapter_name(wanted: Option<&str>) -> Result<Self, GpuError> {
+        Self::open(wanted, true)
+    }
+
+    /// [`Self::with_adapter_name`] with a choice: `calibrate_clock = false` opens the device
+    /// the plain wgpu way, GPU times as durations only.
+    pub fn open(wanted: Option<&str>, calibrate_clock: bool) -> Result<Self, GpuError> {
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
             backends: wgpu::Backends::VULKAN,
             // No indirect-call validation: wgpu would add a compute dispatch and barriers
@@ -134,18 +149,20 @@ impl GpuContext {
         };
         let info = adapter.get_info();
         let features = adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+        let desc = wgpu::DeviceDescriptor {
             label: Some("hapcloud device"),
             required_features: features,
             required_limits: adapter.limits(),
             experimental_features: wgpu::ExperimentalFeatures::disabled(),
             memory_hints: wgpu::MemoryHints::Performance,
             trace: wgpu::Trace::Off,
-        }))
-        .map_err(|e| GpuError::RequestDevice {
-            adapter: info.name.clone(),
-            message: e.to_string(),
-        })?;
+        };
+        let opened =
+            open_device(&adapter, &desc, calibrate_clock).map_err(|e| GpuError::RequestDevice {
+                adapter: info.name.clone(),
+                message: e.to_string(),
+            })?;
+        let (device, queue) = (opened.device, opened.queue);
         let uncaptured = Arc::new(Mutex::new(Vec::new()));
         let sink = Arc::clone(&uncaptured);
         device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
@@ -168,6 +185,14 @@ impl GpuContext {
                     .to_string(),
             },
             timestamp_period_ns,
+            host_clock: match timestamp_period_ns {
+                Some(_) => opened.clock,
+                None => HostClock::Uncalibrated {
+                    reason: "no timestamp queries".into(),
+                },
+            },
+            #[cfg(feature = "vulkan-calibrated")]
+            calibrator: opened.calibrator.filter(|_| timestamp_period_ns.is_some()),
             uncaptured,
         })
     }
@@ -187,6 +212,20 @@ impl GpuContext {
     /// Nanoseconds per timestamp tick, or `None` when the device has no timestamp queries.
     pub fn timestamp_period_ns(&self) -> Option<f32> {
         self.timestamp_period_ns
+    }
+
+    /// Whether GPU pass times can be placed on the host's `CLOCK_MONOTONIC`, and how.
+    pub fn host_clock(&self) -> &HostClock {
+        &self.host_clock
+    }
+
+    /// A device tick and `CLOCK_MONOTONIC` read at one instant, `None` when the clock is not
+    /// calibrated ([`Self::host_clock`]) or the driver failed this time.
+    pub fn clock_sample(&self) -> Option<ClockSample> {
+        #[cfg(feature = "vulkan-calibrated")]
+        return self.calibrator.as_ref().and_then(Calibrator::sample);
+        #[cfg(not(feature = "vulkan-calibrated"))]
+        None
     }
 
     /// Runs `f` inside validation, out-of-memory and internal error scopes and returns the

@@ -3,11 +3,13 @@
 //! - [`context`]: one wgpu device on Vulkan (lavapipe in CI), errors as [`GpuError`].
 //! - [`shader`]: the registry of `shaders/*.wgsl`, bind-group layouts and compute pipelines.
 //! - [`timing`]: per-stage GPU time from timestamp queries written at compute-pass bounds.
+//! - [`clock`]: those times on the host clock (calibrated timestamps, feature `vulkan-calibrated`).
 //!
 //! Stages (crop, voxel, cluster, shell moments) own their pipelines and buffers and only use
 //! this module; it knows no stage. [`Backend`] selects between a stage's GPU implementation
 //! and its CPU reference (`--backend gpu|cpu` on every processing command).
 
+pub mod clock;
 pub mod context;
 pub mod mirrors;
 pub mod shader;

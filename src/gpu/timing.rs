@@ -5,6 +5,7 @@
 //! ticks are copied into the frame's single readback buffer, so timing adds no extra readback.
 //! Without the feature a [`StageTimer`] is not created and stages report no GPU time.
 
+use super::clock::{ClockSample, PassOnHost};
 use super::context::{GpuContext, GpuError};
 
 /// Bytes per resolved timestamp.
@@ -15,6 +16,33 @@ const TICK_BYTES: u64 = 8;
 pub struct StageTime {
     pub stage: &'static str,
     pub gpu_ms: f64,
+}
+
+/// The raw timestamps of one stage's pass: device ticks at its beginning and end.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PassTicks {
+    pub stage: &'static str,
+    pub begin: u64,
+    pub end: u64,
+}
+
+impl PassTicks {
+    /// The pass's duration, ticks of `period_ns`.
+    pub fn time(&self, period_ns: f32) -> StageTime {
+        StageTime {
+            stage: self.stage,
+            gpu_ms: self.end.saturating_sub(self.begin) as f64 * f64::from(period_ns) * 1e-6,
+        }
+    }
+
+    /// The pass on the host's `CLOCK_MONOTONIC`, through a calibrated `sample`.
+    pub fn on_host(&self, sample: &ClockSample, period_ns: f32) -> PassOnHost {
+        PassOnHost {
+            stage: self.stage,
+            start_ns: sample.host_ns_of(self.begin, period_ns),
+            end_ns: sample.host_ns_of(self.end, period_ns),
+        }
+    }
 }
 
 /// Timestamp queries for a fixed list of stages (two per stage: begin, end).
@@ -83,6 +111,14 @@ impl StageTimer {
 
     /// Stage times from the resolved ticks (`bytes` = the [`Self::readback_bytes`] region).
     pub fn read(&self, bytes: &[u8]) -> Vec<StageTime> {
+        self.ticks(bytes)
+            .iter()
+            .map(|t| t.time(self.period_ns))
+            .collect()
+    }
+
+    /// The raw begin and end ticks of each stage's pass (`bytes` as for [`Self::read`]).
+    pub fn ticks(&self, bytes: &[u8]) -> Vec<PassTicks> {
         let ticks: Vec<u64> = bytes
             .chunks_exact(TICK_BYTES as usize)
             .map(|c| u64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
@@ -90,13 +126,10 @@ impl StageTimer {
         self.stages
             .iter()
             .enumerate()
-            .map(|(i, stage)| {
-                let begin = ticks.get(2 * i).copied().unwrap_or(0);
-                let end = ticks.get(2 * i + 1).copied().unwrap_or(0);
-                StageTime {
-                    stage,
-                    gpu_ms: end.saturating_sub(begin) as f64 * f64::from(self.period_ns) * 1e-6,
-                }
+            .map(|(i, stage)| PassTicks {
+                stage,
+                begin: ticks.get(2 * i).copied().unwrap_or(0),
+                end: ticks.get(2 * i + 1).copied().unwrap_or(0),
             })
             .collect()
     }

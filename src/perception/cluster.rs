@@ -36,7 +36,7 @@
 use crate::cloud::PointCloud;
 use crate::gpu::mirrors::ClusterParams;
 use crate::gpu::shader::{self, BindingKind};
-use crate::gpu::timing::{StageTime, StageTimer};
+use crate::gpu::timing::{PassTicks, StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -478,6 +478,9 @@ pub struct GpuClusterStats {
     pub submissions: u32,
     /// Per-pass GPU time of the first submission (empty without timestamp queries).
     pub gpu_times: Vec<StageTime>,
+    /// The same passes' raw timestamps (device ticks), to place them on the host clock.
+    #[serde(skip)]
+    pub gpu_ticks: Vec<PassTicks>,
     pub table_slots: u32,
 }
 
@@ -784,13 +787,16 @@ impl GpuClusterer {
     ) -> Result<(Clustering, GpuClusterStats), ClusterError> {
         let b = self.buffers();
         let timer_end = (STATUS_BYTES + self.timer_bytes()) as usize;
+        let gpu_ticks = self
+            .timer
+            .as_ref()
+            .map(|t| t.ticks(&bytes[STATUS_BYTES as usize..timer_end]))
+            .unwrap_or_default();
+        let period_ns = ctx.timestamp_period_ns().unwrap_or(0.0);
         let mut stats = GpuClusterStats {
             submissions: 1,
-            gpu_times: self
-                .timer
-                .as_ref()
-                .map(|t| t.read(&bytes[STATUS_BYTES as usize..timer_end]))
-                .unwrap_or_default(),
+            gpu_times: gpu_ticks.iter().map(|t| t.time(period_ns)).collect(),
+            gpu_ticks,
             table_slots: b.table_slots,
         };
         let mut status: [u32; 4] = bytemuck::pod_read_unaligned(&bytes[..STATUS_BYTES as usize]);

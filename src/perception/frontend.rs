@@ -12,7 +12,9 @@
 //! stage results into one readback buffer, which is mapped once. Only when a bounded union-find pass of the
 //! clustering ran out of steps does the cluster stage add small submissions of its own
 //! (see [`crate::perception::cluster`]). Each stage is one or more compute passes bracketed by
-//! timestamps, so the frame reports the GPU time per stage. A voxel-table overflow (flag in the
+//! timestamps, so the frame reports the GPU time per stage, and, where the context's clock is
+//! calibrated ([`crate::gpu::clock`]), where each pass began and ended on the host's
+//! `CLOCK_MONOTONIC` (`gpu_on_host`). A voxel-table overflow (flag in the
 //! readback) re-records the frame once with a bigger table (see [`crate::perception::voxel`]).
 //!
 //! [`CpuFrontend`] runs the CPU references of the same stages and produces the same
@@ -26,6 +28,7 @@ use std::time::Instant;
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
+use crate::gpu::clock::{HostClock, PassOnHost};
 use crate::gpu::mirrors::VoxelHeader;
 use crate::gpu::timing::{StageTime, StageTimer};
 use crate::gpu::{Backend, GpuContext, GpuError};
@@ -161,6 +164,9 @@ pub struct FrontendOutput {
     pub clusters: Clustering,
     /// GPU time per stage (GPU backend with timestamp queries), else empty.
     pub gpu_times: Vec<StageTime>,
+    /// The same passes on the host's `CLOCK_MONOTONIC` when the context's clock is
+    /// calibrated ([`Frontend::host_clock`]), else empty.
+    pub gpu_on_host: Vec<PassOnHost>,
     /// Wall time of the whole frame, upload and readback included (ms).
     pub wall_ms: f64,
 }
@@ -218,6 +224,14 @@ impl Frontend {
     pub fn adapter(&self) -> Option<&str> {
         match self {
             Frontend::Gpu(g) => Some(&g.ctx.adapter().name),
+            Frontend::Cpu(_) => None,
+        }
+    }
+
+    /// Whether the GPU passes are placed on the host clock (GPU), or `None` (CPU).
+    pub fn host_clock(&self) -> Option<&HostClock> {
+        match self {
+            Frontend::Gpu(g) => Some(g.ctx.host_clock()),
             Frontend::Cpu(_) => None,
         }
     }
@@ -279,6 +293,7 @@ impl CpuFrontend {
             voxel,
             clusters,
             gpu_times: Vec::new(),
+            gpu_on_host: Vec::new(),
             wall_ms: start.elapsed().as_secs_f64() * 1e3,
         })
     }
@@ -447,7 +462,7 @@ impl GpuFrontend {
         self.voxel
             .prepare(&ctx, n, first_pass, &self.config.voxel, leaf_m)?;
         let mut retries = 0;
-        let (mut voxel, mut gpu_times, cluster_bytes, keep_mask, points, counts) = loop {
+        let (mut voxel, mut ticks, cluster_bytes, keep_mask, points, counts) = loop {
             // The cluster stage reads the voxel output in place: its capacity is the voxel
             // table's, its point count the header's `out_count`, known only on the GPU.
             let capacity = self.voxel.table_slots();
@@ -503,7 +518,7 @@ impl GpuFrontend {
                 let config = &self.config.voxel;
                 ctx.submit_and_read("frontend frame", encoder.finish(), &self.readback, |b| {
                     let times = timer
-                        .map(|t| t.read(&b[..at.voxel as usize]))
+                        .map(|t| t.ticks(&b[..at.voxel as usize]))
                         .unwrap_or_default();
                     let voxel = voxel.decode(&ctx, &b[r(at.voxel, at.cluster)], config, leaf_m);
                     let keep: Vec<u32> = bytemuck::pod_collect_to_vec(&b[r(at.keep, at.points)]);
@@ -539,7 +554,14 @@ impl GpuFrontend {
             voxel.points.len() as u32,
             &self.config.cluster,
         )?;
-        gpu_times.extend(cluster_stats.gpu_times);
+        ticks.extend(cluster_stats.gpu_ticks);
+        // Read after the frame's readback, so every pass lies before the sample.
+        let sample = ctx.clock_sample();
+        let period_ns = ctx.timestamp_period_ns().unwrap_or(0.0);
+        let gpu_times = ticks.iter().map(|t| t.time(period_ns)).collect();
+        let gpu_on_host = sample
+            .map(|s| ticks.iter().map(|t| t.on_host(&s, period_ns)).collect())
+            .unwrap_or_default();
         self.leaf.update(&self.config.voxel, voxel.points.len());
         Ok(FrontendOutput {
             points_in: n,
@@ -552,6 +574,7 @@ impl GpuFrontend {
             voxel,
             clusters,
             gpu_times,
+            gpu_on_host,
             wall_ms: start.elapsed().as_secs_f64() * 1e3,
         })
     }
@@ -1031,5 +1054,90 @@ mod tests {
         assert_same(&out.voxel, &cpu);
         let clusters = cluster_cpu(&cpu.points, &ClusterConfig::default()).unwrap();
         assert_eq!(out.clusters, clusters);
+    }
+
+    /// One frame through a GPU front end on `ctx`, with the host clock read just before
+    /// the call (before its submit) and just after it (after its readback).
+    fn timed_frame(ctx: Arc<GpuContext>) -> (FrontendOutput, u64, u64, HostClock) {
+        let mut gpu = Frontend::new(Backend::Gpu, FrontendConfig::default(), Some(ctx)).unwrap();
+        let points = synthetic_frame(3);
+        let frame = FrameInput {
+            points: FramePoints::Points(&points),
+            crop: Some(CropScene {
+                hip_m: Point3::new(0.05, 0.0, 0.85),
+                robot: &[],
+                camera_m: None,
+            }),
+            want_crop_keep: false,
+        };
+        // Warm-up: lavapipe compiles the shaders on their first dispatch.
+        gpu.process(&frame).unwrap();
+        let before = crate::gpu::clock::monotonic_ns();
+        let out = gpu.process(&frame).unwrap();
+        let after = crate::gpu::clock::monotonic_ns();
+        let clock = gpu.host_clock().expect("GPU front end").clone();
+        (out, before, after, clock)
+    }
+
+    #[test]
+    fn calibrated_gpu_passes_lie_between_submit_and_readback_on_the_host_clock() {
+        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
+        if ctx.timestamp_period_ns().is_none() {
+            return;
+        }
+        let (out, before, after, clock) = timed_frame(Arc::clone(&ctx));
+        if !cfg!(feature = "vulkan-calibrated") {
+            assert!(matches!(clock, HostClock::Uncalibrated { .. }), "{clock}");
+            assert!(out.gpu_on_host.is_empty());
+            return;
+        }
+        // lavapipe has VK_EXT_calibrated_timestamps; CI runs on it.
+        assert!(matches!(clock, HostClock::Calibrated { .. }), "{clock}");
+        let slack = ctx.clock_sample().expect("calibrated").max_deviation_ns;
+        assert_eq!(out.gpu_on_host.len(), out.gpu_times.len());
+        let mut last_end = 0;
+        for (pass, time) in out.gpu_on_host.iter().zip(&out.gpu_times) {
+            assert_eq!(pass.stage, time.stage);
+            assert!(
+                before <= pass.start_ns + slack
+                    && pass.start_ns <= pass.end_ns
+                    && pass.end_ns <= after + slack,
+                "{pass:?} outside [{before}, {after}] (slack {slack} ns)"
+            );
+            // The passes run in recording order.
+            assert!(
+                pass.start_ns + slack >= last_end,
+                "{pass:?} before {last_end}"
+            );
+            last_end = pass.end_ns;
+            let ms = (pass.end_ns - pass.start_ns) as f64 * 1e-6;
+            assert!((ms - time.gpu_ms).abs() < 1e-3, "{ms} vs {}", time.gpu_ms);
+        }
+    }
+
+    #[test]
+    fn an_uncalibrated_context_reports_why_and_keeps_the_durations() {
+        let ctx = match GpuContext::open(None, false) {
+            Ok(c) => Arc::new(c),
+            Err(e) => panic!("GPU tests need Vulkan: {e}"),
+        };
+        assert_eq!(ctx.clock_sample(), None);
+        let (out, _, _, clock) = timed_frame(Arc::clone(&ctx));
+        assert_eq!(
+            clock,
+            HostClock::Uncalibrated {
+                reason: if ctx.timestamp_period_ns().is_some() {
+                    "calibration not requested".into()
+                } else {
+                    "no timestamp queries".into()
+                }
+            }
+        );
+        assert!(out.gpu_on_host.is_empty());
+        assert_eq!(
+            out.gpu_times.is_empty(),
+            ctx.timestamp_period_ns().is_none()
+        );
+        assert!(!out.voxel.points.is_empty());
     }
 }

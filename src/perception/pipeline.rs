@@ -53,6 +53,7 @@ use super::shells::{
 };
 use crate::camera::Frame;
 use crate::geometry::Primitive;
+use crate::gpu::clock::HostClock;
 use crate::gpu::{Backend, GpuContext, GpuError};
 use crate::surface::SurfaceEstimate;
 use crate::timing::{SpanTime, Stopwatch};
@@ -374,6 +375,12 @@ impl CameraChain {
     /// The GPU adapter's name (GPU backend) or `None`.
     pub fn adapter(&self) -> Option<&str> {
         self.frontend.adapter()
+    }
+
+    /// Whether the front end's GPU passes are placed on the host clock
+    /// (`ChainFrame::front.gpu_on_host`), and why not (GPU backend); `None` on the CPU.
+    pub fn host_clock(&self) -> Option<&HostClock> {
+        self.frontend.host_clock()
     }
 
     /// GPU memory the front end holds (GPU backend): sized once for the largest frame seen

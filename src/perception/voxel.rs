@@ -47,7 +47,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::gpu::mirrors::{SortStep, VoxelHeader, VoxelParams};
 use crate::gpu::shader::{self, BindingKind};
-use crate::gpu::timing::{StageTime, StageTimer};
+use crate::gpu::timing::{PassTicks, StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
 use crate::perception::crop::{entry, finite_bits, mask_bit};
 
@@ -1164,20 +1164,21 @@ impl GpuVoxel {
 
     /// Decodes the results copied by [`Self::copy_results`]. `Ok(None)` means the table
     /// overflowed and the frame must be recorded again with the bigger table this call
-    /// already allocated; an overflow at `max_table_slots` is an error.
+    /// already allocated; an overflow at `max_table_slots` is an error. The passes' raw
+    /// timestamps come with the output (empty without timestamp queries).
     pub fn decode(
         &mut self,
         ctx: &GpuContext,
         bytes: &[u8],
         config: &VoxelConfig,
         leaf_m: f64,
-    ) -> Result<Option<(VoxelOutput, Vec<StageTime>)>, VoxelError> {
+    ) -> Result<Option<(VoxelOutput, Vec<PassTicks>)>, VoxelError> {
         let header: VoxelHeader = bytemuck::pod_read_unaligned(&bytes[..HEADER_BYTES as usize]);
         let points_at = (HEADER_BYTES + self.timer_bytes()) as usize;
         let times = self
             .timer
             .as_ref()
-            .map(|t| t.read(&bytes[HEADER_BYTES as usize..points_at]))
+            .map(|t| t.ticks(&bytes[HEADER_BYTES as usize..points_at]))
             .unwrap_or_default();
         if header.overflow != 0 {
             let max = slots_for(u64::from(config.max_table_slots));
@@ -1269,9 +1270,10 @@ impl GpuVoxel {
             let result = ctx.submit_and_read("voxel", encoder.finish(), &readback, |b| {
                 self.decode(ctx, b, config, config.leaf_m)
             })?;
-            if let Some((mut out, times)) = result? {
+            if let Some((mut out, ticks)) = result? {
                 out.retries = retries;
-                return Ok((out, times));
+                let period_ns = ctx.timestamp_period_ns().unwrap_or(0.0);
+                return Ok((out, ticks.iter().map(|t| t.time(period_ns)).collect()));
             }
             retries += 1;
         }

@@ -52,6 +52,7 @@ use anyhow::{Context, bail};
 use clap::Parser;
 use glam::Vec3;
 use hapcloud::camera::Frame;
+use hapcloud::gpu::clock::monotonic_ns;
 use hapcloud::gpu::timing::{StageTime, StageTimer};
 use hapcloud::gpu::{Backend, GpuContext};
 use hapcloud::node::NodeConfig;
@@ -544,8 +545,18 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
     let (mut memory, mut moments, mut fits) = (Vec::new(), Vec::new(), Vec::new());
     let mut counts = Vec::new();
     let mut same = true;
+    // With a calibrated clock: host ms from the call to its first GPU pass (upload, recording,
+    // submission) and from its last pass to the call's return (wait, readback, decoding).
+    let (mut to_first, mut after_last) = (Vec::new(), Vec::new());
     for (frame, hip, primitives) in &frames {
+        let called = monotonic_ns();
         let g = gpu.process(frame, hip, primitives)?;
+        let returned = monotonic_ns();
+        if let (Some(first), Some(last)) = (g.front.gpu_on_host.first(), g.front.gpu_on_host.last())
+        {
+            to_first.push(first.start_ns.saturating_sub(called) as f64 * 1e-6);
+            after_last.push(returned.saturating_sub(last.end_ns) as f64 * 1e-6);
+        }
         let c = cpu.process(frame, hip, primitives)?;
         let finite = frame.cloud.finite_count();
         let (gc, cc) = (chain_counts(&g, finite), chain_counts(&c, finite));
@@ -587,7 +598,17 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         counts.len(),
         if same { "yes" } else { "NO" }
     );
-    println!("GPU passes (timestamp ms): {}\n", passes.line());
+    println!("GPU passes (timestamp ms): {}", passes.line());
+    if to_first.is_empty() {
+        println!("GPU passes on the host clock: no ({})\n", ctx.host_clock());
+    } else {
+        println!(
+            "GPU passes on the host clock ({}): call -> first pass {:.2} ms, last pass -> return {:.2} ms (medians)\n",
+            ctx.host_clock(),
+            median(to_first),
+            median(after_last)
+        );
+    }
     println!(
         "| stage | gpu: timestamp ms | gpu: wall ms | gpu: submit thread CPU ms | cpu ref: wall ms | cpu ref: thread CPU ms |"
     );
@@ -709,6 +730,7 @@ fn main() -> anyhow::Result<()> {
             " (no timestamp queries)"
         }
     );
+    println!("GPU pass times: {}", ctx.host_clock());
     if !with_pcl {
         println!(
             "PCL comparison skipped: {} not found on the PATH. Each stage runs on hapcloud's CPU \
