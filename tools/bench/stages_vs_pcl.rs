@@ -545,8 +545,9 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
     let (mut memory, mut moments, mut fits) = (Vec::new(), Vec::new(), Vec::new());
     let mut counts = Vec::new();
     let mut same = true;
-    // With a calibrated clock: host ms from the call to its first GPU pass (upload, recording,
-    // submission) and from its last pass to the call's return (wait, readback, decoding).
+    // With a calibrated clock: host ms from the chain call to its first GPU pass (upload,
+    // recording, submission) and from the front end's last pass to the call's return (wait,
+    // readback, decoding, and the surface stage after the front end).
     let (mut to_first, mut after_last) = (Vec::new(), Vec::new());
     for (frame, hip, primitives) in &frames {
         let called = monotonic_ns();
@@ -603,7 +604,7 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         println!("GPU passes on the host clock: no ({})\n", ctx.host_clock());
     } else {
         println!(
-            "GPU passes on the host clock ({}): call -> first pass {:.2} ms, last pass -> return {:.2} ms (medians)\n",
+            "GPU passes {}: chain call -> first pass {:.2} ms, last front-end pass -> return (readback, surface stage) {:.2} ms (medians)\n",
             ctx.host_clock(),
             median(to_first),
             median(after_last)
