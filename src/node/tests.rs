@@ -6,6 +6,7 @@ use crate::surface::FusionStatus;
 use glam::Vec3;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use std::path::PathBuf;
+use std::time::Duration;
 
 /// Height of the plane `z = h(t)` (world), moving at 0.05 m/s.
 fn plane_height(t: f64) -> f64 {
