@@ -4,10 +4,10 @@
 //! Three kinds of threads, so a slow frame never blocks the control loop:
 //!
 //! 1. **source** (one thread): delivers frames when they are due (a recording paced by its
-//!    stamps, or ROS 2 messages from Zenoh as they arrive, `crate::io::zenoh`) into a short bounded queue
-//!    ([`frame_queue`]); when perception is behind and the queue is full, the oldest queued
-//!    frame is dropped and counted, so the newest frame wins (no backlog, no stale frame
-//!    ahead of a fresh one),
+//!    stamps, or ROS 2 messages from Zenoh as they arrive, `crate::io::zenoh`) into a short
+//!    queue bounded per camera ([`frame_queue`]); when perception is behind and a camera's
+//!    slots are full, that camera's oldest queued frame is dropped and counted for it, so the
+//!    newest frame wins and a flooding camera cannot starve the others,
 //! 2. **perception** (one thread, owning the GPU context): the per-camera chain
 //!    ([`CameraChain`]: crop, voxel grid, clusters, and one surface estimator with its memory
 //!    per camera), then hands each
@@ -97,7 +97,8 @@ pub struct NodeConfig {
     pub tick_rate_hz: f64,
     /// HIP position used by perception while no robot state is available, world frame, m.
     pub hip_world_m: Point3<f64>,
-    /// Frames waiting for perception; beyond this the oldest queued frame is dropped.
+    /// Frames waiting for perception per camera; beyond this the camera's oldest queued
+    /// frame is dropped (counted for that camera), never another camera's.
     pub frame_queue_count: usize,
     /// What the constraints do when fusion goes stale (a camera stopped).
     pub on_stale: StalePolicy,

@@ -18,8 +18,8 @@ pub struct Percentiles {
 }
 
 /// Per camera: frames processed and their rate over the run's clock time, frames dropped
-/// (the source's queue or perception's were full: the oldest went) and messages that did not
-/// decode (a live source).
+/// (the camera's slots in the frame queue were full: its own oldest queued frame went) and
+/// messages that did not decode (a live source).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct CameraSummary {
     pub frames: u64,

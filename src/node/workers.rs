@@ -293,12 +293,12 @@ pub(super) fn source_thread(
         if !gate.admit(&frame, shared) {
             return true;
         }
-        match queue.push(frame) {
+        match queue.push(frame.camera_id, frame) {
             Ok(None) => {
                 shared.queued.fetch_add(1, Ordering::Relaxed);
                 true
             }
-            // The oldest queued frame made room: one frame in, one out.
+            // The camera's oldest queued frame made room: one frame in, one out.
             Ok(Some(oldest)) => {
                 shared.dropped.fetch_add(1, Ordering::Relaxed);
                 shared
