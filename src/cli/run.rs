@@ -446,6 +446,24 @@ fn print_table(s: &NodeSummary) {
             "standing (no joint states)"
         }
     );
+    if s.recording_error.is_some()
+        || s.unrecorded_frames + s.unrecorded_estimates + s.unrecorded_ticks > 0
+    {
+        let b = &s.recording_behind;
+        println!(
+            "not recorded: {} frames, {} estimates, {} ticks (writer behind: {} / {} / {}){}",
+            s.unrecorded_frames,
+            s.unrecorded_estimates,
+            s.unrecorded_ticks,
+            b.frames,
+            b.estimates,
+            b.ticks,
+            s.recording_error
+                .as_deref()
+                .map(|e| format!("  error: {e}"))
+                .unwrap_or_default()
+        );
+    }
     if let Some(can) = &s.can {
         println!(
             "CAN frames sent {}  dropped {}  logged {}  saturated values {}  bus load {:.1} % ({:.0} frames/s){}",

@@ -77,7 +77,7 @@ use frame_queue::FrameQueue;
 use haptic_loop::{FrameRecord, FusionWindow, HapticLoop};
 use nalgebra::Point3;
 use realtime::RealtimeGuard;
-use record::{RecordError, TickRecorder};
+use record::{Behind, RecordError, TickRecorder};
 use robot_state::{RobotState, RobotStateConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -395,6 +395,7 @@ pub fn run(
     };
     // Memory is locked first: locking a large process takes a while, and a live source's
     // clock starts at the wall time read below.
+    let behind = tick_recorder.as_ref().map(TickRecorder::behind);
     let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
     let (t_first, t_end) = clock_span(config, options, timed_frames);
     let clock = Clock {
@@ -486,6 +487,7 @@ pub fn run(
         stats,
         backend_choice,
         can,
+        behind.map(|b| b.get()).unwrap_or_default(),
     ))
 }
 
@@ -597,6 +599,7 @@ fn summarize(
     stats: LoopStats,
     backend_choice: Option<BackendChoice>,
     can: Option<CanOutput>,
+    behind: Behind,
 ) -> NodeSummary {
     let duration_s = stats.duration_s;
     let per_camera = shared
@@ -647,8 +650,10 @@ fn summarize(
             .recording_error
             .into_inner()
             .unwrap_or_else(PoisonError::into_inner),
-        unrecorded_frames: shared.unrecorded_frames.load(Ordering::Relaxed),
-        unrecorded_ticks: stats.unrecorded_ticks,
+        unrecorded_frames: shared.unrecorded_frames.load(Ordering::Relaxed) + behind.frames,
+        unrecorded_estimates: stats.unrecorded_estimates + behind.estimates,
+        unrecorded_ticks: stats.unrecorded_ticks + behind.ticks,
+        recording_behind: behind,
         backend: report.backend,
         adapter: report.adapter,
         gpu_fallback: report.gpu_fallback,

@@ -4,6 +4,7 @@
 
 use super::can_out::{BusLoad, CanCounters};
 use super::realtime::RealtimeStatus;
+use super::record::Behind;
 use crate::fusion::{CameraLatency, FusionCounters};
 use crate::gpu::Backend;
 use crate::perception::frontend::BackendChoice;
@@ -75,7 +76,11 @@ pub struct NodeSummary {
     /// controlling), and the frames and ticks it could not record.
     pub recording_error: Option<String>,
     pub unrecorded_frames: u64,
+    pub unrecorded_estimates: u64,
     pub unrecorded_ticks: u64,
+    /// Of the unrecorded items, those dropped because the recording's writer was behind (the
+    /// disk slower than the node: the control loop never waits for it).
+    pub recording_behind: Behind,
     /// Backend perception ended on (`gpu` or `cpu`).
     pub backend: Backend,
     pub adapter: Option<String>,
@@ -168,6 +173,7 @@ pub(super) struct LoopStats {
     pub(super) fallbacks: u64,
     pub(super) deadline_misses: u64,
     pub(super) unrecorded_ticks: u64,
+    pub(super) unrecorded_estimates: u64,
     pub(super) latency: Histogram,
     pub(super) last_latency_s: f64,
     pub(super) jitter: Histogram,
@@ -188,6 +194,7 @@ impl LoopStats {
             fallbacks: 0,
             deadline_misses: 0,
             unrecorded_ticks: 0,
+            unrecorded_estimates: 0,
             // 0.1 ms bins up to 10 s; 1 us bins up to 50 ms
             latency: Histogram::new(1e-4, 10.0),
             last_latency_s: f64::NAN,

@@ -149,10 +149,6 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
         // Estimates are handed over without blocking; fusion's window was fitted on the
         // perception thread, the tick evaluates the newest fit.
         while let Ok((estimate, fit)) = self.estimates.try_recv() {
-            if let Some(Err(e)) = self.recorder.as_mut().map(|r| r.estimate(k, &estimate)) {
-                self.shared.recording_failed(&e);
-                self.recorder = None;
-            }
             if let Some(c) = self.can.as_mut() {
                 c.estimate(t_tick, &estimate);
             }
@@ -166,6 +162,15 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
             *b.recent_per_camera
                 .entry(estimate.camera_id)
                 .or_insert(0u64) += 1;
+            match self.recorder.as_mut().map(|r| r.estimate(k, estimate)) {
+                Some(Err(e)) => {
+                    self.shared.recording_failed(&e);
+                    self.recorder = None;
+                    self.stats.unrecorded_estimates += 1;
+                }
+                None if self.options.record.is_some() => self.stats.unrecorded_estimates += 1,
+                _ => {}
+            }
         }
         let joints = self.robot.at(t_tick);
         self.last_joints = joints;

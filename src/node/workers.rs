@@ -172,8 +172,9 @@ pub(super) struct PerceptionReport {
     pub(super) camera_latency: Vec<CameraLatency>,
 }
 
-/// An estimate handed to the control loop, with the fit of fusion's window that includes it.
-pub(super) type Handover = (SurfaceEstimate, Option<Fit>);
+/// An estimate handed to the control loop, with the fit of fusion's window that includes it
+/// (boxed here, so the loop moves it on to the recording without allocating).
+pub(super) type Handover = (Box<SurfaceEstimate>, Option<Fit>);
 
 #[allow(clippy::too_many_arguments)]
 pub(super) fn perception_thread(
@@ -226,7 +227,7 @@ pub(super) fn perception_thread(
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
         entry.1 += u64::from(estimate.surface.is_some());
-        if estimates.send((estimate, fit)).is_err() {
+        if estimates.send((Box::new(estimate), fit)).is_err() {
             break;
         }
     }
