@@ -72,7 +72,7 @@ use crate::perception::frontend::{BackendChoice, FrontendConfig, FrontendError};
 use crate::perception::lookahead::LookaheadConfig;
 use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
-use can_out::{CanOutput, CanOutputConfig};
+use can_out::{CanCounters, CanOutput, CanOutputConfig, CanThread};
 use frame_queue::FrameQueue;
 use haptic_loop::{FrameRecord, FusionWindow, HapticLoop};
 use nalgebra::Point3;
@@ -290,8 +290,9 @@ pub enum NodeEvent {
     /// A frame perception processed: the chain's layers, the camera pose and the HIP and
     /// robot primitives it cropped with.
     Frame(Box<FrameRecord>),
-    /// A control tick: fused surface, robot state, constraints, torques.
-    Tick(Box<TickRecord>),
+    /// A control tick: fused surface, robot state, constraints, torques (by value: handing it
+    /// over allocates nothing on the control loop's thread).
+    Tick(TickRecord),
 }
 
 impl RunOptions {
@@ -363,11 +364,14 @@ pub fn run(
     .into_halves();
     perception.keep_crop_mask(options.observer.is_some());
     let can = if options.can_interface.is_some() || options.can_log.is_some() {
-        Some(CanOutput::open(
+        let output = CanOutput::open(
             &config.can,
             options.can_interface.as_deref(),
             options.can_log.as_deref(),
-        )?)
+        )?;
+        // One below the control loop, so the torque command follows the tick.
+        let priority = config.realtime.fifo_priority.saturating_sub(1);
+        Some(CanThread::spawn(output, Some(priority))?)
     } else {
         None
     };
@@ -427,7 +431,7 @@ pub fn run(
         last_joints: robot.at(t_first),
     };
 
-    let report = std::thread::scope(|scope| {
+    let (report, can) = std::thread::scope(|scope| {
         let (robot, shared, clock) = (&robot, &shared, &clock);
         let inject = options.inject_panic;
         let observer = options.observer.clone();
@@ -458,11 +462,10 @@ pub fn run(
         ticks.run(|| perception_handle.is_finished());
         ticks.stats.realtime = realtime.status.clone();
         shared.stop.store(true, Ordering::Release);
-        if shared.failure().is_some() {
-            ticks.safe_stop();
-        }
+        // A failed worker or a stop from outside: the safe command goes out at once.
+        let can = ticks.finish_outputs(shared.failure().is_some() || ticks.stats.stopped_early);
         let _ = source_handle.join();
-        perception_handle.join().ok().flatten()
+        (perception_handle.join().ok().flatten(), can)
     });
     drop(realtime);
     // The recording is closed on every way out (its writer ends once both recorders are gone).
@@ -477,7 +480,7 @@ pub fn run(
         cause: "ended without a report".into(),
     })?;
     ticks.stats.duration_s = ticks.k as f64 * (1.0 / config.tick_rate_hz);
-    let TickLoop { stats, can, .. } = ticks;
+    let stats = ticks.stats;
     Ok(summarize(
         config,
         options,
@@ -598,7 +601,7 @@ fn summarize(
     report: PerceptionReport,
     stats: LoopStats,
     backend_choice: Option<BackendChoice>,
-    can: Option<CanOutput>,
+    can: Option<CanCounters>,
     behind: Behind,
 ) -> NodeSummary {
     let duration_s = stats.duration_s;
@@ -661,8 +664,9 @@ fn summarize(
         gpu_buffer_bytes: report.gpu_buffer_bytes,
         fusion: report.fusion,
         camera_latency: report.camera_latency,
-        can: can.map(|c| CanSummary {
-            counters: c.finish(),
+        stopped_early: stats.stopped_early,
+        can: can.map(|counters| CanSummary {
+            counters,
             bus_load: config.can.bus_load(config.tick_rate_hz),
         }),
         duration_s,

@@ -80,19 +80,12 @@ impl RealtimeGuard {
     /// refused.
     pub(super) fn fifo(&mut self, config: &RealtimeConfig) {
         if config.fifo_priority > 0 {
-            let fifo = libc::sched_param {
-                sched_priority: libc::c_int::from(config.fifo_priority),
-            };
-            // SAFETY: the calling thread, a valid pointer to a local.
-            match unsafe {
-                libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &fifo)
-            } {
-                0 => self.status.fifo_priority = Some(config.fifo_priority),
-                e => self.status.refused.push(format!(
-                    "SCHED_FIFO priority {}: {}",
-                    config.fifo_priority,
-                    std::io::Error::from_raw_os_error(e)
-                )),
+            match set_fifo(config.fifo_priority) {
+                Ok(()) => self.status.fifo_priority = Some(config.fifo_priority),
+                Err(e) => self
+                    .status
+                    .refused
+                    .push(format!("SCHED_FIFO priority {}: {e}", config.fifo_priority)),
             }
         }
         if !self.status.refused.is_empty() {
@@ -101,6 +94,18 @@ impl RealtimeGuard {
                 self.status.refused.join("; ")
             );
         }
+    }
+}
+
+/// SCHED_FIFO at `priority` (1-99) for the calling thread.
+pub(super) fn set_fifo(priority: u8) -> Result<(), std::io::Error> {
+    let fifo = libc::sched_param {
+        sched_priority: libc::c_int::from(priority),
+    };
+    // SAFETY: the calling thread, a valid pointer to a local.
+    match unsafe { libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &fifo) } {
+        0 => Ok(()),
+        e => Err(std::io::Error::from_raw_os_error(e)),
     }
 }
 

@@ -93,6 +93,9 @@ pub struct NodeSummary {
     pub fusion: FusionCounters,
     /// Per camera: estimate arrival at the loop minus the frame's capture stamp.
     pub camera_latency: Vec<CameraLatency>,
+    /// The run was stopped from outside before its end (Ctrl-C, SIGTERM, the overlay closed):
+    /// the constraints were switched off and the safe command sent last.
+    pub stopped_early: bool,
     /// CAN output, when `--can` or `--can-log` was given.
     pub can: Option<CanSummary>,
     pub duration_s: f64,
@@ -174,6 +177,7 @@ pub(super) struct LoopStats {
     pub(super) deadline_misses: u64,
     pub(super) unrecorded_ticks: u64,
     pub(super) unrecorded_estimates: u64,
+    pub(super) stopped_early: bool,
     pub(super) latency: Histogram,
     pub(super) last_latency_s: f64,
     pub(super) jitter: Histogram,
@@ -195,6 +199,7 @@ impl LoopStats {
             deadline_misses: 0,
             unrecorded_ticks: 0,
             unrecorded_estimates: 0,
+            stopped_early: false,
             // 0.1 ms bins up to 10 s; 1 us bins up to 50 ms
             latency: Histogram::new(1e-4, 10.0),
             last_latency_s: f64::NAN,

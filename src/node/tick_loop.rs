@@ -3,10 +3,12 @@
 //! already past, counted), each tick drains the estimates without blocking, evaluates the
 //! fused surface (paper IV-F, eq. 3-6) and runs the haptic constraints (eq. 7-14) and the
 //! hierarchical controller ([`ControlLoop::tick`]) for the robot state at the tick; its
-//! outputs go to the recording, CAN, the observer and `on_tick`. On a failure or a stop the
-//! safe command goes out ([`TickLoop::safe_stop`]).
+//! outputs go to the recording, CAN, the observer and `on_tick`, each through a bounded
+//! hand-off that never waits (a full one drops, counted): the tick allocates nothing, takes
+//! no lock of its own and makes no blocking call. On a failure or a stop the safe command
+//! goes out ([`TickLoop::finish_outputs`]).
 
-use super::can_out::{self, CanOutput};
+use super::can_out::{self, CanCounters, CanThread};
 use super::haptic_loop::{ControlLoop, RobotInput};
 use super::record::TickRecorder;
 use super::robot_state::RobotState;
@@ -40,7 +42,7 @@ pub(super) struct TickLoop<'a, F> {
     pub(super) start_backend: Backend,
     pub(super) control: ControlLoop,
     pub(super) estimates: Receiver<Handover>,
-    pub(super) can: Option<CanOutput>,
+    pub(super) can: Option<CanThread>,
     pub(super) recorder: Option<TickRecorder>,
     pub(super) on_tick: F,
     pub(super) stats: LoopStats,
@@ -123,6 +125,7 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
                 .as_ref()
                 .is_some_and(|s| s.load(Ordering::Relaxed))
             {
+                self.stats.stopped_early = true;
                 return Ok(());
             }
             // Without --duration a timed source runs until its last stamp plus the stale
@@ -214,7 +217,7 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
         if let Some(o) = &self.options.observer
             && k.is_multiple_of(OBSERVER_TICK_EVERY)
         {
-            let _ = o.try_send(NodeEvent::Tick(Box::new(tick)));
+            let _ = o.try_send(NodeEvent::Tick(tick));
         }
         if let Some(c) = self.can.as_mut() {
             let shared = self.shared;
@@ -281,25 +284,26 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
         }
     }
 
-    /// The node is stopping on a failure: the constraints off and the safe command (gravity
-    /// compensation and damping, torque command disabled) sent on CAN.
-    pub(super) fn safe_stop(&mut self) {
-        if let Some(c) = self.can.as_mut() {
+    /// Ends the outputs. With `safe` (a failure, or a stop asked for from outside): the
+    /// constraints off and the safe command (gravity compensation and damping, torque command
+    /// disabled) computed for the last robot state, handed to `on_tick` and sent on CAN last.
+    /// Returns the CAN counters.
+    pub(super) fn finish_outputs(&mut self, safe: bool) -> Option<CanCounters> {
+        let stop = safe.then(|| {
             let t_stop = self.clock.now_s();
             let out = self
                 .control
                 .stop(t_stop, &RobotInput::without_force(self.last_joints));
             let tick = out.record(self.k, self.last_joints, 0.0);
-            c.safe_stop(
-                t_stop,
-                &tick,
-                &can_out::Health {
-                    deadline_misses: self.stats.deadline_misses,
-                    fault_flags: fault::NODE_STOPPED,
-                    gpu: false,
-                    latency_ms: f64::NAN,
-                },
-            );
-        }
+            (self.on_tick)(&tick);
+            let health = can_out::Health {
+                deadline_misses: self.stats.deadline_misses,
+                fault_flags: fault::NODE_STOPPED,
+                gpu: false,
+                latency_ms: f64::NAN,
+            };
+            (t_stop, tick, health)
+        });
+        self.can.take().map(|c| c.finish(stop))
     }
 }

@@ -8,7 +8,7 @@
 use super::MAX_STAMP_S;
 use super::frame_queue::{CloseOnDrop, FrameQueue};
 use super::haptic_loop::{FusionWindow, Perception};
-use super::record::FrameRecorder;
+use super::record::{FrameRecorder, RecordError};
 use super::robot_state::RobotState;
 use super::summary::Histogram;
 use super::{NodeError, NodeEvent, Source};
