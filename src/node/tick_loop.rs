@@ -3,9 +3,9 @@
 //! already past, counted), each tick drains the estimates without blocking, evaluates the
 //! fused surface (paper IV-F, eq. 3-6) and runs the haptic constraints (eq. 7-14) and the
 //! hierarchical controller ([`ControlLoop::tick`]) for the robot state at the tick; its
-//! outputs go to the recording, CAN, the observer and `on_tick`, each through a bounded
-//! hand-off that never waits (a full one drops, counted): the tick allocates nothing, takes
-//! no lock of its own and makes no blocking call. On a failure or a stop the safe command
+//! outputs go to the recording, CAN, the observer, the progress line's printer and
+//! `on_tick`, each through a bounded hand-off that never waits (a full one drops, counted):
+//! the tick allocates nothing, takes no lock of its own and makes no blocking call. On a failure or a stop the safe command
 //! goes out ([`TickLoop::finish_outputs`]).
 
 use super::can_out::{self, CanCounters, CanThread};
@@ -22,9 +22,9 @@ use crate::haptics::HapticStatus;
 use crate::io::can::fault;
 use crate::robot::JointState;
 use crate::surface::FusionStatus;
-use std::collections::BTreeMap;
+use arrayvec::ArrayVec;
 use std::sync::atomic::Ordering;
-use std::sync::mpsc::Receiver;
+use std::sync::mpsc::{self, Receiver, SyncSender};
 use std::time::{Duration, Instant};
 
 /// The control loop's state: the controller half of the haptic loop, its inputs and outputs,
@@ -58,9 +58,55 @@ struct Between {
     last_progress: Instant,
     pending_latency: Vec<f64>,
     received: u64,
-    recent_per_camera: BTreeMap<u32, u64>,
+    /// Estimates per camera since the last progress line.
+    recent_per_camera: ArrayVec<(u32, u64), PROGRESS_CAMERAS>,
     progress_t: f64,
     misses_since_status: bool,
+    /// To the thread printing the progress lines (printing may block on a full pipe).
+    progress: Option<SyncSender<Progress>>,
+}
+
+/// Cameras a progress line shows (more are counted in the summary only).
+const PROGRESS_CAMERAS: usize = 16;
+
+/// A progress line's values, handed to the printing thread by value.
+struct Progress {
+    t_s: f64,
+    span_s: f64,
+    per_camera: ArrayVec<(u32, u64), PROGRESS_CAMERAS>,
+    last_latency_s: f64,
+    ticks: u64,
+    misses: u64,
+    fusion: FusionStatus,
+    haptics: HapticStatus,
+    held: bool,
+    d_proj_m: f64,
+}
+
+impl Progress {
+    fn print(&self) {
+        let rates: Vec<String> = self
+            .per_camera
+            .iter()
+            .map(|(id, n)| format!("cam{id} {:.1} Hz", *n as f64 / self.span_s))
+            .collect();
+        eprintln!(
+            "t {:7.2} s  {}  latency last {:.1} ms  ticks {}  misses {}  fusion {:?}  constraints {:?}{}  d_proj {:.1} mm",
+            self.t_s,
+            if rates.is_empty() {
+                "no frames".into()
+            } else {
+                rates.join(", ")
+            },
+            self.last_latency_s * 1e3,
+            self.ticks,
+            self.misses,
+            self.fusion,
+            self.haptics,
+            if self.held { " (held)" } else { "" },
+            self.d_proj_m * 1e3,
+        );
+    }
 }
 
 impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
@@ -82,15 +128,32 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
     }
 
     fn ticks(&mut self, perception_done: &dyn Fn() -> bool) -> Result<(), NodeError> {
+        std::thread::scope(|scope| {
+            let progress = self.options.progress_every_s.map(|_| {
+                let (tx, rx) = mpsc::sync_channel::<Progress>(4);
+                scope.spawn(move || rx.iter().for_each(|p| p.print()));
+                tx
+            });
+            // The printing thread ends when the loop drops its sender.
+            self.ticks_until_end(perception_done, progress)
+        })
+    }
+
+    fn ticks_until_end(
+        &mut self,
+        perception_done: &dyn Fn() -> bool,
+        progress: Option<SyncSender<Progress>>,
+    ) -> Result<(), NodeError> {
         let tick_s = 1.0 / self.config.tick_rate_hz;
         let period = Duration::from_secs_f64(tick_s / self.options.speed);
         let mut between = Between {
             last_progress: Instant::now(),
             pending_latency: Vec::with_capacity(64),
             received: 0,
-            recent_per_camera: BTreeMap::new(),
+            recent_per_camera: ArrayVec::new(),
             progress_t: self.t_first,
             misses_since_status: false,
+            progress,
         };
         let loop_start = self.clock.start;
         let stream_length_s = self.t_end - self.t_first;
@@ -162,9 +225,16 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
                 b.pending_latency.push(estimate.stamp_s);
             }
             b.received += 1;
-            *b.recent_per_camera
-                .entry(estimate.camera_id)
-                .or_insert(0u64) += 1;
+            match b
+                .recent_per_camera
+                .iter_mut()
+                .find(|(id, _)| *id == estimate.camera_id)
+            {
+                Some((_, n)) => *n += 1,
+                None => {
+                    let _ = b.recent_per_camera.try_push((estimate.camera_id, 1));
+                }
+            }
             match self.recorder.as_mut().map(|r| r.estimate(k, estimate)) {
                 Some(Err(e)) => {
                     self.shared.recording_failed(&e);
@@ -255,32 +325,24 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
         }
         if let Some(every) = self.options.progress_every_s
             && b.last_progress.elapsed().as_secs_f64() >= every
+            && let Some(progress) = &b.progress
         {
             b.last_progress = Instant::now();
-            let span = (t_tick - b.progress_t).max(tick_s);
+            let span_s = (t_tick - b.progress_t).max(tick_s);
             b.progress_t = t_tick;
-            let rates: Vec<String> = b
-                .recent_per_camera
-                .iter()
-                .map(|(id, n)| format!("cam{id} {:.1} Hz", *n as f64 / span))
-                .collect();
-            b.recent_per_camera.clear();
-            eprintln!(
-                "t {:7.2} s  {}  latency last {:.1} ms  ticks {}  misses {}  fusion {:?}  constraints {:?}{}  d_proj {:.1} mm",
-                t_tick - self.t_first,
-                if rates.is_empty() {
-                    "no frames".into()
-                } else {
-                    rates.join(", ")
-                },
-                stats.last_latency_s * 1e3,
-                stats.ticks,
-                stats.deadline_misses,
-                fused.status,
-                record.haptic_status,
-                if record.held { " (held)" } else { "" },
-                record.d_proj_m * 1e3,
-            );
+            // Dropped when the printing thread is behind.
+            let _ = progress.try_send(Progress {
+                t_s: t_tick - self.t_first,
+                span_s,
+                per_camera: std::mem::take(&mut b.recent_per_camera),
+                last_latency_s: stats.last_latency_s,
+                ticks: stats.ticks,
+                misses: stats.deadline_misses,
+                fusion: fused.status,
+                haptics: record.haptic_status,
+                held: record.held,
+                d_proj_m: record.d_proj_m,
+            });
         }
     }
 
