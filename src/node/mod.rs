@@ -286,6 +286,9 @@ const MAX_STAMP_S: f64 = 1e10;
 pub const OBSERVER_TICK_EVERY: u64 = 8;
 
 /// What the node shows an observer.
+// Large on purpose: the observer's channel slots are allocated once, a boxed tick would
+// allocate on the control loop's thread.
+#[allow(clippy::large_enum_variant)]
 pub enum NodeEvent {
     /// A frame perception processed: the chain's layers, the camera pose and the HIP and
     /// robot primitives it cropped with.

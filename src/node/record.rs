@@ -100,6 +100,8 @@ pub const QUEUE_FRAMES: usize = 8;
 
 /// What the two recorders hand the writer thread (a tick by value: queuing it allocates
 /// nothing).
+// Large on purpose: the channel's slots are allocated once, a boxed tick would allocate per tick.
+#[allow(clippy::large_enum_variant)]
 pub enum Item {
     Frame(Box<Frame>, JointVector),
     Estimate(u64, Box<SurfaceEstimate>),
