@@ -137,7 +137,7 @@ impl Default for NodeConfig {
         Self {
             tick_rate_hz: 800.0,
             hip_world_m: Point3::new(0.0, 0.0, 0.6),
-            frame_queue_count: 2,
+            frame_queue_count: 1,
             on_stale: StalePolicy::Disable,
             stale_hold_max_s: 0.3,
             robot: RobotStateConfig::default(),
@@ -400,11 +400,15 @@ pub fn run(
         }
         None => (None, None),
     };
+    let behind = tick_recorder.as_ref().map(TickRecorder::behind);
+    // What the loop needs is made before the clock starts: until the loop's thread runs at
+    // real-time priority, the first deadlines could pass while it is preempted.
+    let (stats, window) = (LoopStats::new(), FusionWindow::new(config)?);
     // Memory is locked first: locking a large process takes a while, and a live source's
     // clock starts at the wall time read below.
-    let behind = tick_recorder.as_ref().map(TickRecorder::behind);
     let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
     let (t_first, t_end) = clock_span(config, options, timed_frames);
+    let first_joints = robot.at(t_first);
     let clock = Clock {
         start: Instant::now(),
         speed: options.speed,
@@ -413,7 +417,6 @@ pub fn run(
     let shared = Shared::default();
     let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
     let (estimate_tx, estimate_rx) = mpsc::channel::<Handover>();
-    let window = FusionWindow::new(config)?;
     let start_backend = perception.backend();
     let mut ticks = TickLoop {
         config,
@@ -429,9 +432,9 @@ pub fn run(
         can,
         recorder: tick_recorder,
         on_tick,
-        stats: LoopStats::new(),
+        stats,
         k: 0,
-        last_joints: robot.at(t_first),
+        last_joints: first_joints,
     };
 
     let (report, can) = std::thread::scope(|scope| {
