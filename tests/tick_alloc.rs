@@ -4,14 +4,21 @@
 //! time with the node's split: perception processes each frame and fusion's window is fitted
 //! outside the count (the node's perception thread), and the control half's work per tick
 //! (the robot state at the tick, the fits handed over, fusion's evaluation and PID, the
-//! stale policy, the haptic constraints and the hierarchical controller) is counted. After a warm-up (the first estimates, the first fit, the first active
-//! constraint) every tick must make zero allocations, with the constraints active.
+//! stale policy, the haptic constraints and the hierarchical controller) is counted, and so
+//! are the tick's hand-offs to the output threads, as the node makes them: the estimates and
+//! the tick to the recording's writer (`record::TickRecorder`), the CAN messages to the CAN
+//! thread (`can_out::CanThread`, writing a candump log) and the tick to an observer (the
+//! overlay's channel, never read here: its hand-offs are dropped). After a warm-up (the first
+//! estimates, the first fit, the first active constraint) every tick must make zero
+//! allocations, with the constraints active.
 
 use hapcloud::gpu::Backend;
 use hapcloud::haptics::HapticStatus;
-use hapcloud::node::NodeConfig;
+use hapcloud::node::can_out::{CanOutput, CanThread, Health};
 use hapcloud::node::haptic_loop::{FusionWindow, HapticLoop, RobotInput};
+use hapcloud::node::record::{self, RecordingMeta};
 use hapcloud::node::robot_state::RobotState;
+use hapcloud::node::{NodeConfig, NodeEvent};
 use hapcloud::scene::{Scene, Simulator};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
@@ -75,6 +82,29 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
             .unwrap()
             .into_halves();
     let mut window = FusionWindow::new(&config).unwrap();
+    // The outputs the node's control loop hands its ticks to.
+    let dir = std::env::temp_dir().join(format!("hapcloud-tick-alloc-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let meta = RecordingMeta {
+        version: record::RECORDING_VERSION,
+        config: config.clone(),
+        backend: Backend::Cpu,
+        robot: robot.meta(),
+    };
+    let (frame_recorder, mut recorder) = record::create(&dir.join("rec.mcap"), &meta).unwrap();
+    let can_log = dir.join("can.log");
+    let mut can = CanThread::spawn(
+        CanOutput::open(&config.can, None, Some(&can_log)).unwrap(),
+        None,
+    )
+    .unwrap();
+    let (observer, _unread) = std::sync::mpsc::sync_channel::<NodeEvent>(4);
+    let health = Health {
+        deadline_misses: 0,
+        fault_flags: 0,
+        gpu: false,
+        latency_ms: 1.0,
+    };
     let frames: Vec<_> = simulator
         .arrivals(0.0, simulator.duration_s())
         .iter()
@@ -86,6 +116,7 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
     let mut next = frames.iter().peekable();
     // Fits perception made, handed to the loop at the next tick (as the node does).
     let mut ready = Vec::with_capacity(frames.len());
+    let mut estimates = Vec::with_capacity(frames.len());
     let (mut counted, mut active, mut with_estimates, mut total) = (0u64, 0u64, 0u64, 0u64);
     let mut worst: Vec<(u64, f64, u64)> = Vec::new();
     let mut warm = false;
@@ -101,15 +132,26 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
                 .process(frame, &robot.perception_scene(&q))
                 .unwrap();
             ready.push(window.push(record.estimate(), record.far_field.as_ref(), t));
+            // Boxed by perception, moved on by the loop.
+            estimates.push(Box::new(record.estimate().clone()));
         }
         let handed = ready.len() as u64;
         let (status, n) = allocations(|| {
             for fit in ready.iter().flatten() {
                 control.use_fit(*fit);
             }
+            for estimate in estimates.drain(..) {
+                can.estimate(t, &estimate);
+                recorder.estimate(k, estimate).unwrap();
+            }
             let joints = robot.at(t);
-            let tick = control.tick(t, &RobotInput::without_force(joints));
-            tick.output.haptics.status
+            let tick = control
+                .tick(t, &RobotInput::without_force(joints))
+                .record(k, joints, 0.0);
+            recorder.tick(&tick).unwrap();
+            can.tick(t, &tick, &health);
+            let _ = observer.try_send(NodeEvent::Tick(tick));
+            tick.control.haptic_status
         });
         ready.clear();
         if warm {
@@ -125,6 +167,16 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
         warm |= status == HapticStatus::Active;
         k += 1;
     }
+    drop(frame_recorder);
+    recorder.finish().unwrap();
+    let can = can.finish(None);
+    let logged = std::fs::read_to_string(&can_log).unwrap().lines().count() as u64;
+    std::fs::remove_dir_all(&dir).unwrap();
+    // The hand-offs reached their threads (the CAN thread keeps up with a log file here).
+    assert!(
+        can.frames_logged > 1000 && logged == can.frames_logged,
+        "{can:?}"
+    );
     println!(
         "{counted} ticks counted after warm-up, {active} with the constraint active, \
          {with_estimates} with new estimates, {total} allocations; allocating ticks (index, t, allocations): {worst:?}"

@@ -4,6 +4,12 @@
 //! CAN outputs (`--can`, `--can-log`), the Zenoh outputs (`--publish`, on by default with the
 //! `zenoh` source), prints a progress line while it runs and a summary at the end.
 //!
+//! Ctrl-C (SIGINT) or SIGTERM stops the run safely: the constraints off, the safe command
+//! sent last on CAN, the recording finished (the MCAP opens complete), the summary printed
+//! (`stopped_early`), then the exit status is 128 + the signal's number (130 for SIGINT, 143
+//! for SIGTERM), as a shell reports a process the signal ended. A second signal while it
+//! stops ends the process at once with that status.
+//!
 //! The `--config` TOML is the node's config plus, optionally, `[zenoh]` (the session:
 //! `hapcloud::io::zenoh::ZenohConfig`), `[zenoh_source]` (the cameras' topics and poses:
 //! `ZenohSourceConfig`), `[publish]` (`ZenohPublisherConfig`: output rate, status rate, joint
@@ -14,8 +20,10 @@ use hapcloud::gpu::Backend;
 use hapcloud::io::mcap::McapReaderConfig;
 use hapcloud::node::{self, NodeConfig, NodeSummary, RunOptions, Source, record};
 use hapcloud::scene::{Scene, Simulator};
+use std::io::Write;
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -167,6 +175,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     unsafe {
         libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
     }
+    let (stop, signal) = stop_on_signals()?;
     let mut run_config = match &args.config {
         Some(path) => read_config(path)?,
         None => RunConfig::default(),
@@ -262,6 +271,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         // Without --backend: the faster on this machine, measured on the first frames (a
         // stream, which cannot be measured before it starts, by the adapter rule).
         pick_backend: args.backend.is_none(),
+        stop: Some(stop),
         ..RunOptions::new(args.backend.unwrap_or_else(default_backend))
     };
     #[cfg(feature = "ros2")]
@@ -346,7 +356,40 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     }
-    Ok(())
+    match signal.load(Ordering::SeqCst) {
+        0 => Ok(()),
+        sig => {
+            eprintln!(
+                "stopped by {}: constraints off, safe command sent, recording finished",
+                signal_name(sig)
+            );
+            std::io::stdout().flush()?;
+            std::process::exit(128 + sig as i32)
+        }
+    }
+}
+
+/// SIGINT and SIGTERM set the returned stop flag (the node stops safely at its next tick)
+/// and the signal's number; a second one while stopping exits at once.
+fn stop_on_signals() -> anyhow::Result<(Arc<AtomicBool>, Arc<AtomicUsize>)> {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    let stop = Arc::new(AtomicBool::new(false));
+    let signal = Arc::new(AtomicUsize::new(0));
+    for sig in [SIGINT, SIGTERM] {
+        // Registered first, so it sees the flag as it was before this signal set it.
+        signal_hook::flag::register_conditional_shutdown(sig, 128 + sig, stop.clone())?;
+        signal_hook::flag::register_usize(sig, signal.clone(), sig as usize)?;
+        signal_hook::flag::register(sig, stop.clone())?;
+    }
+    Ok((stop, signal))
+}
+
+fn signal_name(sig: usize) -> &'static str {
+    match sig as i32 {
+        signal_hook::consts::SIGINT => "SIGINT",
+        signal_hook::consts::SIGTERM => "SIGTERM",
+        _ => "a signal",
+    }
 }
 
 /// The node on a worker thread feeding the overlay, the window on this (the main) thread:
@@ -361,7 +404,6 @@ fn run_with_overlay(
 ) -> anyhow::Result<NodeSummary> {
     use hapcloud::viewer::overlay::Overlay;
     use hapcloud::viewer::{ViewerApp, ViewerConfig, ViewerSource, run_window};
-    use std::sync::atomic::{AtomicBool, Ordering};
     use std::sync::mpsc;
 
     let simulator = match &source {
@@ -372,9 +414,12 @@ fn run_with_overlay(
     // A short queue: frames the overlay is too slow for are dropped by the node.
     let (event_tx, event_rx) = mpsc::sync_channel(4);
     let (view_tx, view_rx) = mpsc::channel();
-    let stop = Arc::new(AtomicBool::new(false));
+    // The window's close stops the node like a signal does.
+    let stop = options
+        .stop
+        .get_or_insert_with(|| Arc::new(AtomicBool::new(false)))
+        .clone();
     options.observer = Some(event_tx);
-    options.stop = Some(stop.clone());
     let drawer = std::thread::spawn(move || overlay.run(event_rx, view_tx));
     let node = std::thread::scope(|scope| {
         let node = scope.spawn(move || node::run(&config, source, &options, on_tick));
@@ -432,8 +477,17 @@ fn print_table(s: &NodeSummary) {
         s.frames, s.dropped_frames, s.malformed_records
     );
     println!(
-        "ticks {}  tracking {}  stale {}  deadline misses {}  skipped slots {}",
-        s.ticks, s.tracking_ticks, s.stale_ticks, s.deadline_misses, s.skipped_ticks
+        "ticks {}  tracking {}  stale {}  deadline misses {}  skipped slots {}{}",
+        s.ticks,
+        s.tracking_ticks,
+        s.stale_ticks,
+        s.deadline_misses,
+        s.skipped_ticks,
+        if s.stopped_early {
+            "  (stopped early: safe command sent)"
+        } else {
+            ""
+        }
     );
     println!(
         "constraints active {} ticks  held {}  controller fallbacks {}  robot {}",
@@ -446,12 +500,31 @@ fn print_table(s: &NodeSummary) {
             "standing (no joint states)"
         }
     );
+    if s.recording_error.is_some()
+        || s.unrecorded_frames + s.unrecorded_estimates + s.unrecorded_ticks > 0
+    {
+        let b = &s.recording_behind;
+        println!(
+            "not recorded: {} frames, {} estimates, {} ticks (writer behind: {} / {} / {}){}",
+            s.unrecorded_frames,
+            s.unrecorded_estimates,
+            s.unrecorded_ticks,
+            b.frames,
+            b.estimates,
+            b.ticks,
+            s.recording_error
+                .as_deref()
+                .map(|e| format!("  error: {e}"))
+                .unwrap_or_default()
+        );
+    }
     if let Some(can) = &s.can {
         println!(
-            "CAN frames sent {}  dropped {}  logged {}  saturated values {}  bus load {:.1} % ({:.0} frames/s){}",
+            "CAN frames sent {}  dropped {}  logged {}  hand-offs dropped {}  saturated values {}  bus load {:.1} % ({:.0} frames/s){}",
             can.counters.frames_sent,
             can.counters.frames_dropped,
             can.counters.frames_logged,
+            can.counters.handoff_dropped,
             can.counters.saturated_values,
             can.bus_load.load_fraction * 100.0,
             can.bus_load.frames_per_s,

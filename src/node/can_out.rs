@@ -21,9 +21,11 @@
 //! their sender); the node sends the states it used, which a bus monitor can compare.
 //!
 //! The torque counter and the constraint counter are the tick index mod 256, so a log can be
-//! matched to the recording tick by tick. The SocketCAN sender never blocks (a full queue
-//! drops and counts the frame); a write error on the log or the socket is reported once and
-//! the output is closed, the control loop goes on.
+//! matched to the recording tick by tick. The output runs on its own thread ([`CanThread`]):
+//! the control loop hands over each tick's values without waiting (a full hand-off drops
+//! and counts them). The SocketCAN sender never blocks (a full queue drops and counts the
+//! frame); a write error on the log or the socket is reported once and the output is closed,
+//! the control loop goes on.
 
 use crate::control::ControlStatus;
 use crate::control::record::TickRecord;
@@ -37,6 +39,8 @@ use serde::{Deserialize, Serialize};
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::Path;
+use std::sync::mpsc::{self, Receiver, SyncSender, TrySendError};
+use std::time::{Duration, Instant};
 
 /// Worst-case bits of one classic 8-byte data frame with an 11-bit id, interframe space
 /// included (see the module doc).
@@ -126,12 +130,15 @@ pub struct CanCounters {
     pub frames_logged: u64,
     /// Values with a signal out of range (sent saturated) or NaN (sent as 0).
     pub saturated_values: u64,
+    /// Messages the control loop could not hand to the CAN thread (it was behind: a full
+    /// hand-off queue drops, never waits).
+    pub handoff_dropped: u64,
     /// The error that closed an output, if any.
     pub error: Option<String>,
 }
 
 /// The node's health at a tick, for NodeStatus.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Health {
     pub deadline_misses: u64,
     pub fault_flags: u16,
@@ -285,11 +292,12 @@ impl CanOutput {
         }
     }
 
-    /// One camera's estimate (SurfaceCentroid + SurfaceNormal), sent when fusion takes it in.
-    pub fn estimate(&mut self, t_s: f64, estimate: &SurfaceEstimate) {
-        let value = CanValue::Surface(CanSurface::from_estimate(estimate, self.surface_counter));
+    /// One camera's surface pair (SurfaceCentroid + SurfaceNormal), sent when fusion takes
+    /// its estimate in, with the output's rolling counter.
+    fn surface(&mut self, t_s: f64, mut surface: CanSurface) {
+        surface.counter = self.surface_counter;
         self.surface_counter = (self.surface_counter + 1) & 0xF;
-        self.emit(t_s, &value);
+        self.emit(t_s, &CanValue::Surface(surface));
     }
 
     /// Flushes the log and returns the counters.
@@ -302,6 +310,133 @@ impl CanOutput {
                 .get_or_insert(format!("candump log: {e}"));
         }
         self.counters
+    }
+}
+
+/// What the control loop hands the CAN thread, by value (queuing it allocates nothing).
+enum Item {
+    Tick(f64, TickRecord, Health),
+    Surface(f64, CanSurface),
+    SafeStop(f64, TickRecord, Health),
+}
+
+/// Messages the CAN thread may be behind by (about 40 ms of ticks at 800 Hz).
+pub const QUEUE_ITEMS: usize = 64;
+
+/// How long the node waits for a stalled CAN thread when it stops, before leaving it.
+pub const STOP_WAIT: Duration = Duration::from_secs(2);
+
+/// [`CanOutput`] on its own thread: the control loop hands each tick's messages over
+/// without waiting ([`CanThread::tick`], [`CanThread::estimate`]: `try_send` into a bounded
+/// channel whose slots are allocated once; a full channel drops the messages, counted in
+/// [`CanCounters::handoff_dropped`]), so a slow log file or socket never delays a tick. The
+/// thread runs at SCHED_FIFO one below the loop where the system allows, so the torque
+/// command follows the tick closely under load.
+pub struct CanThread {
+    tx: SyncSender<Item>,
+    dropped: u64,
+    done: Receiver<CanCounters>,
+    handle: std::thread::JoinHandle<()>,
+}
+
+impl CanThread {
+    /// Starts sending `output`'s messages; `fifo_priority` (1-99) is asked for on the thread
+    /// (refused silently without the privilege: the loop's own refusal is reported).
+    pub fn spawn(mut output: CanOutput, fifo_priority: Option<u8>) -> Result<Self, CanError> {
+        let (tx, rx) = mpsc::sync_channel::<Item>(QUEUE_ITEMS);
+        let (done_tx, done) = mpsc::channel();
+        let handle = std::thread::Builder::new()
+            .name("can-out".into())
+            .spawn(move || {
+                if let Some(p) = fifo_priority.filter(|p| *p > 0) {
+                    let _ = super::realtime::set_fifo(p);
+                }
+                for item in rx {
+                    match item {
+                        Item::Tick(t_s, record, health) => output.tick(t_s, &record, &health),
+                        Item::Surface(t_s, surface) => output.surface(t_s, surface),
+                        Item::SafeStop(t_s, record, health) => {
+                            output.safe_stop(t_s, &record, &health)
+                        }
+                    }
+                }
+                let _ = done_tx.send(output.finish());
+            })
+            .map_err(|e| CanError::Log(format!("CAN output thread: {e}")))?;
+        Ok(Self {
+            tx,
+            dropped: 0,
+            done,
+            handle,
+        })
+    }
+
+    fn offer(&mut self, item: Item) {
+        if self.tx.try_send(item).is_err() {
+            self.dropped += 1;
+        }
+    }
+
+    /// The messages of control tick `record.index` at node time `t_s`, without waiting.
+    pub fn tick(&mut self, t_s: f64, record: &TickRecord, health: &Health) {
+        self.offer(Item::Tick(t_s, *record, *health));
+    }
+
+    /// One camera's estimate, without waiting.
+    pub fn estimate(&mut self, t_s: f64, estimate: &SurfaceEstimate) {
+        self.offer(Item::Surface(t_s, CanSurface::from_estimate(estimate, 0)));
+    }
+
+    /// Ends the output: the safe command last if given (waiting up to [`STOP_WAIT`] for a
+    /// slot: it must go out), then the thread flushes the log and ends. A thread stalled past
+    /// [`STOP_WAIT`] is left behind (the node must stop) and the counters say so.
+    pub fn finish(self, safe_stop: Option<(f64, TickRecord, Health)>) -> CanCounters {
+        let Self {
+            tx,
+            dropped,
+            done,
+            handle,
+        } = self;
+        let deadline = Instant::now() + STOP_WAIT;
+        let mut stop_lost = false;
+        if let Some((t_s, record, health)) = safe_stop {
+            let mut item = Item::SafeStop(t_s, record, health);
+            loop {
+                match tx.try_send(item) {
+                    Ok(()) | Err(TrySendError::Disconnected(_)) => break,
+                    Err(TrySendError::Full(back)) if Instant::now() < deadline => {
+                        item = back;
+                        std::thread::sleep(Duration::from_millis(1));
+                    }
+                    Err(TrySendError::Full(_)) => {
+                        stop_lost = true;
+                        break;
+                    }
+                }
+            }
+        }
+        drop(tx);
+        let wait = deadline.saturating_duration_since(Instant::now());
+        let mut counters = match done.recv_timeout(wait) {
+            Ok(counters) => {
+                let _ = handle.join();
+                counters
+            }
+            Err(_) => CanCounters {
+                error: Some(format!(
+                    "the CAN output thread was stalled for {} s at the stop and was left{}",
+                    STOP_WAIT.as_secs(),
+                    if stop_lost {
+                        ": the safe command could not be queued"
+                    } else {
+                        ""
+                    }
+                )),
+                ..CanCounters::default()
+            },
+        };
+        counters.handoff_dropped = dropped;
+        counters
     }
 }
 

@@ -1,11 +1,15 @@
-//! The bounded frame queue between the source thread and perception: the newest frame wins.
+//! The bounded frame queue between the source thread and perception: per camera, the newest
+//! frames win.
 //!
-//! When perception is behind and the queue is full, pushing a frame drops the *oldest* queued
-//! frame (the caller counts it), never the new one: a queued old frame only adds queueing
-//! latency between a camera's stamp and the constraint that uses it, and the fusion prefers
-//! the freshest estimate. std's `sync_channel` can only refuse the new frame when full, so this
-//! is a `Mutex<VecDeque>` with a `Condvar` (no crate needed for a dozen lines); the consumer
-//! blocks on the condition variable, never spins.
+//! Each camera has at most `per_camera` frames waiting. When perception is behind and a
+//! camera's slots are full, pushing that camera's frame drops *its own* oldest queued frame
+//! (the caller counts it), never the new one and never another camera's: one fast or
+//! flooding camera cannot starve the others. A queued old frame only adds queueing latency
+//! between a camera's stamp and the constraint that uses it, and fusion prefers the freshest
+//! estimate. Perception takes frames in arrival order over all cameras, so every camera is
+//! served. std's `sync_channel` can only refuse the new frame when full, so this is a
+//! `Mutex<VecDeque>` with a `Condvar` (no crate needed for a few lines); the consumer blocks
+//! on the condition variable, never spins. Memory: at most `per_camera` frames per camera.
 //!
 //! Either side closes the queue: the source when it has no more frames (perception drains what
 //! is queued, then [`FrameQueue::pop`] returns `None`), perception when it stops (then
@@ -16,15 +20,17 @@
 use std::collections::VecDeque;
 use std::sync::{Condvar, Mutex, MutexGuard, PoisonError};
 
-/// A bounded queue whose `push` evicts the oldest item when full.
+/// A queue with `per_camera` slots per camera whose `push` evicts that camera's oldest item
+/// when its slots are full.
 pub struct FrameQueue<T> {
     state: Mutex<State<T>>,
     ready: Condvar,
-    capacity: usize,
+    per_camera: usize,
 }
 
 struct State<T> {
-    items: VecDeque<T>,
+    /// (camera, item) in arrival order.
+    items: VecDeque<(u32, T)>,
     closed: bool,
 }
 
@@ -33,16 +39,16 @@ struct State<T> {
 pub struct Closed<T>(pub T);
 
 impl<T> FrameQueue<T> {
-    /// A queue of at most `capacity` items (at least one).
-    pub fn new(capacity: usize) -> Self {
-        let capacity = capacity.max(1);
+    /// A queue of at most `per_camera` items per camera (at least one).
+    pub fn new(per_camera: usize) -> Self {
+        let per_camera = per_camera.max(1);
         Self {
             state: Mutex::new(State {
-                items: VecDeque::with_capacity(capacity),
+                items: VecDeque::with_capacity(2 * per_camera),
                 closed: false,
             }),
             ready: Condvar::new(),
-            capacity,
+            per_camera,
         }
     }
 
@@ -50,30 +56,37 @@ impl<T> FrameQueue<T> {
         self.state.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Queues `item`. When the queue is full, the oldest queued item is removed first and
-    /// returned (`Ok(Some(oldest))`: the caller counts the drop).
-    pub fn push(&self, item: T) -> Result<Option<T>, Closed<T>> {
+    /// Queues `camera`'s `item`. When that camera's slots are full, its oldest queued item is
+    /// removed first and returned (`Ok(Some(oldest))`: the caller counts the drop for
+    /// `camera`); other cameras' items stay.
+    pub fn push(&self, camera: u32, item: T) -> Result<Option<T>, Closed<T>> {
         let mut state = self.lock();
         if state.closed {
             return Err(Closed(item));
         }
-        let evicted = if state.items.len() >= self.capacity {
-            state.items.pop_front()
+        let queued = state.items.iter().filter(|(c, _)| *c == camera).count();
+        let evicted = if queued >= self.per_camera {
+            state
+                .items
+                .iter()
+                .position(|(c, _)| *c == camera)
+                .and_then(|i| state.items.remove(i))
+                .map(|(_, old)| old)
         } else {
             None
         };
-        state.items.push_back(item);
+        state.items.push_back((camera, item));
         drop(state);
         self.ready.notify_one();
         Ok(evicted)
     }
 
-    /// The oldest queued item; blocks while the queue is empty and open. `None` once the
-    /// queue is closed and empty.
+    /// The item that arrived first, over all cameras; blocks while the queue is empty and
+    /// open. `None` once the queue is closed and empty.
     pub fn pop(&self) -> Option<T> {
         let mut state = self.lock();
         loop {
-            if let Some(item) = state.items.pop_front() {
+            if let Some((_, item)) = state.items.pop_front() {
                 return Some(item);
             }
             if state.closed {
@@ -109,32 +122,62 @@ mod tests {
     use std::time::Duration;
 
     #[test]
-    fn a_full_queue_drops_the_oldest_and_keeps_the_newest() {
+    fn a_full_camera_drops_its_oldest_and_keeps_the_newest() {
         let q = FrameQueue::new(2);
-        assert_eq!(q.push(1), Ok(None));
-        assert_eq!(q.push(2), Ok(None));
-        assert_eq!(q.push(3), Ok(Some(1)));
-        assert_eq!(q.push(4), Ok(Some(2)));
+        assert_eq!(q.push(0, 1), Ok(None));
+        assert_eq!(q.push(0, 2), Ok(None));
+        assert_eq!(q.push(0, 3), Ok(Some(1)));
+        assert_eq!(q.push(0, 4), Ok(Some(2)));
         assert_eq!(q.pop(), Some(3));
-        assert_eq!(q.push(5), Ok(None));
+        assert_eq!(q.push(0, 5), Ok(None));
         assert_eq!(q.pop(), Some(4));
         assert_eq!(q.pop(), Some(5));
+    }
+
+    /// Camera 0 floods the queue while perception is stalled: camera 1's queued frame is never
+    /// evicted, every drop is camera 0's own, and perception still gets camera 1's frame in
+    /// arrival order, then camera 0's newest.
+    #[test]
+    fn a_flooding_camera_never_evicts_another_cameras_frame() {
+        let q = FrameQueue::new(2);
+        assert_eq!(q.push(1, (1, 0)), Ok(None));
+        let mut dropped = Vec::new();
+        for n in 0..1000 {
+            if let Some(old) = q.push(0, (0, n)).unwrap() {
+                dropped.push(old);
+            }
+        }
+        assert_eq!(dropped.len(), 998);
+        assert!(
+            dropped.iter().all(|(camera, _)| *camera == 0),
+            "{dropped:?}"
+        );
+        assert_eq!(q.pop(), Some((1, 0)));
+        assert_eq!(q.pop(), Some((0, 998)));
+        assert_eq!(q.pop(), Some((0, 999)));
+        // Camera 1 keeps its slots while camera 0 is full.
+        assert_eq!(q.push(0, (0, 1000)), Ok(None));
+        assert_eq!(q.push(0, (0, 1001)), Ok(None));
+        assert_eq!(q.push(1, (1, 1)), Ok(None));
+        assert_eq!(q.push(1, (1, 2)), Ok(None));
+        assert_eq!(q.push(0, (0, 1002)), Ok(Some((0, 1000))));
+        assert_eq!(q.push(1, (1, 3)), Ok(Some((1, 1))));
     }
 
     #[test]
     fn closing_drains_then_ends_and_refuses_pushes() {
         let q = FrameQueue::new(3);
-        q.push('a').unwrap();
-        q.push('b').unwrap();
+        q.push(0, 'a').unwrap();
+        q.push(1, 'b').unwrap();
         q.close();
-        assert_eq!(q.push('c'), Err(Closed('c')));
+        assert_eq!(q.push(0, 'c'), Err(Closed('c')));
         assert_eq!(q.pop(), Some('a'));
         assert_eq!(q.pop(), Some('b'));
         assert_eq!(q.pop(), None);
         // A zero capacity is one slot, not a queue that drops everything.
         let one = FrameQueue::new(0);
-        assert_eq!(one.push(7), Ok(None));
-        assert_eq!(one.push(8), Ok(Some(7)));
+        assert_eq!(one.push(3, 7), Ok(None));
+        assert_eq!(one.push(3, 8), Ok(Some(7)));
         assert_eq!(one.pop(), Some(8));
     }
 
@@ -156,7 +199,7 @@ mod tests {
             let _close = CloseOnDrop(&q);
             let mut dropped = Vec::new();
             for v in 0..count {
-                if let Some(old) = q.push(v).unwrap() {
+                if let Some(old) = q.push(0, v).unwrap() {
                     dropped.push(old);
                 }
             }
@@ -177,7 +220,7 @@ mod tests {
         std::thread::scope(|s| {
             let consumer = s.spawn(|| q.pop());
             std::thread::sleep(Duration::from_millis(20));
-            q.push(42).unwrap();
+            q.push(0, 42).unwrap();
             assert_eq!(consumer.join().unwrap(), Some(42));
         });
     }

@@ -4,10 +4,10 @@
 //! Three kinds of threads, so a slow frame never blocks the control loop:
 //!
 //! 1. **source** (one thread): delivers frames when they are due (a recording paced by its
-//!    stamps, or ROS 2 messages from Zenoh as they arrive, `crate::io::zenoh`) into a short bounded queue
-//!    ([`frame_queue`]); when perception is behind and the queue is full, the oldest queued
-//!    frame is dropped and counted, so the newest frame wins (no backlog, no stale frame
-//!    ahead of a fresh one),
+//!    stamps, or ROS 2 messages from Zenoh as they arrive, `crate::io::zenoh`) into a short
+//!    queue bounded per camera ([`frame_queue`]); when perception is behind and a camera's
+//!    slots are full, that camera's oldest queued frame is dropped and counted for it, so the
+//!    newest frame wins and a flooding camera cannot starve the others,
 //! 2. **perception** (one thread, owning the GPU context): the per-camera chain
 //!    ([`CameraChain`]: crop, voxel grid, clusters, and one surface estimator with its memory
 //!    per camera), then hands each
@@ -41,46 +41,53 @@
 //! are counted and dropped per camera; an unreadable recording is an error naming the
 //! file ([`record`]).
 
+mod backends;
 pub mod can_out;
 pub mod frame_queue;
 pub mod haptic_loop;
+pub mod realtime;
 pub mod record;
+mod replay;
 pub mod robot_state;
+pub mod summary;
+mod tick_loop;
+mod workers;
 
 #[cfg(test)]
 mod tests;
 
+pub use backends::{BACKEND_CHOICE_FRAMES, measure_backends};
+pub use realtime::{RealtimeConfig, RealtimeStatus};
+pub use replay::{ReplayReport, replay};
+pub use summary::{CameraSummary, CanSummary, NodeSummary, Percentiles};
+pub use workers::Worker;
+
 use crate::camera::Frame;
 use crate::control::record::TickRecord;
 use crate::control::{ControllerConfig, ControllerConfigError};
-use crate::fusion::{CameraLatency, Fit, FusionConfig, FusionConfigError, FusionCounters};
+use crate::fusion::{FusionConfig, FusionConfigError};
 use crate::gpu::Backend;
-use crate::gpu::GpuContext;
-use crate::haptics::HapticStatus;
-use crate::io::can::{CanError, fault};
-use crate::perception::crop::{CropScene, DepthInput};
-use crate::perception::flying::veil_cloud;
-use crate::perception::frontend::{
-    BackendChoice, FrameInput, FramePoints, FrontendConfig, FrontendError, choose_backend,
-};
+use crate::io::can::CanError;
+use crate::perception::frontend::{BackendChoice, FrontendConfig, FrontendError};
 use crate::perception::lookahead::LookaheadConfig;
 use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
-use crate::surface::FusionStatus;
-use crate::surface::SurfaceEstimate;
-use can_out::{BusLoad, CanCounters, CanOutput, CanOutputConfig};
-use frame_queue::{CloseOnDrop, FrameQueue};
-use haptic_loop::{FrameRecord, FusionWindow, HapticLoop, Perception, RobotInput};
+use can_out::{CanCounters, CanOutput, CanOutputConfig, CanThread};
+use frame_queue::FrameQueue;
+use haptic_loop::{FrameRecord, FusionWindow, HapticLoop};
 use nalgebra::Point3;
-use record::{FrameRecorder, RecordError, TickRecorder};
+use realtime::RealtimeGuard;
+use record::{Behind, RecordError, TickRecorder};
 use robot_state::{RobotState, RobotStateConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{self, SyncSender};
-use std::sync::{Arc, Mutex, PoisonError};
-use std::time::{Duration, Instant};
+use std::sync::{Arc, PoisonError};
+use std::time::Instant;
+use summary::LoopStats;
+use tick_loop::TickLoop;
+use workers::{Clock, Handover, PerceptionReport, Shared, guarded};
 
 /// Node settings: the loop and every stage's config.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -90,7 +97,8 @@ pub struct NodeConfig {
     pub tick_rate_hz: f64,
     /// HIP position used by perception while no robot state is available, world frame, m.
     pub hip_world_m: Point3<f64>,
-    /// Frames waiting for perception; beyond this the oldest queued frame is dropped.
+    /// Frames waiting for perception per camera; beyond this the camera's oldest queued
+    /// frame is dropped (counted for that camera), never another camera's.
     pub frame_queue_count: usize,
     /// What the constraints do when fusion goes stale (a camera stopped).
     pub on_stale: StalePolicy,
@@ -113,28 +121,6 @@ pub struct NodeConfig {
     pub realtime: RealtimeConfig,
 }
 
-/// What the control loop's thread asks the system for (Linux; refused without the
-/// privilege, e.g. `CAP_SYS_NICE` / `CAP_IPC_LOCK` or an `rtprio` / `memlock` limit, which the
-/// summary reports).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct RealtimeConfig {
-    /// SCHED_FIFO priority of the control loop's thread (1-99; 0: normal scheduling).
-    pub fifo_priority: u8,
-    /// Lock the process's memory (`mlockall`, pages locked as they are touched), so the loop
-    /// never waits for a page fault.
-    pub lock_memory: bool,
-}
-
-impl Default for RealtimeConfig {
-    fn default() -> Self {
-        Self {
-            fifo_priority: 80,
-            lock_memory: true,
-        }
-    }
-}
-
 /// What the constraints do while the cameras are stale.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -151,7 +137,7 @@ impl Default for NodeConfig {
         Self {
             tick_rate_hz: 800.0,
             hip_world_m: Point3::new(0.0, 0.0, 0.6),
-            frame_queue_count: 2,
+            frame_queue_count: 1,
             on_stale: StalePolicy::Disable,
             stale_hold_max_s: 0.3,
             robot: RobotStateConfig::default(),
@@ -300,12 +286,16 @@ const MAX_STAMP_S: f64 = 1e10;
 pub const OBSERVER_TICK_EVERY: u64 = 8;
 
 /// What the node shows an observer.
+// Large on purpose: the observer's channel slots are allocated once, a boxed tick would
+// allocate on the control loop's thread.
+#[allow(clippy::large_enum_variant)]
 pub enum NodeEvent {
     /// A frame perception processed: the chain's layers, the camera pose and the HIP and
     /// robot primitives it cropped with.
     Frame(Box<FrameRecord>),
-    /// A control tick: fused surface, robot state, constraints, torques.
-    Tick(Box<TickRecord>),
+    /// A control tick: fused surface, robot state, constraints, torques (by value: handing it
+    /// over allocates nothing on the control loop's thread).
+    Tick(TickRecord),
 }
 
 impl RunOptions {
@@ -328,690 +318,190 @@ impl RunOptions {
     }
 }
 
-/// p50 and p99 of a sample, milliseconds.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
-pub struct Percentiles {
-    pub p50: f64,
-    pub p99: f64,
-}
-
-/// Per camera: frames processed and their rate over the run's clock time, frames dropped
-/// (the source's queue or perception's were full: the oldest went) and messages that did not
-/// decode (a live source).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
-pub struct CameraSummary {
-    pub frames: u64,
-    pub rate_hz: f64,
-    pub valid_estimates: u64,
-    pub dropped: u64,
-    pub malformed: u64,
-}
-
-/// What a run did (the `--json` object of `hapcloud run`).
-#[derive(Clone, Debug, Serialize)]
-pub struct NodeSummary {
-    /// Frames perception processed.
-    pub frames: u64,
-    /// Queued frames dropped for a newer one because perception was behind.
-    pub dropped_frames: u64,
-    /// Malformed messages of a live source, dropped.
-    pub malformed_records: u64,
-    /// Frames refused where they entered because their camera had already delivered a
-    /// frame stamped as late or later (stamps must increase per camera).
-    pub out_of_order_frames: u64,
-    /// Streamed frames refused for a stamp that is not finite or more than 10 s from the
-    /// node clock.
-    pub bad_stamp_frames: u64,
-    pub cameras: BTreeMap<u32, CameraSummary>,
-    pub ticks: u64,
-    pub tracking_ticks: u64,
-    pub stale_ticks: u64,
-    /// Ticks with the haptic constraints in force.
-    pub constraint_active_ticks: u64,
-    /// Ticks whose constraints used a surface held over stale cameras.
-    pub held_ticks: u64,
-    /// Ticks where the controller returned its safe command (bad input or solver failure).
-    pub controller_fallbacks: u64,
-    /// Whether the robot followed joint states from the source (else it stood still).
-    pub robot_joint_states: bool,
-    /// Ticks whose work ended after the next tick's deadline.
-    pub deadline_misses: u64,
-    /// Tick slots skipped because the loop was more than one period behind (an overrun is not
-    /// made up by a burst of late ticks).
-    pub skipped_ticks: u64,
-    /// Frame stamp to the end of the tick that first used its estimate.
-    pub latency_ms: Percentiles,
-    /// Tick start after its absolute deadline.
-    pub jitter_ms: Percentiles,
-    /// Work per tick (fusion, recording).
-    pub tick_work_ms: Percentiles,
-    /// Perception time per frame.
-    pub perception_ms: Percentiles,
-    /// Real-time scheduling and memory locking of the control loop, and what was refused.
-    pub realtime: RealtimeStatus,
-    /// With `--record`: the write error that stopped the recording (the node went on
-    /// controlling), and the frames and ticks it could not record.
-    pub recording_error: Option<String>,
-    pub unrecorded_frames: u64,
-    pub unrecorded_ticks: u64,
-    /// Backend perception ended on (`gpu` or `cpu`).
-    pub backend: Backend,
-    pub adapter: Option<String>,
-    /// The GPU failure that made perception fall back to the CPU, if any.
-    pub gpu_fallback: Option<String>,
-    /// The start-up measurement that picked the backend ([`RunOptions::pick_backend`]).
-    pub backend_choice: Option<BackendChoice>,
-    /// GPU memory the front end holds at the end (buffers sized once for the largest frame).
-    pub gpu_buffer_bytes: Option<u64>,
-    pub fusion: FusionCounters,
-    /// Per camera: estimate arrival at the loop minus the frame's capture stamp.
-    pub camera_latency: Vec<CameraLatency>,
-    /// CAN output, when `--can` or `--can-log` was given.
-    pub can: Option<CanSummary>,
-    pub duration_s: f64,
-    pub speed: f64,
-}
-
-/// What went on the CAN bus, and the bus load the configured rates imply.
-#[derive(Clone, Debug, Serialize)]
-pub struct CanSummary {
-    pub counters: CanCounters,
-    pub bus_load: BusLoad,
-}
-
-/// The node's clock: `t = offset + elapsed * speed`.
-struct Clock {
-    start: Instant,
-    speed: f64,
-    offset_bits: AtomicU64,
-}
-
-impl Clock {
-    fn now_s(&self) -> f64 {
-        f64::from_bits(self.offset_bits.load(Ordering::Acquire))
-            + self.start.elapsed().as_secs_f64() * self.speed
-    }
-
-    /// The wall instant the clock reads `t_s`; a stamp beyond a day (or not finite) is a
-    /// day away, so a corrupt stamp cannot overflow the instant.
-    fn wall_at(&self, t_s: f64) -> Instant {
-        const DAY_S: f64 = 86_400.0;
-        let offset = f64::from_bits(self.offset_bits.load(Ordering::Acquire));
-        let wait_s = ((t_s - offset) / self.speed).clamp(0.0, DAY_S);
-        self.start + Duration::from_secs_f64(if wait_s.is_nan() { DAY_S } else { wait_s })
-    }
-}
-
-/// Counters shared by the threads.
-#[derive(Default)]
-struct Shared {
-    stop: AtomicBool,
-    dropped: AtomicU64,
-    /// Frames handed to perception, and whether a timed source has handed over all.
-    queued: AtomicU64,
-    source_finished: AtomicBool,
-    malformed: AtomicU64,
-    /// Per camera: frames dropped from the queue, and (a live source) samples dropped and
-    /// malformed messages (`dropped`, `malformed`).
-    per_camera: std::sync::Mutex<BTreeMap<u32, (u64, u64)>>,
-    /// Frames refused where they entered: stamped before (or at) their camera's last
-    /// accepted frame, or with a stamp that is not finite or far from the node clock.
-    out_of_order: AtomicU64,
-    bad_stamps: AtomicU64,
-    /// Perception fell back from the GPU to the CPU.
-    gpu_fell_back: AtomicBool,
-    /// A worker thread failed (panicked or returned an error): the loop stops at its next
-    /// tick. The first failure's thread and cause are in `failure`.
-    failed: AtomicBool,
-    failure: Mutex<Option<(&'static str, String)>>,
-    /// The recording's first write error (the disk is full, the directory went away): the
-    /// node goes on controlling without recording and counts what it did not record.
-    recording_error: Mutex<Option<String>>,
-    unrecorded_frames: AtomicU64,
-}
-
-impl Shared {
-    /// Records the failure of `thread` (the first one is kept) and stops the node.
-    fn fail(&self, thread: &'static str, cause: String) {
-        let mut failure = self.failure.lock().unwrap_or_else(PoisonError::into_inner);
-        failure.get_or_insert((thread, cause));
-        self.failed.store(true, Ordering::Release);
-        self.stop.store(true, Ordering::Release);
-    }
-
-    /// Records a recording write error (logged once); the caller drops its recorder.
-    fn recording_failed(&self, error: &RecordError) {
-        let mut first = self
-            .recording_error
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner);
-        if first.is_none() {
-            eprintln!("warning: recording stopped ({error}); the node goes on without it");
-            *first = Some(error.to_string());
-        }
-    }
-
-    fn failure(&self) -> Option<(&'static str, String)> {
-        self.failure
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone()
-    }
-}
-
-/// A node thread that can fail (fault injection names it).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Worker {
-    Source,
-    Perception,
-    Control,
-}
-
-impl Worker {
-    fn name(self) -> &'static str {
-        match self {
-            Self::Source => "source",
-            Self::Perception => "perception",
-            Self::Control => "control",
-        }
-    }
-}
-
-/// The text of a panic's payload.
-fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
-    payload
-        .downcast_ref::<&str>()
-        .map(|s| (*s).to_string())
-        .or_else(|| payload.downcast_ref::<String>().cloned())
-        .unwrap_or_else(|| "panic".into())
-}
-
-/// Runs a worker's body: a panic or an error is recorded in `shared` (the loop then stops
-/// the node) instead of unwinding into the scope.
-fn guarded<T>(
-    shared: &Shared,
-    worker: Worker,
-    body: impl FnOnce() -> Result<T, NodeError>,
-) -> Option<T> {
-    match catch_unwind(AssertUnwindSafe(body)) {
-        Ok(Ok(value)) => Some(value),
-        Ok(Err(e)) => {
-            shared.fail(worker.name(), e.to_string());
-            None
-        }
-        Err(payload) => {
-            shared.fail(
-                worker.name(),
-                format!("panicked: {}", panic_message(&*payload)),
-            );
-            None
-        }
-    }
-}
-
-/// Panics when `inject` names `worker` and `count` reached its item number (fault injection).
-fn injected(inject: Option<(Worker, u64)>, worker: Worker, count: u64) {
-    if inject == Some((worker, count)) {
-        panic!("injected fault in the {} thread", worker.name());
-    }
-}
-
-/// What the perception thread reports at the end.
-struct PerceptionReport {
-    frames: BTreeMap<u32, (u64, u64)>,
-    times: Histogram,
-    backend: Backend,
-    adapter: Option<String>,
-    gpu_fallback: Option<String>,
-    gpu_buffer_bytes: Option<u64>,
-    fusion: FusionCounters,
-    camera_latency: Vec<CameraLatency>,
-}
-
-/// Frames of a timed source that [`measure_backends`] times.
-pub const BACKEND_CHOICE_FRAMES: usize = 5;
-
-/// The start-up rule of [`RunOptions::pick_backend`]: the front end on both backends
-/// ([`choose_backend`]) on the first [`BACKEND_CHOICE_FRAMES`] frames, each with the HIP and
-/// the robot primitives at its stamp and in the form each path takes it: the GPU a frame's
-/// depth image (deprojection and flying pixels in its first pass), the CPU the world-frame
-/// cloud after the flying-pixel test, as [`crate::perception::pipeline::CameraChain`] feeds
-/// them. The faster by median wall time wins; the CPU's world transform and flying-pixel
-/// test before its front end are not in its time (a bias towards the CPU of about a
-/// millisecond per frame here). `None` when the GPU does not open.
-pub fn measure_backends(
-    config: &NodeConfig,
-    frames: &[Frame],
-    robot: &RobotState,
-    adapter: Option<&str>,
-) -> Result<Option<BackendChoice>, NodeError> {
-    let Ok(ctx) = adapter.map_or_else(GpuContext::new, |name| {
-        GpuContext::with_adapter_name(Some(name))
-    }) else {
-        return Ok(None);
-    };
-    let frames = &frames[..frames.len().min(BACKEND_CHOICE_FRAMES)];
-    let scenes: Vec<_> = frames
-        .iter()
-        .map(|f| robot.perception_scene(&robot.at(f.stamp_s).q_rad))
-        .collect();
-    let flying = &config.surface.flying_pixels;
-    // The CPU path's input: the cloud in the world frame, flying pixels set to NaN.
-    let world: Vec<Vec<_>> = frames
-        .iter()
-        .zip(&scenes)
-        .map(|(f, scene)| {
-            let hip = f.world_from_camera.inverse() * scene.hip_m;
-            let near = glam::Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32);
-            let radius = config.frontend.crop.radius_m as f32;
-            veil_cloud(&f.cloud, &f.world_from_camera, near, radius, flying).0
-        })
-        .collect();
-    fn input<'a>(
-        f: &Frame,
-        scene: &'a robot_state::PerceptionScene,
-        points: FramePoints<'a>,
-    ) -> FrameInput<'a> {
-        FrameInput {
-            points,
-            crop: Some(CropScene {
-                hip_m: scene.hip_m,
-                robot: &scene.primitives,
-                camera_m: Some(Point3::from(f.world_from_camera.translation.vector)),
-            }),
-            want_crop_keep: false,
-        }
-    }
-    let cpu: Vec<FrameInput<'_>> = (0..frames.len())
-        .map(|i| input(&frames[i], &scenes[i], FramePoints::Points(&world[i])))
-        .collect();
-    let gpu: Vec<FrameInput<'_>> = (0..frames.len())
-        .map(|i| {
-            let f = &frames[i];
-            let points = match &f.depth {
-                Some((image, intrinsics))
-                    if (intrinsics.width, intrinsics.height) == (image.width, image.height) =>
-                {
-                    FramePoints::Depth(DepthInput {
-                        image,
-                        intrinsics,
-                        cloud_from_camera: f.world_from_camera,
-                        flying,
-                    })
-                }
-                _ => FramePoints::Points(&world[i]),
-            };
-            input(f, &scenes[i], points)
-        })
-        .collect();
-    Ok(Some(choose_backend(
-        &config.frontend,
-        Some(Arc::new(ctx)),
-        &cpu,
-        &gpu,
-    )?))
-}
-
-/// An estimate handed to the control loop, with the fit of fusion's window that includes it.
-type Handover = (SurfaceEstimate, Option<Fit>);
-
-#[allow(clippy::too_many_arguments)]
-fn perception_thread(
-    mut perception: Perception,
-    mut window: FusionWindow,
-    robot: &RobotState,
-    clock: &Clock,
-    frames: &FrameQueue<Frame>,
-    estimates: mpsc::Sender<Handover>,
-    mut recorder: Option<FrameRecorder>,
-    shared: &Shared,
-    observer: Option<SyncSender<NodeEvent>>,
-    inject: Option<(Worker, u64)>,
-) -> Result<PerceptionReport, NodeError> {
-    let mut counts: BTreeMap<u32, (u64, u64)> = BTreeMap::new();
-    // 0.1 ms bins up to 10 s
-    let mut times = Histogram::new(1e-4, 10.0);
-    // The source stops once perception does, whatever the way out.
-    let _close = CloseOnDrop(frames);
-    let mut processed = 0u64;
-    let recording = recorder.is_some();
-    while let Some(frame) = frames.pop() {
-        processed += 1;
-        injected(inject, Worker::Perception, processed);
-        let start = Instant::now();
-        let q = robot.at(frame.stamp_s).q_rad;
-        let record = perception.process(&frame, &robot.perception_scene(&q))?;
-        let estimate = record.estimate().clone();
-        times.add(start.elapsed().as_secs_f64());
-        if perception.gpu_fallback().is_some() {
-            shared.gpu_fell_back.store(true, Ordering::Relaxed);
-        }
-        match recorder.as_mut().map(|r| r.frame(&frame, &q)) {
-            Some(Err(e)) => {
-                shared.recording_failed(&e);
-                recorder = None;
-                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
-            }
-            None if recording => {
-                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
-            }
-            _ => {}
-        }
-        // Fusion's window is fitted here, off the control loop's thread.
-        let fit = window.push(&estimate, record.far_field.as_ref(), clock.now_s());
-        if let Some(o) = &observer {
-            // Dropped when the observer is behind (or gone).
-            let _ = o.try_send(NodeEvent::Frame(Box::new(record)));
-        }
-        let entry = counts.entry(frame.camera_id).or_default();
-        entry.0 += 1;
-        entry.1 += u64::from(estimate.surface.is_some());
-        if estimates.send((estimate, fit)).is_err() {
-            break;
-        }
-    }
-    if let Some(Err(e)) = recorder.map(FrameRecorder::finish) {
-        shared.recording_failed(&e);
-    }
-    Ok(PerceptionReport {
-        frames: counts,
-        times,
-        backend: perception.backend(),
-        adapter: perception.adapter().map(str::to_string),
-        gpu_fallback: perception.gpu_fallback(),
-        gpu_buffer_bytes: perception.gpu_buffer_bytes(),
-        fusion: window.fusion().counters(),
-        camera_latency: window.fusion().latency_stats(),
-    })
-}
-
-/// How far a streamed frame's stamp may be from the node clock, s (a camera driver's clock
-/// against the node's: anything further is a corrupt or foreign stamp).
-#[cfg(feature = "ros2")]
-const STREAM_STAMP_WINDOW_S: f64 = 10.0;
-
-/// Where frames enter: each camera's stamps must increase (a frame stamped at or before its
-/// camera's last accepted one is refused and counted, and never holds the camera back), and
-/// a streamed frame's stamp must be finite and near the node clock.
-struct StampGate {
-    last: Vec<(u32, f64)>,
-}
-
-impl StampGate {
-    fn admit(&mut self, frame: &Frame, shared: &Shared) -> bool {
-        match self.last.iter_mut().find(|(id, _)| *id == frame.camera_id) {
-            Some((_, last)) if frame.stamp_s <= *last => {
-                shared.out_of_order.fetch_add(1, Ordering::Relaxed);
-                false
-            }
-            Some((_, last)) => {
-                *last = frame.stamp_s;
-                true
-            }
-            None => {
-                self.last.push((frame.camera_id, frame.stamp_s));
-                true
-            }
-        }
-    }
-}
-
-fn source_thread(
-    source: Source,
-    clock: &Clock,
-    queue: &FrameQueue<Frame>,
-    shared: &Shared,
-    inject: Option<(Worker, u64)>,
-) {
-    // Perception drains what is queued and ends once the source does.
-    let _close = CloseOnDrop(queue);
-    let mut gate = StampGate { last: Vec::new() };
-    let mut offered = 0u64;
-    let mut offer = |frame: Frame| {
-        offered += 1;
-        injected(inject, Worker::Source, offered);
-        if !gate.admit(&frame, shared) {
-            return true;
-        }
-        match queue.push(frame) {
-            Ok(None) => {
-                shared.queued.fetch_add(1, Ordering::Relaxed);
-                true
-            }
-            // The oldest queued frame made room: one frame in, one out.
-            Ok(Some(oldest)) => {
-                shared.dropped.fetch_add(1, Ordering::Relaxed);
-                shared
-                    .per_camera
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .entry(oldest.camera_id)
-                    .or_default()
-                    .0 += 1;
-                true
-            }
-            Err(_) => false,
-        }
-    };
-    match source {
-        Source::Timed(frames) | Source::Simulated { frames, .. } => {
-            for frame in frames {
-                // Sleep until the frame is due, waking regularly to see a stop.
-                loop {
-                    if shared.stop.load(Ordering::Relaxed) {
-                        return;
-                    }
-                    let due = clock.wall_at(frame.stamp_s);
-                    let now = Instant::now();
-                    if now >= due {
-                        break;
-                    }
-                    std::thread::sleep((due - now).min(Duration::from_millis(20)));
-                }
-                if !offer(frame) {
-                    return;
-                }
-            }
-            shared.source_finished.store(true, Ordering::Release);
-        }
-        #[cfg(feature = "ros2")]
-        Source::Zenoh(mut source) => {
-            let stats = source.stats();
-            while !shared.stop.load(Ordering::Relaxed) {
-                if let Some(assembled) = source.recv(Duration::from_millis(20)) {
-                    // The node runs on the wall clock with a live source: the cameras'
-                    // stamps must be near it.
-                    let stamp_s = assembled.frame.stamp_s;
-                    if !(stamp_s.is_finite()
-                        && stamp_s.abs() <= MAX_STAMP_S
-                        && (stamp_s - clock.now_s()).abs() <= STREAM_STAMP_WINDOW_S)
-                    {
-                        shared.bad_stamps.fetch_add(1, Ordering::Relaxed);
-                    } else if !offer(assembled.frame) {
-                        break;
-                    }
-                }
-                let counters = stats.counters();
-                shared.malformed.store(
-                    counters.values().map(|c| c.malformed).sum(),
-                    Ordering::Relaxed,
-                );
-                let mut per_camera = shared
-                    .per_camera
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner);
-                for (id, c) in counters {
-                    per_camera.entry(id).or_default().1 = c.malformed;
-                }
-            }
-            let mut per_camera = shared
-                .per_camera
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
-            for (id, c) in stats.counters() {
-                per_camera.entry(id).or_default().0 += c.drops;
-            }
-        }
-    }
-}
-
-/// Percentiles of a duration without keeping the samples: counts in fixed bins (the loop
-/// adds one per tick for hours without growing or allocating).
-struct Histogram {
-    bin_s: f64,
-    counts: Vec<u32>,
-    /// Largest sample, reported for the percentiles beyond the last bin.
-    max_s: f64,
-    total: u64,
-}
-
-impl Histogram {
-    /// Bins of `bin_s` up to `range_s`.
-    fn new(bin_s: f64, range_s: f64) -> Self {
-        Self {
-            bin_s,
-            counts: vec![0; (range_s / bin_s).ceil() as usize],
-            max_s: 0.0,
-            total: 0,
-        }
-    }
-
-    fn add(&mut self, s: f64) {
-        let s = if s.is_finite() { s.max(0.0) } else { f64::MAX };
-        let bin = ((s / self.bin_s) as usize).min(self.counts.len() - 1);
-        self.counts[bin] += 1;
-        self.max_s = self.max_s.max(s);
-        self.total += 1;
-    }
-
-    /// p50 and p99 in milliseconds: the upper edge of the bin holding the percentile (the
-    /// largest sample for the last bin).
-    fn percentiles(&self) -> Percentiles {
-        if self.total == 0 {
-            return Percentiles::default();
-        }
-        let at = |p: f64| {
-            let rank = ((self.total - 1) as f64 * p).round() as u64 + 1;
-            let mut seen = 0u64;
-            for (i, &c) in self.counts.iter().enumerate() {
-                seen += u64::from(c);
-                if seen >= rank {
-                    return if i + 1 == self.counts.len() {
-                        self.max_s
-                    } else {
-                        ((i + 1) as f64 * self.bin_s).min(self.max_s)
-                    } * 1e3;
-                }
-            }
-            self.max_s * 1e3
-        };
-        Percentiles {
-            p50: at(0.5),
-            p99: at(0.99),
-        }
-    }
-}
-
-/// What the control loop's thread got from the system ([`RealtimeConfig`]).
-#[derive(Clone, Debug, Default, PartialEq, Serialize)]
-pub struct RealtimeStatus {
-    /// The SCHED_FIFO priority the loop ran at (`None`: normal scheduling).
-    pub fifo_priority: Option<u8>,
-    /// Whether the process's memory was locked.
-    pub memory_locked: bool,
-    /// What was asked for and refused, with the system's reason.
-    pub refused: Vec<String>,
-}
-
-/// Locked memory and SCHED_FIFO for the calling thread ([`RealtimeConfig`]), given back when
-/// dropped (the thread that called `run` gets its scheduling back). Memory is locked before
-/// the clock starts (locking a large process takes a while); SCHED_FIFO is asked for after
-/// the workers are spawned (they would inherit it).
-struct RealtimeGuard {
-    status: RealtimeStatus,
-    old_policy: libc::c_int,
-    old_param: libc::sched_param,
-}
-
-impl RealtimeGuard {
-    /// Locks memory if `config` asks for it.
-    fn lock_memory(config: &RealtimeConfig) -> Self {
-        let mut status = RealtimeStatus::default();
-        // SAFETY: plain syscalls on the calling thread with valid pointers to locals.
-        let (old_policy, old_param) = unsafe {
-            let mut policy = 0;
-            let mut param: libc::sched_param = std::mem::zeroed();
-            libc::pthread_getschedparam(libc::pthread_self(), &mut policy, &mut param);
-            if config.lock_memory {
-                let flags = libc::MCL_CURRENT | libc::MCL_FUTURE | libc::MCL_ONFAULT;
-                if libc::mlockall(flags) == 0 {
-                    status.memory_locked = true;
-                } else {
-                    status
-                        .refused
-                        .push(format!("mlockall: {}", std::io::Error::last_os_error()));
-                }
-            }
-            (policy, param)
-        };
-        Self {
-            status,
-            old_policy,
-            old_param,
-        }
-    }
-
-    /// Asks for SCHED_FIFO on the calling thread if `config` does, then says once what was
-    /// refused.
-    fn fifo(&mut self, config: &RealtimeConfig) {
-        if config.fifo_priority > 0 {
-            let fifo = libc::sched_param {
-                sched_priority: libc::c_int::from(config.fifo_priority),
-            };
-            // SAFETY: the calling thread, a valid pointer to a local.
-            match unsafe {
-                libc::pthread_setschedparam(libc::pthread_self(), libc::SCHED_FIFO, &fifo)
-            } {
-                0 => self.status.fifo_priority = Some(config.fifo_priority),
-                e => self.status.refused.push(format!(
-                    "SCHED_FIFO priority {}: {}",
-                    config.fifo_priority,
-                    std::io::Error::from_raw_os_error(e)
-                )),
-            }
-        }
-        if !self.status.refused.is_empty() {
-            eprintln!(
-                "warning: real time refused ({}); the control loop runs without it",
-                self.status.refused.join("; ")
-            );
-        }
-    }
-}
-
-impl Drop for RealtimeGuard {
-    fn drop(&mut self) {
-        // SAFETY: restores what `acquire` read, on the same thread.
-        unsafe {
-            if self.status.fifo_priority.is_some() {
-                libc::pthread_setschedparam(libc::pthread_self(), self.old_policy, &self.old_param);
-            }
-            if self.status.memory_locked {
-                libc::munlockall();
-            }
-        }
-    }
-}
-
 /// Runs the node until the duration is reached (or a timed source is exhausted), calling
 /// `on_tick` with every tick's record (fused surface, robot state, constraints, torques).
 /// Returns the summary.
+///
+/// Reads top to bottom: the robot and the haptic loop's two halves, the outputs (CAN, the
+/// recording), the clock; then the source and perception threads around the control loop on
+/// this thread ([`TickLoop`]), and the summary of what each did.
 pub fn run(
     config: &NodeConfig,
     source: Source,
     options: &RunOptions,
-    mut on_tick: impl FnMut(&TickRecord),
+    on_tick: impl FnMut(&TickRecord),
 ) -> Result<NodeSummary, NodeError> {
+    validate_options(config, options)?;
+    let robot = match &source {
+        Source::Simulated { simulator, .. } => RobotState::simulated(simulator.clone()),
+        _ => None,
+    };
+    let robot = match robot {
+        Some(r) => r,
+        None => RobotState::fixed(config)?,
+    };
+    let timed_frames = match &source {
+        Source::Timed(frames) | Source::Simulated { frames, .. } => Some(frames),
+        #[cfg(feature = "ros2")]
+        Source::Zenoh(_) => None,
+    };
+    if let Some(frames) = timed_frames {
+        check_stamps(frames)?;
+    }
+    let (backend, backend_choice) = match (timed_frames, options.pick_backend) {
+        (Some(frames), true) => {
+            match measure_backends(config, frames, &robot, options.adapter.as_deref())? {
+                Some(choice) => (choice.backend, Some(choice)),
+                // The GPU does not open: perception's own fallback reports why.
+                None => (Backend::Gpu, None),
+            }
+        }
+        _ => (options.backend, None),
+    };
+    let (mut perception, control) = HapticLoop::new(
+        config,
+        robot.model().clone(),
+        backend,
+        options.adapter.as_deref(),
+    )?
+    .into_halves();
+    perception.keep_crop_mask(options.observer.is_some());
+    let can = if options.can_interface.is_some() || options.can_log.is_some() {
+        let output = CanOutput::open(
+            &config.can,
+            options.can_interface.as_deref(),
+            options.can_log.as_deref(),
+        )?;
+        // One below the control loop, so the torque command follows the tick.
+        let priority = config.realtime.fifo_priority.saturating_sub(1);
+        Some(CanThread::spawn(output, Some(priority))?)
+    } else {
+        None
+    };
+    if options.progress_every_s.is_some() {
+        announce(
+            config,
+            &perception,
+            backend_choice.as_ref(),
+            &robot,
+            can.is_some(),
+        );
+    }
+    let (frame_recorder, tick_recorder) = match &options.record {
+        Some(path) => {
+            let meta = record::RecordingMeta {
+                version: record::RECORDING_VERSION,
+                config: config.clone(),
+                backend: perception.backend(),
+                robot: robot.meta(),
+            };
+            let (f, t) = record::create(path, &meta)?;
+            (Some(f), Some(t))
+        }
+        None => (None, None),
+    };
+    let behind = tick_recorder.as_ref().map(TickRecorder::behind);
+    // What the loop needs is made before the clock starts: until the loop's thread runs at
+    // real-time priority, the first deadlines could pass while it is preempted.
+    let (stats, window) = (LoopStats::new(), FusionWindow::new(config)?);
+    // Memory is locked first: locking a large process takes a while, and a live source's
+    // clock starts at the wall time read below.
+    let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
+    let (t_first, t_end) = clock_span(config, options, timed_frames);
+    let first_joints = robot.at(t_first);
+    let clock = Clock {
+        start: Instant::now(),
+        speed: options.speed,
+        offset_bits: AtomicU64::new(t_first.to_bits()),
+    };
+    let shared = Shared::default();
+    let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
+    let (estimate_tx, estimate_rx) = mpsc::channel::<Handover>();
+    let start_backend = perception.backend();
+    let mut ticks = TickLoop {
+        config,
+        options,
+        robot: &robot,
+        clock: &clock,
+        shared: &shared,
+        t_first,
+        t_end,
+        start_backend,
+        control,
+        estimates: estimate_rx,
+        can,
+        recorder: tick_recorder,
+        on_tick,
+        stats,
+        k: 0,
+        last_joints: first_joints,
+    };
+
+    let (report, can) = std::thread::scope(|scope| {
+        let (robot, shared, clock) = (&robot, &shared, &clock);
+        let inject = options.inject_panic;
+        let observer = options.observer.clone();
+        let perception_handle = scope.spawn(move || {
+            guarded(shared, Worker::Perception, || {
+                workers::perception_thread(
+                    perception,
+                    window,
+                    robot,
+                    clock,
+                    frame_queue,
+                    estimate_tx,
+                    frame_recorder,
+                    shared,
+                    observer,
+                    inject,
+                )
+            })
+        });
+        let source_handle = scope.spawn(move || {
+            guarded(shared, Worker::Source, || {
+                workers::source_thread(source, clock, frame_queue, shared, inject);
+                Ok(())
+            })
+        });
+        // SCHED_FIFO for this thread only, asked for after the workers were spawned.
+        realtime.fifo(&config.realtime);
+        ticks.run(|| perception_handle.is_finished());
+        ticks.stats.realtime = realtime.status.clone();
+        shared.stop.store(true, Ordering::Release);
+        // A failed worker or a stop from outside: the safe command goes out at once.
+        let can = ticks.finish_outputs(shared.failure().is_some() || ticks.stats.stopped_early);
+        let _ = source_handle.join();
+        (perception_handle.join().ok().flatten(), can)
+    });
+    drop(realtime);
+    // The recording is closed on every way out (its writer ends once both recorders are gone).
+    if let Some(Err(e)) = ticks.recorder.take().map(TickRecorder::finish) {
+        shared.recording_failed(&e);
+    }
+    if let Some((thread, cause)) = shared.failure() {
+        return Err(NodeError::Worker { thread, cause });
+    }
+    let report = report.ok_or_else(|| NodeError::Worker {
+        thread: Worker::Perception.name(),
+        cause: "ended without a report".into(),
+    })?;
+    ticks.stats.duration_s = ticks.k as f64 * (1.0 / config.tick_rate_hz);
+    let stats = ticks.stats;
+    Ok(summarize(
+        config,
+        options,
+        &robot,
+        shared,
+        report,
+        stats,
+        backend_choice,
+        can,
+        behind.map(|b| b.get()).unwrap_or_default(),
+    ))
+}
+
+/// The run's own arguments, beside the config's `validate`.
+fn validate_options(config: &NodeConfig, options: &RunOptions) -> Result<(), NodeError> {
     config.validate()?;
     if !(options.speed.is_finite() && options.speed > 0.0) {
         return Err(NodeError::Speed(options.speed));
@@ -1023,102 +513,29 @@ pub fn run(
             "--duration must be positive and finite (at most {MAX_STAMP_S} s), got {d}"
         )));
     }
-    let robot = match &source {
-        Source::Simulated { simulator, .. } => RobotState::simulated(simulator.clone()),
-        _ => None,
-    };
-    let robot = match robot {
-        Some(r) => r,
-        None => RobotState::fixed(config)?,
-    };
-    let (backend, backend_choice) = match (&source, options.pick_backend) {
-        (Source::Timed(frames) | Source::Simulated { frames, .. }, true) => {
-            match measure_backends(config, frames, &robot, options.adapter.as_deref())? {
-                Some(choice) => (choice.backend, Some(choice)),
-                // The GPU does not open: perception's own fallback reports why.
-                None => (Backend::Gpu, None),
-            }
-        }
-        _ => (options.backend, None),
-    };
-    let (mut perception, mut control) = HapticLoop::new(
-        config,
-        robot.model().clone(),
-        backend,
-        options.adapter.as_deref(),
-    )?
-    .into_halves();
-    perception.keep_crop_mask(options.observer.is_some());
-    let mut can = if options.can_interface.is_some() || options.can_log.is_some() {
-        Some(CanOutput::open(
-            &config.can,
-            options.can_interface.as_deref(),
-            options.can_log.as_deref(),
-        )?)
-    } else {
-        None
-    };
-    let start_backend = perception.backend();
-    if options.progress_every_s.is_some() {
-        let adapter = perception.adapter().map(str::to_string);
-        eprintln!(
-            "perception backend: {}{}{}; robot: {}",
-            perception.backend(),
-            adapter.map(|a| format!(" on {a}")).unwrap_or_default(),
-            backend_choice
-                .as_ref()
-                .map(BackendChoice::describe)
-                .unwrap_or_default(),
-            if robot.has_joint_states() {
-                "joint states from the source"
-            } else {
-                "standing at robot.fixed_joints_rad (source has no joint states)"
-            }
-        );
-        if can.is_some() {
-            let load = config.can.bus_load(config.tick_rate_hz);
-            eprintln!(
-                "CAN: {:.0} frames/s, {:.0} kbit/s worst case, {:.1} % of {:.0} kbit/s",
-                load.frames_per_s,
-                load.bits_per_s / 1e3,
-                load.load_fraction * 100.0,
-                config.can.bitrate_bit_per_s / 1e3
-            );
-        }
-    }
-    let (frame_recorder, mut tick_recorder) = match &options.record {
-        Some(dir) => {
-            let meta = record::RecordingMeta {
-                version: record::RECORDING_VERSION,
-                config: config.clone(),
-                backend: perception.backend(),
-                robot: robot.meta(),
-            };
-            let (f, t) = record::create(dir, &meta)?;
-            (Some(f), Some(t))
-        }
-        None => (None, None),
-    };
-    let timed_frames = match &source {
-        Source::Timed(frames) | Source::Simulated { frames, .. } => Some(frames),
-        #[cfg(feature = "ros2")]
-        Source::Zenoh(_) => None,
-    };
-    if let Some(frames) = timed_frames
-        && let Some((i, f)) = frames
-            .iter()
-            .enumerate()
-            .find(|(_, f)| !f.stamp_s.is_finite() || f.stamp_s.abs() > MAX_STAMP_S)
+    Ok(())
+}
+
+/// A timed source's stamps must be finite and within [`MAX_STAMP_S`].
+fn check_stamps(frames: &[Frame]) -> Result<(), NodeError> {
+    match frames
+        .iter()
+        .enumerate()
+        .find(|(_, f)| !f.stamp_s.is_finite() || f.stamp_s.abs() > MAX_STAMP_S)
     {
-        return Err(NodeError::Config(format!(
+        Some((i, f)) => Err(NodeError::Config(format!(
             "frame {i} (camera {}) is stamped {} s: stamps must be finite and within {MAX_STAMP_S} s",
             f.camera_id, f.stamp_s
-        )));
+        ))),
+        None => Ok(()),
     }
-    // Memory is locked first: locking a large process takes a while, and a live source's
-    // clock starts at the wall time read below.
-    let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
-    let (t_first, t_end) = match timed_frames {
+}
+
+/// The node clock's first and last time: a timed source from its first stamp to its last
+/// plus the stale timeout (or `--duration`); a live source on the wall clock, on which the
+/// cameras stamp their frames.
+fn clock_span(config: &NodeConfig, options: &RunOptions, timed: Option<&Vec<Frame>>) -> (f64, f64) {
+    match timed {
         Some(frames) => {
             let first = frames
                 .iter()
@@ -1135,288 +552,69 @@ pub fn run(
             );
             (first, end)
         }
-        // A live source: the wall clock, on which the cameras stamp their frames.
         None => {
             let now_s = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
                 .map_or(0.0, |d| d.as_secs_f64());
             (now_s, now_s + options.duration_s.unwrap_or(f64::INFINITY))
         }
-    };
-    let clock = Clock {
-        start: Instant::now(),
-        speed: options.speed,
-        offset_bits: AtomicU64::new(t_first.to_bits()),
-    };
-    let shared = Shared::default();
-    let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
-    let (estimate_tx, estimate_rx) = mpsc::channel::<Handover>();
-    let window = FusionWindow::new(config)?;
-    let tick_s = 1.0 / config.tick_rate_hz;
-    let period = Duration::from_secs_f64(tick_s / options.speed);
-    let status_every = u64::from(config.can.status_every_ticks);
-    let inject = options.inject_panic;
+    }
+}
 
-    let result = std::thread::scope(|scope| {
-        let robot = &robot;
-        let shared = &shared;
-        let clock = &clock;
-        let observer = options.observer.clone();
-        let perception_handle = scope.spawn(move || {
-            guarded(shared, Worker::Perception, || {
-                perception_thread(
-                    perception,
-                    window,
-                    robot,
-                    clock,
-                    frame_queue,
-                    estimate_tx,
-                    frame_recorder,
-                    shared,
-                    observer,
-                    inject,
-                )
-            })
-        });
-        let source_handle = scope.spawn(move || {
-            guarded(shared, Worker::Source, || {
-                source_thread(source, clock, frame_queue, shared, inject);
-                Ok(())
-            })
-        });
-        // SCHED_FIFO for this thread only, asked for after the workers were spawned.
-        realtime.fifo(&config.realtime);
+/// The start-up lines of a run with progress output.
+fn announce(
+    config: &NodeConfig,
+    perception: &haptic_loop::Perception,
+    backend_choice: Option<&BackendChoice>,
+    robot: &RobotState,
+    can: bool,
+) {
+    eprintln!(
+        "perception backend: {}{}{}; robot: {}",
+        perception.backend(),
+        perception
+            .adapter()
+            .map(|a| format!(" on {a}"))
+            .unwrap_or_default(),
+        backend_choice
+            .map(BackendChoice::describe)
+            .unwrap_or_default(),
+        if robot.has_joint_states() {
+            "joint states from the source"
+        } else {
+            "standing at robot.fixed_joints_rad (source has no joint states)"
+        }
+    );
+    if can {
+        let load = config.can.bus_load(config.tick_rate_hz);
+        eprintln!(
+            "CAN: {:.0} frames/s, {:.0} kbit/s worst case, {:.1} % of {:.0} kbit/s",
+            load.frames_per_s,
+            load.bits_per_s / 1e3,
+            load.load_fraction * 100.0,
+            config.can.bitrate_bit_per_s / 1e3
+        );
+    }
+}
 
-        let mut stats = LoopStats::new();
-        // The last tick's robot state, for the safe command if the node has to stop.
-        let mut last_joints = robot.at(t_first);
-        let mut k: u64 = 0;
-        let mut run_loop = || -> Result<(), NodeError> {
-            let mut last_progress = Instant::now();
-            let mut pending_latency: Vec<f64> = Vec::with_capacity(64);
-            let mut received: u64 = 0;
-            let mut recent_per_camera: BTreeMap<u32, u64> = BTreeMap::new();
-            let mut progress_t = t_first;
-            let mut misses_since_status = false;
-            let loop_start = clock.start;
-            let stream_length_s = t_end - t_first;
-            loop {
-                if shared.failed.load(Ordering::Acquire) {
-                    return Ok(());
-                }
-                injected(inject, Worker::Control, stats.ticks + 1);
-                let now = Instant::now();
-                let behind = now.saturating_duration_since(loop_start + period.mul_f64(k as f64));
-                if behind > period {
-                    // Overrun: the slots already past are skipped (counted), not run back to
-                    // back: they would all be late, and the node clock would fall behind the
-                    // cameras' clock.
-                    let skip = (behind.as_secs_f64() / period.as_secs_f64()).floor() as u64;
-                    stats.skipped += skip;
-                    k += skip;
-                }
-                let deadline = loop_start + period.mul_f64(k as f64);
-                if deadline > now {
-                    std::thread::sleep(deadline - now);
-                }
-                let started = Instant::now();
-                let late_s = started.saturating_duration_since(deadline).as_secs_f64();
-                stats.jitter.add(late_s);
-                // The tick's time on the node clock: absolute, from the tick index.
-                let t_tick =
-                    f64::from_bits(clock.offset_bits.load(Ordering::Acquire)) + k as f64 * tick_s;
-                // Estimates are handed over without blocking; fusion's window was fitted on
-                // the perception thread, the tick evaluates the newest fit.
-                while let Ok((estimate, fit)) = estimate_rx.try_recv() {
-                    if let Some(Err(e)) = tick_recorder.as_mut().map(|r| r.estimate(k, &estimate)) {
-                        shared.recording_failed(&e);
-                        tick_recorder = None;
-                    }
-                    if let Some(c) = can.as_mut() {
-                        c.estimate(t_tick, &estimate);
-                    }
-                    if let Some(fit) = fit {
-                        control.use_fit(fit);
-                    }
-                    if pending_latency.len() < pending_latency.capacity() {
-                        pending_latency.push(estimate.stamp_s);
-                    }
-                    received += 1;
-                    *recent_per_camera.entry(estimate.camera_id).or_insert(0u64) += 1;
-                }
-                let joints = robot.at(t_tick);
-                last_joints = joints;
-                let out = control.tick(t_tick, &RobotInput::without_force(joints));
-                let mut tick = out.record(k, joints, late_s);
-                let (fused, record) = (tick.fused, tick.control);
-                on_tick(&tick);
-                stats.ticks += 1;
-                match fused.status {
-                    FusionStatus::Tracking => stats.tracking += 1,
-                    FusionStatus::Stale => stats.stale += 1,
-                    _ => {}
-                }
-                stats.active += u64::from(record.haptic_status == HapticStatus::Active);
-                stats.held += u64::from(record.held);
-                stats.fallbacks += u64::from(record.status != crate::control::ControlStatus::Ok);
-                let finished = Instant::now();
-                tick.work_s = (finished - started).as_secs_f64();
-                stats.work.add(tick.work_s);
-                let t_done = clock.now_s();
-                for stamp in pending_latency.drain(..) {
-                    stats.last_latency_s = t_done - stamp;
-                    stats.latency.add(stats.last_latency_s);
-                }
-                if finished > deadline + period {
-                    stats.deadline_misses += 1;
-                    misses_since_status = true;
-                }
-                match tick_recorder.as_mut().map(|r| r.tick(&tick)) {
-                    Some(Err(e)) => {
-                        shared.recording_failed(&e);
-                        tick_recorder = None;
-                        stats.unrecorded_ticks += 1;
-                    }
-                    None if options.record.is_some() => stats.unrecorded_ticks += 1,
-                    _ => {}
-                }
-                if let Some(o) = &options.observer
-                    && k.is_multiple_of(OBSERVER_TICK_EVERY)
-                {
-                    let _ = o.try_send(NodeEvent::Tick(Box::new(tick)));
-                }
-                if let Some(c) = can.as_mut() {
-                    let mut flags = 0;
-                    let mut flag = |on: bool, bit: u16| {
-                        if on {
-                            flags |= bit;
-                        }
-                    };
-                    flag(fused.status == FusionStatus::Stale, fault::CAMERA_STALE);
-                    flag(
-                        shared.gpu_fell_back.load(Ordering::Relaxed),
-                        fault::GPU_FALLBACK,
-                    );
-                    flag(
-                        shared.malformed.load(Ordering::Relaxed) > 0,
-                        fault::NETWORK_MALFORMED,
-                    );
-                    flag(misses_since_status, fault::DEADLINE_MISSED);
-                    flag(record.held, fault::CONSTRAINT_HELD);
-                    c.tick(
-                        t_tick,
-                        &tick,
-                        &can_out::Health {
-                            deadline_misses: stats.deadline_misses,
-                            fault_flags: flags,
-                            gpu: start_backend == Backend::Gpu
-                                && !shared.gpu_fell_back.load(Ordering::Relaxed),
-                            latency_ms: stats.last_latency_s * 1e3,
-                        },
-                    );
-                    if k.is_multiple_of(status_every) {
-                        misses_since_status = false;
-                    }
-                }
-                if let Some(every) = options.progress_every_s
-                    && last_progress.elapsed().as_secs_f64() >= every
-                {
-                    last_progress = Instant::now();
-                    let span = (t_tick - progress_t).max(tick_s);
-                    progress_t = t_tick;
-                    let rates: Vec<String> = recent_per_camera
-                        .iter()
-                        .map(|(id, n)| format!("cam{id} {:.1} Hz", *n as f64 / span))
-                        .collect();
-                    recent_per_camera.clear();
-                    eprintln!(
-                        "t {:7.2} s  {}  latency last {:.1} ms  ticks {}  misses {}  fusion {:?}  constraints {:?}{}  d_proj {:.1} mm",
-                        t_tick - t_first,
-                        if rates.is_empty() {
-                            "no frames".into()
-                        } else {
-                            rates.join(", ")
-                        },
-                        stats.last_latency_s * 1e3,
-                        stats.ticks,
-                        stats.deadline_misses,
-                        fused.status,
-                        record.haptic_status,
-                        if record.held { " (held)" } else { "" },
-                        record.d_proj_m * 1e3,
-                    );
-                }
-                k += 1;
-                if options
-                    .stop
-                    .as_ref()
-                    .is_some_and(|s| s.load(Ordering::Relaxed))
-                {
-                    return Ok(());
-                }
-                // Without --duration a timed source runs until its last stamp plus the stale
-                // timeout, and on until perception has delivered every queued frame.
-                let drained = options.duration_s.is_some()
-                    || perception_handle.is_finished()
-                    || (shared.source_finished.load(Ordering::Acquire)
-                        && received >= shared.queued.load(Ordering::Relaxed));
-                if k as f64 * tick_s >= stream_length_s && drained {
-                    return Ok(());
-                }
-            }
-        };
-        match catch_unwind(AssertUnwindSafe(&mut run_loop)) {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => shared.fail(Worker::Control.name(), e.to_string()),
-            Err(payload) => shared.fail(
-                Worker::Control.name(),
-                format!("panicked: {}", panic_message(&*payload)),
-            ),
-        }
-        stats.realtime = realtime.status.clone();
-        shared.stop.store(true, Ordering::Release);
-        // A failed worker stops the node safely: the constraints off and the safe command
-        // (gravity compensation and damping, torque command disabled) sent on CAN.
-        let failure = shared.failure();
-        if failure.is_some()
-            && let Some(c) = can.as_mut()
-        {
-            let t_stop = clock.now_s();
-            let out = control.stop(t_stop, &RobotInput::without_force(last_joints));
-            let tick = out.record(k, last_joints, 0.0);
-            c.safe_stop(
-                t_stop,
-                &tick,
-                &can_out::Health {
-                    deadline_misses: stats.deadline_misses,
-                    fault_flags: fault::NODE_STOPPED,
-                    gpu: false,
-                    latency_ms: f64::NAN,
-                },
-            );
-        }
-        let _ = source_handle.join();
-        let report = perception_handle.join().ok().flatten();
-        if let Some((thread, cause)) = failure {
-            return Err(NodeError::Worker { thread, cause });
-        }
-        let report = report.ok_or_else(|| NodeError::Worker {
-            thread: Worker::Perception.name(),
-            cause: "ended without a report".into(),
-        })?;
-        if let Some(Err(e)) = tick_recorder.take().map(TickRecorder::finish) {
-            shared.recording_failed(&e);
-        }
-        stats.duration_s = k as f64 * tick_s;
-        Ok::<_, NodeError>((report, stats))
-    });
-    drop(realtime);
-    let (report, stats) = result?;
+/// The summary of a run from what each thread counted.
+#[allow(clippy::too_many_arguments)]
+fn summarize(
+    config: &NodeConfig,
+    options: &RunOptions,
+    robot: &RobotState,
+    shared: Shared,
+    report: PerceptionReport,
+    stats: LoopStats,
+    backend_choice: Option<BackendChoice>,
+    can: Option<CanCounters>,
+    behind: Behind,
+) -> NodeSummary {
     let duration_s = stats.duration_s;
     let per_camera = shared
         .per_camera
         .into_inner()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
+        .unwrap_or_else(PoisonError::into_inner);
     let mut cameras = BTreeMap::new();
     for &id in report.frames.keys().chain(per_camera.keys()) {
         let (frames, valid) = report.frames.get(&id).copied().unwrap_or_default();
@@ -1436,7 +634,7 @@ pub fn run(
             },
         );
     }
-    Ok(NodeSummary {
+    NodeSummary {
         frames: cameras.values().map(|c| c.frames).sum(),
         dropped_frames: shared.dropped.load(Ordering::Relaxed),
         malformed_records: shared.malformed.load(Ordering::Relaxed),
@@ -1459,11 +657,12 @@ pub fn run(
         realtime: stats.realtime,
         recording_error: shared
             .recording_error
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .clone(),
-        unrecorded_frames: shared.unrecorded_frames.load(Ordering::Relaxed),
-        unrecorded_ticks: stats.unrecorded_ticks,
+            .into_inner()
+            .unwrap_or_else(PoisonError::into_inner),
+        unrecorded_frames: shared.unrecorded_frames.load(Ordering::Relaxed) + behind.frames,
+        unrecorded_estimates: stats.unrecorded_estimates + behind.estimates,
+        unrecorded_ticks: stats.unrecorded_ticks + behind.ticks,
+        recording_behind: behind,
         backend: report.backend,
         adapter: report.adapter,
         gpu_fallback: report.gpu_fallback,
@@ -1471,159 +670,12 @@ pub fn run(
         gpu_buffer_bytes: report.gpu_buffer_bytes,
         fusion: report.fusion,
         camera_latency: report.camera_latency,
-        can: can.map(|c| CanSummary {
-            counters: c.finish(),
+        stopped_early: stats.stopped_early,
+        can: can.map(|counters| CanSummary {
+            counters,
             bus_load: config.can.bus_load(config.tick_rate_hz),
         }),
         duration_s,
         speed: options.speed,
-    })
-}
-
-struct LoopStats {
-    ticks: u64,
-    tracking: u64,
-    stale: u64,
-    active: u64,
-    held: u64,
-    skipped: u64,
-    fallbacks: u64,
-    deadline_misses: u64,
-    unrecorded_ticks: u64,
-    latency: Histogram,
-    last_latency_s: f64,
-    jitter: Histogram,
-    work: Histogram,
-    realtime: RealtimeStatus,
-    duration_s: f64,
-}
-
-impl LoopStats {
-    fn new() -> Self {
-        Self {
-            ticks: 0,
-            tracking: 0,
-            stale: 0,
-            active: 0,
-            held: 0,
-            skipped: 0,
-            fallbacks: 0,
-            deadline_misses: 0,
-            unrecorded_ticks: 0,
-            // 0.1 ms bins up to 10 s; 1 us bins up to 50 ms
-            latency: Histogram::new(1e-4, 10.0),
-            last_latency_s: f64::NAN,
-            jitter: Histogram::new(1e-6, 0.05),
-            work: Histogram::new(1e-6, 0.05),
-            realtime: RealtimeStatus::default(),
-            duration_s: 0.0,
-        }
     }
-}
-
-/// What `hapcloud replay` found.
-#[derive(Clone, Debug, Default, Serialize)]
-pub struct ReplayReport {
-    pub frames: u64,
-    pub estimates_compared: u64,
-    pub estimate_mismatches: u64,
-    pub ticks_compared: u64,
-    pub tick_mismatches: u64,
-    /// The first difference, described.
-    pub first_mismatch: Option<String>,
-    pub backend: Backend,
-}
-
-impl ReplayReport {
-    /// True when every estimate and every tick was reproduced bit for bit.
-    pub fn identical(&self) -> bool {
-        self.estimate_mismatches == 0 && self.tick_mismatches == 0
-    }
-}
-
-/// Re-runs a recording through the haptic loop: each recorded frame goes in (same config and
-/// backend, the HIP and primitives of its recorded joints) before the tick that consumed its
-/// estimate, and each tick runs at its recorded time on its recorded robot state; estimates
-/// and ticks (fused surface, constraint values, torques) are compared bit for bit with what
-/// was recorded.
-pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
-    let recording = record::read(path)?;
-    let config = &recording.meta.config;
-    let robot = RobotState::recorded(config, &recording.meta.robot)?;
-    let mut haptic_loop =
-        HapticLoop::new(config, robot.model().clone(), recording.meta.backend, None)?;
-    let mut report = ReplayReport {
-        frames: recording.frames.len() as u64,
-        ..Default::default()
-    };
-    let note = |report: &mut ReplayReport, what: String| {
-        if report.first_mismatch.is_none() {
-            report.first_mismatch = Some(what);
-        }
-    };
-    // Recorded frames with the estimate the node consumed, in perception's order.
-    let mut consumed = recording
-        .frames
-        .iter()
-        .zip(&recording.frame_joints)
-        .zip(&recording.estimates)
-        .enumerate()
-        .peekable();
-    let push = |haptic_loop: &mut HapticLoop,
-                report: &mut ReplayReport,
-                i: usize,
-                frame: &Frame,
-                q: &crate::robot::JointVector,
-                recorded: &SurfaceEstimate|
-     -> Result<(), NodeError> {
-        let record = haptic_loop.push_frame(frame, &robot.perception_scene(q))?;
-        // Every value of an estimate, unrounded, as its recorded message.
-        let bytes = |e: &SurfaceEstimate| {
-            crate::io::ros2::encode(&crate::io::ros2::hapcloud::SurfaceEstimate::new(
-                Default::default(),
-                0,
-                e,
-            ))
-            .map_err(|e| NodeError::Config(format!("estimate: {e}")))
-        };
-        let (a, b) = (bytes(record.estimate())?, bytes(recorded)?);
-        report.estimates_compared += 1;
-        if a != b {
-            report.estimate_mismatches += 1;
-            note(
-                report,
-                format!(
-                    "estimate {i} (camera {}, stamp {} s)",
-                    recorded.camera_id, recorded.stamp_s
-                ),
-            );
-        }
-        Ok(())
-    };
-    let mut ticks = Vec::with_capacity(recording.ticks.len());
-    for tick in &recording.ticks {
-        while let Some((i, ((frame, q), (_, recorded)))) =
-            consumed.next_if(|(_, (_, (index, _)))| *index <= tick.index)
-        {
-            push(&mut haptic_loop, &mut report, i, frame, q, recorded)?;
-        }
-        let joints = tick.control.joints;
-        let again = haptic_loop.tick(tick.fused.stamp_s, &RobotInput::without_force(joints));
-        ticks.push((tick, again.record(tick.index, joints, tick.late_s)));
-    }
-    for (i, ((frame, q), (_, recorded))) in consumed {
-        push(&mut haptic_loop, &mut report, i, frame, q, recorded)?;
-    }
-    for (tick, again) in ticks {
-        report.ticks_compared += 1;
-        if record::deterministic_bytes(&again) != record::deterministic_bytes(tick) {
-            report.tick_mismatches += 1;
-            note(
-                &mut report,
-                format!("tick {} (t = {} s)", tick.index, tick.fused.stamp_s),
-            );
-        }
-    }
-    report.backend = haptic_loop.perception().backend();
-    Ok(report)
 }

@@ -9,8 +9,11 @@
 //! and its pose on `/tf`, every surface estimate with the tick that pushed it into fusion,
 //! and every control tick (fused surface, robot state, constraint values, torque command,
 //! timing). The perception thread and the control loop hand their items to a writer thread
-//! over a channel, so neither waits for the disk; each frame closes an MCAP chunk, so a
-//! recording cut short by a crash reads back up to its last whole frame.
+//! over a bounded channel ([`QUEUE_ITEMS`] items, at most [`QUEUE_FRAMES`] of them frames)
+//! without waiting: when the disk is slower than the node, the items that do not fit are
+//! dropped and counted ([`Behind`]), the control loop never blocks and memory stays bounded.
+//! Each frame closes an MCAP chunk, so a recording cut short by a crash reads back up to its
+//! last whole frame.
 
 use super::NodeConfig;
 use super::robot_state::RobotMeta;
@@ -26,6 +29,7 @@ use crate::surface::SurfaceEstimate;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc;
 use std::sync::{Arc, Mutex, PoisonError};
 
@@ -86,11 +90,75 @@ fn mcap_error(path: &Path, e: McapError) -> RecordError {
     })
 }
 
-/// What the two recorders hand the writer thread.
-enum Item {
+/// Items the writer thread may be behind by (frames, estimates and ticks together: 2.5 s of
+/// 800 Hz ticks); the channel's slots are allocated once, when the recording is created.
+pub const QUEUE_ITEMS: usize = 2048;
+
+/// Frames among the queued items (a frame is up to a few MB: this bounds the recording's
+/// memory when the disk is slower than the cameras).
+pub const QUEUE_FRAMES: usize = 8;
+
+/// What the two recorders hand the writer thread (a tick by value: queuing it allocates
+/// nothing).
+// Large on purpose: the channel's slots are allocated once, a boxed tick would allocate per tick.
+#[allow(clippy::large_enum_variant)]
+pub enum Item {
     Frame(Box<Frame>, JointVector),
     Estimate(u64, Box<SurfaceEstimate>),
-    Tick(Box<TickRecord>),
+    Tick(TickRecord),
+}
+
+/// Where the writer thread puts the items: the MCAP file, or a test's slow writer.
+pub trait ItemWriter: Send + 'static {
+    fn write(&mut self, item: &Item) -> Result<(), String>;
+    /// Closes the output (the MCAP summary and footer).
+    fn finish(self) -> Result<(), String>;
+}
+
+impl<W: std::io::Write + std::io::Seek + Send + 'static> ItemWriter for McapWriter<W> {
+    fn write(&mut self, item: &Item) -> Result<(), String> {
+        match item {
+            Item::Frame(frame, q) => self.write_frame(frame, q.as_slice()),
+            Item::Estimate(k, e) => self.write_estimate(*k, e),
+            Item::Tick(t) => self.write_tick(t),
+        }
+        .map_err(|e| e.to_string())
+    }
+
+    fn finish(self) -> Result<(), String> {
+        McapWriter::finish(self)
+            .map(drop)
+            .map_err(|e| e.to_string())
+    }
+}
+
+/// What the recording could not take because its writer was behind (the channel or the
+/// frame slots were full): the item was dropped, counted here, and the node went on.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct Behind {
+    pub frames: u64,
+    pub estimates: u64,
+    pub ticks: u64,
+}
+
+/// The counters the recorders and the writer share.
+#[derive(Default)]
+pub struct BehindCounters {
+    frames: AtomicU64,
+    estimates: AtomicU64,
+    ticks: AtomicU64,
+    /// Frames queued and not yet written.
+    frames_queued: AtomicUsize,
+}
+
+impl BehindCounters {
+    pub fn get(&self) -> Behind {
+        Behind {
+            frames: self.frames.load(Ordering::Relaxed),
+            estimates: self.estimates.load(Ordering::Relaxed),
+            ticks: self.ticks.load(Ordering::Relaxed),
+        }
+    }
 }
 
 /// The writer thread's first error, for whoever finds the channel closed.
@@ -98,21 +166,39 @@ type WriterError = Arc<Mutex<Option<String>>>;
 
 struct Sink {
     path: PathBuf,
-    tx: mpsc::Sender<Item>,
+    tx: mpsc::SyncSender<Item>,
     error: WriterError,
+    behind: Arc<BehindCounters>,
 }
 
 impl Sink {
-    fn send(&self, item: Item) -> Result<(), RecordError> {
-        self.tx.send(item).map_err(|_| RecordError::Writer {
-            path: self.path.clone(),
-            reason: self
-                .error
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner)
-                .clone()
-                .unwrap_or_else(|| "gone".into()),
-        })
+    /// Queues `item` without waiting: a full queue drops it (counted in `behind`), a writer
+    /// that stopped is an error.
+    fn offer(&self, item: Item) -> Result<(), RecordError> {
+        let counter = match &item {
+            Item::Frame(..) => &self.behind.frames,
+            Item::Estimate(..) => &self.behind.estimates,
+            Item::Tick(_) => &self.behind.ticks,
+        };
+        match self.tx.try_send(item) {
+            Ok(()) => Ok(()),
+            Err(mpsc::TrySendError::Full(item)) => {
+                if let Item::Frame(..) = item {
+                    self.behind.frames_queued.fetch_sub(1, Ordering::Relaxed);
+                }
+                counter.fetch_add(1, Ordering::Relaxed);
+                Ok(())
+            }
+            Err(mpsc::TrySendError::Disconnected(_)) => Err(RecordError::Writer {
+                path: self.path.clone(),
+                reason: self
+                    .error
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner)
+                    .clone()
+                    .unwrap_or_else(|| "gone".into()),
+            }),
+        }
     }
 }
 
@@ -146,24 +232,33 @@ pub fn create(
     writer
         .write_metadata(METADATA_NAME, BTreeMap::from([("meta".into(), json)]))
         .map_err(mcap_err)?;
-    let (tx, rx) = mpsc::channel::<Item>();
+    spawn_writer(path, writer, QUEUE_ITEMS)
+}
+
+/// The writer thread taking items from a channel of `capacity` items, and its two recorders.
+pub fn spawn_writer(
+    path: &Path,
+    mut writer: impl ItemWriter,
+    capacity: usize,
+) -> Result<(FrameRecorder, TickRecorder), RecordError> {
+    let (tx, rx) = mpsc::sync_channel::<Item>(capacity);
     let error = WriterError::default();
-    let thread_error = error.clone();
+    let behind = Arc::new(BehindCounters::default());
+    let (thread_error, thread_behind) = (error.clone(), behind.clone());
     let writer = std::thread::Builder::new()
         .name("recording".into())
         .spawn(move || {
             let result = (|| {
                 for item in rx {
-                    match item {
-                        Item::Frame(frame, q) => writer.write_frame(&frame, q.as_slice())?,
-                        Item::Estimate(k, e) => writer.write_estimate(k, &e)?,
-                        Item::Tick(t) => writer.write_tick(&t)?,
+                    writer.write(&item)?;
+                    if let Item::Frame(..) = item {
+                        thread_behind.frames_queued.fetch_sub(1, Ordering::Relaxed);
                     }
                 }
-                writer.finish().map(drop)
+                writer.finish()
             })();
             if let Err(e) = result {
-                *thread_error.lock().unwrap_or_else(PoisonError::into_inner) = Some(e.to_string());
+                *thread_error.lock().unwrap_or_else(PoisonError::into_inner) = Some(e);
             }
         })
         .map_err(|e| RecordError::Writer {
@@ -174,6 +269,7 @@ pub fn create(
         path: path.into(),
         tx,
         error: error.clone(),
+        behind: behind.clone(),
     };
     Ok((
         FrameRecorder(sink(tx.clone())),
@@ -185,8 +281,15 @@ pub fn create(
 }
 
 impl FrameRecorder {
+    /// Queues a frame; dropped (counted) when [`QUEUE_FRAMES`] frames wait already.
     pub fn frame(&mut self, frame: &Frame, q: &JointVector) -> Result<(), RecordError> {
-        self.0.send(Item::Frame(Box::new(frame.clone()), *q))
+        let queued = &self.0.behind.frames_queued;
+        if queued.fetch_add(1, Ordering::Relaxed) >= QUEUE_FRAMES {
+            queued.fetch_sub(1, Ordering::Relaxed);
+            self.0.behind.frames.fetch_add(1, Ordering::Relaxed);
+            return Ok(());
+        }
+        self.0.offer(Item::Frame(Box::new(frame.clone()), *q))
     }
 
     pub fn finish(self) -> Result<(), RecordError> {
@@ -195,17 +298,26 @@ impl FrameRecorder {
 }
 
 impl TickRecorder {
-    pub fn estimate(&mut self, tick: u64, e: &SurfaceEstimate) -> Result<(), RecordError> {
-        self.sink.send(Item::Estimate(tick, Box::new(e.clone())))
+    /// Queues an estimate with the tick that pushed it into fusion, without waiting.
+    pub fn estimate(&mut self, tick: u64, e: Box<SurfaceEstimate>) -> Result<(), RecordError> {
+        self.sink.offer(Item::Estimate(tick, e))
     }
 
+    /// Queues a tick without waiting or allocating.
     pub fn tick(&mut self, t: &TickRecord) -> Result<(), RecordError> {
-        self.sink.send(Item::Tick(Box::new(*t)))
+        self.sink.offer(Item::Tick(*t))
+    }
+
+    /// What was dropped because the writer was behind, shared with the writer.
+    pub fn behind(&self) -> Arc<BehindCounters> {
+        self.sink.behind.clone()
     }
 
     /// Closes the file once the frame recorder is gone too; the writer's error, if any.
     pub fn finish(self) -> Result<(), RecordError> {
-        let Sink { path, tx, error } = self.sink;
+        let Sink {
+            path, tx, error, ..
+        } = self.sink;
         drop(tx);
         if self.writer.join().is_err() {
             return Err(RecordError::Writer {
@@ -387,4 +499,105 @@ pub fn read_frames(path: &Path, config: &McapReaderConfig) -> Result<McapFrames,
         counters,
         truncated: reader.truncated().map(str::to_string),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cloud::PointCloud;
+    use crate::gpu::Backend;
+    use crate::node::haptic_loop::{HapticLoop, RobotInput};
+    use crate::node::robot_state::RobotState;
+    use std::time::Duration;
+
+    /// A writer its test holds shut (the disk stalls) until released; counts what it wrote.
+    struct Stalled {
+        gate: mpsc::Receiver<()>,
+        released: bool,
+        written: Arc<AtomicU64>,
+    }
+
+    impl ItemWriter for Stalled {
+        fn write(&mut self, _: &Item) -> Result<(), String> {
+            if !self.released {
+                let _ = self.gate.recv();
+                self.released = true;
+            }
+            self.written.fetch_add(1, Ordering::Relaxed);
+            Ok(())
+        }
+
+        fn finish(self) -> Result<(), String> {
+            Ok(())
+        }
+    }
+
+    /// While the writer is stalled, the recorders take every item without waiting: what does
+    /// not fit (the frame slots, then the channel) is dropped and counted; once the writer
+    /// goes on, everything that was queued is written and the file is closed.
+    #[test]
+    fn a_stalled_writer_never_blocks_the_recorders_and_counts_what_it_dropped() {
+        let config = NodeConfig::default();
+        let robot = RobotState::fixed(&config).unwrap();
+        let joints = robot.at(0.0);
+        let mut haptic_loop =
+            HapticLoop::new(&config, robot.model().clone(), Backend::Cpu, None).unwrap();
+        let tick = haptic_loop
+            .tick(0.0, &RobotInput::without_force(joints))
+            .record(0, joints, 0.0);
+        let frame = Frame {
+            camera_id: 0,
+            stamp_s: 0.0,
+            world_from_camera: Default::default(),
+            cloud: PointCloud::from_points(vec![glam::Vec3::new(0.0, 0.0, 1.0)]),
+            depth: None,
+        };
+        let (release, gate) = mpsc::channel();
+        let written = Arc::new(AtomicU64::new(0));
+        let writer = Stalled {
+            gate,
+            released: false,
+            written: written.clone(),
+        };
+        let capacity = 16;
+        let (mut frames, mut ticks) =
+            spawn_writer(Path::new("stalled.mcap"), writer, capacity).unwrap();
+        let behind = ticks.behind();
+        // The offers run on a thread of their own: a recorder that waited for the stalled
+        // writer would never report back.
+        let (done_tx, done) = mpsc::channel();
+        let offering = std::thread::spawn(move || {
+            for _ in 0..20 {
+                frames.frame(&frame, &joints.q_rad).unwrap();
+            }
+            for _ in 0..1000 {
+                ticks.tick(&tick).unwrap();
+            }
+            done_tx.send(()).unwrap();
+            (frames, ticks)
+        });
+        assert!(
+            done.recv_timeout(Duration::from_secs(60)).is_ok(),
+            "a recorder blocked on the stalled writer"
+        );
+        let (frames, ticks) = offering.join().unwrap();
+        let dropped = behind.get();
+        // QUEUE_FRAMES frames were taken, the rest dropped; the ticks filled what the channel
+        // had left (one slot more if the writer took the first frame out before it stalled).
+        assert_eq!(dropped.frames, 20 - QUEUE_FRAMES as u64, "{dropped:?}");
+        let ticks_taken = 1000 - dropped.ticks;
+        let room = (capacity - QUEUE_FRAMES) as u64;
+        assert!(
+            ticks_taken == room || ticks_taken == room + 1,
+            "{ticks_taken} ticks taken: {dropped:?}"
+        );
+        release.send(()).unwrap();
+        frames.finish().unwrap();
+        ticks.finish().unwrap();
+        assert_eq!(
+            written.load(Ordering::Relaxed),
+            QUEUE_FRAMES as u64 + ticks_taken,
+            "{dropped:?}"
+        );
+    }
 }

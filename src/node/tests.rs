@@ -4,8 +4,10 @@ use super::*;
 use crate::cloud::PointCloud;
 use crate::surface::FusionStatus;
 use glam::Vec3;
+use haptic_loop::Perception;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use std::path::PathBuf;
+use std::time::Duration;
 
 /// Height of the plane `z = h(t)` (world), moving at 0.05 m/s.
 fn plane_height(t: f64) -> f64 {
@@ -785,4 +787,70 @@ fn a_gpu_lost_mid_run_leaves_perception_on_the_cpu() {
         "{valid} of {}",
         frames.len()
     );
+}
+
+/// An output consumer that stalls never stops the control loop: the CAN log's reader reads
+/// nothing (a FIFO: the CAN thread's writes block once the pipe is full) while the node
+/// ticks through more messages than the pipe, the log's buffer and the hand-off queue hold
+/// together, so the hand-offs that did not fit are dropped and counted; every tick of the
+/// run still happens, and once the reader drains the pipe the node ends normally.
+#[test]
+fn a_stalled_can_consumer_never_stops_the_control_loop() {
+    use std::io::Read;
+    use std::os::unix::fs::OpenOptionsExt;
+    let _serial = serial();
+    let dir = temp_dir("stalled-can");
+    std::fs::create_dir_all(&dir).unwrap();
+    let fifo = dir.join("can.log");
+    let path = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+    // SAFETY: a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(path.as_ptr(), 0o600) }, 0);
+    // The reader end, opened without waiting for a writer, and left unread for now.
+    let mut reader = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(&fifo)
+        .unwrap();
+    let frames = plane_frames(1.0, None);
+    let opts = RunOptions {
+        can_log: Some(fifo.clone()),
+        ..options(1.0)
+    };
+    let ticked = AtomicU64::new(0);
+    // 1000 ticks are about 3900 CAN frames (~155 kB of candump lines): more than the pipe
+    // (64 kB), the log's buffer (8 kB) and the hand-off queue hold.
+    let stalled_until = 1000;
+    let (summary, drained) = std::thread::scope(|s| {
+        let node = s.spawn(|| {
+            run(&config(), Source::Timed(frames), &opts, |_| {
+                ticked.fetch_add(1, Ordering::Relaxed);
+            })
+        });
+        while ticked.load(Ordering::Relaxed) < stalled_until && !node.is_finished() {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        // The reader comes back: everything until the writer closes the log.
+        let (mut drained, mut buf) = (0usize, vec![0u8; 1 << 16]);
+        loop {
+            match reader.read(&mut buf) {
+                Ok(0) => break,
+                Ok(n) => drained += n,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                    std::thread::sleep(Duration::from_millis(1));
+                }
+                Err(e) => panic!("{e}"),
+            }
+        }
+        (node.join().unwrap().unwrap(), drained)
+    });
+    let can = summary.can.as_ref().unwrap();
+    assert!(summary.ticks >= stalled_until, "{summary:?}");
+    // The stream (0.98 s), the stale timeout and the margin (1.43 s at 800 Hz), every slot
+    // ticked or counted as skipped.
+    assert!(summary.ticks + summary.skipped_ticks >= 1140, "{summary:?}");
+    assert!(can.counters.handoff_dropped > 0, "{can:?}");
+    assert!(can.counters.error.is_none(), "{can:?}");
+    assert!(drained > 64 * 1024, "{drained} bytes");
+    assert!(!summary.stopped_early);
+    std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -49,7 +49,7 @@ impl Overlay {
     pub fn event(&mut self, event: NodeEvent) -> Option<ViewFrame> {
         let record = match event {
             NodeEvent::Tick(tick) => {
-                self.tick = Some(*tick);
+                self.tick = Some(tick);
                 return None;
             }
             NodeEvent::Frame(record) => record,

@@ -1,0 +1,212 @@
+//! What a node run did: the summary `hapcloud run` prints (per camera, the loop's ticks,
+//! deadlines and jitter, latency, real time, recording, CAN), and the fixed-size histograms
+//! and counters the control loop keeps without allocating. No paper equation.
+
+use super::can_out::{BusLoad, CanCounters};
+use super::realtime::RealtimeStatus;
+use super::record::Behind;
+use crate::fusion::{CameraLatency, FusionCounters};
+use crate::gpu::Backend;
+use crate::perception::frontend::BackendChoice;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// p50 and p99 of a sample, milliseconds.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Percentiles {
+    pub p50: f64,
+    pub p99: f64,
+}
+
+/// Per camera: frames processed and their rate over the run's clock time, frames dropped
+/// (the camera's slots in the frame queue were full: its own oldest queued frame went) and
+/// messages that did not decode (a live source).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct CameraSummary {
+    pub frames: u64,
+    pub rate_hz: f64,
+    pub valid_estimates: u64,
+    pub dropped: u64,
+    pub malformed: u64,
+}
+
+/// What a run did (the `--json` object of `hapcloud run`).
+#[derive(Clone, Debug, Serialize)]
+pub struct NodeSummary {
+    /// Frames perception processed.
+    pub frames: u64,
+    /// Queued frames dropped for a newer one because perception was behind.
+    pub dropped_frames: u64,
+    /// Malformed messages of a live source, dropped.
+    pub malformed_records: u64,
+    /// Frames refused where they entered because their camera had already delivered a
+    /// frame stamped as late or later (stamps must increase per camera).
+    pub out_of_order_frames: u64,
+    /// Streamed frames refused for a stamp that is not finite or more than 10 s from the
+    /// node clock.
+    pub bad_stamp_frames: u64,
+    pub cameras: BTreeMap<u32, CameraSummary>,
+    pub ticks: u64,
+    pub tracking_ticks: u64,
+    pub stale_ticks: u64,
+    /// Ticks with the haptic constraints in force.
+    pub constraint_active_ticks: u64,
+    /// Ticks whose constraints used a surface held over stale cameras.
+    pub held_ticks: u64,
+    /// Ticks where the controller returned its safe command (bad input or solver failure).
+    pub controller_fallbacks: u64,
+    /// Whether the robot followed joint states from the source (else it stood still).
+    pub robot_joint_states: bool,
+    /// Ticks whose work ended after the next tick's deadline.
+    pub deadline_misses: u64,
+    /// Tick slots skipped because the loop was more than one period behind (an overrun is not
+    /// made up by a burst of late ticks).
+    pub skipped_ticks: u64,
+    /// Frame stamp to the end of the tick that first used its estimate.
+    pub latency_ms: Percentiles,
+    /// Tick start after its absolute deadline.
+    pub jitter_ms: Percentiles,
+    /// Work per tick (fusion, recording).
+    pub tick_work_ms: Percentiles,
+    /// Perception time per frame.
+    pub perception_ms: Percentiles,
+    /// Real-time scheduling and memory locking of the control loop, and what was refused.
+    pub realtime: RealtimeStatus,
+    /// With `--record`: the write error that stopped the recording (the node went on
+    /// controlling), and the frames and ticks it could not record.
+    pub recording_error: Option<String>,
+    pub unrecorded_frames: u64,
+    pub unrecorded_estimates: u64,
+    pub unrecorded_ticks: u64,
+    /// Of the unrecorded items, those dropped because the recording's writer was behind (the
+    /// disk slower than the node: the control loop never waits for it).
+    pub recording_behind: Behind,
+    /// Backend perception ended on (`gpu` or `cpu`).
+    pub backend: Backend,
+    pub adapter: Option<String>,
+    /// The GPU failure that made perception fall back to the CPU, if any.
+    pub gpu_fallback: Option<String>,
+    /// The start-up measurement that picked the backend ([`RunOptions::pick_backend`]).
+    pub backend_choice: Option<BackendChoice>,
+    /// GPU memory the front end holds at the end (buffers sized once for the largest frame).
+    pub gpu_buffer_bytes: Option<u64>,
+    pub fusion: FusionCounters,
+    /// Per camera: estimate arrival at the loop minus the frame's capture stamp.
+    pub camera_latency: Vec<CameraLatency>,
+    /// The run was stopped from outside before its end (Ctrl-C, SIGTERM, the overlay closed):
+    /// the constraints were switched off and the safe command sent last.
+    pub stopped_early: bool,
+    /// CAN output, when `--can` or `--can-log` was given.
+    pub can: Option<CanSummary>,
+    pub duration_s: f64,
+    pub speed: f64,
+}
+
+/// What went on the CAN bus, and the bus load the configured rates imply.
+#[derive(Clone, Debug, Serialize)]
+pub struct CanSummary {
+    pub counters: CanCounters,
+    pub bus_load: BusLoad,
+}
+
+/// Percentiles of a duration without keeping the samples: counts in fixed bins (the loop
+/// adds one per tick for hours without growing or allocating).
+pub(super) struct Histogram {
+    bin_s: f64,
+    counts: Vec<u32>,
+    /// Largest sample, reported for the percentiles beyond the last bin.
+    max_s: f64,
+    total: u64,
+}
+
+impl Histogram {
+    /// Bins of `bin_s` up to `range_s`.
+    pub(super) fn new(bin_s: f64, range_s: f64) -> Self {
+        Self {
+            bin_s,
+            counts: vec![0; (range_s / bin_s).ceil() as usize],
+            max_s: 0.0,
+            total: 0,
+        }
+    }
+
+    pub(super) fn add(&mut self, s: f64) {
+        let s = if s.is_finite() { s.max(0.0) } else { f64::MAX };
+        let bin = ((s / self.bin_s) as usize).min(self.counts.len() - 1);
+        self.counts[bin] += 1;
+        self.max_s = self.max_s.max(s);
+        self.total += 1;
+    }
+
+    /// p50 and p99 in milliseconds: the upper edge of the bin holding the percentile (the
+    /// largest sample for the last bin).
+    pub(super) fn percentiles(&self) -> Percentiles {
+        if self.total == 0 {
+            return Percentiles::default();
+        }
+        let at = |p: f64| {
+            let rank = ((self.total - 1) as f64 * p).round() as u64 + 1;
+            let mut seen = 0u64;
+            for (i, &c) in self.counts.iter().enumerate() {
+                seen += u64::from(c);
+                if seen >= rank {
+                    return if i + 1 == self.counts.len() {
+                        self.max_s
+                    } else {
+                        ((i + 1) as f64 * self.bin_s).min(self.max_s)
+                    } * 1e3;
+                }
+            }
+            self.max_s * 1e3
+        };
+        Percentiles {
+            p50: at(0.5),
+            p99: at(0.99),
+        }
+    }
+}
+
+pub(super) struct LoopStats {
+    pub(super) ticks: u64,
+    pub(super) tracking: u64,
+    pub(super) stale: u64,
+    pub(super) active: u64,
+    pub(super) held: u64,
+    pub(super) skipped: u64,
+    pub(super) fallbacks: u64,
+    pub(super) deadline_misses: u64,
+    pub(super) unrecorded_ticks: u64,
+    pub(super) unrecorded_estimates: u64,
+    pub(super) stopped_early: bool,
+    pub(super) latency: Histogram,
+    pub(super) last_latency_s: f64,
+    pub(super) jitter: Histogram,
+    pub(super) work: Histogram,
+    pub(super) realtime: RealtimeStatus,
+    pub(super) duration_s: f64,
+}
+
+impl LoopStats {
+    pub(super) fn new() -> Self {
+        Self {
+            ticks: 0,
+            tracking: 0,
+            stale: 0,
+            active: 0,
+            held: 0,
+            skipped: 0,
+            fallbacks: 0,
+            deadline_misses: 0,
+            unrecorded_ticks: 0,
+            unrecorded_estimates: 0,
+            stopped_early: false,
+            // 0.1 ms bins up to 10 s; 1 us bins up to 50 ms
+            latency: Histogram::new(1e-4, 10.0),
+            last_latency_s: f64::NAN,
+            jitter: Histogram::new(1e-6, 0.05),
+            work: Histogram::new(1e-6, 0.05),
+            realtime: RealtimeStatus::default(),
+            duration_s: 0.0,
+        }
+    }
+}

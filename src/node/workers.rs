@@ -1,0 +1,377 @@
+//! The node's worker threads and what they share: the source (frames when they are due, or
+//! as they arrive from Zenoh, through the per-camera stamp gate into the frame queue) and
+//! perception (the per-camera chain, paper IV-A to IV-E, and fusion's window fit, IV-F
+//! eq. 4-5, handed to the control loop); the node clock; the shared counters; a failing
+//! worker recorded instead of unwinding.
+
+#[cfg(feature = "ros2")]
+use super::MAX_STAMP_S;
+use super::frame_queue::{CloseOnDrop, FrameQueue};
+use super::haptic_loop::{FusionWindow, Perception};
+use super::record::{FrameRecorder, RecordError};
+use super::robot_state::RobotState;
+use super::summary::Histogram;
+use super::{NodeError, NodeEvent, Source};
+use crate::camera::Frame;
+use crate::fusion::{CameraLatency, Fit, FusionCounters};
+use crate::gpu::Backend;
+use crate::surface::SurfaceEstimate;
+use std::collections::BTreeMap;
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::{self, SyncSender};
+use std::sync::{Mutex, PoisonError};
+use std::time::{Duration, Instant};
+
+/// The node's clock: `t = offset + elapsed * speed`.
+pub(super) struct Clock {
+    pub(super) start: Instant,
+    pub(super) speed: f64,
+    pub(super) offset_bits: AtomicU64,
+}
+
+impl Clock {
+    pub(super) fn now_s(&self) -> f64 {
+        f64::from_bits(self.offset_bits.load(Ordering::Acquire))
+            + self.start.elapsed().as_secs_f64() * self.speed
+    }
+
+    /// The wall instant the clock reads `t_s`; a stamp beyond a day (or not finite) is a
+    /// day away, so a corrupt stamp cannot overflow the instant.
+    pub(super) fn wall_at(&self, t_s: f64) -> Instant {
+        const DAY_S: f64 = 86_400.0;
+        let offset = f64::from_bits(self.offset_bits.load(Ordering::Acquire));
+        let wait_s = ((t_s - offset) / self.speed).clamp(0.0, DAY_S);
+        self.start + Duration::from_secs_f64(if wait_s.is_nan() { DAY_S } else { wait_s })
+    }
+}
+
+/// Counters shared by the threads.
+#[derive(Default)]
+pub(super) struct Shared {
+    pub(super) stop: AtomicBool,
+    pub(super) dropped: AtomicU64,
+    /// Frames handed to perception, and whether a timed source has handed over all.
+    pub(super) queued: AtomicU64,
+    pub(super) source_finished: AtomicBool,
+    pub(super) malformed: AtomicU64,
+    /// Per camera: frames dropped from the queue, and (a live source) samples dropped and
+    /// malformed messages (`dropped`, `malformed`).
+    pub(super) per_camera: std::sync::Mutex<BTreeMap<u32, (u64, u64)>>,
+    /// Frames refused where they entered: stamped before (or at) their camera's last
+    /// accepted frame, or with a stamp that is not finite or far from the node clock.
+    pub(super) out_of_order: AtomicU64,
+    pub(super) bad_stamps: AtomicU64,
+    /// Perception fell back from the GPU to the CPU.
+    pub(super) gpu_fell_back: AtomicBool,
+    /// A worker thread failed (panicked or returned an error): the loop stops at its next
+    /// tick. The first failure's thread and cause are in `failure`.
+    pub(super) failed: AtomicBool,
+    pub(super) failure: Mutex<Option<(&'static str, String)>>,
+    /// The recording's first write error (the disk is full, the directory went away): the
+    /// node goes on controlling without recording and counts what it did not record.
+    pub(super) recording_error: Mutex<Option<String>>,
+    pub(super) unrecorded_frames: AtomicU64,
+}
+
+impl Shared {
+    /// Records the failure of `thread` (the first one is kept) and stops the node.
+    pub(super) fn fail(&self, thread: &'static str, cause: String) {
+        let mut failure = self.failure.lock().unwrap_or_else(PoisonError::into_inner);
+        failure.get_or_insert((thread, cause));
+        self.failed.store(true, Ordering::Release);
+        self.stop.store(true, Ordering::Release);
+    }
+
+    /// Records a recording write error (logged once); the caller drops its recorder.
+    pub(super) fn recording_failed(&self, error: &RecordError) {
+        let mut first = self
+            .recording_error
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if first.is_none() {
+            eprintln!("warning: recording stopped ({error}); the node goes on without it");
+            *first = Some(error.to_string());
+        }
+    }
+
+    pub(super) fn failure(&self) -> Option<(&'static str, String)> {
+        self.failure
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+}
+
+/// A node thread that can fail (fault injection names it).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Worker {
+    Source,
+    Perception,
+    Control,
+}
+
+impl Worker {
+    pub(super) fn name(self) -> &'static str {
+        match self {
+            Self::Source => "source",
+            Self::Perception => "perception",
+            Self::Control => "control",
+        }
+    }
+}
+
+/// The text of a panic's payload.
+pub(super) fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| (*s).to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "panic".into())
+}
+
+/// Runs a worker's body: a panic or an error is recorded in `shared` (the loop then stops
+/// the node) instead of unwinding into the scope.
+pub(super) fn guarded<T>(
+    shared: &Shared,
+    worker: Worker,
+    body: impl FnOnce() -> Result<T, NodeError>,
+) -> Option<T> {
+    match catch_unwind(AssertUnwindSafe(body)) {
+        Ok(Ok(value)) => Some(value),
+        Ok(Err(e)) => {
+            shared.fail(worker.name(), e.to_string());
+            None
+        }
+        Err(payload) => {
+            shared.fail(
+                worker.name(),
+                format!("panicked: {}", panic_message(&*payload)),
+            );
+            None
+        }
+    }
+}
+
+/// Panics when `inject` names `worker` and `count` reached its item number (fault injection).
+pub(super) fn injected(inject: Option<(Worker, u64)>, worker: Worker, count: u64) {
+    if inject == Some((worker, count)) {
+        panic!("injected fault in the {} thread", worker.name());
+    }
+}
+
+/// What the perception thread reports at the end.
+pub(super) struct PerceptionReport {
+    pub(super) frames: BTreeMap<u32, (u64, u64)>,
+    pub(super) times: Histogram,
+    pub(super) backend: Backend,
+    pub(super) adapter: Option<String>,
+    pub(super) gpu_fallback: Option<String>,
+    pub(super) gpu_buffer_bytes: Option<u64>,
+    pub(super) fusion: FusionCounters,
+    pub(super) camera_latency: Vec<CameraLatency>,
+}
+
+/// An estimate handed to the control loop, with the fit of fusion's window that includes it
+/// (boxed here, so the loop moves it on to the recording without allocating).
+pub(super) type Handover = (Box<SurfaceEstimate>, Option<Fit>);
+
+#[allow(clippy::too_many_arguments)]
+pub(super) fn perception_thread(
+    mut perception: Perception,
+    mut window: FusionWindow,
+    robot: &RobotState,
+    clock: &Clock,
+    frames: &FrameQueue<Frame>,
+    estimates: mpsc::Sender<Handover>,
+    mut recorder: Option<FrameRecorder>,
+    shared: &Shared,
+    observer: Option<SyncSender<NodeEvent>>,
+    inject: Option<(Worker, u64)>,
+) -> Result<PerceptionReport, NodeError> {
+    let mut counts: BTreeMap<u32, (u64, u64)> = BTreeMap::new();
+    // 0.1 ms bins up to 10 s
+    let mut times = Histogram::new(1e-4, 10.0);
+    // The source stops once perception does, whatever the way out.
+    let _close = CloseOnDrop(frames);
+    let mut processed = 0u64;
+    let recording = recorder.is_some();
+    while let Some(frame) = frames.pop() {
+        processed += 1;
+        injected(inject, Worker::Perception, processed);
+        let start = Instant::now();
+        let q = robot.at(frame.stamp_s).q_rad;
+        let record = perception.process(&frame, &robot.perception_scene(&q))?;
+        let estimate = record.estimate().clone();
+        times.add(start.elapsed().as_secs_f64());
+        if perception.gpu_fallback().is_some() {
+            shared.gpu_fell_back.store(true, Ordering::Relaxed);
+        }
+        match recorder.as_mut().map(|r| r.frame(&frame, &q)) {
+            Some(Err(e)) => {
+                shared.recording_failed(&e);
+                recorder = None;
+                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
+            }
+            None if recording => {
+                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
+            }
+            _ => {}
+        }
+        // Fusion's window is fitted here, off the control loop's thread.
+        let fit = window.push(&estimate, record.far_field.as_ref(), clock.now_s());
+        if let Some(o) = &observer {
+            // Dropped when the observer is behind (or gone).
+            let _ = o.try_send(NodeEvent::Frame(Box::new(record)));
+        }
+        let entry = counts.entry(frame.camera_id).or_default();
+        entry.0 += 1;
+        entry.1 += u64::from(estimate.surface.is_some());
+        if estimates.send((Box::new(estimate), fit)).is_err() {
+            break;
+        }
+    }
+    if let Some(Err(e)) = recorder.map(FrameRecorder::finish) {
+        shared.recording_failed(&e);
+    }
+    Ok(PerceptionReport {
+        frames: counts,
+        times,
+        backend: perception.backend(),
+        adapter: perception.adapter().map(str::to_string),
+        gpu_fallback: perception.gpu_fallback(),
+        gpu_buffer_bytes: perception.gpu_buffer_bytes(),
+        fusion: window.fusion().counters(),
+        camera_latency: window.fusion().latency_stats(),
+    })
+}
+
+/// How far a streamed frame's stamp may be from the node clock, s (a camera driver's clock
+/// against the node's: anything further is a corrupt or foreign stamp).
+#[cfg(feature = "ros2")]
+const STREAM_STAMP_WINDOW_S: f64 = 10.0;
+
+/// Where frames enter: each camera's stamps must increase (a frame stamped at or before its
+/// camera's last accepted one is refused and counted, and never holds the camera back), and
+/// a streamed frame's stamp must be finite and near the node clock.
+pub(super) struct StampGate {
+    pub(super) last: Vec<(u32, f64)>,
+}
+
+impl StampGate {
+    fn admit(&mut self, frame: &Frame, shared: &Shared) -> bool {
+        match self.last.iter_mut().find(|(id, _)| *id == frame.camera_id) {
+            Some((_, last)) if frame.stamp_s <= *last => {
+                shared.out_of_order.fetch_add(1, Ordering::Relaxed);
+                false
+            }
+            Some((_, last)) => {
+                *last = frame.stamp_s;
+                true
+            }
+            None => {
+                self.last.push((frame.camera_id, frame.stamp_s));
+                true
+            }
+        }
+    }
+}
+
+pub(super) fn source_thread(
+    source: Source,
+    clock: &Clock,
+    queue: &FrameQueue<Frame>,
+    shared: &Shared,
+    inject: Option<(Worker, u64)>,
+) {
+    // Perception drains what is queued and ends once the source does.
+    let _close = CloseOnDrop(queue);
+    let mut gate = StampGate { last: Vec::new() };
+    let mut offered = 0u64;
+    let mut offer = |frame: Frame| {
+        offered += 1;
+        injected(inject, Worker::Source, offered);
+        if !gate.admit(&frame, shared) {
+            return true;
+        }
+        match queue.push(frame.camera_id, frame) {
+            Ok(None) => {
+                shared.queued.fetch_add(1, Ordering::Relaxed);
+                true
+            }
+            // The camera's oldest queued frame made room: one frame in, one out.
+            Ok(Some(oldest)) => {
+                shared.dropped.fetch_add(1, Ordering::Relaxed);
+                shared
+                    .per_camera
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .entry(oldest.camera_id)
+                    .or_default()
+                    .0 += 1;
+                true
+            }
+            Err(_) => false,
+        }
+    };
+    match source {
+        Source::Timed(frames) | Source::Simulated { frames, .. } => {
+            for frame in frames {
+                // Sleep until the frame is due, waking regularly to see a stop.
+                loop {
+                    if shared.stop.load(Ordering::Relaxed) {
+                        return;
+                    }
+                    let due = clock.wall_at(frame.stamp_s);
+                    let now = Instant::now();
+                    if now >= due {
+                        break;
+                    }
+                    std::thread::sleep((due - now).min(Duration::from_millis(20)));
+                }
+                if !offer(frame) {
+                    return;
+                }
+            }
+            shared.source_finished.store(true, Ordering::Release);
+        }
+        #[cfg(feature = "ros2")]
+        Source::Zenoh(mut source) => {
+            let stats = source.stats();
+            while !shared.stop.load(Ordering::Relaxed) {
+                if let Some(assembled) = source.recv(Duration::from_millis(20)) {
+                    // The node runs on the wall clock with a live source: the cameras'
+                    // stamps must be near it.
+                    let stamp_s = assembled.frame.stamp_s;
+                    if !(stamp_s.is_finite()
+                        && stamp_s.abs() <= MAX_STAMP_S
+                        && (stamp_s - clock.now_s()).abs() <= STREAM_STAMP_WINDOW_S)
+                    {
+                        shared.bad_stamps.fetch_add(1, Ordering::Relaxed);
+                    } else if !offer(assembled.frame) {
+                        break;
+                    }
+                }
+                let counters = stats.counters();
+                shared.malformed.store(
+                    counters.values().map(|c| c.malformed).sum(),
+                    Ordering::Relaxed,
+                );
+                let mut per_camera = shared
+                    .per_camera
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+                for (id, c) in counters {
+                    per_camera.entry(id).or_default().1 = c.malformed;
+                }
+            }
+            let mut per_camera = shared
+                .per_camera
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            for (id, c) in stats.counters() {
+                per_camera.entry(id).or_default().0 += c.drops;
+            }
+        }
+    }
+}
