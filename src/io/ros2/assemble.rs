@@ -13,7 +13,7 @@ use super::convert::{
     frame_from_depth, frame_from_pointcloud2, intrinsics_from_camera_info, isometry_from_transform,
 };
 use super::hapcloud::FrameMeta;
-use super::msgs::{CameraInfo, Image, PointCloud2, Time};
+use super::msgs::{CameraInfo, Header, Image, PointCloud2, Time};
 use super::{Ros2Error, decode, seconds_from_time};
 use crate::camera::Frame;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
@@ -181,13 +181,6 @@ struct Pending {
     metas: VecDeque<FrameMeta>,
 }
 
-/// One part of a frame.
-enum Part {
-    Image(Image),
-    Info(CameraInfo),
-    Cloud(PointCloud2),
-}
-
 /// Builds frames from the messages of the configured cameras.
 pub struct FrameAssembler {
     cameras: Vec<CameraTopics>,
@@ -289,34 +282,36 @@ impl FrameAssembler {
                 push_bounded(&mut self.pending[i].metas, decode(payload)?);
                 Ok(None)
             }
-            Role::Points(i) => self.arrive(i, Part::Cloud(decode(payload)?)),
-            Role::Image(i) => self.arrive(i, Part::Image(decode(payload)?)),
+            Role::Points(i) => {
+                let msg: PointCloud2 = decode(payload)?;
+                let header = msg.header.clone();
+                self.counters.unpaired += push_bounded(&mut self.pending[i].clouds, msg);
+                self.complete(i, &header)
+            }
+            Role::Image(i) => {
+                let img: Image = decode(payload)?;
+                let header = img.header.clone();
+                self.counters.unpaired += push_bounded(&mut self.pending[i].images, img);
+                self.complete(i, &header)
+            }
             Role::Info(i) => {
                 let info: CameraInfo = decode(payload)?;
                 // Checked now, so a bad info is counted once, not with every image.
                 intrinsics_from_camera_info(&info)?;
-                self.arrive(i, Part::Info(info))
+                let header = info.header.clone();
+                self.counters.unpaired += push_bounded(&mut self.pending[i].infos, info);
+                self.complete(i, &header)
             }
         }
     }
 
-    /// Queues a part of camera `i`'s frame; builds the frame once every part of its stamp
-    /// is there (older unmatched parts are dropped, counted).
-    fn arrive(&mut self, i: usize, part: Part) -> Result<Option<Assembled>, Ros2Error> {
+    /// Builds camera `i`'s frame of the message just queued (its `header`) once every part
+    /// of that stamp is there (older unmatched parts are dropped, counted).
+    fn complete(&mut self, i: usize, header: &Header) -> Result<Option<Assembled>, Ros2Error> {
         let c = &self.cameras[i];
         let (id, depth, cloud) = (c.camera_id, !c.depth_image.is_empty(), !c.points.is_empty());
         let p = &mut self.pending[i];
-        let header = match &part {
-            Part::Image(m) => m.header.clone(),
-            Part::Info(m) => m.header.clone(),
-            Part::Cloud(m) => m.header.clone(),
-        };
         let stamp = header.stamp;
-        self.counters.unpaired += match part {
-            Part::Image(m) => push_bounded(&mut p.images, m),
-            Part::Info(m) => push_bounded(&mut p.infos, m),
-            Part::Cloud(m) => push_bounded(&mut p.clouds, m),
-        };
         let complete = (!depth
             || (p.images.iter().any(|m| m.header.stamp == stamp)
                 && p.infos.iter().any(|m| m.header.stamp == stamp)))
