@@ -860,8 +860,8 @@ fn the_node_and_its_topics_are_in_the_rmw_zenoh_graph() {
         "node_name = \"hapcloud_left\"\nnamespace = \"/clinic\"",
         &[],
     );
-    // Outputs are declared at the first tick; give the node a moment.
-    std::thread::sleep(Duration::from_millis(2500));
+    // The node starts (its outputs are declared before its first tick).
+    std::thread::sleep(Duration::from_millis(1500));
     let graph: Value =
         serde_json::from_str(&python(&["liveliness", &port, msg_dir().to_str().unwrap()])).unwrap();
     let summary = node_summary(node);

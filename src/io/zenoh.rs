@@ -627,6 +627,34 @@ impl ZenohPublisher {
         out
     }
 
+    /// Declares the publisher of `topic` carrying `desc` (and its graph token), once.
+    fn declare(&mut self, topic: &str, desc: &'static MsgDesc) -> Result<(), ZenohError> {
+        if self.publishers.contains_key(topic) {
+            return Ok(());
+        }
+        let p = self
+            .session
+            .declare_publisher(self.zenoh.key(topic, desc, true))
+            .congestion_control(CongestionControl::Drop)
+            .wait()
+            .map_err(zerr)?;
+        let token = match &self.node {
+            Some(n) => Some(n.declare(Entity::Publisher, topic, desc, graph::QOS_DEFAULT)?),
+            None => None,
+        };
+        self.publishers.insert(topic.to_string(), (p, token));
+        Ok(())
+    }
+
+    /// Declares the node's output publishers before their first message, so the ROS 2 graph
+    /// lists them from the start and no declaration happens on the way of a tick.
+    pub fn declare_outputs(&mut self) -> Result<(), ZenohError> {
+        self.declare(topics::FUSED_SURFACE, FusedSurface::DESC)?;
+        self.declare(topics::HAPTIC_CONSTRAINT, HapticConstraint::DESC)?;
+        self.declare(topics::JOINT_COMMAND, JointState::DESC)?;
+        self.declare(topics::STATUS, NodeStatus::DESC)
+    }
+
     /// Publishes one message on `topic`. A sample that cannot be sent now (no route, full
     /// queues) is dropped, never waited for.
     pub fn publish<M: RosMessage>(&mut self, topic: &str, msg: &M) -> Result<(), ZenohError> {
@@ -634,21 +662,7 @@ impl ZenohPublisher {
             topic: topic.into(),
             source,
         })?;
-        if !self.publishers.contains_key(topic) {
-            let p = self
-                .session
-                .declare_publisher(self.zenoh.key(topic, M::DESC, true))
-                .congestion_control(CongestionControl::Drop)
-                .wait()
-                .map_err(zerr)?;
-            let token = match &self.node {
-                Some(n) => {
-                    Some(n.declare(Entity::Publisher, topic, M::DESC, graph::QOS_DEFAULT)?)
-                }
-                None => None,
-            };
-            self.publishers.insert(topic.to_string(), (p, token));
-        }
+        self.declare(topic, M::DESC)?;
         let attachment = self.config.attachment.then(|| self.attachment());
         let (publisher, _) = &self.publishers[topic];
         let put = publisher.put(payload);
@@ -765,6 +779,7 @@ impl OutputThread {
         source: Option<SourceStats>,
     ) -> Result<Self, ZenohError> {
         let mut publisher = ZenohPublisher::new(session, zenoh, config)?;
+        publisher.declare_outputs()?;
         let (tx, rx) = std::sync::mpsc::sync_channel::<TickRecord>(config.queue_ticks);
         let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));
         let status_period_s = 1.0 / config.status_rate_hz;
