@@ -1,6 +1,7 @@
 """Seeds of the `ros2_messages` fuzz target, serialized by rosbags (an outside CDR encoder):
 records `[topic index][u32 LE length][CDR payload]` of a 16UC1 depth image with its
-CameraInfo (topics 0, 1), a PointCloud2 (topic 2) and a /tf_static TFMessage (topic 3).
+CameraInfo (topics 0, 1), a PointCloud2 (topic 2), a /tf_static TFMessage (topic 3), and an
+image, its info and a cloud of the same stamp for one camera (topics 4, 5, 6).
 
     python3 fuzz/ros2_seeds.py fuzz/seeds/ros2_messages
 """
@@ -62,3 +63,12 @@ pc = record(3, tf, TFMessage.__msgtype__) + record(2, cloud, PointCloud2.__msgty
 (out / "depth_image_and_info").write_bytes(img)
 (out / "tf_and_pointcloud").write_bytes(pc)
 (out / "all").write_bytes(img + pc)
+organized = np.array([[0.01 * i, 0.02, 0.6, 0.0] for i in range(w * h)], dtype="<f4")
+beside = PointCloud2(header=header("cam2"), height=h, width=w,
+                     fields=[PointField(name=n, offset=4 * k, datatype=7, count=1)
+                             for k, n in enumerate("xyz")],
+                     is_bigendian=False, point_step=16, row_step=16 * w,
+                     data=np.frombuffer(organized.tobytes(), dtype=np.uint8), is_dense=False)
+(out / "image_info_and_cloud").write_bytes(
+    record(4, image, Image.__msgtype__) + record(6, beside, PointCloud2.__msgtype__)
+    + record(5, info, CameraInfo.__msgtype__))

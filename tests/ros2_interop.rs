@@ -393,6 +393,15 @@ fn rosbags_reads_a_hapcloud_recording() {
         depth: Some((d, k)),
     };
     w.write_frame(&frame, &[0.5; 6]).unwrap();
+    // A simulated frame: its cloud is not its (rounded) image deprojected, so both go in.
+    let mut simulated = Frame {
+        camera_id: 3,
+        ..frame.clone()
+    };
+    for p in &mut simulated.cloud.points {
+        *p *= 1.0001;
+    }
+    w.write_frame(&simulated, &[0.5; 6]).unwrap();
     for i in 0..3 {
         w.write_tick(&tick(i)).unwrap();
     }
@@ -404,6 +413,10 @@ fn rosbags_reads_a_hapcloud_recording() {
     assert_eq!(count("/hapcloud/camera2/depth/image_rect_raw"), 1, "{out}");
     assert_eq!(count("/hapcloud/camera2/depth/camera_info"), 1);
     assert_eq!(count("/hapcloud/camera2/frame_meta"), 1);
+    assert_eq!(count("/hapcloud/camera2/depth/points"), 0);
+    for t in ["depth/image_rect_raw", "depth/camera_info", "depth/points"] {
+        assert_eq!(count(&format!("/hapcloud/camera3/{t}")), 1, "{t}: {out}");
+    }
     assert_eq!(count("/hapcloud/ticks"), 3);
     let first = &out["first"];
     assert_eq!(
@@ -418,6 +431,16 @@ fn rosbags_reads_a_hapcloud_recording() {
     assert_eq!(
         first["/hapcloud/camera2/depth/camera_info"]["k"][0].as_f64(),
         Some(20.0)
+    );
+    let cloud = &first["/hapcloud/camera3/depth/points"];
+    assert_eq!(
+        (cloud["width"].as_u64(), cloud["height"].as_u64()),
+        (Some(u64::from(W)), Some(u64::from(H))),
+        "{cloud}"
+    );
+    assert_eq!(
+        cloud["data_len"].as_u64(),
+        Some(u64::from(W * H) * cloud["point_step"].as_u64().unwrap())
     );
     let tau = &first["/hapcloud/ticks"]["tau_nm"];
     assert_eq!(tau[5].as_f64(), Some(tick(0).control.tau_nm[5]));
@@ -501,6 +524,17 @@ fn hapcloud_reads_a_rosbags_bag() {
 /// `hapcloud run zenoh --config FILE` on two live depth cameras published by Python through
 /// the router: returns the node process (its JSON summary on stdout when it ends).
 fn start_node(dir: &Path, port: &str, duration_s: f64) -> Child {
+    start_node_with(dir, port, duration_s, "", &[])
+}
+
+/// [`start_node`] with more `[zenoh]` settings and more arguments.
+fn start_node_with(
+    dir: &Path,
+    port: &str,
+    duration_s: f64,
+    zenoh: &str,
+    args: &[&std::ffi::OsStr],
+) -> Child {
     let config = dir.join("node.toml");
     std::fs::write(
         &config,
@@ -508,6 +542,7 @@ fn start_node(dir: &Path, port: &str, duration_s: f64) -> Child {
             r#"hip_world_m = [0.0, 0.0, 1.55]
 [zenoh]
 connect = ["tcp/127.0.0.1:{port}"]
+{zenoh}
 [zenoh_source]
 world_frame = "world"
 [[zenoh_source.cameras]]
@@ -527,6 +562,7 @@ tick_rate_hz = 50.0
         .arg(duration_s.to_string())
         .arg("--config")
         .arg(&config)
+        .args(args)
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -614,8 +650,9 @@ fn the_node_runs_on_python_cameras_and_rosbags_decodes_its_outputs() {
 }
 
 /// The router goes away mid-run and comes back on the same port: the node keeps its loop
-/// (no error, no panic, ticks go on), and takes the cameras' frames again once both sides
-/// have reconnected.
+/// (no error, no panic, ticks go on), the constraint goes off within the stale timeout of the
+/// last frame and stays off while no frame comes, and the node takes the cameras' frames
+/// again (constraint back on) once both sides have reconnected.
 #[test]
 fn a_router_that_goes_away_and_comes_back() {
     if !python_ready() {
@@ -624,15 +661,22 @@ fn a_router_that_goes_away_and_comes_back() {
     let (router, zenoh) = router();
     let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
     let dir = temp_dir("restart");
-    let node = start_node(&dir, &port, 10.0);
-    let sent = python(&["stream", &port, "2.5", "30", "32", "24"]);
+    let file = dir.join("run.mcap");
+    let node = start_node_with(
+        &dir,
+        &port,
+        10.0,
+        "",
+        &["--record".as_ref(), file.as_os_str()],
+    );
+    let sent = python(&["stream", &port, "2.5", "30", "64", "48"]);
     assert!(sent.contains("sent"), "{sent}");
     drop(router);
     std::thread::sleep(Duration::from_millis(1500));
     let (_router, _) = Proc::start(&["router", &port]);
     // The node's client session retries its router every second at most; the publisher
     // waits until the node's subscribers match, then publishes again.
-    let sent = python(&["stream", &port, "3", "30", "32", "24"]);
+    let sent = python(&["stream", &port, "3", "30", "64", "48"]);
     assert!(sent.contains("sent"), "{sent}");
     let summary = node_summary(node);
     // Before the restart at most 2.5 s x 30 Hz = 75 frames per camera reached the node.
@@ -644,5 +688,324 @@ fn a_router_that_goes_away_and_comes_back() {
         summary["ticks"].as_u64().unwrap() > 9 * 800 / 2,
         "{summary}"
     );
+    // The recorded ticks: on, off for the gap (from the stale timeout on), on again.
+    let recording = hapcloud::node::record::read(&file).unwrap();
+    let stale_s = recording.meta.config.fusion.stale_timeout_s;
+    let ticks = &recording.ticks;
+    let active = |t: &TickRecord| t.control.haptic_status == HapticStatus::Active;
+    for t in ticks {
+        assert!(
+            !(active(t) && t.fused.age_s > stale_s),
+            "constraint on at t = {} s, {} s after the last frame",
+            t.fused.stamp_s,
+            t.fused.age_s
+        );
+    }
+    let first_on = ticks
+        .iter()
+        .position(active)
+        .unwrap_or_else(|| panic!("never on: {summary}"));
+    let off = first_on
+        + ticks[first_on..]
+            .iter()
+            .position(|t| t.fused.status == FusionStatus::Stale && !active(t))
+            .expect("never stale: the router's absence went unnoticed");
+    let back = off
+        + ticks[off..]
+            .iter()
+            .position(active)
+            .expect("the constraint never came back after the router did");
+    let gap_s = ticks[back].fused.stamp_s - ticks[off].fused.stamp_s;
+    assert!(gap_s > 1.0, "off for only {gap_s} s");
+    assert!(
+        ticks[back..].iter().filter(|t| active(t)).count() > 800,
+        "{summary}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The node's links reset in the middle of messages: raw connections to the node's own
+/// listen endpoint send part of a Zenoh frame and reset, and the router is killed while
+/// 424 x 240 images (several Zenoh batches each) are on their way to the node. The node
+/// neither panics nor takes a broken frame (no malformed message, no wrong frame), and frames
+/// flow again through a new router.
+#[test]
+fn a_peer_that_resets_mid_message() {
+    if !python_ready() {
+        return;
+    }
+    let (router, zenoh) = router();
+    let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
+    let listen = free_port().to_string();
+    let dir = temp_dir("reset");
+    let node = start_node_with(
+        &dir,
+        &port,
+        10.0,
+        &format!("mode = \"peer\"\nlisten = [\"tcp/127.0.0.1:{listen}\"]"),
+        &[],
+    );
+    let stream = {
+        let port = port.clone();
+        std::thread::spawn(move || python(&["stream", &port, "3", "30", "424", "240"]))
+    };
+    std::thread::sleep(Duration::from_millis(2000));
+    let resets = python(&["reset", &listen, "5"]);
+    assert!(resets.contains("\"resets\": 5"), "{resets}");
+    // SIGKILL: the router's sockets close with data in flight.
+    drop(router);
+    let sent = stream.join().unwrap();
+    assert!(sent.contains("sent"), "{sent}");
+    let (_router, _) = Proc::start(&["router", &port]);
+    let sent = python(&["stream", &port, "3", "30", "424", "240"]);
+    assert!(sent.contains("sent"), "{sent}");
+    let summary = node_summary(node);
+    for id in ["0", "1"] {
+        let c = &summary["cameras"][id];
+        // At most ~1.5 s x 30 Hz before the kill.
+        assert!(c["frames"].as_u64().unwrap() > 60, "camera {id}: {summary}");
+        assert_eq!(c["malformed"], 0, "camera {id}: {summary}");
+        assert!(c["valid_estimates"].as_u64().unwrap() > 30, "{summary}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The node's resident memory, bytes (Linux).
+fn rss_bytes(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// A publisher floods two cameras of 424 x 240 images as fast as it can, with rmw_zenoh's
+/// attachment on one camera and junk attachments on the other: the node counts the samples
+/// its bounded queue drops, takes frames of both cameras (the attachment is optional and
+/// never parsed), keeps its 800 Hz loop, and its memory stays bounded.
+#[test]
+fn a_flooding_publisher_costs_counted_drops_not_memory() {
+    if !python_ready() {
+        return;
+    }
+    let (_router, zenoh) = router();
+    let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
+    let dir = temp_dir("flood");
+    let node = start_node(&dir, &port, 6.0);
+    let pid = node.id();
+    let flood = {
+        let port = port.clone();
+        std::thread::spawn(move || python(&["stream", &port, "4", "0", "424", "240", "attach"]))
+    };
+    let (mut before, mut peak) = (None, 0u64);
+    let start = Instant::now();
+    while !flood.is_finished() {
+        let rss = rss_bytes(pid).unwrap_or(0);
+        // The first second: the node warm, the flood starting.
+        if start.elapsed() < Duration::from_secs(1) {
+            before = Some(rss);
+        }
+        peak = peak.max(rss);
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let sent = flood.join().unwrap();
+    let sent: Value = serde_json::from_str(sent.trim()).unwrap();
+    let summary = node_summary(node);
+    let mut dropped = 0;
+    for id in ["0", "1"] {
+        let c = &summary["cameras"][id];
+        assert!(c["frames"].as_u64().unwrap() > 10, "camera {id}: {summary}");
+        assert_eq!(c["malformed"], 0, "camera {id}: {summary}");
+        dropped += c["dropped"].as_u64().unwrap();
+    }
+    let frames = summary["frames"].as_u64().unwrap();
+    let sent = sent["sent"].as_u64().unwrap();
+    eprintln!(
+        "flood: {sent} frames sent, {frames} processed, {dropped} dropped (counted), \
+         resident memory {} MB before, {} MB at most",
+        before.unwrap_or(0) >> 20,
+        peak >> 20
+    );
+    assert!(dropped > 0, "{sent} sent, nothing dropped: {summary}");
+    assert!(sent > frames + dropped / 2, "{sent} sent: {summary}");
+    assert!(
+        summary["ticks"].as_u64().unwrap() > 6 * 800 * 9 / 10,
+        "{summary}"
+    );
+    // 4 s of flood is over 1 GB of images: a queue that grew would show here.
+    assert!(
+        peak < before.unwrap_or(0) + (200 << 20),
+        "resident memory grew from {} MB to {} MB",
+        before.unwrap_or(0) >> 20,
+        peak >> 20
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// hapcloud joins the ROS 2 graph as rmw_zenoh's nodes do: Python zenoh reads its liveliness
+/// tokens, and every key parses by rmw_zenoh's rules into one node `/hapcloud`, a
+/// subscription per camera topic and `/tf_static`, and a publisher per output topic, with
+/// the type names and RIHS01 hashes of its data keys (checked against rosbags).
+#[test]
+fn the_node_and_its_topics_are_in_the_rmw_zenoh_graph() {
+    if !python_ready() {
+        return;
+    }
+    let (_router, zenoh) = router();
+    let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
+    let dir = temp_dir("graph");
+    let node = start_node_with(
+        &dir,
+        &port,
+        4.0,
+        "node_name = \"hapcloud_left\"\nnamespace = \"/clinic\"",
+        &[],
+    );
+    // The node starts (its outputs are declared before its first tick).
+    std::thread::sleep(Duration::from_millis(1500));
+    let graph: Value =
+        serde_json::from_str(&python(&["liveliness", &port, msg_dir().to_str().unwrap()])).unwrap();
+    let summary = node_summary(node);
+    assert!(summary["ticks"].as_u64().unwrap() > 0);
+    assert_eq!(graph["errors"], Value::Array(vec![]), "{graph}");
+    let entities = graph["entities"].as_array().unwrap();
+    let of = |kind: &str| {
+        entities
+            .iter()
+            .filter(|e| e["kind"] == kind)
+            .collect::<Vec<_>>()
+    };
+    let nodes = of("node");
+    assert_eq!(nodes.len(), 1, "{graph}");
+    let n = nodes[0];
+    assert_eq!(
+        (&n["node"], &n["namespace"], &n["domain"]),
+        (
+            &Value::from("hapcloud_left"),
+            &Value::from("/clinic"),
+            &Value::from(0)
+        ),
+        "{graph}"
+    );
+    let topics = |kind: &str| {
+        let mut t: Vec<String> = of(kind)
+            .iter()
+            .map(|e| {
+                // Every entity belongs to the node (same session and node id).
+                assert_eq!((&e["zid"], &e["nid"]), (&n["zid"], &n["nid"]), "{e}");
+                assert_eq!(e["hash_ok"], true, "{e}");
+                format!(
+                    "{} {}",
+                    e["topic"].as_str().unwrap(),
+                    e["type"].as_str().unwrap()
+                )
+            })
+            .collect();
+        t.sort();
+        t
+    };
+    assert_eq!(
+        topics("subscription"),
+        [
+            "/cam0/depth/camera_info sensor_msgs/msg/CameraInfo",
+            "/cam0/depth/image_rect_raw sensor_msgs/msg/Image",
+            "/cam1/depth/camera_info sensor_msgs/msg/CameraInfo",
+            "/cam1/depth/image_rect_raw sensor_msgs/msg/Image",
+            "/tf_static tf2_msgs/msg/TFMessage",
+        ],
+        "{graph}"
+    );
+    let published = topics("publisher");
+    for t in [
+        "/hapcloud/fused_surface hapcloud_msgs/msg/FusedSurface",
+        "/hapcloud/haptic_constraint hapcloud_msgs/msg/HapticConstraint",
+        "/hapcloud/joint_command sensor_msgs/msg/JointState",
+        "/hapcloud/status hapcloud_msgs/msg/NodeStatus",
+    ] {
+        assert!(
+            published.iter().any(|p| p == t),
+            "{t} missing: {published:?}"
+        );
+    }
+    // The entity ids are unique within the node.
+    let mut ids: Vec<&str> = entities.iter().map(|e| e["id"].as_str().unwrap()).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    assert_eq!(ids.len(), entities.len(), "{graph}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The simulator on the GPU backend, recorded: its frames enter perception as depth images,
+/// so the recording keeps each image (16UC1 + CameraInfo) beside the cloud, which a clean
+/// scene renders from unrounded depths, and `hapcloud replay` reproduces every estimate and
+/// tick bit for bit on the same backend (with the cloud alone, as before, the replay took the
+/// CPU's path on the GPU: 607 of 1175 ticks differed). rosbags' AnyReader opens the
+/// recording.
+#[test]
+fn a_simulated_gpu_run_replays_bit_for_bit_and_rosbags_opens_it() {
+    let dir = temp_dir("sim-gpu");
+    let file = dir.join("sim.mcap");
+    let out = Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .args(["run", "torso_approach_clean", "--json", "--backend", "gpu"])
+        .args(["--duration", "1.5", "--record"])
+        .arg(&file)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let summary: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(summary["backend"], "gpu", "{summary}");
+    let recording = hapcloud::node::record::read(&file).unwrap();
+    assert!(!recording.frames.is_empty());
+    // Every frame has its image back, and its cloud is the simulator's, not the image's.
+    for f in &recording.frames {
+        let (d, k) = f
+            .depth
+            .as_ref()
+            .expect("a simulated frame keeps its depth image");
+        let deprojected = d.deproject(k).unwrap();
+        assert!(
+            deprojected
+                .points
+                .iter()
+                .zip(&f.cloud.points)
+                .any(|(a, b)| a.is_finite() && b.is_finite() && a != b),
+            "camera {} at {} s: the cloud is the rounded image",
+            f.camera_id,
+            f.stamp_s
+        );
+    }
+    let out = Command::new(env!("CARGO_BIN_EXE_hapcloud"))
+        .args(["replay", "--json"])
+        .arg(&file)
+        .output()
+        .unwrap();
+    let report: Value = serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&out.stderr)));
+    assert_eq!(report["backend"], "gpu", "{report}");
+    assert!(
+        report["estimates_compared"].as_u64().unwrap() > 10,
+        "{report}"
+    );
+    assert_eq!(report["ticks_compared"], summary["ticks"], "{report}");
+    assert_eq!(report["estimate_mismatches"], 0, "{report}");
+    assert_eq!(report["tick_mismatches"], 0, "{report}");
+    if python_ready() {
+        let out: Value =
+            serde_json::from_str(&python(&["read-mcap", file.to_str().unwrap()])).unwrap();
+        let count = |t: &str| out["topics"][t]["count"].as_u64().unwrap_or(0);
+        let frames = recording.frames.iter().filter(|f| f.camera_id == 0).count() as u64;
+        for t in ["depth/image_rect_raw", "depth/camera_info", "depth/points"] {
+            assert_eq!(
+                count(&format!("/hapcloud/camera0/{t}")),
+                frames,
+                "{t}: {out}"
+            );
+        }
+        assert_eq!(count("/hapcloud/ticks"), summary["ticks"].as_u64().unwrap());
+        assert_eq!(
+            out["first"]["/hapcloud/camera0/depth/image_rect_raw"]["encoding"],
+            "16UC1"
+        );
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -240,26 +240,41 @@ fn frames_estimates_and_ticks_read_back_bit_for_bit() {
     }
 }
 
-#[test]
-fn a_cloud_that_is_not_the_deprojected_image_is_kept_as_points() {
-    // The simulator's clouds come from unrounded depths; the image is rounded to mm. The
-    // default encoding sees it and stores the cloud; `PointCloud` always does.
-    let mut f = depth_frame(0, 2.0, 0.001);
+/// A simulated frame: the cloud from unrounded depths, the image rounded to mm.
+fn simulated_frame(id: u32, stamp_s: f64) -> Frame {
+    let mut f = depth_frame(id, stamp_s, 0.001);
     for p in &mut f.cloud.points {
         *p *= 1.0001;
     }
-    for frames in [FrameEncoding::Auto, FrameEncoding::PointCloud] {
-        let config = McapWriterConfig {
-            frames,
-            ..McapWriterConfig::default()
-        };
-        let got = read(&write(config, std::slice::from_ref(&f)));
-        let back = &got.frames[0].0;
-        assert!(back.depth.is_none());
-        let mut expected = f.clone();
-        expected.depth = None;
-        assert_same_frame(back, &expected);
+    f
+}
+
+#[test]
+fn a_cloud_that_is_not_the_deprojected_image_is_kept_beside_the_image() {
+    // The default encoding stores the image (the GPU's depth input) and the cloud (the
+    // CPU's points): both read back bit for bit, as one frame per stamp.
+    let sent: Vec<Frame> = (0..4)
+        .map(|i| simulated_frame(0, 1.0 + f64::from(i) / 30.0))
+        .chain([points_frame(1, 1.01)])
+        .collect();
+    let got = read(&write(McapWriterConfig::default(), &sent));
+    assert_eq!(got.frames.len(), sent.len());
+    for ((back, _), f) in got.frames.iter().zip(&sent) {
+        assert_same_frame(back, f);
     }
+    assert!(got.frames[0].0.depth.is_some());
+    // `PointCloud` stores the cloud only: it reads back without the image.
+    let f = simulated_frame(0, 2.0);
+    let config = McapWriterConfig {
+        frames: FrameEncoding::PointCloud,
+        ..McapWriterConfig::default()
+    };
+    let got = read(&write(config, std::slice::from_ref(&f)));
+    let back = &got.frames[0].0;
+    assert!(back.depth.is_none());
+    let mut expected = f.clone();
+    expected.depth = None;
+    assert_same_frame(back, &expected);
     // `DepthImage` stores the image whatever the cloud: it reads back deprojected.
     let config = McapWriterConfig {
         frames: FrameEncoding::DepthImage,

@@ -153,22 +153,29 @@ pub fn recording(data: &[u8]) {
 
 /// The topics of the `ros2_messages` target: a depth camera with its info (posed in the
 /// config), a point-cloud camera (posed by `/tf_static`), and `/tf_static`.
-pub const ROS2_TOPICS: [&str; 4] = [
+pub const ROS2_TOPICS: [&str; 7] = [
     "/cam0/depth/image_rect_raw",
     "/cam0/depth/camera_info",
     "/cam1/depth/points",
     "/tf_static",
+    "/cam2/depth/image_rect_raw",
+    "/cam2/depth/camera_info",
+    "/cam2/depth/points",
 ];
 
 /// ROS 2 messages as the Zenoh source receives them (`hapcloud run zenoh`): the input is a
 /// sequence of `[topic index byte][u32 LE length][CDR payload]` records, each payload handed
 /// to the frame assembler on the [`ROS2_TOPICS`] topic it picks, which decodes the CDR
-/// (Image, CameraInfo, PointCloud2, TFMessage), checks it, pairs images with their info and
-/// deprojects or converts them to frames.
+/// (Image, CameraInfo, PointCloud2, TFMessage), checks it, pairs images with their info (and
+/// camera 2's with its cloud) and deprojects or converts them to frames.
 pub fn ros2_messages(data: &[u8]) {
     let mut depth = CameraTopics::depth(0, ROS2_TOPICS[0]);
     depth.world_from_camera = Some(Pose::default());
-    let cameras = vec![depth, CameraTopics::points(1, ROS2_TOPICS[2])];
+    // Camera 2's frames are its image, its info and its cloud of one stamp (a recording's).
+    let mut both = CameraTopics::depth(2, ROS2_TOPICS[4]);
+    both.points = ROS2_TOPICS[6].into();
+    both.world_from_camera = Some(Pose::default());
+    let cameras = vec![depth, CameraTopics::points(1, ROS2_TOPICS[2]), both];
     let mut assembler = FrameAssembler::new(cameras, "").expect("valid topics");
     let mut rest = data;
     while let [topic, tail @ ..] = rest {

@@ -2,8 +2,9 @@
 //! readable by Foxglove, rosbags and `ros2 bag`, and ROS 2 bags read back as camera frames.
 //!
 //! A hapcloud recording holds, per camera `N` under `/hapcloud/cameraN/`, each frame as
-//! `depth/image_rect_raw` + `depth/camera_info` (a frame with a depth image) or `depth/points`
-//! (`PointCloud2`), preceded by `frame_meta` (`hapcloud_msgs/FrameMeta`: the unrounded stamp,
+//! `depth/image_rect_raw` + `depth/camera_info` (a frame with a depth image) and/or
+//! `depth/points` (`PointCloud2`: a frame without an image, or whose cloud is not exactly its
+//! image deprojected, as the simulator's), preceded by `frame_meta` (`hapcloud_msgs/FrameMeta`: the unrounded stamp,
 //! the pose, the depth unit and the robot joints perception used) and followed by the pose on
 //! `/tf`; the node's estimates (`/hapcloud/estimates`, `hapcloud_msgs/SurfaceEstimate` with the
 //! pushing tick) and ticks (`/hapcloud/ticks`, `hapcloud_msgs/ControlTick`). Every value that
@@ -70,17 +71,19 @@ pub enum ChunkCompression {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FrameEncoding {
-    /// Image + CameraInfo when the frame's cloud is exactly its depth image deprojected (a
-    /// camera's frame: 0.8 MB for 848x480 before compression), else PointCloud2 (the
-    /// simulator's unrounded depths, clouds without an image): every frame reads back bit for
-    /// bit, the node's recordings replay exactly.
+    /// A frame with a depth image as Image + CameraInfo (0.8 MB for 848x480 before
+    /// compression), and its cloud as PointCloud2 too when the cloud is not exactly the
+    /// image deprojected (the simulator's unrounded depths); a frame without an image as
+    /// PointCloud2. Every frame reads back bit for bit, image and cloud, so the node's
+    /// recordings replay exactly on either backend (the GPU takes the image, the CPU the
+    /// cloud).
     #[default]
     Auto,
     /// Image + CameraInfo when the frame has a depth image, else PointCloud2. The frame read
     /// back has the deprojected image as its cloud.
     DepthImage,
-    /// Always the cloud as PointCloud2 (4.9 MB for 848x480): the frame's own cloud, bit for
-    /// bit, when it is not the deprojected image (the simulator's unrounded depths).
+    /// Always the cloud as PointCloud2 (4.9 MB for 848x480), no image: the frame read back
+    /// has no depth image.
     PointCloud,
 }
 
@@ -115,6 +118,8 @@ pub struct McapWriter<W: Write + Seek> {
     schemas: HashMap<&'static str, u16>,
     channels: HashMap<String, u16>,
     sequence: u32,
+    /// Per camera: whether its frames carry their cloud beside their image.
+    cloud_beside_image: HashMap<u32, bool>,
 }
 
 fn ns(stamp_s: f64) -> u64 {
@@ -151,6 +156,7 @@ impl<W: Write + Seek> McapWriter<W> {
             schemas: HashMap::new(),
             channels: HashMap::new(),
             sequence: 0,
+            cloud_beside_image: HashMap::new(),
         })
     }
 
@@ -225,13 +231,18 @@ impl<W: Write + Seek> McapWriter<W> {
         };
         let pose = &frame.world_from_camera;
         let q = pose.rotation.quaternion();
-        let depth = match self.config.frames {
-            FrameEncoding::DepthImage => frame.depth.as_ref(),
-            FrameEncoding::Auto => frame
-                .depth
-                .as_ref()
-                .filter(|(d, k)| cloud_is_deprojection(&frame.cloud, d, k)),
-            FrameEncoding::PointCloud => None,
+        let (depth, points) = match (self.config.frames, frame.depth.as_ref()) {
+            // Decided on the camera's first frame, so its channels stay the same: a reader
+            // knows from the channels which parts make the camera's frames.
+            (FrameEncoding::Auto, Some((d, k))) => {
+                let points = *self
+                    .cloud_beside_image
+                    .entry(id)
+                    .or_insert_with(|| !cloud_is_deprojection(&frame.cloud, d, k));
+                (Some((d, k)), points)
+            }
+            (FrameEncoding::DepthImage, Some((d, k))) => (Some((d, k)), false),
+            _ => (None, true),
         };
         let meta = FrameMeta {
             header: header.clone(),
@@ -248,22 +259,21 @@ impl<W: Write + Seek> McapWriter<W> {
         if depth.is_some() {
             self.channel(&topics::depth_image(id), &IMAGE)?;
             self.channel(&topics::camera_info(id), &CAMERA_INFO)?;
-        } else {
+        }
+        if points {
             self.channel(&topics::points(id), &POINT_CLOUD2)?;
         }
         let t = frame.stamp_s;
         self.write(&topics::frame_meta(id), t, &meta)?;
-        match depth {
-            Some((d, k)) => {
-                let img = image_from_depth(header.clone(), d);
-                self.write(&topics::depth_image(id), t, &img)?;
-                let info = camera_info_from_intrinsics(header.clone(), k);
-                self.write(&topics::camera_info(id), t, &info)?;
-            }
-            None => {
-                let cloud = pointcloud2_from_cloud(header.clone(), &frame.cloud);
-                self.write(&topics::points(id), t, &cloud)?;
-            }
+        if let Some((d, k)) = depth {
+            let img = image_from_depth(header.clone(), d);
+            self.write(&topics::depth_image(id), t, &img)?;
+            let info = camera_info_from_intrinsics(header.clone(), k);
+            self.write(&topics::camera_info(id), t, &info)?;
+        }
+        if points {
+            let cloud = pointcloud2_from_cloud(header.clone(), &frame.cloud);
+            self.write(&topics::points(id), t, &cloud)?;
         }
         let tf = TfMessage {
             transforms: vec![TransformStamped {
@@ -378,6 +388,8 @@ pub struct McapReader<R: Read> {
     channels: HashMap<u16, ChannelInfo>,
     assembler: FrameAssembler,
     auto: bool,
+    /// Channels were declared since cameras were last looked for.
+    undiscovered: bool,
     truncated: Option<String>,
     bytes_read: u64,
 }
@@ -410,6 +422,7 @@ impl<R: Read> McapReader<R> {
             channels: HashMap::new(),
             assembler,
             auto: config.cameras.is_empty(),
+            undiscovered: false,
             truncated: None,
             bytes_read: 0,
         })
@@ -463,7 +476,7 @@ impl<R: Read> McapReader<R> {
                                 schema,
                             },
                         );
-                        self.discover()?;
+                        self.undiscovered = true;
                         None
                     }
                     mcap::records::Record::Message { header, data } => {
@@ -478,6 +491,11 @@ impl<R: Read> McapReader<R> {
                     _ => None,
                 },
             };
+            // Cameras are found once the channels before a message are known (a camera's
+            // channels are all declared before its first message).
+            if message.is_some() && std::mem::take(&mut self.undiscovered) {
+                self.discover()?;
+            }
             if let Some((channel, log_time_ns, data)) = message
                 && let Some(item) = self.item(channel, log_time_ns, data)?
             {
@@ -487,14 +505,20 @@ impl<R: Read> McapReader<R> {
     }
 
     /// Adds the cameras the declared channels make (auto mode): every `Image` topic with a
-    /// `CameraInfo` beside it, hapcloud's `PointCloud2` topics, and other `PointCloud2`
-    /// topics while no depth camera exists (a realsense bag may hold both for one camera).
+    /// `CameraInfo` beside it (with, for a hapcloud camera, its `PointCloud2` when declared),
+    /// hapcloud's other `PointCloud2` topics, and other `PointCloud2` topics while no depth
+    /// camera exists (a realsense bag may hold both for one camera).
     fn discover(&mut self) -> Result<(), McapError> {
         if !self.auto {
             return Ok(());
         }
         let mut ids: Vec<_> = self.channels.keys().copied().collect();
         ids.sort_unstable();
+        let declared = |channels: &HashMap<u16, ChannelInfo>, topic: &str, schema: &str| {
+            channels
+                .values()
+                .any(|o| o.topic == topic && o.schema == schema)
+        };
         for id in ids {
             let ch = &self.channels[&id];
             if self.assembler.role(&ch.topic).is_some() {
@@ -508,16 +532,25 @@ impl<R: Read> McapReader<R> {
             let hapcloud_id = topics::camera_id_of(&ch.topic);
             let camera_id = hapcloud_id.unwrap_or(self.assembler.cameras().len() as u32);
             let mut camera = if ch.schema == IMAGE.name {
-                let c = CameraTopics::depth(camera_id, &ch.topic);
-                let info = c.info_topic();
-                if !self
-                    .channels
-                    .values()
-                    .any(|o| o.topic == info && o.schema == CAMERA_INFO.name)
-                {
+                let mut c = CameraTopics::depth(camera_id, &ch.topic);
+                if !declared(&self.channels, &c.info_topic(), CAMERA_INFO.name) {
                     continue;
                 }
+                if hapcloud_id.is_some()
+                    && declared(
+                        &self.channels,
+                        &topics::points(camera_id),
+                        POINT_CLOUD2.name,
+                    )
+                {
+                    c.points = topics::points(camera_id);
+                }
                 c
+            } else if let Some(n) = hapcloud_id
+                && declared(&self.channels, &topics::depth_image(n), IMAGE.name)
+            {
+                // The cloud beside a hapcloud camera's image: read with the image.
+                continue;
             } else if ch.schema == POINT_CLOUD2.name && (!has_depth || hapcloud_id.is_some()) {
                 CameraTopics::points(camera_id, &ch.topic)
             } else {

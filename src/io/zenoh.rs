@@ -10,6 +10,9 @@
 //! number, source time stamp, publisher GID) is written by the publisher and ignored by the
 //! source (its layout changed between releases).
 //!
+//! With rmw_zenoh keys the session is a ROS 2 node in the graph ([`graph`]): liveliness tokens
+//! for the node and each of its publishers and subscriptions, as rmw_zenoh declares them.
+//!
 //! The subscriber callbacks (Zenoh's threads) only move the payload into a bounded queue;
 //! decoding and pairing happen in [`ZenohSource::recv`] on the caller's thread. When the
 //! queue is full the oldest sample is dropped and counted, so a flooding publisher costs
@@ -32,8 +35,12 @@ use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::time::{Duration, Instant};
 use zenoh::Wait;
 use zenoh::bytes::ZBytes;
+use zenoh::liveliness::LivelinessToken;
 use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::CongestionControl;
+
+pub mod graph;
+use graph::{Entity, GraphNode};
 
 /// Why a Zenoh session, source or publisher failed.
 #[derive(Debug, thiserror::Error)]
@@ -86,6 +93,10 @@ pub struct ZenohConfig {
     /// ROS domain id (the first chunk of rmw_zenoh's keys).
     pub domain_id: u32,
     pub keys: KeyStyle,
+    /// The ROS 2 node name hapcloud shows in an rmw_zenoh graph (`ros2 node list`).
+    pub node_name: String,
+    /// Its namespace (`/` or `/a/b`).
+    pub namespace: String,
 }
 
 impl Default for ZenohConfig {
@@ -96,6 +107,8 @@ impl Default for ZenohConfig {
             listen: Vec::new(),
             domain_id: 0,
             keys: KeyStyle::RmwZenoh,
+            node_name: "hapcloud".into(),
+            namespace: "/".into(),
         }
     }
 }
@@ -130,6 +143,31 @@ impl ZenohConfig {
                 ));
             }
             _ => {}
+        }
+        // ROS 2 names: a letter or `_`, then letters, digits and `_`; a namespace is `/` or
+        // such names each after a `/`.
+        let ros_name = |n: &str| {
+            n.chars()
+                .next()
+                .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+                && n.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+        };
+        if !ros_name(&self.node_name) {
+            return Err(ZenohError::Config(format!(
+                "node_name {:?} is not a ROS 2 node name (letters, digits, _; not first a digit)",
+                self.node_name
+            )));
+        }
+        if self.namespace != "/"
+            && !self
+                .namespace
+                .strip_prefix('/')
+                .is_some_and(|ns| ns.split('/').all(ros_name))
+        {
+            return Err(ZenohError::Config(format!(
+                "namespace {:?} is not a ROS 2 namespace (\"/\" or \"/a/b\")",
+                self.namespace
+            )));
         }
         if self.domain_id > 232 {
             return Err(ZenohError::Config(format!(
@@ -316,6 +354,8 @@ struct Queue {
 /// Camera frames from Zenoh.
 pub struct ZenohSource {
     _subscribers: Vec<Subscriber<()>>,
+    /// The node and its subscriptions in the ROS 2 graph (rmw_zenoh keys only).
+    _graph: (Option<Arc<GraphNode>>, Vec<LivelinessToken>),
     topics: Vec<String>,
     assembler: FrameAssembler,
     stats: SourceStats,
@@ -334,9 +374,10 @@ impl ZenohSource {
         let mut topics: Vec<(String, &'static MsgDesc, Option<u32>)> = Vec::new();
         for c in &config.cameras {
             let id = Some(c.camera_id);
-            if c.depth_image.is_empty() {
+            if !c.points.is_empty() {
                 topics.push((c.points.clone(), PointCloud2::DESC, id));
-            } else {
+            }
+            if !c.depth_image.is_empty() {
                 topics.push((c.depth_image.clone(), Image::DESC, id));
                 topics.push((c.info_topic(), CameraInfo::DESC, id));
             }
@@ -374,8 +415,24 @@ impl ZenohSource {
                 .map_err(zerr)?;
             subscribers.push(sub);
         }
+        let node = GraphNode::of(session, zenoh)?;
+        let tokens = match &node {
+            Some(node) => topics
+                .iter()
+                .map(|(topic, desc, _)| {
+                    node.declare(
+                        Entity::Subscription,
+                        topic,
+                        desc,
+                        &graph::sensor_qos(config.queue_samples),
+                    )
+                })
+                .collect::<Result<_, _>>()?,
+            None => Vec::new(),
+        };
         Ok(Self {
             _subscribers: subscribers,
+            _graph: (node, tokens),
             stats: SourceStats {
                 queue,
                 topic_camera: topics.iter().map(|t| t.2).collect(),
@@ -526,7 +583,8 @@ pub struct ZenohPublisher {
     session: zenoh::Session,
     zenoh: ZenohConfig,
     config: ZenohPublisherConfig,
-    publishers: HashMap<String, Publisher<'static>>,
+    publishers: HashMap<String, (Publisher<'static>, Option<LivelinessToken>)>,
+    node: Option<Arc<GraphNode>>,
     sequence: i64,
     gid: [u8; 16],
     last_tick_s: Option<f64>,
@@ -547,6 +605,7 @@ impl ZenohPublisher {
             zenoh: zenoh.clone(),
             config: config.clone(),
             publishers: HashMap::new(),
+            node: GraphNode::of(session, zenoh)?,
             sequence: 0,
             gid,
             last_tick_s: None,
@@ -568,6 +627,34 @@ impl ZenohPublisher {
         out
     }
 
+    /// Declares the publisher of `topic` carrying `desc` (and its graph token), once.
+    fn declare(&mut self, topic: &str, desc: &'static MsgDesc) -> Result<(), ZenohError> {
+        if self.publishers.contains_key(topic) {
+            return Ok(());
+        }
+        let p = self
+            .session
+            .declare_publisher(self.zenoh.key(topic, desc, true))
+            .congestion_control(CongestionControl::Drop)
+            .wait()
+            .map_err(zerr)?;
+        let token = match &self.node {
+            Some(n) => Some(n.declare(Entity::Publisher, topic, desc, graph::QOS_DEFAULT)?),
+            None => None,
+        };
+        self.publishers.insert(topic.to_string(), (p, token));
+        Ok(())
+    }
+
+    /// Declares the node's output publishers before their first message, so the ROS 2 graph
+    /// lists them from the start and no declaration happens on the way of a tick.
+    pub fn declare_outputs(&mut self) -> Result<(), ZenohError> {
+        self.declare(topics::FUSED_SURFACE, FusedSurface::DESC)?;
+        self.declare(topics::HAPTIC_CONSTRAINT, HapticConstraint::DESC)?;
+        self.declare(topics::JOINT_COMMAND, JointState::DESC)?;
+        self.declare(topics::STATUS, NodeStatus::DESC)
+    }
+
     /// Publishes one message on `topic`. A sample that cannot be sent now (no route, full
     /// queues) is dropped, never waited for.
     pub fn publish<M: RosMessage>(&mut self, topic: &str, msg: &M) -> Result<(), ZenohError> {
@@ -575,17 +662,9 @@ impl ZenohPublisher {
             topic: topic.into(),
             source,
         })?;
-        if !self.publishers.contains_key(topic) {
-            let p = self
-                .session
-                .declare_publisher(self.zenoh.key(topic, M::DESC, true))
-                .congestion_control(CongestionControl::Drop)
-                .wait()
-                .map_err(zerr)?;
-            self.publishers.insert(topic.to_string(), p);
-        }
+        self.declare(topic, M::DESC)?;
         let attachment = self.config.attachment.then(|| self.attachment());
-        let publisher = &self.publishers[topic];
+        let (publisher, _) = &self.publishers[topic];
         let put = publisher.put(payload);
         match attachment {
             Some(a) => put.attachment(a).wait(),
@@ -700,6 +779,7 @@ impl OutputThread {
         source: Option<SourceStats>,
     ) -> Result<Self, ZenohError> {
         let mut publisher = ZenohPublisher::new(session, zenoh, config)?;
+        publisher.declare_outputs()?;
         let (tx, rx) = std::sync::mpsc::sync_channel::<TickRecord>(config.queue_ticks);
         let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));
         let status_period_s = 1.0 / config.status_rate_hz;

@@ -10,13 +10,23 @@ Subcommands (all print JSON on stdout, diagnostics on stderr):
                               serialized by rosbags, on rmw_zenoh keys through the router
   listen PORT N SECONDS       decodes what hapcloud publishes on 0/hapcloud/** with rosbags;
                               prints one JSON line per message, stops after N or SECONDS
-  stream PORT SECONDS RATE W H [garbage]
+  stream PORT SECONDS RATE W H [garbage] [attach]
                               two live depth cameras as realsense-ros publishes them: Image
                               16UC1 + CameraInfo of a tilted plane 0.6 m ahead, W x H at RATE
-                              Hz, stamped with the wall clock, on /cam0/depth/... and
-                              /cam1/depth/..., their poses on /tf_static (world ->
-                              camN_depth_optical_frame); with `garbage`, every 10th image of
-                              cam0 is replaced by malformed CDR; prints {"sent": N}
+                              Hz (0: as fast as it can, a flood), stamped with the wall clock,
+                              on /cam0/depth/... and /cam1/depth/..., their poses on
+                              /tf_static (world -> camN_depth_optical_frame); with `garbage`,
+                              every 10th image of cam0 is replaced by malformed CDR; with
+                              `attach`, cam0's samples carry rmw_zenoh's attachment (sequence
+                              number, source time stamp, GID) and cam1's 3 bytes of junk;
+                              prints {"sent": N}
+  liveliness PORT             the ROS 2 graph as rmw_zenoh reads it: queries @ros2_lv/**,
+                              parses each token key by rmw_zenoh's rules (liveliness_utils.cpp
+                              Entity::make, keyexpr_to_qos); prints {"entities": [...],
+                              "errors": [...]}
+  reset PORT N                N raw TCP connections to 127.0.0.1:PORT, each sending the start
+                              of a Zenoh frame (a length prefix, part of the body) and then
+                              resetting (RST); prints {"resets": N}
   hashes MSG_DIR              rosbags' hash_rihs01 of the standard types and of hapcloud_msgs
   write-bag DIR N             a realsense-like rosbag2 MCAP bag (zstd chunks): N depth frames
   read-mcap FILE              reads an MCAP with rosbags' AnyReader; prints per-topic counts
@@ -181,7 +191,14 @@ def plane_depth_mm(w, h, fx, fy, cx, cy, t):
     return np.clip(z * 1000.0, 0, 65535).astype(np.uint16)
 
 
-def cmd_stream(port, seconds, rate, w, h, garbage):
+def rmw_attachment(seq, gid):
+    """rmw_zenoh's attachment: i64 sequence number, i64 source time stamp (ns), the GID's
+    length and the GID (little-endian)."""
+    return (seq.to_bytes(8, "little", signed=True) + time.time_ns().to_bytes(8, "little")
+            + bytes([len(gid)]) + gid)
+
+
+def cmd_stream(port, seconds, rate, w, h, garbage, attach):
     s = session(port, "client")
     import zenoh
     drop = zenoh.CongestionControl.DROP
@@ -214,15 +231,16 @@ def cmd_stream(port, seconds, rate, w, h, garbage):
     frames = [np.frombuffer(plane_depth_mm(w, h, fx, fy, cx, cy, j / 8).astype("<u2").tobytes(),
                             dtype=np.uint8) for j in range(8)]
     start = time.time()
-    period = 1.0 / rate
+    period = 1.0 / rate if rate > 0 else 0.0
     sent = 0
     k = 0
+    gid = bytes(range(16))
     while time.time() - start < seconds:
         due = start + k * period
         now = time.time()
         if due > now:
             time.sleep(due - now)
-        if k % int(rate) == 0:
+        if k % max(int(rate), 30) == 0:
             tf_pub.put(tf_bytes)  # transient-local in ROS; repeated here for late joiners
         for n, (img_pub, info_pub) in enumerate(pubs):
             t = time.time()
@@ -231,16 +249,102 @@ def cmd_stream(port, seconds, rate, w, h, garbage):
             img = Image(header=hd, height=h, width=w, encoding="16UC1", is_bigendian=0,
                         step=w * 2, data=frames[int((t - start) * 8) % 8])
             info = camera_info(hd, w, h, fx, fy, cx, cy)
+            extra = {}
+            if attach:
+                extra["attachment"] = rmw_attachment(k, gid) if n == 0 else b"\xff\x00\x07"
             if garbage and n == 0 and k % 10 == 5:
-                img_pub.put(b"\x00\x01\x00\x00\x07\x00\x00\x00garbage")
+                img_pub.put(b"\x00\x01\x00\x00\x07\x00\x00\x00garbage", **extra)
             else:
-                img_pub.put(bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")))
-            info_pub.put(bytes(STORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
+                img_pub.put(bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")), **extra)
+            info_pub.put(bytes(STORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo")),
+                         **extra)
             sent += 1
         k += 1
     print(json.dumps({"sent": sent}), flush=True)
     time.sleep(0.2)
     s.close()
+
+
+ENTITY_KINDS = {"NN": "node", "MP": "publisher", "MS": "subscription",
+                "SS": "service", "SC": "client"}
+
+
+def parse_qos(text):
+    """keyexpr_to_qos: 6 ':'-parts; history, deadline, lifespan 2 ','-parts, liveliness 3;
+    each value empty (the default) or a number."""
+    parts = text.split(":")
+    if len(parts) < 6:
+        raise ValueError(f"QoS {text!r}: {len(parts)} parts")
+    sub = [parts[0], parts[1]]
+    for i, n in ((2, 2), (3, 2), (4, 2), (5, 3)):
+        p = parts[i].split(",")
+        if len(p) < n:
+            raise ValueError(f"QoS {text!r}: part {i} has {len(p)} components")
+        sub += p
+    if not all(v == "" or v.isdigit() for v in sub):
+        raise ValueError(f"QoS {text!r}: not numbers")
+    return {"reliability": parts[0], "durability": parts[1], "history": sub[2],
+            "depth": sub[3]}
+
+
+def parse_token(key):
+    """Entity::make(keyexpr) of rmw_zenoh: @ros2_lv/<domain>/<zid>/<nid>/<id>/<kind>/
+    <enclave>/<namespace>/<node>[/<topic>/<type>/<type hash>/<qos>], '%' for '/'."""
+    parts = key.split("/")
+    if len(parts) < 9:
+        raise ValueError(f"{key}: {len(parts)} parts, at least 9")
+    if any(p == "" for p in parts):
+        raise ValueError(f"{key}: an empty part")
+    if parts[0] != "@ros2_lv":
+        raise ValueError(f"{key}: admin space {parts[0]}")
+    if parts[5] not in ENTITY_KINDS:
+        raise ValueError(f"{key}: entity {parts[5]}")
+    dm = lambda p: p.replace("%", "/")
+    out = {"domain": int(parts[1]), "zid": parts[2], "nid": parts[3], "id": parts[4],
+           "kind": ENTITY_KINDS[parts[5]], "enclave": dm(parts[6]), "namespace": dm(parts[7]),
+           "node": dm(parts[8])}
+    if parts[5] != "NN":
+        if len(parts) < 13:
+            raise ValueError(f"{key}: a {out['kind']} token needs 13 parts")
+        out.update(topic=dm(parts[9]), dds_type=dm(parts[10]), type_hash=dm(parts[11]),
+                   qos=parse_qos(parts[12]))
+        # <pkg>::msg::dds_::<Name>_ is <pkg>/msg/<Name>
+        pkg, kind, _, name = out["dds_type"].split("::")
+        out["type"] = f"{pkg}/{kind}/{name[:-1]}"
+        out["hash_ok"] = (out["type"] in STORE.types
+                          and STORE.hash_rihs01(out["type"]) == out["type_hash"])
+    return out
+
+
+def cmd_liveliness(port, msg_dir):
+    register_hapcloud(msg_dir)
+    s = session(port, "client")
+    entities, errors = [], []
+    for reply in s.liveliness().get("@ros2_lv/**", timeout=3.0):
+        if reply.ok is None:
+            continue
+        key = str(reply.ok.key_expr)
+        try:
+            entities.append(parse_token(key))
+        except ValueError as e:
+            errors.append(str(e))
+    print(json.dumps({"entities": entities, "errors": errors}), flush=True)
+    s.close()
+
+
+def cmd_reset(port, n):
+    """Starts a Zenoh TCP frame (2-byte little-endian length, then fewer bytes than it
+    says) and resets the connection (SO_LINGER 0)."""
+    import socket
+    import struct
+    for i in range(n):
+        c = socket.create_connection(("127.0.0.1", port), timeout=2.0)
+        body = bytes([0x01, 0x09, 0x00]) + bytes(range(200 + i))
+        c.sendall(struct.pack("<H", 60000) + body)
+        time.sleep(0.05)
+        c.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        c.close()
+    print(json.dumps({"resets": n}), flush=True)
 
 
 def plain(v):
@@ -358,7 +462,11 @@ def main():
         cmd_listen(int(args[0]), int(args[1]), float(args[2]), args[3])
     elif cmd == "stream":
         cmd_stream(int(args[0]), float(args[1]), float(args[2]), int(args[3]), int(args[4]),
-                   len(args) > 5 and args[5] == "garbage")
+                   "garbage" in args[5:], "attach" in args[5:])
+    elif cmd == "liveliness":
+        cmd_liveliness(int(args[0]), args[1])
+    elif cmd == "reset":
+        cmd_reset(int(args[0]), int(args[1]))
     elif cmd == "hashes":
         cmd_hashes(args[0])
     elif cmd == "write-bag":

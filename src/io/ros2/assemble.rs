@@ -1,10 +1,10 @@
 //! Camera frames from a stream of ROS 2 messages, whatever carries them (Zenoh samples, MCAP
-//! records): which topics are which camera, depth images paired with their camera info by
-//! header stamp, and each camera's pose from the config, from `/tf_static`, or from a
-//! recording's `hapcloud_msgs/FrameMeta`.
+//! records): which topics are which camera, depth images paired with their camera info (and,
+//! for a camera with both, with its point cloud) by header stamp, and each camera's pose from
+//! the config, from `/tf_static`, or from a recording's `hapcloud_msgs/FrameMeta`.
 //!
-//! Pairing keeps at most [`MAX_PENDING`] unpaired images and infos per camera; an older one
-//! that never finds its partner is dropped and counted. The pose of a camera without a
+//! Pairing keeps at most [`MAX_PENDING`] unpaired messages of each kind per camera; an older
+//! one that never finds its partners is dropped and counted. The pose of a camera without a
 //! configured one is the chain of static transforms from the image's `frame_id` up to
 //! `world_frame` (or to the root of the tree when `world_frame` is empty); frames that come
 //! before the transforms are dropped and counted (`no_pose`).
@@ -13,7 +13,7 @@ use super::convert::{
     frame_from_depth, frame_from_pointcloud2, intrinsics_from_camera_info, isometry_from_transform,
 };
 use super::hapcloud::FrameMeta;
-use super::msgs::{CameraInfo, Image, PointCloud2, Time};
+use super::msgs::{CameraInfo, Header, Image, PointCloud2, Time};
 use super::{Ros2Error, decode, seconds_from_time};
 use crate::camera::Frame;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
@@ -68,11 +68,14 @@ impl Pose {
 #[serde(deny_unknown_fields, default)]
 pub struct CameraTopics {
     pub camera_id: u32,
-    /// Depth image topic (`sensor_msgs/Image`, 16UC1 mm or 32FC1 m); empty with `points`.
+    /// Depth image topic (`sensor_msgs/Image`, 16UC1 mm or 32FC1 m); empty: a point-cloud
+    /// camera.
     pub depth_image: String,
     /// Its `sensor_msgs/CameraInfo` topic; empty: `camera_info` beside the image topic.
     pub camera_info: String,
-    /// `sensor_msgs/PointCloud2` topic, used when `depth_image` is empty.
+    /// `sensor_msgs/PointCloud2` topic. With a depth image too, a frame is the image, its
+    /// info and the cloud of one stamp: the image is the depth input, the cloud the points
+    /// (a hapcloud recording of the simulator, whose cloud is not its rounded image).
     pub points: String,
     /// `hapcloud_msgs/FrameMeta` topic of a hapcloud recording (exact stamp, pose, joints).
     pub frame_meta: String,
@@ -111,9 +114,9 @@ impl CameraTopics {
     }
 
     pub fn validate(&self) -> Result<(), String> {
-        if self.depth_image.is_empty() == self.points.is_empty() {
+        if self.depth_image.is_empty() && self.points.is_empty() {
             return Err(format!(
-                "camera {}: set exactly one of depth_image and points",
+                "camera {}: set depth_image or points",
                 self.camera_id
             ));
         }
@@ -174,6 +177,7 @@ pub struct AssemblyCounters {
 struct Pending {
     images: VecDeque<Image>,
     infos: VecDeque<CameraInfo>,
+    clouds: VecDeque<PointCloud2>,
     metas: VecDeque<FrameMeta>,
 }
 
@@ -214,19 +218,15 @@ impl FrameAssembler {
     pub fn add_camera(&mut self, c: CameraTopics) -> Result<(), String> {
         c.validate()?;
         let i = self.cameras.len();
-        let roles = if c.depth_image.is_empty() {
-            vec![(c.points.clone(), Role::Points(i))]
-        } else {
-            vec![
-                (c.depth_image.clone(), Role::Image(i)),
-                (c.info_topic(), Role::Info(i)),
-            ]
-        };
-        let roles: Vec<_> = roles
-            .into_iter()
-            .chain([(c.frame_meta.clone(), Role::Meta(i))])
-            .filter(|(t, _)| !t.is_empty())
-            .collect();
+        let roles: Vec<_> = [
+            (c.points.clone(), Role::Points(i)),
+            (c.depth_image.clone(), Role::Image(i)),
+            (c.info_topic(), Role::Info(i)),
+            (c.frame_meta.clone(), Role::Meta(i)),
+        ]
+        .into_iter()
+        .filter(|(t, _)| !t.is_empty())
+        .collect();
         if let Some((t, _)) = roles.iter().find(|(t, _)| self.roles.contains_key(t)) {
             return Err(format!("topic {t} is read twice"));
         }
@@ -284,59 +284,66 @@ impl FrameAssembler {
             }
             Role::Points(i) => {
                 let msg: PointCloud2 = decode(payload)?;
-                let stamp = msg.header.stamp;
-                let Some((stamp_s, pose, meta)) = self.pose(i, &stamp, &msg.header.frame_id) else {
-                    return Ok(None);
-                };
-                let frame = frame_from_pointcloud2(self.cameras[i].camera_id, stamp_s, pose, &msg)?;
-                Ok(Some(self.done(frame, meta)))
+                let header = msg.header.clone();
+                self.counters.unpaired += push_bounded(&mut self.pending[i].clouds, msg);
+                self.complete(i, &header)
             }
             Role::Image(i) => {
                 let img: Image = decode(payload)?;
-                let p = &mut self.pending[i];
-                let (info, skipped) =
-                    take_matching(&mut p.infos, |m| m.header.stamp == img.header.stamp);
-                self.counters.unpaired += skipped;
-                match info {
-                    Some(info) => self.depth_frame(i, img, info),
-                    None => {
-                        self.counters.unpaired += push_bounded(&mut p.images, img);
-                        Ok(None)
-                    }
-                }
+                let header = img.header.clone();
+                self.counters.unpaired += push_bounded(&mut self.pending[i].images, img);
+                self.complete(i, &header)
             }
             Role::Info(i) => {
                 let info: CameraInfo = decode(payload)?;
                 // Checked now, so a bad info is counted once, not with every image.
                 intrinsics_from_camera_info(&info)?;
-                let p = &mut self.pending[i];
-                let (img, skipped) =
-                    take_matching(&mut p.images, |m| m.header.stamp == info.header.stamp);
-                self.counters.unpaired += skipped;
-                match img {
-                    Some(img) => self.depth_frame(i, img, info),
-                    None => {
-                        self.counters.unpaired += push_bounded(&mut p.infos, info);
-                        Ok(None)
-                    }
-                }
+                let header = info.header.clone();
+                self.counters.unpaired += push_bounded(&mut self.pending[i].infos, info);
+                self.complete(i, &header)
             }
         }
     }
 
-    fn depth_frame(
-        &mut self,
-        i: usize,
-        img: Image,
-        info: CameraInfo,
-    ) -> Result<Option<Assembled>, Ros2Error> {
-        let Some((stamp_s, pose, meta)) = self.pose(i, &img.header.stamp, &img.header.frame_id)
-        else {
+    /// Builds camera `i`'s frame of the message just queued (its `header`) once every part
+    /// of that stamp is there (older unmatched parts are dropped, counted).
+    fn complete(&mut self, i: usize, header: &Header) -> Result<Option<Assembled>, Ros2Error> {
+        let c = &self.cameras[i];
+        let (id, depth, cloud) = (c.camera_id, !c.depth_image.is_empty(), !c.points.is_empty());
+        let p = &mut self.pending[i];
+        let stamp = header.stamp;
+        let complete = (!depth
+            || (p.images.iter().any(|m| m.header.stamp == stamp)
+                && p.infos.iter().any(|m| m.header.stamp == stamp)))
+            && (!cloud || p.clouds.iter().any(|m| m.header.stamp == stamp));
+        if !complete {
+            return Ok(None);
+        }
+        let (image, a) = take_matching(&mut p.images, |m| m.header.stamp == stamp);
+        let (info, b) = take_matching(&mut p.infos, |m| m.header.stamp == stamp);
+        let (points, c) = take_matching(&mut p.clouds, |m| m.header.stamp == stamp);
+        self.counters.unpaired += a + b + c;
+        let Some((stamp_s, pose, meta)) = self.pose(i, &stamp, &header.frame_id) else {
             return Ok(None);
         };
-        let scale = meta.as_ref().map(|m| m.depth_scale_m);
-        let id = self.cameras[i].camera_id;
-        let frame = frame_from_depth(id, stamp_s, pose, &img, &info, scale)?;
+        let frame = match (image, info, points) {
+            (Some(img), Some(info), points) => {
+                let scale = meta.as_ref().map(|m| m.depth_scale_m);
+                let mut frame = frame_from_depth(id, stamp_s, pose, &img, &info, scale)?;
+                if let Some(msg) = points {
+                    // The cloud as it was, beside the image perception's depth path reads.
+                    frame.cloud = frame_from_pointcloud2(id, stamp_s, pose, &msg)?.cloud;
+                }
+                frame
+            }
+            (_, _, Some(msg)) => frame_from_pointcloud2(id, stamp_s, pose, &msg)?,
+            // A validated camera reads an image and its info, or a cloud: complete above.
+            _ => {
+                return Err(Ros2Error::Value(format!(
+                    "camera {id}: neither an image with its info nor a cloud"
+                )));
+            }
+        };
         Ok(Some(self.done(frame, meta)))
     }
 

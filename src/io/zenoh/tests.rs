@@ -189,14 +189,37 @@ fn config_is_validated() {
             connect: vec!["tcp/127.0.0.1:1".into(), "tcp/127.0.0.1:2".into()],
             ..ZenohConfig::default()
         },
+        ZenohConfig {
+            node_name: "2nd".into(),
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            node_name: "a/b".into(),
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            namespace: "clinic".into(),
+            ..ZenohConfig::default()
+        },
+        ZenohConfig {
+            namespace: "/clinic/".into(),
+            ..ZenohConfig::default()
+        },
     ] {
         assert!(bad.validate().is_err(), "{bad:?}");
     }
+    ZenohConfig {
+        node_name: "hapcloud_left".into(),
+        namespace: "/clinic/room_2".into(),
+        ..ZenohConfig::default()
+    }
+    .validate()
+    .unwrap();
     let mut src = cameras();
     src.queue_samples = 0;
     assert!(src.validate().is_err());
     let mut src = cameras();
-    src.cameras[0].points = "/x".into();
+    src.cameras[1].points = String::new();
     assert!(src.validate().is_err());
     let publ = ZenohPublisherConfig {
         tick_rate_hz: f64::NAN,
@@ -354,4 +377,72 @@ fn a_router_that_goes_away_and_comes_back() {
     let mut src = ZenohSource::new(&sa, &a, &cameras()).unwrap();
     let f = first_frame(&mut publ, &mut src, &depth_frame(0, 42.0));
     assert_eq!(f.stamp_s, 42.0);
+}
+
+/// Liveliness tokens on `session`'s peers, sorted.
+fn tokens(session: &zenoh::Session) -> Vec<String> {
+    let replies = session
+        .liveliness()
+        .get("@ros2_lv/**")
+        .timeout(Duration::from_secs(2))
+        .wait()
+        .unwrap();
+    let mut keys: Vec<String> = std::iter::from_fn(|| replies.recv().ok())
+        .filter_map(|r| r.into_result().ok())
+        .map(|s| s.key_expr().to_string())
+        .collect();
+    keys.sort();
+    keys
+}
+
+#[test]
+fn the_session_is_one_ros2_node_with_its_subscriptions_and_publishers() {
+    let (a, b) = configs(free_port());
+    let sa = open_session(&a).unwrap();
+    let sb = open_session(&b).unwrap();
+    let src = ZenohSource::new(&sb, &b, &cameras()).unwrap();
+    let mut publ = ZenohPublisher::new(&sb, &b, &ZenohPublisherConfig::default()).unwrap();
+    publ.publish_status(&NodeStatus::default()).unwrap();
+    let zid = sb.zid().to_string();
+    let settle = || std::thread::sleep(Duration::from_millis(300));
+    settle();
+    let keys = tokens(&sa);
+    let node = format!("@ros2_lv/0/{zid}/0/0/NN/%/%/hapcloud");
+    let sub = |id: u32, topic: &str, desc: &MsgDesc| {
+        format!(
+            "@ros2_lv/0/{zid}/0/{id}/MS/%/%/hapcloud/{}/{}/{}/2::,64:,:,:,,",
+            topic.replace('/', "%"),
+            desc.dds_name(),
+            desc.rihs01()
+        )
+    };
+    let mut expected = vec![
+        node.clone(),
+        sub(1, &topics::depth_image(0), Image::DESC),
+        sub(2, &topics::camera_info(0), CameraInfo::DESC),
+        sub(3, &topics::points(1), PointCloud2::DESC),
+        sub(4, TF_STATIC, TfMessage::DESC),
+        format!(
+            "@ros2_lv/0/{zid}/0/5/MP/%/%/hapcloud/%hapcloud%status/{}/{}/::,:,:,:,,",
+            NodeStatus::DESC.dds_name(),
+            NodeStatus::DESC.rihs01()
+        ),
+    ];
+    expected.sort();
+    assert_eq!(keys, expected);
+    // One node for both: it leaves the graph with the last of them.
+    drop(src);
+    settle();
+    assert_eq!(tokens(&sa), [node.clone(), expected.pop().unwrap()]);
+    drop(publ);
+    settle();
+    assert_eq!(tokens(&sa), Vec::<String>::new());
+    // The DDS bridge's keys have no graph.
+    let bridge = ZenohConfig {
+        keys: KeyStyle::Ros2dds,
+        ..b.clone()
+    };
+    let _src = ZenohSource::new(&sb, &bridge, &cameras()).unwrap();
+    settle();
+    assert_eq!(tokens(&sa), Vec::<String>::new());
 }
