@@ -13,10 +13,14 @@
 //!    time, predicting the surface over the frames' latency (clamped to
 //!    `max_extrapolation_s`, reported by [`Fusion::prediction`]); its derivative is the
 //!    surface's own velocity. Far-field (look-ahead) samples ([`Fusion::push_far_field`])
-//!    track an approaching surface before the shells see it.
+//!    track an approaching surface before the shells see it; a confirmed switch to a nearer
+//!    surface restarts their history, which is given eq. 3's line from its second sample
+//!    when it approaches (capped at `max_approach_speed_mps`) until the degree rule can
+//!    judge it.
 //! 2. **PID smoothing (eq. 6)** with velocity feed-forward moves the output towards the fitted
-//!    target; the normal is smoothed as angles of a chart re-centred on it every tick, so it
-//!    is continuous through the pole and the wrap.
+//!    target (not while only far-field samples are fitted: the output is the fit); the
+//!    normal is smoothed as angles of a chart re-centred on it every tick, so it is
+//!    continuous through the pole and the wrap.
 //!
 //! Numerics: f64, SVD of the weighted Vandermonde matrix in scaled time. Status: `tracking`,
 //! `stale` (newest sample older than `stale_timeout_s`: surface held), `inconsistent` or
@@ -1180,17 +1184,16 @@ impl Window<'_> {
         let n = Vector3::new(c[0][3], c[0][4], c[0][5]).try_normalize(1e-9)?;
         let slope = Vector3::new(line.coeffs[1][0], line.coeffs[1][1], line.coeffs[1][2]);
         let approach_mps = n.dot(&slope) / self.scale_s;
-        if !(approach_mps > 0.0) {
+        if approach_mps.is_nan() || approach_mps <= 0.0 {
             return None;
         }
         let cap = (config.max_approach_speed_mps / approach_mps).min(1.0);
+        // Centroid channels from the line (slope capped), normal channels held.
         let mut coeffs = [[0.0; CHANNELS]; 3];
-        for j in 0..3 {
-            coeffs[0][j] = line.coeffs[0][j];
-            coeffs[1][j] = line.coeffs[1][j] * cap;
-        }
-        for j in 3..CHANNELS {
-            coeffs[0][j] = c[0][j];
+        coeffs[0][..3].copy_from_slice(&line.coeffs[0][..3]);
+        coeffs[0][3..].copy_from_slice(&c[0][3..]);
+        for (out, slope) in coeffs[1][..3].iter_mut().zip(&line.coeffs[1][..3]) {
+            *out = slope * cap;
         }
         Some(Solution {
             degree: 1,
@@ -1378,10 +1381,12 @@ fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Opti
         used = keep;
         solution = next;
     }
-    if switched && solution.degree == 0 && samples.iter().all(|s| s.far_field) {
-        if let Some(line) = window.approach_line(&used, &solution, config) {
-            solution = line;
-        }
+    if switched
+        && solution.degree == 0
+        && samples.iter().all(|s| s.far_field)
+        && let Some(line) = window.approach_line(&used, &solution, config)
+    {
+        solution = line;
     }
     let used_count = used.iter().filter(|&&u| u).count();
     let mut used_cameras: Vec<u32> = samples
