@@ -13,10 +13,14 @@
 //!    time, predicting the surface over the frames' latency (clamped to
 //!    `max_extrapolation_s`, reported by [`Fusion::prediction`]); its derivative is the
 //!    surface's own velocity. Far-field (look-ahead) samples ([`Fusion::push_far_field`])
-//!    track an approaching surface before the shells see it.
+//!    track an approaching surface before the shells see it; a confirmed switch to a nearer
+//!    surface restarts their history, which is given eq. 3's line from its second sample
+//!    when it approaches (capped at `max_approach_speed_mps`) until the degree rule can
+//!    judge it.
 //! 2. **PID smoothing (eq. 6)** with velocity feed-forward moves the output towards the fitted
-//!    target; the normal is smoothed as angles of a chart re-centred on it every tick, so it
-//!    is continuous through the pole and the wrap.
+//!    target (not while only far-field samples are fitted: the output is the fit); the
+//!    normal is smoothed as angles of a chart re-centred on it every tick, so it is
+//!    continuous through the pole and the wrap.
 //!
 //! Numerics: f64, SVD of the weighted Vandermonde matrix in scaled time. Status: `tracking`,
 //! `stale` (newest sample older than `stale_timeout_s`: surface held), `inconsistent` or
@@ -147,6 +151,12 @@ pub struct FusionConfig {
     pub far_field_switch_rad: f64,
     /// See `far_field_switch_rad`, metres.
     pub far_field_switch_m: f64,
+    /// A far-field history restarted on a nearer surface (see `far_field_switch_rad`) and
+    /// still too short for the degree rule to judge a line gets its centroid line anyway
+    /// when that line approaches the HIP, its approach speed capped at this physical bound,
+    /// m/s (faster than a patient's body part comes at the handle). 0 keeps such a history
+    /// at degree 0.
+    pub max_approach_speed_mps: f64,
     /// Weight of the fit's own motion since the previous tick, fed forward into the PID
     /// state before the error is taken, dimensionless (0..1; 1 tracks a polynomial exactly).
     pub velocity_feedforward_unitless: f64,
@@ -184,6 +194,7 @@ impl Default for FusionConfig {
             far_field_weight_unitless: 0.5,
             far_field_switch_rad: 0.6,
             far_field_switch_m: 0.03,
+            max_approach_speed_mps: 3.0,
             velocity_feedforward_unitless: 1.0,
             centroid_pid: PidGains {
                 kp_per_s: 150.0,
@@ -299,6 +310,9 @@ impl FusionConfig {
         }
         if !(self.far_field_switch_m > 0.0 && self.far_field_switch_m.is_finite()) {
             return bad("far_field_switch_m", self.far_field_switch_m);
+        }
+        if !(self.max_approach_speed_mps >= 0.0 && self.max_approach_speed_mps.is_finite()) {
+            return bad("max_approach_speed_mps", self.max_approach_speed_mps);
         }
         if !(self.outlier_median_factor_unitless >= 1.0
             && self.outlier_median_factor_unitless.is_finite())
@@ -733,7 +747,7 @@ impl Fusion {
             // A failed solve keeps the previous window's fit (it cannot fail with finite
             // samples; the guard keeps the control path panic-free regardless).
             let (samples, switch_s) = fit_samples(&self.samples, &self.config);
-            if let Some(fit) = fit_window(&samples, &self.config) {
+            if let Some(fit) = fit_window(&samples, switch_s.is_finite(), &self.config) {
                 self.fit = Some(fit);
             }
             // Smoothing from one surface to another would pair the new centroid with the
@@ -783,7 +797,10 @@ impl Fusion {
         let tracking = status == FusionStatus::Tracking;
         if let (true, Some((target, _))) = (tracking, now) {
             match self.smoothed.as_mut() {
-                Some(s) if self.was_tracking => {
+                // While only the look-ahead sees the surface the fit itself is the output:
+                // smoothing would lag each young fit's correction, and there is no contact
+                // to feel yet.
+                Some(s) if self.was_tracking && !fit.far_field_only => {
                     // The fit's motion since the previous tick is the feed-forward.
                     let before = target_at(&fit, &self.config, s.stamp_s).map_or(target, |p| p.0);
                     s.step(&self.config, t_s, &before, &target);
@@ -1140,6 +1157,51 @@ impl Window<'_> {
         candidates.into_iter().nth(chosen)
     }
 
+    /// The line of a far-field-only window after a switch to a nearer surface, too short
+    /// for [`Window::select`] to judge one (its noise gain beyond the bound), when its
+    /// centroid approaches the HIP: the centroid channels of the line (camera offsets when
+    /// identifiable), the approach speed along the normal capped at
+    /// `max_approach_speed_mps`, and the normal of `constant` (degree 0), held. `None` when
+    /// the line recedes or slides past, or the degree rule could judge it.
+    fn approach_line(
+        &self,
+        used: &[bool],
+        constant: &Solution,
+        config: &FusionConfig,
+    ) -> Option<Solution> {
+        if config.max_approach_speed_mps <= 0.0 || max_degree(self.samples, used, config) < 1 {
+            return None;
+        }
+        let line = config
+            .camera_offsets
+            .then(|| self.solve(used, 1, true))
+            .flatten()
+            .or_else(|| self.solve(used, 1, false))?;
+        if line.noise_gain <= config.max_noise_gain(1) {
+            return None;
+        }
+        let c = &constant.coeffs;
+        let n = Vector3::new(c[0][3], c[0][4], c[0][5]).try_normalize(1e-9)?;
+        let slope = Vector3::new(line.coeffs[1][0], line.coeffs[1][1], line.coeffs[1][2]);
+        let approach_mps = n.dot(&slope) / self.scale_s;
+        if approach_mps.is_nan() || approach_mps <= 0.0 {
+            return None;
+        }
+        let cap = (config.max_approach_speed_mps / approach_mps).min(1.0);
+        // Centroid channels from the line (slope capped), normal channels held.
+        let mut coeffs = [[0.0; CHANNELS]; 3];
+        coeffs[0][..3].copy_from_slice(&line.coeffs[0][..3]);
+        coeffs[0][3..].copy_from_slice(&c[0][3..]);
+        for (out, slope) in coeffs[1][..3].iter_mut().zip(&line.coeffs[1][..3]) {
+            *out = slope * cap;
+        }
+        Some(Solution {
+            degree: 1,
+            coeffs,
+            ..line
+        })
+    }
+
     /// Whole cameras that disagree with the others (a wrong cluster, a bumped camera): each
     /// camera's samples within the others' time span are compared with the fit of all the
     /// other cameras; a camera whose median residual there is beyond [`outlier_bounds`] of the others' residuals is dropped
@@ -1267,8 +1329,9 @@ fn max_degree(samples: &[Sample], used: &[bool], config: &FusionConfig) -> usize
 /// Robust weighted least squares of eq. 4-5 over the window's samples (sorted by stamp): the
 /// degree chosen by the noise gain at the extrapolation horizon, then samples whose residual
 /// against the common polynomial is far beyond the window's median residual rejected and the
-/// fit repeated.
-fn fit_window(samples: &[Sample], config: &FusionConfig) -> Option<Fit> {
+/// fit repeated. `switched`: the far-field history restarted on a nearer surface (its
+/// approach line, [`Window::approach_line`]).
+fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Option<Fit> {
     let newest_s = samples.last()?.stamp_s;
     let n = samples.len();
     let mut cameras: Vec<u32> = samples.iter().map(|s| s.camera_id).collect();
@@ -1318,6 +1381,13 @@ fn fit_window(samples: &[Sample], config: &FusionConfig) -> Option<Fit> {
         used = keep;
         solution = next;
     }
+    if switched
+        && solution.degree == 0
+        && samples.iter().all(|s| s.far_field)
+        && let Some(line) = window.approach_line(&used, &solution, config)
+    {
+        solution = line;
+    }
     let used_count = used.iter().filter(|&&u| u).count();
     let mut used_cameras: Vec<u32> = samples
         .iter()
@@ -1341,7 +1411,8 @@ fn fit_window(samples: &[Sample], config: &FusionConfig) -> Option<Fit> {
 
 /// The samples the fit uses: all shell estimates; the far-field ones older than the first
 /// shell estimate of the window (the history of a surface before the shells saw it) and not
-/// older than the newest switch to another surface (`far_field_switch_*`); and the newer
+/// older than the newest switch to another, nearer surface (`far_field_switch_*`; a switch
+/// counts once a later sample confirms it); and the newer
 /// far-field ones that continue the newest shell estimate before them (within both switch
 /// bounds: the shells lost a surface the look-ahead still sees). Also the stamp of that
 /// switch (`-inf`: none). See the module doc.
@@ -1370,8 +1441,9 @@ fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) 
         moved && turned
     };
     // Far-field samples in stamp order: one from another surface than the last kept starts
-    // the history afresh when that surface is nearer, and is left out when it is farther
-    // (a camera still seeing the body the others have lost sight of behind a nearer one).
+    // the history afresh when that surface is nearer (and a later sample confirms it), and
+    // is left out when it is farther (a camera still seeing the body the others have lost
+    // sight of behind a nearer one) or unconfirmed.
     let mut keep = vec![true; samples.len()];
     let mut last: Option<usize> = None;
     let mut switch_s = f64::NEG_INFINITY;
@@ -1388,7 +1460,18 @@ fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) 
         }
         match last {
             Some(j) if switched(&samples[j], s) => {
-                if s.far_distance_m < samples[j].far_distance_m {
+                // Another, nearer surface, confirmed by a later far-field sample that also
+                // leaves the surface tracked for a nearer one and faces the same way (one
+                // wrong patch must not take the history over).
+                let nearer = |o: &Sample| {
+                    o.far_field
+                        && o.stamp_s < first_shell_s
+                        && switched(&samples[j], o)
+                        && o.far_distance_m < samples[j].far_distance_m
+                };
+                let confirmed =
+                    nearer(s) && samples[i + 1..].iter().any(|o| nearer(o) && !apart(s, o).1);
+                if confirmed {
                     for (k, other) in samples.iter().enumerate().take(i) {
                         keep[k] &= !other.far_field;
                     }
@@ -2290,6 +2373,64 @@ mod tests {
             if t >= 0.14 {
                 let v = out.velocity_m_per_s;
                 assert!((v + dir).norm() < 0.1, "at {t}: {v:?}");
+            }
+        }
+    }
+
+    /// The look-ahead of two 60 Hz cameras 5.5 ms apart, each with its own bias along the
+    /// normal (+-1 mm), switches from a resting torso to a nearer plate below the HIP.
+    /// Rising at 2 m/s, the plate is predicted with its approach from its second sample on
+    /// (the first is confirmed by it). Sinking away, nothing approaches. At rest, the line's
+    /// bias-made speed shrinks as samples come and is gone once the degree rule judges the
+    /// line. The torso alone, first seen, is never given one.
+    #[test]
+    fn a_surface_switched_to_is_predicted_approaching_from_its_second_sample() {
+        let hip = Vector3::new(0.1, 0.0, 0.3);
+        let stamp = |k: u32| f64::from(k / 2) / 60.0 + if k % 2 == 1 { 0.0055 } else { 0.0 };
+        let bias = |camera: u32| if camera == 0 { 0.001 } else { -0.001 };
+        let cap = FusionConfig::default().max_approach_speed_mps;
+        let far_at = |camera_id, t: f64, c: Vector3<f64>, n: Vector3<f64>| FarFieldEstimate {
+            normal: Unit::new_normalize(n),
+            distance_m: (hip - c).dot(&n),
+            ..far(camera_id, t, c)
+        };
+        for speed in [2.0, -2.0, 0.0] {
+            let mut f = Fusion::new(FusionConfig::default()).unwrap();
+            for k in 0..4 {
+                let (camera, t) = (k % 2, stamp(k) - 0.07);
+                let torso = Vector3::new(-0.16 - bias(camera), 0.0, 0.3);
+                f.push_far_field(&far_at(camera, t, torso, Vector3::x()));
+                assert_eq!(f.tick(t + 0.05).velocity_m_per_s, Vector3::zeros());
+            }
+            let mut speeds = Vec::new();
+            for k in 0..8 {
+                let (camera, t) = (k % 2, stamp(k));
+                let z = 0.05 + speed * t + bias(camera);
+                let plate = Vector3::new(0.1, 0.0, z);
+                f.push_far_field(&far_at(camera, t, plate, Vector3::z()));
+                let tick = t + 0.05;
+                let out = f.tick(tick);
+                let v = out.velocity_m_per_s.z;
+                assert!(v <= cap + 1e-9, "{speed} m/s, sample {k}: {out:?}");
+                assert_eq!(
+                    out.centroid_m, out.fit_centroid_m,
+                    "far field: not smoothed"
+                );
+                if speed > 0.0 && k >= 1 {
+                    assert!(v >= 1.5, "sample {k}: {out:?}");
+                    let ahead = out.fit_centroid_m.z - 0.05 - speed * tick;
+                    assert!(ahead.abs() < 0.03, "sample {k}: {out:?}");
+                }
+                speeds.push(v);
+            }
+            match speed {
+                s if s < 0.0 => assert!(speeds.iter().all(|&v| v <= 0.0), "{speeds:?}"),
+                0.0 => {
+                    assert_eq!(speeds[0], 0.0);
+                    assert!(speeds[1] < 2.0 && speeds[2] < 1.0, "{speeds:?}");
+                    assert_eq!(speeds[7], 0.0, "{speeds:?}");
+                }
+                _ => {}
             }
         }
     }

@@ -54,6 +54,9 @@ pub struct ExperimentArgs {
     /// safe-speed: the cameras' depth rate (the D435's 30, 60 or 90 Hz at 848x480).
     #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, default_value_t = 30.0)]
     camera_rate_hz: f64,
+    /// safe-speed: also write every run's ticks (`STEM-SOURCE-SPEEDmps.csv`).
+    #[arg(long)]
+    trace: bool,
 }
 
 const FONT: &str = "sans-serif";
@@ -218,6 +221,13 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             .with_context(|| format!("safe-speed sweep of {}", scene.origin))?;
             let stem = format!("safe-speed-{}-{}hz", sweep.scene, sweep.camera_rate_hz);
             write_rows(&out.join(format!("{stem}.csv")), &sweep.rows)?;
+            if args.trace {
+                for (r, ticks) in sweep.rows.iter().zip(&sweep.traces) {
+                    let source = format!("{:?}", r.source).to_lowercase();
+                    let name = format!("{stem}-{source}-{}mps.csv", r.speed_mps);
+                    write_rows(&out.join(name), ticks)?;
+                }
+            }
             let series = [SurfaceSource::Perception, SurfaceSource::Exact].map(|source| {
                 let points = sweep
                     .rows

@@ -9,7 +9,9 @@
 //! i.e. the HIP sphere is entered by less than `r_HIP`) and the controller never falls back;
 //! the safe speed is the highest tested speed below which every tested speed is safe.
 
-use super::scene_loop::{SceneLoopError, SceneLoopOptions, SurfaceSource, simulate_scene};
+use super::scene_loop::{
+    SceneLoopError, SceneLoopOptions, SceneSample, SurfaceSource, simulate_scene,
+};
 use crate::scene::Scene;
 use serde::Serialize;
 
@@ -40,6 +42,9 @@ pub struct SafeSpeed {
     pub safe_speed_mps: f64,
     /// The same on the exact surface.
     pub exact_safe_speed_mps: f64,
+    /// Every tick of each run, in the order of `rows`.
+    #[serde(skip)]
+    pub traces: Vec<Vec<SceneSample>>,
 }
 
 /// Runs `scene` at every speed of `speeds_mps` (ascending after sorting) with its cameras at
@@ -54,6 +59,7 @@ pub fn sweep(
     speeds.sort_by(f64::total_cmp);
     let at_rate = scene.with_camera_rate_hz(camera_rate_hz)?;
     let mut rows = Vec::with_capacity(2 * speeds.len());
+    let mut traces = Vec::with_capacity(2 * speeds.len());
     for source in [SurfaceSource::Perception, SurfaceSource::Exact] {
         for &speed in &speeds {
             let run = simulate_scene(
@@ -75,6 +81,7 @@ pub fn sweep(
                 fallback_ticks: m.fallback_ticks,
                 safe: m.min_margin_m > 0.0 && m.fallback_ticks == 0,
             });
+            traces.push(run.samples);
         }
     }
     Ok(SafeSpeed {
@@ -83,6 +90,7 @@ pub fn sweep(
         safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::Perception),
         exact_safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::Exact),
         rows,
+        traces,
     })
 }
 

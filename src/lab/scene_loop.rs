@@ -144,6 +144,16 @@ pub struct SceneSample {
     pub true_d_proj_m: f64,
     /// Fusion status this tick (`tracking`, `stale`, ...).
     pub fusion_status: FusionStatus,
+    /// The fused surface's own speed towards the HIP (its velocity along its normal, the
+    /// part the constraints use), m/s.
+    pub fused_approach_mps: f64,
+    /// Rate of the controller's `d_proj`, m/s (NaN without a tracking surface).
+    pub d_rate_mps: f64,
+    /// Degree and samples of fusion's regression this tick.
+    pub fit_degree: u8,
+    pub fit_samples: u32,
+    /// Only look-ahead (far-field) samples in fusion's window.
+    pub far_field_only: bool,
     /// Haptic constraints active this tick.
     pub constraint_active: bool,
     /// Camera frames processed this tick.
@@ -349,6 +359,15 @@ pub fn simulate_scene(
             },
             true_d_proj_m: true_d_proj,
             fusion_status: fused.status,
+            fused_approach_mps: fused.normal.dot(&fused.velocity_m_per_s),
+            d_rate_mps: if out.haptics.status == HapticStatus::NoSurface {
+                f64::NAN
+            } else {
+                out.haptics.d_rate_mps
+            },
+            fit_degree: fused.fit_degree,
+            fit_samples: fused.sample_count,
+            far_field_only: haptic_loop.control().fusion().prediction().far_field_only,
             constraint_active: active,
             frames,
             hand_force_z_n: plant.hand_force_n().z,
