@@ -198,38 +198,67 @@ def rmw_attachment(seq, gid):
             + bytes([len(gid)]) + gid)
 
 
+class DepthCameras:
+    """Two realsense-ros-like depth cameras on one session: Image 16UC1 + CameraInfo
+    publishers on rmw_zenoh keys (dropped when congested), their poses on /tf_static, and a
+    second of the swaying plane's frames computed up front so a publisher keeps its rate."""
+
+    def __init__(self, s, w, h):
+        import zenoh
+        drop = zenoh.CongestionControl.DROP
+        self.w, self.h = w, h
+        self.fx = self.fy = 0.7 * w
+        self.cx, self.cy = (w - 1) / 2, (h - 1) / 2
+        T = STORE.types
+        self.Header, self.Image, self.Time = (T["std_msgs/msg/Header"], T["sensor_msgs/msg/Image"],
+                                              T["builtin_interfaces/msg/Time"])
+        self.pubs = [(s.declare_publisher(key(f"/cam{n}/depth/image_rect_raw", "sensor_msgs/msg/Image"),
+                                          congestion_control=drop),
+                      s.declare_publisher(key(f"/cam{n}/depth/camera_info", "sensor_msgs/msg/CameraInfo"),
+                                          congestion_control=drop))
+                     for n in range(2)]
+        tf = T["tf2_msgs/msg/TFMessage"](transforms=[T["geometry_msgs/msg/TransformStamped"](
+            header=self.Header(stamp=self.Time(sec=0, nanosec=0), frame_id="world"),
+            child_frame_id=f"cam{n}_depth_optical_frame",
+            transform=T["geometry_msgs/msg/Transform"](
+                translation=T["geometry_msgs/msg/Vector3"](x=p[0], y=p[1], z=p[2]),
+                rotation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
+            for n, p in enumerate(CAM_POSES)])
+        self.tf_pub = s.declare_publisher(key("/tf_static", "tf2_msgs/msg/TFMessage"))
+        self.tf_bytes = bytes(STORE.serialize_cdr(tf, "tf2_msgs/msg/TFMessage"))
+        wait_matching([p for pair in self.pubs for p in pair], 10.0)
+        self.frames = [np.frombuffer(plane_depth_mm(w, h, self.fx, self.fy, self.cx, self.cy, j / 8)
+                                     .astype("<u2").tobytes(), dtype=np.uint8) for j in range(8)]
+
+    def put_tf(self):
+        """The poses again (transient-local in ROS; repeated here for late joiners)."""
+        self.tf_pub.put(self.tf_bytes)
+
+    def header(self, n, stamp_t):
+        st = self.Time(sec=int(stamp_t), nanosec=int((stamp_t - int(stamp_t)) * 1e9))
+        return self.Header(stamp=st, frame_id=f"cam{n}_depth_optical_frame")
+
+    def put_info(self, n, stamp_t, **extra):
+        """Camera n's camera info, stamped stamp_t."""
+        info = camera_info(self.header(n, stamp_t), self.w, self.h, self.fx, self.fy, self.cx, self.cy)
+        self.pubs[n][1].put(bytes(STORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo")), **extra)
+
+    def publish(self, n, stamp_t, phase_s, **extra):
+        """Camera n's image (the plane at phase_s seconds) and camera info, stamped stamp_t."""
+        img = self.Image(header=self.header(n, stamp_t), height=self.h, width=self.w,
+                         encoding="16UC1", is_bigendian=0, step=self.w * 2,
+                         data=self.frames[int(phase_s * 8) % 8])
+        self.pubs[n][0].put(bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")), **extra)
+        self.put_info(n, stamp_t, **extra)
+
+    def put_garbage(self, n, **extra):
+        """A malformed Image (garbage CDR) on camera n."""
+        self.pubs[n][0].put(b"\x00\x01\x00\x00\x07\x00\x00\x00garbage", **extra)
+
+
 def cmd_stream(port, seconds, rate, w, h, garbage, attach):
     s = session(port, "client")
-    import zenoh
-    drop = zenoh.CongestionControl.DROP
-    Header = STORE.types["std_msgs/msg/Header"]
-    Image = STORE.types["sensor_msgs/msg/Image"]
-    Time = STORE.types["builtin_interfaces/msg/Time"]
-    TF = STORE.types["tf2_msgs/msg/TFMessage"]
-    TS = STORE.types["geometry_msgs/msg/TransformStamped"]
-    Tr = STORE.types["geometry_msgs/msg/Transform"]
-    V3 = STORE.types["geometry_msgs/msg/Vector3"]
-    Q = STORE.types["geometry_msgs/msg/Quaternion"]
-    fx = fy = 0.7 * w
-    cx, cy = (w - 1) / 2, (h - 1) / 2
-    pubs = []
-    for n in range(2):
-        pubs.append((
-            s.declare_publisher(key(f"/cam{n}/depth/image_rect_raw", "sensor_msgs/msg/Image"),
-                                congestion_control=drop),
-            s.declare_publisher(key(f"/cam{n}/depth/camera_info", "sensor_msgs/msg/CameraInfo"),
-                                congestion_control=drop)))
-    tf = TF(transforms=[TS(header=Header(stamp=Time(sec=0, nanosec=0), frame_id="world"),
-                           child_frame_id=f"cam{n}_depth_optical_frame",
-                           transform=Tr(translation=V3(x=p[0], y=p[1], z=p[2]),
-                                        rotation=Q(x=0.0, y=0.0, z=0.0, w=1.0)))
-                        for n, p in enumerate(CAM_POSES)])
-    tf_pub = s.declare_publisher(key("/tf_static", "tf2_msgs/msg/TFMessage"))
-    tf_bytes = bytes(STORE.serialize_cdr(tf, "tf2_msgs/msg/TFMessage"))
-    wait_matching([p for pair in pubs for p in pair], 10.0)
-    # A second of the swaying plane, computed up front so the publisher keeps its rate.
-    frames = [np.frombuffer(plane_depth_mm(w, h, fx, fy, cx, cy, j / 8).astype("<u2").tobytes(),
-                            dtype=np.uint8) for j in range(8)]
+    cams = DepthCameras(s, w, h)
     start = time.time()
     period = 1.0 / rate if rate > 0 else 0.0
     sent = 0
@@ -241,23 +270,17 @@ def cmd_stream(port, seconds, rate, w, h, garbage, attach):
         if due > now:
             time.sleep(due - now)
         if k % max(int(rate), 30) == 0:
-            tf_pub.put(tf_bytes)  # transient-local in ROS; repeated here for late joiners
-        for n, (img_pub, info_pub) in enumerate(pubs):
+            cams.put_tf()
+        for n in range(2):
             t = time.time()
-            st = Time(sec=int(t), nanosec=int((t - int(t)) * 1e9))
-            hd = Header(stamp=st, frame_id=f"cam{n}_depth_optical_frame")
-            img = Image(header=hd, height=h, width=w, encoding="16UC1", is_bigendian=0,
-                        step=w * 2, data=frames[int((t - start) * 8) % 8])
-            info = camera_info(hd, w, h, fx, fy, cx, cy)
             extra = {}
             if attach:
                 extra["attachment"] = rmw_attachment(k, gid) if n == 0 else b"\xff\x00\x07"
             if garbage and n == 0 and k % 10 == 5:
-                img_pub.put(b"\x00\x01\x00\x00\x07\x00\x00\x00garbage", **extra)
+                cams.put_garbage(0, **extra)
+                cams.put_info(0, t, **extra)
             else:
-                img_pub.put(bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")), **extra)
-            info_pub.put(bytes(STORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo")),
-                         **extra)
+                cams.publish(n, t, t - start, **extra)
             sent += 1
         k += 1
     print(json.dumps({"sent": sent}), flush=True)

@@ -9,24 +9,7 @@ here=$(cd "$(dirname "$0")" && pwd)
 bin=${1:-target/release/hapcloud}
 secs=${2:-8}
 backend=${3:-cpu}
-port=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')
-tmp=$(mktemp -d)
-cat > "$tmp/node.toml" <<TOML
-hip_world_m = [0.0, 0.0, 1.55]
-[zenoh]
-connect = ["tcp/127.0.0.1:$port"]
-[zenoh_source]
-world_frame = "world"
-[[zenoh_source.cameras]]
-camera_id = 0
-depth_image = "/cam0/depth/image_rect_raw"
-[[zenoh_source.cameras]]
-camera_id = 1
-depth_image = "/cam1/depth/image_rect_raw"
-TOML
-# The router runs until its stdin closes.
-exec 3> >(python3 "$here/interop.py" router "$port" > "$tmp/router.out")
-sleep 2
+source "$here/with_router.sh"
 report() {
   python3 - "$1" "$2" "$3" <<'PY'
 import json, sys

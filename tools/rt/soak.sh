@@ -13,24 +13,7 @@ secs=${2:-600}
 rate=${3:-30}
 w=${4:-424}
 h=${5:-240}
-port=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')
-tmp=$(mktemp -d)
-cat > "$tmp/node.toml" <<TOML
-hip_world_m = [0.0, 0.0, 1.55]
-[zenoh]
-connect = ["tcp/127.0.0.1:$port"]
-[zenoh_source]
-world_frame = "world"
-[[zenoh_source.cameras]]
-camera_id = 0
-depth_image = "/cam0/depth/image_rect_raw"
-[[zenoh_source.cameras]]
-camera_id = 1
-depth_image = "/cam1/depth/image_rect_raw"
-TOML
-# The router runs until its stdin closes.
-exec 3> >(python3 "$here/../interop/interop.py" router "$port" > "$tmp/router.out")
-sleep 2
+source "$here/../interop/with_router.sh"
 echo "load before: $(cut -d' ' -f1-3 /proc/loadavg)" >&2
 "$bin" run zenoh --config "$tmp/node.toml" --duration "$secs" --backend cpu --json > "$tmp/node.json" &
 node=$!
