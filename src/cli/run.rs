@@ -536,12 +536,22 @@ fn print_table(s: &NodeSummary) {
         );
     }
     println!("                     p50 ms    p99 ms");
+    let gpu = s.gpu_on_host.map(|g| {
+        [
+            ("  before the GPU", g.before_gpu_ms),
+            ("  GPU passes", g.gpu_ms),
+            ("  after the GPU", g.after_gpu_ms),
+        ]
+    });
     for (name, p) in [
         ("stamp -> surface", s.latency_ms),
         ("loop jitter", s.jitter_ms),
         ("tick work", s.tick_work_ms),
         ("perception/frame", s.perception_ms),
-    ] {
+    ]
+    .into_iter()
+    .chain(gpu.into_iter().flatten())
+    {
         println!("{name:<18} {:>9.3} {:>9.3}", p.p50, p.p99);
     }
 }

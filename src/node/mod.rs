@@ -654,6 +654,7 @@ fn summarize(
         jitter_ms: stats.jitter.percentiles(),
         tick_work_ms: stats.work.percentiles(),
         perception_ms: report.times.percentiles(),
+        gpu_on_host: report.gpu_split.summary(),
         realtime: stats.realtime,
         recording_error: shared
             .recording_error

@@ -7,6 +7,7 @@ use super::realtime::RealtimeStatus;
 use super::record::Behind;
 use crate::fusion::{CameraLatency, FusionCounters};
 use crate::gpu::Backend;
+use crate::gpu::clock::PassOnHost;
 use crate::perception::frontend::BackendChoice;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -98,6 +99,8 @@ pub struct NodeSummary {
     pub stopped_early: bool,
     /// CAN output, when `--can` or `--can-log` was given.
     pub can: Option<CanSummary>,
+    /// On a GPU front end whose pass times are on the host clock (`vulkan-calibrated`).
+    pub gpu_on_host: Option<GpuOnHost>,
     pub duration_s: f64,
     pub speed: f64,
 }
@@ -107,6 +110,58 @@ pub struct NodeSummary {
 pub struct CanSummary {
     pub counters: CanCounters,
     pub bus_load: BusLoad,
+}
+
+/// Where perception's time per frame goes on a GPU front end, read on the host's
+/// CLOCK_MONOTONIC from the calibrated GPU pass times.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct GpuOnHost {
+    /// The chain call to the first GPU pass's start (the frame's upload, the submission).
+    pub before_gpu_ms: Percentiles,
+    /// The first pass's start to the last pass's end.
+    pub gpu_ms: Percentiles,
+    /// The last pass's end to the estimate (readback, surface memory, shells, fits).
+    pub after_gpu_ms: Percentiles,
+}
+
+/// The three histograms behind [`GpuOnHost`].
+pub(super) struct GpuSplit {
+    before: Histogram,
+    gpu: Histogram,
+    after: Histogram,
+}
+
+impl GpuSplit {
+    pub(super) fn new() -> Self {
+        let h = || Histogram::new(1e-5, 1.0);
+        Self {
+            before: h(),
+            gpu: h(),
+            after: h(),
+        }
+    }
+
+    /// One frame: the chain called at `call_ns`, returned at `return_ns`, its GPU passes
+    /// `passes` (host CLOCK_MONOTONIC, ns). A frame without calibrated passes adds nothing.
+    pub(super) fn add(&mut self, call_ns: u64, passes: &[PassOnHost], return_ns: u64) {
+        let first = passes.iter().map(|p| p.start_ns).min();
+        let last = passes.iter().map(|p| p.end_ns).max();
+        if let (Some(first), Some(last)) = (first, last) {
+            let s = |a: u64, b: u64| b.saturating_sub(a) as f64 * 1e-9;
+            self.before.add(s(call_ns, first));
+            self.gpu.add(s(first, last));
+            self.after.add(s(last, return_ns));
+        }
+    }
+
+    /// `None` when no frame had calibrated passes (CPU backend, uncalibrated clock).
+    pub(super) fn summary(&self) -> Option<GpuOnHost> {
+        (self.gpu.total > 0).then(|| GpuOnHost {
+            before_gpu_ms: self.before.percentiles(),
+            gpu_ms: self.gpu.percentiles(),
+            after_gpu_ms: self.after.percentiles(),
+        })
+    }
 }
 
 /// Percentiles of a duration without keeping the samples: counts in fixed bins (the loop

@@ -380,6 +380,40 @@ fn missing_gpu_falls_back_to_the_cpu() {
     assert_eq!(summary.backend, Backend::Cpu);
     assert!(summary.gpu_fallback.is_some());
     assert!(summary.frames > 0);
+    assert!(summary.gpu_on_host.is_none());
+}
+
+#[test]
+fn on_the_gpu_perception_time_is_split_on_the_host_clock() {
+    let _serial = serial();
+    let opts = RunOptions {
+        backend: Backend::Gpu,
+        ..options(4.0)
+    };
+    let summary = run(
+        &config(),
+        Source::Timed(plane_frames(0.2, None)),
+        &opts,
+        |_| {},
+    )
+    .unwrap();
+    assert_eq!(summary.backend, Backend::Gpu, "GPU tests need Vulkan");
+    if !cfg!(feature = "vulkan-calibrated") {
+        assert!(summary.gpu_on_host.is_none());
+        return;
+    }
+    let split = summary
+        .gpu_on_host
+        .expect("lavapipe calibrates its timestamps (VK_EXT_calibrated_timestamps)");
+    assert!(split.gpu_ms.p50 > 0.0, "{split:?}");
+    // The three parts lie within the frame's perception time (0.1 ms bins, p50s of
+    // different frames: a bin's width of slack each).
+    let parts = split.before_gpu_ms.p50 + split.gpu_ms.p50 + split.after_gpu_ms.p50;
+    assert!(
+        parts <= summary.perception_ms.p99 + 0.3,
+        "{split:?} vs {:?}",
+        summary.perception_ms
+    );
 }
 
 #[test]
@@ -401,6 +435,8 @@ fn the_node_picks_the_faster_backend_on_the_first_frames_and_reports_it() {
     assert_eq!(on_gpu, gpu_ms <= choice.cpu_ms);
     // The GPU front end reports its buffers, sized for the largest frame.
     assert_eq!(summary.gpu_buffer_bytes.is_some(), on_gpu);
+    // Its calibrated pass times split perception's time per frame on the host clock.
+    assert!(on_gpu || summary.gpu_on_host.is_none());
     // A named adapter that does not open: not measured, perception's fallback says why.
     let opts = RunOptions {
         adapter: Some("no-such-adapter-xyz".into()),

@@ -10,11 +10,12 @@ use super::frame_queue::{CloseOnDrop, FrameQueue};
 use super::haptic_loop::{FusionWindow, Perception};
 use super::record::{FrameRecorder, RecordError};
 use super::robot_state::RobotState;
-use super::summary::Histogram;
+use super::summary::{GpuSplit, Histogram};
 use super::{NodeError, NodeEvent, Source};
 use crate::camera::Frame;
 use crate::fusion::{CameraLatency, Fit, FusionCounters};
 use crate::gpu::Backend;
+use crate::gpu::clock::monotonic_ns;
 use crate::surface::SurfaceEstimate;
 use std::collections::BTreeMap;
 use std::panic::{AssertUnwindSafe, catch_unwind};
@@ -164,6 +165,7 @@ pub(super) fn injected(inject: Option<(Worker, u64)>, worker: Worker, count: u64
 pub(super) struct PerceptionReport {
     pub(super) frames: BTreeMap<u32, (u64, u64)>,
     pub(super) times: Histogram,
+    pub(super) gpu_split: GpuSplit,
     pub(super) backend: Backend,
     pub(super) adapter: Option<String>,
     pub(super) gpu_fallback: Option<String>,
@@ -192,6 +194,7 @@ pub(super) fn perception_thread(
     let mut counts: BTreeMap<u32, (u64, u64)> = BTreeMap::new();
     // 0.1 ms bins up to 10 s
     let mut times = Histogram::new(1e-4, 10.0);
+    let mut gpu_split = GpuSplit::new();
     // The source stops once perception does, whatever the way out.
     let _close = CloseOnDrop(frames);
     let mut processed = 0u64;
@@ -201,7 +204,10 @@ pub(super) fn perception_thread(
         injected(inject, Worker::Perception, processed);
         let start = Instant::now();
         let q = robot.at(frame.stamp_s).q_rad;
-        let record = perception.process(&frame, &robot.perception_scene(&q))?;
+        let scene = robot.perception_scene(&q);
+        let call_ns = monotonic_ns();
+        let record = perception.process(&frame, &scene)?;
+        gpu_split.add(call_ns, &record.chain.front.gpu_on_host, monotonic_ns());
         let estimate = record.estimate().clone();
         times.add(start.elapsed().as_secs_f64());
         if perception.gpu_fallback().is_some() {
@@ -237,6 +243,7 @@ pub(super) fn perception_thread(
     Ok(PerceptionReport {
         frames: counts,
         times,
+        gpu_split,
         backend: perception.backend(),
         adapter: perception.adapter().map(str::to_string),
         gpu_fallback: perception.gpu_fallback(),
