@@ -87,7 +87,9 @@ use std::sync::{Arc, PoisonError};
 use std::time::Instant;
 use summary::LoopStats;
 use tick_loop::TickLoop;
-use workers::{Clock, Handover, PerceptionReport, Shared, guarded};
+use workers::{
+    Clock, HANDOVER_CAPACITY, Handover, HandoverChannels, PerceptionReport, Shared, guarded,
+};
 
 /// Node settings: the loop and every stage's config.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -416,7 +418,8 @@ pub fn run(
     };
     let shared = Shared::default();
     let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
-    let (estimate_tx, estimate_rx) = mpsc::channel::<Handover>();
+    let (estimate_tx, estimate_rx) = mpsc::sync_channel::<Handover>(HANDOVER_CAPACITY);
+    let (spent_tx, spent_rx) = mpsc::sync_channel(HANDOVER_CAPACITY);
     let start_backend = perception.backend();
     let mut ticks = TickLoop {
         config,
@@ -429,6 +432,7 @@ pub fn run(
         start_backend,
         control,
         estimates: estimate_rx,
+        spent: spent_tx,
         can,
         recorder: tick_recorder,
         on_tick,
@@ -449,7 +453,10 @@ pub fn run(
                     robot,
                     clock,
                     frame_queue,
-                    estimate_tx,
+                    HandoverChannels {
+                        estimates: estimate_tx,
+                        spent: spent_rx,
+                    },
                     frame_recorder,
                     shared,
                     observer,
@@ -638,6 +645,7 @@ fn summarize(
         frames: cameras.values().map(|c| c.frames).sum(),
         dropped_frames: shared.dropped.load(Ordering::Relaxed),
         malformed_records: shared.malformed.load(Ordering::Relaxed),
+        handover_dropped: shared.handover_dropped.load(Ordering::Relaxed),
         out_of_order_frames: shared.out_of_order.load(Ordering::Relaxed),
         bad_stamp_frames: shared.bad_stamps.load(Ordering::Relaxed),
         cameras,

@@ -40,6 +40,9 @@ pub struct NodeSummary {
     pub dropped_frames: u64,
     /// Malformed messages of a live source, dropped.
     pub malformed_records: u64,
+    /// Estimates perception could not hand to the loop because the loop had not taken the
+    /// ones before (stalled for seconds).
+    pub handover_dropped: u64,
     /// Frames refused where they entered because their camera had already delivered a
     /// frame stamped as late or later (stamps must increase per camera).
     pub out_of_order_frames: u64,

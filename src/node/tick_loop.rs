@@ -21,7 +21,7 @@ use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::io::can::fault;
 use crate::robot::JointState;
-use crate::surface::FusionStatus;
+use crate::surface::{FusionStatus, SurfaceEstimate};
 use arrayvec::ArrayVec;
 use std::sync::atomic::Ordering;
 use std::sync::mpsc::{self, Receiver, SyncSender};
@@ -42,6 +42,8 @@ pub(super) struct TickLoop<'a, F> {
     pub(super) start_backend: Backend,
     pub(super) control: ControlLoop,
     pub(super) estimates: Receiver<Handover>,
+    /// Spent estimates back to perception, which frees them (full: freed here).
+    pub(super) spent: SyncSender<Box<SurfaceEstimate>>,
     pub(super) can: Option<CanThread>,
     pub(super) recorder: Option<TickRecorder>,
     pub(super) on_tick: F,
@@ -235,14 +237,20 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
                     let _ = b.recent_per_camera.try_push((estimate.camera_id, 1));
                 }
             }
-            match self.recorder.as_mut().map(|r| r.estimate(k, estimate)) {
-                Some(Err(e)) => {
-                    self.shared.recording_failed(&e);
-                    self.recorder = None;
-                    self.stats.unrecorded_estimates += 1;
+            match self.recorder.as_mut() {
+                Some(r) => {
+                    if let Err(e) = r.estimate(k, estimate) {
+                        self.shared.recording_failed(&e);
+                        self.recorder = None;
+                        self.stats.unrecorded_estimates += 1;
+                    }
                 }
-                None if self.options.record.is_some() => self.stats.unrecorded_estimates += 1,
-                _ => {}
+                None => {
+                    if self.options.record.is_some() {
+                        self.stats.unrecorded_estimates += 1;
+                    }
+                    let _ = self.spent.try_send(estimate);
+                }
             }
         }
         let joints = self.robot.at(t_tick);

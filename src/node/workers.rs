@@ -20,7 +20,7 @@ use crate::surface::SurfaceEstimate;
 use std::collections::BTreeMap;
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::mpsc::{self, SyncSender};
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
 use std::sync::{Mutex, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -73,7 +73,15 @@ pub(super) struct Shared {
     /// node goes on controlling without recording and counts what it did not record.
     pub(super) recording_error: Mutex<Option<String>>,
     pub(super) unrecorded_frames: AtomicU64,
+    /// Estimates perception could not hand over: the loop had not taken the last
+    /// `HANDOVER_CAPACITY` (stalled for seconds).
+    pub(super) handover_dropped: AtomicU64,
 }
+
+/// Estimates in flight between perception and the loop (the loop takes them every tick), and
+/// spent estimates on their way back to perception, which frees them (the loop frees nothing:
+/// a free may take the allocator's lock).
+pub(super) const HANDOVER_CAPACITY: usize = 64;
 
 impl Shared {
     /// Records the failure of `thread` (the first one is kept) and stops the node.
@@ -178,6 +186,13 @@ pub(super) struct PerceptionReport {
 /// (boxed here, so the loop moves it on to the recording without allocating).
 pub(super) type Handover = (Box<SurfaceEstimate>, Option<Fit>);
 
+/// The two bounded channels between perception and the loop: estimates there, spent
+/// estimates back (both preallocated: neither side allocates or frees to pass one on).
+pub(super) struct HandoverChannels {
+    pub(super) estimates: SyncSender<Handover>,
+    pub(super) spent: Receiver<Box<SurfaceEstimate>>,
+}
+
 #[allow(clippy::too_many_arguments)]
 pub(super) fn perception_thread(
     mut perception: Perception,
@@ -185,7 +200,7 @@ pub(super) fn perception_thread(
     robot: &RobotState,
     clock: &Clock,
     frames: &FrameQueue<Frame>,
-    estimates: mpsc::Sender<Handover>,
+    handover: HandoverChannels,
     mut recorder: Option<FrameRecorder>,
     shared: &Shared,
     observer: Option<SyncSender<NodeEvent>>,
@@ -233,8 +248,15 @@ pub(super) fn perception_thread(
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
         entry.1 += u64::from(estimate.surface.is_some());
-        if estimates.send((Box::new(estimate), fit)).is_err() {
-            break;
+        while handover.spent.try_recv().is_ok() {}
+        match handover.estimates.try_send((Box::new(estimate), fit)) {
+            Ok(()) => {}
+            // After the loop's end nobody takes them: not a drop.
+            Err(TrySendError::Full(_)) if !shared.stop.load(Ordering::Acquire) => {
+                shared.handover_dropped.fetch_add(1, Ordering::Relaxed);
+            }
+            Err(TrySendError::Full(_)) => {}
+            Err(TrySendError::Disconnected(_)) => break,
         }
     }
     if let Some(Err(e)) = recorder.map(FrameRecorder::finish) {
