@@ -58,6 +58,16 @@ fn plane_frames(duration_s: f64, gap: Option<(f64, f64)>) -> Vec<Frame> {
     frames
 }
 
+/// The node on `duration_s` of [`plane_frames`] (no gap) with the test [`config`].
+fn run_on_planes(duration_s: f64, opts: &RunOptions) -> Result<NodeSummary, NodeError> {
+    run(
+        &config(),
+        Source::Timed(plane_frames(duration_s, None)),
+        opts,
+        |_| {},
+    )
+}
+
 /// The tests run unoptimised, beside other tests, on a shared machine: perception may take
 /// tens of milliseconds, so the stale timeout is generous here (latency is not under test).
 fn config() -> NodeConfig {
@@ -142,13 +152,7 @@ fn recording_replays_bit_for_bit_and_bad_recordings_are_clear_errors() {
         record: Some(file.clone()),
         ..options(1.0)
     };
-    let summary = run(
-        &config(),
-        Source::Timed(plane_frames(0.6, None)),
-        &opts,
-        |_| {},
-    )
-    .unwrap();
+    let summary = run_on_planes(0.6, &opts).unwrap();
     let report = replay(&file).unwrap();
     assert!(report.identical(), "{report:?}");
     assert_eq!(report.ticks_compared, summary.ticks);
@@ -202,14 +206,12 @@ fn recording_replays_bit_for_bit_and_bad_recordings_are_clear_errors() {
         "{err}"
     );
     // Recording into a directory name is refused before the run.
-    let err = run(
-        &config(),
-        Source::Timed(plane_frames(0.1, None)),
+    let err = run_on_planes(
+        0.1,
         &RunOptions {
             record: Some(dir.clone()),
             ..options(1.0)
         },
-        |_| {},
     )
     .unwrap_err()
     .to_string();
@@ -370,13 +372,7 @@ fn missing_gpu_falls_back_to_the_cpu() {
         adapter: Some("no-such-adapter-xyz".into()),
         ..options(4.0)
     };
-    let summary = run(
-        &config(),
-        Source::Timed(plane_frames(0.2, None)),
-        &opts,
-        |_| {},
-    )
-    .unwrap();
+    let summary = run_on_planes(0.2, &opts).unwrap();
     assert_eq!(summary.backend, Backend::Cpu);
     assert!(summary.gpu_fallback.is_some());
     assert!(summary.frames > 0);
@@ -390,13 +386,7 @@ fn on_the_gpu_perception_time_is_split_on_the_host_clock() {
         backend: Backend::Gpu,
         ..options(4.0)
     };
-    let summary = run(
-        &config(),
-        Source::Timed(plane_frames(0.2, None)),
-        &opts,
-        |_| {},
-    )
-    .unwrap();
+    let summary = run_on_planes(0.2, &opts).unwrap();
     assert_eq!(summary.backend, Backend::Gpu, "GPU tests need Vulkan");
     if !cfg!(feature = "vulkan-calibrated") {
         assert!(summary.gpu_on_host.is_none());
@@ -442,13 +432,7 @@ fn the_node_picks_the_faster_backend_on_the_first_frames_and_reports_it() {
         adapter: Some("no-such-adapter-xyz".into()),
         ..opts
     };
-    let summary = run(
-        &config(),
-        Source::Timed(plane_frames(0.2, None)),
-        &opts,
-        |_| {},
-    )
-    .unwrap();
+    let summary = run_on_planes(0.2, &opts).unwrap();
     assert!(summary.backend_choice.is_none() && summary.gpu_fallback.is_some());
     assert_eq!(summary.backend, Backend::Cpu);
 }
@@ -775,13 +759,7 @@ fn a_full_disk_at_the_start_is_a_clear_error() {
         record: Some(dir.join("full.mcap")),
         ..options(1.0)
     };
-    let err = run(
-        &config(),
-        Source::Timed(plane_frames(1.0, None)),
-        &opts,
-        |_| {},
-    )
-    .unwrap_err();
+    let err = run_on_planes(1.0, &opts).unwrap_err();
     assert!(err.to_string().contains("full.mcap"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
