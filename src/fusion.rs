@@ -28,7 +28,7 @@
 
 #[cfg(test)]
 use crate::surface::SurfacePoint;
-use crate::surface::{FarFieldEstimate, FusedSurface, FusionStatus, SurfaceEstimate};
+use crate::surface::{FarFieldEstimate, FusedSurface, FusionStatus, SurfaceEstimate, SurfaceState};
 use nalgebra::{DMatrix, Point3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -768,8 +768,8 @@ impl Fusion {
     }
 
     /// Evaluates the fused surface at tick time `t_s` and advances the PID smoothing by the
-    /// time since the previous tick. Never panics; the output is always finite with a unit
-    /// normal.
+    /// time since the previous tick. Never panics; its surface, once there is one, is always
+    /// finite with a unit normal.
     pub fn tick(&mut self, t_s: f64) -> FusedSurface {
         self.refit();
         let Some(fit) = self.fit else {
@@ -809,24 +809,27 @@ impl Fusion {
             }
         }
         self.was_tracking = tracking;
-        let placeholder = Target {
-            centroid: Vector3::zeros(),
-            normal: Vector3::z_axis(),
-        };
-        let held = self.smoothed.map_or(placeholder, |s| Target {
-            centroid: s.centroid,
-            normal: s.normal,
+        let surface = self.smoothed.map(|s| {
+            let (fit, velocity) = now.unwrap_or((
+                Target {
+                    centroid: s.centroid,
+                    normal: s.normal,
+                },
+                Vector3::zeros(),
+            ));
+            SurfaceState {
+                centroid_m: Point3::from(s.centroid),
+                normal: s.normal,
+                velocity_m_per_s: if tracking { velocity } else { Vector3::zeros() },
+                fit_centroid_m: Point3::from(fit.centroid),
+                fit_normal: fit.normal,
+            }
         });
-        let (fit_target, velocity) = now.unwrap_or((held, Vector3::zeros()));
         FusedSurface {
             stamp_s: t_s,
-            centroid_m: Point3::from(held.centroid),
-            normal: held.normal,
-            velocity_m_per_s: if tracking { velocity } else { Vector3::zeros() },
             status,
             age_s,
-            fit_centroid_m: Point3::from(fit_target.centroid),
-            fit_normal: fit_target.normal,
+            surface,
             fit_degree: fit.degree,
             sample_count: fit.sample_count,
             camera_count: fit.camera_count,
@@ -869,13 +872,9 @@ fn target_at(fit: &Fit, config: &FusionConfig, t_s: f64) -> Option<(Target, Vect
 fn no_data(t_s: f64) -> FusedSurface {
     FusedSurface {
         stamp_s: t_s,
-        centroid_m: Point3::origin(),
-        normal: Vector3::z_axis(),
-        velocity_m_per_s: Vector3::zeros(),
         status: FusionStatus::NoData,
         age_s: f64::INFINITY,
-        fit_centroid_m: Point3::origin(),
-        fit_normal: Vector3::z_axis(),
+        surface: None,
         fit_degree: 0,
         sample_count: 0,
         camera_count: 0,
@@ -1632,6 +1631,7 @@ mod tests {
         assert_eq!(out.status, FusionStatus::NoData);
         assert!(!out.is_tracking());
         assert!(out.age_s.is_infinite());
+        assert_eq!(out.surface, None);
     }
 
     #[test]
@@ -1653,9 +1653,9 @@ mod tests {
             let out = f.tick(t0 + t);
             assert_eq!(out.status, FusionStatus::Tracking);
             assert_eq!(out.fit_degree, 2);
-            let err = (out.fit_centroid_m.coords - quadratic(t)).norm();
+            let err = (out.surface.unwrap().fit_centroid_m.coords - quadratic(t)).norm();
             assert!(err < 1e-9, "fit error {err} at +{dt}s");
-            let verr = (out.velocity_m_per_s - quadratic_velocity(t)).norm();
+            let verr = (out.surface.unwrap().velocity_m_per_s - quadratic_velocity(t)).norm();
             assert!(verr < 1e-8, "velocity error {verr} at +{dt}s");
         }
     }
@@ -1673,7 +1673,8 @@ mod tests {
             |t, out| {
                 if t > 0.2 {
                     assert_eq!(out.status, FusionStatus::Tracking);
-                    worst = worst.max((out.centroid_m.coords - quadratic(t)).norm());
+                    worst =
+                        worst.max((out.surface.unwrap().centroid_m.coords - quadratic(t)).norm());
                 }
             },
         );
@@ -1697,12 +1698,12 @@ mod tests {
             },
             |t, out| {
                 if t > 0.15 {
-                    assert!((out.velocity_m_per_s - v).norm() < 1e-9);
+                    assert!((out.surface.unwrap().velocity_m_per_s - v).norm() < 1e-9);
                 }
                 // After the start-up transient (degree 0, then 1, then 2) has decayed.
                 if t > 0.4 {
                     let truth = Vector3::new(0.1, 0.2, 0.3) + v * t;
-                    assert!((out.centroid_m.coords - truth).norm() < 1e-9);
+                    assert!((out.surface.unwrap().centroid_m.coords - truth).norm() < 1e-9);
                     checked += 1;
                 }
             },
@@ -1728,7 +1729,7 @@ mod tests {
         let t = 11.0 / 30.0 + 0.02;
         let out = f.tick(t);
         assert_eq!(out.camera_count, 2);
-        assert!((out.fit_centroid_m.coords - truth(t)).norm() < 1e-9);
+        assert!((out.surface.unwrap().fit_centroid_m.coords - truth(t)).norm() < 1e-9);
 
         // Free-running cameras half a frame apart.
         let worst_error = |cameras: u32, camera_offsets: bool| {
@@ -1740,7 +1741,7 @@ mod tests {
             let mut worst: f64 = 0.0;
             run(&mut f, cameras, 30.0, 1.0, biased, |t, out| {
                 if t > 0.3 {
-                    worst = worst.max((out.centroid_m.coords - truth(t)).norm());
+                    worst = worst.max((out.surface.unwrap().centroid_m.coords - truth(t)).norm());
                 }
             });
             worst / bias.norm()
@@ -1774,7 +1775,7 @@ mod tests {
             |t, out| {
                 if t > 0.2 {
                     assert_eq!(out.status, FusionStatus::Tracking, "at {t}");
-                    assert!((out.centroid_m.coords - truth(t)).norm() < 1e-6);
+                    assert!((out.surface.unwrap().centroid_m.coords - truth(t)).norm() < 1e-6);
                     cameras_seen.push(out.camera_count);
                 }
             },
@@ -1804,16 +1805,22 @@ mod tests {
             if *t > 0.5 && *t < 1.2 && age > config.stale_timeout_s + 1e-9 {
                 assert_eq!(out.status, FusionStatus::Stale, "at {t}");
                 assert!(!out.is_tracking());
-                assert_eq!(out.velocity_m_per_s, Vector3::zeros());
+                assert_eq!(out.surface.unwrap().velocity_m_per_s, Vector3::zeros());
                 // The last surface is held.
-                assert!((out.centroid_m.z - c(last_before_gap).z).abs() < 0.01);
+                assert!((out.surface.unwrap().centroid_m.z - c(last_before_gap).z).abs() < 0.01);
             }
             if *t > 1.25 {
                 assert_eq!(out.status, FusionStatus::Tracking, "recovered at {t}");
-                assert!((out.centroid_m.coords - c(*t)).norm() < 1e-3, "at {t}");
+                assert!(
+                    (out.surface.unwrap().centroid_m.coords - c(*t)).norm() < 1e-3,
+                    "at {t}"
+                );
             }
             if *t > 1.6 {
-                assert!((out.centroid_m.coords - c(*t)).norm() < 1e-9, "at {t}");
+                assert!(
+                    (out.surface.unwrap().centroid_m.coords - c(*t)).norm() < 1e-9,
+                    "at {t}"
+                );
             }
         }
         assert!(log.iter().any(|(_, o)| o.status == FusionStatus::Stale));
@@ -1852,8 +1859,10 @@ mod tests {
         );
         let a = in_order.tick(0.2);
         let b = shuffled.tick(0.2);
-        assert!((a.fit_centroid_m - b.fit_centroid_m).norm() < 1e-9);
-        assert!((b.fit_centroid_m.coords - c(0.2)).norm() < 1e-9);
+        assert!(
+            (a.surface.unwrap().fit_centroid_m - b.surface.unwrap().fit_centroid_m).norm() < 1e-9
+        );
+        assert!((b.surface.unwrap().fit_centroid_m.coords - c(0.2)).norm() < 1e-9);
         let counters = shuffled.counters();
         assert_eq!(
             (counters.accepted, counters.duplicate, counters.too_old),
@@ -1885,7 +1894,10 @@ mod tests {
         f.push(&good);
         let out = f.tick(0.01);
         assert_eq!(out.status, FusionStatus::Tracking);
-        assert_eq!(out.centroid_m, good.surface.unwrap().centroid_m);
+        assert_eq!(
+            out.surface.unwrap().centroid_m,
+            good.surface.unwrap().centroid_m
+        );
         assert_eq!(f.counters().invalid, 5);
     }
 
@@ -1902,8 +1914,8 @@ mod tests {
         ));
         let out = f.tick(0.05);
         assert_eq!(out.fit_degree, 1);
-        assert!((out.velocity_m_per_s.z - 1.0).abs() < 1e-9);
-        assert!((out.fit_centroid_m.z - 0.55).abs() < 1e-9);
+        assert!((out.surface.unwrap().velocity_m_per_s.z - 1.0).abs() < 1e-9);
+        assert!((out.surface.unwrap().fit_centroid_m.z - 0.55).abs() < 1e-9);
         // Two cameras at one stamp are two samples but one distinct stamp: degree 1 stays.
         f.push(&estimate(
             1,
@@ -1971,7 +1983,7 @@ mod tests {
             let out = f.tick(t);
             if let (true, Some(c)) = (t > 0.3, newest) {
                 assert_eq!(out.status, FusionStatus::Tracking, "at {t}");
-                fused.push((out.centroid_m.coords - truth(t)).norm_squared());
+                fused.push((out.surface.unwrap().centroid_m.coords - truth(t)).norm_squared());
                 held.push((c - truth(t)).norm_squared());
             }
         }
@@ -2054,7 +2066,7 @@ mod tests {
                 |t, out| {
                     if t > 0.3 {
                         counts[out.fit_degree as usize] += 1;
-                        velocity.push(out.velocity_m_per_s.z);
+                        velocity.push(out.surface.unwrap().velocity_m_per_s.z);
                     }
                 },
             );
@@ -2094,7 +2106,7 @@ mod tests {
             },
             |t, out| {
                 if t >= 0.5 {
-                    worst = worst.max((out.centroid_m.coords - truth).norm());
+                    worst = worst.max((out.surface.unwrap().centroid_m.coords - truth).norm());
                 }
             },
         );
@@ -2142,7 +2154,7 @@ mod tests {
             },
             |t, out| {
                 if t > 0.3 {
-                    worst = worst.max((out.centroid_m.coords - truth(t)).norm());
+                    worst = worst.max((out.surface.unwrap().centroid_m.coords - truth(t)).norm());
                 }
             },
         );
@@ -2164,13 +2176,15 @@ mod tests {
         let newest = 7.0 / 30.0;
         let within = f.tick(newest + 0.5 * config.max_extrapolation_s);
         assert!(
-            (within.fit_centroid_m.coords - c(newest + 0.5 * config.max_extrapolation_s)).norm()
+            (within.surface.unwrap().fit_centroid_m.coords
+                - c(newest + 0.5 * config.max_extrapolation_s))
+            .norm()
                 < 1e-9
         );
         let beyond = f.tick(newest + config.stale_timeout_s - 1e-3);
         assert_eq!(beyond.status, FusionStatus::Tracking);
         let horizon = c(newest + config.max_extrapolation_s);
-        assert!((beyond.fit_centroid_m.coords - horizon).norm() < 1e-9);
+        assert!((beyond.surface.unwrap().fit_centroid_m.coords - horizon).norm() < 1e-9);
     }
 
     /// A surface approaching at `speed` m/s (along +z, towards a HIP above it), seen by
@@ -2216,7 +2230,7 @@ mod tests {
                 assert!(!p.clamped && !p.far_field_only, "{p:?} at {t}");
                 assert!((0.06..=0.13).contains(&p.extrapolated_s), "{p:?} at {t}");
                 most_extrapolated = most_extrapolated.max(p.extrapolated_s);
-                worst = worst.max((out.centroid_m.coords - truth(t)).norm());
+                worst = worst.max((out.surface.unwrap().centroid_m.coords - truth(t)).norm());
                 let held = newest.as_ref().unwrap().surface.unwrap().centroid_m.coords;
                 worst_held = worst_held.max((held - truth(t)).norm());
             }
@@ -2321,16 +2335,16 @@ mod tests {
             assert_eq!(p.far_field_only, !shells, "at {t}");
             if i >= 2 {
                 assert!(
-                    (out.velocity_m_per_s.z - speed).abs() < 0.02,
+                    (out.surface.unwrap().velocity_m_per_s.z - speed).abs() < 0.02,
                     "at {t}: {out:?}"
                 );
                 assert!(
-                    (out.fit_centroid_m.coords - plate(tick)).norm() < 1e-3,
+                    (out.surface.unwrap().fit_centroid_m.coords - plate(tick)).norm() < 1e-3,
                     "at {t}"
                 );
             }
             if shells && first_shell_velocity.is_none() {
-                first_shell_velocity = Some(out.velocity_m_per_s.z);
+                first_shell_velocity = Some(out.surface.unwrap().velocity_m_per_s.z);
             }
         }
         assert!(first_shell_velocity.is_some_and(|v| (v - speed).abs() < 0.02));
@@ -2365,13 +2379,16 @@ mod tests {
             if t >= 0.12 {
                 assert_eq!(out.status, FusionStatus::Tracking);
                 assert!(
-                    (out.fit_centroid_m.coords - head(t)).norm() < 0.01,
+                    (out.surface.unwrap().fit_centroid_m.coords - head(t)).norm() < 0.01,
                     "at {t}: {out:?}"
                 );
-                assert!(out.fit_normal.dot(&-dir) > 0.99, "at {t}: {out:?}");
+                assert!(
+                    out.surface.unwrap().fit_normal.dot(&-dir) > 0.99,
+                    "at {t}: {out:?}"
+                );
             }
             if t >= 0.14 {
-                let v = out.velocity_m_per_s;
+                let v = out.surface.unwrap().velocity_m_per_s;
                 assert!((v + dir).norm() < 0.1, "at {t}: {v:?}");
             }
         }
@@ -2400,7 +2417,10 @@ mod tests {
                 let (camera, t) = (k % 2, stamp(k) - 0.07);
                 let torso = Vector3::new(-0.16 - bias(camera), 0.0, 0.3);
                 f.push_far_field(&far_at(camera, t, torso, Vector3::x()));
-                assert_eq!(f.tick(t + 0.05).velocity_m_per_s, Vector3::zeros());
+                assert_eq!(
+                    f.tick(t + 0.05).surface.unwrap().velocity_m_per_s,
+                    Vector3::zeros()
+                );
             }
             let mut speeds = Vec::new();
             for k in 0..8 {
@@ -2410,15 +2430,16 @@ mod tests {
                 f.push_far_field(&far_at(camera, t, plate, Vector3::z()));
                 let tick = t + 0.05;
                 let out = f.tick(tick);
-                let v = out.velocity_m_per_s.z;
+                let v = out.surface.unwrap().velocity_m_per_s.z;
                 assert!(v <= cap + 1e-9, "{speed} m/s, sample {k}: {out:?}");
                 assert_eq!(
-                    out.centroid_m, out.fit_centroid_m,
+                    out.surface.unwrap().centroid_m,
+                    out.surface.unwrap().fit_centroid_m,
                     "far field: not smoothed"
                 );
                 if speed > 0.0 && k >= 1 {
                     assert!(v >= 1.5, "sample {k}: {out:?}");
-                    let ahead = out.fit_centroid_m.z - 0.05 - speed * tick;
+                    let ahead = out.surface.unwrap().fit_centroid_m.z - 0.05 - speed * tick;
                     assert!(ahead.abs() < 0.03, "sample {k}: {out:?}");
                 }
                 speeds.push(v);
@@ -2454,15 +2475,15 @@ mod tests {
             2.0 * t_cross,
             |k, t| Some(estimate(k, t, Vector3::new(0.0, 0.0, 0.5), normal(t))),
             |t, out| {
-                assert!((out.normal.norm() - 1.0).abs() < 1e-12);
+                assert!((out.surface.unwrap().normal.norm() - 1.0).abs() < 1e-12);
                 if t > 0.2 {
                     assert_eq!(out.status, FusionStatus::Tracking);
-                    worst_error = worst_error.max(out.normal.angle(&normal(t)));
+                    worst_error = worst_error.max(out.surface.unwrap().normal.angle(&normal(t)));
                 }
                 if let Some(p) = prev {
-                    worst_step = worst_step.max(out.normal.angle(&p));
+                    worst_step = worst_step.max(out.surface.unwrap().normal.angle(&p));
                 }
-                prev = Some(out.normal);
+                prev = Some(out.surface.unwrap().normal);
             },
         );
         // The true normal moves 1.25 mrad per tick; the output never jumps.
@@ -2493,7 +2514,11 @@ mod tests {
         let out = f.tick(0.1);
         assert_eq!(out.status, FusionStatus::Inconsistent);
         assert!(!out.is_tracking());
-        assert!((out.normal.norm() - 1.0).abs() < 1e-12);
+        // Never tracked: no surface to hold, rather than a made-up one.
+        assert_eq!(out.surface, None);
+        // Past the stale timeout it stays without one.
+        assert_eq!(f.tick(0.5).status, FusionStatus::Stale);
+        assert_eq!(f.tick(0.5).surface, None);
     }
 
     fn arb_estimate() -> impl Strategy<Value = (u32, f64, [f64; 3], [f64; 3], f64, bool)> {
@@ -2529,13 +2554,15 @@ mod tests {
                 t += dt;
                 for k in 0..3 {
                     let out = f.tick(t + k as f64 * TICK_S);
-                    prop_assert!(out.centroid_m.iter().all(|v| v.is_finite()));
-                    prop_assert!(out.fit_centroid_m.iter().all(|v| v.is_finite()));
-                    prop_assert!(out.velocity_m_per_s.iter().all(|v| v.is_finite()));
-                    prop_assert!((out.normal.norm() - 1.0).abs() < 1e-9);
-                    prop_assert!((out.fit_normal.norm() - 1.0).abs() < 1e-9);
+                    prop_assert!(out.surface.is_some() || !out.is_tracking());
+                    let Some(s) = out.surface else { continue };
+                    prop_assert!(s.centroid_m.iter().all(|v| v.is_finite()));
+                    prop_assert!(s.fit_centroid_m.iter().all(|v| v.is_finite()));
+                    prop_assert!(s.velocity_m_per_s.iter().all(|v| v.is_finite()));
+                    prop_assert!((s.normal.norm() - 1.0).abs() < 1e-9);
+                    prop_assert!((s.fit_normal.norm() - 1.0).abs() < 1e-9);
                     if out.status != FusionStatus::Tracking {
-                        prop_assert_eq!(out.velocity_m_per_s, Vector3::zeros());
+                        prop_assert_eq!(s.velocity_m_per_s, Vector3::zeros());
                     }
                 }
             }

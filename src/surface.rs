@@ -47,6 +47,15 @@ pub struct SurfacePoint {
     pub normal: Unit<Vector3<f64>>,
 }
 
+impl SurfacePoint {
+    /// `d_proj` of eq. 7, `(c - h) . (-n) - r_HIP`: the distance of the HIP sphere (centre
+    /// `hip_m`, radius `hip_radius_m`) from the surface along its normal, negative when the
+    /// sphere penetrates it.
+    pub fn d_proj_m(&self, hip_m: &Point3<f64>, hip_radius_m: f64) -> f64 {
+        (self.centroid_m - hip_m).dot(&-self.normal.into_inner()) - hip_radius_m
+    }
+}
+
 /// One camera's estimate of the closest collision surface at one instant.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SurfaceEstimate {
@@ -98,7 +107,7 @@ pub enum FusionStatus {
     Stale,
     /// The estimates in the window disagree on the normal: the last surface is held.
     Inconsistent,
-    /// No valid estimate has ever arrived: centroid and normal are placeholders.
+    /// No valid estimate has ever arrived: there is no surface.
     NoData,
 }
 
@@ -107,21 +116,12 @@ pub enum FusionStatus {
 pub struct FusedSurface {
     /// Tick time the surface is valid for, seconds (same clock as the estimates' stamps).
     pub stamp_s: f64,
-    /// Smoothed surface centroid `c`, world frame, metres (eq. 6 output).
-    pub centroid_m: Point3<f64>,
-    /// Smoothed outward normal `n` (from the body towards the HIP), world frame.
-    pub normal: Unit<Vector3<f64>>,
-    /// The surface's own velocity: derivative of the centroid fit at the tick, world frame,
-    /// m/s. Zero unless tracking.
-    pub velocity_m_per_s: Vector3<f64>,
     pub status: FusionStatus,
     /// Tick time minus the newest estimate's stamp, seconds (infinite with no data).
     pub age_s: f64,
-    /// The regression's centroid at the tick, before PID smoothing (Fig. 8's "planned
-    /// trajectory"), metres.
-    pub fit_centroid_m: Point3<f64>,
-    /// The regression's normal at the tick, before PID smoothing.
-    pub fit_normal: Unit<Vector3<f64>>,
+    /// The surface: while [`FusionStatus::Tracking`] it follows the cameras, while stale or
+    /// inconsistent it is the last tracked one, held. `None` until fusion has tracked a surface.
+    pub surface: Option<SurfaceState>,
     /// Degree of the polynomial actually fitted (2, or 1/0 with too few samples).
     pub fit_degree: u8,
     /// Samples and distinct cameras in the regression window.
@@ -129,9 +129,42 @@ pub struct FusedSurface {
     pub camera_count: u32,
 }
 
+/// The fused surface's state at one tick (eq. 6 output, and the regression's before it).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SurfaceState {
+    /// Smoothed surface centroid `c`, world frame, metres (eq. 6 output).
+    pub centroid_m: Point3<f64>,
+    /// Smoothed outward normal `n` (from the body towards the HIP), world frame.
+    pub normal: Unit<Vector3<f64>>,
+    /// The surface's own velocity: derivative of the centroid fit at the tick, world frame,
+    /// m/s. Zero unless tracking.
+    pub velocity_m_per_s: Vector3<f64>,
+    /// The regression's centroid at the tick, before PID smoothing (Fig. 8's "planned
+    /// trajectory"), metres; the smoothed one when the window has no fit at the tick.
+    pub fit_centroid_m: Point3<f64>,
+    /// The regression's normal at the tick, before PID smoothing.
+    pub fit_normal: Unit<Vector3<f64>>,
+}
+
+impl SurfaceState {
+    /// The smoothed centroid and normal.
+    pub fn point(&self) -> SurfacePoint {
+        SurfacePoint {
+            centroid_m: self.centroid_m,
+            normal: self.normal,
+        }
+    }
+}
+
 impl FusedSurface {
     /// True when the surface is fresh and consistent and may drive a constraint.
     pub fn is_tracking(&self) -> bool {
         self.status == FusionStatus::Tracking
+    }
+
+    /// The surface while it tracks the cameras (`None` while stale, inconsistent or without
+    /// data).
+    pub fn tracked(&self) -> Option<&SurfaceState> {
+        self.surface.as_ref().filter(|_| self.is_tracking())
     }
 }

@@ -18,7 +18,7 @@ use hapcloud::io::zenoh::{
 };
 use hapcloud::robot::JointState;
 use hapcloud::robot::JointVector;
-use hapcloud::surface::{FusedSurface, FusionStatus};
+use hapcloud::surface::{FusedSurface, FusionStatus, SurfaceState};
 use nalgebra::{Point3, Quaternion, Unit, UnitQuaternion, Vector3};
 use serde_json::Value;
 use std::io::{BufRead, BufReader};
@@ -257,13 +257,15 @@ fn tick(i: u64) -> TickRecord {
         index: i,
         fused: FusedSurface {
             stamp_s: 10.0 + i as f64 / 800.0,
-            centroid_m: Point3::new(0.3, 0.2, 0.1 + i as f64),
-            normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
-            velocity_m_per_s: Vector3::new(0.0, 0.01, 0.0),
             status: FusionStatus::Tracking,
             age_s: 0.04,
-            fit_centroid_m: Point3::new(0.31, 0.2, 0.1),
-            fit_normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
+            surface: Some(SurfaceState {
+                centroid_m: Point3::new(0.3, 0.2, 0.1 + i as f64),
+                normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
+                velocity_m_per_s: Vector3::new(0.0, 0.01, 0.0),
+                fit_centroid_m: Point3::new(0.31, 0.2, 0.1),
+                fit_normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
+            }),
             fit_degree: 2,
             sample_count: 12,
             camera_count: 2,
@@ -335,7 +337,8 @@ fn rosbags_decodes_what_hapcloud_publishes() {
         match l["type"].as_str().unwrap() {
             "hapcloud_msgs/msg/FusedSurface" => {
                 assert_eq!(m["stamp_s"].as_f64(), Some(t.fused.stamp_s));
-                assert_eq!(m["centroid_m"][2].as_f64(), Some(t.fused.centroid_m.z));
+                let centroid_z = t.fused.surface.map(|s| s.centroid_m.z);
+                assert_eq!(m["centroid_m"][2].as_f64(), centroid_z);
                 assert_eq!(m["status"], 0);
             }
             "hapcloud_msgs/msg/HapticConstraint" => {

@@ -13,7 +13,7 @@ use hapcloud::io::mcap::{
 };
 use hapcloud::robot::JointState;
 use hapcloud::robot::JointVector;
-use hapcloud::surface::{FusedSurface, FusionStatus};
+use hapcloud::surface::{FusedSurface, FusionStatus, SurfaceState};
 use hapcloud::surface::{SurfaceEstimate, SurfacePoint};
 use nalgebra::{Isometry3, Point3, Unit, Vector3};
 use std::io::Cursor;
@@ -113,13 +113,15 @@ fn tick(i: u64) -> TickRecord {
         index: i,
         fused: FusedSurface {
             stamp_s: i as f64 / 800.0,
-            centroid_m: Point3::new(0.3, 0.2, 0.1),
-            normal: Unit::new_normalize(Vector3::new(1.0, 1.0, 1.0)),
-            velocity_m_per_s: Vector3::new(0.0, 0.01, 0.0),
             status: FusionStatus::Tracking,
             age_s: 0.04,
-            fit_centroid_m: Point3::new(0.31, 0.2, 0.1),
-            fit_normal: Unit::new_normalize(Vector3::new(1.0, 1.1, 1.0)),
+            surface: Some(SurfaceState {
+                centroid_m: Point3::new(0.3, 0.2, 0.1),
+                normal: Unit::new_normalize(Vector3::new(1.0, 1.0, 1.0)),
+                velocity_m_per_s: Vector3::new(0.0, 0.01, 0.0),
+                fit_centroid_m: Point3::new(0.31, 0.2, 0.1),
+                fit_normal: Unit::new_normalize(Vector3::new(1.0, 1.1, 1.0)),
+            }),
             fit_degree: 2,
             sample_count: 12,
             camera_count: 2,

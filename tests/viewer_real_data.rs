@@ -162,8 +162,8 @@ fn node_recording_shows_the_nodes_own_estimates() {
             assert_eq!(f.samples.d_proj_m, Some(control.d_proj_m));
         }
         assert_eq!(f.fused.is_some(), fused.is_tracking());
-        if fused.is_tracking() {
-            assert_eq!(f.fused.unwrap().centroid_m, fused.centroid_m);
+        if let Some(s) = fused.tracked() {
+            assert_eq!(f.fused.unwrap().centroid_m, s.centroid_m);
             assert!(f.samples.d_proj_m.is_some());
         }
         assert!(

@@ -37,7 +37,7 @@ pub mod record;
 
 use crate::haptics::{self, HapticConfig, HapticConstraints};
 use crate::robot::{DOF, HipKinematics, JointMatrix, JointVector, RobotModel};
-use crate::surface::FusedSurface;
+use crate::surface::SurfaceState;
 use arrayvec::ArrayVec;
 use hqp::{HierarchicalSolver, HqpSettings, HqpWorkspace, LevelReport, MAX_LEVELS, Task};
 use nalgebra::{DMatrix, DVector, Point3, RowSVector, Unit, Vector3};
@@ -159,8 +159,8 @@ pub enum Intent {
 pub struct ControllerInput<'a> {
     pub q: JointVector,
     pub qd: JointVector,
-    /// The fused surface (None: no surface known).
-    pub surface: Option<&'a FusedSurface>,
+    /// The surface to constrain against (None: no surface, the constraints are off).
+    pub surface: Option<&'a SurfaceState>,
     /// Force the patient applies to the robot at the HIP (measured), world frame, N.
     pub interaction_force_n: Vector3<f64>,
     pub intent: Intent,
@@ -551,7 +551,9 @@ mod tests {
             hip.position_m - Vector3::new(0.0, 0.0, 0.045),
             Vector3::z_axis(),
             Vector3::zeros(),
-        );
+        )
+        .surface
+        .expect("a known surface exists");
         let out = c.tick(&ControllerInput {
             q,
             qd,

@@ -30,14 +30,15 @@
 //!   `m_n (J_c qdd + n . Jdot qd) <= F_max`. It bounds how hard the constraint may shove the
 //!   patient's arm when the surface jumps.
 //! - The constraints switch off when the HIP is farther than the activation distance above or
-//!   the fused surface is not tracking (the grey areas of the paper's Fig. 9).
+//!   there is no surface to constrain against (the grey areas of the paper's Fig. 9).
 //!
-//! Input: the [`FusedSurface`] of [`crate::fusion`] (or [`known_surface`] for virtual walls).
+//! Input: the [`SurfaceState`] the haptic loop constrains against (the fused surface while
+//! it tracks, or held), or that of [`known_surface`] for virtual walls.
 //! - Beyond the paper: with `use_surface_velocity`, `d' = J_c qd - n . v_s`
 //!   uses the surface's own velocity from the fusion fit; the paper uses `d' = J_c qd`.
 
 use crate::robot::{HipKinematics, JointMatrix, JointVector};
-use crate::surface::{FusedSurface, FusionStatus};
+use crate::surface::{FusedSurface, FusionStatus, SurfaceState};
 use arrayvec::ArrayVec;
 use nalgebra::{Point3, RowSVector, Unit, Vector3};
 use serde::{Deserialize, Serialize};
@@ -52,13 +53,15 @@ pub fn known_surface(
 ) -> FusedSurface {
     FusedSurface {
         stamp_s,
-        centroid_m,
-        normal,
-        velocity_m_per_s,
         status: FusionStatus::Tracking,
         age_s: 0.0,
-        fit_centroid_m: centroid_m,
-        fit_normal: normal,
+        surface: Some(SurfaceState {
+            centroid_m,
+            normal,
+            velocity_m_per_s,
+            fit_centroid_m: centroid_m,
+            fit_normal: normal,
+        }),
         fit_degree: 2,
         sample_count: 0,
         camera_count: 0,
@@ -262,7 +265,7 @@ pub fn positional_row(
 /// with joint velocities `qd`, mass matrix `mass`, HIP radius `hip_radius_m`.
 pub fn haptic_constraints(
     config: &HapticConfig,
-    surface: Option<&FusedSurface>,
+    surface: Option<&SurfaceState>,
     hip: &HipKinematics,
     hip_radius_m: f64,
     qd: &JointVector,
@@ -275,12 +278,11 @@ pub fn haptic_constraints(
         jacobian: RowSVector::zeros(),
         rows: ArrayVec::new(),
     };
-    let Some(surface) = surface.filter(|s| s.is_tracking()) else {
+    let Some(surface) = surface else {
         return inactive(HapticStatus::NoSurface);
     };
     let n = surface.normal.into_inner();
-    // eq. 7: d_proj = (c - h) . (-n) - r
-    let d_proj_m = (surface.centroid_m - hip.position_m).dot(&-n) - hip_radius_m;
+    let d_proj_m = surface.point().d_proj_m(&hip.position_m, hip_radius_m);
     // eq. 8: J_c = n^T J_s,trans
     let jacobian = n.transpose() * hip.jacobian;
     let surface_rate = if config.use_surface_velocity {
@@ -355,13 +357,14 @@ mod tests {
         }
     }
 
-    fn floor(z: f64, vz: f64) -> FusedSurface {
-        known_surface(
+    fn floor(z: f64, vz: f64) -> SurfaceState {
+        let exact = known_surface(
             0.0,
             Point3::new(0.3, 0.2, z),
             Vector3::z_axis(),
             Vector3::new(0.0, 0.0, vz),
-        )
+        );
+        exact.surface.expect("a known surface exists")
     }
 
     #[test]
@@ -448,7 +451,7 @@ mod tests {
         let qd = JointVector::zeros();
         let mass = JointMatrix::identity();
         let hip = hip_at(0.3, 0.0);
-        let at = |surface: FusedSurface| {
+        let at = |surface: SurfaceState| {
             haptic_constraints(&cfg, Some(&surface), &hip, 0.04, &qd, &mass).status
         };
         // d_proj = 0.26 m; rising at 2 m/s: braking distance 4 / 14 = 0.29 m on top of 0.15 m
@@ -465,7 +468,7 @@ mod tests {
     }
 
     #[test]
-    fn paper_mode_ignores_surface_velocity_and_far_or_invalid_switch_off() {
+    fn paper_mode_ignores_surface_velocity_and_far_or_no_surface_switch_off() {
         let cfg = HapticConfig {
             use_surface_velocity: false,
             ..HapticConfig::default()
@@ -491,9 +494,7 @@ mod tests {
         );
         assert_eq!(far.status, HapticStatus::Far);
         assert!(far.rows.is_empty());
-        let mut invalid = floor(0.0, 0.0);
-        invalid.status = FusionStatus::Stale;
-        let none = haptic_constraints(&cfg, Some(&invalid), &hip_at(0.1, 0.0), 0.04, &qd, &mass);
+        let none = haptic_constraints(&cfg, None, &hip_at(0.1, 0.0), 0.04, &qd, &mass);
         assert_eq!(none.status, HapticStatus::NoSurface);
         assert!(none.rows.is_empty());
     }
@@ -512,7 +513,9 @@ mod tests {
             hip.position_m - Vector3::new(0.1, 0.05, 0.1),
             Unit::new_normalize(Vector3::new(0.3, 0.2, 1.0)),
             Vector3::zeros(),
-        );
+        )
+        .surface
+        .expect("a known surface exists");
         let cfg = HapticConfig::default();
         let c = haptic_constraints(&cfg, Some(&surf), &hip, 0.04, &qd, &m.mass_matrix(&q));
         let t = cfg.position_gain * cfg.period_s;

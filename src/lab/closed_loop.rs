@@ -553,7 +553,7 @@ pub fn simulate_with_surface(
         let out = controller.tick(&ControllerInput {
             q: *plant.q(),
             qd: *plant.qd(),
-            surface: Some(&surface),
+            surface: surface.tracked(),
             interaction_force_n: plant.hand_force_n(),
             intent: Intent::Transparent,
         });

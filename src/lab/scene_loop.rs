@@ -359,7 +359,9 @@ pub fn simulate_scene(
             },
             true_d_proj_m: true_d_proj,
             fusion_status: fused.status,
-            fused_approach_mps: fused.normal.dot(&fused.velocity_m_per_s),
+            fused_approach_mps: fused
+                .surface
+                .map_or(0.0, |s| s.normal.dot(&s.velocity_m_per_s)),
             d_rate_mps: if out.haptics.status == HapticStatus::NoSurface {
                 f64::NAN
             } else {

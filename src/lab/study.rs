@@ -720,14 +720,16 @@ pub fn run_setting(
             let (fused, span) = Stopwatch::time(|| haptic_loop.fuse(*t));
             fusion_cpu_ms += span.cpu_ms;
             tick_count += 1;
-            if fused.is_tracking() {
+            if let Some(s) = fused.tracked() {
                 tracking_ticks += 1;
-                fused_c.push((fused.centroid_m - truth.closest_m).norm() * 1e3);
-                fused_n.push(angle_deg(&fused.normal, &truth.normal));
+                fused_c.push((s.centroid_m - truth.closest_m).norm() * 1e3);
+                fused_n.push(angle_deg(&s.normal, &truth.normal));
                 tracking_started = true;
             }
             if tracking_started {
                 ticks_since_first += 1;
+                // None after a switch to a nearer surface until that one tracks.
+                let Some(s) = fused.surface else { continue };
                 // The true closest point's velocity by central differences over the ticks.
                 let (i0, i1) = (k.saturating_sub(1), (k + 1).min(ticks.len() - 1));
                 let dt = ticks[i1].0 - ticks[i0].0;
@@ -738,9 +740,9 @@ pub fn run_setting(
                 };
                 let to_surface = surface_frame(&truth.normal);
                 trace.errors.push(SurfaceError {
-                    offset_m: to_surface * (fused.centroid_m - truth.closest_m),
-                    normal: to_surface * fused.normal,
-                    velocity_m_per_s: to_surface * (fused.velocity_m_per_s - v_true),
+                    offset_m: to_surface * (s.centroid_m - truth.closest_m),
+                    normal: to_surface * s.normal,
+                    velocity_m_per_s: to_surface * (s.velocity_m_per_s - v_true),
                     status: fused.status,
                     age_s: fused.age_s,
                 });
@@ -1185,8 +1187,11 @@ mod tests {
     fn an_exact_trace_is_the_plane_and_errors_move_it_in_the_surface_frame() {
         let hip = Point3::new(0.1, 0.2, 0.5);
         let exact = SurfaceTrace::default().surface(3, 0.1, &hip, 0.3, 0.5);
-        assert_eq!(exact.centroid_m, Point3::new(0.1, 0.2, 0.3));
-        assert_eq!(exact.normal, Vector3::z_axis());
+        assert_eq!(
+            exact.surface.unwrap().centroid_m,
+            Point3::new(0.1, 0.2, 0.3)
+        );
+        assert_eq!(exact.surface.unwrap().normal, Vector3::z_axis());
         assert!(exact.is_tracking());
         // A fused surface 5 mm deeper than the truth along its normal, on a tilted body,
         // becomes a plane 5 mm lower; the error's tangential part stays tangential.
@@ -1204,10 +1209,10 @@ mod tests {
             }],
         };
         let s = trace.surface(7, 0.1, &hip, 0.3, 0.0);
-        assert!((s.centroid_m.z - 0.295).abs() < 1e-12);
-        let lateral = (s.centroid_m - Point3::new(0.1, 0.2, 0.295)).norm();
+        assert!((s.surface.unwrap().centroid_m.z - 0.295).abs() < 1e-12);
+        let lateral = (s.surface.unwrap().centroid_m - Point3::new(0.1, 0.2, 0.295)).norm();
         assert!((lateral - 0.002).abs() < 1e-12);
-        assert!((s.normal.into_inner() - Vector3::z()).norm() < 1e-12);
+        assert!((s.surface.unwrap().normal.into_inner() - Vector3::z()).norm() < 1e-12);
         assert_eq!((s.status, s.age_s), (FusionStatus::Stale, 0.2));
         // The opposite direction has a frame too.
         assert!((surface_frame(&-Vector3::z()) * -Vector3::z() - Vector3::z()).norm() < 1e-12);

@@ -25,7 +25,7 @@ use crate::perception::lookahead::{LookaheadConfig, far_field};
 use crate::perception::pipeline::{CameraChain, ChainFrame};
 use crate::robot::{JointState, RobotModel};
 use crate::surface::{FarFieldEstimate, SurfaceEstimate};
-use crate::surface::{FusedSurface, FusionStatus};
+use crate::surface::{FusedSurface, FusionStatus, SurfaceState};
 use nalgebra::{Isometry3, Vector3};
 use std::sync::Arc;
 
@@ -318,17 +318,16 @@ impl ControlLoop {
     /// surface while it tracks; while fusion is stale and `on_stale = "hold"`, the last
     /// smoothed surface standing still for at most `stale_hold_max_s` past the stale timeout;
     /// otherwise none (the constraints switch off).
-    fn constraint_surface(&self, fused: &FusedSurface) -> (Option<FusedSurface>, bool) {
-        match fused.status {
-            FusionStatus::Tracking => (Some(*fused), false),
-            FusionStatus::Stale
+    fn constraint_surface(&self, fused: &FusedSurface) -> (Option<SurfaceState>, bool) {
+        match (fused.status, fused.surface) {
+            (FusionStatus::Tracking, surface) => (surface, false),
+            (FusionStatus::Stale, Some(last))
                 if self.on_stale == StalePolicy::Hold
                     && fused.age_s - self.stale_timeout_s <= self.stale_hold_max_s =>
             {
-                let held = FusedSurface {
-                    status: FusionStatus::Tracking,
+                let held = SurfaceState {
                     velocity_m_per_s: Vector3::zeros(),
-                    ..*fused
+                    ..last
                 };
                 (Some(held), true)
             }

@@ -115,9 +115,10 @@ fn node_tracks_a_moving_plane_from_two_cameras() {
         if f.is_tracking() && f.stamp_s > 1.3 {
             tracking += 1;
             let h = plane_height(f.stamp_s);
-            worst = worst.max((f.centroid_m.z - h).abs());
-            worst = worst.max(f.normal.angle(&Vector3::z()) * 0.1);
-            worst_velocity = worst_velocity.max((f.velocity_m_per_s.z - 0.05).abs());
+            worst = worst.max((f.surface.unwrap().centroid_m.z - h).abs());
+            worst = worst.max(f.surface.unwrap().normal.angle(&Vector3::z()) * 0.1);
+            worst_velocity =
+                worst_velocity.max((f.surface.unwrap().velocity_m_per_s.z - 0.05).abs());
         }
     })
     .unwrap();
@@ -867,4 +868,45 @@ fn a_stalled_can_consumer_never_stops_the_control_loop() {
     assert!(drained > 64 * 1024, "{drained} bytes");
     assert!(!summary.stopped_early);
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Held over stale cameras is only a surface fusion tracked: a fusion that went stale
+/// without one (never tracked, or just switched to a nearer surface) switches the
+/// constraints off instead of holding anything.
+#[test]
+fn only_a_tracked_surface_is_held_over_stale_cameras() {
+    use crate::haptics::{HapticStatus, known_surface};
+    use crate::robot::{JointState, JointVector, RobotModel, start_pose};
+    use crate::surface::FusedSurface;
+    use haptic_loop::{ControlLoop, RobotInput};
+    let config = NodeConfig {
+        on_stale: StalePolicy::Hold,
+        ..config()
+    };
+    let model = RobotModel::anyexo().unwrap();
+    let control = ControlLoop::new(&config, model.clone()).unwrap();
+    let joints = JointState {
+        q_rad: start_pose(),
+        qd_rad_per_s: JointVector::zeros(),
+    };
+    let robot = RobotInput::without_force(joints);
+    let hip = model.world_from_hip(&joints.q_rad).translation.vector;
+    let below = Point3::from(hip - Vector3::new(0.0, 0.0, 0.06));
+    let mut stale = known_surface(1.0, below, Vector3::z_axis(), Vector3::new(0.0, 0.0, 0.5));
+    stale.status = FusionStatus::Stale;
+    stale.age_s = config.fusion.stale_timeout_s + 0.01;
+    let held = control.tick_on(stale, &robot);
+    assert!(held.held);
+    assert_eq!(held.output.haptics.status, HapticStatus::Active);
+    // Held standing still: the rate is the HIP's own (at rest), not the surface's 0.5 m/s.
+    assert_eq!(held.output.haptics.d_rate_mps, 0.0);
+    let never_tracked = control.tick_on(
+        FusedSurface {
+            surface: None,
+            ..stale
+        },
+        &robot,
+    );
+    assert!(!never_tracked.held);
+    assert_eq!(never_tracked.output.haptics.status, HapticStatus::NoSurface);
 }

@@ -32,10 +32,8 @@ const BINDING_TOLERANCE: f64 = 1e-9;
 /// The surface a tick's constraints used: the fused surface while it tracks or while it is
 /// held over stale cameras.
 fn surface_used(fused: &FusedSurface, held: bool) -> Option<SurfacePoint> {
-    (fused.is_tracking() || held).then_some(SurfacePoint {
-        centroid_m: fused.centroid_m,
-        normal: fused.normal,
-    })
+    let used = fused.is_tracking() || held;
+    fused.surface.filter(|_| used).map(|s| s.point())
 }
 
 /// Shows a tick of the haptic loop on `view`: the surface its constraints used and the
@@ -124,13 +122,14 @@ mod tests {
     use nalgebra::{Unit, Vector3};
 
     /// The real robot at a bent pose, and a plane `gap_m` in front of its HIP sphere facing it.
-    fn setup(gap_m: f64) -> (RobotModel, JointVector, crate::surface::FusedSurface) {
+    fn setup(gap_m: f64) -> (RobotModel, JointVector, crate::surface::SurfaceState) {
         let m = RobotModel::anyexo().unwrap();
         let q = JointVector::from_column_slice(&[0.1, 0.0, 0.3, 0.2, 0.8, 1.4]);
         let hip = m.hip_kinematics(&q, &JointVector::zeros());
         let n = Unit::new_normalize(Vector3::new(0.3, 0.2, 1.0));
         let c = hip.position_m - n.into_inner() * (m.hip_radius_m() + gap_m);
-        (m, q, known_surface(0.0, c, n, Vector3::zeros()))
+        let plane = known_surface(0.0, c, n, Vector3::zeros());
+        (m, q, plane.surface.expect("a known surface exists"))
     }
 
     fn evaluate(

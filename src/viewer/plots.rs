@@ -82,9 +82,7 @@ impl PlotData {
                 d.d_proj_mm.points.push([t, v * 1e3]);
             }
             if let Some(truth) = &f.truth {
-                // eq. 7 with the true surface point and normal
-                let v =
-                    (truth.centroid_m - f.hip_m).dot(&-truth.normal.into_inner()) - f.hip_radius_m;
+                let v = truth.d_proj_m(&f.hip_m, f.hip_radius_m);
                 d.true_d_proj_mm.points.push([t, v * 1e3]);
             }
             if let Some(v) = s.d_proj_rate_m_per_s {

@@ -246,8 +246,7 @@ pub fn timeline() -> Vec<ViewFrame> {
                     .fold(Vector3::zeros(), |s, e| s + e.normal.into_inner()),
             ),
         });
-        let d_proj_m =
-            fused.map(|f| (f.centroid_m - hip).dot(&-f.normal.into_inner()) - HIP_RADIUS_M);
+        let d_proj_m = fused.map(|f| f.d_proj_m(&hip, HIP_RADIUS_M));
         let rate = match (d_proj_m, frames.last().and_then(|f| f.samples.d_proj_m)) {
             (Some(d), Some(prev)) => Some((d - prev) / PERIOD_S),
             _ => None,

@@ -185,7 +185,7 @@ fn main() {
         let out = controller.tick(black_box(&ControllerInput {
             q,
             qd,
-            surface: Some(&surface),
+            surface: surface.tracked(),
             interaction_force_n: force,
             intent: Intent::Transparent,
         }));
@@ -261,7 +261,7 @@ fn closed_loop_cases(model: &RobotModel) -> Vec<Case> {
             let out = controller.tick(black_box(&ControllerInput {
                 q: *plant.q(),
                 qd: *plant.qd(),
-                surface: Some(&surface),
+                surface: surface.tracked(),
                 interaction_force_n: plant.hand_force_n(),
                 intent: Intent::Transparent,
             }));

@@ -16,7 +16,7 @@ use crate::control::record::{ControlRecord, TickRecord};
 use crate::haptics::HapticStatus;
 use crate::robot::JointState as Joints;
 use crate::robot::JointVector;
-use crate::surface::{FusedSurface as Fused, FusionStatus};
+use crate::surface::{FusedSurface as Fused, FusionStatus, SurfaceState};
 use crate::surface::{ShellFit as Shell, ShellFitKind, SurfaceEstimate as Estimate, SurfacePoint};
 use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
@@ -69,13 +69,16 @@ fn arr(v: &Vector3<f64>) -> [f64; 3] {
 }
 
 impl FusedSurface {
+    /// The message of `f`; without a surface its centroid, normal, velocity and fit are NaN.
     pub fn new(header: Header, f: &Fused) -> Self {
+        let none = [f64::NAN; 3];
+        let s = f.surface.as_ref();
         Self {
             header,
             stamp_s: f.stamp_s,
-            centroid_m: arr(&f.centroid_m.coords),
-            normal: arr(&f.normal),
-            velocity_m_per_s: arr(&f.velocity_m_per_s),
+            centroid_m: s.map_or(none, |s| arr(&s.centroid_m.coords)),
+            normal: s.map_or(none, |s| arr(&s.normal)),
+            velocity_m_per_s: s.map_or(none, |s| arr(&s.velocity_m_per_s)),
             status: match f.status {
                 FusionStatus::Tracking => 0,
                 FusionStatus::Stale => 1,
@@ -83,31 +86,37 @@ impl FusedSurface {
                 FusionStatus::NoData => 3,
             },
             age_s: f.age_s,
-            fit_centroid_m: arr(&f.fit_centroid_m.coords),
-            fit_normal: arr(&f.fit_normal),
+            fit_centroid_m: s.map_or(none, |s| arr(&s.fit_centroid_m.coords)),
+            fit_normal: s.map_or(none, |s| arr(&s.fit_normal)),
             fit_degree: f.fit_degree,
             sample_count: f.sample_count,
             camera_count: f.camera_count,
         }
     }
 
-    /// The node's value back, bit for bit.
+    /// The node's value back, bit for bit: no surface where the centroid is not finite or
+    /// the status is NO_DATA.
     pub fn to_fused(&self) -> Result<Fused, Ros2Error> {
+        let status = match self.status {
+            0 => FusionStatus::Tracking,
+            1 => FusionStatus::Stale,
+            2 => FusionStatus::Inconsistent,
+            3 => FusionStatus::NoData,
+            s => return Err(Ros2Error::Value(format!("unknown fusion status {s}"))),
+        };
+        let has_surface =
+            status != FusionStatus::NoData && self.centroid_m.iter().all(|v| v.is_finite());
         Ok(Fused {
             stamp_s: self.stamp_s,
-            centroid_m: Point3::from(self.centroid_m),
-            normal: Unit::new_unchecked(Vector3::from(self.normal)),
-            velocity_m_per_s: Vector3::from(self.velocity_m_per_s),
-            status: match self.status {
-                0 => FusionStatus::Tracking,
-                1 => FusionStatus::Stale,
-                2 => FusionStatus::Inconsistent,
-                3 => FusionStatus::NoData,
-                s => return Err(Ros2Error::Value(format!("unknown fusion status {s}"))),
-            },
+            status,
             age_s: self.age_s,
-            fit_centroid_m: Point3::from(self.fit_centroid_m),
-            fit_normal: Unit::new_unchecked(Vector3::from(self.fit_normal)),
+            surface: has_surface.then(|| SurfaceState {
+                centroid_m: Point3::from(self.centroid_m),
+                normal: Unit::new_unchecked(Vector3::from(self.normal)),
+                velocity_m_per_s: Vector3::from(self.velocity_m_per_s),
+                fit_centroid_m: Point3::from(self.fit_centroid_m),
+                fit_normal: Unit::new_unchecked(Vector3::from(self.fit_normal)),
+            }),
             fit_degree: self.fit_degree,
             sample_count: self.sample_count,
             camera_count: self.camera_count,

@@ -344,18 +344,20 @@ fn transforms_round_trip() {
 
 #[test]
 fn hapcloud_messages_round_trip() {
-    use crate::surface::{FusedSurface as Fused, FusionStatus};
+    use crate::surface::{FusedSurface as Fused, FusionStatus, SurfaceState};
     use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate as Estimate};
     use nalgebra::{Point3, Unit};
     let fused = Fused {
         stamp_s: 12.345_678_901_234,
-        centroid_m: Point3::new(0.1, 0.2, 0.3),
-        normal: Unit::new_normalize(Vector3::new(1.0, 2.0, 3.0)),
-        velocity_m_per_s: Vector3::new(0.01, 0.0, -0.02),
         status: FusionStatus::Inconsistent,
         age_s: 0.0123,
-        fit_centroid_m: Point3::new(0.11, 0.21, 0.31),
-        fit_normal: Unit::new_normalize(Vector3::new(1.0, 2.1, 3.0)),
+        surface: Some(SurfaceState {
+            centroid_m: Point3::new(0.1, 0.2, 0.3),
+            normal: Unit::new_normalize(Vector3::new(1.0, 2.0, 3.0)),
+            velocity_m_per_s: Vector3::new(0.01, 0.0, -0.02),
+            fit_centroid_m: Point3::new(0.11, 0.21, 0.31),
+            fit_normal: Unit::new_normalize(Vector3::new(1.0, 2.1, 3.0)),
+        }),
         fit_degree: 2,
         sample_count: 17,
         camera_count: 2,
@@ -363,6 +365,18 @@ fn hapcloud_messages_round_trip() {
     let m = FusedSurface::new(header(fused.stamp_s), &fused);
     let back: FusedSurface = decode(&encode(&m).unwrap()).unwrap();
     assert_eq!(back.to_fused().unwrap(), fused);
+    // No surface travels as NaN vectors and comes back as none, whatever the status.
+    for status in [FusionStatus::NoData, FusionStatus::Stale] {
+        let none = Fused {
+            status,
+            surface: None,
+            ..fused
+        };
+        let m = FusedSurface::new(header(none.stamp_s), &none);
+        assert!(m.centroid_m.iter().chain(&m.fit_normal).all(|v| v.is_nan()));
+        let back: FusedSurface = decode(&encode(&m).unwrap()).unwrap();
+        assert_eq!(back.to_fused().unwrap(), none);
+    }
 
     let e = Estimate {
         camera_id: 1,
