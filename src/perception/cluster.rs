@@ -553,8 +553,7 @@ impl GpuClusterer {
             passes.next(),
             passes.next(),
             passes.next(),
-        )
-        else {
+        ) else {
             unreachable!("compute_pipelines returns one pipeline per entry point");
         };
         let timer = StageTimer::new(ctx, "cluster", &TIMED_PASSES)?;
