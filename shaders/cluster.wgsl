@@ -1,32 +1,41 @@
 // Euclidean cluster labelling (paper IV-C, PCL EuclideanClusterExtraction semantics).
 //
+// Fine cells are a bit larger than half the tolerance (CELL_MARGIN / 2 tolerances), so that
+// all points of a fine cell are neighbours of each other and every neighbour of a point lies
+// in the 5 x 5 x 5 fine cells around it; a coarse cell is 2 x 2 x 2 fine cells (its octants),
+// so every neighbour lies in the 27 coarse cells around a point's. The hash table holds the
+// coarse cells; each fine cell (a "sub-cell") is one set from the start.
+//
 // Passes, one dispatch each, all in one compute pass of the frame's encoder:
 //   prepare  (1 thread)  indirect dispatch size from the point count (count may be GPU-side)
-//   insert   per point   cell = floor(p * inv_cell), cells a bit larger than half the
-//                        tolerance, so that all points of a cell are neighbours of each other
-//                        and every neighbour of a point lies in the 5 x 5 x 5 cells around
-//                        it; claim a hash slot for the cell (linear probing, at most
-//                        max_probes, overflow flag otherwise), push the point on the slot's
-//                        list and lower the slot's smallest point index
-//   seed     per point   parent[i] = smallest index of i's cell: each cell is one set from the
-//                        start (coincident points cost nothing)
-//   hook     per point   for every cell B of a half stencil of the 125 cells around i's cell A
-//                        (each pair of cells once; A itself is already one set): unless B's
-//                        smallest point already shares i's parent, scan B for the first j with
-//                        (dx*dx + dy*dy) + dz*dz < r2 and union(i, j) on a lock-free
-//                        union-find (find with path halving; roots hooked larger-under-smaller
-//                        by CAS). One hit per (point, cell) suffices, B being one set.
+//   insert   per point   claim a hash slot for the point's coarse cell (linear probing, at
+//                        most max_probes, overflow flag otherwise; the claiming thread also
+//                        numbers the cell: cells[] lists the occupied cells) and push the
+//                        point on the slot's list
+//   summary  per cell    walk the cell's list once: per octant its bounding box, smallest
+//                        point index and its own list (the sub-cells, numbered in subs[])
+//   seed     per point   parent[i] = smallest index of i's sub-cell (one set from the start)
+//   hook     per cell    the cell's sub-cell pairs, then the 13 coarse cells that follow it in
+//                        (z, y, x) order (each pair of cells once), skipping cells out of reach
+//                        of the cell's box: a pair of sub-cells is joined when their boxes'
+//                        farthest corners are neighbours, skipped when their nearest corners
+//                        are not, else by testing point pairs, (dx*dx + dy*dy) + dz*dz < r2,
+//                        until the first hit; unions on a lock-free union-find (find with path
+//                        halving; roots hooked larger-under-smaller by CAS)
 //   compress per point   parent[i] = root(i)
-// Roots are only ever hooked under smaller roots and each cell starts under its smallest
+// Roots are only ever hooked under smaller roots and each sub-cell starts under its smallest
 // point, so each final root is the smallest point index of its component: the canonical id
-// the CPU reference produces too. Every loop is
-// bounded; a pass that hits a bound sets status[STATUS_INCOMPLETE] and the host re-submits
-// hook + compress (the union-find is monotone, so repeating it is safe). No thread ever waits
-// on another one. The slot table and status are cleared with clear_buffer by the host.
+// the CPU reference produces too. Every loop is bounded; a pass that hits a bound sets
+// status[STATUS_INCOMPLETE] and the host re-submits hook + compress (the union-find is
+// monotone, so repeating it is safe). No thread ever waits on another one. The slot table and
+// status are cleared with clear_buffer by the host.
+// llvmpipe (lavapipe) ends every loop of an invocation once all its loops together have run
+// 65535 iterations; a list walk that ends before its list does sets STATUS_DENSE_CELL (summary:
+// the labels would be wrong) or STATUS_INCOMPLETE (a point-pair scan: re-submitted).
 // Uses common.wgsl (prepended): NONE, WORKGROUP_SIZE, finite_point, hash_u32.
 
 struct ClusterParams {
-    // 1 / cell size; cell size = tolerance * CELL_MARGIN / 2 (host side), metres^-1.
+    // 1 / fine cell size; fine cell size = tolerance * CELL_MARGIN / 2 (host side), metres^-1.
     inv_cell: f32,
     // f32(tolerance)^2, the strict neighbour threshold, m^2.
     r2: f32,
@@ -41,24 +50,50 @@ struct ClusterParams {
     capacity: u32,
     // Index of the point count in point_count (the voxel header, or a buffer of its own).
     count_word: u32,
-    // Squared distance, in cells, beyond which a cell cannot hold a neighbour of a point
+    // Squared distance, in fine cells, beyond which a cell cannot hold a neighbour of a point
     // (host: (2 / CELL_MARGIN + 2 * 0.008 rounding + margin)^2).
     reach2_cells: f32,
+    // Box tests between sub-cells, m^2: r2 * (1 + margin) and r2 * (1 - margin), the margin
+    // far above the f32 rounding of a box distance (host: BOX_MARGIN).
+    r2_apart: f32,
+    r2_joined: f32,
+    _pad: vec2<u32>,
 }
 
 struct Slot {
-    // 1 + index of the point that claimed the slot for its cell; 0 = empty.
+    // 1 + index of the point that claimed the slot for its coarse cell; 0 = empty.
     rep: atomic<u32>,
     // 1 + index of the first point of the cell's list; 0 = empty list.
     head: atomic<u32>,
-    // ~(smallest point index of the cell) (atomicMax on a cleared slot).
-    low: atomic<u32>,
+    // 1 + the cell's index in cells[] (written by the claiming thread; read by later passes).
+    cell: atomic<u32>,
 }
 
 struct PointInfo {
+    // Fine cell of the point.
     cell: vec3<i32>,
-    // 1 + index of the next point in the same cell; 0 = end of list.
+    // 1 + index of the next point in the same list (the coarse cell's after insert, the
+    // sub-cell's after summary); 0 = end of list.
     next: u32,
+}
+
+struct Cell {
+    coarse: vec3<i32>,
+    slot: u32,
+    // Index of the cell's first sub-cell in subs[]; its sub-cells follow in octant order.
+    first_sub: u32,
+    // Bit o set when octant o holds points.
+    octants: u32,
+    _pad: vec2<u32>,
+}
+
+struct SubCell {
+    lo: vec3<f32>,
+    // Smallest point index of the sub-cell.
+    low: u32,
+    hi: vec3<f32>,
+    // 1 + index of the first point of the sub-cell's list.
+    head: u32,
 }
 
 // Bounds of the union-find loops (a hit sets STATUS_INCOMPLETE, the host re-submits).
@@ -72,6 +107,10 @@ const GRID_LIMIT: f32 = 65536.0;
 const STATUS_OVERFLOW: u32 = 0u;
 const STATUS_INCOMPLETE: u32 = 1u;
 const STATUS_OUT_OF_RANGE: u32 = 2u;
+const STATUS_DENSE_CELL: u32 = 3u;
+// Counters after the status words (not cleared when the host re-submits hook + compress).
+const CELL_COUNT: u32 = 4u;
+const SUB_COUNT: u32 = 5u;
 
 @group(0) @binding(0) var<uniform> params: ClusterParams;
 @group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
@@ -79,20 +118,33 @@ const STATUS_OUT_OF_RANGE: u32 = 2u;
 @group(0) @binding(3) var<storage, read_write> slots: array<Slot>;
 @group(0) @binding(4) var<storage, read_write> info: array<PointInfo>;
 @group(0) @binding(5) var<storage, read_write> parent: array<atomic<u32>>;
-@group(0) @binding(6) var<storage, read_write> status: array<atomic<u32>, 4>;
+@group(0) @binding(6) var<storage, read_write> status: array<atomic<u32>, 8>;
+@group(0) @binding(7) var<storage, read_write> cells: array<Cell>;
+@group(0) @binding(8) var<storage, read_write> subs: array<SubCell>;
 @group(1) @binding(0) var<storage, read_write> dispatch_args: array<u32, 3>;
 
 fn count() -> u32 {
     return min(point_count[params.count_word], params.capacity);
 }
 
-// Cell of a finite point, or false when it lies outside the grid's range.
+// Fine cell of a finite point, or false when it lies outside the grid's range.
 fn cell_in_range(p: vec3<f32>) -> bool {
     return all(abs(floor(p * params.inv_cell)) < vec3<f32>(GRID_LIMIT));
 }
 
 fn cell_of(p: vec3<f32>) -> vec3<i32> {
     return vec3<i32>(floor(p * params.inv_cell));
+}
+
+// Coarse cell of a fine cell (arithmetic shift: floor division by 2).
+fn coarse_of(fine: vec3<i32>) -> vec3<i32> {
+    return fine >> vec3<u32>(1u);
+}
+
+// Octant of a fine cell in its coarse cell: bits x, y, z.
+fn octant_of(fine: vec3<i32>) -> u32 {
+    let b = bitcast<vec3<u32>>(fine) & vec3<u32>(1u);
+    return b.x | (b.y << 1u) | (b.z << 2u);
 }
 
 fn hash(c: vec3<i32>) -> u32 {
@@ -133,8 +185,9 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
         atomicOr(&status[STATUS_OUT_OF_RANGE], 1u);
         return;
     }
-    let c = cell_of(p);
-    info[i].cell = c;
+    let fine = cell_of(p);
+    info[i].cell = fine;
+    let c = coarse_of(fine);
     let h = hash(c);
     var probe = 0u;
     // Bounded: at most max_probes slots, each tried at most twice (a weak compare-exchange
@@ -148,14 +201,18 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
         var owner = r.old_value;
         if r.exchanged {
             owner = i + 1u;
+            // A cell has at least one point: at most `count` cells.
+            let k = atomicAdd(&status[CELL_COUNT], 1u);
+            atomicStore(&slots[s].cell, k + 1u);
+            cells[k].coarse = c;
+            cells[k].slot = s;
         } else if owner == 0u {
             continue;
         }
         // The owner's cell is recomputed from the read-only input, never read from info[]:
         // another workgroup's plain stores are not ordered with its atomics.
-        if all(cell_of(points[owner - 1u].xyz) == c) {
+        if all(coarse_of(cell_of(points[owner - 1u].xyz)) == c) {
             info[i].next = atomicExchange(&slots[s].head, i + 1u);
-            atomicMax(&slots[s].low, ~i);
             return;
         }
         probe += 1u;
@@ -163,7 +220,81 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
     atomicOr(&status[STATUS_OVERFLOW], 1u);
 }
 
-// Slot of cell c, or NONE (reads info[].cell written by the insert dispatch).
+// The cells numbered by insert (at most count()).
+fn cell_count() -> u32 {
+    return min(atomicLoad(&status[CELL_COUNT]), count());
+}
+
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn summary(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let k = gid.x;
+    if k >= cell_count() {
+        return;
+    }
+    let n = count();
+    var lo: array<vec3<f32>, 8>;
+    var hi: array<vec3<f32>, 8>;
+    var low: array<u32, 8>;
+    var head: array<u32, 8>;
+    for (var o = 0u; o < 8u; o++) {
+        lo[o] = vec3<f32>(3.0e38);
+        hi[o] = vec3<f32>(-3.0e38);
+        low[o] = NONE;
+        head[o] = 0u;
+    }
+    var octants = 0u;
+    // The coarse list becomes one list per octant (a list holds at most n points).
+    var link = atomicLoad(&slots[cells[k].slot].head);
+    for (var step = 0u; step < n && link != 0u; step++) {
+        let j = link - 1u;
+        let o = octant_of(info[j].cell);
+        link = info[j].next;
+        let p = points[j].xyz;
+        lo[o] = min(lo[o], p);
+        hi[o] = max(hi[o], p);
+        low[o] = min(low[o], j);
+        info[j].next = head[o];
+        head[o] = j + 1u;
+        octants |= 1u << o;
+    }
+    if link != 0u {
+        atomicOr(&status[STATUS_DENSE_CELL], 1u);
+    }
+    let first = atomicAdd(&status[SUB_COUNT], countOneBits(octants));
+    cells[k].first_sub = first;
+    cells[k].octants = octants;
+    var at = first;
+    for (var o = 0u; o < 8u; o++) {
+        if (octants & (1u << o)) == 0u {
+            continue;
+        }
+        subs[at] = SubCell(lo[o], low[o], hi[o], head[o]);
+        at += 1u;
+    }
+}
+
+// Each sub-cell is one set from the start, under its smallest point.
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn seed(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if i >= count() {
+        return;
+    }
+    let p = points[i].xyz;
+    if !finite_point(p) || !cell_in_range(p) {
+        return;
+    }
+    let fine = info[i].cell;
+    let s = find_slot(coarse_of(fine));
+    if s == NONE {
+        return;
+    }
+    let cell = cells[atomicLoad(&slots[s].cell) - 1u];
+    let below = cell.octants & ((1u << octant_of(fine)) - 1u);
+    atomicStore(&parent[i], subs[cell.first_sub + countOneBits(below)].low);
+}
+
+// Slot of coarse cell c, or NONE (reads info[].cell written by the insert dispatch).
 fn find_slot(c: vec3<i32>) -> u32 {
     let h = hash(c);
     for (var probe = 0u; probe < params.max_probes; probe++) {
@@ -172,7 +303,7 @@ fn find_slot(c: vec3<i32>) -> u32 {
         if rep == 0u {
             return NONE;
         }
-        if all(info[rep - 1u].cell == c) {
+        if all(coarse_of(info[rep - 1u].cell) == c) {
             return s;
         }
     }
@@ -197,9 +328,8 @@ fn find_root(x: u32) -> u32 {
     return NONE;
 }
 
-// Unites the sets of a and b; returns a member of the united set (the root it hooked
-// under, or their common root), or `a` when a bound was hit.
-fn unite(a: u32, b: u32) -> u32 {
+// Unites the sets of a and b (a bound hit sets STATUS_INCOMPLETE).
+fn unite(a: u32, b: u32) {
     var ra = find_root(a);
     var rb = find_root(b);
     for (var attempt = 0u; attempt < MAX_HOOK; attempt++) {
@@ -207,86 +337,112 @@ fn unite(a: u32, b: u32) -> u32 {
             break;
         }
         if ra == rb {
-            return ra;
+            return;
         }
         let lo = min(ra, rb);
         let hi = max(ra, rb);
         // Hook only while hi is still a root; otherwise someone hooked it: look again.
         if atomicCompareExchangeWeak(&parent[hi], hi, lo).exchanged {
-            return lo;
+            return;
         }
         ra = find_root(lo);
         rb = find_root(hi);
     }
     atomicOr(&status[STATUS_INCOMPLETE], 1u);
-    return a;
 }
 
-// The cell of a finite, in-range point (its slot), or NONE.
-fn own_slot(i: u32) -> u32 {
-    let p = points[i].xyz;
-    if !finite_point(p) || !cell_in_range(p) {
-        return NONE;
+// Squared distance between the nearest corners of two boxes.
+fn near2(a_lo: vec3<f32>, a_hi: vec3<f32>, b_lo: vec3<f32>, b_hi: vec3<f32>) -> f32 {
+    let gap = max(max(b_lo - a_hi, a_lo - b_hi), vec3<f32>(0.0));
+    return dot(gap, gap);
+}
+
+// True when some point of a's list and some point of b's list are neighbours (a walk cut
+// short sets STATUS_INCOMPLETE).
+fn lists_touch(a_head: u32, b_head: u32) -> bool {
+    let n = count();
+    var a = a_head;
+    for (var sa = 0u; sa < n && a != 0u; sa++) {
+        let p = points[a - 1u].xyz;
+        var b = b_head;
+        for (var sb = 0u; sb < n && b != 0u; sb++) {
+            if is_neighbour(p, points[b - 1u].xyz) {
+                return true;
+            }
+            b = info[b - 1u].next;
+        }
+        if b != 0u {
+            break;
+        }
+        a = info[a - 1u].next;
     }
-    return find_slot(cell_of(p));
+    if a != 0u {
+        atomicOr(&status[STATUS_INCOMPLETE], 1u);
+    }
+    return false;
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn seed(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let i = gid.x;
-    if i >= count() {
+// Joins sub-cells a and b when they hold a neighbour pair: decided by their boxes when those
+// are far enough apart or close enough together, else by the first neighbour pair.
+fn join_if_touching(a: SubCell, b: SubCell) {
+    if near2(a.lo, a.hi, b.lo, b.hi) > params.r2_apart {
         return;
     }
-    let s = own_slot(i);
-    if s != NONE {
-        atomicStore(&parent[i], ~atomicLoad(&slots[s].low));
+    let ra = find_root(a.low);
+    if ra != NONE && ra == find_root(b.low) {
+        return;
+    }
+    let span = max(b.hi - a.lo, a.hi - b.lo);
+    if dot(span, span) < params.r2_joined || lists_touch(a.head, b.head) {
+        unite(a.low, b.low);
     }
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let n = count();
-    let i = gid.x;
-    if i >= n {
+    let k = gid.x;
+    if k >= cell_count() {
         return;
     }
-    let p = points[i].xyz;
-    if !finite_point(p) || !cell_in_range(p) {
-        return;
+    let cell = cells[k];
+    let count_a = countOneBits(cell.octants);
+    var own: array<SubCell, 8>;
+    var box_lo = vec3<f32>(3.0e38);
+    var box_hi = vec3<f32>(-3.0e38);
+    for (var a = 0u; a < count_a; a++) {
+        own[a] = subs[cell.first_sub + a];
+        box_lo = min(box_lo, own[a].lo);
+        box_hi = max(box_hi, own[a].hi);
+        for (var b = 0u; b < a; b++) {
+            join_if_touching(own[b], own[a]);
+        }
     }
-    let c = cell_of(p);
-    // i's position inside its cell, in cells.
-    let f = p * params.inv_cell - floor(p * params.inv_cell);
-    // A known member of i's set, kept close to its root.
-    var member = i;
-    // Half stencil: the 62 cells that follow i's own (k = 62) in (z, y, x) order. A pair of
-    // neighbouring cells is scanned from the points of the earlier one only.
-    for (var k = 63u; k < 125u; k++) {
-        let offset = vec3<i32>(i32(k % 5u) - 2, i32(k / 5u % 5u) - 2, i32(k / 25u) - 2);
-        // Per axis, the gap from i to the cell (0 along an axis where the cell is level).
-        let o = vec3<f32>(offset);
-        let gap = max(max(o - f, -o - vec3<f32>(1.0) + f), vec3<f32>(0.0));
-        if dot(gap, gap) > params.reach2_cells {
+    // The cell's box in fine cells (rounded like cell_of).
+    let cells_lo = box_lo * params.inv_cell;
+    let cells_hi = box_hi * params.inv_cell;
+    // The 13 coarse cells that follow this one in (z, y, x) order.
+    for (var t = 14u; t < 27u; t++) {
+        let offset = vec3<i32>(i32(t % 3u) - 1, i32(t / 3u % 3u) - 1, i32(t / 9u) - 1);
+        let other = cell.coarse + offset;
+        // Gap from the box to the other cell's fine cells [2 other, 2 other + 2), in cells.
+        let other_lo = vec3<f32>(2 * other);
+        if near2(cells_lo, cells_hi, other_lo, other_lo + vec3<f32>(2.0)) > params.reach2_cells {
             continue;
         }
-        let s = find_slot(c + offset);
+        let s = find_slot(other);
         if s == NONE {
             continue;
         }
-        // Sets never split: a cell whose smallest point has member's parent is joined.
-        let low = ~atomicLoad(&slots[s].low);
-        if atomicLoad(&parent[low]) == atomicLoad(&parent[member]) {
-            continue;
-        }
-        var link = atomicLoad(&slots[s].head);
-        // A list holds at most n points.
-        for (var step = 0u; step < n && link != 0u; step++) {
-            let j = link - 1u;
-            if is_neighbour(p, points[j].xyz) {
-                member = unite(member, j);
-                break;
+        let cell_b = cells[atomicLoad(&slots[s].cell) - 1u];
+        let count_b = countOneBits(cell_b.octants);
+        for (var b = 0u; b < count_b; b++) {
+            let sub_b = subs[cell_b.first_sub + b];
+            if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
+                continue;
             }
-            link = info[j].next;
+            for (var a = 0u; a < count_a; a++) {
+                join_if_touching(own[a], sub_b);
+            }
         }
     }
 }

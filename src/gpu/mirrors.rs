@@ -147,6 +147,10 @@ pub struct ClusterParams {
     pub count_word: u32,
     /// Squared distance, in cells, beyond which a cell cannot hold a neighbour.
     pub reach2_cells: f32,
+    /// Box tests between sub-cells: r2 * (1 + margin) and r2 * (1 - margin), m^2.
+    pub r2_apart: f32,
+    pub r2_joined: f32,
+    pub _pad: [u32; 2],
 }
 
 /// A mirrored struct: its WGSL name, the shader declaring it, and the Rust layout.

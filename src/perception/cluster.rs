@@ -24,9 +24,10 @@
 //!   over the sub-cells of neighbouring cells with the exact predicate above
 //!   ([`is_neighbour`]); O(n log n) for any cloud whose sub-cells are not dense on both sides
 //!   of a tolerance-wide gap.
-//! * GPU ([`GpuClusterer`], `shaders/cluster.wgsl`): a spatial hash grid whose cells are a bit
-//!   larger than the tolerance (so every neighbour lies in one of the 27 surrounding cells),
-//!   then a lock-free union-find over the neighbour edges (ECL-CC style: bounded `find` with
+//! * GPU ([`GpuClusterer`], `shaders/cluster.wgsl`): the same coarse cells and sub-cells
+//!   (`f32` cell coordinates, hence the wider [`CELL_MARGIN`]) in a spatial hash of the coarse
+//!   cells, one thread per coarse cell joining its sub-cells with those of the 13 cells after
+//!   it as the CPU reference does, on a lock-free union-find (ECL-CC style: bounded `find` with
 //!   path halving, roots hooked larger-under-smaller with compare-and-swap), then pointer
 //!   jumping until every point holds its root. Hooking larger roots under smaller ones makes
 //!   each root the smallest index of its component, i.e. the canonical id. Every loop is
@@ -53,6 +54,11 @@ pub enum ClusterError {
          cell); the labels would be wrong, so none are returned"
     )]
     HashOverflow { slots: u32, max_probes: u32 },
+    #[error(
+        "a GPU cluster cell holds more points than the driver lets one shader invocation walk \
+         (lavapipe: 65535 loop iterations); the labels would be wrong, so none are returned"
+    )]
+    DenseCell,
     #[error(
         "a point lies more than {limit_cells} cells ({limit_m:.1} m at this tolerance) from the \
          origin; the GPU grid cannot place it exactly"
@@ -425,16 +431,22 @@ pub const CELL_MARGIN: f32 = 1.05;
 const REACH_CELLS: f32 = 2.0 / CELL_MARGIN + 0.02;
 /// `GRID_LIMIT` in the shader: largest |cell coordinate| the GPU grid accepts.
 pub const GRID_LIMIT_CELLS: f32 = 65536.0;
-/// Bytes of one `Slot` in the shader (`rep`, `head`, `low`).
+/// Bytes of one `Slot` in the shader (`rep`, `head`, `cell`).
 const SLOT_BYTES: u64 = 12;
 /// Bytes of one `PointInfo` in the shader (`cell: vec3<i32>`, `next`).
 const INFO_BYTES: u64 = 16;
-/// Bytes of the `status` array (overflow, incomplete, out of range, spare).
+/// Bytes of one `Cell` and of one `SubCell` in the shader (at most one of each per point).
+const CELL_BYTES: u64 = 32;
+const SUB_CELL_BYTES: u64 = 32;
+/// Bytes of the status words read back (overflow, incomplete, out of range, dense cell).
 const STATUS_BYTES: u64 = 16;
+/// Bytes of the `status` buffer: the status words, then the cell and sub-cell counters.
+const STATUS_BUFFER_BYTES: u64 = 32;
 /// Status words, as in the shader.
 const STATUS_OVERFLOW: usize = 0;
 const STATUS_INCOMPLETE: usize = 1;
 const STATUS_OUT_OF_RANGE: usize = 2;
+const STATUS_DENSE_CELL: usize = 3;
 /// The shader's union-find passes are bounded; this many submissions are enough for any
 /// cloud we have seen by a wide margin (one nearly always suffices).
 const MAX_SUBMISSIONS: u32 = 16;
@@ -456,6 +468,8 @@ struct ClusterBuffers {
     info: wgpu::Buffer,
     parent: wgpu::Buffer,
     status: wgpu::Buffer,
+    cells: wgpu::Buffer,
+    subs: wgpu::Buffer,
     dispatch_args: wgpu::Buffer,
     args_group: wgpu::BindGroup,
 }
@@ -490,6 +504,7 @@ pub struct GpuClusterer {
     args_layout: wgpu::BindGroupLayout,
     prepare: wgpu::ComputePipeline,
     insert: wgpu::ComputePipeline,
+    summary: wgpu::ComputePipeline,
     seed: wgpu::ComputePipeline,
     hook: wgpu::ComputePipeline,
     compress: wgpu::ComputePipeline,
@@ -512,6 +527,8 @@ impl GpuClusterer {
                 Storage,
                 Storage,
                 Storage,
+                Storage,
+                Storage,
             ],
         )?;
         let args_layout =
@@ -527,12 +544,16 @@ impl GpuClusterer {
             ctx,
             &shader::CLUSTER,
             &[&layout],
-            &["insert", "seed", "hook", "compress"],
+            &["insert", "summary", "seed", "hook", "compress"],
         )?
         .into_iter();
-        let (Some(insert), Some(seed), Some(hook), Some(compress)) =
-            (passes.next(), passes.next(), passes.next(), passes.next())
-        else {
+        let (Some(insert), Some(summary), Some(seed), Some(hook), Some(compress)) = (
+            passes.next(),
+            passes.next(),
+            passes.next(),
+            passes.next(),
+            passes.next(),
+        ) else {
             unreachable!("compute_pipelines returns one pipeline per entry point");
         };
         let timer = StageTimer::new(ctx, "cluster", &TIMED_PASSES)?;
@@ -541,6 +562,7 @@ impl GpuClusterer {
             args_layout,
             prepare,
             insert,
+            summary,
             seed,
             hook,
             compress,
@@ -560,6 +582,8 @@ impl GpuClusterer {
                 &b.info,
                 &b.parent,
                 &b.status,
+                &b.cells,
+                &b.subs,
                 &b.dispatch_args,
             ]
             .iter()
@@ -596,15 +620,19 @@ impl GpuClusterer {
             self.buffers = Some(self.allocate(ctx, capacity, table_slots)?);
         }
         let b = self.buffers.as_mut().expect("allocated above");
+        let r2 = config.tolerance_squared();
         b.params_value = ClusterParams {
             inv_cell: 2.0 / (config.tolerance_m * CELL_MARGIN),
-            r2: config.tolerance_squared(),
+            r2,
             one: 1.0,
             table_mask: b.table_slots - 1,
             max_probes: config.gpu_hash_max_probes,
             capacity: b.capacity,
             count_word: 0,
             reach2_cells: REACH_CELLS * REACH_CELLS,
+            r2_apart: (f64::from(r2) * (1.0 + BOX_MARGIN)) as f32,
+            r2_joined: (f64::from(r2) * (1.0 - BOX_MARGIN)) as f32,
+            _pad: [0; 2],
         };
         Ok(())
     }
@@ -621,6 +649,8 @@ impl GpuClusterer {
             ("cluster points", n * 16),
             ("cluster slots", u64::from(table_slots) * SLOT_BYTES),
             ("cluster point info", n * INFO_BYTES),
+            ("cluster cells", n * CELL_BYTES),
+            ("cluster sub-cells", n * SUB_CELL_BYTES),
         ];
         for (what, bytes) in sizes {
             ctx.check_storage_size(what, bytes)?;
@@ -663,9 +693,11 @@ impl GpuClusterer {
                 parent: buffer("cluster labels", n * 4, U::STORAGE | U::COPY_SRC),
                 status: buffer(
                     "cluster status",
-                    STATUS_BYTES,
+                    STATUS_BUFFER_BYTES,
                     U::STORAGE | U::COPY_SRC | U::COPY_DST,
                 ),
+                cells: buffer("cluster cells", n * CELL_BYTES, U::STORAGE),
+                subs: buffer("cluster sub-cells", n * SUB_CELL_BYTES, U::STORAGE),
                 dispatch_args,
                 args_group,
             }
@@ -699,7 +731,8 @@ impl GpuClusterer {
     }
 
     /// Records the clustering of `input` into the frame's encoder: table and status cleared
-    /// with `clear_buffer`, then prepare + insert, hook, compress as timed compute passes.
+    /// with `clear_buffer`, then prepare + insert + summary, hook, compress as timed compute
+    /// passes.
     pub fn encode(
         &self,
         ctx: &GpuContext,
@@ -717,7 +750,7 @@ impl GpuClusterer {
         encoder.clear_buffer(&b.slots, 0, None);
         encoder.clear_buffer(&b.status, 0, None);
         let stages: [&[&wgpu::ComputePipeline]; 3] = [
-            &[&self.prepare, &self.insert, &self.seed],
+            &[&self.prepare, &self.insert, &self.summary, &self.seed],
             &[&self.hook],
             &[&self.compress],
         ];
@@ -810,6 +843,9 @@ impl GpuClusterer {
                 max_probes: config.gpu_hash_max_probes,
             });
         }
+        if status[STATUS_DENSE_CELL] != 0 {
+            return Err(ClusterError::DenseCell);
+        }
         if status[STATUS_OUT_OF_RANGE] != 0 {
             return Err(ClusterError::OutOfGridRange {
                 limit_cells: GRID_LIMIT_CELLS,
@@ -848,7 +884,8 @@ impl GpuClusterer {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("cluster re-submit"),
             });
-        encoder.clear_buffer(&b.status, 0, None);
+        // The status words only: the cell and sub-cell counters stay.
+        encoder.clear_buffer(&b.status, 0, Some(STATUS_BYTES));
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("cluster hook + compress (re-submit)"),
@@ -897,6 +934,8 @@ impl GpuClusterer {
             b.info.as_entire_binding(),
             b.parent.as_entire_binding(),
             b.status.as_entire_binding(),
+            b.cells.as_entire_binding(),
+            b.subs.as_entire_binding(),
         ];
         Ok(ctx.scoped("cluster bind group", |device| {
             let entries: Vec<wgpu::BindGroupEntry> = resources
@@ -1169,6 +1208,8 @@ mod tests {
         };
         assert_eq!(size_of("Slot"), SLOT_BYTES);
         assert_eq!(size_of("PointInfo"), INFO_BYTES);
+        assert_eq!(size_of("Cell"), CELL_BYTES);
+        assert_eq!(size_of("SubCell"), SUB_CELL_BYTES);
     }
 
     /// Tens of thousands of coincident and nearly coincident points: the same labels as the
@@ -1191,6 +1232,23 @@ mod tests {
             let gpu = cluster_gpu(&pts, &cfg).unwrap();
             assert_eq!(gpu.component, cpu.component);
         }
+    }
+
+    /// More coincident points than lavapipe lets one invocation walk: the right labels or
+    /// the error that says why none are returned, never wrong labels.
+    #[test]
+    fn gpu_a_cell_too_dense_to_walk_is_an_error_not_wrong_labels() {
+        let cfg = config(0.02, 1, 100_000);
+        let mut pts = vec![Vec3::new(0.5, -0.25, 1.0); 70_000];
+        pts.push(Vec3::new(0.51, -0.25, 1.0));
+        pts.push(Vec3::new(2.0, 0.0, 0.0));
+        let cpu = cluster_cpu(&pts, &cfg).unwrap();
+        match cluster_gpu(&pts, &cfg) {
+            Ok(gpu) => assert_eq!(gpu, cpu),
+            Err(e) => assert!(matches!(e, ClusterError::DenseCell), "{e}"),
+        }
+        // The clusterer recovers.
+        assert_gpu_matches_cpu(&pts[70_000..], &cfg);
     }
 
     #[test]
