@@ -265,3 +265,52 @@ impl Drop for RealtimeGuard {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn out_of_range_settings_are_errors_naming_them() {
+        assert_eq!(RealtimeConfig::default().validate(), Ok(()));
+        let bad = |config: RealtimeConfig, name: &str| {
+            let e = config.validate().unwrap_err();
+            assert!(e.contains(name), "{e}");
+        };
+        bad(
+            RealtimeConfig {
+                fifo_priority: 100,
+                ..Default::default()
+            },
+            "realtime.fifo_priority",
+        );
+        bad(
+            RealtimeConfig {
+                spin_us: RealtimeConfig::MAX_SPIN_US + 1,
+                ..Default::default()
+            },
+            "realtime.spin_us",
+        );
+        bad(
+            RealtimeConfig {
+                cpu: Some(libc::CPU_SETSIZE as usize),
+                ..Default::default()
+            },
+            "realtime.cpu",
+        );
+    }
+
+    /// The wait turns instants into CLOCK_MONOTONIC timespecs: a deadline a few ms ahead is
+    /// reached by sleeping, and one already past returns at once (no sleep to a wrapped time).
+    #[test]
+    fn the_wait_returns_at_its_deadline_and_at_once_for_a_past_one() {
+        let wait = DeadlineWait::new(Duration::ZERO);
+        let deadline = Instant::now() + Duration::from_millis(3);
+        wait.until(deadline);
+        assert!(Instant::now() >= deadline);
+        let past = Instant::now() - Duration::from_millis(5);
+        let before = Instant::now();
+        wait.until(past);
+        assert!(before.elapsed() < Duration::from_secs(1));
+    }
+}
