@@ -133,8 +133,9 @@ impl RealtimeGuard {
                 Err(e) => self.status.refused.push(format!("CPU {cpu}: {e}")),
             }
         }
+        let slack_ns: libc::c_ulong = 1;
         // SAFETY: a prctl on the calling thread with an integer argument.
-        if unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, 1 as libc::c_ulong) } != 0 {
+        if unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, slack_ns) } != 0 {
             self.status.refused.push(format!(
                 "timer slack 1 ns: {}",
                 std::io::Error::last_os_error()
