@@ -6,8 +6,10 @@
 //! (the caller counts it), never the new one and never another camera's: one fast or
 //! flooding camera cannot starve the others. A queued old frame only adds queueing latency
 //! between a camera's stamp and the constraint that uses it, and fusion prefers the freshest
-//! estimate. Perception takes frames in arrival order over all cameras, so every camera is
-//! served. std's `sync_channel` can only refuse the new frame when full, so this is a
+//! estimate. Perception takes frames in turn over all cameras: a camera keeps its place in
+//! line while its frames are replaced (the newest frame takes the place of the one it drops),
+//! so cameras whose frames arrive together are served alike however far perception is behind.
+//! std's `sync_channel` can only refuse the new frame when full, so this is a
 //! `Mutex<VecDeque>` with a `Condvar` (no crate needed for a few lines); the consumer blocks
 //! on the condition variable, never spins. Memory: at most `per_camera` frames per camera.
 //!
@@ -57,8 +59,10 @@ impl<T> FrameQueue<T> {
     }
 
     /// Queues `camera`'s `item`. When that camera's slots are full, its oldest queued item is
-    /// removed first and returned (`Ok(Some(oldest))`: the caller counts the drop for
-    /// `camera`); other cameras' items stay.
+    /// dropped and returned (`Ok(Some(oldest))`: the caller counts the drop for `camera`);
+    /// the camera keeps its places in line: its queued items move up one of its places and
+    /// `item` takes its last, so a camera whose frames are replaced is not sent behind the
+    /// cameras that arrived after its oldest frame. Other cameras' items stay.
     pub fn push(&self, camera: u32, item: T) -> Result<Option<T>, Closed<T>> {
         let mut state = self.lock();
         if state.closed {
@@ -66,16 +70,21 @@ impl<T> FrameQueue<T> {
         }
         let queued = state.items.iter().filter(|(c, _)| *c == camera).count();
         let evicted = if queued >= self.per_camera {
-            state
-                .items
-                .iter()
-                .position(|(c, _)| *c == camera)
-                .and_then(|i| state.items.remove(i))
-                .map(|(_, old)| old)
+            // Bubble the camera's oldest item to its last place, then replace it there.
+            let mut place = None;
+            for i in 0..state.items.len() {
+                if state.items[i].0 == camera {
+                    if let Some(previous) = place {
+                        state.items.swap(previous, i);
+                    }
+                    place = Some(i);
+                }
+            }
+            place.map(|last| std::mem::replace(&mut state.items[last].1, item))
         } else {
+            state.items.push_back((camera, item));
             None
         };
-        state.items.push_back((camera, item));
         drop(state);
         self.ready.notify_one();
         Ok(evicted)
@@ -162,6 +171,43 @@ mod tests {
         assert_eq!(q.push(1, (1, 2)), Ok(None));
         assert_eq!(q.push(0, (0, 1002)), Ok(Some((0, 1000))));
         assert_eq!(q.push(1, (1, 3)), Ok(Some((1, 1))));
+    }
+
+    /// Two cameras whose frames arrive together (camera 0's first) and a consumer that takes
+    /// one frame per arrival: both cameras are served alike. Sending a replaced frame to the
+    /// back of the line gave camera 0 every frame and camera 1 none.
+    #[test]
+    fn cameras_arriving_together_share_a_slow_consumer_alike() {
+        let q = FrameQueue::new(1);
+        let mut served = [0u32; 2];
+        let mut dropped = [0u32; 2];
+        for n in 0..100 {
+            for camera in [0, 1] {
+                if let Some((c, _)) = q.push(camera, (camera, n)).unwrap() {
+                    dropped[c as usize] += 1;
+                }
+            }
+            let (camera, _) = q.pop().unwrap();
+            served[camera as usize] += 1;
+        }
+        assert_eq!(served, [50, 50]);
+        assert_eq!(dropped, [49, 50]);
+    }
+
+    /// A replaced frame keeps its camera's place in line, and the camera's other queued
+    /// frames keep their order.
+    #[test]
+    fn a_replaced_frame_keeps_its_cameras_place_in_line() {
+        let q = FrameQueue::new(2);
+        q.push(1, 'a').unwrap();
+        q.push(0, 'b').unwrap();
+        q.push(1, 'c').unwrap();
+        q.push(0, 'd').unwrap();
+        assert_eq!(q.push(1, 'e'), Ok(Some('a')));
+        assert_eq!(q.pop(), Some('c'));
+        assert_eq!(q.pop(), Some('b'));
+        assert_eq!(q.pop(), Some('e'));
+        assert_eq!(q.pop(), Some('d'));
     }
 
     #[test]

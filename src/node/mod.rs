@@ -222,13 +222,7 @@ impl NodeConfig {
             )));
         }
         self.can.validate().map_err(NodeError::Config)?;
-        if self.realtime.fifo_priority > 99 {
-            return Err(NodeError::Config(format!(
-                "realtime.fifo_priority must be 0 (off) to 99, got {}",
-                self.realtime.fifo_priority
-            )));
-        }
-        Ok(())
+        self.realtime.validate().map_err(NodeError::Config)
     }
 }
 
@@ -471,9 +465,12 @@ pub fn run(
             })
         });
         // SCHED_FIFO for this thread only, asked for after the workers were spawned.
-        realtime.fifo(&config.realtime);
+        realtime.loop_thread(&config.realtime);
         ticks.run(|| perception_handle.is_finished());
-        ticks.stats.realtime = realtime.status.clone();
+        ticks.stats.realtime = RealtimeStatus {
+            page_faults_after_warmup: ticks.stats.realtime.page_faults_after_warmup,
+            ..realtime.status.clone()
+        };
         shared.stop.store(true, Ordering::Release);
         // A failed worker or a stop from outside: the safe command goes out at once.
         let can = ticks.finish_outputs(shared.failure().is_some() || ticks.stats.stopped_early);

@@ -141,6 +141,13 @@ fn node_tracks_a_moving_plane_from_two_cameras() {
     );
     assert!(summary.latency_ms.p50 > 0.0 && summary.latency_ms.p99 >= summary.latency_ms.p50);
     assert_eq!(summary.backend, Backend::Cpu);
+    // The loop thread's page faults are counted from its first second of ticks on.
+    assert_eq!(
+        summary.realtime.page_faults_after_warmup.is_some(),
+        summary.ticks >= 800,
+        "{:?}",
+        summary.realtime
+    );
 }
 
 #[test]

@@ -10,6 +10,7 @@
 
 use super::can_out::{self, CanCounters, CanThread};
 use super::haptic_loop::{ControlLoop, RobotInput};
+use super::realtime::{DeadlineWait, thread_page_faults};
 use super::record::TickRecorder;
 use super::robot_state::RobotState;
 use super::summary::LoopStats;
@@ -66,6 +67,8 @@ struct Between {
     misses_since_status: bool,
     /// To the thread printing the progress lines (printing may block on a full pipe).
     progress: Option<SyncSender<Progress>>,
+    /// The loop thread's page faults after its first second of ticks.
+    faults_at_warmup: Option<u64>,
 }
 
 /// Cameras a progress line shows (more are counted in the summary only).
@@ -156,12 +159,17 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
             progress_t: self.t_first,
             misses_since_status: false,
             progress,
+            faults_at_warmup: None,
         };
+        let wait = DeadlineWait::new(Duration::from_micros(u64::from(
+            self.config.realtime.spin_us,
+        )));
+        let warmup_ticks = self.config.tick_rate_hz.ceil() as u64;
         let loop_start = self.clock.start;
         let stream_length_s = self.t_end - self.t_first;
         loop {
             if self.shared.failed.load(Ordering::Acquire) {
-                return Ok(());
+                break;
             }
             injected(
                 self.options.inject_panic,
@@ -179,10 +187,11 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
                 self.k += skip;
             }
             let deadline = loop_start + period.mul_f64(self.k as f64);
-            if deadline > now {
-                std::thread::sleep(deadline - now);
-            }
+            wait.until(deadline);
             self.tick(deadline, period, tick_s, &mut between);
+            if self.stats.ticks == warmup_ticks {
+                between.faults_at_warmup = Some(thread_page_faults());
+            }
             self.k += 1;
             if self
                 .options
@@ -191,7 +200,7 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
                 .is_some_and(|s| s.load(Ordering::Relaxed))
             {
                 self.stats.stopped_early = true;
-                return Ok(());
+                break;
             }
             // Without --duration a timed source runs until its last stamp plus the stale
             // timeout, and on until perception has delivered every queued frame.
@@ -200,9 +209,13 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
                 || (self.shared.source_finished.load(Ordering::Acquire)
                     && between.received >= self.shared.queued.load(Ordering::Relaxed));
             if self.k as f64 * tick_s >= stream_length_s && drained {
-                return Ok(());
+                break;
             }
         }
+        self.stats.realtime.page_faults_after_warmup = between
+            .faults_at_warmup
+            .map(|at_warmup| thread_page_faults() - at_warmup);
+        Ok(())
     }
 
     /// One tick at its `deadline`.

@@ -18,4 +18,8 @@ camera_id = 1
 depth_image = "/cam1/depth/image_rect_raw"
 TOML
 exec 3> >(python3 "$(dirname "${BASH_SOURCE[0]}")/interop.py" router "$port" > "$tmp/router.out")
-sleep 2
+# Until the router listens (seconds on a loaded machine), at most 60 s.
+for _ in $(seq 120); do
+  python3 -c 'import socket, sys; socket.create_connection(("127.0.0.1", int(sys.argv[1])), 1)' "$port" 2>/dev/null && break
+  sleep 0.5
+done

@@ -3,9 +3,12 @@
 # fed by tools/rt/soak_publisher.py (two depth cameras at RATE Hz, WIDTHxHEIGHT, through a
 # Zenoh router on loopback; drops, bursts, camera gaps, malformed, out-of-order and
 # future-stamped frames on a one-minute cycle). Prints the publisher's counts, the node's
-# resident memory (VmRSS) at 30 s and 5 s before the end, and the node's summary.
+# memory every SAMPLE_S seconds (default 10: resident VmRSS, its anonymous part RssAnon: heap,
+# arenas, stacks; its file part RssFile: the binary and libraries; locked VmLck: the touched
+# pages under mlockall; and the thread count), and the node's summary.
 #
 #   tools/rt/soak.sh [HAPCLOUD_BINARY] [SECONDS] [RATE] [WIDTH] [HEIGHT]
+#   SAMPLE_S=5 tools/rt/soak.sh target/release/hapcloud 150
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 bin=${1:-target/release/hapcloud}
@@ -19,11 +22,15 @@ echo "load before: $(cut -d' ' -f1-3 /proc/loadavg)" >&2
 node=$!
 python3 "$here/soak_publisher.py" "$port" "$((secs - 3))" "$rate" "$w" "$h" > "$tmp/publisher.json" &
 publisher=$!
-rss() { grep VmRSS "/proc/$node/status" | awk '{print $2 " kB"}'; }
-sleep 30
-echo "node VmRSS at 30 s: $(rss)" >&2
-sleep "$((secs - 35))"
-echo "node VmRSS at $((secs - 5)) s: $(rss)" >&2
+sample_s=${SAMPLE_S:-10}
+started=$(date +%s)
+echo "memory, kB: t_s VmRSS RssAnon RssFile VmLck threads" >&2
+while sleep "$sample_s" && grep -qs VmRSS "/proc/$node/status"; do
+  awk -v t="$(($(date +%s) - started))" '
+    /^(VmRSS|RssAnon|RssFile|VmLck|Threads):/ { v[$1] = $2 }
+    END { if (v["VmRSS:"]) print "memory", t, v["VmRSS:"], v["RssAnon:"], v["RssFile:"], v["VmLck:"], v["Threads:"] }
+  ' "/proc/$node/status" >&2 || true
+done
 wait "$publisher"
 wait "$node"
 echo "load after: $(cut -d' ' -f1-3 /proc/loadavg)" >&2
