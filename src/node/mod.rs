@@ -466,11 +466,9 @@ pub fn run(
         });
         // SCHED_FIFO for this thread only, asked for after the workers were spawned.
         realtime.loop_thread(&config.realtime);
+        // What the thread got; the loop adds its page faults after warm-up.
+        ticks.stats.realtime = realtime.status.clone();
         ticks.run(|| perception_handle.is_finished());
-        ticks.stats.realtime = RealtimeStatus {
-            page_faults_after_warmup: ticks.stats.realtime.page_faults_after_warmup,
-            ..realtime.status.clone()
-        };
         shared.stop.store(true, Ordering::Release);
         // A failed worker or a stop from outside: the safe command goes out at once.
         let can = ticks.finish_outputs(shared.failure().is_some() || ticks.stats.stopped_early);
