@@ -16,7 +16,8 @@
 //                        point index and its own list (the sub-cells, numbered in subs[])
 //   seed     per point   parent[i] = smallest index of i's sub-cell (one set from the start)
 //   hook     per cell    the cell's sub-cell pairs, then the 13 coarse cells that follow it in
-//                        (z, y, x) order (each pair of cells once), skipping cells out of reach
+//   (x threads per cell) (z, y, x) order (each pair of cells once; these 14 tasks shared out
+//                        among the cell's hook_threads_per_cell threads), skipping cells out of reach
 //                        of the cell's box: a pair of sub-cells is joined when their boxes'
 //                        farthest corners are neighbours, skipped when their nearest corners
 //                        are not, else by testing point pairs, (dx*dx + dy*dy) + dz*dz < r2,
@@ -57,7 +58,10 @@ struct ClusterParams {
     // far above the f32 rounding of a box distance (host: BOX_MARGIN).
     r2_apart: f32,
     r2_joined: f32,
-    _pad: vec2<u32>,
+    // Threads per coarse cell in the hook pass, 1..=HOOK_TASKS; thread j of a cell takes its
+    // tasks j, j + threads, ... (task 0: its own sub-cell pairs; task t: neighbour cell 13 + t).
+    hook_threads_per_cell: u32,
+    _pad: u32,
 }
 
 struct Slot {
@@ -99,6 +103,8 @@ struct SubCell {
 // Bounds of the union-find loops (a hit sets STATUS_INCOMPLETE, the host re-submits).
 const MAX_FIND: u32 = 256u;
 const MAX_HOOK: u32 = 64u;
+// A coarse cell's hook tasks: its own sub-cell pairs and the 13 cells that follow it.
+const HOOK_TASKS: u32 = 14u;
 // |cell coordinate| must stay below this so floor(p * inv_cell) is exact enough that every
 // neighbour lies in the 125 surrounding cells and a cell's points are all neighbours (the
 // host's CELL_MARGIN covers the rounding).
@@ -121,7 +127,8 @@ const SUB_COUNT: u32 = 5u;
 @group(0) @binding(6) var<storage, read_write> status: array<atomic<u32>, 8>;
 @group(0) @binding(7) var<storage, read_write> cells: array<Cell>;
 @group(0) @binding(8) var<storage, read_write> subs: array<SubCell>;
-@group(1) @binding(0) var<storage, read_write> dispatch_args: array<u32, 3>;
+// [x, 1, 1] per point, then the hook's [x, threads per cell, 1].
+@group(1) @binding(0) var<storage, read_write> dispatch_args: array<u32, 6>;
 
 fn count() -> u32 {
     return min(point_count[params.count_word], params.capacity);
@@ -164,9 +171,13 @@ fn is_neighbour(a: vec3<f32>, b: vec3<f32>) -> bool {
 
 @compute @workgroup_size(1)
 fn prepare() {
-    dispatch_args[0] = (count() + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+    let groups = (count() + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+    dispatch_args[0] = groups;
     dispatch_args[1] = 1u;
     dispatch_args[2] = 1u;
+    dispatch_args[3] = groups;
+    dispatch_args[4] = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
+    dispatch_args[5] = 1u;
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -413,15 +424,23 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         own[a] = subs[cell.first_sub + a];
         box_lo = min(box_lo, own[a].lo);
         box_hi = max(box_hi, own[a].hi);
-        for (var b = 0u; b < a; b++) {
-            join_if_touching(own[b], own[a]);
-        }
     }
     // The cell's box in fine cells (rounded like cell_of).
     let cells_lo = box_lo * params.inv_cell;
     let cells_hi = box_hi * params.inv_cell;
-    // The 13 coarse cells that follow this one in (z, y, x) order.
-    for (var t = 14u; t < 27u; t++) {
+    // This thread's tasks (gid.y of the dispatch's threads per cell).
+    let stride = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
+    for (var task = gid.y; task < HOOK_TASKS; task += stride) {
+        if task == 0u {
+            for (var a = 1u; a < count_a; a++) {
+                for (var b = 0u; b < a; b++) {
+                    join_if_touching(own[b], own[a]);
+                }
+            }
+            continue;
+        }
+        // One of the 13 coarse cells that follow this one in (z, y, x) order.
+        let t = 13u + task;
         let offset = vec3<i32>(i32(t % 3u) - 1, i32(t / 3u % 3u) - 1, i32(t / 9u) - 1);
         let other = cell.coarse + offset;
         // Gap from the box to the other cell's fine cells [2 other, 2 other + 2), in cells.

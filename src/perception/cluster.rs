@@ -87,6 +87,11 @@ pub struct ClusterConfig {
     pub gpu_hash_slots: u32,
     /// Longest linear probe sequence of the GPU hash table, slots; longer means overflow.
     pub gpu_hash_max_probes: u32,
+    /// GPU threads per coarse cell in the hook pass, 1..=14 (the cell's own sub-cell pairs
+    /// and its 13 following neighbour cells, shared out among them); 0 = automatic: 1 on a
+    /// CPU adapter (lavapipe: every thread costs its SIMD lanes' loads), 14 on a GPU (one
+    /// look-up each, so a cell does not serialise its neighbours).
+    pub gpu_hook_threads_per_cell: u32,
 }
 
 impl Default for ClusterConfig {
@@ -98,6 +103,7 @@ impl Default for ClusterConfig {
             max_cluster_points: 25_000,
             gpu_hash_slots: 0,
             gpu_hash_max_probes: 32,
+            gpu_hook_threads_per_cell: 0,
         }
     }
 }
@@ -132,6 +138,12 @@ impl ClusterConfig {
             return Err(ClusterError::Config(
                 "gpu_hash_max_probes must be at least 1".into(),
             ));
+        }
+        if self.gpu_hook_threads_per_cell > HOOK_TASKS {
+            return Err(ClusterError::Config(format!(
+                "gpu_hook_threads_per_cell must be 0 (automatic) or 1..={HOOK_TASKS}, got {}",
+                self.gpu_hook_threads_per_cell
+            )));
         }
         Ok(())
     }
@@ -450,6 +462,12 @@ const STATUS_DENSE_CELL: usize = 3;
 /// The shader's union-find passes are bounded; this many submissions are enough for any
 /// cloud we have seen by a wide margin (one nearly always suffices).
 const MAX_SUBMISSIONS: u32 = 16;
+/// A coarse cell's hook tasks: its own sub-cell pairs and its 13 following neighbour cells.
+const HOOK_TASKS: u32 = 14;
+/// The dispatch arguments the `prepare` pass writes: per point `[x, 1, 1]`, then the hook's
+/// `[x, threads per cell, 1]` at [`HOOK_ARGS_OFFSET`].
+const DISPATCH_ARGS_BYTES: u64 = 24;
+const HOOK_ARGS_OFFSET: u64 = 12;
 /// Largest point count one indirect dispatch of `WORKGROUP_SIZE` threads covers.
 const MAX_GPU_POINTS: u32 = 65_535 * shader::WORKGROUP_SIZE;
 /// GPU time is reported for these passes of the first submission.
@@ -632,7 +650,12 @@ impl GpuClusterer {
             reach2_cells: REACH_CELLS * REACH_CELLS,
             r2_apart: (f64::from(r2) * (1.0 + BOX_MARGIN)) as f32,
             r2_joined: (f64::from(r2) * (1.0 - BOX_MARGIN)) as f32,
-            _pad: [0; 2],
+            hook_threads_per_cell: match config.gpu_hook_threads_per_cell {
+                0 if ctx.adapter().device_type == "Cpu" => 1,
+                0 => HOOK_TASKS,
+                n => n,
+            },
+            _pad: 0,
         };
         Ok(())
     }
@@ -664,7 +687,11 @@ impl GpuClusterer {
                     mapped_at_creation: false,
                 })
             };
-            let dispatch_args = buffer("cluster dispatch args", 12, U::STORAGE | U::INDIRECT);
+            let dispatch_args = buffer(
+                "cluster dispatch args",
+                DISPATCH_ARGS_BYTES,
+                U::STORAGE | U::INDIRECT,
+            );
             let args_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("cluster dispatch-args bind group"),
                 layout: &self.args_layout,
@@ -702,6 +729,15 @@ impl GpuClusterer {
                 args_group,
             }
         })?)
+    }
+
+    /// Where `pipeline`'s indirect dispatch arguments lie in the dispatch-args buffer.
+    fn args_offset(&self, pipeline: &wgpu::ComputePipeline) -> u64 {
+        if std::ptr::eq(pipeline, &self.hook) {
+            HOOK_ARGS_OFFSET
+        } else {
+            0
+        }
     }
 
     fn buffers(&self) -> &ClusterBuffers {
@@ -766,7 +802,7 @@ impl GpuClusterer {
                     pass.set_bind_group(1, &b.args_group, &[]);
                     pass.dispatch_workgroups(1, 1, 1);
                 } else {
-                    pass.dispatch_workgroups_indirect(&b.dispatch_args, 0);
+                    pass.dispatch_workgroups_indirect(&b.dispatch_args, self.args_offset(pipeline));
                 }
             }
         }
@@ -894,7 +930,7 @@ impl GpuClusterer {
             pass.set_bind_group(0, &group, &[]);
             for pipeline in [&self.hook, &self.compress] {
                 pass.set_pipeline(pipeline);
-                pass.dispatch_workgroups_indirect(&b.dispatch_args, 0);
+                pass.dispatch_workgroups_indirect(&b.dispatch_args, self.args_offset(pipeline));
             }
         }
         encoder.copy_buffer_to_buffer(&b.status, 0, &readback, 0, STATUS_BYTES);
@@ -1156,6 +1192,16 @@ mod tests {
         assert!(config(f32::NAN, 1, 2).validate().is_err());
         assert!(config(1e-30, 1, 2).validate().is_err());
         assert!(config(0.1, 3, 2).validate().is_err());
+        let hook_threads = |n| ClusterConfig {
+            gpu_hook_threads_per_cell: n,
+            ..ClusterConfig::default()
+        };
+        assert!(hook_threads(HOOK_TASKS).validate().is_ok());
+        let err = hook_threads(HOOK_TASKS + 1).validate().unwrap_err();
+        assert!(
+            err.to_string().contains("gpu_hook_threads_per_cell"),
+            "{err}"
+        );
         assert!(ClusterConfig::default().validate().is_ok());
         let parsed: Result<ClusterConfig, _> = toml::from_str("tolerance_m = 0.1\nfoo = 1");
         assert!(parsed.is_err());
@@ -1228,9 +1274,16 @@ mod tests {
         pts.shuffle(&mut rng);
         let cpu = cluster_cpu(&pts, &cfg).unwrap();
         assert_eq!(cpu.component_count(), 52);
-        for _ in 0..3 {
+        for threads in [0, 0, 0, HOOK_TASKS, HOOK_TASKS] {
+            let cfg = ClusterConfig {
+                gpu_hook_threads_per_cell: threads,
+                ..cfg.clone()
+            };
             let gpu = cluster_gpu(&pts, &cfg).unwrap();
-            assert_eq!(gpu.component, cpu.component);
+            assert_eq!(
+                gpu.component, cpu.component,
+                "{threads} hook threads per cell"
+            );
         }
     }
 
@@ -1372,8 +1425,14 @@ mod tests {
             let voxel = voxel_cpu(&cloud.points, None, &VoxelConfig::default()).unwrap();
             let cfg = ClusterConfig::default();
             let cpu = cluster_cpu(&voxel.points, &cfg).unwrap();
-            let gpu = cluster_gpu(&voxel.points, &cfg).unwrap();
-            assert_eq!(gpu, cpu, "{file}");
+            for threads in [0, 3, HOOK_TASKS] {
+                let cfg = ClusterConfig {
+                    gpu_hook_threads_per_cell: threads,
+                    ..cfg.clone()
+                };
+                let gpu = cluster_gpu(&voxel.points, &cfg).unwrap();
+                assert_eq!(gpu, cpu, "{file}, {threads} hook threads per cell");
+            }
             let sizes = cpu.cluster_sizes();
             assert_eq!(sizes.len(), clusters, "{file}");
             assert_eq!(&sizes[..largest.len()], largest, "{file}");
@@ -1402,6 +1461,7 @@ mod tests {
             extent in 0.05f32..2.0,
             tol in 0.005f32..0.1,
             min in 1u32..20,
+            hook_threads in 0u32..=HOOK_TASKS,
         ) {
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
             // Points around a few blob centres plus uniform clutter, some exact duplicates.
@@ -1420,7 +1480,10 @@ mod tests {
                 };
                 pts.push(p);
             }
-            let cfg = config(tol, min, 2000);
+            let cfg = ClusterConfig {
+                gpu_hook_threads_per_cell: hook_threads,
+                ..config(tol, min, 2000)
+            };
             let cpu = cluster_cpu(&pts, &cfg).unwrap();
             let gpu = cluster_gpu(&pts, &cfg).unwrap();
             prop_assert_eq!(gpu.component, cpu.component);
