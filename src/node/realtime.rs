@@ -1,5 +1,6 @@
 //! Real-time scheduling and memory locking of the control loop's thread (Linux): SCHED_FIFO at
-//! a configured priority, `mlockall`, a CPU of its own if configured, timer slack 1 ns and a
+//! a configured priority (else, where that is refused, the highest normal priority the system
+//! grants, nice -20 by default), `mlockall`, a CPU of its own if configured, timer slack 1 ns and a
 //! prefaulted stack, each asked for where the system allows, refused cleanly without the
 //! privilege and reported in the summary; and the loop's wait for its deadline (an absolute
 //! `clock_nanosleep`, then a short spin). The runtime of the design card's 800 Hz loop; no
@@ -26,6 +27,11 @@ pub struct RealtimeConfig {
     pub spin_us: u32,
     /// The CPU the loop's thread is pinned to (`None`: wherever the scheduler puts it).
     pub cpu: Option<usize>,
+    /// Nice value (-20..=19) the loop's thread asks for when SCHED_FIFO is refused (a VM or
+    /// container without a real-time budget): under the fair scheduler a thread at nice -20
+    /// weighs about 87 times one at nice 0, so busy processes delay its wake-ups far less.
+    /// `None`: no fallback.
+    pub fallback_nice: Option<i8>,
 }
 
 impl Default for RealtimeConfig {
@@ -35,6 +41,7 @@ impl Default for RealtimeConfig {
             lock_memory: true,
             spin_us: 50,
             cpu: None,
+            fallback_nice: Some(-20),
         }
     }
 }
@@ -57,6 +64,13 @@ impl RealtimeConfig {
                 self.spin_us
             ));
         }
+        if let Some(nice) = self.fallback_nice
+            && !(-20..=19).contains(&nice)
+        {
+            return Err(format!(
+                "realtime.fallback_nice must be -20 to 19, got {nice}"
+            ));
+        }
         if let Some(cpu) = self.cpu
             && cpu >= libc::CPU_SETSIZE as usize
         {
@@ -74,6 +88,8 @@ impl RealtimeConfig {
 pub struct RealtimeStatus {
     /// The SCHED_FIFO priority the loop ran at (`None`: normal scheduling).
     pub fifo_priority: Option<u8>,
+    /// The nice value the loop ran at after SCHED_FIFO was refused (`None`: unchanged).
+    pub nice: Option<i8>,
     /// Whether the process's memory was locked.
     pub memory_locked: bool,
     /// The CPU the loop's thread was pinned to.
@@ -93,6 +109,7 @@ pub(super) struct RealtimeGuard {
     pub(super) status: RealtimeStatus,
     old_policy: libc::c_int,
     old_param: libc::sched_param,
+    old_nice: libc::c_int,
 }
 
 impl RealtimeGuard {
@@ -120,6 +137,7 @@ impl RealtimeGuard {
             status,
             old_policy,
             old_param,
+            old_nice: thread_nice(),
         }
     }
 
@@ -145,15 +163,26 @@ impl RealtimeGuard {
         if config.fifo_priority > 0 {
             match set_fifo(config.fifo_priority) {
                 Ok(()) => self.status.fifo_priority = Some(config.fifo_priority),
-                Err(e) => self
-                    .status
-                    .refused
-                    .push(format!("SCHED_FIFO priority {}: {e}", config.fifo_priority)),
+                Err(e) => {
+                    self.status
+                        .refused
+                        .push(format!("SCHED_FIFO priority {}: {e}", config.fifo_priority));
+                    if let Some(nice) = config.fallback_nice {
+                        match set_thread_nice(nice) {
+                            Ok(()) => self.status.nice = Some(nice),
+                            Err(e) => self.status.refused.push(format!("nice {nice}: {e}")),
+                        }
+                    }
+                }
             }
         }
         if !self.status.refused.is_empty() {
+            let instead = match self.status.nice {
+                Some(nice) => format!("runs at nice {nice} instead"),
+                None => "runs without it".into(),
+            };
             eprintln!(
-                "warning: real time refused ({}); the control loop runs without it",
+                "warning: real time refused ({}); the control loop {instead}",
                 self.status.refused.join("; ")
             );
         }
@@ -253,8 +282,34 @@ pub(super) fn set_fifo(priority: u8) -> Result<(), std::io::Error> {
     }
 }
 
+/// The calling thread's nice value (Linux keeps one per thread).
+fn thread_nice() -> libc::c_int {
+    // SAFETY: getpriority on the calling thread's id; -1 is also a valid nice value, so errno
+    // is not consulted (the call cannot fail for the caller's own id).
+    unsafe { libc::getpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t) }
+}
+
+/// Sets the calling thread's nice value (lowering it needs `CAP_SYS_NICE` or an `RLIMIT_NICE`).
+fn set_thread_nice(nice: i8) -> Result<(), std::io::Error> {
+    // SAFETY: setpriority on the calling thread's id with an integer.
+    match unsafe {
+        libc::setpriority(
+            libc::PRIO_PROCESS,
+            libc::gettid() as libc::id_t,
+            libc::c_int::from(nice),
+        )
+    } {
+        0 => Ok(()),
+        _ => Err(std::io::Error::last_os_error()),
+    }
+}
+
 impl Drop for RealtimeGuard {
     fn drop(&mut self) {
+        if self.status.nice.is_some() {
+            let old = i8::try_from(self.old_nice).unwrap_or(0);
+            let _ = set_thread_nice(old);
+        }
         // SAFETY: restores what `lock_memory` read, on the same thread.
         unsafe {
             if self.status.fifo_priority.is_some() {
@@ -299,6 +354,25 @@ mod tests {
             },
             "realtime.cpu",
         );
+        bad(
+            RealtimeConfig {
+                fallback_nice: Some(-21),
+                ..Default::default()
+            },
+            "realtime.fallback_nice",
+        );
+    }
+
+    /// The fallback's nice value is the calling thread's own: set on a thread of its own, it
+    /// reads back there and leaves this thread's unchanged (raising it needs no privilege).
+    #[test]
+    fn the_fallback_nice_value_is_per_thread() {
+        let mine = thread_nice();
+        let theirs = std::thread::spawn(|| set_thread_nice(7).map(|()| thread_nice()))
+            .join()
+            .unwrap();
+        assert_eq!(theirs.unwrap(), 7);
+        assert_eq!(thread_nice(), mine);
     }
 
     /// The wait turns instants into CLOCK_MONOTONIC timespecs: a deadline a few ms ahead is

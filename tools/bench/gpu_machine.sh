@@ -7,10 +7,13 @@
 #   2. `stages_vs_pcl`: PCL's five frames and 20 D435 frames, GPU timestamps per pass against
 #      the CPU reference in the same run;
 #   3. the node on the default scene (two D435 at 30 Hz) and on the same scene at 90 Hz, with
-#      `--backend gpu`, `--backend cpu` and the start-up choice, 10 s each;
-#   4. the 800 Hz loop with every core busy (one spinning process per core): RUNS runs of the
-#      default scene with the GPU backend, with real time (SCHED_FIFO, locked memory) and
-#      without (`[realtime] fifo_priority = 0, lock_memory = false`), alternated.
+#      `--backend gpu`, `--backend cpu` and the start-up choice (`auto`), 10 s each
+#      (BACKENDS="gpu cpu auto" picks which);
+#   4. the 800 Hz loop with every core busy (one spinning process per core), RUNS runs of the
+#      default scene with the GPU backend in each of three set-ups, alternated: `rt` (the
+#      defaults: SCHED_FIFO, else nice -20; locked memory), `no_rt` (`[realtime]
+#      fifo_priority = 0, lock_memory = false`) and `own_core` (the defaults, the loop pinned
+#      to the last CPU with `spin_us = 500`, the spinners on the other CPUs).
 #
 # Fill bench-carry/ here first (besides what docs/benchmarks.md copies):
 #   install -s target/release/hapcloud bench-carry/hapcloud
@@ -33,7 +36,7 @@ echo "stages_vs_pcl rc=$?"
 for scene in default 90hz; do
   src=()
   [ "$scene" = 90hz ] && src=("$c/torso_approach_90hz.toml")
-  for backend in gpu cpu auto; do
+  for backend in ${BACKENDS:-gpu cpu auto}; do
     pick=(--backend "$backend")
     [ "$backend" = auto ] && pick=()
     timeout 60 "$c/hapcloud" run "${src[@]}" "${pick[@]}" --duration 10 --json \
@@ -41,19 +44,26 @@ for scene in default 90hz; do
     echo "run $scene $backend rc=$?"
   done
 done
-printf '[realtime]\nfifo_priority = 0\nlock_memory = false\n' > /tmp/no_rt.toml
+printf '[realtime]\nfifo_priority = 0\nlock_memory = false\n' > "$out/no_rt.toml"
+last=$(($(nproc) - 1))
+printf '[realtime]\ncpu = %d\nspin_us = 500\n' "$last" > "$out/own_core.toml"
 [ "$runs" -gt 0 ] || exit 0
 spinners=()
-for _ in $(seq "$(nproc)"); do
-  ( while :; do :; done ) &
-  spinners+=("$!")
-done
+spin() {
+  for cpu in $(seq 0 "$1"); do
+    taskset -c "$cpu" bash -c 'while :; do :; done' &
+    spinners+=("$!")
+  done
+}
 for i in $(seq "$runs"); do
-  for mode in rt no_rt; do
+  for mode in rt no_rt own_core; do
     cfg=()
-    [ "$mode" = no_rt ] && cfg=(--config /tmp/no_rt.toml)
+    [ "$mode" = rt ] || cfg=(--config "$out/$mode.toml")
+    if [ "$mode" = own_core ]; then spin $((last - 1)); else spin "$last"; fi
     timeout 60 "$c/hapcloud" run --backend gpu "${cfg[@]}" --json >> "$out/load_$mode.jsonl" 2>> "$out/load.err"
+    kill "${spinners[@]}"
+    wait "${spinners[@]}" 2>/dev/null
+    spinners=()
   done
 done
-kill "${spinners[@]}"
 echo "done"
