@@ -9,6 +9,10 @@
 //! estimate. Perception takes frames in turn over all cameras: a camera keeps its place in
 //! line while its frames are replaced (the newest frame takes the place of the one it drops),
 //! so cameras whose frames arrive together are served alike however far perception is behind.
+//! Several perception workers share the queue by camera: the cameras are numbered in the order
+//! their first frames arrive, and worker `k` of `n` takes the cameras numbered `k` modulo `n`
+//! ([`FrameQueue::pop_for`]), so a camera's frames always reach the same worker (its surface
+//! memory lives there) and each worker serves its cameras in turn as above.
 //! std's `sync_channel` can only refuse the new frame when full, so this is a
 //! `Mutex<VecDeque>` with a `Condvar` (no crate needed for a few lines); the consumer blocks
 //! on the condition variable, never spins. Memory: at most `per_camera` frames per camera.
@@ -33,7 +37,33 @@ pub struct FrameQueue<T> {
 struct State<T> {
     /// (camera, item) in arrival order.
     items: VecDeque<(u32, T)>,
+    /// The cameras in the order their first items arrived (a camera's worker share).
+    cameras: Vec<u32>,
     closed: bool,
+}
+
+impl<T> State<T> {
+    fn camera_number(&self, camera: u32) -> usize {
+        self.cameras
+            .iter()
+            .position(|&c| c == camera)
+            .expect("every queued camera is numbered when its first item arrives")
+    }
+}
+
+/// Which cameras a perception worker takes: those numbered `worker` modulo `workers`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Share {
+    pub worker: usize,
+    pub workers: usize,
+}
+
+impl Share {
+    /// Every camera, for a single worker.
+    pub const ALL: Share = Share {
+        worker: 0,
+        workers: 1,
+    };
 }
 
 /// The queue was closed; the item is handed back.
@@ -47,6 +77,7 @@ impl<T> FrameQueue<T> {
         Self {
             state: Mutex::new(State {
                 items: VecDeque::with_capacity(2 * per_camera),
+                cameras: Vec::new(),
                 closed: false,
             }),
             ready: Condvar::new(),
@@ -68,6 +99,9 @@ impl<T> FrameQueue<T> {
         if state.closed {
             return Err(Closed(item));
         }
+        if !state.cameras.contains(&camera) {
+            state.cameras.push(camera);
+        }
         let queued = state.items.iter().filter(|(c, _)| *c == camera).count();
         let evicted = if queued >= self.per_camera {
             // Bubble the camera's oldest item to its last place, then replace it there.
@@ -86,16 +120,26 @@ impl<T> FrameQueue<T> {
             None
         };
         drop(state);
-        self.ready.notify_one();
+        // Every waiting worker looks: the item may be another's than the first woken.
+        self.ready.notify_all();
         Ok(evicted)
     }
 
     /// The item that arrived first, over all cameras; blocks while the queue is empty and
     /// open. `None` once the queue is closed and empty.
     pub fn pop(&self) -> Option<T> {
+        self.pop_for(Share::ALL)
+    }
+
+    /// The item that arrived first among the cameras of `share`; blocks while it has none
+    /// and the queue is open. `None` once the queue is closed and holds none of its cameras.
+    pub fn pop_for(&self, share: Share) -> Option<T> {
+        let workers = share.workers.max(1);
         let mut state = self.lock();
         loop {
-            if let Some((_, item)) = state.items.pop_front() {
+            let mine = (0..state.items.len())
+                .find(|&i| state.camera_number(state.items[i].0) % workers == share.worker);
+            if let Some((_, item)) = mine.and_then(|i| state.items.remove(i)) {
                 return Some(item);
             }
             if state.closed {
@@ -258,6 +302,35 @@ mod tests {
         let mut all: Vec<u32> = received.iter().chain(&dropped).copied().collect();
         all.sort_unstable();
         assert_eq!(all, (0..count).collect::<Vec<_>>());
+    }
+
+    /// Two workers: each camera's items reach the worker of its arrival number, in order,
+    /// whatever the camera ids; a worker without items of its own waits, and ends at close.
+    #[test]
+    fn workers_take_the_cameras_of_their_share() {
+        let q = FrameQueue::new(4);
+        for n in 0..3 {
+            for camera in [7, 3, 9] {
+                q.push(camera, (camera, n)).unwrap();
+            }
+        }
+        let share = |worker| Share { worker, workers: 2 };
+        // Arrival numbers: 7 -> 0, 3 -> 1, 9 -> 2.
+        let first: Vec<_> = (0..6).map(|_| q.pop_for(share(0)).unwrap()).collect();
+        assert_eq!(first, [(7, 0), (9, 0), (7, 1), (9, 1), (7, 2), (9, 2)]);
+        let second: Vec<_> = (0..3).map(|_| q.pop_for(share(1)).unwrap()).collect();
+        assert_eq!(second, [(3, 0), (3, 1), (3, 2)]);
+        std::thread::scope(|scope| {
+            let waiting = scope.spawn(|| q.pop_for(share(1)));
+            q.push(7, (7, 3)).unwrap();
+            std::thread::sleep(Duration::from_millis(20));
+            q.push(3, (3, 3)).unwrap();
+            assert_eq!(waiting.join().unwrap(), Some((3, 3)));
+        });
+        q.close();
+        assert_eq!(q.pop_for(share(1)), None);
+        assert_eq!(q.pop_for(share(0)), Some((7, 3)));
+        assert_eq!(q.pop_for(share(0)), None);
     }
 
     #[test]

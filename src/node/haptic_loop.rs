@@ -163,6 +163,18 @@ impl Perception {
         })
     }
 
+    /// Another perception of `config` on this one's GPU context (or the CPU), for another
+    /// worker's cameras; it keeps the crop masks as this one does.
+    pub fn sibling(&self, config: &NodeConfig) -> Result<Self, NodeError> {
+        let ctx = match self.backend() {
+            Backend::Gpu => self.chain.context().cloned(),
+            Backend::Cpu => None,
+        };
+        let mut sibling = Self::on_context(config, ctx)?;
+        sibling.chain.set_crop_keep(self.chain.crop_keep());
+        Ok(sibling)
+    }
+
     /// Where the stages run now (CPU after a GPU fallback).
     pub fn backend(&self) -> Backend {
         self.chain.backend()

@@ -8,9 +8,9 @@
 //!    queue bounded per camera ([`frame_queue`]); when perception is behind and a camera's
 //!    slots are full, that camera's oldest queued frame is dropped and counted for it, so the
 //!    newest frame wins and a flooding camera cannot starve the others,
-//! 2. **perception** (one thread, owning the GPU context): the per-camera chain
-//!    ([`CameraChain`]: crop, voxel grid, clusters, and one surface estimator with its memory
-//!    per camera), then hands each
+//! 2. **perception** (`perception_workers` threads sharing the GPU context, each with its
+//!    share of the cameras): the per-camera chain ([`CameraChain`]: crop, voxel grid,
+//!    clusters, and one surface estimator with its memory per camera), then hands each
 //!    [`SurfaceEstimate`] to the loop through a channel,
 //! 3. **control loop** (the calling thread): absolute deadlines `start + k / rate` (no drift:
 //!    a late tick does not push the later ones back; a loop more than one period behind skips
@@ -73,7 +73,7 @@ use crate::perception::lookahead::LookaheadConfig;
 use crate::perception::pipeline::{ChainError, SurfaceConfig, SurfaceConfigError};
 use crate::scene::Simulator;
 use can_out::{CanCounters, CanOutput, CanOutputConfig, CanThread};
-use frame_queue::FrameQueue;
+use frame_queue::{FrameQueue, Share};
 use haptic_loop::{FrameRecord, FusionWindow, HapticLoop};
 use nalgebra::Point3;
 use realtime::RealtimeGuard;
@@ -88,7 +88,8 @@ use std::time::Instant;
 use summary::LoopStats;
 use tick_loop::TickLoop;
 use workers::{
-    Clock, HANDOVER_CAPACITY, Handover, HandoverChannels, PerceptionReport, Shared, guarded,
+    Clock, HANDOVER_CAPACITY, Handover, HandoverChannels, PerceptionOutputs, PerceptionReport,
+    Shared, guarded,
 };
 
 /// Node settings: the loop and every stage's config.
@@ -102,6 +103,10 @@ pub struct NodeConfig {
     /// Frames waiting for perception per camera; beyond this the camera's oldest queued
     /// frame is dropped (counted for that camera), never another camera's.
     pub frame_queue_count: usize,
+    /// Perception threads, each with its own chain (on the one GPU context); the cameras are
+    /// shared out among them in the order their first frames arrive. 0 = automatic: one per
+    /// core beyond the control loop's, at most [`AUTO_PERCEPTION_WORKERS`] (1 on 2 cores).
+    pub perception_workers: usize,
     /// What the constraints do when fusion goes stale (a camera stopped).
     pub on_stale: StalePolicy,
     /// With `on_stale = "hold"`: how long past the stale timeout the last fused surface is
@@ -123,6 +128,24 @@ pub struct NodeConfig {
     pub realtime: RealtimeConfig,
 }
 
+/// Perception workers chosen automatically at most: the design's two cameras.
+pub const AUTO_PERCEPTION_WORKERS: usize = 2;
+/// The most perception workers a config may ask for.
+const MAX_PERCEPTION_WORKERS: usize = 16;
+
+impl NodeConfig {
+    /// The perception workers of a run: `perception_workers`, or one per core beyond the
+    /// control loop's, at most [`AUTO_PERCEPTION_WORKERS`].
+    pub fn perception_worker_count(&self) -> usize {
+        match self.perception_workers {
+            0 => std::thread::available_parallelism()
+                .map_or(1, |n| n.get().saturating_sub(1))
+                .clamp(1, AUTO_PERCEPTION_WORKERS),
+            n => n,
+        }
+    }
+}
+
 /// What the constraints do while the cameras are stale.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -140,6 +163,7 @@ impl Default for NodeConfig {
             tick_rate_hz: 800.0,
             hip_world_m: Point3::new(0.0, 0.0, 0.6),
             frame_queue_count: 1,
+            perception_workers: 0,
             on_stale: StalePolicy::Disable,
             stale_hold_max_s: 0.3,
             robot: RobotStateConfig::default(),
@@ -196,6 +220,12 @@ impl NodeConfig {
         }
         if self.frame_queue_count == 0 {
             return Err(NodeError::Queue);
+        }
+        if self.perception_workers > MAX_PERCEPTION_WORKERS {
+            return Err(NodeError::Config(format!(
+                "perception_workers must be 0 (automatic) to {MAX_PERCEPTION_WORKERS}, got {}",
+                self.perception_workers
+            )));
         }
         if !self.hip_world_m.iter().all(|v| v.is_finite()) {
             return Err(NodeError::Hip);
@@ -383,12 +413,17 @@ pub fn run(
             can.is_some(),
         );
     }
+    let workers = config.perception_worker_count();
+    let mut perceptions = vec![perception];
+    for _ in 1..workers {
+        perceptions.push(perceptions[0].sibling(config)?);
+    }
     let (frame_recorder, tick_recorder) = match &options.record {
         Some(path) => {
             let meta = record::RecordingMeta {
                 version: record::RECORDING_VERSION,
                 config: config.clone(),
-                backend: perception.backend(),
+                backend: perceptions[0].backend(),
                 robot: robot.meta(),
             };
             let (f, t) = record::create(path, &meta)?;
@@ -414,7 +449,7 @@ pub fn run(
     let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
     let (estimate_tx, estimate_rx) = mpsc::sync_channel::<Handover>(HANDOVER_CAPACITY);
     let (spent_tx, spent_rx) = mpsc::sync_channel(HANDOVER_CAPACITY);
-    let start_backend = perception.backend();
+    let start_backend = perceptions[0].backend();
     let mut ticks = TickLoop {
         config,
         options,
@@ -435,29 +470,40 @@ pub fn run(
         last_joints: first_joints,
     };
 
-    let (report, can) = std::thread::scope(|scope| {
-        let (robot, shared, clock) = (&robot, &shared, &clock);
+    let outputs = PerceptionOutputs::new(
+        window,
+        frame_recorder,
+        HandoverChannels {
+            estimates: estimate_tx,
+            spent: spent_rx,
+        },
+    );
+    let (reports, can) = std::thread::scope(|scope| {
+        let (robot, shared, clock, outputs) = (&robot, &shared, &clock, &outputs);
         let inject = options.inject_panic;
-        let observer = options.observer.clone();
-        let perception_handle = scope.spawn(move || {
-            guarded(shared, Worker::Perception, || {
-                workers::perception_thread(
-                    perception,
-                    window,
-                    robot,
-                    clock,
-                    frame_queue,
-                    HandoverChannels {
-                        estimates: estimate_tx,
-                        spent: spent_rx,
-                    },
-                    frame_recorder,
-                    shared,
-                    observer,
-                    inject,
-                )
+        let perception_handles: Vec<_> = perceptions
+            .into_iter()
+            .enumerate()
+            .map(|(worker, perception)| {
+                let observer = options.observer.clone();
+                let share = Share { worker, workers };
+                scope.spawn(move || {
+                    guarded(shared, Worker::Perception, || {
+                        workers::perception_worker(
+                            perception,
+                            share,
+                            outputs,
+                            robot,
+                            clock,
+                            frame_queue,
+                            shared,
+                            observer,
+                            inject,
+                        )
+                    })
+                })
             })
-        });
+            .collect();
         let source_handle = scope.spawn(move || {
             guarded(shared, Worker::Source, || {
                 workers::source_thread(source, clock, frame_queue, shared, inject);
@@ -468,15 +514,20 @@ pub fn run(
         realtime.loop_thread(&config.realtime);
         // What the thread got; the loop adds its page faults after warm-up.
         ticks.stats.realtime = realtime.status.clone();
-        ticks.run(|| perception_handle.is_finished());
+        ticks.run(|| perception_handles.iter().all(|h| h.is_finished()));
         shared.stop.store(true, Ordering::Release);
         // A failed worker or a stop from outside: the safe command goes out at once.
         let can = ticks.finish_outputs(shared.failure().is_some() || ticks.stats.stopped_early);
         let _ = source_handle.join();
-        (perception_handle.join().ok().flatten(), can)
+        let reports: Option<Vec<_>> = perception_handles
+            .into_iter()
+            .map(|h| h.join().ok().flatten())
+            .collect();
+        (reports, can)
     });
     drop(realtime);
     // The recording is closed on every way out (its writer ends once both recorders are gone).
+    let report = reports.map(|r| outputs.finish(r, &shared));
     if let Some(Err(e)) = ticks.recorder.take().map(TickRecorder::finish) {
         shared.recording_failed(&e);
     }
@@ -668,6 +719,7 @@ fn summarize(
         unrecorded_ticks: stats.unrecorded_ticks + behind.ticks,
         recording_behind: behind,
         backend: report.backend,
+        perception_workers: report.workers,
         adapter: report.adapter,
         gpu_fallback: report.gpu_fallback,
         backend_choice,

@@ -87,6 +87,8 @@ pub struct NodeSummary {
     pub recording_behind: Behind,
     /// Backend perception ended on (`gpu` or `cpu`).
     pub backend: Backend,
+    /// Perception threads, each with its own share of the cameras.
+    pub perception_workers: usize,
     pub adapter: Option<String>,
     /// The GPU failure that made perception fall back to the CPU, if any.
     pub gpu_fallback: Option<String>,
@@ -157,6 +159,13 @@ impl GpuSplit {
         }
     }
 
+    /// Adds `other`'s frames (another perception worker's).
+    pub(super) fn merge(&mut self, other: &GpuSplit) {
+        self.before.merge(&other.before);
+        self.gpu.merge(&other.gpu);
+        self.after.merge(&other.after);
+    }
+
     /// `None` when no frame had calibrated passes (CPU backend, uncalibrated clock).
     pub(super) fn summary(&self) -> Option<GpuOnHost> {
         (self.gpu.total > 0).then(|| GpuOnHost {
@@ -194,6 +203,19 @@ impl Histogram {
         self.counts[bin] += 1;
         self.max_s = self.max_s.max(s);
         self.total += 1;
+    }
+
+    /// Adds `other`'s samples (a histogram of the same bins).
+    pub(super) fn merge(&mut self, other: &Histogram) {
+        debug_assert_eq!(
+            (self.bin_s, self.counts.len()),
+            (other.bin_s, other.counts.len())
+        );
+        for (mine, theirs) in self.counts.iter_mut().zip(&other.counts) {
+            *mine += theirs;
+        }
+        self.max_s = self.max_s.max(other.max_s);
+        self.total += other.total;
     }
 
     /// p50 and p99 in milliseconds: the upper edge of the bin holding the percentile (the

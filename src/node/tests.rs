@@ -103,14 +103,29 @@ fn temp_dir(name: &str) -> PathBuf {
 
 #[test]
 fn node_tracks_a_moving_plane_from_two_cameras() {
+    tracks_a_moving_plane_from_two_cameras(1);
+}
+
+/// One perception worker per camera: each camera's frames reach its own worker (its surface
+/// memory), and fusion tracks the plane as well as with one worker.
+#[test]
+fn two_perception_workers_share_the_cameras_and_track_the_plane() {
+    tracks_a_moving_plane_from_two_cameras(2);
+}
+
+fn tracks_a_moving_plane_from_two_cameras(workers: usize) {
     let _serial = serial();
     let frames = plane_frames(1.0, None);
     let count = frames.len() as u64;
+    let config = NodeConfig {
+        perception_workers: workers,
+        ..config()
+    };
     // Quarter speed: the unoptimised CPU stages keep up on a busy machine.
     let mut worst: f64 = 0.0;
     let mut tracking = 0;
     let mut worst_velocity: f64 = 0.0;
-    let summary = run(&config(), Source::Timed(frames), &options(0.25), |t| {
+    let summary = run(&config, Source::Timed(frames), &options(0.25), |t| {
         let f = &t.fused;
         if f.is_tracking() && f.stamp_s > 1.3 {
             tracking += 1;
@@ -124,7 +139,13 @@ fn node_tracks_a_moving_plane_from_two_cameras() {
     .unwrap();
     assert_eq!(summary.frames + summary.dropped_frames, count);
     assert!(summary.frames > 10, "{summary:?}");
+    assert_eq!(summary.perception_workers, workers);
     assert_eq!(summary.cameras.len(), 2);
+    assert!(
+        summary.cameras.values().all(|c| c.valid_estimates > 3),
+        "{:?}",
+        summary.cameras
+    );
     // 800 Hz over the stream (1 s) and the stale timeout after it (slots skipped when the
     // loop overran on a busy machine are counted).
     assert!(

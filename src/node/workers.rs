@@ -6,7 +6,7 @@
 
 #[cfg(feature = "ros2")]
 use super::MAX_STAMP_S;
-use super::frame_queue::{CloseOnDrop, FrameQueue};
+use super::frame_queue::{CloseOnDrop, FrameQueue, Share};
 use super::haptic_loop::{FusionWindow, Perception};
 use super::record::{FrameRecorder, RecordError};
 use super::robot_state::RobotState;
@@ -171,6 +171,7 @@ pub(super) fn injected(inject: Option<(Worker, u64)>, worker: Worker, count: u64
 
 /// What the perception thread reports at the end.
 pub(super) struct PerceptionReport {
+    pub(super) workers: usize,
     pub(super) frames: BTreeMap<u32, (u64, u64)>,
     pub(super) times: Histogram,
     pub(super) gpu_split: GpuSplit,
@@ -182,39 +183,137 @@ pub(super) struct PerceptionReport {
     pub(super) camera_latency: Vec<CameraLatency>,
 }
 
+/// What one perception worker did.
+pub(super) struct WorkerReport {
+    frames: BTreeMap<u32, (u64, u64)>,
+    times: Histogram,
+    gpu_split: GpuSplit,
+    backend: Backend,
+    adapter: Option<String>,
+    gpu_fallback: Option<String>,
+    gpu_buffer_bytes: Option<u64>,
+}
+
 /// An estimate handed to the control loop, with the fit of fusion's window that includes it
 /// (boxed here, so the loop moves it on to the recording without allocating).
 pub(super) type Handover = (Box<SurfaceEstimate>, Option<Fit>);
 
-/// The two bounded channels between perception and the loop: estimates there, spent
+/// The hand-over of estimates to the control loop, and the loop's way of returning spent
 /// estimates back (both preallocated: neither side allocates or frees to pass one on).
 pub(super) struct HandoverChannels {
     pub(super) estimates: SyncSender<Handover>,
     pub(super) spent: Receiver<Box<SurfaceEstimate>>,
 }
 
+/// What the perception workers share: fusion's window (fitted here, off the control loop's
+/// thread), the recording of frames, and the hand-over to the loop.
+pub(super) struct PerceptionOutputs {
+    window: Mutex<FusionWindow>,
+    recorder: Mutex<Option<FrameRecorder>>,
+    recording: bool,
+    handover: Mutex<HandoverChannels>,
+}
+
+impl PerceptionOutputs {
+    pub(super) fn new(
+        window: FusionWindow,
+        recorder: Option<FrameRecorder>,
+        handover: HandoverChannels,
+    ) -> Self {
+        Self {
+            recording: recorder.is_some(),
+            window: Mutex::new(window),
+            recorder: Mutex::new(recorder),
+            handover: Mutex::new(handover),
+        }
+    }
+
+    /// Closes the recording of frames and adds the workers' reports up with fusion's counts.
+    pub(super) fn finish(self, workers: Vec<WorkerReport>, shared: &Shared) -> PerceptionReport {
+        let recorder = self
+            .recorder
+            .into_inner()
+            .unwrap_or_else(PoisonError::into_inner);
+        if let Some(Err(e)) = recorder.map(FrameRecorder::finish) {
+            shared.recording_failed(&e);
+        }
+        let window = self
+            .window
+            .into_inner()
+            .unwrap_or_else(PoisonError::into_inner);
+        let count = workers.len();
+        let mut workers = workers.into_iter();
+        let mut report = workers.next().map_or_else(
+            || PerceptionReport {
+                workers: 0,
+                frames: BTreeMap::new(),
+                times: Histogram::new(PERCEPTION_BIN_S, PERCEPTION_RANGE_S),
+                gpu_split: GpuSplit::new(),
+                backend: Backend::Cpu,
+                adapter: None,
+                gpu_fallback: None,
+                gpu_buffer_bytes: None,
+                fusion: FusionCounters::default(),
+                camera_latency: Vec::new(),
+            },
+            |w| PerceptionReport {
+                workers: count,
+                frames: w.frames,
+                times: w.times,
+                gpu_split: w.gpu_split,
+                backend: w.backend,
+                adapter: w.adapter,
+                gpu_fallback: w.gpu_fallback,
+                gpu_buffer_bytes: w.gpu_buffer_bytes,
+                fusion: FusionCounters::default(),
+                camera_latency: Vec::new(),
+            },
+        );
+        for w in workers {
+            for (camera, (frames, valid)) in w.frames {
+                let entry = report.frames.entry(camera).or_default();
+                entry.0 += frames;
+                entry.1 += valid;
+            }
+            report.times.merge(&w.times);
+            report.gpu_split.merge(&w.gpu_split);
+            report.gpu_fallback = report.gpu_fallback.or(w.gpu_fallback);
+            report.gpu_buffer_bytes = match (report.gpu_buffer_bytes, w.gpu_buffer_bytes) {
+                (Some(a), Some(b)) => Some(a + b),
+                (a, b) => a.or(b),
+            };
+        }
+        report.fusion = window.fusion().counters();
+        report.camera_latency = window.fusion().latency_stats();
+        report
+    }
+}
+
+/// Perception's time per frame is binned at 0.1 ms up to 10 s.
+const PERCEPTION_BIN_S: f64 = 1e-4;
+const PERCEPTION_RANGE_S: f64 = 10.0;
+
+/// One perception worker: the frames of its `share` of the cameras through its own chain,
+/// each estimate into fusion's window and on to the control loop.
 #[allow(clippy::too_many_arguments)]
-pub(super) fn perception_thread(
+pub(super) fn perception_worker(
     mut perception: Perception,
-    mut window: FusionWindow,
+    share: Share,
+    outputs: &PerceptionOutputs,
     robot: &RobotState,
     clock: &Clock,
     frames: &FrameQueue<Frame>,
-    handover: HandoverChannels,
-    mut recorder: Option<FrameRecorder>,
     shared: &Shared,
     observer: Option<SyncSender<NodeEvent>>,
     inject: Option<(Worker, u64)>,
-) -> Result<PerceptionReport, NodeError> {
+) -> Result<WorkerReport, NodeError> {
     let mut counts: BTreeMap<u32, (u64, u64)> = BTreeMap::new();
-    // 0.1 ms bins up to 10 s
-    let mut times = Histogram::new(1e-4, 10.0);
+    let mut times = Histogram::new(PERCEPTION_BIN_S, PERCEPTION_RANGE_S);
     let mut gpu_split = GpuSplit::new();
     // The source stops once perception does, whatever the way out.
     let _close = CloseOnDrop(frames);
     let mut processed = 0u64;
-    let recording = recorder.is_some();
-    while let Some(frame) = frames.pop() {
+    while let Some(frame) = frames.pop_for(share) {
         processed += 1;
         injected(inject, Worker::Perception, processed);
         let start = Instant::now();
@@ -228,19 +327,28 @@ pub(super) fn perception_thread(
         if perception.gpu_fallback().is_some() {
             shared.gpu_fell_back.store(true, Ordering::Relaxed);
         }
-        match recorder.as_mut().map(|r| r.frame(&frame, &q)) {
-            Some(Err(e)) => {
-                shared.recording_failed(&e);
-                recorder = None;
-                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
+        {
+            let mut recorder = outputs
+                .recorder
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            match recorder.as_mut().map(|r| r.frame(&frame, &q)) {
+                Some(Err(e)) => {
+                    shared.recording_failed(&e);
+                    *recorder = None;
+                    shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
+                }
+                None if outputs.recording => {
+                    shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
+                }
+                _ => {}
             }
-            None if recording => {
-                shared.unrecorded_frames.fetch_add(1, Ordering::Relaxed);
-            }
-            _ => {}
         }
-        // Fusion's window is fitted here, off the control loop's thread.
-        let fit = window.push(&estimate, record.far_field.as_ref(), clock.now_s());
+        let fit = outputs
+            .window
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .push(&estimate, record.far_field.as_ref(), clock.now_s());
         if let Some(o) = &observer {
             // Dropped when the observer is behind (or gone).
             let _ = o.try_send(NodeEvent::Frame(Box::new(record)));
@@ -248,6 +356,10 @@ pub(super) fn perception_thread(
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
         entry.1 += u64::from(estimate.surface.is_some());
+        let handover = outputs
+            .handover
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         while handover.spent.try_recv().is_ok() {}
         match handover.estimates.try_send((Box::new(estimate), fit)) {
             Ok(()) => {}
@@ -259,10 +371,7 @@ pub(super) fn perception_thread(
             Err(TrySendError::Disconnected(_)) => break,
         }
     }
-    if let Some(Err(e)) = recorder.map(FrameRecorder::finish) {
-        shared.recording_failed(&e);
-    }
-    Ok(PerceptionReport {
+    Ok(WorkerReport {
         frames: counts,
         times,
         gpu_split,
@@ -270,8 +379,6 @@ pub(super) fn perception_thread(
         adapter: perception.adapter().map(str::to_string),
         gpu_fallback: perception.gpu_fallback(),
         gpu_buffer_bytes: perception.gpu_buffer_bytes(),
-        fusion: window.fusion().counters(),
-        camera_latency: window.fusion().latency_stats(),
     })
 }
 

@@ -395,6 +395,11 @@ impl CameraChain {
         self.want_crop_keep = on;
     }
 
+    /// Whether the front end hands back each frame's crop keep mask.
+    pub fn crop_keep(&self) -> bool {
+        self.want_crop_keep
+    }
+
     /// The GPU failure that moved the chain to the CPU, if one did.
     pub fn gpu_fallback(&self) -> Option<&str> {
         self.gpu_fallback.as_deref()
