@@ -150,7 +150,9 @@ pub struct ClusterParams {
     /// Box tests between sub-cells: r2 * (1 + margin) and r2 * (1 - margin), m^2.
     pub r2_apart: f32,
     pub r2_joined: f32,
-    pub _pad: [u32; 2],
+    /// Always 2: the trip count of the shader's check for loops cut short by lavapipe.
+    pub two: u32,
+    pub _pad: u32,
 }
 
 /// A mirrored struct: its WGSL name, the shader declaring it, and the Rust layout.
