@@ -32,7 +32,10 @@
 // status are cleared with clear_buffer by the host.
 // llvmpipe (lavapipe) ends every loop of an invocation once all its loops together have run
 // 65535 iterations; a list walk that ends before its list does sets STATUS_DENSE_CELL (summary:
-// the labels would be wrong) or STATUS_INCOMPLETE (a point-pair scan: re-submitted).
+// the labels would be wrong) or STATUS_INCOMPLETE (a point-pair scan: re-submitted), and a
+// hook invocation whose loops were cut anywhere sets STATUS_INCOMPLETE at its end (a look-up
+// or a loop over cells or sub-cells ended early skips a union without a trace). The probe
+// loops stay short: max_probes <= 1024 (cluster.rs MAX_HASH_PROBES).
 // Uses common.wgsl (prepended): NONE, WORKGROUP_SIZE, finite_point, hash_u32.
 
 struct ClusterParams {
@@ -61,7 +64,9 @@ struct ClusterParams {
     // Threads per coarse cell in the hook pass, 1..=HOOK_TASKS; thread j of a cell takes its
     // tasks j, j + threads, ... (task 0: its own sub-cell pairs; task t: neighbour cell 13 + t).
     hook_threads_per_cell: u32,
-    _pad: u32,
+    // Always 2, read from memory: the trip count of loops_were_cut's loop (a constant count
+    // would be unrolled).
+    two: u32,
 }
 
 struct Slot {
@@ -362,6 +367,17 @@ fn unite(a: u32, b: u32) {
     atomicOr(&status[STATUS_INCOMPLETE], 1u);
 }
 
+// True when llvmpipe's loop limiter has ended this invocation's loops: from then on every
+// loop runs one iteration, so a loop of two iterations runs one (a loop cut short earlier
+// may have skipped a cell or a pair without flagging it; on a GPU this never fires).
+fn loops_were_cut() -> bool {
+    var trips = 0u;
+    for (var k = 0u; k < params.two; k++) {
+        trips += 1u;
+    }
+    return trips < params.two;
+}
+
 // Squared distance between the nearest corners of two boxes.
 fn near2(a_lo: vec3<f32>, a_hi: vec3<f32>, b_lo: vec3<f32>, b_hi: vec3<f32>) -> f32 {
     let gap = max(max(b_lo - a_hi, a_lo - b_hi), vec3<f32>(0.0));
@@ -463,6 +479,9 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
                 join_if_touching(own[a], sub_b);
             }
         }
+    }
+    if loops_were_cut() {
+        atomicOr(&status[STATUS_INCOMPLETE], 1u);
     }
 }
 

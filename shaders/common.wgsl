@@ -18,6 +18,12 @@ fn finite_point(p: vec3<f32>) -> bool {
     return finite_bits(p.x) && finite_bits(p.y) && finite_bits(p.z);
 }
 
+// The four packed xyz points held by three consecutive vec4s (12 floats): buffers of points
+// are read a quad of points at a time (voxel.rs `points_bytes`).
+fn unpack_quad(a: vec4<f32>, b: vec4<f32>, c: vec4<f32>) -> array<vec3<f32>, 4> {
+    return array<vec3<f32>, 4>(a.xyz, vec3<f32>(a.w, b.xy), vec3<f32>(b.zw, c.x), c.yzw);
+}
+
 // Maps an f32 to a u32 whose unsigned order equals the float order (for atomicMin/Max on
 // floats with integer atomics: deterministic whatever the thread order).
 fn order_key(v: f32) -> u32 {

@@ -8,6 +8,15 @@
 // runs the flying-pixel (veil) test of src/perception/flying.rs on the camera-frame
 // neighbours, writes the cloud-frame point (NaN when invalid or flying) for the voxel pass
 // and crops it as above.
+//
+// Reads shaped for lavapipe as well as for GPUs: the primitives sit in a uniform buffer and
+// the depth image in an R16Uint texture (llvmpipe gathers uniform and texel reads with vector
+// instructions, but turns a storage-buffer read with per-thread addresses into a loop over
+// the SIMD lanes); on a GPU both go through their caches (the texture's is 2D, which suits
+// the flying-pixel window); points are read and written a quad of points (three vec4s) at a
+// time. Every loop is bounded far below llvmpipe's 65,535 iterations per shader invocation:
+// 32 points x (MAX_PRIMITIVES + 1) in crop_mask, 4 pixels x ((2 x 4 + 1)^2 window + 9 rows
+// + MAX_PRIMITIVES) in crop_depth.
 
 struct CropParams {
     // HIP position (xyz) and squared crop radius (w).
@@ -32,9 +41,13 @@ struct CropPrimitive {
     axis_z: vec4<f32>,
 }
 
+// Robot primitives a frame may carry (crop.rs MAX_CROP_PRIMITIVES; 24 kB of uniforms).
+const MAX_PRIMITIVES: u32 = 256u;
+
 @group(0) @binding(0) var<uniform> params: CropParams;
-@group(0) @binding(1) var<storage, read> points: array<f32>;
-@group(0) @binding(2) var<storage, read> primitives: array<CropPrimitive>;
+// Packed xyz f32 in whole quads of points (voxel.rs `points_bytes`).
+@group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
+@group(0) @binding(2) var<uniform> primitives: array<CropPrimitive, MAX_PRIMITIVES>;
 @group(0) @binding(3) var<storage, read_write> keep: array<u32>;
 
 // The depth image's camera, pose and flying-pixel test (crop_depth only).
@@ -62,41 +75,38 @@ struct DepthParams {
 }
 
 @group(0) @binding(4) var<uniform> depth_params: DepthParams;
-// Two 16-bit pixels per word, pixel 2k in the low half (little-endian u16 upload).
-@group(0) @binding(5) var<storage, read> depth: array<u32>;
-// Cloud-frame xyz per pixel as f32 bits (a quiet NaN when invalid or flying).
-@group(0) @binding(6) var<storage, read_write> out_points: array<u32>;
+// The raw 16-bit depth image (0: no return).
+@group(0) @binding(5) var depth: texture_2d<u32>;
+// Cloud-frame xyz per pixel as f32 bits (a quiet NaN when invalid or flying), packed: four
+// pixels are three vec4s.
+@group(0) @binding(6) var<storage, read_write> out_points: array<vec4<u32>>;
 // [0]: pixels with a depth, [1]: flying pixels rejected.
 @group(0) @binding(7) var<storage, read_write> depth_counts: array<atomic<u32>, 2>;
 
-fn inside(prim: CropPrimitive, p: vec3<f32>) -> bool {
-    switch prim.kind {
-        case 0u: {
-            let d = p - prim.a.xyz;
-            return dot(d, d) <= prim.radius * prim.radius;
-        }
-        case 1u: {
-            let ab = prim.b.xyz - prim.a.xyz;
-            let len2 = dot(ab, ab);
-            var t = 0.0;
-            if len2 > 0.0 {
-                t = clamp(dot(p - prim.a.xyz, ab) / len2, 0.0, 1.0);
-            }
-            let d = p - (prim.a.xyz + t * ab);
-            return dot(d, d) <= prim.radius * prim.radius;
-        }
-        default: {
-            let d = p - prim.a.xyz;
-            let h = prim.b.xyz;
-            return abs(dot(d, prim.axis_x.xyz)) <= h.x
-                && abs(dot(d, prim.axis_y.xyz)) <= h.y
-                && abs(dot(d, prim.axis_z.xyz)) <= h.z;
+// Point p lies in primitive k (fields read only where its kind uses them).
+fn inside(k: u32, p: vec3<f32>) -> bool {
+    let kind = primitives[k].kind;
+    let a = primitives[k].a.xyz;
+    if kind == 2u {
+        let d = p - a;
+        let h = primitives[k].b.xyz;
+        return abs(dot(d, primitives[k].axis_x.xyz)) <= h.x
+            && abs(dot(d, primitives[k].axis_y.xyz)) <= h.y
+            && abs(dot(d, primitives[k].axis_z.xyz)) <= h.z;
+    }
+    // Sphere: the segment a..a; capsule: a..b.
+    var ab = vec3<f32>(0.0);
+    var t = 0.0;
+    if kind == 1u {
+        ab = primitives[k].b.xyz - a;
+        let len2 = dot(ab, ab);
+        if len2 > 0.0 {
+            t = clamp(dot(p - a, ab) / len2, 0.0, 1.0);
         }
     }
-}
-
-fn keep_point(i: u32) -> bool {
-    return keep_cloud_point(vec3<f32>(points[3u * i], points[3u * i + 1u], points[3u * i + 2u]));
+    let d = p - (a + t * ab);
+    let r = primitives[k].radius;
+    return dot(d, d) <= r * r;
 }
 
 fn keep_cloud_point(p: vec3<f32>) -> bool {
@@ -108,7 +118,7 @@ fn keep_cloud_point(p: vec3<f32>) -> bool {
         return false;
     }
     for (var k = 0u; k < params.primitive_count; k++) {
-        if inside(primitives[k], p) {
+        if inside(k, p) {
             return false;
         }
     }
@@ -121,22 +131,33 @@ fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
     if w >= params.word_count {
         return;
     }
-    var bits = 0u;
     let first = 32u * w;
     let last = min(first + 32u, params.point_count);
-    for (var i = first; i < last; i++) {
-        if keep_point(i) {
-            bits = bits | (1u << (i - first));
-        }
+    var bits = 0u;
+    for (var i = first; i < last; i += 4u) {
+        let v = 3u * (i >> 2u);
+        let q = unpack_quad(points[v], points[v + 1u], points[v + 2u]);
+        let b = i - first;
+        bits |= keep_bit(first, b, q[0]) | keep_bit(first, b + 1u, q[1])
+            | keep_bit(first, b + 2u, q[2]) | keep_bit(first, b + 3u, q[3]);
     }
     keep[w] = bits;
+}
+
+// Bit b of the mask word of points first.. for point first + b at p: set when the point is
+// in the cloud and kept.
+fn keep_bit(first: u32, b: u32, p: vec3<f32>) -> u32 {
+    if first + b < params.point_count && keep_cloud_point(p) {
+        return 1u << b;
+    }
+    return 0u;
 }
 
 // A quiet NaN's bits: an invalid point (written as bits; WGSL has no NaN constants).
 const NAN_BITS: u32 = 0x7fc00000u;
 
-fn raw_depth(i: u32) -> u32 {
-    return (depth[i >> 1u] >> ((i & 1u) * 16u)) & 0xffffu;
+fn raw_depth(x: u32, y: u32) -> u32 {
+    return textureLoad(depth, vec2<i32>(i32(x), i32(y)), 0).r;
 }
 
 // Camera-frame point of pixel (u, v) with raw depth `raw` (> 0): x = (u - cx) z / fx.
@@ -160,7 +181,7 @@ fn is_flying(u: u32, v: u32, p: vec3<f32>) -> bool {
     let x1 = min(u + k + 1u, depth_params.width);
     for (var y = y0; y < y1; y++) {
         for (var x = x0; x < x1; x++) {
-            let raw = raw_depth(y * depth_params.width + x);
+            let raw = raw_depth(x, y);
             if raw == 0u || (x == u && y == v) {
                 continue;
             }
@@ -174,15 +195,59 @@ fn is_flying(u: u32, v: u32, p: vec3<f32>) -> bool {
     return false;
 }
 
-// crop_depth's mask words per workgroup (WORKGROUP_SIZE is a multiple of 32) and its
-// counters, gathered in workgroup memory (OR and sums: the same whatever the thread order).
-const WG_WORDS: u32 = WORKGROUP_SIZE / 32u;
+// Pixels per crop_depth thread: four consecutive pixels (in row-major order) are one
+// vec4 store of the thread's 12 output words and 4 bits of a mask word.
+const DEPTH_QUAD: u32 = 4u;
+// crop_depth's mask words per workgroup and its counters, gathered in workgroup memory (OR
+// and sums: the same whatever the thread order).
+const WG_WORDS: u32 = WORKGROUP_SIZE * DEPTH_QUAD / 32u;
 var<workgroup> wg_keep: array<atomic<u32>, WG_WORDS>;
 var<workgroup> wg_valid: atomic<u32>;
 var<workgroup> wg_flying: atomic<u32>;
 
-// One thread per pixel (neighbouring threads read and write neighbouring memory); the
-// workgroup ORs its threads' keep bits into whole mask words.
+// A crop_depth thread's counts and keep bits (bit k: pixel k of its quad).
+var<private> quad_valid: u32;
+var<private> quad_flying: u32;
+var<private> quad_keep: u32;
+
+// Pixel i (bit k of the quad): its cloud-frame point as bits, a NaN when it has no depth
+// or is flying.
+fn depth_pixel(i: u32, k: u32) -> vec3<u32> {
+    let u = i % depth_params.width;
+    let v = i / depth_params.width;
+    let raw = raw_depth(u, v);
+    if raw == 0u {
+        return vec3<u32>(NAN_BITS);
+    }
+    quad_valid += 1u;
+    let p = deproject(u, v, raw);
+    let n = p - depth_params.near_r2.xyz;
+    if depth_params.window > 0u && dot(n, n) < depth_params.near_r2.w && is_flying(u, v, p) {
+        quad_flying += 1u;
+        return vec3<u32>(NAN_BITS);
+    }
+    let c = vec3<f32>(
+        dot(depth_params.row_x.xyz, p) + depth_params.row_x.w,
+        dot(depth_params.row_y.xyz, p) + depth_params.row_y.w,
+        dot(depth_params.row_z.xyz, p) + depth_params.row_z.w,
+    );
+    if keep_cloud_point(c) {
+        quad_keep |= 1u << k;
+    }
+    return bitcast<vec3<u32>>(c);
+}
+
+// Pixel i's point, or nothing beyond the image (the last quad of an image whose pixel count
+// is not a multiple of 4).
+fn depth_pixel_if_any(i: u32, k: u32) -> vec3<u32> {
+    if i < params.point_count {
+        return depth_pixel(i, k);
+    }
+    return vec3<u32>(NAN_BITS);
+}
+
+// One thread per quad of pixels (neighbouring threads read and write neighbouring memory);
+// the workgroup ORs its threads' keep bits into whole mask words.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn crop_depth(
     @builtin(global_invocation_id) gid: vec3<u32>,
@@ -196,39 +261,37 @@ fn crop_depth(
         atomicStore(&wg_flying, 0u);
     }
     workgroupBarrier();
-    let i = gid.x;
+    let i = DEPTH_QUAD * gid.x;
     if i < params.point_count {
-        let raw = raw_depth(i);
-        var q = vec3<u32>(NAN_BITS, NAN_BITS, NAN_BITS);
-        if raw != 0u {
-            atomicAdd(&wg_valid, 1u);
-            let u = i % depth_params.width;
-            let v = i / depth_params.width;
-            let p = deproject(u, v, raw);
-            let n = p - depth_params.near_r2.xyz;
-            if depth_params.window > 0u && dot(n, n) < depth_params.near_r2.w
-                && is_flying(u, v, p) {
-                atomicAdd(&wg_flying, 1u);
-            } else {
-                let c = vec3<f32>(
-                    dot(depth_params.row_x.xyz, p) + depth_params.row_x.w,
-                    dot(depth_params.row_y.xyz, p) + depth_params.row_y.w,
-                    dot(depth_params.row_z.xyz, p) + depth_params.row_z.w,
-                );
-                q = bitcast<vec3<u32>>(c);
-                if keep_cloud_point(c) {
-                    atomicOr(&wg_keep[lid / 32u], 1u << (lid % 32u));
-                }
-            }
+        quad_valid = 0u;
+        quad_flying = 0u;
+        quad_keep = 0u;
+        let q0 = depth_pixel(i, 0u);
+        let q1 = depth_pixel_if_any(i + 1u, 1u);
+        let q2 = depth_pixel_if_any(i + 2u, 2u);
+        let q3 = depth_pixel_if_any(i + 3u, 3u);
+        // out_points holds whole vec4s (frontend.rs sizes it with voxel::points_bytes), so
+        // the last quad's words beyond the image land in its padding.
+        let w = 3u * gid.x;
+        out_points[w] = vec4<u32>(q0, q1.x);
+        out_points[w + 1u] = vec4<u32>(q1.yz, q2.xy);
+        out_points[w + 2u] = vec4<u32>(q2.z, q3);
+        if quad_keep != 0u {
+            atomicOr(&wg_keep[lid * DEPTH_QUAD / 32u], quad_keep << (i % 32u));
         }
-        out_points[3u * i] = q.x;
-        out_points[3u * i + 1u] = q.y;
-        out_points[3u * i + 2u] = q.z;
+        if quad_valid != 0u {
+            atomicAdd(&wg_valid, quad_valid);
+        }
+        if quad_flying != 0u {
+            atomicAdd(&wg_flying, quad_flying);
+        }
     }
     workgroupBarrier();
-    // Workgroups start at multiples of WORKGROUP_SIZE: lid % 32 == 0 starts a mask word.
-    if i < params.point_count && lid % 32u == 0u {
-        keep[i / 32u] = atomicLoad(&wg_keep[lid / 32u]);
+    // Workgroups start at multiples of 32 pixels: thread lid writes the workgroup's mask word
+    // lid when it holds pixels.
+    let first_word = DEPTH_QUAD * WORKGROUP_SIZE / 32u * (gid.x / WORKGROUP_SIZE);
+    if lid < WG_WORDS && 32u * (first_word + lid) < params.point_count {
+        keep[first_word + lid] = atomicLoad(&wg_keep[lid]);
     }
     if lid == 0u {
         let valid = atomicLoad(&wg_valid);

@@ -72,7 +72,10 @@ struct SortStep {
 }
 
 @group(0) @binding(0) var<uniform> params: VoxelParams;
-@group(0) @binding(1) var<storage, read> points: array<f32>;
+// Packed xyz f32 (12 bytes per point) in whole quads of points, read as vec4s: four points
+// are three vec4 loads (llvmpipe turns every storage load with per-thread addresses into a
+// loop over its SIMD lanes, so one load of four words costs about what one of one word does).
+@group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read> mask: array<u32>;
 @group(0) @binding(3) var<storage, read_write> header: VoxelHeader;
 @group(0) @binding(4) var<storage, read_write> table_keys: array<atomic<u32>>;
@@ -112,19 +115,45 @@ const SCHEDULE_WORD_BLOCKS: u32 = 4u;
 const DENSE_MAX_CELLS: u32 = 134217728u;
 const DENSE_WORDS_PER_POINT: u32 = 8u;
 const DENSE_MIN_WORDS: u32 = 65536u;
-// Points per thread of `bounds` and of `insert`.
+// Points per thread of `bounds` and of `insert` (multiples of 4 that divide 32: a chunk
+// reads whole quads and one mask word).
 const BOUNDS_CHUNK: u32 = 32u;
 const INSERT_CHUNK: u32 = 8u;
 
-fn load_point(i: u32) -> vec3<f32> {
-    return vec3<f32>(points[3u * i], points[3u * i + 1u], points[3u * i + 2u]);
+// Points i .. i + 3 (i a multiple of 4). The buffer holds whole quads (voxel.rs
+// `points_bytes`); valid_point rejects the padding beyond the cloud.
+fn load_quad(i: u32) -> array<vec3<f32>, 4> {
+    let v = 3u * (i >> 2u);
+    return unpack_quad(points[v], points[v + 1u], points[v + 2u]);
 }
 
-fn valid_point(i: u32, p: vec3<f32>) -> bool {
-    if !finite_point(p) {
+// The mask word of points 32 w .. 32 w + 31 (all set without a mask): a chunk of points
+// that starts at a multiple of 32 / 8 reads it once.
+fn mask_word(w: u32) -> u32 {
+    if params.use_mask != 0u {
+        return mask[w];
+    }
+    return 0xffffffffu;
+}
+
+// Some point of the quad at i / of the insert chunk at `first` is in the mask word `bits`:
+// chunks and quads without one are skipped before their points are read (most of a depth
+// frame's pixels lie outside the crop).
+fn quad_in_mask(bits: u32, i: u32) -> bool {
+    return ((bits >> (i & 31u)) & 0xfu) != 0u;
+}
+
+fn chunk_in_mask(bits: u32, first: u32) -> bool {
+    return ((bits >> (first & 31u)) & ((1u << INSERT_CHUNK) - 1u)) != 0u;
+}
+
+// Point i (its mask word `bits`) is used: in the cloud, finite, in the mask, inside the
+// filter.
+fn valid_point(bits: u32, i: u32, p: vec3<f32>) -> bool {
+    if i >= params.point_count || !finite_point(p) {
         return false;
     }
-    if params.use_mask != 0u && ((mask[i >> 5u] >> (i & 31u)) & 1u) == 0u {
+    if ((bits >> (i & 31u)) & 1u) == 0u {
         return false;
     }
     if params.filter_axis < 3u {
@@ -135,29 +164,51 @@ fn valid_point(i: u32, p: vec3<f32>) -> bool {
     return true;
 }
 
+// A bounds thread's valid points and the order keys of their max and (inverted) min.
+var<private> bounds_count: u32;
+var<private> bounds_hi: vec3<u32>;
+var<private> bounds_lo_inv: vec3<u32>;
+
+fn bound_point(bits: u32, i: u32, p: vec3<f32>) {
+    if valid_point(bits, i, p) {
+        bounds_count += 1u;
+        let k = vec3<u32>(order_key(p.x), order_key(p.y), order_key(p.z));
+        bounds_hi = max(bounds_hi, k);
+        bounds_lo_inv = max(bounds_lo_inv, ~k);
+    }
+}
+
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn bounds(@builtin(global_invocation_id) gid: vec3<u32>) {
     let first = gid.x * BOUNDS_CHUNK;
     let last = min(first + BOUNDS_CHUNK, params.point_count);
-    var count = 0u;
-    var hi = vec3<u32>(0u);
-    var lo_inv = vec3<u32>(0u);
-    for (var i = first; i < last; i++) {
-        let p = load_point(i);
-        if valid_point(i, p) {
-            count += 1u;
-            let k = vec3<u32>(order_key(p.x), order_key(p.y), order_key(p.z));
-            hi = max(hi, k);
-            lo_inv = max(lo_inv, ~k);
-        }
-    }
-    if count == 0u {
+    if first >= last {
         return;
     }
-    atomicAdd(&header.valid_count, count);
+    let bits = mask_word(first >> 5u);
+    if bits == 0u {
+        return;
+    }
+    bounds_count = 0u;
+    bounds_hi = vec3<u32>(0u);
+    bounds_lo_inv = vec3<u32>(0u);
+    for (var i = first; i < last; i += 4u) {
+        if !quad_in_mask(bits, i) {
+            continue;
+        }
+        let q = load_quad(i);
+        bound_point(bits, i, q[0]);
+        bound_point(bits, i + 1u, q[1]);
+        bound_point(bits, i + 2u, q[2]);
+        bound_point(bits, i + 3u, q[3]);
+    }
+    if bounds_count == 0u {
+        return;
+    }
+    atomicAdd(&header.valid_count, bounds_count);
     for (var a = 0u; a < 3u; a++) {
-        atomicMax(&header.max_key[a], hi[a]);
-        atomicMax(&header.min_inv[a], lo_inv[a]);
+        atomicMax(&header.max_key[a], bounds_hi[a]);
+        atomicMax(&header.min_inv[a], bounds_lo_inv[a]);
     }
 }
 
@@ -229,9 +280,9 @@ fn find_or_insert(index: u32) -> u32 {
 
 // Adds a run of `count` points of one cell with fixed-point sums (sx, sy, sz): into the
 // cell's hash slot, or on the dense path into slot = its rank.
-fn flush(index: u32, count: u32, sx: vec2<u32>, sy: vec2<u32>, sz: vec2<u32>) {
+fn flush(dense: bool, index: u32, count: u32, sx: vec2<u32>, sy: vec2<u32>, sz: vec2<u32>) {
     var slot = NONE;
-    if header.mode == 1u {
+    if dense {
         let rank = dense_rank(index);
         if rank <= params.table_mask {
             slot = rank;
@@ -251,6 +302,41 @@ fn flush(index: u32, count: u32, sx: vec2<u32>, sy: vec2<u32>, sz: vec2<u32>) {
     add64(base + 5u, sz);
 }
 
+// An insert thread's grid, path, and its current run of points in one cell: the cell, the
+// count and the 64-bit fixed-point sums of the offsets.
+var<private> insert_grid: Grid;
+var<private> insert_dense: bool;
+var<private> run_index: u32;
+var<private> run_count: u32;
+var<private> run_sx: vec2<u32>;
+var<private> run_sy: vec2<u32>;
+var<private> run_sz: vec2<u32>;
+
+fn insert_point(bits: u32, i: u32, p: vec3<f32>) {
+    if !valid_point(bits, i, p) {
+        return;
+    }
+    let s = p * params.inv_leaf;
+    let cell = floor(s);
+    let index = cell_index(insert_grid, p);
+    if index != run_index {
+        if run_count != 0u {
+            flush(insert_dense, run_index, run_count, run_sx, run_sy, run_sz);
+        }
+        run_index = index;
+        run_count = 0u;
+        run_sx = vec2<u32>(0u);
+        run_sy = vec2<u32>(0u);
+        run_sz = vec2<u32>(0u);
+    }
+    let frac = clamp(s - cell, vec3<f32>(0.0), vec3<f32>(1.0));
+    let q = min(vec3<u32>(frac * FIXED_ONE), vec3<u32>(FIXED_MAX));
+    run_count += 1u;
+    run_sx = acc64(run_sx, q.x);
+    run_sy = acc64(run_sy, q.y);
+    run_sz = acc64(run_sz, q.z);
+}
+
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
     let first = gid.x * INSERT_CHUNK;
@@ -258,39 +344,26 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
     if first >= last {
         return;
     }
-    let g = grid();
-    var run_index = NONE;
-    var run_count = 0u;
-    var sx = vec2<u32>(0u);
-    var sy = vec2<u32>(0u);
-    var sz = vec2<u32>(0u);
-    for (var i = first; i < last; i++) {
-        let p = load_point(i);
-        if !valid_point(i, p) {
+    let bits = mask_word(first >> 5u);
+    if !chunk_in_mask(bits, first) {
+        return;
+    }
+    insert_grid = grid();
+    insert_dense = header.mode == 1u;
+    run_index = NONE;
+    run_count = 0u;
+    for (var i = first; i < last; i += 4u) {
+        if !quad_in_mask(bits, i) {
             continue;
         }
-        let s = p * params.inv_leaf;
-        let cell = floor(s);
-        let index = cell_index(g, p);
-        if index != run_index {
-            if run_count != 0u {
-                flush(run_index, run_count, sx, sy, sz);
-            }
-            run_index = index;
-            run_count = 0u;
-            sx = vec2<u32>(0u);
-            sy = vec2<u32>(0u);
-            sz = vec2<u32>(0u);
-        }
-        let frac = clamp(s - cell, vec3<f32>(0.0), vec3<f32>(1.0));
-        let q = min(vec3<u32>(frac * FIXED_ONE), vec3<u32>(FIXED_MAX));
-        run_count += 1u;
-        sx = acc64(sx, q.x);
-        sy = acc64(sy, q.y);
-        sz = acc64(sz, q.z);
+        let q = load_quad(i);
+        insert_point(bits, i, q[0]);
+        insert_point(bits, i + 1u, q[1]);
+        insert_point(bits, i + 2u, q[2]);
+        insert_point(bits, i + 3u, q[3]);
     }
     if run_count != 0u {
-        flush(run_index, run_count, sx, sy, sz);
+        flush(insert_dense, run_index, run_count, run_sx, run_sy, run_sz);
     }
 }
 
@@ -346,6 +419,18 @@ fn cell_index(g: Grid, p: vec3<f32>) -> u32 {
     return rel.x + rel.y * g.div.x + rel.z * g.div.x * g.div.y;
 }
 
+// Marks the cell of point i (mark pass; run_index: the cell marked last by this thread).
+fn mark_point(bits: u32, i: u32, p: vec3<f32>) {
+    if !valid_point(bits, i, p) {
+        return;
+    }
+    let index = cell_index(insert_grid, p);
+    if index != run_index {
+        atomicOr(&bitmap[index >> 5u], 1u << (index & 31u));
+        run_index = index;
+    }
+}
+
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn mark(@builtin(global_invocation_id) gid: vec3<u32>) {
     let first = gid.x * INSERT_CHUNK;
@@ -353,18 +438,21 @@ fn mark(@builtin(global_invocation_id) gid: vec3<u32>) {
     if first >= last || header.mode != 1u {
         return;
     }
-    let g = grid();
-    var last_index = NONE;
-    for (var i = first; i < last; i++) {
-        let p = load_point(i);
-        if !valid_point(i, p) {
+    let bits = mask_word(first >> 5u);
+    if !chunk_in_mask(bits, first) {
+        return;
+    }
+    insert_grid = grid();
+    run_index = NONE;
+    for (var i = first; i < last; i += 4u) {
+        if !quad_in_mask(bits, i) {
             continue;
         }
-        let index = cell_index(g, p);
-        if index != last_index {
-            atomicOr(&bitmap[index >> 5u], 1u << (index & 31u));
-            last_index = index;
-        }
+        let q = load_quad(i);
+        mark_point(bits, i, q[0]);
+        mark_point(bits, i + 1u, q[1]);
+        mark_point(bits, i + 2u, q[2]);
+        mark_point(bits, i + 3u, q[3]);
     }
 }
 

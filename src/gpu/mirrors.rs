@@ -152,7 +152,8 @@ pub struct ClusterParams {
     pub r2_joined: f32,
     /// Threads per coarse cell in the hook pass (1..=14).
     pub hook_threads_per_cell: u32,
-    pub _pad: u32,
+    /// Always 2: the trip count of the shader's check for loops cut short by lavapipe.
+    pub two: u32,
 }
 
 /// A mirrored struct: its WGSL name, the shader declaring it, and the Rust layout.

@@ -52,6 +52,26 @@ pub const CLUSTER: StageShader = StageShader {
 /// Every stage shader; the naga test checks this against the files in `shaders/`.
 pub const STAGE_SHADERS: &[StageShader] = &[CROP, VOXEL, SHELLS, CLUSTER];
 
+/// Asserts that each named `const` of `stage` (u32) has the given value: Rust constants
+/// that mirror a shader's.
+#[cfg(test)]
+pub fn assert_u32_constants(stage: &StageShader, expected: &[(&str, u32)]) {
+    let (module, _) = validate(stage, naga::valid::Capabilities::empty()).unwrap();
+    for &(name, value) in expected {
+        let init = module
+            .constants
+            .iter()
+            .find(|(_, c)| c.name.as_deref() == Some(name))
+            .map(|(_, c)| module.global_expressions[c.init].clone())
+            .unwrap_or_else(|| panic!("{name} missing in {}.wgsl", stage.name));
+        assert_eq!(
+            init,
+            naga::Expression::Literal(naga::Literal::U32(value)),
+            "{name}"
+        );
+    }
+}
+
 /// Number of workgroups of [`WORKGROUP_SIZE`] threads that cover `items`.
 pub fn workgroups_for(items: u32) -> u32 {
     items.div_ceil(WORKGROUP_SIZE)
@@ -65,6 +85,8 @@ pub enum BindingKind {
     UniformDynamic,
     StorageReadOnly,
     Storage,
+    /// A 2D texture of unsigned integers, read with `textureLoad` (`texture_2d<u32>`).
+    UintTexture2d,
 }
 
 /// A bind-group layout for compute shaders with the given bindings, numbered 0, 1, ...
@@ -79,18 +101,25 @@ pub fn bind_group_layout(
         .map(|(i, kind)| wgpu::BindGroupLayoutEntry {
             binding: i as u32,
             visibility: wgpu::ShaderStages::COMPUTE,
-            ty: wgpu::BindingType::Buffer {
-                ty: match kind {
-                    BindingKind::Uniform | BindingKind::UniformDynamic => {
-                        wgpu::BufferBindingType::Uniform
-                    }
-                    BindingKind::StorageReadOnly => {
-                        wgpu::BufferBindingType::Storage { read_only: true }
-                    }
-                    BindingKind::Storage => wgpu::BufferBindingType::Storage { read_only: false },
+            ty: match kind {
+                BindingKind::UintTexture2d => wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Uint,
+                    view_dimension: wgpu::TextureViewDimension::D2,
+                    multisampled: false,
                 },
-                has_dynamic_offset: *kind == BindingKind::UniformDynamic,
-                min_binding_size: None,
+                _ => wgpu::BindingType::Buffer {
+                    ty: match kind {
+                        BindingKind::StorageReadOnly => {
+                            wgpu::BufferBindingType::Storage { read_only: true }
+                        }
+                        BindingKind::Storage => {
+                            wgpu::BufferBindingType::Storage { read_only: false }
+                        }
+                        _ => wgpu::BufferBindingType::Uniform,
+                    },
+                    has_dynamic_offset: *kind == BindingKind::UniformDynamic,
+                    min_binding_size: None,
+                },
             },
             count: None,
         })

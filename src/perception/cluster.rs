@@ -134,10 +134,11 @@ impl ClusterConfig {
                 self.gpu_hash_slots
             )));
         }
-        if self.gpu_hash_max_probes == 0 {
-            return Err(ClusterError::Config(
-                "gpu_hash_max_probes must be at least 1".into(),
-            ));
+        if !(1..=MAX_HASH_PROBES).contains(&self.gpu_hash_max_probes) {
+            return Err(ClusterError::Config(format!(
+                "gpu_hash_max_probes must lie in 1..={MAX_HASH_PROBES}, got {}",
+                self.gpu_hash_max_probes
+            )));
         }
         if self.gpu_hook_threads_per_cell > HOOK_TASKS {
             return Err(ClusterError::Config(format!(
@@ -459,6 +460,9 @@ const STATUS_OVERFLOW: usize = 0;
 const STATUS_INCOMPLETE: usize = 1;
 const STATUS_OUT_OF_RANGE: usize = 2;
 const STATUS_DENSE_CELL: usize = 3;
+/// Most hash probes per look-up: the 13 look-ups of a hook invocation stay far below
+/// lavapipe's 65,535 loop iterations per shader invocation (cluster.wgsl).
+pub const MAX_HASH_PROBES: u32 = 1024;
 /// The shader's union-find passes are bounded; this many submissions are enough for any
 /// cloud we have seen by a wide margin (one nearly always suffices).
 const MAX_SUBMISSIONS: u32 = 16;
@@ -655,7 +659,7 @@ impl GpuClusterer {
                 0 => HOOK_TASKS,
                 n => n,
             },
-            _pad: 0,
+            two: 2,
         };
         Ok(())
     }
@@ -1203,6 +1207,18 @@ mod tests {
             "{err}"
         );
         assert!(ClusterConfig::default().validate().is_ok());
+        // Probe loops bounded for lavapipe's loop limit (cluster.wgsl).
+        for (probes, ok) in [
+            (0, false),
+            (MAX_HASH_PROBES, true),
+            (MAX_HASH_PROBES + 1, false),
+        ] {
+            let c = ClusterConfig {
+                gpu_hash_max_probes: probes,
+                ..ClusterConfig::default()
+            };
+            assert_eq!(c.validate().is_ok(), ok, "{probes}");
+        }
         let parsed: Result<ClusterConfig, _> = toml::from_str("tolerance_m = 0.1\nfoo = 1");
         assert!(parsed.is_err());
     }

@@ -63,6 +63,14 @@ impl Default for CropConfig {
     }
 }
 
+/// Pixels per thread of the depth pass (crop.wgsl `DEPTH_QUAD`).
+const DEPTH_QUAD: u32 = 4;
+
+/// Robot primitives one crop takes: the GPU holds them in a fixed uniform array (crop.wgsl
+/// `MAX_PRIMITIVES`, 24 kB), which also bounds its loops far below lavapipe's 65,535
+/// iterations per shader invocation (32 points x 257 tests in `crop_mask`).
+pub const MAX_CROP_PRIMITIVES: usize = 256;
+
 /// Why a crop cannot run.
 #[derive(Debug, thiserror::Error)]
 pub enum CropError {
@@ -83,6 +91,8 @@ pub enum CropError {
     },
     #[error("depth frame: {0}")]
     BadDepth(String),
+    #[error("{0} robot primitives, at most {MAX_CROP_PRIMITIVES} can be cropped")]
+    TooManyPrimitives(usize),
     #[error("cloud of {0} points is too large for one crop pass")]
     TooManyPoints(usize),
     #[error(transparent)]
@@ -136,6 +146,9 @@ impl CropScene<'_> {
             .is_some_and(|c| !c.coords.iter().all(|v| v.is_finite()))
         {
             return Err(CropError::BadCamera);
+        }
+        if self.robot.len() > MAX_CROP_PRIMITIVES {
+            return Err(CropError::TooManyPrimitives(self.robot.len()));
         }
         for (index, p) in self.robot.iter().enumerate() {
             p.validate()
@@ -364,10 +377,14 @@ pub struct GpuCrop {
     depth_pipeline: wgpu::ComputePipeline,
     params: wgpu::Buffer,
     depth_params: wgpu::Buffer,
+    /// `MAX_CROP_PRIMITIVES` primitives (uniform).
     primitives: wgpu::Buffer,
     mask: wgpu::Buffer,
-    /// The depth image, two pixels per word.
-    depth: wgpu::Buffer,
+    /// The depth image (R16Uint), sized for the last depth frame's width and height.
+    depth: wgpu::Texture,
+    depth_view: wgpu::TextureView,
+    /// Fills crop_mask's input-points binding, which the depth pass does not read.
+    unused_points: wgpu::Buffer,
     /// Pixels with a depth and flying pixels of the last depth pass.
     depth_counts: wgpu::Buffer,
     word_count: u32,
@@ -400,32 +417,41 @@ fn uniform(device: &wgpu::Device, label: &str, bytes: usize) -> wgpu::Buffer {
 /// Bytes of the depth pass's counters (pixels with a depth, flying pixels).
 pub const DEPTH_COUNT_BYTES: u64 = 8;
 
-/// Bytes of a depth image of `pixels` pixels on the GPU (two per word).
-fn depth_bytes(pixels: usize) -> u64 {
-    4 * pixels.div_ceil(2) as u64
+/// The depth image as a texture (R16Uint: the raw units, read with `textureLoad`).
+fn depth_texture(device: &wgpu::Device, width: u32, height: u32) -> wgpu::Texture {
+    device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("crop depth image"),
+        size: wgpu::Extent3d {
+            width: width.max(1),
+            height: height.max(1),
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: wgpu::TextureFormat::R16Uint,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    })
 }
 
 impl GpuCrop {
     pub fn new(ctx: &GpuContext) -> Result<Self, CropError> {
         use BindingKind::*;
-        let base = [Uniform, StorageReadOnly, StorageReadOnly, Storage];
+        let base = [Uniform, StorageReadOnly, Uniform, Storage];
         let layout = shader::bind_group_layout(ctx, "crop bind group layout", &base)?;
         let depth_layout = shader::bind_group_layout(
             ctx,
             "crop depth bind group layout",
-            &[
-                base.as_slice(),
-                &[Uniform, StorageReadOnly, Storage, Storage],
-            ]
-            .concat(),
+            &[base.as_slice(), &[Uniform, UintTexture2d, Storage, Storage]].concat(),
         )?;
         let pipeline =
             shader::compute_pipelines(ctx, &shader::CROP, &[&layout], &["crop_mask"])?.remove(0);
         let depth_pipeline =
             shader::compute_pipelines(ctx, &shader::CROP, &[&depth_layout], &["crop_depth"])?
                 .remove(0);
-        let (params, depth_params, primitives, mask, depth, depth_counts) =
-            ctx.scoped("crop buffers", |device| {
+        let (params, depth_params, primitives, mask, depth, unused_points, depth_counts) = ctx
+            .scoped("crop buffers", |device| {
                 (
                     uniform(device, "crop params", std::mem::size_of::<CropParams>()),
                     uniform(
@@ -433,16 +459,14 @@ impl GpuCrop {
                         "crop depth params",
                         std::mem::size_of::<DepthParams>(),
                     ),
-                    // A runtime-sized array binding must hold at least one element, even when
-                    // no primitive is posed.
-                    storage(
+                    uniform(
                         device,
                         "crop primitives",
-                        std::mem::size_of::<CropPrimitive>() as u64,
-                        wgpu::BufferUsages::empty(),
+                        MAX_CROP_PRIMITIVES * std::mem::size_of::<CropPrimitive>(),
                     ),
                     storage(device, "crop keep mask", 0, wgpu::BufferUsages::COPY_SRC),
-                    storage(device, "crop depth image", 0, wgpu::BufferUsages::empty()),
+                    depth_texture(device, 1, 1),
+                    storage(device, "crop unused points", 0, wgpu::BufferUsages::empty()),
                     storage(
                         device,
                         "crop depth counts",
@@ -460,7 +484,9 @@ impl GpuCrop {
             depth_params,
             primitives,
             mask,
+            depth_view: depth.create_view(&Default::default()),
             depth,
+            unused_points,
             depth_counts,
             word_count: 0,
             point_count: 0,
@@ -479,24 +505,26 @@ impl GpuCrop {
 
     /// Bytes of GPU memory the stage's buffers hold now.
     pub fn gpu_bytes(&self) -> u64 {
+        let depth = 2 * u64::from(self.depth.width()) * u64::from(self.depth.height());
         [
             &self.params,
             &self.depth_params,
             &self.primitives,
             &self.mask,
-            &self.depth,
+            &self.unused_points,
             &self.depth_counts,
         ]
         .iter()
         .map(|b| b.size())
-        .sum()
+        .sum::<u64>()
+            + depth
     }
 
-    /// Sizes the mask and the depth image for frames of up to `points` points / pixels, so
-    /// that no frame up to that size allocates.
+    /// Sizes the mask for frames of up to `points` points / pixels, so that no frame up to
+    /// that size allocates (the depth image's texture follows the image's width and height:
+    /// allocated by the first depth frame of a camera).
     pub fn reserve(&mut self, ctx: &GpuContext, points: usize) -> Result<(), CropError> {
         let words = 4 * mask_words(points) as u64;
-        let depth = depth_bytes(points);
         ctx.check_storage_size("crop keep mask", words)?;
         ctx.scoped("crop buffers", |device| {
             if self.mask.size() < words {
@@ -505,14 +533,6 @@ impl GpuCrop {
                     "crop keep mask",
                     words,
                     wgpu::BufferUsages::COPY_SRC,
-                );
-            }
-            if self.depth.size() < depth {
-                self.depth = storage(
-                    device,
-                    "crop depth image",
-                    depth,
-                    wgpu::BufferUsages::empty(),
                 );
             }
         })?;
@@ -547,23 +567,34 @@ impl GpuCrop {
         if let Some(scene) = scene {
             scene.validate()?;
         }
-        // One thread per pixel, at most 65535 workgroups in a dispatch.
-        if depth.len() as u64 > 65_535 * u64::from(shader::WORKGROUP_SIZE) {
+        // One thread per quad of pixels, at most 65535 workgroups in a dispatch.
+        if depth.len() as u64 > 65_535 * u64::from(shader::WORKGROUP_SIZE * DEPTH_QUAD) {
             return Err(CropError::TooManyPoints(depth.len()));
         }
-        self.write_params(ctx, depth.len(), config, scene)?;
-        let data = &depth.image.data;
-        let even = data.len() & !1;
-        if even > 0 {
-            ctx.queue()
-                .write_buffer(&self.depth, 0, bytemuck::cast_slice(&data[..even]));
+        let (width, height) = (depth.image.width, depth.image.height);
+        let largest = ctx.device().limits().max_texture_dimension_2d;
+        if width.max(height) > largest {
+            return Err(CropError::BadDepth(format!(
+                "{width} x {height} image exceeds the GPU's {largest} px texture side"
+            )));
         }
-        if even < data.len() {
-            // The last pixel of an odd count shares its word with a zero.
-            ctx.queue().write_buffer(
-                &self.depth,
-                2 * even as u64,
-                bytemuck::cast_slice(&[data[even], 0u16]),
+        self.write_params(ctx, depth.len(), config, scene)?;
+        if (self.depth.width(), self.depth.height()) != (width.max(1), height.max(1)) {
+            self.depth = ctx.scoped("crop depth image", |device| {
+                depth_texture(device, width, height)
+            })?;
+            self.depth_view = self.depth.create_view(&Default::default());
+        }
+        if !depth.is_empty() {
+            ctx.queue().write_texture(
+                self.depth.as_image_copy(),
+                bytemuck::cast_slice(&depth.image.data),
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(2 * width),
+                    rows_per_image: Some(height),
+                },
+                self.depth.size(),
             );
         }
         let (near, radius) = depth.veil_region(config, scene);
@@ -619,18 +650,7 @@ impl GpuCrop {
                 .map(|p| gpu_primitive(&p.grown(margin)))
                 .collect()
         });
-        let prim_bytes = std::mem::size_of_val(prims.as_slice()) as u64;
         self.reserve(ctx, point_count)?;
-        if self.primitives.size() < prim_bytes {
-            self.primitives = ctx.scoped("crop buffers", |device| {
-                storage(
-                    device,
-                    "crop primitives",
-                    prim_bytes,
-                    wgpu::BufferUsages::empty(),
-                )
-            })?;
-        }
         // Without a scene: no primitive and a radius no finite point exceeds.
         let hip_r2 = match scene {
             Some(scene) => {
@@ -663,8 +683,8 @@ impl GpuCrop {
     }
 
     /// Records the first pass of a depth frame ([`GpuCrop::prepare_depth`]): the
-    /// cloud-frame points into `out_points` (12 bytes per pixel), the keep mask and the
-    /// counters (cleared here).
+    /// cloud-frame points into `out_points` (12 bytes per pixel, at least
+    /// [`super::voxel::points_bytes`] in all), the keep mask and the counters (cleared here).
     pub fn record_depth(
         &self,
         ctx: &GpuContext,
@@ -678,13 +698,14 @@ impl GpuCrop {
             layout: &self.depth_layout,
             entries: &[
                 entry(0, &self.params),
-                // Binding 1 (crop_mask's input points) is unused here; the read-only depth
-                // image fills it without a conflicting usage.
-                entry(1, &self.depth),
+                entry(1, &self.unused_points),
                 entry(2, &self.primitives),
                 entry(3, &self.mask),
                 entry(4, &self.depth_params),
-                entry(5, &self.depth),
+                wgpu::BindGroupEntry {
+                    binding: 5,
+                    resource: wgpu::BindingResource::TextureView(&self.depth_view),
+                },
                 entry(6, out_points),
                 entry(7, &self.depth_counts),
             ],
@@ -695,8 +716,11 @@ impl GpuCrop {
         });
         pass.set_pipeline(&self.depth_pipeline);
         pass.set_bind_group(0, &bind_group, &[]);
-        // One thread per pixel.
-        pass.dispatch_workgroups(shader::workgroups_for(self.point_count), 1, 1);
+        pass.dispatch_workgroups(
+            shader::workgroups_for(self.point_count.div_ceil(DEPTH_QUAD)),
+            1,
+            1,
+        );
     }
 
     /// Records the crop pass over `points` (packed xyz f32, as uploaded from [`Vec3`]s).
@@ -746,7 +770,7 @@ impl GpuCrop {
             let input = storage(
                 device,
                 "crop input points",
-                12 * points.len() as u64,
+                super::voxel::points_bytes(points.len()),
                 wgpu::BufferUsages::empty(),
             );
             let readback = device.create_buffer(&wgpu::BufferDescriptor {
@@ -1061,8 +1085,7 @@ mod tests {
         );
     }
 
-    /// Regression: with no robot primitive the primitives binding still holds one element
-    /// (a 16-byte buffer failed wgpu validation against the 96-byte `CropPrimitive`).
+    /// With no robot primitive every finite point within the radius is kept.
     #[test]
     fn gpu_without_primitives_matches_cpu() {
         let ctx = crate::gpu::context::test_context();
@@ -1081,5 +1104,58 @@ mod tests {
             .0;
         assert_eq!(gpu, crop_cpu(&pts, &config, &scene).unwrap());
         assert_eq!(kept_indices(&gpu, pts.len()), vec![0, 3]);
+    }
+
+    /// A shader loop that lavapipe's limiter (65,535 iterations per SIMD group) could cut
+    /// short would leave points out of the mask silently: 32 points x 2,049 primitive tests in
+    /// one crop_mask thread did. The primitive count is bounded instead: at the bound every
+    /// point is still tested against every primitive, one more is an error on both backends.
+    #[test]
+    fn primitive_count_is_bounded_so_no_shader_loop_is_cut_short() {
+        let ctx = crate::gpu::context::test_context();
+        let far = |k: usize| Primitive::Sphere {
+            center_m: Point3::new(10.0 + k as f64, 0.0, 0.0),
+            radius_m: 0.01,
+        };
+        let mut robot: Vec<Primitive> = (0..MAX_CROP_PRIMITIVES - 1).map(far).collect();
+        // The last primitive holds the cloud's last point.
+        robot.push(Primitive::Sphere {
+            center_m: Point3::new(0.0, 0.0, 0.3),
+            radius_m: 0.001,
+        });
+        let pts: Vec<Vec3> = (0..96)
+            .map(|i| Vec3::new(0.0, 0.0, 0.3 * i as f32 / 95.0))
+            .collect();
+        let config = CropConfig {
+            radius_m: 1.0,
+            robot_margin_m: 0.0,
+            robot_margin_per_m2: 0.0,
+        };
+        let scene = hip_scene(&robot);
+        let cpu = crop_cpu(&pts, &config, &scene).unwrap();
+        assert_eq!(kept_indices(&cpu, pts.len()), (0..95).collect::<Vec<_>>());
+        let mut gpu = GpuCrop::new(ctx).unwrap();
+        assert_eq!(gpu.run(ctx, &pts, &config, &scene, None).unwrap().0, cpu);
+        robot.push(far(MAX_CROP_PRIMITIVES));
+        let scene = hip_scene(&robot);
+        assert!(matches!(
+            crop_cpu(&pts, &config, &scene),
+            Err(CropError::TooManyPrimitives(n)) if n == MAX_CROP_PRIMITIVES + 1
+        ));
+        assert!(matches!(
+            gpu.run(ctx, &pts, &config, &scene, None),
+            Err(CropError::TooManyPrimitives(_))
+        ));
+    }
+
+    #[test]
+    fn rust_constants_match_the_shader() {
+        shader::assert_u32_constants(
+            &shader::CROP,
+            &[
+                ("DEPTH_QUAD", DEPTH_QUAD),
+                ("MAX_PRIMITIVES", MAX_CROP_PRIMITIVES as u32),
+            ],
+        );
     }
 }

@@ -40,7 +40,7 @@ use crate::perception::crop::{
     crop_depth_cpu, mask_words,
 };
 use crate::perception::voxel::{
-    GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, voxel_cpu_with_leaf,
+    GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, points_bytes, voxel_cpu_with_leaf,
 };
 
 /// Settings of the front end, one struct per stage.
@@ -384,7 +384,7 @@ impl GpuFrontend {
     /// bytes of GPU memory the front end holds.
     pub fn reserve(&mut self, points: usize) -> Result<u64, FrontendError> {
         let ctx = Arc::clone(&self.ctx);
-        let input_bytes = 12 * points as u64;
+        let input_bytes = points_bytes(points);
         ctx.check_storage_size("frontend input points", input_bytes)?;
         if self.input.size() < input_bytes {
             self.input = make_buffer(&ctx, "frontend input points", input_bytes, INPUT_USAGE)?;
@@ -434,7 +434,7 @@ impl GpuFrontend {
         let start = Instant::now();
         let ctx = Arc::clone(&self.ctx);
         let n = frame.points.len();
-        let input_bytes = 12 * n as u64;
+        let input_bytes = points_bytes(n);
         ctx.check_storage_size("frontend input points", input_bytes)?;
         if self.input.size() < input_bytes {
             self.input = make_buffer(&ctx, "frontend input points", input_bytes, INPUT_USAGE)?;

@@ -169,6 +169,18 @@ impl Default for VoxelConfig {
     }
 }
 
+/// Bounds that keep every loop of voxel.wgsl far enough below lavapipe's limit of 65,535
+/// iterations per shader invocation (a SIMD group; gallivm ends the loops silently beyond
+/// it): an insert thread probes at most 8 x 2 x `max_probes` slots, and compact_scan's
+/// threads walk 2 x slots / (512 x 64) block sums (32,768 at 2^29 slots).
+pub const MAX_PROBES_LIMIT: u32 = 2048;
+pub const MAX_TABLE_SLOTS_LIMIT: u32 = 1 << 29;
+// Worst cases of insert (each point of a chunk a new cell probing 2 x max_probes slots) and
+// of compact_scan's block walk, against gallivm's 65,535 iterations.
+const _: () = assert!(INSERT_CHUNK * (2 * MAX_PROBES_LIMIT + 1) + 2 < 65_535);
+const _: () =
+    assert!(2 * MAX_TABLE_SLOTS_LIMIT / (COMPACT_BLOCK * shader::WORKGROUP_SIZE) + 16 < 65_535);
+
 /// Why a voxel grid cannot be computed.
 #[derive(Debug, thiserror::Error)]
 pub enum VoxelError {
@@ -223,8 +235,11 @@ impl VoxelConfig {
                 "target_points must be positive".into(),
             ));
         }
-        if self.max_probes == 0 {
-            return Err(VoxelError::BadSetting("max_probes must be positive".into()));
+        if !(1..=MAX_PROBES_LIMIT).contains(&self.max_probes) {
+            return Err(VoxelError::BadSetting(format!(
+                "max_probes must lie in 1..={MAX_PROBES_LIMIT}, got {}",
+                self.max_probes
+            )));
         }
         if self.initial_table_slots > self.max_table_slots {
             return Err(VoxelError::BadSetting(format!(
@@ -232,9 +247,9 @@ impl VoxelConfig {
                 self.initial_table_slots, self.max_table_slots
             )));
         }
-        if self.max_table_slots > 1 << 30 {
+        if self.max_table_slots > MAX_TABLE_SLOTS_LIMIT {
             return Err(VoxelError::BadSetting(
-                "max_table_slots must be at most 2^30".into(),
+                "max_table_slots must be at most 2^29".into(),
             ));
         }
         Ok(())
@@ -684,6 +699,13 @@ fn slots_for(n: u64) -> u32 {
         .min(1 << 30) as u32
 }
 
+/// Bytes of a buffer of `n` packed xyz f32 points as the GPU passes bind it: whole quads of
+/// points (three vec4s each), as the crop and voxel passes read them and the depth pass
+/// writes them.
+pub fn points_bytes(n: usize) -> u64 {
+    12 * n.next_multiple_of(4) as u64
+}
+
 /// The bind group of compact_scan: the dispatch schedule and the indirect arguments.
 fn schedule_group(
     ctx: &GpuContext,
@@ -1008,7 +1030,8 @@ impl GpuVoxel {
     }
 
     /// Records the whole voxel stage (clears, then its four timed compute passes) over
-    /// `points` (packed xyz f32), using `mask` when [`Self::prepare`] was told so.
+    /// `points` (packed xyz f32 in a buffer of at least [`points_bytes`]), using `mask` when
+    /// [`Self::prepare`] was told so.
     pub fn record(
         &self,
         ctx: &GpuContext,
@@ -1242,7 +1265,7 @@ impl GpuVoxel {
             gpu_buffer(
                 device,
                 "voxel input points",
-                12 * points.len() as u64,
+                points_bytes(points.len()),
                 STORAGE,
             )
         })?;
@@ -1359,7 +1382,7 @@ pub(crate) mod tests {
             .unwrap();
         let input = ctx
             .scoped("test input", |d| {
-                gpu_buffer(d, "test points", 12 * pts.len() as u64, STORAGE)
+                gpu_buffer(d, "test points", points_bytes(pts.len()), STORAGE)
             })
             .unwrap();
         let mask_buf = ctx
@@ -1529,36 +1552,24 @@ pub(crate) mod tests {
 
     #[test]
     fn rust_constants_match_the_shader() {
-        let (module, _) =
-            crate::gpu::shader::validate(&shader::VOXEL, naga::valid::Capabilities::empty())
-                .unwrap();
-        for (name, value) in [
-            ("BOUNDS_CHUNK", BOUNDS_CHUNK),
-            ("INSERT_CHUNK", INSERT_CHUNK),
-            ("SORT_BLOCK", SORT_BLOCK),
-            ("COMPACT_BLOCK", COMPACT_BLOCK),
-            ("SCHEDULE_BLOCKS", SCHEDULE_BLOCKS),
-            ("SCHEDULE_GLOBAL", SCHEDULE_GLOBAL),
-            ("SCHEDULE_REDUCE", SCHEDULE_REDUCE),
-            ("SCHEDULE_WORDS", SCHEDULE_WORDS),
-            ("SCHEDULE_WORD_BLOCKS", SCHEDULE_WORD_BLOCKS),
-            ("DENSE_MAX_CELLS", DENSE_MAX_CELLS as u32),
-            ("DENSE_WORDS_PER_POINT", DENSE_WORDS_PER_POINT as u32),
-            ("DENSE_MIN_WORDS", DENSE_MIN_WORDS as u32),
-            ("SLOT_WORDS", SLOT_WORDS as u32),
-        ] {
-            let init = module
-                .constants
-                .iter()
-                .find(|(_, c)| c.name.as_deref() == Some(name))
-                .map(|(_, c)| module.global_expressions[c.init].clone())
-                .unwrap_or_else(|| panic!("{name} missing"));
-            assert_eq!(
-                init,
-                naga::Expression::Literal(naga::Literal::U32(value)),
-                "{name}"
-            );
-        }
+        shader::assert_u32_constants(
+            &shader::VOXEL,
+            &[
+                ("BOUNDS_CHUNK", BOUNDS_CHUNK),
+                ("INSERT_CHUNK", INSERT_CHUNK),
+                ("SORT_BLOCK", SORT_BLOCK),
+                ("COMPACT_BLOCK", COMPACT_BLOCK),
+                ("SCHEDULE_BLOCKS", SCHEDULE_BLOCKS),
+                ("SCHEDULE_GLOBAL", SCHEDULE_GLOBAL),
+                ("SCHEDULE_REDUCE", SCHEDULE_REDUCE),
+                ("SCHEDULE_WORDS", SCHEDULE_WORDS),
+                ("SCHEDULE_WORD_BLOCKS", SCHEDULE_WORD_BLOCKS),
+                ("DENSE_MAX_CELLS", DENSE_MAX_CELLS as u32),
+                ("DENSE_WORDS_PER_POINT", DENSE_WORDS_PER_POINT as u32),
+                ("DENSE_MIN_WORDS", DENSE_MIN_WORDS as u32),
+                ("SLOT_WORDS", SLOT_WORDS as u32),
+            ],
+        );
     }
 
     #[test]
@@ -1568,6 +1579,30 @@ pub(crate) mod tests {
             let cpu = voxel_cpu(&pts, None, &config).unwrap();
             assert!(cpu.points.is_empty());
             assert_same(&gpu_run(&pts, &config).unwrap(), &cpu);
+        }
+    }
+
+    /// The probe and table bounds that keep the shader's loops within lavapipe's iteration
+    /// limit are part of the config's validation.
+    #[test]
+    fn probe_and_table_bounds_keep_shader_loops_below_the_iteration_limit() {
+        let at_limit = VoxelConfig {
+            max_probes: MAX_PROBES_LIMIT,
+            max_table_slots: MAX_TABLE_SLOTS_LIMIT,
+            ..VoxelConfig::default()
+        };
+        at_limit.validate().unwrap();
+        for bad in [
+            VoxelConfig {
+                max_probes: MAX_PROBES_LIMIT + 1,
+                ..VoxelConfig::default()
+            },
+            VoxelConfig {
+                max_table_slots: 2 * MAX_TABLE_SLOTS_LIMIT,
+                ..VoxelConfig::default()
+            },
+        ] {
+            assert!(matches!(bad.validate(), Err(VoxelError::BadSetting(_))));
         }
     }
 
