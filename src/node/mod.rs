@@ -7,7 +7,8 @@
 //!    stamps, or ROS 2 messages from Zenoh as they arrive, `crate::io::zenoh`) into a short
 //!    queue bounded per camera ([`frame_queue`]); when perception is behind and a camera's
 //!    slots are full, that camera's oldest queued frame is dropped and counted for it, so the
-//!    newest frame wins and a flooding camera cannot starve the others,
+//!    newest frame wins and a flooding camera cannot starve the others; perception takes the
+//!    cameras' frames in turn,
 //! 2. **perception** (one thread, owning the GPU context): the per-camera chain
 //!    ([`CameraChain`]: crop, voxel grid, clusters, and one surface estimator with its memory
 //!    per camera), then hands each
