@@ -38,9 +38,10 @@
 //! stages, logged once; a camera that stops makes fusion go stale and the constraints follow
 //! `on_stale`: `disable` switches them off at once, `hold` keeps the last fused surface for at
 //! most `stale_hold_max_s` (flagged as held in the record and on CAN), then switches them off;
-//! tracking resumes when frames return; malformed messages
-//! are counted and dropped per camera; an unreadable recording is an error naming the
-//! file ([`record`]).
+//! tracking resumes when frames return; frames lost on the way (queue full, malformed,
+//! unpaired, out of order, bad stamps) are counted per camera and cause
+//! ([`FramesLost`]); an unreadable recording is an error naming the file
+//! ([`record`]).
 
 mod backends;
 pub mod can_out;
@@ -60,7 +61,7 @@ mod tests;
 pub use backends::{BACKEND_CHOICE_FRAMES, measure_backends};
 pub use realtime::{RealtimeConfig, RealtimeStatus};
 pub use replay::{ReplayReport, replay};
-pub use summary::{CameraSummary, CanSummary, NodeSummary, Percentiles};
+pub use summary::{CameraSummary, CanSummary, FramesLost, NodeSummary, Percentiles};
 pub use workers::Worker;
 
 use crate::camera::Frame;
@@ -614,14 +615,13 @@ fn summarize(
     behind: Behind,
 ) -> NodeSummary {
     let duration_s = stats.duration_s;
-    let per_camera = shared
-        .per_camera
+    let lost = shared
+        .lost
         .into_inner()
         .unwrap_or_else(PoisonError::into_inner);
     let mut cameras = BTreeMap::new();
-    for &id in report.frames.keys().chain(per_camera.keys()) {
+    for &id in report.frames.keys().chain(lost.keys()) {
         let (frames, valid) = report.frames.get(&id).copied().unwrap_or_default();
-        let (dropped, malformed) = per_camera.get(&id).copied().unwrap_or_default();
         cameras.insert(
             id,
             CameraSummary {
@@ -632,8 +632,7 @@ fn summarize(
                     0.0
                 },
                 valid_estimates: valid,
-                dropped,
-                malformed,
+                lost: lost.get(&id).copied().unwrap_or_default(),
             },
         );
     }

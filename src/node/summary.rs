@@ -19,16 +19,37 @@ pub struct Percentiles {
     pub p99: f64,
 }
 
-/// Per camera: frames processed and their rate over the run's clock time, frames dropped
-/// (the camera's slots in the frame queue were full: its own oldest queued frame went) and
-/// messages that did not decode (a live source).
+/// Per camera: frames processed and their rate over the run's clock time, and the frames
+/// or messages that did not reach perception, by cause.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct CameraSummary {
     pub frames: u64,
     pub rate_hz: f64,
     pub valid_estimates: u64,
-    pub dropped: u64,
+    #[serde(flatten)]
+    pub lost: FramesLost,
+}
+
+/// One camera's frames (or messages of a live source) that did not reach perception, by
+/// where and why they were dropped.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct FramesLost {
+    /// Queued frames replaced by a newer frame of the camera: perception was behind (the
+    /// node's frame queue, `frame_queue_count` slots per camera).
+    pub queue_dropped: u64,
+    /// Messages the live source's receive queue dropped when full: the source thread
+    /// (decoding, pairing) was behind (`zenoh_source.queue_samples`).
+    pub source_dropped: u64,
+    /// Messages that did not decode or convert.
     pub malformed: u64,
+    /// Images, infos or clouds that never met their partners of the same stamp.
+    pub unpaired: u64,
+    /// Frames without a known pose yet (no transform to the world frame).
+    pub no_pose: u64,
+    /// Frames stamped at or before the camera's last accepted frame.
+    pub out_of_order: u64,
+    /// Streamed frames whose stamp is not finite or far from the node clock.
+    pub bad_stamp: u64,
 }
 
 /// What a run did (the `--json` object of `hapcloud run`).
