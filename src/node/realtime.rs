@@ -171,6 +171,21 @@ fn prefault_stack() {
     std::hint::black_box(&mut stack);
 }
 
+/// The smallest page size Linux uses.
+const MIN_PAGE_BYTES: usize = 4096;
+
+/// Writes one value of every page of `values` back in place, so each page is present before
+/// the loop runs: a zeroed allocation (`vec![0; n]`, mapped fresh by the kernel when large)
+/// has no page behind it until its first write, and that write inside a tick is a page fault.
+pub(super) fn touch_pages<T: Copy>(values: &mut [T]) {
+    let per_page = (MIN_PAGE_BYTES / std::mem::size_of::<T>().max(1)).max(1);
+    for v in values.iter_mut().step_by(per_page) {
+        // SAFETY: `v` is a valid, aligned, exclusive reference; volatile so the write of an
+        // unchanged value is not optimised away.
+        unsafe { std::ptr::write_volatile(v, *v) };
+    }
+}
+
 /// Pins the calling thread to `cpu`.
 fn pin_to(cpu: usize) -> Result<(), std::io::Error> {
     // SAFETY: a zeroed cpu_set_t is the empty set; `cpu` is below CPU_SETSIZE (validated);
