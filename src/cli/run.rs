@@ -180,6 +180,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(path) => read_config(path)?,
         None => RunConfig::default(),
     };
+    // Before the Zenoh session or any node thread starts, so all their arenas are shared.
+    node::realtime::limit_malloc_arenas(&run_config.node.realtime).map_err(anyhow::Error::msg)?;
     let config = &mut run_config.node;
     #[cfg(feature = "ros2")]
     let mut session = None;
