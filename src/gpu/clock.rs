@@ -325,7 +325,10 @@ mod tests {
     fn implausible_driver_samples_are_refused() {
         let now = 10_000_000_000;
         let ok = ClockSample::checked(7, now - 5_000, 20, now).unwrap();
-        assert_eq!((ok.device_tick, ok.host_ns, ok.max_deviation_ns), (7, now - 5_000, 20));
+        assert_eq!(
+            (ok.device_tick, ok.host_ns, ok.max_deviation_ns),
+            (7, now - 5_000, 20)
+        );
         for (host_ns, deviation, says) in [
             (now + 1, 20, "not within"),
             (0, 20, "not within"),

@@ -219,9 +219,8 @@ pub fn depth_from_image_scaled(
         };
         // A far pixel beyond what 16 bits hold in the largest unit would coarsen every
         // other depth to nothing: the image is refused, naming it.
-        check_depth_scale(scale).map_err(|e| {
-            Ros2Error::Value(format!("32FC1 image with depths up to {far} m: {e}"))
-        })?;
+        check_depth_scale(scale)
+            .map_err(|e| Ros2Error::Value(format!("32FC1 image with depths up to {far} m: {e}")))?;
         data.extend(metres.iter().map(|&z| {
             if z.is_finite() && z > 0.0 {
                 (f64::from(z) / scale).round().min(f64::from(u16::MAX)) as u16

@@ -503,7 +503,10 @@ fn bad_camera_models_and_depths_name_the_value() {
         intrinsics_from_camera_info(&i).unwrap_err().to_string()
     };
     for (edit, says) in [
-        (&(|i: &mut CameraInfo| i.k[0] = 0.0) as &dyn Fn(&mut CameraInfo), "fx = 0.0"),
+        (
+            &(|i: &mut CameraInfo| i.k[0] = 0.0) as &dyn Fn(&mut CameraInfo),
+            "fx = 0.0",
+        ),
         (&|i| i.k[0] = f64::NAN, "fx = NaN"),
         (&|i| i.k[0] = -400.0, "fx = -400.0"),
         (&|i| i.k[0] = 1e-300, "fx = 1e-300"),
@@ -527,7 +530,10 @@ fn bad_camera_models_and_depths_name_the_value() {
         depth_from_image_scaled(&m, scale).unwrap_err().to_string()
     };
     for (edit, says) in [
-        (&(|m: &mut Image| m.width = 0) as &dyn Fn(&mut Image), "image of 0 x 3"),
+        (
+            &(|m: &mut Image| m.width = 0) as &dyn Fn(&mut Image),
+            "image of 0 x 3",
+        ),
         (&|m| m.height = 0, "image of 4 x 0"),
         (&|m| m.is_bigendian = 2, "is_bigendian 2"),
         // Sizes that lie about the data: more rows than bytes, and an image too large to
@@ -578,9 +584,13 @@ fn a_recorded_pose_that_is_not_a_rotation_is_malformed() {
     let mut assembler = FrameAssembler::new(vec![camera], "world").unwrap();
     let img = image_from_depth(header(1.0), &depth());
     let info = camera_info_from_intrinsics(header(1.0), &intrinsics());
-    for (i, rotation) in [[2.0, 0.0, 0.0, 0.0], [f64::NAN, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]
-        .into_iter()
-        .enumerate()
+    for (i, rotation) in [
+        [2.0, 0.0, 0.0, 0.0],
+        [f64::NAN, 0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0, 0.0],
+    ]
+    .into_iter()
+    .enumerate()
     {
         let h = header(1.0 + i as f64);
         let meta = hapcloud::FrameMeta {
@@ -592,15 +602,34 @@ fn a_recorded_pose_that_is_not_a_rotation_is_malformed() {
             depth_scale_m: MM,
             joint_positions_rad: vec![],
         };
-        assert!(assembler.push("/cam/meta", &encode(&meta).unwrap()).is_none());
-        let img = Image { header: h.clone(), ..img.clone() };
-        let info = CameraInfo { header: h, ..info.clone() };
-        assert!(assembler.push("/cam/depth", &encode(&img).unwrap()).is_none());
+        assert!(
+            assembler
+                .push("/cam/meta", &encode(&meta).unwrap())
+                .is_none()
+        );
+        let img = Image {
+            header: h.clone(),
+            ..img.clone()
+        };
+        let info = CameraInfo {
+            header: h,
+            ..info.clone()
+        };
+        assert!(
+            assembler
+                .push("/cam/depth", &encode(&img).unwrap())
+                .is_none()
+        );
         let frame = assembler.push("/cam/camera_info", &encode(&info).unwrap());
         let counters = assembler.counters();
         if i < 2 {
             assert!(frame.is_none());
-            assert_eq!(counters.malformed, i as u64 + 1, "{:?}", assembler.last_error());
+            assert_eq!(
+                counters.malformed,
+                i as u64 + 1,
+                "{:?}",
+                assembler.last_error()
+            );
             assert!(
                 assembler.last_error().unwrap().contains("unit quaternion"),
                 "{:?}",
@@ -634,9 +663,17 @@ fn camera_infos_without_images_are_counted_and_bounded() {
     assert_eq!(assembler.counters().unpaired, (n - MAX_PENDING) as u64);
     // An image of a stamp whose info went long ago stays unpaired too.
     let img = image_from_depth(header(0.0), &depth());
-    assert!(assembler.push("/cam/depth", &encode(&img).unwrap()).is_none());
+    assert!(
+        assembler
+            .push("/cam/depth", &encode(&img).unwrap())
+            .is_none()
+    );
     // One whose info is still waiting pairs with it.
     let img = image_from_depth(header((n - 1) as f64), &depth());
-    assert!(assembler.push("/cam/depth", &encode(&img).unwrap()).is_some());
+    assert!(
+        assembler
+            .push("/cam/depth", &encode(&img).unwrap())
+            .is_some()
+    );
     assert_eq!(assembler.counters().frames, 1);
 }
