@@ -180,6 +180,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(path) => read_config(path)?,
         None => RunConfig::default(),
     };
+    // Before the Zenoh session or any node thread starts, so all their arenas are shared.
+    node::realtime::limit_malloc_arenas(&run_config.node.realtime).map_err(anyhow::Error::msg)?;
     let config = &mut run_config.node;
     #[cfg(feature = "ros2")]
     let mut session = None;
@@ -459,7 +461,9 @@ fn print_table(s: &NodeSummary) {
         println!("GPU buffers: {:.1} MB", bytes as f64 / 1e6);
     }
     println!("node time: {:.2} s at speed {}", s.duration_s, s.speed);
-    println!("camera  frames  rate_hz  valid_estimates  dropped  malformed  latency p50/p95 ms");
+    println!(
+        "camera  frames  rate_hz  valid_estimates  dropped: queue/source  malformed  latency p50/p95 ms"
+    );
     for (id, c) in &s.cameras {
         let latency = s
             .camera_latency
@@ -468,8 +472,12 @@ fn print_table(s: &NodeSummary) {
             .map(|l| format!("{:.1} / {:.1}", l.p50_s * 1e3, l.p95_s * 1e3))
             .unwrap_or_default();
         println!(
-            "{id:>6}  {:>6}  {:>7.1}  {:>15}  {:>7}  {:>9}  {latency}",
-            c.frames, c.rate_hz, c.valid_estimates, c.dropped, c.malformed
+            "{id:>6}  {:>6}  {:>7.1}  {:>15}  {:>21}  {:>9}  {latency}",
+            c.frames,
+            c.rate_hz,
+            c.valid_estimates,
+            format!("{} / {}", c.lost.queue_dropped, c.lost.source_dropped),
+            c.lost.malformed
         );
     }
     println!(

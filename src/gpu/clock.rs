@@ -50,7 +50,44 @@ pub struct ClockSample {
     pub max_deviation_ns: u64,
 }
 
+/// Widest bound on the time between a sample's two reads the driver may report, ns: passes
+/// take fractions of a millisecond to milliseconds, so a sample looser than this cannot place
+/// them.
+pub const MAX_SAMPLE_DEVIATION_NS: u64 = 1_000_000;
+
+/// How long before the host clock read just after it a sample's host time may lie, ns.
+pub const MAX_SAMPLE_AGE_NS: u64 = 1_000_000_000;
+
 impl ClockSample {
+    /// A sample from the driver's reads, checked against the host's `CLOCK_MONOTONIC` read
+    /// just after them (`now_ns`): its host time must lie before `now_ns` by at most
+    /// [`MAX_SAMPLE_AGE_NS`], its deviation must be at most [`MAX_SAMPLE_DEVIATION_NS`]. The
+    /// error names the value.
+    pub fn checked(
+        device_tick: u64,
+        host_ns: u64,
+        max_deviation_ns: u64,
+        now_ns: u64,
+    ) -> Result<Self, String> {
+        if host_ns > now_ns || now_ns - host_ns > MAX_SAMPLE_AGE_NS {
+            return Err(format!(
+                "calibrated host time {host_ns} ns is not within {MAX_SAMPLE_AGE_NS} ns before \
+                 CLOCK_MONOTONIC {now_ns} ns"
+            ));
+        }
+        if max_deviation_ns > MAX_SAMPLE_DEVIATION_NS {
+            return Err(format!(
+                "calibration deviation {max_deviation_ns} ns is above \
+                 {MAX_SAMPLE_DEVIATION_NS} ns"
+            ));
+        }
+        Ok(Self {
+            device_tick,
+            host_ns,
+            max_deviation_ns,
+        })
+    }
+
     /// Host time (ns, `CLOCK_MONOTONIC`) of device tick `tick`, ticks of `period_ns`.
     pub fn host_ns_of(&self, tick: u64, period_ns: f32) -> u64 {
         // A signed tick difference: passes lie before the sample (it is read after the
@@ -91,8 +128,14 @@ pub(crate) enum Calibrator {
 
 #[cfg(feature = "vulkan-calibrated")]
 impl Calibrator {
-    /// Device tick and `CLOCK_MONOTONIC` at one instant, or `None` when the driver fails.
+    /// Device tick and `CLOCK_MONOTONIC` at one instant, or `None` when the driver fails or
+    /// returns a sample [`ClockSample::checked`] refuses.
     pub(crate) fn sample(&self) -> Option<ClockSample> {
+        self.read().ok()
+    }
+
+    /// [`Self::sample`], saying why there is none.
+    fn read(&self) -> Result<ClockSample, String> {
         use ash::vk;
         let infos = [
             vk::TimeDomainKHR::DEVICE,
@@ -108,12 +151,15 @@ impl Calibrator {
                 Calibrator::Ext(d) => d.get_calibrated_timestamps(&infos),
             }
         };
-        let (ticks, max_deviation_ns) = result.ok()?;
-        Some(ClockSample {
-            device_tick: *ticks.first()?,
-            host_ns: *ticks.get(1)?,
-            max_deviation_ns,
-        })
+        let (ticks, max_deviation_ns) =
+            result.map_err(|e| format!("vkGetCalibratedTimestamps: {e}"))?;
+        let now_ns = monotonic_ns();
+        match ticks[..] {
+            [device_tick, host_ns] => {
+                ClockSample::checked(device_tick, host_ns, max_deviation_ns, now_ns)
+            }
+            _ => Err(format!("{} timestamps for 2 time domains", ticks.len())),
+        }
     }
 }
 
@@ -228,10 +274,8 @@ mod calibrated {
                 Calibrator::Ext(ash::ext::calibrated_timestamps::Device::new(instance, raw))
             }
         };
-        if calibrator.sample().is_none() {
-            return Err(format!(
-                "{name}: the driver returned no calibrated timestamps"
-            ));
+        if let Err(reason) = calibrator.read() {
+            return Err(format!("{name}: {reason}"));
         }
         Ok(Opened {
             device,
@@ -273,6 +317,29 @@ mod tests {
             ..s
         };
         assert_eq!(w.host_ns_of(u64::MAX - 4, 1.0), 5_000_000 - 10);
+    }
+
+    /// A driver's sample is refused, naming the value, when its host time lies after the
+    /// host clock or long before it, or its deviation is too wide to place a pass.
+    #[test]
+    fn implausible_driver_samples_are_refused() {
+        let now = 10_000_000_000;
+        let ok = ClockSample::checked(7, now - 5_000, 20, now).unwrap();
+        assert_eq!(
+            (ok.device_tick, ok.host_ns, ok.max_deviation_ns),
+            (7, now - 5_000, 20)
+        );
+        for (host_ns, deviation, says) in [
+            (now + 1, 20, "not within"),
+            (0, 20, "not within"),
+            (u64::MAX, 20, "not within"),
+            (now - MAX_SAMPLE_AGE_NS - 1, 20, "not within"),
+            (now, MAX_SAMPLE_DEVIATION_NS + 1, "deviation 1000001 ns"),
+            (now, u64::MAX, "deviation"),
+        ] {
+            let err = ClockSample::checked(7, host_ns, deviation, now).unwrap_err();
+            assert!(err.contains(says), "{host_ns} {deviation}: {err}");
+        }
     }
 
     #[test]

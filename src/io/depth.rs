@@ -20,8 +20,10 @@ use std::path::Path;
 /// 1e-4 to 1e-3; a metre per count already gives 65 km of range).
 pub const DEPTH_SCALE_RANGE_M: (f64, f64) = (1e-6, 1.0);
 
-/// Largest accepted focal length, pixels (real cameras are below 1e5).
-pub const MAX_FOCAL_PX: f64 = 1e6;
+/// Accepted focal lengths, pixels: below a pixel a pinhole camera would see more than 180
+/// degrees across a few pixels (and tiny values deproject to infinities); real cameras are
+/// below 1e5.
+pub const FOCAL_RANGE_PX: (f64, f64) = (1.0, 1e6);
 
 /// Deflate's largest expansion, output bytes per compressed byte.
 const MAX_DEFLATE_RATIO: u64 = 1032;
@@ -37,7 +39,7 @@ pub fn check_depth_scale(depth_scale_m: f64) -> Result<(), FormatError> {
     Ok(())
 }
 
-/// `Ok` for intrinsics that deproject: focal lengths finite in (0, [`MAX_FOCAL_PX`]], the
+/// `Ok` for intrinsics that deproject: focal lengths within [`FOCAL_RANGE_PX`], the
 /// principal point finite and inside the image, a non-empty image. The error names the value.
 pub fn check_intrinsics(k: &PinholeIntrinsics) -> Result<(), FormatError> {
     if k.width == 0 || k.height == 0 {
@@ -46,10 +48,11 @@ pub fn check_intrinsics(k: &PinholeIntrinsics) -> Result<(), FormatError> {
             k.width, k.height
         )));
     }
+    let (lo, hi) = FOCAL_RANGE_PX;
     for (name, value) in [("fx", k.fx), ("fy", k.fy)] {
-        if !(value > 0.0 && value <= MAX_FOCAL_PX) {
+        if !(lo..=hi).contains(&value) {
             return Err(FormatError::BadValue(format!(
-                "focal length {name} = {value:?} px is not in (0, {MAX_FOCAL_PX:?}]"
+                "focal length {name} = {value:?} px is not in [{lo:?}, {hi:?}]"
             )));
         }
     }
@@ -379,6 +382,7 @@ mod tests {
             (PinholeIntrinsics { fy: f64::NAN, ..k }, "fy = NaN px"),
             (PinholeIntrinsics { fx: -525.0, ..k }, "fx = -525.0 px"),
             (PinholeIntrinsics { fy: 1e300, ..k }, "fy = 1e300 px"),
+            (PinholeIntrinsics { fx: 1e-300, ..k }, "fx = 1e-300 px"),
             (PinholeIntrinsics { cx: f64::NAN, ..k }, "cx = NaN px"),
             (PinholeIntrinsics { cy: -1.0, ..k }, "cy = -1.0 px"),
             (PinholeIntrinsics { cx: 700.0, ..k }, "cx = 700.0 px"),

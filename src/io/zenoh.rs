@@ -282,6 +282,10 @@ pub struct CameraCounters {
     pub drops: u64,
     /// Samples that did not decode or convert.
     pub malformed: u64,
+    /// Images, infos or clouds dropped without their partners of the same stamp.
+    pub unpaired: u64,
+    /// Frames dropped because no pose was known for them yet.
+    pub no_pose: u64,
     /// Frame stamp to the frame's delivery by [`ZenohSource::recv`] on this machine's wall
     /// clock, s, over the last [`LATENCY_WINDOW`] frames: p50 and p99 (0 before any frame).
     pub delivery_latency_p50_s: f64,
@@ -307,8 +311,8 @@ pub struct SourceStats {
 }
 
 impl SourceStats {
-    /// Per-camera counters (frames delivered, samples dropped, malformed samples, delivery
-    /// latency).
+    /// Per-camera counters (frames delivered, samples dropped, malformed, unpaired, without a
+    /// pose, delivery latency).
     pub fn counters(&self) -> BTreeMap<u32, CameraCounters> {
         let cameras = self.cameras.lock().unwrap_or_else(PoisonError::into_inner);
         let mut out: BTreeMap<u32, CameraCounters> = cameras
@@ -478,18 +482,21 @@ impl ZenohSource {
                 }
             };
             let bytes = payload.to_bytes();
-            let before = self.assembler.counters().malformed;
+            let before = self.assembler.counters();
             let frame = self.assembler.push(&self.topics[topic], &bytes);
-            let malformed = self.assembler.counters().malformed - before;
+            let after = self.assembler.counters();
             let mut cameras = self
                 .stats
                 .cameras
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner);
+            // What this message cost is its topic's camera's (pairing is per camera).
             if let Some(id) = self.stats.topic_camera[topic]
                 && let Some(c) = cameras.get_mut(&id)
             {
-                c.counters.malformed += malformed;
+                c.counters.malformed += after.malformed - before.malformed;
+                c.counters.unpaired += after.unpaired - before.unpaired;
+                c.counters.no_pose += after.no_pose - before.no_pose;
             }
             if let Some(f) = frame {
                 if let Some(c) = cameras.get_mut(&f.frame.camera_id) {
@@ -504,7 +511,8 @@ impl ZenohSource {
         }
     }
 
-    /// Per-camera counters (frames delivered, samples dropped, malformed samples).
+    /// Per-camera counters (frames delivered, samples dropped, malformed, unpaired, without a
+    /// pose).
     pub fn counters(&self) -> BTreeMap<u32, CameraCounters> {
         self.stats.counters()
     }

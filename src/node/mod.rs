@@ -7,7 +7,8 @@
 //!    stamps, or ROS 2 messages from Zenoh as they arrive, `crate::io::zenoh`) into a short
 //!    queue bounded per camera ([`frame_queue`]); when perception is behind and a camera's
 //!    slots are full, that camera's oldest queued frame is dropped and counted for it, so the
-//!    newest frame wins and a flooding camera cannot starve the others,
+//!    newest frame wins and a flooding camera cannot starve the others; perception takes the
+//!    cameras' frames in turn,
 //! 2. **perception** (`perception_workers` threads sharing the GPU context, each with its
 //!    share of the cameras): the per-camera chain ([`CameraChain`]: crop, voxel grid,
 //!    clusters, and one surface estimator with its memory per camera), then hands each
@@ -37,9 +38,10 @@
 //! stages, logged once; a camera that stops makes fusion go stale and the constraints follow
 //! `on_stale`: `disable` switches them off at once, `hold` keeps the last fused surface for at
 //! most `stale_hold_max_s` (flagged as held in the record and on CAN), then switches them off;
-//! tracking resumes when frames return; malformed messages
-//! are counted and dropped per camera; an unreadable recording is an error naming the
-//! file ([`record`]).
+//! tracking resumes when frames return; frames lost on the way (queue full, malformed,
+//! unpaired, out of order, bad stamps) are counted per camera and cause
+//! ([`FramesLost`]); an unreadable recording is an error naming the file
+//! ([`record`]).
 
 mod backends;
 pub mod can_out;
@@ -59,7 +61,7 @@ mod tests;
 pub use backends::{BACKEND_CHOICE_FRAMES, measure_backends};
 pub use realtime::{RealtimeConfig, RealtimeStatus};
 pub use replay::{ReplayReport, replay};
-pub use summary::{CameraSummary, CanSummary, NodeSummary, Percentiles};
+pub use summary::{CameraSummary, CanSummary, FramesLost, NodeSummary, Percentiles};
 pub use workers::Worker;
 
 use crate::camera::Frame;
@@ -664,14 +666,13 @@ fn summarize(
     behind: Behind,
 ) -> NodeSummary {
     let duration_s = stats.duration_s;
-    let per_camera = shared
-        .per_camera
+    let lost = shared
+        .lost
         .into_inner()
         .unwrap_or_else(PoisonError::into_inner);
     let mut cameras = BTreeMap::new();
-    for &id in report.frames.keys().chain(per_camera.keys()) {
+    for &id in report.frames.keys().chain(lost.keys()) {
         let (frames, valid) = report.frames.get(&id).copied().unwrap_or_default();
-        let (dropped, malformed) = per_camera.get(&id).copied().unwrap_or_default();
         cameras.insert(
             id,
             CameraSummary {
@@ -682,8 +683,7 @@ fn summarize(
                     0.0
                 },
                 valid_estimates: valid,
-                dropped,
-                malformed,
+                lost: lost.get(&id).copied().unwrap_or_default(),
             },
         );
     }

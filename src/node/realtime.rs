@@ -32,6 +32,13 @@ pub struct RealtimeConfig {
     /// weighs about 87 times one at nice 0, so busy processes delay its wake-ups far less.
     /// `None`: no fallback.
     pub fallback_nice: Option<i8>,
+    /// Most glibc malloc arenas the process's threads share (`mallopt(M_ARENA_MAX)`, set by
+    /// [`limit_malloc_arenas`] before any thread starts; 0: glibc's default of 8 per core).
+    /// Each arena keeps the memory of its busiest moment: with locked memory, resident
+    /// memory is the sum of every arena's high-water mark, and one arena per thread (the
+    /// Zenoh threads, perception) grows with each new burst. The control loop's thread
+    /// allocates nothing, so sharing arenas costs it no lock.
+    pub malloc_arenas: u32,
 }
 
 impl Default for RealtimeConfig {
@@ -42,6 +49,7 @@ impl Default for RealtimeConfig {
             spin_us: 50,
             cpu: None,
             fallback_nice: Some(-20),
+            malloc_arenas: 2,
         }
     }
 }
@@ -79,8 +87,36 @@ impl RealtimeConfig {
                 libc::CPU_SETSIZE
             ));
         }
+        if self.malloc_arenas > Self::MAX_MALLOC_ARENAS {
+            return Err(format!(
+                "realtime.malloc_arenas must be 0 (glibc's default) to {}, got {}",
+                Self::MAX_MALLOC_ARENAS,
+                self.malloc_arenas
+            ));
+        }
         Ok(())
     }
+
+    /// The largest `malloc_arenas`.
+    pub const MAX_MALLOC_ARENAS: u32 = 1024;
+}
+
+/// Limits glibc's malloc arenas to `config.malloc_arenas` (0: unchanged). Call it before
+/// any thread is spawned (the Zenoh session's included): a thread takes an arena at its
+/// first allocation, and the limit only stops new arenas.
+pub fn limit_malloc_arenas(config: &RealtimeConfig) -> Result<(), String> {
+    config.validate()?;
+    if config.malloc_arenas == 0 {
+        return Ok(());
+    }
+    // SAFETY: mallopt only sets glibc's allocator parameter; the value is at most 1024.
+    if unsafe { libc::mallopt(libc::M_ARENA_MAX, config.malloc_arenas as libc::c_int) } != 1 {
+        return Err(format!(
+            "mallopt(M_ARENA_MAX, {}) failed",
+            config.malloc_arenas
+        ));
+    }
+    Ok(())
 }
 
 /// What the control loop's thread got from the system ([`RealtimeConfig`]).
@@ -198,6 +234,21 @@ const PREFAULT_STACK_BYTES: usize = 256 * 1024;
 fn prefault_stack() {
     let mut stack = [0u8; PREFAULT_STACK_BYTES];
     std::hint::black_box(&mut stack);
+}
+
+/// The smallest page size Linux uses.
+const MIN_PAGE_BYTES: usize = 4096;
+
+/// Writes one value of every page of `values` back in place, so each page is present before
+/// the loop runs: a zeroed allocation (`vec![0; n]`, mapped fresh by the kernel when large)
+/// has no page behind it until its first write, and that write inside a tick is a page fault.
+pub(super) fn touch_pages<T: Copy>(values: &mut [T]) {
+    let per_page = (MIN_PAGE_BYTES / std::mem::size_of::<T>().max(1)).max(1);
+    for v in values.iter_mut().step_by(per_page) {
+        // SAFETY: `v` is a valid, aligned, exclusive reference; volatile so the write of an
+        // unchanged value is not optimised away.
+        unsafe { std::ptr::write_volatile(v, *v) };
+    }
 }
 
 /// Pins the calling thread to `cpu`.
@@ -387,5 +438,71 @@ mod tests {
         let before = Instant::now();
         wait.until(past);
         assert!(before.elapsed() < Duration::from_secs(1));
+    }
+
+    /// Threads started after [`limit_malloc_arenas`] share the limited arenas (without it,
+    /// each new thread takes an arena of its own). Run in a child process of this test
+    /// binary: arenas are never given back, so the count needs a process of its own.
+    #[test]
+    fn threads_share_the_limited_malloc_arenas() {
+        const CHILD: &str = "HAPCLOUD_ARENA_TEST_LIMIT";
+        const THREADS: usize = 8;
+        if let Some(limit) = std::env::var_os(CHILD) {
+            let limit: u32 = limit.to_str().unwrap().parse().unwrap();
+            limit_malloc_arenas(&RealtimeConfig {
+                malloc_arenas: limit,
+                ..Default::default()
+            })
+            .unwrap();
+            let all_started = std::sync::Barrier::new(THREADS);
+            std::thread::scope(|s| {
+                for _ in 0..THREADS {
+                    s.spawn(|| {
+                        let block = std::hint::black_box(vec![1u8; 4096]);
+                        all_started.wait();
+                        drop(block);
+                    });
+                }
+            });
+            println!("arenas {}", malloc_arena_count());
+            return;
+        }
+        let arenas_with = |limit: u32| {
+            let out = std::process::Command::new(std::env::current_exe().unwrap())
+                .args([
+                    "--exact",
+                    "node::realtime::tests::threads_share_the_limited_malloc_arenas",
+                    "--nocapture",
+                    "--test-threads=1",
+                ])
+                .env(CHILD, limit.to_string())
+                .output()
+                .unwrap();
+            let stdout = String::from_utf8_lossy(&out.stdout);
+            stdout
+                .lines()
+                .find_map(|l| l.rsplit_once("arenas ")?.1.trim().parse::<usize>().ok())
+                .unwrap_or_else(|| panic!("child said: {stdout}"))
+        };
+        // The harness's test thread has an arena before the limit is set.
+        assert!(arenas_with(2) <= 2);
+        assert!(arenas_with(0) >= THREADS);
+    }
+
+    /// The number of glibc malloc arenas (`<heap nr=...>` of `malloc_info`).
+    fn malloc_arena_count() -> usize {
+        let path = std::env::temp_dir().join(format!("hapcloud-arenas-{}", std::process::id()));
+        let c_path = std::ffi::CString::new(path.to_str().unwrap()).unwrap();
+        // SAFETY: a valid path and mode; malloc_info writes to the FILE it is given, which is
+        // closed once.
+        unsafe {
+            let file = libc::fopen(c_path.as_ptr(), c"w".as_ptr());
+            assert!(!file.is_null());
+            libc::malloc_info(0, file);
+            libc::fclose(file);
+        }
+        let xml = std::fs::read_to_string(&path).unwrap();
+        let _ = std::fs::remove_file(&path);
+        xml.matches("<heap nr=").count()
     }
 }

@@ -3,7 +3,7 @@
 //! and counters the control loop keeps without allocating. No paper equation.
 
 use super::can_out::{BusLoad, CanCounters};
-use super::realtime::RealtimeStatus;
+use super::realtime::{RealtimeStatus, touch_pages};
 use super::record::Behind;
 use crate::fusion::{CameraLatency, FusionCounters};
 use crate::gpu::Backend;
@@ -19,16 +19,37 @@ pub struct Percentiles {
     pub p99: f64,
 }
 
-/// Per camera: frames processed and their rate over the run's clock time, frames dropped
-/// (the camera's slots in the frame queue were full: its own oldest queued frame went) and
-/// messages that did not decode (a live source).
+/// Per camera: frames processed and their rate over the run's clock time, and the frames
+/// or messages that did not reach perception, by cause.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct CameraSummary {
     pub frames: u64,
     pub rate_hz: f64,
     pub valid_estimates: u64,
-    pub dropped: u64,
+    #[serde(flatten)]
+    pub lost: FramesLost,
+}
+
+/// One camera's frames (or messages of a live source) that did not reach perception, by
+/// where and why they were dropped.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct FramesLost {
+    /// Queued frames replaced by a newer frame of the camera: perception was behind (the
+    /// node's frame queue, `frame_queue_count` slots per camera).
+    pub queue_dropped: u64,
+    /// Messages the live source's receive queue dropped when full: the source thread
+    /// (decoding, pairing) was behind (`zenoh_source.queue_samples`).
+    pub source_dropped: u64,
+    /// Messages that did not decode or convert.
     pub malformed: u64,
+    /// Images, infos or clouds that never met their partners of the same stamp.
+    pub unpaired: u64,
+    /// Frames without a known pose yet (no transform to the world frame).
+    pub no_pose: u64,
+    /// Frames stamped at or before the camera's last accepted frame.
+    pub out_of_order: u64,
+    /// Streamed frames whose stamp is not finite or far from the node clock.
+    pub bad_stamp: u64,
 }
 
 /// What a run did (the `--json` object of `hapcloud run`).
@@ -197,6 +218,14 @@ impl Histogram {
         }
     }
 
+    /// [`Self::new`] with every page of the bins present, for the control loop: a sample in
+    /// a bin never hit before (a late wake-up, a long latency) is then no page fault.
+    pub(super) fn prefaulted(bin_s: f64, range_s: f64) -> Self {
+        let mut h = Self::new(bin_s, range_s);
+        touch_pages(&mut h.counts);
+        h
+    }
+
     pub(super) fn add(&mut self, s: f64) {
         let s = if s.is_finite() { s.max(0.0) } else { f64::MAX };
         let bin = ((s / self.bin_s) as usize).min(self.counts.len() - 1);
@@ -281,12 +310,47 @@ impl LoopStats {
             unrecorded_estimates: 0,
             stopped_early: false,
             // 0.1 ms bins up to 10 s; 1 us bins up to 50 ms
-            latency: Histogram::new(1e-4, 10.0),
+            latency: Histogram::prefaulted(1e-4, 10.0),
             last_latency_s: f64::NAN,
-            jitter: Histogram::new(1e-6, 0.05),
-            work: Histogram::new(1e-6, 0.05),
+            jitter: Histogram::prefaulted(1e-6, 0.05),
+            work: Histogram::prefaulted(1e-6, 0.05),
             realtime: RealtimeStatus::default(),
             duration_s: 0.0,
         }
     }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::realtime::thread_page_faults;
+    use super::*;
+
+    /// A sample in a bin no sample hit before costs the loop no page fault: its histograms'
+    /// pages are present from the start (a plain histogram's first sample in each page
+    /// faults). 64 MiB of bins: beyond glibc's largest mmap threshold, so the kernel maps
+    /// them fresh, with no page behind them until written.
+    #[test]
+    fn a_first_sample_in_any_bin_of_the_loop_is_no_page_fault() {
+        let bins = 16 << 20;
+        let pages = bins / MIN_PAGE_BINS;
+        let faults_filling = |mut h: Histogram| {
+            let before = thread_page_faults();
+            for page in 0..pages {
+                h.add(((page * MIN_PAGE_BINS) as f64 + 0.5) * 1e-6);
+            }
+            let faults = thread_page_faults() - before;
+            assert_eq!(h.total, pages as u64);
+            faults
+        };
+        let range_s = bins as f64 * 1e-6;
+        assert!(faults_filling(Histogram::new(1e-6, range_s)) > 0);
+        assert_eq!(
+            faults_filling(Histogram::prefaulted(1e-6, range_s)),
+            0,
+            "{pages} pages"
+        );
+    }
+
+    /// Bins of one 4 kB page.
+    const MIN_PAGE_BINS: usize = 4096 / std::mem::size_of::<u32>();
 }

@@ -374,8 +374,11 @@ fn zenoh_source_runs_the_node_and_outputs_are_published() {
     let published = outputs.finish();
     std::thread::sleep(Duration::from_millis(300));
     assert!(summary.frames > 10, "{summary:?}");
-    assert!(summary.cameras[&0].malformed >= 2, "{summary:?}");
-    assert_eq!(summary.malformed_records, summary.cameras[&0].malformed);
+    assert!(summary.cameras[&0].lost.malformed >= 2, "{summary:?}");
+    assert_eq!(
+        summary.malformed_records,
+        summary.cameras[&0].lost.malformed
+    );
     assert!(summary.cameras[&1].frames > 5, "{summary:?}");
     assert!(tracking > 0, "{summary:?}");
     // Stamps are wall-clock: the latency is the real one, small on loopback.
@@ -747,20 +750,22 @@ fn frames_out_of_order_per_camera_are_refused_and_counted() {
     let _serial = serial();
     let mut frames = plane_frames(1.0, None);
     let count = frames.len() as u64;
-    // Three of camera 0's frames re-sent after later ones (a stale duplicate, a clock step
+    // Three frames re-sent after later ones of their camera (a stale duplicate, a clock step
     // back), and one frame stamped exactly like its predecessor.
-    let mut injected = 0;
+    let mut refused_cameras = Vec::new();
     for at in [10, 20, 30] {
         let mut old = frames[at - 8].clone();
         assert_eq!(old.camera_id, frames[at].camera_id);
         old.stamp_s = frames[at].stamp_s - 0.2;
+        refused_cameras.push(old.camera_id);
         frames.insert(at + 1, old);
-        injected += 1;
     }
     let mut same = frames[40].clone();
     same.cloud = frames[42].cloud.clone();
+    refused_cameras.push(same.camera_id);
     frames.insert(41, same);
-    injected += 1;
+    let injected = refused_cameras.len() as u64;
+    let frames_of: Vec<u32> = frames.iter().map(|f| f.camera_id).collect();
     let mut tracking_after = 0;
     let summary = run(&config(), Source::Timed(frames), &options(0.5), |t| {
         tracking_after += u64::from(t.fused.is_tracking() && t.fused.stamp_s > 1.8);
@@ -768,7 +773,34 @@ fn frames_out_of_order_per_camera_are_refused_and_counted() {
     .unwrap();
     assert_eq!(summary.out_of_order_frames, injected, "{summary:?}");
     assert_eq!(summary.frames + summary.dropped_frames, count);
+    // Per camera, each frame offered was processed, dropped from the queue or refused, and
+    // the refusals are counted for the cameras they were injected into.
+    for (id, c) in &summary.cameras {
+        assert_eq!(
+            c.frames + c.lost.queue_dropped + c.lost.out_of_order,
+            count_camera(&frames_of, *id),
+            "camera {id}: {c:?}"
+        );
+        assert_eq!(
+            c.lost.out_of_order,
+            count_camera(&refused_cameras, *id),
+            "camera {id}: {c:?}"
+        );
+    }
+    assert_eq!(
+        summary
+            .cameras
+            .values()
+            .map(|c| c.lost.queue_dropped)
+            .sum::<u64>(),
+        summary.dropped_frames
+    );
     assert!(tracking_after > 0, "the cameras were held back");
+}
+
+/// Frames of camera `id` among the cameras of a source's frames.
+fn count_camera(cameras: &[u32], id: u32) -> u64 {
+    cameras.iter().filter(|&&c| c == id).count() as u64
 }
 
 /// A disk already full when the run starts is a clear error naming the recording, before

@@ -10,7 +10,7 @@ use super::frame_queue::{CloseOnDrop, FrameQueue, Share};
 use super::haptic_loop::{FusionWindow, Perception};
 use super::record::{FrameRecorder, RecordError};
 use super::robot_state::RobotState;
-use super::summary::{GpuSplit, Histogram};
+use super::summary::{FramesLost, GpuSplit, Histogram};
 use super::{NodeError, NodeEvent, Source};
 use crate::camera::Frame;
 use crate::fusion::{CameraLatency, Fit, FusionCounters};
@@ -56,9 +56,8 @@ pub(super) struct Shared {
     pub(super) queued: AtomicU64,
     pub(super) source_finished: AtomicBool,
     pub(super) malformed: AtomicU64,
-    /// Per camera: frames dropped from the queue, and (a live source) samples dropped and
-    /// malformed messages (`dropped`, `malformed`).
-    pub(super) per_camera: std::sync::Mutex<BTreeMap<u32, (u64, u64)>>,
+    /// Per camera: what did not reach perception, by cause.
+    pub(super) lost: Mutex<BTreeMap<u32, FramesLost>>,
     /// Frames refused where they entered: stamped before (or at) their camera's last
     /// accepted frame, or with a stamp that is not finite or far from the node clock.
     pub(super) out_of_order: AtomicU64,
@@ -90,6 +89,12 @@ impl Shared {
         failure.get_or_insert((thread, cause));
         self.failed.store(true, Ordering::Release);
         self.stop.store(true, Ordering::Release);
+    }
+
+    /// Updates `camera`'s counts of frames lost.
+    fn lose(&self, camera: u32, count: impl FnOnce(&mut FramesLost)) {
+        let mut lost = self.lost.lock().unwrap_or_else(PoisonError::into_inner);
+        count(lost.entry(camera).or_default());
     }
 
     /// Records a recording write error (logged once); the caller drops its recorder.
@@ -399,6 +404,7 @@ impl StampGate {
         match self.last.iter_mut().find(|(id, _)| *id == frame.camera_id) {
             Some((_, last)) if frame.stamp_s <= *last => {
                 shared.out_of_order.fetch_add(1, Ordering::Relaxed);
+                shared.lose(frame.camera_id, |l| l.out_of_order += 1);
                 false
             }
             Some((_, last)) => {
@@ -438,13 +444,7 @@ pub(super) fn source_thread(
             // The camera's oldest queued frame made room: one frame in, one out.
             Ok(Some(oldest)) => {
                 shared.dropped.fetch_add(1, Ordering::Relaxed);
-                shared
-                    .per_camera
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .entry(oldest.camera_id)
-                    .or_default()
-                    .0 += 1;
+                shared.lose(oldest.camera_id, |l| l.queue_dropped += 1);
                 true
             }
             Err(_) => false,
@@ -484,30 +484,33 @@ pub(super) fn source_thread(
                         && (stamp_s - clock.now_s()).abs() <= STREAM_STAMP_WINDOW_S)
                     {
                         shared.bad_stamps.fetch_add(1, Ordering::Relaxed);
+                        shared.lose(assembled.frame.camera_id, |l| l.bad_stamp += 1);
                     } else if !offer(assembled.frame) {
                         break;
                     }
                 }
-                let counters = stats.counters();
-                shared.malformed.store(
-                    counters.values().map(|c| c.malformed).sum(),
-                    Ordering::Relaxed,
-                );
-                let mut per_camera = shared
-                    .per_camera
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner);
-                for (id, c) in counters {
-                    per_camera.entry(id).or_default().1 = c.malformed;
-                }
+                source_losses(&stats, shared);
             }
-            let mut per_camera = shared
-                .per_camera
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
-            for (id, c) in stats.counters() {
-                per_camera.entry(id).or_default().0 += c.drops;
-            }
+            source_losses(&stats, shared);
         }
+    }
+}
+
+/// The live source's own counts (its receive queue, decoding, pairing, poses) into the
+/// node's per-camera losses.
+#[cfg(feature = "ros2")]
+fn source_losses(stats: &crate::io::zenoh::SourceStats, shared: &Shared) {
+    let counters = stats.counters();
+    shared.malformed.store(
+        counters.values().map(|c| c.malformed).sum(),
+        Ordering::Relaxed,
+    );
+    for (id, c) in counters {
+        shared.lose(id, |l| {
+            l.source_dropped = c.drops;
+            l.malformed = c.malformed;
+            l.unpaired = c.unpaired;
+            l.no_pose = c.no_pose;
+        });
     }
 }

@@ -14,7 +14,7 @@ report() {
   python3 - "$1" "$2" "$3" <<'PY'
 import json, sys
 d = json.load(open(sys.argv[1]))
-cams = " ".join("cam%s: %d frames %.1f Hz dropped %d" % (k, c["frames"], c["rate_hz"], c["dropped"])
+cams = " ".join("cam%s: %d frames %.1f Hz dropped %d + %d" % (k, c["frames"], c["rate_hz"], c["queue_dropped"], c["source_dropped"])
                 for k, c in d["cameras"].items())
 print("%-6s %5s  %s  latency p50 %.1f ms p99 %.1f ms  perception p50 %.1f ms  misses %d" % (
     sys.argv[2], sys.argv[3], cams, d["latency_ms"]["p50"], d["latency_ms"]["p99"],

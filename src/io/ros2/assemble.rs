@@ -13,7 +13,10 @@ use super::convert::{
     frame_from_depth, frame_from_pointcloud2, intrinsics_from_camera_info, isometry_from_transform,
 };
 use super::hapcloud::FrameMeta;
-use super::msgs::{CameraInfo, Header, Image, PointCloud2, Time};
+use super::msgs::{
+    CameraInfo, Header, Image, PointCloud2, Quaternion as RosQuaternion, Time, Transform,
+    Vector3 as RosVector3,
+};
 use super::{Ros2Error, decode, seconds_from_time};
 use crate::camera::Frame;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
@@ -323,7 +326,7 @@ impl FrameAssembler {
         let (info, b) = take_matching(&mut p.infos, |m| m.header.stamp == stamp);
         let (points, c) = take_matching(&mut p.clouds, |m| m.header.stamp == stamp);
         self.counters.unpaired += a + b + c;
-        let Some((stamp_s, pose, meta)) = self.pose(i, &stamp, &header.frame_id) else {
+        let Some((stamp_s, pose, meta)) = self.pose(i, &stamp, &header.frame_id)? else {
             return Ok(None);
         };
         let frame = match (image, info, points) {
@@ -356,32 +359,44 @@ impl FrameAssembler {
     }
 
     /// Stamp, pose and recorded metadata of camera `i`'s frame stamped `stamp` in `frame_id`;
-    /// `None` (counted) when no pose is known.
+    /// `None` (counted) when no pose is known; a recorded pose that is not finite with a unit
+    /// quaternion is an error.
+    #[allow(clippy::type_complexity)]
     fn pose(
         &mut self,
         i: usize,
         stamp: &Time,
         frame_id: &str,
-    ) -> Option<(f64, Isometry3<f64>, Option<FrameMeta>)> {
+    ) -> Result<Option<(f64, Isometry3<f64>, Option<FrameMeta>)>, Ros2Error> {
         if let (Some(meta), _) =
             take_matching(&mut self.pending[i].metas, |m| m.header.stamp == *stamp)
         {
+            let t = meta.world_from_camera_translation_m;
             let [w, x, y, z] = meta.world_from_camera_rotation_wxyz;
+            // Checked as any transform, then taken as recorded (replay is bit for bit).
+            isometry_from_transform(&Transform {
+                translation: RosVector3 {
+                    x: t[0],
+                    y: t[1],
+                    z: t[2],
+                },
+                rotation: RosQuaternion { x, y, z, w },
+            })?;
             let pose = Isometry3::from_parts(
-                Translation3::from(Vector3::from(meta.world_from_camera_translation_m)),
+                Translation3::from(Vector3::from(t)),
                 UnitQuaternion::new_unchecked(Quaternion::new(w, x, y, z)),
             );
-            return Some((meta.stamp_s, pose, Some(meta)));
+            return Ok(Some((meta.stamp_s, pose, Some(meta))));
         }
         let stamp_s = seconds_from_time(stamp);
         if let Some(p) = &self.cameras[i].world_from_camera {
-            return Some((stamp_s, p.isometry(), None));
+            return Ok(Some((stamp_s, p.isometry(), None)));
         }
         match self.tf_pose(frame_id) {
-            Some(pose) => Some((stamp_s, pose, None)),
+            Some(pose) => Ok(Some((stamp_s, pose, None))),
             None => {
                 self.counters.no_pose += 1;
-                None
+                Ok(None)
             }
         }
     }

@@ -16,6 +16,7 @@ use super::msgs::{
 use crate::camera::{DepthImage, Frame, PinholeIntrinsics};
 use crate::cloud::PointCloud;
 use crate::io::ReadLimits;
+use crate::io::depth::{check_depth_scale, check_intrinsics};
 use glam::Vec3;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
@@ -143,6 +144,15 @@ pub fn depth_from_image_scaled(
         other => return Err(Ros2Error::Encoding(other.into())),
     };
     let (w, h) = (u64::from(img.width), u64::from(img.height));
+    if w == 0 || h == 0 {
+        return Err(Ros2Error::Value(format!("image of {w} x {h} pixels")));
+    }
+    if img.is_bigendian > 1 {
+        return Err(Ros2Error::Value(format!(
+            "is_bigendian {} is neither 0 nor 1",
+            img.is_bigendian
+        )));
+    }
     let max_pixels = ReadLimits::default().max_pixels;
     if w * h > max_pixels {
         return Err(Ros2Error::Value(format!(
@@ -201,13 +211,16 @@ pub fn depth_from_image_scaled(
             .filter(|z| z.is_finite())
             .fold(0.0f32, f32::max);
         let scale = match float_scale_m {
-            Some(s) if s > 0.0 && s.is_finite() => s,
-            Some(s) => return Err(Ros2Error::Value(format!("depth unit {s} m"))),
+            Some(s) => s,
             None if (f64::from(far) / FLOAT_DEPTH_SCALE_M).round() <= f64::from(u16::MAX) => {
                 FLOAT_DEPTH_SCALE_M
             }
             None => f64::from(far) / f64::from(u16::MAX),
         };
+        // A far pixel beyond what 16 bits hold in the largest unit would coarsen every
+        // other depth to nothing: the image is refused, naming it.
+        check_depth_scale(scale)
+            .map_err(|e| Ros2Error::Value(format!("32FC1 image with depths up to {far} m: {e}")))?;
         data.extend(metres.iter().map(|&z| {
             if z.is_finite() && z > 0.0 {
                 (f64::from(z) / scale).round().min(f64::from(u16::MAX)) as u16
@@ -265,10 +278,10 @@ pub fn image_from_depth(header: Header, depth: &DepthImage) -> Image {
 /// no region of interest: what realsense-ros publishes for its depth stream).
 pub fn intrinsics_from_camera_info(info: &CameraInfo) -> Result<PinholeIntrinsics, Ros2Error> {
     let k = &info.k;
-    let (fx, fy, cx, cy) = (k[0], k[4], k[2], k[5]);
-    if !(fx > 0.0 && fy > 0.0 && [fx, fy, cx, cy].iter().all(|v| v.is_finite())) {
+    // K = [fx 0 cx; 0 fy cy; 0 0 1]: skew and the last row are those of a pinhole camera.
+    if [k[1], k[3], k[6], k[7]] != [0.0; 4] || k[8] != 1.0 {
         return Err(Ros2Error::CameraInfo(format!(
-            "K = {k:?} has no positive finite focal lengths"
+            "K = {k:?} is not a pinhole matrix [fx 0 cx; 0 fy cy; 0 0 1]"
         )));
     }
     if info.d.iter().any(|&d| d != 0.0) {
@@ -294,14 +307,16 @@ pub fn intrinsics_from_camera_info(info: &CameraInfo) -> Result<PinholeIntrinsic
             "region of interest {roi:?} is not supported"
         )));
     }
-    Ok(PinholeIntrinsics {
+    let intrinsics = PinholeIntrinsics {
         width: info.width,
         height: info.height,
-        fx,
-        fy,
-        cx,
-        cy,
-    })
+        fx: k[0],
+        fy: k[4],
+        cx: k[2],
+        cy: k[5],
+    };
+    check_intrinsics(&intrinsics).map_err(|e| Ros2Error::CameraInfo(e.to_string()))?;
+    Ok(intrinsics)
 }
 
 /// The `CameraInfo` of rectified pinhole intrinsics (plumb_bob, zero distortion).

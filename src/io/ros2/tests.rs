@@ -491,3 +491,189 @@ proptest! {
         }
     }
 }
+
+/// What a new user's broken camera driver may send: every value that cannot deproject is a
+/// clear error naming it, before any pixel is allocated or any point is made.
+#[test]
+fn bad_camera_models_and_depths_name_the_value() {
+    let info = camera_info_from_intrinsics(header(0.0), &intrinsics());
+    let k_error = |edit: &dyn Fn(&mut CameraInfo)| {
+        let mut i = info.clone();
+        edit(&mut i);
+        intrinsics_from_camera_info(&i).unwrap_err().to_string()
+    };
+    for (edit, says) in [
+        (
+            &(|i: &mut CameraInfo| i.k[0] = 0.0) as &dyn Fn(&mut CameraInfo),
+            "fx = 0.0",
+        ),
+        (&|i| i.k[0] = f64::NAN, "fx = NaN"),
+        (&|i| i.k[0] = -400.0, "fx = -400.0"),
+        (&|i| i.k[0] = 1e-300, "fx = 1e-300"),
+        (&|i| i.k[4] = f64::INFINITY, "fy = inf"),
+        (&|i| i.k[4] = 1e300, "fy = 1e300"),
+        (&|i| i.k[2] = f64::NAN, "cx = NaN"),
+        (&|i| i.k[2] = -10.0, "cx = -10.0"),
+        (&|i| i.k[5] = 1e300, "cy = 1e300"),
+        (&|i| i.k[1] = 2.0, "not a pinhole matrix"),
+        (&|i| i.k[8] = 0.0, "not a pinhole matrix"),
+        (&|i| i.width = 0, "0 x 3 image"),
+    ] {
+        let err = k_error(edit);
+        assert!(err.contains(says), "{says}: {err}");
+    }
+
+    let img = image_from_depth(header(0.0), &depth());
+    let image_error = |edit: &dyn Fn(&mut Image), scale: Option<f64>| {
+        let mut m = img.clone();
+        edit(&mut m);
+        depth_from_image_scaled(&m, scale).unwrap_err().to_string()
+    };
+    for (edit, says) in [
+        (
+            &(|m: &mut Image| m.width = 0) as &dyn Fn(&mut Image),
+            "image of 0 x 3",
+        ),
+        (&|m| m.height = 0, "image of 4 x 0"),
+        (&|m| m.is_bigendian = 2, "is_bigendian 2"),
+        // Sizes that lie about the data: more rows than bytes, and an image too large to
+        // allocate whatever the data (refused before the pixel buffer).
+        (&|m| m.height = 1000, "step 8 x height 1000 needs 8000"),
+        (
+            &|m| {
+                m.width = 65_535;
+                m.height = 65_535;
+                m.step = 131_070;
+            },
+            "larger than",
+        ),
+    ] {
+        let err = image_error(edit, None);
+        assert!(err.contains(says), "{says}: {err}");
+    }
+
+    // 32FC1: a depth unit of 1e300 m (a recording's), and one pixel so far that 16 bits in
+    // any accepted unit cannot hold it (it would flatten every other depth to 0).
+    let mut d = depth();
+    d.depth_scale_m = 1e-4;
+    let float_img = image_from_depth(header(0.0), &d);
+    for scale in [1e300, 0.0, -1e-3, f64::NAN] {
+        let err = depth_from_image_scaled(&float_img, Some(scale))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("depth scale"), "{scale}: {err}");
+    }
+    let mut far = float_img.clone();
+    far.data[..4].copy_from_slice(&1e30f32.to_le_bytes());
+    let err = depth_from_image(&far).unwrap_err().to_string();
+    assert!(err.contains("32FC1 image with depths up to 1"), "{err}");
+    // Up to 65 km (a metre per count) still reads.
+    far.data[..4].copy_from_slice(&60_000f32.to_le_bytes());
+    assert!(depth_from_image(&far).is_ok());
+}
+
+/// A recording's `FrameMeta` carrying a pose that is not finite or not a rotation makes the
+/// frame a malformed message, not a frame posed by garbage.
+#[test]
+fn a_recorded_pose_that_is_not_a_rotation_is_malformed() {
+    use super::assemble::{CameraTopics, FrameAssembler};
+    let camera = CameraTopics {
+        frame_meta: "/cam/meta".into(),
+        ..CameraTopics::depth(0, "/cam/depth")
+    };
+    let mut assembler = FrameAssembler::new(vec![camera], "world").unwrap();
+    let img = image_from_depth(header(1.0), &depth());
+    let info = camera_info_from_intrinsics(header(1.0), &intrinsics());
+    for (i, rotation) in [
+        [2.0, 0.0, 0.0, 0.0],
+        [f64::NAN, 0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0, 0.0],
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let h = header(1.0 + i as f64);
+        let meta = hapcloud::FrameMeta {
+            header: h.clone(),
+            camera_id: 0,
+            stamp_s: 1.0 + i as f64,
+            world_from_camera_translation_m: [0.0, 0.0, 1.0],
+            world_from_camera_rotation_wxyz: rotation,
+            depth_scale_m: MM,
+            joint_positions_rad: vec![],
+        };
+        assert!(
+            assembler
+                .push("/cam/meta", &encode(&meta).unwrap())
+                .is_none()
+        );
+        let img = Image {
+            header: h.clone(),
+            ..img.clone()
+        };
+        let info = CameraInfo {
+            header: h,
+            ..info.clone()
+        };
+        assert!(
+            assembler
+                .push("/cam/depth", &encode(&img).unwrap())
+                .is_none()
+        );
+        let frame = assembler.push("/cam/camera_info", &encode(&info).unwrap());
+        let counters = assembler.counters();
+        if i < 2 {
+            assert!(frame.is_none());
+            assert_eq!(
+                counters.malformed,
+                i as u64 + 1,
+                "{:?}",
+                assembler.last_error()
+            );
+            assert!(
+                assembler.last_error().unwrap().contains("unit quaternion"),
+                "{:?}",
+                assembler.last_error()
+            );
+        } else {
+            assert!(frame.is_some(), "{:?}", assembler.last_error());
+        }
+    }
+}
+
+/// Camera infos without their images (and images without infos) never make a frame, are
+/// counted as unpaired, and wait in at most `MAX_PENDING` slots per kind.
+#[test]
+fn camera_infos_without_images_are_counted_and_bounded() {
+    use super::assemble::{CameraTopics, FrameAssembler, MAX_PENDING};
+    let camera = CameraTopics {
+        world_from_camera: Some(Default::default()),
+        ..CameraTopics::depth(0, "/cam/depth")
+    };
+    let mut assembler = FrameAssembler::new(vec![camera], "").unwrap();
+    let n = 50;
+    for i in 0..n {
+        let info = camera_info_from_intrinsics(header(i as f64), &intrinsics());
+        assert!(
+            assembler
+                .push("/cam/camera_info", &encode(&info).unwrap())
+                .is_none()
+        );
+    }
+    assert_eq!(assembler.counters().unpaired, (n - MAX_PENDING) as u64);
+    // An image of a stamp whose info went long ago stays unpaired too.
+    let img = image_from_depth(header(0.0), &depth());
+    assert!(
+        assembler
+            .push("/cam/depth", &encode(&img).unwrap())
+            .is_none()
+    );
+    // One whose info is still waiting pairs with it.
+    let img = image_from_depth(header((n - 1) as f64), &depth());
+    assert!(
+        assembler
+            .push("/cam/depth", &encode(&img).unwrap())
+            .is_some()
+    );
+    assert_eq!(assembler.counters().frames, 1);
+}
