@@ -8,19 +8,9 @@
 //! - **Fits (Alg. 2)**: `plane3d` for the innermost shell, `circle3d` for the others; normals
 //!   point to the HIP's side of each fit (the paper's eq. 2 decides only near a fit's plane);
 //!   the worst half by summed normal distance is rejected, the rest averaged with `1 / r_i`.
-//! - **Determined shells**: a fit whose normal's standard error `sqrt(s^2 / (N l_1))` (pooled
-//!   plane noise `s^2`, its `N` points spread `l_1` across its narrower in-plane direction)
-//!   exceeds `max_normal_se_rad` takes no part in Alg. 2's average, its rejection, the
-//!   curvature correction or the height field; equal rejection scores keep the
-//!   better-determined fit. A few points at the edge of the robot's shadow in the innermost
-//!   shell had made camera 0 of `torso_approach_realistic` jump by up to 31 mm.
-//! - **Closest point on the normal line**: the closest point `c` of a smooth body to the HIP
-//!   `h` satisfies `h - c = d n(c)`, so the centroid is put at `h - d n` with `d` the
-//!   estimate's depth along its normal `n` (what eq. 7's `d_proj` reads); the lateral offset
-//!   of partially seen caps and rings (the average's `c^k` of Alg. 2) goes.
 //! - **Curvature correction**, optional **cap trimming** and **quadric refinement** move the
 //!   paper's average onto the skin of convex and saddle-shaped bodies.
-//! - **Validity**: enough determined shells and points, normals that do not cancel, a finite
+//! - **Validity**: enough fitted shells and points, normals that do not cancel, a finite
 //!   centroid; otherwise `estimate.surface` is `None` and [`ShellAbstraction::invalid`] says
 //!   which rule failed.
 
@@ -98,15 +88,7 @@ pub struct ShellConfig {
     /// further out, stay within 2 mm with D435 noise at 0.5 m; a second body's are at 1 cm
     /// and more.
     pub quadric_max_shell_residual_m: f64,
-    /// A shell fit whose normal's standard error exceeds this takes no part in the estimate
-    /// (module doc, "Determined shells"), rad; infinity keeps every fit. 4 deg: on
-    /// `torso_approach_realistic` camera 0 the fits it drops were 8 deg off (median) and the
-    /// ones it keeps 0.7 deg.
-    pub max_normal_se_rad: f64,
-    /// Put the centroid on the line through the HIP along the estimated normal, at the
-    /// estimate's depth (module doc, "Closest point on the normal line").
-    pub centroid_on_normal_line: bool,
-    /// Fewest determined shells (before the worst-half rejection) for a valid estimate.
+    /// Fewest fitted shells (before the rejection) for a valid estimate.
     pub min_accepted_shells: u32,
     /// Fewest points in the fitted shells together for a valid estimate.
     pub min_points: u32,
@@ -129,8 +111,6 @@ impl Default for ShellConfig {
             quadric_reach_m: 0.03,
             quadric_max_tilt_rad: 40f64.to_radians(),
             quadric_max_shell_residual_m: 0.005,
-            max_normal_se_rad: 4f64.to_radians(),
-            centroid_on_normal_line: true,
             min_accepted_shells: 2,
             min_points: 30,
         }
@@ -162,8 +142,6 @@ pub enum ShellConfigError {
     QuadricTilt(f64),
     #[error("quadric_max_shell_residual_m must be positive (infinity keeps every shell), got {0}")]
     QuadricShellResidual(f64),
-    #[error("max_normal_se_rad must be positive (infinity keeps every fit), got {0}")]
-    NormalStandardError(f64),
     #[error("min_accepted_shells must be at least 1, got 0")]
     MinShells,
 }
@@ -208,11 +186,6 @@ impl ShellConfig {
         if self.quadric_max_shell_residual_m.is_nan() || self.quadric_max_shell_residual_m <= 0.0 {
             return Err(ShellConfigError::QuadricShellResidual(
                 self.quadric_max_shell_residual_m,
-            ));
-        }
-        if self.max_normal_se_rad.is_nan() || self.max_normal_se_rad <= 0.0 {
-            return Err(ShellConfigError::NormalStandardError(
-                self.max_normal_se_rad,
             ));
         }
         if self.min_accepted_shells == 0 {
@@ -372,9 +345,6 @@ pub enum ShellStatus {
     EigenFailed,
     /// The residual is too large for one surface (two surfaces in one shell).
     Inconsistent,
-    /// Fitted, but its normal's standard error exceeds `max_normal_se_rad`: left out of the
-    /// estimate and of the validity rules.
-    Undetermined,
 }
 
 impl std::fmt::Display for ShellStatus {
@@ -387,7 +357,6 @@ impl std::fmt::Display for ShellStatus {
             ShellStatus::NonFinite => "non_finite",
             ShellStatus::EigenFailed => "eigen_failed",
             ShellStatus::Inconsistent => "inconsistent",
-            ShellStatus::Undetermined => "undetermined",
         })
     }
 }
@@ -428,8 +397,6 @@ pub enum InvalidReason {
     TooFewPoints { points: u64, required: u32 },
     #[error("the shell normals cancel out: no consistent surface")]
     NoConsensus,
-    #[error("no fitted shell determines its normal within max_normal_se_rad")]
-    Undetermined,
     #[error("the centroid is not finite")]
     NonFinite,
 }
@@ -453,14 +420,8 @@ pub struct ShellAbstraction {
 }
 
 struct Accepted {
-    /// Index of the shell (and of its report).
-    shell: usize,
     fit: ShellFit,
     moments: Moments,
-    /// Eigenvalues of the shell's covariance, ascending (its plane's), m^2.
-    plane_eigenvalues_m2: [f64; 3],
-    /// Standard error of the fit's normal (module doc, "Determined shells"), rad.
-    normal_se_rad: f64,
 }
 
 /// What eq. 2 orients the normals against.
@@ -580,7 +541,6 @@ pub fn abstract_surface(
                     None,
                     p.residual_rms_m(),
                     false,
-                    p.eigenvalues_m2,
                 )
             })
         } else {
@@ -592,7 +552,6 @@ pub fn abstract_surface(
                     Some(c.radius_m),
                     c.residual_rms_m,
                     c.fell_back,
-                    c.plane.eigenvalues_m2,
                 )
             })
         };
@@ -605,14 +564,13 @@ pub fn abstract_surface(
                     FitError::EigenFailed => ShellStatus::EigenFailed,
                 };
             }
-            Ok((kind, center, normal, radius, residual, fell_back, plane_eigenvalues_m2)) => {
+            Ok((kind, center, normal, radius, residual, fell_back)) => {
                 report.fell_back = fell_back;
                 if residual.is_nan() || residual > config.max_residual_ratio * outer {
                     report.status = ShellStatus::Inconsistent;
                 } else {
                     let normal = orient(normal, &center, &hip, &viewpoint);
                     fits.push(Accepted {
-                        shell: i,
                         fit: ShellFit {
                             inner_radius_m: inner,
                             outer_radius_m: outer,
@@ -625,24 +583,12 @@ pub fn abstract_surface(
                             rejected: false,
                         },
                         moments: *m,
-                        plane_eigenvalues_m2,
-                        normal_se_rad: f64::INFINITY,
                     });
                 }
             }
         }
         reports.push(report);
     }
-
-    let fitted_shells = fits.len();
-    set_normal_standard_errors(&mut fits);
-    fits.retain(|a| {
-        let determined = a.normal_se_rad <= config.max_normal_se_rad;
-        if !determined {
-            reports[a.shell].status = ShellStatus::Undetermined;
-        }
-        determined
-    });
 
     if config.reject_worst_half && fits.len() >= 2 {
         let scores: Vec<f64> = fits
@@ -654,13 +600,7 @@ pub fn abstract_surface(
             })
             .collect();
         let mut order: Vec<usize> = (0..fits.len()).collect();
-        // Equal scores (always so for two fits) keep the better-determined normal.
-        order.sort_by(|&a, &b| {
-            scores[a]
-                .total_cmp(&scores[b])
-                .then(fits[a].normal_se_rad.total_cmp(&fits[b].normal_se_rad))
-                .then(a.cmp(&b))
-        });
+        order.sort_by(|&a, &b| scores[a].total_cmp(&scores[b]).then(a.cmp(&b)));
         let keep = fits.len().div_ceil(2);
         for &i in &order[keep..] {
             fits[i].fit.rejected = true;
@@ -689,10 +629,8 @@ pub fn abstract_surface(
     };
     let fitted_points: u64 = fits.iter().map(|a| u64::from(a.fit.point_count)).sum();
     let normal = Unit::try_new(sum_n, 1e-9);
-    let invalid = if fitted_shells == 0 {
+    let invalid = if fits.is_empty() {
         Some(InvalidReason::NoShell)
-    } else if fits.is_empty() {
-        Some(InvalidReason::Undetermined)
     } else if fits.len() < config.min_accepted_shells as usize {
         Some(InvalidReason::TooFewShells {
             accepted: fits.len() as u32,
@@ -767,11 +705,6 @@ pub fn abstract_surface(
         Some(hf) => (hf.closest_m, hf.normal),
         None => (centroid, normal),
     };
-    let centroid = if config.centroid_on_normal_line {
-        hip - normal.dot(&(hip - centroid)) * normal.into_inner()
-    } else {
-        centroid
-    };
     let invalid = if centroid.coords.iter().all(|c| c.is_finite()) {
         estimate.surface = Some(SurfacePoint {
             centroid_m: centroid,
@@ -789,32 +722,6 @@ pub fn abstract_surface(
         paper_centroid_m: paper_centroid,
         correction,
         refinement,
-    }
-}
-
-/// Each fit's normal standard error `sqrt(s^2 / (N l_1))` (module doc, "Determined
-/// shells"): `N` its points, `l_1` the middle eigenvalue of its covariance (the in-plane
-/// spread across its narrower direction) and `s^2 = sum N_i l_0,i / sum (N_i - 3)` the
-/// unbiased variance of the points about their planes, pooled over the fits (a plane through
-/// `N` points leaves `N - 3` degrees of freedom; a fit of a few points alone would claim a
-/// noise it cannot measure). Infinite when no fit has more than 3 points.
-fn set_normal_standard_errors(fits: &mut [Accepted]) {
-    let (spread, dof) = fits.iter().fold((0.0, 0.0), |(s, d), a| {
-        let n = f64::from(a.fit.point_count);
-        (
-            s + n * a.plane_eigenvalues_m2[0].max(0.0),
-            d + (n - 3.0).max(0.0),
-        )
-    });
-    let variance = if dof > 0.0 {
-        spread / dof
-    } else {
-        f64::INFINITY
-    };
-    for a in fits {
-        let n = f64::from(a.fit.point_count);
-        let se = (variance / (n * a.plane_eigenvalues_m2[1])).sqrt();
-        a.normal_se_rad = if se.is_nan() { f64::INFINITY } else { se };
     }
 }
 
