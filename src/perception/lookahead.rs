@@ -289,8 +289,8 @@ impl Lookahead {
 }
 
 /// The surfaces of one frame's kept points (module doc), nearest first, each with the
-/// number of points it was fitted to. Each of the `max_surfaces_count` passes fits one
-/// surface, or rules out its `max_candidates_count` candidates when none has a patch.
+/// number of points it was fitted to; the search ends at the first pass whose
+/// `max_candidates_count` candidates have no patch.
 fn surfaces(config: &LookaheadConfig, points: &[Vec3], h: &Vector3<f64>) -> Vec<(PatchFit, usize)> {
     let world = |p: &Vec3| Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
     let finite: Vec<Vector3<f64>> = points.iter().filter(|p| p.is_finite()).map(world).collect();
@@ -315,19 +315,12 @@ fn surfaces(config: &LookaheadConfig, points: &[Vec3], h: &Vector3<f64>) -> Vec<
             candidates.select_nth_unstable_by(k, |a, b| a.0.total_cmp(&b.0));
             candidates.truncate(k);
         }
-        if candidates.is_empty() {
-            break;
-        }
         candidates.sort_by(|a, b| a.0.total_cmp(&b.0));
         let Some((fit, count)) = candidates
-            .iter()
-            .find_map(|&(_, i)| patch_fit(config, &finite, &finite[i], h))
+            .into_iter()
+            .find_map(|(_, i)| patch_fit(config, &finite, &finite[i], h))
         else {
-            // no surface there (flying pixels, speckle): the next nearest points are tried
-            for &(_, i) in &candidates {
-                on_fitted[i] = true;
-            }
-            continue;
+            break;
         };
         for (on, p) in on_fitted.iter_mut().zip(&finite) {
             *on |= fit.shape.distance_m(p) <= config.same_surface_m;
