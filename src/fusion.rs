@@ -13,10 +13,14 @@
 //!    time, predicting the surface over the frames' latency (clamped to
 //!    `max_extrapolation_s`, reported by [`Fusion::prediction`]); its derivative is the
 //!    surface's own velocity. Far-field (look-ahead) samples ([`Fusion::push_far_field`])
-//!    track an approaching surface before the shells see it; a confirmed switch to a nearer
-//!    surface restarts their history, which is given eq. 3's line from its second sample
-//!    when it approaches (capped at `max_approach_speed_mps`) until the degree rule can
-//!    judge it.
+//!    track an approaching surface before the shells see it; a confirmed switch to a surface
+//!    that comes first (earlier contact time `T = d / max(a, a_min)`, the look-ahead's
+//!    distance `d` over the surface's own approach speed `a`) restarts their history, which
+//!    approaches until the degree rule can judge a line: eq. 3's line with the slope `a n`
+//!    (the newest of the samples' own approach speeds, each measured against its camera's
+//!    previous frame, free of the cameras' biases: from the first sample, which needs no second to
+//!    confirm the switch; without them the centroid line's from the second sample), capped
+//!    at `max_approach_speed_mps`.
 //! 2. **PID smoothing (eq. 6)** with velocity feed-forward moves the output towards the fitted
 //!    target (not while only far-field samples are fitted: the output is the fit); the
 //!    normal is smoothed as angles of a chart re-centred on it every tick, so it is
@@ -146,16 +150,16 @@ pub struct FusionConfig {
     pub far_field_weight_unitless: f64,
     /// A far-field estimate whose normal turns by more than this angle from the previous
     /// one's and whose centroid moves more than `far_field_switch_m` is another surface (a
-    /// body coming nearer than the one seen so far): the far-field history before it leaves
-    /// the fit, radians.
+    /// body coming at the HIP before the one seen so far): the far-field history before it
+    /// leaves the fit, radians.
     pub far_field_switch_rad: f64,
     /// See `far_field_switch_rad`, metres.
     pub far_field_switch_m: f64,
-    /// A far-field history restarted on a nearer surface (see `far_field_switch_rad`) and
-    /// still too short for the degree rule to judge a line gets its centroid line anyway
-    /// when that line approaches the HIP, its approach speed capped at this physical bound,
-    /// m/s (faster than a patient's body part comes at the handle). 0 keeps such a history
-    /// at degree 0.
+    /// A far-field history restarted on another surface (see `far_field_switch_rad`) and
+    /// still too short for the degree rule to judge a line gets its approach line anyway
+    /// when it approaches the HIP (module doc), its approach speed capped at this physical
+    /// bound, m/s (faster than a patient's body part comes at the handle). 0 keeps such a
+    /// history at degree 0.
     pub max_approach_speed_mps: f64,
     /// Weight of the fit's own motion since the previous tick, fed forward into the PID
     /// state before the error is taken, dimensionless (0..1; 1 tracks a polynomial exactly).
@@ -388,9 +392,11 @@ struct Sample {
     channels: [f64; CHANNELS],
     /// A look-ahead estimate ([`Fusion::push_far_field`]) rather than a shell estimate.
     far_field: bool,
-    /// A look-ahead estimate's distance of the HIP from its patch, metres (infinite for a
-    /// shell estimate).
-    far_distance_m: f64,
+    /// A look-ahead estimate's contact time, seconds (infinite for a shell estimate).
+    far_contact_s: f64,
+    /// A look-ahead estimate's own approach speed towards the HIP, measured against its
+    /// camera's previous frame, m/s (NaN: not measured, or a shell estimate).
+    far_approach_mps: f64,
 }
 
 /// How the last tick predicted the surface over the estimates' latency.
@@ -547,7 +553,7 @@ pub struct Fusion {
     smoothed: Option<Smoothed>,
     /// Whether the previous tick was tracking (a return to tracking restarts the PID).
     was_tracking: bool,
-    /// Stamp of the newest far-field switch to a nearer surface the fit has seen (the PID
+    /// Stamp of the newest far-field switch to another surface the fit has seen (the PID
     /// restarts on the new surface).
     switch_s: f64,
     counters: FusionCounters,
@@ -639,7 +645,10 @@ impl Fusion {
             estimate.quality * self.config.far_field_weight_unitless,
             &estimate.centroid_m,
             &estimate.normal,
-            Some(estimate.distance_m),
+            Some((
+                estimate.contact_time_s,
+                estimate.approach_mps.unwrap_or(f64::NAN),
+            )),
         );
         if outcome == PushOutcome::Accepted {
             self.counters.far_field += 1;
@@ -682,7 +691,7 @@ impl Fusion {
         quality: f64,
         centroid_m: &Point3<f64>,
         normal: &Unit<Vector3<f64>>,
-        far_distance_m: Option<f64>,
+        far_contact_approach: Option<(f64, f64)>,
     ) -> PushOutcome {
         let c = centroid_m.coords;
         let n = normal.into_inner();
@@ -719,8 +728,9 @@ impl Fusion {
                 stamp_s,
                 quality: quality.min(1.0),
                 channels: [c.x, c.y, c.z, n.x, n.y, n.z],
-                far_field: far_distance_m.is_some(),
-                far_distance_m: far_distance_m.unwrap_or(f64::INFINITY),
+                far_field: far_contact_approach.is_some(),
+                far_contact_s: far_contact_approach.map_or(f64::INFINITY, |f| f.0),
+                far_approach_mps: far_contact_approach.map_or(f64::NAN, |f| f.1),
             },
         );
         // Keep only the window behind the newest sample, and at most the buffer bound.
@@ -751,7 +761,7 @@ impl Fusion {
                 self.fit = Some(fit);
             }
             // Smoothing from one surface to another would pair the new centroid with the
-            // old normal on the way: the PID restarts on the nearer surface.
+            // old normal on the way: the PID restarts on the new surface.
             if switch_s > self.switch_s {
                 self.switch_s = switch_s;
                 self.smoothed = None;
@@ -1156,19 +1166,60 @@ impl Window<'_> {
         candidates.into_iter().nth(chosen)
     }
 
-    /// The line of a far-field-only window after a switch to a nearer surface, too short
-    /// for [`Window::select`] to judge one (its noise gain beyond the bound), when its
-    /// centroid approaches the HIP: the centroid channels of the line (camera offsets when
-    /// identifiable), the approach speed along the normal capped at
-    /// `max_approach_speed_mps`, and the normal of `constant` (degree 0), held. `None` when
-    /// the line recedes or slides past, or the degree rule could judge it.
+    /// The line of a far-field-only window after a switch to another surface that the
+    /// degree rule kept at degree 0 (`constant`), when the surface approaches the HIP (module
+    /// doc): with the used samples' own approach speeds (each measured against its camera's
+    /// previous frame), the newest one `a` along the normal of `constant` (a surface
+    /// starting from rest is measured low over the frame pair that spans its start: at
+    /// 60 Hz the plate's first is 0.7 m/s at 2 m/s), through the samples' weighted mean
+    /// moved along it to the newest stamp; without them, while the
+    /// history is too short for the degree rule to judge a line (its noise gain beyond the
+    /// bound), the centroid line (camera offsets when identifiable) and its speed along that
+    /// normal. The speed is capped at `max_approach_speed_mps`, the normal channels are held.
+    /// `None` when the surface recedes or slides past, or the degree rule could judge the
+    /// centroid line.
     fn approach_line(
         &self,
         used: &[bool],
         constant: &Solution,
         config: &FusionConfig,
     ) -> Option<Solution> {
-        if config.max_approach_speed_mps <= 0.0 || max_degree(self.samples, used, config) < 1 {
+        if config.max_approach_speed_mps <= 0.0 {
+            return None;
+        }
+        let c = &constant.coeffs;
+        let n = Vector3::new(c[0][3], c[0][4], c[0][5]).try_normalize(1e-9)?;
+        let weight = |i: usize| self.sqrt_w[i] * self.sqrt_w[i];
+        let used_indices = || (0..self.samples.len()).filter(|&i| used[i]);
+        let newest_measured = used_indices()
+            .map(|i| self.samples[i].far_approach_mps)
+            .rfind(|a| a.is_finite());
+        let mut coeffs = [[0.0; CHANNELS]; 3];
+        coeffs[0][3..].copy_from_slice(&c[0][3..]);
+        if let Some(approach_mps) = newest_measured {
+            if approach_mps <= 0.0 {
+                return None;
+            }
+            // the slope `a n` in scaled time
+            let slope = n * (approach_mps.min(config.max_approach_speed_mps) * self.scale_s);
+            let total: f64 = used_indices().map(weight).sum();
+            let at_newest = used_indices()
+                .map(|i| {
+                    let ch = &self.samples[i].channels;
+                    (Vector3::new(ch[0], ch[1], ch[2]) - slope * self.tau(i)) * weight(i)
+                })
+                .sum::<Vector3<f64>>()
+                / total;
+            coeffs[0][..3].copy_from_slice(at_newest.as_slice());
+            coeffs[1][..3].copy_from_slice(slope.as_slice());
+            return Some(Solution {
+                degree: 1,
+                coeffs,
+                noise_gain: constant.noise_gain,
+                sigma: constant.sigma,
+            });
+        }
+        if max_degree(self.samples, used, config) < 1 {
             return None;
         }
         let line = config
@@ -1179,18 +1230,13 @@ impl Window<'_> {
         if line.noise_gain <= config.max_noise_gain(1) {
             return None;
         }
-        let c = &constant.coeffs;
-        let n = Vector3::new(c[0][3], c[0][4], c[0][5]).try_normalize(1e-9)?;
         let slope = Vector3::new(line.coeffs[1][0], line.coeffs[1][1], line.coeffs[1][2]);
         let approach_mps = n.dot(&slope) / self.scale_s;
         if approach_mps.is_nan() || approach_mps <= 0.0 {
             return None;
         }
         let cap = (config.max_approach_speed_mps / approach_mps).min(1.0);
-        // Centroid channels from the line (slope capped), normal channels held.
-        let mut coeffs = [[0.0; CHANNELS]; 3];
         coeffs[0][..3].copy_from_slice(&line.coeffs[0][..3]);
-        coeffs[0][3..].copy_from_slice(&c[0][3..]);
         for (out, slope) in coeffs[1][..3].iter_mut().zip(&line.coeffs[1][..3]) {
             *out = slope * cap;
         }
@@ -1328,7 +1374,7 @@ fn max_degree(samples: &[Sample], used: &[bool], config: &FusionConfig) -> usize
 /// Robust weighted least squares of eq. 4-5 over the window's samples (sorted by stamp): the
 /// degree chosen by the noise gain at the extrapolation horizon, then samples whose residual
 /// against the common polynomial is far beyond the window's median residual rejected and the
-/// fit repeated. `switched`: the far-field history restarted on a nearer surface (its
+/// fit repeated. `switched`: the far-field history restarted on another surface (its
 /// approach line, [`Window::approach_line`]).
 fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Option<Fit> {
     let newest_s = samples.last()?.stamp_s;
@@ -1410,8 +1456,8 @@ fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Opti
 
 /// The samples the fit uses: all shell estimates; the far-field ones older than the first
 /// shell estimate of the window (the history of a surface before the shells saw it) and not
-/// older than the newest switch to another, nearer surface (`far_field_switch_*`; a switch
-/// counts once a later sample confirms it); and the newer
+/// older than the newest switch to another surface that comes first (earlier contact time;
+/// `far_field_switch_*`; a switch counts once a later sample confirms it); and the newer
 /// far-field ones that continue the newest shell estimate before them (within both switch
 /// bounds: the shells lost a surface the look-ahead still sees). Also the stamp of that
 /// switch (`-inf`: none). See the module doc.
@@ -1440,9 +1486,9 @@ fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) 
         moved && turned
     };
     // Far-field samples in stamp order: one from another surface than the last kept starts
-    // the history afresh when that surface is nearer (and a later sample confirms it), and
-    // is left out when it is farther (a camera still seeing the body the others have lost
-    // sight of behind a nearer one) or unconfirmed.
+    // the history afresh when that surface comes first (its contact time is earlier, and a
+    // later sample confirms it), and is left out when it comes later (a camera still seeing
+    // the body the others have lost sight of behind a nearer one) or unconfirmed.
     let mut keep = vec![true; samples.len()];
     let mut last: Option<usize> = None;
     let mut switch_s = f64::NEG_INFINITY;
@@ -1459,17 +1505,20 @@ fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) 
         }
         match last {
             Some(j) if switched(&samples[j], s) => {
-                // Another, nearer surface, confirmed by a later far-field sample that also
-                // leaves the surface tracked for a nearer one and faces the same way (one
-                // wrong patch must not take the history over).
-                let nearer = |o: &Sample| {
+                // Another surface that comes first, confirmed by its own approach (the
+                // look-ahead followed it over two frames of its camera) or by a later
+                // far-field sample that also leaves the surface tracked for one that comes
+                // first and faces the same way (one wrong patch must not take the history
+                // over).
+                let first = |o: &Sample| {
                     o.far_field
                         && o.stamp_s < first_shell_s
                         && switched(&samples[j], o)
-                        && o.far_distance_m < samples[j].far_distance_m
+                        && o.far_contact_s < samples[j].far_contact_s
                 };
-                let confirmed =
-                    nearer(s) && samples[i + 1..].iter().any(|o| nearer(o) && !apart(s, o).1);
+                let confirmed = first(s)
+                    && (s.far_approach_mps > 0.0
+                        || samples[i + 1..].iter().any(|o| first(o) && !apart(s, o).1));
                 if confirmed {
                     for (k, other) in samples.iter().enumerate().take(i) {
                         keep[k] &= !other.far_field;
@@ -2304,6 +2353,8 @@ mod tests {
             centroid_m: Point3::from(c),
             normal: Vector3::z_axis(),
             distance_m: 0.0,
+            approach_mps: None,
+            contact_time_s: 0.0,
             point_count: 50,
             residual_rms_m: 0.002,
             quality: 1.0,
@@ -2364,6 +2415,7 @@ mod tests {
         let far_at = |camera_id, t: f64, c: Vector3<f64>, n: Vector3<f64>| FarFieldEstimate {
             normal: Unit::new_normalize(n),
             distance_m: (c - hip).norm(),
+            contact_time_s: (c - hip).norm() / 0.5,
             ..far(camera_id, t, c)
         };
         let mut f = Fusion::new(FusionConfig::default()).unwrap();
@@ -2394,6 +2446,72 @@ mod tests {
         }
     }
 
+    /// The rising plate at 2 m/s and 90 Hz: two cameras 3.7 ms apart with biases of +5 and
+    /// -4 mm along the normal. The look-ahead reports the resting torso 0.26 m from the HIP
+    /// (contact time 0.52 s), then the plate from 0.29 m, farther, with its own approach
+    /// speed measured against each camera's previous frame (contact time ~0.14 s): fusion
+    /// switches to it on its first sample and predicts it at 2 m/s from there, where the
+    /// centroid line through the two biased cameras' samples was 1.1 m/s. A torso sample of
+    /// a camera still seeing it comes later and is left out.
+    #[test]
+    fn a_farther_surface_coming_first_is_followed_with_its_measured_approach() {
+        let hip = Vector3::new(0.36, -0.16, 0.46);
+        let stamp = |k: u32| f64::from(k / 2) / 90.0 + if k % 2 == 1 { 0.0037 } else { 0.0 };
+        let bias = |camera: u32| if camera == 0 { 0.005 } else { -0.004 };
+        let torso = |camera: u32, t: f64| FarFieldEstimate {
+            normal: Vector3::x_axis(),
+            distance_m: 0.26,
+            contact_time_s: 0.26 / 0.5,
+            ..far(camera, t, hip - Vector3::x() * (0.26 + bias(camera)))
+        };
+        let plate_z = |t: f64| hip.z - 0.29 + 2.0 * (t - 0.1);
+        let plate = |camera: u32, t: f64| {
+            let d = hip.z - plate_z(t);
+            FarFieldEstimate {
+                distance_m: d,
+                approach_mps: Some(2.0),
+                contact_time_s: d / 2.0,
+                ..far(
+                    camera,
+                    t,
+                    Vector3::new(hip.x, hip.y, plate_z(t) + bias(camera)),
+                )
+            }
+        };
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        for k in 0..18 {
+            f.push_far_field(&torso(k % 2, stamp(k)));
+        }
+        let mut k = 18;
+        let mut velocities = Vec::new();
+        while stamp(k) < 0.15 {
+            let (camera, t) = (k % 2, stamp(k));
+            f.push_far_field(&plate(camera, t));
+            if k == 20 {
+                f.push_far_field(&torso(1 - camera, t + 0.001));
+            }
+            let tick = t + 0.045;
+            let out = f.tick(tick);
+            let s = out.surface.unwrap();
+            velocities.push(s.velocity_m_per_s.z);
+            if k >= 18 {
+                assert!(
+                    (s.velocity_m_per_s.z - 2.0).abs() < 0.05,
+                    "sample {k}: {out:?}"
+                );
+                assert!(
+                    (s.fit_centroid_m.z - plate_z(tick)).abs() < 0.006,
+                    "sample {k}: {out:?}"
+                );
+            }
+            k += 1;
+        }
+        assert!(
+            (velocities[0] - 2.0).abs() < 0.05,
+            "from its first sample: {velocities:?}"
+        );
+    }
+
     /// The look-ahead of two 60 Hz cameras 5.5 ms apart, each with its own bias along the
     /// normal (+-1 mm), switches from a resting torso to a nearer plate below the HIP.
     /// Rising at 2 m/s, the plate is predicted with its approach from its second sample on
@@ -2409,6 +2527,7 @@ mod tests {
         let far_at = |camera_id, t: f64, c: Vector3<f64>, n: Vector3<f64>| FarFieldEstimate {
             normal: Unit::new_normalize(n),
             distance_m: (hip - c).dot(&n),
+            contact_time_s: (hip - c).dot(&n) / 0.5,
             ..far(camera_id, t, c)
         };
         for speed in [2.0, -2.0, 0.0] {

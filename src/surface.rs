@@ -71,9 +71,9 @@ pub struct SurfaceEstimate {
     pub quality: f64,
 }
 
-/// One camera's coarse estimate of the nearest surface beyond the shells' reach (the
-/// look-ahead of [`crate::perception::lookahead`]): a plane through the nearest patch of the
-/// cropped points, and the point of that plane closest to the HIP. It warns of an approaching
+/// One camera's coarse estimate of the surface beyond the shells' reach that comes first (the
+/// look-ahead of [`crate::perception::lookahead`]): a plane or sphere through a patch of the
+/// cropped points, and its point closest to the HIP. It warns of an approaching
 /// surface before the shells see it; fusion uses it only while no shell estimate covers the
 /// same time ([`crate::fusion::Fusion::push_far_field`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -88,6 +88,12 @@ pub struct FarFieldEstimate {
     pub normal: Unit<Vector3<f64>>,
     /// Distance of the HIP centre from the patch plane, metres.
     pub distance_m: f64,
+    /// The surface's own speed towards the HIP along `normal`, measured against the same
+    /// camera's previous frame, m/s (`None`: that frame had no such surface).
+    pub approach_mps: Option<f64>,
+    /// Contact time `distance_m / max(approach_mps, floor)`, seconds: the look-ahead reports
+    /// the surface whose contact time comes first.
+    pub contact_time_s: f64,
     /// Points in the patch.
     pub point_count: u32,
     /// RMS distance of the patch points from the plane, metres.

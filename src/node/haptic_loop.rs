@@ -21,7 +21,7 @@ use crate::control::{Controller, ControllerInput, ControllerOutput, Intent};
 use crate::fusion::{Fit, Fusion, PushOutcome};
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticConstraints;
-use crate::perception::lookahead::{LookaheadConfig, far_field};
+use crate::perception::lookahead::Lookahead;
 use crate::perception::pipeline::{CameraChain, ChainFrame};
 use crate::robot::{JointState, RobotModel};
 use crate::surface::{FarFieldEstimate, SurfaceEstimate};
@@ -98,7 +98,7 @@ impl Tick {
 /// mid-run (logged once).
 pub struct Perception {
     chain: CameraChain,
-    lookahead: LookaheadConfig,
+    lookahead: Lookahead,
     /// Why the GPU could not be opened at start, if it could not.
     start_fallback: Option<String>,
     warned: bool,
@@ -157,7 +157,7 @@ impl Perception {
         };
         Ok(Self {
             chain,
-            lookahead: config.lookahead.clone(),
+            lookahead: Lookahead::new(config.lookahead.clone()),
             start_fallback,
             warned: false,
         })
@@ -213,21 +213,13 @@ impl Perception {
             eprintln!("warning: GPU failed ({reason}); perception continues on the CPU");
             self.warned = true;
         }
-        // The HIP's motion relative to the surface is fusion's business; the patch nearest
-        // the HIP (zero relative velocity) is the one reported.
         let far_field = chain
             .estimate()
             .surface
             .is_none()
             .then(|| {
-                far_field(
-                    &self.lookahead,
-                    &chain.kept,
-                    &scene.hip_m,
-                    &Vector3::zeros(),
-                    frame.camera_id,
-                    frame.stamp_s,
-                )
+                self.lookahead
+                    .far_field(&chain.kept, &scene.hip_m, frame.camera_id, frame.stamp_s)
             })
             .flatten();
         Ok(FrameRecord {

@@ -1,28 +1,44 @@
-//! Look-ahead beyond the shells: a coarse estimate of the nearest surface from every point the
-//! crop sphere kept (out to its 0.3 m radius), so an approaching surface is tracked before it
-//! reaches the shells' reach, lifting eq. 1's bound `v_perp <= (r_out - r_in) / dt`.
+//! Look-ahead beyond the shells: a coarse estimate of the surface that will reach the HIP
+//! first, from every point the crop sphere kept (out to its 0.3 m radius), so an approaching
+//! surface is tracked before it reaches the shells' reach, lifting eq. 1's bound
+//! `v_perp <= (r_out - r_in) / dt`.
 //!
-//! Each kept point `p` at distance `d` from the HIP `h` is scored by its time to contact
-//! `(d - min_distance) / max(v_rel . (p - h) / d, min_closing_speed)`, where `v_rel` is the
-//! HIP's velocity relative to the surroundings (the HIP's velocity minus the fused surface's,
-//! when known): with no relative motion the nearest point wins, with the HIP driven towards
-//! a surface that surface is preferred over a nearer one it moves past. From the best-scored
-//! points in turn, the first whose patch (points within `patch_radius_m`) is populated and
-//! flat gives a plane (mean and smallest-eigenvalue eigenvector of the patch covariance, f64,
-//! oriented towards the HIP); the estimate is the plane's point closest to the HIP (kept
-//! within the patch), the plane normal and the HIP's distance from the plane: the same
-//! `(c, n)` the shells give (paper Alg. 2 output), coarser. A curved body (a head) is seen
-//! only on its camera side, which may not be the side facing the HIP: a sphere fitted to the
-//! wider patch (`sphere_patch_radius_m`; algebraic Kasa fit, f64) replaces the plane when its
-//! radius is body-like and it explains the patch clearly better than a plane, and its point
-//! nearest the HIP (hidden from the cameras, or not) gives `(c, n)` and the distance. When the
+//! **Surfaces of one frame.** Kept points are tried as patch centres nearest the HIP `h`
+//! first. The first whose patch (points within `patch_radius_m`) is populated and flat gives
+//! a plane (mean and smallest-eigenvalue eigenvector of the patch covariance, f64, oriented
+//! towards the HIP): its point closest to the HIP (kept within the patch), the normal and
+//! the HIP's distance from the plane, the same `(c, n)` the shells give (paper Alg. 2
+//! output), coarser. A curved body (a head) is seen only on its camera side, which may not
+//! be the side facing the HIP: a sphere fitted to the wider patch (`sphere_patch_radius_m`;
+//! algebraic Kasa fit, f64) replaces the plane when its radius is body-like and it explains
+//! the patch clearly better than a plane, and its point nearest the HIP (hidden from the
+//! cameras, or not) gives `(c, n)` and the distance. The points within `same_surface_m` of
+//! that plane or sphere then leave the candidates and the next surface is fitted the same
+//! way, up to `max_surfaces_count`. Beyond the nearest, a surface counts only when it faces
+//! the HIP (distance at least `min_facing_cos` of the distance to its closest point): a
+//! torso's side seen edge-on has a plane 2 cm from the HIP 0.27 m from its points. When the
 //! nearest kept point lies within `min_distance_m` the surface is the shells' business and
 //! nothing is returned.
 //!
+//! **The surface that comes first.** One frame cannot tell which surface moves; the
+//! camera's previous frame can, free of its calibration bias. Each surface is matched to
+//! the previous frame's surface of the same camera whose normal is within
+//! `same_surface_rad` and whose offset along the normal changed by at most
+//! `max_surface_speed_mps` over the frame gap (plus `same_surface_m`); its own approach
+//! speed is that offset's rate,
+//! `a = n_k . (c_k - c_{k-1}) / (t_k - t_{k-1})` (towards the HIP positive; the HIP's own
+//! motion is left out, a plane's closest point sliding within it has no part along `n`),
+//! and its contact time `T = d / max(a, min_closing_speed_mps)` (an unmatched surface:
+//! `a = 0`). The one estimate per frame is the surface with the smallest `T`: at rest, the
+//! nearest; a plate rising at 2 m/s from 0.29 m beside a torso at 0.26 m, the plate from its
+//! second frame in the crop sphere, 20 ms before it is nearer than the torso. Its speed `a`
+//! and `T` go to fusion ([`crate::fusion::Fusion::push_far_field`]), which switches its
+//! far-field history to the surface that comes first and starts it with `a`.
+//!
 //! The estimate is a warning, not a contact model: fusion fits it only until the shells see
-//! the surface ([`crate::fusion::Fusion::push_far_field`]). It adds no constraint of its own:
-//! a surface moving away or sliding past has a non-negative rate along its normal, which the
-//! velocity constraint (eq. 12-14, fed with the surface velocity) lets pass.
+//! the surface. It adds no constraint of its own: a surface moving away or sliding past has
+//! `a <= 0`, ordered by distance as at rest, and a non-negative rate along its normal, which
+//! the velocity constraint (eq. 12-14, fed with the surface velocity) lets pass.
 
 use crate::surface::FarFieldEstimate;
 use glam::Vec3;
@@ -46,10 +62,11 @@ pub struct LookaheadConfig {
     /// Largest RMS distance of the patch points from their plane, metres (beyond: not a
     /// surface patch; the next candidate is tried).
     pub max_residual_m: f64,
-    /// Floor of the closing speed in the time-to-contact score, m/s (> 0: with no relative
-    /// motion the score orders by distance).
+    /// Floor of a surface's approach speed in its contact time, m/s (> 0: surfaces at rest
+    /// are ordered by distance).
     pub min_closing_speed_mps: f64,
-    /// Best-scored points tried as patch centres (bounds the work to this many passes).
+    /// Points nearest the HIP tried as patch centres per surface (bounds the work to this
+    /// many passes).
     pub max_candidates_count: usize,
     /// Radius of the wider patch around the chosen point that a sphere is fitted to, metres.
     pub sphere_patch_radius_m: f64,
@@ -59,6 +76,24 @@ pub struct LookaheadConfig {
     /// The sphere replaces the plane when its RMS residual is below this fraction of the
     /// wider patch's plane residual (and below `max_residual_m`).
     pub sphere_residual_ratio_unitless: f64,
+    /// Surfaces fitted per frame at most (the nearest, then the nearest of the points not
+    /// on a surface already fitted, ...): the one that comes first is reported.
+    pub max_surfaces_count: usize,
+    /// A surface beyond the nearest faces the HIP when the HIP's distance from it is at
+    /// least this fraction of the HIP's distance from its patch point nearest the HIP
+    /// (the cosine of the largest angle off its normal).
+    pub min_facing_cos: f64,
+    /// Points within this distance of a fitted patch's plane or sphere lie on its surface;
+    /// also the slack of a match to the previous frame's surface, metres.
+    pub same_surface_m: f64,
+    /// A surface of the camera's previous frame is the same one when the normals are within
+    /// this angle, radians ...
+    pub same_surface_rad: f64,
+    /// ... and its offset along the normal moved no faster than this, m/s (a body part
+    /// coming at the handle).
+    pub max_surface_speed_mps: f64,
+    /// Frames farther apart than this are not matched (no approach speed), seconds.
+    pub max_frame_gap_s: f64,
 }
 
 impl Default for LookaheadConfig {
@@ -75,6 +110,12 @@ impl Default for LookaheadConfig {
             min_sphere_radius_m: 0.03,
             max_sphere_radius_m: 0.3,
             sphere_residual_ratio_unitless: 0.5,
+            max_surfaces_count: 4,
+            min_facing_cos: 0.7,
+            same_surface_m: 0.02,
+            same_surface_rad: 0.35,
+            max_surface_speed_mps: 3.0,
+            max_frame_gap_s: 0.1,
         }
     }
 }
@@ -96,6 +137,11 @@ impl LookaheadConfig {
             ("max_residual_m", self.max_residual_m),
             ("min_closing_speed_mps", self.min_closing_speed_mps),
             ("sphere_patch_radius_m", self.sphere_patch_radius_m),
+            ("same_surface_m", self.same_surface_m),
+            ("same_surface_rad", self.same_surface_rad),
+            ("max_surface_speed_mps", self.max_surface_speed_mps),
+            ("max_frame_gap_s", self.max_frame_gap_s),
+            ("min_facing_cos", self.min_facing_cos),
             ("min_sphere_radius_m", self.min_sphere_radius_m),
             ("max_sphere_radius_m", self.max_sphere_radius_m),
             (
@@ -122,80 +168,194 @@ impl LookaheadConfig {
         if !(1..=10_000).contains(&self.max_candidates_count) {
             return bad("max_candidates_count", self.max_candidates_count as f64);
         }
+        if self.min_facing_cos > 1.0 {
+            return bad("min_facing_cos", self.min_facing_cos);
+        }
+        if !(1..=16).contains(&self.max_surfaces_count) {
+            return bad("max_surfaces_count", self.max_surfaces_count as f64);
+        }
         Ok(())
     }
 }
 
-/// The far-field estimate of camera `camera_id`'s frame stamped `stamp_s` from its kept world
-/// points (see the module doc); `None` when the nearest point is within `min_distance_m`, or
-/// no candidate patch is populated and flat. Non-finite points are ignored.
-pub fn far_field(
-    config: &LookaheadConfig,
-    points: &[Vec3],
-    hip: &Point3<f64>,
-    relative_velocity_mps: &Vector3<f64>,
+/// A surface fitted in one frame, kept for the camera's next frame.
+#[derive(Clone, Copy, Debug)]
+struct Seen {
+    closest: Vector3<f64>,
+    normal: Unit<Vector3<f64>>,
+}
+
+/// The surfaces of one camera's latest frame.
+#[derive(Clone, Debug)]
+struct CameraFrame {
     camera_id: u32,
     stamp_s: f64,
-) -> Option<FarFieldEstimate> {
-    let world = |p: &Vec3| Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-    let h = hip.coords;
-    let v = if relative_velocity_mps.iter().all(|c| c.is_finite()) {
-        *relative_velocity_mps
-    } else {
-        Vector3::zeros()
-    };
-    let finite: Vec<Vector3<f64>> = points.iter().filter(|p| p.is_finite()).map(world).collect();
-    let nearest = finite
-        .iter()
-        .map(|p| (p - h).norm())
-        .min_by(f64::total_cmp)?;
-    if !(nearest.is_finite() && nearest >= config.min_distance_m) {
-        return None;
+    surfaces: Vec<Seen>,
+}
+
+/// The look-ahead of every camera: its settings and each camera's latest surfaces (see the
+/// module doc).
+#[derive(Clone, Debug)]
+pub struct Lookahead {
+    config: LookaheadConfig,
+    latest: Vec<CameraFrame>,
+}
+
+impl Lookahead {
+    pub fn new(config: LookaheadConfig) -> Self {
+        Self {
+            config,
+            latest: Vec::new(),
+        }
     }
-    let mut scored: Vec<(f64, usize)> = finite
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let d = (p - h).norm();
-            let closing = v.dot(&(p - h)) / d;
-            let score = (d - config.min_distance_m) / closing.max(config.min_closing_speed_mps);
-            (score, i)
-        })
-        .collect();
-    let k = config.max_candidates_count.min(scored.len());
-    if k < scored.len() {
-        scored.select_nth_unstable_by(k, |a, b| a.0.total_cmp(&b.0));
-        scored.truncate(k);
+
+    pub fn config(&self) -> &LookaheadConfig {
+        &self.config
     }
-    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let r2 = config.patch_radius_m * config.patch_radius_m;
-    scored.into_iter().find_map(|(_, i)| {
-        let centre = finite[i];
-        let patch: Vec<&Vector3<f64>> = finite
-            .iter()
-            .filter(|p| (*p - centre).norm_squared() <= r2)
-            .collect();
-        let plane = patch_plane(config, &patch, &h)?;
-        let wide_r2 = config.sphere_patch_radius_m * config.sphere_patch_radius_m;
-        let wide: Vec<&Vector3<f64>> = finite
-            .iter()
-            .filter(|p| (*p - centre).norm_squared() <= wide_r2)
-            .collect();
-        let (c, n, distance, rms, count) = match patch_sphere(config, &wide, &h) {
-            Some((c, n, distance, rms)) => (c, n, distance, rms, wide.len()),
-            None => (plane.0, plane.1, plane.2, plane.3, patch.len()),
+
+    /// The far-field estimate of camera `camera_id`'s frame stamped `stamp_s` from its kept
+    /// world points: the surface that comes first (module doc); `None` when the nearest
+    /// point is within `min_distance_m`, or no candidate patch is populated and flat.
+    /// Non-finite points are ignored. Frames of one camera are expected in stamp order (an
+    /// older one is estimated without approach speeds and leaves the latest in place).
+    pub fn far_field(
+        &mut self,
+        points: &[Vec3],
+        hip: &Point3<f64>,
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> Option<FarFieldEstimate> {
+        let config = &self.config;
+        let found = surfaces(config, points, &hip.coords);
+        let slot = self.latest.iter().position(|f| f.camera_id == camera_id);
+        let previous = slot.map(|i| &self.latest[i]).filter(|f| {
+            let gap = stamp_s - f.stamp_s;
+            gap > 0.0 && gap <= config.max_frame_gap_s
+        });
+        let approach = |fit: &PatchFit| -> Option<f64> {
+            let previous = previous?;
+            let gap = stamp_s - previous.stamp_s;
+            let reach = config.max_surface_speed_mps * gap + config.same_surface_m;
+            previous
+                .surfaces
+                .iter()
+                .filter(|s| s.normal.angle(&fit.normal) <= config.same_surface_rad)
+                .map(|s| fit.normal.dot(&(fit.closest - s.closest)))
+                .filter(|moved| moved.abs() <= reach)
+                .min_by(|a, b| a.abs().total_cmp(&b.abs()))
+                .map(|moved| moved / gap)
         };
-        let fill = (count as f64 / config.full_quality_points_count as f64).min(1.0);
-        Some(FarFieldEstimate {
+        let first = found
+            .iter()
+            .map(|(fit, count)| {
+                let a = approach(fit);
+                let contact = fit.distance_m / a.unwrap_or(0.0).max(config.min_closing_speed_mps);
+                (fit, *count, a, contact)
+            })
+            .min_by(|a, b| a.3.total_cmp(&b.3))
+            .map(|(fit, count, a, contact)| {
+                let fill = (count as f64 / config.full_quality_points_count as f64).min(1.0);
+                FarFieldEstimate {
+                    camera_id,
+                    stamp_s,
+                    centroid_m: Point3::from(fit.closest),
+                    normal: fit.normal,
+                    distance_m: fit.distance_m,
+                    approach_mps: a,
+                    contact_time_s: contact,
+                    point_count: u32::try_from(count).unwrap_or(u32::MAX),
+                    residual_rms_m: fit.rms_m,
+                    quality: fill * (1.0 - fit.rms_m / config.max_residual_m),
+                }
+            });
+        let frame = CameraFrame {
             camera_id,
             stamp_s,
-            centroid_m: Point3::from(c),
-            normal: n,
-            distance_m: distance,
-            point_count: u32::try_from(count).unwrap_or(u32::MAX),
-            residual_rms_m: rms,
-            quality: fill * (1.0 - rms / config.max_residual_m),
-        })
+            surfaces: found
+                .iter()
+                .map(|(fit, _)| Seen {
+                    closest: fit.closest,
+                    normal: fit.normal,
+                })
+                .collect(),
+        };
+        match slot {
+            Some(i) if self.latest[i].stamp_s < stamp_s => self.latest[i] = frame,
+            Some(_) => {}
+            None => self.latest.push(frame),
+        }
+        first
+    }
+}
+
+/// The surfaces of one frame's kept points (module doc), nearest first, each with the
+/// number of points it was fitted to; the search ends at the first pass whose
+/// `max_candidates_count` candidates have no patch.
+fn surfaces(config: &LookaheadConfig, points: &[Vec3], h: &Vector3<f64>) -> Vec<(PatchFit, usize)> {
+    let world = |p: &Vec3| Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+    let finite: Vec<Vector3<f64>> = points.iter().filter(|p| p.is_finite()).map(world).collect();
+    let distances: Vec<f64> = finite.iter().map(|p| (p - h).norm()).collect();
+    let nearest = distances.iter().copied().min_by(f64::total_cmp);
+    if !nearest.is_some_and(|d| d.is_finite() && d >= config.min_distance_m) {
+        return Vec::new();
+    }
+    // Points on a surface already fitted are no candidates for the next one.
+    let mut on_fitted = vec![false; finite.len()];
+    let mut found = Vec::new();
+    for _ in 0..config.max_surfaces_count {
+        let mut candidates: Vec<(f64, usize)> = distances
+            .iter()
+            .zip(&on_fitted)
+            .enumerate()
+            .filter(|(_, (_, on))| !**on)
+            .map(|(i, (d, _))| (*d, i))
+            .collect();
+        let k = config.max_candidates_count.min(candidates.len());
+        if k < candidates.len() {
+            candidates.select_nth_unstable_by(k, |a, b| a.0.total_cmp(&b.0));
+            candidates.truncate(k);
+        }
+        candidates.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let Some((fit, count)) = candidates
+            .into_iter()
+            .find_map(|(_, i)| patch_fit(config, &finite, &finite[i], h))
+        else {
+            break;
+        };
+        for (on, p) in on_fitted.iter_mut().zip(&finite) {
+            *on |= fit.shape.distance_m(p) <= config.same_surface_m;
+        }
+        // Beyond the nearest surface, one seen edge-on (the HIP far off its normal over the
+        // patch) is left out: its plane passes near the HIP far from its points.
+        let facing = fit.distance_m >= config.min_facing_cos * (fit.closest - h).norm();
+        if found.is_empty() || facing {
+            found.push((fit, count));
+        }
+    }
+    found
+}
+
+/// The surface of the patch around `centre` (the sphere of the wider patch when it fits
+/// clearly better, else the plane) and the points it was fitted to; `None` when the patch is
+/// too small or not flat.
+fn patch_fit(
+    config: &LookaheadConfig,
+    points: &[Vector3<f64>],
+    centre: &Vector3<f64>,
+    h: &Vector3<f64>,
+) -> Option<(PatchFit, usize)> {
+    let within = |radius: f64| -> Vec<&Vector3<f64>> {
+        points
+            .iter()
+            .filter(|p| (*p - centre).norm_squared() <= radius * radius)
+            .collect()
+    };
+    let patch = within(config.patch_radius_m);
+    let plane = patch_plane(config, &patch, h)?;
+    let wide = within(config.sphere_patch_radius_m);
+    Some(match patch_sphere(config, &wide, h) {
+        Some(sphere) => (sphere, wide.len()),
+        None => (plane, patch.len()),
     })
 }
 
@@ -207,7 +367,7 @@ fn patch_sphere(
     config: &LookaheadConfig,
     patch: &[&Vector3<f64>],
     h: &Vector3<f64>,
-) -> Option<PatchPlane> {
+) -> Option<PatchFit> {
     let (count, mean, cov) = patch_moments(config, patch, h)?;
     // Kasa: |q|^2 = 2 c . q + k for q = p - h - mean, linear in (c, k); normal equations.
     let mut ata = Matrix4::zeros();
@@ -247,8 +407,17 @@ fn patch_sphere(
         return None;
     }
     let n = Unit::new_normalize(to_hip);
-    let closest = h + mean + centre + n.into_inner() * radius;
-    Some((closest, n, reach - radius, rms))
+    let sphere_centre = h + mean + centre;
+    Some(PatchFit {
+        closest: sphere_centre + n.into_inner() * radius,
+        normal: n,
+        distance_m: reach - radius,
+        rms_m: rms,
+        shape: Shape::Sphere {
+            centre: sphere_centre,
+            radius_m: radius,
+        },
+    })
 }
 
 /// A patch's point count, mean and covariance about the mean, relative to the HIP `h`
@@ -271,9 +440,40 @@ fn patch_moments(
     Some((count, mean, cov))
 }
 
-/// A patch's plane: its point closest to the HIP, the normal towards the HIP, the HIP's
-/// distance from the plane and the RMS residual.
-type PatchPlane = (Vector3<f64>, Unit<Vector3<f64>>, f64, f64);
+/// A patch's surface seen from the HIP.
+struct PatchFit {
+    /// The surface's point closest to the HIP (a plane's kept within the patch).
+    closest: Vector3<f64>,
+    /// The normal there, towards the HIP.
+    normal: Unit<Vector3<f64>>,
+    /// The HIP's distance from the surface, metres.
+    distance_m: f64,
+    /// RMS distance of the patch points from the surface, metres.
+    rms_m: f64,
+    shape: Shape,
+}
+
+/// The plane or sphere fitted to a patch.
+enum Shape {
+    Plane {
+        point: Vector3<f64>,
+        normal: Unit<Vector3<f64>>,
+    },
+    Sphere {
+        centre: Vector3<f64>,
+        radius_m: f64,
+    },
+}
+
+impl Shape {
+    /// Distance of `p` from the surface, metres.
+    fn distance_m(&self, p: &Vector3<f64>) -> f64 {
+        match self {
+            Self::Plane { point, normal } => normal.dot(&(p - point)).abs(),
+            Self::Sphere { centre, radius_m } => ((p - centre).norm() - radius_m).abs(),
+        }
+    }
+}
 
 /// The plane of a patch: its point closest to `h` (within the patch radius of the mean), the
 /// normal towards `h`, the distance of `h` from the plane and the RMS residual. `None` for a
@@ -282,7 +482,7 @@ fn patch_plane(
     config: &LookaheadConfig,
     patch: &[&Vector3<f64>],
     h: &Vector3<f64>,
-) -> Option<PatchPlane> {
+) -> Option<PatchFit> {
     let (_, mean, cov) = patch_moments(config, patch, h)?;
     let eig = SymmetricEigen::try_new(cov, f64::EPSILON, 1_000)?;
     let (smallest, _) = eig
@@ -313,8 +513,18 @@ fn patch_plane(
     } else {
         in_plane
     };
-    let c = h + mean + offset;
-    Some((c, Unit::new_normalize(n), distance, rms))
+    let closest = h + mean + offset;
+    let normal = Unit::new_normalize(n);
+    Some(PatchFit {
+        closest,
+        normal,
+        distance_m: distance,
+        rms_m: rms,
+        shape: Shape::Plane {
+            point: closest,
+            normal,
+        },
+    })
 }
 
 #[cfg(test)]
@@ -357,6 +567,16 @@ mod tests {
         out
     }
 
+    /// The estimate of one frame of a fresh look-ahead.
+    fn once(
+        config: &LookaheadConfig,
+        points: &[Vec3],
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> Option<FarFieldEstimate> {
+        Lookahead::new(config.clone()).far_field(points, &HIP, camera_id, stamp_s)
+    }
+
     const HIP: Point3<f64> = Point3::new(0.36, -0.16, 0.46);
 
     #[test]
@@ -368,7 +588,7 @@ mod tests {
             Vector3::y(),
             0.15,
         );
-        let e = far_field(&config, &plate, &HIP, &Vector3::zeros(), 1, 2.5).unwrap();
+        let e = once(&config, &plate, 1, 2.5).unwrap();
         assert_eq!((e.camera_id, e.stamp_s), (1, 2.5));
         assert!((e.distance_m - 0.2).abs() < 1e-5, "{e:?}");
         assert!(e.normal.z > 0.9999, "{e:?}");
@@ -381,8 +601,8 @@ mod tests {
             Vector3::y(),
             0.15,
         );
-        assert!(far_field(&config, &close, &HIP, &Vector3::zeros(), 0, 0.0).is_none());
-        assert!(far_field(&config, &[], &HIP, &Vector3::zeros(), 0, 0.0).is_none());
+        assert!(once(&config, &close, 0, 0.0).is_none());
+        assert!(once(&config, &[], 0, 0.0).is_none());
     }
 
     #[test]
@@ -391,7 +611,7 @@ mod tests {
         // A head-sized sphere 0.15 m from the HIP along -x.
         let r = 0.09;
         let centre = HIP.coords - Vector3::x() * (0.15 + r);
-        let e = far_field(&config, &sphere(centre, r), &HIP, &Vector3::zeros(), 0, 0.0).unwrap();
+        let e = once(&config, &sphere(centre, r), 0, 0.0).unwrap();
         let truth = centre + Vector3::x() * r;
         assert!((e.centroid_m.coords - truth).norm() < 3e-3, "{e:?}");
         assert!((e.distance_m - 0.15).abs() < 3e-3, "{e:?}");
@@ -414,7 +634,7 @@ mod tests {
                 .into_iter()
                 .filter(|p| f64::from(p.x) - centre.x > 0.02)
                 .collect();
-            let e = far_field(&config, &seen, &HIP, &Vector3::zeros(), 0, 0.0).unwrap();
+            let e = once(&config, &seen, 0, 0.0).unwrap();
             let truth = centre - dir * r;
             assert!((e.distance_m - gap).abs() < 3e-3, "{gap}: {e:?}");
             assert!((e.centroid_m.coords - truth).norm() < 3e-3, "{gap}: {e:?}");
@@ -423,28 +643,127 @@ mod tests {
         assert!(centre.x > HIP.x);
     }
 
+    /// The rising plate's scene: the torso's front 0.26 m from the HIP (at rest), a plate
+    /// rising at 2 m/s from 0.29 m below, frames 11 ms apart. The first frame reports the
+    /// nearer torso; from the second the plate, still farther, whose contact time its own
+    /// approach speed (measured against the camera's previous frame) makes the earliest.
+    /// Another camera's first frame has no history and reports the torso.
     #[test]
-    fn the_surface_the_hip_moves_towards_wins_over_a_nearer_one_beside_it() {
+    fn a_surface_coming_at_the_hip_is_reported_before_a_nearer_one_at_rest() {
         let config = LookaheadConfig::default();
-        // A wall 0.12 m to the side (+y) and a head 0.2 m ahead (-x).
+        let frame = |plate_gap: f64| {
+            let mut points = grid(
+                HIP.coords - Vector3::x() * 0.26,
+                Vector3::y(),
+                Vector3::z(),
+                0.15,
+            );
+            points.extend(grid(
+                HIP.coords - Vector3::z() * plate_gap,
+                Vector3::x(),
+                Vector3::y(),
+                0.07,
+            ));
+            points
+        };
+        let mut lookahead = Lookahead::new(config.clone());
+        let first = lookahead.far_field(&frame(0.29), &HIP, 0, 0.5).unwrap();
+        assert!(
+            first.normal.x > 0.999 && (first.distance_m - 0.26).abs() < 1e-4,
+            "{first:?}"
+        );
+        assert_eq!(first.approach_mps, None);
+        assert!((first.contact_time_s - 0.26 / config.min_closing_speed_mps).abs() < 1e-3);
+        let dt = 1.0 / 90.0;
+        let second = lookahead
+            .far_field(&frame(0.29 - 2.0 * dt), &HIP, 0, 0.5 + dt)
+            .unwrap();
+        assert!(second.normal.z > 0.999, "{second:?}");
+        assert!(
+            (second.distance_m - (0.29 - 2.0 * dt)).abs() < 1e-4,
+            "{second:?}"
+        );
+        assert!(
+            (second.approach_mps.unwrap() - 2.0).abs() < 1e-3,
+            "{second:?}"
+        );
+        assert!((second.contact_time_s - second.distance_m / 2.0).abs() < 1e-3);
+        let other = lookahead
+            .far_field(&frame(0.29 - 2.0 * dt), &HIP, 1, 0.5 + dt)
+            .unwrap();
+        assert!(other.normal.x > 0.999, "{other:?}");
+        // Too long a gap: no speed, the nearer surface again.
+        let late = lookahead
+            .far_field(&frame(0.2), &HIP, 0, 0.5 + dt + 0.2)
+            .unwrap();
+        assert!(
+            late.normal.z > 0.999 && late.approach_mps.is_none(),
+            "{late:?}"
+        );
+    }
+
+    /// A plate moving away from the HIP, and one sliding past beside it, are ordered by
+    /// distance as at rest: a wall 0.12 m to the side stays the estimate.
+    #[test]
+    fn surfaces_moving_away_or_sliding_past_are_ordered_by_distance() {
+        let config = LookaheadConfig::default();
+        let frame = |plate_gap: f64, slide: f64| {
+            let mut points = grid(
+                HIP.coords + Vector3::y() * 0.12,
+                Vector3::x(),
+                Vector3::z(),
+                0.05,
+            );
+            points.extend(grid(
+                HIP.coords - Vector3::z() * plate_gap + Vector3::x() * slide,
+                Vector3::x(),
+                Vector3::y(),
+                0.1,
+            ));
+            points
+        };
+        let mut lookahead = Lookahead::new(config);
+        let dt = 1.0 / 30.0;
+        for k in 0..4 {
+            let t = f64::from(k) * dt;
+            let e = lookahead
+                .far_field(&frame(0.15 + 2.0 * t, 0.0), &HIP, 0, t)
+                .unwrap();
+            assert!(e.normal.y < -0.999, "{k}: {e:?}");
+            let e = lookahead
+                .far_field(&frame(0.15, 2.0 * t), &HIP, 1, t)
+                .unwrap();
+            assert!(e.normal.y < -0.999, "{k}: {e:?}");
+            assert!(e.approach_mps.is_none_or(|a| a.abs() < 1e-3), "{k}: {e:?}");
+        }
+    }
+
+    /// The torso's side seen edge-on is no surface beyond the nearest; each surface is one
+    /// estimate however many of its points there are.
+    #[test]
+    fn a_surface_seen_edge_on_beyond_the_nearest_is_left_out() {
+        let config = LookaheadConfig::default();
         let mut points = grid(
-            HIP.coords + Vector3::y() * 0.12,
+            HIP.coords - Vector3::z() * 0.2,
+            Vector3::x(),
+            Vector3::y(),
+            0.1,
+        );
+        // a wall 2 cm beside the HIP's plane (normal +y), 0.21-0.29 m away along x
+        points.extend(grid(
+            HIP.coords + Vector3::new(0.25, 0.02, 0.0),
             Vector3::x(),
             Vector3::z(),
-            0.05,
+            0.04,
+        ));
+        let found = surfaces(&config, &points, &HIP.coords);
+        assert_eq!(
+            found.len(),
+            1,
+            "{:?}",
+            found.iter().map(|f| f.0.distance_m).collect::<Vec<_>>()
         );
-        let r = 0.09;
-        let head = HIP.coords - Vector3::x() * (0.2 + r);
-        points.extend(sphere(head, r));
-        let still = far_field(&config, &points, &HIP, &Vector3::zeros(), 0, 0.0).unwrap();
-        assert!(
-            still.normal.y < -0.99,
-            "at rest the nearest (the wall): {still:?}"
-        );
-        let towards_head = Vector3::new(-1.5, 0.0, 0.0);
-        let moving = far_field(&config, &points, &HIP, &towards_head, 0, 0.0).unwrap();
-        assert!(moving.normal.x > 0.99, "moving: the head ahead: {moving:?}");
-        assert!((moving.distance_m - 0.2).abs() < 3e-3);
+        assert!(found[0].0.normal.z > 0.999);
     }
 
     #[test]
@@ -464,15 +783,7 @@ mod tests {
             Vec3::NAN,
             Vec3::new(f32::INFINITY, 0.0, 0.0),
         ]);
-        let e = far_field(
-            &config,
-            &points,
-            &HIP,
-            &Vector3::new(f64::NAN, 0.0, 0.0),
-            0,
-            0.0,
-        )
-        .unwrap();
+        let e = once(&config, &points, 0, 0.0).unwrap();
         assert!((e.distance_m - 0.2).abs() < 1e-5, "{e:?}");
         // A scatter with no flat patch gives nothing.
         let scatter: Vec<Vec3> = (0..400)
@@ -485,7 +796,7 @@ mod tests {
                 )
             })
             .collect();
-        assert!(far_field(&config, &scatter, &HIP, &Vector3::zeros(), 0, 0.0).is_none());
+        assert!(once(&config, &scatter, 0, 0.0).is_none());
     }
 
     #[test]
@@ -501,6 +812,11 @@ mod tests {
             ..Default::default()
         };
         assert_eq!(bad.validate().unwrap_err().field, "min_patch_points_count");
+        let bad = LookaheadConfig {
+            max_surfaces_count: 0,
+            ..Default::default()
+        };
+        assert_eq!(bad.validate().unwrap_err().field, "max_surfaces_count");
         let parsed: Result<LookaheadConfig, _> = toml::from_str("patch_radius = 0.1");
         assert!(parsed.is_err());
     }
