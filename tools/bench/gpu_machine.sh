@@ -26,13 +26,16 @@ c=bench-carry
 dest=${1:-${OUT:?give an output folder}}
 runs=${RUNS:-10}
 out=$(mktemp -d)
-trap 'tar -czf "$dest/gpu_machine.tar.gz" -C "$out" .' EXIT
+# The results so far, after each step (a run cut off by its time limit keeps them).
+snapshot() { tar -czf "$dest/gpu_machine.tar.gz" -C "$out" .; }
+trap snapshot EXIT
 ldconfig -p | grep -q libvulkan.so.1 || { for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; }
 nvidia-smi -L 2>&1 | tee "$out/nvidia_smi.txt"
 nproc >> "$out/nvidia_smi.txt"
 "$c/hapcloud" gpu-info --json > "$out/gpu_info.json" 2>&1
 timeout 240 "$c/stages_vs_pcl" --data "$c/pcl" --runs 5 --d435-frames 20 > "$out/stages.txt" 2>&1
 echo "stages_vs_pcl rc=$?"
+snapshot
 for scene in default 90hz; do
   src=()
   [ "$scene" = 90hz ] && src=("$c/torso_approach_90hz.toml")
@@ -42,6 +45,7 @@ for scene in default 90hz; do
     timeout 60 "$c/hapcloud" run "${src[@]}" "${pick[@]}" --duration 10 --json \
       > "$out/run_${scene}_${backend}.json" 2> "$out/run_${scene}_${backend}.err"
     echo "run $scene $backend rc=$?"
+    snapshot
   done
 done
 printf '[realtime]\nfifo_priority = 0\nlock_memory = false\n' > "$out/no_rt.toml"
@@ -64,6 +68,7 @@ for i in $(seq "$runs"); do
     kill "${spinners[@]}"
     wait "${spinners[@]}" 2>/dev/null
     spinners=()
+    snapshot
   done
 done
 echo "done"
