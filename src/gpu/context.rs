@@ -90,6 +90,12 @@ fn device_rank(t: wgpu::DeviceType) -> u8 {
     }
 }
 
+/// A driver's timestamp period, ns per tick, if pass times can be computed from it (a zero,
+/// negative, infinite or NaN period would turn every tick count into a wrong duration).
+fn usable_period(period_ns: f32) -> Option<f32> {
+    (period_ns.is_finite() && period_ns > 0.0).then_some(period_ns)
+}
+
 impl GpuContext {
     /// Opens the adapter named by `WGPU_ADAPTER_NAME`, or the best available one.
     pub fn new() -> Result<Self, GpuError> {
@@ -173,7 +179,7 @@ impl GpuContext {
         let timestamp_period_ns = features
             .contains(wgpu::Features::TIMESTAMP_QUERY)
             .then(|| queue.get_timestamp_period())
-            .filter(|p| *p > 0.0);
+            .and_then(usable_period);
         Ok(Self {
             device,
             queue,
@@ -209,7 +215,8 @@ impl GpuContext {
         &self.adapter
     }
 
-    /// Nanoseconds per timestamp tick, or `None` when the device has no timestamp queries.
+    /// Nanoseconds per timestamp tick, or `None` when the device has no timestamp queries
+    /// or reports a period that is not a positive finite number.
     pub fn timestamp_period_ns(&self) -> Option<f32> {
         self.timestamp_period_ns
     }
@@ -350,6 +357,15 @@ mod tests {
 
     fn ctx() -> &'static GpuContext {
         test_context()
+    }
+
+    #[test]
+    fn only_a_positive_finite_timestamp_period_is_used() {
+        assert_eq!(usable_period(1.0), Some(1.0));
+        assert_eq!(usable_period(41.666), Some(41.666));
+        for bad in [0.0, -1.0, f32::INFINITY, f32::NEG_INFINITY, f32::NAN] {
+            assert_eq!(usable_period(bad), None, "{bad}");
+        }
     }
 
     #[test]
