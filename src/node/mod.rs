@@ -529,7 +529,7 @@ pub fn run(
     });
     drop(realtime);
     // The recording is closed on every way out (its writer ends once both recorders are gone).
-    let report = reports.map(|r| outputs.finish(r, &shared));
+    let report = outputs.finish(reports.unwrap_or_default(), &shared);
     if let Some(Err(e)) = ticks.recorder.take().map(TickRecorder::finish) {
         shared.recording_failed(&e);
     }

@@ -233,8 +233,13 @@ impl PerceptionOutputs {
         }
     }
 
-    /// Closes the recording of frames and adds the workers' reports up with fusion's counts.
-    pub(super) fn finish(self, workers: Vec<WorkerReport>, shared: &Shared) -> PerceptionReport {
+    /// Closes the recording of frames and adds the workers' reports up with fusion's counts;
+    /// `None` without a report (a worker failed).
+    pub(super) fn finish(
+        self,
+        workers: Vec<WorkerReport>,
+        shared: &Shared,
+    ) -> Option<PerceptionReport> {
         let recorder = self
             .recorder
             .into_inner()
@@ -248,49 +253,40 @@ impl PerceptionOutputs {
             .unwrap_or_else(PoisonError::into_inner);
         let count = workers.len();
         let mut workers = workers.into_iter();
-        let mut report = workers.next().map_or_else(
-            || PerceptionReport {
-                workers: 0,
-                frames: BTreeMap::new(),
-                times: Histogram::new(PERCEPTION_BIN_S, PERCEPTION_RANGE_S),
-                gpu_split: GpuSplit::new(),
-                backend: Backend::Cpu,
-                adapter: None,
-                gpu_fallback: None,
-                gpu_buffer_bytes: None,
-                fusion: FusionCounters::default(),
-                camera_latency: Vec::new(),
-            },
-            |w| PerceptionReport {
-                workers: count,
-                frames: w.frames,
-                times: w.times,
-                gpu_split: w.gpu_split,
-                backend: w.backend,
-                adapter: w.adapter,
-                gpu_fallback: w.gpu_fallback,
-                gpu_buffer_bytes: w.gpu_buffer_bytes,
-                fusion: FusionCounters::default(),
-                camera_latency: Vec::new(),
-            },
-        );
+        let mut all = workers.next()?;
         for w in workers {
-            for (camera, (frames, valid)) in w.frames {
-                let entry = report.frames.entry(camera).or_default();
-                entry.0 += frames;
-                entry.1 += valid;
-            }
-            report.times.merge(&w.times);
-            report.gpu_split.merge(&w.gpu_split);
-            report.gpu_fallback = report.gpu_fallback.or(w.gpu_fallback);
-            report.gpu_buffer_bytes = match (report.gpu_buffer_bytes, w.gpu_buffer_bytes) {
-                (Some(a), Some(b)) => Some(a + b),
-                (a, b) => a.or(b),
-            };
+            all.merge(w);
         }
-        report.fusion = window.fusion().counters();
-        report.camera_latency = window.fusion().latency_stats();
-        report
+        Some(PerceptionReport {
+            workers: count,
+            frames: all.frames,
+            times: all.times,
+            gpu_split: all.gpu_split,
+            backend: all.backend,
+            adapter: all.adapter,
+            gpu_fallback: all.gpu_fallback,
+            gpu_buffer_bytes: all.gpu_buffer_bytes,
+            fusion: window.fusion().counters(),
+            camera_latency: window.fusion().latency_stats(),
+        })
+    }
+}
+
+impl WorkerReport {
+    /// Adds `other`'s frames, times and GPU memory; the backend and adapter stay this one's.
+    fn merge(&mut self, other: WorkerReport) {
+        for (camera, (frames, valid)) in other.frames {
+            let entry = self.frames.entry(camera).or_default();
+            entry.0 += frames;
+            entry.1 += valid;
+        }
+        self.times.merge(&other.times);
+        self.gpu_split.merge(&other.gpu_split);
+        self.gpu_fallback = self.gpu_fallback.take().or(other.gpu_fallback);
+        self.gpu_buffer_bytes = match (self.gpu_buffer_bytes, other.gpu_buffer_bytes) {
+            (Some(a), Some(b)) => Some(a + b),
+            (a, b) => a.or(b),
+        };
     }
 }
 
