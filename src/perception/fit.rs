@@ -562,6 +562,10 @@ pub struct HeightField {
     pub normal: Unit<Vector3<f64>>,
     /// RMS of `z - f(x, y)` over the points, metres.
     pub residual_rms_m: f64,
+    /// Standard error of `closest_m` from the points' scatter about the field (the
+    /// coefficients' least-squares covariance carried through the closest point), metres;
+    /// infinite when the fit cannot tell.
+    pub closest_se_m: f64,
     /// The frame's `z` axis (`x, y` follow from it as in the fit).
     pub axis: Unit<Vector3<f64>>,
 }
@@ -605,9 +609,11 @@ fn tangent_frame(axis: &Unit<Vector3<f64>>) -> (Vector3<f64>, Vector3<f64>) {
 /// `z`: monomials of degree <= 4, all in [`Moments`]. Unlike a plane through a ring cut by a
 /// sphere, this stays right on a surface whose curvature differs between directions (a
 /// forearm: a cylinder) when only part of the ring is visible. Coordinates are scaled by
-/// `scale_m` (the point set's extent) so the 6x6 system is well conditioned.
+/// `scale_m` (the point set's extent) so the 6x6 system is well conditioned. `m` may be
+/// weighted; `point_count` is the number of points behind it (for the standard error).
 pub fn height_field(
     m: &Moments,
+    point_count: f64,
     axis: &Unit<Vector3<f64>>,
     scale_m: f64,
 ) -> Result<HeightField, FitError> {
@@ -647,8 +653,39 @@ pub fn height_field(
     let c = chol.solve(&atz);
     let zz = m.sum_of(&z.mul(&z));
     let residual2 = (zz - c.dot(&atz)).max(0.0) / count;
-    // Closest point of z = f(x, y) to the origin (scaled units): Newton on the gradient of
-    // x^2 + y^2 + f^2, from the foot of the axis.
+    let (u, v) = closest_on(&c)?;
+    let closest_se_m = closest_standard_error(&c, &chol, residual2, count, point_count)
+        .map_or(f64::INFINITY, |se| se * scale_m);
+    let f =
+        |u: f64, v: f64| c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
+    let fz = f(u, v);
+    let (fu, fv) = (
+        c[1] + 2.0 * c[3] * u + c[4] * v,
+        c[2] + c[4] * u + 2.0 * c[5] * v,
+    );
+    let closest_m = m.origin + scale_m * (u * e1 + v * e2 + fz * axis.into_inner());
+    let normal =
+        Unit::try_new(fu * e1 + fv * e2 - axis.into_inner(), 1e-12).ok_or(FitError::NonFinite)?;
+    Ok(HeightField {
+        coefficients: [
+            c[0] * scale_m,
+            c[1],
+            c[2],
+            c[3] / scale_m,
+            c[4] / scale_m,
+            c[5] / scale_m,
+        ],
+        closest_m,
+        normal,
+        residual_rms_m: residual2.sqrt() * scale_m,
+        closest_se_m,
+        axis: *axis,
+    })
+}
+
+/// Closest point `(u, v, f(u, v))` of the height field with coefficients `c` (scaled units)
+/// to the origin: Newton on the gradient of `x^2 + y^2 + f^2`, from the foot of the axis.
+fn closest_on(c: &nalgebra::Vector6<f64>) -> Result<(f64, f64), FitError> {
     let f =
         |u: f64, v: f64| c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
     let (mut u, mut v) = (0.0f64, 0.0f64);
@@ -677,28 +714,42 @@ pub fn height_field(
             break;
         }
     }
-    let fz = f(u, v);
-    let (fu, fv) = (
-        c[1] + 2.0 * c[3] * u + c[4] * v,
-        c[2] + c[4] * u + 2.0 * c[5] * v,
-    );
-    let closest_m = m.origin + scale_m * (u * e1 + v * e2 + fz * axis.into_inner());
-    let normal =
-        Unit::try_new(fu * e1 + fv * e2 - axis.into_inner(), 1e-12).ok_or(FitError::NonFinite)?;
-    Ok(HeightField {
-        coefficients: [
-            c[0] * scale_m,
-            c[1],
-            c[2],
-            c[3] / scale_m,
-            c[4] / scale_m,
-            c[5] / scale_m,
-        ],
-        closest_m,
-        normal,
-        residual_rms_m: residual2.sqrt() * scale_m,
-        axis: *axis,
-    })
+    Ok((u, v))
+}
+
+/// Standard error of the closest point (scaled units): the coefficients' covariance
+/// `s^2 w (A^T W A)^-1` (`s^2` the unbiased residual variance over `points` points, `w`
+/// their mean weight, `count / points`) carried through the closest point's Jacobian, taken
+/// by central differences of [`closest_on`]. `None` when the fit leaves no degree of freedom
+/// or a perturbed field has no closest point.
+fn closest_standard_error(
+    c: &nalgebra::Vector6<f64>,
+    chol: &nalgebra::Cholesky<f64, nalgebra::U6>,
+    residual2: f64,
+    count: f64,
+    points: f64,
+) -> Option<f64> {
+    if !(points > 6.0) {
+        return None;
+    }
+    let variance = residual2 * points / (points - 6.0) * (count / points);
+    let covariance = chol.inverse() * variance;
+    let point = |c: &nalgebra::Vector6<f64>| -> Option<Vector3<f64>> {
+        let (u, v) = closest_on(c).ok()?;
+        let fz = c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
+        Some(Vector3::new(u, v, fz))
+    };
+    let mut jacobian = nalgebra::Matrix3x6::<f64>::zeros();
+    for k in 0..6 {
+        let h = 1e-6 * (1.0 + c[k].abs());
+        let mut up = *c;
+        let mut down = *c;
+        up[k] += h;
+        down[k] -= h;
+        jacobian.set_column(k, &((point(&up)? - point(&down)?) / (2.0 * h)));
+    }
+    let se2 = (jacobian * covariance * jacobian.transpose()).trace();
+    (se2.is_finite() && se2 >= 0.0).then(|| se2.sqrt())
 }
 
 #[cfg(test)]
@@ -905,7 +956,7 @@ mod tests {
         let tilt = Rotation3::from_axis_angle(&Unit::new_normalize(a + b), 12f64.to_radians());
         let axis = Unit::new_normalize(tilt * -w);
         // In the tilted frame the paraboloid is no longer exactly a height field: close.
-        let first = height_field(&moments(hip, &pts), &axis, 0.05).unwrap();
+        let first = height_field(&moments(hip, &pts), pts.len() as f64, &axis, 0.05).unwrap();
         assert!(
             (first.closest_m - (hip - 0.03 * w)).norm() < 5e-4,
             "{first:?}"
@@ -914,7 +965,7 @@ mod tests {
         // Refitted about its own normal it converges to the exact surface.
         let mut fit = first;
         for _ in 0..4 {
-            fit = height_field(&moments(hip, &pts), &-fit.normal, 0.05).unwrap();
+            fit = height_field(&moments(hip, &pts), pts.len() as f64, &-fit.normal, 0.05).unwrap();
         }
         assert!((fit.closest_m - (hip - 0.03 * w)).norm() < 1e-9, "{fit:?}");
         assert!(fit.normal.angle(&w) < 1e-8, "{fit:?}");
@@ -937,7 +988,72 @@ mod tests {
         assert!(plane.normal.angle(&w).min(plane.normal.angle(&-w)) > 5f64.to_radians());
         // A single ring does not span the quadratic.
         let ring = arc(hip - 0.03 * w, w, 0.02, 0.0, 6.0, 50, 0.0);
-        assert!(height_field(&moments(hip, &ring), &Unit::new_normalize(-w), 0.05).is_err());
+        assert!(
+            height_field(
+                &moments(hip, &ring),
+                ring.len() as f64,
+                &Unit::new_normalize(-w),
+                0.05
+            )
+            .is_err()
+        );
+    }
+
+    /// The closest point's standard error agrees with its scatter over noise draws, and
+    /// is large where the points leave the field's curvature undetermined.
+    #[test]
+    fn closest_point_standard_error_matches_the_scatter_over_noise_draws() {
+        let hip = Point3::origin();
+        // z = 0.06 + (x^2 + y^2) / (2 * 0.15): a chest-like cap 6 cm below the HIP, seen
+        // in a disc of 4.5 cm, or in a sliver at one side of it, with 3 mm of noise.
+        let draw = |seed: u64, sliver: bool, noise: f64| {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let pts: Vec<Point3<f64>> = (0..150)
+                .map(|_| {
+                    let (x, y) = if sliver {
+                        (rng.random_range(0.03..0.045), rng.random_range(-0.01..0.01))
+                    } else {
+                        (
+                            rng.random_range(-0.045..0.045),
+                            rng.random_range(-0.045..0.045),
+                        )
+                    };
+                    let z = 0.06 + (x * x + y * y) / 0.3 + noise * rng.random_range(-1.0..1.0);
+                    Point3::new(x, y, -z)
+                })
+                .collect();
+            height_field(
+                &moments(hip, &pts),
+                pts.len() as f64,
+                &-Vector3::z_axis(),
+                0.1,
+            )
+        };
+        let uniform = 0.003 * 3f64.sqrt();
+        let fits: Vec<HeightField> = (0..300).map(|k| draw(k, false, uniform).unwrap()).collect();
+        let mean = fits
+            .iter()
+            .map(|f| f.closest_m.coords)
+            .sum::<Vector3<f64>>()
+            / 300.0;
+        let scatter = (fits
+            .iter()
+            .map(|f| (f.closest_m.coords - mean).norm_squared())
+            .sum::<f64>()
+            / 299.0)
+            .sqrt();
+        let predicted = fits.iter().map(|f| f.closest_se_m).sum::<f64>() / 300.0;
+        assert!(
+            (predicted / scatter - 1.0).abs() < 0.2,
+            "predicted {predicted}, scatter {scatter}"
+        );
+        assert!((mean - Vector3::new(0.0, 0.0, -0.06)).norm() < 3.0 * scatter / 300f64.sqrt());
+        // Without noise the point is exact and certain.
+        let exact = draw(0, false, 0.0).unwrap();
+        assert!(exact.closest_se_m < 1e-9 && (exact.closest_m.z + 0.06).abs() < 1e-9);
+        // A sliver at one side leaves the curvature to the noise: far less certain.
+        let sliver = draw(0, true, uniform).map_or(f64::INFINITY, |f| f.closest_se_m);
+        assert!(sliver > 5.0 * predicted, "{sliver} vs {predicted}");
     }
 
     #[test]
