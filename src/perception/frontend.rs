@@ -299,6 +299,15 @@ impl CpuFrontend {
     }
 }
 
+/// The voxel output as the cluster stage's input (count = the header's `out_count`).
+fn cluster_input(voxel: &GpuVoxel) -> ClusterInput<'_> {
+    ClusterInput {
+        points: voxel.out_points(),
+        count: voxel.header(),
+        count_word: (std::mem::offset_of!(VoxelHeader, out_count) / 4) as u32,
+    }
+}
+
 /// The front end's own timed pass (the voxel and cluster stages time their passes
 /// themselves and read their timestamps back with their results).
 const STAGES: [&str; 1] = ["crop"];
@@ -322,8 +331,8 @@ fn make_buffer(
     bytes: u64,
     usage: wgpu::BufferUsages,
 ) -> Result<wgpu::Buffer, GpuError> {
-    ctx.scoped(label, |device| {
-        device.create_buffer(&wgpu::BufferDescriptor {
+    ctx.scoped(label, |_| {
+        ctx.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: bytes.max(16),
             usage,
@@ -368,15 +377,6 @@ impl GpuFrontend {
     /// Leaf the next frame will use (m).
     pub fn leaf_m(&self) -> f64 {
         self.leaf.leaf_m
-    }
-
-    /// The voxel output as the cluster stage's input (count = the header's `out_count`).
-    fn cluster_input(&self) -> ClusterInput<'_> {
-        ClusterInput {
-            points: self.voxel.out_points(),
-            count: self.voxel.header(),
-            count_word: (std::mem::offset_of!(VoxelHeader, out_count) / 4) as u32,
-        }
     }
 
     /// Sizes every per-frame buffer for frames of up to `points` points (or pixels), so that
@@ -486,7 +486,7 @@ impl GpuFrontend {
             let mask = first_pass.then(|| self.crop.mask());
             self.voxel.record(&ctx, &mut encoder, &self.input, mask);
             self.cluster
-                .encode(&ctx, &mut encoder, &self.cluster_input())?;
+                .encode(&ctx, &mut encoder, &cluster_input(&self.voxel))?;
             if let Some(t) = &self.timer {
                 t.resolve_into(&mut encoder, &self.readback, 0);
             }
@@ -549,7 +549,7 @@ impl GpuFrontend {
         voxel.retries = retries;
         let (clusters, cluster_stats) = self.cluster.finish(
             &ctx,
-            &self.cluster_input(),
+            &cluster_input(&self.voxel),
             &cluster_bytes,
             voxel.points.len() as u32,
             &self.config.cluster,
@@ -693,6 +693,7 @@ mod tests {
     use super::*;
     use crate::camera::PinholeIntrinsics;
     use crate::geometry::Primitive;
+    use crate::gpu::context::Created;
     use crate::perception::crop::{DEPTH_POINT_TOLERANCE, finite_bits, mask_bit};
     use crate::perception::flying::FlyingPixelConfig;
     use crate::perception::test_data::{synthetic_depth, synthetic_frame};
@@ -1002,6 +1003,61 @@ mod tests {
             last = g.voxel.points.len();
         }
         assert!((2000..4500).contains(&last), "{last}");
+    }
+
+    #[test]
+    fn frames_up_to_the_reserved_size_create_no_gpu_objects_and_equal_the_cpu() {
+        // A context of its own: its counters see this front end only.
+        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
+        let config = FrontendConfig {
+            crop: CropConfig {
+                radius_m: 0.6,
+                ..CropConfig::default()
+            },
+            voxel: VoxelConfig {
+                leaf_m: 0.003,
+                ..Default::default()
+            },
+            cluster: ClusterConfig::default(),
+        };
+        let mut gpu = Frontend::new(Backend::Gpu, config.clone(), Some(Arc::clone(&ctx))).unwrap();
+        let mut cpu = Frontend::new(Backend::Cpu, config, None).unwrap();
+        let points = synthetic_frame(7);
+        gpu.reserve(points.len()).unwrap();
+        // The sphere's points alone need a small voxel table, the whole frame around the
+        // background plane a large one: the voxel table (and the cluster table sized from it)
+        // shrinks and grows from frame to frame.
+        let centre = Vec3::new(0.05, -0.05, 0.9);
+        let sphere: Vec<Vec3> = points
+            .iter()
+            .copied()
+            .filter(|p| p.distance(centre) < 0.12)
+            .collect();
+        let small = (&sphere[..], Point3::new(0.05, -0.05, 0.9));
+        let large = (&points[..], Point3::new(0.05, -0.05, 1.4));
+        let mut run = |(points, hip): (&[Vec3], Point3<f64>)| {
+            let frame = FrameInput {
+                points: FramePoints::Points(points),
+                crop: Some(CropScene {
+                    hip_m: hip,
+                    robot: &[],
+                    camera_m: None,
+                }),
+                want_crop_keep: false,
+            };
+            let g = gpu.process(&frame).unwrap();
+            let c = cpu.process(&frame).unwrap();
+            assert_same(&g.voxel, &c.voxel);
+            assert_eq!(g.clusters, c.clusters);
+            g.voxel.table_slots
+        };
+        for frame in [large, small, large] {
+            run(frame);
+        }
+        let before = ctx.created();
+        let slots: Vec<_> = [small, large, small, large].map(&mut run).into();
+        assert_eq!(ctx.created() - before, Created::default(), "{slots:?}");
+        assert!(slots[0] < slots[1] && slots[2] < slots[3], "{slots:?}");
     }
 
     #[test]
