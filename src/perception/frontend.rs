@@ -696,7 +696,7 @@ mod tests {
     use crate::gpu::context::Created;
     use crate::perception::crop::{DEPTH_POINT_TOLERANCE, finite_bits, mask_bit};
     use crate::perception::flying::FlyingPixelConfig;
-    use crate::perception::test_data::{synthetic_depth, synthetic_frame};
+    use crate::perception::test_data::{random_cloud, synthetic_depth, synthetic_frame};
     use crate::perception::voxel::tests::assert_same;
     use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 
@@ -926,22 +926,29 @@ mod tests {
         }
     }
 
-    #[test]
-    fn gpu_frontend_equals_cpu_frontend_over_frames_with_leaf_adaptation() {
-        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
-        let config = FrontendConfig {
+    /// A 0.6 m crop and a 3 mm leaf for the synthetic frames, with `voxel`'s other settings.
+    fn fine_config(voxel: VoxelConfig) -> FrontendConfig {
+        FrontendConfig {
             crop: CropConfig {
                 radius_m: 0.6,
                 ..CropConfig::default()
             },
             voxel: VoxelConfig {
                 leaf_m: 0.003,
-                target_points: Some(3000),
-                initial_table_slots: 1024,
-                ..Default::default()
+                ..voxel
             },
             cluster: ClusterConfig::default(),
-        };
+        }
+    }
+
+    #[test]
+    fn gpu_frontend_equals_cpu_frontend_over_frames_with_leaf_adaptation() {
+        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
+        let config = fine_config(VoxelConfig {
+            target_points: Some(3000),
+            initial_table_slots: 1024,
+            ..Default::default()
+        });
         let robot = [Primitive::Capsule {
             a_m: Point3::new(0.2, 0.0, 0.8),
             b_m: Point3::new(0.3, 0.2, 0.9),
@@ -1009,37 +1016,21 @@ mod tests {
     fn frames_up_to_the_reserved_size_create_no_gpu_objects_and_equal_the_cpu() {
         // A context of its own: its counters see this front end only.
         let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
-        let config = FrontendConfig {
-            crop: CropConfig {
-                radius_m: 0.6,
-                ..CropConfig::default()
-            },
-            voxel: VoxelConfig {
-                leaf_m: 0.003,
-                ..Default::default()
-            },
-            cluster: ClusterConfig::default(),
-        };
+        let config = fine_config(VoxelConfig::default());
         let mut gpu = Frontend::new(Backend::Gpu, config.clone(), Some(Arc::clone(&ctx))).unwrap();
         let mut cpu = Frontend::new(Backend::Cpu, config, None).unwrap();
-        let points = synthetic_frame(7);
-        gpu.reserve(points.len()).unwrap();
-        // The sphere's points alone need a small voxel table, the whole frame around the
-        // background plane a large one: the voxel table (and the cluster table sized from it)
-        // shrinks and grows from frame to frame.
-        let centre = Vec3::new(0.05, -0.05, 0.9);
-        let sphere: Vec<Vec3> = points
-            .iter()
-            .copied()
-            .filter(|p| p.distance(centre) < 0.12)
-            .collect();
-        let small = (&sphere[..], Point3::new(0.05, -0.05, 0.9));
-        let large = (&points[..], Point3::new(0.05, -0.05, 1.4));
-        let mut run = |(points, hip): (&[Vec3], Point3<f64>)| {
+        // 30,000 random points in a 0.4 m cube need a 65,536-slot voxel table (dense path),
+        // 1,000 a 2,048-slot one (hash path): each frame starts from the table the frame
+        // before needed, so the table (and the cluster table sized from it) shrinks, grows
+        // and is retried bigger within the first frames' allocation.
+        let large = random_cloud(7, 30_000, 0.4);
+        let small = random_cloud(8, 1_000, 0.4);
+        gpu.reserve(large.len()).unwrap();
+        let mut run = |points: &Vec<Vec3>| {
             let frame = FrameInput {
                 points: FramePoints::Points(points),
                 crop: Some(CropScene {
-                    hip_m: hip,
+                    hip_m: Point3::origin(),
                     robot: &[],
                     camera_m: None,
                 }),
@@ -1049,15 +1040,15 @@ mod tests {
             let c = cpu.process(&frame).unwrap();
             assert_same(&g.voxel, &c.voxel);
             assert_eq!(g.clusters, c.clusters);
-            g.voxel.table_slots
+            g.voxel.table_slots.unwrap_or(0)
         };
-        for frame in [large, small, large] {
+        for frame in [&large, &small, &large] {
             run(frame);
         }
         let before = ctx.created();
-        let slots: Vec<_> = [small, large, small, large].map(&mut run).into();
+        let slots = [&small, &large, &small, &large].map(&mut run);
         assert_eq!(ctx.created() - before, Created::default(), "{slots:?}");
-        assert!(slots[0] < slots[1] && slots[2] < slots[3], "{slots:?}");
+        assert!(slots.iter().min() < slots.iter().max(), "{slots:?}");
     }
 
     #[test]
