@@ -44,7 +44,8 @@ struct VoxelParams {
     filter_hi: f32,
     // 1: only points whose bit is set in `mask` are used.
     use_mask: u32,
-    _pad: u32,
+    // Entries of `schedule` for this frame's table (the buffer may hold more).
+    schedule_entries: u32,
 }
 
 struct VoxelHeader {
@@ -395,7 +396,7 @@ fn plan(@builtin(local_invocation_id) lid: vec3<u32>) {
         header.mode = select(0u, 1u, words > 0u);
         header.words = words;
     }
-    for (var i = lid.x; i < arrayLength(&schedule); i += WORKGROUP_SIZE) {
+    for (var i = lid.x; i < params.schedule_entries; i += WORKGROUP_SIZE) {
         let kind = schedule[i].x;
         if kind == SCHEDULE_WORDS || kind == SCHEDULE_WORD_BLOCKS {
             let per = select(COMPACT_BLOCK, WORKGROUP_SIZE, kind == SCHEDULE_WORDS);
@@ -578,7 +579,7 @@ fn compact_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
         header.sort_size = size;
     }
     let dense = header.mode == 1u;
-    for (var i = lid.x; i < arrayLength(&schedule); i += WORKGROUP_SIZE) {
+    for (var i = lid.x; i < params.schedule_entries; i += WORKGROUP_SIZE) {
         let entry = schedule[i];
         if entry.x > SCHEDULE_REDUCE {
             continue;

@@ -16,6 +16,7 @@
 //! with calibrated timestamps where the adapter has them ([`super::clock`]), so those times can
 //! be placed on the host clock ([`GpuContext::host_clock`], [`GpuContext::clock_sample`]).
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 #[cfg(feature = "vulkan-calibrated")]
@@ -78,6 +79,33 @@ pub struct GpuContext {
     #[cfg(feature = "vulkan-calibrated")]
     calibrator: Option<Calibrator>,
     uncaptured: Arc<Mutex<Vec<wgpu::Error>>>,
+    created: CreatedCounters,
+}
+
+/// How many GPU objects the stages created through [`GpuContext::create_buffer`],
+/// [`GpuContext::create_texture`] and [`GpuContext::create_bind_group`] since the context
+/// opened: a frame that creates none allocates nothing on the device.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Created {
+    /// Buffers and textures.
+    pub buffers: u64,
+    pub bind_groups: u64,
+}
+
+impl std::ops::Sub for Created {
+    type Output = Created;
+    fn sub(self, earlier: Created) -> Created {
+        Created {
+            buffers: self.buffers - earlier.buffers,
+            bind_groups: self.bind_groups - earlier.bind_groups,
+        }
+    }
+}
+
+#[derive(Default)]
+struct CreatedCounters {
+    buffers: AtomicU64,
+    bind_groups: AtomicU64,
 }
 
 fn device_rank(t: wgpu::DeviceType) -> u8 {
@@ -200,6 +228,7 @@ impl GpuContext {
             #[cfg(feature = "vulkan-calibrated")]
             calibrator: opened.calibrator.filter(|_| timestamp_period_ns.is_some()),
             uncaptured,
+            created: CreatedCounters::default(),
         })
     }
 
@@ -233,6 +262,32 @@ impl GpuContext {
         return self.calibrator.as_ref().and_then(Calibrator::sample);
         #[cfg(not(feature = "vulkan-calibrated"))]
         None
+    }
+
+    /// Creates a buffer, counted in [`Self::created`].
+    pub fn create_buffer(&self, desc: &wgpu::BufferDescriptor<'_>) -> wgpu::Buffer {
+        self.created.buffers.fetch_add(1, Ordering::Relaxed);
+        self.device.create_buffer(desc)
+    }
+
+    /// Creates a texture, counted in [`Self::created`] with the buffers.
+    pub fn create_texture(&self, desc: &wgpu::TextureDescriptor<'_>) -> wgpu::Texture {
+        self.created.buffers.fetch_add(1, Ordering::Relaxed);
+        self.device.create_texture(desc)
+    }
+
+    /// Creates a bind group, counted in [`Self::created`].
+    pub fn create_bind_group(&self, desc: &wgpu::BindGroupDescriptor<'_>) -> wgpu::BindGroup {
+        self.created.bind_groups.fetch_add(1, Ordering::Relaxed);
+        self.device.create_bind_group(desc)
+    }
+
+    /// GPU objects created so far (all users of this context together).
+    pub fn created(&self) -> Created {
+        Created {
+            buffers: self.created.buffers.load(Ordering::Relaxed),
+            bind_groups: self.created.bind_groups.load(Ordering::Relaxed),
+        }
     }
 
     /// Runs `f` inside validation, out-of-memory and internal error scopes and returns the
@@ -287,9 +342,10 @@ impl GpuContext {
         Ok(())
     }
 
-    /// Submits `commands`, waits for the device, maps the `readback` buffer (which `commands`
-    /// must have filled; usage `MAP_READ | COPY_DST`) and hands its bytes to `read`.
-    /// This is the one blocking readback of a frame; errors come back as [`GpuError`].
+    /// Submits `commands`, waits for this submission (not for the device: another thread's
+    /// later submission on the same queue is not waited for), maps the `readback` buffer
+    /// (which `commands` must have filled; usage `MAP_READ | COPY_DST`) and hands its bytes to
+    /// `read`. This is the one blocking readback of a frame; errors come back as [`GpuError`].
     pub fn submit_and_read<R>(
         &self,
         context: &str,
@@ -298,20 +354,25 @@ impl GpuContext {
         read: impl FnOnce(&[u8]) -> R,
     ) -> Result<R, GpuError> {
         let (tx, rx) = std::sync::mpsc::channel();
-        self.scoped(context, |_| {
-            self.queue.submit([commands]);
+        let submission = self.scoped(context, |_| {
+            let submission = self.queue.submit([commands]);
             readback.map_async(wgpu::MapMode::Read, .., move |r| {
                 // The receiver lives until this function returns; a send error cannot happen
                 // while it waits, and afterwards nobody needs the result.
                 let _ = tx.send(r);
             });
+            submission
         })?;
         let readback_err = |message: String| GpuError::Readback {
             context: context.to_string(),
             message,
         };
+        // The mapping completes with the submission that last used the buffer: this one.
         self.device
-            .poll(wgpu::PollType::wait_indefinitely())
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(submission),
+                timeout: None,
+            })
             .map_err(|e| readback_err(e.to_string()))?;
         rx.recv()
             .map_err(|e| readback_err(e.to_string()))?

@@ -78,7 +78,8 @@ pub struct VoxelParams {
     pub filter_lo: f32,
     pub filter_hi: f32,
     pub use_mask: u32,
-    pub _pad: u32,
+    /// Entries of the dispatch schedule for this frame's table.
+    pub schedule_entries: u32,
 }
 
 /// `VoxelHeader` in voxel.wgsl (atomics there, plain words here).

@@ -1,7 +1,9 @@
 //! The GPU context (adapter choice, error capture) and the one place that loads WGSL shaders.
 //!
-//! - [`context`]: one wgpu device on Vulkan (lavapipe in CI), errors as [`GpuError`].
-//! - [`shader`]: the registry of `shaders/*.wgsl`, bind-group layouts and compute pipelines.
+//! - [`context`]: one wgpu device on Vulkan (lavapipe in CI), errors as [`GpuError`], a
+//!   readback that waits for its own submission, counts of the GPU objects created.
+//! - [`shader`]: the registry of `shaders/*.wgsl`, bind-group layouts, compute pipelines and
+//!   bind groups made once ([`shader::CachedBindGroup`]).
 //! - [`timing`]: per-stage GPU time from timestamp queries written at compute-pass bounds.
 //! - [`clock`]: those times on the host clock (calibrated timestamps, feature `vulkan-calibrated`).
 //!

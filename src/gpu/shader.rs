@@ -132,6 +132,74 @@ pub fn bind_group_layout(
     })
 }
 
+/// What one binding of a [`CachedBindGroup`] holds: a buffer range or a texture view.
+#[derive(Clone, Debug, PartialEq)]
+enum Bound {
+    Buffer(wgpu::Buffer, u64, Option<wgpu::BufferSize>),
+    Texture(wgpu::TextureView),
+    /// A kind of resource the stages do not bind: never equal, so never reused.
+    Other,
+}
+
+impl Bound {
+    fn of(resource: &wgpu::BindingResource<'_>) -> Self {
+        match resource {
+            wgpu::BindingResource::Buffer(b) => Bound::Buffer(b.buffer.clone(), b.offset, b.size),
+            wgpu::BindingResource::TextureView(v) => Bound::Texture((*v).clone()),
+            _ => Bound::Other,
+        }
+    }
+
+    fn binds(&self, resource: &wgpu::BindingResource<'_>) -> bool {
+        match (self, resource) {
+            (Bound::Buffer(buffer, offset, size), wgpu::BindingResource::Buffer(b)) => {
+                buffer == b.buffer && *offset == b.offset && *size == b.size
+            }
+            (Bound::Texture(view), wgpu::BindingResource::TextureView(v)) => view == *v,
+            _ => false,
+        }
+    }
+}
+
+/// A bind group made once and reused while it binds the same resources: a stage keeps one
+/// per bind group it records, so frames whose buffers did not change (all frames up to the
+/// largest seen) create none. The layout is the caller's and must not change between calls.
+#[derive(Debug, Default)]
+pub struct CachedBindGroup {
+    bound: Vec<Bound>,
+    group: Option<wgpu::BindGroup>,
+}
+
+impl CachedBindGroup {
+    /// The bind group of `entries` (bindings numbered by position), made only when they differ
+    /// from the last call's.
+    pub fn get(
+        &mut self,
+        ctx: &GpuContext,
+        label: &str,
+        layout: &wgpu::BindGroupLayout,
+        entries: &[wgpu::BindGroupEntry<'_>],
+    ) -> &wgpu::BindGroup {
+        let same = self.bound.len() == entries.len()
+            && self
+                .bound
+                .iter()
+                .zip(entries)
+                .all(|(b, e)| b.binds(&e.resource));
+        if !same || self.group.is_none() {
+            self.bound = entries.iter().map(|e| Bound::of(&e.resource)).collect();
+            self.group = None;
+        }
+        self.group.get_or_insert_with(|| {
+            ctx.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(label),
+                layout,
+                entries,
+            })
+        })
+    }
+}
+
 /// Compiles `stage` once and builds one compute pipeline per entry point, all sharing
 /// `layouts`. Pipelines are labelled `<stage>::<entry point>`. Build them once and keep them.
 pub fn compute_pipelines(
@@ -251,6 +319,44 @@ mod tests {
         };
         let err = validate(&broken, naga::valid::Capabilities::empty()).unwrap_err();
         assert!(err.contains("shaders/broken.wgsl"), "{err}");
+    }
+
+    #[test]
+    fn a_cached_bind_group_is_made_again_only_when_a_resource_changes() {
+        let ctx = crate::gpu::context::test_context();
+        let layout = bind_group_layout(ctx, "test layout", &[BindingKind::Storage]).unwrap();
+        let buffer = |label| {
+            ctx.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: 64,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            })
+        };
+        let (a, b) = (buffer("a"), buffer("b"));
+        fn entry(buffer: &wgpu::Buffer, size: u64) -> wgpu::BindGroupEntry<'_> {
+            wgpu::BindGroupEntry {
+                binding: 0,
+                resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                    buffer,
+                    offset: 0,
+                    size: wgpu::BufferSize::new(size),
+                }),
+            }
+        }
+        let mut cache = CachedBindGroup::default();
+        let mut get = |buffer, size| {
+            cache
+                .get(ctx, "test", &layout, &[entry(buffer, size)])
+                .clone()
+        };
+        let first = get(&a, 64);
+        assert_eq!(get(&a, 64), first);
+        let other_buffer = get(&b, 64);
+        assert_ne!(other_buffer, first);
+        let other_size = get(&b, 32);
+        assert_ne!(other_size, other_buffer);
+        assert_eq!(get(&b, 32), other_size);
     }
 
     #[test]

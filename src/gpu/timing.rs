@@ -71,7 +71,7 @@ impl StageTimer {
                     ty: wgpu::QueryType::Timestamp,
                     count,
                 }),
-                resolve: device.create_buffer(&wgpu::BufferDescriptor {
+                resolve: ctx.create_buffer(&wgpu::BufferDescriptor {
                     label: Some(&format!("{label} timestamp resolve")),
                     size: u64::from(count) * TICK_BYTES,
                     usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,

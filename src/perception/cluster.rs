@@ -36,7 +36,7 @@
 
 use crate::cloud::PointCloud;
 use crate::gpu::mirrors::ClusterParams;
-use crate::gpu::shader::{self, BindingKind};
+use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::{PassTicks, StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
 use glam::Vec3;
@@ -480,7 +480,9 @@ const TIMED_PASSES: [&str; 3] = ["cluster_grid", "cluster_hook", "cluster_compre
 /// Buffers sized for a point capacity (reallocated only when a larger cloud arrives).
 struct ClusterBuffers {
     capacity: u32,
+    /// This frame's hash table (`table_mask + 1`); at most `allocated_slots`.
     table_slots: u32,
+    allocated_slots: u32,
     /// Parameters of the last `reserve`; `encode` writes them with the input's count word.
     params_value: ClusterParams,
     params: wgpu::Buffer,
@@ -494,6 +496,8 @@ struct ClusterBuffers {
     subs: wgpu::Buffer,
     dispatch_args: wgpu::Buffer,
     args_group: wgpu::BindGroup,
+    /// Bind group 0 over these buffers and the last input.
+    group: CachedBindGroup,
 }
 
 /// Where the points come from: the stage's own upload buffer, or another stage's output.
@@ -615,7 +619,7 @@ impl GpuClusterer {
     }
 
     /// Makes room for `capacity` points with `config`'s table settings; reuses the buffers
-    /// when they are large enough and the table size is unchanged.
+    /// when they are large enough (a smaller table uses the first part of the slots).
     pub fn reserve(
         &mut self,
         ctx: &GpuContext,
@@ -637,11 +641,12 @@ impl GpuClusterer {
         let fits = self
             .buffers
             .as_ref()
-            .is_some_and(|b| b.capacity >= capacity && b.table_slots == table_slots);
+            .is_some_and(|b| b.capacity >= capacity && b.allocated_slots >= table_slots);
         if !fits {
             self.buffers = Some(self.allocate(ctx, capacity, table_slots)?);
         }
         let b = self.buffers.as_mut().expect("allocated above");
+        b.table_slots = table_slots;
         let r2 = config.tolerance_squared();
         b.params_value = ClusterParams {
             inv_cell: 2.0 / (config.tolerance_m * CELL_MARGIN),
@@ -682,9 +687,9 @@ impl GpuClusterer {
         for (what, bytes) in sizes {
             ctx.check_storage_size(what, bytes)?;
         }
-        Ok(ctx.scoped("allocating cluster buffers", |device| {
+        Ok(ctx.scoped("allocating cluster buffers", |_| {
             let buffer = |label: &str, size: u64, usage: U| {
-                device.create_buffer(&wgpu::BufferDescriptor {
+                ctx.create_buffer(&wgpu::BufferDescriptor {
                     label: Some(label),
                     size,
                     usage,
@@ -696,7 +701,7 @@ impl GpuClusterer {
                 DISPATCH_ARGS_BYTES,
                 U::STORAGE | U::INDIRECT,
             );
-            let args_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            let args_group = ctx.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("cluster dispatch-args bind group"),
                 layout: &self.args_layout,
                 entries: &[wgpu::BindGroupEntry {
@@ -707,6 +712,7 @@ impl GpuClusterer {
             ClusterBuffers {
                 capacity,
                 table_slots,
+                allocated_slots: table_slots,
                 params_value: ClusterParams::default(),
                 params: buffer(
                     "cluster params",
@@ -731,6 +737,7 @@ impl GpuClusterer {
                 subs: buffer("cluster sub-cells", n * SUB_CELL_BYTES, U::STORAGE),
                 dispatch_args,
                 args_group,
+                group: CachedBindGroup::default(),
             }
         })?)
     }
@@ -750,16 +757,6 @@ impl GpuClusterer {
             .expect("GpuClusterer::reserve must run before encoding")
     }
 
-    /// The stage's own point buffer and count, for [`Self::encode`] after [`Self::upload`].
-    pub fn own_input(&self) -> ClusterInput<'_> {
-        let b = self.buffers();
-        ClusterInput {
-            points: &b.points,
-            count: &b.count,
-            count_word: 0,
-        }
-    }
-
     /// Writes `points` (at most the reserved capacity) into the stage's own input buffers.
     pub fn upload(&self, ctx: &GpuContext, points: &[Vec3]) {
         let b = self.buffers();
@@ -774,11 +771,12 @@ impl GpuClusterer {
     /// with `clear_buffer`, then prepare + insert + summary, hook, compress as timed compute
     /// passes.
     pub fn encode(
-        &self,
+        &mut self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         input: &ClusterInput<'_>,
     ) -> Result<(), ClusterError> {
+        let group = self.bind_group(ctx, input);
         let b = self.buffers();
         let params = ClusterParams {
             count_word: input.count_word,
@@ -786,8 +784,7 @@ impl GpuClusterer {
         };
         ctx.queue()
             .write_buffer(&b.params, 0, bytemuck::bytes_of(&params));
-        let group = self.bind_group(ctx, input)?;
-        encoder.clear_buffer(&b.slots, 0, None);
+        encoder.clear_buffer(&b.slots, 0, Some(u64::from(b.table_slots) * SLOT_BYTES));
         encoder.clear_buffer(&b.status, 0, None);
         let stages: [&[&wgpu::ComputePipeline]; 3] = [
             &[&self.prepare, &self.insert, &self.summary, &self.seed],
@@ -851,14 +848,14 @@ impl GpuClusterer {
     /// out of steps, re-submits hook + compress (each its own small submission and readback)
     /// until the status is clean.
     pub fn finish(
-        &self,
+        &mut self,
         ctx: &GpuContext,
         input: &ClusterInput<'_>,
         bytes: &[u8],
         points: u32,
         config: &ClusterConfig,
     ) -> Result<(Clustering, GpuClusterStats), ClusterError> {
-        let b = self.buffers();
+        let table_slots = self.buffers().table_slots;
         let timer_end = (STATUS_BYTES + self.timer_bytes()) as usize;
         let gpu_ticks = self
             .timer
@@ -870,7 +867,7 @@ impl GpuClusterer {
             submissions: 1,
             gpu_times: gpu_ticks.iter().map(|t| t.time(period_ns)).collect(),
             gpu_ticks,
-            table_slots: b.table_slots,
+            table_slots,
         };
         let mut status: [u32; 4] = bytemuck::pod_read_unaligned(&bytes[..STATUS_BYTES as usize]);
         let mut labels: Vec<u32> = bytes[timer_end..timer_end + 4 * points as usize]
@@ -879,7 +876,7 @@ impl GpuClusterer {
             .collect();
         if status[STATUS_OVERFLOW] != 0 {
             return Err(ClusterError::HashOverflow {
-                slots: b.table_slots,
+                slots: table_slots,
                 max_probes: config.gpu_hash_max_probes,
             });
         }
@@ -907,13 +904,13 @@ impl GpuClusterer {
 
     /// One more hook + compress over the table built by the first submission.
     fn resubmit(
-        &self,
+        &mut self,
         ctx: &GpuContext,
         input: &ClusterInput<'_>,
         points: u32,
     ) -> Result<([u32; 4], Vec<u32>), ClusterError> {
+        let group = self.bind_group(ctx, input);
         let b = self.buffers();
-        let group = self.bind_group(ctx, input)?;
         let readback = readback_buffer(
             ctx,
             "cluster re-submit readback",
@@ -960,12 +957,12 @@ impl GpuClusterer {
         )
     }
 
-    fn bind_group(
-        &self,
-        ctx: &GpuContext,
-        input: &ClusterInput<'_>,
-    ) -> Result<wgpu::BindGroup, ClusterError> {
-        let b = self.buffers();
+    /// Bind group 0 over the stage's buffers and `input`, made when either changed.
+    fn bind_group(&mut self, ctx: &GpuContext, input: &ClusterInput<'_>) -> wgpu::BindGroup {
+        let b = self
+            .buffers
+            .as_mut()
+            .expect("GpuClusterer::reserve must run before encoding");
         let resources = [
             b.params.as_entire_binding(),
             input.points.as_entire_binding(),
@@ -977,21 +974,13 @@ impl GpuClusterer {
             b.cells.as_entire_binding(),
             b.subs.as_entire_binding(),
         ];
-        Ok(ctx.scoped("cluster bind group", |device| {
-            let entries: Vec<wgpu::BindGroupEntry> = resources
-                .into_iter()
-                .enumerate()
-                .map(|(i, resource)| wgpu::BindGroupEntry {
-                    binding: i as u32,
-                    resource,
-                })
-                .collect();
-            device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("cluster bind group"),
-                layout: &self.layout,
-                entries: &entries,
-            })
-        })?)
+        let entries: [wgpu::BindGroupEntry; 9] = std::array::from_fn(|i| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: resources[i].clone(),
+        });
+        b.group
+            .get(ctx, "cluster bind group", &self.layout, &entries)
+            .clone()
     }
 
     /// Standalone run: upload `points`, one submission with one readback (more only when the
@@ -1009,7 +998,13 @@ impl GpuClusterer {
         })?;
         self.reserve(ctx, n, config)?;
         self.upload(ctx, points);
-        let input = self.own_input();
+        let b = self.buffers();
+        let (own_points, own_count) = (b.points.clone(), b.count.clone());
+        let input = ClusterInput {
+            points: &own_points,
+            count: &own_count,
+            count_word: 0,
+        };
         let readback = readback_buffer(ctx, "cluster readback", self.readback_bytes(n))?;
         let mut encoder = ctx
             .device()
@@ -1024,8 +1019,8 @@ impl GpuClusterer {
 }
 
 fn readback_buffer(ctx: &GpuContext, label: &str, size: u64) -> Result<wgpu::Buffer, ClusterError> {
-    Ok(ctx.scoped(label, |device| {
-        device.create_buffer(&wgpu::BufferDescriptor {
+    Ok(ctx.scoped(label, |_| {
+        ctx.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size,
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,

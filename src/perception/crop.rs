@@ -29,7 +29,7 @@ use serde::{Deserialize, Serialize};
 use crate::camera::{DepthImage, PinholeIntrinsics};
 use crate::geometry::{Primitive, PrimitiveError, box_rotation};
 use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams};
-use crate::gpu::shader::{self, BindingKind};
+use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
 use crate::gpu::{GpuContext, GpuError};
 use crate::perception::flying::{FlyingPixelConfig, veil_points};
@@ -387,17 +387,14 @@ pub struct GpuCrop {
     unused_points: wgpu::Buffer,
     /// Pixels with a depth and flying pixels of the last depth pass.
     depth_counts: wgpu::Buffer,
+    group: CachedBindGroup,
+    depth_group: CachedBindGroup,
     word_count: u32,
     point_count: u32,
 }
 
-fn storage(
-    device: &wgpu::Device,
-    label: &str,
-    bytes: u64,
-    extra: wgpu::BufferUsages,
-) -> wgpu::Buffer {
-    device.create_buffer(&wgpu::BufferDescriptor {
+fn storage(ctx: &GpuContext, label: &str, bytes: u64, extra: wgpu::BufferUsages) -> wgpu::Buffer {
+    ctx.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size: bytes.max(16),
         usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST | extra,
@@ -405,8 +402,8 @@ fn storage(
     })
 }
 
-fn uniform(device: &wgpu::Device, label: &str, bytes: usize) -> wgpu::Buffer {
-    device.create_buffer(&wgpu::BufferDescriptor {
+fn uniform(ctx: &GpuContext, label: &str, bytes: usize) -> wgpu::Buffer {
+    ctx.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size: bytes as u64,
         usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
@@ -418,8 +415,8 @@ fn uniform(device: &wgpu::Device, label: &str, bytes: usize) -> wgpu::Buffer {
 pub const DEPTH_COUNT_BYTES: u64 = 8;
 
 /// The depth image as a texture (R16Uint: the raw units, read with `textureLoad`).
-fn depth_texture(device: &wgpu::Device, width: u32, height: u32) -> wgpu::Texture {
-    device.create_texture(&wgpu::TextureDescriptor {
+fn depth_texture(ctx: &GpuContext, width: u32, height: u32) -> wgpu::Texture {
+    ctx.create_texture(&wgpu::TextureDescriptor {
         label: Some("crop depth image"),
         size: wgpu::Extent3d {
             width: width.max(1),
@@ -451,24 +448,20 @@ impl GpuCrop {
             shader::compute_pipelines(ctx, &shader::CROP, &[&depth_layout], &["crop_depth"])?
                 .remove(0);
         let (params, depth_params, primitives, mask, depth, unused_points, depth_counts) = ctx
-            .scoped("crop buffers", |device| {
+            .scoped("crop buffers", |_| {
                 (
-                    uniform(device, "crop params", std::mem::size_of::<CropParams>()),
+                    uniform(ctx, "crop params", std::mem::size_of::<CropParams>()),
+                    uniform(ctx, "crop depth params", std::mem::size_of::<DepthParams>()),
                     uniform(
-                        device,
-                        "crop depth params",
-                        std::mem::size_of::<DepthParams>(),
-                    ),
-                    uniform(
-                        device,
+                        ctx,
                         "crop primitives",
                         MAX_CROP_PRIMITIVES * std::mem::size_of::<CropPrimitive>(),
                     ),
-                    storage(device, "crop keep mask", 0, wgpu::BufferUsages::COPY_SRC),
-                    depth_texture(device, 1, 1),
-                    storage(device, "crop unused points", 0, wgpu::BufferUsages::empty()),
+                    storage(ctx, "crop keep mask", 0, wgpu::BufferUsages::COPY_SRC),
+                    depth_texture(ctx, 1, 1),
+                    storage(ctx, "crop unused points", 0, wgpu::BufferUsages::empty()),
                     storage(
-                        device,
+                        ctx,
                         "crop depth counts",
                         DEPTH_COUNT_BYTES,
                         wgpu::BufferUsages::COPY_SRC,
@@ -488,6 +481,8 @@ impl GpuCrop {
             depth,
             unused_points,
             depth_counts,
+            group: CachedBindGroup::default(),
+            depth_group: CachedBindGroup::default(),
             word_count: 0,
             point_count: 0,
         })
@@ -526,14 +521,9 @@ impl GpuCrop {
     pub fn reserve(&mut self, ctx: &GpuContext, points: usize) -> Result<(), CropError> {
         let words = 4 * mask_words(points) as u64;
         ctx.check_storage_size("crop keep mask", words)?;
-        ctx.scoped("crop buffers", |device| {
+        ctx.scoped("crop buffers", |_| {
             if self.mask.size() < words {
-                self.mask = storage(
-                    device,
-                    "crop keep mask",
-                    words,
-                    wgpu::BufferUsages::COPY_SRC,
-                );
+                self.mask = storage(ctx, "crop keep mask", words, wgpu::BufferUsages::COPY_SRC);
             }
         })?;
         Ok(())
@@ -580,9 +570,7 @@ impl GpuCrop {
         }
         self.write_params(ctx, depth.len(), config, scene)?;
         if (self.depth.width(), self.depth.height()) != (width.max(1), height.max(1)) {
-            self.depth = ctx.scoped("crop depth image", |device| {
-                depth_texture(device, width, height)
-            })?;
+            self.depth = ctx.scoped("crop depth image", |_| depth_texture(ctx, width, height))?;
             self.depth_view = self.depth.create_view(&Default::default());
         }
         if !depth.is_empty() {
@@ -686,17 +674,18 @@ impl GpuCrop {
     /// cloud-frame points into `out_points` (12 bytes per pixel, at least
     /// [`super::voxel::points_bytes`] in all), the keep mask and the counters (cleared here).
     pub fn record_depth(
-        &self,
+        &mut self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         out_points: &wgpu::Buffer,
         timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) {
         encoder.clear_buffer(&self.depth_counts, 0, None);
-        let bind_group = ctx.device().create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("crop depth bind group"),
-            layout: &self.depth_layout,
-            entries: &[
+        let bind_group = self.depth_group.get(
+            ctx,
+            "crop depth bind group",
+            &self.depth_layout,
+            &[
                 entry(0, &self.params),
                 entry(1, &self.unused_points),
                 entry(2, &self.primitives),
@@ -709,13 +698,13 @@ impl GpuCrop {
                 entry(6, out_points),
                 entry(7, &self.depth_counts),
             ],
-        });
+        );
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("crop depth pass"),
             timestamp_writes: timestamps,
         });
         pass.set_pipeline(&self.depth_pipeline);
-        pass.set_bind_group(0, &bind_group, &[]);
+        pass.set_bind_group(0, bind_group, &[]);
         pass.dispatch_workgroups(
             shader::workgroups_for(self.point_count.div_ceil(DEPTH_QUAD)),
             1,
@@ -725,28 +714,29 @@ impl GpuCrop {
 
     /// Records the crop pass over `points` (packed xyz f32, as uploaded from [`Vec3`]s).
     pub fn record(
-        &self,
+        &mut self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         points: &wgpu::Buffer,
         timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) {
-        let bind_group = ctx.device().create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("crop bind group"),
-            layout: &self.layout,
-            entries: &[
+        let bind_group = self.group.get(
+            ctx,
+            "crop bind group",
+            &self.layout,
+            &[
                 entry(0, &self.params),
                 entry(1, points),
                 entry(2, &self.primitives),
                 entry(3, &self.mask),
             ],
-        });
+        );
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("crop pass"),
             timestamp_writes: timestamps,
         });
         pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, &bind_group, &[]);
+        pass.set_bind_group(0, bind_group, &[]);
         pass.dispatch_workgroups(shader::workgroups_for(self.word_count), 1, 1);
     }
 
@@ -766,14 +756,14 @@ impl GpuCrop {
         }
         let bytes = 4 * u64::from(self.word_count);
         let ts_bytes = timer.map_or(0, |t| t.readback_bytes());
-        let (input, readback) = ctx.scoped("crop upload", |device| {
+        let (input, readback) = ctx.scoped("crop upload", |_| {
             let input = storage(
-                device,
+                ctx,
                 "crop input points",
                 super::voxel::points_bytes(points.len()),
                 wgpu::BufferUsages::empty(),
             );
-            let readback = device.create_buffer(&wgpu::BufferDescriptor {
+            let readback = ctx.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("crop readback"),
                 size: ts_bytes + bytes,
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,

@@ -299,6 +299,15 @@ impl CpuFrontend {
     }
 }
 
+/// The voxel output as the cluster stage's input (count = the header's `out_count`).
+fn cluster_input(voxel: &GpuVoxel) -> ClusterInput<'_> {
+    ClusterInput {
+        points: voxel.out_points(),
+        count: voxel.header(),
+        count_word: (std::mem::offset_of!(VoxelHeader, out_count) / 4) as u32,
+    }
+}
+
 /// The front end's own timed pass (the voxel and cluster stages time their passes
 /// themselves and read their timestamps back with their results).
 const STAGES: [&str; 1] = ["crop"];
@@ -322,8 +331,8 @@ fn make_buffer(
     bytes: u64,
     usage: wgpu::BufferUsages,
 ) -> Result<wgpu::Buffer, GpuError> {
-    ctx.scoped(label, |device| {
-        device.create_buffer(&wgpu::BufferDescriptor {
+    ctx.scoped(label, |_| {
+        ctx.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: bytes.max(16),
             usage,
@@ -368,15 +377,6 @@ impl GpuFrontend {
     /// Leaf the next frame will use (m).
     pub fn leaf_m(&self) -> f64 {
         self.leaf.leaf_m
-    }
-
-    /// The voxel output as the cluster stage's input (count = the header's `out_count`).
-    fn cluster_input(&self) -> ClusterInput<'_> {
-        ClusterInput {
-            points: self.voxel.out_points(),
-            count: self.voxel.header(),
-            count_word: (std::mem::offset_of!(VoxelHeader, out_count) / 4) as u32,
-        }
     }
 
     /// Sizes every per-frame buffer for frames of up to `points` points (or pixels), so that
@@ -486,7 +486,7 @@ impl GpuFrontend {
             let mask = first_pass.then(|| self.crop.mask());
             self.voxel.record(&ctx, &mut encoder, &self.input, mask);
             self.cluster
-                .encode(&ctx, &mut encoder, &self.cluster_input())?;
+                .encode(&ctx, &mut encoder, &cluster_input(&self.voxel))?;
             if let Some(t) = &self.timer {
                 t.resolve_into(&mut encoder, &self.readback, 0);
             }
@@ -549,7 +549,7 @@ impl GpuFrontend {
         voxel.retries = retries;
         let (clusters, cluster_stats) = self.cluster.finish(
             &ctx,
-            &self.cluster_input(),
+            &cluster_input(&self.voxel),
             &cluster_bytes,
             voxel.points.len() as u32,
             &self.config.cluster,
@@ -693,9 +693,10 @@ mod tests {
     use super::*;
     use crate::camera::PinholeIntrinsics;
     use crate::geometry::Primitive;
+    use crate::gpu::context::Created;
     use crate::perception::crop::{DEPTH_POINT_TOLERANCE, finite_bits, mask_bit};
     use crate::perception::flying::FlyingPixelConfig;
-    use crate::perception::test_data::{synthetic_depth, synthetic_frame};
+    use crate::perception::test_data::{random_cloud, synthetic_depth, synthetic_frame};
     use crate::perception::voxel::tests::assert_same;
     use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 
@@ -925,22 +926,29 @@ mod tests {
         }
     }
 
-    #[test]
-    fn gpu_frontend_equals_cpu_frontend_over_frames_with_leaf_adaptation() {
-        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
-        let config = FrontendConfig {
+    /// A 0.6 m crop and a 3 mm leaf for the synthetic frames, with `voxel`'s other settings.
+    fn fine_config(voxel: VoxelConfig) -> FrontendConfig {
+        FrontendConfig {
             crop: CropConfig {
                 radius_m: 0.6,
                 ..CropConfig::default()
             },
             voxel: VoxelConfig {
                 leaf_m: 0.003,
-                target_points: Some(3000),
-                initial_table_slots: 1024,
-                ..Default::default()
+                ..voxel
             },
             cluster: ClusterConfig::default(),
-        };
+        }
+    }
+
+    #[test]
+    fn gpu_frontend_equals_cpu_frontend_over_frames_with_leaf_adaptation() {
+        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
+        let config = fine_config(VoxelConfig {
+            target_points: Some(3000),
+            initial_table_slots: 1024,
+            ..Default::default()
+        });
         let robot = [Primitive::Capsule {
             a_m: Point3::new(0.2, 0.0, 0.8),
             b_m: Point3::new(0.3, 0.2, 0.9),
@@ -1002,6 +1010,45 @@ mod tests {
             last = g.voxel.points.len();
         }
         assert!((2000..4500).contains(&last), "{last}");
+    }
+
+    #[test]
+    fn frames_up_to_the_reserved_size_create_no_gpu_objects_and_equal_the_cpu() {
+        // A context of its own: its counters see this front end only.
+        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
+        let config = fine_config(VoxelConfig::default());
+        let mut gpu = Frontend::new(Backend::Gpu, config.clone(), Some(Arc::clone(&ctx))).unwrap();
+        let mut cpu = Frontend::new(Backend::Cpu, config, None).unwrap();
+        // 30,000 random points in a 0.4 m cube need a 65,536-slot voxel table (dense path),
+        // 1,000 a 2,048-slot one (hash path): each frame starts from the table the frame
+        // before needed, so the table (and the cluster table sized from it) shrinks, grows
+        // and is retried bigger within the first frames' allocation.
+        let large = random_cloud(7, 30_000, 0.4);
+        let small = random_cloud(8, 1_000, 0.4);
+        gpu.reserve(large.len()).unwrap();
+        let mut run = |points: &Vec<Vec3>| {
+            let frame = FrameInput {
+                points: FramePoints::Points(points),
+                crop: Some(CropScene {
+                    hip_m: Point3::origin(),
+                    robot: &[],
+                    camera_m: None,
+                }),
+                want_crop_keep: false,
+            };
+            let g = gpu.process(&frame).unwrap();
+            let c = cpu.process(&frame).unwrap();
+            assert_same(&g.voxel, &c.voxel);
+            assert_eq!(g.clusters, c.clusters);
+            g.voxel.table_slots.unwrap_or(0)
+        };
+        for frame in [&large, &small, &large] {
+            run(frame);
+        }
+        let before = ctx.created();
+        let slots = [&small, &large, &small, &large].map(&mut run);
+        assert_eq!(ctx.created() - before, Created::default(), "{slots:?}");
+        assert!(slots.iter().min() < slots.iter().max(), "{slots:?}");
     }
 
     #[test]

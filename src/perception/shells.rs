@@ -20,7 +20,7 @@ use super::fit::{
     circle3d, plane3d,
 };
 use crate::gpu::mirrors::ShellParams;
-use crate::gpu::shader::{self, BindingKind};
+use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::{GpuContext, GpuError};
 use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate, SurfacePoint};
 use glam::Vec3;
@@ -906,6 +906,10 @@ fn curvature_correction(
 const RESULT_WORDS: usize = MAX_SHELLS * MOMENT_COUNT * 2 + 2;
 /// Workgroups at most per pass; threads stride over the points beyond that.
 const MAX_WORKGROUPS: u32 = 256;
+/// Points the point buffer holds from the start (192 kB): a D435 frame's selected clusters
+/// and merged memory are a few thousand points at the default 1 cm leaf, so frames do not
+/// grow it; a larger input doubles it.
+const INITIAL_POINTS: u64 = 16_384;
 
 /// The GPU per-shell moment pass (`shaders/shells.wgsl`); built once, one submit and one
 /// small readback per frame. Same [`ShellSums`] as [`accumulate_cpu`], bit for bit.
@@ -917,6 +921,7 @@ pub struct GpuShells {
     points: wgpu::Buffer,
     sums: wgpu::Buffer,
     readback: wgpu::Buffer,
+    group: CachedBindGroup,
 }
 
 impl GpuShells {
@@ -932,37 +937,40 @@ impl GpuShells {
                 .remove(0);
         let tables: Vec<u32> = PARENT.iter().chain(AXIS.iter()).copied().collect();
         let result_bytes = (RESULT_WORDS * 4) as u64;
-        let (params, tables_buf, points, sums, readback) =
-            ctx.scoped("shells buffers", |device| {
-                let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
-                    device.create_buffer(&wgpu::BufferDescriptor {
-                        label: Some(label),
-                        size,
-                        usage,
-                        mapped_at_creation: false,
-                    })
-                };
-                use wgpu::BufferUsages as U;
-                (
-                    buffer(
-                        "shells params",
-                        std::mem::size_of::<ShellParams>() as u64,
-                        U::UNIFORM | U::COPY_DST,
-                    ),
-                    buffer(
-                        "shells monomial tables",
-                        (tables.len() * 4) as u64,
-                        U::STORAGE | U::COPY_DST,
-                    ),
-                    buffer("shells points", 16, U::STORAGE | U::COPY_DST),
-                    buffer(
-                        "shells sums",
-                        result_bytes,
-                        U::STORAGE | U::COPY_DST | U::COPY_SRC,
-                    ),
-                    buffer("shells readback", result_bytes, U::MAP_READ | U::COPY_DST),
-                )
-            })?;
+        let (params, tables_buf, points, sums, readback) = ctx.scoped("shells buffers", |_| {
+            let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
+                ctx.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            use wgpu::BufferUsages as U;
+            (
+                buffer(
+                    "shells params",
+                    std::mem::size_of::<ShellParams>() as u64,
+                    U::UNIFORM | U::COPY_DST,
+                ),
+                buffer(
+                    "shells monomial tables",
+                    (tables.len() * 4) as u64,
+                    U::STORAGE | U::COPY_DST,
+                ),
+                buffer(
+                    "shells points",
+                    INITIAL_POINTS * std::mem::size_of::<Vec3>() as u64,
+                    U::STORAGE | U::COPY_DST,
+                ),
+                buffer(
+                    "shells sums",
+                    result_bytes,
+                    U::STORAGE | U::COPY_DST | U::COPY_SRC,
+                ),
+                buffer("shells readback", result_bytes, U::MAP_READ | U::COPY_DST),
+            )
+        })?;
         ctx.queue()
             .write_buffer(&tables_buf, 0, bytemuck::cast_slice(&tables));
         Ok(Self {
@@ -973,6 +981,7 @@ impl GpuShells {
             points,
             sums,
             readback,
+            group: CachedBindGroup::default(),
         })
     }
 
@@ -991,8 +1000,8 @@ impl GpuShells {
         let bytes = std::mem::size_of_val(points) as u64;
         ctx.check_storage_size("shells points", bytes)?;
         if self.points.size() < bytes {
-            self.points = ctx.scoped("shells points", |device| {
-                device.create_buffer(&wgpu::BufferDescriptor {
+            self.points = ctx.scoped("shells points", |_| {
+                ctx.create_buffer(&wgpu::BufferDescriptor {
                     label: Some("shells points"),
                     size: bytes.next_power_of_two(),
                     usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
@@ -1015,29 +1024,30 @@ impl GpuShells {
         if n > 0 {
             queue.write_buffer(&self.points, 0, bytemuck::cast_slice(points));
         }
+        let bind_group = self.group.get(
+            ctx,
+            "shells bind group",
+            &self.layout,
+            &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: self.params.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: self.points.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: self.tables.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: self.sums.as_entire_binding(),
+                },
+            ],
+        );
         let commands = ctx.scoped("shells record", |device| {
-            let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("shells bind group"),
-                layout: &self.layout,
-                entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: self.params.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: self.points.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: self.tables.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 3,
-                        resource: self.sums.as_entire_binding(),
-                    },
-                ],
-            });
             let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("shells frame"),
             });
@@ -1048,7 +1058,7 @@ impl GpuShells {
                     timestamp_writes: None,
                 });
                 pass.set_pipeline(&self.pipeline);
-                pass.set_bind_group(0, &bind_group, &[]);
+                pass.set_bind_group(0, bind_group, &[]);
                 pass.dispatch_workgroups(shader::workgroups_for(n).clamp(1, MAX_WORKGROUPS), 1, 1);
             }
             encoder.copy_buffer_to_buffer(&self.sums, 0, &self.readback, 0, self.sums.size());

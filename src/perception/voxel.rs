@@ -46,7 +46,7 @@ use glam::Vec3;
 use serde::{Deserialize, Serialize};
 
 use crate::gpu::mirrors::{SortStep, VoxelHeader, VoxelParams};
-use crate::gpu::shader::{self, BindingKind};
+use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::{PassTicks, StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
 use crate::perception::crop::{entry, finite_bits, mask_bit};
@@ -645,7 +645,13 @@ pub struct GpuVoxel {
     scan_layout: wgpu::BindGroupLayout,
     scan: wgpu::ComputePipeline,
     plan: wgpu::ComputePipeline,
-    scan_group: wgpu::BindGroup,
+    /// Bind group 1 of compact_scan and plan: the dispatch schedule (its first
+    /// `schedule_entries` entries are this table's) and the indirect arguments.
+    scan_group: CachedBindGroup,
+    schedule: wgpu::Buffer,
+    schedule_entries: u32,
+    /// Bind group 0 of every pass.
+    group: CachedBindGroup,
     block_sums: wgpu::Buffer,
     dispatch_args: wgpu::Buffer,
     /// Indirect-argument entries of sort_local and reduce (the others are in `sort_passes`).
@@ -668,7 +674,11 @@ pub struct GpuVoxel {
     steps: wgpu::Buffer,
     step_stride: u64,
     sort_passes: Vec<SortPass>,
+    /// Hash table slots of this frame (the table's size in the shaders, `table_mask + 1`).
     table_slots: u32,
+    /// Slots the table's buffers hold: the largest table so far. A smaller table uses their
+    /// first part, so a table that shrinks and grows again between frames allocates nothing.
+    allocated_slots: u32,
     point_count: u32,
     use_mask: bool,
     /// Table size for the next frame, from the last frame's occupied cells.
@@ -676,12 +686,12 @@ pub struct GpuVoxel {
 }
 
 fn gpu_buffer(
-    device: &wgpu::Device,
+    ctx: &GpuContext,
     label: &str,
     bytes: u64,
     usage: wgpu::BufferUsages,
 ) -> wgpu::Buffer {
-    device.create_buffer(&wgpu::BufferDescriptor {
+    ctx.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size: bytes.max(16),
         usage,
@@ -704,22 +714,6 @@ fn slots_for(n: u64) -> u32 {
 /// writes them.
 pub fn points_bytes(n: usize) -> u64 {
     12 * n.next_multiple_of(4) as u64
-}
-
-/// The bind group of compact_scan: the dispatch schedule and the indirect arguments.
-fn schedule_group(
-    ctx: &GpuContext,
-    layout: &wgpu::BindGroupLayout,
-    schedule: &wgpu::Buffer,
-    args: &wgpu::Buffer,
-) -> Result<wgpu::BindGroup, GpuError> {
-    ctx.scoped("voxel compaction schedule bind group", |device| {
-        device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("voxel compaction schedule bind group"),
-            layout,
-            entries: &[entry(0, schedule), entry(1, args)],
-        })
-    })
 }
 
 impl GpuVoxel {
@@ -760,35 +754,32 @@ impl GpuVoxel {
         let timer = StageTimer::new(ctx, "voxel", &TIMED_PASSES)?;
         let step_stride = u64::from(ctx.device().limits().min_uniform_buffer_offset_alignment)
             .max(std::mem::size_of::<SortStep>() as u64);
-        let buffers = ctx.scoped("voxel buffers", |device| {
+        let buffers = ctx.scoped("voxel buffers", |_| {
             let uniform = wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST;
             (
                 gpu_buffer(
-                    device,
+                    ctx,
                     "voxel params",
                     std::mem::size_of::<VoxelParams>() as u64,
                     uniform,
                 ),
-                gpu_buffer(device, "voxel header", HEADER_BYTES, STORAGE),
-                gpu_buffer(device, "voxel no mask", 16, STORAGE),
-                gpu_buffer(device, "voxel dense bitmap", 4 * DENSE_MAX_WORDS, STORAGE),
-                gpu_buffer(
-                    device,
-                    "voxel dense word prefix",
-                    4 * DENSE_MAX_WORDS,
-                    STORAGE,
-                ),
+                gpu_buffer(ctx, "voxel header", HEADER_BYTES, STORAGE),
+                gpu_buffer(ctx, "voxel no mask", 16, STORAGE),
+                gpu_buffer(ctx, "voxel dense bitmap", 4 * DENSE_MAX_WORDS, STORAGE),
+                gpu_buffer(ctx, "voxel dense word prefix", 4 * DENSE_MAX_WORDS, STORAGE),
             )
         })?;
-        // Replaced with the table's by `resize_table` below.
-        let scan_group = schedule_group(ctx, &scan_layout, &buffers.2, &buffers.1)?;
+        // The table's buffers are placeholders until `resize_table` below.
         let mut voxel = Self {
             layout,
             pipelines,
             scan_layout,
             scan,
             plan,
-            scan_group,
+            scan_group: CachedBindGroup::default(),
+            schedule: buffers.2.clone(),
+            schedule_entries: 0,
+            group: CachedBindGroup::default(),
             block_sums: buffers.2.clone(),
             dispatch_args: buffers.2.clone(),
             local_entry: 0,
@@ -809,6 +800,7 @@ impl GpuVoxel {
             step_stride,
             sort_passes: Vec::new(),
             table_slots: 0,
+            allocated_slots: 0,
             point_count: 0,
             use_mask: false,
             next_slots: None,
@@ -817,10 +809,10 @@ impl GpuVoxel {
         Ok(voxel)
     }
 
-    /// Current hash table slots (also the capacity of the output buffer).
     /// Bytes of GPU memory the stage's buffers hold now.
     pub fn gpu_bytes(&self) -> u64 {
         [
+            &self.schedule,
             &self.block_sums,
             &self.dispatch_args,
             &self.bitmap,
@@ -839,6 +831,7 @@ impl GpuVoxel {
         .sum()
     }
 
+    /// This frame's hash table slots (also the capacity of the output).
     pub fn table_slots(&self) -> u32 {
         self.table_slots
     }
@@ -912,45 +905,39 @@ impl GpuVoxel {
         // Shared by the table's compaction and the dense bitmap's word blocks.
         let blocks =
             u64::from(slots / COMPACT_BLOCK).max(DENSE_MAX_WORDS.div_ceil(COMPACT_BLOCK.into()));
-        let (keys, data, sort, out, step_buf, block_sums, schedule_buf, args) =
-            ctx.scoped("voxel table", |device| {
-                (
-                    gpu_buffer(device, "voxel table keys", 4 * s, STORAGE),
-                    gpu_buffer(device, "voxel table sums", 4 * SLOT_WORDS * s, STORAGE),
-                    gpu_buffer(device, "voxel sort keys", 4 * s, STORAGE),
-                    gpu_buffer(device, "voxel output points", 16 * s, STORAGE),
-                    gpu_buffer(
-                        device,
-                        "voxel sort steps",
-                        step_bytes.len() as u64,
-                        wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                    ),
-                    gpu_buffer(device, "voxel block sums", 4 * blocks, STORAGE),
-                    gpu_buffer(
-                        device,
-                        "voxel dispatch schedule",
-                        8 * schedule.len() as u64,
-                        STORAGE,
-                    ),
-                    gpu_buffer(
-                        device,
-                        "voxel dispatch args",
-                        12 * schedule.len() as u64,
-                        wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT,
-                    ),
-                )
+        if slots > self.allocated_slots {
+            ctx.scoped("voxel table", |_| {
+                self.table_keys = gpu_buffer(ctx, "voxel table keys", 4 * s, STORAGE);
+                self.table_data = gpu_buffer(ctx, "voxel table sums", 4 * SLOT_WORDS * s, STORAGE);
+                self.sort_keys = gpu_buffer(ctx, "voxel sort keys", 4 * s, STORAGE);
+                self.out_points = gpu_buffer(ctx, "voxel output points", 16 * s, STORAGE);
+                self.steps = gpu_buffer(
+                    ctx,
+                    "voxel sort steps",
+                    step_bytes.len() as u64,
+                    wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                );
+                self.block_sums = gpu_buffer(ctx, "voxel block sums", 4 * blocks, STORAGE);
+                self.schedule = gpu_buffer(
+                    ctx,
+                    "voxel dispatch schedule",
+                    8 * schedule.len() as u64,
+                    STORAGE,
+                );
+                self.dispatch_args = gpu_buffer(
+                    ctx,
+                    "voxel dispatch args",
+                    12 * schedule.len() as u64,
+                    wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::INDIRECT,
+                );
             })?;
-        ctx.queue().write_buffer(&step_buf, 0, &step_bytes);
+            self.allocated_slots = slots;
+        }
+        // A smaller table's steps and schedule are a prefix of the allocated ones' room.
+        ctx.queue().write_buffer(&self.steps, 0, &step_bytes);
+        self.schedule_entries = schedule.len() as u32;
         ctx.queue()
-            .write_buffer(&schedule_buf, 0, bytemuck::cast_slice(&schedule));
-        self.scan_group = schedule_group(ctx, &self.scan_layout, &schedule_buf, &args)?;
-        self.table_keys = keys;
-        self.table_data = data;
-        self.sort_keys = sort;
-        self.out_points = out;
-        self.steps = step_buf;
-        self.block_sums = block_sums;
-        self.dispatch_args = args;
+            .write_buffer(&self.schedule, 0, bytemuck::cast_slice(&schedule));
         self.sort_passes = passes;
         self.local_entry = 0;
         self.reduce_entry = reduce_entry;
@@ -1021,7 +1008,7 @@ impl GpuVoxel {
             filter_lo: lo,
             filter_hi: hi,
             use_mask: u32::from(use_mask),
-            _pad: 0,
+            schedule_entries: self.schedule_entries,
         };
         ctx.queue()
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
@@ -1033,17 +1020,18 @@ impl GpuVoxel {
     /// `points` (packed xyz f32 in a buffer of at least [`points_bytes`]), using `mask` when
     /// [`Self::prepare`] was told so.
     pub fn record(
-        &self,
+        &mut self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         points: &wgpu::Buffer,
         mask: Option<&wgpu::Buffer>,
     ) {
         let mask = mask.filter(|_| self.use_mask).unwrap_or(&self.no_mask);
-        let bind_group = ctx.device().create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("voxel bind group"),
-            layout: &self.layout,
-            entries: &[
+        let bind_group = self.group.get(
+            ctx,
+            "voxel bind group",
+            &self.layout,
+            &[
                 entry(0, &self.params),
                 entry(1, points),
                 entry(2, mask),
@@ -1064,10 +1052,17 @@ impl GpuVoxel {
                 entry(10, &self.bitmap),
                 entry(11, &self.word_prefix),
             ],
-        });
+        );
+        let scan_group = self.scan_group.get(
+            ctx,
+            "voxel compaction schedule bind group",
+            &self.scan_layout,
+            &[entry(0, &self.schedule), entry(1, &self.dispatch_args)],
+        );
+        let slots = u64::from(self.table_slots);
         encoder.clear_buffer(&self.header, 0, None);
-        encoder.clear_buffer(&self.table_keys, 0, None);
-        encoder.clear_buffer(&self.table_data, 0, None);
+        encoder.clear_buffer(&self.table_keys, 0, Some(4 * slots));
+        encoder.clear_buffer(&self.table_data, 0, Some(4 * SLOT_WORDS * slots));
         let [
             bounds,
             dense_clear,
@@ -1101,7 +1096,7 @@ impl GpuVoxel {
         let step_offset = |step: u32| (u64::from(step) * self.step_stride) as u32;
         let args_at = |entry: u32| 12 * u64::from(entry);
         {
-            let mut pass = timed_pass(encoder, timer, 0, &bind_group);
+            let mut pass = timed_pass(encoder, timer, 0, bind_group);
             let chunks = shader::workgroups_for(self.point_count.div_ceil(INSERT_CHUNK));
             pass.set_pipeline(bounds);
             pass.dispatch_workgroups(
@@ -1110,7 +1105,7 @@ impl GpuVoxel {
                 1,
             );
             pass.set_pipeline(&self.plan);
-            pass.set_bind_group(1, &self.scan_group, &[]);
+            pass.set_bind_group(1, scan_group, &[]);
             pass.dispatch_workgroups(1, 1, 1);
             pass.set_pipeline(dense_clear);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.words_entry));
@@ -1126,17 +1121,17 @@ impl GpuVoxel {
             pass.dispatch_workgroups(chunks, 1, 1);
         }
         {
-            let mut pass = timed_pass(encoder, timer, 1, &bind_group);
+            let mut pass = timed_pass(encoder, timer, 1, bind_group);
             pass.set_pipeline(compact_count);
             pass.dispatch_workgroups(blocks, 1, 1);
             pass.set_pipeline(&self.scan);
-            pass.set_bind_group(1, &self.scan_group, &[]);
+            pass.set_bind_group(1, scan_group, &[]);
             pass.dispatch_workgroups(1, 1, 1);
             pass.set_pipeline(compact_scatter);
             pass.dispatch_workgroups(blocks, 1, 1);
         }
         {
-            let mut pass = timed_pass(encoder, timer, 2, &bind_group);
+            let mut pass = timed_pass(encoder, timer, 2, bind_group);
             pass.set_pipeline(sort_local);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.local_entry));
             for p in &self.sort_passes {
@@ -1145,11 +1140,11 @@ impl GpuVoxel {
                     SortPass::Merge { step, entry } => (sort_merge, step, entry),
                 };
                 pass.set_pipeline(pipeline);
-                pass.set_bind_group(0, &bind_group, &[step_offset(*step)]);
+                pass.set_bind_group(0, bind_group, &[step_offset(*step)]);
                 pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(*entry));
             }
         }
-        let mut pass = timed_pass(encoder, timer, 3, &bind_group);
+        let mut pass = timed_pass(encoder, timer, 3, bind_group);
         pass.set_pipeline(reduce);
         pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.reduce_entry));
     }
@@ -1261,9 +1256,9 @@ impl GpuVoxel {
         config: &VoxelConfig,
     ) -> Result<(VoxelOutput, Vec<StageTime>), VoxelError> {
         self.prepare(ctx, points.len(), false, config, config.leaf_m)?;
-        let input = ctx.scoped("voxel input", |device| {
+        let input = ctx.scoped("voxel input", |_| {
             gpu_buffer(
-                device,
+                ctx,
                 "voxel input points",
                 points_bytes(points.len()),
                 STORAGE,
@@ -1275,9 +1270,9 @@ impl GpuVoxel {
         }
         let mut retries = 0;
         loop {
-            let readback = ctx.scoped("voxel readback", |device| {
+            let readback = ctx.scoped("voxel readback", |_| {
                 gpu_buffer(
-                    device,
+                    ctx,
                     "voxel readback",
                     self.readback_bytes(),
                     wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
@@ -1381,13 +1376,13 @@ pub(crate) mod tests {
             .prepare(ctx, pts.len(), true, &config, config.leaf_m)
             .unwrap();
         let input = ctx
-            .scoped("test input", |d| {
-                gpu_buffer(d, "test points", points_bytes(pts.len()), STORAGE)
+            .scoped("test input", |_| {
+                gpu_buffer(ctx, "test points", points_bytes(pts.len()), STORAGE)
             })
             .unwrap();
         let mask_buf = ctx
-            .scoped("test mask", |d| {
-                gpu_buffer(d, "test mask", 4 * mask.len() as u64, STORAGE)
+            .scoped("test mask", |_| {
+                gpu_buffer(ctx, "test mask", 4 * mask.len() as u64, STORAGE)
             })
             .unwrap();
         ctx.queue()
@@ -1395,9 +1390,9 @@ pub(crate) mod tests {
         ctx.queue()
             .write_buffer(&mask_buf, 0, bytemuck::cast_slice(&mask));
         let readback = ctx
-            .scoped("test readback", |d| {
+            .scoped("test readback", |_| {
                 gpu_buffer(
-                    d,
+                    ctx,
                     "test readback",
                     voxel.readback_bytes(),
                     wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,

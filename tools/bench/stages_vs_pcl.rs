@@ -111,6 +111,13 @@ struct Args {
     /// Frames of the scene's first camera through the per-camera chain (0: skip it).
     #[arg(long, default_value_t = 20)]
     d435_frames: usize,
+    /// Only the D435 chain: PCL's frames are skipped.
+    #[arg(long)]
+    d435_only: bool,
+    /// Then the same frames through this many GPU chains at once, one thread each, sharing
+    /// the device as the node's perception workers do (1: skip).
+    #[arg(long, default_value_t = 2)]
+    d435_workers: usize,
     /// Passed by `cargo bench`; ignored.
     #[arg(long, hide = true)]
     bench: bool,
@@ -549,6 +556,7 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
     // recording, submission) and from the front end's last pass to the call's return (wait,
     // readback, decoding, and the surface stage after the front end).
     let (mut to_first, mut after_last) = (Vec::new(), Vec::new());
+    let created_before = ctx.created();
     for (frame, hip, primitives) in &frames {
         let called = monotonic_ns();
         let g = gpu.process(frame, hip, primitives)?;
@@ -582,6 +590,7 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
             gpu.gpu_fallback().unwrap_or("?")
         );
     }
+    let created = ctx.created() - created_before;
     let count = |k: usize| median(counts.iter().map(|c| c[k] as f64).collect());
     println!(
         "\nD435 chain: {} frames of camera 0 of {} ({width}x{height}, spread over the scene), node default configs; medians per frame\n",
@@ -600,6 +609,13 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         if same { "yes" } else { "NO" }
     );
     println!("GPU passes (timestamp ms): {}", passes.line());
+    println!(
+        "GPU objects created by the GPU chain over the {} frames after its warm-up: {} buffers or textures, {} bind groups; it holds {:.1} MB of GPU buffers",
+        frames.len(),
+        created.buffers,
+        created.bind_groups,
+        gpu.gpu_buffer_bytes().unwrap_or(0) as f64 / 1e6
+    );
     if to_first.is_empty() {
         println!("GPU passes on the host clock: no ({})\n", ctx.host_clock());
     } else {
@@ -649,7 +665,74 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         total(&cpu_front, &cpu_surface, true),
         total(&cpu_front, &cpu_surface, false),
     );
+    if args.d435_workers > 1 {
+        shared_device(ctx, &frames, args.d435_workers)?;
+    }
     Ok(same)
+}
+
+/// The frames through `workers` GPU chains at once (one thread each, one shared device), as
+/// the node's perception workers run: wall time per frame of each chain call, and the
+/// elapsed time of the whole run.
+fn shared_device(
+    ctx: &Arc<GpuContext>,
+    frames: &[(Frame, Point3<f64>, Vec<hapcloud::geometry::Primitive>)],
+    workers: usize,
+) -> anyhow::Result<()> {
+    let config = NodeConfig::default();
+    let chain = || {
+        CameraChain::new(
+            Backend::Gpu,
+            config.frontend.clone(),
+            config.surface.clone(),
+            Some(Arc::clone(ctx)),
+        )
+    };
+    let mut chains = (0..workers)
+        .map(|_| chain())
+        .collect::<Result<Vec<_>, _>>()?;
+    for c in &mut chains {
+        let (frame, hip, primitives) = &frames[0];
+        c.process(frame, hip, primitives)?;
+        c.reset();
+    }
+    let start = std::time::Instant::now();
+    let walls = std::thread::scope(|scope| {
+        let runs: Vec<_> = chains
+            .iter_mut()
+            .map(|c| {
+                scope.spawn(move || -> anyhow::Result<Vec<f64>> {
+                    frames
+                        .iter()
+                        .map(|(frame, hip, primitives)| {
+                            let watch = Stopwatch::start();
+                            c.process(frame, hip, primitives)?;
+                            Ok(watch.elapsed().wall_ms)
+                        })
+                        .collect()
+                })
+            })
+            .collect();
+        runs.into_iter()
+            .map(|r| {
+                r.join()
+                    .map_err(|_| anyhow::anyhow!("a chain thread panicked"))?
+            })
+            .collect::<anyhow::Result<Vec<_>>>()
+    })?;
+    let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
+    let all: Vec<f64> = walls.concat();
+    let mut sorted = all.clone();
+    sorted.sort_by(f64::total_cmp);
+    let p90 = sorted[(sorted.len() * 9 / 10).min(sorted.len() - 1)];
+    println!(
+        "\n{workers} GPU chains at once on one device ({} frames each, one thread per chain): wall per chain call median {:.2} ms, p90 {p90:.2} ms, max {:.2} ms; {elapsed_ms:.1} ms for all {} calls",
+        frames.len(),
+        median(all.clone()),
+        sorted.last().copied().unwrap_or(f64::NAN),
+        all.len()
+    );
+    Ok(())
 }
 
 fn main() -> anyhow::Result<()> {
@@ -660,7 +743,9 @@ fn main() -> anyhow::Result<()> {
         .clone()
         .or_else(|| std::env::var_os("HAPCLOUD_PCL_DATA").map(PathBuf::from))
         .unwrap_or_else(|| PathBuf::from(DATA));
-    let files: Vec<PathBuf> = if args.files.is_empty() {
+    let files: Vec<PathBuf> = if args.d435_only {
+        Vec::new()
+    } else if args.files.is_empty() {
         [
             "table_scene_mug_stereo_textured.pcd",
             "five_people.pcd",
