@@ -5,7 +5,7 @@
 # fuzz/regressions/TARGET. Run from fuzz/ after fuzz.sh.
 set -eu
 CMIN=$(ls "$HOME"/.local/share/afl.rs/rustc-*/afl.rs-*/afl/bin/afl-cmin.bash | tail -1)
-TARGETS=${*:-pcd ply depth_png depth_tiff candump dbc scene_toml config_toml recording}
+TARGETS=${*:-pcd ply depth_png depth_tiff candump dbc scene_toml config_toml recording ros2_messages hapcloud_messages}
 for t in $TARGETS; do
     [ -d "out/$t/default/queue" ] || { echo "$t: not fuzzed"; continue; }
     rm -rf "corpus/$t" "out/$t.small"

@@ -216,6 +216,9 @@ impl Default for FusionConfig {
     }
 }
 
+/// The largest `max_samples_count` (the window's buffer is allocated at the start).
+pub const MAX_SAMPLES_COUNT: usize = 1 << 16;
+
 /// Why a [`FusionConfig`] is unusable.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum FusionConfigError {
@@ -223,7 +226,8 @@ pub enum FusionConfigError {
     Invalid { field: String, value: f64 },
     #[error(
         "fusion config: sample counts must satisfy 1 <= min_samples_linear_count <= \
-         min_samples_quadratic_count <= max_samples_count (got {linear}, {quadratic}, {max})"
+         min_samples_quadratic_count <= max_samples_count <= {MAX_SAMPLES_COUNT} (got {linear}, \
+         {quadratic}, {max})"
     )]
     SampleCounts {
         linear: usize,
@@ -337,7 +341,8 @@ impl FusionConfig {
         }
         if !(1 <= self.min_samples_linear_count
             && self.min_samples_linear_count <= self.min_samples_quadratic_count
-            && self.min_samples_quadratic_count <= self.max_samples_count)
+            && self.min_samples_quadratic_count <= self.max_samples_count
+            && self.max_samples_count <= MAX_SAMPLES_COUNT)
         {
             return Err(FusionConfigError::SampleCounts {
                 linear: self.min_samples_linear_count,

@@ -162,3 +162,75 @@ fn numeric_arguments_are_checked_and_named() {
         );
     }
 }
+
+/// `experiment safe-speed` refuses speeds and camera rates it cannot run (NaN, infinite,
+/// negative, beyond the simulator's bounds, a rate the D435 does not have) and more speeds
+/// than a sweep runs, naming the argument, before any closed-loop run starts.
+#[test]
+fn safe_speed_arguments_are_checked_and_named() {
+    let out = TempDir::new("safe_speed_args");
+    let out = out.path.to_str().unwrap();
+    let sweep = [
+        "experiment",
+        "safe-speed",
+        "--scene",
+        "rising_surface_realistic",
+        "--out",
+        out,
+    ];
+    let many = vec!["1"; 33].join(",");
+    let cases: &[(&[&str], &str)] = &[
+        (&["--speeds", "nan"], "--speeds"),
+        (&["--speeds", "0.5,inf"], "--speeds"),
+        (&["--speeds", "-1"], "--speeds"),
+        (&["--speeds", "0"], "--speeds"),
+        (&["--speeds", "1e9"], "--speeds"),
+        (&["--speeds", "2,1e-4"], "--speeds"),
+        (&["--speeds", &many], "--speeds"),
+        (&["--camera-rate-hz", "nan"], "--camera-rate-hz"),
+        (&["--camera-rate-hz", "-30"], "--camera-rate-hz"),
+        (&["--camera-rate-hz", "1e12"], "Hz"),
+    ];
+    for (args, name) in cases {
+        let err = run_err(sweep.iter().chain(args.iter()));
+        assert!(err.contains(name), "{args:?}: {err}");
+    }
+}
+
+/// Counts in a `--config` file that size a buffer are checked with an error naming them,
+/// before a frame is made or a Zenoh session opens: a per-camera frame queue or a Zenoh
+/// receive queue of 10^15 slots aborted on its allocation.
+#[test]
+fn config_counts_are_bounded_and_named() {
+    let dir = TempDir::new("config_counts");
+    let cases: &[(&[&str], &str, &str)] = &[
+        (
+            &["run"],
+            "frame_queue_count = 1000000000000000",
+            "frame_queue_count",
+        ),
+        (
+            &["run"],
+            "[fusion]\nmax_samples_count = 1000000000000000",
+            "max_samples_count",
+        ),
+        (
+            &["run", "zenoh"],
+            "[zenoh_source]\nqueue_samples = 1000000000000000",
+            "zenoh_source.queue_samples",
+        ),
+    ];
+    for (i, (command, text, name)) in cases.iter().enumerate() {
+        let config = dir.path.join(format!("{i}.toml"));
+        std::fs::write(&config, text).unwrap();
+        let err = run_err(command.iter().copied().map(std::ffi::OsStr::new).chain([
+            "--config".as_ref(),
+            config.as_os_str(),
+            "--duration".as_ref(),
+            "0.2".as_ref(),
+            "--backend".as_ref(),
+            "cpu".as_ref(),
+        ]));
+        assert!(err.contains(name), "{text}: {err}");
+    }
+}

@@ -8,6 +8,8 @@
 
 use hapcloud::io::mcap::{McapItem, McapReader};
 use hapcloud::io::ros2::assemble::{CameraTopics, FrameAssembler, Pose};
+use hapcloud::io::ros2::hapcloud::{ControlTick, SurfaceEstimate};
+use hapcloud::io::ros2::{decode, topics};
 use hapcloud::io::{can, depth, pcd, ply};
 use hapcloud::node::NodeConfig;
 use hapcloud::node::record;
@@ -21,7 +23,7 @@ use std::sync::OnceLock;
 pub type Target = fn(&[u8]);
 
 /// Every target by name (the directory names under `fuzz/corpus/` and `fuzz/regressions/`).
-pub const TARGETS: [(&str, Target); 10] = [
+pub const TARGETS: [(&str, Target); 11] = [
     ("pcd", pcd),
     ("ply", ply),
     ("depth_png", depth_png),
@@ -32,6 +34,7 @@ pub const TARGETS: [(&str, Target); 10] = [
     ("config_toml", config_toml),
     ("recording", recording),
     ("ros2_messages", ros2_messages),
+    ("hapcloud_messages", hapcloud_messages),
 ];
 
 /// PCD (`ascii`, `binary`, `binary_compressed`), as `hapcloud convert` reads it.
@@ -177,16 +180,75 @@ pub fn ros2_messages(data: &[u8]) {
     both.world_from_camera = Some(Pose::default());
     let cameras = vec![depth, CameraTopics::points(1, ROS2_TOPICS[2]), both];
     let mut assembler = FrameAssembler::new(cameras, "").expect("valid topics");
-    let mut rest = data;
-    while let [topic, tail @ ..] = rest {
-        let Some((len, tail)) = tail.split_first_chunk::<4>() else {
-            break;
-        };
-        let n = (u32::from_le_bytes(*len) as usize).min(tail.len());
-        let topic = ROS2_TOPICS[usize::from(*topic) % ROS2_TOPICS.len()];
-        if let Some(assembled) = assembler.push(topic, &tail[..n]) {
+    for (topic, payload) in records(data) {
+        let topic = ROS2_TOPICS[usize::from(topic) % ROS2_TOPICS.len()];
+        if let Some(assembled) = assembler.push(topic, payload) {
             let _ = assembled.frame.cloud.points.len();
         }
-        rest = &tail[n..];
+    }
+}
+
+/// The records of a `ros2_messages` or `hapcloud_messages` input: `[topic index byte][u32 LE
+/// length][payload]` one after the other (a length past the end takes the rest).
+pub fn records(data: &[u8]) -> impl Iterator<Item = (u8, &[u8])> {
+    let mut rest = data;
+    std::iter::from_fn(move || {
+        let (&topic, tail) = rest.split_first()?;
+        let (len, tail) = tail.split_first_chunk::<4>()?;
+        let (payload, after) = tail.split_at((u32::from_le_bytes(*len) as usize).min(tail.len()));
+        rest = after;
+        Some((topic, payload))
+    })
+}
+
+/// The topics of the `hapcloud_messages` target: camera 3 of a hapcloud recording of the
+/// simulator (depth image, camera info, rendered cloud and frame metadata), camera 0 of one
+/// of a point-cloud camera (cloud and metadata), then the recorded estimates and ticks.
+pub fn hapcloud_topics() -> [String; 8] {
+    [
+        topics::depth_image(3),
+        topics::camera_info(3),
+        topics::points(3),
+        topics::frame_meta(3),
+        topics::points(0),
+        topics::frame_meta(0),
+        topics::ESTIMATES.into(),
+        topics::TICKS.into(),
+    ]
+}
+
+/// hapcloud's own messages as a recording holds them (`hapcloud replay`, `hapcloud run
+/// FILE.mcap`), past the MCAP framing and the chunk CRCs that keep the `recording` target's
+/// mutations from reaching them: `[topic index byte][u32 LE length][CDR payload]` records on
+/// the [`hapcloud_topics`]. A camera's records go to the frame assembler set up as the
+/// recording reader sets up a hapcloud camera (its parts of one stamp, posed and stamped by
+/// its `FrameMeta`); estimates and ticks are decoded and converted to the node's values as
+/// the reader does (`SurfaceEstimate::to_estimate`, `ControlTick::to_tick_record`).
+pub fn hapcloud_messages(data: &[u8]) {
+    let topics = hapcloud_topics();
+    let mut simulated = CameraTopics::depth(3, &topics[0]);
+    simulated.points = topics[2].clone();
+    simulated.frame_meta = topics[3].clone();
+    let mut points = CameraTopics::points(0, &topics[4]);
+    points.frame_meta = topics[5].clone();
+    let mut assembler = FrameAssembler::new(vec![simulated, points], "").expect("valid topics");
+    for (topic, payload) in records(data) {
+        match usize::from(topic) % topics.len() {
+            6 => {
+                if let Ok(m) = decode::<SurfaceEstimate>(payload) {
+                    let _ = m.to_estimate();
+                }
+            }
+            7 => {
+                if let Ok(m) = decode::<ControlTick>(payload) {
+                    let _ = m.to_tick_record();
+                }
+            }
+            i => {
+                if let Some(assembled) = assembler.push(&topics[i], payload) {
+                    let _ = assembled.frame.cloud.points.len();
+                }
+            }
+        }
     }
 }

@@ -61,6 +61,12 @@ pub struct ExperimentArgs {
 
 const FONT: &str = "sans-serif";
 
+/// The most speeds one `safe-speed` sweep runs.
+const MAX_SPEEDS: usize = 32;
+/// The speeds a `safe-speed` sweep runs, m/s: a run's scene lasts as long as its body takes
+/// to travel, so below 0.01 m/s one run would simulate hours.
+const SPEEDS_MPS: std::ops::RangeInclusive<f64> = 0.01..=20.0;
+
 fn register_font() -> Result<()> {
     plotters::style::register_font(FONT, FontStyle::Normal, epaint_default_fonts::UBUNTU_LIGHT)
         .map_err(|_| anyhow!("embedded plot font is invalid"))
@@ -200,14 +206,17 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             let scene_name = args.scene.context(
                 "safe-speed needs --scene NAME|FILE (a scene with a constant_velocity body)",
             )?;
-            if args.speeds.is_empty()
-                || !args
-                    .speeds
-                    .iter()
-                    .all(|v| v.is_finite() && *v > 0.0 && *v <= 20.0)
-            {
+            if args.speeds.is_empty() || args.speeds.len() > MAX_SPEEDS {
                 bail!(
-                    "--speeds must be finite and in (0, 20] m/s, got {:?}",
+                    "--speeds takes 1 to {MAX_SPEEDS} speeds (each is two closed-loop runs), got {}",
+                    args.speeds.len()
+                );
+            }
+            if !args.speeds.iter().all(|v| SPEEDS_MPS.contains(v)) {
+                bail!(
+                    "--speeds must be finite and in [{}, {}] m/s, got {:?}",
+                    SPEEDS_MPS.start(),
+                    SPEEDS_MPS.end(),
                     args.speeds
                 );
             }

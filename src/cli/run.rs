@@ -149,11 +149,22 @@ fn read_config(path: &std::path::Path) -> anyhow::Result<RunConfig> {
         let mcap: McapReaderConfig = take(&mut table, "mcap")?;
         mcap.validate().map_err(anyhow::Error::msg)?;
         #[cfg(feature = "ros2")]
-        let (zenoh, zenoh_source, publish) = (
+        let (zenoh, zenoh_source, publish): (
+            zenoh_io::ZenohConfig,
+            zenoh_io::ZenohSourceConfig,
+            zenoh_io::ZenohPublisherConfig,
+        ) = (
             take(&mut table, "zenoh")?,
             take(&mut table, "zenoh_source")?,
             take(&mut table, "publish")?,
         );
+        // Checked here, so a bad value is named before any session opens or frame is made.
+        #[cfg(feature = "ros2")]
+        {
+            zenoh.validate()?;
+            zenoh_source.validate()?;
+            publish.validate()?;
+        }
         Ok(RunConfig {
             node: table.try_into()?,
             mcap,

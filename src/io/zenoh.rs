@@ -258,14 +258,20 @@ impl Default for ZenohSourceConfig {
 }
 
 impl ZenohSourceConfig {
+    /// The largest `queue_samples` (the queue is allocated at the start, and the router is
+    /// asked to keep as many per topic).
+    pub const MAX_QUEUE_SAMPLES: usize = 1024;
+
     pub fn validate(&self) -> Result<(), ZenohError> {
         if self.cameras.is_empty() {
             return Err(ZenohError::Config("no cameras".into()));
         }
-        if self.queue_samples == 0 {
-            return Err(ZenohError::Config(
-                "queue_samples must be at least 1".into(),
-            ));
+        if !(1..=Self::MAX_QUEUE_SAMPLES).contains(&self.queue_samples) {
+            return Err(ZenohError::Config(format!(
+                "zenoh_source.queue_samples must be 1 to {}, got {}",
+                Self::MAX_QUEUE_SAMPLES,
+                self.queue_samples
+            )));
         }
         for c in &self.cameras {
             c.validate().map_err(ZenohError::Config)?;

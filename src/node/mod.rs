@@ -134,6 +134,9 @@ pub struct NodeConfig {
 pub const AUTO_PERCEPTION_WORKERS: usize = 2;
 /// The most perception workers a config may ask for.
 const MAX_PERCEPTION_WORKERS: usize = 16;
+/// The most frames a config may queue per camera (the queue's slots are allocated at the
+/// start; a frame older than a few periods is of no use to the loop anyway).
+const MAX_FRAME_QUEUE_COUNT: usize = 64;
 
 impl NodeConfig {
     /// The perception workers of a run: `perception_workers`, or one per core beyond the
@@ -185,8 +188,8 @@ impl Default for NodeConfig {
 pub enum NodeError {
     #[error("node config: tick_rate_hz = {0} must be finite and in 1..=20000")]
     TickRate(f64),
-    #[error("node config: frame_queue_count must be at least 1")]
-    Queue,
+    #[error("node config: frame_queue_count must be 1 to {MAX_FRAME_QUEUE_COUNT}, got {0}")]
+    Queue(usize),
     #[error("node config: hip_world_m must be finite")]
     Hip,
     #[error("node config: --speed must be finite and positive, got {0}")]
@@ -220,8 +223,8 @@ impl NodeConfig {
         if !(self.tick_rate_hz.is_finite() && (1.0..=20_000.0).contains(&self.tick_rate_hz)) {
             return Err(NodeError::TickRate(self.tick_rate_hz));
         }
-        if self.frame_queue_count == 0 {
-            return Err(NodeError::Queue);
+        if !(1..=MAX_FRAME_QUEUE_COUNT).contains(&self.frame_queue_count) {
+            return Err(NodeError::Queue(self.frame_queue_count));
         }
         if self.perception_workers > MAX_PERCEPTION_WORKERS {
             return Err(NodeError::Config(format!(

@@ -970,3 +970,52 @@ fn only_a_tracked_surface_is_held_over_stale_cameras() {
     assert!(!never_tracked.held);
     assert_eq!(never_tracked.output.haptics.status, HapticStatus::NoSurface);
 }
+
+/// Every count a config file sets that sizes a buffer, a thread pool or a search is checked
+/// against its bound when the config is validated, with an error naming the setting: a
+/// frame queue or a fusion window of 10^15 slots aborted the node on its first allocation.
+#[test]
+fn counts_out_of_their_range_are_config_errors_naming_them() {
+    let cases = [
+        ("frame_queue_count = 0", "frame_queue_count"),
+        ("frame_queue_count = 1000000000000000", "frame_queue_count"),
+        ("perception_workers = 17", "perception_workers"),
+        (
+            "[fusion]\nmax_samples_count = 1000000000000000",
+            "max_samples_count",
+        ),
+        ("[lookahead]\nmax_surfaces_count = 0", "max_surfaces_count"),
+        ("[lookahead]\nmax_surfaces_count = 17", "max_surfaces_count"),
+        (
+            "[frontend.cluster]\ngpu_hook_threads_per_cell = 15",
+            "gpu_hook_threads_per_cell",
+        ),
+        (
+            "[surface.memory.icp]\nmax_iterations = 4000000000",
+            "icp.max_iterations",
+        ),
+        (
+            "[surface.memory.icp]\nnormal_neighbours = 1000000",
+            "icp.normal_neighbours",
+        ),
+        ("[realtime]\nspin_us = 501", "realtime.spin_us"),
+        ("[realtime]\nfallback_nice = 20", "realtime.fallback_nice"),
+        ("[realtime]\ncpu = 1024", "realtime.cpu"),
+        ("[realtime]\nmalloc_arenas = 1025", "realtime.malloc_arenas"),
+    ];
+    for (text, name) in cases {
+        let config: NodeConfig = toml::from_str(text).unwrap_or_else(|e| panic!("{text}: {e}"));
+        let err = config.validate().unwrap_err().to_string();
+        assert!(err.contains(name), "{text}: {err}");
+    }
+    for text in [
+        "frame_queue_count = 64",
+        "perception_workers = 16",
+        "[fusion]\nmax_samples_count = 65536",
+        "[lookahead]\nmax_surfaces_count = 16",
+        "[surface.memory.icp]\nmax_iterations = 1000\nnormal_neighbours = 100",
+    ] {
+        let config: NodeConfig = toml::from_str(text).unwrap();
+        config.validate().unwrap_or_else(|e| panic!("{text}: {e}"));
+    }
+}

@@ -78,14 +78,19 @@ impl Default for IcpConfig {
     }
 }
 
+/// The most ICP iterations per frame (each a nearest-neighbour pass over the cloud).
+const MAX_ICP_ITERATIONS: u32 = 1000;
+/// The most neighbours of a target normal (each point's normal costs a k-nearest search).
+const MAX_NORMAL_NEIGHBOURS: u32 = 100;
+
 /// A configuration value that cannot work.
 #[derive(Clone, Debug, PartialEq, thiserror::Error)]
 pub enum MemoryConfigError {
-    #[error("icp.max_iterations must be at least 1")]
-    Iterations,
+    #[error("icp.max_iterations must be 1 to {MAX_ICP_ITERATIONS}, got {0}")]
+    Iterations(u32),
     #[error("{name} must be finite and positive, got {value}")]
     NotPositive { name: &'static str, value: f64 },
-    #[error("icp.normal_neighbours must be at least 3, got {0}")]
+    #[error("icp.normal_neighbours must be 3 to {MAX_NORMAL_NEIGHBOURS}, got {0}")]
     Neighbours(u32),
     #[error(
         "memory radii must satisfy 0 < inner_radius_m < outer_radius_m, got {inner} and {outer}"
@@ -105,14 +110,14 @@ fn positive(name: &'static str, value: f64) -> Result<(), MemoryConfigError> {
 
 impl IcpConfig {
     pub fn validate(&self) -> Result<(), MemoryConfigError> {
-        if self.max_iterations == 0 {
-            return Err(MemoryConfigError::Iterations);
+        if !(1..=MAX_ICP_ITERATIONS).contains(&self.max_iterations) {
+            return Err(MemoryConfigError::Iterations(self.max_iterations));
         }
         positive("icp.max_correspondence_m", self.max_correspondence_m)?;
         positive("icp.translation_epsilon_m", self.translation_epsilon_m)?;
         positive("icp.rotation_epsilon_rad", self.rotation_epsilon_rad)?;
         positive("icp.mse_epsilon_m2", self.mse_epsilon_m2)?;
-        if self.normal_neighbours < 3 {
+        if !(3..=MAX_NORMAL_NEIGHBOURS).contains(&self.normal_neighbours) {
             return Err(MemoryConfigError::Neighbours(self.normal_neighbours));
         }
         Ok(())

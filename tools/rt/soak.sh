@@ -5,7 +5,9 @@
 # future-stamped frames on a one-minute cycle). Prints the publisher's counts, the node's
 # memory every SAMPLE_S seconds (default 10: resident VmRSS, its anonymous part RssAnon: heap,
 # arenas, stacks; its file part RssFile: the binary and libraries; locked VmLck: the touched
-# pages under mlockall; and the thread count), and the node's summary.
+# pages under mlockall; the thread count; and the control loop's page faults so far, minor +
+# major, from /proc of the thread at SCHED_FIFO or else of the main thread, which runs the
+# loop), and the node's summary.
 #
 #   tools/rt/soak.sh [HAPCLOUD_BINARY] [SECONDS] [RATE] [WIDTH] [HEIGHT]
 #   SAMPLE_S=5 tools/rt/soak.sh target/release/hapcloud 150
@@ -24,11 +26,23 @@ python3 "$here/soak_publisher.py" "$port" "$((secs - 3))" "$rate" "$w" "$h" > "$
 publisher=$!
 sample_s=${SAMPLE_S:-10}
 started=$(date +%s)
-echo "memory, kB: t_s VmRSS RssAnon RssFile VmLck threads" >&2
+# The loop thread's page faults: fields 10 and 12 (minflt, majflt) and 41 (policy; 1 is
+# SCHED_FIFO) of its stat, counted after the command name's closing parenthesis.
+loop_faults() {
+  local stat fields fallback=""
+  for stat in "/proc/$node/task"/*/stat; do
+    fields=$(sed 's/.*) //' "$stat" 2>/dev/null) || continue
+    set -- $fields
+    [ "${39:-}" = 1 ] && { echo $(($8 + ${10})); return; }
+    [ "$stat" = "/proc/$node/task/$node/stat" ] && fallback=$(($8 + ${10}))
+  done
+  echo "${fallback:-?}"
+}
+echo "memory, kB: t_s VmRSS RssAnon RssFile VmLck threads loop_page_faults" >&2
 while sleep "$sample_s" && grep -qs VmRSS "/proc/$node/status"; do
-  awk -v t="$(($(date +%s) - started))" '
+  awk -v t="$(($(date +%s) - started))" -v faults="$(loop_faults)" '
     /^(VmRSS|RssAnon|RssFile|VmLck|Threads):/ { v[$1] = $2 }
-    END { if (v["VmRSS:"]) print "memory", t, v["VmRSS:"], v["RssAnon:"], v["RssFile:"], v["VmLck:"], v["Threads:"] }
+    END { if (v["VmRSS:"]) print "memory", t, v["VmRSS:"], v["RssAnon:"], v["RssFile:"], v["VmLck:"], v["Threads:"], faults }
   ' "/proc/$node/status" >&2 || true
 done
 wait "$publisher"

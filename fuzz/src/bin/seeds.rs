@@ -8,7 +8,7 @@
 //! `seeds [DATA_DIR [RECORDING]]`: DATA_DIR defaults to `../shared/data/pcl` (from the
 //! repository root); RECORDING, an MCAP file written by `hapcloud run --record`, adds a
 //! real recording (its first frames, cut small, estimates and ticks) to the `recording`
-//! seeds.
+//! seeds. The `hapcloud_messages` seeds are the messages of these recordings as records.
 
 use glam::Vec3;
 use hapcloud::camera::DepthImage;
@@ -403,6 +403,16 @@ fn recordings(recording: Option<&Path>) {
         "frames_only.mcap",
         &mcap_recording(&meta, &frames, |_| {}),
     );
+    // A simulator's camera: its rendered cloud is not its image's deprojection, so the
+    // writer adds the cloud beside the image.
+    let mut rendered = frames[3].clone();
+    for p in &mut rendered.cloud.points {
+        p.z += 0.001;
+    }
+    message_records(
+        "simulated_and_points.rec",
+        &mcap_recording(&meta, &[rendered, frames[0].clone()], |_| {}),
+    );
     let Some(path) = recording else {
         return;
     };
@@ -428,6 +438,23 @@ fn recordings(recording: Option<&Path>) {
         }
     });
     write("recording", "run_record.mcap", &bytes);
+    message_records("run_record.rec", &bytes);
+}
+
+/// A `hapcloud_messages` seed: the messages of an MCAP recording on the target's topics,
+/// as its records.
+fn message_records(name: &str, recording: &[u8]) {
+    let topics = hapcloud_fuzz::hapcloud_topics();
+    let mut records = Vec::new();
+    for message in mcap::MessageStream::new(recording).expect("a recording") {
+        let message = message.expect("a message");
+        if let Some(i) = topics.iter().position(|t| *t == message.channel.topic) {
+            records.push(i as u8);
+            records.extend_from_slice(&(message.data.len() as u32).to_le_bytes());
+            records.extend_from_slice(&message.data);
+        }
+    }
+    write("hapcloud_messages", name, &records);
 }
 
 fn main() {

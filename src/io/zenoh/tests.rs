@@ -215,9 +215,12 @@ fn config_is_validated() {
     }
     .validate()
     .unwrap();
-    let mut src = cameras();
-    src.queue_samples = 0;
-    assert!(src.validate().is_err());
+    for samples in [0, ZenohSourceConfig::MAX_QUEUE_SAMPLES + 1, usize::MAX] {
+        let mut src = cameras();
+        src.queue_samples = samples;
+        let err = src.validate().unwrap_err().to_string();
+        assert!(err.contains("zenoh_source.queue_samples"), "{err}");
+    }
     let mut src = cameras();
     src.cameras[1].points = String::new();
     assert!(src.validate().is_err());
