@@ -729,7 +729,7 @@ fn closest_standard_error(
     count: f64,
     points: f64,
 ) -> Option<f64> {
-    if !(points > 6.0) {
+    if points.is_nan() || points <= 6.0 {
         return None;
     }
     let variance = residual2 * points / (points - 6.0) * (count / points);
