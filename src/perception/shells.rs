@@ -89,10 +89,11 @@ pub struct ShellConfig {
     /// and more.
     pub quadric_max_shell_residual_m: f64,
     /// A height field whose closest point's standard error ([`HeightField::closest_se_m`])
-    /// exceeds this is not trusted (the estimate stays Alg. 2's), metres. 3 mm: on
+    /// exceeds this is not trusted (the estimate stays Alg. 2's), metres. 5 mm: on
     /// `torso_approach_realistic` camera 0 (D435 noise 1 m away, the chest partly hidden by
     /// the handle) the fields that missed the closest point by 14-23 mm had 7-41 mm, the
-    /// ones within 4 mm 1.3-2.4 mm.
+    /// ones within 4 mm 1.3-2.4 mm; 3-4 mm also dropped fields that kept `head_close` and
+    /// `reach_other_arm` within their jump limit (docs/accuracy.md).
     pub quadric_max_closest_se_m: f64,
     /// Fewest fitted shells (before the rejection) for a valid estimate.
     pub min_accepted_shells: u32,
@@ -117,7 +118,7 @@ impl Default for ShellConfig {
             quadric_reach_m: 0.03,
             quadric_max_tilt_rad: 40f64.to_radians(),
             quadric_max_shell_residual_m: 0.005,
-            quadric_max_closest_se_m: 0.003,
+            quadric_max_closest_se_m: 0.005,
             min_accepted_shells: 2,
             min_points: 30,
         }
