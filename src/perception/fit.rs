@@ -656,13 +656,8 @@ pub fn height_field(
     let (u, v) = closest_on(&c)?;
     let closest_se_m = closest_standard_error(&c, &chol, residual2, count, point_count)
         .map_or(f64::INFINITY, |se| se * scale_m);
-    let f =
-        |u: f64, v: f64| c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
-    let fz = f(u, v);
-    let (fu, fv) = (
-        c[1] + 2.0 * c[3] * u + c[4] * v,
-        c[2] + c[4] * u + 2.0 * c[5] * v,
-    );
+    let fz = quadric_height(&c, u, v);
+    let (fu, fv) = quadric_slope(&c, u, v);
     let closest_m = m.origin + scale_m * (u * e1 + v * e2 + fz * axis.into_inner());
     let normal =
         Unit::try_new(fu * e1 + fv * e2 - axis.into_inner(), 1e-12).ok_or(FitError::NonFinite)?;
@@ -686,15 +681,10 @@ pub fn height_field(
 /// Closest point `(u, v, f(u, v))` of the height field with coefficients `c` (scaled units)
 /// to the origin: Newton on the gradient of `x^2 + y^2 + f^2`, from the foot of the axis.
 fn closest_on(c: &nalgebra::Vector6<f64>) -> Result<(f64, f64), FitError> {
-    let f =
-        |u: f64, v: f64| c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
     let (mut u, mut v) = (0.0f64, 0.0f64);
     for _ in 0..20 {
-        let fz = f(u, v);
-        let (fu, fv) = (
-            c[1] + 2.0 * c[3] * u + c[4] * v,
-            c[2] + c[4] * u + 2.0 * c[5] * v,
-        );
+        let fz = quadric_height(c, u, v);
+        let (fu, fv) = quadric_slope(c, u, v);
         let g = nalgebra::Vector2::new(u + fz * fu, v + fz * fv);
         let h = nalgebra::Matrix2::new(
             1.0 + fu * fu + fz * 2.0 * c[3],
@@ -717,6 +707,19 @@ fn closest_on(c: &nalgebra::Vector6<f64>) -> Result<(f64, f64), FitError> {
     Ok((u, v))
 }
 
+/// `f(u, v) = c0 + c1 u + c2 v + c3 u^2 + c4 u v + c5 v^2`.
+fn quadric_height(c: &nalgebra::Vector6<f64>, u: f64, v: f64) -> f64 {
+    c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v
+}
+
+/// `(df/du, df/dv)` of [`quadric_height`].
+fn quadric_slope(c: &nalgebra::Vector6<f64>, u: f64, v: f64) -> (f64, f64) {
+    (
+        c[1] + 2.0 * c[3] * u + c[4] * v,
+        c[2] + c[4] * u + 2.0 * c[5] * v,
+    )
+}
+
 /// Standard error of the closest point (scaled units): the coefficients' covariance
 /// `s^2 w (A^T W A)^-1` (`s^2` the unbiased residual variance over `points` points, `w`
 /// their mean weight, `count / points`) carried through the closest point's Jacobian, taken
@@ -736,8 +739,7 @@ fn closest_standard_error(
     let covariance = chol.inverse() * variance;
     let point = |c: &nalgebra::Vector6<f64>| -> Option<Vector3<f64>> {
         let (u, v) = closest_on(c).ok()?;
-        let fz = c[0] + c[1] * u + c[2] * v + c[3] * u * u + c[4] * u * v + c[5] * v * v;
-        Some(Vector3::new(u, v, fz))
+        Some(Vector3::new(u, v, quadric_height(c, u, v)))
     };
     let mut jacobian = nalgebra::Matrix3x6::<f64>::zeros();
     for k in 0..6 {

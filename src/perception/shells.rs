@@ -827,7 +827,8 @@ fn height_field_over(
         unweighted.merge(&a.moments);
     }
     // The weights scale the count too; the fit needs the real number of points.
-    if unweighted.count() < f64::from(config.min_points) {
+    let points = unweighted.count();
+    if points < f64::from(config.min_points) {
         return None;
     }
     // Agreement is judged on the line: a HIP behind the surface (penetration) points the
@@ -842,9 +843,9 @@ fn height_field_over(
     };
     // Refit about the height field's own normal: in that frame the surface is closest to a
     // height field over the tangent plane (a tilted frame adds its own curvature terms).
-    let mut hf = fit::height_field(&merged, unweighted.count(), &-seed, scale).ok()?;
+    let mut hf = fit::height_field(&merged, points, &-seed, scale).ok()?;
     for _ in 0..QUADRIC_PASSES {
-        hf = fit::height_field(&merged, unweighted.count(), &-hf.normal, scale).ok()?;
+        hf = fit::height_field(&merged, points, &-hf.normal, scale).ok()?;
     }
     (hf.normal.angle(&seed) <= config.quadric_max_tilt_rad
         && (hf.closest_m - hip).norm() <= scale
