@@ -566,6 +566,8 @@ pub struct HeightField {
     /// coefficients' least-squares covariance carried through the closest point), metres;
     /// infinite when the fit cannot tell.
     pub closest_se_m: f64,
+    /// Whether the quadratic terms are kept ([`height_field`]): false for a plane.
+    pub curved: bool,
     /// The frame's `z` axis (`x, y` follow from it as in the fit).
     pub axis: Unit<Vector3<f64>>,
 }
@@ -611,11 +613,19 @@ fn tangent_frame(axis: &Unit<Vector3<f64>>) -> (Vector3<f64>, Vector3<f64>) {
 /// forearm: a cylinder) when only part of the ring is visible. Coordinates are scaled by
 /// `scale_m` (the point set's extent) so the 6x6 system is well conditioned. `m` may be
 /// weighted; `point_count` is the number of points behind it (for the standard error).
+///
+/// The quadratic terms are kept only where they explain the points better than the plane
+/// `z = c0 + c1 x + c2 y` (the nested fit): when the F statistic of the three extra terms,
+/// `((RSS_plane - RSS_quadric) / 3) / (RSS_quadric / (N - 6))`, exceeds `min_curvature_f`.
+/// Otherwise (a flat patch, or points that do not span the quadratic, such as one ring) the
+/// plane is the field: its closest point is the origin's foot on it, however little of the
+/// patch the camera sees, where a quadric fitted to the noise of a partial patch bends it.
 pub fn height_field(
     m: &Moments,
     point_count: f64,
     axis: &Unit<Vector3<f64>>,
     scale_m: f64,
+    min_curvature_f: f64,
 ) -> Result<HeightField, FitError> {
     if !(m.sums.iter().all(|s| s.is_finite()) && scale_m.is_finite() && scale_m > 0.0) {
         return Err(FitError::NonFinite);
@@ -641,20 +651,22 @@ pub fn height_field(
         }
         atz[i] = m.sum_of(&basis[i].mul(&z));
     }
-    // Scaled coordinates are O(1): a pivot this small means the points do not span the
-    // quadratic (a single ring, a line).
-    let chol = nalgebra::Cholesky::new(ata).ok_or(FitError::Collinear { ratio: 0.0 })?;
-    let diag_min = (0..6)
-        .map(|i| chol.l_dirty()[(i, i)])
-        .fold(f64::INFINITY, f64::min);
-    if diag_min.is_nan() || diag_min <= 1e-6 * count.sqrt() {
-        return Err(FitError::Collinear { ratio: diag_min });
-    }
-    let c = chol.solve(&atz);
     let zz = m.sum_of(&z.mul(&z));
-    let residual2 = (zz - c.dot(&atz)).max(0.0) / count;
+    let plane = nested_fit::<3>(&ata, &atz, zz, count).ok_or(FitError::Collinear { ratio: 0.0 })?;
+    let fit = match nested_fit::<6>(&ata, &atz, zz, count) {
+        Some(quadric)
+            if point_count > 6.0
+                && (plane.rss - quadric.rss) * (point_count - 6.0)
+                    > min_curvature_f * 3.0 * quadric.rss =>
+        {
+            quadric
+        }
+        _ => plane,
+    };
+    let c = fit.coefficients;
+    let residual2 = fit.rss / count;
     let (u, v) = closest_on(&c)?;
-    let closest_se_m = closest_standard_error(&c, &chol, residual2, count, point_count)
+    let closest_se_m = closest_standard_error(&fit, residual2, count, point_count)
         .map_or(f64::INFINITY, |se| se * scale_m);
     let fz = quadric_height(&c, u, v);
     let (fu, fv) = quadric_slope(&c, u, v);
@@ -674,7 +686,51 @@ pub fn height_field(
         normal,
         residual_rms_m: residual2.sqrt() * scale_m,
         closest_se_m,
+        curved: fit.terms == 6,
         axis: *axis,
+    })
+}
+
+/// Least squares over the first `K` terms of the height field's basis (3: the plane, 6: the
+/// quadric), in scaled units: coefficients (the rest zero), the inverse of their normal
+/// matrix (zero outside `K x K`) and the residual sum of squares.
+struct NestedFit {
+    terms: usize,
+    coefficients: nalgebra::Vector6<f64>,
+    normal_inverse: nalgebra::Matrix6<f64>,
+    rss: f64,
+}
+
+/// [`NestedFit`] of the first `K` terms; `None` when the points do not span them.
+fn nested_fit<const K: usize>(
+    ata: &nalgebra::Matrix6<f64>,
+    atz: &nalgebra::Vector6<f64>,
+    zz: f64,
+    count: f64,
+) -> Option<NestedFit> {
+    let a = ata.fixed_view::<K, K>(0, 0).into_owned();
+    let b = atz.fixed_rows::<K>(0).into_owned();
+    let chol = nalgebra::Cholesky::new(a)?;
+    // Scaled coordinates are O(1): a pivot this small means the points do not span the
+    // terms (a single ring for the quadric, a line for the plane).
+    let diag_min = (0..K)
+        .map(|i| chol.l_dirty()[(i, i)])
+        .fold(f64::INFINITY, f64::min);
+    if diag_min.is_nan() || diag_min <= 1e-6 * count.sqrt() {
+        return None;
+    }
+    let c = chol.solve(&b);
+    let mut coefficients = nalgebra::Vector6::zeros();
+    coefficients.fixed_rows_mut::<K>(0).copy_from(&c);
+    let mut normal_inverse = nalgebra::Matrix6::zeros();
+    normal_inverse
+        .fixed_view_mut::<K, K>(0, 0)
+        .copy_from(&chol.inverse());
+    Some(NestedFit {
+        terms: K,
+        coefficients,
+        normal_inverse,
+        rss: (zz - c.dot(&b)).max(0.0),
     })
 }
 
@@ -725,24 +781,20 @@ fn quadric_slope(c: &nalgebra::Vector6<f64>, u: f64, v: f64) -> (f64, f64) {
 /// their mean weight, `count / points`) carried through the closest point's Jacobian, taken
 /// by central differences of [`closest_on`]. `None` when the fit leaves no degree of freedom
 /// or a perturbed field has no closest point.
-fn closest_standard_error(
-    c: &nalgebra::Vector6<f64>,
-    chol: &nalgebra::Cholesky<f64, nalgebra::U6>,
-    residual2: f64,
-    count: f64,
-    points: f64,
-) -> Option<f64> {
-    if points.is_nan() || points <= 6.0 {
+fn closest_standard_error(fit: &NestedFit, residual2: f64, count: f64, points: f64) -> Option<f64> {
+    let terms = fit.terms as f64;
+    if points.is_nan() || points <= terms {
         return None;
     }
-    let variance = residual2 * points / (points - 6.0) * (count / points);
-    let covariance = chol.inverse() * variance;
+    let variance = residual2 * points / (points - terms) * (count / points);
+    let covariance = fit.normal_inverse * variance;
+    let c = &fit.coefficients;
     let point = |c: &nalgebra::Vector6<f64>| -> Option<Vector3<f64>> {
         let (u, v) = closest_on(c).ok()?;
         Some(Vector3::new(u, v, quadric_height(c, u, v)))
     };
     let mut jacobian = nalgebra::Matrix3x6::<f64>::zeros();
-    for k in 0..6 {
+    for k in 0..fit.terms {
         let h = 1e-6 * (1.0 + c[k].abs());
         let mut up = *c;
         let mut down = *c;
@@ -958,7 +1010,7 @@ mod tests {
         let tilt = Rotation3::from_axis_angle(&Unit::new_normalize(a + b), 12f64.to_radians());
         let axis = Unit::new_normalize(tilt * -w);
         // In the tilted frame the paraboloid is no longer exactly a height field: close.
-        let first = height_field(&moments(hip, &pts), pts.len() as f64, &axis, 0.05).unwrap();
+        let first = height_field(&moments(hip, &pts), pts.len() as f64, &axis, 0.05, 0.0).unwrap();
         assert!(
             (first.closest_m - (hip - 0.03 * w)).norm() < 5e-4,
             "{first:?}"
@@ -967,7 +1019,14 @@ mod tests {
         // Refitted about its own normal it converges to the exact surface.
         let mut fit = first;
         for _ in 0..4 {
-            fit = height_field(&moments(hip, &pts), pts.len() as f64, &-fit.normal, 0.05).unwrap();
+            fit = height_field(
+                &moments(hip, &pts),
+                pts.len() as f64,
+                &-fit.normal,
+                0.05,
+                0.0,
+            )
+            .unwrap();
         }
         assert!((fit.closest_m - (hip - 0.03 * w)).norm() < 1e-9, "{fit:?}");
         assert!(fit.normal.angle(&w) < 1e-8, "{fit:?}");
@@ -988,16 +1047,68 @@ mod tests {
         // A plane through the same one-sided set tilts towards the seen side.
         let plane = plane3d(&moments(hip, &pts), &LIMITS).unwrap();
         assert!(plane.normal.angle(&w).min(plane.normal.angle(&-w)) > 5f64.to_radians());
-        // A single ring does not span the quadratic.
-        let ring = arc(hip - 0.03 * w, w, 0.02, 0.0, 6.0, 50, 0.0);
+        assert!(first.curved && fit.curved);
+        // A single ring does not span the quadratic: the field is its plane, and the closest
+        // point the HIP's foot on it.
+        let ring = arc(hip - 0.03 * w, w, 0.02, 0.0, 2.0, 50, 0.0);
+        let flat = height_field(
+            &moments(hip, &ring),
+            ring.len() as f64,
+            &Unit::new_normalize(-w),
+            0.05,
+            0.0,
+        )
+        .unwrap();
+        assert!(!flat.curved, "{flat:?}");
         assert!(
+            (flat.closest_m - (hip - 0.03 * w)).norm() < 1e-9,
+            "{flat:?}"
+        );
+    }
+
+    /// A flat patch seen on one side only (the robot's shadow hides the rest) with 2 mm of
+    /// noise: the F test keeps the plane, whose closest point is the HIP's foot; a curved
+    /// cap with the same noise keeps its curvature.
+    #[test]
+    fn a_flat_patch_keeps_the_plane_and_a_curved_cap_its_curvature() {
+        let hip = Point3::origin();
+        let fit_of = |seed: u64, curvature_per_m: f64, min_f: f64| {
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let pts: Vec<Point3<f64>> = (0..200)
+                .map(|_| {
+                    let (x, y) = (rng.random_range(0.02..0.07), rng.random_range(-0.05..0.05));
+                    let z = 0.05
+                        + 0.5 * curvature_per_m * (x * x + y * y)
+                        + 0.002 * rng.random_range(-1.0..1.0);
+                    Point3::new(x, y, -z)
+                })
+                .collect();
             height_field(
-                &moments(hip, &ring),
-                ring.len() as f64,
-                &Unit::new_normalize(-w),
-                0.05
+                &moments(hip, &pts),
+                pts.len() as f64,
+                &-Vector3::z_axis(),
+                0.1,
+                min_f,
             )
-            .is_err()
+            .unwrap()
+        };
+        let truth = Point3::new(0.0, 0.0, -0.05);
+        let mut plane_worst: f64 = 0.0;
+        let mut quadric_worst: f64 = 0.0;
+        for seed in 0..20 {
+            let plane = fit_of(seed, 0.0, 4.0);
+            assert!(!plane.curved, "seed {seed}: {plane:?}");
+            plane_worst = plane_worst.max((plane.closest_m - truth).norm());
+            let quadric = fit_of(seed, 0.0, 0.0);
+            assert!(quadric.curved);
+            quadric_worst = quadric_worst.max((quadric.closest_m - truth).norm());
+            // A head-like cap (radius 10 cm) with the same noise and coverage stays curved.
+            assert!(fit_of(seed, 10.0, 4.0).curved, "seed {seed}");
+        }
+        assert!(plane_worst < 1e-3, "{plane_worst}");
+        assert!(
+            quadric_worst > 2.0 * plane_worst,
+            "{quadric_worst} vs {plane_worst}"
         );
     }
 
@@ -1029,6 +1140,7 @@ mod tests {
                 pts.len() as f64,
                 &-Vector3::z_axis(),
                 0.1,
+                0.0,
             )
         };
         let uniform = 0.003 * 3f64.sqrt();

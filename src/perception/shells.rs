@@ -95,6 +95,13 @@ pub struct ShellConfig {
     /// ones within 4 mm 1.3-2.4 mm; 3-4 mm also dropped fields that kept `head_close` and
     /// `reach_other_arm` within their jump limit (docs/accuracy.md).
     pub quadric_max_closest_se_m: f64,
+    /// The height field keeps its quadratic terms only where their F statistic against the
+    /// plane exceeds this ([`fit::height_field`]); a flatter patch is fitted as a plane.
+    /// 1 (default): where they raise the adjusted R^2 (Theil's criterion). On the flat chest
+    /// of `torso_approach_realistic` this removes a jump; 2-4 removes more but fits planes to
+    /// the head seen from 1 m (forehead 1.37 -> 1.88 mm at 4; docs/accuracy.md). 0 keeps
+    /// every curvature; infinity fits planes only.
+    pub quadric_min_curvature_f: f64,
     /// Fewest fitted shells (before the rejection) for a valid estimate.
     pub min_accepted_shells: u32,
     /// Fewest points in the fitted shells together for a valid estimate.
@@ -119,6 +126,7 @@ impl Default for ShellConfig {
             quadric_max_tilt_rad: 40f64.to_radians(),
             quadric_max_shell_residual_m: 0.005,
             quadric_max_closest_se_m: 0.005,
+            quadric_min_curvature_f: 1.0,
             min_accepted_shells: 2,
             min_points: 30,
         }
@@ -152,6 +160,8 @@ pub enum ShellConfigError {
     QuadricShellResidual(f64),
     #[error("quadric_max_closest_se_m must be positive (infinity trusts every field), got {0}")]
     QuadricClosestError(f64),
+    #[error("quadric_min_curvature_f must be 0 or more (infinity fits planes only), got {0}")]
+    QuadricCurvatureF(f64),
     #[error("min_accepted_shells must be at least 1, got 0")]
     MinShells,
 }
@@ -201,6 +211,11 @@ impl ShellConfig {
         if self.quadric_max_closest_se_m.is_nan() || self.quadric_max_closest_se_m <= 0.0 {
             return Err(ShellConfigError::QuadricClosestError(
                 self.quadric_max_closest_se_m,
+            ));
+        }
+        if self.quadric_min_curvature_f.is_nan() || self.quadric_min_curvature_f < 0.0 {
+            return Err(ShellConfigError::QuadricCurvatureF(
+                self.quadric_min_curvature_f,
             ));
         }
         if self.min_accepted_shells == 0 {
@@ -769,11 +784,40 @@ const QUADRIC_PASSES: usize = 3;
 /// IV-E), each weighted `1 / r_i` like Alg. 2's average. While the outermost of them lies
 /// further than `quadric_max_shell_residual_m` (RMS) from the fitted surface, or no trusted
 /// field fits with it, it reaches something else (a second body, or the robot's edge) and
-/// is dropped before fitting again. `None` when no fit survives.
+/// is dropped before fitting again. When no fit survives, the same over the shells Alg. 2
+/// kept: a few points at the edge of the robot's shadow in a rejected inner shell must not
+/// spoil the field of the rings beyond it; these agree with Alg. 2's normal by construction,
+/// so their field starts from it. `None` when no fit survives either way.
 fn quadric_refinement(
     fits: &[Accepted],
     normal: &Unit<Vector3<f64>>,
     hip: &Point3<f64>,
+    config: &ShellConfig,
+) -> Option<HeightField> {
+    let fitted: Vec<&Accepted> = fits.iter().collect();
+    let kept: Vec<&Accepted> = fits.iter().filter(|a| !a.fit.rejected).collect();
+    refine_over(fitted, normal, hip, Seed::NormalOrPoints, config).or_else(|| {
+        (kept.len() < fits.len())
+            .then(|| refine_over(kept, normal, hip, Seed::Normal, config))
+            .flatten()
+    })
+}
+
+/// The first axis of a height field ([`height_field_over`]).
+#[derive(Clone, Copy, PartialEq)]
+enum Seed {
+    /// Alg. 2's normal.
+    Normal,
+    /// Alg. 2's normal, or the direction from the HIP to the points where the two disagree.
+    NormalOrPoints,
+}
+
+/// [`quadric_refinement`] over one set of shells.
+fn refine_over(
+    fits: Vec<&Accepted>,
+    normal: &Unit<Vector3<f64>>,
+    hip: &Point3<f64>,
+    seed: Seed,
     config: &ShellConfig,
 ) -> Option<HeightField> {
     let innermost = fits
@@ -781,12 +825,12 @@ fn quadric_refinement(
         .map(|a| a.fit.inner_radius_m)
         .fold(f64::INFINITY, f64::min);
     let mut near: Vec<&Accepted> = fits
-        .iter()
+        .into_iter()
         .filter(|a| a.fit.inner_radius_m < innermost + config.quadric_reach_m)
         .collect();
     near.sort_by(|a, b| a.fit.inner_radius_m.total_cmp(&b.fit.inner_radius_m));
     loop {
-        let hf = height_field_over(&near, normal, hip, config);
+        let hf = height_field_over(&near, normal, hip, seed, config);
         let strays = match (&hf, near.last()) {
             _ if near.len() < 2 => false,
             (Some(hf), Some(outer)) => hf
@@ -802,15 +846,17 @@ fn quadric_refinement(
     }
 }
 
-/// One height field over `near`: the first frame's axis is Alg. 2's normal, or, where that
-/// disagrees by more than `quadric_max_tilt_rad` with the direction from the HIP to these
-/// points (Alg. 2 followed the second body), that direction; `None` when it cannot be fitted,
+/// One height field over `near`: the first frame's axis is Alg. 2's normal, or, with
+/// [`Seed::NormalOrPoints`] and where that disagrees by more than `quadric_max_tilt_rad` with
+/// the direction from the HIP to these points (Alg. 2 followed the second body), that
+/// direction; `None` when it cannot be fitted,
 /// ends more than `quadric_max_tilt_rad` from its first axis or does not determine its
 /// closest point within `quadric_max_closest_se_m`.
 fn height_field_over(
     near: &[&Accepted],
     normal: &Unit<Vector3<f64>>,
     hip: &Point3<f64>,
+    seed: Seed,
     config: &ShellConfig,
 ) -> Option<HeightField> {
     let scale = near
@@ -836,16 +882,17 @@ fn height_field_over(
     // either; the HIP lies on the outer side of the surface it is about to touch.
     let towards = Unit::try_new(hip - unweighted.mean(), 1e-12)?;
     let line_angle = towards.angle(normal).min((-towards).angle(normal));
-    let seed = if line_angle <= config.quadric_max_tilt_rad {
+    let seed = if seed == Seed::Normal || line_angle <= config.quadric_max_tilt_rad {
         *normal
     } else {
         towards
     };
     // Refit about the height field's own normal: in that frame the surface is closest to a
     // height field over the tangent plane (a tilted frame adds its own curvature terms).
-    let mut hf = fit::height_field(&merged, points, &-seed, scale).ok()?;
+    let curvature_f = config.quadric_min_curvature_f;
+    let mut hf = fit::height_field(&merged, points, &-seed, scale, curvature_f).ok()?;
     for _ in 0..QUADRIC_PASSES {
-        hf = fit::height_field(&merged, points, &-hf.normal, scale).ok()?;
+        hf = fit::height_field(&merged, points, &-hf.normal, scale, curvature_f).ok()?;
     }
     (hf.normal.angle(&seed) <= config.quadric_max_tilt_rad
         && (hf.closest_m - hip).norm() <= scale
