@@ -20,7 +20,11 @@
 //!    noise, IV-C; keeping only the one nearest the HIP avoids IV-E's two-surface limitation),
 //! 4. the camera's [`SurfaceEstimator`] (one per camera id, so each keeps its memory):
 //!    memory (Alg. 1), isolated-point removal, and shells (Alg. 2), normals towards the HIP's
-//!    side (eq. 2, against the rays from the camera, as the tie-break).
+//!    side (eq. 2, against the rays from the camera, as the tie-break). With
+//!    [`ClusterSelection::All`] the front end sums the kept clusters' per-shell moments in its
+//!    own submission ([`SurfaceConfig::frontend_shells`]) and the estimator corrects them on
+//!    the CPU ([`SurfaceEstimator::estimate_summed`]); `NearestToHip` leaves the moments to
+//!    the estimator (on the GPU a second submission).
 //!
 //! Each frame reports wall and thread CPU time of the front end and of the estimator
 //! ([`crate::timing`]) next to the front end's per-pass GPU timestamp times. A GPU failure
@@ -34,7 +38,9 @@
 //! 2. surface memory (Alg. 1): register the remembered annulus, fill the occluded centre,
 //!    then the isolated points within the shells' reach go ([`super::outliers`]),
 //! 3. per-shell moments around the HIP (GPU shader or its CPU reference, same integers; a GPU
-//!    failure falls back to the reference and is reported in [`SurfaceFrame::gpu_error`]),
+//!    failure falls back to the reference and is reported in [`SurfaceFrame::gpu_error`]), or
+//!    the sums of its input given by the front end, plus those of the merged memory points and
+//!    minus those of the isolated points (exact integers: the same bits),
 //! 4. shell fits, orientation (HIP side; eq. 2), outlier rejection, weighted average and curvature
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
 
@@ -94,8 +100,8 @@ impl ClusterSelection {
     /// cluster, largest first, each in ascending point order.
     pub fn select(self, points: &[Vec3], clustering: &Clustering, hip: &Point3<f64>) -> Vec<Vec3> {
         let hip = Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32);
-        let chosen: Vec<_> = match self {
-            ClusterSelection::All => clustering.clusters.iter().collect(),
+        match self {
+            ClusterSelection::All => clustering.kept_points(points),
             ClusterSelection::NearestToHip => clustering
                 .clusters
                 .iter()
@@ -109,14 +115,9 @@ impl ClusterSelection {
                 // Equal distances go to the larger cluster: clusters come largest first and
                 // `min_by` keeps the first minimum.
                 .min_by(|a, b| a.0.total_cmp(&b.0))
-                .map(|(_, c)| c)
-                .into_iter()
-                .collect(),
-        };
-        chosen
-            .into_iter()
-            .flat_map(|c| c.indices.iter().map(|&i| points[i as usize]))
-            .collect()
+                .map(|(_, c)| c.indices.iter().map(|&i| points[i as usize]).collect())
+                .unwrap_or_default(),
+        }
     }
 }
 
@@ -142,6 +143,14 @@ impl SurfaceConfig {
         self.outliers.validate()?;
         self.shells.validate()?;
         Ok(())
+    }
+
+    /// The shell layout around `hip` whose sums the front end adds up for the estimator
+    /// ([`super::frontend::FrameInput::shells`]): with [`ClusterSelection::All`], whose points
+    /// the front end knows; `None` for `NearestToHip`.
+    pub fn frontend_shells(&self, hip: &Point3<f64>) -> Option<ShellLayout> {
+        (self.clusters == ClusterSelection::All)
+            .then(|| ShellLayout::new(hip, &self.shells.radii_m))
     }
 }
 
@@ -234,9 +243,46 @@ impl SurfaceEstimator {
         camera_id: u32,
         stamp_s: f64,
     ) -> SurfaceFrame {
+        self.estimate_from(cloud_world, None, hip, viewpoint.into(), camera_id, stamp_s)
+    }
+
+    /// [`Self::estimate`] with the per-shell sums of `cloud_world` already computed for
+    /// `ShellLayout::new(hip, radii)` (the front end's [`FrontendOutput::shell_sums`], on the
+    /// backend given with them): the sums of the merged memory points are added and those of
+    /// the isolated points subtracted, on the CPU. Integer sums, so the result is the same
+    /// bits as [`shells::accumulate_cpu`] of the shells' input.
+    pub fn estimate_summed(
+        &mut self,
+        cloud_world: &[Vec3],
+        cloud_sums: (ShellSums, Backend),
+        hip: &Point3<f64>,
+        viewpoint: impl Into<Viewpoint>,
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> SurfaceFrame {
+        let viewpoint = viewpoint.into();
+        self.estimate_from(
+            cloud_world,
+            Some(cloud_sums),
+            hip,
+            viewpoint,
+            camera_id,
+            stamp_s,
+        )
+    }
+
+    fn estimate_from(
+        &mut self,
+        cloud_world: &[Vec3],
+        cloud_sums: Option<(ShellSums, Backend)>,
+        hip: &Point3<f64>,
+        viewpoint: Viewpoint,
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> SurfaceFrame {
         let watch = Stopwatch::start();
         let memory = self.memory.step(cloud_world, hip, &self.config.memory);
-        let (points, isolated_points) = remove_isolated(
+        let (points, isolated) = remove_isolated(
             &memory.points,
             hip,
             self.config.shells.outer_radius_m(),
@@ -245,8 +291,17 @@ impl SurfaceEstimator {
         let memory_time = watch.elapsed();
         let watch = Stopwatch::start();
         let layout = ShellLayout::new(hip, &self.config.shells.radii_m);
-        let (sums, backend, gpu_error) = match &mut self.gpu {
-            Some((ctx, stage)) => match stage.accumulate(ctx, &points, &layout) {
+        let (sums, backend, gpu_error) = match (cloud_sums, &mut self.gpu) {
+            (Some((mut sums, backend)), _) => {
+                // S(input) = S(cloud) - S(its non-finite points, which the memory step drops)
+                // + S(merged memory points) - S(isolated points).
+                let current = memory.points.len() - memory.merged_points;
+                sums.non_finite -= (cloud_world.len() - current) as u32;
+                sums.add(&shells::accumulate_cpu(&memory.points[current..], &layout));
+                sums.subtract(&shells::accumulate_cpu(&isolated, &layout));
+                (sums, backend, None)
+            }
+            (None, Some((ctx, stage))) => match stage.accumulate(ctx, &points, &layout) {
                 Ok(sums) => (sums, Backend::Gpu, None),
                 Err(e) => (
                     shells::accumulate_cpu(&points, &layout),
@@ -254,7 +309,7 @@ impl SurfaceEstimator {
                     Some(e.to_string()),
                 ),
             },
-            None => (shells::accumulate_cpu(&points, &layout), Backend::Cpu, None),
+            (None, None) => (shells::accumulate_cpu(&points, &layout), Backend::Cpu, None),
         };
         let moments_time = watch.elapsed();
         let watch = Stopwatch::start();
@@ -264,7 +319,7 @@ impl SurfaceEstimator {
         SurfaceFrame {
             abstraction,
             memory,
-            isolated_points,
+            isolated_points: isolated.len(),
             sums,
             backend,
             gpu_error,
@@ -470,6 +525,7 @@ impl CameraChain {
                 )
             }
         };
+        let shells_layout = self.surface_config.frontend_shells(hip_world);
         let input = FrameInput {
             points: match depth {
                 Some(d) => FramePoints::Depth(d),
@@ -481,6 +537,7 @@ impl CameraChain {
                 camera_m: Some(Point3::from(pose.translation.vector)),
             }),
             want_crop_keep: self.want_crop_keep,
+            shells: shells_layout.as_ref(),
         };
         let watch = Stopwatch::start();
         if input.points.len() > self.reserved_points {
@@ -508,14 +565,24 @@ impl CameraChain {
         let watch = Stopwatch::start();
         let estimator = match self.estimators.entry(frame.camera_id) {
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
+            // The estimator's own GPU moments only where the front end does not sum them.
             std::collections::btree_map::Entry::Vacant(v) => v.insert(match &self.ctx {
-                Some(ctx) => SurfaceEstimator::with_gpu(self.surface_config.clone(), ctx.clone())?,
-                None => SurfaceEstimator::new(self.surface_config.clone())?,
+                Some(ctx) if shells_layout.is_none() => {
+                    SurfaceEstimator::with_gpu(self.surface_config.clone(), ctx.clone())?
+                }
+                _ => SurfaceEstimator::new(self.surface_config.clone())?,
             }),
         };
         // The tie-break of the shells' orientation: eq. 2 against the rays from the camera.
         let camera = Point3::from(pose.translation.vector);
-        let surface = estimator.estimate(&kept, hip_world, camera, frame.camera_id, frame.stamp_s);
+        let (id, stamp) = (frame.camera_id, frame.stamp_s);
+        let surface = match front.shell_sums.take() {
+            Some(sums) => {
+                let sums = (sums, self.frontend.backend());
+                estimator.estimate_summed(&kept, sums, hip_world, camera, id, stamp)
+            }
+            None => estimator.estimate(&kept, hip_world, camera, id, stamp),
+        };
         let surface_time = watch.elapsed();
         if let Some(e) = &surface.gpu_error {
             // This frame was already answered on the CPU; keep every stage there.

@@ -958,6 +958,7 @@ fn main() -> anyhow::Result<()> {
             points: FramePoints::Points(&raw),
             crop: Some(scene.clone()),
             want_crop_keep: false,
+            shells: None,
         };
         let mut passes = PassTimes::default();
         for i in 0..=args.runs {
