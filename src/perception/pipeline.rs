@@ -576,9 +576,9 @@ impl CameraChain {
         // The tie-break of the shells' orientation: eq. 2 against the rays from the camera.
         let camera = Point3::from(pose.translation.vector);
         let (id, stamp) = (frame.camera_id, frame.stamp_s);
-        let surface = match front.shell_sums.take() {
+        let surface = match &front.shell_sums {
             Some(sums) => {
-                let sums = (sums, self.frontend.backend());
+                let sums = (sums.clone(), self.frontend.backend());
                 estimator.estimate_summed(&kept, sums, hip_world, camera, id, stamp)
             }
             None => estimator.estimate(&kept, hip_world, camera, id, stamp),
@@ -681,6 +681,16 @@ mod tests {
                 .map(|(a, b)| (*a - *b).length())
                 .fold(0.0, f32::max);
             assert!(worst < 1e-5, "kept points differ by {worst} m");
+            // The front end summed the kept clusters' moments (GPU: in its own submission);
+            // the estimator's corrected sums are those of its final input.
+            let layout = ShellLayout::new(&hip, &SurfaceConfig::default().shells.radii_m);
+            for (chain, backend) in [(&g, Backend::Gpu), (&c, Backend::Cpu)] {
+                let kept = shells::accumulate_cpu(&chain.kept, &layout);
+                assert_eq!(chain.front.shell_sums.as_ref(), Some(&kept));
+                assert_eq!(chain.surface.backend, backend);
+                let input = shells_input(&SurfaceConfig::default(), &chain.surface.memory, &hip);
+                assert_eq!(chain.surface.sums, shells::accumulate_cpu(&input, &layout));
+            }
             let (ge, ce) = (g.estimate(), c.estimate());
             let (gs, cs) = (
                 ge.surface.expect("GPU surface"),
@@ -755,6 +765,84 @@ mod tests {
             assert!(apart_mm < 0.5, "seed {seed}: estimates {apart_mm} mm apart");
             assert!(ge.normal.dot(&ce.normal) > 0.2f64.to_radians().cos());
             assert!((ge.centroid_m - closest).norm() < 8e-3);
+        }
+        assert!(gpu.gpu_fallback().is_none());
+    }
+
+    /// The estimator's final input: the memory step's points without the isolated ones.
+    fn shells_input(config: &SurfaceConfig, memory: &MemoryStep, hip: &Point3<f64>) -> Vec<Vec3> {
+        let reach = config.shells.outer_radius_m();
+        remove_isolated(&memory.points, hip, reach, &config.outliers).0
+    }
+
+    #[test]
+    fn sums_given_with_the_cloud_are_corrected_to_the_shells_input_bit_for_bit() {
+        let (hip, closest, _) = hip_and_truth();
+        let config = SurfaceConfig::default();
+        let layout = ShellLayout::new(&hip, &config.shells.radii_m);
+        let mut plain = SurfaceEstimator::new(config.clone()).unwrap();
+        let mut summed = SurfaceEstimator::new(config.clone()).unwrap();
+        let camera = Point3::from(pose().translation.vector);
+        let at = |p: &Point3<f64>| Vec3::new(p.x as f32, p.y as f32, p.z as f32);
+        let near = |p: &Vec3, q: Vec3, r: f32| p.is_finite() && p.distance(q) < r;
+        let (mut merged, mut isolated) = (0, 0);
+        for seed in 0..4 {
+            let mut cloud: Vec<Vec3> = to_world(&synthetic_frame(seed), &pose())
+                .into_iter()
+                .filter(|p| near(p, at(&hip), 0.2))
+                .collect();
+            if seed % 2 == 1 {
+                // A hole over the closest point: the memory fills it.
+                cloud.retain(|p| !near(p, at(&closest), 0.03));
+            }
+            // Three points 2 cm beside the HIP, 3 cm from the surface: isolated; a NaN.
+            for d in [[0.02, 0.0, 0.0], [0.0, -0.02, 0.0], [0.0, 0.0, 0.02]] {
+                cloud.push(at(&hip) + Vec3::from_array(d));
+            }
+            cloud.push(Vec3::NAN);
+            let sums = shells::accumulate_cpu(&cloud, &layout);
+            let t = seed as f64 / 30.0;
+            let a = plain.estimate(&cloud, &hip, camera, 0, t);
+            let b = summed.estimate_summed(&cloud, (sums, Backend::Cpu), &hip, camera, 0, t);
+            let input = shells_input(&config, &b.memory, &hip);
+            assert_eq!(b.sums, shells::accumulate_cpu(&input, &layout), "seed {seed}");
+            assert_eq!(b.sums.non_finite, 0);
+            assert_eq!(
+                (&b.sums, &b.memory, &b.abstraction),
+                (&a.sums, &a.memory, &a.abstraction)
+            );
+            assert!(b.abstraction.estimate.surface.is_some());
+            merged += b.memory.merged_points;
+            isolated += b.isolated_points;
+        }
+        assert!(merged > 0 && isolated >= 12, "{merged} merged, {isolated} isolated");
+    }
+
+    #[test]
+    fn nearest_to_hip_keeps_the_estimators_own_moments_on_both_backends() {
+        let (hip, closest, _) = hip_and_truth();
+        let surface = SurfaceConfig {
+            clusters: ClusterSelection::NearestToHip,
+            ..SurfaceConfig::default()
+        };
+        assert!(surface.frontend_shells(&hip).is_none());
+        let new = |backend| {
+            CameraChain::new(backend, FrontendConfig::default(), surface.clone(), None)
+        };
+        let mut cpu = new(Backend::Cpu).unwrap();
+        let mut gpu = new(Backend::Gpu).expect("GPU tests need Vulkan");
+        for seed in 0..2 {
+            let f = frame(seed, 0);
+            let (c, g) = (cpu.process(&f, &hip, &[]).unwrap(), gpu.process(&f, &hip, &[]).unwrap());
+            assert!(g.front.shell_sums.is_none());
+            assert_eq!(g.surface.backend, Backend::Gpu);
+            let input = shells_input(&surface, &g.surface.memory, &hip);
+            let layout = ShellLayout::new(&hip, &surface.shells.radii_m);
+            assert_eq!(g.surface.sums, shells::accumulate_cpu(&input, &layout));
+            assert_eq!(g.kept.len(), c.kept.len());
+            let (ge, ce) = (g.estimate().surface.unwrap(), c.estimate().surface.unwrap());
+            assert!((ge.centroid_m - ce.centroid_m).norm() < 1e-4);
+            assert!((ce.centroid_m - closest).norm() < 8e-3);
         }
         assert!(gpu.gpu_fallback().is_none());
     }
