@@ -805,7 +805,11 @@ mod tests {
             let a = plain.estimate(&cloud, &hip, camera, 0, t);
             let b = summed.estimate_summed(&cloud, (sums, Backend::Cpu), &hip, camera, 0, t);
             let input = shells_input(&config, &b.memory, &hip);
-            assert_eq!(b.sums, shells::accumulate_cpu(&input, &layout), "seed {seed}");
+            assert_eq!(
+                b.sums,
+                shells::accumulate_cpu(&input, &layout),
+                "seed {seed}"
+            );
             assert_eq!(b.sums.non_finite, 0);
             assert_eq!(
                 (&b.sums, &b.memory, &b.abstraction),
@@ -815,7 +819,10 @@ mod tests {
             merged += b.memory.merged_points;
             isolated += b.isolated_points;
         }
-        assert!(merged > 0 && isolated >= 12, "{merged} merged, {isolated} isolated");
+        assert!(
+            merged > 0 && isolated >= 12,
+            "{merged} merged, {isolated} isolated"
+        );
     }
 
     #[test]
@@ -826,14 +833,16 @@ mod tests {
             ..SurfaceConfig::default()
         };
         assert!(surface.frontend_shells(&hip).is_none());
-        let new = |backend| {
-            CameraChain::new(backend, FrontendConfig::default(), surface.clone(), None)
-        };
+        let new =
+            |backend| CameraChain::new(backend, FrontendConfig::default(), surface.clone(), None);
         let mut cpu = new(Backend::Cpu).unwrap();
         let mut gpu = new(Backend::Gpu).expect("GPU tests need Vulkan");
         for seed in 0..2 {
             let f = frame(seed, 0);
-            let (c, g) = (cpu.process(&f, &hip, &[]).unwrap(), gpu.process(&f, &hip, &[]).unwrap());
+            let (c, g) = (
+                cpu.process(&f, &hip, &[]).unwrap(),
+                gpu.process(&f, &hip, &[]).unwrap(),
+            );
             assert!(g.front.shell_sums.is_none());
             assert_eq!(g.surface.backend, Backend::Gpu);
             let input = shells_input(&surface, &g.surface.memory, &hip);
