@@ -167,8 +167,8 @@ pub struct SurfaceFrame {
     /// A GPU failure this frame; the CPU reference answered instead (same integers).
     pub gpu_error: Option<String>,
     /// Wall and thread CPU time of the surface memory (Alg. 1, with the isolated-point
-    /// removal), of the shell moments (upload, GPU pass and readback, or the CPU reference)
-    /// and of the fits (Alg. 2).
+    /// removal), of the shell moments (upload, GPU pass and readback, the CPU reference, or
+    /// the correction of the front end's sums) and of the fits (Alg. 2).
     pub memory_time: SpanTime,
     pub moments_time: SpanTime,
     pub fits_time: SpanTime,
@@ -351,7 +351,8 @@ pub struct ChainFrame {
     pub world_points: Vec<Vec3>,
     /// Flying pixels rejected this frame (set to NaN in `world_points`).
     pub flying_pixels: usize,
-    /// The front end's output (voxel grid, clusters, GPU time per pass).
+    /// The front end's output (voxel grid, clusters, the kept clusters' shell sums with
+    /// `ClusterSelection::All`, GPU time per pass).
     pub front: FrontendOutput,
     /// The points of the selected clusters, world frame: the estimator's input.
     pub kept: Vec<Vec3>,
