@@ -80,6 +80,7 @@ pub struct GpuContext {
     calibrator: Option<Calibrator>,
     uncaptured: Arc<Mutex<Vec<wgpu::Error>>>,
     created: CreatedCounters,
+    submissions: AtomicU64,
 }
 
 /// How many GPU objects the stages created through [`GpuContext::create_buffer`],
@@ -229,6 +230,7 @@ impl GpuContext {
             calibrator: opened.calibrator.filter(|_| timestamp_period_ns.is_some()),
             uncaptured,
             created: CreatedCounters::default(),
+            submissions: AtomicU64::new(0),
         })
     }
 
@@ -290,6 +292,11 @@ impl GpuContext {
         }
     }
 
+    /// Submissions [`Self::submit_and_read`] made so far (all users of this context).
+    pub fn submissions(&self) -> u64 {
+        self.submissions.load(Ordering::Relaxed)
+    }
+
     /// Runs `f` inside validation, out-of-memory and internal error scopes and returns the
     /// first error any of them caught (or one the uncaptured handler recorded meanwhile).
     /// `context` names the work in the error message.
@@ -343,20 +350,22 @@ impl GpuContext {
     }
 
     /// Submits `commands`, waits for this submission (not for the device: another thread's
-    /// later submission on the same queue is not waited for), maps the `readback` buffer
-    /// (which `commands` must have filled; usage `MAP_READ | COPY_DST`) and hands its bytes to
-    /// `read`. This is the one blocking readback of a frame; errors come back as [`GpuError`].
+    /// later submission on the same queue is not waited for), maps the first `bytes` of the
+    /// `readback` buffer (which `commands` must have filled; usage `MAP_READ | COPY_DST`;
+    /// `bytes` a multiple of 4 and nonzero) and hands them to `read`. This is the one blocking
+    /// readback of a frame; errors come back as [`GpuError`].
     pub fn submit_and_read<R>(
         &self,
         context: &str,
         commands: wgpu::CommandBuffer,
-        readback: &wgpu::Buffer,
+        (readback, bytes): (&wgpu::Buffer, u64),
         read: impl FnOnce(&[u8]) -> R,
     ) -> Result<R, GpuError> {
         let (tx, rx) = std::sync::mpsc::channel();
+        self.submissions.fetch_add(1, Ordering::Relaxed);
         let submission = self.scoped(context, |_| {
             let submission = self.queue.submit([commands]);
-            readback.map_async(wgpu::MapMode::Read, .., move |r| {
+            readback.map_async(wgpu::MapMode::Read, ..bytes, move |r| {
                 // The receiver lives until this function returns; a send error cannot happen
                 // while it waits, and afterwards nobody needs the result.
                 let _ = tx.send(r);
@@ -379,7 +388,7 @@ impl GpuContext {
             .map_err(|e| readback_err(e.to_string()))?;
         let value = {
             let view = readback
-                .get_mapped_range(..)
+                .get_mapped_range(..bytes)
                 .map_err(|e| readback_err(e.to_string()))?;
             read(&view)
         };
@@ -503,7 +512,7 @@ mod tests {
             });
         encoder.copy_buffer_to_buffer(&src, 0, &dst, 0, 256);
         let back: Vec<u32> = ctx
-            .submit_and_read("test", encoder.finish(), &dst, |b| {
+            .submit_and_read("test", encoder.finish(), (&dst, 256), |b| {
                 bytemuck::cast_slice(b).to_vec()
             })
             .unwrap();

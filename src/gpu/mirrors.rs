@@ -126,6 +126,11 @@ pub struct ShellParams {
     pub outer_radius: f32,
     pub steps_per_m: f32,
     pub shell_count: u32,
+    /// The cluster entry points' point count: word index, capacity, kept component sizes.
+    pub count_word: u32,
+    pub capacity: u32,
+    pub min_size: u32,
+    pub max_size: u32,
     pub _pad: u32,
     pub bounds: [u32; SHELL_SLOTS],
     pub inv_radius: [f32; SHELL_SLOTS],

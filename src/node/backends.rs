@@ -9,6 +9,7 @@ use crate::gpu::GpuContext;
 use crate::perception::crop::{CropScene, DepthInput};
 use crate::perception::flying::veil_cloud;
 use crate::perception::frontend::{BackendChoice, FrameInput, FramePoints, choose_backend};
+use crate::perception::shells::ShellLayout;
 use nalgebra::Point3;
 use std::sync::Arc;
 
@@ -20,7 +21,8 @@ pub const BACKEND_CHOICE_FRAMES: usize = 5;
 /// the robot primitives at its stamp and in the form each path takes it: the GPU a frame's
 /// depth image (deprojection and flying pixels in its first pass), the CPU the world-frame
 /// cloud after the flying-pixel test, as [`crate::perception::pipeline::CameraChain`] feeds
-/// them. The faster by median wall time wins; the CPU's world transform and flying-pixel
+/// them (with the kept clusters' shell sums the chain asks for). The faster by median wall
+/// time wins; the CPU's world transform and flying-pixel
 /// test before its front end are not in its time (a bias towards the CPU of about a
 /// millisecond per frame here). `None` when the GPU does not open.
 pub fn measure_backends(
@@ -51,9 +53,15 @@ pub fn measure_backends(
             veil_cloud(&f.cloud, &f.world_from_camera, near, radius, flying).0
         })
         .collect();
+    // The shell sums the chain asks the front end for.
+    let layouts: Vec<_> = scenes
+        .iter()
+        .map(|scene| config.surface.frontend_shells(&scene.hip_m))
+        .collect();
     fn input<'a>(
         f: &Frame,
         scene: &'a robot_state::PerceptionScene,
+        shells: Option<&'a ShellLayout>,
         points: FramePoints<'a>,
     ) -> FrameInput<'a> {
         FrameInput {
@@ -64,10 +72,14 @@ pub fn measure_backends(
                 camera_m: Some(Point3::from(f.world_from_camera.translation.vector)),
             }),
             want_crop_keep: false,
+            shells,
         }
     }
     let cpu: Vec<FrameInput<'_>> = (0..frames.len())
-        .map(|i| input(&frames[i], &scenes[i], FramePoints::Points(&world[i])))
+        .map(|i| {
+            let points = FramePoints::Points(&world[i]);
+            input(&frames[i], &scenes[i], layouts[i].as_ref(), points)
+        })
         .collect();
     let gpu: Vec<FrameInput<'_>> = (0..frames.len())
         .map(|i| {
@@ -85,7 +97,7 @@ pub fn measure_backends(
                 }
                 _ => FramePoints::Points(&world[i]),
             };
-            input(f, &scenes[i], points)
+            input(f, &scenes[i], layouts[i].as_ref(), points)
         })
         .collect();
     Ok(Some(choose_backend(

@@ -109,6 +109,11 @@ impl Default for ClusterConfig {
 }
 
 impl ClusterConfig {
+    /// Sizes of the components kept as clusters (a component has at least one point).
+    pub fn kept_sizes(&self) -> std::ops::RangeInclusive<u32> {
+        self.min_cluster_points.max(1)..=self.max_cluster_points
+    }
+
     pub fn validate(&self) -> Result<(), ClusterError> {
         if !(self.tolerance_m.is_finite() && self.tolerance_m > 0.0) {
             return Err(ClusterError::Config(format!(
@@ -193,8 +198,7 @@ impl Clustering {
         for &c in &component {
             size[c as usize] += 1;
         }
-        let in_range =
-            |s: u32| s >= config.min_cluster_points.max(1) && s <= config.max_cluster_points;
+        let in_range = |s: u32| config.kept_sizes().contains(&s);
         let mut kept: Vec<u32> = (0..component.len() as u32)
             .filter(|&id| in_range(size[id as usize]))
             .collect();
@@ -223,6 +227,15 @@ impl Clustering {
             component,
             clusters,
         }
+    }
+
+    /// The points of every kept cluster, cluster by cluster (largest first), each in
+    /// ascending point order; `points` are the clustered points.
+    pub fn kept_points(&self, points: &[Vec3]) -> Vec<Vec3> {
+        self.clusters
+            .iter()
+            .flat_map(|c| c.indices.iter().map(|&i| points[i as usize]))
+            .collect()
     }
 
     /// Sizes of the kept clusters, largest first.
@@ -757,6 +770,17 @@ impl GpuClusterer {
             .expect("GpuClusterer::reserve must run before encoding")
     }
 
+    /// The component label of each point after `compress` (`u32` per point of capacity).
+    pub fn labels(&self) -> &wgpu::Buffer {
+        &self.buffers().parent
+    }
+
+    /// The indirect dispatch arguments of one thread per point (`[x, 1, 1]`, written by the
+    /// frame's `prepare` pass from the GPU-side count): buffer and offset.
+    pub fn per_point_dispatch(&self) -> (&wgpu::Buffer, u64) {
+        (&self.buffers().dispatch_args, 0)
+    }
+
     /// Writes `points` (at most the reserved capacity) into the stage's own input buffers.
     pub fn upload(&self, ctx: &GpuContext, points: &[Vec3]) {
         let b = self.buffers();
@@ -944,8 +968,11 @@ impl GpuClusterer {
                 4 * u64::from(points),
             );
         }
-        Ok(
-            ctx.submit_and_read("cluster re-submit", encoder.finish(), &readback, |bytes| {
+        Ok(ctx.submit_and_read(
+            "cluster re-submit",
+            encoder.finish(),
+            (&readback, readback.size()),
+            |bytes| {
                 let status: [u32; 4] =
                     bytemuck::pod_read_unaligned(&bytes[..STATUS_BYTES as usize]);
                 let labels = bytes[STATUS_BYTES as usize..]
@@ -953,8 +980,8 @@ impl GpuClusterer {
                     .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
                     .collect();
                 (status, labels)
-            })?,
-        )
+            },
+        )?)
     }
 
     /// Bind group 0 over the stage's buffers and `input`, made when either changed.
@@ -1013,7 +1040,12 @@ impl GpuClusterer {
             });
         self.encode(ctx, &mut encoder, &input)?;
         self.encode_readback(&mut encoder, &readback, 0, n);
-        let bytes = ctx.submit_and_read("cluster", encoder.finish(), &readback, <[u8]>::to_vec)?;
+        let bytes = ctx.submit_and_read(
+            "cluster",
+            encoder.finish(),
+            (&readback, readback.size()),
+            <[u8]>::to_vec,
+        )?;
         self.finish(ctx, &input, &bytes, n, config)
     }
 }

@@ -784,12 +784,15 @@ impl GpuCrop {
         }
         encoder.copy_buffer_to_buffer(&self.mask, 0, &readback, ts_bytes, bytes);
         let ts = ts_bytes as usize;
-        Ok(
-            ctx.submit_and_read("crop", encoder.finish(), &readback, |b| {
+        Ok(ctx.submit_and_read(
+            "crop",
+            encoder.finish(),
+            (&readback, readback.size()),
+            |b| {
                 let ms = timer.map(|t| t.read(&b[..ts])[0].gpu_ms);
                 (bytemuck::cast_slice::<u8, u32>(&b[ts..]).to_vec(), ms)
-            })?,
-        )
+            },
+        )?)
     }
 }
 

@@ -9,7 +9,10 @@
 //! the first pass crops it. Then the voxel passes (read the mask; clears with
 //! `clear_buffer`), the cluster passes (read the voxel output and its
 //! GPU-side count through an indirect dispatch), resolve the timestamp queries, and copy the
-//! stage results into one readback buffer, which is mapped once. Only when a bounded union-find pass of the
+//! stage results into one readback buffer, of which the frame's bytes are mapped once. When the
+//! caller gives the frame's [`ShellLayout`] ([`FrameInput::shells`]), the same submission adds
+//! the per-shell sums of the kept clusters' points (paper Alg. 2's input; `shaders/shells.wgsl`)
+//! and reads back those 9 kB with the frame ([`FrontendOutput::shell_sums`]). Only when a bounded union-find pass of the
 //! clustering ran out of steps does the cluster stage add small submissions of its own
 //! (see [`crate::perception::cluster`]). Each stage is one or more compute passes bracketed by
 //! timestamps, so the frame reports the GPU time per stage, and, where the context's clock is
@@ -38,6 +41,9 @@ use crate::perception::cluster::{
 use crate::perception::crop::{
     CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop, crop_cpu,
     crop_depth_cpu, mask_words,
+};
+use crate::perception::shells::{
+    ClusteredPoints, GpuShells, SUMS_BYTES, ShellLayout, ShellSums, accumulate_cpu, read_sums,
 };
 use crate::perception::voxel::{
     GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, points_bytes, voxel_cpu_with_leaf,
@@ -123,6 +129,9 @@ pub struct FrameInput<'a> {
     /// frame, its cloud-frame points ([`FrontendOutput::points`]), e.g. for an overlay that
     /// draws the cropped points; off, both stay on the GPU.
     pub want_crop_keep: bool,
+    /// The frame's shell layout: the front end then hands back the per-shell sums of the
+    /// kept clusters' points ([`FrontendOutput::shell_sums`]).
+    pub shells: Option<&'a ShellLayout>,
 }
 
 impl FrameInput<'_> {
@@ -162,6 +171,10 @@ pub struct FrontendOutput {
     pub voxel: VoxelOutput,
     /// Euclidean clusters of the voxel points (indices into `voxel.points`).
     pub clusters: Clustering,
+    /// Per-shell sums of the points of every kept cluster (`clusters.kept_points`) for the
+    /// frame's [`FrameInput::shells`], when given: the same integers as
+    /// [`accumulate_cpu`] of those points on both backends.
+    pub shell_sums: Option<ShellSums>,
     /// GPU time per stage (GPU backend with timestamp queries), else empty.
     pub gpu_times: Vec<StageTime>,
     /// The same passes on the host's `CLOCK_MONOTONIC` when the context's clock is
@@ -200,6 +213,13 @@ impl Frontend {
         match self {
             Frontend::Gpu(g) => g.process(frame),
             Frontend::Cpu(c) => c.process(frame),
+        }
+    }
+
+    pub fn backend(&self) -> Backend {
+        match self {
+            Frontend::Gpu(_) => Backend::Gpu,
+            Frontend::Cpu(_) => Backend::Cpu,
         }
     }
 
@@ -284,6 +304,9 @@ impl CpuFrontend {
         )?;
         self.leaf.update(&self.config.voxel, voxel.points.len());
         let clusters = cluster_cpu(&voxel.points, &self.config.cluster)?;
+        let shell_sums = frame
+            .shells
+            .map(|layout| accumulate_cpu(&clusters.kept_points(&voxel.points), layout));
         let keep = frame.wants_crop_keep();
         Ok(FrontendOutput {
             points_in: frame.points.len(),
@@ -292,6 +315,7 @@ impl CpuFrontend {
             depth,
             voxel,
             clusters,
+            shell_sums,
             gpu_times: Vec::new(),
             gpu_on_host: Vec::new(),
             wall_ms: start.elapsed().as_secs_f64() * 1e3,
@@ -308,9 +332,29 @@ fn cluster_input(voxel: &GpuVoxel) -> ClusterInput<'_> {
     }
 }
 
-/// The front end's own timed pass (the voxel and cluster stages time their passes
+/// The front end's own timed passes (the voxel and cluster stages time their passes
 /// themselves and read their timestamps back with their results).
-const STAGES: [&str; 1] = ["crop"];
+const STAGES: [&str; 2] = ["crop", "shells"];
+const CROP_PASS: usize = 0;
+const SHELLS_PASS: usize = 1;
+
+/// The kept clusters' points of the frame as [`GpuShells::record_clusters`] reads them.
+fn clustered_points<'a>(
+    voxel: &'a GpuVoxel,
+    cluster: &'a GpuClusterer,
+    config: &ClusterConfig,
+) -> ClusteredPoints<'a> {
+    let input = cluster_input(voxel);
+    ClusteredPoints {
+        points: input.points,
+        count: input.count,
+        count_word: input.count_word,
+        capacity: voxel.table_slots(),
+        labels: cluster.labels(),
+        per_point_dispatch: cluster.per_point_dispatch(),
+        kept_sizes: config.kept_sizes(),
+    }
+}
 
 /// GPU front end: stages and buffers built once and reused every frame.
 pub struct GpuFrontend {
@@ -319,6 +363,7 @@ pub struct GpuFrontend {
     crop: GpuCrop,
     voxel: GpuVoxel,
     cluster: GpuClusterer,
+    shells: GpuShells,
     timer: Option<StageTimer>,
     input: wgpu::Buffer,
     readback: wgpu::Buffer,
@@ -354,6 +399,7 @@ impl GpuFrontend {
         let crop = GpuCrop::new(&ctx)?;
         let voxel = GpuVoxel::new(&ctx)?;
         let cluster = GpuClusterer::new(&ctx)?;
+        let shells = GpuShells::new(&ctx)?;
         let timer = StageTimer::new(&ctx, "frontend", &STAGES)?;
         let input = make_buffer(&ctx, "frontend input points", 16, INPUT_USAGE)?;
         let readback = make_buffer(&ctx, "frontend readback", 16, READBACK_USAGE)?;
@@ -364,6 +410,7 @@ impl GpuFrontend {
             crop,
             voxel,
             cluster,
+            shells,
             timer,
             input,
             readback,
@@ -394,8 +441,10 @@ impl GpuFrontend {
             .prepare(&ctx, points, true, &self.config.voxel, self.leaf.leaf_m)?;
         let capacity = self.voxel.table_slots();
         self.cluster.reserve(&ctx, capacity, &self.config.cluster)?;
-        // The largest readback: timestamps, voxel and cluster results, keep mask, points.
-        let needed = self.readback_layout(points, capacity, true, true).end;
+        self.shells.reserve_clusters(&ctx, capacity)?;
+        // The largest readback: timestamps, voxel and cluster results, shell sums, keep mask,
+        // points.
+        let needed = self.readback_layout(points, capacity, true, true, true).end;
         if self.readback.size() < needed {
             self.readback = make_buffer(&ctx, "frontend readback", needed, READBACK_USAGE)?;
         }
@@ -408,14 +457,23 @@ impl GpuFrontend {
             + self.crop.gpu_bytes()
             + self.voxel.gpu_bytes()
             + self.cluster.gpu_bytes()
+            + self.shells.gpu_bytes()
             + self.readback.size()
     }
 
-    /// Offsets in the readback buffer for a frame of `n` points.
-    fn readback_layout(&self, n: usize, capacity: u32, keep: bool, points: bool) -> Readback {
+    /// Offsets in the readback buffer for a frame of `n` points; `end` is what the frame maps.
+    fn readback_layout(
+        &self,
+        n: usize,
+        capacity: u32,
+        shells: bool,
+        keep: bool,
+        points: bool,
+    ) -> Readback {
         let ts = self.timer.as_ref().map_or(0, |t| t.readback_bytes());
         let cluster = ts + self.voxel.readback_bytes();
-        let keep_at = cluster + self.cluster.readback_bytes(capacity);
+        let shells_at = cluster + self.cluster.readback_bytes(capacity);
+        let keep_at = shells_at + if shells { SUMS_BYTES } else { 0 };
         let keep_bytes = if keep { 4 * mask_words(n) as u64 } else { 0 };
         let points_at = keep_at + keep_bytes;
         let points_bytes = if points { 12 * n as u64 } else { 0 };
@@ -423,6 +481,7 @@ impl GpuFrontend {
         Readback {
             voxel: ts,
             cluster,
+            shells: shells_at,
             keep: keep_at,
             points: points_at,
             counts: counts_at,
@@ -462,12 +521,13 @@ impl GpuFrontend {
         self.voxel
             .prepare(&ctx, n, first_pass, &self.config.voxel, leaf_m)?;
         let mut retries = 0;
-        let (mut voxel, mut ticks, cluster_bytes, keep_mask, points, counts) = loop {
+        let (mut voxel, mut ticks, shells_tick, cluster_bytes, sums, keep_mask, points, counts) = loop {
             // The cluster stage reads the voxel output in place: its capacity is the voxel
             // table's, its point count the header's `out_count`, known only on the GPU.
             let capacity = self.voxel.table_slots();
             self.cluster.reserve(&ctx, capacity, &self.config.cluster)?;
-            let at = self.readback_layout(n, capacity, keep, keep && depth);
+            self.shells.reserve_clusters(&ctx, capacity)?;
+            let at = self.readback_layout(n, capacity, frame.shells.is_some(), keep, keep && depth);
             if self.readback.size() < at.end {
                 self.readback = make_buffer(&ctx, "frontend readback", at.end, READBACK_USAGE)?;
             }
@@ -479,14 +539,27 @@ impl GpuFrontend {
             let writes = |i: usize| self.timer.as_ref().map(|t| t.pass_writes(i));
             if depth {
                 self.crop
-                    .record_depth(&ctx, &mut encoder, &self.input, writes(0));
+                    .record_depth(&ctx, &mut encoder, &self.input, writes(CROP_PASS));
             } else if frame.crop.is_some() {
-                self.crop.record(&ctx, &mut encoder, &self.input, writes(0));
+                self.crop
+                    .record(&ctx, &mut encoder, &self.input, writes(CROP_PASS));
             }
             let mask = first_pass.then(|| self.crop.mask());
             self.voxel.record(&ctx, &mut encoder, &self.input, mask);
             self.cluster
                 .encode(&ctx, &mut encoder, &cluster_input(&self.voxel))?;
+            if let Some(layout) = frame.shells {
+                let input = clustered_points(&self.voxel, &self.cluster, &self.config.cluster);
+                self.shells.record_clusters(
+                    &ctx,
+                    &mut encoder,
+                    &input,
+                    layout,
+                    writes(SHELLS_PASS),
+                )?;
+                self.shells
+                    .copy_sums(&mut encoder, &self.readback, at.shells);
+            }
             if let Some(t) = &self.timer {
                 t.resolve_into(&mut encoder, &self.readback, 0);
             }
@@ -516,11 +589,15 @@ impl GpuFrontend {
                 let voxel = &mut self.voxel;
                 let timer = self.timer.as_ref();
                 let config = &self.config.voxel;
-                ctx.submit_and_read("frontend frame", encoder.finish(), &self.readback, |b| {
+                let readback = (&self.readback, at.end);
+                ctx.submit_and_read("frontend frame", encoder.finish(), readback, |b| {
                     let times = timer
                         .map(|t| t.ticks(&b[..at.voxel as usize]))
                         .unwrap_or_default();
                     let voxel = voxel.decode(&ctx, &b[r(at.voxel, at.cluster)], config, leaf_m);
+                    let sums = frame
+                        .shells
+                        .map(|layout| read_sums(&b[r(at.shells, at.keep)], layout));
                     let keep: Vec<u32> = bytemuck::pod_collect_to_vec(&b[r(at.keep, at.points)]);
                     let points: Vec<Vec3> =
                         bytemuck::pod_collect_to_vec(&b[r(at.points, at.counts)]);
@@ -528,21 +605,32 @@ impl GpuFrontend {
                     (
                         voxel,
                         times,
-                        b[r(at.cluster, at.keep)].to_vec(),
+                        b[r(at.cluster, at.shells)].to_vec(),
+                        sums,
                         keep,
                         points,
                         counts,
                     )
                 })?
             };
-            let (voxel, times, cluster_bytes, keep_mask, points, counts) = result;
+            let (voxel, times, cluster_bytes, sums, keep_mask, points, counts) = result;
             if let Some((v, voxel_times)) = voxel? {
-                let times = times
+                let pass = |k: usize, ran: bool| times.get(k).copied().filter(|_| ran);
+                let shells_tick = pass(SHELLS_PASS, frame.shells.is_some());
+                let times = pass(CROP_PASS, first_pass)
                     .into_iter()
-                    .filter(|_| first_pass)
                     .chain(voxel_times)
                     .collect::<Vec<_>>();
-                break (v, times, cluster_bytes, keep_mask, points, counts);
+                break (
+                    v,
+                    times,
+                    shells_tick,
+                    cluster_bytes,
+                    sums,
+                    keep_mask,
+                    points,
+                    counts,
+                );
             }
             retries += 1;
         };
@@ -555,6 +643,15 @@ impl GpuFrontend {
             &self.config.cluster,
         )?;
         ticks.extend(cluster_stats.gpu_ticks);
+        ticks.extend(shells_tick);
+        // A union-find that needed more submissions changed the labels after the frame's
+        // shell pass: the CPU reference sums the final clusters instead.
+        let shell_sums = match frame.shells {
+            Some(layout) if cluster_stats.submissions > 1 => {
+                Some(accumulate_cpu(&clusters.kept_points(&voxel.points), layout))
+            }
+            _ => sums,
+        };
         // Read after the frame's readback, so every pass lies before the sample.
         let sample = ctx.clock_sample();
         let period_ns = ctx.timestamp_period_ns().unwrap_or(0.0);
@@ -573,6 +670,7 @@ impl GpuFrontend {
             }),
             voxel,
             clusters,
+            shell_sums,
             gpu_times,
             gpu_on_host,
             wall_ms: start.elapsed().as_secs_f64() * 1e3,
@@ -584,6 +682,7 @@ impl GpuFrontend {
 struct Readback {
     voxel: u64,
     cluster: u64,
+    shells: u64,
     keep: u64,
     points: u64,
     counts: u64,
@@ -696,7 +795,10 @@ mod tests {
     use crate::gpu::context::Created;
     use crate::perception::crop::{DEPTH_POINT_TOLERANCE, finite_bits, mask_bit};
     use crate::perception::flying::FlyingPixelConfig;
-    use crate::perception::test_data::{random_cloud, synthetic_depth, synthetic_frame};
+    use crate::perception::shells::{FIXED_ONE, ShellConfig};
+    use crate::perception::test_data::{
+        PCL_FRAMES, pcl_cloud, random_cloud, synthetic_depth, synthetic_frame,
+    };
     use crate::perception::voxel::tests::assert_same;
     use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 
@@ -769,6 +871,7 @@ mod tests {
                 }),
                 crop: Some(scene.clone()),
                 want_crop_keep: true,
+                shells: None,
             };
             let g = gpu.process(&frame).unwrap();
             let c = cpu.process(&frame).unwrap();
@@ -869,6 +972,7 @@ mod tests {
             }),
             crop: None,
             want_crop_keep: true,
+            shells: None,
         };
         let config = FrontendConfig::default();
         let g = Frontend::new(Backend::Gpu, config.clone(), None)
@@ -912,6 +1016,7 @@ mod tests {
             }),
             crop: None,
             want_crop_keep: false,
+            shells: None,
         };
         for backend in [Backend::Gpu, Backend::Cpu] {
             let e = Frontend::new(backend, FrontendConfig::default(), None)
@@ -968,6 +1073,7 @@ mod tests {
                     camera_m: None,
                 }),
                 want_crop_keep: seed % 2 == 0,
+                shells: None,
             };
             let g = gpu.process(&frame).unwrap();
             let c = cpu.process(&frame).unwrap();
@@ -1012,6 +1118,87 @@ mod tests {
         assert!((2000..4500).contains(&last), "{last}");
     }
 
+    /// A HIP 5 cm in front of the first point at or after the image centre (camera frame).
+    fn hip_before_centre(points: &[Vec3], width: usize) -> Point3<f64> {
+        let p = points[points.len() / 2 + width / 2..]
+            .iter()
+            .find(|p| finite_bits(**p))
+            .expect("a point");
+        let p = nalgebra::Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+        Point3::from(p * (1.0 - 0.05 / p.norm()))
+    }
+
+    #[test]
+    fn gpu_shell_sums_of_the_kept_clusters_equal_the_cpu_reference_in_one_submission() {
+        // A context of its own: its submission count sees this front end only.
+        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
+        let config = FrontendConfig::default();
+        let mut gpu = Frontend::new(Backend::Gpu, config.clone(), Some(Arc::clone(&ctx))).unwrap();
+        let mut cpu = Frontend::new(Backend::Cpu, config, None).unwrap();
+        let radii = ShellConfig::default().radii_m;
+        let real: Vec<_> = PCL_FRAMES.iter().map(|name| pcl_cloud(name)).collect();
+        let synthetic = synthetic_frame(3);
+        let depth = synthetic_depth(3);
+        let flying = FlyingPixelConfig::default();
+        let mut frames: Vec<_> = real
+            .iter()
+            .map(|c| {
+                (
+                    FramePoints::Points(&c.points),
+                    hip_before_centre(&c.points, c.width as usize),
+                )
+            })
+            .collect();
+        let hip = hip_before_centre(&synthetic, 640);
+        frames.push((FramePoints::Points(&synthetic), hip));
+        let depth_input = DepthInput {
+            image: &depth,
+            intrinsics: &PinholeIntrinsics::PCL_GRABBER,
+            cloud_from_camera: Isometry3::identity(),
+            flying: &flying,
+        };
+        frames.push((FramePoints::Depth(depth_input), hip));
+        let mut dropped_components = 0;
+        for (k, (points, hip)) in frames.into_iter().enumerate() {
+            let layout = ShellLayout::new(&hip, &radii);
+            let frame = FrameInput {
+                points,
+                crop: Some(CropScene {
+                    hip_m: hip,
+                    robot: &[],
+                    camera_m: Some(Point3::origin()),
+                }),
+                want_crop_keep: false,
+                shells: Some(&layout),
+            };
+            let before = ctx.submissions();
+            let g = gpu.process(&frame).unwrap();
+            let submissions = ctx.submissions() - before;
+            assert_eq!(submissions, 1 + g.voxel.retries as u64, "frame {k}");
+            let sums = g.shell_sums.clone().expect("asked for");
+            let kept = g.clusters.kept_points(&g.voxel.points);
+            assert_eq!(sums, accumulate_cpu(&kept, &layout), "frame {k}");
+            let in_shells = sums.sums.iter().map(|s| s[0]).sum::<i64>() / FIXED_ONE as i64;
+            assert!(
+                in_shells > 100,
+                "frame {k}: {in_shells} points in the shells"
+            );
+            dropped_components += g.clusters.component_count() - g.clusters.clusters.len();
+            // The CPU front end gives its reference of the same stage.
+            let c = cpu.process(&frame).unwrap();
+            let kept = c.clusters.kept_points(&c.voxel.points);
+            assert_eq!(c.shell_sums, Some(accumulate_cpu(&kept, &layout)));
+            let without = gpu
+                .process(&FrameInput {
+                    shells: None,
+                    ..frame.clone()
+                })
+                .unwrap();
+            assert_eq!((without.shell_sums, without.clusters), (None, g.clusters));
+        }
+        assert!(dropped_components > 0, "the size bounds were tested");
+    }
+
     #[test]
     fn frames_up_to_the_reserved_size_create_no_gpu_objects_and_equal_the_cpu() {
         // A context of its own: its counters see this front end only.
@@ -1035,6 +1222,7 @@ mod tests {
                     camera_m: None,
                 }),
                 want_crop_keep: false,
+                shells: None,
             };
             let g = gpu.process(&frame).unwrap();
             let c = cpu.process(&frame).unwrap();
@@ -1058,6 +1246,7 @@ mod tests {
             points: FramePoints::Points(&points),
             crop: None,
             want_crop_keep: false,
+            shells: None,
         }];
         let config = FrontendConfig::default();
         let choice = choose_backend(&config, None, &frames, &frames).unwrap();
@@ -1084,6 +1273,7 @@ mod tests {
                 points: FramePoints::Points(&[]),
                 crop: None,
                 want_crop_keep: true,
+                shells: None,
             })
             .unwrap();
         assert!(empty.voxel.points.is_empty());
@@ -1094,6 +1284,7 @@ mod tests {
                 points: FramePoints::Points(&points),
                 crop: None,
                 want_crop_keep: true,
+                shells: None,
             })
             .unwrap();
         let cpu =
@@ -1116,6 +1307,7 @@ mod tests {
                 camera_m: None,
             }),
             want_crop_keep: false,
+            shells: None,
         };
         // Warm-up: lavapipe compiles the shaders on their first dispatch.
         gpu.process(&frame).unwrap();

@@ -13,7 +13,9 @@
 //! ([`NearestSearch`] over the points within `reach_m + radius_m`; it holds coincident points
 //! once with their count, so a degenerate cloud of 10^5 identical points takes linear time).
 //! Points farther out pass unchanged. The test depends only on the point set, not its order,
-//! so the shells' sums stay bit for bit independent of the point order.
+//! so the shells' sums stay bit for bit independent of the point order. The removed points
+//! come back too: the estimator subtracts their shell sums from sums the front end computed
+//! on the GPU before the removal.
 
 use super::memory::NearestSearch;
 use glam::Vec3;
@@ -65,17 +67,17 @@ impl OutlierConfig {
     }
 }
 
-/// `points` without the isolated ones within `reach_m` of `hip`, in their order, and how many
-/// of those went. Non-finite points are dropped too, uncounted (they never reach a shell).
+/// `points` split into the kept ones and the isolated ones within `reach_m` of `hip`, each in
+/// their order. Non-finite points are dropped, in neither list (they never reach a shell).
 pub fn remove_isolated(
     points: &[Vec3],
     hip: &Point3<f64>,
     reach_m: f64,
     config: &OutlierConfig,
-) -> (Vec<Vec3>, usize) {
+) -> (Vec<Vec3>, Vec<Vec3>) {
     let finite: Vec<Vec3> = points.iter().copied().filter(|p| p.is_finite()).collect();
     if !config.enabled {
-        return (finite, 0);
+        return (finite, Vec::new());
     }
     // Each point's f64 coordinates and distance from the HIP, computed once.
     let located: Vec<([f64; 3], f64)> = finite
@@ -91,23 +93,18 @@ pub fn remove_isolated(
         .map(|(c, _)| Point3::from(*c))
         .collect();
     if near.is_empty() {
-        return (finite, 0);
+        return (finite, Vec::new());
     }
     let search = NearestSearch::new(near);
     // The point itself is within the radius (distance 0): it needs neighbours + 1 points.
     let k = NonZeroUsize::new(config.min_neighbours as usize + 1).expect("k >= 2");
     let radius2 = config.radius_m * config.radius_m;
-    let before = finite.len();
-    let kept: Vec<Vec3> = finite
-        .into_iter()
-        .zip(&located)
-        .filter(|(_, (c, d))| {
+    let (kept, removed): (Vec<_>, Vec<_>) =
+        finite.into_iter().zip(&located).partition(|(_, (c, d))| {
             *d > reach_m || search.count_within(&Point3::from(*c), radius2, k) >= k.get()
-        })
-        .map(|(p, _)| p)
-        .collect();
-    let removed = before - kept.len();
-    (kept, removed)
+        });
+    let points_of = |pairs: Vec<(Vec3, _)>| pairs.into_iter().map(|(p, _)| p).collect();
+    (points_of(kept), points_of(removed))
 }
 
 #[cfg(test)]
@@ -136,7 +133,11 @@ mod tests {
         points.extend(strays);
         points.push(Vec3::NAN);
         let (kept, removed) = remove_isolated(&points, &hip, 0.1, &OutlierConfig::default());
-        assert_eq!(removed, 3, "three strays (the NaN goes uncounted)");
+        assert_eq!(
+            removed,
+            strays[..3],
+            "three strays (the NaN in neither list)"
+        );
         assert_eq!(kept.len(), surface + 1);
         assert!(kept.contains(&strays[3]), "beyond reach: not tested");
         assert!(!kept.contains(&strays[0]));
@@ -161,10 +162,8 @@ mod tests {
             enabled: false,
             ..config
         };
-        assert_eq!(
-            remove_isolated(&points, &hip, 0.1, &off).0.len(),
-            points.len()
-        );
+        let (all, none) = remove_isolated(&points, &hip, 0.1, &off);
+        assert_eq!((all.len(), none.len()), (points.len(), 0));
         assert!(remove_isolated(&[], &hip, 0.1, &config).0.is_empty());
     }
 

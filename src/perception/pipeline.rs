@@ -20,7 +20,11 @@
 //!    noise, IV-C; keeping only the one nearest the HIP avoids IV-E's two-surface limitation),
 //! 4. the camera's [`SurfaceEstimator`] (one per camera id, so each keeps its memory):
 //!    memory (Alg. 1), isolated-point removal, and shells (Alg. 2), normals towards the HIP's
-//!    side (eq. 2, against the rays from the camera, as the tie-break).
+//!    side (eq. 2, against the rays from the camera, as the tie-break). With
+//!    [`ClusterSelection::All`] the front end sums the kept clusters' per-shell moments in its
+//!    own submission ([`SurfaceConfig::frontend_shells`]) and the estimator corrects them on
+//!    the CPU ([`SurfaceEstimator::estimate_summed`]); `NearestToHip` leaves the moments to
+//!    the estimator (on the GPU a second submission).
 //!
 //! Each frame reports wall and thread CPU time of the front end and of the estimator
 //! ([`crate::timing`]) next to the front end's per-pass GPU timestamp times. A GPU failure
@@ -34,7 +38,9 @@
 //! 2. surface memory (Alg. 1): register the remembered annulus, fill the occluded centre,
 //!    then the isolated points within the shells' reach go ([`super::outliers`]),
 //! 3. per-shell moments around the HIP (GPU shader or its CPU reference, same integers; a GPU
-//!    failure falls back to the reference and is reported in [`SurfaceFrame::gpu_error`]),
+//!    failure falls back to the reference and is reported in [`SurfaceFrame::gpu_error`]), or
+//!    the sums of its input given by the front end, plus those of the merged memory points and
+//!    minus those of the isolated points (exact integers: the same bits),
 //! 4. shell fits, orientation (HIP side; eq. 2), outlier rejection, weighted average and curvature
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
 
@@ -94,8 +100,8 @@ impl ClusterSelection {
     /// cluster, largest first, each in ascending point order.
     pub fn select(self, points: &[Vec3], clustering: &Clustering, hip: &Point3<f64>) -> Vec<Vec3> {
         let hip = Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32);
-        let chosen: Vec<_> = match self {
-            ClusterSelection::All => clustering.clusters.iter().collect(),
+        match self {
+            ClusterSelection::All => clustering.kept_points(points),
             ClusterSelection::NearestToHip => clustering
                 .clusters
                 .iter()
@@ -109,14 +115,9 @@ impl ClusterSelection {
                 // Equal distances go to the larger cluster: clusters come largest first and
                 // `min_by` keeps the first minimum.
                 .min_by(|a, b| a.0.total_cmp(&b.0))
-                .map(|(_, c)| c)
-                .into_iter()
-                .collect(),
-        };
-        chosen
-            .into_iter()
-            .flat_map(|c| c.indices.iter().map(|&i| points[i as usize]))
-            .collect()
+                .map(|(_, c)| c.indices.iter().map(|&i| points[i as usize]).collect())
+                .unwrap_or_default(),
+        }
     }
 }
 
@@ -143,6 +144,14 @@ impl SurfaceConfig {
         self.shells.validate()?;
         Ok(())
     }
+
+    /// The shell layout around `hip` whose sums the front end adds up for the estimator
+    /// ([`super::frontend::FrameInput::shells`]): with [`ClusterSelection::All`], whose points
+    /// the front end knows; `None` for `NearestToHip`.
+    pub fn frontend_shells(&self, hip: &Point3<f64>) -> Option<ShellLayout> {
+        (self.clusters == ClusterSelection::All)
+            .then(|| ShellLayout::new(hip, &self.shells.radii_m))
+    }
 }
 
 /// Everything one frame produced, for reports, studies and the overlay.
@@ -158,8 +167,8 @@ pub struct SurfaceFrame {
     /// A GPU failure this frame; the CPU reference answered instead (same integers).
     pub gpu_error: Option<String>,
     /// Wall and thread CPU time of the surface memory (Alg. 1, with the isolated-point
-    /// removal), of the shell moments (upload, GPU pass and readback, or the CPU reference)
-    /// and of the fits (Alg. 2).
+    /// removal), of the shell moments (upload, GPU pass and readback, the CPU reference, or
+    /// the correction of the front end's sums) and of the fits (Alg. 2).
     pub memory_time: SpanTime,
     pub moments_time: SpanTime,
     pub fits_time: SpanTime,
@@ -234,9 +243,46 @@ impl SurfaceEstimator {
         camera_id: u32,
         stamp_s: f64,
     ) -> SurfaceFrame {
+        self.estimate_from(cloud_world, None, hip, viewpoint.into(), camera_id, stamp_s)
+    }
+
+    /// [`Self::estimate`] with the per-shell sums of `cloud_world` already computed for
+    /// `ShellLayout::new(hip, radii)` (the front end's [`FrontendOutput::shell_sums`], on the
+    /// backend given with them): the sums of the merged memory points are added and those of
+    /// the isolated points subtracted, on the CPU. Integer sums, so the result is the same
+    /// bits as [`shells::accumulate_cpu`] of the shells' input.
+    pub fn estimate_summed(
+        &mut self,
+        cloud_world: &[Vec3],
+        cloud_sums: (ShellSums, Backend),
+        hip: &Point3<f64>,
+        viewpoint: impl Into<Viewpoint>,
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> SurfaceFrame {
+        let viewpoint = viewpoint.into();
+        self.estimate_from(
+            cloud_world,
+            Some(cloud_sums),
+            hip,
+            viewpoint,
+            camera_id,
+            stamp_s,
+        )
+    }
+
+    fn estimate_from(
+        &mut self,
+        cloud_world: &[Vec3],
+        cloud_sums: Option<(ShellSums, Backend)>,
+        hip: &Point3<f64>,
+        viewpoint: Viewpoint,
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> SurfaceFrame {
         let watch = Stopwatch::start();
         let memory = self.memory.step(cloud_world, hip, &self.config.memory);
-        let (points, isolated_points) = remove_isolated(
+        let (points, isolated) = remove_isolated(
             &memory.points,
             hip,
             self.config.shells.outer_radius_m(),
@@ -245,8 +291,17 @@ impl SurfaceEstimator {
         let memory_time = watch.elapsed();
         let watch = Stopwatch::start();
         let layout = ShellLayout::new(hip, &self.config.shells.radii_m);
-        let (sums, backend, gpu_error) = match &mut self.gpu {
-            Some((ctx, stage)) => match stage.accumulate(ctx, &points, &layout) {
+        let (sums, backend, gpu_error) = match (cloud_sums, &mut self.gpu) {
+            (Some((mut sums, backend)), _) => {
+                // S(input) = S(cloud) - S(its non-finite points, which the memory step drops)
+                // + S(merged memory points) - S(isolated points).
+                let current = memory.points.len() - memory.merged_points;
+                sums.non_finite -= (cloud_world.len() - current) as u32;
+                sums.add(&shells::accumulate_cpu(&memory.points[current..], &layout));
+                sums.subtract(&shells::accumulate_cpu(&isolated, &layout));
+                (sums, backend, None)
+            }
+            (None, Some((ctx, stage))) => match stage.accumulate(ctx, &points, &layout) {
                 Ok(sums) => (sums, Backend::Gpu, None),
                 Err(e) => (
                     shells::accumulate_cpu(&points, &layout),
@@ -254,7 +309,7 @@ impl SurfaceEstimator {
                     Some(e.to_string()),
                 ),
             },
-            None => (shells::accumulate_cpu(&points, &layout), Backend::Cpu, None),
+            (None, None) => (shells::accumulate_cpu(&points, &layout), Backend::Cpu, None),
         };
         let moments_time = watch.elapsed();
         let watch = Stopwatch::start();
@@ -264,7 +319,7 @@ impl SurfaceEstimator {
         SurfaceFrame {
             abstraction,
             memory,
-            isolated_points,
+            isolated_points: isolated.len(),
             sums,
             backend,
             gpu_error,
@@ -296,7 +351,8 @@ pub struct ChainFrame {
     pub world_points: Vec<Vec3>,
     /// Flying pixels rejected this frame (set to NaN in `world_points`).
     pub flying_pixels: usize,
-    /// The front end's output (voxel grid, clusters, GPU time per pass).
+    /// The front end's output (voxel grid, clusters, the kept clusters' shell sums with
+    /// `ClusterSelection::All`, GPU time per pass).
     pub front: FrontendOutput,
     /// The points of the selected clusters, world frame: the estimator's input.
     pub kept: Vec<Vec3>,
@@ -470,6 +526,7 @@ impl CameraChain {
                 )
             }
         };
+        let shells_layout = self.surface_config.frontend_shells(hip_world);
         let input = FrameInput {
             points: match depth {
                 Some(d) => FramePoints::Depth(d),
@@ -481,6 +538,7 @@ impl CameraChain {
                 camera_m: Some(Point3::from(pose.translation.vector)),
             }),
             want_crop_keep: self.want_crop_keep,
+            shells: shells_layout.as_ref(),
         };
         let watch = Stopwatch::start();
         if input.points.len() > self.reserved_points {
@@ -508,14 +566,24 @@ impl CameraChain {
         let watch = Stopwatch::start();
         let estimator = match self.estimators.entry(frame.camera_id) {
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
+            // The estimator's own GPU moments only where the front end does not sum them.
             std::collections::btree_map::Entry::Vacant(v) => v.insert(match &self.ctx {
-                Some(ctx) => SurfaceEstimator::with_gpu(self.surface_config.clone(), ctx.clone())?,
-                None => SurfaceEstimator::new(self.surface_config.clone())?,
+                Some(ctx) if shells_layout.is_none() => {
+                    SurfaceEstimator::with_gpu(self.surface_config.clone(), ctx.clone())?
+                }
+                _ => SurfaceEstimator::new(self.surface_config.clone())?,
             }),
         };
         // The tie-break of the shells' orientation: eq. 2 against the rays from the camera.
         let camera = Point3::from(pose.translation.vector);
-        let surface = estimator.estimate(&kept, hip_world, camera, frame.camera_id, frame.stamp_s);
+        let (id, stamp) = (frame.camera_id, frame.stamp_s);
+        let surface = match &front.shell_sums {
+            Some(sums) => {
+                let sums = (sums.clone(), self.frontend.backend());
+                estimator.estimate_summed(&kept, sums, hip_world, camera, id, stamp)
+            }
+            None => estimator.estimate(&kept, hip_world, camera, id, stamp),
+        };
         let surface_time = watch.elapsed();
         if let Some(e) = &surface.gpu_error {
             // This frame was already answered on the CPU; keep every stage there.
@@ -614,6 +682,16 @@ mod tests {
                 .map(|(a, b)| (*a - *b).length())
                 .fold(0.0, f32::max);
             assert!(worst < 1e-5, "kept points differ by {worst} m");
+            // The front end summed the kept clusters' moments (GPU: in its own submission);
+            // the estimator's corrected sums are those of its final input.
+            let layout = ShellLayout::new(&hip, &SurfaceConfig::default().shells.radii_m);
+            for (chain, backend) in [(&g, Backend::Gpu), (&c, Backend::Cpu)] {
+                let kept = shells::accumulate_cpu(&chain.kept, &layout);
+                assert_eq!(chain.front.shell_sums.as_ref(), Some(&kept));
+                assert_eq!(chain.surface.backend, backend);
+                let input = shells_input(&SurfaceConfig::default(), &chain.surface.memory, &hip);
+                assert_eq!(chain.surface.sums, shells::accumulate_cpu(&input, &layout));
+            }
             let (ge, ce) = (g.estimate(), c.estimate());
             let (gs, cs) = (
                 ge.surface.expect("GPU surface"),
@@ -688,6 +766,93 @@ mod tests {
             assert!(apart_mm < 0.5, "seed {seed}: estimates {apart_mm} mm apart");
             assert!(ge.normal.dot(&ce.normal) > 0.2f64.to_radians().cos());
             assert!((ge.centroid_m - closest).norm() < 8e-3);
+        }
+        assert!(gpu.gpu_fallback().is_none());
+    }
+
+    /// The estimator's final input: the memory step's points without the isolated ones.
+    fn shells_input(config: &SurfaceConfig, memory: &MemoryStep, hip: &Point3<f64>) -> Vec<Vec3> {
+        let reach = config.shells.outer_radius_m();
+        remove_isolated(&memory.points, hip, reach, &config.outliers).0
+    }
+
+    #[test]
+    fn sums_given_with_the_cloud_are_corrected_to_the_shells_input_bit_for_bit() {
+        let (hip, closest, _) = hip_and_truth();
+        let config = SurfaceConfig::default();
+        let layout = ShellLayout::new(&hip, &config.shells.radii_m);
+        let mut plain = SurfaceEstimator::new(config.clone()).unwrap();
+        let mut summed = SurfaceEstimator::new(config.clone()).unwrap();
+        let camera = Point3::from(pose().translation.vector);
+        let at = |p: &Point3<f64>| Vec3::new(p.x as f32, p.y as f32, p.z as f32);
+        let near = |p: &Vec3, q: Vec3, r: f32| p.is_finite() && p.distance(q) < r;
+        let (mut merged, mut isolated) = (0, 0);
+        for seed in 0..4 {
+            let mut cloud: Vec<Vec3> = to_world(&synthetic_frame(seed), &pose())
+                .into_iter()
+                .filter(|p| near(p, at(&hip), 0.2))
+                .collect();
+            if seed % 2 == 1 {
+                // A hole over the closest point: the memory fills it.
+                cloud.retain(|p| !near(p, at(&closest), 0.03));
+            }
+            // Three points 2 cm beside the HIP, 3 cm from the surface: isolated; a NaN.
+            for d in [[0.02, 0.0, 0.0], [0.0, -0.02, 0.0], [0.0, 0.0, 0.02]] {
+                cloud.push(at(&hip) + Vec3::from_array(d));
+            }
+            cloud.push(Vec3::NAN);
+            let sums = shells::accumulate_cpu(&cloud, &layout);
+            let t = seed as f64 / 30.0;
+            let a = plain.estimate(&cloud, &hip, camera, 0, t);
+            let b = summed.estimate_summed(&cloud, (sums, Backend::Cpu), &hip, camera, 0, t);
+            let input = shells_input(&config, &b.memory, &hip);
+            assert_eq!(
+                b.sums,
+                shells::accumulate_cpu(&input, &layout),
+                "seed {seed}"
+            );
+            assert_eq!(b.sums.non_finite, 0);
+            assert_eq!(
+                (&b.sums, &b.memory, &b.abstraction),
+                (&a.sums, &a.memory, &a.abstraction)
+            );
+            assert!(b.abstraction.estimate.surface.is_some());
+            merged += b.memory.merged_points;
+            isolated += b.isolated_points;
+        }
+        assert!(
+            merged > 0 && isolated >= 12,
+            "{merged} merged, {isolated} isolated"
+        );
+    }
+
+    #[test]
+    fn nearest_to_hip_keeps_the_estimators_own_moments_on_both_backends() {
+        let (hip, closest, _) = hip_and_truth();
+        let surface = SurfaceConfig {
+            clusters: ClusterSelection::NearestToHip,
+            ..SurfaceConfig::default()
+        };
+        assert!(surface.frontend_shells(&hip).is_none());
+        let new =
+            |backend| CameraChain::new(backend, FrontendConfig::default(), surface.clone(), None);
+        let mut cpu = new(Backend::Cpu).unwrap();
+        let mut gpu = new(Backend::Gpu).expect("GPU tests need Vulkan");
+        for seed in 0..2 {
+            let f = frame(seed, 0);
+            let (c, g) = (
+                cpu.process(&f, &hip, &[]).unwrap(),
+                gpu.process(&f, &hip, &[]).unwrap(),
+            );
+            assert!(g.front.shell_sums.is_none());
+            assert_eq!(g.surface.backend, Backend::Gpu);
+            let input = shells_input(&surface, &g.surface.memory, &hip);
+            let layout = ShellLayout::new(&hip, &surface.shells.radii_m);
+            assert_eq!(g.surface.sums, shells::accumulate_cpu(&input, &layout));
+            assert_eq!(g.kept.len(), c.kept.len());
+            let (ge, ce) = (g.estimate().surface.unwrap(), c.estimate().surface.unwrap());
+            assert!((ge.centroid_m - ce.centroid_m).norm() < 1e-4);
+            assert!((ce.centroid_m - closest).norm() < 8e-3);
         }
         assert!(gpu.gpu_fallback().is_none());
     }

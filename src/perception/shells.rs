@@ -288,6 +288,28 @@ pub struct ShellSums {
 }
 
 impl ShellSums {
+    /// The sums of this point set and `other`'s together (the same layout).
+    pub fn add(&mut self, other: &ShellSums) {
+        for (mine, theirs) in self.sums.iter_mut().zip(&other.sums) {
+            for (m, t) in mine.iter_mut().zip(theirs) {
+                *m += t;
+            }
+        }
+        self.non_finite += other.non_finite;
+        self.outside += other.outside;
+    }
+
+    /// The sums of this point set without `other`, a subset of it (the same layout).
+    pub fn subtract(&mut self, other: &ShellSums) {
+        for (mine, theirs) in self.sums.iter_mut().zip(&other.sums) {
+            for (m, t) in mine.iter_mut().zip(theirs) {
+                *m -= t;
+            }
+        }
+        self.non_finite -= other.non_finite;
+        self.outside -= other.outside;
+    }
+
     /// f64 moments in metres about the layout's HIP.
     pub fn to_moments(&self, layout: &ShellLayout) -> Vec<Moments> {
         self.sums
@@ -953,6 +975,8 @@ fn curvature_correction(
 
 /// u32 words of the GPU result: 64-bit sums per shell and moment, then two counters.
 const RESULT_WORDS: usize = MAX_SHELLS * MOMENT_COUNT * 2 + 2;
+/// Bytes of the GPU sums a frame reads back ([`GpuShells::copy_sums`], [`read_sums`]).
+pub const SUMS_BYTES: u64 = (RESULT_WORDS * 4) as u64;
 /// Workgroups at most per pass; threads stride over the points beyond that.
 const MAX_WORKGROUPS: u32 = 256;
 /// Points the point buffer holds from the start (192 kB): a D435 frame's selected clusters
@@ -960,17 +984,44 @@ const MAX_WORKGROUPS: u32 = 256;
 /// grow it; a larger input doubles it.
 const INITIAL_POINTS: u64 = 16_384;
 
-/// The GPU per-shell moment pass (`shaders/shells.wgsl`); built once, one submit and one
-/// small readback per frame. Same [`ShellSums`] as [`accumulate_cpu`], bit for bit.
+/// The front end's clustered points on the GPU (the voxel output and the cluster labels of
+/// the same frame), whose kept clusters' per-shell sums [`GpuShells::record_clusters`] adds.
+pub struct ClusteredPoints<'a> {
+    /// `vec4<f32>` per point, the point in xyz.
+    pub points: &'a wgpu::Buffer,
+    /// The buffer holding the point count (GPU-side), and the count's word in it.
+    pub count: &'a wgpu::Buffer,
+    pub count_word: u32,
+    /// Points `points` and `labels` hold at most; the count is clamped to it.
+    pub capacity: u32,
+    /// Each point's canonical component label (`u32`), as `Clustering::component`.
+    pub labels: &'a wgpu::Buffer,
+    /// Indirect dispatch arguments of one thread per point: buffer and offset.
+    pub per_point_dispatch: (&'a wgpu::Buffer, u64),
+    /// Component sizes kept as clusters ([`super::cluster::ClusterConfig::kept_sizes`]).
+    pub kept_sizes: std::ops::RangeInclusive<u32>,
+}
+
+/// The GPU per-shell moment passes (`shaders/shells.wgsl`), built once. Two uses, the same
+/// [`ShellSums`] as [`accumulate_cpu`], bit for bit:
+/// - [`Self::accumulate`]: a point list uploaded, one submission and one small readback;
+/// - [`Self::record_clusters`] + [`Self::copy_sums`]: inside the front end's frame, over the
+///   points of the kept clusters (`ClusterSelection::All`), read back with the frame.
 pub struct GpuShells {
     layout: wgpu::BindGroupLayout,
+    cluster_layout: wgpu::BindGroupLayout,
     pipeline: wgpu::ComputePipeline,
+    cluster_sizes: wgpu::ComputePipeline,
+    cluster_moments: wgpu::ComputePipeline,
     params: wgpu::Buffer,
     tables: wgpu::Buffer,
     points: wgpu::Buffer,
     sums: wgpu::Buffer,
     readback: wgpu::Buffer,
+    /// Points per component label ([`Self::record_clusters`]), `u32` per point of capacity.
+    sizes: Option<wgpu::Buffer>,
     group: CachedBindGroup,
+    cluster_group: CachedBindGroup,
 }
 
 impl GpuShells {
@@ -981,11 +1032,23 @@ impl GpuShells {
             "shells bind group layout",
             &[Uniform, StorageReadOnly, StorageReadOnly, Storage],
         )?;
+        let cluster_layout = shader::bind_group_layout(
+            ctx,
+            "shells cluster bind group layout",
+            &[StorageReadOnly, StorageReadOnly, StorageReadOnly, Storage],
+        )?;
         let pipeline =
             shader::compute_pipelines(ctx, &shader::SHELLS, &[&layout], &["shell_moments"])?
                 .remove(0);
+        let mut cluster_pipelines = shader::compute_pipelines(
+            ctx,
+            &shader::SHELLS,
+            &[&layout, &cluster_layout],
+            &["cluster_sizes", "cluster_shell_moments"],
+        )?;
+        let cluster_moments = cluster_pipelines.remove(1);
+        let cluster_sizes = cluster_pipelines.remove(0);
         let tables: Vec<u32> = PARENT.iter().chain(AXIS.iter()).copied().collect();
-        let result_bytes = (RESULT_WORDS * 4) as u64;
         let (params, tables_buf, points, sums, readback) = ctx.scoped("shells buffers", |_| {
             let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
                 ctx.create_buffer(&wgpu::BufferDescriptor {
@@ -1014,24 +1077,71 @@ impl GpuShells {
                 ),
                 buffer(
                     "shells sums",
-                    result_bytes,
+                    SUMS_BYTES,
                     U::STORAGE | U::COPY_DST | U::COPY_SRC,
                 ),
-                buffer("shells readback", result_bytes, U::MAP_READ | U::COPY_DST),
+                buffer("shells readback", SUMS_BYTES, U::MAP_READ | U::COPY_DST),
             )
         })?;
         ctx.queue()
             .write_buffer(&tables_buf, 0, bytemuck::cast_slice(&tables));
         Ok(Self {
             layout,
+            cluster_layout,
             pipeline,
+            cluster_sizes,
+            cluster_moments,
             params,
             tables: tables_buf,
             points,
             sums,
             readback,
+            sizes: None,
             group: CachedBindGroup::default(),
+            cluster_group: CachedBindGroup::default(),
         })
+    }
+
+    /// Bytes of GPU memory the stage's buffers hold now.
+    pub fn gpu_bytes(&self) -> u64 {
+        [
+            &self.params,
+            &self.tables,
+            &self.points,
+            &self.sums,
+            &self.readback,
+        ]
+        .iter()
+        .map(|b| b.size())
+        .sum::<u64>()
+            + self.sizes.as_ref().map_or(0, wgpu::Buffer::size)
+    }
+
+    fn write_params(&self, ctx: &GpuContext, layout: &ShellLayout, params: ShellParams) {
+        let mut params = ShellParams {
+            hip: layout.hip,
+            outer_radius: layout.outer_radius,
+            steps_per_m: layout.steps_per_m,
+            shell_count: layout.shell_count() as u32,
+            ..params
+        };
+        params.bounds[..layout.shell_count()].copy_from_slice(&layout.bounds);
+        params.inv_radius[..layout.shell_count()].copy_from_slice(&layout.inv_radius);
+        ctx.queue()
+            .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+    }
+
+    /// Bind group 0 (parameters, point list, tables, sums), made when a buffer changed.
+    fn group(&mut self, ctx: &GpuContext) -> wgpu::BindGroup {
+        let entries =
+            [&self.params, &self.points, &self.tables, &self.sums].map(|b| b.as_entire_binding());
+        let entries: [wgpu::BindGroupEntry; 4] = std::array::from_fn(|i| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: entries[i].clone(),
+        });
+        self.group
+            .get(ctx, "shells bind group", &self.layout, &entries)
+            .clone()
     }
 
     /// Per-shell sums of `points` (world frame, NaN allowed) for `layout`.
@@ -1058,44 +1168,16 @@ impl GpuShells {
                 })
             })?;
         }
-        let mut params = ShellParams {
-            hip: layout.hip,
+        let params = ShellParams {
             point_count: n,
-            outer_radius: layout.outer_radius,
-            steps_per_m: layout.steps_per_m,
-            shell_count: layout.shell_count() as u32,
             ..ShellParams::default()
         };
-        params.bounds[..layout.shell_count()].copy_from_slice(&layout.bounds);
-        params.inv_radius[..layout.shell_count()].copy_from_slice(&layout.inv_radius);
-        let queue = ctx.queue();
-        queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
+        self.write_params(ctx, layout, params);
         if n > 0 {
-            queue.write_buffer(&self.points, 0, bytemuck::cast_slice(points));
+            ctx.queue()
+                .write_buffer(&self.points, 0, bytemuck::cast_slice(points));
         }
-        let bind_group = self.group.get(
-            ctx,
-            "shells bind group",
-            &self.layout,
-            &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: self.params.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: self.points.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: self.tables.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: self.sums.as_entire_binding(),
-                },
-            ],
-        );
+        let bind_group = self.group(ctx);
         let commands = ctx.scoped("shells record", |device| {
             let mut encoder = device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("shells frame"),
@@ -1107,25 +1189,108 @@ impl GpuShells {
                     timestamp_writes: None,
                 });
                 pass.set_pipeline(&self.pipeline);
-                pass.set_bind_group(0, bind_group, &[]);
+                pass.set_bind_group(0, &bind_group, &[]);
                 pass.dispatch_workgroups(shader::workgroups_for(n).clamp(1, MAX_WORKGROUPS), 1, 1);
             }
-            encoder.copy_buffer_to_buffer(&self.sums, 0, &self.readback, 0, self.sums.size());
+            self.copy_sums(&mut encoder, &self.readback, 0);
             encoder.finish()
         })?;
-        let shells = layout.shell_count();
-        ctx.submit_and_read("shells moments", commands, &self.readback, |bytes| {
-            let words: &[u32] = bytemuck::cast_slice(bytes);
-            let word64 =
-                |i: usize| (u64::from(words[2 * i + 1]) << 32 | u64::from(words[2 * i])) as i64;
-            ShellSums {
-                sums: (0..shells)
-                    .map(|s| std::array::from_fn(|m| word64(s * MOMENT_COUNT + m)))
-                    .collect(),
-                non_finite: words[RESULT_WORDS - 2],
-                outside: words[RESULT_WORDS - 1],
-            }
+        let readback = (&self.readback, SUMS_BYTES);
+        ctx.submit_and_read("shells moments", commands, readback, |bytes| {
+            read_sums(bytes, layout)
         })
+    }
+
+    /// Sizes the per-component counters for clustered outputs of up to `capacity` points
+    /// (grows only).
+    pub fn reserve_clusters(&mut self, ctx: &GpuContext, capacity: u32) -> Result<(), GpuError> {
+        let bytes = 4 * u64::from(capacity.max(shader::WORKGROUP_SIZE));
+        if self.sizes.as_ref().is_none_or(|b| b.size() < bytes) {
+            ctx.check_storage_size("shells cluster sizes", bytes)?;
+            self.sizes = Some(ctx.scoped("shells cluster sizes", |_| {
+                ctx.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("shells cluster sizes"),
+                    size: bytes,
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                })
+            })?);
+        }
+        Ok(())
+    }
+
+    /// Records, into the front end's frame, the per-shell sums of the points of `input`'s
+    /// kept clusters for `layout`: the sums cleared, then one timed pass of two dispatches,
+    /// `cluster_sizes` (one thread per point, its count read on the GPU) and
+    /// `cluster_shell_moments` (threads striding over the points). [`Self::copy_sums`] then
+    /// puts them in the frame's readback.
+    pub fn record_clusters(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        input: &ClusteredPoints<'_>,
+        layout: &ShellLayout,
+        timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
+    ) -> Result<(), GpuError> {
+        self.reserve_clusters(ctx, input.capacity)?;
+        let params = ShellParams {
+            count_word: input.count_word,
+            capacity: input.capacity,
+            min_size: *input.kept_sizes.start(),
+            max_size: *input.kept_sizes.end(),
+            ..ShellParams::default()
+        };
+        self.write_params(ctx, layout, params);
+        let group = self.group(ctx);
+        let sizes = self.sizes.as_ref().expect("reserved above");
+        let entries =
+            [input.points, input.count, input.labels, sizes].map(|b| b.as_entire_binding());
+        let entries: [wgpu::BindGroupEntry; 4] = std::array::from_fn(|i| wgpu::BindGroupEntry {
+            binding: i as u32,
+            resource: entries[i].clone(),
+        });
+        let cluster_group = self
+            .cluster_group
+            .get(
+                ctx,
+                "shells cluster bind group",
+                &self.cluster_layout,
+                &entries,
+            )
+            .clone();
+        encoder.clear_buffer(&self.sums, 0, None);
+        encoder.clear_buffer(sizes, 0, Some(4 * u64::from(input.capacity)));
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("shells cluster moments"),
+            timestamp_writes,
+        });
+        pass.set_bind_group(0, &group, &[]);
+        pass.set_bind_group(1, &cluster_group, &[]);
+        pass.set_pipeline(&self.cluster_sizes);
+        let (args, offset) = input.per_point_dispatch;
+        pass.dispatch_workgroups_indirect(args, offset);
+        pass.set_pipeline(&self.cluster_moments);
+        let groups = shader::workgroups_for(input.capacity).clamp(1, MAX_WORKGROUPS);
+        pass.dispatch_workgroups(groups, 1, 1);
+        Ok(())
+    }
+
+    /// Copies the sums ([`SUMS_BYTES`]) into `dst` at `offset` (a multiple of 4).
+    pub fn copy_sums(&self, encoder: &mut wgpu::CommandEncoder, dst: &wgpu::Buffer, offset: u64) {
+        encoder.copy_buffer_to_buffer(&self.sums, 0, dst, offset, SUMS_BYTES);
+    }
+}
+
+/// The [`ShellSums`] of `layout`'s shells in the [`SUMS_BYTES`] the GPU passes wrote.
+pub fn read_sums(bytes: &[u8], layout: &ShellLayout) -> ShellSums {
+    let words: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[..SUMS_BYTES as usize]);
+    let word64 = |i: usize| (u64::from(words[2 * i + 1]) << 32 | u64::from(words[2 * i])) as i64;
+    ShellSums {
+        sums: (0..layout.shell_count())
+            .map(|s| std::array::from_fn(|m| word64(s * MOMENT_COUNT + m)))
+            .collect(),
+        non_finite: words[RESULT_WORDS - 2],
+        outside: words[RESULT_WORDS - 1],
     }
 }
 

@@ -1285,9 +1285,12 @@ impl GpuVoxel {
                     });
             self.record(ctx, &mut encoder, &input, None);
             self.copy_results(&mut encoder, &readback, 0);
-            let result = ctx.submit_and_read("voxel", encoder.finish(), &readback, |b| {
-                self.decode(ctx, b, config, config.leaf_m)
-            })?;
+            let result = ctx.submit_and_read(
+                "voxel",
+                encoder.finish(),
+                (&readback, readback.size()),
+                |b| self.decode(ctx, b, config, config.leaf_m),
+            )?;
             if let Some((mut out, ticks)) = result? {
                 out.retries = retries;
                 let period_ns = ctx.timestamp_period_ns().unwrap_or(0.0);
@@ -1403,9 +1406,12 @@ pub(crate) mod tests {
         voxel.record(ctx, &mut encoder, &input, Some(&mask_buf));
         voxel.copy_results(&mut encoder, &readback, 0);
         let gpu = ctx
-            .submit_and_read("test", encoder.finish(), &readback, |b| {
-                voxel.decode(ctx, b, &config, config.leaf_m)
-            })
+            .submit_and_read(
+                "test",
+                encoder.finish(),
+                (&readback, readback.size()),
+                |b| voxel.decode(ctx, b, &config, config.leaf_m),
+            )
             .unwrap()
             .unwrap()
             .expect("no overflow")

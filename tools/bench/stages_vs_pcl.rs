@@ -557,6 +557,7 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
     // readback, decoding, and the surface stage after the front end).
     let (mut to_first, mut after_last) = (Vec::new(), Vec::new());
     let created_before = ctx.created();
+    let submissions_before = ctx.submissions();
     for (frame, hip, primitives) in &frames {
         let called = monotonic_ns();
         let g = gpu.process(frame, hip, primitives)?;
@@ -591,6 +592,7 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         );
     }
     let created = ctx.created() - created_before;
+    let submissions = ctx.submissions() - submissions_before;
     let count = |k: usize| median(counts.iter().map(|c| c[k] as f64).collect());
     println!(
         "\nD435 chain: {} frames of camera 0 of {} ({width}x{height}, spread over the scene), node default configs; medians per frame\n",
@@ -610,11 +612,12 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
     );
     println!("GPU passes (timestamp ms): {}", passes.line());
     println!(
-        "GPU objects created by the GPU chain over the {} frames after its warm-up: {} buffers or textures, {} bind groups; it holds {:.1} MB of GPU buffers",
+        "GPU objects created by the GPU chain over the {} frames after its warm-up: {} buffers or textures, {} bind groups; it holds {:.1} MB of GPU buffers; {:.2} submissions per frame",
         frames.len(),
         created.buffers,
         created.bind_groups,
-        gpu.gpu_buffer_bytes().unwrap_or(0) as f64 / 1e6
+        gpu.gpu_buffer_bytes().unwrap_or(0) as f64 / 1e6,
+        submissions as f64 / frames.len() as f64
     );
     if to_first.is_empty() {
         println!("GPU passes on the host clock: no ({})\n", ctx.host_clock());
@@ -958,6 +961,7 @@ fn main() -> anyhow::Result<()> {
             points: FramePoints::Points(&raw),
             crop: Some(scene.clone()),
             want_crop_keep: false,
+            shells: None,
         };
         let mut passes = PassTimes::default();
         for i in 0..=args.runs {
