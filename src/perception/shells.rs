@@ -806,40 +806,11 @@ const QUADRIC_PASSES: usize = 3;
 /// IV-E), each weighted `1 / r_i` like Alg. 2's average. While the outermost of them lies
 /// further than `quadric_max_shell_residual_m` (RMS) from the fitted surface, or no trusted
 /// field fits with it, it reaches something else (a second body, or the robot's edge) and
-/// is dropped before fitting again. When no fit survives, the same over the shells Alg. 2
-/// kept: a few points at the edge of the robot's shadow in a rejected inner shell must not
-/// spoil the field of the rings beyond it; these agree with Alg. 2's normal by construction,
-/// so their field starts from it. `None` when no fit survives either way.
+/// is dropped before fitting again. `None` when no fit survives.
 fn quadric_refinement(
     fits: &[Accepted],
     normal: &Unit<Vector3<f64>>,
     hip: &Point3<f64>,
-    config: &ShellConfig,
-) -> Option<HeightField> {
-    let fitted: Vec<&Accepted> = fits.iter().collect();
-    let kept: Vec<&Accepted> = fits.iter().filter(|a| !a.fit.rejected).collect();
-    refine_over(fitted, normal, hip, Seed::NormalOrPoints, config).or_else(|| {
-        (kept.len() < fits.len())
-            .then(|| refine_over(kept, normal, hip, Seed::Normal, config))
-            .flatten()
-    })
-}
-
-/// The first axis of a height field ([`height_field_over`]).
-#[derive(Clone, Copy, PartialEq)]
-enum Seed {
-    /// Alg. 2's normal.
-    Normal,
-    /// Alg. 2's normal, or the direction from the HIP to the points where the two disagree.
-    NormalOrPoints,
-}
-
-/// [`quadric_refinement`] over one set of shells.
-fn refine_over(
-    fits: Vec<&Accepted>,
-    normal: &Unit<Vector3<f64>>,
-    hip: &Point3<f64>,
-    seed: Seed,
     config: &ShellConfig,
 ) -> Option<HeightField> {
     let innermost = fits
@@ -847,12 +818,12 @@ fn refine_over(
         .map(|a| a.fit.inner_radius_m)
         .fold(f64::INFINITY, f64::min);
     let mut near: Vec<&Accepted> = fits
-        .into_iter()
+        .iter()
         .filter(|a| a.fit.inner_radius_m < innermost + config.quadric_reach_m)
         .collect();
     near.sort_by(|a, b| a.fit.inner_radius_m.total_cmp(&b.fit.inner_radius_m));
     loop {
-        let hf = height_field_over(&near, normal, hip, seed, config);
+        let hf = height_field_over(&near, normal, hip, config);
         let strays = match (&hf, near.last()) {
             _ if near.len() < 2 => false,
             (Some(hf), Some(outer)) => hf
@@ -868,17 +839,15 @@ fn refine_over(
     }
 }
 
-/// One height field over `near`: the first frame's axis is Alg. 2's normal, or, with
-/// [`Seed::NormalOrPoints`] and where that disagrees by more than `quadric_max_tilt_rad` with
-/// the direction from the HIP to these points (Alg. 2 followed the second body), that
-/// direction; `None` when it cannot be fitted,
+/// One height field over `near`: the first frame's axis is Alg. 2's normal, or, where that
+/// disagrees by more than `quadric_max_tilt_rad` with the direction from the HIP to these
+/// points (Alg. 2 followed the second body), that direction; `None` when it cannot be fitted,
 /// ends more than `quadric_max_tilt_rad` from its first axis or does not determine its
 /// closest point within `quadric_max_closest_se_m`.
 fn height_field_over(
     near: &[&Accepted],
     normal: &Unit<Vector3<f64>>,
     hip: &Point3<f64>,
-    seed: Seed,
     config: &ShellConfig,
 ) -> Option<HeightField> {
     let scale = near
@@ -904,7 +873,7 @@ fn height_field_over(
     // either; the HIP lies on the outer side of the surface it is about to touch.
     let towards = Unit::try_new(hip - unweighted.mean(), 1e-12)?;
     let line_angle = towards.angle(normal).min((-towards).angle(normal));
-    let seed = if seed == Seed::Normal || line_angle <= config.quadric_max_tilt_rad {
+    let seed = if line_angle <= config.quadric_max_tilt_rad {
         *normal
     } else {
         towards
