@@ -311,7 +311,7 @@ pub struct RunOptions {
 
 /// Largest frame stamp a timed source may carry, s (UNIX time of the year 2286: any real
 /// clock, ROS 2 stamps included; 1e300 is a corrupt record).
-const MAX_STAMP_S: f64 = 1e10;
+pub const MAX_STAMP_S: f64 = 1e10;
 
 /// Ticks between two [`NodeEvent::Tick`]s (100 Hz at 800 Hz: more than a display shows).
 pub const OBSERVER_TICK_EVERY: u64 = 8;
