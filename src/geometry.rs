@@ -55,8 +55,10 @@ impl Primitive {
     /// and every size above 0 and at most [`MAX_PRIMITIVE_M`].
     pub fn validate(&self) -> Result<(), PrimitiveError> {
         let turn = std::f64::consts::TAU;
-        let (coords, sizes): (Vec<(&'static str, f64, f64)>, Vec<(&'static str, f64)>) = match self
-        {
+        // (field, value, largest magnitude) and (field, size)
+        type Coordinate = (&'static str, f64, f64);
+        type Size = (&'static str, f64);
+        let (coords, sizes): (Vec<Coordinate>, Vec<Size>) = match self {
             Primitive::Sphere { center_m, radius_m } => (
                 center_m
                     .iter()
@@ -87,7 +89,9 @@ impl Primitive {
                     .collect(),
             ),
         };
-        if let Some(&(name, value, bound)) = coords.iter().find(|(_, v, b)| !(v.abs() <= *b)) {
+        if let Some(&(name, value, bound)) =
+            coords.iter().find(|(_, v, b)| v.is_nan() || v.abs() > *b)
+        {
             return Err(PrimitiveError::OutOfRange { name, value, bound });
         }
         match sizes

@@ -140,11 +140,9 @@ impl ControllerConfig {
             ));
         }
         // A normal is read as given (serde does not normalise a `Unit`).
-        if let Some(p) = self
-            .fixed_planes
-            .iter()
-            .find(|p| !((p.normal.norm() - 1.0).abs() <= 1e-6))
-        {
+        if let Some(p) = self.fixed_planes.iter().find(|p| {
+            (p.normal.norm() - 1.0).abs().is_nan() || (p.normal.norm() - 1.0).abs() > 1e-6
+        }) {
             return Err(ControllerConfigError::Value(format!(
                 "fixed_planes.normal must be a unit vector, got {:?}",
                 p.normal.as_ref()
