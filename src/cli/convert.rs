@@ -44,7 +44,7 @@ fn depth_scale(s: &str) -> Result<f64, String> {
     if (lo..=hi).contains(&v) {
         Ok(v)
     } else {
-        Err(format!("must be {lo} to {hi} m per unit, got {v}"))
+        Err(format!("must be {lo:?} to {hi:?} m per unit, got {v:?}"))
     }
 }
 

@@ -34,7 +34,7 @@ mod numbers {
         if v.is_finite() {
             Ok(v)
         } else {
-            Err(format!("must be a finite number, got {v}"))
+            Err(format!("must be a finite number, got {v:?}"))
         }
     }
 
@@ -48,7 +48,7 @@ mod numbers {
         if v.abs() <= MAX_DISTANCE_M {
             Ok(v)
         } else {
-            Err(format!("must be within +-{MAX_DISTANCE_M} m, got {v}"))
+            Err(format!("must be within +-{MAX_DISTANCE_M} m, got {v:?}"))
         }
     }
 
@@ -75,7 +75,7 @@ mod numbers {
         if v > 0.0 {
             Ok(v)
         } else {
-            Err(format!("must be positive, got {v}"))
+            Err(format!("must be positive, got {v:?}"))
         }
     }
 
@@ -85,7 +85,7 @@ mod numbers {
         if v >= 0.0 {
             Ok(v)
         } else {
-            Err(format!("must not be negative, got {v}"))
+            Err(format!("must not be negative, got {v:?}"))
         }
     }
 
@@ -96,7 +96,7 @@ mod numbers {
             if v <= max {
                 Ok(v)
             } else {
-                Err(format!("must be at most {max}, got {v}"))
+                Err(format!("must be at most {max}, got {v:?}"))
             }
         }
     }
@@ -108,7 +108,7 @@ mod numbers {
             if v <= max {
                 Ok(v)
             } else {
-                Err(format!("must be at most {max}, got {v}"))
+                Err(format!("must be at most {max}, got {v:?}"))
             }
         }
     }
@@ -130,7 +130,7 @@ mod numbers {
         if v <= 1000.0 {
             Ok(v)
         } else {
-            Err(format!("must be at most 1000, got {v}"))
+            Err(format!("must be at most 1000, got {v:?}"))
         }
     }
 }

@@ -1111,7 +1111,7 @@ mod tests {
     fn primitive_count_is_bounded_so_no_shader_loop_is_cut_short() {
         let ctx = crate::gpu::context::test_context();
         let far = |k: usize| Primitive::Sphere {
-            center_m: Point3::new(10.0 + k as f64, 0.0, 0.0),
+            center_m: Point3::new(10.0 + 0.3 * k as f64, 0.0, 0.0),
             radius_m: 0.01,
         };
         let mut robot: Vec<Primitive> = (0..MAX_CROP_PRIMITIVES - 1).map(far).collect();
