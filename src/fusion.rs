@@ -37,6 +37,10 @@ use nalgebra::{DMatrix, Point3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
 
+/// Longest time a stale or future-stamped surface may be trusted, seconds: five frame
+/// periods of the D435's slowest 6 Hz mode; beyond it a value defeats stale detection.
+pub const MAX_STALE_S: f64 = 1.0;
+
 /// Gains of one PID loop. The output is a rate (m/s for the centroid, rad/s for the normal).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -304,6 +308,16 @@ impl FusionConfig {
                 value,
             })
         };
+        // A longer timeout holds a constraint that long on a dead camera; a longer future
+        // margin lets a lying stamp keep the surface fresh that long.
+        for (field, value) in [
+            ("stale_timeout_s", self.stale_timeout_s),
+            ("max_future_stamp_s", self.max_future_stamp_s),
+        ] {
+            if value > MAX_STALE_S {
+                return bad(field, value);
+            }
+        }
         if !(0.0..=self.stale_timeout_s).contains(&self.max_extrapolation_s) {
             return bad("max_extrapolation_s", self.max_extrapolation_s);
         }

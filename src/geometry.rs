@@ -33,29 +33,45 @@ pub enum Primitive {
     },
 }
 
+/// Largest coordinate and size of a primitive (m): a robot is a few metres across; beyond
+/// this a value is a typo or a unit mix-up (a sphere of 1e300 m swallows every point).
+pub const MAX_PRIMITIVE_M: f64 = 100.0;
+
 /// Why a primitive is unusable.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum PrimitiveError {
-    #[error("primitive has a non-finite coordinate")]
-    NonFinite,
-    #[error("primitive size must be positive, got {0} m")]
-    NonPositiveSize(f64),
+    #[error("primitive {name} must be finite and within +-{bound}, got {value}")]
+    OutOfRange {
+        name: &'static str,
+        value: f64,
+        bound: f64,
+    },
+    #[error("primitive {name} must be above 0 and at most {MAX_PRIMITIVE_M} m, got {value}")]
+    BadSize { name: &'static str, value: f64 },
 }
 
 impl Primitive {
-    /// Checks that every value is finite and every size positive.
+    /// Checks that every coordinate is within [`MAX_PRIMITIVE_M`] (angles within one turn)
+    /// and every size above 0 and at most [`MAX_PRIMITIVE_M`].
     pub fn validate(&self) -> Result<(), PrimitiveError> {
-        let (coords, sizes): (Vec<f64>, Vec<f64>) = match self {
-            Primitive::Sphere { center_m, radius_m } => {
-                (center_m.coords.iter().copied().collect(), vec![*radius_m])
-            }
-            Primitive::Capsule { a_m, b_m, radius_m } => (
-                a_m.coords
+        let turn = std::f64::consts::TAU;
+        // (field, value, largest magnitude) and (field, size)
+        type Coordinate = (&'static str, f64, f64);
+        type Size = (&'static str, f64);
+        let (coords, sizes): (Vec<Coordinate>, Vec<Size>) = match self {
+            Primitive::Sphere { center_m, radius_m } => (
+                center_m
                     .iter()
-                    .chain(b_m.coords.iter())
-                    .copied()
+                    .map(|&v| ("center_m", v, MAX_PRIMITIVE_M))
                     .collect(),
-                vec![*radius_m],
+                vec![("radius_m", *radius_m)],
+            ),
+            Primitive::Capsule { a_m, b_m, radius_m } => (
+                a_m.iter()
+                    .map(|&v| ("a_m", v, MAX_PRIMITIVE_M))
+                    .chain(b_m.iter().map(|&v| ("b_m", v, MAX_PRIMITIVE_M)))
+                    .collect(),
+                vec![("radius_m", *radius_m)],
             ),
             Primitive::OrientedBox {
                 center_m,
@@ -63,19 +79,26 @@ impl Primitive {
                 half_extents_m,
             } => (
                 center_m
-                    .coords
                     .iter()
-                    .chain(rpy_rad.iter())
-                    .copied()
+                    .map(|&v| ("center_m", v, MAX_PRIMITIVE_M))
+                    .chain(rpy_rad.iter().map(|&v| ("rpy_rad", v, turn)))
                     .collect(),
-                half_extents_m.iter().copied().collect(),
+                half_extents_m
+                    .iter()
+                    .map(|&v| ("half_extents_m", v))
+                    .collect(),
             ),
         };
-        if coords.iter().chain(&sizes).any(|v| !v.is_finite()) {
-            return Err(PrimitiveError::NonFinite);
+        if let Some(&(name, value, bound)) =
+            coords.iter().find(|(_, v, b)| v.is_nan() || v.abs() > *b)
+        {
+            return Err(PrimitiveError::OutOfRange { name, value, bound });
         }
-        match sizes.into_iter().find(|&s| s <= 0.0) {
-            Some(s) => Err(PrimitiveError::NonPositiveSize(s)),
+        match sizes
+            .into_iter()
+            .find(|&(_, v)| !(v > 0.0 && v <= MAX_PRIMITIVE_M))
+        {
+            Some((name, value)) => Err(PrimitiveError::BadSize { name, value }),
             None => Ok(()),
         }
     }
@@ -232,13 +255,32 @@ mod tests {
             center_m: Point3::origin(),
             radius_m: -1.0,
         };
-        assert_eq!(s.validate(), Err(PrimitiveError::NonPositiveSize(-1.0)));
+        assert_eq!(
+            s.validate(),
+            Err(PrimitiveError::BadSize {
+                name: "radius_m",
+                value: -1.0
+            })
+        );
+        let huge = Primitive::Sphere {
+            center_m: Point3::origin(),
+            radius_m: 1e300,
+        };
+        assert!(
+            huge.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("radius_m")
+        );
         let c = Primitive::Capsule {
             a_m: Point3::new(f64::NAN, 0.0, 0.0),
             b_m: Point3::origin(),
             radius_m: 0.1,
         };
-        assert_eq!(c.validate(), Err(PrimitiveError::NonFinite));
+        assert!(matches!(
+            c.validate(),
+            Err(PrimitiveError::OutOfRange { name: "a_m", value, .. }) if value.is_nan()
+        ));
     }
 
     #[test]

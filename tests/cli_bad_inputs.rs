@@ -57,7 +57,11 @@ fn convert_refuses_bad_depth_inputs() {
         "--intrinsics=525,525,2,1.5".as_ref(),
         "--depth-scale-m=1e300".as_ref(),
     ]);
-    assert!(err.contains("depth scale 1e300 m per unit"), "{err}");
+    assert!(err.contains("--depth-scale-m"), "{err}");
+    assert!(
+        err.contains("must be 1e-6 to 1.0 m per unit, got 1e300"),
+        "{err}"
+    );
     // The same image declaring 8192 x 8192 pixels (a 151 kB file of this size took 1.6 GB).
     let mut bytes = std::fs::read(&png).unwrap();
     bytes[16..20].copy_from_slice(&8192u32.to_be_bytes());
@@ -133,7 +137,8 @@ fn can_decode_into_a_closed_pipe_ends_quietly() {
 /// Every numeric argument refuses NaN, infinity and values it cannot mean (a negative or zero
 /// duration, length or rate, a clock rate the loop cannot follow) with an error naming the
 /// argument, before any work starts (`--duration nan` and `--speed 1e7` used to run for ever,
-/// `--duration -1` to succeed).
+/// `--duration -1` to succeed, `--view-rate-hz 1e9` to abort on its allocation). The full
+/// table, every subcommand and config key, is `tools/bad_inputs.sh`.
 #[test]
 fn numeric_arguments_are_checked_and_named() {
     let cases: &[(&[&str], &str)] = &[
@@ -153,6 +158,18 @@ fn numeric_arguments_are_checked_and_named() {
         (&["convert", "--depth-scale-m", "nan"], "--depth-scale-m"),
         (&["surface", "--hip", "0,nan,0"], "--hip"),
         (&["sim", "--rising-speed", "-0.5"], "--rising-speed"),
+        (
+            &["crop", "--robot-margin-per-m2", "1e300"],
+            "--robot-margin-per-m2",
+        ),
+        (&["crop", "--radius", "1e300"], "--radius"),
+        (&["run", "--duration", "1e300"], "--duration"),
+        (
+            &["view", "--settle-frames", "4000000000"],
+            "--settle-frames",
+        ),
+        (&["view", "--view-rate-hz", "1e9"], "--view-rate-hz"),
+        (&["cluster", "--min-size", "-5"], "--min-size"),
     ];
     for (args, name) in cases {
         let err = run_err(*args);

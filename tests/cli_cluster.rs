@@ -62,5 +62,5 @@ fn cluster_command_reproduces_pcl_sizes_and_writes_one_file_per_cluster() {
     std::fs::remove_dir_all(&dir).ok();
     let bad = run(&["cluster", &bun0, "--min-size", "5", "--max-size", "4"]);
     assert!(!bad.status.success());
-    assert!(String::from_utf8_lossy(&bad.stderr).contains("min_cluster_points"));
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("--min-size 5 exceeds --max-size 4"));
 }

@@ -42,3 +42,50 @@ fn every_corpus_and_regression_input_is_handled() {
     }
     let _ = std::fs::remove_file(targets::recording_file());
 }
+
+/// The dotted path of every value in `value` (`surface.shells.radii_m`), tables walked.
+fn key_paths(value: &toml::Value, prefix: &str, out: &mut std::collections::BTreeSet<String>) {
+    if let toml::Value::Table(table) = value {
+        for (key, v) in table {
+            let path = if prefix.is_empty() {
+                key.clone()
+            } else {
+                format!("{prefix}.{key}")
+            };
+            key_paths(v, &path, out);
+            out.insert(path);
+        }
+    }
+}
+
+/// The `config_toml` seeds hold every key of the node and surface configurations, so the
+/// fuzzer starts from inputs that reach every field's validation (a key added to a config
+/// and missing here fails, naming it: regenerate the seeds, docs/fuzzing.md).
+#[test]
+fn config_seeds_hold_every_config_key() {
+    use hapcloud::node::NodeConfig;
+    use hapcloud::perception::pipeline::SurfaceConfig;
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("fuzz/seeds/config_toml");
+    let mut seeded = std::collections::BTreeSet::new();
+    for path in files(&dir) {
+        let text = std::fs::read_to_string(&path).unwrap();
+        let value: toml::Value = toml::from_str(&text).unwrap();
+        key_paths(&value, "", &mut seeded);
+    }
+    let mut wanted = std::collections::BTreeSet::new();
+    key_paths(
+        &toml::Value::try_from(NodeConfig::default()).unwrap(),
+        "",
+        &mut wanted,
+    );
+    key_paths(
+        &toml::Value::try_from(SurfaceConfig::default()).unwrap(),
+        "",
+        &mut wanted,
+    );
+    let missing: Vec<_> = wanted.difference(&seeded).collect();
+    assert!(
+        missing.is_empty(),
+        "keys in no fuzz/seeds/config_toml file: {missing:?}"
+    );
+}

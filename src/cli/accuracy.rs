@@ -31,10 +31,10 @@ pub struct Args {
     #[arg(long, value_enum, default_value = "gpu")]
     pub backend: Backend,
     /// Evaluate only frames arriving up to S seconds into each scene.
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, value_name = "S")]
+    #[arg(long, value_parser = super::numbers::scene_span, allow_negative_numbers = true, value_name = "S")]
     pub duration: Option<f64>,
     /// ... and from S seconds on (the surface memory starts empty there).
-    #[arg(long, value_parser = super::numbers::non_negative, allow_negative_numbers = true, value_name = "S")]
+    #[arg(long, value_parser = super::numbers::scene_time, allow_negative_numbers = true, value_name = "S")]
     pub start: Option<f64>,
     /// Chain configuration (TOML of `EvaluationConfig`: [frontend], [surface]).
     #[arg(long)]
@@ -43,7 +43,7 @@ pub struct Args {
     #[arg(long, value_parser = super::surface::parse_method)]
     pub circle_method: Option<CircleMethod>,
     /// HIP-to-camera distances of the restricted rows, metres: MIN,MAX.
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, value_delimiter = ',', default_value = "0.4,0.7")]
+    #[arg(long, value_parser = super::numbers::distance, allow_negative_numbers = true, value_delimiter = ',', default_value = "0.4,0.7")]
     pub range: Vec<f64>,
     /// Also write every frame's evaluation (estimate, truth, errors, stage times) as JSON
     /// lines to this file.

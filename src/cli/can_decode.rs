@@ -31,6 +31,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         Some(path) => path.display().to_string(),
         None => "built-in hapcloud.dbc".into(),
     })?;
+    if dbc.messages.is_empty() {
+        // An empty or unrelated text parses as a DBC of nothing: every frame would be unknown.
+        let name = args.dbc.as_ref().map(|p| p.display().to_string());
+        anyhow::bail!("{}: defines no message (BO_)", name.unwrap_or_default());
+    }
     let file = std::fs::File::open(&args.log)
         .with_context(|| format!("cannot open {}", args.log.display()))?;
     let frames = can::candump_frames(std::io::BufReader::new(file));

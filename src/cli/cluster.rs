@@ -13,14 +13,15 @@ use std::path::PathBuf;
 pub struct Args {
     /// Input cloud (.pcd or .ply).
     input: PathBuf,
-    /// Neighbour distance in metres: points closer than this are connected (PCL -tolerance).
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, default_value_t = 0.02)]
+    /// Neighbour distance in metres: points closer than this are connected (PCL -tolerance;
+    /// above 0, at most 100).
+    #[arg(long, value_parser = super::numbers::distance, allow_negative_numbers = true, default_value_t = 0.02)]
     tolerance: f64,
     /// Smallest cluster kept, points (PCL -min).
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, default_value_t = 100, allow_negative_numbers = true)]
     min_size: u32,
     /// Largest cluster kept, points (PCL -max).
-    #[arg(long, default_value_t = 25_000)]
+    #[arg(long, default_value_t = 25_000, allow_negative_numbers = true)]
     max_size: u32,
     /// Write one binary PCD per kept cluster, `cluster_<k>.pcd`, k = 0 for the largest.
     #[arg(long)]
@@ -33,6 +34,13 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    if args.min_size > args.max_size {
+        anyhow::bail!(
+            "--min-size {} exceeds --max-size {}",
+            args.min_size,
+            args.max_size
+        );
+    }
     let config = ClusterConfig {
         // PCL's tool parses a double and its extractor casts it to float.
         tolerance_m: args.tolerance as f32,

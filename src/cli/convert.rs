@@ -29,12 +29,23 @@ pub struct Args {
     /// Pinhole intrinsics of a depth-image input, pixels: fx,fy,cx,cy.
     #[arg(long, value_delimiter = ',')]
     pub intrinsics: Option<Vec<f64>>,
-    /// Metres per depth unit of a depth-image input.
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, default_value_t = 0.001)]
+    /// Metres per depth unit of a depth-image input (1e-6 to 1).
+    #[arg(long, value_parser = depth_scale, allow_negative_numbers = true, default_value_t = 0.001)]
     pub depth_scale_m: f64,
     /// Print one JSON object describing the conversion.
     #[arg(long)]
     pub json: bool,
+}
+
+/// `--depth-scale-m`: within [`depth::DEPTH_SCALE_RANGE_M`].
+fn depth_scale(s: &str) -> Result<f64, String> {
+    let v = super::numbers::positive(s)?;
+    let (lo, hi) = depth::DEPTH_SCALE_RANGE_M;
+    if (lo..=hi).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("must be {lo:?} to {hi:?} m per unit, got {v:?}"))
+    }
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {

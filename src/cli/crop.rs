@@ -8,32 +8,35 @@ use anyhow::Context;
 use hapcloud::geometry::Primitive;
 use hapcloud::gpu::Backend;
 use hapcloud::gpu::timing::{StageTime, StageTimer};
-use hapcloud::perception::crop::{CropConfig, CropScene, GpuCrop, crop_cpu, kept_indices};
+use hapcloud::perception::crop::{
+    CropConfig, CropScene, GpuCrop, MAX_CROP_RADIUS_M, MAX_ROBOT_MARGIN_M, MAX_ROBOT_MARGIN_PER_M2,
+    crop_cpu, kept_indices,
+};
 use nalgebra::Point3;
 
 #[derive(clap::Args)]
 pub struct Args {
     /// Input cloud (.pcd or .ply).
     input: PathBuf,
-    /// Haptic interaction point `x,y,z` in the cloud frame (m).
-    #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
+    /// Haptic interaction point `x,y,z` in the cloud frame (m, each within +-100).
+    #[arg(long, value_parser = super::numbers::point, allow_hyphen_values = true)]
     hip: Point3<f64>,
-    /// Keep points within this distance of the HIP (m).
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
+    /// Keep points within this distance of the HIP (m, above 0, at most 100).
+    #[arg(long, value_parser = super::numbers::positive_at_most(MAX_CROP_RADIUS_M), allow_negative_numbers = true)]
     radius: f64,
     /// TOML file with the robot's collision primitives in the cloud frame:
     /// `[[primitive]]` tables with `shape = "sphere" | "capsule" | "oriented_box"`.
     #[arg(long)]
     robot: Option<PathBuf>,
-    /// Grow every robot primitive by this much before the test (m) ...
-    #[arg(long, value_parser = super::numbers::non_negative, allow_negative_numbers = true, default_value_t = CropConfig::default().robot_margin_m)]
+    /// Grow every robot primitive by this much before the test (m, 0 to 1) ...
+    #[arg(long, value_parser = super::numbers::non_negative_at_most(MAX_ROBOT_MARGIN_M), allow_negative_numbers = true, default_value_t = CropConfig::default().robot_margin_m)]
     robot_margin: f64,
-    /// ... plus this times the squared distance from `--camera` to the HIP (m per m^2).
-    #[arg(long, default_value_t = CropConfig::default().robot_margin_per_m2)]
+    /// ... plus this times the squared distance from `--camera` to the HIP (m per m^2, 0 to 1).
+    #[arg(long, value_parser = super::numbers::non_negative_at_most(MAX_ROBOT_MARGIN_PER_M2), allow_negative_numbers = true, default_value_t = CropConfig::default().robot_margin_per_m2)]
     robot_margin_per_m2: f64,
-    /// The camera's optical centre `x,y,z` in the cloud frame (m); without it the margin is
+    /// The camera's optical centre `x,y,z` in the cloud frame (m, each within +-100); without it the margin is
     /// `--robot-margin` alone.
-    #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
+    #[arg(long, value_parser = super::numbers::point, allow_hyphen_values = true)]
     camera: Option<Point3<f64>>,
     /// Output cloud (.pcd or .ply, binary), the kept points with their fields.
     #[arg(long)]
@@ -51,17 +54,6 @@ pub struct Args {
 struct RobotFile {
     #[serde(default)]
     primitive: Vec<Primitive>,
-}
-
-fn parse_point(s: &str) -> Result<Point3<f64>, String> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|c| c.trim().parse::<f64>().map_err(|e| format!("{c:?}: {e}")))
-        .collect::<Result<_, _>>()?;
-    match v.as_slice() {
-        [x, y, z] => Ok(Point3::new(*x, *y, *z)),
-        _ => Err(format!("expected x,y,z, got {s:?}")),
-    }
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {

@@ -34,13 +34,39 @@ mod numbers {
         if v.is_finite() {
             Ok(v)
         } else {
-            Err(format!("must be a finite number, got {v}"))
+            Err(format!("must be a finite number, got {v:?}"))
         }
     }
 
-    /// Any finite number (a coordinate).
-    pub fn finite(s: &str) -> Result<f64, String> {
-        finite_number(s)
+    /// Largest length or coordinate an argument takes (m): ten times the room a depth camera
+    /// sees (the D435 reaches 10 m); beyond it a value is a typo or a unit mix-up.
+    pub const MAX_DISTANCE_M: f64 = 100.0;
+
+    /// A coordinate: finite, within [`MAX_DISTANCE_M`] of the origin.
+    pub fn coordinate(s: &str) -> Result<f64, String> {
+        let v = finite_number(s)?;
+        if v.abs() <= MAX_DISTANCE_M {
+            Ok(v)
+        } else {
+            Err(format!("must be within +-{MAX_DISTANCE_M} m, got {v:?}"))
+        }
+    }
+
+    /// A point `x,y,z` of three [`coordinate`]s.
+    pub fn point(s: &str) -> Result<nalgebra::Point3<f64>, String> {
+        let v: Vec<f64> = s
+            .split(',')
+            .map(|c| coordinate(c).map_err(|e| format!("{c:?}: {e}")))
+            .collect::<Result<_, _>>()?;
+        match v.as_slice() {
+            [x, y, z] => Ok(nalgebra::Point3::new(*x, *y, *z)),
+            _ => Err(format!("expected x,y,z, got {s:?}")),
+        }
+    }
+
+    /// A length up to [`MAX_DISTANCE_M`].
+    pub fn distance(s: &str) -> Result<f64, String> {
+        positive_at_most(MAX_DISTANCE_M)(s)
     }
 
     /// A finite number above zero (a length, a duration, a rate).
@@ -49,7 +75,7 @@ mod numbers {
         if v > 0.0 {
             Ok(v)
         } else {
-            Err(format!("must be positive, got {v}"))
+            Err(format!("must be positive, got {v:?}"))
         }
     }
 
@@ -59,8 +85,42 @@ mod numbers {
         if v >= 0.0 {
             Ok(v)
         } else {
-            Err(format!("must not be negative, got {v}"))
+            Err(format!("must not be negative, got {v:?}"))
         }
+    }
+
+    /// A finite number above zero and at most `max` (a length with a sensible bound).
+    pub fn positive_at_most(max: f64) -> impl Fn(&str) -> Result<f64, String> + Clone {
+        move |s| {
+            let v = positive(s)?;
+            if v <= max {
+                Ok(v)
+            } else {
+                Err(format!("must be at most {max}, got {v:?}"))
+            }
+        }
+    }
+
+    /// A finite number from zero to `max` (a margin with a sensible bound).
+    pub fn non_negative_at_most(max: f64) -> impl Fn(&str) -> Result<f64, String> + Clone {
+        move |s| {
+            let v = non_negative(s)?;
+            if v <= max {
+                Ok(v)
+            } else {
+                Err(format!("must be at most {max}, got {v:?}"))
+            }
+        }
+    }
+
+    /// Seconds of scene time from the scene's start: 0 to a scene's longest duration.
+    pub fn scene_time(s: &str) -> Result<f64, String> {
+        non_negative_at_most(hapcloud::scene::config::MAX_DURATION_S)(s)
+    }
+
+    /// A span of scene time: above 0, at most a scene's longest duration.
+    pub fn scene_span(s: &str) -> Result<f64, String> {
+        positive_at_most(hapcloud::scene::config::MAX_DURATION_S)(s)
     }
 
     /// The node clock's rate against real time: above zero, at most 1000 (beyond, an 800 Hz
@@ -70,7 +130,7 @@ mod numbers {
         if v <= 1000.0 {
             Ok(v)
         } else {
-            Err(format!("must be at most 1000, got {v}"))
+            Err(format!("must be at most 1000, got {v:?}"))
         }
     }
 }
@@ -127,7 +187,22 @@ enum Command {
     Sim(sim::Args),
 }
 
+/// Standard output closed by its reader (`hapcloud scenes | head -1`): the reader has what it
+/// wanted, so the command ends quietly with success instead of `println!`'s panic. Every
+/// other panic goes to the default hook.
+fn exit_quietly_on_closed_stdout() {
+    let default = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let message = info.payload_as_str().unwrap_or_default();
+        if message.starts_with("failed printing to stdout") && message.contains("Broken pipe") {
+            std::process::exit(0);
+        }
+        default(info);
+    }));
+}
+
 pub fn main() -> ExitCode {
+    exit_quietly_on_closed_stdout();
     let cli = Cli::parse();
     let result: anyhow::Result<()> = match cli.command {
         Command::Convert(args) => convert::run(args),

@@ -30,6 +30,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     match &report.first_mismatch {
+        // A recording cut before its first tick (or of no run) reproduces nothing.
+        None if report.ticks_compared == 0 => anyhow::bail!(
+            "{}: no control tick recorded, nothing was compared",
+            args.file.display()
+        ),
         None => Ok(()),
         Some(what) => anyhow::bail!("replay differs from the recording, first at {what}"),
     }

@@ -40,8 +40,9 @@ pub struct Args {
     /// (`hip_world_m`). Without a source, the built-in realistic scene
     /// `torso_approach_realistic` (two simulated D435 cameras) is played.
     source: Option<String>,
-    /// Stop after this many seconds of node time (default: the end of a recording).
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
+    /// Stop after this many seconds of node time, at most 1e10 (default: the end of a
+    /// recording).
+    #[arg(long, value_parser = super::numbers::positive_at_most(node::MAX_STAMP_S), allow_negative_numbers = true)]
     duration: Option<f64>,
     /// Node clock rate relative to real time (2 = twice as fast).
     #[arg(long, value_parser = super::numbers::speed, allow_negative_numbers = true, default_value_t = 1.0)]
@@ -165,8 +166,11 @@ fn read_config(path: &std::path::Path) -> anyhow::Result<RunConfig> {
             zenoh_source.validate()?;
             publish.validate()?;
         }
+        let node: NodeConfig = table.try_into()?;
+        // Before any scene is rendered or recording read: a bad value fails in milliseconds.
+        node.validate()?;
         Ok(RunConfig {
-            node: table.try_into()?,
+            node,
             mcap,
             #[cfg(feature = "ros2")]
             zenoh,

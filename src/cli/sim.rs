@@ -3,6 +3,7 @@
 //! millimetres, JSON sidecar with intrinsics, poses and stamps) and `ground_truth.csv`.
 
 use anyhow::Context;
+use hapcloud::scene::motion::MAX_BODY_SPEED_M_S;
 use hapcloud::scene::{Scene, Simulator, builtin, export};
 use std::path::PathBuf;
 use std::time::Instant;
@@ -14,14 +15,16 @@ pub struct Args {
     /// Output directory (created if missing).
     #[arg(long)]
     out: PathBuf,
-    /// Frames per camera (default: every frame delivered within the scene's duration).
-    #[arg(long)]
+    /// Frames per camera, at least 1 (default: every frame delivered within the scene's
+    /// duration).
+    #[arg(long, allow_negative_numbers = true)]
     frames: Option<usize>,
     /// Override the scene's seed.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     seed: Option<u64>,
-    /// For rising_surface_clean / _realistic: the surface's speed, m/s (paper: 0.1 to 1.5).
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, value_name = "M_PER_S")]
+    /// For rising_surface_clean / _realistic: the surface's speed, m/s (paper: 0.1 to 1.5;
+    /// at most 20).
+    #[arg(long, value_parser = super::numbers::positive_at_most(MAX_BODY_SPEED_M_S), allow_negative_numbers = true, value_name = "M_PER_S")]
     rising_speed: Option<f64>,
     /// One JSON object on stdout.
     #[arg(long)]
@@ -29,6 +32,9 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    if args.frames == Some(0) {
+        anyhow::bail!("--frames must be at least 1");
+    }
     let mut scene = match (args.rising_speed, args.scene.as_str()) {
         (Some(v), "rising_surface_clean") => builtin::rising_surface(v, false)?,
         (Some(v), "rising_surface_realistic") => builtin::rising_surface(v, true)?,

@@ -23,12 +23,12 @@ use std::time::Instant;
 pub struct Args {
     /// Input cloud: .pcd or .ply.
     pub input: PathBuf,
-    /// HIP position in the cloud's frame, metres: x,y,z.
-    #[arg(long, value_parser = super::numbers::finite, value_delimiter = ',', allow_hyphen_values = true)]
+    /// HIP position in the cloud's frame, metres: x,y,z (each within +-100).
+    #[arg(long, value_parser = super::numbers::coordinate, value_delimiter = ',', allow_hyphen_values = true)]
     pub hip: Vec<f64>,
     /// Camera viewing direction z^k of eq. 2 (normals are turned against it): x,y,z.
     /// Default: the rays from the file's sensor position (PCD VIEWPOINT) to each shell.
-    #[arg(long, value_parser = super::numbers::finite, value_delimiter = ',', allow_hyphen_values = true)]
+    #[arg(long, value_parser = super::numbers::coordinate, value_delimiter = ',', allow_hyphen_values = true)]
     pub view: Option<Vec<f64>>,
     /// Surface configuration (TOML of `SurfaceConfig`: [memory], [shells]).
     #[arg(long)]

@@ -17,9 +17,9 @@ use hapcloud::node::NodeConfig;
 use hapcloud::node::record;
 use hapcloud::robot::RobotModel;
 use hapcloud::scene::{Scene, Simulator};
-use hapcloud::viewer::simulated::{SceneViewConfig, timeline_from_scene};
+use hapcloud::viewer::simulated::{MAX_VIEW_RATE_HZ, SceneViewConfig, timeline_from_scene};
 use hapcloud::viewer::source::{
-    hip_on_axis, read_cloud_dir, timeline_from_frames, timeline_from_recording,
+    MAX_DIR_RATE_HZ, hip_on_axis, read_cloud_dir, timeline_from_frames, timeline_from_recording,
 };
 use hapcloud::viewer::{
     EstimateError, PointRole, ScreenshotRequest, ViewFrame, ViewerApp, ViewerConfig, ViewerSource,
@@ -37,25 +37,26 @@ pub struct Args {
     /// topics), or a directory of .pcd/.ply frames of one camera in name order.
     source: PathBuf,
     /// Scenes: first view tick, seconds of scene time (overrides [scene] start_s).
-    #[arg(long, value_parser = super::numbers::non_negative, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::numbers::scene_time, allow_negative_numbers = true)]
     start_s: Option<f64>,
     /// Scenes: seconds shown from --start-s (default: to the scene's end; overrides [scene]
     /// duration_s).
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
+    #[arg(long, value_parser = super::numbers::scene_span, allow_negative_numbers = true)]
     duration_s: Option<f64>,
-    /// Scenes: view ticks per second (overrides [scene] view_rate_hz).
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
+    /// Scenes: view ticks per second, at most 800 (overrides [scene] view_rate_hz).
+    #[arg(long, value_parser = super::numbers::positive_at_most(MAX_VIEW_RATE_HZ), allow_negative_numbers = true)]
     view_rate_hz: Option<f64>,
     /// HIP position "x,y,z" in metres (world frame: camera at the origin looking along x,
     /// z up); default: hip radius + --hip-clearance-m in front of the surface point seen
     /// nearest the optical axis in the first frame.
-    #[arg(long, allow_hyphen_values = true)]
-    hip: Option<String>,
-    /// Gap between the HIP sphere and the surface when the HIP is placed automatically (m).
-    #[arg(long, value_parser = super::numbers::non_negative, allow_negative_numbers = true, default_value_t = 0.02)]
+    #[arg(long, value_parser = super::numbers::point, allow_hyphen_values = true)]
+    hip: Option<Point3<f64>>,
+    /// Gap between the HIP sphere and the surface when the HIP is placed automatically (m, 0
+    /// to 1).
+    #[arg(long, value_parser = super::numbers::non_negative_at_most(1.0), allow_negative_numbers = true, default_value_t = 0.02)]
     hip_clearance_m: f64,
-    /// Frame rate for files whose names carry no time stamp (Hz).
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, default_value_t = 30.0)]
+    /// Frame rate for files whose names carry no time stamp (Hz, at most 1000).
+    #[arg(long, value_parser = super::numbers::positive_at_most(MAX_DIR_RATE_HZ), allow_negative_numbers = true, default_value_t = 30.0)]
     rate_hz: f64,
     /// TOML file with a [viewer] table (ViewerConfig), a [node] table (the node config of
     /// `hapcloud run --config`: the haptic loop's stages) and a [scene] table
@@ -63,14 +64,14 @@ pub struct Args {
     /// rejected.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Frame shown first.
+    /// Frame shown first (0 to the timeline's last frame).
     #[arg(long, default_value_t = 0)]
     frame: usize,
     /// Save a PNG of the window after it settles, then close it.
     #[arg(long)]
     screenshot: Option<PathBuf>,
-    /// Frames rendered before the screenshot.
-    #[arg(long, default_value_t = 5)]
+    /// Frames rendered before the screenshot (1 to 600: ten seconds at 60 Hz).
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..=600))]
     settle_frames: u32,
     /// Print one JSON object summarising the timeline instead of opening a window.
     #[arg(long)]
@@ -87,18 +88,6 @@ struct ViewFile {
     mcap: hapcloud::io::mcap::McapReaderConfig,
 }
 
-fn parse_hip(s: &str) -> anyhow::Result<Point3<f64>> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|c| c.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .with_context(|| format!("--hip {s:?}: expected three numbers x,y,z in metres"))?;
-    match v.as_slice() {
-        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok(Point3::new(*x, *y, *z)),
-        _ => bail!("--hip {s:?}: expected three finite numbers x,y,z in metres"),
-    }
-}
-
 pub fn run(args: Args) -> anyhow::Result<()> {
     let file: ViewFile = match &args.config {
         Some(path) => {
@@ -110,12 +99,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     file.viewer.validate()?;
     file.node.validate()?;
-    if !(args.hip_clearance_m.is_finite() && args.hip_clearance_m >= 0.0) {
-        bail!(
-            "--hip-clearance-m must be finite and not negative, got {}",
-            args.hip_clearance_m
-        );
-    }
+    file.scene.validate()?;
 
     let mcap = args.source.extension().is_some_and(|e| e == "mcap");
     let frames = if mcap || record::is_old_recording(&args.source) {
@@ -141,7 +125,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         (timeline, hip)
     } else if let Some(frames) = frames {
         let hip = match &args.hip {
-            Some(s) => parse_hip(s)?,
+            Some(hip) => *hip,
             None => hip_on_axis(
                 &frames[0],
                 RobotModel::anyexo()?.hip_radius_m() + args.hip_clearance_m,
@@ -171,6 +155,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     if timeline.is_empty() {
         bail!("{}: no frames", args.source.display());
+    }
+    if args.frame >= timeline.len() {
+        bail!(
+            "--frame {}: the timeline has frames 0 to {}",
+            args.frame,
+            timeline.len() - 1
+        );
     }
 
     if args.json {

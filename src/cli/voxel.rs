@@ -13,20 +13,20 @@ use hapcloud::perception::voxel::{Axis, FilterLimits, GpuVoxel, VoxelConfig, vox
 pub struct Args {
     /// Input cloud (.pcd or .ply).
     input: PathBuf,
-    /// Cubic leaf size (m).
-    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true)]
+    /// Cubic leaf size (m, above 0, at most 100).
+    #[arg(long, value_parser = super::numbers::distance, allow_negative_numbers = true)]
     leaf: f64,
     /// Drop cells with fewer points (PCL setMinimumPointsNumberPerVoxel).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, allow_negative_numbers = true)]
     min_points: u32,
     /// Filter field (PCL setFilterFieldName); used with --fmin/--fmax.
     #[arg(long, value_enum, default_value = "z")]
     field: FieldArg,
-    /// Lower filter limit (m); no filter unless --fmin or --fmax is given.
-    #[arg(long, value_parser = super::numbers::finite, allow_hyphen_values = true)]
+    /// Lower filter limit (m, within +-100); no filter unless --fmin or --fmax is given.
+    #[arg(long, value_parser = super::numbers::coordinate, allow_hyphen_values = true)]
     fmin: Option<f64>,
-    /// Upper filter limit (m).
-    #[arg(long, value_parser = super::numbers::finite, allow_hyphen_values = true)]
+    /// Upper filter limit (m, within +-100).
+    #[arg(long, value_parser = super::numbers::coordinate, allow_hyphen_values = true)]
     fmax: Option<f64>,
     /// Keep the points outside the filter limits instead.
     #[arg(long)]

@@ -136,8 +136,17 @@ impl ControllerConfig {
             .any(|p| !p.point_m.coords.iter().all(|v| v.is_finite()))
         {
             return Err(ControllerConfigError::Value(
-                "fixed plane point must be finite".into(),
+                "fixed_planes.point_m must be finite".into(),
             ));
+        }
+        // A normal is read as given (serde does not normalise a `Unit`).
+        if let Some(p) = self.fixed_planes.iter().find(|p| {
+            (p.normal.norm() - 1.0).abs().is_nan() || (p.normal.norm() - 1.0).abs() > 1e-6
+        }) {
+            return Err(ControllerConfigError::Value(format!(
+                "fixed_planes.normal must be a unit vector, got {:?}",
+                p.normal.as_ref()
+            )));
         }
         Ok(())
     }

@@ -190,7 +190,7 @@ pub enum NodeError {
     TickRate(f64),
     #[error("node config: frame_queue_count must be 1 to {MAX_FRAME_QUEUE_COUNT}, got {0}")]
     Queue(usize),
-    #[error("node config: hip_world_m must be finite")]
+    #[error("node config: hip_world_m must be finite and within +-{MAX_HIP_M} m")]
     Hip,
     #[error("node config: --speed must be finite and positive, got {0}")]
     Speed(f64),
@@ -232,12 +232,13 @@ impl NodeConfig {
                 self.perception_workers
             )));
         }
-        if !self.hip_world_m.iter().all(|v| v.is_finite()) {
+        if !self.hip_world_m.iter().all(|v| v.abs() <= MAX_HIP_M) {
             return Err(NodeError::Hip);
         }
-        if !(self.stale_hold_max_s.is_finite() && self.stale_hold_max_s >= 0.0) {
+        if !(0.0..=crate::fusion::MAX_STALE_S).contains(&self.stale_hold_max_s) {
             return Err(NodeError::Config(format!(
-                "stale_hold_max_s must be finite and not negative, got {}",
+                "stale_hold_max_s must be 0 to {} s, got {}",
+                crate::fusion::MAX_STALE_S,
                 self.stale_hold_max_s
             )));
         }
@@ -309,9 +310,12 @@ pub struct RunOptions {
     pub observer: Option<SyncSender<NodeEvent>>,
 }
 
+/// Largest HIP coordinate, m (the scenes' `MAX_POSITION_M`: a lab, many times over).
+const MAX_HIP_M: f64 = crate::scene::config::MAX_POSITION_M;
+
 /// Largest frame stamp a timed source may carry, s (UNIX time of the year 2286: any real
 /// clock, ROS 2 stamps included; 1e300 is a corrupt record).
-const MAX_STAMP_S: f64 = 1e10;
+pub const MAX_STAMP_S: f64 = 1e10;
 
 /// Ticks between two [`NodeEvent::Tick`]s (100 Hz at 800 Hz: more than a display shows).
 pub const OBSERVER_TICK_EVERY: u64 = 8;

@@ -44,10 +44,12 @@ impl Default for RobotStateConfig {
 
 impl RobotStateConfig {
     pub fn validate(&self) -> Result<(), NodeError> {
-        if !self.fixed_joints_rad.iter().all(|v| v.is_finite()) {
-            return Err(NodeError::Robot(
-                "robot.fixed_joints_rad must be finite".into(),
-            ));
+        let turn = std::f64::consts::TAU;
+        if !self.fixed_joints_rad.iter().all(|v| v.abs() <= turn) {
+            return Err(NodeError::Robot(format!(
+                "robot.fixed_joints_rad must be within one turn (+-{turn} rad), got {:?}",
+                self.fixed_joints_rad
+            )));
         }
         Ok(())
     }

@@ -63,6 +63,14 @@ impl Default for CropConfig {
     }
 }
 
+/// Largest crop radius (m): ten times the D435's 10 m depth range would still be a cloud of
+/// one room; beyond it a value is a typo (1e300 squared is infinite and keeps every point).
+pub const MAX_CROP_RADIUS_M: f64 = 100.0;
+/// Largest fixed robot margin (m): the robot primitives would swallow the patient.
+pub const MAX_ROBOT_MARGIN_M: f64 = 1.0;
+/// Largest range-dependent robot margin (m per m^2): 1 m of margin at 1 m, 90 times the default.
+pub const MAX_ROBOT_MARGIN_PER_M2: f64 = 1.0;
+
 /// Pixels per thread of the depth pass (crop.wgsl `DEPTH_QUAD`).
 const DEPTH_QUAD: u32 = 4;
 
@@ -74,21 +82,20 @@ pub const MAX_CROP_PRIMITIVES: usize = 256;
 /// Why a crop cannot run.
 #[derive(Debug, thiserror::Error)]
 pub enum CropError {
-    #[error("crop radius_m must be finite and positive, got {0}")]
+    #[error("crop radius_m must be finite, above 0 and at most {MAX_CROP_RADIUS_M} m, got {0}")]
     BadRadius(f64),
-    #[error("crop robot_margin_m must be finite and at least 0, got {0}")]
+    #[error("crop robot_margin_m must be finite, 0 to {MAX_ROBOT_MARGIN_M} m, got {0}")]
     BadMargin(f64),
-    #[error("crop robot_margin_per_m2 must be finite and at least 0, got {0}")]
+    #[error(
+        "crop robot_margin_per_m2 must be finite, 0 to {MAX_ROBOT_MARGIN_PER_M2} m per m^2, got {0}"
+    )]
     BadMarginGrowth(f64),
     #[error("camera position must be finite")]
     BadCamera,
     #[error("HIP position must be finite")]
     BadHip,
-    #[error("robot primitive {index}: {source}")]
-    BadPrimitive {
-        index: usize,
-        source: PrimitiveError,
-    },
+    #[error("robot primitive {index}: {error}")]
+    BadPrimitive { index: usize, error: PrimitiveError },
     #[error("depth frame: {0}")]
     BadDepth(String),
     #[error("{0} robot primitives, at most {MAX_CROP_PRIMITIVES} can be cropped")]
@@ -101,13 +108,13 @@ pub enum CropError {
 
 impl CropConfig {
     pub fn validate(&self) -> Result<(), CropError> {
-        if !(self.radius_m.is_finite() && self.radius_m > 0.0) {
+        if !(self.radius_m > 0.0 && self.radius_m <= MAX_CROP_RADIUS_M) {
             return Err(CropError::BadRadius(self.radius_m));
         }
-        if !(self.robot_margin_m.is_finite() && self.robot_margin_m >= 0.0) {
+        if !(0.0..=MAX_ROBOT_MARGIN_M).contains(&self.robot_margin_m) {
             return Err(CropError::BadMargin(self.robot_margin_m));
         }
-        if !(self.robot_margin_per_m2.is_finite() && self.robot_margin_per_m2 >= 0.0) {
+        if !(0.0..=MAX_ROBOT_MARGIN_PER_M2).contains(&self.robot_margin_per_m2) {
             return Err(CropError::BadMarginGrowth(self.robot_margin_per_m2));
         }
         Ok(())
@@ -152,7 +159,7 @@ impl CropScene<'_> {
         }
         for (index, p) in self.robot.iter().enumerate() {
             p.validate()
-                .map_err(|source| CropError::BadPrimitive { index, source })?;
+                .map_err(|error| CropError::BadPrimitive { index, error })?;
         }
         Ok(())
     }
@@ -1107,7 +1114,7 @@ mod tests {
     fn primitive_count_is_bounded_so_no_shader_loop_is_cut_short() {
         let ctx = crate::gpu::context::test_context();
         let far = |k: usize| Primitive::Sphere {
-            center_m: Point3::new(10.0 + k as f64, 0.0, 0.0),
+            center_m: Point3::new(10.0 + 0.3 * k as f64, 0.0, 0.0),
             radius_m: 0.01,
         };
         let mut robot: Vec<Primitive> = (0..MAX_CROP_PRIMITIVES - 1).map(far).collect();

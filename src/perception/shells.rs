@@ -29,6 +29,9 @@ use serde::{Deserialize, Serialize};
 
 /// Most shells a configuration may ask for (bounds the GPU's per-shell arrays).
 pub const MAX_SHELLS: usize = crate::gpu::mirrors::SHELL_SLOTS;
+/// Largest shell radius (m): the closest surface is sought within centimetres of the HIP;
+/// 1e300 overflows the GPU's f32 squared distances.
+pub const MAX_SHELL_RADIUS_M: f64 = 1.0;
 /// Fixed-point unit of one monomial contribution: values in [-1, 1] become i32 in units of
 /// 2^-30.
 pub const FIXED_ONE: f32 = 1_073_741_824.0;
@@ -138,7 +141,9 @@ impl Default for ShellConfig {
 pub enum ShellConfigError {
     #[error("radii_m must hold 1 to {MAX_SHELLS} radii, got {0}")]
     RadiusCount(usize),
-    #[error("radii_m must be finite, positive and strictly increasing: {0:?}")]
+    #[error(
+        "radii_m must be above 0, at most {MAX_SHELL_RADIUS_M} m and strictly increasing: {0:?}"
+    )]
     RadiusOrder(Vec<f64>),
     #[error("min_points_per_shell must be at least 3 (a plane needs 3 points), got {0}")]
     MinPoints(u32),
@@ -172,7 +177,9 @@ impl ShellConfig {
         if r.is_empty() || r.len() > MAX_SHELLS {
             return Err(ShellConfigError::RadiusCount(r.len()));
         }
-        if !r.iter().all(|x| x.is_finite() && *x > 0.0) || r.windows(2).any(|w| w[1] <= w[0]) {
+        if !r.iter().all(|x| *x > 0.0 && *x <= MAX_SHELL_RADIUS_M)
+            || r.windows(2).any(|w| w[1] <= w[0])
+        {
             return Err(ShellConfigError::RadiusOrder(r.clone()));
         }
         if self.min_points_per_shell < 3 {

@@ -292,10 +292,15 @@ impl SceneFile {
         }
         if let Some(robot) = &self.robot {
             let ctx = |e: String| format!("robot: {e}");
-            if !finite3(&robot.base_xyz_m) || !finite3(&robot.base_rpy_rad) {
-                return Err(ctx(format!(
-                    "base pose has a non-finite value or one beyond {MAX_POSITION_M}"
-                )));
+            for (name, v) in [
+                ("base_xyz_m", &robot.base_xyz_m),
+                ("base_rpy_rad", &robot.base_rpy_rad),
+            ] {
+                if !finite3(v) {
+                    return Err(ctx(format!(
+                        "{name} has a non-finite value or one beyond {MAX_POSITION_M}"
+                    )));
+                }
             }
             validate_robot_motion(&robot.motion).map_err(ctx)?;
             if let RobotMotion::HipPath { segments, .. } = &robot.motion {
@@ -329,13 +334,16 @@ impl SceneFile {
                     cam.rate_hz
                 )));
             }
-            if !finite3(&cam.position_m.coords)
-                || !finite3(&cam.look_at_m.coords)
-                || !finite3(&cam.up)
-            {
-                return Err(ctx(format!(
-                    "pose has a non-finite value or one beyond {MAX_POSITION_M}"
-                )));
+            for (name, v) in [
+                ("position_m", &cam.position_m.coords),
+                ("look_at_m", &cam.look_at_m.coords),
+                ("up", &cam.up),
+            ] {
+                if !finite3(v) {
+                    return Err(ctx(format!(
+                        "{name} has a non-finite value or one beyond {MAX_POSITION_M}"
+                    )));
+                }
             }
             let axis = cam.look_at_m - cam.position_m;
             if axis.norm() < 1e-6 {
@@ -416,7 +424,7 @@ fn validate_robot_motion(motion: &RobotMotion) -> Result<(), String> {
                 let d = seg.duration_s();
                 if !(d.is_finite() && d > 0.0 && d <= MAX_DURATION_S) {
                     return Err(format!(
-                        "segment {i}: duration must be positive and at most {MAX_DURATION_S} s, \
+                        "segment {i}: duration_s must be positive and at most {MAX_DURATION_S} s, \
                          got {d} s"
                     ));
                 }

@@ -342,17 +342,14 @@ impl Effect {
 
     pub fn validate(&self) -> Result<(), String> {
         match self {
-            Effect::AxialNoise(a) => match a.model {
-                AxialModel::Stereo => {
-                    non_negative("subpixel_px", a.subpixel_px)?;
-                    positive("baseline_m", a.baseline_m)
-                }
-                AxialModel::Empirical => {
-                    non_negative("offset_m", a.offset_m)?;
-                    non_negative("gain_per_m", a.gain_per_m)?;
-                    non_negative("center_m", a.center_m)
-                }
-            },
+            // Both models' fields, the unused ones too: a bad value is a typo either way.
+            Effect::AxialNoise(a) => {
+                non_negative("subpixel_px", a.subpixel_px)?;
+                positive("baseline_m", a.baseline_m)?;
+                non_negative("offset_m", a.offset_m)?;
+                non_negative("gain_per_m", a.gain_per_m)?;
+                non_negative("center_m", a.center_m)
+            }
             Effect::LateralNoise(l) => non_negative("sigma_px", l.sigma_px),
             Effect::Quantization(q) => positive("step_m", q.step_m),
             Effect::Holes(h) => {

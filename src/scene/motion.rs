@@ -117,8 +117,13 @@ impl Motion {
                 frequency_hz,
                 phase_rad,
             } => {
-                if !amplitude_m.iter().chain([phase_rad]).all(|v| v.is_finite()) {
-                    return Err("sinusoid has a non-finite value".into());
+                if !amplitude_m.iter().all(|v| v.is_finite()) {
+                    return Err("sinusoid amplitude_m has a non-finite value".into());
+                }
+                if !phase_rad.is_finite() {
+                    return Err(format!(
+                        "sinusoid phase_rad must be finite, got {phase_rad}"
+                    ));
                 }
                 for v in amplitude_m.iter() {
                     in_range("sinusoid amplitude_m", *v, -MAX_OFFSET_M, MAX_OFFSET_M)?;

@@ -36,24 +36,38 @@ impl Default for ViewerConfig {
 
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum ViewerConfigError {
-    #[error("viewer config: {field} must be positive and finite (got {value})")]
-    NotPositive { field: &'static str, value: f64 },
+    #[error("viewer config: {field} must be above 0 and at most {max} (got {value})")]
+    NotPositive {
+        field: &'static str,
+        value: f64,
+        max: f64,
+    },
 }
 
 impl ViewerConfig {
+    /// Every field above 0 and at most a bound no display or scene needs more than (a
+    /// window of 4e9 pixels or a history of 1e300 s is a typo, and the view would try it).
     pub fn validate(&self) -> Result<(), ViewerConfigError> {
         let fields = [
-            ("point_size_px", f64::from(self.point_size_px)),
-            ("normal_length_m", self.normal_length_m),
-            ("patch_max_edge_m", self.patch_max_edge_m),
-            ("live_history_s", self.live_history_s),
-            ("window_width_px", f64::from(self.window_width_px)),
-            ("window_height_px", f64::from(self.window_height_px)),
-            ("max_points_per_layer", self.max_points_per_layer as f64),
+            ("point_size_px", f64::from(self.point_size_px), 100.0),
+            ("normal_length_m", self.normal_length_m, 1.0),
+            ("patch_max_edge_m", self.patch_max_edge_m, 1.0),
+            ("live_history_s", self.live_history_s, 3600.0),
+            ("window_width_px", f64::from(self.window_width_px), 16384.0),
+            (
+                "window_height_px",
+                f64::from(self.window_height_px),
+                16384.0,
+            ),
+            (
+                "max_points_per_layer",
+                self.max_points_per_layer as f64,
+                1e7,
+            ),
         ];
-        for (field, value) in fields {
-            if !(value.is_finite() && value > 0.0) {
-                return Err(ViewerConfigError::NotPositive { field, value });
+        for (field, value, max) in fields {
+            if !(value > 0.0 && value <= max) {
+                return Err(ViewerConfigError::NotPositive { field, value, max });
             }
         }
         Ok(())
@@ -75,7 +89,8 @@ mod tests {
             bad.validate(),
             Err(ViewerConfigError::NotPositive {
                 field: "patch_max_edge_m",
-                value: -1.0
+                value: -1.0,
+                max: 1.0
             })
         );
         let nan = ViewerConfig {

@@ -54,6 +54,14 @@ impl Default for SceneViewConfig {
     }
 }
 
+/// Most view ticks per second: the haptic loop's own rate (a tick more often than the loop
+/// shows nothing new).
+pub const MAX_VIEW_RATE_HZ: f64 = 800.0;
+/// Most view ticks in one timeline: each holds its cameras' point layers (up to
+/// `max_stored_points_per_layer` points each), so 6 s of a scene at 800 Hz already holds
+/// gigabytes; 20,000 is 22 minutes at the default 15 Hz.
+pub const MAX_VIEW_TICKS: usize = 20_000;
+
 #[derive(Debug, thiserror::Error)]
 pub enum SceneViewError {
     #[error("scene view: {field} must be {what}, got {value}")]
@@ -66,6 +74,15 @@ pub enum SceneViewError {
     NoRobot(String),
     #[error("scene view: start_s {start_s} is past the scene's end ({end_s} s)")]
     StartPastEnd { start_s: f64, end_s: f64 },
+    #[error(
+        "scene view: {ticks} view ticks (duration_s {duration_s} s x view_rate_hz {rate_hz}), \
+         at most {MAX_VIEW_TICKS}: shorten the duration or lower the rate"
+    )]
+    TooManyTicks {
+        ticks: f64,
+        duration_s: f64,
+        rate_hz: f64,
+    },
     #[error(transparent)]
     Loop(#[from] NodeError),
 }
@@ -83,8 +100,8 @@ impl SceneViewConfig {
             (
                 "view_rate_hz",
                 self.view_rate_hz,
-                self.view_rate_hz > 0.0,
-                "finite, > 0",
+                self.view_rate_hz > 0.0 && self.view_rate_hz <= MAX_VIEW_RATE_HZ,
+                "finite, > 0 and at most 800",
             ),
             (
                 "max_stored_points_per_layer",
@@ -125,7 +142,15 @@ pub fn timeline_from_scene(
         d if d > 0.0 => (config.start_s + d).min(end_s),
         _ => end_s,
     };
-    let ticks = ((last_s - config.start_s) * config.view_rate_hz + 1e-9).floor() as usize + 1;
+    let ticks = ((last_s - config.start_s) * config.view_rate_hz + 1e-9).floor() + 1.0;
+    if ticks > MAX_VIEW_TICKS as f64 {
+        return Err(SceneViewError::TooManyTicks {
+            ticks,
+            duration_s: last_s - config.start_s,
+            rate_hz: config.view_rate_hz,
+        });
+    }
+    let ticks = ticks as usize;
     let mut haptic_loop = HapticLoop::new(node, robot.model().clone(), Backend::Cpu, None)?;
     haptic_loop.perception_mut().keep_crop_mask(true);
     let mut views = CameraViews::new(

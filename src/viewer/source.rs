@@ -35,7 +35,7 @@ pub enum SourceError {
     Empty(PathBuf),
     #[error(transparent)]
     Read(#[from] io::Error),
-    #[error("rate_hz must be finite and positive, got {0}")]
+    #[error("rate_hz must be finite, positive and at most {MAX_DIR_RATE_HZ} Hz, got {0}")]
     Rate(f64),
     #[error("{0}: no finite point near the optical axis to place the HIP in front of")]
     NoSurface(PathBuf),
@@ -73,9 +73,13 @@ pub fn world_from_optical() -> Isometry3<f64> {
     Isometry3::from_parts(Translation3::identity(), UnitQuaternion::from_matrix(&r))
 }
 
+/// Highest frame rate of a cloud directory without stamps (Hz): ten times a depth camera's;
+/// beyond it the stamps all round to one instant.
+pub const MAX_DIR_RATE_HZ: f64 = 1000.0;
+
 /// Read every `.pcd`/`.ply` file of `dir` (name order) as frames of camera 0.
 pub fn read_cloud_dir(dir: &Path, rate_hz: f64) -> Result<Vec<Frame>, SourceError> {
-    if !(rate_hz.is_finite() && rate_hz > 0.0) {
+    if !(rate_hz > 0.0 && rate_hz <= MAX_DIR_RATE_HZ) {
         return Err(SourceError::Rate(rate_hz));
     }
     let list_err = |source| SourceError::List {
