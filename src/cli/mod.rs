@@ -89,28 +89,23 @@ mod numbers {
         }
     }
 
+    /// `v` where it is at most `max`.
+    fn at_most(v: f64, max: f64) -> Result<f64, String> {
+        if v <= max {
+            Ok(v)
+        } else {
+            Err(format!("must be at most {max}, got {v:?}"))
+        }
+    }
+
     /// A finite number above zero and at most `max` (a length with a sensible bound).
     pub fn positive_at_most(max: f64) -> impl Fn(&str) -> Result<f64, String> + Clone {
-        move |s| {
-            let v = positive(s)?;
-            if v <= max {
-                Ok(v)
-            } else {
-                Err(format!("must be at most {max}, got {v:?}"))
-            }
-        }
+        move |s| at_most(positive(s)?, max)
     }
 
     /// A finite number from zero to `max` (a margin with a sensible bound).
     pub fn non_negative_at_most(max: f64) -> impl Fn(&str) -> Result<f64, String> + Clone {
-        move |s| {
-            let v = non_negative(s)?;
-            if v <= max {
-                Ok(v)
-            } else {
-                Err(format!("must be at most {max}, got {v:?}"))
-            }
-        }
+        move |s| at_most(non_negative(s)?, max)
     }
 
     /// Seconds of scene time from the scene's start: 0 to a scene's longest duration.
@@ -126,12 +121,7 @@ mod numbers {
     /// The node clock's rate against real time: above zero, at most 1000 (beyond, an 800 Hz
     /// tick lasts less than the loop's own work and the timing means nothing).
     pub fn speed(s: &str) -> Result<f64, String> {
-        let v = positive(s)?;
-        if v <= 1000.0 {
-            Ok(v)
-        } else {
-            Err(format!("must be at most 1000, got {v:?}"))
-        }
+        positive_at_most(1000.0)(s)
     }
 }
 

@@ -666,8 +666,8 @@ pub fn height_field(
     let c = fit.coefficients;
     let residual2 = fit.rss / count;
     let (u, v) = closest_on(&c)?;
-    let closest_se_m = closest_standard_error(&fit, residual2, count, point_count)
-        .map_or(f64::INFINITY, |se| se * scale_m);
+    let closest_se_m =
+        closest_standard_error(&fit, point_count).map_or(f64::INFINITY, |se| se * scale_m);
     let fz = quadric_height(&c, u, v);
     let (fu, fv) = quadric_slope(&c, u, v);
     let closest_m = m.origin + scale_m * (u * e1 + v * e2 + fz * axis.into_inner());
@@ -778,16 +778,16 @@ fn quadric_slope(c: &nalgebra::Vector6<f64>, u: f64, v: f64) -> (f64, f64) {
 
 /// Standard error of the closest point (scaled units): the coefficients' covariance
 /// `s^2 w (A^T W A)^-1` (`s^2` the unbiased residual variance over `points` points, `w`
-/// their mean weight, `count / points`) carried through the closest point's Jacobian, taken
-/// by central differences of [`closest_on`]. `None` when the fit leaves no degree of freedom
-/// or a perturbed field has no closest point.
-fn closest_standard_error(fit: &NestedFit, residual2: f64, count: f64, points: f64) -> Option<f64> {
+/// their mean weight: together the weighted residual sum of squares over `points - terms`)
+/// carried through the closest point's Jacobian, taken by central differences of
+/// [`closest_on`]. `None` when the fit leaves no degree of freedom or a perturbed field has
+/// no closest point.
+fn closest_standard_error(fit: &NestedFit, points: f64) -> Option<f64> {
     let terms = fit.terms as f64;
     if points.is_nan() || points <= terms {
         return None;
     }
-    let variance = residual2 * points / (points - terms) * (count / points);
-    let covariance = fit.normal_inverse * variance;
+    let covariance = fit.normal_inverse * (fit.rss / (points - terms));
     let c = &fit.coefficients;
     let point = |c: &nalgebra::Vector6<f64>| -> Option<Vector3<f64>> {
         let (u, v) = closest_on(c).ok()?;
