@@ -33,7 +33,8 @@
 //! ([`crate::timing`]: the front end, the surface estimator, the fusion tick) and as GPU time
 //! from timestamp queries (the front end's passes, GPU backend), wall times beside them; the
 //! error against ground truth of each camera's estimate (at its stamp) and of the fused
-//! surface (at each tick): RMS and maximum of the centroid distance and of the normal angle;
+//! surface (at each tick; the ticks that track only the look-ahead's far-field estimates
+//! apart): RMS and maximum of the centroid distance and of the normal angle;
 //! the closed-loop minimum margin and maximum penetration. The Pareto front
 //! ([`pareto_front`]) is taken over (cost per frame, fused centroid RMS error), the cost
 //! being the thread CPU time of the front end and the estimator plus the front end's GPU
@@ -573,9 +574,14 @@ pub struct StudyRow {
     /// Per-camera estimates against the truth at their stamp (mm, deg).
     pub camera_centroid_mm: ErrorStats,
     pub camera_normal_deg: ErrorStats,
-    /// Fused surface against the truth at each tick while tracking (mm, deg).
+    /// Fused surface against the truth at each tick while tracking on shell estimates (mm,
+    /// deg).
     pub fused_centroid_mm: ErrorStats,
     pub fused_normal_deg: ErrorStats,
+    /// The same on the ticks tracking only the look-ahead's coarse far-field estimates
+    /// ([`crate::perception::lookahead`]: a warning of an approaching surface before the shells
+    /// see it), mm.
+    pub far_field_centroid_mm: ErrorStats,
     /// Fraction of ticks after the first tracking one on which fusion was tracking.
     pub tracking_fraction: f64,
     /// Closed loop with this setting's surface: smallest distance of the HIP centre above the
@@ -663,7 +669,7 @@ pub fn run_setting(
     let mut fusion_cpu_ms = 0.0;
     let (mut voxel_sum, mut kept_sum, mut tick_count) = (0usize, 0usize, 0usize);
     let (mut cam_c, mut cam_n) = (Vec::new(), Vec::new());
-    let (mut fused_c, mut fused_n) = (Vec::new(), Vec::new());
+    let (mut fused_c, mut fused_n, mut far_c) = (Vec::new(), Vec::new(), Vec::new());
     let (mut frames, mut valid, mut tracking_ticks, mut ticks_since_first) = (0, 0, 0, 0);
     let mut trace = SurfaceTrace::default();
     let mut chain_backend = backend;
@@ -722,8 +728,13 @@ pub fn run_setting(
             tick_count += 1;
             if let Some(s) = fused.tracked() {
                 tracking_ticks += 1;
-                fused_c.push((s.centroid_m - truth.closest_m).norm() * 1e3);
-                fused_n.push(angle_deg(&s.normal, &truth.normal));
+                let centroid_mm = (s.centroid_m - truth.closest_m).norm() * 1e3;
+                if haptic_loop.control().fusion().prediction().far_field_only {
+                    far_c.push(centroid_mm);
+                } else {
+                    fused_c.push(centroid_mm);
+                    fused_n.push(angle_deg(&s.normal, &truth.normal));
+                }
                 tracking_started = true;
             }
             if tracking_started {
@@ -792,6 +803,7 @@ pub fn run_setting(
         camera_normal_deg: ErrorStats::of(&cam_n),
         fused_centroid_mm: ErrorStats::of(&fused_c),
         fused_normal_deg: ErrorStats::of(&fused_n),
+        far_field_centroid_mm: ErrorStats::of(&far_c),
         tracking_fraction: mean(tracking_ticks as f64, ticks_since_first),
         min_margin_mm: metrics.as_ref().map_or(f64::NAN, |m| m.min_margin_m * 1e3),
         max_penetration_mm: metrics
@@ -930,6 +942,8 @@ pub fn csv_header(rows: &[StudyRow]) -> Vec<String> {
         "fused_centroid_max_mm",
         "fused_normal_rms_deg",
         "fused_normal_max_deg",
+        "far_field_centroid_rms_mm",
+        "far_field_centroid_max_mm",
         "tracking_fraction",
         "min_margin_mm",
         "max_penetration_mm",
@@ -975,6 +989,8 @@ pub fn write_csv(path: &Path, rows: &[StudyRow]) -> Result<(), StudyError> {
                 r.fused_centroid_mm.max,
                 r.fused_normal_deg.rms,
                 r.fused_normal_deg.max,
+                r.far_field_centroid_mm.rms,
+                r.far_field_centroid_mm.max,
                 r.tracking_fraction,
                 r.min_margin_mm,
                 r.max_penetration_mm,
@@ -1017,14 +1033,17 @@ pub fn markdown_table(report: &StudyReport) -> String {
     );
     let _ = writeln!(
         s,
-        "| knob | value | front | cost ms | front end CPU / GPU ms | surface CPU ms | valid | camera c RMS/max mm | camera n RMS deg | fused c RMS/max mm | fused n RMS/max deg | margin min mm | penetration max mm |"
+        "| knob | value | front | cost ms | front end CPU / GPU ms | surface CPU ms | valid | camera c RMS/max mm | camera n RMS deg | fused c RMS/max mm | fused n RMS/max deg | far-field c RMS/max mm | margin min mm | penetration max mm |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(
+        s,
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
     for r in rows {
         let b = if r.is_default { "**" } else { "" };
         let _ = writeln!(
             s,
-            "| {b}{}{b} | {} | {} | {:.2} | {:.2} / {:.2} | {:.2} | {:.0}% | {:.2} / {:.2} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.1} | {:.1} |",
+            "| {b}{}{b} | {} | {} | {:.2} | {:.2} / {:.2} | {:.2} | {:.0}% | {:.2} / {:.2} | {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.2} / {:.2} | {:.1} | {:.1} |",
             r.knob,
             r.value,
             if r.pareto { "*" } else { "" },
@@ -1040,6 +1059,8 @@ pub fn markdown_table(report: &StudyReport) -> String {
             r.fused_centroid_mm.max,
             r.fused_normal_deg.rms,
             r.fused_normal_deg.max,
+            r.far_field_centroid_mm.rms,
+            r.far_field_centroid_mm.max,
             r.min_margin_mm,
             r.max_penetration_mm,
         );
