@@ -134,6 +134,34 @@ fn can_decode_into_a_closed_pipe_ends_quietly() {
     );
 }
 
+/// A standard error whose reader is gone (`hapcloud run 2>&1 | head`) is ignored: the node
+/// runs to its summary, and an error still exits with status 1, not a panic's 101 (the
+/// first diagnostic line used to panic before the node started).
+#[test]
+fn a_closed_stderr_is_ignored() {
+    let closed_stderr = || {
+        let (reader, writer) = std::io::pipe().unwrap();
+        drop(reader);
+        Stdio::from(writer)
+    };
+    // without --json the node writes its progress to stderr
+    let out = hapcloud()
+        .args(["run", "head_close_clean", "--duration", "0.2"])
+        .args(["--backend", "cpu", "--speed", "10"])
+        .stderr(closed_stderr())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{:?}", out.status);
+    let summary = String::from_utf8_lossy(&out.stdout);
+    assert!(summary.contains("node time: 0.20 s"), "{summary}");
+    let out = hapcloud()
+        .args(["run", "no_such_scene", "--duration", "0.1"])
+        .stderr(closed_stderr())
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+}
+
 /// Every numeric argument refuses NaN, infinity and values it cannot mean (a negative or zero
 /// duration, length or rate, a clock rate the loop cannot follow) with an error naming the
 /// argument, before any work starts (`--duration nan` and `--speed 1e7` used to run for ever,

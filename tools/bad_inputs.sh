@@ -7,7 +7,11 @@
 #                argument or key it names), or
 #   ok           the command succeeds, or
 #   pipe         stdout closed after its first byte: the command ends quietly (status 0),
-#   any PATTERN  either of err PATTERN and ok (a value with a documented meaning), and
+#   any PATTERN  either of err PATTERN and ok (a value with a documented meaning),
+#   pipe2        stdout and stderr both into the pipe closed after its first byte (`2>&1 |
+#                head -c 1`): ends quietly, status 0,
+#   nostderr RC  stderr a pipe whose reader is gone before the start: exit status RC (0: the
+#                command does its work; a closed stderr is ignored, never a panic's 101), and
 # in every case stderr holds no panic message and the process was not killed by a signal.
 # Usage: tools/bad_inputs.sh [path/to/hapcloud] (default target/release/hapcloud); prints one
 # line per case, then the counts; exits non-zero when a case fails. docs/fuzzing.md has the
@@ -33,9 +37,20 @@ t() {
     local expect=$1 pattern=$2
     shift 2
     local rc start=$SECONDS
+    : >"$W/err"
     if [ "$expect" = pipe ]; then
         timeout -k 5 "$LIMIT_S" "$BIN" "$@" 2>"$W/err" | head -c 1 >/dev/null
         rc=${PIPESTATUS[0]}
+    elif [ "$expect" = pipe2 ]; then
+        timeout -k 5 "$LIMIT_S" "$BIN" "$@" 2>&1 | head -c 1 >/dev/null
+        rc=${PIPESTATUS[0]}
+    elif [ "$expect" = nostderr ]; then
+        timeout -k 5 "$LIMIT_S" python3 -c 'import os, sys
+r, w = os.pipe()
+os.close(r)
+os.dup2(w, 2)
+os.execv(sys.argv[1], sys.argv[1:])' "$BIN" "$@" >"$W/out"
+        rc=$?
     else
         timeout -k 5 "$LIMIT_S" "$BIN" "$@" >"$W/out" 2>"$W/err"
         rc=$?
@@ -47,6 +62,8 @@ t() {
         why="panic: $(grep -m1 panicked "$W/err")"
     elif [ "$rc" -gt 128 ]; then
         why="killed by signal $((rc - 128))"
+    elif [ "$expect" = nostderr ]; then
+        [ "$rc" -eq "$pattern" ] || why="exit status $rc, not $pattern"
     elif [ "$expect" = any ] && [ "$rc" -eq 0 ]; then
         accepted=$((accepted + 1))
     elif [ "$expect" = err ] || [ "$expect" = any ]; then
@@ -252,6 +269,12 @@ t err "cut.mcap" run "$D/cut.mcap" --backend cpu --json
 t ok "" run "$D/rec.mcap" --backend cpu --json --speed 10
 t ok "" run "$D/frames" --duration 0.2 --backend cpu --json
 t pipe "" run head_close_clean --duration 0.2 --backend cpu --json --speed 10
+t pipe2 "" run head_close_clean --duration 0.2 --backend cpu --speed 10
+t pipe2 "" run head_close_clean --duration 0.2 --backend cpu --json --speed 10
+t nostderr 0 run head_close_clean --duration 0.2 --backend cpu --speed 10
+t nostderr 1 run --config "$(config 'tick_rate_hz = nan')" --duration 0.1
+t pipe2 "" scenes
+t nostderr 0 scenes
 
 t err "empty.mcap" replay "$D/empty.mcap"
 t err "missing.mcap" replay "$D/missing.mcap"
@@ -317,8 +340,9 @@ t ok "" gpu-info --json
 t pipe "" gpu-info
 
 # --- every numeric key of the node configuration and of a scene (first occurrence per table):
-# NaN must be an error naming the key; infinity, -1, 1e300, 0 and 2^63-1 either that or a run
-# (counted as accepted: the value has a documented meaning, infinity as "no limit").
+# NaN must be an error naming the key (in the controller's tables infinity and 1e300 as well);
+# infinity, -1, 1e300, 0 and 2^63-1 either that or a run (counted as accepted: the value has a
+# documented meaning, infinity as "no limit").
 "$BIN" sim head_close_realistic --out "$D/realistic" --frames 1 >/dev/null 2>&1
 python3 - "$D/sweep" fuzz/seeds/config_toml/node_default.toml "$D/realistic/scene.toml" <<'PY' >"$D/sweep.list"
 import re, sys, os
@@ -345,7 +369,9 @@ for kind, path in (("config", sys.argv[2]), ("scene", sys.argv[3])):
             name = f"{kind}_{len(os.listdir(out)):04d}.toml"
             text = "\n".join(lines[:i] + [f"{key} = {new}"] + lines[i + 1:])
             open(os.path.join(out, name), "w").write(text)
-            expect = "err" if bad == "nan" else "any"
+            # the controller's values are bounded by the robot's data (haptics::bounds)
+            refused = ["nan", "inf", "1e300"] if table.startswith("controller") else ["nan"]
+            expect = "err" if bad in refused else "any"
             print(expect, key, kind, os.path.join(out, name), f"{table or '(top)'}.{key}={bad}")
 PY
 while read -r expect key kind file what; do

@@ -218,7 +218,7 @@ pub fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
-            eprintln!("error: {err:#}");
+            hapcloud::stderr_line!("error: {err:#}");
             ExitCode::FAILURE
         }
     }

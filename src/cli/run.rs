@@ -214,7 +214,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let source =
                 zenoh_io::ZenohSource::new(&s, &run_config.zenoh, &run_config.zenoh_source)?;
             if !args.json {
-                eprintln!(
+                hapcloud::stderr_line!(
                     "subscribed to {} camera(s) through {:?} ({:?} keys, domain {})",
                     run_config.zenoh_source.cameras.len(),
                     run_config
@@ -240,7 +240,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let path = std::path::Path::new(file);
             let read = record::read_frames(path, &run_config.mcap)?;
             if let Some(cut) = &read.truncated {
-                eprintln!("warning: {file}: {cut}; playing the frames before the cut");
+                hapcloud::stderr_line!("warning: {file}: {cut}; playing the frames before the cut");
             }
             // A node recording without --config runs with the config it was recorded with.
             if let (Some(meta), None) = (&read.meta, &args.config) {
@@ -276,7 +276,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         None => render_scene(&Scene::from_builtin(DEFAULT_SCENE)?, args.duration)?,
     };
     if let (Source::Simulated { frames, .. }, false) = (&source, args.json) {
-        eprintln!("scene rendered: {} frames", frames.len());
+        hapcloud::stderr_line!("scene rendered: {} frames", frames.len());
     }
     let options = RunOptions {
         duration_s: args.duration,
@@ -376,7 +376,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     match signal.load(Ordering::SeqCst) {
         0 => Ok(()),
         sig => {
-            eprintln!(
+            hapcloud::stderr_line!(
                 "stopped by {}: constraints off, safe command sent, recording finished",
                 signal_name(sig)
             );

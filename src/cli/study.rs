@@ -50,7 +50,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for name in &config.scenes {
         let scene = Scene::from_name_or_path(name)?;
         let recording = Recording::from_scene(&scene, &config)?;
-        eprintln!(
+        hapcloud::stderr_line!(
             "{}: {} frames, {} ticks",
             recording.name,
             recording.frames.len(),
@@ -63,7 +63,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         .closed_loop
         .then(|| ClosedLoop::rising(config.closed_loop_rise_speed_mps))
         .transpose()?;
-    eprintln!(
+    hapcloud::stderr_line!(
         "rendered in {:.1} s; {} settings, backend {}",
         start.elapsed().as_secs_f64(),
         settings.len(),
@@ -72,7 +72,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let report = study::run_study(&recordings, &settings, args.backend, closed_loop.as_ref())?;
     study::write_outputs(&args.out, &report)?;
     print!("{}", study::markdown_table(&report));
-    eprintln!(
+    hapcloud::stderr_line!(
         "wrote {}/study.csv, study.md, pareto.png in {:.1} s",
         args.out.display(),
         start.elapsed().as_secs_f64()

@@ -96,7 +96,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let frame = estimator.estimate(&cloud.points, &hip, view, 0, 0.0);
     let elapsed_ms = start.elapsed().as_secs_f64() * 1e3;
     if let Some(e) = &frame.gpu_error {
-        eprintln!("warning: GPU shell moments failed ({e}); used the CPU reference");
+        hapcloud::stderr_line!("warning: GPU shell moments failed ({e}); used the CPU reference");
     }
     let ab = &frame.abstraction;
     let e = &ab.estimate;

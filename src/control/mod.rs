@@ -35,6 +35,7 @@ pub mod hqp;
 pub mod qp;
 pub mod record;
 
+use crate::geometry::MAX_PRIMITIVE_M;
 use crate::haptics::{self, HapticConfig, HapticConstraints};
 use crate::robot::{DOF, HipKinematics, JointMatrix, JointVector, RobotModel};
 use crate::surface::SurfaceState;
@@ -98,55 +99,64 @@ pub enum ControllerConfigError {
 }
 
 impl ControllerConfig {
+    /// Every value finite and within [`haptics::bounds`] (the joint horizons at most
+    /// `MAX_HORIZON_S`, the damping at most `MAX_JOINT_DAMPING_NMS_PER_RAD`, the
+    /// minimal-acceleration gain at most one per tick, the fixed planes' points within
+    /// [`MAX_PRIMITIVE_M`] of the origin); the error names the key.
     pub fn validate(&self) -> Result<(), ControllerConfigError> {
         self.haptics.validate()?;
-        for (name, v) in [
-            ("joint_limit_horizon_s", self.joint_limit_horizon_s),
-            ("joint_velocity_horizon_s", self.joint_velocity_horizon_s),
-        ] {
-            if !(v > 0.0 && v.is_finite()) {
-                return Err(ControllerConfigError::Value(format!(
-                    "{name} must be positive, got {v}"
-                )));
-            }
-        }
-        for (name, v) in [
-            ("damping_nms_per_rad", self.damping_nms_per_rad),
-            (
-                "min_acceleration_damping_per_s",
-                self.min_acceleration_damping_per_s,
-            ),
-        ] {
-            if !(v >= 0.0 && v.is_finite()) {
-                return Err(ControllerConfigError::Value(format!(
-                    "{name} must be finite and not negative, got {v}"
-                )));
-            }
-        }
+        self.check().map_err(ControllerConfigError::Value)
+    }
+
+    fn check(&self) -> Result<(), String> {
+        use haptics::bounds::*;
+        positive_at_most(
+            "joint_limit_horizon_s",
+            self.joint_limit_horizon_s,
+            MAX_HORIZON_S,
+        )?;
+        positive_at_most(
+            "joint_velocity_horizon_s",
+            self.joint_velocity_horizon_s,
+            MAX_HORIZON_S,
+        )?;
+        within(
+            "damping_nms_per_rad",
+            self.damping_nms_per_rad,
+            0.0,
+            MAX_JOINT_DAMPING_NMS_PER_RAD,
+        )?;
+        // `qdd = -k qd` for one tick: a larger k reverses a joint's velocity within the tick
+        within(
+            "min_acceleration_damping_per_s",
+            self.min_acceleration_damping_per_s,
+            0.0,
+            1.0 / self.haptics.period_s,
+        )?;
         if self.fixed_planes.len() > hqp::MAX_LEVEL_ROWS {
-            return Err(ControllerConfigError::Value(format!(
+            return Err(format!(
                 "at most {} fixed_planes, got {}",
                 hqp::MAX_LEVEL_ROWS,
                 self.fixed_planes.len()
-            )));
-        }
-        if self
-            .fixed_planes
-            .iter()
-            .any(|p| !p.point_m.coords.iter().all(|v| v.is_finite()))
-        {
-            return Err(ControllerConfigError::Value(
-                "fixed_planes.point_m must be finite".into(),
             ));
         }
-        // A normal is read as given (serde does not normalise a `Unit`).
-        if let Some(p) = self.fixed_planes.iter().find(|p| {
-            (p.normal.norm() - 1.0).abs().is_nan() || (p.normal.norm() - 1.0).abs() > 1e-6
-        }) {
-            return Err(ControllerConfigError::Value(format!(
-                "fixed_planes.normal must be a unit vector, got {:?}",
-                p.normal.as_ref()
-            )));
+        for p in &self.fixed_planes {
+            for v in p.point_m.iter() {
+                within(
+                    "fixed_planes.point_m",
+                    *v,
+                    -MAX_PRIMITIVE_M,
+                    MAX_PRIMITIVE_M,
+                )?;
+            }
+            // A normal is read as given (serde does not normalise a `Unit`).
+            let off_unit = (p.normal.norm() - 1.0).abs();
+            if off_unit.is_nan() || off_unit > 1e-6 {
+                return Err(format!(
+                    "fixed_planes.normal must be a unit vector, got {:?}",
+                    p.normal.as_ref()
+                ));
+            }
         }
         Ok(())
     }
@@ -694,5 +704,36 @@ mod tests {
                 .to_string()
                 .contains("joint_limit_horizon_s")
         );
+        for key in [
+            "joint_limit_horizon_s",
+            "joint_velocity_horizon_s",
+            "damping_nms_per_rad",
+            "min_acceleration_damping_per_s",
+            "haptics.max_force_n",
+        ] {
+            let (table, field) = key.rsplit_once('.').map_or(("", key), |(t, f)| (t, f));
+            for bad in ["nan", "inf", "1e300", "-1"] {
+                let text = if table.is_empty() {
+                    format!("{field} = {bad}")
+                } else {
+                    format!("[{table}]\n{field} = {bad}")
+                };
+                let cfg: ControllerConfig = toml::from_str(&text).unwrap();
+                let err = cfg.validate().unwrap_err().to_string();
+                assert!(err.contains(field), "{text}: {err}");
+            }
+        }
+        let far_plane: ControllerConfig = toml::from_str(
+            "[[fixed_planes]]\npoint_m = [1e300, 0.0, 0.0]\nnormal = [1.0, 0.0, 0.0]",
+        )
+        .unwrap();
+        let err = far_plane.validate().unwrap_err().to_string();
+        assert!(err.contains("fixed_planes.point_m"), "{err}");
+        // one tick of `qdd = -k qd` may bring a joint to rest, not reverse it
+        let at_rest_in_a_tick = ControllerConfig {
+            min_acceleration_damping_per_s: 800.0,
+            ..ControllerConfig::default()
+        };
+        assert_eq!(at_rest_in_a_tick.validate(), Ok(()));
     }
 }

@@ -93,7 +93,8 @@ pub struct HapticConfig {
     pub activation_distance_m: f64,
     /// Deceleration of the approach the velocity limit plans with (braking envelope of
     /// `vc(d)` and the activation's braking distance), m/s^2: what the robot can do against
-    /// the patient's arm. Very large values give the paper's plain ramp.
+    /// the patient's arm. Values beyond the robot's (up to [`bounds::MAX_BRAKING_DECEL_MPS2`])
+    /// give the paper's plain ramp.
     pub braking_decel_mps2: f64,
     /// Use the surface's velocity in the rate of `d_proj` (beyond the paper).
     pub use_surface_velocity: bool,
@@ -123,41 +124,121 @@ impl Default for HapticConfig {
     }
 }
 
+/// Bounds of the haptic and controller configuration, from ANYexo's data (REFERENCE.md: the
+/// ANYdrive's 80 Nm peak, 40 Nm command limit and 15 rad/s; upper arm 0.33 m, forearm 0.26 m;
+/// as in `robots/anyexo.urdf`, whose grip centre lies 0.07 m beyond the forearm). A value
+/// beyond one is no limit this robot could reach, a typo or a unit mix-up (1e300 ran and
+/// constrained nothing), and is refused with its key.
+pub mod bounds {
+    /// Fastest HIP speed, m/s (`max_speed_mps`, `min_speed_mps` in magnitude): a joint at the
+    /// ANYdrive's 15 rad/s moves the grip, 0.66 m from the shoulder (0.33 + 0.26 + 0.07 m),
+    /// at 9.9 m/s.
+    pub const MAX_HIP_SPEED_MPS: f64 = 10.0;
+    /// Largest push-out force, N (`max_force_n`): about four times the 242 N the elbow's
+    /// ANYdrive at its 80 Nm peak pushes the grip with across the 0.33 m from the elbow to
+    /// the grip, room for the shoulder's drives adding theirs; a larger limit never binds on
+    /// this robot (`enable_force = false` turns the force row off).
+    pub const MAX_PUSH_FORCE_N: f64 = 1000.0;
+    /// Largest planned deceleration, m/s^2 (`braking_decel_mps2`): about six times the
+    /// 150 m/s^2 the elbow's 80 Nm peak gives the patient's forearm and hand (1.6 kg) at the
+    /// grip 0.33 m away. Up to it, a value beyond what the robot can do gives the paper's
+    /// plain ramp for every ramp slope up to `MAX_BRAKING_DECEL_MPS2 / MAX_HIP_SPEED_MPS` =
+    /// 100 /s (e.g. 2 m/s over 2 cm).
+    pub const MAX_BRAKING_DECEL_MPS2: f64 = 1000.0;
+    /// Longest prediction horizon and controller period, s (`position_gain` and
+    /// `velocity_gain` times `period_s`, `period_s`, the controller's joint horizons): at the
+    /// ANYdrive's 15 rad/s every joint crosses its whole range (at most 3.4 rad, the elbow
+    /// flexion's -0.8..2.6 rad) in 0.23 s, so a prediction over longer reaches past any joint
+    /// limit.
+    pub const MAX_HORIZON_S: f64 = 0.25;
+    /// Largest haptic distance, m (`ramp_offset_m` in magnitude, `ramp_width_m`,
+    /// `activation_distance_m`): the grip moves within 0.66 m of the shoulder, a ball 1.32 m
+    /// across; a ramp or activation distance beyond 2 m spans more than the HIP can travel.
+    pub const MAX_DISTANCE_M: f64 = 2.0;
+    /// Largest joint damping, Nm s/rad (`damping_nms_per_rad`): 40 Nm s/rad asks for the
+    /// ANYdrive's 40 Nm command limit at 1 rad/s, a fifteenth of its speed; more saturates
+    /// every joint that moves at all.
+    pub const MAX_JOINT_DAMPING_NMS_PER_RAD: f64 = 40.0;
+
+    /// `v` above zero and at most `max`; the error names `key`.
+    pub fn positive_at_most(key: &str, v: f64, max: f64) -> Result<(), String> {
+        if v > 0.0 && v <= max {
+            Ok(())
+        } else {
+            Err(format!(
+                "{key} must be above 0 and at most {max}, got {v:?}"
+            ))
+        }
+    }
+
+    /// `v` within `[min, max]`; the error names `key`.
+    pub fn within(key: &str, v: f64, min: f64, max: f64) -> Result<(), String> {
+        if (min..=max).contains(&v) {
+            Ok(())
+        } else {
+            Err(format!("{key} must be within [{min}, {max}], got {v:?}"))
+        }
+    }
+}
+
 /// A configuration value out of range.
 #[derive(Debug, thiserror::Error, PartialEq)]
 #[error("haptic config: {0}")]
 pub struct HapticConfigError(pub String);
 
 impl HapticConfig {
+    /// Every value finite and within [`bounds`]; the error names the key.
     pub fn validate(&self) -> Result<(), HapticConfigError> {
-        let positive = [
-            ("period_s", self.period_s),
+        self.check().map_err(HapticConfigError)
+    }
+
+    fn check(&self) -> Result<(), String> {
+        use bounds::*;
+        positive_at_most("period_s", self.period_s, MAX_HORIZON_S)?;
+        for (key, gain) in [
             ("position_gain", self.position_gain),
             ("velocity_gain", self.velocity_gain),
-            ("ramp_width_m", self.ramp_width_m),
-            ("max_force_n", self.max_force_n),
-            ("activation_distance_m", self.activation_distance_m),
-            ("braking_decel_mps2", self.braking_decel_mps2),
-        ];
-        for (name, v) in positive {
-            if !(v > 0.0 && v.is_finite()) {
-                return Err(HapticConfigError(format!(
-                    "{name} must be positive, got {v}"
-                )));
-            }
+        ] {
+            // the horizon `gain * period_s` is what is bounded; the gain's own bound follows
+            positive_at_most(key, gain, MAX_HORIZON_S / self.period_s)
+                .map_err(|e| format!("{e} (horizon {key} x period_s at most {MAX_HORIZON_S} s)"))?;
         }
-        if !(self.min_speed_mps.is_finite() && self.max_speed_mps.is_finite())
-            || self.min_speed_mps > self.max_speed_mps
-        {
-            return Err(HapticConfigError(format!(
+        within(
+            "min_speed_mps",
+            self.min_speed_mps,
+            -MAX_HIP_SPEED_MPS,
+            MAX_HIP_SPEED_MPS,
+        )?;
+        within(
+            "max_speed_mps",
+            self.max_speed_mps,
+            -MAX_HIP_SPEED_MPS,
+            MAX_HIP_SPEED_MPS,
+        )?;
+        if self.min_speed_mps > self.max_speed_mps {
+            return Err(format!(
                 "min_speed_mps ({}) must not exceed max_speed_mps ({})",
                 self.min_speed_mps, self.max_speed_mps
-            )));
+            ));
         }
-        if !self.ramp_offset_m.is_finite() {
-            return Err(HapticConfigError("ramp_offset_m must be finite".into()));
-        }
-        Ok(())
+        within(
+            "ramp_offset_m",
+            self.ramp_offset_m,
+            -MAX_DISTANCE_M,
+            MAX_DISTANCE_M,
+        )?;
+        positive_at_most("ramp_width_m", self.ramp_width_m, MAX_DISTANCE_M)?;
+        positive_at_most("max_force_n", self.max_force_n, MAX_PUSH_FORCE_N)?;
+        positive_at_most(
+            "activation_distance_m",
+            self.activation_distance_m,
+            MAX_DISTANCE_M,
+        )?;
+        positive_at_most(
+            "braking_decel_mps2",
+            self.braking_decel_mps2,
+            MAX_BRAKING_DECEL_MPS2,
+        )
     }
 
     /// The speed limit `vc(d)`: eq. 12's ramp, capped by the braking envelope (module doc),
@@ -406,9 +487,10 @@ mod tests {
             max_speed_mps: 1.1,
             ramp_offset_m: 0.01,
             ramp_width_m: 0.1,
-            braking_decel_mps2: 1e9,
+            braking_decel_mps2: bounds::MAX_BRAKING_DECEL_MPS2,
             ..HapticConfig::default()
         };
+        assert_eq!(cfg.validate(), Ok(()));
         assert_eq!(cfg.speed_limit_mps(-0.5), 0.1);
         assert_eq!(cfg.speed_limit_mps(0.01), 0.1);
         assert!((cfg.speed_limit_mps(0.06) - 0.6).abs() < 1e-12);
@@ -542,5 +624,44 @@ mod tests {
         assert!(bad.validate().is_err());
         let parsed: Result<HapticConfig, _> = toml::from_str("position_gian = 3.0");
         assert!(parsed.is_err());
+    }
+
+    /// Every numeric key refuses NaN, infinity and 1e300 with an error naming it, and takes
+    /// its bound itself.
+    #[test]
+    fn every_numeric_key_is_bounded_and_named() {
+        let keys = [
+            ("period_s", bounds::MAX_HORIZON_S),
+            ("position_gain", bounds::MAX_HORIZON_S * 800.0),
+            ("velocity_gain", bounds::MAX_HORIZON_S * 800.0),
+            ("min_speed_mps", -bounds::MAX_HIP_SPEED_MPS),
+            ("max_speed_mps", bounds::MAX_HIP_SPEED_MPS),
+            ("ramp_offset_m", -bounds::MAX_DISTANCE_M),
+            ("ramp_width_m", bounds::MAX_DISTANCE_M),
+            ("max_force_n", bounds::MAX_PUSH_FORCE_N),
+            ("activation_distance_m", bounds::MAX_DISTANCE_M),
+            ("braking_decel_mps2", bounds::MAX_BRAKING_DECEL_MPS2),
+        ];
+        for (key, bound) in keys {
+            for bad in ["nan", "inf", "-inf", "1e300", "-1e300"] {
+                let cfg: HapticConfig = toml::from_str(&format!("{key} = {bad}")).unwrap();
+                let err = cfg.validate().unwrap_err().0;
+                assert!(err.contains(key), "{key} = {bad}: {err}");
+            }
+            let at_bound: HapticConfig = toml::from_str(&format!("{key} = {bound:?}")).unwrap();
+            // `period_s` at its bound leaves the default gains' horizons over theirs
+            if key != "period_s" {
+                assert_eq!(at_bound.validate(), Ok(()), "{key} = {bound}");
+            }
+        }
+        let long_horizon = HapticConfig {
+            period_s: bounds::MAX_HORIZON_S,
+            ..HapticConfig::default()
+        };
+        let err = long_horizon.validate().unwrap_err().0;
+        assert!(
+            err.contains("position_gain") && err.contains("horizon"),
+            "{err}"
+        );
     }
 }

@@ -209,7 +209,7 @@ impl CanOutput {
     }
 
     fn close(&mut self, error: String, socket: bool) {
-        eprintln!("warning: CAN output closed: {error}");
+        crate::stderr_line!("warning: CAN output closed: {error}");
         self.counters.error.get_or_insert(error);
         if socket {
             self.sender = None;

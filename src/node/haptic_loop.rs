@@ -151,7 +151,7 @@ impl Perception {
             None => (chain(Backend::Cpu, None)?, None),
             Some(Ok(c)) => (c, None),
             Some(Err(e)) => {
-                eprintln!("warning: GPU unavailable ({e}); perception runs on the CPU");
+                crate::stderr_line!("warning: GPU unavailable ({e}); perception runs on the CPU");
                 (chain(Backend::Cpu, None)?, Some(e))
             }
         };
@@ -210,7 +210,7 @@ impl Perception {
     ) -> Result<FrameRecord, NodeError> {
         let chain = self.chain.process(frame, &scene.hip_m, &scene.primitives)?;
         if let (Some(reason), false) = (self.chain.gpu_fallback(), self.warned) {
-            eprintln!("warning: GPU failed ({reason}); perception continues on the CPU");
+            crate::stderr_line!("warning: GPU failed ({reason}); perception continues on the CPU");
             self.warned = true;
         }
         let far_field = chain

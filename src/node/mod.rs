@@ -43,6 +43,17 @@
 //! ([`FramesLost`]); an unreadable recording is an error naming the file
 //! ([`record`]).
 
+/// `eprintln!` for the node's and the command line's diagnostics, which a closed or failing
+/// standard error drops instead of panicking (`hapcloud run 2>&1 | head` closes it while the
+/// node runs: a log line nobody reads must not stop a control loop or a command).
+#[macro_export]
+macro_rules! stderr_line {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stderr(), $($arg)*);
+    }};
+}
+
 mod backends;
 pub mod can_out;
 pub mod frame_queue;
@@ -631,7 +642,7 @@ fn announce(
     robot: &RobotState,
     can: bool,
 ) {
-    eprintln!(
+    crate::stderr_line!(
         "perception backend: {}{}{}; robot: {}",
         perception.backend(),
         perception
@@ -649,7 +660,7 @@ fn announce(
     );
     if can {
         let load = config.can.bus_load(config.tick_rate_hz);
-        eprintln!(
+        crate::stderr_line!(
             "CAN: {:.0} frames/s, {:.0} kbit/s worst case, {:.1} % of {:.0} kbit/s",
             load.frames_per_s,
             load.bits_per_s / 1e3,

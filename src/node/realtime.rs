@@ -217,7 +217,7 @@ impl RealtimeGuard {
                 Some(nice) => format!("runs at nice {nice} instead"),
                 None => "runs without it".into(),
             };
-            eprintln!(
+            crate::stderr_line!(
                 "warning: real time refused ({}); the control loop {instead}",
                 self.status.refused.join("; ")
             );

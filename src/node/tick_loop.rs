@@ -95,7 +95,7 @@ impl Progress {
             .iter()
             .map(|(id, n)| format!("cam{id} {:.1} Hz", *n as f64 / self.span_s))
             .collect();
-        eprintln!(
+        crate::stderr_line!(
             "t {:7.2} s  {}  latency last {:.1} ms  ticks {}  misses {}  fusion {:?}  constraints {:?}{}  d_proj {:.1} mm",
             self.t_s,
             if rates.is_empty() {

@@ -104,7 +104,9 @@ impl Shared {
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
         if first.is_none() {
-            eprintln!("warning: recording stopped ({error}); the node goes on without it");
+            crate::stderr_line!(
+                "warning: recording stopped ({error}); the node goes on without it"
+            );
             *first = Some(error.to_string());
         }
     }
