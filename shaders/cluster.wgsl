@@ -19,6 +19,7 @@
 //                        the smallest index (atomicMin) and the bounding box (atomicMin/Max
 //                        of order_key), each atomic skipped when it cannot change the value
 //   place    per cell    give each sub-cell its range of sorted[] (atomicAdd of its count)
+//                        and write it decoded into boxes[], which the later passes read
 //   seed     per point   sorted[start + rank] = i; parent[i] = smallest index of the sub-cell
 //   hook     per cell    the cell's sub-cell pairs, then the 13 coarse cells that follow it in
 //   (x threads per cell) (z, y, x) order (each pair of cells once; these 14 tasks shared out
@@ -87,6 +88,8 @@ struct Slot {
     cell: atomic<u32>,
     // Bit o set when octant o of the cell holds points.
     octants: atomic<u32>,
+    // The coarse cell (written by the claiming thread; read by later passes' look-ups).
+    coarse: array<i32, 3>,
 }
 
 struct PointInfo {
@@ -114,7 +117,7 @@ struct Cell {
     _pad: vec2<u32>,
 }
 
-// Built by one thread per point (gather); read with load_sub.
+// A sub-cell while one thread per point builds it (gather).
 struct SubCell {
     // Bounding box as order_key of each coordinate.
     lo: array<atomic<u32>, 3>,
@@ -123,13 +126,12 @@ struct SubCell {
     low: atomic<u32>,
     // Points of the sub-cell.
     count: atomic<u32>,
-    // First index of its points in sorted[] (place).
-    start: u32,
     // 1 when a pair of it and another sub-cell is left to the scan pass (hook).
     scan: atomic<u32>,
 }
 
-// A sub-cell as the hook and scan passes use it.
+// A sub-cell as place writes it for the later passes (plain loads: on lavapipe every load
+// with a per-thread address is a loop over the SIMD lanes, an atomic one more so).
 struct Sub {
     lo: vec3<f32>,
     low: u32,
@@ -172,6 +174,8 @@ const PLACED: u32 = 5u;
 @group(0) @binding(8) var<storage, read_write> subs: array<SubCell>;
 // Point indices, each sub-cell's points in one range (seed).
 @group(0) @binding(9) var<storage, read_write> sorted: array<u32>;
+// The sub-cells of subs[], decoded (place).
+@group(0) @binding(10) var<storage, read_write> boxes: array<Sub>;
 // [x, 1, 1] per point, then the hook's [x, threads per cell, 1].
 @group(1) @binding(0) var<storage, read_write> dispatch_args: array<u32, 6>;
 
@@ -260,6 +264,7 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
             // A cell has at least one point: at most `count` cells.
             let k = atomicAdd(&status[CELL_COUNT], 1u);
             atomicStore(&slots[s].cell, k + 1u);
+            slots[s].coarse = array<i32, 3>(c.x, c.y, c.z);
             cells[k].coarse = c;
             cells[k].slot = s;
         } else if owner == 0u {
@@ -349,7 +354,15 @@ fn place(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let first = cells[k].first_sub;
     for (var j = first; j < first + countOneBits(cells[k].octants); j++) {
-        subs[j].start = atomicAdd(&status[PLACED], atomicLoad(&subs[j].count));
+        var lo: vec3<f32>;
+        var hi: vec3<f32>;
+        for (var axis = 0u; axis < 3u; axis++) {
+            lo[axis] = from_order_key(atomicLoad(&subs[j].lo[axis]));
+            hi[axis] = from_order_key(atomicLoad(&subs[j].hi[axis]));
+        }
+        let count = atomicLoad(&subs[j].count);
+        let start = atomicAdd(&status[PLACED], count);
+        boxes[j] = Sub(lo, atomicLoad(&subs[j].low), hi, start, count);
     }
 }
 
@@ -361,32 +374,22 @@ fn seed(@builtin(global_invocation_id) gid: vec3<u32>) {
     if i >= count() || info[i].slot == NONE {
         return;
     }
-    let sub = info[i].sub;
-    sorted[subs[sub].start + info[i].rank] = i;
-    atomicStore(&parent[i], atomicLoad(&subs[sub].low));
+    let sub = boxes[info[i].sub];
+    sorted[sub.start + info[i].rank] = i;
+    atomicStore(&parent[i], sub.low);
     info[i].scanned = 0u;
 }
 
-fn load_sub(j: u32) -> Sub {
-    var lo: vec3<f32>;
-    var hi: vec3<f32>;
-    for (var axis = 0u; axis < 3u; axis++) {
-        lo[axis] = from_order_key(atomicLoad(&subs[j].lo[axis]));
-        hi[axis] = from_order_key(atomicLoad(&subs[j].hi[axis]));
-    }
-    return Sub(lo, atomicLoad(&subs[j].low), hi, subs[j].start, atomicLoad(&subs[j].count));
-}
-
-// Slot of coarse cell c, or NONE (reads info[].cell written by the insert dispatch).
+// Slot of coarse cell c, or NONE (after the insert dispatch).
 fn find_slot(c: vec3<i32>) -> u32 {
     let h = hash(c);
     for (var probe = 0u; probe < params.max_probes; probe++) {
         let s = (h + probe) & params.table_mask;
-        let rep = atomicLoad(&slots[s].rep);
-        if rep == 0u {
+        if atomicLoad(&slots[s].rep) == 0u {
             return NONE;
         }
-        if all(coarse_of(info[rep - 1u].cell) == c) {
+        let key = slots[s].coarse;
+        if all(vec3<i32>(key[0], key[1], key[2]) == c) {
             return s;
         }
     }
@@ -488,11 +491,13 @@ fn ranges_touch(a: Sub, b: Sub) -> bool {
 // are far enough apart or close enough together, else by the first neighbour pair (here, or
 // in the scan pass from a's points: a_index marks a for it).
 fn join_if_touching(a_index: u32, a: Sub, b: Sub) {
-    if near2(a.lo, a.hi, b.lo, b.hi) > params.r2_apart || same_set(a.low, b.low) {
+    if near2(a.lo, a.hi, b.lo, b.hi) > params.r2_apart {
         return;
     }
     if far2(a.lo, a.hi, b.lo, b.hi) < params.r2_joined {
         _ = unite(a.low, b.low);
+    } else if same_set(a.low, b.low) {
+        return;
     } else if a.count > INLINE_PAIRS / b.count {
         atomicStore(&subs[a_index].scan, 1u);
     } else if ranges_touch(a, b) {
@@ -537,7 +542,7 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     var box_lo = vec3<f32>(3.0e38);
     var box_hi = vec3<f32>(-3.0e38);
     for (var a = 0u; a < count_a; a++) {
-        own[a] = load_sub(cell.first_sub + a);
+        own[a] = boxes[cell.first_sub + a];
         box_lo = min(box_lo, own[a].lo);
         box_hi = max(box_hi, own[a].hi);
     }
@@ -559,7 +564,7 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         let count_b = countOneBits(cell_b.octants);
         for (var b = 0u; b < count_b; b++) {
-            let sub_b = load_sub(cell_b.first_sub + b);
+            let sub_b = boxes[cell_b.first_sub + b];
             if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
                 continue;
             }
@@ -605,7 +610,7 @@ fn scan(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let a_index = info[i].sub;
-    let a = load_sub(a_index);
+    let a = boxes[a_index];
     let p = points[i].xyz;
     let cell = cells[atomicLoad(&slots[info[i].slot].cell) - 1u];
     let done_before = info[i].scanned;
@@ -625,7 +630,7 @@ fn scan(@builtin(global_invocation_id) gid: vec3<u32>) {
             end = first + countOneBits(cell_b.octants);
         }
         for (var j = first; j < end && !stopped; j++) {
-            let b = load_sub(j);
+            let b = boxes[j];
             if !left_to_scan(a, b) {
                 continue;
             }

@@ -457,13 +457,15 @@ pub const CELL_MARGIN: f32 = 1.05;
 const REACH_CELLS: f32 = 2.0 / CELL_MARGIN + 0.02;
 /// `GRID_LIMIT` in the shader: largest |cell coordinate| the GPU grid accepts.
 pub const GRID_LIMIT_CELLS: f32 = 65536.0;
-/// Bytes of one `Slot` in the shader (`rep`, `head`, `cell`).
-const SLOT_BYTES: u64 = 12;
+/// Bytes of one `Slot` in the shader (`rep`, `cell`, `octants`, `coarse`).
+const SLOT_BYTES: u64 = 24;
 /// Bytes of one `PointInfo` in the shader (fine cell, slot, sub-cell, rank, scan progress).
 const INFO_BYTES: u64 = 32;
 /// Bytes of one `Cell` and of one `SubCell` in the shader (at most one of each per point).
 const CELL_BYTES: u64 = 32;
-const SUB_CELL_BYTES: u64 = 40;
+const SUB_CELL_BYTES: u64 = 36;
+/// Bytes of one `Sub` in the shader (a sub-cell decoded for the hook and scan passes).
+const SUB_BYTES: u64 = 48;
 /// Bytes of the status words read back (overflow, incomplete, out of range).
 const STATUS_BYTES: u64 = 12;
 /// Bytes of the `status` buffer: the status words, then the cell, sub-cell and placed-point
@@ -511,6 +513,7 @@ struct ClusterBuffers {
     cells: wgpu::Buffer,
     subs: wgpu::Buffer,
     sorted: wgpu::Buffer,
+    boxes: wgpu::Buffer,
     dispatch_args: wgpu::Buffer,
     args_group: wgpu::BindGroup,
     /// Bind group 0 over these buffers and the last input.
@@ -576,6 +579,7 @@ impl GpuClusterer {
                 Storage,
                 Storage,
                 Storage,
+                Storage,
             ],
         )?;
         let args_layout =
@@ -630,6 +634,7 @@ impl GpuClusterer {
                 &b.cells,
                 &b.subs,
                 &b.sorted,
+                &b.boxes,
                 &b.dispatch_args,
             ]
             .iter()
@@ -704,6 +709,7 @@ impl GpuClusterer {
             ("cluster cells", n * CELL_BYTES),
             ("cluster sub-cells", n * SUB_CELL_BYTES),
             ("cluster sorted points", n * 4),
+            ("cluster sub-cell boxes", n * SUB_BYTES),
         ];
         for (what, bytes) in sizes {
             ctx.check_storage_size(what, bytes)?;
@@ -757,6 +763,7 @@ impl GpuClusterer {
                 cells: buffer("cluster cells", n * CELL_BYTES, U::STORAGE),
                 subs: buffer("cluster sub-cells", n * SUB_CELL_BYTES, U::STORAGE),
                 sorted: buffer("cluster sorted points", n * 4, U::STORAGE),
+                boxes: buffer("cluster sub-cell boxes", n * SUB_BYTES, U::STORAGE),
                 dispatch_args,
                 args_group,
                 group: CachedBindGroup::default(),
@@ -1014,8 +1021,9 @@ impl GpuClusterer {
             b.cells.as_entire_binding(),
             b.subs.as_entire_binding(),
             b.sorted.as_entire_binding(),
+            b.boxes.as_entire_binding(),
         ];
-        let entries: [wgpu::BindGroupEntry; 10] = std::array::from_fn(|i| wgpu::BindGroupEntry {
+        let entries: [wgpu::BindGroupEntry; 11] = std::array::from_fn(|i| wgpu::BindGroupEntry {
             binding: i as u32,
             resource: resources[i].clone(),
         });
@@ -1313,6 +1321,7 @@ mod tests {
         assert_eq!(size_of("PointInfo"), INFO_BYTES);
         assert_eq!(size_of("Cell"), CELL_BYTES);
         assert_eq!(size_of("SubCell"), SUB_CELL_BYTES);
+        assert_eq!(size_of("Sub"), SUB_BYTES);
     }
 
     /// 10^5 and 10^6 points, most of them coincident, the rest a blob 10 um wide straddling
