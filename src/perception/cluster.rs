@@ -808,8 +808,8 @@ impl GpuClusterer {
     }
 
     /// Records the clustering of `input` into the frame's encoder: table and status cleared
-    /// with `clear_buffer`, then prepare + insert + summary, hook, compress as timed compute
-    /// passes.
+    /// with `clear_buffer`, then three timed compute passes: the grid (prepare, insert,
+    /// number, gather, place, seed), the hook (hook, scan) and compress.
     pub fn encode(
         &mut self,
         ctx: &GpuContext,
