@@ -6,37 +6,49 @@
 // so every neighbour lies in the 27 coarse cells around a point's. The hash table holds the
 // coarse cells; each fine cell (a "sub-cell") is one set from the start.
 //
-// Passes, one dispatch each, all in one compute pass of the frame's encoder:
+// No invocation walks a cell's or a sub-cell's points: the sub-cells are built by one thread
+// per point with atomics, and point pairs are tested in bounded chunks. Passes, one dispatch
+// each, all in the frame's encoder:
 //   prepare  (1 thread)  indirect dispatch size from the point count (count may be GPU-side)
 //   insert   per point   claim a hash slot for the point's coarse cell (linear probing, at
 //                        most max_probes, overflow flag otherwise; the claiming thread also
-//                        numbers the cell: cells[] lists the occupied cells) and push the
-//                        point on the slot's list
-//   summary  per cell    walk the cell's list once: per octant its bounding box, smallest
-//                        point index and its own list (the sub-cells, numbered in subs[])
-//   seed     per point   parent[i] = smallest index of i's sub-cell (one set from the start)
+//                        numbers the cell: cells[] lists the occupied cells) and mark the
+//                        point's octant in the slot
+//   number   per cell    number the cell's occupied octants (its sub-cells, in subs[])
+//   gather   per point   join the point's sub-cell: its rank there (atomicAdd of the count),
+//                        the smallest index (atomicMin) and the bounding box (atomicMin/Max
+//                        of order_key), each atomic skipped when it cannot change the value
+//   place    per cell    give each sub-cell its range of sorted[] (atomicAdd of its count)
+//                        and write it decoded into boxes[], which the later passes read
+//   seed     per point   sorted[start + rank] = i; parent[i] = smallest index of the sub-cell
 //   hook     per cell    the cell's sub-cell pairs, then the 13 coarse cells that follow it in
 //   (x threads per cell) (z, y, x) order (each pair of cells once; these 14 tasks shared out
-//                        among the cell's hook_threads_per_cell threads), skipping cells out of reach
-//                        of the cell's box: a pair of sub-cells is joined when their boxes'
-//                        farthest corners are neighbours, skipped when their nearest corners
-//                        are not, else by testing point pairs, (dx*dx + dy*dy) + dz*dz < r2,
-//                        until the first hit; unions on a lock-free union-find (find with path
+//                        among the cell's hook_threads_per_cell threads), skipping cells out of
+//                        reach of the cell's box: a pair of sub-cells is joined when their
+//                        boxes' farthest corners are neighbours, skipped when their nearest
+//                        corners are not, else by testing point pairs,
+//                        (dx*dx + dy*dy) + dz*dz < r2, until the first hit: here when the pair
+//                        has at most INLINE_PAIRS point pairs, else the sub-cell is marked for
+//                        the scan pass; unions on a lock-free union-find (find with path
 //                        halving; roots hooked larger-under-smaller by CAS)
+//   scan     per point   a point of a marked sub-cell against each such large pair's other
+//                        sub-cell, at most SCAN_BUDGET point pairs per invocation: where it
+//                        stopped is kept per point (scanned), the next submission goes on
 //   compress per point   parent[i] = root(i)
 // Roots are only ever hooked under smaller roots and each sub-cell starts under its smallest
 // point, so each final root is the smallest point index of its component: the canonical id
 // the CPU reference produces too. Every loop is bounded; a pass that hits a bound sets
-// status[STATUS_INCOMPLETE] and the host re-submits hook + compress (the union-find is
+// status[STATUS_INCOMPLETE] and the host re-submits hook + scan + compress (the union-find is
 // monotone, so repeating it is safe). No thread ever waits on another one. The slot table and
 // status are cleared with clear_buffer by the host.
 // llvmpipe (lavapipe) ends every loop of an invocation once all its loops together have run
-// 65535 iterations; a list walk that ends before its list does sets STATUS_DENSE_CELL (summary:
-// the labels would be wrong) or STATUS_INCOMPLETE (a point-pair scan: re-submitted), and a
-// hook invocation whose loops were cut anywhere sets STATUS_INCOMPLETE at its end (a look-up
-// or a loop over cells or sub-cells ended early skips a union without a trace). The probe
-// loops stay short: max_probes <= 1024 (cluster.rs MAX_HASH_PROBES).
-// Uses common.wgsl (prepended): NONE, WORKGROUP_SIZE, finite_point, hash_u32.
+// 65535 iterations; the bounds keep every invocation far below that (hook: 13 look-ups of at
+// most max_probes <= 1024 slots and at most 860 sub-cell pairs of INLINE_PAIRS tests; scan:
+// the same look-ups and SCAN_BUDGET tests), and hook and scan end with loops_were_cut: an
+// invocation whose loops were cut sets STATUS_INCOMPLETE (a look-up or a loop over cells or
+// sub-cells ended early skips a union without a trace) and keeps no progress.
+// Uses common.wgsl (prepended): NONE, WORKGROUP_SIZE, finite_point, hash_u32, order_key,
+// from_order_key.
 
 struct ClusterParams {
     // 1 / fine cell size; fine cell size = tolerance * CELL_MARGIN / 2 (host side), metres^-1.
@@ -72,18 +84,27 @@ struct ClusterParams {
 struct Slot {
     // 1 + index of the point that claimed the slot for its coarse cell; 0 = empty.
     rep: atomic<u32>,
-    // 1 + index of the first point of the cell's list; 0 = empty list.
-    head: atomic<u32>,
     // 1 + the cell's index in cells[] (written by the claiming thread; read by later passes).
     cell: atomic<u32>,
+    // Bit o set when octant o of the cell holds points.
+    octants: atomic<u32>,
+    // The coarse cell (written by the claiming thread; read by later passes' look-ups).
+    coarse: array<i32, 3>,
 }
 
 struct PointInfo {
     // Fine cell of the point.
     cell: vec3<i32>,
-    // 1 + index of the next point in the same list (the coarse cell's after insert, the
-    // sub-cell's after summary); 0 = end of list.
-    next: u32,
+    // Hash slot of the point's coarse cell; NONE for a point without one (not finite, out of
+    // range, or the table overflowed).
+    slot: u32,
+    // Index of the point's sub-cell in subs[].
+    sub: u32,
+    // Position of the point among its sub-cell's points.
+    rank: u32,
+    // Point pairs of the scan pass this point has done (its progress over submissions).
+    scanned: u32,
+    _pad: u32,
 }
 
 struct Cell {
@@ -96,13 +117,27 @@ struct Cell {
     _pad: vec2<u32>,
 }
 
+// A sub-cell while one thread per point builds it (gather).
 struct SubCell {
-    lo: vec3<f32>,
+    // Bounding box as order_key of each coordinate.
+    lo: array<atomic<u32>, 3>,
+    hi: array<atomic<u32>, 3>,
     // Smallest point index of the sub-cell.
+    low: atomic<u32>,
+    // Points of the sub-cell.
+    count: atomic<u32>,
+    // 1 when a pair of it and another sub-cell is left to the scan pass (hook).
+    scan: atomic<u32>,
+}
+
+// A sub-cell as place writes it for the later passes (plain loads: on lavapipe every load
+// with a per-thread address is a loop over the SIMD lanes, an atomic one more so).
+struct Sub {
+    lo: vec3<f32>,
     low: u32,
     hi: vec3<f32>,
-    // 1 + index of the first point of the sub-cell's list.
-    head: u32,
+    start: u32,
+    count: u32,
 }
 
 // Bounds of the union-find loops (a hit sets STATUS_INCOMPLETE, the host re-submits).
@@ -110,6 +145,11 @@ const MAX_FIND: u32 = 256u;
 const MAX_HOOK: u32 = 64u;
 // A coarse cell's hook tasks: its own sub-cell pairs and the 13 cells that follow it.
 const HOOK_TASKS: u32 = 14u;
+// Sub-cell pairs with at most this many point pairs are tested in the hook; larger ones in
+// the scan pass.
+const INLINE_PAIRS: u32 = 32u;
+// Point pairs one scan invocation tests at most.
+const SCAN_BUDGET: u32 = 8192u;
 // |cell coordinate| must stay below this so floor(p * inv_cell) is exact enough that every
 // neighbour lies in the 125 surrounding cells and a cell's points are all neighbours (the
 // host's CELL_MARGIN covers the rounding).
@@ -118,10 +158,10 @@ const GRID_LIMIT: f32 = 65536.0;
 const STATUS_OVERFLOW: u32 = 0u;
 const STATUS_INCOMPLETE: u32 = 1u;
 const STATUS_OUT_OF_RANGE: u32 = 2u;
-const STATUS_DENSE_CELL: u32 = 3u;
-// Counters after the status words (not cleared when the host re-submits hook + compress).
-const CELL_COUNT: u32 = 4u;
-const SUB_COUNT: u32 = 5u;
+// Counters after the status words (not cleared when the host re-submits).
+const CELL_COUNT: u32 = 3u;
+const SUB_COUNT: u32 = 4u;
+const PLACED: u32 = 5u;
 
 @group(0) @binding(0) var<uniform> params: ClusterParams;
 @group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
@@ -132,6 +172,10 @@ const SUB_COUNT: u32 = 5u;
 @group(0) @binding(6) var<storage, read_write> status: array<atomic<u32>, 8>;
 @group(0) @binding(7) var<storage, read_write> cells: array<Cell>;
 @group(0) @binding(8) var<storage, read_write> subs: array<SubCell>;
+// Point indices, each sub-cell's points in one range (seed).
+@group(0) @binding(9) var<storage, read_write> sorted: array<u32>;
+// The sub-cells of subs[], decoded (place).
+@group(0) @binding(10) var<storage, read_write> boxes: array<Sub>;
 // [x, 1, 1] per point, then the hook's [x, threads per cell, 1].
 @group(1) @binding(0) var<storage, read_write> dispatch_args: array<u32, 6>;
 
@@ -192,7 +236,7 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     atomicStore(&parent[i], i);
-    info[i].next = 0u;
+    info[i].slot = NONE;
     let p = points[i].xyz;
     if !finite_point(p) {
         return;
@@ -220,6 +264,7 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
             // A cell has at least one point: at most `count` cells.
             let k = atomicAdd(&status[CELL_COUNT], 1u);
             atomicStore(&slots[s].cell, k + 1u);
+            slots[s].coarse = array<i32, 3>(c.x, c.y, c.z);
             cells[k].coarse = c;
             cells[k].slot = s;
         } else if owner == 0u {
@@ -228,7 +273,11 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
         // The owner's cell is recomputed from the read-only input, never read from info[]:
         // another workgroup's plain stores are not ordered with its atomics.
         if all(coarse_of(cell_of(points[owner - 1u].xyz)) == c) {
-            info[i].next = atomicExchange(&slots[s].head, i + 1u);
+            info[i].slot = s;
+            let bit = 1u << octant_of(fine);
+            if (atomicLoad(&slots[s].octants) & bit) == 0u {
+                atomicOr(&slots[s].octants, bit);
+            }
             return;
         }
         probe += 1u;
@@ -242,84 +291,105 @@ fn cell_count() -> u32 {
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn summary(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn number(@builtin(global_invocation_id) gid: vec3<u32>) {
     let k = gid.x;
     if k >= cell_count() {
         return;
     }
-    let n = count();
-    var lo: array<vec3<f32>, 8>;
-    var hi: array<vec3<f32>, 8>;
-    var low: array<u32, 8>;
-    var head: array<u32, 8>;
-    for (var o = 0u; o < 8u; o++) {
-        lo[o] = vec3<f32>(3.0e38);
-        hi[o] = vec3<f32>(-3.0e38);
-        low[o] = NONE;
-        head[o] = 0u;
-    }
-    var octants = 0u;
-    // The coarse list becomes one list per octant (a list holds at most n points).
-    var link = atomicLoad(&slots[cells[k].slot].head);
-    for (var step = 0u; step < n && link != 0u; step++) {
-        let j = link - 1u;
-        let o = octant_of(info[j].cell);
-        link = info[j].next;
-        let p = points[j].xyz;
-        lo[o] = min(lo[o], p);
-        hi[o] = max(hi[o], p);
-        low[o] = min(low[o], j);
-        info[j].next = head[o];
-        head[o] = j + 1u;
-        octants |= 1u << o;
-    }
-    if link != 0u {
-        atomicOr(&status[STATUS_DENSE_CELL], 1u);
-    }
-    let first = atomicAdd(&status[SUB_COUNT], countOneBits(octants));
+    let octants = atomicLoad(&slots[cells[k].slot].octants);
+    let n_subs = countOneBits(octants);
+    let first = atomicAdd(&status[SUB_COUNT], n_subs);
     cells[k].first_sub = first;
     cells[k].octants = octants;
-    var at = first;
-    for (var o = 0u; o < 8u; o++) {
-        if (octants & (1u << o)) == 0u {
-            continue;
+    for (var j = first; j < first + n_subs; j++) {
+        for (var axis = 0u; axis < 3u; axis++) {
+            atomicStore(&subs[j].lo[axis], NONE);
+            atomicStore(&subs[j].hi[axis], 0u);
         }
-        subs[at] = SubCell(lo[o], low[o], hi[o], head[o]);
-        at += 1u;
+        atomicStore(&subs[j].low, NONE);
+        atomicStore(&subs[j].count, 0u);
+        atomicStore(&subs[j].scan, 0u);
     }
 }
 
-// Each sub-cell is one set from the start, under its smallest point.
+// Index in subs[] of the sub-cell of fine cell `fine` in coarse cell `cell`.
+fn sub_index(cell: Cell, fine: vec3<i32>) -> u32 {
+    let below = cell.octants & ((1u << octant_of(fine)) - 1u);
+    return cell.first_sub + countOneBits(below);
+}
+
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn seed(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x;
     if i >= count() {
         return;
     }
-    let p = points[i].xyz;
-    if !finite_point(p) || !cell_in_range(p) {
-        return;
-    }
-    let fine = info[i].cell;
-    let s = find_slot(coarse_of(fine));
+    let s = info[i].slot;
     if s == NONE {
         return;
     }
-    let cell = cells[atomicLoad(&slots[s].cell) - 1u];
-    let below = cell.octants & ((1u << octant_of(fine)) - 1u);
-    atomicStore(&parent[i], subs[cell.first_sub + countOneBits(below)].low);
+    let sub = sub_index(cells[atomicLoad(&slots[s].cell) - 1u], info[i].cell);
+    info[i].sub = sub;
+    info[i].rank = atomicAdd(&subs[sub].count, 1u);
+    if i < atomicLoad(&subs[sub].low) {
+        atomicMin(&subs[sub].low, i);
+    }
+    let p = points[i].xyz;
+    let key = vec3<u32>(order_key(p.x), order_key(p.y), order_key(p.z));
+    for (var axis = 0u; axis < 3u; axis++) {
+        if key[axis] < atomicLoad(&subs[sub].lo[axis]) {
+            atomicMin(&subs[sub].lo[axis], key[axis]);
+        }
+        if key[axis] > atomicLoad(&subs[sub].hi[axis]) {
+            atomicMax(&subs[sub].hi[axis], key[axis]);
+        }
+    }
 }
 
-// Slot of coarse cell c, or NONE (reads info[].cell written by the insert dispatch).
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn place(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let k = gid.x;
+    if k >= cell_count() {
+        return;
+    }
+    let first = cells[k].first_sub;
+    for (var j = first; j < first + countOneBits(cells[k].octants); j++) {
+        var lo: vec3<f32>;
+        var hi: vec3<f32>;
+        for (var axis = 0u; axis < 3u; axis++) {
+            lo[axis] = from_order_key(atomicLoad(&subs[j].lo[axis]));
+            hi[axis] = from_order_key(atomicLoad(&subs[j].hi[axis]));
+        }
+        let count = atomicLoad(&subs[j].count);
+        let start = atomicAdd(&status[PLACED], count);
+        boxes[j] = Sub(lo, atomicLoad(&subs[j].low), hi, start, count);
+    }
+}
+
+// Each sub-cell is one set from the start, under its smallest point; its points go to its
+// range of sorted[].
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn seed(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if i >= count() || info[i].slot == NONE {
+        return;
+    }
+    let sub = boxes[info[i].sub];
+    sorted[sub.start + info[i].rank] = i;
+    atomicStore(&parent[i], sub.low);
+    info[i].scanned = 0u;
+}
+
+// Slot of coarse cell c, or NONE (after the insert dispatch).
 fn find_slot(c: vec3<i32>) -> u32 {
     let h = hash(c);
     for (var probe = 0u; probe < params.max_probes; probe++) {
         let s = (h + probe) & params.table_mask;
-        let rep = atomicLoad(&slots[s].rep);
-        if rep == 0u {
+        if atomicLoad(&slots[s].rep) == 0u {
             return NONE;
         }
-        if all(coarse_of(info[rep - 1u].cell) == c) {
+        let key = slots[s].coarse;
+        if all(vec3<i32>(key[0], key[1], key[2]) == c) {
             return s;
         }
     }
@@ -344,8 +414,14 @@ fn find_root(x: u32) -> u32 {
     return NONE;
 }
 
-// Unites the sets of a and b (a bound hit sets STATUS_INCOMPLETE).
-fn unite(a: u32, b: u32) {
+// True when a and b are known to be in one set.
+fn same_set(a: u32, b: u32) -> bool {
+    let ra = find_root(a);
+    return ra != NONE && ra == find_root(b);
+}
+
+// Unites the sets of a and b; false when a bound was hit (then STATUS_INCOMPLETE is set).
+fn unite(a: u32, b: u32) -> bool {
     var ra = find_root(a);
     var rb = find_root(b);
     for (var attempt = 0u; attempt < MAX_HOOK; attempt++) {
@@ -353,18 +429,19 @@ fn unite(a: u32, b: u32) {
             break;
         }
         if ra == rb {
-            return;
+            return true;
         }
         let lo = min(ra, rb);
         let hi = max(ra, rb);
         // Hook only while hi is still a root; otherwise someone hooked it: look again.
         if atomicCompareExchangeWeak(&parent[hi], hi, lo).exchanged {
-            return;
+            return true;
         }
         ra = find_root(lo);
         rb = find_root(hi);
     }
     atomicOr(&status[STATUS_INCOMPLETE], 1u);
+    return false;
 }
 
 // True when llvmpipe's loop limiter has ended this invocation's loops: from then on every
@@ -384,45 +461,73 @@ fn near2(a_lo: vec3<f32>, a_hi: vec3<f32>, b_lo: vec3<f32>, b_hi: vec3<f32>) -> 
     return dot(gap, gap);
 }
 
-// True when some point of a's list and some point of b's list are neighbours (a walk cut
-// short sets STATUS_INCOMPLETE).
-fn lists_touch(a_head: u32, b_head: u32) -> bool {
-    let n = count();
-    var a = a_head;
-    for (var sa = 0u; sa < n && a != 0u; sa++) {
-        let p = points[a - 1u].xyz;
-        var b = b_head;
-        for (var sb = 0u; sb < n && b != 0u; sb++) {
-            if is_neighbour(p, points[b - 1u].xyz) {
+// Squared distance between the farthest corners of two boxes.
+fn far2(a_lo: vec3<f32>, a_hi: vec3<f32>, b_lo: vec3<f32>, b_hi: vec3<f32>) -> f32 {
+    let span = max(b_hi - a_lo, a_hi - b_lo);
+    return dot(span, span);
+}
+
+// True when the pair's boxes leave it undecided and it has too many point pairs for the
+// hook: the scan pass tests it, from a's points (hook and scan decide this alike).
+fn left_to_scan(a: Sub, b: Sub) -> bool {
+    return a.count > INLINE_PAIRS / b.count && near2(a.lo, a.hi, b.lo, b.hi) <= params.r2_apart
+        && far2(a.lo, a.hi, b.lo, b.hi) >= params.r2_joined;
+}
+
+// True when some point of a and some point of b are neighbours (at most INLINE_PAIRS tests).
+fn ranges_touch(a: Sub, b: Sub) -> bool {
+    for (var ia = a.start; ia < a.start + a.count; ia++) {
+        let p = points[sorted[ia]].xyz;
+        for (var ib = b.start; ib < b.start + b.count; ib++) {
+            if is_neighbour(p, points[sorted[ib]].xyz) {
                 return true;
             }
-            b = info[b - 1u].next;
         }
-        if b != 0u {
-            break;
-        }
-        a = info[a - 1u].next;
-    }
-    if a != 0u {
-        atomicOr(&status[STATUS_INCOMPLETE], 1u);
     }
     return false;
 }
 
 // Joins sub-cells a and b when they hold a neighbour pair: decided by their boxes when those
-// are far enough apart or close enough together, else by the first neighbour pair.
-fn join_if_touching(a: SubCell, b: SubCell) {
+// are far enough apart or close enough together, else by the first neighbour pair (here, or
+// in the scan pass from a's points: a_index marks a for it).
+fn join_if_touching(a_index: u32, a: Sub, b: Sub) {
     if near2(a.lo, a.hi, b.lo, b.hi) > params.r2_apart {
         return;
     }
-    let ra = find_root(a.low);
-    if ra != NONE && ra == find_root(b.low) {
+    if far2(a.lo, a.hi, b.lo, b.hi) < params.r2_joined {
+        _ = unite(a.low, b.low);
+    } else if same_set(a.low, b.low) {
         return;
+    } else if a.count > INLINE_PAIRS / b.count {
+        atomicStore(&subs[a_index].scan, 1u);
+    } else if ranges_touch(a, b) {
+        _ = unite(a.low, b.low);
     }
-    let span = max(b.hi - a.lo, a.hi - b.lo);
-    if dot(span, span) < params.r2_joined || lists_touch(a.head, b.head) {
-        unite(a.low, b.low);
+}
+
+// One of the 13 coarse cells that follow `coarse` in (z, y, x) order, for task 1..=13.
+fn following_cell(coarse: vec3<i32>, task: u32) -> vec3<i32> {
+    let t = 13u + task;
+    return coarse + vec3<i32>(i32(t % 3u) - 1, i32(t / 3u % 3u) - 1, i32(t / 9u) - 1);
+}
+
+// True when coarse cell `other` may hold a neighbour of a point in the box [lo, hi].
+fn within_reach(lo: vec3<f32>, hi: vec3<f32>, other: vec3<i32>) -> bool {
+    // Gap from the box, in fine cells (rounded like cell_of), to the other cell's fine cells
+    // [2 other, 2 other + 2).
+    let other_lo = vec3<f32>(2 * other);
+    return near2(lo * params.inv_cell, hi * params.inv_cell, other_lo, other_lo + vec3<f32>(2.0))
+        <= params.reach2_cells;
+}
+
+// The cell that coarse cell `c`'s slot numbered, or false when c holds no points.
+fn cell_at(c: vec3<i32>, found: ptr<function, Cell>) -> bool {
+    let s = find_slot(c);
+    if s == NONE {
+        return false;
     }
+    *found = cells[atomicLoad(&slots[s].cell) - 1u];
+    return true;
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -433,54 +538,120 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let cell = cells[k];
     let count_a = countOneBits(cell.octants);
-    var own: array<SubCell, 8>;
+    var own: array<Sub, 8>;
     var box_lo = vec3<f32>(3.0e38);
     var box_hi = vec3<f32>(-3.0e38);
     for (var a = 0u; a < count_a; a++) {
-        own[a] = subs[cell.first_sub + a];
+        own[a] = boxes[cell.first_sub + a];
         box_lo = min(box_lo, own[a].lo);
         box_hi = max(box_hi, own[a].hi);
     }
-    // The cell's box in fine cells (rounded like cell_of).
-    let cells_lo = box_lo * params.inv_cell;
-    let cells_hi = box_hi * params.inv_cell;
     // This thread's tasks (gid.y of the dispatch's threads per cell).
     let stride = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
     for (var task = gid.y; task < HOOK_TASKS; task += stride) {
         if task == 0u {
             for (var a = 1u; a < count_a; a++) {
                 for (var b = 0u; b < a; b++) {
-                    join_if_touching(own[b], own[a]);
+                    join_if_touching(cell.first_sub + a, own[a], own[b]);
                 }
             }
             continue;
         }
-        // One of the 13 coarse cells that follow this one in (z, y, x) order.
-        let t = 13u + task;
-        let offset = vec3<i32>(i32(t % 3u) - 1, i32(t / 3u % 3u) - 1, i32(t / 9u) - 1);
-        let other = cell.coarse + offset;
-        // Gap from the box to the other cell's fine cells [2 other, 2 other + 2), in cells.
-        let other_lo = vec3<f32>(2 * other);
-        if near2(cells_lo, cells_hi, other_lo, other_lo + vec3<f32>(2.0)) > params.reach2_cells {
+        let other = following_cell(cell.coarse, task);
+        var cell_b: Cell;
+        if !within_reach(box_lo, box_hi, other) || !cell_at(other, &cell_b) {
             continue;
         }
-        let s = find_slot(other);
-        if s == NONE {
-            continue;
-        }
-        let cell_b = cells[atomicLoad(&slots[s].cell) - 1u];
         let count_b = countOneBits(cell_b.octants);
         for (var b = 0u; b < count_b; b++) {
-            let sub_b = subs[cell_b.first_sub + b];
+            let sub_b = boxes[cell_b.first_sub + b];
             if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
                 continue;
             }
             for (var a = 0u; a < count_a; a++) {
-                join_if_touching(own[a], sub_b);
+                join_if_touching(cell.first_sub + a, own[a], sub_b);
             }
         }
     }
     if loops_were_cut() {
+        atomicOr(&status[STATUS_INCOMPLETE], 1u);
+    }
+}
+
+// Tests point p of sub-cell a (smallest index a_low) against b's points from index `begin`,
+// within the budget; returns how far it got: b.count when a and b are joined or b is done.
+fn scan_against(p: vec3<f32>, a_low: u32, b: Sub, begin: u32, budget: ptr<function, u32>) -> u32 {
+    if same_set(a_low, b.low) || near2(p, p, b.lo, b.hi) > params.r2_apart {
+        return b.count;
+    }
+    if far2(p, p, b.lo, b.hi) < params.r2_joined {
+        return select(begin, b.count, unite(a_low, b.low));
+    }
+    let stop = begin + min(b.count - begin, *budget);
+    for (var ib = begin; ib < stop; ib++) {
+        if is_neighbour(p, points[sorted[b.start + ib]].xyz) {
+            *budget -= ib + 1u - begin;
+            return select(begin, b.count, unite(a_low, b.low));
+        }
+    }
+    *budget -= stop - begin;
+    return stop;
+}
+
+// A point of a marked sub-cell a against the other sub-cell b of each pair left to it (the
+// pairs join_if_touching marks a for, in the hook's order: a's lower sub-cells in its own
+// cell, then the 13 following cells'), SCAN_BUDGET point pairs per invocation at most. The
+// pairs are counted, tested or not, in an order that depends only on the cloud, so
+// info[i].scanned (the count done by earlier submissions) says where to go on.
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn scan(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x;
+    if i >= count() || info[i].slot == NONE || atomicLoad(&subs[info[i].sub].scan) == 0u {
+        return;
+    }
+    let a_index = info[i].sub;
+    let a = boxes[a_index];
+    let p = points[i].xyz;
+    let cell = cells[atomicLoad(&slots[info[i].slot].cell) - 1u];
+    let done_before = info[i].scanned;
+    var counted = 0u;
+    var budget = SCAN_BUDGET;
+    var stopped = false;
+    for (var task = 0u; task < HOOK_TASKS && !stopped; task++) {
+        var cell_b = cell;
+        var first = cell.first_sub;
+        var end = a_index;
+        if task > 0u {
+            let other = following_cell(cell.coarse, task);
+            if !within_reach(a.lo, a.hi, other) || !cell_at(other, &cell_b) {
+                continue;
+            }
+            first = cell_b.first_sub;
+            end = first + countOneBits(cell_b.octants);
+        }
+        for (var j = first; j < end && !stopped; j++) {
+            let b = boxes[j];
+            if !left_to_scan(a, b) {
+                continue;
+            }
+            let start = counted;
+            counted += b.count;
+            if counted <= done_before {
+                continue;
+            }
+            let reached = scan_against(p, a.low, b, max(done_before, start) - start, &budget);
+            if reached < b.count {
+                counted = start + reached;
+                stopped = true;
+            }
+        }
+    }
+    if loops_were_cut() {
+        atomicOr(&status[STATUS_INCOMPLETE], 1u);
+        return;
+    }
+    info[i].scanned = counted;
+    if stopped {
         atomicOr(&status[STATUS_INCOMPLETE], 1u);
     }
 }
