@@ -109,7 +109,8 @@ use workers::{
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct NodeConfig {
-    /// Control loop rate, Hz.
+    /// Control loop rate, Hz: 4 Hz (the controller's longest period,
+    /// [`crate::haptics::bounds::MAX_HORIZON_S`]) to 20 kHz.
     pub tick_rate_hz: f64,
     /// HIP position used by perception while no robot state is available, world frame, m.
     pub hip_world_m: Point3<f64>,
@@ -197,7 +198,7 @@ impl Default for NodeConfig {
 /// Why the node cannot start or run.
 #[derive(Debug, thiserror::Error)]
 pub enum NodeError {
-    #[error("node config: tick_rate_hz = {0} must be finite and in 1..=20000")]
+    #[error("node config: tick_rate_hz = {0} must be finite and in 4..=20000")]
     TickRate(f64),
     #[error("node config: frame_queue_count must be 1 to {MAX_FRAME_QUEUE_COUNT}, got {0}")]
     Queue(usize),
@@ -231,7 +232,9 @@ pub enum NodeError {
 
 impl NodeConfig {
     pub fn validate(&self) -> Result<(), NodeError> {
-        if !(self.tick_rate_hz.is_finite() && (1.0..=20_000.0).contains(&self.tick_rate_hz)) {
+        let slowest_hz = 1.0 / crate::haptics::bounds::MAX_HORIZON_S;
+        if !(self.tick_rate_hz.is_finite() && (slowest_hz..=20_000.0).contains(&self.tick_rate_hz))
+        {
             return Err(NodeError::TickRate(self.tick_rate_hz));
         }
         if !(1..=MAX_FRAME_QUEUE_COUNT).contains(&self.frame_queue_count) {

@@ -1019,3 +1019,19 @@ fn counts_out_of_their_range_are_config_errors_naming_them() {
         config.validate().unwrap_or_else(|e| panic!("{text}: {e}"));
     }
 }
+
+/// The tick rate's lower bound is the controller's longest period: a slower loop would be
+/// refused through `period_s` with a message naming the wrong key.
+#[test]
+fn a_tick_rate_slower_than_the_longest_controller_period_is_named() {
+    let slow: NodeConfig =
+        toml::from_str("tick_rate_hz = 2.0\n[controller.haptics]\nperiod_s = 0.5").unwrap();
+    let err = slow.validate().unwrap_err().to_string();
+    assert!(err.contains("tick_rate_hz = 2"), "{err}");
+    // At 4 Hz the rate passes; what remains is the gains' own horizon bound.
+    let slowest: NodeConfig =
+        toml::from_str("tick_rate_hz = 4.0\n[controller.haptics]\nperiod_s = 0.25").unwrap();
+    if let Err(e) = slowest.validate() {
+        assert!(!e.to_string().contains("tick_rate_hz"), "{e}");
+    }
+}
