@@ -109,8 +109,7 @@ use workers::{
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct NodeConfig {
-    /// Control loop rate, Hz: 4 Hz (the controller's longest period,
-    /// [`crate::haptics::bounds::MAX_HORIZON_S`]) to 20 kHz.
+    /// Control loop rate, Hz: [`MIN_TICK_RATE_HZ`] to [`MAX_TICK_RATE_HZ`].
     pub tick_rate_hz: f64,
     /// HIP position used by perception while no robot state is available, world frame, m.
     pub hip_world_m: Point3<f64>,
@@ -198,7 +197,9 @@ impl Default for NodeConfig {
 /// Why the node cannot start or run.
 #[derive(Debug, thiserror::Error)]
 pub enum NodeError {
-    #[error("node config: tick_rate_hz = {0} must be finite and in 4..=20000")]
+    #[error(
+        "node config: tick_rate_hz = {0} must be finite and in {MIN_TICK_RATE_HZ}..={MAX_TICK_RATE_HZ}"
+    )]
     TickRate(f64),
     #[error("node config: frame_queue_count must be 1 to {MAX_FRAME_QUEUE_COUNT}, got {0}")]
     Queue(usize),
@@ -232,9 +233,7 @@ pub enum NodeError {
 
 impl NodeConfig {
     pub fn validate(&self) -> Result<(), NodeError> {
-        let slowest_hz = 1.0 / crate::haptics::bounds::MAX_HORIZON_S;
-        if !(self.tick_rate_hz.is_finite() && (slowest_hz..=20_000.0).contains(&self.tick_rate_hz))
-        {
+        if !(MIN_TICK_RATE_HZ..=MAX_TICK_RATE_HZ).contains(&self.tick_rate_hz) {
             return Err(NodeError::TickRate(self.tick_rate_hz));
         }
         if !(1..=MAX_FRAME_QUEUE_COUNT).contains(&self.frame_queue_count) {
@@ -323,6 +322,12 @@ pub struct RunOptions {
     /// for.
     pub observer: Option<SyncSender<NodeEvent>>,
 }
+
+/// Slowest control loop, Hz: one tick per the controller's longest period
+/// ([`crate::haptics::bounds::MAX_HORIZON_S`], 4 Hz).
+pub const MIN_TICK_RATE_HZ: f64 = 1.0 / crate::haptics::bounds::MAX_HORIZON_S;
+/// Fastest control loop, Hz.
+pub const MAX_TICK_RATE_HZ: f64 = 20_000.0;
 
 /// Largest HIP coordinate, m (the scenes' `MAX_POSITION_M`: a lab, many times over).
 const MAX_HIP_M: f64 = crate::scene::config::MAX_POSITION_M;
