@@ -13,7 +13,11 @@
 //!    time, predicting the surface over the frames' latency (clamped to
 //!    `max_extrapolation_s`, reported by [`Fusion::prediction`]); its derivative is the
 //!    surface's own velocity. Far-field (look-ahead) samples ([`Fusion::push_far_field`])
-//!    track an approaching surface before the shells see it; a confirmed switch to a surface
+//!    track an approaching surface before the shells see it; from the shells' first
+//!    estimate on, the shells alone set the surface and the look-ahead's history only its
+//!    motion (the line of its approach through the shells' first samples, until they can
+//!    judge a line of their own), and once the shells lose the surface for
+//!    `shells_lost_after_s` the look-ahead tracks it alone again. A confirmed switch to a surface
 //!    that comes first (earlier contact time `T = d / max(a, a_min)`, the look-ahead's
 //!    distance `d` over the surface's own approach speed `a`) restarts their history, which
 //!    approaches until the degree rule can judge a line: eq. 3's line with the slope `a n`
@@ -159,6 +163,11 @@ pub struct FusionConfig {
     pub far_field_switch_rad: f64,
     /// See `far_field_switch_rad`, metres.
     pub far_field_switch_m: f64,
+    /// Once the newest far-field estimate is this long after the newest shell estimate, the
+    /// shells lost the surface: the look-ahead's estimates alone are fitted again, so it
+    /// stays tracked rather than stale, seconds. Sooner, only a camera whose own shells saw
+    /// the surface continues it with its look-ahead.
+    pub shells_lost_after_s: f64,
     /// A far-field history restarted on another surface (see `far_field_switch_rad`) and
     /// still too short for the degree rule to judge a line gets its approach line anyway
     /// when it approaches the HIP (module doc), its approach speed capped at this physical
@@ -202,6 +211,7 @@ impl Default for FusionConfig {
             far_field_weight_unitless: 0.5,
             far_field_switch_rad: 0.6,
             far_field_switch_m: 0.03,
+            shells_lost_after_s: 0.04,
             max_approach_speed_mps: 3.0,
             velocity_feedforward_unitless: 1.0,
             centroid_pid: PidGains {
@@ -332,6 +342,9 @@ impl FusionConfig {
         }
         if !(self.far_field_switch_m > 0.0 && self.far_field_switch_m.is_finite()) {
             return bad("far_field_switch_m", self.far_field_switch_m);
+        }
+        if !(self.shells_lost_after_s > 0.0 && self.shells_lost_after_s <= self.window_s) {
+            return bad("shells_lost_after_s", self.shells_lost_after_s);
         }
         if !(self.max_approach_speed_mps >= 0.0 && self.max_approach_speed_mps.is_finite()) {
             return bad("max_approach_speed_mps", self.max_approach_speed_mps);
@@ -812,6 +825,7 @@ impl Fusion {
             self.smoothed.map_or(fit.ref_stamp_s, |s| s.stamp_s)
         };
         let age_s = t_s - fit.ref_stamp_s;
+        let was_far_field_only = self.prediction.far_field_only;
         self.prediction = Prediction {
             extrapolated_s: age_s.clamp(0.0, self.config.max_extrapolation_s),
             clamped: age_s > self.config.max_extrapolation_s,
@@ -828,8 +842,9 @@ impl Fusion {
             match self.smoothed.as_mut() {
                 // While only the look-ahead sees the surface the fit itself is the output:
                 // smoothing would lag each young fit's correction, and there is no contact
-                // to feel yet.
-                Some(s) if self.was_tracking && !fit.far_field_only => {
+                // to feel yet. The shells' first fit restarts the smoothing on their surface
+                // (smoothing from the look-ahead's coarse patch would only lag it).
+                Some(s) if self.was_tracking && !fit.far_field_only && !was_far_field_only => {
                     // The fit's motion since the previous tick is the feed-forward.
                     let before = target_at(&fit, &self.config, s.stamp_s).map_or(target, |p| p.0);
                     s.step(&self.config, t_s, &before, &target);
@@ -1206,49 +1221,18 @@ impl Window<'_> {
         if config.max_approach_speed_mps <= 0.0 {
             return None;
         }
+        if let Some(approach_mps) = self.newest_approach_mps(used) {
+            let slope = self.approach_slope(constant, approach_mps, config)?;
+            return Some(self.line_through(used, constant, slope));
+        }
+        // while the history is too short for the degree rule to judge its line
+        let line = self
+            .line(used, config)
+            .filter(|line| line.noise_gain > config.max_noise_gain(1))?;
         let c = &constant.coeffs;
         let n = Vector3::new(c[0][3], c[0][4], c[0][5]).try_normalize(1e-9)?;
-        let weight = |i: usize| self.sqrt_w[i] * self.sqrt_w[i];
-        let used_indices = || (0..self.samples.len()).filter(|&i| used[i]);
-        let newest_measured = used_indices()
-            .map(|i| self.samples[i].far_approach_mps)
-            .rfind(|a| a.is_finite());
         let mut coeffs = [[0.0; CHANNELS]; 3];
         coeffs[0][3..].copy_from_slice(&c[0][3..]);
-        if let Some(approach_mps) = newest_measured {
-            if approach_mps <= 0.0 {
-                return None;
-            }
-            // the slope `a n` in scaled time
-            let slope = n * (approach_mps.min(config.max_approach_speed_mps) * self.scale_s);
-            let total: f64 = used_indices().map(weight).sum();
-            let at_newest = used_indices()
-                .map(|i| {
-                    let ch = &self.samples[i].channels;
-                    (Vector3::new(ch[0], ch[1], ch[2]) - slope * self.tau(i)) * weight(i)
-                })
-                .sum::<Vector3<f64>>()
-                / total;
-            coeffs[0][..3].copy_from_slice(at_newest.as_slice());
-            coeffs[1][..3].copy_from_slice(slope.as_slice());
-            return Some(Solution {
-                degree: 1,
-                coeffs,
-                noise_gain: constant.noise_gain,
-                sigma: constant.sigma,
-            });
-        }
-        if max_degree(self.samples, used, config) < 1 {
-            return None;
-        }
-        let line = config
-            .camera_offsets
-            .then(|| self.solve(used, 1, true))
-            .flatten()
-            .or_else(|| self.solve(used, 1, false))?;
-        if line.noise_gain <= config.max_noise_gain(1) {
-            return None;
-        }
         let slope = Vector3::new(line.coeffs[1][0], line.coeffs[1][1], line.coeffs[1][2]);
         let approach_mps = n.dot(&slope) / self.scale_s;
         if approach_mps.is_nan() || approach_mps <= 0.0 {
@@ -1264,6 +1248,105 @@ impl Window<'_> {
             coeffs,
             ..line
         })
+    }
+
+    /// The line of the shells' first samples (`used`), too few for the degree rule to judge
+    /// a line of their own, after the look-ahead tracked the surface (`history`: its samples
+    /// before them): the look-ahead's motion carries on through the shells' samples (their
+    /// level and normal). Its motion is its newest measured approach speed `a` as the slope
+    /// `a n`, else the centroid velocity of the history's own fit at its newest sample (camera
+    /// offsets absorb the look-ahead's per-camera bias); at most `max_approach_speed_mps`.
+    /// Fitting the look-ahead's samples themselves beside the shells' would pull the surface
+    /// towards its coarse patch (centimetres and tens of degrees off on a head). `None` when
+    /// the shells can judge a line, or the look-ahead saw the surface still or receding.
+    fn carried_line(
+        &self,
+        used: &[bool],
+        history: &[bool],
+        constant: &Solution,
+        config: &FusionConfig,
+    ) -> Option<Solution> {
+        let shells_judge_a_line = self
+            .line(used, config)
+            .is_some_and(|line| line.noise_gain <= config.max_noise_gain(1));
+        if config.max_approach_speed_mps <= 0.0 || shells_judge_a_line {
+            return None;
+        }
+        let slope = match self.newest_approach_mps(history) {
+            Some(approach_mps) => self.approach_slope(constant, approach_mps, config)?,
+            None => {
+                let fit =
+                    self.select(history, max_degree(self.samples, history, config), config)?;
+                let newest = (0..self.samples.len()).rfind(|&i| history[i])?;
+                let tau = self.tau(newest);
+                let c = &fit.coeffs;
+                let slope = Vector3::from_fn(|j, _| c[1][j] + 2.0 * c[2][j] * tau);
+                let max_norm = config.max_approach_speed_mps * self.scale_s;
+                (slope.norm() > 0.0).then(|| clamp_norm(slope, max_norm))?
+            }
+        };
+        Some(self.line_through(used, constant, slope))
+    }
+
+    /// The newest of the `used` samples' own measured approach speeds, m/s.
+    fn newest_approach_mps(&self, used: &[bool]) -> Option<f64> {
+        (0..self.samples.len())
+            .filter(|&i| used[i])
+            .map(|i| self.samples[i].far_approach_mps)
+            .rfind(|a| a.is_finite())
+    }
+
+    /// The slope `a n` in scaled time (`n` the normal of `constant`, `a` capped at
+    /// `max_approach_speed_mps`); `None` when the surface does not approach (`a <= 0`).
+    fn approach_slope(
+        &self,
+        constant: &Solution,
+        approach_mps: f64,
+        config: &FusionConfig,
+    ) -> Option<Vector3<f64>> {
+        let c = &constant.coeffs;
+        let n = Vector3::new(c[0][3], c[0][4], c[0][5]).try_normalize(1e-9)?;
+        (approach_mps > 0.0)
+            .then(|| n * (approach_mps.min(config.max_approach_speed_mps) * self.scale_s))
+    }
+
+    /// The line of the `used` samples (camera offsets when identifiable); `None` when they
+    /// cannot give one.
+    fn line(&self, used: &[bool], config: &FusionConfig) -> Option<Solution> {
+        if max_degree(self.samples, used, config) < 1 {
+            return None;
+        }
+        config
+            .camera_offsets
+            .then(|| self.solve(used, 1, true))
+            .flatten()
+            .or_else(|| self.solve(used, 1, false))
+    }
+
+    /// The line with centroid slope `slope` (scaled time) through the weighted mean of the
+    /// `used` samples, moved along it to the newest stamp; the normal channels of `constant`
+    /// held.
+    fn line_through(&self, used: &[bool], constant: &Solution, slope: Vector3<f64>) -> Solution {
+        let weight = |i: usize| self.sqrt_w[i] * self.sqrt_w[i];
+        let used_indices = || (0..self.samples.len()).filter(|&i| used[i]);
+        let total: f64 = used_indices().map(weight).sum();
+        let at_newest = used_indices()
+            .map(|i| {
+                let ch = &self.samples[i].channels;
+                (Vector3::new(ch[0], ch[1], ch[2]) - slope * self.tau(i)) * weight(i)
+            })
+            .sum::<Vector3<f64>>()
+            / total;
+        let mut coeffs = [[0.0; CHANNELS]; 3];
+        coeffs[0][3..].copy_from_slice(&constant.coeffs[0][3..]);
+        coeffs[0][..3].copy_from_slice(at_newest.as_slice());
+        coeffs[1][..3].copy_from_slice(slope.as_slice());
+        Solution {
+            degree: 1,
+            coeffs,
+            noise_gain: constant.noise_gain,
+            sigma: constant.sigma,
+        }
     }
 
     /// Whole cameras that disagree with the others (a wrong cluster, a bumped camera): each
@@ -1419,9 +1502,18 @@ fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Opti
         horizon_tau: config.degree_horizon_s / config.window_s,
         prior_noise: [config.prior_centroid_noise_m, config.prior_normal_noise_rad],
     };
-    let mut used = vec![true; n];
+    // Once the shells see the surface, the look-ahead's samples from before them give its
+    // motion only (`carried_line`).
+    let first_shell_s = samples.iter().find(|s| !s.far_field).map(|s| s.stamp_s);
+    let history: Vec<bool> = samples
+        .iter()
+        .map(|s| first_shell_s.is_some_and(|t| s.far_field && s.stamp_s < t))
+        .collect();
+    let mut used: Vec<bool> = history.iter().map(|h| !h).collect();
     if config.reject_outliers && window.camera_count >= MIN_CAMERAS_FOR_CAMERA_REJECTION {
-        used = window.reject_cameras(config);
+        for (u, kept) in used.iter_mut().zip(window.reject_cameras(config)) {
+            *u &= kept;
+        }
     }
     let mut solution = window.select(&used, max_degree(samples, &used, config), config)?;
     for _ in 0..OUTLIER_PASSES {
@@ -1451,8 +1543,14 @@ fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Opti
         && let Some(line) = window.approach_line(&used, &solution, config)
     {
         solution = line;
+    } else if solution.degree == 0
+        && first_shell_s.is_some()
+        && let Some(line) = window.carried_line(&used, &history, &solution, config)
+    {
+        solution = line;
     }
     let used_count = used.iter().filter(|&&u| u).count();
+    let history_count = history.iter().filter(|&&h| h).count();
     let mut used_cameras: Vec<u32> = samples
         .iter()
         .zip(&used)
@@ -1468,7 +1566,7 @@ fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Opti
         degree: solution.degree as u8,
         sample_count: used_count as u32,
         camera_count: used_cameras.len() as u32,
-        rejected_count: (n - used_count) as u32,
+        rejected_count: (n - history_count - used_count) as u32,
         far_field_only: samples.iter().all(|s| s.far_field),
     })
 }
@@ -1477,10 +1575,20 @@ fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Opti
 /// shell estimate of the window (the history of a surface before the shells saw it) and not
 /// older than the newest switch to another surface that comes first (earlier contact time;
 /// `far_field_switch_*`; a switch counts once a later sample confirms it); and the newer
-/// far-field ones that continue the newest shell estimate before them (within both switch
+/// far-field ones that continue their camera's newest shell estimate before them (within both switch
 /// bounds: the shells lost a surface the look-ahead still sees). Also the stamp of that
 /// switch (`-inf`: none). See the module doc.
 fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) {
+    // Once every camera's shells lost the surface, the look-ahead's samples are the window:
+    // the shells' differently biased estimates would bend the look-ahead's line.
+    if let Some(last_shell) = samples.iter().rfind(|s| !s.far_field)
+        && samples
+            .last()
+            .is_some_and(|s| s.stamp_s - last_shell.stamp_s > config.shells_lost_after_s)
+    {
+        let far_field: Vec<Sample> = samples.iter().filter(|s| s.far_field).copied().collect();
+        return fit_samples(&far_field, config);
+    }
     let first_shell_s = samples
         .iter()
         .find(|s| !s.far_field)
@@ -1511,15 +1619,17 @@ fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) 
     let mut keep = vec![true; samples.len()];
     let mut last: Option<usize> = None;
     let mut switch_s = f64::NEG_INFINITY;
-    let mut last_shell: Option<usize> = None;
     for (i, s) in samples.iter().enumerate() {
         if !s.far_field {
-            last_shell = Some(i);
             continue;
         }
         if s.stamp_s >= first_shell_s {
-            // after the shells took over: only where they lost the surface it continues
-            keep[i] = last_shell.is_some_and(|j| apart(&samples[j], s) == (false, false));
+            // after the shells took over: only where its camera's shells lost the surface
+            // it continues
+            let own_last_shell = samples[..i]
+                .iter()
+                .rfind(|o| !o.far_field && o.camera_id == s.camera_id);
+            keep[i] = own_last_shell.is_some_and(|o| apart(o, s) == (false, false));
             continue;
         }
         match last {
@@ -2461,6 +2571,89 @@ mod tests {
             if t >= 0.14 {
                 let v = out.surface.unwrap().velocity_m_per_s;
                 assert!((v + dir).norm() < 0.1, "at {t}: {v:?}");
+            }
+        }
+    }
+
+    /// A head approaching at 0.4 m/s along its normal (+z), cameras at 30 Hz, 60 ms latency. Camera 0's
+    /// look-ahead is exact, camera 1's sits 25 mm off with its normal turned 25 deg (a
+    /// sphere fitted to the far side of a head). From camera 0's first shell estimate on,
+    /// the shells set the surface (centroid and normal) and the look-ahead only its
+    /// motion: camera 1's look-ahead, before and after, pulls neither.
+    #[test]
+    fn the_shells_set_the_surface_and_the_look_ahead_only_its_motion() {
+        let speed = 0.4;
+        let head = |t: f64| Vector3::new(0.0, 0.0, 0.1 + speed * t);
+        let up = Vector3::z();
+        let tilted = Vector3::new(0.42, 0.0, 0.91).normalize();
+        let first_shell_s = 0.3;
+        let mut f = Fusion::new(FusionConfig::default()).unwrap();
+        let mut checked = 0;
+        for k in 0..24u32 {
+            let t0 = f64::from(k) / 30.0;
+            let t1 = t0 + 0.008;
+            if t0 < first_shell_s {
+                f.push_far_field(&FarFieldEstimate {
+                    approach_mps: Some(speed),
+                    ..far(0, t0, head(t0))
+                });
+            } else {
+                f.push(&estimate(0, t0, head(t0), up));
+            }
+            f.push_far_field(&FarFieldEstimate {
+                normal: Unit::new_normalize(tilted),
+                approach_mps: Some(speed),
+                ..far(1, t1, head(t1) + Vector3::new(0.025, 0.0, 0.0))
+            });
+            let tick = t1 + 0.06;
+            let out = f.tick(tick);
+            if t0 < first_shell_s {
+                continue;
+            }
+            let s = out.surface.unwrap();
+            assert!(!f.prediction().far_field_only);
+            assert!(
+                (s.fit_centroid_m.coords - head(tick)).norm() < 2e-3,
+                "at {t0}: {s:?}"
+            );
+            assert!(s.fit_normal.dot(&up) > 0.9995, "at {t0}: {s:?}");
+            assert!(
+                (s.velocity_m_per_s - up * speed).norm() < 0.02,
+                "at {t0}: {s:?}"
+            );
+            checked += 1;
+        }
+        assert_eq!(checked, 15);
+    }
+
+    /// Camera 0's shells see a body for three frames and lose it; camera 1's look-ahead,
+    /// whose shells never saw it, keeps reporting it as it moves on at 0.5 m/s. While the
+    /// shells see it camera 1's look-ahead is left out; `shells_lost_after_s` after their
+    /// last estimate the look-ahead tracks it alone, never stale, and follows it.
+    #[test]
+    fn the_look_ahead_keeps_a_surface_the_shells_lost_tracked() {
+        let speed = 0.5;
+        let body = |t: f64| Vector3::new(0.0, speed * t, 0.3);
+        let config = FusionConfig::default();
+        let mut f = Fusion::new(config).unwrap();
+        for k in 0..24u32 {
+            let t0 = f64::from(k) / 30.0;
+            let t1 = t0 + 0.008;
+            if k < 3 {
+                f.push(&estimate(0, t0, body(t0), Vector3::z()));
+            }
+            f.push_far_field(&far(1, t1, body(t1) + Vector3::new(0.0, 0.0, 0.004)));
+            let tick = t1 + 0.06;
+            let out = f.tick(tick);
+            assert_eq!(out.status, FusionStatus::Tracking, "at {t0}");
+            let s = out.surface.unwrap();
+            let lost = t1 > 2.0 / 30.0 + config.shells_lost_after_s;
+            assert_eq!(f.prediction().far_field_only, lost, "at {t0}");
+            if k >= 5 {
+                assert!(
+                    (s.fit_centroid_m.coords - body(tick)).norm() < 6e-3,
+                    "at {t0}: {s:?}"
+                );
             }
         }
     }
