@@ -329,3 +329,32 @@ fn a_recording_that_hits_the_file_size_limit_stops_but_the_node_goes_on() {
     );
     assert!(std::fs::metadata(&file).unwrap().len() <= 2 << 20);
 }
+
+/// The text summary says how the control loop's thread ran: its scheduling, whether memory
+/// was locked, and what the system refused (issue: the summary says when it cannot).
+#[test]
+fn the_text_summary_says_how_the_control_loop_ran() {
+    let out = run_ok([
+        "run",
+        "head_close_clean",
+        "--duration",
+        "0.2",
+        "--backend",
+        "cpu",
+        "--speed",
+        "10",
+    ]);
+    let summary = String::from_utf8_lossy(&out.stdout);
+    let line = summary
+        .lines()
+        .find(|l| l.starts_with("control loop: "))
+        .unwrap_or_else(|| panic!("no control loop line: {summary}"));
+    assert!(
+        line.contains("SCHED_FIFO 80") || line.contains("refused: "),
+        "{line}"
+    );
+    assert!(
+        line.contains("memory locked") || line.contains("refused: "),
+        "{line}"
+    );
+}

@@ -512,6 +512,7 @@ fn print_table(s: &NodeSummary) {
             ""
         }
     );
+    println!("control loop: {}", s.realtime);
     println!(
         "constraints active {} ticks  held {}  controller fallbacks {}  robot {}",
         s.constraint_active_ticks,

@@ -137,6 +137,36 @@ pub struct RealtimeStatus {
     pub refused: Vec<String>,
 }
 
+impl std::fmt::Display for RealtimeStatus {
+    /// One line for the run's summary: what the loop's thread got, and what was refused.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match (self.fifo_priority, self.nice) {
+            (Some(p), _) => write!(f, "SCHED_FIFO {p}")?,
+            (None, Some(n)) => write!(f, "normal scheduling at nice {n}")?,
+            (None, None) => write!(f, "normal scheduling")?,
+        }
+        write!(
+            f,
+            ", memory {}",
+            if self.memory_locked {
+                "locked"
+            } else {
+                "not locked"
+            }
+        )?;
+        if let Some(cpu) = self.cpu {
+            write!(f, ", CPU {cpu}")?;
+        }
+        if let Some(faults) = self.page_faults_after_warmup {
+            write!(f, ", {faults} page faults after warm-up")?;
+        }
+        if !self.refused.is_empty() {
+            write!(f, "; refused: {}", self.refused.join("; "))?;
+        }
+        Ok(())
+    }
+}
+
 /// Locked memory and SCHED_FIFO for the calling thread ([`RealtimeConfig`]), given back when
 /// dropped (the thread that called `run` gets its scheduling back). Memory is locked before
 /// the clock starts (locking a large process takes a while); SCHED_FIFO is asked for after
@@ -376,6 +406,30 @@ impl Drop for RealtimeGuard {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_status_line_names_what_was_granted_and_refused() {
+        let granted = RealtimeStatus {
+            fifo_priority: Some(80),
+            memory_locked: true,
+            page_faults_after_warmup: Some(0),
+            ..Default::default()
+        };
+        assert_eq!(
+            granted.to_string(),
+            "SCHED_FIFO 80, memory locked, 0 page faults after warm-up"
+        );
+        let refused = RealtimeStatus {
+            nice: Some(-20),
+            refused: vec!["SCHED_FIFO: Operation not permitted".into()],
+            ..Default::default()
+        };
+        assert_eq!(
+            refused.to_string(),
+            "normal scheduling at nice -20, memory not locked; refused: SCHED_FIFO: Operation \
+             not permitted"
+        );
+    }
 
     #[test]
     fn out_of_range_settings_are_errors_naming_them() {
