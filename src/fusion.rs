@@ -1784,6 +1784,14 @@ mod tests {
         c.normal_pid.kp_per_s = f64::NAN;
         let err = c.validate().unwrap_err().to_string();
         assert!(err.contains("normal_pid.kp_per_s"), "{err}");
+        for lost_after_s in [0.0, f64::NAN, 1.0] {
+            c = FusionConfig {
+                shells_lost_after_s: lost_after_s,
+                ..Default::default()
+            };
+            let err = c.validate().unwrap_err().to_string();
+            assert!(err.contains("shells_lost_after_s"), "{err}");
+        }
         c = FusionConfig {
             min_samples_linear_count: 5,
             ..Default::default()

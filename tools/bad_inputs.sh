@@ -251,6 +251,7 @@ t err "tick_rate_hz" run --config "$(config 'tick_rate_hz = 1e300')" --duration 
 t err "hip_world_m" run --config "$(config 'hip_world_m = [0.0, inf, 0.6]')" --duration 0.1
 t err "radius_m" run --config "$(config '[frontend.crop]\nradius_m = 1e300')" --duration 0.1
 t err "window_s" run --config "$(config '[fusion]\nwindow_s = -1')" --duration 0.1
+t err "shells_lost_after_s" run --config "$(config '[fusion]\nshells_lost_after_s = 1e300')" --duration 0.1
 t err "quadric_max_closest_se_m" run --config "$(config '[surface.shells]\nquadric_max_closest_se_m = nan')" --duration 0.1
 t err "perception_workers" run --config "$(config 'perception_workers = 18446744073709551615')" --duration 0.1
 t err "unknown field" run --config "$(config 'no_such_key = 1')" --duration 0.1
