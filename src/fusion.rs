@@ -1575,9 +1575,11 @@ fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Opti
 /// shell estimate of the window (the history of a surface before the shells saw it) and not
 /// older than the newest switch to another surface that comes first (earlier contact time;
 /// `far_field_switch_*`; a switch counts once a later sample confirms it); and the newer
-/// far-field ones that continue their camera's newest shell estimate before them (within both switch
-/// bounds: the shells lost a surface the look-ahead still sees). Also the stamp of that
-/// switch (`-inf`: none). See the module doc.
+/// far-field ones that continue their camera's newest shell estimate before them (within
+/// both switch bounds: that camera's shells lost a surface its look-ahead still sees). Once
+/// every camera's shells lost the surface (`shells_lost_after_s`), the far-field samples
+/// alone, chosen the same way. Also the stamp of that switch (`-inf`: none). See the module
+/// doc.
 fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) {
     // Once every camera's shells lost the surface, the look-ahead's samples are the window:
     // the shells' differently biased estimates would bend the look-ahead's line.
