@@ -1251,7 +1251,8 @@ impl Window<'_> {
     }
 
     /// The line of the shells' first samples (`used`), too few for the degree rule to judge
-    /// a line of their own, after the look-ahead tracked the surface (`history`: its samples
+    /// a line of their own (its noise gain beyond the bound, or two samples: a line with no
+    /// residual to judge it by), after the look-ahead tracked the surface (`history`: its samples
     /// before them): the look-ahead's motion carries on through the shells' samples (their
     /// level and normal). Its motion is its newest measured approach speed `a` as the slope
     /// `a n`, else the centroid velocity of the history's own fit at its newest sample (camera
@@ -1266,9 +1267,10 @@ impl Window<'_> {
         constant: &Solution,
         config: &FusionConfig,
     ) -> Option<Solution> {
-        let shells_judge_a_line = self
-            .line(used, config)
-            .is_some_and(|line| line.noise_gain <= config.max_noise_gain(1));
+        let shells_judge_a_line = used.iter().filter(|&&u| u).count() > 2
+            && self
+                .line(used, config)
+                .is_some_and(|line| line.noise_gain <= config.max_noise_gain(1));
         if config.max_approach_speed_mps <= 0.0 || shells_judge_a_line {
             return None;
         }
@@ -1543,7 +1545,8 @@ fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Opti
         && let Some(line) = window.approach_line(&used, &solution, config)
     {
         solution = line;
-    } else if solution.degree == 0
+    } else if (solution.degree == 0 || used.iter().filter(|&&u| u).count() <= 2)
+        // (a line through two shell samples interpolates them)
         && first_shell_s.is_some()
         && let Some(line) = window.carried_line(&used, &history, &solution, config)
     {
