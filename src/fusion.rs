@@ -1174,11 +1174,7 @@ impl Window<'_> {
     fn select(&self, used: &[bool], max_degree: usize, config: &FusionConfig) -> Option<Solution> {
         let mut candidates: Vec<Solution> = Vec::with_capacity(max_degree + 1);
         for degree in 0..=max_degree {
-            let with_offsets = config
-                .camera_offsets
-                .then(|| self.solve(used, degree, true))
-                .flatten();
-            match with_offsets.or_else(|| self.solve(used, degree, false)) {
+            match self.solve_with_offsets_if_identifiable(used, degree, config) {
                 Some(s) if s.noise_gain <= config.max_noise_gain(degree) => candidates.push(s),
                 _ => break,
             }
@@ -1312,17 +1308,28 @@ impl Window<'_> {
             .then(|| n * (approach_mps.min(config.max_approach_speed_mps) * self.scale_s))
     }
 
+    /// Eq. 4-5 of degree `degree` on the `used` samples, with the camera offsets where
+    /// configured and identifiable, else without.
+    fn solve_with_offsets_if_identifiable(
+        &self,
+        used: &[bool],
+        degree: usize,
+        config: &FusionConfig,
+    ) -> Option<Solution> {
+        config
+            .camera_offsets
+            .then(|| self.solve(used, degree, true))
+            .flatten()
+            .or_else(|| self.solve(used, degree, false))
+    }
+
     /// The line of the `used` samples (camera offsets when identifiable); `None` when they
     /// cannot give one.
     fn line(&self, used: &[bool], config: &FusionConfig) -> Option<Solution> {
         if max_degree(self.samples, used, config) < 1 {
             return None;
         }
-        config
-            .camera_offsets
-            .then(|| self.solve(used, 1, true))
-            .flatten()
-            .or_else(|| self.solve(used, 1, false))
+        self.solve_with_offsets_if_identifiable(used, 1, config)
     }
 
     /// The line with centroid slope `slope` (scaled time) through the weighted mean of the
@@ -1539,20 +1546,20 @@ fn fit_window(samples: &[Sample], switched: bool, config: &FusionConfig) -> Opti
         used = keep;
         solution = next;
     }
+    let used_count = used.iter().filter(|&&u| u).count();
     if switched
         && solution.degree == 0
         && samples.iter().all(|s| s.far_field)
         && let Some(line) = window.approach_line(&used, &solution, config)
     {
         solution = line;
-    } else if (solution.degree == 0 || used.iter().filter(|&&u| u).count() <= 2)
+    } else if (solution.degree == 0 || used_count <= 2)
         // (a line through two shell samples interpolates them)
         && first_shell_s.is_some()
         && let Some(line) = window.carried_line(&used, &history, &solution, config)
     {
         solution = line;
     }
-    let used_count = used.iter().filter(|&&u| u).count();
     let history_count = history.iter().filter(|&&h| h).count();
     let mut used_cameras: Vec<u32> = samples
         .iter()
@@ -1624,17 +1631,21 @@ fn fit_samples(samples: &[Sample], config: &FusionConfig) -> (Vec<Sample>, f64) 
     let mut keep = vec![true; samples.len()];
     let mut last: Option<usize> = None;
     let mut switch_s = f64::NEG_INFINITY;
+    // each camera's newest shell sample so far: (camera id, index)
+    let mut last_shell_of: Vec<(u32, usize)> = Vec::new();
     for (i, s) in samples.iter().enumerate() {
         if !s.far_field {
+            match last_shell_of.iter_mut().find(|(c, _)| *c == s.camera_id) {
+                Some(last) => last.1 = i,
+                None => last_shell_of.push((s.camera_id, i)),
+            }
             continue;
         }
         if s.stamp_s >= first_shell_s {
             // after the shells took over: only where its camera's shells lost the surface
             // it continues
-            let own_last_shell = samples[..i]
-                .iter()
-                .rfind(|o| !o.far_field && o.camera_id == s.camera_id);
-            keep[i] = own_last_shell.is_some_and(|o| apart(o, s) == (false, false));
+            let own_last_shell = last_shell_of.iter().find(|(c, _)| *c == s.camera_id);
+            keep[i] = own_last_shell.is_some_and(|&(_, j)| apart(&samples[j], s) == (false, false));
             continue;
         }
         match last {
