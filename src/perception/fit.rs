@@ -568,6 +568,9 @@ pub struct HeightField {
     pub closest_se_m: f64,
     /// Whether the quadratic terms are kept ([`height_field`]): false for a plane.
     pub curved: bool,
+    /// F statistic of the quadratic terms against the plane in this field's frame
+    /// ([`height_field`]); 0 where the points do not span them.
+    pub curvature_f: f64,
     /// The frame's `z` axis (`x, y` follow from it as in the fit).
     pub axis: Unit<Vector3<f64>>,
 }
@@ -653,11 +656,15 @@ pub fn height_field(
     }
     let zz = m.sum_of(&z.mul(&z));
     let plane = nested_fit::<3>(&ata, &atz, zz, count).ok_or(FitError::Collinear { ratio: 0.0 })?;
-    let fit = match nested_fit::<6>(&ata, &atz, zz, count) {
+    let quadric = nested_fit::<6>(&ata, &atz, zz, count).filter(|_| point_count > 6.0);
+    let curvature_f = quadric.as_ref().map_or(0.0, |q| {
+        // 0 / 0 (points exactly on both) is no evidence of curvature.
+        ((plane.rss - q.rss) * (point_count - 6.0) / (3.0 * q.rss)).max(0.0)
+    });
+    let fit = match quadric {
         Some(quadric)
-            if point_count > 6.0
-                && (plane.rss - quadric.rss) * (point_count - 6.0)
-                    > min_curvature_f * 3.0 * quadric.rss =>
+            if (plane.rss - quadric.rss) * (point_count - 6.0)
+                > min_curvature_f * 3.0 * quadric.rss =>
         {
             quadric
         }
@@ -687,6 +694,7 @@ pub fn height_field(
         residual_rms_m: residual2.sqrt() * scale_m,
         closest_se_m,
         curved: fit.terms == 6,
+        curvature_f,
         axis: *axis,
     })
 }
@@ -1098,12 +1106,18 @@ mod tests {
         for seed in 0..20 {
             let plane = fit_of(seed, 0.0, 4.0);
             assert!(!plane.curved, "seed {seed}: {plane:?}");
+            // The F statistic is the field's own, whichever terms it keeps.
+            assert!(plane.curvature_f < 4.0, "seed {seed}: {plane:?}");
             plane_worst = plane_worst.max((plane.closest_m - truth).norm());
             let quadric = fit_of(seed, 0.0, 0.0);
             assert!(quadric.curved);
             quadric_worst = quadric_worst.max((quadric.closest_m - truth).norm());
             // A head-like cap (radius 10 cm) with the same noise and coverage stays curved.
-            assert!(fit_of(seed, 10.0, 4.0).curved, "seed {seed}");
+            let cap = fit_of(seed, 10.0, 4.0);
+            assert!(
+                cap.curved && cap.curvature_f > 100.0,
+                "seed {seed}: {cap:?}"
+            );
         }
         assert!(plane_worst < 1e-3, "{plane_worst}");
         assert!(

@@ -105,6 +105,16 @@ pub struct ShellConfig {
     /// the head seen from 1 m (forehead 1.37 -> 1.88 mm at 4; docs/accuracy.md). 0 keeps
     /// every curvature; infinity fits planes only.
     pub quadric_min_curvature_f: f64,
+    /// Where Alg. 2 rests on one shell (the rejection kept one of the fits: a lone partial
+    /// ring's circle centre), a curved height field that does not place its closest point
+    /// (none within reach, or a standard error above `quadric_max_closest_se_m`) gives way
+    /// to the plane over the same shells while the F statistic of its curvature
+    /// ([`HeightField::curvature_f`]) stays below this: such weak curvature is the noise of
+    /// a partial patch, and the plane's closest point, the HIP's foot, is determined where
+    /// the quadric's is not. 10: on `torso_approach_realistic` (the chest 1 m from the
+    /// cameras, partly hidden by the handle) those fields have F 0.3-7; a clearly curved cap
+    /// (the head seen from 0.5 m: F 75) keeps Alg. 2's estimate (docs/accuracy.md). 0: never.
+    pub quadric_plane_max_f: f64,
     /// Fewest fitted shells (before the rejection) for a valid estimate.
     pub min_accepted_shells: u32,
     /// Fewest points in the fitted shells together for a valid estimate.
@@ -130,6 +140,7 @@ impl Default for ShellConfig {
             quadric_max_shell_residual_m: 0.005,
             quadric_max_closest_se_m: 0.005,
             quadric_min_curvature_f: 1.0,
+            quadric_plane_max_f: 10.0,
             min_accepted_shells: 2,
             min_points: 30,
         }
@@ -167,6 +178,8 @@ pub enum ShellConfigError {
     QuadricClosestError(f64),
     #[error("quadric_min_curvature_f must be 0 or more (infinity fits planes only), got {0}")]
     QuadricCurvatureF(f64),
+    #[error("quadric_plane_max_f must be 0 or more (0: never a plane in its place), got {0}")]
+    QuadricPlaneF(f64),
     #[error("min_accepted_shells must be at least 1, got 0")]
     MinShells,
 }
@@ -224,6 +237,9 @@ impl ShellConfig {
             return Err(ShellConfigError::QuadricCurvatureF(
                 self.quadric_min_curvature_f,
             ));
+        }
+        if self.quadric_plane_max_f.is_nan() || self.quadric_plane_max_f < 0.0 {
+            return Err(ShellConfigError::QuadricPlaneF(self.quadric_plane_max_f));
         }
         if self.min_accepted_shells == 0 {
             return Err(ShellConfigError::MinShells);
@@ -776,7 +792,7 @@ pub fn abstract_surface(
         None => paper_centroid,
     };
     let refinement = if config.quadric_refinement {
-        quadric_refinement(&fits, &normal, &hip, config)
+        quadric_refinement(&fits, &normal, &hip, config, kept.len() == 1)
     } else {
         None
     };
@@ -819,6 +835,7 @@ fn quadric_refinement(
     normal: &Unit<Vector3<f64>>,
     hip: &Point3<f64>,
     config: &ShellConfig,
+    lone_shell: bool,
 ) -> Option<HeightField> {
     let innermost = fits
         .iter()
@@ -830,7 +847,7 @@ fn quadric_refinement(
         .collect();
     near.sort_by(|a, b| a.fit.inner_radius_m.total_cmp(&b.fit.inner_radius_m));
     loop {
-        let hf = height_field_over(&near, normal, hip, config);
+        let hf = height_field_over(&near, normal, hip, config, lone_shell);
         let strays = match (&hf, near.last()) {
             _ if near.len() < 2 => false,
             (Some(hf), Some(outer)) => hf
@@ -848,14 +865,17 @@ fn quadric_refinement(
 
 /// One height field over `near`: the first frame's axis is Alg. 2's normal, or, where that
 /// disagrees by more than `quadric_max_tilt_rad` with the direction from the HIP to these
-/// points (Alg. 2 followed the second body), that direction; `None` when it cannot be fitted,
-/// ends more than `quadric_max_tilt_rad` from its first axis or does not determine its
-/// closest point within `quadric_max_closest_se_m`.
+/// points (Alg. 2 followed the second body), that direction. Where Alg. 2 rests on a
+/// `lone_shell` (the rejection kept one fit), a weakly curved field that does not place its
+/// closest point gives way to the plane (`quadric_plane_max_f`). `None` when it cannot be
+/// fitted, ends more than `quadric_max_tilt_rad` from its first axis or does not determine
+/// its closest point within `quadric_max_closest_se_m`.
 fn height_field_over(
     near: &[&Accepted],
     normal: &Unit<Vector3<f64>>,
     hip: &Point3<f64>,
     config: &ShellConfig,
+    lone_shell: bool,
 ) -> Option<HeightField> {
     let scale = near
         .iter()
@@ -887,11 +907,22 @@ fn height_field_over(
     };
     // Refit about the height field's own normal: in that frame the surface is closest to a
     // height field over the tangent plane (a tilted frame adds its own curvature terms).
-    let curvature_f = config.quadric_min_curvature_f;
-    let mut hf = fit::height_field(&merged, points, &-seed, scale, curvature_f).ok()?;
-    for _ in 0..QUADRIC_PASSES {
-        hf = fit::height_field(&merged, points, &-hf.normal, scale, curvature_f).ok()?;
-    }
+    let fitted = |curvature_f: f64| {
+        let mut hf = fit::height_field(&merged, points, &-seed, scale, curvature_f).ok()?;
+        for _ in 0..QUADRIC_PASSES {
+            hf = fit::height_field(&merged, points, &-hf.normal, scale, curvature_f).ok()?;
+        }
+        Some(hf)
+    };
+    let hf = match fitted(config.quadric_min_curvature_f) {
+        Some(hf) if !hf.curved || hf.closest_se_m <= config.quadric_max_closest_se_m => hf,
+        // The curvature leaves the closest point undetermined: where it is weak and Alg. 2
+        // has only a lone shell's centre to offer, the plane.
+        _ if lone_shell => {
+            fitted(f64::INFINITY).filter(|plane| plane.curvature_f < config.quadric_plane_max_f)?
+        }
+        _ => return None,
+    };
     (hf.normal.angle(&seed) <= config.quadric_max_tilt_rad
         && (hf.closest_m - hip).norm() <= scale
         && hf.closest_se_m <= config.quadric_max_closest_se_m)
