@@ -6,8 +6,7 @@
 //   insert      - cell index (PCL's linear index relative to the min cell) into a hash table
 //                 with bounded linear probing; per cell: point count and the 64-bit fixed-point
 //                 sum of the points' offsets inside the cell (integer atomics: order-free).
-//                 A thread reads 8 consecutive points, then adds each run of them in one cell
-//                 at once.
+//                 A thread takes 8 consecutive points and merges runs in the same cell first.
 //   compact_count, compact_scan, compact_scatter - stream compaction of the kept slots
 //                 (occupied, at least min_points) into sort_keys, in slot order: kept count per
 //                 512-slot block, one workgroup's exclusive prefix sum over the blocks (also
@@ -304,98 +303,68 @@ fn flush(dense: bool, index: u32, count: u32, sx: vec2<u32>, sy: vec2<u32>, sz: 
     add64(base + 5u, sz);
 }
 
-// An insert thread's grid, and its chunk's points: their cells (NONE: not used) and
-// fixed-point offsets inside them.
-var<private> chunk_grid: Grid;
-var<private> chunk_cell: array<u32, INSERT_CHUNK>;
-var<private> chunk_offset: array<vec3<u32>, INSERT_CHUNK>;
+// An insert thread's grid, path, and its current run of points in one cell: the cell, the
+// count and the 64-bit fixed-point sums of the offsets.
+var<private> insert_grid: Grid;
+var<private> insert_dense: bool;
+var<private> run_index: u32;
+var<private> run_count: u32;
+var<private> run_sx: vec2<u32>;
+var<private> run_sy: vec2<u32>;
+var<private> run_sz: vec2<u32>;
 
-fn read_point(bits: u32, i: u32, k: u32, p: vec3<f32>) {
-    chunk_cell[k] = NONE;
+fn insert_point(bits: u32, i: u32, p: vec3<f32>) {
     if !valid_point(bits, i, p) {
         return;
     }
     let s = p * params.inv_leaf;
-    let frac = clamp(s - floor(s), vec3<f32>(0.0), vec3<f32>(1.0));
-    chunk_cell[k] = cell_index(chunk_grid, p);
-    chunk_offset[k] = min(vec3<u32>(frac * FIXED_ONE), vec3<u32>(FIXED_MAX));
-}
-
-// Reads thread `t`'s INSERT_CHUNK points into chunk_cell and chunk_offset; false when none
-// of them is in the mask (then nothing is read).
-fn read_chunk(t: u32) -> bool {
-    let first = t * INSERT_CHUNK;
-    let last = min(first + INSERT_CHUNK, params.point_count);
-    if first >= last {
-        return false;
-    }
-    let bits = mask_word(first >> 5u);
-    if !chunk_in_mask(bits, first) {
-        return false;
-    }
-    chunk_grid = grid();
-    for (var k = 0u; k < INSERT_CHUNK; k += 4u) {
-        let i = first + k;
-        chunk_cell[k] = NONE;
-        chunk_cell[k + 1u] = NONE;
-        chunk_cell[k + 2u] = NONE;
-        chunk_cell[k + 3u] = NONE;
-        if i >= last || !quad_in_mask(bits, i) {
-            continue;
+    let cell = floor(s);
+    let index = cell_index(insert_grid, p);
+    if index != run_index {
+        if run_count != 0u {
+            flush(insert_dense, run_index, run_count, run_sx, run_sy, run_sz);
         }
-        let q = load_quad(i);
-        read_point(bits, i, k, q[0]);
-        read_point(bits, i + 1u, k + 1u, q[1]);
-        read_point(bits, i + 2u, k + 2u, q[2]);
-        read_point(bits, i + 3u, k + 3u, q[3]);
+        run_index = index;
+        run_count = 0u;
+        run_sx = vec2<u32>(0u);
+        run_sy = vec2<u32>(0u);
+        run_sz = vec2<u32>(0u);
     }
-    return true;
-}
-
-// The next run of the chunk's points in one cell from position *k on (invalid points skipped):
-// its cell, count and 64-bit fixed-point sums; count 0 when none is left. Insert adds the
-// runs in a loop that runs as often as the thread with the most runs needs, rather than once
-// per point: llvmpipe runs the body of a loop or branch for all lanes of a SIMD group, the
-// flush's atomics and look-ups included, whichever lanes need it.
-struct Run {
-    index: u32,
-    count: u32,
-    sx: vec2<u32>,
-    sy: vec2<u32>,
-    sz: vec2<u32>,
-}
-
-fn next_run(k: ptr<function, u32>) -> Run {
-    var run = Run(NONE, 0u, vec2<u32>(0u), vec2<u32>(0u), vec2<u32>(0u));
-    for (; *k < INSERT_CHUNK; *k += 1u) {
-        let c = chunk_cell[*k];
-        if c == NONE {
-            continue;
-        }
-        if run.count != 0u && c != run.index {
-            break;
-        }
-        run.index = c;
-        run.count += 1u;
-        run.sx = acc64(run.sx, chunk_offset[*k].x);
-        run.sy = acc64(run.sy, chunk_offset[*k].y);
-        run.sz = acc64(run.sz, chunk_offset[*k].z);
-    }
-    return run;
+    let frac = clamp(s - cell, vec3<f32>(0.0), vec3<f32>(1.0));
+    let q = min(vec3<u32>(frac * FIXED_ONE), vec3<u32>(FIXED_MAX));
+    run_count += 1u;
+    run_sx = acc64(run_sx, q.x);
+    run_sy = acc64(run_sy, q.y);
+    run_sz = acc64(run_sz, q.z);
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if !read_chunk(gid.x) {
+    let first = gid.x * INSERT_CHUNK;
+    let last = min(first + INSERT_CHUNK, params.point_count);
+    if first >= last {
         return;
     }
-    let dense = header.mode == 1u;
-    var k = 0u;
-    for (var n = 0u; n < INSERT_CHUNK && k < INSERT_CHUNK; n++) {
-        let run = next_run(&k);
-        if run.count != 0u {
-            flush(dense, run.index, run.count, run.sx, run.sy, run.sz);
+    let bits = mask_word(first >> 5u);
+    if !chunk_in_mask(bits, first) {
+        return;
+    }
+    insert_grid = grid();
+    insert_dense = header.mode == 1u;
+    run_index = NONE;
+    run_count = 0u;
+    for (var i = first; i < last; i += 4u) {
+        if !quad_in_mask(bits, i) {
+            continue;
         }
+        let q = load_quad(i);
+        insert_point(bits, i, q[0]);
+        insert_point(bits, i + 1u, q[1]);
+        insert_point(bits, i + 2u, q[2]);
+        insert_point(bits, i + 3u, q[3]);
+    }
+    if run_count != 0u {
+        flush(insert_dense, run_index, run_count, run_sx, run_sy, run_sz);
     }
 }
 
@@ -451,18 +420,15 @@ fn cell_index(g: Grid, p: vec3<f32>) -> u32 {
     return rel.x + rel.y * g.div.x + rel.z * g.div.x * g.div.y;
 }
 
-// The cell a mark thread marked last.
-var<private> marked_last: u32;
-
-// Marks the cell of point i (mark pass).
+// Marks the cell of point i (mark pass; run_index: the cell marked last by this thread).
 fn mark_point(bits: u32, i: u32, p: vec3<f32>) {
     if !valid_point(bits, i, p) {
         return;
     }
-    let index = cell_index(chunk_grid, p);
-    if index != marked_last {
+    let index = cell_index(insert_grid, p);
+    if index != run_index {
         atomicOr(&bitmap[index >> 5u], 1u << (index & 31u));
-        marked_last = index;
+        run_index = index;
     }
 }
 
@@ -477,8 +443,8 @@ fn mark(@builtin(global_invocation_id) gid: vec3<u32>) {
     if !chunk_in_mask(bits, first) {
         return;
     }
-    chunk_grid = grid();
-    marked_last = NONE;
+    insert_grid = grid();
+    run_index = NONE;
     for (var i = first; i < last; i += 4u) {
         if !quad_in_mask(bits, i) {
             continue;
