@@ -14,6 +14,7 @@
 //                        most max_probes, overflow flag otherwise; the claiming thread also
 //                        numbers the cell: cells[] lists the occupied cells) and mark the
 //                        point's octant in the slot
+//   prepare_cells (1 thread) the per-cell passes' dispatch size from the cells insert numbered
 //   number   per cell    number the cell's occupied octants (its sub-cells, in subs[])
 //   gather   per point   join the point's sub-cell: its rank there (atomicAdd of the count),
 //                        the smallest index (atomicMin) and the bounding box (atomicMin/Max
@@ -29,8 +30,14 @@
 //                        corners are not, else by testing point pairs,
 //                        (dx*dx + dy*dy) + dz*dz < r2, until the first hit: here when the pair
 //                        has at most INLINE_PAIRS point pairs, else the sub-cell is marked for
-//                        the scan pass; unions on a lock-free union-find (find with path
-//                        halving; roots hooked larger-under-smaller by CAS)
+//                        the scan pass. The boxes decide first, for a task's up to 64 pairs
+//                        at once (bit masks; of the cell's sub-cells the boxes join to one
+//                        another, one union per other sub-cell), then one loop settles the
+//                        pairs left: llvmpipe runs the union-find's loops once per iteration
+//                        of the loop around them, whichever lanes need them. Unions on a
+//                        lock-free union-find (one loop walks both roots with path halving
+//                        and hooks the larger root under the smaller by CAS)
+//   prepare_scan (1 thread) the scan's dispatch size: none when the hook marked no sub-cell
 //   scan     per point   a point of a marked sub-cell against each such large pair's other
 //                        sub-cell, at most SCAN_BUDGET point pairs per invocation: where it
 //                        stopped is kept per point (scanned), the next submission goes on
@@ -43,10 +50,11 @@
 // status are cleared with clear_buffer by the host.
 // llvmpipe (lavapipe) ends every loop of an invocation once all its loops together have run
 // 65535 iterations; the bounds keep every invocation far below that (hook: 13 look-ups of at
-// most max_probes <= 1024 slots and at most 860 sub-cell pairs of INLINE_PAIRS tests; scan:
-// the same look-ups and SCAN_BUDGET tests), and hook and scan end with loops_were_cut: an
-// invocation whose loops were cut sets STATUS_INCOMPLETE (a look-up or a loop over cells or
-// sub-cells ended early skips a union without a trace) and keeps no progress.
+// most max_probes <= 1024 slots and at most 860 sub-cell pairs to settle, each at most
+// INLINE_PAIRS tests and one walk; scan: the same look-ups and SCAN_BUDGET tests), and hook
+// and scan end with loops_were_cut: an invocation whose loops were cut sets
+// STATUS_INCOMPLETE (a look-up or a loop over cells or sub-cells ended early skips a union
+// without a trace) and keeps no progress.
 // Uses common.wgsl (prepended): NONE, WORKGROUP_SIZE, finite_point, hash_u32, order_key,
 // from_order_key.
 
@@ -142,7 +150,7 @@ struct Sub {
 
 // Bounds of the union-find loops (a hit sets STATUS_INCOMPLETE, the host re-submits).
 const MAX_FIND: u32 = 256u;
-const MAX_HOOK: u32 = 64u;
+const MAX_WALK: u32 = 512u;
 // A coarse cell's hook tasks: its own sub-cell pairs and the 13 cells that follow it.
 const HOOK_TASKS: u32 = 14u;
 // Sub-cell pairs with at most this many point pairs are tested in the hook; larger ones in
@@ -162,6 +170,8 @@ const STATUS_OUT_OF_RANGE: u32 = 2u;
 const CELL_COUNT: u32 = 3u;
 const SUB_COUNT: u32 = 4u;
 const PLACED: u32 = 5u;
+// 1 once the hook has marked a sub-cell for the scan pass.
+const SCAN_WANTED: u32 = 6u;
 
 @group(0) @binding(0) var<uniform> params: ClusterParams;
 @group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
@@ -176,8 +186,9 @@ const PLACED: u32 = 5u;
 @group(0) @binding(9) var<storage, read_write> sorted: array<u32>;
 // The sub-cells of subs[], decoded (place).
 @group(0) @binding(10) var<storage, read_write> boxes: array<Sub>;
-// [x, 1, 1] per point, then the hook's [x, threads per cell, 1].
-@group(1) @binding(0) var<storage, read_write> dispatch_args: array<u32, 6>;
+// [x, 1, 1] per point, [x, 1, 1] per cell, the hook's [x, threads per cell, 1], the scan's
+// [x, 1, 1].
+@group(1) @binding(0) var<storage, read_write> dispatch_args: array<u32, 12>;
 
 fn count() -> u32 {
     return min(point_count[params.count_word], params.capacity);
@@ -218,15 +229,32 @@ fn is_neighbour(a: vec3<f32>, b: vec3<f32>) -> bool {
     return xyz < params.r2;
 }
 
+fn set_dispatch(at: u32, x: u32, y: u32) {
+    dispatch_args[at] = x;
+    dispatch_args[at + 1u] = y;
+    dispatch_args[at + 2u] = 1u;
+}
+
+fn groups_for(items: u32) -> u32 {
+    return (items + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+}
+
 @compute @workgroup_size(1)
 fn prepare() {
-    let groups = (count() + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
-    dispatch_args[0] = groups;
-    dispatch_args[1] = 1u;
-    dispatch_args[2] = 1u;
-    dispatch_args[3] = groups;
-    dispatch_args[4] = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
-    dispatch_args[5] = 1u;
+    set_dispatch(0u, groups_for(count()), 1u);
+}
+
+@compute @workgroup_size(1)
+fn prepare_cells() {
+    let groups = groups_for(cell_count());
+    set_dispatch(3u, groups, 1u);
+    set_dispatch(6u, groups, clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS));
+}
+
+@compute @workgroup_size(1)
+fn prepare_scan() {
+    let wanted = atomicLoad(&status[SCAN_WANTED]) != 0u;
+    set_dispatch(9u, select(0u, groups_for(count()), wanted), 1u);
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -414,33 +442,50 @@ fn find_root(x: u32) -> u32 {
     return NONE;
 }
 
-// True when a and b are known to be in one set.
-fn same_set(a: u32, b: u32) -> bool {
-    let ra = find_root(a);
-    return ra != NONE && ra == find_root(b);
-}
-
-// Unites the sets of a and b; false when a bound was hit (then STATUS_INCOMPLETE is set).
-fn unite(a: u32, b: u32) -> bool {
-    var ra = find_root(a);
-    var rb = find_root(b);
-    for (var attempt = 0u; attempt < MAX_HOOK; attempt++) {
-        if ra == NONE || rb == NONE {
-            break;
-        }
-        if ra == rb {
+// Walks a and b up to their roots (path halving on the way), and when `link` hooks the
+// larger root under the smaller: one loop for both walks and the hook. True when a and b are
+// in one set at the end; false when they are not (link false), or when MAX_WALK steps did not
+// settle it (then, when linking, STATUS_INCOMPLETE is set).
+fn walk(a: u32, b: u32, link: bool) -> bool {
+    var x = a;
+    var y = b;
+    for (var step = 0u; step < MAX_WALK; step++) {
+        if x == y {
             return true;
         }
-        let lo = min(ra, rb);
-        let hi = max(ra, rb);
-        // Hook only while hi is still a root; otherwise someone hooked it: look again.
-        if atomicCompareExchangeWeak(&parent[hi], hi, lo).exchanged {
-            return true;
+        let px = atomicLoad(&parent[x]);
+        let py = atomicLoad(&parent[y]);
+        if px == x && py == y {
+            if !link {
+                return false;
+            }
+            let lo = min(x, y);
+            let hi = max(x, y);
+            // Hook only while hi is still a root; otherwise someone hooked it: walk on.
+            if atomicCompareExchangeWeak(&parent[hi], hi, lo).exchanged {
+                return true;
+            }
+            continue;
         }
-        ra = find_root(lo);
-        rb = find_root(hi);
+        if px != x {
+            let gx = atomicLoad(&parent[px]);
+            if gx != px {
+                // gx is in the same tree and smaller than px: a valid, smaller parent for x.
+                atomicMin(&parent[x], gx);
+            }
+            x = gx;
+        }
+        if py != y {
+            let gy = atomicLoad(&parent[py]);
+            if gy != py {
+                atomicMin(&parent[y], gy);
+            }
+            y = gy;
+        }
     }
-    atomicOr(&status[STATUS_INCOMPLETE], 1u);
+    if link {
+        atomicOr(&status[STATUS_INCOMPLETE], 1u);
+    }
     return false;
 }
 
@@ -487,21 +532,32 @@ fn ranges_touch(a: Sub, b: Sub) -> bool {
     return false;
 }
 
-// Joins sub-cells a and b when they hold a neighbour pair: decided by their boxes when those
-// are far enough apart or close enough together, else by the first neighbour pair (here, or
-// in the scan pass from a's points: a_index marks a for it).
-fn join_if_touching(a_index: u32, a: Sub, b: Sub) {
+// What the boxes of sub-cells a and b say about them.
+const PAIR_APART: u32 = 0u;
+const PAIR_JOINED: u32 = 1u;
+const PAIR_UNDECIDED: u32 = 2u;
+
+fn pair_by_boxes(a: Sub, b: Sub) -> u32 {
     if near2(a.lo, a.hi, b.lo, b.hi) > params.r2_apart {
-        return;
+        return PAIR_APART;
     }
     if far2(a.lo, a.hi, b.lo, b.hi) < params.r2_joined {
-        _ = unite(a.low, b.low);
-    } else if same_set(a.low, b.low) {
-        return;
-    } else if a.count > INLINE_PAIRS / b.count {
+        return PAIR_JOINED;
+    }
+    return PAIR_UNDECIDED;
+}
+
+// Joins sub-cells a and b (indices in boxes[]) that their boxes join, or (undecided) when
+// they hold a neighbour pair: tested here when the pair is small, else left to the scan pass
+// from a's points (marked for it) unless the two are in one set already.
+fn settle_pair(a_index: u32, b_index: u32, joined: bool) {
+    let a = boxes[a_index];
+    let b = boxes[b_index];
+    let large = !joined && a.count > INLINE_PAIRS / b.count;
+    let touch = joined || (!large && ranges_touch(a, b));
+    if !walk(a.low, b.low, touch) && large {
         atomicStore(&subs[a_index].scan, 1u);
-    } else if ranges_touch(a, b) {
-        _ = unite(a.low, b.low);
+        atomicStore(&status[SCAN_WANTED], 1u);
     }
 }
 
@@ -530,6 +586,12 @@ fn cell_at(c: vec3<i32>, found: ptr<function, Cell>) -> bool {
     return true;
 }
 
+// Bit a * 8 + b of a 64-bit pair set (two words).
+fn pair_bit(a: u32, b: u32) -> vec2<u32> {
+    let bit = a * 8u + b;
+    return select(vec2<u32>(0u, 1u << (bit - 32u)), vec2<u32>(1u << bit, 0u), bit < 32u);
+}
+
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     let k = gid.x;
@@ -538,39 +600,116 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let cell = cells[k];
     let count_a = countOneBits(cell.octants);
+    // Loops over a cell's sub-cells run to their constant bound (8), so that the compiler
+    // unrolls them and keeps own[] and group[] in registers.
     var own: array<Sub, 8>;
     var box_lo = vec3<f32>(3.0e38);
     var box_hi = vec3<f32>(-3.0e38);
-    for (var a = 0u; a < count_a; a++) {
-        own[a] = boxes[cell.first_sub + a];
-        box_lo = min(box_lo, own[a].lo);
-        box_hi = max(box_hi, own[a].hi);
+    for (var a = 0u; a < 8u; a++) {
+        if a < count_a {
+            own[a] = boxes[cell.first_sub + a];
+            box_lo = min(box_lo, own[a].lo);
+            box_hi = max(box_hi, own[a].hi);
+        }
+    }
+    // group[a]: the own sub-cells the boxes join to a, directly or through others (bit
+    // per sub-cell; Warshall's closure); own_undecided: the own pairs they leave open.
+    var group: array<u32, 8>;
+    var own_undecided = vec2<u32>(0u);
+    for (var a = 0u; a < 8u; a++) {
+        group[a] = 1u << a;
+    }
+    for (var a = 1u; a < 8u; a++) {
+        for (var b = 0u; b < a; b++) {
+            if a < count_a {
+                let kind = pair_by_boxes(own[a], own[b]);
+                if kind == PAIR_JOINED {
+                    group[a] |= 1u << b;
+                    group[b] |= 1u << a;
+                } else if kind == PAIR_UNDECIDED {
+                    own_undecided |= pair_bit(a, b);
+                }
+            }
+        }
+    }
+    for (var c = 0u; c < 8u; c++) {
+        for (var a = 0u; a < 8u; a++) {
+            if ((group[a] >> c) & 1u) != 0u {
+                group[a] |= group[c];
+            }
+        }
     }
     // This thread's tasks (gid.y of the dispatch's threads per cell).
     let stride = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
     for (var task = gid.y; task < HOOK_TASKS; task += stride) {
+        // The pairs to unite, and those the boxes leave undecided (bit a * 8 + b), chosen
+        // first so that the loop below, with the union-find's loops, runs once per pair
+        // to settle rather than once per pair of sub-cells: one union per group of own
+        // sub-cells joined to another sub-cell.
+        var joined = vec2<u32>(0u);
+        var undecided = vec2<u32>(0u);
+        var first_b = cell.first_sub;
         if task == 0u {
-            for (var a = 1u; a < count_a; a++) {
+            for (var a = 1u; a < 8u; a++) {
+                let first = firstTrailingBit(group[a]);
+                if a < count_a && first != a {
+                    joined |= pair_bit(a, first);
+                }
                 for (var b = 0u; b < a; b++) {
-                    join_if_touching(cell.first_sub + a, own[a], own[b]);
+                    if ((group[a] >> b) & 1u) == 0u {
+                        undecided |= own_undecided & pair_bit(a, b);
+                    }
                 }
             }
-            continue;
-        }
-        let other = following_cell(cell.coarse, task);
-        var cell_b: Cell;
-        if !within_reach(box_lo, box_hi, other) || !cell_at(other, &cell_b) {
-            continue;
-        }
-        let count_b = countOneBits(cell_b.octants);
-        for (var b = 0u; b < count_b; b++) {
-            let sub_b = boxes[cell_b.first_sub + b];
-            if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
+        } else {
+            let other_cell = following_cell(cell.coarse, task);
+            var cell_b: Cell;
+            if !within_reach(box_lo, box_hi, other_cell) || !cell_at(other_cell, &cell_b) {
                 continue;
             }
-            for (var a = 0u; a < count_a; a++) {
-                join_if_touching(cell.first_sub + a, own[a], sub_b);
+            first_b = cell_b.first_sub;
+            let count_b = countOneBits(cell_b.octants);
+            for (var b = 0u; b < count_b; b++) {
+                let sub_b = boxes[first_b + b];
+                if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
+                    continue;
+                }
+                var joined_b = 0u;
+                var open_b = 0u;
+                for (var a = 0u; a < 8u; a++) {
+                    if a < count_a {
+                        let kind = pair_by_boxes(own[a], sub_b);
+                        if kind == PAIR_JOINED {
+                            if (joined_b & group[a]) == 0u {
+                                joined |= pair_bit(a, b);
+                            }
+                            joined_b |= 1u << a;
+                        } else if kind == PAIR_UNDECIDED {
+                            open_b |= 1u << a;
+                        }
+                    }
+                }
+                for (var a = 0u; a < 8u; a++) {
+                    if ((open_b >> a) & 1u) != 0u && (joined_b & group[a]) == 0u {
+                        undecided |= pair_bit(a, b);
+                    }
+                }
             }
+        }
+        var pending = joined | undecided;
+        for (var n = 0u; n < 64u && any(pending != vec2<u32>(0u)); n++) {
+            var bit: u32;
+            if pending.x != 0u {
+                bit = firstTrailingBit(pending.x);
+                pending.x &= pending.x - 1u;
+            } else {
+                bit = 32u + firstTrailingBit(pending.y);
+                pending.y &= pending.y - 1u;
+            }
+            let a = bit / 8u;
+            let b = bit % 8u;
+            let is_joined = any((joined & pair_bit(a, b)) != vec2<u32>(0u));
+            settle_pair(cell.first_sub + a, first_b + b, is_joined);
         }
     }
     if loops_were_cut() {
@@ -581,17 +720,17 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
 // Tests point p of sub-cell a (smallest index a_low) against b's points from index `begin`,
 // within the budget; returns how far it got: b.count when a and b are joined or b is done.
 fn scan_against(p: vec3<f32>, a_low: u32, b: Sub, begin: u32, budget: ptr<function, u32>) -> u32 {
-    if same_set(a_low, b.low) || near2(p, p, b.lo, b.hi) > params.r2_apart {
+    if walk(a_low, b.low, false) || near2(p, p, b.lo, b.hi) > params.r2_apart {
         return b.count;
     }
     if far2(p, p, b.lo, b.hi) < params.r2_joined {
-        return select(begin, b.count, unite(a_low, b.low));
+        return select(begin, b.count, walk(a_low, b.low, true));
     }
     let stop = begin + min(b.count - begin, *budget);
     for (var ib = begin; ib < stop; ib++) {
         if is_neighbour(p, points[sorted[b.start + ib]].xyz) {
             *budget -= ib + 1u - begin;
-            return select(begin, b.count, unite(a_low, b.low));
+            return select(begin, b.count, walk(a_low, b.low, true));
         }
     }
     *budget -= stop - begin;
@@ -599,7 +738,7 @@ fn scan_against(p: vec3<f32>, a_low: u32, b: Sub, begin: u32, budget: ptr<functi
 }
 
 // A point of a marked sub-cell a against the other sub-cell b of each pair left to it (the
-// pairs join_if_touching marks a for, in the hook's order: a's lower sub-cells in its own
+// pairs settle_pair marks a for, in the hook's order: a's lower sub-cells in its own
 // cell, then the 13 following cells'), SCAN_BUDGET point pairs per invocation at most. The
 // pairs are counted, tested or not, in an order that depends only on the cloud, so
 // info[i].scanned (the count done by earlier submissions) says where to go on.

@@ -486,10 +486,14 @@ pub const MAX_HASH_PROBES: u32 = 1024;
 const MAX_SUBMISSIONS: u32 = 16;
 /// A coarse cell's hook tasks: its own sub-cell pairs and its 13 following neighbour cells.
 const HOOK_TASKS: u32 = 14;
-/// The dispatch arguments the `prepare` pass writes: per point `[x, 1, 1]`, then the hook's
-/// `[x, threads per cell, 1]` at [`HOOK_ARGS_OFFSET`].
-const DISPATCH_ARGS_BYTES: u64 = 24;
-const HOOK_ARGS_OFFSET: u64 = 12;
+/// The indirect dispatch arguments the `prepare*` passes write: per point `[x, 1, 1]` (prepare),
+/// per cell `[x, 1, 1]` and the hook's `[x, threads per cell, 1]` (prepare_cells, after
+/// insert), the scan's `[x, 1, 1]` (prepare_scan, after the hook: no workgroups when the hook
+/// marked no sub-cell).
+const DISPATCH_ARGS_BYTES: u64 = 48;
+const CELL_ARGS_OFFSET: u64 = 12;
+const HOOK_ARGS_OFFSET: u64 = 24;
+const SCAN_ARGS_OFFSET: u64 = 36;
 /// Largest point count one indirect dispatch of `WORKGROUP_SIZE` threads covers.
 const MAX_GPU_POINTS: u32 = 65_535 * shader::WORKGROUP_SIZE;
 /// GPU time is reported for these passes of the first submission.
@@ -549,6 +553,8 @@ pub struct GpuClusterer {
     layout: wgpu::BindGroupLayout,
     args_layout: wgpu::BindGroupLayout,
     prepare: wgpu::ComputePipeline,
+    prepare_cells: wgpu::ComputePipeline,
+    prepare_scan: wgpu::ComputePipeline,
     insert: wgpu::ComputePipeline,
     number: wgpu::ComputePipeline,
     gather: wgpu::ComputePipeline,
@@ -584,13 +590,14 @@ impl GpuClusterer {
         )?;
         let args_layout =
             shader::bind_group_layout(ctx, "cluster dispatch-args layout", &[Storage])?;
-        let prepare = shader::compute_pipelines(
-            ctx,
-            &shader::CLUSTER,
-            &[&layout, &args_layout],
-            &["prepare"],
-        )?
-        .remove(0);
+        let [prepare, prepare_cells, prepare_scan] =
+            <[wgpu::ComputePipeline; 3]>::try_from(shader::compute_pipelines(
+                ctx,
+                &shader::CLUSTER,
+                &[&layout, &args_layout],
+                &["prepare", "prepare_cells", "prepare_scan"],
+            )?)
+            .unwrap_or_else(|_| unreachable!("one pipeline per entry point"));
         let passes = shader::compute_pipelines(
             ctx,
             &shader::CLUSTER,
@@ -607,6 +614,8 @@ impl GpuClusterer {
             layout,
             args_layout,
             prepare,
+            prepare_cells,
+            prepare_scan,
             insert,
             number,
             gather,
@@ -773,10 +782,33 @@ impl GpuClusterer {
 
     /// Where `pipeline`'s indirect dispatch arguments lie in the dispatch-args buffer.
     fn args_offset(&self, pipeline: &wgpu::ComputePipeline) -> u64 {
-        if std::ptr::eq(pipeline, &self.hook) {
+        let is = |p: &wgpu::ComputePipeline| std::ptr::eq(pipeline, p);
+        if is(&self.hook) {
             HOOK_ARGS_OFFSET
+        } else if is(&self.scan) {
+            SCAN_ARGS_OFFSET
+        } else if is(&self.number) || is(&self.place) {
+            CELL_ARGS_OFFSET
         } else {
             0
+        }
+    }
+
+    /// Records `pipelines` into `pass`: the `prepare*` passes on one thread with the
+    /// dispatch-args bind group, the others indirect.
+    fn record(&self, pass: &mut wgpu::ComputePass<'_>, pipelines: &[&wgpu::ComputePipeline]) {
+        let b = self.buffers();
+        for &pipeline in pipelines {
+            pass.set_pipeline(pipeline);
+            if [&self.prepare, &self.prepare_cells, &self.prepare_scan]
+                .iter()
+                .any(|p| std::ptr::eq(pipeline, *p))
+            {
+                pass.set_bind_group(1, &b.args_group, &[]);
+                pass.dispatch_workgroups(1, 1, 1);
+            } else {
+                pass.dispatch_workgroups_indirect(&b.dispatch_args, self.args_offset(pipeline));
+            }
         }
     }
 
@@ -830,12 +862,13 @@ impl GpuClusterer {
             &[
                 &self.prepare,
                 &self.insert,
+                &self.prepare_cells,
                 &self.number,
                 &self.gather,
                 &self.place,
                 &self.seed,
             ],
-            &[&self.hook, &self.scan],
+            &[&self.hook, &self.prepare_scan, &self.scan],
             &[&self.compress],
         ];
         for (k, pipelines) in stages.into_iter().enumerate() {
@@ -844,15 +877,7 @@ impl GpuClusterer {
                 timestamp_writes: self.timer.as_ref().map(|t| t.pass_writes(k)),
             });
             pass.set_bind_group(0, &group, &[]);
-            for &pipeline in pipelines {
-                pass.set_pipeline(pipeline);
-                if std::ptr::eq(pipeline, &self.prepare) {
-                    pass.set_bind_group(1, &b.args_group, &[]);
-                    pass.dispatch_workgroups(1, 1, 1);
-                } else {
-                    pass.dispatch_workgroups_indirect(&b.dispatch_args, self.args_offset(pipeline));
-                }
-            }
+            self.record(&mut pass, pipelines);
         }
         Ok(())
     }
@@ -973,10 +998,10 @@ impl GpuClusterer {
                 timestamp_writes: None,
             });
             pass.set_bind_group(0, &group, &[]);
-            for pipeline in [&self.hook, &self.scan, &self.compress] {
-                pass.set_pipeline(pipeline);
-                pass.dispatch_workgroups_indirect(&b.dispatch_args, self.args_offset(pipeline));
-            }
+            self.record(
+                &mut pass,
+                &[&self.hook, &self.prepare_scan, &self.scan, &self.compress],
+            );
         }
         encoder.copy_buffer_to_buffer(&b.status, 0, &readback, 0, STATUS_BYTES);
         if points > 0 {
