@@ -125,8 +125,8 @@ pub struct ShellConfig {
     /// estimated as the RMS residual of a curved height field over the fits near the
     /// surface (module doc). 10 deg: on `torso_approach_realistic` (D435 noise
     /// 1 m away) a 5-point cap cut through the noise at the chest has 13 deg and pulled
-    /// Alg. 2's average 13 mm off; the head's small caps seen from 1 m have 2-5 deg. The
-    /// best-determined fit always stays. Infinity: every fit takes part.
+    /// Alg. 2's average 13 mm off; 15 deg keeps it (docs/accuracy.md). The best-determined
+    /// fit always stays. Infinity: every fit takes part.
     pub max_normal_error_rad: f64,
     /// Fewest fitted shells (before the rejection) for a valid estimate.
     pub min_accepted_shells: u32,
