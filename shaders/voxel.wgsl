@@ -1,6 +1,9 @@
 // Voxel grid (paper IV-B) with PCL VoxelGrid semantics, deterministic on the GPU.
 //
 // Dispatches, in this order (four timed compute passes: insert, compact, sort, reduce):
+//   list_words, list_args - list the mask words with some point set and size the indirect
+//                 dispatches of bounds, mark and insert over them (a depth frame's crop keeps
+//                 few of its pixels)
 //   bounds      - min/max of the valid points (32 points per thread, then integer atomics
 //                 on order keys)
 //   insert      - cell index (PCL's linear index relative to the min cell) into a hash table
@@ -65,6 +68,11 @@ struct VoxelHeader {
     _pad1: u32,
 }
 
+struct ListedWords {
+    count: atomic<u32>,
+    words: array<u32>,
+}
+
 struct SortStep {
     k: u32,
     j: u32,
@@ -91,6 +99,9 @@ struct SortStep {
 // cells before it.
 @group(0) @binding(10) var<storage, read_write> bitmap: array<atomic<u32>>;
 @group(0) @binding(11) var<storage, read_write> word_prefix: array<u32>;
+// The mask words with some point set, listed by list_words (bounds, mark and insert run over
+// them only).
+@group(0) @binding(12) var<storage, read_write> listed: ListedWords;
 
 // compact_scan only (its own bind group: the sort reads `dispatch_args` as indirect
 // arguments): per indirect dispatch, (kind, k) with kind SCHEDULE_BLOCKS (512-key blocks of
@@ -111,13 +122,17 @@ const SCHEDULE_REDUCE: u32 = 2u;
 // (dense_clear), one workgroup per COMPACT_BLOCK words (word_count, word_scatter).
 const SCHEDULE_WORDS: u32 = 3u;
 const SCHEDULE_WORD_BLOCKS: u32 = 4u;
+// Written by `list_args`: one thread per listed mask word (bounds), one per chunk of
+// INSERT_CHUNK points of the listed words (mark, insert).
+const SCHEDULE_LISTED_WORDS: u32 = 5u;
+const SCHEDULE_LISTED_CHUNKS: u32 = 6u;
 // The dense path runs when the grid has at most DENSE_MAX_CELLS cells and its bitmap at most
 // DENSE_WORDS_PER_POINT words per valid point plus DENSE_MIN_WORDS (voxel.rs `dense_grid`).
 const DENSE_MAX_CELLS: u32 = 134217728u;
 const DENSE_WORDS_PER_POINT: u32 = 8u;
 const DENSE_MIN_WORDS: u32 = 65536u;
-// Points per thread of `bounds` and of `insert` (multiples of 4 that divide 32: a chunk
-// reads whole quads and one mask word).
+// Points per thread of `bounds` (one listed mask word) and of `insert` (a multiple of 4
+// that divides 32: a chunk reads whole quads and one mask word).
 const BOUNDS_CHUNK: u32 = 32u;
 const INSERT_CHUNK: u32 = 8u;
 
@@ -179,17 +194,50 @@ fn bound_point(bits: u32, i: u32, p: vec3<f32>) {
     }
 }
 
+// Appends the mask words with some point set to `listed` (their order does not matter:
+// bounds, mark and insert combine points with order-free atomics), so that the passes over
+// the points skip the pixels a depth frame's crop leaves out without a thread each.
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn list_words(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if gid.x >= (params.point_count + 31u) / 32u || mask_word(gid.x) == 0u {
+        return;
+    }
+    listed.words[atomicAdd(&listed.count, 1u)] = gid.x;
+}
+
+// Sizes the dispatches over the listed words: one bounds thread per word, one mark and
+// insert thread per chunk of INSERT_CHUNK points.
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn list_args(@builtin(local_invocation_id) lid: vec3<u32>) {
+    let n = atomicLoad(&listed.count);
+    for (var i = lid.x; i < params.schedule_entries; i += WORKGROUP_SIZE) {
+        let kind = schedule[i].x;
+        if kind == SCHEDULE_LISTED_WORDS || kind == SCHEDULE_LISTED_CHUNKS {
+            let threads = select(n * (32u / INSERT_CHUNK), n, kind == SCHEDULE_LISTED_WORDS);
+            dispatch_args[3u * i] = (threads + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+            dispatch_args[3u * i + 1u] = 1u;
+            dispatch_args[3u * i + 2u] = 1u;
+        }
+    }
+}
+
+// First point of listed chunk `c` of INSERT_CHUNK points (NONE beyond the list).
+fn listed_chunk(c: u32) -> u32 {
+    let k = c / (32u / INSERT_CHUNK);
+    if k >= atomicLoad(&listed.count) {
+        return NONE;
+    }
+    return 32u * listed.words[k] + (c % (32u / INSERT_CHUNK)) * INSERT_CHUNK;
+}
+
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn bounds(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let first = gid.x * BOUNDS_CHUNK;
+    if gid.x >= atomicLoad(&listed.count) {
+        return;
+    }
+    let first = listed.words[gid.x] * BOUNDS_CHUNK;
     let last = min(first + BOUNDS_CHUNK, params.point_count);
-    if first >= last {
-        return;
-    }
     let bits = mask_word(first >> 5u);
-    if bits == 0u {
-        return;
-    }
     bounds_count = 0u;
     bounds_hi = vec3<u32>(0u);
     bounds_lo_inv = vec3<u32>(0u);
@@ -340,11 +388,11 @@ fn insert_point(bits: u32, i: u32, p: vec3<f32>) {
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let first = gid.x * INSERT_CHUNK;
-    let last = min(first + INSERT_CHUNK, params.point_count);
-    if first >= last {
+    let first = listed_chunk(gid.x);
+    if first == NONE {
         return;
     }
+    let last = min(first + INSERT_CHUNK, params.point_count);
     let bits = mask_word(first >> 5u);
     if !chunk_in_mask(bits, first) {
         return;
@@ -434,11 +482,11 @@ fn mark_point(bits: u32, i: u32, p: vec3<f32>) {
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn mark(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let first = gid.x * INSERT_CHUNK;
-    let last = min(first + INSERT_CHUNK, params.point_count);
-    if first >= last || header.mode != 1u {
+    let first = listed_chunk(gid.x);
+    if first == NONE || header.mode != 1u {
         return;
     }
+    let last = min(first + INSERT_CHUNK, params.point_count);
     let bits = mask_word(first >> 5u);
     if !chunk_in_mask(bits, first) {
         return;

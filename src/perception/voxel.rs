@@ -586,7 +586,8 @@ impl LeafAdapter {
 }
 
 /// Entry points of voxel.wgsl on the main bind group, in pipeline order.
-const ENTRY_POINTS: [&str; 13] = [
+const ENTRY_POINTS: [&str; 14] = [
+    "list_words",
     "bounds",
     "dense_clear",
     "mark",
@@ -620,11 +621,19 @@ const SCHEDULE_REDUCE: u32 = 2;
 /// workgroup per `COMPACT_BLOCK` words.
 const SCHEDULE_WORDS: u32 = 3;
 const SCHEDULE_WORD_BLOCKS: u32 = 4;
+/// Dispatches over the listed mask words `list_args` sizes (voxel.wgsl): one thread per word
+/// (bounds), one per `INSERT_CHUNK` points of the words (mark, insert).
+const SCHEDULE_LISTED_WORDS: u32 = 5;
+const SCHEDULE_LISTED_CHUNKS: u32 = 6;
 /// Bitmap words of the largest dense grid.
 const DENSE_MAX_WORDS: u64 = DENSE_MAX_CELLS / 32;
-/// Points per thread of `bounds` and `insert` (voxel.wgsl constants).
+/// Points per thread of `bounds` (one keep-mask word) and `insert` (voxel.wgsl constants).
 const BOUNDS_CHUNK: u32 = 32;
 const INSERT_CHUNK: u32 = 8;
+/// Points of a cloud the stage takes: one workgroup dimension of one thread per point.
+const MAX_POINTS: u64 = 65_535 * shader::WORKGROUP_SIZE as u64;
+/// Keep-mask words of the largest cloud: room of the listed words.
+const MAX_MASK_WORDS: u64 = MAX_POINTS.div_ceil(BOUNDS_CHUNK as u64);
 const SLOT_WORDS: u64 = 8;
 const MIN_TABLE_SLOTS: u32 = 1024;
 /// Bytes of the header at the start of a voxel readback.
@@ -645,6 +654,7 @@ pub struct GpuVoxel {
     scan_layout: wgpu::BindGroupLayout,
     scan: wgpu::ComputePipeline,
     plan: wgpu::ComputePipeline,
+    list_args: wgpu::ComputePipeline,
     /// Bind group 1 of compact_scan and plan: the dispatch schedule (its first
     /// `schedule_entries` entries are this table's) and the indirect arguments.
     scan_group: CachedBindGroup,
@@ -660,6 +670,11 @@ pub struct GpuVoxel {
     /// Indirect-argument entries of the dense path's per-word and per-block dispatches.
     words_entry: u32,
     word_blocks_entry: u32,
+    /// Indirect-argument entries of the passes over the listed mask words.
+    listed_words_entry: u32,
+    listed_chunks_entry: u32,
+    /// Count and indices of the mask words with some point set (sized for the most points).
+    listed: wgpu::Buffer,
     /// Dense path: occupancy bitmap and per-word prefix counts (sized for DENSE_MAX_CELLS).
     bitmap: wgpu::Buffer,
     word_prefix: wgpu::Buffer,
@@ -735,6 +750,7 @@ impl GpuVoxel {
                 Storage,
                 Storage,
                 Storage,
+                Storage,
             ],
         )?;
         let pipelines = shader::compute_pipelines(ctx, &shader::VOXEL, &[&layout], &ENTRY_POINTS)?;
@@ -747,10 +763,11 @@ impl GpuVoxel {
             ctx,
             &shader::VOXEL,
             &[&layout, &scan_layout],
-            &["compact_scan", "plan"],
+            &["compact_scan", "plan", "list_args"],
         )?;
-        let plan = scheduling.pop().expect("two entry points");
-        let scan = scheduling.pop().expect("two entry points");
+        let list_args = scheduling.pop().expect("three entry points");
+        let plan = scheduling.pop().expect("three entry points");
+        let scan = scheduling.pop().expect("three entry points");
         let timer = StageTimer::new(ctx, "voxel", &TIMED_PASSES)?;
         let step_stride = u64::from(ctx.device().limits().min_uniform_buffer_offset_alignment)
             .max(std::mem::size_of::<SortStep>() as u64);
@@ -767,6 +784,12 @@ impl GpuVoxel {
                 gpu_buffer(ctx, "voxel no mask", 16, STORAGE),
                 gpu_buffer(ctx, "voxel dense bitmap", 4 * DENSE_MAX_WORDS, STORAGE),
                 gpu_buffer(ctx, "voxel dense word prefix", 4 * DENSE_MAX_WORDS, STORAGE),
+                gpu_buffer(
+                    ctx,
+                    "voxel listed mask words",
+                    4 + 4 * MAX_MASK_WORDS,
+                    STORAGE,
+                ),
             )
         })?;
         // The table's buffers are placeholders until `resize_table` below.
@@ -776,6 +799,7 @@ impl GpuVoxel {
             scan_layout,
             scan,
             plan,
+            list_args,
             scan_group: CachedBindGroup::default(),
             schedule: buffers.2.clone(),
             schedule_entries: 0,
@@ -786,6 +810,9 @@ impl GpuVoxel {
             reduce_entry: 0,
             words_entry: 0,
             word_blocks_entry: 0,
+            listed_words_entry: 0,
+            listed_chunks_entry: 0,
+            listed: buffers.5,
             bitmap: buffers.3,
             word_prefix: buffers.4,
             timer,
@@ -817,6 +844,7 @@ impl GpuVoxel {
             &self.dispatch_args,
             &self.bitmap,
             &self.word_prefix,
+            &self.listed,
             &self.params,
             &self.header,
             &self.no_mask,
@@ -895,6 +923,10 @@ impl GpuVoxel {
         schedule.push([SCHEDULE_WORDS, 0]);
         let word_blocks_entry = schedule.len() as u32;
         schedule.push([SCHEDULE_WORD_BLOCKS, 0]);
+        let listed_words_entry = schedule.len() as u32;
+        schedule.push([SCHEDULE_LISTED_WORDS, 0]);
+        let listed_chunks_entry = schedule.len() as u32;
+        schedule.push([SCHEDULE_LISTED_CHUNKS, 0]);
         let stride = self.step_stride;
         let mut step_bytes = vec![0u8; (steps.len() as u64 * stride).max(stride) as usize];
         for (i, st) in steps.iter().enumerate() {
@@ -943,6 +975,8 @@ impl GpuVoxel {
         self.reduce_entry = reduce_entry;
         self.words_entry = words_entry;
         self.word_blocks_entry = word_blocks_entry;
+        self.listed_words_entry = listed_words_entry;
+        self.listed_chunks_entry = listed_chunks_entry;
         self.table_slots = slots;
         Ok(())
     }
@@ -964,8 +998,7 @@ impl GpuVoxel {
                 value: leaf_m,
             });
         }
-        let max_points = 65_535 * u64::from(shader::WORKGROUP_SIZE);
-        if point_count as u64 > max_points {
+        if point_count as u64 > MAX_POINTS {
             return Err(VoxelError::TooManyPoints(point_count));
         }
         // The last frame's need, else the configured start (no bigger than two slots per
@@ -1051,6 +1084,7 @@ impl GpuVoxel {
                 entry(9, &self.block_sums),
                 entry(10, &self.bitmap),
                 entry(11, &self.word_prefix),
+                entry(12, &self.listed),
             ],
         );
         let scan_group = self.scan_group.get(
@@ -1061,9 +1095,11 @@ impl GpuVoxel {
         );
         let slots = u64::from(self.table_slots);
         encoder.clear_buffer(&self.header, 0, None);
+        encoder.clear_buffer(&self.listed, 0, Some(4));
         encoder.clear_buffer(&self.table_keys, 0, Some(4 * slots));
         encoder.clear_buffer(&self.table_data, 0, Some(4 * SLOT_WORDS * slots));
         let [
+            list_words,
             bounds,
             dense_clear,
             mark,
@@ -1097,20 +1133,24 @@ impl GpuVoxel {
         let args_at = |entry: u32| 12 * u64::from(entry);
         {
             let mut pass = timed_pass(encoder, timer, 0, bind_group);
-            let chunks = shader::workgroups_for(self.point_count.div_ceil(INSERT_CHUNK));
+            pass.set_pipeline(list_words);
+            let mask_words = self.point_count.div_ceil(BOUNDS_CHUNK);
+            pass.dispatch_workgroups(shader::workgroups_for(mask_words), 1, 1);
+            pass.set_pipeline(&self.list_args);
+            pass.set_bind_group(1, scan_group, &[]);
+            pass.dispatch_workgroups(1, 1, 1);
+            let listed_chunks = args_at(self.listed_chunks_entry);
             pass.set_pipeline(bounds);
-            pass.dispatch_workgroups(
-                shader::workgroups_for(self.point_count.div_ceil(BOUNDS_CHUNK)),
-                1,
-                1,
+            pass.dispatch_workgroups_indirect(
+                &self.dispatch_args,
+                args_at(self.listed_words_entry),
             );
             pass.set_pipeline(&self.plan);
-            pass.set_bind_group(1, scan_group, &[]);
             pass.dispatch_workgroups(1, 1, 1);
             pass.set_pipeline(dense_clear);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.words_entry));
             pass.set_pipeline(mark);
-            pass.dispatch_workgroups(chunks, 1, 1);
+            pass.dispatch_workgroups_indirect(&self.dispatch_args, listed_chunks);
             pass.set_pipeline(word_count);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.word_blocks_entry));
             pass.set_pipeline(word_scan);
@@ -1118,7 +1158,7 @@ impl GpuVoxel {
             pass.set_pipeline(word_scatter);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.word_blocks_entry));
             pass.set_pipeline(insert);
-            pass.dispatch_workgroups(chunks, 1, 1);
+            pass.dispatch_workgroups_indirect(&self.dispatch_args, listed_chunks);
         }
         {
             let mut pass = timed_pass(encoder, timer, 1, bind_group);
@@ -1565,6 +1605,8 @@ pub(crate) mod tests {
                 ("SCHEDULE_REDUCE", SCHEDULE_REDUCE),
                 ("SCHEDULE_WORDS", SCHEDULE_WORDS),
                 ("SCHEDULE_WORD_BLOCKS", SCHEDULE_WORD_BLOCKS),
+                ("SCHEDULE_LISTED_WORDS", SCHEDULE_LISTED_WORDS),
+                ("SCHEDULE_LISTED_CHUNKS", SCHEDULE_LISTED_CHUNKS),
                 ("DENSE_MAX_CELLS", DENSE_MAX_CELLS as u32),
                 ("DENSE_WORDS_PER_POINT", DENSE_WORDS_PER_POINT as u32),
                 ("DENSE_MIN_WORDS", DENSE_MIN_WORDS as u32),
