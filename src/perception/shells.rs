@@ -698,9 +698,14 @@ pub fn abstract_surface(
         reports.push(report);
     }
 
-    let depth_noise_m = depth_noise_m(&fits, &hip, config);
-    if let Some(noise_m) = depth_noise_m {
-        set_aside_weak_fits(&mut fits, noise_m, config);
+    let best_supported = (0..fits.len()).max_by(|&a, &b| {
+        fits[a]
+            .normal_support_m2
+            .total_cmp(&fits[b].normal_support_m2)
+    });
+    let depth_noise_m = best_supported.and_then(|best| depth_noise_m(&fits, best, &hip, config));
+    if let (Some(noise_m), Some(best)) = (depth_noise_m, best_supported) {
+        set_aside_weak_fits(&mut fits, best, noise_m, config);
     }
     let candidates: Vec<usize> = (0..fits.len()).filter(|&i| !fits[i].fit.rejected).collect();
     if config.reject_worst_half && candidates.len() >= 2 {
@@ -854,16 +859,9 @@ pub fn abstract_surface(
 }
 
 /// Marks as rejected (and weak) the fits whose normal's standard error with the depth noise
-/// `noise_m` exceeds `max_normal_error_rad` (module doc); the best-supported fit always
-/// stays.
-fn set_aside_weak_fits(fits: &mut [Accepted], noise_m: f64, config: &ShellConfig) {
-    let best = (0..fits.len())
-        .max_by(|&a, &b| {
-            fits[a]
-                .normal_support_m2
-                .total_cmp(&fits[b].normal_support_m2)
-        })
-        .unwrap_or(0);
+/// `noise_m` exceeds `max_normal_error_rad` (module doc); the best-supported fit `best`
+/// always stays.
+fn set_aside_weak_fits(fits: &mut [Accepted], best: usize, noise_m: f64, config: &ShellConfig) {
     for (i, a) in fits.iter_mut().enumerate() {
         let error_rad = (noise_m / a.normal_support_m2.max(0.0).sqrt()).atan();
         if i != best && (error_rad.is_nan() || error_rad > config.max_normal_error_rad) {
@@ -875,27 +873,21 @@ fn set_aside_weak_fits(fits: &mut [Accepted], noise_m: f64, config: &ShellConfig
 
 /// The depth noise near the surface, metres: the RMS residual of a curved height field
 /// (every quadratic term kept, so the curvature does not count as noise) over the fits
-/// within `quadric_reach_m` of the innermost one, about the best-supported fit's normal and
-/// then its own. `None` when the field cannot be fitted.
-fn depth_noise_m(fits: &[Accepted], hip: &Point3<f64>, config: &ShellConfig) -> Option<f64> {
-    let innermost = fits
-        .iter()
-        .map(|a| a.fit.inner_radius_m)
-        .fold(f64::INFINITY, f64::min);
+/// [`near_the_surface`], about the normal of the best-supported fit `best` and then its own.
+/// `None` when the field cannot be fitted.
+fn depth_noise_m(
+    fits: &[Accepted],
+    best: usize,
+    hip: &Point3<f64>,
+    config: &ShellConfig,
+) -> Option<f64> {
     let mut merged = Moments::zero(*hip);
     let mut scale = 0.0f64;
-    for a in fits
-        .iter()
-        .filter(|a| a.fit.inner_radius_m < innermost + config.quadric_reach_m)
-    {
+    for a in near_the_surface(fits, config) {
         merged.merge(&a.moments);
         scale = scale.max(a.fit.outer_radius_m);
     }
-    let axis = fits
-        .iter()
-        .max_by(|a, b| a.normal_support_m2.total_cmp(&b.normal_support_m2))?
-        .fit
-        .normal;
+    let axis = fits[best].fit.normal;
     let points = merged.count();
     let first = fit::height_field(&merged, points, &-axis, scale, 0.0).ok()?;
     let field = fit::height_field(&merged, points, &-first.normal, scale, 0.0).ok()?;
@@ -905,13 +897,26 @@ fn depth_noise_m(fits: &[Accepted], hip: &Point3<f64>, config: &ShellConfig) -> 
 /// Refits of the height field about its own normal after the first one.
 const QUADRIC_PASSES: usize = 3;
 
-/// Height field (module doc) over the fitted shells (rejected or not) whose inner radius lies
-/// within `quadric_reach_m` beyond that of the innermost fit not set aside as weak (the
-/// closest surface lies in that shell: shells further out may reach a second body, the
-/// two-surface limitation of IV-E), each weighted `1 / r_i` like Alg. 2's average. While the outermost of them lies
-/// further than `quadric_max_shell_residual_m` (RMS) from the fitted surface, or no trusted
-/// field fits with it, it reaches something else (a second body, or the robot's edge) and
-/// is dropped before fitting again. `None` when no fit survives.
+/// The fitted shells (rejected or not) whose inner radius lies within `quadric_reach_m`
+/// beyond that of the innermost fit not set aside as weak: the closest surface lies in that
+/// shell, and shells further out may reach a second body (the two-surface limitation of
+/// IV-E).
+fn near_the_surface<'a>(fits: &'a [Accepted], config: &ShellConfig) -> Vec<&'a Accepted> {
+    let innermost = fits
+        .iter()
+        .filter(|a| !a.weak)
+        .map(|a| a.fit.inner_radius_m)
+        .fold(f64::INFINITY, f64::min);
+    fits.iter()
+        .filter(|a| a.fit.inner_radius_m < innermost + config.quadric_reach_m)
+        .collect()
+}
+
+/// Height field (module doc) over the fits [`near_the_surface`], each weighted `1 / r_i` like
+/// Alg. 2's average. While the outermost of them lies further than
+/// `quadric_max_shell_residual_m` (RMS) from the fitted surface, or no trusted field fits
+/// with it, it reaches something else (a second body, or the robot's edge) and is dropped
+/// before fitting again. `None` when no fit survives.
 fn quadric_refinement(
     fits: &[Accepted],
     normal: &Unit<Vector3<f64>>,
@@ -919,15 +924,7 @@ fn quadric_refinement(
     config: &ShellConfig,
     lone_shell: bool,
 ) -> Option<HeightField> {
-    let innermost = fits
-        .iter()
-        .filter(|a| !a.weak)
-        .map(|a| a.fit.inner_radius_m)
-        .fold(f64::INFINITY, f64::min);
-    let mut near: Vec<&Accepted> = fits
-        .iter()
-        .filter(|a| a.fit.inner_radius_m < innermost + config.quadric_reach_m)
-        .collect();
+    let mut near = near_the_surface(fits, config);
     near.sort_by(|a, b| a.fit.inner_radius_m.total_cmp(&b.fit.inner_radius_m));
     loop {
         let hf = height_field_over(&near, normal, hip, config, lone_shell);
