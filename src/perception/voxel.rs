@@ -22,7 +22,9 @@
 //! sort the cell indices instead.
 //!
 //! [`voxel_cpu`] is the reference (f64 sums, each cell's points in input order on both
-//! paths). [`GpuVoxel`] runs `shaders/voxel.wgsl`; a `plan` pass after the bounds picks the
+//! paths). It takes the points 32 at a time (a validity word per block, the crop mask's
+//! layout) in three passes: bounds; cell indices, marking each run of same-cell points' cell
+//! once; sums, a run's in registers. [`GpuVoxel`] runs `shaders/voxel.wgsl`; a `plan` pass after the bounds picks the
 //! path on the GPU and sizes the dense dispatches (indirect). Dense: clear the frame's bitmap
 //! words, mark, prefix-count the words (per 512-word block, one workgroup over the blocks,
 //! scatter), then add each point to slot = rank. Otherwise: a hash table keyed by the linear
@@ -49,7 +51,7 @@ use crate::gpu::mirrors::{SortStep, VoxelHeader, VoxelParams};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::{PassTicks, StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
-use crate::perception::crop::{entry, finite_bits, mask_bit};
+use crate::perception::crop::{entry, finite_bits};
 
 /// The coordinate a filter limit tests.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -340,25 +342,8 @@ struct DenseRank {
 }
 
 impl DenseRank {
-    /// Marks the cells of the points `valid` keeps and counts the words; `keys` gets each
-    /// point's cell index ([`NOT_VALID`] for the others), computed here so the points are
-    /// read once for both.
-    fn new(
-        cells: u64,
-        points: &[Vec3],
-        valid: impl Fn(usize, &Vec3) -> bool,
-        key: &CellKey,
-        keys: &mut Vec<u32>,
-    ) -> Self {
-        let mut bits = vec![0u64; cells.div_ceil(64) as usize];
-        keys.extend(points.iter().enumerate().map(|(i, p)| {
-            if !valid(i, p) {
-                return NOT_VALID;
-            }
-            let k = key.of(p);
-            bits[(k >> 6) as usize] |= 1 << (k & 63);
-            k
-        }));
+    /// Counts the words of the marked bitmap.
+    fn new(bits: Vec<u64>) -> Self {
         let mut occupied = 0u32;
         let prefix = bits
             .iter()
@@ -373,6 +358,10 @@ impl DenseRank {
             prefix,
             occupied,
         }
+    }
+
+    fn mark(bits: &mut [u64], k: u32) {
+        bits[(k >> 6) as usize] |= 1 << (k & 63);
     }
 
     fn rank(&self, k: u32) -> u32 {
@@ -392,36 +381,194 @@ fn floor_i32(x: f32) -> i32 {
     t - i32::from(t as f32 > x)
 }
 
-/// PCL's linear cell index of a point, with the grid's constants hoisted.
-struct CellKey {
-    inv: f32,
-    min_b: [i32; 3],
-    stride_y: u32,
-    stride_z: u32,
+/// Bound of `|x|` for [`floor_small`].
+const FLOOR_SMALL_LIMIT: f32 = 4_194_304.0;
+
+/// [`floor_i32`] for `|x| <` [`FLOOR_SMALL_LIMIT`] (2^22), as the bits of the i32, with adds
+/// and compares only, so that it vectorizes on SSE2 (the saturating float-to-int conversion
+/// does not): adding 1.5 * 2^23 rounds `x` to the integer held in the sum's low mantissa
+/// bits; one less where that rounded up.
+#[inline]
+fn floor_small(x: f32) -> u32 {
+    const MAGIC: f32 = 12_582_912.0;
+    let y = x + MAGIC;
+    y.to_bits()
+        .wrapping_sub(MAGIC.to_bits())
+        .wrapping_sub(u32::from(y - MAGIC > x))
 }
 
-impl CellKey {
-    fn new(g: &Grid, inv: f32) -> Self {
-        // The linear index fits in u32: PCL's check bounds dx * dy * dz by i32::MAX, and
-        // div <= d along each axis, so each term and their sum stay below 2^31.
+/// Points per block: the CPU passes take the points 32 at a time, with one validity word
+/// per block (bit `j` for point `j`, the layout of the crop's keep mask).
+const BLOCK: usize = 32;
+
+/// The set bits of a word, lowest first.
+fn set_bits(mut word: u32) -> impl Iterator<Item = usize> {
+    std::iter::from_fn(move || {
+        (word != 0).then(|| {
+            let j = word.trailing_zeros() as usize;
+            word &= word - 1;
+            j
+        })
+    })
+}
+
+/// Validity word of a block: the points that are finite, set in `mask_word` and kept by the
+/// filter limits.
+fn valid_word(block: &[Vec3], mask_word: u32, filter: Option<&FilterLimits>) -> u32 {
+    const EXP: u32 = 0x7f80_0000;
+    let mut word = mask_word & (u32::MAX >> (BLOCK - block.len()));
+    if word == 0 {
+        return 0;
+    }
+    // One vectorized test of the block's coordinates settles the usual case: all finite.
+    let coords: &[f32] = bytemuck::cast_slice(block);
+    let non_finite = coords
+        .iter()
+        .fold(false, |any, v| any | (v.to_bits() & EXP == EXP));
+    if non_finite || filter.is_some() {
+        for (j, p) in block.iter().enumerate() {
+            if !(finite_bits(*p) && filter.is_none_or(|f| f.keeps(*p))) {
+                word &= !(1 << j);
+            }
+        }
+    }
+    word
+}
+
+/// Running bounds of the valid points in SIMD-shaped lanes: lane `l` of group `g` holds
+/// coordinate `(4 * g + l) % 3`, so the 96 coordinates of a whole block update the groups in
+/// turn with plain 4-wide min/max.
+struct Bounds {
+    lo: [[f32; 4]; 3],
+    hi: [[f32; 4]; 3],
+}
+
+impl Bounds {
+    fn new() -> Self {
         Self {
-            inv,
-            min_b: g.min_b,
-            stride_y: g.div[0] as u32,
-            stride_z: (g.div[0] * g.div[1]) as u32,
+            lo: [[f32::INFINITY; 4]; 3],
+            hi: [[f32::NEG_INFINITY; 4]; 3],
         }
     }
 
-    #[inline]
-    fn of(&self, p: &Vec3) -> u32 {
-        let rel = |a: usize| floor_i32(p[a] * self.inv).wrapping_sub(self.min_b[a]) as u32;
-        rel(0)
-            .wrapping_add(rel(1).wrapping_mul(self.stride_y))
-            .wrapping_add(rel(2).wrapping_mul(self.stride_z))
+    /// A block of valid points. Out of line: inlined into the block loop, LLVM turns the
+    /// selects into scalar code (the pass took twice as long).
+    #[inline(never)]
+    fn add_block(&mut self, block: &[Vec3; BLOCK]) {
+        let coords: &[f32; 3 * BLOCK] = bytemuck::cast_ref(block);
+        let (mut lo, mut hi) = (self.lo, self.hi);
+        // Plain comparisons: the values are finite, and a signed zero picked either way gives
+        // the same cell and the same extent.
+        for twelve in coords.chunks_exact(12) {
+            for g in 0..3 {
+                let c: [f32; 4] = twelve[4 * g..4 * g + 4].try_into().unwrap();
+                lo[g] = std::array::from_fn(|l| if c[l] < lo[g][l] { c[l] } else { lo[g][l] });
+                hi[g] = std::array::from_fn(|l| if c[l] > hi[g][l] { c[l] } else { hi[g][l] });
+            }
+        }
+        (self.lo, self.hi) = (lo, hi);
+    }
+
+    /// One valid point (lanes 0-2 of group 0 hold x, y, z).
+    fn add(&mut self, p: Vec3) {
+        for a in 0..3 {
+            if p[a] < self.lo[0][a] {
+                self.lo[0][a] = p[a];
+            }
+            if p[a] > self.hi[0][a] {
+                self.hi[0][a] = p[a];
+            }
+        }
+    }
+
+    fn min_max(&self) -> ([f32; 3], [f32; 3]) {
+        let mut min_p = [f32::INFINITY; 3];
+        let mut max_p = [f32::NEG_INFINITY; 3];
+        for i in 0..12 {
+            let (a, lo, hi) = (i % 3, self.lo[i / 4][i % 4], self.hi[i / 4][i % 4]);
+            if lo < min_p[a] {
+                min_p[a] = lo;
+            }
+            if hi > max_p[a] {
+                max_p[a] = hi;
+            }
+        }
+        (min_p, max_p)
     }
 }
 
-/// Cell index of a point that does not enter the grid (linear indices stay below 2^31).
+/// PCL's linear cell index of a point, with the grid's constants hoisted. A block's 96
+/// coordinates go through the same lanes (the cell coordinate `floor(v * inv)` times its
+/// axis's stride), then each point's three terms are summed.
+struct CellKey {
+    inv: f32,
+    /// At index `i`, the stride of axis `i % 3`: 1, `div.x`, `div.x * div.y`.
+    strides: [u32; 3 * BLOCK],
+    /// The sum of `min_b`'s terms, subtracted from each point's sum.
+    origin: u32,
+    /// Every valid point's `|v * inv|` is below [`FLOOR_SMALL_LIMIT`].
+    small: bool,
+}
+
+impl CellKey {
+    fn new(g: &Grid, inv: f32, min_p: [f32; 3], max_p: [f32; 3]) -> Self {
+        // The linear index fits in u32: PCL's check bounds dx * dy * dz by i32::MAX, and
+        // div <= d along each axis, so each term and their sum stay below 2^31; the terms
+        // and the origin wrap alike, so their difference is that index.
+        let axis = [1, g.div[0] as u32, (g.div[0] * g.div[1]) as u32];
+        let origin = (0..3).fold(0u32, |s, a| {
+            s.wrapping_add((g.min_b[a] as u32).wrapping_mul(axis[a]))
+        });
+        let small = (0..3)
+            .all(|a| min_p[a] * inv > -FLOOR_SMALL_LIMIT && max_p[a] * inv < FLOOR_SMALL_LIMIT);
+        Self {
+            inv,
+            strides: std::array::from_fn(|i| axis[i % 3]),
+            origin,
+            small,
+        }
+    }
+
+    /// The keys of a block's points (of the invalid ones too: never read), and which points
+    /// of `valid` start a run: valid, after an invalid point or one in another cell.
+    fn block(&self, block: &[Vec3; BLOCK], keys: &mut [u32; BLOCK], valid: u32) -> u32 {
+        if self.small {
+            self.block_with::<true>(block, keys, valid)
+        } else {
+            self.block_with::<false>(block, keys, valid)
+        }
+    }
+
+    #[inline(never)]
+    fn block_with<const SMALL: bool>(
+        &self,
+        block: &[Vec3; BLOCK],
+        keys: &mut [u32; BLOCK],
+        valid: u32,
+    ) -> u32 {
+        let coords: &[f32; 3 * BLOCK] = bytemuck::cast_ref(block);
+        let terms: [u32; 3 * BLOCK] = std::array::from_fn(|i| {
+            let v = coords[i] * self.inv;
+            let cell = if SMALL {
+                floor_small(v)
+            } else {
+                floor_i32(v) as u32
+            };
+            cell.wrapping_mul(self.strides[i])
+        });
+        for (k, t) in keys.iter_mut().zip(terms.as_chunks::<3>().0) {
+            *k = t[0]
+                .wrapping_add(t[1])
+                .wrapping_add(t[2])
+                .wrapping_sub(self.origin);
+        }
+        let same_as_previous =
+            (1..BLOCK).fold(0u32, |m, j| m | (u32::from(keys[j] == keys[j - 1]) << j));
+        valid & !(same_as_previous & (valid << 1))
+    }
+}
+
+/// No cell (linear indices stay below 2^31): the run's key before the first valid point.
 const NOT_VALID: u32 = u32::MAX;
 
 /// One cell's running sum (f64, its points in input order) and count, side by side so a
@@ -450,31 +597,23 @@ pub fn voxel_cpu_with_leaf(
     leaf_m: f64,
 ) -> Result<VoxelOutput, VoxelError> {
     config.validate()?;
-    let valid = |i: usize, p: &Vec3| {
-        finite_bits(*p)
-            && mask.is_none_or(|m| mask_bit(m, i))
-            && config.filter.as_ref().is_none_or(|f| f.keeps(*p))
-    };
-    // First pass: how many points are valid and their bounds (no copy of them: the later
-    // passes test each point again, which costs less than writing and reading a copy).
-    let mut valid_in = 0usize;
-    let mut min_p = [f32::INFINITY; 3];
-    let mut max_p = [f32::NEG_INFINITY; 3];
-    for (i, p) in points.iter().enumerate() {
-        if valid(i, p) {
-            valid_in += 1;
-            // Plain comparisons: the values are finite, and a signed zero picked either
-            // way gives the same cell and the same extent.
-            for a in 0..3 {
-                if p[a] < min_p[a] {
-                    min_p[a] = p[a];
-                }
-                if p[a] > max_p[a] {
-                    max_p[a] = p[a];
-                }
+    // First pass: each block's validity word and the valid points' bounds (no copy of the
+    // points: the later passes read them in place).
+    let mut bounds = Bounds::new();
+    let valid: Vec<u32> = points
+        .chunks(BLOCK)
+        .enumerate()
+        .map(|(b, block)| {
+            let mask_word = mask.map_or(u32::MAX, |m| m.get(b).copied().unwrap_or(0));
+            let word = valid_word(block, mask_word, config.filter.as_ref());
+            match <&[Vec3; BLOCK]>::try_from(block) {
+                Ok(full) if word == u32::MAX => bounds.add_block(full),
+                _ => set_bits(word).for_each(|j| bounds.add(block[j])),
             }
-        }
-    }
+            word
+        })
+        .collect();
+    let valid_in = valid.iter().map(|w| w.count_ones() as usize).sum();
     let mut out = VoxelOutput {
         points: Vec::new(),
         counts: Vec::new(),
@@ -487,10 +626,34 @@ pub fn voxel_cpu_with_leaf(
     if valid_in == 0 {
         return Ok(out);
     }
+    let (min_p, max_p) = bounds.min_max();
     let inv = inv_leaf(leaf_m);
     let g = pcl_grid(min_p, max_p, inv, leaf_m)?;
-    let key = CellKey::new(&g, inv);
+    let key = CellKey::new(&g, inv, min_p, max_p);
     let cells = (g.div[0] * g.div[1] * g.div[2]) as u64;
+    out.dense = dense_grid(cells, valid_in as u64);
+    // Second pass: the keys of the blocks with valid points; on the dense path, the cell of
+    // each run's first point is marked (the rest of the run is in the same cell).
+    let mut keys = vec![0u32; valid.len() * BLOCK];
+    let mut marks = out.dense.then(|| vec![0u64; cells.div_ceil(64) as usize]);
+    let mut padded = [Vec3::ZERO; BLOCK];
+    let blocks = points.chunks(BLOCK).zip(&valid);
+    for ((block, &word), keys) in blocks.clone().zip(keys.as_chunks_mut::<BLOCK>().0) {
+        if word == 0 {
+            continue;
+        }
+        let full = match <&[Vec3; BLOCK]>::try_from(block) {
+            Ok(full) => full,
+            Err(_) => {
+                padded[..block.len()].copy_from_slice(block);
+                &padded
+            }
+        };
+        let starts = key.block(full, keys, word);
+        if let Some(bits) = &mut marks {
+            set_bits(starts).for_each(|j| DenseRank::mark(bits, keys[j]));
+        }
+    }
     let min_points = config.min_points_per_voxel.max(1);
     let mut emit = |count: u32, sum: [f64; 3]| {
         if count >= min_points {
@@ -503,40 +666,46 @@ pub fn voxel_cpu_with_leaf(
             out.counts.push(count);
         }
     };
+    let keys = keys.as_chunks::<BLOCK>().0;
     // Within a cell the points are summed in input order on both paths, so the f64 sums
     // (and the means) are the same whichever path runs.
-    out.dense = dense_grid(cells, valid_in as u64);
-    if out.dense {
-        let mut keys = Vec::with_capacity(points.len());
-        let grid = DenseRank::new(cells, points, valid, &key, &mut keys);
+    if let Some(bits) = marks {
+        let grid = DenseRank::new(bits);
         let mut acc = vec![CellSum::default(); grid.occupied as usize];
-        // Consecutive points of a scan often share a cell: its rank is looked up once.
-        let (mut last, mut r) = (NOT_VALID, 0usize);
-        for (p, &k) in points.iter().zip(&keys) {
-            if k == NOT_VALID {
-                continue;
-            }
-            if k != last {
-                r = grid.rank(k) as usize;
-                last = k;
-            }
-            let c = &mut acc[r];
-            c.count += 1;
-            for a in 0..3 {
-                c.sum[a] += f64::from(p[a]);
+        // Consecutive points of a scan often share a cell: the run's sum stays in registers
+        // and its rank is looked up once.
+        let (mut run_key, mut slot, mut run) = (NOT_VALID, 0usize, CellSum::default());
+        for ((block, &word), keys) in blocks.zip(keys) {
+            for j in set_bits(word) {
+                let k = keys[j];
+                if k != run_key {
+                    if run_key != NOT_VALID {
+                        acc[slot] = run;
+                    }
+                    run_key = k;
+                    slot = grid.rank(k) as usize;
+                    run = acc[slot];
+                }
+                run.count += 1;
+                for (s, v) in run.sum.iter_mut().zip(block[j].to_array()) {
+                    *s += f64::from(v);
+                }
             }
         }
+        acc[slot] = run;
         for c in &acc {
             emit(c.count, c.sum);
         }
     } else {
         // Key in the high half, input position in the low half: unique, so an unstable
         // sort orders the points of a cell by input position.
-        let mut order: Vec<u64> = points
+        let mut order: Vec<u64> = valid
             .iter()
+            .zip(keys)
             .enumerate()
-            .filter(|&(i, p)| valid(i, p))
-            .map(|(i, p)| (u64::from(key.of(p)) << 32) | i as u64)
+            .flat_map(|(b, (&word, keys))| {
+                set_bits(word).map(move |j| (u64::from(keys[j]) << 32) | (b * BLOCK + j) as u64)
+            })
             .collect();
         order.sort_unstable();
         for run in order.chunk_by(|a, b| a >> 32 == b >> 32) {
@@ -1698,6 +1867,132 @@ pub(crate) mod tests {
         );
         for x in xs {
             assert_eq!(floor_i32(x), x.floor() as i32, "floor of {x}");
+            if x.abs() < FLOOR_SMALL_LIMIT {
+                assert_eq!(
+                    floor_small(x) as i32,
+                    x.floor() as i32,
+                    "small floor of {x}"
+                );
+            }
+        }
+    }
+
+    /// PCL's algorithm written plainly: a map from the cell (f32 `floor`) to the f64 sum of
+    /// its valid points in input order.
+    fn naive_voxel(points: &[Vec3], mask: Option<&[u32]>, config: &VoxelConfig) -> VoxelOutput {
+        let inv = inv_leaf(config.leaf_m);
+        let valid: Vec<usize> = (0..points.len())
+            .filter(|&i| {
+                let p = points[i];
+                p.is_finite()
+                    && mask.is_none_or(|m| m.get(i / 32).is_some_and(|w| w >> (i % 32) & 1 == 1))
+                    && config.filter.as_ref().is_none_or(|f| f.keeps(p))
+            })
+            .collect();
+        let cell = |p: Vec3, a: usize| i64::from((p[a] * inv).floor() as i32);
+        let min_b: Vec<i64> = (0..3)
+            .map(|a| valid.iter().map(|&i| cell(points[i], a)).min().unwrap_or(0))
+            .collect();
+        let div: Vec<i64> = (0..3)
+            .map(|a| valid.iter().map(|&i| cell(points[i], a)).max().unwrap_or(0) - min_b[a] + 1)
+            .collect();
+        let mut cells = std::collections::BTreeMap::<i64, ([f64; 3], u32)>::new();
+        for &i in &valid {
+            let p = points[i];
+            let k = (cell(p, 0) - min_b[0])
+                + (cell(p, 1) - min_b[1]) * div[0]
+                + (cell(p, 2) - min_b[2]) * div[0] * div[1];
+            let c = cells.entry(k).or_default();
+            for a in 0..3 {
+                c.0[a] += f64::from(p[a]);
+            }
+            c.1 += 1;
+        }
+        let kept = cells
+            .values()
+            .filter(|c| c.1 >= config.min_points_per_voxel.max(1));
+        VoxelOutput {
+            points: kept
+                .clone()
+                .map(|(s, n)| Vec3::from_array(s.map(|v| (v / f64::from(*n)) as f32)))
+                .collect(),
+            counts: kept.map(|c| c.1).collect(),
+            valid_in: valid.len(),
+            leaf_m: config.leaf_m,
+            table_slots: None,
+            retries: 0,
+            dense: false,
+        }
+    }
+
+    #[test]
+    fn cpu_equals_a_plain_pcl_reference() {
+        let frame = synthetic_frame(3);
+        // Frames near the origin and far from it (cell coordinates beyond the small floor's
+        // range), dense and sorting paths, masks, filter limits, NaNs and partial blocks.
+        for (offset, n, leaf) in [
+            (0.0, 20_011, 0.01),
+            (0.0, 3_000, 0.002),
+            (60_000.0, 5_003, 0.01),
+        ] {
+            let mut points: Vec<Vec3> = random_cloud(n as u64, n, 2.0)
+                .into_iter()
+                .chain(frame.iter().take(n).copied())
+                .map(|p| p + Vec3::splat(offset))
+                .collect();
+            points[7] = Vec3::new(1.0, f32::INFINITY, 0.5);
+            let mask: Vec<u32> = (0..points.len().div_ceil(32) as u32)
+                .map(|w| {
+                    if w % 5 == 0 {
+                        u32::MAX
+                    } else {
+                        w.wrapping_mul(0x9e37_79b9)
+                    }
+                })
+                .collect();
+            for (mask, filter, min_points) in [
+                (None, None, 0),
+                (Some(&mask[..]), None, 2),
+                (
+                    Some(&mask[..]),
+                    Some(FilterLimits {
+                        axis: Axis::Z,
+                        min_m: f64::from(offset) - 0.3,
+                        max_m: f64::from(offset) + 0.7,
+                        negative: false,
+                    }),
+                    1,
+                ),
+                (
+                    None,
+                    Some(FilterLimits {
+                        axis: Axis::X,
+                        min_m: f64::from(offset) - 0.2,
+                        max_m: f64::from(offset) + 0.1,
+                        negative: true,
+                    }),
+                    3,
+                ),
+            ] {
+                let config = VoxelConfig {
+                    leaf_m: leaf,
+                    min_points_per_voxel: min_points,
+                    filter,
+                    ..Default::default()
+                };
+                let cpu = voxel_cpu(&points, mask, &config).unwrap();
+                let plain = naive_voxel(&points, mask, &config);
+                assert_eq!(cpu.valid_in, plain.valid_in);
+                assert_eq!(cpu.counts, plain.counts);
+                assert!(
+                    cpu.points
+                        .iter()
+                        .zip(&plain.points)
+                        .all(|(a, b)| a.to_array().map(f32::to_bits)
+                            == b.to_array().map(f32::to_bits)),
+                    "means differ (offset {offset}, leaf {leaf})"
+                );
+            }
         }
     }
 
