@@ -32,13 +32,18 @@
 //                        has at most INLINE_PAIRS point pairs, else the sub-cell is marked for
 //                        the scan pass. The boxes decide first, for a task's up to 64 pairs
 //                        at once (bit masks; of the cell's sub-cells the boxes join to one
-//                        another, one union per other sub-cell), then one loop settles the
-//                        pairs left: llvmpipe runs the union-find's loops once per iteration
-//                        of the loop around them, whichever lanes need them. Unions on a
-//                        lock-free union-find (one loop walks both roots with path halving
-//                        and hooks the larger root under the smaller by CAS)
-//   prepare_scan (1 thread) the scan's dispatch size: none when the hook marked no sub-cell
-//   scan     per point   a point of a marked sub-cell against each such large pair's other
+//                        another, one union per other sub-cell), then one loop unites the
+//                        joined pairs and another settles the undecided ones: llvmpipe runs
+//                        the loops in a loop's body once per iteration, whichever lanes need
+//                        them, and both sides of a branch (so task 0 is not a branch of the
+//                        loop over the neighbour cells). Unions on a lock-free union-find
+//                        (one loop walks both roots and hooks the larger root under the
+//                        smaller by CAS; compress halves the paths)
+//   prepare_scan (1 thread, re-submissions only) the scan's dispatch size: none when the hook
+//                        marked no sub-cell
+//   scan     per point   (re-submissions only: the hook sets STATUS_INCOMPLETE when it marks a
+//                        sub-cell for the first time, so the first submission has neither
+//                        dispatch) a point of a marked sub-cell against each such large pair's other
 //                        sub-cell, at most SCAN_BUDGET point pairs per invocation: where it
 //                        stopped is kept per point (scanned), the next submission goes on
 //   compress per point   parent[i] = root(i)
@@ -442,8 +447,9 @@ fn find_root(x: u32) -> u32 {
     return NONE;
 }
 
-// Walks a and b up to their roots (path halving on the way), and when `link` hooks the
-// larger root under the smaller: one loop for both walks and the hook. True when a and b are
+// Walks a and b up to their roots, and when `link` hooks the larger root under the smaller:
+// one loop for both walks and the hook (no path halving: its loads and atomicMin cost every
+// step on llvmpipe, and compress flattens the trees). True when a and b are
 // in one set at the end; false when they are not (link false), or when MAX_WALK steps did not
 // settle it (then, when linking, STATUS_INCOMPLETE is set).
 fn walk(a: u32, b: u32, link: bool) -> bool {
@@ -467,21 +473,8 @@ fn walk(a: u32, b: u32, link: bool) -> bool {
             }
             continue;
         }
-        if px != x {
-            let gx = atomicLoad(&parent[px]);
-            if gx != px {
-                // gx is in the same tree and smaller than px: a valid, smaller parent for x.
-                atomicMin(&parent[x], gx);
-            }
-            x = gx;
-        }
-        if py != y {
-            let gy = atomicLoad(&parent[py]);
-            if gy != py {
-                atomicMin(&parent[y], gy);
-            }
-            y = gy;
-        }
+        x = px;
+        y = py;
     }
     if link {
         atomicOr(&status[STATUS_INCOMPLETE], 1u);
@@ -547,18 +540,32 @@ fn pair_by_boxes(a: Sub, b: Sub) -> u32 {
     return PAIR_UNDECIDED;
 }
 
-// Joins sub-cells a and b (indices in boxes[]) that their boxes join, or (undecided) when
-// they hold a neighbour pair: tested here when the pair is small, else left to the scan pass
-// from a's points (marked for it) unless the two are in one set already.
-fn settle_pair(a_index: u32, b_index: u32, joined: bool) {
+// Joins sub-cells a and b (indices in boxes[]) that their boxes leave undecided when they hold
+// a neighbour pair: tested here when the pair is small, else left to the scan pass from a's
+// points (marked for it) unless the two are in one set already.
+fn settle_undecided(a_index: u32, b_index: u32) {
     let a = boxes[a_index];
     let b = boxes[b_index];
-    let large = !joined && a.count > INLINE_PAIRS / b.count;
-    let touch = joined || (!large && ranges_touch(a, b));
-    if !walk(a.low, b.low, touch) && large {
-        atomicStore(&subs[a_index].scan, 1u);
+    let large = a.count > INLINE_PAIRS / b.count;
+    if !walk(a.low, b.low, !large && ranges_touch(a, b)) && large {
+        // The scan pass runs in re-submissions only: marking a sub-cell asks for one.
+        if atomicExchange(&subs[a_index].scan, 1u) == 0u {
+            atomicOr(&status[STATUS_INCOMPLETE], 1u);
+        }
         atomicStore(&status[SCAN_WANTED], 1u);
     }
+}
+
+// Removes the lowest bit of a 64-bit pair set (two words) and returns its number.
+fn take_lowest(pairs: ptr<function, vec2<u32>>) -> u32 {
+    if (*pairs).x != 0u {
+        let bit = firstTrailingBit((*pairs).x);
+        (*pairs).x &= (*pairs).x - 1u;
+        return bit;
+    }
+    let bit = firstTrailingBit((*pairs).y);
+    (*pairs).y &= (*pairs).y - 1u;
+    return 32u + bit;
 }
 
 // One of the 13 coarse cells that follow `coarse` in (z, y, x) order, for task 1..=13.
@@ -590,6 +597,22 @@ fn cell_at(c: vec3<i32>, found: ptr<function, Cell>) -> bool {
 fn pair_bit(a: u32, b: u32) -> vec2<u32> {
     let bit = a * 8u + b;
     return select(vec2<u32>(0u, 1u << (bit - 32u)), vec2<u32>(1u << bit, 0u), bit < 32u);
+}
+
+// Settles the pairs (bit a * 8 + b) of sub-cells first_a + a and first_b + b: the joined pairs
+// in a loop of their own, with no point tests in it (llvmpipe runs a loop's body for the whole
+// SIMD group, so the point tests would cost every pair), then the undecided ones.
+fn settle_pairs(first_a: u32, first_b: u32, joined_pairs: vec2<u32>, undecided_pairs: vec2<u32>) {
+    var joined = joined_pairs;
+    for (var n = 0u; n < 64u && any(joined != vec2<u32>(0u)); n++) {
+        let bit = take_lowest(&joined);
+        walk(boxes[first_a + bit / 8u].low, boxes[first_b + bit % 8u].low, true);
+    }
+    var undecided = undecided_pairs;
+    for (var n = 0u; n < 64u && any(undecided != vec2<u32>(0u)); n++) {
+        let bit = take_lowest(&undecided);
+        settle_undecided(first_a + bit / 8u, first_b + bit % 8u);
+    }
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -639,78 +662,67 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
     }
-    // This thread's tasks (gid.y of the dispatch's threads per cell).
+    // Task 0 (the cell's own sub-cell pairs) outside the loop over the neighbour cells:
+    // llvmpipe runs both sides of a branch for the whole SIMD group.
     let stride = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
-    for (var task = gid.y; task < HOOK_TASKS; task += stride) {
+    if gid.y == 0u {
+        var joined = vec2<u32>(0u);
+        var undecided = vec2<u32>(0u);
+        for (var a = 1u; a < 8u; a++) {
+            let first = firstTrailingBit(group[a]);
+            if a < count_a && first != a {
+                joined |= pair_bit(a, first);
+            }
+            for (var b = 0u; b < a; b++) {
+                if ((group[a] >> b) & 1u) == 0u {
+                    undecided |= own_undecided & pair_bit(a, b);
+                }
+            }
+        }
+        settle_pairs(cell.first_sub, cell.first_sub, joined, undecided);
+    }
+    // This thread's neighbour tasks (gid.y of the dispatch's threads per cell).
+    for (var task = select(gid.y, stride, gid.y == 0u); task < HOOK_TASKS; task += stride) {
         // The pairs to unite, and those the boxes leave undecided (bit a * 8 + b), chosen
-        // first so that the loop below, with the union-find's loops, runs once per pair
-        // to settle rather than once per pair of sub-cells: one union per group of own
+        // first so that the loops of settle_pairs, with the union-find's loops, run once per
+        // pair to settle rather than once per pair of sub-cells: one union per group of own
         // sub-cells joined to another sub-cell.
         var joined = vec2<u32>(0u);
         var undecided = vec2<u32>(0u);
-        var first_b = cell.first_sub;
-        if task == 0u {
-            for (var a = 1u; a < 8u; a++) {
-                let first = firstTrailingBit(group[a]);
-                if a < count_a && first != a {
-                    joined |= pair_bit(a, first);
-                }
-                for (var b = 0u; b < a; b++) {
-                    if ((group[a] >> b) & 1u) == 0u {
-                        undecided |= own_undecided & pair_bit(a, b);
-                    }
-                }
-            }
-        } else {
-            let other_cell = following_cell(cell.coarse, task);
-            var cell_b: Cell;
-            if !within_reach(box_lo, box_hi, other_cell) || !cell_at(other_cell, &cell_b) {
+        let other_cell = following_cell(cell.coarse, task);
+        var cell_b: Cell;
+        if !within_reach(box_lo, box_hi, other_cell) || !cell_at(other_cell, &cell_b) {
+            continue;
+        }
+        let first_b = cell_b.first_sub;
+        let count_b = countOneBits(cell_b.octants);
+        for (var b = 0u; b < count_b; b++) {
+            let sub_b = boxes[first_b + b];
+            if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
                 continue;
             }
-            first_b = cell_b.first_sub;
-            let count_b = countOneBits(cell_b.octants);
-            for (var b = 0u; b < count_b; b++) {
-                let sub_b = boxes[first_b + b];
-                if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
-                    continue;
-                }
-                var joined_b = 0u;
-                var open_b = 0u;
-                for (var a = 0u; a < 8u; a++) {
-                    if a < count_a {
-                        let kind = pair_by_boxes(own[a], sub_b);
-                        if kind == PAIR_JOINED {
-                            if (joined_b & group[a]) == 0u {
-                                joined |= pair_bit(a, b);
-                            }
-                            joined_b |= 1u << a;
-                        } else if kind == PAIR_UNDECIDED {
-                            open_b |= 1u << a;
+            var joined_b = 0u;
+            var open_b = 0u;
+            for (var a = 0u; a < 8u; a++) {
+                if a < count_a {
+                    let kind = pair_by_boxes(own[a], sub_b);
+                    if kind == PAIR_JOINED {
+                        if (joined_b & group[a]) == 0u {
+                            joined |= pair_bit(a, b);
                         }
-                    }
-                }
-                for (var a = 0u; a < 8u; a++) {
-                    if ((open_b >> a) & 1u) != 0u && (joined_b & group[a]) == 0u {
-                        undecided |= pair_bit(a, b);
+                        joined_b |= 1u << a;
+                    } else if kind == PAIR_UNDECIDED {
+                        open_b |= 1u << a;
                     }
                 }
             }
-        }
-        var pending = joined | undecided;
-        for (var n = 0u; n < 64u && any(pending != vec2<u32>(0u)); n++) {
-            var bit: u32;
-            if pending.x != 0u {
-                bit = firstTrailingBit(pending.x);
-                pending.x &= pending.x - 1u;
-            } else {
-                bit = 32u + firstTrailingBit(pending.y);
-                pending.y &= pending.y - 1u;
+            for (var a = 0u; a < 8u; a++) {
+                if ((open_b >> a) & 1u) != 0u && (joined_b & group[a]) == 0u {
+                    undecided |= pair_bit(a, b);
+                }
             }
-            let a = bit / 8u;
-            let b = bit % 8u;
-            let is_joined = any((joined & pair_bit(a, b)) != vec2<u32>(0u));
-            settle_pair(cell.first_sub + a, first_b + b, is_joined);
         }
+        settle_pairs(cell.first_sub, first_b, joined, undecided);
     }
     if loops_were_cut() {
         atomicOr(&status[STATUS_INCOMPLETE], 1u);

@@ -31,13 +31,14 @@
 //!   coincide. One thread per coarse cell joins its sub-cells with those of the 13 cells after
 //!   it as the CPU reference does, testing small sub-cell pairs' point pairs itself and
 //!   leaving larger ones to one thread per point, which tests a bounded chunk per submission
-//!   and keeps its progress. Unions on a lock-free union-find (ECL-CC style: bounded `find`
-//!   with path halving, roots hooked larger-under-smaller with compare-and-swap), then pointer
-//!   jumping until every point holds its root. Hooking larger roots under smaller ones makes
-//!   each root the smallest index of its component, i.e. the canonical id. Every loop is
-//!   bounded; a pass that hits a bound raises a flag and the host re-submits the union-find
-//!   passes (no spin-waits). Sizes, filtering and sorting run on the CPU from the read-back
-//!   labels.
+//!   and keeps its progress (that scan pass runs in re-submissions only, which the hook asks
+//!   for when it leaves a pair to it). Unions on a lock-free union-find (ECL-CC style:
+//!   bounded root walks, roots hooked larger-under-smaller with compare-and-swap), then
+//!   pointer jumping with path halving until every point holds its root. Hooking larger roots
+//!   under smaller ones makes each root the smallest index of its component, i.e. the
+//!   canonical id. Every loop is bounded; a pass that hits a bound raises a flag and the host
+//!   re-submits the union-find passes (no spin-waits). Sizes, filtering and sorting run on
+//!   the CPU from the read-back labels.
 
 use crate::cloud::PointCloud;
 use crate::gpu::mirrors::ClusterParams;
@@ -841,7 +842,8 @@ impl GpuClusterer {
 
     /// Records the clustering of `input` into the frame's encoder: table and status cleared
     /// with `clear_buffer`, then three timed compute passes: the grid (prepare, insert,
-    /// number, gather, place, seed), the hook (hook, scan) and compress.
+    /// number, gather, place, seed), the hook and compress. The scan pass runs in
+    /// re-submissions only ([`Self::finish`]): the hook asks for one when it leaves a pair to it.
     pub fn encode(
         &mut self,
         ctx: &GpuContext,
@@ -868,7 +870,7 @@ impl GpuClusterer {
                 &self.place,
                 &self.seed,
             ],
-            &[&self.hook, &self.prepare_scan, &self.scan],
+            &[&self.hook],
             &[&self.compress],
         ];
         for (k, pipelines) in stages.into_iter().enumerate() {
@@ -917,8 +919,8 @@ impl GpuClusterer {
     }
 
     /// Decodes the readback region of `points` labels. When a bounded union-find pass ran
-    /// out of steps, re-submits hook + compress (each its own small submission and readback)
-    /// until the status is clean.
+    /// out of steps or the hook left sub-cell pairs to the scan pass, re-submits hook + scan +
+    /// compress (each its own small submission and readback) until the status is clean.
     pub fn finish(
         &mut self,
         ctx: &GpuContext,
