@@ -9,7 +9,8 @@
 //   insert      - cell index (PCL's linear index relative to the min cell) into a hash table
 //                 with bounded linear probing; per cell: point count and the 64-bit fixed-point
 //                 sum of the points' offsets inside the cell (integer atomics: order-free).
-//                 A thread takes 8 consecutive points and merges runs in the same cell first.
+//                 A thread takes 32 consecutive points (one mask word) and merges runs in the
+//                 same cell first.
 //   compact_count, compact_scan, compact_scatter - stream compaction of the kept slots
 //                 (occupied, at least min_points) into sort_keys, in slot order: kept count per
 //                 512-slot block, one workgroup's exclusive prefix sum over the blocks (also
@@ -134,7 +135,7 @@ const DENSE_MIN_WORDS: u32 = 65536u;
 // Points per thread of `bounds` (one listed mask word) and of `insert` (a multiple of 4
 // that divides 32: a chunk reads whole quads and one mask word).
 const BOUNDS_CHUNK: u32 = 32u;
-const INSERT_CHUNK: u32 = 8u;
+const INSERT_CHUNK: u32 = 32u;
 
 // Points i .. i + 3 (i a multiple of 4). The buffer holds whole quads (voxel.rs
 // `points_bytes`); valid_point rejects the padding beyond the cloud.
@@ -160,7 +161,7 @@ fn quad_in_mask(bits: u32, i: u32) -> bool {
 }
 
 fn chunk_in_mask(bits: u32, first: u32) -> bool {
-    return ((bits >> (first & 31u)) & ((1u << INSERT_CHUNK) - 1u)) != 0u;
+    return ((bits >> (first & 31u)) & (0xffffffffu >> (32u - INSERT_CHUNK))) != 0u;
 }
 
 // Point i (its mask word `bits`) is used: in the cloud, finite, in the mask, inside the

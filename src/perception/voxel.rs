@@ -173,9 +173,9 @@ impl Default for VoxelConfig {
 
 /// Bounds that keep every loop of voxel.wgsl far enough below lavapipe's limit of 65,535
 /// iterations per shader invocation (a SIMD group; gallivm ends the loops silently beyond
-/// it): an insert thread probes at most 8 x 2 x `max_probes` slots, and compact_scan's
+/// it): an insert thread probes at most 32 x 2 x `max_probes` slots, and compact_scan's
 /// threads walk 2 x slots / (512 x 64) block sums (32,768 at 2^29 slots).
-pub const MAX_PROBES_LIMIT: u32 = 2048;
+pub const MAX_PROBES_LIMIT: u32 = 1000;
 pub const MAX_TABLE_SLOTS_LIMIT: u32 = 1 << 29;
 // Worst cases of insert (each point of a chunk a new cell probing 2 x max_probes slots) and
 // of compact_scan's block walk, against gallivm's 65,535 iterations.
@@ -798,7 +798,7 @@ const SCHEDULE_LISTED_CHUNKS: u32 = 6;
 const DENSE_MAX_WORDS: u64 = DENSE_MAX_CELLS / 32;
 /// Points per thread of `bounds` (one keep-mask word) and `insert` (voxel.wgsl constants).
 const BOUNDS_CHUNK: u32 = 32;
-const INSERT_CHUNK: u32 = 8;
+const INSERT_CHUNK: u32 = 32;
 /// Points of a cloud the stage takes: one workgroup dimension of one thread per point.
 const MAX_POINTS: u64 = 65_535 * shader::WORKGROUP_SIZE as u64;
 /// Keep-mask words of the largest cloud: room of the listed words.
