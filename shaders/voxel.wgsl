@@ -328,63 +328,83 @@ fn find_or_insert(index: u32) -> u32 {
     return NONE;
 }
 
-// Adds a run of `count` points of one cell with fixed-point sums (sx, sy, sz): into the
-// cell's hash slot, or on the dense path into slot = its rank.
-fn flush(dense: bool, index: u32, count: u32, sx: vec2<u32>, sy: vec2<u32>, sz: vec2<u32>) {
+// A run of points in one cell: the cell, the count and the 64-bit fixed-point sums of the
+// offsets (count 0: no run).
+struct Run {
+    index: u32,
+    count: u32,
+    sx: vec2<u32>,
+    sy: vec2<u32>,
+    sz: vec2<u32>,
+}
+
+// Adds a run into its cell's hash slot, or on the dense path into slot = its rank.
+fn flush(dense: bool, r: Run) {
     var slot = NONE;
     if dense {
-        let rank = dense_rank(index);
+        let rank = dense_rank(r.index);
         if rank <= params.table_mask {
             slot = rank;
-            atomicStore(&table_keys[slot], index + 1u);
+            atomicStore(&table_keys[slot], r.index + 1u);
         }
     } else {
-        slot = find_or_insert(index);
+        slot = find_or_insert(r.index);
     }
     if slot == NONE {
         atomicMax(&header.overflow, 1u);
         return;
     }
     let base = slot * SLOT_WORDS;
-    atomicAdd(&table_data[base], count);
-    add64(base + 1u, sx);
-    add64(base + 3u, sy);
-    add64(base + 5u, sz);
+    atomicAdd(&table_data[base], r.count);
+    add64(base + 1u, r.sx);
+    add64(base + 3u, r.sy);
+    add64(base + 5u, r.sz);
 }
 
-// An insert thread's grid, path, and its current run of points in one cell: the cell, the
-// count and the 64-bit fixed-point sums of the offsets.
+// An insert thread's grid, its current run, the finished run waiting for the loop
+// iteration's one flush (llvmpipe executes every inlined copy of `flush` for the whole SIMD
+// group whether or not a lane flushes), and whether the quad stopped at a second finished
+// run (its point is taken again in the next iteration).
 var<private> insert_grid: Grid;
-var<private> insert_dense: bool;
-var<private> run_index: u32;
-var<private> run_count: u32;
-var<private> run_sx: vec2<u32>;
-var<private> run_sy: vec2<u32>;
-var<private> run_sz: vec2<u32>;
+var<private> run: Run;
+var<private> pending: Run;
+var<private> stopped: bool;
 
+// Adds point i to the current run; stops instead when it ends the run while another one
+// waits for its flush.
 fn insert_point(bits: u32, i: u32, p: vec3<f32>) {
-    if !valid_point(bits, i, p) {
+    if stopped || !valid_point(bits, i, p) {
         return;
     }
     let s = p * params.inv_leaf;
     let cell = floor(s);
     let index = cell_index(insert_grid, p);
-    if index != run_index {
-        if run_count != 0u {
-            flush(insert_dense, run_index, run_count, run_sx, run_sy, run_sz);
+    if index != run.index {
+        if run.count != 0u {
+            if pending.count != 0u {
+                stopped = true;
+                return;
+            }
+            pending = run;
         }
-        run_index = index;
-        run_count = 0u;
-        run_sx = vec2<u32>(0u);
-        run_sy = vec2<u32>(0u);
-        run_sz = vec2<u32>(0u);
+        run = Run(index, 0u, vec2<u32>(0u), vec2<u32>(0u), vec2<u32>(0u));
     }
     let frac = clamp(s - cell, vec3<f32>(0.0), vec3<f32>(1.0));
     let q = min(vec3<u32>(frac * FIXED_ONE), vec3<u32>(FIXED_MAX));
-    run_count += 1u;
-    run_sx = acc64(run_sx, q.x);
-    run_sy = acc64(run_sy, q.y);
-    run_sz = acc64(run_sz, q.z);
+    run.count += 1u;
+    run.sx = acc64(run.sx, q.x);
+    run.sy = acc64(run.sy, q.y);
+    run.sz = acc64(run.sz, q.z);
+}
+
+// Point `k` of the quad at i, unless the iteration starts after it (at point `start` of the
+// quad) or has stopped; returns the quad's next point to take.
+fn insert_quad_point(bits: u32, i: u32, k: u32, start: u32, p: vec3<f32>, next: u32) -> u32 {
+    if k < start || stopped {
+        return next;
+    }
+    insert_point(bits, i + k, p);
+    return select(k + 1u, k, stopped);
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -393,27 +413,44 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
     if first == NONE {
         return;
     }
-    let last = min(first + INSERT_CHUNK, params.point_count);
     let bits = mask_word(first >> 5u);
     if !chunk_in_mask(bits, first) {
         return;
     }
     insert_grid = grid();
-    insert_dense = header.mode == 1u;
-    run_index = NONE;
-    run_count = 0u;
-    for (var i = first; i < last; i += 4u) {
-        if !quad_in_mask(bits, i) {
-            continue;
+    let dense = header.mode == 1u;
+    run.index = NONE;
+    run.count = 0u;
+    pending.count = 0u;
+    // Each iteration takes the rest of one quad (up to its second finished run) and flushes
+    // at most one run.
+    var c = 0u;
+    loop {
+        if c < INSERT_CHUNK {
+            let start = c & 3u;
+            let i = first + c - start;
+            var next = 4u;
+            stopped = false;
+            if i < params.point_count && quad_in_mask(bits, i) {
+                let q = load_quad(i);
+                next = insert_quad_point(bits, i, 0u, start, q[0], next);
+                next = insert_quad_point(bits, i, 1u, start, q[1], next);
+                next = insert_quad_point(bits, i, 2u, start, q[2], next);
+                next = insert_quad_point(bits, i, 3u, start, q[3], next);
+            }
+            c += next - start;
         }
-        let q = load_quad(i);
-        insert_point(bits, i, q[0]);
-        insert_point(bits, i + 1u, q[1]);
-        insert_point(bits, i + 2u, q[2]);
-        insert_point(bits, i + 3u, q[3]);
-    }
-    if run_count != 0u {
-        flush(insert_dense, run_index, run_count, run_sx, run_sy, run_sz);
+        if c >= INSERT_CHUNK && run.count != 0u && pending.count == 0u {
+            pending = run;
+            run.count = 0u;
+        }
+        if pending.count != 0u {
+            flush(dense, pending);
+            pending.count = 0u;
+        }
+        if c >= INSERT_CHUNK && run.count == 0u {
+            break;
+        }
     }
 }
 
@@ -469,7 +506,10 @@ fn cell_index(g: Grid, p: vec3<f32>) -> u32 {
     return rel.x + rel.y * g.div.x + rel.z * g.div.x * g.div.y;
 }
 
-// Marks the cell of point i (mark pass; run_index: the cell marked last by this thread).
+// The cell mark marked last.
+var<private> run_index: u32;
+
+// Marks the cell of point i (mark pass).
 fn mark_point(bits: u32, i: u32, p: vec3<f32>) {
     if !valid_point(bits, i, p) {
         return;
