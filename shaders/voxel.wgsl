@@ -361,24 +361,48 @@ fn flush(dense: bool, r: Run) {
     add64(base + 5u, r.sz);
 }
 
-// An insert thread's grid, its current run, the finished run waiting for the loop
-// iteration's one flush (llvmpipe executes every inlined copy of `flush` for the whole SIMD
-// group whether or not a lane flushes), and whether the quad stopped at a second finished
-// run (its point is taken again in the next iteration).
-var<private> insert_grid: Grid;
+// A mark or insert thread's walk over its chunk of INSERT_CHUNK points: the grid, the chunk
+// (first point, mask word), the next point to take, the current run, the finished run
+// waiting for the loop iteration's one flush (llvmpipe executes every inlined copy of a
+// flush for the whole SIMD group whether or not a lane flushes), and whether the quad
+// stopped at a second finished run (its point is taken again in the next iteration).
+var<private> walk_grid: Grid;
+var<private> walk_first: u32;
+var<private> walk_bits: u32;
+var<private> walk_at: u32;
 var<private> run: Run;
 var<private> pending: Run;
 var<private> stopped: bool;
 
+// Starts the walk over listed chunk `c`; false when it has no point in the mask.
+fn walk_start(c: u32) -> bool {
+    let first = listed_chunk(c);
+    if first == NONE {
+        return false;
+    }
+    let bits = mask_word(first >> 5u);
+    if !chunk_in_mask(bits, first) {
+        return false;
+    }
+    walk_grid = grid();
+    walk_first = first;
+    walk_bits = bits;
+    walk_at = 0u;
+    run.index = NONE;
+    run.count = 0u;
+    pending.count = 0u;
+    return true;
+}
+
 // Adds point i to the current run; stops instead when it ends the run while another one
 // waits for its flush.
-fn insert_point(bits: u32, i: u32, p: vec3<f32>) {
-    if stopped || !valid_point(bits, i, p) {
+fn walk_point(i: u32, p: vec3<f32>) {
+    if stopped || !valid_point(walk_bits, i, p) {
         return;
     }
     let s = p * params.inv_leaf;
     let cell = floor(s);
-    let index = cell_index(insert_grid, p);
+    let index = cell_index(walk_grid, p);
     if index != run.index {
         if run.count != 0u {
             if pending.count != 0u {
@@ -399,56 +423,57 @@ fn insert_point(bits: u32, i: u32, p: vec3<f32>) {
 
 // Point `k` of the quad at i, unless the iteration starts after it (at point `start` of the
 // quad) or has stopped; returns the quad's next point to take.
-fn insert_quad_point(bits: u32, i: u32, k: u32, start: u32, p: vec3<f32>, next: u32) -> u32 {
+fn walk_quad_point(i: u32, k: u32, start: u32, p: vec3<f32>, next: u32) -> u32 {
     if k < start || stopped {
         return next;
     }
-    insert_point(bits, i + k, p);
+    walk_point(i + k, p);
     return select(k + 1u, k, stopped);
+}
+
+// One iteration of the walk: takes the rest of one quad, up to its second finished run, and
+// returns the finished run to flush (count 0: none).
+fn walk_step() -> Run {
+    if walk_at < INSERT_CHUNK {
+        let start = walk_at & 3u;
+        let i = walk_first + walk_at - start;
+        var next = 4u;
+        stopped = false;
+        if i < params.point_count && quad_in_mask(walk_bits, i) {
+            let q = load_quad(i);
+            next = walk_quad_point(i, 0u, start, q[0], next);
+            next = walk_quad_point(i, 1u, start, q[1], next);
+            next = walk_quad_point(i, 2u, start, q[2], next);
+            next = walk_quad_point(i, 3u, start, q[3], next);
+        }
+        walk_at += next - start;
+    }
+    if walk_at >= INSERT_CHUNK && run.count != 0u && pending.count == 0u {
+        pending = run;
+        run.count = 0u;
+    }
+    let finished = pending;
+    pending.count = 0u;
+    return finished;
+}
+
+// Every point of the chunk taken and every run returned.
+fn walk_done() -> bool {
+    return walk_at >= INSERT_CHUNK && run.count == 0u;
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let first = listed_chunk(gid.x);
-    if first == NONE {
+    if !walk_start(gid.x) {
         return;
     }
-    let bits = mask_word(first >> 5u);
-    if !chunk_in_mask(bits, first) {
-        return;
-    }
-    insert_grid = grid();
     let dense = header.mode == 1u;
-    run.index = NONE;
-    run.count = 0u;
-    pending.count = 0u;
-    // Each iteration takes the rest of one quad (up to its second finished run) and flushes
-    // at most one run.
-    var c = 0u;
     loop {
-        if c < INSERT_CHUNK {
-            let start = c & 3u;
-            let i = first + c - start;
-            var next = 4u;
-            stopped = false;
-            if i < params.point_count && quad_in_mask(bits, i) {
-                let q = load_quad(i);
-                next = insert_quad_point(bits, i, 0u, start, q[0], next);
-                next = insert_quad_point(bits, i, 1u, start, q[1], next);
-                next = insert_quad_point(bits, i, 2u, start, q[2], next);
-                next = insert_quad_point(bits, i, 3u, start, q[3], next);
-            }
-            c += next - start;
+        let r = walk_step();
+        if r.count != 0u {
+            flush(dense, r);
         }
-        if c >= INSERT_CHUNK && run.count != 0u && pending.count == 0u {
-            pending = run;
-            run.count = 0u;
-        }
-        if pending.count != 0u {
-            flush(dense, pending);
-            pending.count = 0u;
-        }
-        if c >= INSERT_CHUNK && run.count == 0u {
+        if walk_done() {
             break;
         }
     }
@@ -506,43 +531,19 @@ fn cell_index(g: Grid, p: vec3<f32>) -> u32 {
     return rel.x + rel.y * g.div.x + rel.z * g.div.x * g.div.y;
 }
 
-// The cell mark marked last.
-var<private> run_index: u32;
-
-// Marks the cell of point i (mark pass).
-fn mark_point(bits: u32, i: u32, p: vec3<f32>) {
-    if !valid_point(bits, i, p) {
-        return;
-    }
-    let index = cell_index(insert_grid, p);
-    if index != run_index {
-        atomicOr(&bitmap[index >> 5u], 1u << (index & 31u));
-        run_index = index;
-    }
-}
-
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn mark(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let first = listed_chunk(gid.x);
-    if first == NONE || header.mode != 1u {
+    if header.mode != 1u || !walk_start(gid.x) {
         return;
     }
-    let last = min(first + INSERT_CHUNK, params.point_count);
-    let bits = mask_word(first >> 5u);
-    if !chunk_in_mask(bits, first) {
-        return;
-    }
-    insert_grid = grid();
-    run_index = NONE;
-    for (var i = first; i < last; i += 4u) {
-        if !quad_in_mask(bits, i) {
-            continue;
+    loop {
+        let r = walk_step();
+        if r.count != 0u {
+            atomicOr(&bitmap[r.index >> 5u], 1u << (r.index & 31u));
         }
-        let q = load_quad(i);
-        mark_point(bits, i, q[0]);
-        mark_point(bits, i + 1u, q[1]);
-        mark_point(bits, i + 2u, q[2]);
-        mark_point(bits, i + 3u, q[3]);
+        if walk_done() {
+            break;
+        }
     }
 }
 
