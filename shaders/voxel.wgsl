@@ -599,25 +599,22 @@ fn kept(slot: u32) -> bool {
 
 var<workgroup> scan_words: array<u32, WORKGROUP_SIZE>;
 
-// Exclusive prefix sum of `v` over the workgroup's threads in thread order (Hillis-Steele in
-// workgroup memory): (sum of v over the threads before `lid`, sum over all). Called from
-// uniform control flow only (barriers inside).
+// Exclusive prefix sum of `v` over the workgroup's threads in thread order: (sum of v over
+// the threads before `lid`, sum over all). Each thread adds up the workgroup's values after
+// one barrier (uniform addresses: on llvmpipe each barrier costs more than the 64 adds).
+// Called once per invocation, from uniform control flow only (a barrier inside).
 fn workgroup_scan(lid: u32, v: u32) -> vec2<u32> {
     scan_words[lid] = v;
     workgroupBarrier();
-    for (var d = 1u; d < WORKGROUP_SIZE; d = d << 1u) {
-        var before = 0u;
-        if lid >= d {
-            before = scan_words[lid - d];
-        }
-        workgroupBarrier();
-        scan_words[lid] += before;
-        workgroupBarrier();
+    var before = 0u;
+    var total = 0u;
+    for (var k = 0u; k < WORKGROUP_SIZE; k += 4u) {
+        let q = vec4<u32>(scan_words[k], scan_words[k + 1u], scan_words[k + 2u], scan_words[k + 3u]);
+        let earlier = select(vec4<u32>(0u), q, k + vec4<u32>(0u, 1u, 2u, 3u) < vec4<u32>(lid));
+        before += earlier.x + earlier.y + earlier.z + earlier.w;
+        total += q.x + q.y + q.z + q.w;
     }
-    let inclusive = scan_words[lid];
-    let total = scan_words[WORKGROUP_SIZE - 1u];
-    workgroupBarrier();
-    return vec2<u32>(inclusive - v, total);
+    return vec2<u32>(before, total);
 }
 
 // One workgroup: replaces the first `blocks` entries of block_sums with their exclusive
