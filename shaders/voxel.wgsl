@@ -231,35 +231,46 @@ fn listed_chunk(c: u32) -> u32 {
     return 32u * listed.words[k] + (c % (32u / INSERT_CHUNK)) * INSERT_CHUNK;
 }
 
-@compute @workgroup_size(WORKGROUP_SIZE)
-fn bounds(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if gid.x >= atomicLoad(&listed.count) {
-        return;
-    }
-    let first = listed.words[gid.x] * BOUNDS_CHUNK;
-    let last = min(first + BOUNDS_CHUNK, params.point_count);
-    let bits = mask_word(first >> 5u);
-    bounds_count = 0u;
-    bounds_hi = vec3<u32>(0u);
-    bounds_lo_inv = vec3<u32>(0u);
-    for (var i = first; i < last; i += 4u) {
-        if !quad_in_mask(bits, i) {
-            continue;
-        }
+// The quad at i, when in the cloud and the mask.
+fn bound_quad(bits: u32, i: u32) {
+    if i < params.point_count && quad_in_mask(bits, i) {
         let q = load_quad(i);
         bound_point(bits, i, q[0]);
         bound_point(bits, i + 1u, q[1]);
         bound_point(bits, i + 2u, q[2]);
         bound_point(bits, i + 3u, q[3]);
     }
+}
+
+// Straight-line code over the word's eight quads (on llvmpipe a loop costs more).
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn bounds(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if gid.x >= atomicLoad(&listed.count) {
+        return;
+    }
+    let first = listed.words[gid.x] * BOUNDS_CHUNK;
+    let bits = mask_word(first >> 5u);
+    bounds_count = 0u;
+    bounds_hi = vec3<u32>(0u);
+    bounds_lo_inv = vec3<u32>(0u);
+    bound_quad(bits, first);
+    bound_quad(bits, first + 4u);
+    bound_quad(bits, first + 8u);
+    bound_quad(bits, first + 12u);
+    bound_quad(bits, first + 16u);
+    bound_quad(bits, first + 20u);
+    bound_quad(bits, first + 24u);
+    bound_quad(bits, first + 28u);
     if bounds_count == 0u {
         return;
     }
     atomicAdd(&header.valid_count, bounds_count);
-    for (var a = 0u; a < 3u; a++) {
-        atomicMax(&header.max_key[a], bounds_hi[a]);
-        atomicMax(&header.min_inv[a], bounds_lo_inv[a]);
-    }
+    atomicMax(&header.max_key[0], bounds_hi.x);
+    atomicMax(&header.max_key[1], bounds_hi.y);
+    atomicMax(&header.max_key[2], bounds_hi.z);
+    atomicMax(&header.min_inv[0], bounds_lo_inv.x);
+    atomicMax(&header.min_inv[1], bounds_lo_inv.y);
+    atomicMax(&header.min_inv[2], bounds_lo_inv.z);
 }
 
 // The grid: floor(min * inv_leaf) and the number of cells along each axis (PCL's min_b_ and
@@ -270,16 +281,19 @@ struct Grid {
 }
 
 fn grid() -> Grid {
-    var g: Grid;
-    for (var a = 0u; a < 3u; a++) {
-        let lo = from_order_key(~atomicLoad(&header.min_inv[a]));
-        let hi = from_order_key(atomicLoad(&header.max_key[a]));
-        let lo_b = i32(floor(lo * params.inv_leaf));
-        let hi_b = i32(floor(hi * params.inv_leaf));
-        g.min_b[a] = lo_b;
-        g.div[a] = u32(hi_b - lo_b) + 1u;
-    }
-    return g;
+    let lo = vec3<f32>(
+        from_order_key(~atomicLoad(&header.min_inv[0])),
+        from_order_key(~atomicLoad(&header.min_inv[1])),
+        from_order_key(~atomicLoad(&header.min_inv[2])),
+    );
+    let hi = vec3<f32>(
+        from_order_key(atomicLoad(&header.max_key[0])),
+        from_order_key(atomicLoad(&header.max_key[1])),
+        from_order_key(atomicLoad(&header.max_key[2])),
+    );
+    let lo_b = vec3<i32>(floor(lo * params.inv_leaf));
+    let hi_b = vec3<i32>(floor(hi * params.inv_leaf));
+    return Grid(lo_b, vec3<u32>(hi_b - lo_b) + 1u);
 }
 
 // 64-bit add of `v` to the (lo, hi) pair at `at`: the carry is exact whatever the order.
