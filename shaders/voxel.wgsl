@@ -652,19 +652,19 @@ fn scan_blocks(lid: u32, blocks: u32) -> u32 {
     return s.y;
 }
 
-// Kept slots among the COMPACT_PER_THREAD slots of thread `lid` of block `block`.
-fn kept_in_run(block: u32, lid: u32) -> u32 {
+// Bit k set: slot k of the COMPACT_PER_THREAD slots of thread `lid` of block `block` is kept.
+fn kept_bits(block: u32, lid: u32) -> u32 {
     let first = block * COMPACT_BLOCK + lid * COMPACT_PER_THREAD;
-    var n = 0u;
+    var bits = 0u;
     for (var k = 0u; k < COMPACT_PER_THREAD; k++) {
-        n += select(0u, 1u, kept(first + k));
+        bits |= select(0u, 1u << k, kept(first + k));
     }
-    return n;
+    return bits;
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn compact_count(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
-    let s = workgroup_scan(lid.x, kept_in_run(wid.x, lid.x));
+    let s = workgroup_scan(lid.x, countOneBits(kept_bits(wid.x, lid.x)));
     if lid.x == 0u {
         block_sums[wid.x] = s.y;
     }
@@ -703,11 +703,12 @@ fn compact_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn compact_scatter(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_id) wid: vec3<u32>) {
-    let s = workgroup_scan(lid.x, kept_in_run(wid.x, lid.x));
+    let bits = kept_bits(wid.x, lid.x);
+    let s = workgroup_scan(lid.x, countOneBits(bits));
     var at = block_sums[wid.x] + s.x;
     let first = wid.x * COMPACT_BLOCK + lid.x * COMPACT_PER_THREAD;
     for (var k = 0u; k < COMPACT_PER_THREAD; k++) {
-        if kept(first + k) {
+        if ((bits >> k) & 1u) != 0u {
             sort_keys[at] = atomicLoad(&table_keys[first + k]) - 1u;
             at += 1u;
         }
