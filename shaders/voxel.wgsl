@@ -342,11 +342,13 @@ fn find_or_insert(index: u32) -> u32 {
     return NONE;
 }
 
-// A run of points in one cell: the cell, the count and the 64-bit fixed-point sums of the
-// offsets (count 0: no run).
+// A run of consecutive points with the same key (insert: the cell; mark: the bitmap word of
+// the cells), the count, the cells' bits in their bitmap word (mark) and the 64-bit
+// fixed-point sums of the offsets (insert; count 0: no run).
 struct Run {
-    index: u32,
+    key: u32,
     count: u32,
+    cells: u32,
     sx: vec2<u32>,
     sy: vec2<u32>,
     sz: vec2<u32>,
@@ -356,13 +358,13 @@ struct Run {
 fn flush(dense: bool, r: Run) {
     var slot = NONE;
     if dense {
-        let rank = dense_rank(r.index);
+        let rank = dense_rank(r.key);
         if rank <= params.table_mask {
             slot = rank;
-            atomicStore(&table_keys[slot], r.index + 1u);
+            atomicStore(&table_keys[slot], r.key + 1u);
         }
     } else {
-        slot = find_or_insert(r.index);
+        slot = find_or_insert(r.key);
     }
     if slot == NONE {
         atomicMax(&header.overflow, 1u);
@@ -376,20 +378,23 @@ fn flush(dense: bool, r: Run) {
 }
 
 // A mark or insert thread's walk over its chunk of INSERT_CHUNK points: the grid, the chunk
-// (first point, mask word), the next point to take, the current run, the finished run
+// (first point, mask word), the key's shift (a run's key is the cell index >> shift), the
+// next point to take, the current run, the finished run
 // waiting for the loop iteration's one flush (llvmpipe executes every inlined copy of a
 // flush for the whole SIMD group whether or not a lane flushes), and whether the quad
 // stopped at a second finished run (its point is taken again in the next iteration).
 var<private> walk_grid: Grid;
 var<private> walk_first: u32;
 var<private> walk_bits: u32;
+var<private> walk_shift: u32;
 var<private> walk_at: u32;
 var<private> run: Run;
 var<private> pending: Run;
 var<private> stopped: bool;
 
-// Starts the walk over listed chunk `c`; false when it has no point in the mask.
-fn walk_start(c: u32) -> bool {
+// Starts the walk over listed chunk `c` (runs keyed by cell index >> shift); false when it
+// has no point in the mask.
+fn walk_start(c: u32, shift: u32) -> bool {
     let first = listed_chunk(c);
     if first == NONE {
         return false;
@@ -401,8 +406,9 @@ fn walk_start(c: u32) -> bool {
     walk_grid = grid();
     walk_first = first;
     walk_bits = bits;
+    walk_shift = shift;
     walk_at = 0u;
-    run.index = NONE;
+    run.key = NONE;
     run.count = 0u;
     pending.count = 0u;
     return true;
@@ -417,7 +423,8 @@ fn walk_point(i: u32, p: vec3<f32>) {
     let s = p * params.inv_leaf;
     let cell = floor(s);
     let index = cell_index(walk_grid, p);
-    if index != run.index {
+    let key = index >> walk_shift;
+    if key != run.key {
         if run.count != 0u {
             if pending.count != 0u {
                 stopped = true;
@@ -425,8 +432,9 @@ fn walk_point(i: u32, p: vec3<f32>) {
             }
             pending = run;
         }
-        run = Run(index, 0u, vec2<u32>(0u), vec2<u32>(0u), vec2<u32>(0u));
+        run = Run(key, 0u, 0u, vec2<u32>(0u), vec2<u32>(0u), vec2<u32>(0u));
     }
+    run.cells |= 1u << (index & 31u);
     let frac = clamp(s - cell, vec3<f32>(0.0), vec3<f32>(1.0));
     let q = min(vec3<u32>(frac * FIXED_ONE), vec3<u32>(FIXED_MAX));
     run.count += 1u;
@@ -478,7 +486,7 @@ fn walk_done() -> bool {
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if !walk_start(gid.x) {
+    if !walk_start(gid.x, 0u) {
         return;
     }
     let dense = header.mode == 1u;
@@ -547,13 +555,13 @@ fn cell_index(g: Grid, p: vec3<f32>) -> u32 {
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn mark(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if header.mode != 1u || !walk_start(gid.x) {
+    if header.mode != 1u || !walk_start(gid.x, 5u) {
         return;
     }
     loop {
         let r = walk_step();
         if r.count != 0u {
-            atomicOr(&bitmap[r.index >> 5u], 1u << (r.index & 31u));
+            atomicOr(&bitmap[r.key], r.cells);
         }
         if walk_done() {
             break;
