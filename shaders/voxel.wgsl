@@ -9,8 +9,9 @@
 //   insert      - cell index (PCL's linear index relative to the min cell) into a hash table
 //                 with bounded linear probing; per cell: point count and the 64-bit fixed-point
 //                 sum of the points' offsets inside the cell (integer atomics: order-free).
-//                 A thread takes 32 consecutive points (one mask word) and merges runs in the
-//                 same cell first.
+//                 A thread walks 32 consecutive points (one mask word), a quad per loop
+//                 iteration, merging runs of same-cell points; each iteration adds at most one
+//                 run to the table (see walk_step).
 //   compact_count, compact_scan, compact_scatter - stream compaction of the kept slots
 //                 (occupied, at least min_points) into sort_keys, in slot order: kept count per
 //                 512-slot block, one workgroup's exclusive prefix sum over the blocks (also
@@ -29,7 +30,8 @@
 // the compaction already yields PCL's order and the sort gets no workgroups:
 //   plan        - grid size, path, indirect arguments of the dense dispatches
 //   dense_clear - zero the bitmap words of this frame's grid
-//   mark        - one bit per occupied cell (atomicOr)
+//   mark        - one bit per occupied cell (the same walk; one atomicOr per run of points
+//                 whose cells share a bitmap word)
 //   word_count, word_scan, word_scatter - exclusive prefix count of the words' set bits
 //   insert      - as on the hash path, but into slot = rank (no probing, no `cells` count)
 
@@ -379,10 +381,11 @@ fn flush(dense: bool, r: Run) {
 
 // A mark or insert thread's walk over its chunk of INSERT_CHUNK points: the grid, the chunk
 // (first point, mask word), the key's shift (a run's key is the cell index >> shift), the
-// next point to take, the current run, the finished run
-// waiting for the loop iteration's one flush (llvmpipe executes every inlined copy of a
-// flush for the whole SIMD group whether or not a lane flushes), and whether the quad
-// stopped at a second finished run (its point is taken again in the next iteration).
+// next point to take, the current run, the finished run waiting for the loop iteration's one
+// flush (llvmpipe executes every inlined copy of a flush for the whole SIMD group whether or
+// not a lane flushes), and whether the quad stopped at a second finished run (its point is
+// taken again in the next iteration). At most INSERT_CHUNK / 4 + INSERT_CHUNK + 2 iterations
+// (voxel.rs `WALK_ITERATIONS`).
 var<private> walk_grid: Grid;
 var<private> walk_first: u32;
 var<private> walk_bits: u32;

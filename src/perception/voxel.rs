@@ -172,14 +172,18 @@ impl Default for VoxelConfig {
 }
 
 /// Bounds that keep every loop of voxel.wgsl far enough below lavapipe's limit of 65,535
-/// iterations per shader invocation (a SIMD group; gallivm ends the loops silently beyond
-/// it): an insert thread probes at most 32 x 2 x `max_probes` slots, and compact_scan's
-/// threads walk 2 x slots / (512 x 64) block sums (32,768 at 2^29 slots).
-pub const MAX_PROBES_LIMIT: u32 = 1000;
+/// iterations per shader invocation (a SIMD group, all its loops together; gallivm ends the
+/// loops silently beyond it): each of insert's at most `WALK_ITERATIONS` iterations flushes
+/// with up to 2 x `max_probes` probes, and compact_scan's threads walk 2 x slots /
+/// (512 x 64) block sums (32,768 at 2^29 slots).
+pub const MAX_PROBES_LIMIT: u32 = 750;
 pub const MAX_TABLE_SLOTS_LIMIT: u32 = 1 << 29;
-// Worst cases of insert (each point of a chunk a new cell probing 2 x max_probes slots) and
-// of compact_scan's block walk, against gallivm's 65,535 iterations.
-const _: () = assert!(INSERT_CHUNK * (2 * MAX_PROBES_LIMIT + 1) + 2 < 65_535);
+/// Iterations of a mark or insert thread's walk over its chunk (voxel.wgsl `walk_step`): one
+/// per quad, one more per stop (at most one per point), and two to return the last runs.
+const WALK_ITERATIONS: u32 = INSERT_CHUNK / 4 + INSERT_CHUNK + 2;
+// Worst cases of insert (every walk iteration flushing a run that probes 2 x max_probes
+// slots) and of compact_scan's block walk, against gallivm's 65,535 iterations.
+const _: () = assert!(WALK_ITERATIONS * (2 * MAX_PROBES_LIMIT + 2) < 65_535);
 const _: () =
     assert!(2 * MAX_TABLE_SLOTS_LIMIT / (COMPACT_BLOCK * shader::WORKGROUP_SIZE) + 16 < 65_535);
 
