@@ -345,8 +345,8 @@ fn find_or_insert(index: u32) -> u32 {
 }
 
 // A run of consecutive points with the same key (insert: the cell; mark: the bitmap word of
-// the cells), the count, the cells' bits in their bitmap word (mark) and the 64-bit
-// fixed-point sums of the offsets (insert; count 0: no run).
+// the cells): the count (0: no run), the cells' bits in their bitmap word (mark) and the
+// 64-bit fixed-point sums of the offsets (insert).
 struct Run {
     key: u32,
     count: u32,
