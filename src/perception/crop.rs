@@ -382,6 +382,8 @@ pub struct GpuCrop {
     pipeline: wgpu::ComputePipeline,
     depth_layout: wgpu::BindGroupLayout,
     depth_pipeline: wgpu::ComputePipeline,
+    check_args_layout: wgpu::BindGroupLayout,
+    check_pipeline: wgpu::ComputePipeline,
     params: wgpu::Buffer,
     depth_params: wgpu::Buffer,
     /// `MAX_CROP_PRIMITIVES` primitives (uniform).
@@ -392,10 +394,15 @@ pub struct GpuCrop {
     depth_view: wgpu::TextureView,
     /// Fills crop_mask's input-points binding, which the depth pass does not read.
     unused_points: wgpu::Buffer,
-    /// Pixels with a depth and flying pixels of the last depth pass.
+    /// Pixels with a depth, flying pixels and pixels listed for the check pass.
     depth_counts: wgpu::Buffer,
+    /// The pixels the depth pass leaves to the check pass (one word per pixel).
+    checks: wgpu::Buffer,
+    /// The check pass's indirect dispatch arguments (written by the depth pass).
+    check_args: wgpu::Buffer,
     group: CachedBindGroup,
     depth_group: CachedBindGroup,
+    check_args_group: CachedBindGroup,
     word_count: u32,
     point_count: u32,
 }
@@ -418,8 +425,12 @@ fn uniform(ctx: &GpuContext, label: &str, bytes: usize) -> wgpu::Buffer {
     })
 }
 
-/// Bytes of the depth pass's counters (pixels with a depth, flying pixels).
+/// Bytes of the depth pass's counters read back (pixels with a depth, flying pixels).
 pub const DEPTH_COUNT_BYTES: u64 = 8;
+/// Bytes of the depth pass's counters on the GPU: the two above and the listed pixels.
+const DEPTH_COUNTER_BYTES: u64 = 12;
+/// Bytes of an indirect dispatch's arguments (x, y, z workgroups).
+const DISPATCH_ARGS_BYTES: u64 = 12;
 
 /// The depth image as a texture (R16Uint: the raw units, read with `textureLoad`).
 fn depth_texture(ctx: &GpuContext, width: u32, height: u32) -> wgpu::Texture {
@@ -447,12 +458,25 @@ impl GpuCrop {
         let depth_layout = shader::bind_group_layout(
             ctx,
             "crop depth bind group layout",
-            &[base.as_slice(), &[Uniform, UintTexture2d, Storage, Storage]].concat(),
+            &[
+                base.as_slice(),
+                &[Uniform, UintTexture2d, Storage, Storage, Storage, Storage],
+            ]
+            .concat(),
         )?;
+        let check_args_layout =
+            shader::bind_group_layout(ctx, "crop check arguments layout", &[Storage])?;
         let pipeline =
             shader::compute_pipelines(ctx, &shader::CROP, &[&layout], &["crop_mask"])?.remove(0);
-        let depth_pipeline =
-            shader::compute_pipelines(ctx, &shader::CROP, &[&depth_layout], &["crop_depth"])?
+        let depth_pipeline = shader::compute_pipelines(
+            ctx,
+            &shader::CROP,
+            &[&depth_layout, &check_args_layout],
+            &["crop_depth"],
+        )?
+        .remove(0);
+        let check_pipeline =
+            shader::compute_pipelines(ctx, &shader::CROP, &[&depth_layout], &["crop_depth_check"])?
                 .remove(0);
         let (params, depth_params, primitives, mask, depth, unused_points, depth_counts) = ctx
             .scoped("crop buffers", |_| {
@@ -470,16 +494,29 @@ impl GpuCrop {
                     storage(
                         ctx,
                         "crop depth counts",
-                        DEPTH_COUNT_BYTES,
+                        DEPTH_COUNTER_BYTES,
                         wgpu::BufferUsages::COPY_SRC,
                     ),
                 )
             })?;
+        let (checks, check_args) = ctx.scoped("crop buffers", |_| {
+            (
+                storage(ctx, "crop depth checks", 0, wgpu::BufferUsages::empty()),
+                storage(
+                    ctx,
+                    "crop depth check arguments",
+                    DISPATCH_ARGS_BYTES,
+                    wgpu::BufferUsages::INDIRECT,
+                ),
+            )
+        })?;
         Ok(Self {
             layout,
             pipeline,
             depth_layout,
             depth_pipeline,
+            check_args_layout,
+            check_pipeline,
             params,
             depth_params,
             primitives,
@@ -488,8 +525,11 @@ impl GpuCrop {
             depth,
             unused_points,
             depth_counts,
+            checks,
+            check_args,
             group: CachedBindGroup::default(),
             depth_group: CachedBindGroup::default(),
+            check_args_group: CachedBindGroup::default(),
             word_count: 0,
             point_count: 0,
         })
@@ -515,6 +555,8 @@ impl GpuCrop {
             &self.mask,
             &self.unused_points,
             &self.depth_counts,
+            &self.checks,
+            &self.check_args,
         ]
         .iter()
         .map(|b| b.size())
@@ -522,15 +564,26 @@ impl GpuCrop {
             + depth
     }
 
-    /// Sizes the mask for frames of up to `points` points / pixels, so that no frame up to
-    /// that size allocates (the depth image's texture follows the image's width and height:
-    /// allocated by the first depth frame of a camera).
+    /// Sizes the mask and the depth pass's list of pixels for frames of up to `points`
+    /// points / pixels, so that no frame up to that size allocates (the depth image's
+    /// texture follows the image's width and height: allocated by the first depth frame of
+    /// a camera).
     pub fn reserve(&mut self, ctx: &GpuContext, points: usize) -> Result<(), CropError> {
         let words = 4 * mask_words(points) as u64;
+        let checks = 4 * points as u64;
         ctx.check_storage_size("crop keep mask", words)?;
+        ctx.check_storage_size("crop depth checks", checks)?;
         ctx.scoped("crop buffers", |_| {
             if self.mask.size() < words {
                 self.mask = storage(ctx, "crop keep mask", words, wgpu::BufferUsages::COPY_SRC);
+            }
+            if self.checks.size() < checks {
+                self.checks = storage(
+                    ctx,
+                    "crop depth checks",
+                    checks,
+                    wgpu::BufferUsages::empty(),
+                );
             }
         })?;
         Ok(())
@@ -677,9 +730,10 @@ impl GpuCrop {
         Ok(())
     }
 
-    /// Records the first pass of a depth frame ([`GpuCrop::prepare_depth`]): the
+    /// Records the first passes of a depth frame ([`GpuCrop::prepare_depth`]): the
     /// cloud-frame points into `out_points` (12 bytes per pixel, at least
-    /// [`super::voxel::points_bytes`] in all), the keep mask and the counters (cleared here).
+    /// [`super::voxel::points_bytes`] in all), the keep mask and the counters (cleared here);
+    /// `crop_depth` over every pixel, then `crop_depth_check` over the pixels it listed.
     pub fn record_depth(
         &mut self,
         ctx: &GpuContext,
@@ -688,6 +742,7 @@ impl GpuCrop {
         timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) {
         encoder.clear_buffer(&self.depth_counts, 0, None);
+        encoder.clear_buffer(&self.check_args, 0, None);
         let bind_group = self.depth_group.get(
             ctx,
             "crop depth bind group",
@@ -704,7 +759,15 @@ impl GpuCrop {
                 },
                 entry(6, out_points),
                 entry(7, &self.depth_counts),
+                entry(8, &self.checks),
+                entry(9, out_points),
             ],
+        );
+        let check_args_group = self.check_args_group.get(
+            ctx,
+            "crop check arguments bind group",
+            &self.check_args_layout,
+            &[entry(0, &self.check_args)],
         );
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("crop depth pass"),
@@ -712,11 +775,14 @@ impl GpuCrop {
         });
         pass.set_pipeline(&self.depth_pipeline);
         pass.set_bind_group(0, bind_group, &[]);
+        pass.set_bind_group(1, check_args_group, &[]);
         pass.dispatch_workgroups(
             shader::workgroups_for(self.point_count.div_ceil(DEPTH_QUAD)),
             1,
             1,
         );
+        pass.set_pipeline(&self.check_pipeline);
+        pass.dispatch_workgroups_indirect(&self.check_args, 0);
     }
 
     /// Records the crop pass over `points` (packed xyz f32, as uploaded from [`Vec3`]s).
