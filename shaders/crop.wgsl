@@ -1,17 +1,22 @@
 // Crop (paper IV-A): keep a point when it is finite (integer test on the bits), within
 // `radius` of the HIP, and outside every robot collision primitive posed in the cloud frame.
-// One crop_mask thread writes one 32-bit word of the keep mask (bit b = point 32 * word + b),
-// so the mask is identical whatever the thread order.
+// Each frame takes two passes: a first pass over every point decides what the crop sphere
+// alone decides and lists the rest; a check pass, dispatched indirectly with the arguments
+// the first pass wrote, decides the listed points and ORs their bits into the keep mask (bit
+// b of word w = point 32 w + b). OR is order-free, so the mask does not depend on the
+// list's order or the thread order.
 //
-// A frame that arrives as a 16-bit depth image takes two passes. `crop_depth`, per pixel and
-// without loops: deproject (pinhole, f32), move the point to the cloud frame with the
-// camera's pose, write it for the voxel pass (NaN without a depth), and keep it when it lies
-// in the crop sphere and neither the flying-pixel (veil) test of src/perception/flying.rs nor
-// a robot primitive concerns it; it lists the pixels they concern. `crop_depth_check`, one
-// thread per listed pixel: the veil test on the camera-frame neighbours (a flying pixel's
-// point becomes a NaN), then the primitives, OR-ing the kept pixel's bit into the mask. On
-// llvmpipe every loop costs its exec-mask bookkeeping even at 0 iterations, so the loops run
-// only for the pixels that need them (D435 frames: about 5 % of the image).
+// A point cloud: `crop_mask`, one thread per mask word, keeps the finite points in the crop
+// sphere, or lists them when the frame has robot primitives; `crop_check` tests a listed
+// point against the primitives. A depth image: `crop_depth`, per pixel and without loops,
+// deprojects (pinhole, f32), moves the point to the cloud frame with the camera's pose,
+// writes it for the voxel pass (NaN without a depth), and keeps it when it lies in the crop
+// sphere and neither the flying-pixel (veil) test of src/perception/flying.rs nor a robot
+// primitive concerns it; it lists the pixels they concern. `crop_depth_check`, one thread
+// per listed pixel: the veil test on the camera-frame neighbours (a flying pixel's point
+// becomes a NaN), then the primitives. On llvmpipe every loop costs its exec-mask
+// bookkeeping even at 0 iterations, so the loops run only for the points that need them
+// (D435 frames: about 5 % of the image).
 //
 // Reads shaped for lavapipe as well as for GPUs: the primitives sit in a uniform buffer and
 // the depth image in an R16Uint texture (llvmpipe gathers uniform and texel reads with vector
@@ -19,8 +24,8 @@
 // the SIMD lanes); on a GPU both go through their caches (the texture's is 2D, which suits
 // the flying-pixel window); points are read and written a quad of points (three vec4s) at a
 // time. Every loop is bounded far below llvmpipe's 65,535 iterations per shader invocation:
-// 32 points x (MAX_PRIMITIVES + 1) in crop_mask, a (2 x 4 + 1)^2 window + MAX_PRIMITIVES in
-// crop_depth_check.
+// 8 quads and 32 listed points in crop_mask, MAX_PRIMITIVES in crop_check, a (2 x 4 + 1)^2
+// window + MAX_PRIMITIVES in crop_depth_check.
 
 struct CropParams {
     // HIP position (xyz) and squared crop radius (w).
@@ -52,8 +57,16 @@ const MAX_PRIMITIVES: u32 = 256u;
 // Packed xyz f32 in whole quads of points (voxel.rs `points_bytes`).
 @group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
 @group(0) @binding(2) var<uniform> primitives: array<CropPrimitive, MAX_PRIMITIVES>;
-// Written with atomics: crop_depth_check ORs its bits into crop_depth's words.
+// Written with atomics: the check passes OR their bits into the first pass's words.
 @group(0) @binding(3) var<storage, read_write> keep: array<atomic<u32>>;
+// [0]: pixels with a depth, [1]: flying pixels rejected, [2]: points listed in `checks`.
+@group(0) @binding(4) var<storage, read_write> counts: array<atomic<u32>, 3>;
+// The points (pixels) the check pass decides (any order: its decisions are per point and
+// OR-ed into the mask).
+@group(0) @binding(5) var<storage, read_write> checks: array<u32>;
+// The check pass's indirect dispatch arguments, written by the first pass (in a group of
+// its own: a dispatch cannot read its arguments from a buffer it binds).
+@group(1) @binding(0) var<storage, read_write> check_args: array<atomic<u32>, 3>;
 
 // The depth image's camera, pose and flying-pixel test (crop_depth only).
 struct DepthParams {
@@ -79,21 +92,14 @@ struct DepthParams {
     _pad2: u32,
 }
 
-@group(0) @binding(4) var<uniform> depth_params: DepthParams;
+@group(0) @binding(6) var<uniform> depth_params: DepthParams;
 // The raw 16-bit depth image (0: no return).
-@group(0) @binding(5) var depth: texture_2d<u32>;
+@group(0) @binding(7) var depth: texture_2d<u32>;
 // Cloud-frame xyz per pixel as f32 bits (a quiet NaN when invalid or flying), packed: four
 // pixels are three vec4s.
-@group(0) @binding(6) var<storage, read_write> out_points: array<vec4<u32>>;
-// [0]: pixels with a depth, [1]: flying pixels rejected, [2]: pixels listed in `checks`.
-@group(0) @binding(7) var<storage, read_write> depth_counts: array<atomic<u32>, 3>;
-// The pixels crop_depth_check decides (any order: its decisions are per pixel and OR-ed).
-@group(0) @binding(8) var<storage, read_write> checks: array<u32>;
+@group(0) @binding(8) var<storage, read_write> out_points: array<vec4<u32>>;
 // `out_points` as words, for crop_depth_check's NaN over a flying pixel's 3 words.
 @group(0) @binding(9) var<storage, read_write> out_words: array<u32>;
-// crop_depth_check's indirect dispatch arguments, written by crop_depth (its own group: a
-// dispatch cannot read its arguments from a buffer it binds).
-@group(1) @binding(0) var<storage, read_write> check_args: array<atomic<u32>, 3>;
 
 // Point p lies in primitive k (fields read only where its kind uses them).
 fn inside(k: u32, p: vec3<f32>) -> bool {
@@ -135,12 +141,25 @@ fn inside_any_primitive(p: vec3<f32>) -> bool {
     return hit;
 }
 
-fn keep_cloud_point(p: vec3<f32>) -> bool {
-    return finite_point(p) && in_crop_sphere(p) && !inside_any_primitive(p);
+// The check pass's workgroups once `listed` items are in the list.
+fn raise_check_args(listed: u32) {
+    atomicMax(&check_args[0], (listed + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE);
 }
 
+// The first pass's thread 0 sets the check pass's other two dimensions.
+fn init_check_args(gid: vec3<u32>) {
+    if gid.x == 0u {
+        atomicStore(&check_args[1], 1u);
+        atomicStore(&check_args[2], 1u);
+    }
+}
+
+// First pass of a point cloud, one thread per mask word (32 points) and without the
+// primitive loop: a finite point in the crop sphere is kept, or, when the frame has robot
+// primitives, listed for crop_check.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
+    init_check_args(gid);
     let w = gid.x;
     if w >= params.word_count {
         return;
@@ -152,19 +171,50 @@ fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
         let v = 3u * (i >> 2u);
         let q = unpack_quad(points[v], points[v + 1u], points[v + 2u]);
         let b = i - first;
-        bits |= keep_bit(first, b, q[0]) | keep_bit(first, b + 1u, q[1])
-            | keep_bit(first, b + 2u, q[2]) | keep_bit(first, b + 3u, q[3]);
+        bits |= in_sphere_bit(first, b, q[0]) | in_sphere_bit(first, b + 1u, q[1])
+            | in_sphere_bit(first, b + 2u, q[2]) | in_sphere_bit(first, b + 3u, q[3]);
     }
-    atomicStore(&keep[w], bits);
+    if params.primitive_count == 0u {
+        atomicStore(&keep[w], bits);
+        return;
+    }
+    atomicStore(&keep[w], 0u);
+    if bits != 0u {
+        var slot = atomicAdd(&counts[2], countOneBits(bits));
+        for (var rest = bits; rest != 0u; rest &= rest - 1u) {
+            checks[slot] = first + firstTrailingBit(rest);
+            slot += 1u;
+        }
+        raise_check_args(slot);
+    }
 }
 
 // Bit b of the mask word of points first.. for point first + b at p: set when the point is
-// in the cloud and kept.
-fn keep_bit(first: u32, b: u32, p: vec3<f32>) -> u32 {
-    if first + b < params.point_count && keep_cloud_point(p) {
+// in the cloud, finite and in the crop sphere.
+fn in_sphere_bit(first: u32, b: u32, p: vec3<f32>) -> u32 {
+    if first + b < params.point_count && finite_point(p) && in_crop_sphere(p) {
         return 1u << b;
     }
     return 0u;
+}
+
+// Point i of the cloud.
+fn cloud_point(i: u32) -> vec3<f32> {
+    let v = 3u * (i >> 2u);
+    return unpack_quad(points[v], points[v + 1u], points[v + 2u])[i & 3u];
+}
+
+// Check pass of a point cloud, one thread per point crop_mask listed: kept when no robot
+// primitive holds it.
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn crop_check(@builtin(global_invocation_id) gid: vec3<u32>) {
+    if gid.x >= atomicLoad(&counts[2]) {
+        return;
+    }
+    let i = checks[gid.x];
+    if !inside_any_primitive(cloud_point(i)) {
+        atomicOr(&keep[i / 32u], 1u << (i % 32u));
+    }
 }
 
 // A quiet NaN's bits: an invalid point (written as bits; WGSL has no NaN constants).
@@ -296,10 +346,7 @@ fn crop_depth(
     if lid == 0u {
         atomicStore(&wg_valid, 0u);
     }
-    if gid.x == 0u {
-        atomicStore(&check_args[1], 1u);
-        atomicStore(&check_args[2], 1u);
-    }
+    init_check_args(gid);
     workgroupBarrier();
     let i = DEPTH_QUAD * gid.x;
     if i < params.point_count {
@@ -325,12 +372,12 @@ fn crop_depth(
             atomicAdd(&wg_valid, quad_valid);
         }
         if quad_check != 0u {
-            var slot = atomicAdd(&depth_counts[2], countOneBits(quad_check));
+            var slot = atomicAdd(&counts[2], countOneBits(quad_check));
             list_check(1u, i, &slot);
             list_check(2u, i + 1u, &slot);
             list_check(4u, i + 2u, &slot);
             list_check(8u, i + 3u, &slot);
-            atomicMax(&check_args[0], (slot + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE);
+            raise_check_args(slot);
         }
     }
     workgroupBarrier();
@@ -343,7 +390,7 @@ fn crop_depth(
     if lid == 0u {
         let valid = atomicLoad(&wg_valid);
         if valid > 0u {
-            atomicAdd(&depth_counts[0], valid);
+            atomicAdd(&counts[0], valid);
         }
     }
 }
@@ -353,7 +400,7 @@ fn crop_depth(
 // is OR-ed into the mask.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn crop_depth_check(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if gid.x >= atomicLoad(&depth_counts[2]) {
+    if gid.x >= atomicLoad(&counts[2]) {
         return;
     }
     let i = checks[gid.x];
@@ -364,7 +411,7 @@ fn crop_depth_check(@builtin(global_invocation_id) gid: vec3<u32>) {
         out_words[3u * i] = NAN_BITS;
         out_words[3u * i + 1u] = NAN_BITS;
         out_words[3u * i + 2u] = NAN_BITS;
-        atomicAdd(&depth_counts[1], 1u);
+        atomicAdd(&counts[1], 1u);
         return;
     }
     let c = to_cloud(p);
