@@ -141,17 +141,28 @@ fn inside_any_primitive(p: vec3<f32>) -> bool {
     return hit;
 }
 
-// The check pass's workgroups once `listed` items are in the list.
+// Workgroups per dimension a dispatch may have (WebGPU's default limit).
+const MAX_GROUPS_X: u32 = 65535u;
+
+// The check pass's workgroups once `listed` items are in the list, as rows of at most
+// MAX_GROUPS_X: both dimensions grow with the count, so the largest values raised are the
+// final count's.
 fn raise_check_args(listed: u32) {
-    atomicMax(&check_args[0], (listed + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE);
+    let groups = (listed + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+    atomicMax(&check_args[0], min(groups, MAX_GROUPS_X));
+    atomicMax(&check_args[1], (groups + MAX_GROUPS_X - 1u) / MAX_GROUPS_X);
 }
 
-// The first pass's thread 0 sets the check pass's other two dimensions.
+// The first pass's thread 0 sets the check pass's third dimension.
 fn init_check_args(gid: vec3<u32>) {
     if gid.x == 0u {
-        atomicStore(&check_args[1], 1u);
         atomicStore(&check_args[2], 1u);
     }
+}
+
+// A check-pass thread's position in the list.
+fn listed_index(group: vec3<u32>, groups: vec3<u32>, lid: u32) -> u32 {
+    return (group.y * groups.x + group.x) * WORKGROUP_SIZE + lid;
 }
 
 // First pass of a point cloud, one thread per mask word (32 points) and without the
@@ -207,11 +218,16 @@ fn cloud_point(i: u32) -> vec3<f32> {
 // Check pass of a point cloud, one thread per point crop_mask listed: kept when no robot
 // primitive holds it.
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn crop_check(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if gid.x >= atomicLoad(&counts[2]) {
+fn crop_check(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let j = listed_index(group, groups, lid);
+    if j >= atomicLoad(&counts[2]) {
         return;
     }
-    let i = checks[gid.x];
+    let i = checks[j];
     if !inside_any_primitive(cloud_point(i)) {
         atomicOr(&keep[i / 32u], 1u << (i % 32u));
     }
@@ -399,11 +415,16 @@ fn crop_depth(
 // test (a flying pixel's point becomes a NaN) and the robot primitives; a kept pixel's bit
 // is OR-ed into the mask.
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn crop_depth_check(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if gid.x >= atomicLoad(&counts[2]) {
+fn crop_depth_check(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let j = listed_index(group, groups, lid);
+    if j >= atomicLoad(&counts[2]) {
         return;
     }
-    let i = checks[gid.x];
+    let i = checks[j];
     let v = i / depth_params.width;
     let u = i - v * depth_params.width;
     let p = deproject(u, v, raw_depth(u, v));

@@ -1254,6 +1254,35 @@ mod tests {
         ));
     }
 
+    /// The check pass's indirect dispatch is laid out in rows of at most 65,535 workgroups
+    /// (a dispatch's limit per dimension): a list of more than 65,535 x 64 points is
+    /// checked whole, the points in the last row included.
+    #[test]
+    fn a_check_list_longer_than_one_dispatch_row_is_checked_whole() {
+        let ctx = crate::gpu::context::test_context();
+        let n = 65_535 * 64 + 5_000;
+        // A line of points through the HIP; the sphere holds every 7th point from the end.
+        let pts: Vec<Vec3> = (0..n)
+            .map(|i| Vec3::new(0.5 * (i as f32 / n as f32 - 0.5), 0.0, 0.0))
+            .collect();
+        let robot: Vec<Primitive> = (0..4)
+            .map(|k| Primitive::Sphere {
+                center_m: Point3::new(f64::from(pts[n - 1 - 7 * k].x), 0.0, 0.0),
+                radius_m: 1e-9,
+            })
+            .collect();
+        let config = CropConfig {
+            radius_m: 1.0,
+            robot_margin_m: 0.0,
+            robot_margin_per_m2: 0.0,
+        };
+        let scene = hip_scene(&robot);
+        let cpu = crop_cpu(&pts, &config, &scene).unwrap();
+        assert_eq!(kept_indices(&cpu, n).len(), n - 4);
+        let mut gpu = GpuCrop::new(ctx).unwrap();
+        assert_eq!(gpu.run(ctx, &pts, &config, &scene, None).unwrap().0, cpu);
+    }
+
     #[test]
     fn rust_constants_match_the_shader() {
         shader::assert_u32_constants(
