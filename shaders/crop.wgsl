@@ -1,13 +1,22 @@
 // Crop (paper IV-A): keep a point when it is finite (integer test on the bits), within
 // `radius` of the HIP, and outside every robot collision primitive posed in the cloud frame.
-// One thread writes one 32-bit word of the keep mask (bit b = point 32 * word + b), so the
-// mask needs no atomics and is identical whatever the thread order.
+// Each frame takes two passes: a first pass over every point decides what the crop sphere
+// alone decides and lists the rest; a check pass, dispatched indirectly with the arguments
+// the first pass wrote, decides the listed points and ORs their bits into the keep mask (bit
+// b of word w = point 32 w + b). OR is order-free, so the mask does not depend on the
+// list's order or the thread order.
 //
-// `crop_depth` is the first pass of a frame that arrives as a 16-bit depth image: per pixel
-// it deprojects (pinhole, f32), moves the point to the cloud frame with the camera's pose,
-// runs the flying-pixel (veil) test of src/perception/flying.rs on the camera-frame
-// neighbours, writes the cloud-frame point (NaN when invalid or flying) for the voxel pass
-// and crops it as above.
+// A point cloud: `crop_mask`, one thread per mask word, keeps the finite points in the crop
+// sphere, or lists them when the frame has robot primitives; `crop_check` tests a listed
+// point against the primitives. A depth image: `crop_depth`, per pixel and without loops,
+// deprojects (pinhole, f32), moves the point to the cloud frame with the camera's pose,
+// writes it for the voxel pass (NaN without a depth), and keeps it when it lies in the crop
+// sphere and neither the flying-pixel (veil) test of src/perception/flying.rs nor a robot
+// primitive concerns it; it lists the pixels they concern. `crop_depth_check`, one thread
+// per listed pixel: the veil test on the camera-frame neighbours (a flying pixel's point
+// becomes a NaN), then the primitives. On llvmpipe every loop costs its exec-mask
+// bookkeeping even at 0 iterations, so the loops run only for the points that need them
+// (D435 frames: about 5 % of the image).
 //
 // Reads shaped for lavapipe as well as for GPUs: the primitives sit in a uniform buffer and
 // the depth image in an R16Uint texture (llvmpipe gathers uniform and texel reads with vector
@@ -15,8 +24,8 @@
 // the SIMD lanes); on a GPU both go through their caches (the texture's is 2D, which suits
 // the flying-pixel window); points are read and written a quad of points (three vec4s) at a
 // time. Every loop is bounded far below llvmpipe's 65,535 iterations per shader invocation:
-// 32 points x (MAX_PRIMITIVES + 1) in crop_mask, 4 pixels x ((2 x 4 + 1)^2 window + 9 rows
-// + MAX_PRIMITIVES) in crop_depth.
+// 8 quads and 32 listed points in crop_mask, MAX_PRIMITIVES in crop_check, a (2 x 4 + 1)^2
+// window + MAX_PRIMITIVES in crop_depth_check.
 
 struct CropParams {
     // HIP position (xyz) and squared crop radius (w).
@@ -48,7 +57,16 @@ const MAX_PRIMITIVES: u32 = 256u;
 // Packed xyz f32 in whole quads of points (voxel.rs `points_bytes`).
 @group(0) @binding(1) var<storage, read> points: array<vec4<f32>>;
 @group(0) @binding(2) var<uniform> primitives: array<CropPrimitive, MAX_PRIMITIVES>;
-@group(0) @binding(3) var<storage, read_write> keep: array<u32>;
+// Written with atomics: the check passes OR their bits into the first pass's words.
+@group(0) @binding(3) var<storage, read_write> keep: array<atomic<u32>>;
+// [0]: pixels with a depth, [1]: flying pixels rejected, [2]: points listed in `checks`.
+@group(0) @binding(4) var<storage, read_write> counts: array<atomic<u32>, 3>;
+// The points (pixels) the check pass decides (any order: its decisions are per point and
+// OR-ed into the mask).
+@group(0) @binding(5) var<storage, read_write> checks: array<u32>;
+// The check pass's indirect dispatch arguments, written by the first pass (in a group of
+// its own: a dispatch cannot read its arguments from a buffer it binds).
+@group(1) @binding(0) var<storage, read_write> check_args: array<atomic<u32>, 3>;
 
 // The depth image's camera, pose and flying-pixel test (crop_depth only).
 struct DepthParams {
@@ -74,14 +92,14 @@ struct DepthParams {
     _pad2: u32,
 }
 
-@group(0) @binding(4) var<uniform> depth_params: DepthParams;
+@group(0) @binding(6) var<uniform> depth_params: DepthParams;
 // The raw 16-bit depth image (0: no return).
-@group(0) @binding(5) var depth: texture_2d<u32>;
+@group(0) @binding(7) var depth: texture_2d<u32>;
 // Cloud-frame xyz per pixel as f32 bits (a quiet NaN when invalid or flying), packed: four
 // pixels are three vec4s.
-@group(0) @binding(6) var<storage, read_write> out_points: array<vec4<u32>>;
-// [0]: pixels with a depth, [1]: flying pixels rejected.
-@group(0) @binding(7) var<storage, read_write> depth_counts: array<atomic<u32>, 2>;
+@group(0) @binding(8) var<storage, read_write> out_points: array<vec4<u32>>;
+// `out_points` as words, for crop_depth_check's NaN over a flying pixel's 3 words.
+@group(0) @binding(9) var<storage, read_write> out_words: array<u32>;
 
 // Point p lies in primitive k (fields read only where its kind uses them).
 fn inside(k: u32, p: vec3<f32>) -> bool {
@@ -109,24 +127,50 @@ fn inside(k: u32, p: vec3<f32>) -> bool {
     return dot(d, d) <= r * r;
 }
 
-fn keep_cloud_point(p: vec3<f32>) -> bool {
-    if !finite_point(p) {
-        return false;
-    }
+fn in_crop_sphere(p: vec3<f32>) -> bool {
     let d = p - params.hip_r2.xyz;
-    if dot(d, d) > params.hip_r2.w {
-        return false;
-    }
-    for (var k = 0u; k < params.primitive_count; k++) {
-        if inside(k, p) {
-            return false;
-        }
-    }
-    return true;
+    return dot(d, d) <= params.hip_r2.w;
 }
 
+// Without an early exit, so the loop counter and the primitive reads stay uniform.
+fn inside_any_primitive(p: vec3<f32>) -> bool {
+    var hit = false;
+    for (var k = 0u; k < params.primitive_count; k++) {
+        hit = hit | inside(k, p);
+    }
+    return hit;
+}
+
+// Workgroups per dimension a dispatch may have (WebGPU's default limit).
+const MAX_GROUPS_X: u32 = 65535u;
+
+// The check pass's workgroups once `listed` items are in the list, as rows of at most
+// MAX_GROUPS_X: both dimensions grow with the count, so the largest values raised are the
+// final count's.
+fn raise_check_args(listed: u32) {
+    let groups = (listed + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+    atomicMax(&check_args[0], min(groups, MAX_GROUPS_X));
+    atomicMax(&check_args[1], (groups + MAX_GROUPS_X - 1u) / MAX_GROUPS_X);
+}
+
+// The first pass's thread 0 sets the check pass's third dimension.
+fn init_check_args(gid: vec3<u32>) {
+    if gid.x == 0u {
+        atomicStore(&check_args[2], 1u);
+    }
+}
+
+// A check-pass thread's position in the list.
+fn listed_index(group: vec3<u32>, groups: vec3<u32>, lid: u32) -> u32 {
+    return (group.y * groups.x + group.x) * WORKGROUP_SIZE + lid;
+}
+
+// First pass of a point cloud, one thread per mask word (32 points) and without the
+// primitive loop: a finite point in the crop sphere is kept, or, when the frame has robot
+// primitives, listed for crop_check.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
+    init_check_args(gid);
     let w = gid.x;
     if w >= params.word_count {
         return;
@@ -138,19 +182,55 @@ fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
         let v = 3u * (i >> 2u);
         let q = unpack_quad(points[v], points[v + 1u], points[v + 2u]);
         let b = i - first;
-        bits |= keep_bit(first, b, q[0]) | keep_bit(first, b + 1u, q[1])
-            | keep_bit(first, b + 2u, q[2]) | keep_bit(first, b + 3u, q[3]);
+        bits |= in_sphere_bit(first, b, q[0]) | in_sphere_bit(first, b + 1u, q[1])
+            | in_sphere_bit(first, b + 2u, q[2]) | in_sphere_bit(first, b + 3u, q[3]);
     }
-    keep[w] = bits;
+    if params.primitive_count == 0u {
+        atomicStore(&keep[w], bits);
+        return;
+    }
+    atomicStore(&keep[w], 0u);
+    if bits != 0u {
+        var slot = atomicAdd(&counts[2], countOneBits(bits));
+        for (var rest = bits; rest != 0u; rest &= rest - 1u) {
+            checks[slot] = first + firstTrailingBit(rest);
+            slot += 1u;
+        }
+        raise_check_args(slot);
+    }
 }
 
 // Bit b of the mask word of points first.. for point first + b at p: set when the point is
-// in the cloud and kept.
-fn keep_bit(first: u32, b: u32, p: vec3<f32>) -> u32 {
-    if first + b < params.point_count && keep_cloud_point(p) {
+// in the cloud, finite and in the crop sphere.
+fn in_sphere_bit(first: u32, b: u32, p: vec3<f32>) -> u32 {
+    if first + b < params.point_count && finite_point(p) && in_crop_sphere(p) {
         return 1u << b;
     }
     return 0u;
+}
+
+// Point i of the cloud.
+fn cloud_point(i: u32) -> vec3<f32> {
+    let v = 3u * (i >> 2u);
+    return unpack_quad(points[v], points[v + 1u], points[v + 2u])[i & 3u];
+}
+
+// Check pass of a point cloud, one thread per point crop_mask listed: kept when no robot
+// primitive holds it.
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn crop_check(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let j = listed_index(group, groups, lid);
+    if j >= atomicLoad(&counts[2]) {
+        return;
+    }
+    let i = checks[j];
+    if !inside_any_primitive(cloud_point(i)) {
+        atomicOr(&keep[i / 32u], 1u << (i % 32u));
+    }
 }
 
 // A quiet NaN's bits: an invalid point (written as bits; WGSL has no NaN constants).
@@ -171,83 +251,106 @@ fn deproject(u: u32, v: u32, raw: u32) -> vec3<f32> {
 }
 
 // The veil test: some valid neighbour's segment lies within the angle of p's viewing ray
-// (|d x p|^2 < sin^2(min) |d|^2 |p|^2, as in flying.rs).
+// (|d x p|^2 < sin^2(min) |d|^2 |p|^2, as in flying.rs). The window's trip counts are the
+// same for every thread (neighbours beyond the image are skipped inside), and the test
+// does not stop at the first hit, so the loops stay uniform.
 fn is_flying(u: u32, v: u32, p: vec3<f32>) -> bool {
     let k = depth_params.window;
+    let side = 2u * k + 1u;
     let limit = depth_params.sin2_min * dot(p, p);
-    let y0 = max(v, k) - k;
-    let y1 = min(v + k + 1u, depth_params.height);
-    let x0 = max(u, k) - k;
-    let x1 = min(u + k + 1u, depth_params.width);
-    for (var y = y0; y < y1; y++) {
-        for (var x = x0; x < x1; x++) {
-            let raw = raw_depth(x, y);
-            if raw == 0u || (x == u && y == v) {
-                continue;
-            }
-            let d = deproject(x, y, raw) - p;
-            let c = cross(d, p);
-            if dot(c, c) < limit * dot(d, d) {
-                return true;
+    var flying = false;
+    for (var dy = 0u; dy < side; dy++) {
+        for (var dx = 0u; dx < side; dx++) {
+            // Wraps to a large value left of or above the image.
+            let x = u + dx - k;
+            let y = v + dy - k;
+            let inside = x < depth_params.width && y < depth_params.height;
+            let raw = select(0u, raw_depth(min(x, depth_params.width - 1u), min(y, depth_params.height - 1u)), inside);
+            if raw != 0u && !(dx == k && dy == k) {
+                let d = deproject(x, y, raw) - p;
+                let c = cross(d, p);
+                flying = flying | (dot(c, c) < limit * dot(d, d));
             }
         }
     }
-    return false;
+    return flying;
+}
+
+// The pose's move of a camera-frame point to the cloud frame.
+fn to_cloud(p: vec3<f32>) -> vec3<f32> {
+    return vec3<f32>(
+        dot(depth_params.row_x.xyz, p) + depth_params.row_x.w,
+        dot(depth_params.row_y.xyz, p) + depth_params.row_y.w,
+        dot(depth_params.row_z.xyz, p) + depth_params.row_z.w,
+    );
+}
+
+// Whether the flying-pixel test looks at camera-frame point p: within the crop radius of
+// the HIP.
+fn in_veil_region(p: vec3<f32>) -> bool {
+    let n = p - depth_params.near_r2.xyz;
+    return depth_params.window > 0u && dot(n, n) < depth_params.near_r2.w;
 }
 
 // Pixels per crop_depth thread: four consecutive pixels (in row-major order) are one
 // vec4 store of the thread's 12 output words and 4 bits of a mask word.
 const DEPTH_QUAD: u32 = 4u;
-// crop_depth's mask words per workgroup and its counters, gathered in workgroup memory (OR
+// crop_depth's mask words per workgroup and its count, gathered in workgroup memory (OR
 // and sums: the same whatever the thread order).
 const WG_WORDS: u32 = WORKGROUP_SIZE * DEPTH_QUAD / 32u;
 var<workgroup> wg_keep: array<atomic<u32>, WG_WORDS>;
 var<workgroup> wg_valid: atomic<u32>;
-var<workgroup> wg_flying: atomic<u32>;
 
-// A crop_depth thread's counts and keep bits (bit k: pixel k of its quad).
+// A crop_depth thread's count, keep bits and bits of the pixels crop_depth_check decides
+// (bit k: pixel k of its quad).
 var<private> quad_valid: u32;
-var<private> quad_flying: u32;
 var<private> quad_keep: u32;
+var<private> quad_check: u32;
 
-// Pixel i (bit k of the quad): its cloud-frame point as bits, a NaN when it has no depth
-// or is flying.
-fn depth_pixel(i: u32, k: u32) -> vec3<u32> {
-    let u = i % depth_params.width;
-    let v = i / depth_params.width;
+// Pixel (u, v) (bit k of the quad): its cloud-frame point as bits, a NaN when it has no
+// depth. Without loops: a pixel the flying-pixel test or a robot primitive may remove goes
+// to crop_depth_check; one inside the crop sphere that neither concerns is kept here.
+fn depth_pixel(u: u32, v: u32, k: u32) -> vec3<u32> {
     let raw = raw_depth(u, v);
     if raw == 0u {
         return vec3<u32>(NAN_BITS);
     }
     quad_valid += 1u;
     let p = deproject(u, v, raw);
-    let n = p - depth_params.near_r2.xyz;
-    if depth_params.window > 0u && dot(n, n) < depth_params.near_r2.w && is_flying(u, v, p) {
-        quad_flying += 1u;
-        return vec3<u32>(NAN_BITS);
-    }
-    let c = vec3<f32>(
-        dot(depth_params.row_x.xyz, p) + depth_params.row_x.w,
-        dot(depth_params.row_y.xyz, p) + depth_params.row_y.w,
-        dot(depth_params.row_z.xyz, p) + depth_params.row_z.w,
-    );
-    if keep_cloud_point(c) {
+    let c = to_cloud(p);
+    let in_crop = in_crop_sphere(c);
+    if in_veil_region(p) || (in_crop && params.primitive_count > 0u) {
+        quad_check |= 1u << k;
+    } else if in_crop {
         quad_keep |= 1u << k;
     }
     return bitcast<vec3<u32>>(c);
 }
 
-// Pixel i's point, or nothing beyond the image (the last quad of an image whose pixel count
-// is not a multiple of 4).
-fn depth_pixel_if_any(i: u32, k: u32) -> vec3<u32> {
-    if i < params.point_count {
-        return depth_pixel(i, k);
+// Pixel k of the quad whose first pixel is (u, v): the row wraps at most once (the image
+// is at least 1 pixel wide, the quad 4 pixels long, wider images wrap at most once); nothing
+// beyond the image (the last quad of an image whose pixel count is not a multiple of 4).
+fn depth_pixel_if_any(i: u32, u: u32, v: u32, k: u32) -> vec3<u32> {
+    let wrap = u + k >= depth_params.width;
+    let x = select(u + k, u + k - depth_params.width, wrap);
+    let y = v + select(0u, 1u, wrap);
+    if i + k < params.point_count {
+        return depth_pixel(x, y, k);
     }
     return vec3<u32>(NAN_BITS);
 }
 
-// One thread per quad of pixels (neighbouring threads read and write neighbouring memory);
-// the workgroup ORs its threads' keep bits into whole mask words.
+// Lists pixel i when bit b of the thread's check bits is set.
+fn list_check(bit: u32, i: u32, slot: ptr<function, u32>) {
+    if (quad_check & bit) != 0u {
+        checks[*slot] = i;
+        *slot += 1u;
+    }
+}
+
+// First pass of a depth frame, one thread per quad of pixels (neighbouring threads read and
+// write neighbouring memory): every pixel's cloud-frame point, the keep bits of the pixels
+// it decides (the workgroup ORs them into whole mask words) and the list of the others.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn crop_depth(
     @builtin(global_invocation_id) gid: vec3<u32>,
@@ -258,18 +361,20 @@ fn crop_depth(
     }
     if lid == 0u {
         atomicStore(&wg_valid, 0u);
-        atomicStore(&wg_flying, 0u);
     }
+    init_check_args(gid);
     workgroupBarrier();
     let i = DEPTH_QUAD * gid.x;
     if i < params.point_count {
         quad_valid = 0u;
-        quad_flying = 0u;
         quad_keep = 0u;
-        let q0 = depth_pixel(i, 0u);
-        let q1 = depth_pixel_if_any(i + 1u, 1u);
-        let q2 = depth_pixel_if_any(i + 2u, 2u);
-        let q3 = depth_pixel_if_any(i + 3u, 3u);
+        quad_check = 0u;
+        let v = i / depth_params.width;
+        let u = i - v * depth_params.width;
+        let q0 = depth_pixel(u, v, 0u);
+        let q1 = depth_pixel_if_any(i, u, v, 1u);
+        let q2 = depth_pixel_if_any(i, u, v, 2u);
+        let q3 = depth_pixel_if_any(i, u, v, 3u);
         // out_points holds whole vec4s (frontend.rs sizes it with voxel::points_bytes), so
         // the last quad's words beyond the image land in its padding.
         let w = 3u * gid.x;
@@ -282,8 +387,13 @@ fn crop_depth(
         if quad_valid != 0u {
             atomicAdd(&wg_valid, quad_valid);
         }
-        if quad_flying != 0u {
-            atomicAdd(&wg_flying, quad_flying);
+        if quad_check != 0u {
+            var slot = atomicAdd(&counts[2], countOneBits(quad_check));
+            list_check(1u, i, &slot);
+            list_check(2u, i + 1u, &slot);
+            list_check(4u, i + 2u, &slot);
+            list_check(8u, i + 3u, &slot);
+            raise_check_args(slot);
         }
     }
     workgroupBarrier();
@@ -291,16 +401,42 @@ fn crop_depth(
     // lid when it holds pixels.
     let first_word = DEPTH_QUAD * WORKGROUP_SIZE / 32u * (gid.x / WORKGROUP_SIZE);
     if lid < WG_WORDS && 32u * (first_word + lid) < params.point_count {
-        keep[first_word + lid] = atomicLoad(&wg_keep[lid]);
+        atomicStore(&keep[first_word + lid], atomicLoad(&wg_keep[lid]));
     }
     if lid == 0u {
         let valid = atomicLoad(&wg_valid);
-        let flying = atomicLoad(&wg_flying);
         if valid > 0u {
-            atomicAdd(&depth_counts[0], valid);
+            atomicAdd(&counts[0], valid);
         }
-        if flying > 0u {
-            atomicAdd(&depth_counts[1], flying);
-        }
+    }
+}
+
+// Second pass of a depth frame, one thread per pixel crop_depth listed: the flying-pixel
+// test (a flying pixel's point becomes a NaN) and the robot primitives; a kept pixel's bit
+// is OR-ed into the mask.
+@compute @workgroup_size(WORKGROUP_SIZE)
+fn crop_depth_check(
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let j = listed_index(group, groups, lid);
+    if j >= atomicLoad(&counts[2]) {
+        return;
+    }
+    let i = checks[j];
+    let v = i / depth_params.width;
+    let u = i - v * depth_params.width;
+    let p = deproject(u, v, raw_depth(u, v));
+    if in_veil_region(p) && is_flying(u, v, p) {
+        out_words[3u * i] = NAN_BITS;
+        out_words[3u * i + 1u] = NAN_BITS;
+        out_words[3u * i + 2u] = NAN_BITS;
+        atomicAdd(&counts[1], 1u);
+        return;
+    }
+    let c = to_cloud(p);
+    if in_crop_sphere(c) && !inside_any_primitive(c) {
+        atomicOr(&keep[i / 32u], 1u << (i % 32u));
     }
 }

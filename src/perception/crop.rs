@@ -375,13 +375,50 @@ pub fn gpu_primitive(p: &Primitive) -> CropPrimitive {
     }
 }
 
+/// A first pass and the check pass over the points it lists, recorded in one timed compute
+/// pass (the check pass dispatched indirectly with the arguments the first pass wrote).
+struct CheckedPasses<'a> {
+    first: &'a wgpu::ComputePipeline,
+    check: &'a wgpu::ComputePipeline,
+    group: &'a wgpu::BindGroup,
+    args_group: &'a wgpu::BindGroup,
+    args: &'a wgpu::Buffer,
+    counts: &'a wgpu::Buffer,
+}
+
+impl CheckedPasses<'_> {
+    fn record(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        label: &str,
+        workgroups: u32,
+        timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
+    ) {
+        encoder.clear_buffer(self.counts, 0, None);
+        encoder.clear_buffer(self.args, 0, None);
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: timestamps,
+        });
+        pass.set_pipeline(self.first);
+        pass.set_bind_group(0, self.group, &[]);
+        pass.set_bind_group(1, self.args_group, &[]);
+        pass.dispatch_workgroups(workgroups, 1, 1);
+        pass.set_pipeline(self.check);
+        pass.dispatch_workgroups_indirect(self.args, 0);
+    }
+}
+
 /// GPU crop: pipelines built once, buffers grown as needed (or reserved up front with
 /// [`GpuCrop::reserve`]).
 pub struct GpuCrop {
     layout: wgpu::BindGroupLayout,
-    pipeline: wgpu::ComputePipeline,
+    mask_pipeline: wgpu::ComputePipeline,
+    check_pipeline: wgpu::ComputePipeline,
     depth_layout: wgpu::BindGroupLayout,
     depth_pipeline: wgpu::ComputePipeline,
+    depth_check_pipeline: wgpu::ComputePipeline,
+    check_args_layout: wgpu::BindGroupLayout,
     params: wgpu::Buffer,
     depth_params: wgpu::Buffer,
     /// `MAX_CROP_PRIMITIVES` primitives (uniform).
@@ -392,10 +429,15 @@ pub struct GpuCrop {
     depth_view: wgpu::TextureView,
     /// Fills crop_mask's input-points binding, which the depth pass does not read.
     unused_points: wgpu::Buffer,
-    /// Pixels with a depth and flying pixels of the last depth pass.
-    depth_counts: wgpu::Buffer,
+    /// Pixels with a depth, flying pixels and points listed for the check pass.
+    counts: wgpu::Buffer,
+    /// The points (pixels) the first pass leaves to the check pass (one word per point).
+    checks: wgpu::Buffer,
+    /// The check pass's indirect dispatch arguments (written by the depth pass).
+    check_args: wgpu::Buffer,
     group: CachedBindGroup,
     depth_group: CachedBindGroup,
+    check_args_group: CachedBindGroup,
     word_count: u32,
     point_count: u32,
 }
@@ -418,8 +460,12 @@ fn uniform(ctx: &GpuContext, label: &str, bytes: usize) -> wgpu::Buffer {
     })
 }
 
-/// Bytes of the depth pass's counters (pixels with a depth, flying pixels).
+/// Bytes of the depth pass's counters read back (pixels with a depth, flying pixels).
 pub const DEPTH_COUNT_BYTES: u64 = 8;
+/// Bytes of the crop's counters on the GPU: the two above and the listed points.
+const COUNTER_BYTES: u64 = 12;
+/// Bytes of an indirect dispatch's arguments (x, y, z workgroups).
+const DISPATCH_ARGS_BYTES: u64 = 12;
 
 /// The depth image as a texture (R16Uint: the raw units, read with `textureLoad`).
 fn depth_texture(ctx: &GpuContext, width: u32, height: u32) -> wgpu::Texture {
@@ -442,20 +488,29 @@ fn depth_texture(ctx: &GpuContext, width: u32, height: u32) -> wgpu::Texture {
 impl GpuCrop {
     pub fn new(ctx: &GpuContext) -> Result<Self, CropError> {
         use BindingKind::*;
-        let base = [Uniform, StorageReadOnly, Uniform, Storage];
+        let base = [Uniform, StorageReadOnly, Uniform, Storage, Storage, Storage];
         let layout = shader::bind_group_layout(ctx, "crop bind group layout", &base)?;
         let depth_layout = shader::bind_group_layout(
             ctx,
             "crop depth bind group layout",
             &[base.as_slice(), &[Uniform, UintTexture2d, Storage, Storage]].concat(),
         )?;
-        let pipeline =
-            shader::compute_pipelines(ctx, &shader::CROP, &[&layout], &["crop_mask"])?.remove(0);
-        let depth_pipeline =
-            shader::compute_pipelines(ctx, &shader::CROP, &[&depth_layout], &["crop_depth"])?
-                .remove(0);
-        let (params, depth_params, primitives, mask, depth, unused_points, depth_counts) = ctx
-            .scoped("crop buffers", |_| {
+        let check_args_layout =
+            shader::bind_group_layout(ctx, "crop check arguments layout", &[Storage])?;
+        // A first pass writes the check pass's arguments (group 1), which the check pass
+        // must not bind.
+        let pipelines = |layout: &wgpu::BindGroupLayout, first: &str, check: &str| {
+            let with_args = [layout, &check_args_layout];
+            Ok::<_, GpuError>((
+                shader::compute_pipelines(ctx, &shader::CROP, &with_args, &[first])?.remove(0),
+                shader::compute_pipelines(ctx, &shader::CROP, &[layout], &[check])?.remove(0),
+            ))
+        };
+        let (mask_pipeline, check_pipeline) = pipelines(&layout, "crop_mask", "crop_check")?;
+        let (depth_pipeline, depth_check_pipeline) =
+            pipelines(&depth_layout, "crop_depth", "crop_depth_check")?;
+        let (params, depth_params, primitives, mask, depth, unused_points, counts) =
+            ctx.scoped("crop buffers", |_| {
                 (
                     uniform(ctx, "crop params", std::mem::size_of::<CropParams>()),
                     uniform(ctx, "crop depth params", std::mem::size_of::<DepthParams>()),
@@ -469,17 +524,31 @@ impl GpuCrop {
                     storage(ctx, "crop unused points", 0, wgpu::BufferUsages::empty()),
                     storage(
                         ctx,
-                        "crop depth counts",
-                        DEPTH_COUNT_BYTES,
+                        "crop counts",
+                        COUNTER_BYTES,
                         wgpu::BufferUsages::COPY_SRC,
                     ),
                 )
             })?;
+        let (checks, check_args) = ctx.scoped("crop buffers", |_| {
+            (
+                storage(ctx, "crop depth checks", 0, wgpu::BufferUsages::empty()),
+                storage(
+                    ctx,
+                    "crop depth check arguments",
+                    DISPATCH_ARGS_BYTES,
+                    wgpu::BufferUsages::INDIRECT,
+                ),
+            )
+        })?;
         Ok(Self {
             layout,
-            pipeline,
+            mask_pipeline,
+            check_pipeline,
             depth_layout,
             depth_pipeline,
+            depth_check_pipeline,
+            check_args_layout,
             params,
             depth_params,
             primitives,
@@ -487,9 +556,12 @@ impl GpuCrop {
             depth_view: depth.create_view(&Default::default()),
             depth,
             unused_points,
-            depth_counts,
+            counts,
+            checks,
+            check_args,
             group: CachedBindGroup::default(),
             depth_group: CachedBindGroup::default(),
+            check_args_group: CachedBindGroup::default(),
             word_count: 0,
             point_count: 0,
         })
@@ -502,7 +574,7 @@ impl GpuCrop {
 
     /// The depth pass's counters (`[pixels with a depth, flying pixels]`, u32 each).
     pub fn depth_counts(&self) -> &wgpu::Buffer {
-        &self.depth_counts
+        &self.counts
     }
 
     /// Bytes of GPU memory the stage's buffers hold now.
@@ -514,7 +586,9 @@ impl GpuCrop {
             &self.primitives,
             &self.mask,
             &self.unused_points,
-            &self.depth_counts,
+            &self.counts,
+            &self.checks,
+            &self.check_args,
         ]
         .iter()
         .map(|b| b.size())
@@ -522,15 +596,26 @@ impl GpuCrop {
             + depth
     }
 
-    /// Sizes the mask for frames of up to `points` points / pixels, so that no frame up to
-    /// that size allocates (the depth image's texture follows the image's width and height:
-    /// allocated by the first depth frame of a camera).
+    /// Sizes the mask and the depth pass's list of pixels for frames of up to `points`
+    /// points / pixels, so that no frame up to that size allocates (the depth image's
+    /// texture follows the image's width and height: allocated by the first depth frame of
+    /// a camera).
     pub fn reserve(&mut self, ctx: &GpuContext, points: usize) -> Result<(), CropError> {
         let words = 4 * mask_words(points) as u64;
+        let checks = 4 * points as u64;
         ctx.check_storage_size("crop keep mask", words)?;
+        ctx.check_storage_size("crop depth checks", checks)?;
         ctx.scoped("crop buffers", |_| {
             if self.mask.size() < words {
                 self.mask = storage(ctx, "crop keep mask", words, wgpu::BufferUsages::COPY_SRC);
+            }
+            if self.checks.size() < checks {
+                self.checks = storage(
+                    ctx,
+                    "crop depth checks",
+                    checks,
+                    wgpu::BufferUsages::empty(),
+                );
             }
         })?;
         Ok(())
@@ -677,9 +762,10 @@ impl GpuCrop {
         Ok(())
     }
 
-    /// Records the first pass of a depth frame ([`GpuCrop::prepare_depth`]): the
+    /// Records the first passes of a depth frame ([`GpuCrop::prepare_depth`]): the
     /// cloud-frame points into `out_points` (12 bytes per pixel, at least
-    /// [`super::voxel::points_bytes`] in all), the keep mask and the counters (cleared here).
+    /// [`super::voxel::points_bytes`] in all), the keep mask and the counters (cleared here);
+    /// `crop_depth` over every pixel, then `crop_depth_check` over the pixels it listed.
     pub fn record_depth(
         &mut self,
         ctx: &GpuContext,
@@ -687,8 +773,7 @@ impl GpuCrop {
         out_points: &wgpu::Buffer,
         timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) {
-        encoder.clear_buffer(&self.depth_counts, 0, None);
-        let bind_group = self.depth_group.get(
+        let group = self.depth_group.get(
             ctx,
             "crop depth bind group",
             &self.depth_layout,
@@ -697,25 +782,36 @@ impl GpuCrop {
                 entry(1, &self.unused_points),
                 entry(2, &self.primitives),
                 entry(3, &self.mask),
-                entry(4, &self.depth_params),
+                entry(4, &self.counts),
+                entry(5, &self.checks),
+                entry(6, &self.depth_params),
                 wgpu::BindGroupEntry {
-                    binding: 5,
+                    binding: 7,
                     resource: wgpu::BindingResource::TextureView(&self.depth_view),
                 },
-                entry(6, out_points),
-                entry(7, &self.depth_counts),
+                entry(8, out_points),
+                entry(9, out_points),
             ],
         );
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("crop depth pass"),
-            timestamp_writes: timestamps,
-        });
-        pass.set_pipeline(&self.depth_pipeline);
-        pass.set_bind_group(0, bind_group, &[]);
-        pass.dispatch_workgroups(
-            shader::workgroups_for(self.point_count.div_ceil(DEPTH_QUAD)),
-            1,
-            1,
+        let passes = CheckedPasses {
+            first: &self.depth_pipeline,
+            check: &self.depth_check_pipeline,
+            group,
+            args_group: self.check_args_group.get(
+                ctx,
+                "crop check arguments bind group",
+                &self.check_args_layout,
+                &[entry(0, &self.check_args)],
+            ),
+            args: &self.check_args,
+            counts: &self.counts,
+        };
+        let quads = self.point_count.div_ceil(DEPTH_QUAD);
+        passes.record(
+            encoder,
+            "crop depth pass",
+            shader::workgroups_for(quads),
+            timestamps,
         );
     }
 
@@ -727,7 +823,7 @@ impl GpuCrop {
         points: &wgpu::Buffer,
         timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) {
-        let bind_group = self.group.get(
+        let group = self.group.get(
             ctx,
             "crop bind group",
             &self.layout,
@@ -736,15 +832,25 @@ impl GpuCrop {
                 entry(1, points),
                 entry(2, &self.primitives),
                 entry(3, &self.mask),
+                entry(4, &self.counts),
+                entry(5, &self.checks),
             ],
         );
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("crop pass"),
-            timestamp_writes: timestamps,
-        });
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, bind_group, &[]);
-        pass.dispatch_workgroups(shader::workgroups_for(self.word_count), 1, 1);
+        let passes = CheckedPasses {
+            first: &self.mask_pipeline,
+            check: &self.check_pipeline,
+            group,
+            args_group: self.check_args_group.get(
+                ctx,
+                "crop check arguments bind group",
+                &self.check_args_layout,
+                &[entry(0, &self.check_args)],
+            ),
+            args: &self.check_args,
+            counts: &self.counts,
+        };
+        let words = shader::workgroups_for(self.word_count);
+        passes.record(encoder, "crop pass", words, timestamps);
     }
 
     /// Crops one cloud on its own (one submit, one readback): the keep mask and, with a
@@ -1146,6 +1252,35 @@ mod tests {
             gpu.run(ctx, &pts, &config, &scene, None),
             Err(CropError::TooManyPrimitives(_))
         ));
+    }
+
+    /// The check pass's indirect dispatch is laid out in rows of at most 65,535 workgroups
+    /// (a dispatch's limit per dimension): a list of more than 65,535 x 64 points is
+    /// checked whole, the points in the last row included.
+    #[test]
+    fn a_check_list_longer_than_one_dispatch_row_is_checked_whole() {
+        let ctx = crate::gpu::context::test_context();
+        let n = 65_535 * 64 + 5_000;
+        // A line of points through the HIP; the sphere holds every 7th point from the end.
+        let pts: Vec<Vec3> = (0..n)
+            .map(|i| Vec3::new(0.5 * (i as f32 / n as f32 - 0.5), 0.0, 0.0))
+            .collect();
+        let robot: Vec<Primitive> = (0..4)
+            .map(|k| Primitive::Sphere {
+                center_m: Point3::new(f64::from(pts[n - 1 - 7 * k].x), 0.0, 0.0),
+                radius_m: 1e-9,
+            })
+            .collect();
+        let config = CropConfig {
+            radius_m: 1.0,
+            robot_margin_m: 0.0,
+            robot_margin_per_m2: 0.0,
+        };
+        let scene = hip_scene(&robot);
+        let cpu = crop_cpu(&pts, &config, &scene).unwrap();
+        assert_eq!(kept_indices(&cpu, n).len(), n - 4);
+        let mut gpu = GpuCrop::new(ctx).unwrap();
+        assert_eq!(gpu.run(ctx, &pts, &config, &scene, None).unwrap().0, cpu);
     }
 
     #[test]
