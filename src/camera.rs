@@ -10,6 +10,7 @@ use crate::cloud::PointCloud;
 use glam::Vec3;
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
+use std::sync::OnceLock;
 
 /// Rectified pinhole intrinsics (no distortion), pixels.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -76,6 +77,10 @@ impl DepthImage {
 }
 
 /// What one camera delivers at one instant, as every source hands it to the node.
+///
+/// A frame built from a depth image deprojects it into its cloud on the first call to
+/// [`Frame::cloud`], so a consumer that reads only the image (the GPU path) never pays for
+/// the cloud.
 #[derive(Clone, Debug)]
 pub struct Frame {
     pub camera_id: u32,
@@ -83,10 +88,93 @@ pub struct Frame {
     pub stamp_s: f64,
     /// Pose of the camera's optical frame in the world frame.
     pub world_from_camera: Isometry3<f64>,
-    /// The points, in the camera's optical frame.
-    pub cloud: PointCloud,
-    /// The depth image the cloud came from, when the source had one.
-    pub depth: Option<(DepthImage, PinholeIntrinsics)>,
+    /// The points, in the camera's optical frame: given, or the depth image's deprojection.
+    cloud: OnceLock<PointCloud>,
+    /// The depth image, whose size its intrinsics match, when the source had one.
+    depth: Option<(DepthImage, PinholeIntrinsics)>,
+}
+
+impl Frame {
+    /// A frame of points only.
+    pub fn from_cloud(
+        camera_id: u32,
+        stamp_s: f64,
+        world_from_camera: Isometry3<f64>,
+        cloud: PointCloud,
+    ) -> Self {
+        Self {
+            camera_id,
+            stamp_s,
+            world_from_camera,
+            cloud: OnceLock::from(cloud),
+            depth: None,
+        }
+    }
+
+    /// A frame of a depth image, whose cloud is its deprojection, made when first read.
+    ///
+    /// Returns `None` when the intrinsics' size differs from the image's (as
+    /// [`DepthImage::deproject`]) or the image's data does not hold `width x height` pixels.
+    pub fn from_depth(
+        camera_id: u32,
+        stamp_s: f64,
+        world_from_camera: Isometry3<f64>,
+        depth: DepthImage,
+        intrinsics: PinholeIntrinsics,
+    ) -> Option<Self> {
+        let pixels = u64::from(depth.width) * u64::from(depth.height);
+        if (intrinsics.width, intrinsics.height) != (depth.width, depth.height)
+            || depth.data.len() as u64 != pixels
+        {
+            return None;
+        }
+        Some(Self {
+            camera_id,
+            stamp_s,
+            world_from_camera,
+            cloud: OnceLock::new(),
+            depth: Some((depth, intrinsics)),
+        })
+    }
+
+    /// The frame with `cloud` as its points (a source's own cloud beside its depth image).
+    pub fn with_cloud(self, cloud: PointCloud) -> Self {
+        Self {
+            cloud: OnceLock::from(cloud),
+            ..self
+        }
+    }
+
+    /// The frame without its depth image; its cloud stays what it was (deprojected now if
+    /// it was not yet).
+    pub fn without_depth(mut self) -> Self {
+        self.cloud();
+        self.depth = None;
+        self
+    }
+
+    /// The points, in the camera's optical frame (organized like the image when they are
+    /// its deprojection).
+    pub fn cloud(&self) -> &PointCloud {
+        // Only `from_depth` leaves the cloud unset, and it checked the sizes, so the
+        // deprojection exists.
+        self.cloud.get_or_init(|| {
+            self.depth
+                .as_ref()
+                .and_then(|(depth, intrinsics)| depth.deproject(intrinsics))
+                .unwrap_or_default()
+        })
+    }
+
+    /// True once the cloud exists: given, or deprojected by a call to [`Frame::cloud`].
+    pub fn is_cloud_made(&self) -> bool {
+        self.cloud.get().is_some()
+    }
+
+    /// The depth image and its intrinsics (same size), when the source had one.
+    pub fn depth(&self) -> Option<&(DepthImage, PinholeIntrinsics)> {
+        self.depth.as_ref()
+    }
 }
 
 #[cfg(test)]
@@ -115,5 +203,89 @@ mod tests {
         assert!(cloud.points[1].is_nan());
         assert_eq!(cloud.points[2], Vec3::new(1.0, 0.0, 2.0));
         assert_eq!(cloud.points[4], Vec3::new(0.0, 0.25, 0.5));
+    }
+
+    fn image_and_intrinsics() -> (DepthImage, PinholeIntrinsics) {
+        let intrinsics = PinholeIntrinsics {
+            width: 4,
+            height: 3,
+            fx: 3.0,
+            fy: 3.5,
+            cx: 1.7,
+            cy: 1.2,
+        };
+        let depth = DepthImage {
+            width: 4,
+            height: 3,
+            depth_scale_m: 0.001,
+            data: vec![0, 800, 801, 802, 900, 0, 903, 904, 1000, 1001, 0, 1003],
+        };
+        (depth, intrinsics)
+    }
+
+    fn bits(cloud: &PointCloud) -> Vec<[u32; 3]> {
+        cloud
+            .points
+            .iter()
+            .map(|p| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
+            .collect()
+    }
+
+    #[test]
+    fn a_depth_frame_deprojects_its_cloud_when_first_read() {
+        let (depth, intrinsics) = image_and_intrinsics();
+        let expected = depth.deproject(&intrinsics).unwrap();
+        let pose = Isometry3::translation(0.1, 0.2, 0.3);
+        let frame = Frame::from_depth(5, 1.5, pose, depth.clone(), intrinsics).unwrap();
+        assert_eq!(frame.depth(), Some(&(depth, intrinsics)));
+        let unread = frame.clone();
+        assert!(!frame.is_cloud_made());
+        let cloud = frame.cloud();
+        assert!(frame.is_cloud_made());
+        assert_eq!(
+            (cloud.width, cloud.height),
+            (expected.width, expected.height)
+        );
+        assert_eq!(bits(cloud), bits(&expected));
+        assert!(std::ptr::eq(cloud, frame.cloud()), "made once");
+        // A clone taken before the first read deprojects on its own first read; one taken
+        // after carries the cloud.
+        assert!(!unread.is_cloud_made());
+        assert_eq!(bits(unread.cloud()), bits(&expected));
+        assert!(frame.clone().is_cloud_made());
+        // Without its image the frame keeps the cloud.
+        let points_only = unread.without_depth();
+        assert!(points_only.depth().is_none());
+        assert_eq!(bits(points_only.cloud()), bits(&expected));
+    }
+
+    #[test]
+    fn a_given_cloud_is_the_frames_cloud() {
+        let (depth, intrinsics) = image_and_intrinsics();
+        let given = PointCloud::from_points(vec![Vec3::new(0.1, 0.2, 0.9)]);
+        let pose = Isometry3::identity();
+        let frame = Frame::from_depth(0, 0.0, pose, depth, intrinsics)
+            .unwrap()
+            .with_cloud(given.clone());
+        assert!(frame.is_cloud_made() && frame.depth().is_some());
+        assert_eq!(frame.cloud(), &given);
+        let frame = Frame::from_cloud(0, 0.0, pose, given.clone());
+        assert!(frame.is_cloud_made() && frame.depth().is_none());
+        assert_eq!(frame.cloud(), &given);
+    }
+
+    #[test]
+    fn a_depth_frame_needs_intrinsics_and_data_of_the_images_size() {
+        let (depth, intrinsics) = image_and_intrinsics();
+        let pose = Isometry3::identity();
+        let wide = PinholeIntrinsics {
+            width: 5,
+            ..intrinsics
+        };
+        assert!(Frame::from_depth(0, 0.0, pose, depth.clone(), wide).is_none());
+        let mut short = depth.clone();
+        short.data.pop();
+        assert!(Frame::from_depth(0, 0.0, pose, short, intrinsics).is_none());
+        assert!(Frame::from_depth(0, 0.0, pose, depth, intrinsics).is_some());
     }
 }

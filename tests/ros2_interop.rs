@@ -146,7 +146,7 @@ fn expected_stamp(i: u32) -> f64 {
 
 fn check_depth_frame(f: &Frame, i: u32) {
     assert_eq!(f.stamp_s, expected_stamp(i));
-    let (d, k) = f.depth.as_ref().expect("a depth frame");
+    let (d, k) = f.depth().expect("a depth frame");
     assert_eq!(d.data, expected_depth(i));
     assert_eq!(d.depth_scale_m, 0.001);
     assert_eq!(
@@ -154,8 +154,11 @@ fn check_depth_frame(f: &Frame, i: u32) {
         (20.0, 21.0, 7.5, 5.5, W, H)
     );
     let cloud = d.deproject(k).unwrap();
-    assert_eq!((f.cloud.width, f.cloud.height), (cloud.width, cloud.height));
-    for (p, q) in f.cloud.points.iter().zip(&cloud.points) {
+    assert_eq!(
+        (f.cloud().width, f.cloud().height),
+        (cloud.width, cloud.height)
+    );
+    for (p, q) in f.cloud().points.iter().zip(&cloud.points) {
         for (x, y) in p.to_array().iter().zip(q.to_array()) {
             assert_eq!(x.to_bits(), y.to_bits());
         }
@@ -244,8 +247,8 @@ fn frames_published_by_python_through_a_router() {
     }
     for (i, f) in p.iter().enumerate() {
         assert_eq!(f.stamp_s, expected_stamp(i as u32));
-        assert!(!f.cloud.is_organized());
-        same_points(&f.cloud.points, &expected_points(i as u32));
+        assert!(!f.cloud().is_organized());
+        same_points(&f.cloud().points, &expected_points(i as u32));
     }
     let c = source.counters();
     assert_eq!((c[&0].malformed, c[&1].malformed, c[&0].drops), (0, 0, 0));
@@ -388,22 +391,16 @@ fn rosbags_reads_a_hapcloud_recording() {
             cy: 5.5,
         },
     );
-    let frame = Frame {
-        camera_id: 2,
-        stamp_s: 1.0 / 3.0,
-        world_from_camera: nalgebra::Isometry3::translation(0.0, 0.0, 1.0),
-        cloud: d.deproject(&k).unwrap(),
-        depth: Some((d, k)),
-    };
+    let pose = nalgebra::Isometry3::translation(0.0, 0.0, 1.0);
+    let frame = Frame::from_depth(2, 1.0 / 3.0, pose, d, k).unwrap();
     w.write_frame(&frame, &[0.5; 6]).unwrap();
     // A simulated frame: its cloud is not its (rounded) image deprojected, so both go in.
-    let mut simulated = Frame {
-        camera_id: 3,
-        ..frame.clone()
-    };
-    for p in &mut simulated.cloud.points {
+    let mut cloud = frame.cloud().clone();
+    for p in &mut cloud.points {
         *p *= 1.0001;
     }
+    let mut simulated = frame.clone().with_cloud(cloud);
+    simulated.camera_id = 3;
     w.write_frame(&simulated, &[0.5; 6]).unwrap();
     for i in 0..3 {
         w.write_tick(&tick(i)).unwrap();
@@ -962,16 +959,13 @@ fn a_simulated_gpu_run_replays_bit_for_bit_and_rosbags_opens_it() {
     assert!(!recording.frames.is_empty());
     // Every frame has its image back, and its cloud is the simulator's, not the image's.
     for f in &recording.frames {
-        let (d, k) = f
-            .depth
-            .as_ref()
-            .expect("a simulated frame keeps its depth image");
+        let (d, k) = f.depth().expect("a simulated frame keeps its depth image");
         let deprojected = d.deproject(k).unwrap();
         assert!(
             deprojected
                 .points
                 .iter()
-                .zip(&f.cloud.points)
+                .zip(&f.cloud().points)
                 .any(|(a, b)| a.is_finite() && b.is_finite() && a != b),
             "camera {} at {} s: the cloud is the rounded image",
             f.camera_id,

@@ -48,13 +48,7 @@ fn depth_frame(id: u32, stamp_s: f64, scale: f64) -> Frame {
             })
             .collect(),
     };
-    Frame {
-        camera_id: id,
-        stamp_s,
-        world_from_camera: pose(id),
-        cloud: d.deproject(&k).unwrap(),
-        depth: Some((d, k)),
-    }
+    Frame::from_depth(id, stamp_s, pose(id), d, k).unwrap()
 }
 
 fn points_frame(id: u32, stamp_s: f64) -> Frame {
@@ -68,13 +62,8 @@ fn points_frame(id: u32, stamp_s: f64) -> Frame {
             }
         })
         .collect();
-    Frame {
-        camera_id: id,
-        stamp_s,
-        world_from_camera: pose(id),
-        cloud: PointCloud::organized(pts, 8, 5).unwrap(),
-        depth: None,
-    }
+    let cloud = PointCloud::organized(pts, 8, 5).unwrap();
+    Frame::from_cloud(id, stamp_s, pose(id), cloud)
 }
 
 fn assert_same_frame(a: &Frame, b: &Frame) {
@@ -82,16 +71,16 @@ fn assert_same_frame(a: &Frame, b: &Frame) {
     assert_eq!(a.stamp_s.to_bits(), b.stamp_s.to_bits());
     assert_eq!(a.world_from_camera, b.world_from_camera);
     assert_eq!(
-        (a.cloud.width, a.cloud.height),
-        (b.cloud.width, b.cloud.height)
+        (a.cloud().width, a.cloud().height),
+        (b.cloud().width, b.cloud().height)
     );
-    assert_eq!(a.cloud.points.len(), b.cloud.points.len());
-    for (p, q) in a.cloud.points.iter().zip(&b.cloud.points) {
+    assert_eq!(a.cloud().points.len(), b.cloud().points.len());
+    for (p, q) in a.cloud().points.iter().zip(&b.cloud().points) {
         for (x, y) in p.to_array().iter().zip(q.to_array()) {
             assert_eq!(x.to_bits(), y.to_bits());
         }
     }
-    assert_eq!(a.depth, b.depth);
+    assert_eq!(a.depth(), b.depth());
 }
 
 fn estimate(i: u32) -> SurfaceEstimate {
@@ -244,11 +233,12 @@ fn frames_estimates_and_ticks_read_back_bit_for_bit() {
 
 /// A simulated frame: the cloud from unrounded depths, the image rounded to mm.
 fn simulated_frame(id: u32, stamp_s: f64) -> Frame {
-    let mut f = depth_frame(id, stamp_s, 0.001);
-    for p in &mut f.cloud.points {
+    let f = depth_frame(id, stamp_s, 0.001);
+    let mut cloud = f.cloud().clone();
+    for p in &mut cloud.points {
         *p *= 1.0001;
     }
-    f
+    f.with_cloud(cloud)
 }
 
 #[test]
@@ -264,7 +254,7 @@ fn a_cloud_that_is_not_the_deprojected_image_is_kept_beside_the_image() {
     for ((back, _), f) in got.frames.iter().zip(&sent) {
         assert_same_frame(back, f);
     }
-    assert!(got.frames[0].0.depth.is_some());
+    assert!(got.frames[0].0.depth().is_some());
     // `PointCloud` stores the cloud only: it reads back without the image.
     let f = simulated_frame(0, 2.0);
     let config = McapWriterConfig {
@@ -273,9 +263,8 @@ fn a_cloud_that_is_not_the_deprojected_image_is_kept_beside_the_image() {
     };
     let got = read(&write(config, std::slice::from_ref(&f)));
     let back = &got.frames[0].0;
-    assert!(back.depth.is_none());
-    let mut expected = f.clone();
-    expected.depth = None;
+    assert!(back.depth().is_none());
+    let expected = f.clone().without_depth();
     assert_same_frame(back, &expected);
     // `DepthImage` stores the image whatever the cloud: it reads back deprojected.
     let config = McapWriterConfig {
@@ -283,10 +272,10 @@ fn a_cloud_that_is_not_the_deprojected_image_is_kept_beside_the_image() {
         ..McapWriterConfig::default()
     };
     let got = read(&write(config, std::slice::from_ref(&f)));
-    assert!(got.frames[0].0.depth.is_some());
+    assert!(got.frames[0].0.depth().is_some());
     assert_ne!(
-        got.frames[0].0.cloud.points[1].to_array(),
-        f.cloud.points[1].to_array()
+        got.frames[0].0.cloud().points[1].to_array(),
+        f.cloud().points[1].to_array()
     );
 }
 

@@ -89,7 +89,7 @@ fn render(scene: &Scene, index: u64) -> SimFrame {
 
 fn depths(f: &SimFrame) -> Vec<f64> {
     f.frame
-        .cloud
+        .cloud()
         .points
         .iter()
         .map(|p| if p.z.is_finite() { f64::from(p.z) } else { 0.0 })
@@ -159,7 +159,7 @@ fn clean_builtin_frames_lie_on_the_analytic_surface() {
                 robot_px > 100,
                 "{name} cam {cam}: the robot must appear ({robot_px} px)"
             );
-            for (i, p) in f.frame.cloud.points.iter().enumerate() {
+            for (i, p) in f.frame.cloud().points.iter().enumerate() {
                 let label = f.labels[i];
                 assert_eq!(p.is_finite(), label != NO_HIT, "{name}: pixel {i}");
                 if label == NO_HIT {
@@ -197,7 +197,7 @@ fn ground_truth_agrees_with_brute_force_over_rendered_points() {
             let mut best = (f64::INFINITY, String::new());
             for cam in sim.cameras() {
                 let f = sim.frame(&exactly_at(cam.id, t_s));
-                for (i, p) in f.frame.cloud.points.iter().enumerate() {
+                for (i, p) in f.frame.cloud().points.iter().enumerate() {
                     let l = f.labels[i];
                     if l == NO_HIT || !f.label_names[l as usize].starts_with("patient:") {
                         continue;
@@ -261,17 +261,14 @@ fn same_seed_same_frames_any_thread_count() {
     let (a, b) = (sim1.frame(&t), sim3.frame(&t));
     let bits = |f: &SimFrame| -> Vec<[u32; 3]> {
         f.frame
-            .cloud
+            .cloud()
             .points
             .iter()
             .map(|p| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
             .collect()
     };
     assert_eq!(bits(&a), bits(&b));
-    assert_eq!(
-        a.frame.depth.as_ref().unwrap().0,
-        b.frame.depth.as_ref().unwrap().0
-    );
+    assert_eq!(a.frame.depth().unwrap().0, b.frame.depth().unwrap().0);
     assert_eq!(a.frame.stamp_s, b.frame.stamp_s);
     // Another seed gives other noise.
     let mut file = scene.file.clone();
@@ -289,7 +286,7 @@ fn quantised_cloud_equals_deprojected_depth_image() {
         vec![Effect::Quantization(Quantization::default())],
     );
     let f = render(&s, 0);
-    let (depth, k) = f.frame.depth.as_ref().unwrap();
+    let (depth, k) = f.frame.depth().unwrap();
     let back = depth.deproject(k).unwrap();
     let bits = |c: &hapcloud::cloud::PointCloud| -> Vec<[u32; 3]> {
         c.points
@@ -297,7 +294,7 @@ fn quantised_cloud_equals_deprojected_depth_image() {
             .map(|p| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
             .collect()
     };
-    assert_eq!(bits(&back), bits(&f.frame.cloud));
+    assert_eq!(bits(&back), bits(f.frame.cloud()));
 }
 
 // ---------------------------------------------------------------------------------------
@@ -416,13 +413,13 @@ fn grazing_holes_follow_the_incidence_ramp() {
     for v in 0..k.height as usize {
         for u in 0..k.width as usize {
             let i = v * k.width as usize + u;
-            if !clean.frame.cloud.points[i].is_finite() {
+            if !clean.frame.cloud().points[i].is_finite() {
                 continue;
             }
             let d = Vector3::new((u as f64 - k.cx) / k.fx, (v as f64 - k.cy) / k.fy, 1.0);
             let angle = (n.dot(&d).abs() / d.norm()).acos();
             expected += holes.grazing_probability(angle);
-            observed += usize::from(!f.frame.cloud.points[i].is_finite());
+            observed += usize::from(!f.frame.cloud().points[i].is_finite());
         }
     }
     println!("grazing holes: observed {observed}, expected {expected:.0}");
@@ -756,7 +753,7 @@ fn close_scene_views(name: &str, body: &str, times: [f64; 3]) {
             let hip_distance = (gt.hip_m - position).norm();
             let f = sim.frame(&exactly_at(cam.id, t_s));
             let (mut robot_min, mut patient_min, mut near_hip) = (f64::MAX, f64::MAX, 0);
-            for (p, &l) in f.frame.cloud.points.iter().zip(&f.labels) {
+            for (p, &l) in f.frame.cloud().points.iter().zip(&f.labels) {
                 if l == NO_HIT || !p.is_finite() {
                     continue;
                 }
@@ -817,13 +814,13 @@ fn sim_output_reads_back_through_the_io_readers() {
             let same = cloud
                 .points
                 .iter()
-                .zip(&f.frame.cloud.points)
+                .zip(&f.frame.cloud().points)
                 .all(|(a, b)| (a.is_nan() && b.is_nan()) || a == b);
             assert!(same, "{}", json.display());
             let depth =
                 hapcloud::io::depth::read(&json.with_extension("png"), side.depth_scale_m).unwrap();
-            assert_eq!(&depth, &f.frame.depth.as_ref().unwrap().0);
-            assert_eq!(side.intrinsics, f.frame.depth.as_ref().unwrap().1);
+            assert_eq!(&depth, &f.frame.depth().unwrap().0);
+            assert_eq!(side.intrinsics, f.frame.depth().unwrap().1);
             let pose = side.world_from_camera.isometry();
             assert!(
                 (pose.translation.vector - f.frame.world_from_camera.translation.vector).norm()

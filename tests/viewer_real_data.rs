@@ -23,7 +23,7 @@ fn timeline() -> Vec<ViewFrame> {
 fn stages_run_on_real_frames_and_every_layer_is_filled() {
     let frames = read_cloud_dir(&grabber_dir(), 30.0).unwrap();
     assert_eq!(frames.len(), 3);
-    assert_eq!(frames[0].cloud.len(), 640 * 480);
+    assert_eq!(frames[0].cloud().len(), 640 * 480);
     // Stamps from the file names: about 0.25 s apart.
     let dt = frames[1].stamp_s - frames[0].stamp_s;
     assert!((dt - 0.254471).abs() < 1e-6, "{dt}");
@@ -32,7 +32,7 @@ fn stages_run_on_real_frames_and_every_layer_is_filled() {
     let timeline = timeline_from_frames(&frames, hip, &NodeConfig::default()).unwrap();
     assert_eq!(timeline.len(), 3);
     for (k, f) in timeline.iter().enumerate() {
-        let finite = frames[k].cloud.finite_count();
+        let finite = frames[k].cloud().finite_count();
         let cam = &f.cameras[0];
         let cropped = cam.layer(PointRole::Cropped).len();
         let kept = cam.layer(PointRole::Kept).len();

@@ -145,7 +145,7 @@ pub fn recording(data: &[u8]) {
     if let Ok(mut reader) = McapReader::new(std::io::Cursor::new(data), &Default::default()) {
         while let Ok(Some(item)) = reader.next_item() {
             if let McapItem::Frame(a) = item {
-                let _ = a.frame.cloud.points.len();
+                let _ = a.frame.cloud().points.len();
             }
         }
     }
@@ -183,7 +183,7 @@ pub fn ros2_messages(data: &[u8]) {
     for (topic, payload) in records(data) {
         let topic = ROS2_TOPICS[usize::from(topic) % ROS2_TOPICS.len()];
         if let Some(assembled) = assembler.push(topic, payload) {
-            let _ = assembled.frame.cloud.points.len();
+            let _ = assembled.frame.cloud().points.len();
         }
     }
 }
@@ -246,7 +246,7 @@ pub fn hapcloud_messages(data: &[u8]) {
             }
             i => {
                 if let Some(assembled) = assembler.push(&topics[i], payload) {
-                    let _ = assembled.frame.cloud.points.len();
+                    let _ = assembled.frame.cloud().points.len();
                 }
             }
         }

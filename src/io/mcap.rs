@@ -231,14 +231,14 @@ impl<W: Write + Seek> McapWriter<W> {
         };
         let pose = &frame.world_from_camera;
         let q = pose.rotation.quaternion();
-        let (depth, points) = match (self.config.frames, frame.depth.as_ref()) {
+        let (depth, points) = match (self.config.frames, frame.depth()) {
             // Decided on the camera's first frame, so its channels stay the same: a reader
             // knows from the channels which parts make the camera's frames.
             (FrameEncoding::Auto, Some((d, k))) => {
                 let points = *self
                     .cloud_beside_image
                     .entry(id)
-                    .or_insert_with(|| !cloud_is_deprojection(&frame.cloud, d, k));
+                    .or_insert_with(|| !cloud_is_deprojection(frame.cloud(), d, k));
                 (Some((d, k)), points)
             }
             (FrameEncoding::DepthImage, Some((d, k))) => (Some((d, k)), false),
@@ -272,7 +272,7 @@ impl<W: Write + Seek> McapWriter<W> {
             self.write(&topics::camera_info(id), t, &info)?;
         }
         if points {
-            let cloud = pointcloud2_from_cloud(header.clone(), &frame.cloud);
+            let cloud = pointcloud2_from_cloud(header.clone(), frame.cloud());
             self.write(&topics::points(id), t, &cloud)?;
         }
         let tf = TfMessage {

@@ -738,7 +738,7 @@ impl ZenohPublisher {
             stamp: time_from_seconds(frame.stamp_s),
             frame_id: topics::camera_frame_id(id),
         };
-        match &frame.depth {
+        match frame.depth() {
             Some((d, k)) => {
                 self.publish(
                     &topics::depth_image(id),
@@ -751,7 +751,7 @@ impl ZenohPublisher {
             }
             None => self.publish(
                 &topics::points(id),
-                &pointcloud2_from_cloud(header, &frame.cloud),
+                &pointcloud2_from_cloud(header, frame.cloud()),
             ),
         }
     }

@@ -50,7 +50,7 @@ pub fn measure_backends(
             let hip = f.world_from_camera.inverse() * scene.hip_m;
             let near = glam::Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32);
             let radius = config.frontend.crop.radius_m as f32;
-            veil_cloud(&f.cloud, &f.world_from_camera, near, radius, flying).0
+            veil_cloud(f.cloud(), &f.world_from_camera, near, radius, flying).0
         })
         .collect();
     // The shell sums the chain asks the front end for.
@@ -84,18 +84,14 @@ pub fn measure_backends(
     let gpu: Vec<FrameInput<'_>> = (0..frames.len())
         .map(|i| {
             let f = &frames[i];
-            let points = match &f.depth {
-                Some((image, intrinsics))
-                    if (intrinsics.width, intrinsics.height) == (image.width, image.height) =>
-                {
-                    FramePoints::Depth(DepthInput {
-                        image,
-                        intrinsics,
-                        cloud_from_camera: f.world_from_camera,
-                        flying,
-                    })
-                }
-                _ => FramePoints::Points(&world[i]),
+            let points = match f.depth() {
+                Some((image, intrinsics)) => FramePoints::Depth(DepthInput {
+                    image,
+                    intrinsics,
+                    cloud_from_camera: f.world_from_camera,
+                    flying,
+                }),
+                None => FramePoints::Points(&world[i]),
             };
             input(f, &scenes[i], layouts[i].as_ref(), points)
         })

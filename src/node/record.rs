@@ -545,13 +545,8 @@ mod tests {
         let tick = haptic_loop
             .tick(0.0, &RobotInput::without_force(joints))
             .record(0, joints, 0.0);
-        let frame = Frame {
-            camera_id: 0,
-            stamp_s: 0.0,
-            world_from_camera: Default::default(),
-            cloud: PointCloud::from_points(vec![glam::Vec3::new(0.0, 0.0, 1.0)]),
-            depth: None,
-        };
+        let cloud = PointCloud::from_points(vec![glam::Vec3::new(0.0, 0.0, 1.0)]);
+        let frame = Frame::from_cloud(0, 0.0, Default::default(), cloud);
         let (release, gate) = mpsc::channel();
         let written = Arc::new(AtomicU64::new(0));
         let writer = Stalled {

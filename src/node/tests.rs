@@ -34,13 +34,7 @@ fn plane_frame(camera_id: u32, stamp_s: f64) -> Frame {
             points.push(Vec3::new(p.x as f32, p.y as f32, p.z as f32));
         }
     }
-    Frame {
-        camera_id,
-        stamp_s,
-        world_from_camera: pose,
-        cloud: PointCloud::from_points(points),
-        depth: None,
-    }
+    Frame::from_cloud(camera_id, stamp_s, pose, PointCloud::from_points(points))
 }
 
 /// Two cameras at 30 Hz, half a frame apart, from `t0`, skipping stamps in `gap`.
@@ -760,8 +754,7 @@ fn frames_out_of_order_per_camera_are_refused_and_counted() {
         refused_cameras.push(old.camera_id);
         frames.insert(at + 1, old);
     }
-    let mut same = frames[40].clone();
-    same.cloud = frames[42].cloud.clone();
+    let same = frames[40].clone().with_cloud(frames[42].cloud().clone());
     refused_cameras.push(same.camera_id);
     frames.insert(41, same);
     let injected = refused_cameras.len() as u64;

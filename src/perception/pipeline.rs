@@ -229,7 +229,7 @@ impl SurfaceEstimator {
     /// camera) breaking ties.
     pub fn estimate_frame(&mut self, frame: &Frame, hip_world: &Point3<f64>) -> SurfaceFrame {
         let pose = frame.world_from_camera;
-        let world = to_world(&frame.cloud.points, &pose);
+        let world = to_world(&frame.cloud().points, &pose);
         let camera = Point3::from(pose.translation.vector);
         self.estimate(&world, hip_world, camera, frame.camera_id, frame.stamp_s)
     }
@@ -500,17 +500,13 @@ impl CameraChain {
         // pass deprojects it, rejects flying pixels and crops. Otherwise (CPU, or a source
         // without an image) the cloud goes to the world frame and through the veil test here.
         let flying_config = self.surface_config.flying_pixels.clone();
-        let depth = match (&self.ctx, &frame.depth) {
-            (Some(_), Some((image, intrinsics)))
-                if (intrinsics.width, intrinsics.height) == (image.width, image.height) =>
-            {
-                Some(DepthInput {
-                    image,
-                    intrinsics,
-                    cloud_from_camera: pose,
-                    flying: &flying_config,
-                })
-            }
+        let depth = match (&self.ctx, frame.depth()) {
+            (Some(_), Some((image, intrinsics))) => Some(DepthInput {
+                image,
+                intrinsics,
+                cloud_from_camera: pose,
+                flying: &flying_config,
+            }),
             _ => None,
         };
         let (mut world_points, mut flying) = match depth {
@@ -518,7 +514,7 @@ impl CameraChain {
             None => {
                 let hip_cam = pose.inverse() * hip_world;
                 veil_cloud(
-                    &frame.cloud,
+                    frame.cloud(),
                     &pose,
                     Vec3::new(hip_cam.x as f32, hip_cam.y as f32, hip_cam.z as f32),
                     self.frontend_config.crop.radius_m as f32,
@@ -626,13 +622,8 @@ mod tests {
     }
 
     fn frame(seed: u64, camera_id: u32) -> Frame {
-        Frame {
-            camera_id,
-            stamp_s: seed as f64 / 30.0,
-            world_from_camera: pose(),
-            cloud: PointCloud::organized(synthetic_frame(seed), 640, 480).unwrap(),
-            depth: None,
-        }
+        let cloud = PointCloud::organized(synthetic_frame(seed), 640, 480).unwrap();
+        Frame::from_cloud(camera_id, seed as f64 / 30.0, pose(), cloud)
     }
 
     /// HIP 5 cm in front of the sphere towards the camera, and the true closest point and
@@ -724,21 +715,26 @@ mod tests {
         let mut cpu = new(Backend::Cpu).unwrap();
         let mut gpu = new(Backend::Gpu).expect("GPU tests need Vulkan");
         for seed in 0..2 {
-            let mut f = frame(seed, 0);
-            // For a real source the cloud is the image's deprojection (f64), as here.
-            f.depth = Some((
+            let f = Frame::from_depth(
+                0,
+                seed as f64 / 30.0,
+                pose(),
                 synthetic_depth(seed),
                 crate::camera::PinholeIntrinsics::PCL_GRABBER,
-            ));
+            )
+            .unwrap();
             let layers = seed == 1;
             cpu.set_crop_keep(layers);
             gpu.set_crop_keep(layers);
-            let c = cpu.process(&f, &hip, &[]).unwrap();
             let g = gpu.process(&f, &hip, &[]).unwrap();
-            // The CPU chain took the cloud, the GPU chain the image.
+            // The GPU chain took the image and left the cloud unmade; the CPU chain
+            // deprojected it.
+            assert!(!f.is_cloud_made());
+            let c = cpu.process(&f, &hip, &[]).unwrap();
+            assert!(f.is_cloud_made());
             assert!(c.front.depth.is_none());
             let counts = g.front.depth.expect("the GPU took the depth image");
-            assert_eq!(counts.valid, f.cloud.finite_count());
+            assert_eq!(counts.valid, f.cloud().finite_count());
             assert_eq!(g.flying_pixels, counts.flying);
             assert!(g.flying_pixels.abs_diff(c.flying_pixels) <= 20);
             assert!(c.flying_pixels > 0);
@@ -746,7 +742,7 @@ mod tests {
             if layers {
                 assert_eq!(g.world_points.len(), c.world_points.len());
                 let keep = g.front.crop_keep.as_ref().unwrap();
-                let differ = (0..f.cloud.len())
+                let differ = (0..f.cloud().len())
                     .filter(|&i| {
                         super::super::crop::mask_bit(keep, i)
                             != super::super::crop::mask_bit(c.front.crop_keep.as_ref().unwrap(), i)

@@ -140,10 +140,10 @@ pub fn write_sequence(
             .join(format!("frame_{:05}", timing.index));
         io::pcd::write(
             &stem.with_extension("pcd"),
-            &f.frame.cloud,
+            f.frame.cloud(),
             Encoding::Binary,
         )?;
-        if let Some((depth, intrinsics)) = &f.frame.depth {
+        if let Some((depth, intrinsics)) = f.frame.depth() {
             io::depth::write(&stem.with_extension("png"), depth)?;
             let sidecar = FrameSidecar {
                 camera_id: cam.id,

@@ -476,14 +476,17 @@ impl Simulator {
         if let Ok(mut pool) = self.scratch.lock() {
             pool.push(scratch);
         }
+        let frame = Frame::from_depth(
+            cam.id,
+            timing.stamp_s,
+            cam.world_from_camera_reported,
+            depth,
+            cam.intrinsics,
+        )
+        .unwrap_or_else(|| unreachable!("the depth image is rendered at the intrinsics' size"))
+        .with_cloud(cloud);
         SimFrame {
-            frame: Frame {
-                camera_id: cam.id,
-                stamp_s: timing.stamp_s,
-                world_from_camera: cam.world_from_camera_reported,
-                cloud,
-                depth: Some((depth, cam.intrinsics)),
-            },
+            frame,
             timing: *timing,
             labels,
             label_names,

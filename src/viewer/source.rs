@@ -106,13 +106,7 @@ pub fn read_cloud_dir(dir: &Path, rate_hz: f64) -> Result<Vec<Frame>, SourceErro
         .zip(stamps)
         .map(|(path, stamp_s)| {
             let cloud = io::read_cloud(path)?;
-            Ok(Frame {
-                camera_id: 0,
-                stamp_s,
-                world_from_camera: world_from_optical(),
-                cloud,
-                depth: None,
-            })
+            Ok(Frame::from_cloud(0, stamp_s, world_from_optical(), cloud))
         })
         .collect()
 }
@@ -121,7 +115,7 @@ pub fn read_cloud_dir(dir: &Path, rate_hz: f64) -> Result<Vec<Frame>, SourceErro
 /// optical axis, `distance_m` in front of that point.
 pub fn hip_on_axis(frame: &Frame, distance_m: f64) -> Option<Point3<f64>> {
     let (_, p) = frame
-        .cloud
+        .cloud()
         .points
         .iter()
         .filter(|p| p.is_finite() && p.z > 0.0)

@@ -1,15 +1,17 @@
 //! ROS 2 transport costs for one 848x480 depth frame: bytes on the wire, CDR encode and
-//! decode-to-Frame times, and the publish -> Frame latency through Zenoh on loopback (a
-//! listening peer and a client, the node's source on one side), for a depth Image +
-//! CameraInfo against the same frame as a packed PointCloud2 (the reference).
+//! decode times (to a cloud, and to a Frame whose cloud is not yet made), and the publish ->
+//! Frame latency through Zenoh on loopback (a listening peer and a client, the node's source
+//! on one side), for a depth Image + CameraInfo against the same frame as a packed
+//! PointCloud2 (the reference).
 //! `cargo bench --bench ros2_transport`.
 
 use hapcloud::camera::{DepthImage, Frame, PinholeIntrinsics};
 use hapcloud::io::ros2::assemble::{CameraTopics, Pose};
 use hapcloud::io::ros2::convert::{
-    camera_info_from_intrinsics, depth_from_image, image_from_depth, pointcloud2_from_cloud,
+    camera_info_from_intrinsics, depth_from_image, frame_from_depth, image_from_depth,
+    pointcloud2_from_cloud,
 };
-use hapcloud::io::ros2::msgs::{Header, Image, PointCloud2};
+use hapcloud::io::ros2::msgs::{CameraInfo, Header, Image, PointCloud2};
 use hapcloud::io::ros2::{decode, encode, time_from_seconds, topics};
 use hapcloud::io::zenoh::{
     Mode, ZenohConfig, ZenohPublisher, ZenohPublisherConfig, ZenohSource, ZenohSourceConfig,
@@ -43,13 +45,8 @@ fn frame(stamp_s: f64, depth: bool) -> Frame {
             })
             .collect(),
     };
-    Frame {
-        camera_id: 0,
-        stamp_s,
-        world_from_camera: Isometry3::identity(),
-        cloud: d.deproject(&k).unwrap(),
-        depth: depth.then_some((d, k)),
-    }
+    let f = Frame::from_depth(0, stamp_s, Isometry3::identity(), d, k).unwrap();
+    if depth { f } else { f.without_depth() }
 }
 
 fn now_s() -> f64 {
@@ -70,10 +67,10 @@ fn main() {
         stamp: time_from_seconds(1.0),
         frame_id: "camera0".into(),
     };
-    let (d, k) = f.depth.as_ref().unwrap();
+    let (d, k) = f.depth().unwrap();
     let image = encode(&image_from_depth(header.clone(), d)).unwrap();
     let info = encode(&camera_info_from_intrinsics(header.clone(), k)).unwrap();
-    let cloud = encode(&pointcloud2_from_cloud(header, &f.cloud)).unwrap();
+    let cloud = encode(&pointcloud2_from_cloud(header, f.cloud())).unwrap();
     println!("bytes per 848x480 frame");
     println!(
         "  Image 16UC1 + CameraInfo: {} + {}",
@@ -104,6 +101,21 @@ fn main() {
     println!(
         "decode to a cloud, ms: Image {img_ms:.2}, PointCloud2 {pc_ms:.2} (ratio {:.2})",
         img_ms / pc_ms
+    );
+    let info_msg: CameraInfo = decode(&info).unwrap();
+    let frame_ms = |read_cloud: bool| {
+        time(&mut || {
+            let m: Image = decode(&image).unwrap();
+            let f = frame_from_depth(0, 1.0, Isometry3::identity(), &m, &info_msg, None).unwrap();
+            if read_cloud {
+                std::hint::black_box(f.cloud());
+            }
+            std::hint::black_box(f);
+        })
+    };
+    let (unread, read) = (frame_ms(false), frame_ms(true));
+    println!(
+        "decode an Image to a Frame, ms: {unread:.2}; and read its cloud (the deprojection): {read:.2}"
     );
 
     let port = std::net::TcpListener::bind("127.0.0.1:0")

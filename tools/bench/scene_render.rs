@@ -49,7 +49,7 @@ fn main() -> anyhow::Result<()> {
                 if let Some(t) = sim.timing(c, index) {
                     let f = sim.frame(&t);
                     if steps == 0 {
-                        valid += f.frame.cloud.finite_count();
+                        valid += f.frame.cloud().finite_count();
                         views += 1;
                     }
                 }

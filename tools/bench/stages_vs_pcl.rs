@@ -470,13 +470,11 @@ fn chain_counts(c: &ChainFrame, finite: usize) -> [usize; 6] {
 /// The frame as a real depth source delivers it: the cloud is the depth image's deprojection
 /// (the simulator's own cloud is its unquantised depth). The GPU chain takes the image, the
 /// CPU chain the cloud.
-fn as_delivered(mut frame: Frame) -> Frame {
-    if let Some((image, k)) = &frame.depth
-        && let Some(cloud) = image.deproject(k)
-    {
-        frame.cloud = cloud;
+fn as_delivered(frame: Frame) -> Frame {
+    match frame.depth().and_then(|(image, k)| image.deproject(k)) {
+        Some(cloud) => frame.with_cloud(cloud),
+        None => frame,
     }
-    frame
 }
 
 /// GPU and CPU chain counts agree: integers decided by integers exactly (pixels with a
@@ -530,7 +528,7 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
     let Some((first, _, _)) = frames.first() else {
         bail!("scene {} rendered no frame of camera 0", args.scene);
     };
-    let (width, height) = (first.cloud.width, first.cloud.height);
+    let (width, height) = (first.cloud().width, first.cloud().height);
     let config = NodeConfig::default();
     let mut gpu = CameraChain::new(
         Backend::Gpu,
@@ -568,7 +566,7 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
             after_last.push(returned.saturating_sub(last.end_ns) as f64 * 1e-6);
         }
         let c = cpu.process(frame, hip, primitives)?;
-        let finite = frame.cloud.finite_count();
+        let finite = frame.cloud().finite_count();
         let (gc, cc) = (chain_counts(&g, finite), chain_counts(&c, finite));
         same &= counts_agree(&gc, &cc);
         counts.push(gc);

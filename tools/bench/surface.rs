@@ -126,7 +126,7 @@ fn organized_frame_steps(scene: &str) {
     let hip = sim.hip_at(timing.stamp_s).expect("robot");
     let hip_cam = frame.world_from_camera.inverse() * hip;
     let near = Vec3::new(hip_cam.x as f32, hip_cam.y as f32, hip_cam.z as f32);
-    let (cloud, radius) = (&frame.cloud, CropConfig::default().radius_m as f32);
+    let (cloud, radius) = (frame.cloud(), CropConfig::default().radius_m as f32);
     let config = FlyingPixelConfig::default();
     println!(
         "{}: {}x{} frame, HIP {:.2} m from the camera",

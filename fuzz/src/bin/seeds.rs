@@ -360,13 +360,12 @@ fn recordings(recording: Option<&Path>) {
             cloud.width = w;
             cloud.height = h;
         }
-        frames.push(hapcloud::camera::Frame {
-            camera_id: i as u32,
-            stamp_s: 0.5 + i as f64 / 30.0,
-            world_from_camera: nalgebra::Isometry3::translation(0.1, 0.0, 0.5),
+        frames.push(hapcloud::camera::Frame::from_cloud(
+            i as u32,
+            0.5 + i as f64 / 30.0,
+            nalgebra::Isometry3::translation(0.1, 0.0, 0.5),
             cloud,
-            depth: None,
-        });
+        ));
     }
     let k = hapcloud::camera::PinholeIntrinsics {
         width: 4,
@@ -382,13 +381,8 @@ fn recordings(recording: Option<&Path>) {
         depth_scale_m: 0.001,
         data: vec![0, 800, 801, 802, 900, 0, 903, 904, 1000, 1001, 0, 1003],
     };
-    frames.push(hapcloud::camera::Frame {
-        camera_id: 3,
-        stamp_s: 0.7,
-        world_from_camera: nalgebra::Isometry3::translation(0.0, 0.1, 0.6),
-        cloud: d.deproject(&k).expect("a depth frame"),
-        depth: Some((d, k)),
-    });
+    let pose = nalgebra::Isometry3::translation(0.0, 0.1, 0.6);
+    frames.push(hapcloud::camera::Frame::from_depth(3, 0.7, pose, d, k).expect("a depth frame"));
     let meta = RecordingMeta {
         version: record::RECORDING_VERSION,
         config: NodeConfig::default(),
@@ -405,10 +399,11 @@ fn recordings(recording: Option<&Path>) {
     );
     // A simulator's camera: its rendered cloud is not its image's deprojection, so the
     // writer adds the cloud beside the image.
-    let mut rendered = frames[3].clone();
-    for p in &mut rendered.cloud.points {
+    let mut cloud = frames[3].cloud().clone();
+    for p in &mut cloud.points {
         p.z += 0.001;
     }
+    let rendered = frames[3].clone().with_cloud(cloud);
     message_records(
         "simulated_and_points.rec",
         &mcap_recording(&meta, &[rendered, frames[0].clone()], |_| {}),
@@ -423,10 +418,13 @@ fn recordings(recording: Option<&Path>) {
         .frames
         .iter()
         .take(2)
-        .map(|f| hapcloud::camera::Frame {
-            cloud: head(&f.cloud, 48),
-            depth: None,
-            ..f.clone()
+        .map(|f| {
+            hapcloud::camera::Frame::from_cloud(
+                f.camera_id,
+                f.stamp_s,
+                f.world_from_camera,
+                head(f.cloud(), 48),
+            )
         })
         .collect();
     let bytes = mcap_recording(&real.meta, &frames, |w| {

@@ -10,7 +10,8 @@
 //! before the transforms are dropped and counted (`no_pose`).
 
 use super::convert::{
-    frame_from_depth, frame_from_pointcloud2, intrinsics_from_camera_info, isometry_from_transform,
+    cloud_from_pointcloud2, frame_from_depth, frame_from_pointcloud2, intrinsics_from_camera_info,
+    isometry_from_transform,
 };
 use super::hapcloud::FrameMeta;
 use super::msgs::{
@@ -332,12 +333,12 @@ impl FrameAssembler {
         let frame = match (image, info, points) {
             (Some(img), Some(info), points) => {
                 let scale = meta.as_ref().map(|m| m.depth_scale_m);
-                let mut frame = frame_from_depth(id, stamp_s, pose, &img, &info, scale)?;
-                if let Some(msg) = points {
+                let frame = frame_from_depth(id, stamp_s, pose, &img, &info, scale)?;
+                match points {
                     // The cloud as it was, beside the image perception's depth path reads.
-                    frame.cloud = frame_from_pointcloud2(id, stamp_s, pose, &msg)?.cloud;
+                    Some(msg) => frame.with_cloud(cloud_from_pointcloud2(&msg)?),
+                    None => frame,
                 }
-                frame
             }
             (_, _, Some(msg)) => frame_from_pointcloud2(id, stamp_s, pose, &msg)?,
             // A validated camera reads an image and its info, or a cloud: complete above.

@@ -2,11 +2,11 @@
 //!
 //! In: a `PointCloud2` with float32 `x`, `y`, `z` fields anywhere in the point (any
 //! `point_step` padding, any other fields ignored, organized or not, NaN points kept), or a
-//! depth `Image` (`16UC1` in millimetres or `32FC1` in metres) with its `CameraInfo`,
-//! deprojected by [`crate::camera::DepthImage::deproject`]. Big-endian clouds, data shorter
-//! than `row_step * height`, unknown encodings and distorted or binned camera models are
-//! errors. Out: the reverse, `16UC1` when the depth unit is 1 mm (else `32FC1`) and a packed
-//! x, y, z float32 `PointCloud2`.
+//! depth `Image` (`16UC1` in millimetres or `32FC1` in metres) with its `CameraInfo`, kept as
+//! the frame's depth image (its cloud, [`crate::camera::DepthImage::deproject`]'s, is made
+//! when first read). Big-endian clouds, data shorter than `row_step * height`, unknown
+//! encodings and distorted or binned camera models are errors. Out: the reverse, `16UC1` when
+//! the depth unit is 1 mm (else `32FC1`) and a packed x, y, z float32 `PointCloud2`.
 
 use super::Ros2Error;
 use super::msgs::{
@@ -336,8 +336,8 @@ pub fn camera_info_from_intrinsics(header: Header, k: &PinholeIntrinsics) -> Cam
     }
 }
 
-/// A frame from a depth image and its camera info (the cloud is the deprojected image);
-/// `float_scale_m` as in [`depth_from_image_scaled`].
+/// A frame from a depth image and its camera info (its cloud the image's deprojection, made
+/// when first read); `float_scale_m` as in [`depth_from_image_scaled`].
 pub fn frame_from_depth(
     camera_id: u32,
     stamp_s: f64,
@@ -348,18 +348,11 @@ pub fn frame_from_depth(
 ) -> Result<Frame, Ros2Error> {
     let depth = depth_from_image_scaled(img, float_scale_m)?;
     let intrinsics = intrinsics_from_camera_info(info)?;
-    let cloud = depth.deproject(&intrinsics).ok_or_else(|| {
+    Frame::from_depth(camera_id, stamp_s, world_from_camera, depth, intrinsics).ok_or_else(|| {
         Ros2Error::CameraInfo(format!(
             "camera info is {} x {}, the image {} x {}",
             info.width, info.height, img.width, img.height
         ))
-    })?;
-    Ok(Frame {
-        camera_id,
-        stamp_s,
-        world_from_camera,
-        cloud,
-        depth: Some((depth, intrinsics)),
     })
 }
 
@@ -370,13 +363,13 @@ pub fn frame_from_pointcloud2(
     world_from_camera: Isometry3<f64>,
     msg: &PointCloud2,
 ) -> Result<Frame, Ros2Error> {
-    Ok(Frame {
+    let cloud = cloud_from_pointcloud2(msg)?;
+    Ok(Frame::from_cloud(
         camera_id,
         stamp_s,
         world_from_camera,
-        cloud: cloud_from_pointcloud2(msg)?,
-        depth: None,
-    })
+        cloud,
+    ))
 }
 
 /// The pose a `geometry_msgs/Transform` describes (parent from child).

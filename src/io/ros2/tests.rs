@@ -258,10 +258,10 @@ fn depth_image_and_camera_info_round_trip() {
     let pose = Isometry3::translation(1.0, 2.0, 3.0);
     let frame = frame_from_depth(7, 3.0, pose, &img, &info, None).unwrap();
     assert_eq!(frame.camera_id, 7);
-    let (d2, k2) = frame.depth.as_ref().unwrap();
+    let (d2, k2) = frame.depth().unwrap();
     assert_eq!((d2, k2), (&d, &k));
     let expected = d.deproject(&k).unwrap();
-    for (a, b) in frame.cloud.points.iter().zip(&expected.points) {
+    for (a, b) in frame.cloud().points.iter().zip(&expected.points) {
         for (x, y) in a.to_array().iter().zip(b.to_array()) {
             assert_eq!(x.to_bits(), y.to_bits());
         }

@@ -47,26 +47,19 @@ fn depth_frame(id: u32, stamp_s: f64) -> Frame {
             .map(|i| if i.is_multiple_of(7) { 0 } else { 400 + i * 3 })
             .collect(),
     };
-    Frame {
-        camera_id: id,
-        stamp_s,
-        world_from_camera: pose().isometry(),
-        cloud: d.deproject(&k).unwrap(),
-        depth: Some((d, k)),
-    }
+    Frame::from_depth(id, stamp_s, pose().isometry(), d, k).unwrap()
 }
 
 fn points_frame(id: u32, stamp_s: f64) -> Frame {
     let points = (0..30)
         .map(|i| Vec3::new(i as f32 * 0.01, 0.2, if i == 3 { f32::NAN } else { 0.7 }))
         .collect();
-    Frame {
-        camera_id: id,
+    Frame::from_cloud(
+        id,
         stamp_s,
-        world_from_camera: pose().isometry(),
-        cloud: PointCloud::from_points(points),
-        depth: None,
-    }
+        pose().isometry(),
+        PointCloud::from_points(points),
+    )
 }
 
 fn pose() -> Pose {
@@ -93,15 +86,15 @@ fn same_frame(a: &Frame, b: &Frame) {
     assert_eq!(a.stamp_s, b.stamp_s);
     assert_eq!(a.world_from_camera, b.world_from_camera);
     assert_eq!(
-        (a.cloud.width, a.cloud.height),
-        (b.cloud.width, b.cloud.height)
+        (a.cloud().width, a.cloud().height),
+        (b.cloud().width, b.cloud().height)
     );
-    for (p, q) in a.cloud.points.iter().zip(&b.cloud.points) {
+    for (p, q) in a.cloud().points.iter().zip(&b.cloud().points) {
         for (x, y) in p.to_array().iter().zip(q.to_array()) {
             assert_eq!(x.to_bits(), y.to_bits());
         }
     }
-    assert_eq!(a.depth, b.depth);
+    assert_eq!(a.depth(), b.depth());
 }
 
 /// Receives until `n` frames arrived or `wait` passed.
@@ -287,7 +280,7 @@ fn humble_keys_malformed_samples_and_tf_static() {
         stamp: time_from_seconds(3.0),
         frame_id: topics::camera_frame_id(1),
     };
-    let bytes = encode(&pointcloud2_from_cloud(header.clone(), &frame.cloud)).unwrap();
+    let bytes = encode(&pointcloud2_from_cloud(header.clone(), frame.cloud())).unwrap();
     // Without a pose the frame is dropped and counted.
     sb.put(&humble, bytes.clone()).wait().unwrap();
     assert!(src.recv(Duration::from_millis(500)).is_none());
