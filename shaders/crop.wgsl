@@ -160,9 +160,20 @@ fn init_check_args(gid: vec3<u32>) {
     }
 }
 
-// A check-pass thread's position in the list.
-fn listed_index(group: vec3<u32>, groups: vec3<u32>, lid: u32) -> u32 {
-    return (group.y * groups.x + group.x) * WORKGROUP_SIZE + lid;
+// A check-pass thread: its workgroup in the rows raise_check_args laid out.
+struct CheckThread {
+    @builtin(workgroup_id) group: vec3<u32>,
+    @builtin(num_workgroups) groups: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+}
+
+// The point (pixel) check-pass thread t decides, NONE beyond the list.
+fn listed_point(t: CheckThread) -> u32 {
+    let j = (t.group.y * t.groups.x + t.group.x) * WORKGROUP_SIZE + t.lid;
+    if j >= atomicLoad(&counts[2]) {
+        return NONE;
+    }
+    return checks[j];
 }
 
 // First pass of a point cloud, one thread per mask word (32 points) and without the
@@ -218,17 +229,9 @@ fn cloud_point(i: u32) -> vec3<f32> {
 // Check pass of a point cloud, one thread per point crop_mask listed: kept when no robot
 // primitive holds it.
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn crop_check(
-    @builtin(workgroup_id) group: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let j = listed_index(group, groups, lid);
-    if j >= atomicLoad(&counts[2]) {
-        return;
-    }
-    let i = checks[j];
-    if !inside_any_primitive(cloud_point(i)) {
+fn crop_check(t: CheckThread) {
+    let i = listed_point(t);
+    if i != NONE && !inside_any_primitive(cloud_point(i)) {
         atomicOr(&keep[i / 32u], 1u << (i % 32u));
     }
 }
@@ -415,16 +418,11 @@ fn crop_depth(
 // test (a flying pixel's point becomes a NaN) and the robot primitives; a kept pixel's bit
 // is OR-ed into the mask.
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn crop_depth_check(
-    @builtin(workgroup_id) group: vec3<u32>,
-    @builtin(num_workgroups) groups: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let j = listed_index(group, groups, lid);
-    if j >= atomicLoad(&counts[2]) {
+fn crop_depth_check(t: CheckThread) {
+    let i = listed_point(t);
+    if i == NONE {
         return;
     }
-    let i = checks[j];
     let v = i / depth_params.width;
     let u = i - v * depth_params.width;
     let p = deproject(u, v, raw_depth(u, v));

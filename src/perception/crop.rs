@@ -375,37 +375,40 @@ pub fn gpu_primitive(p: &Primitive) -> CropPrimitive {
     }
 }
 
-/// A first pass and the check pass over the points it lists, recorded in one timed compute
-/// pass (the check pass dispatched indirectly with the arguments the first pass wrote).
-struct CheckedPasses<'a> {
-    first: &'a wgpu::ComputePipeline,
-    check: &'a wgpu::ComputePipeline,
-    group: &'a wgpu::BindGroup,
-    args_group: &'a wgpu::BindGroup,
-    args: &'a wgpu::Buffer,
-    counts: &'a wgpu::Buffer,
+/// What a first pass and the check pass over the points it lists share: the counters (the
+/// listed points among them), the check pass's indirect dispatch arguments, which the first
+/// pass writes, and their bind group (group 1, which the check pass must not bind).
+struct CheckDispatch {
+    /// Pixels with a depth, flying pixels and points listed for the check pass.
+    counts: wgpu::Buffer,
+    args: wgpu::Buffer,
+    args_group: wgpu::BindGroup,
 }
 
-impl CheckedPasses<'_> {
+impl CheckDispatch {
+    /// Records `passes` (first pass, check pass) in one timed compute pass, the check pass
+    /// dispatched indirectly with the arguments the first pass wrote.
     fn record(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         label: &str,
+        passes: &[wgpu::ComputePipeline; 2],
+        group: &wgpu::BindGroup,
         workgroups: u32,
         timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) {
-        encoder.clear_buffer(self.counts, 0, None);
-        encoder.clear_buffer(self.args, 0, None);
+        encoder.clear_buffer(&self.counts, 0, None);
+        encoder.clear_buffer(&self.args, 0, None);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some(label),
             timestamp_writes: timestamps,
         });
-        pass.set_pipeline(self.first);
-        pass.set_bind_group(0, self.group, &[]);
-        pass.set_bind_group(1, self.args_group, &[]);
+        pass.set_pipeline(&passes[0]);
+        pass.set_bind_group(0, group, &[]);
+        pass.set_bind_group(1, &self.args_group, &[]);
         pass.dispatch_workgroups(workgroups, 1, 1);
-        pass.set_pipeline(self.check);
-        pass.dispatch_workgroups_indirect(self.args, 0);
+        pass.set_pipeline(&passes[1]);
+        pass.dispatch_workgroups_indirect(&self.args, 0);
     }
 }
 
@@ -413,12 +416,11 @@ impl CheckedPasses<'_> {
 /// [`GpuCrop::reserve`]).
 pub struct GpuCrop {
     layout: wgpu::BindGroupLayout,
-    mask_pipeline: wgpu::ComputePipeline,
-    check_pipeline: wgpu::ComputePipeline,
+    /// `crop_mask` and `crop_check`.
+    cloud_passes: [wgpu::ComputePipeline; 2],
     depth_layout: wgpu::BindGroupLayout,
-    depth_pipeline: wgpu::ComputePipeline,
-    depth_check_pipeline: wgpu::ComputePipeline,
-    check_args_layout: wgpu::BindGroupLayout,
+    /// `crop_depth` and `crop_depth_check`.
+    depth_passes: [wgpu::ComputePipeline; 2],
     params: wgpu::Buffer,
     depth_params: wgpu::Buffer,
     /// `MAX_CROP_PRIMITIVES` primitives (uniform).
@@ -429,15 +431,11 @@ pub struct GpuCrop {
     depth_view: wgpu::TextureView,
     /// Fills crop_mask's input-points binding, which the depth pass does not read.
     unused_points: wgpu::Buffer,
-    /// Pixels with a depth, flying pixels and points listed for the check pass.
-    counts: wgpu::Buffer,
     /// The points (pixels) the first pass leaves to the check pass (one word per point).
     checks: wgpu::Buffer,
-    /// The check pass's indirect dispatch arguments (written by the depth pass).
-    check_args: wgpu::Buffer,
+    check: CheckDispatch,
     group: CachedBindGroup,
     depth_group: CachedBindGroup,
-    check_args_group: CachedBindGroup,
     word_count: u32,
     point_count: u32,
 }
@@ -499,16 +497,15 @@ impl GpuCrop {
             shader::bind_group_layout(ctx, "crop check arguments layout", &[Storage])?;
         // A first pass writes the check pass's arguments (group 1), which the check pass
         // must not bind.
-        let pipelines = |layout: &wgpu::BindGroupLayout, first: &str, check: &str| {
+        let passes = |layout: &wgpu::BindGroupLayout, first: &str, check: &str| {
             let with_args = [layout, &check_args_layout];
-            Ok::<_, GpuError>((
+            Ok::<_, GpuError>([
                 shader::compute_pipelines(ctx, &shader::CROP, &with_args, &[first])?.remove(0),
                 shader::compute_pipelines(ctx, &shader::CROP, &[layout], &[check])?.remove(0),
-            ))
+            ])
         };
-        let (mask_pipeline, check_pipeline) = pipelines(&layout, "crop_mask", "crop_check")?;
-        let (depth_pipeline, depth_check_pipeline) =
-            pipelines(&depth_layout, "crop_depth", "crop_depth_check")?;
+        let cloud_passes = passes(&layout, "crop_mask", "crop_check")?;
+        let depth_passes = passes(&depth_layout, "crop_depth", "crop_depth_check")?;
         let (params, depth_params, primitives, mask, depth, unused_points, counts) =
             ctx.scoped("crop buffers", |_| {
                 (
@@ -530,25 +527,27 @@ impl GpuCrop {
                     ),
                 )
             })?;
-        let (checks, check_args) = ctx.scoped("crop buffers", |_| {
+        let (checks, args) = ctx.scoped("crop buffers", |_| {
             (
-                storage(ctx, "crop depth checks", 0, wgpu::BufferUsages::empty()),
+                storage(ctx, "crop checks", 0, wgpu::BufferUsages::empty()),
                 storage(
                     ctx,
-                    "crop depth check arguments",
+                    "crop check arguments",
                     DISPATCH_ARGS_BYTES,
                     wgpu::BufferUsages::INDIRECT,
                 ),
             )
         })?;
+        let args_group = ctx.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("crop check arguments bind group"),
+            layout: &check_args_layout,
+            entries: &[entry(0, &args)],
+        });
         Ok(Self {
             layout,
-            mask_pipeline,
-            check_pipeline,
+            cloud_passes,
             depth_layout,
-            depth_pipeline,
-            depth_check_pipeline,
-            check_args_layout,
+            depth_passes,
             params,
             depth_params,
             primitives,
@@ -556,12 +555,14 @@ impl GpuCrop {
             depth_view: depth.create_view(&Default::default()),
             depth,
             unused_points,
-            counts,
             checks,
-            check_args,
+            check: CheckDispatch {
+                counts,
+                args,
+                args_group,
+            },
             group: CachedBindGroup::default(),
             depth_group: CachedBindGroup::default(),
-            check_args_group: CachedBindGroup::default(),
             word_count: 0,
             point_count: 0,
         })
@@ -574,7 +575,7 @@ impl GpuCrop {
 
     /// The depth pass's counters (`[pixels with a depth, flying pixels]`, u32 each).
     pub fn depth_counts(&self) -> &wgpu::Buffer {
-        &self.counts
+        &self.check.counts
     }
 
     /// Bytes of GPU memory the stage's buffers hold now.
@@ -586,9 +587,9 @@ impl GpuCrop {
             &self.primitives,
             &self.mask,
             &self.unused_points,
-            &self.counts,
             &self.checks,
-            &self.check_args,
+            &self.check.counts,
+            &self.check.args,
         ]
         .iter()
         .map(|b| b.size())
@@ -782,7 +783,7 @@ impl GpuCrop {
                 entry(1, &self.unused_points),
                 entry(2, &self.primitives),
                 entry(3, &self.mask),
-                entry(4, &self.counts),
+                entry(4, &self.check.counts),
                 entry(5, &self.checks),
                 entry(6, &self.depth_params),
                 wgpu::BindGroupEntry {
@@ -793,26 +794,9 @@ impl GpuCrop {
                 entry(9, out_points),
             ],
         );
-        let passes = CheckedPasses {
-            first: &self.depth_pipeline,
-            check: &self.depth_check_pipeline,
-            group,
-            args_group: self.check_args_group.get(
-                ctx,
-                "crop check arguments bind group",
-                &self.check_args_layout,
-                &[entry(0, &self.check_args)],
-            ),
-            args: &self.check_args,
-            counts: &self.counts,
-        };
-        let quads = self.point_count.div_ceil(DEPTH_QUAD);
-        passes.record(
-            encoder,
-            "crop depth pass",
-            shader::workgroups_for(quads),
-            timestamps,
-        );
+        let quads = shader::workgroups_for(self.point_count.div_ceil(DEPTH_QUAD));
+        let passes = &self.depth_passes;
+        (self.check).record(encoder, "crop depth pass", passes, group, quads, timestamps);
     }
 
     /// Records the crop pass over `points` (packed xyz f32, as uploaded from [`Vec3`]s).
@@ -832,25 +816,13 @@ impl GpuCrop {
                 entry(1, points),
                 entry(2, &self.primitives),
                 entry(3, &self.mask),
-                entry(4, &self.counts),
+                entry(4, &self.check.counts),
                 entry(5, &self.checks),
             ],
         );
-        let passes = CheckedPasses {
-            first: &self.mask_pipeline,
-            check: &self.check_pipeline,
-            group,
-            args_group: self.check_args_group.get(
-                ctx,
-                "crop check arguments bind group",
-                &self.check_args_layout,
-                &[entry(0, &self.check_args)],
-            ),
-            args: &self.check_args,
-            counts: &self.counts,
-        };
         let words = shader::workgroups_for(self.word_count);
-        passes.record(encoder, "crop pass", words, timestamps);
+        let passes = &self.cloud_passes;
+        (self.check).record(encoder, "crop pass", passes, group, words, timestamps);
     }
 
     /// Crops one cloud on its own (one submit, one readback): the keep mask and, with a
