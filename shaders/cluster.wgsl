@@ -15,7 +15,8 @@
 //                        numbers the cell: cells[] lists the occupied cells) and mark the
 //                        point's octant in the slot
 //   prepare_cells (1 thread) the per-cell passes' dispatch size from the cells insert numbered
-//   number   per cell    number the cell's occupied octants (its sub-cells, in subs[])
+//   number   per cell    number the cell's occupied octants (its sub-cells, in subs[]) and
+//                        write them into its slot, where the look-ups of the hook find them
 //   gather   per point   join the point's sub-cell: its rank there (atomicAdd of the count),
 //                        the smallest index (atomicMin) and the bounding box (atomicMin/Max
 //                        of order_key), each atomic skipped when it cannot change the value
@@ -97,12 +98,13 @@ struct ClusterParams {
 struct Slot {
     // 1 + index of the point that claimed the slot for its coarse cell; 0 = empty.
     rep: atomic<u32>,
-    // 1 + the cell's index in cells[] (written by the claiming thread; read by later passes).
-    cell: atomic<u32>,
-    // Bit o set when octant o of the cell holds points.
+    // Bit o set when octant o of the cell holds points (insert).
     octants: atomic<u32>,
-    // The coarse cell (written by the claiming thread; read by later passes' look-ups).
-    coarse: array<i32, 3>,
+    // The coarse cell's x and y (written by the claiming thread).
+    coarse_xy: vec2<i32>,
+    // The coarse cell's z (claiming thread) and its sub-cells as number packs them
+    // (pack_subs; 0 in an empty slot): a look-up reads the two vectors only.
+    z_subs: vec2<i32>,
 }
 
 struct PointInfo {
@@ -296,8 +298,8 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
             owner = i + 1u;
             // A cell has at least one point: at most `count` cells.
             let k = atomicAdd(&status[CELL_COUNT], 1u);
-            atomicStore(&slots[s].cell, k + 1u);
-            slots[s].coarse = array<i32, 3>(c.x, c.y, c.z);
+            slots[s].coarse_xy = c.xy;
+            slots[s].z_subs.x = c.z;
             cells[k].coarse = c;
             cells[k].slot = s;
         } else if owner == 0u {
@@ -329,11 +331,13 @@ fn number(@builtin(global_invocation_id) gid: vec3<u32>) {
     if k >= cell_count() {
         return;
     }
-    let octants = atomicLoad(&slots[cells[k].slot].octants);
+    let s = cells[k].slot;
+    let octants = atomicLoad(&slots[s].octants);
     let n_subs = countOneBits(octants);
     let first = atomicAdd(&status[SUB_COUNT], n_subs);
     cells[k].first_sub = first;
     cells[k].octants = octants;
+    slots[s].z_subs.y = bitcast<i32>(pack_subs(first, octants));
     for (var j = first; j < first + n_subs; j++) {
         for (var axis = 0u; axis < 3u; axis++) {
             atomicStore(&subs[j].lo[axis], NONE);
@@ -345,10 +349,24 @@ fn number(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
 }
 
-// Index in subs[] of the sub-cell of fine cell `fine` in coarse cell `cell`.
-fn sub_index(cell: Cell, fine: vec3<i32>) -> u32 {
-    let below = cell.octants & ((1u << octant_of(fine)) - 1u);
-    return cell.first_sub + countOneBits(below);
+// A cell's sub-cells in one non-zero word: (first_sub + 1) << 8 | octants (first_sub + 1 <
+// 2^23: at most MAX_GPU_POINTS sub-cells).
+fn pack_subs(first_sub: u32, octants: u32) -> u32 {
+    return ((first_sub + 1u) << 8u) | octants;
+}
+
+fn first_sub_of(packed: u32) -> u32 {
+    return (packed >> 8u) - 1u;
+}
+
+fn octants_of(packed: u32) -> u32 {
+    return packed & 0xffu;
+}
+
+// Index in subs[] of the sub-cell of fine cell `fine` in the coarse cell of sub-cells `packed`.
+fn sub_index(packed: u32, fine: vec3<i32>) -> u32 {
+    let below = octants_of(packed) & ((1u << octant_of(fine)) - 1u);
+    return first_sub_of(packed) + countOneBits(below);
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -361,7 +379,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
     if s == NONE {
         return;
     }
-    let sub = sub_index(cells[atomicLoad(&slots[s].cell) - 1u], info[i].cell);
+    let sub = sub_index(bitcast<u32>(slots[s].z_subs.y), info[i].cell);
     info[i].sub = sub;
     info[i].rank = atomicAdd(&subs[sub].count, 1u);
     if i < atomicLoad(&subs[sub].low) {
@@ -413,20 +431,20 @@ fn seed(@builtin(global_invocation_id) gid: vec3<u32>) {
     info[i].scanned = 0u;
 }
 
-// Slot of coarse cell c, or NONE (after the insert dispatch).
-fn find_slot(c: vec3<i32>) -> u32 {
+// The sub-cells of coarse cell c (pack_subs), or 0 when c holds no points (after number).
+fn subs_at(c: vec3<i32>) -> u32 {
     let h = hash(c);
     for (var probe = 0u; probe < params.max_probes; probe++) {
         let s = (h + probe) & params.table_mask;
-        if atomicLoad(&slots[s].rep) == 0u {
-            return NONE;
+        let z_subs = slots[s].z_subs;
+        if z_subs.y == 0 {
+            return 0u;
         }
-        let key = slots[s].coarse;
-        if all(vec3<i32>(key[0], key[1], key[2]) == c) {
-            return s;
+        if all(vec3<i32>(slots[s].coarse_xy, z_subs.x) == c) {
+            return bitcast<u32>(z_subs.y);
         }
     }
-    return NONE;
+    return 0u;
 }
 
 // Root of x with path halving, or NONE when MAX_FIND steps did not reach it.
@@ -583,16 +601,6 @@ fn within_reach(lo: vec3<f32>, hi: vec3<f32>, other: vec3<i32>) -> bool {
         <= params.reach2_cells;
 }
 
-// The cell that coarse cell `c`'s slot numbered, or false when c holds no points.
-fn cell_at(c: vec3<i32>, found: ptr<function, Cell>) -> bool {
-    let s = find_slot(c);
-    if s == NONE {
-        return false;
-    }
-    *found = cells[atomicLoad(&slots[s].cell) - 1u];
-    return true;
-}
-
 // Bit a * 8 + b of a 64-bit pair set (two words).
 fn pair_bit(a: u32, b: u32) -> vec2<u32> {
     let bit = a * 8u + b;
@@ -690,12 +698,15 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         var joined = vec2<u32>(0u);
         var undecided = vec2<u32>(0u);
         let other_cell = following_cell(cell.coarse, task);
-        var cell_b: Cell;
-        if !within_reach(box_lo, box_hi, other_cell) || !cell_at(other_cell, &cell_b) {
+        if !within_reach(box_lo, box_hi, other_cell) {
             continue;
         }
-        let first_b = cell_b.first_sub;
-        let count_b = countOneBits(cell_b.octants);
+        let subs_b = subs_at(other_cell);
+        if subs_b == 0u {
+            continue;
+        }
+        let first_b = first_sub_of(subs_b);
+        let count_b = countOneBits(octants_of(subs_b));
         for (var b = 0u; b < count_b; b++) {
             let sub_b = boxes[first_b + b];
             if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
@@ -763,22 +774,26 @@ fn scan(@builtin(global_invocation_id) gid: vec3<u32>) {
     let a_index = info[i].sub;
     let a = boxes[a_index];
     let p = points[i].xyz;
-    let cell = cells[atomicLoad(&slots[info[i].slot].cell) - 1u];
+    let coarse = coarse_of(info[i].cell);
+    let own_first = first_sub_of(bitcast<u32>(slots[info[i].slot].z_subs.y));
     let done_before = info[i].scanned;
     var counted = 0u;
     var budget = SCAN_BUDGET;
     var stopped = false;
     for (var task = 0u; task < HOOK_TASKS && !stopped; task++) {
-        var cell_b = cell;
-        var first = cell.first_sub;
+        var first = own_first;
         var end = a_index;
         if task > 0u {
-            let other = following_cell(cell.coarse, task);
-            if !within_reach(a.lo, a.hi, other) || !cell_at(other, &cell_b) {
+            let other = following_cell(coarse, task);
+            if !within_reach(a.lo, a.hi, other) {
                 continue;
             }
-            first = cell_b.first_sub;
-            end = first + countOneBits(cell_b.octants);
+            let subs_b = subs_at(other);
+            if subs_b == 0u {
+                continue;
+            }
+            first = first_sub_of(subs_b);
+            end = first + countOneBits(octants_of(subs_b));
         }
         for (var j = first; j < end && !stopped; j++) {
             let b = boxes[j];
