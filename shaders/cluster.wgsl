@@ -607,20 +607,32 @@ fn pair_bit(a: u32, b: u32) -> vec2<u32> {
     return select(vec2<u32>(0u, 1u << (bit - 32u)), vec2<u32>(1u << bit, 0u), bit < 32u);
 }
 
-// Settles the pairs (bit a * 8 + b) of sub-cells first_a + a and first_b + b: the joined pairs
-// in a loop of their own, with no point tests in it (llvmpipe runs a loop's body for the whole
-// SIMD group, so the point tests would cost every pair), then the undecided ones.
-fn settle_pairs(first_a: u32, first_b: u32, joined_pairs: vec2<u32>, undecided_pairs: vec2<u32>) {
-    var joined = joined_pairs;
-    for (var n = 0u; n < 64u && any(joined != vec2<u32>(0u)); n++) {
-        let bit = take_lowest(&joined);
-        walk(boxes[first_a + bit / 8u].low, boxes[first_b + bit % 8u].low, true);
+// A cell's pairs of sub-cells to settle, per hook task t: bit a * 8 + b of pairs[t] for its
+// sub-cell a and sub-cell first_b[t] + b; bit t of `tasks` while pairs[t] has bits left.
+struct TaskPairs {
+    first_b: array<u32, HOOK_TASKS>,
+    pairs: array<vec2<u32>, HOOK_TASKS>,
+    tasks: u32,
+}
+
+fn add_pairs(list: ptr<function, TaskPairs>, task: u32, first_b: u32, pairs: vec2<u32>) {
+    (*list).first_b[task] = first_b;
+    (*list).pairs[task] = pairs;
+    if any(pairs != vec2<u32>(0u)) {
+        (*list).tasks |= 1u << task;
     }
-    var undecided = undecided_pairs;
-    for (var n = 0u; n < 64u && any(undecided != vec2<u32>(0u)); n++) {
-        let bit = take_lowest(&undecided);
-        settle_undecided(first_a + bit / 8u, first_b + bit % 8u);
+}
+
+// Removes one pair from a non-empty set: (index of its b in boxes[], its bit a * 8 + b).
+fn take_pair(list: ptr<function, TaskPairs>) -> vec2<u32> {
+    let task = firstTrailingBit((*list).tasks);
+    var pairs = (*list).pairs[task];
+    let bit = take_lowest(&pairs);
+    (*list).pairs[task] = pairs;
+    if all(pairs == vec2<u32>(0u)) {
+        (*list).tasks &= ~(1u << task);
     }
+    return vec2<u32>((*list).first_b[task] + bit % 8u, bit);
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -673,6 +685,11 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     // Task 0 (the cell's own sub-cell pairs) outside the loop over the neighbour cells:
     // llvmpipe runs both sides of a branch for the whole SIMD group.
     let stride = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
+    // The pairs to unite and those the boxes leave undecided, settled after the loop over the
+    // tasks: one loop each for all of a cell's pairs, which runs as often as the lane with the
+    // most pairs needs, not once per task as often as the lane with the most in that task.
+    var joined_pairs: TaskPairs;
+    var undecided_pairs: TaskPairs;
     if gid.y == 0u {
         var joined = vec2<u32>(0u);
         var undecided = vec2<u32>(0u);
@@ -687,7 +704,8 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
                 }
             }
         }
-        settle_pairs(cell.first_sub, cell.first_sub, joined, undecided);
+        add_pairs(&joined_pairs, 0u, cell.first_sub, joined);
+        add_pairs(&undecided_pairs, 0u, cell.first_sub, undecided);
     }
     // This thread's neighbour tasks (gid.y of the dispatch's threads per cell).
     for (var task = select(gid.y, stride, gid.y == 0u); task < HOOK_TASKS; task += stride) {
@@ -733,7 +751,18 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
                 }
             }
         }
-        settle_pairs(cell.first_sub, first_b, joined, undecided);
+        add_pairs(&joined_pairs, task, first_b, joined);
+        add_pairs(&undecided_pairs, task, first_b, undecided);
+    }
+    // The joined pairs in a loop of their own, with no point tests in it (llvmpipe runs a
+    // loop's body for the whole SIMD group, so the point tests would cost every pair).
+    for (var n = 0u; n < HOOK_TASKS * 64u && joined_pairs.tasks != 0u; n++) {
+        let pair = take_pair(&joined_pairs);
+        walk(boxes[cell.first_sub + pair.y / 8u].low, boxes[pair.x].low, true);
+    }
+    for (var n = 0u; n < HOOK_TASKS * 64u && undecided_pairs.tasks != 0u; n++) {
+        let pair = take_pair(&undecided_pairs);
+        settle_undecided(cell.first_sub + pair.y / 8u, pair.x);
     }
     if loops_were_cut() {
         atomicOr(&status[STATUS_INCOMPLETE], 1u);
