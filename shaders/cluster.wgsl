@@ -608,22 +608,21 @@ fn pair_bit(a: u32, b: u32) -> vec2<u32> {
 }
 
 // A cell's pairs of sub-cells to settle, per hook task t: bit a * 8 + b of pairs[t] for its
-// sub-cell a and sub-cell first_b[t] + b; bit t of `tasks` while pairs[t] has bits left.
+// sub-cell a and the b-th sub-cell of the task's cell; bit t of `tasks` while pairs[t] has
+// bits left.
 struct TaskPairs {
-    first_b: array<u32, HOOK_TASKS>,
     pairs: array<vec2<u32>, HOOK_TASKS>,
     tasks: u32,
 }
 
-fn add_pairs(list: ptr<function, TaskPairs>, task: u32, first_b: u32, pairs: vec2<u32>) {
-    (*list).first_b[task] = first_b;
-    (*list).pairs[task] = pairs;
+fn add_pairs(list: ptr<function, TaskPairs>, task: u32, pairs: vec2<u32>) {
     if any(pairs != vec2<u32>(0u)) {
+        (*list).pairs[task] |= pairs;
         (*list).tasks |= 1u << task;
     }
 }
 
-// Removes one pair from a non-empty set: (index of its b in boxes[], its bit a * 8 + b).
+// Removes one pair from a non-empty list: (its task, its bit a * 8 + b).
 fn take_pair(list: ptr<function, TaskPairs>) -> vec2<u32> {
     let task = firstTrailingBit((*list).tasks);
     var pairs = (*list).pairs[task];
@@ -632,7 +631,7 @@ fn take_pair(list: ptr<function, TaskPairs>) -> vec2<u32> {
     if all(pairs == vec2<u32>(0u)) {
         (*list).tasks &= ~(1u << task);
     }
-    return vec2<u32>((*list).first_b[task] + bit % 8u, bit);
+    return vec2<u32>(task, bit);
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -690,6 +689,10 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     // most pairs needs, not once per task as often as the lane with the most in that task.
     var joined_pairs: TaskPairs;
     var undecided_pairs: TaskPairs;
+    // First sub-cell and sub-cell count of each task's cell.
+    var first_b: array<u32, HOOK_TASKS>;
+    var count_b: array<u32, HOOK_TASKS>;
+    first_b[0] = cell.first_sub;
     if gid.y == 0u {
         var joined = vec2<u32>(0u);
         var undecided = vec2<u32>(0u);
@@ -704,34 +707,39 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
                 }
             }
         }
-        add_pairs(&joined_pairs, 0u, cell.first_sub, joined);
-        add_pairs(&undecided_pairs, 0u, cell.first_sub, undecided);
+        add_pairs(&joined_pairs, 0u, joined);
+        add_pairs(&undecided_pairs, 0u, undecided);
     }
-    // This thread's neighbour tasks (gid.y of the dispatch's threads per cell).
+    // This thread's neighbour tasks (gid.y of the dispatch's threads per cell): the look-ups
+    // first, then one loop over the sub-cells of the cells found (bit t of `found` while task
+    // t's cell has sub-cells left), which runs as often as the lane with the most needs, not
+    // once per task as often as the lane with the most in that task.
+    var found = 0u;
     for (var task = select(gid.y, stride, gid.y == 0u); task < HOOK_TASKS; task += stride) {
-        // The pairs to unite, and those the boxes leave undecided (bit a * 8 + b), chosen
-        // first so that the loops of settle_pairs, with the union-find's loops, run once per
-        // pair to settle rather than once per pair of sub-cells: one union per group of own
-        // sub-cells joined to another sub-cell.
-        var joined = vec2<u32>(0u);
-        var undecided = vec2<u32>(0u);
         let other_cell = following_cell(cell.coarse, task);
         if !within_reach(box_lo, box_hi, other_cell) {
             continue;
         }
         let subs_b = subs_at(other_cell);
-        if subs_b == 0u {
-            continue;
+        if subs_b != 0u {
+            first_b[task] = first_sub_of(subs_b);
+            count_b[task] = countOneBits(octants_of(subs_b));
+            found |= 1u << task;
         }
-        let first_b = first_sub_of(subs_b);
-        let count_b = countOneBits(octants_of(subs_b));
-        for (var b = 0u; b < count_b; b++) {
-            let sub_b = boxes[first_b + b];
-            if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
-                continue;
-            }
+    }
+    // Of each sub-cell b, the pairs to unite and those the boxes leave undecided, chosen
+    // first so that the settle loops, with the union-find's loops, run once per pair to
+    // settle rather than once per pair of sub-cells: one union per group of own sub-cells
+    // joined to b.
+    var b = 0u;
+    for (var n = 0u; n < (HOOK_TASKS - 1u) * 8u && found != 0u; n++) {
+        let task = firstTrailingBit(found);
+        let sub_b = boxes[first_b[task] + b];
+        if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) <= params.r2_apart {
             var joined_b = 0u;
             var open_b = 0u;
+            var joined = vec2<u32>(0u);
+            var undecided = vec2<u32>(0u);
             for (var a = 0u; a < 8u; a++) {
                 if a < count_a {
                     let kind = pair_by_boxes(own[a], sub_b);
@@ -750,19 +758,24 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
                     undecided |= pair_bit(a, b);
                 }
             }
+            add_pairs(&joined_pairs, task, joined);
+            add_pairs(&undecided_pairs, task, undecided);
         }
-        add_pairs(&joined_pairs, task, first_b, joined);
-        add_pairs(&undecided_pairs, task, first_b, undecided);
+        b += 1u;
+        if b == count_b[task] {
+            found &= ~(1u << task);
+            b = 0u;
+        }
     }
     // The joined pairs in a loop of their own, with no point tests in it (llvmpipe runs a
     // loop's body for the whole SIMD group, so the point tests would cost every pair).
     for (var n = 0u; n < HOOK_TASKS * 64u && joined_pairs.tasks != 0u; n++) {
         let pair = take_pair(&joined_pairs);
-        walk(boxes[cell.first_sub + pair.y / 8u].low, boxes[pair.x].low, true);
+        walk(boxes[cell.first_sub + pair.y / 8u].low, boxes[first_b[pair.x] + pair.y % 8u].low, true);
     }
     for (var n = 0u; n < HOOK_TASKS * 64u && undecided_pairs.tasks != 0u; n++) {
         let pair = take_pair(&undecided_pairs);
-        settle_undecided(cell.first_sub + pair.y / 8u, pair.x);
+        settle_undecided(cell.first_sub + pair.y / 8u, first_b[pair.x] + pair.y % 8u);
     }
     if loops_were_cut() {
         atomicOr(&status[STATUS_INCOMPLETE], 1u);
