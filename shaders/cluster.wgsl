@@ -149,10 +149,22 @@ struct SubCell {
 // with a per-thread address is a loop over the SIMD lanes, an atomic one more so).
 struct Sub {
     lo: vec3<f32>,
-    low: u32,
     hi: vec3<f32>,
-    start: u32,
-    count: u32,
+    // Smallest point index, start of the range in sorted[], point count: one vector, read
+    // with one load (lowest, range_start, points_in).
+    members: vec3<u32>,
+}
+
+fn lowest(s: Sub) -> u32 {
+    return s.members.x;
+}
+
+fn range_start(s: Sub) -> u32 {
+    return s.members.y;
+}
+
+fn points_in(s: Sub) -> u32 {
+    return s.members.z;
 }
 
 // Bounds of the union-find loops (a hit sets STATUS_INCOMPLETE, the host re-submits).
@@ -413,7 +425,7 @@ fn place(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
         let count = atomicLoad(&subs[j].count);
         let start = atomicAdd(&status[PLACED], count);
-        boxes[j] = Sub(lo, atomicLoad(&subs[j].low), hi, start, count);
+        boxes[j] = Sub(lo, hi, vec3<u32>(atomicLoad(&subs[j].low), start, count));
     }
 }
 
@@ -426,8 +438,8 @@ fn seed(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let sub = boxes[info[i].sub];
-    sorted[sub.start + info[i].rank] = i;
-    atomicStore(&parent[i], sub.low);
+    sorted[range_start(sub) + info[i].rank] = i;
+    atomicStore(&parent[i], lowest(sub));
     info[i].scanned = 0u;
 }
 
@@ -526,15 +538,15 @@ fn far2(a_lo: vec3<f32>, a_hi: vec3<f32>, b_lo: vec3<f32>, b_hi: vec3<f32>) -> f
 // True when the pair's boxes leave it undecided and it has too many point pairs for the
 // hook: the scan pass tests it, from a's points (hook and scan decide this alike).
 fn left_to_scan(a: Sub, b: Sub) -> bool {
-    return a.count > INLINE_PAIRS / b.count && near2(a.lo, a.hi, b.lo, b.hi) <= params.r2_apart
+    return points_in(a) > INLINE_PAIRS / points_in(b) && near2(a.lo, a.hi, b.lo, b.hi) <= params.r2_apart
         && far2(a.lo, a.hi, b.lo, b.hi) >= params.r2_joined;
 }
 
 // True when some point of a and some point of b are neighbours (at most INLINE_PAIRS tests).
 fn ranges_touch(a: Sub, b: Sub) -> bool {
-    for (var ia = a.start; ia < a.start + a.count; ia++) {
+    for (var ia = range_start(a); ia < range_start(a) + points_in(a); ia++) {
         let p = points[sorted[ia]].xyz;
-        for (var ib = b.start; ib < b.start + b.count; ib++) {
+        for (var ib = range_start(b); ib < range_start(b) + points_in(b); ib++) {
             if is_neighbour(p, points[sorted[ib]].xyz) {
                 return true;
             }
@@ -564,8 +576,8 @@ fn pair_by_boxes(a: Sub, b: Sub) -> u32 {
 fn settle_undecided(a_index: u32, b_index: u32) {
     let a = boxes[a_index];
     let b = boxes[b_index];
-    let large = a.count > INLINE_PAIRS / b.count;
-    if !walk(a.low, b.low, !large && ranges_touch(a, b)) && large {
+    let large = points_in(a) > INLINE_PAIRS / points_in(b);
+    if !walk(lowest(a), lowest(b), !large && ranges_touch(a, b)) && large {
         // The scan pass runs in re-submissions only: marking a sub-cell asks for one.
         if atomicExchange(&subs[a_index].scan, 1u) == 0u {
             atomicOr(&status[STATUS_INCOMPLETE], 1u);
@@ -771,7 +783,7 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     // loop's body for the whole SIMD group, so the point tests would cost every pair).
     for (var n = 0u; n < HOOK_TASKS * 64u && joined_pairs.tasks != 0u; n++) {
         let pair = take_pair(&joined_pairs);
-        walk(boxes[cell.first_sub + pair.y / 8u].low, boxes[first_b[pair.x] + pair.y % 8u].low, true);
+        walk(lowest(boxes[cell.first_sub + pair.y / 8u]), lowest(boxes[first_b[pair.x] + pair.y % 8u]), true);
     }
     for (var n = 0u; n < HOOK_TASKS * 64u && undecided_pairs.tasks != 0u; n++) {
         let pair = take_pair(&undecided_pairs);
@@ -783,19 +795,19 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 
 // Tests point p of sub-cell a (smallest index a_low) against b's points from index `begin`,
-// within the budget; returns how far it got: b.count when a and b are joined or b is done.
+// within the budget; returns how far it got: b's point count when a and b are joined or b is done.
 fn scan_against(p: vec3<f32>, a_low: u32, b: Sub, begin: u32, budget: ptr<function, u32>) -> u32 {
-    if walk(a_low, b.low, false) || near2(p, p, b.lo, b.hi) > params.r2_apart {
-        return b.count;
+    if walk(a_low, lowest(b), false) || near2(p, p, b.lo, b.hi) > params.r2_apart {
+        return points_in(b);
     }
     if far2(p, p, b.lo, b.hi) < params.r2_joined {
-        return select(begin, b.count, walk(a_low, b.low, true));
+        return select(begin, points_in(b), walk(a_low, lowest(b), true));
     }
-    let stop = begin + min(b.count - begin, *budget);
+    let stop = begin + min(points_in(b) - begin, *budget);
     for (var ib = begin; ib < stop; ib++) {
-        if is_neighbour(p, points[sorted[b.start + ib]].xyz) {
+        if is_neighbour(p, points[sorted[range_start(b) + ib]].xyz) {
             *budget -= ib + 1u - begin;
-            return select(begin, b.count, walk(a_low, b.low, true));
+            return select(begin, points_in(b), walk(a_low, lowest(b), true));
         }
     }
     *budget -= stop - begin;
@@ -843,12 +855,12 @@ fn scan(@builtin(global_invocation_id) gid: vec3<u32>) {
                 continue;
             }
             let start = counted;
-            counted += b.count;
+            counted += points_in(b);
             if counted <= done_before {
                 continue;
             }
-            let reached = scan_against(p, a.low, b, max(done_before, start) - start, &budget);
-            if reached < b.count {
+            let reached = scan_against(p, lowest(a), b, max(done_before, start) - start, &budget);
+            if reached < points_in(b) {
                 counted = start + reached;
                 stopped = true;
             }
