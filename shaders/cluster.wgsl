@@ -577,7 +577,9 @@ fn settle_undecided(a_index: u32, b_index: u32) {
     let a = boxes[a_index];
     let b = boxes[b_index];
     let large = points_in(a) > INLINE_PAIRS / points_in(b);
-    if !walk(lowest(a), lowest(b), !large && ranges_touch(a, b)) && large {
+    let touch = !large && ranges_touch(a, b);
+    // A small pair that does not touch has nothing to unite or to mark: no walk.
+    if (touch || large) && !walk(lowest(a), lowest(b), touch) && large {
         // The scan pass runs in re-submissions only: marking a sub-cell asks for one.
         if atomicExchange(&subs[a_index].scan, 1u) == 0u {
             atomicOr(&status[STATUS_INCOMPLETE], 1u);
