@@ -351,10 +351,12 @@ fn number(@builtin(global_invocation_id) gid: vec3<u32>) {
     cells[k].octants = octants;
     slots[s].z_subs.y = bitcast<i32>(pack_subs(first, octants));
     for (var j = first; j < first + n_subs; j++) {
-        for (var axis = 0u; axis < 3u; axis++) {
-            atomicStore(&subs[j].lo[axis], NONE);
-            atomicStore(&subs[j].hi[axis], 0u);
-        }
+        atomicStore(&subs[j].lo[0], NONE);
+        atomicStore(&subs[j].lo[1], NONE);
+        atomicStore(&subs[j].lo[2], NONE);
+        atomicStore(&subs[j].hi[0], 0u);
+        atomicStore(&subs[j].hi[1], 0u);
+        atomicStore(&subs[j].hi[2], 0u);
         atomicStore(&subs[j].low, NONE);
         atomicStore(&subs[j].count, 0u);
         atomicStore(&subs[j].scan, 0u);
@@ -399,13 +401,18 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let p = points[i].xyz;
     let key = vec3<u32>(order_key(p.x), order_key(p.y), order_key(p.z));
-    for (var axis = 0u; axis < 3u; axis++) {
-        if key[axis] < atomicLoad(&subs[sub].lo[axis]) {
-            atomicMin(&subs[sub].lo[axis], key[axis]);
-        }
-        if key[axis] > atomicLoad(&subs[sub].hi[axis]) {
-            atomicMax(&subs[sub].hi[axis], key[axis]);
-        }
+    widen_box(sub, key, 0u);
+    widen_box(sub, key, 1u);
+    widen_box(sub, key, 2u);
+}
+
+// Sub-cell `sub`'s box along `axis` takes in the point of order keys `key`.
+fn widen_box(sub: u32, key: vec3<u32>, axis: u32) {
+    if key[axis] < atomicLoad(&subs[sub].lo[axis]) {
+        atomicMin(&subs[sub].lo[axis], key[axis]);
+    }
+    if key[axis] > atomicLoad(&subs[sub].hi[axis]) {
+        atomicMax(&subs[sub].hi[axis], key[axis]);
     }
 }
 
@@ -417,12 +424,16 @@ fn place(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let first = cells[k].first_sub;
     for (var j = first; j < first + countOneBits(cells[k].octants); j++) {
-        var lo: vec3<f32>;
-        var hi: vec3<f32>;
-        for (var axis = 0u; axis < 3u; axis++) {
-            lo[axis] = from_order_key(atomicLoad(&subs[j].lo[axis]));
-            hi[axis] = from_order_key(atomicLoad(&subs[j].hi[axis]));
-        }
+        let lo = vec3<f32>(
+            from_order_key(atomicLoad(&subs[j].lo[0])),
+            from_order_key(atomicLoad(&subs[j].lo[1])),
+            from_order_key(atomicLoad(&subs[j].lo[2])),
+        );
+        let hi = vec3<f32>(
+            from_order_key(atomicLoad(&subs[j].hi[0])),
+            from_order_key(atomicLoad(&subs[j].hi[1])),
+            from_order_key(atomicLoad(&subs[j].hi[2])),
+        );
         let count = atomicLoad(&subs[j].count);
         let start = atomicAdd(&status[PLACED], count);
         boxes[j] = Sub(lo, hi, vec3<u32>(atomicLoad(&subs[j].low), start, count));
