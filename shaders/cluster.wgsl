@@ -31,15 +31,19 @@
 //                        corners are not, else by testing point pairs,
 //                        (dx*dx + dy*dy) + dz*dz < r2, until the first hit: here when the pair
 //                        has at most INLINE_PAIRS point pairs, else the sub-cell is marked for
-//                        the scan pass. The boxes decide first, for a task's up to 64 pairs
-//                        at once (bit masks; of the cell's sub-cells the boxes join to one
-//                        another, one union per other sub-cell), then one loop unites the
-//                        joined pairs and another settles the undecided ones: llvmpipe runs
-//                        the loops in a loop's body once per iteration, whichever lanes need
-//                        them, and both sides of a branch (so task 0 is not a branch of the
-//                        loop over the neighbour cells). Unions on a lock-free union-find
-//                        (one loop walks both roots and hooks the larger root under the
-//                        smaller by CAS; compress halves the paths)
+//                        the scan pass. The look-ups first (a loop over the tasks), then one
+//                        loop over the sub-cells of all cells found, where the boxes decide
+//                        (bit masks of the pairs per task; of the cell's sub-cells the boxes
+//                        join to one another, one union per other sub-cell), then one loop
+//                        unites the joined pairs of all tasks and another settles the
+//                        undecided ones.
+//                        llvmpipe runs a loop's body for the whole SIMD group as often as its
+//                        busiest lane needs, and the loops in a body once per iteration, so a
+//                        loop per task cost the sum over the tasks of the busiest lane's count
+//                        (and both sides of a branch run: task 0 is no branch of the loop over
+//                        the neighbour cells). Unions on a lock-free union-find (one loop walks
+//                        both roots and hooks the larger root under the smaller by CAS;
+//                        compress halves the paths)
 //   prepare_scan (1 thread, re-submissions only) the scan's dispatch size: none when the hook
 //                        marked no sub-cell
 //   scan     per point   (re-submissions only: the hook sets STATUS_INCOMPLETE when it marks a
@@ -549,7 +553,8 @@ fn far2(a_lo: vec3<f32>, a_hi: vec3<f32>, b_lo: vec3<f32>, b_hi: vec3<f32>) -> f
 // True when the pair's boxes leave it undecided and it has too many point pairs for the
 // hook: the scan pass tests it, from a's points (hook and scan decide this alike).
 fn left_to_scan(a: Sub, b: Sub) -> bool {
-    return points_in(a) > INLINE_PAIRS / points_in(b) && near2(a.lo, a.hi, b.lo, b.hi) <= params.r2_apart
+    return points_in(a) > INLINE_PAIRS / points_in(b)
+        && near2(a.lo, a.hi, b.lo, b.hi) <= params.r2_apart
         && far2(a.lo, a.hi, b.lo, b.hi) >= params.r2_joined;
 }
 
@@ -740,18 +745,18 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     close_groups_over(&group, 5u);
     close_groups_over(&group, 6u);
     close_groups_over(&group, 7u);
-    // Task 0 (the cell's own sub-cell pairs) outside the loop over the neighbour cells:
-    // llvmpipe runs both sides of a branch for the whole SIMD group.
-    let stride = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
-    // The pairs to unite and those the boxes leave undecided, settled after the loop over the
-    // tasks: one loop each for all of a cell's pairs, which runs as often as the lane with the
-    // most pairs needs, not once per task as often as the lane with the most in that task.
+    // The pairs to unite and those the boxes leave undecided, per task, settled after the
+    // loops over the tasks: one loop each for all of a cell's pairs, which runs as often as
+    // the lane with the most pairs needs, not once per task as often as the lane with the
+    // most in that task.
     var joined_pairs: TaskPairs;
     var undecided_pairs: TaskPairs;
     // First sub-cell and sub-cell count of each task's cell.
     var first_b: array<u32, HOOK_TASKS>;
     var count_b: array<u32, HOOK_TASKS>;
     first_b[0] = cell.first_sub;
+    // Task 0 (the cell's own sub-cell pairs) is no branch of the loop over the neighbour
+    // cells: llvmpipe runs both sides of a branch for the whole SIMD group.
     if gid.y == 0u {
         var joined = vec2<u32>(0u);
         var undecided = vec2<u32>(0u);
@@ -767,9 +772,8 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         add_pairs(&undecided_pairs, 0u, undecided);
     }
     // This thread's neighbour tasks (gid.y of the dispatch's threads per cell): the look-ups
-    // first, then one loop over the sub-cells of the cells found (bit t of `found` while task
-    // t's cell has sub-cells left), which runs as often as the lane with the most needs, not
-    // once per task as often as the lane with the most in that task.
+    // first (bit t of `found` while task t's cell has sub-cells left to visit).
+    let stride = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
     var found = 0u;
     for (var task = select(gid.y, stride, gid.y == 0u); task < HOOK_TASKS; task += stride) {
         let other_cell = following_cell(cell.coarse, task);
@@ -783,10 +787,10 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
             found |= 1u << task;
         }
     }
-    // Of each sub-cell b, the pairs to unite and those the boxes leave undecided, chosen
-    // first so that the settle loops, with the union-find's loops, run once per pair to
-    // settle rather than once per pair of sub-cells: one union per group of own sub-cells
-    // joined to b.
+    // Then one loop over the sub-cells of all cells found, not one per cell. Of each sub-cell
+    // b, the pairs to unite and those the boxes leave undecided, chosen first so that the
+    // settle loops, with the union-find's loops, run once per pair to settle rather than once
+    // per pair of sub-cells: one union per group of own sub-cells joined to b.
     var b = 0u;
     for (var n = 0u; n < (HOOK_TASKS - 1u) * 8u && found != 0u; n++) {
         let task = firstTrailingBit(found);
@@ -827,7 +831,8 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     // loop's body for the whole SIMD group, so the point tests would cost every pair).
     for (var n = 0u; n < HOOK_TASKS * 64u && joined_pairs.tasks != 0u; n++) {
         let pair = take_pair(&joined_pairs);
-        walk(lowest(boxes[cell.first_sub + pair.y / 8u]), lowest(boxes[first_b[pair.x] + pair.y % 8u]), true);
+        let b_index = first_b[pair.x] + pair.y % 8u;
+        walk(lowest(boxes[cell.first_sub + pair.y / 8u]), lowest(boxes[b_index]), true);
     }
     for (var n = 0u; n < HOOK_TASKS * 64u && undecided_pairs.tasks != 0u; n++) {
         let pair = take_pair(&undecided_pairs);
