@@ -728,8 +728,8 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
         group[a] = 1u << a;
     }
     // One call per row and per closure step, each with a constant index, so that llvmpipe's
-    // compiler unrolls the loop of 8 inside (as nested loops they were left as loops, which
-    // cost about a fifth of the hook).
+    // compiler unrolls the loop of 8 inside (as two nested loops, presumably left as loops,
+    // they cost about a fifth of the hook).
     decide_own_row(&own, &group, &own_undecided, count_a, 1u);
     decide_own_row(&own, &group, &own_undecided, count_a, 2u);
     decide_own_row(&own, &group, &own_undecided, count_a, 3u);
