@@ -48,9 +48,10 @@
 //                        marked no sub-cell
 //   scan     per point   (re-submissions only: the hook sets STATUS_INCOMPLETE when it marks a
 //                        sub-cell for the first time, so the first submission has neither
-//                        dispatch) a point of a marked sub-cell against each such large pair's other
-//                        sub-cell, at most SCAN_BUDGET point pairs per invocation: where it
-//                        stopped is kept per point (scanned), the next submission goes on
+//                        dispatch) a point of a marked sub-cell against each such large
+//                        pair's other sub-cell, at most SCAN_BUDGET point pairs per
+//                        invocation: where it stopped is kept per point (scanned), the next
+//                        submission goes on
 //   compress per point   parent[i] = root(i)
 // Roots are only ever hooked under smaller roots and each sub-cell starts under its smallest
 // point, so each final root is the smallest point index of its component: the canonical id
