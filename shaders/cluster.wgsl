@@ -15,7 +15,8 @@
 //                        numbers the cell: cells[] lists the occupied cells) and mark the
 //                        point's octant in the slot
 //   prepare_cells (1 thread) the per-cell passes' dispatch size from the cells insert numbered
-//   number   per cell    number the cell's occupied octants (its sub-cells, in subs[])
+//   number   per cell    number the cell's occupied octants (its sub-cells, in subs[]) and
+//                        write them into its slot, where the look-ups of the hook find them
 //   gather   per point   join the point's sub-cell: its rank there (atomicAdd of the count),
 //                        the smallest index (atomicMin) and the bounding box (atomicMin/Max
 //                        of order_key), each atomic skipped when it cannot change the value
@@ -30,22 +31,27 @@
 //                        corners are not, else by testing point pairs,
 //                        (dx*dx + dy*dy) + dz*dz < r2, until the first hit: here when the pair
 //                        has at most INLINE_PAIRS point pairs, else the sub-cell is marked for
-//                        the scan pass. The boxes decide first, for a task's up to 64 pairs
-//                        at once (bit masks; of the cell's sub-cells the boxes join to one
-//                        another, one union per other sub-cell), then one loop unites the
-//                        joined pairs and another settles the undecided ones: llvmpipe runs
-//                        the loops in a loop's body once per iteration, whichever lanes need
-//                        them, and both sides of a branch (so task 0 is not a branch of the
-//                        loop over the neighbour cells). Unions on a lock-free union-find
-//                        (one loop walks both roots and hooks the larger root under the
-//                        smaller by CAS; compress halves the paths)
+//                        the scan pass. The look-ups first (a loop over the tasks), then one
+//                        loop over the sub-cells of all cells found, where the boxes decide
+//                        (bit masks of the pairs per task; of the cell's sub-cells the boxes
+//                        join to one another, one union per other sub-cell), then one loop
+//                        unites the joined pairs of all tasks and another settles the
+//                        undecided ones.
+//                        llvmpipe runs a loop's body for the whole SIMD group as often as its
+//                        busiest lane needs, and the loops in a body once per iteration, so a
+//                        loop per task cost the sum over the tasks of the busiest lane's count
+//                        (and both sides of a branch run: task 0 is no branch of the loop over
+//                        the neighbour cells). Unions on a lock-free union-find (one loop walks
+//                        both roots and hooks the larger root under the smaller by CAS;
+//                        compress halves the paths)
 //   prepare_scan (1 thread, re-submissions only) the scan's dispatch size: none when the hook
 //                        marked no sub-cell
 //   scan     per point   (re-submissions only: the hook sets STATUS_INCOMPLETE when it marks a
 //                        sub-cell for the first time, so the first submission has neither
-//                        dispatch) a point of a marked sub-cell against each such large pair's other
-//                        sub-cell, at most SCAN_BUDGET point pairs per invocation: where it
-//                        stopped is kept per point (scanned), the next submission goes on
+//                        dispatch) a point of a marked sub-cell against each such large
+//                        pair's other sub-cell, at most SCAN_BUDGET point pairs per
+//                        invocation: where it stopped is kept per point (scanned), the next
+//                        submission goes on
 //   compress per point   parent[i] = root(i)
 // Roots are only ever hooked under smaller roots and each sub-cell starts under its smallest
 // point, so each final root is the smallest point index of its component: the canonical id
@@ -97,12 +103,13 @@ struct ClusterParams {
 struct Slot {
     // 1 + index of the point that claimed the slot for its coarse cell; 0 = empty.
     rep: atomic<u32>,
-    // 1 + the cell's index in cells[] (written by the claiming thread; read by later passes).
-    cell: atomic<u32>,
-    // Bit o set when octant o of the cell holds points.
+    // Bit o set when octant o of the cell holds points (insert).
     octants: atomic<u32>,
-    // The coarse cell (written by the claiming thread; read by later passes' look-ups).
-    coarse: array<i32, 3>,
+    // The coarse cell's x and y (written by the claiming thread).
+    coarse_xy: vec2<i32>,
+    // The coarse cell's z (claiming thread) and its sub-cells as number packs them
+    // (pack_subs; 0 in an empty slot): a look-up reads the two vectors only.
+    z_subs: vec2<i32>,
 }
 
 struct PointInfo {
@@ -147,10 +154,22 @@ struct SubCell {
 // with a per-thread address is a loop over the SIMD lanes, an atomic one more so).
 struct Sub {
     lo: vec3<f32>,
-    low: u32,
     hi: vec3<f32>,
-    start: u32,
-    count: u32,
+    // Smallest point index, start of the range in sorted[], point count: one vector, read
+    // with one load (lowest, range_start, points_in).
+    members: vec3<u32>,
+}
+
+fn lowest(s: Sub) -> u32 {
+    return s.members.x;
+}
+
+fn range_start(s: Sub) -> u32 {
+    return s.members.y;
+}
+
+fn points_in(s: Sub) -> u32 {
+    return s.members.z;
 }
 
 // Bounds of the union-find loops (a hit sets STATUS_INCOMPLETE, the host re-submits).
@@ -296,8 +315,8 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
             owner = i + 1u;
             // A cell has at least one point: at most `count` cells.
             let k = atomicAdd(&status[CELL_COUNT], 1u);
-            atomicStore(&slots[s].cell, k + 1u);
-            slots[s].coarse = array<i32, 3>(c.x, c.y, c.z);
+            slots[s].coarse_xy = c.xy;
+            slots[s].z_subs.x = c.z;
             cells[k].coarse = c;
             cells[k].slot = s;
         } else if owner == 0u {
@@ -329,26 +348,44 @@ fn number(@builtin(global_invocation_id) gid: vec3<u32>) {
     if k >= cell_count() {
         return;
     }
-    let octants = atomicLoad(&slots[cells[k].slot].octants);
+    let s = cells[k].slot;
+    let octants = atomicLoad(&slots[s].octants);
     let n_subs = countOneBits(octants);
     let first = atomicAdd(&status[SUB_COUNT], n_subs);
     cells[k].first_sub = first;
     cells[k].octants = octants;
+    slots[s].z_subs.y = bitcast<i32>(pack_subs(first, octants));
     for (var j = first; j < first + n_subs; j++) {
-        for (var axis = 0u; axis < 3u; axis++) {
-            atomicStore(&subs[j].lo[axis], NONE);
-            atomicStore(&subs[j].hi[axis], 0u);
-        }
+        atomicStore(&subs[j].lo[0], NONE);
+        atomicStore(&subs[j].lo[1], NONE);
+        atomicStore(&subs[j].lo[2], NONE);
+        atomicStore(&subs[j].hi[0], 0u);
+        atomicStore(&subs[j].hi[1], 0u);
+        atomicStore(&subs[j].hi[2], 0u);
         atomicStore(&subs[j].low, NONE);
         atomicStore(&subs[j].count, 0u);
         atomicStore(&subs[j].scan, 0u);
     }
 }
 
-// Index in subs[] of the sub-cell of fine cell `fine` in coarse cell `cell`.
-fn sub_index(cell: Cell, fine: vec3<i32>) -> u32 {
-    let below = cell.octants & ((1u << octant_of(fine)) - 1u);
-    return cell.first_sub + countOneBits(below);
+// A cell's sub-cells in one non-zero word: (first_sub + 1) << 8 | octants (first_sub + 1 <
+// 2^23: at most MAX_GPU_POINTS sub-cells).
+fn pack_subs(first_sub: u32, octants: u32) -> u32 {
+    return ((first_sub + 1u) << 8u) | octants;
+}
+
+fn first_sub_of(packed: u32) -> u32 {
+    return (packed >> 8u) - 1u;
+}
+
+fn octants_of(packed: u32) -> u32 {
+    return packed & 0xffu;
+}
+
+// Index in subs[] of the sub-cell of fine cell `fine` in the coarse cell of sub-cells `packed`.
+fn sub_index(packed: u32, fine: vec3<i32>) -> u32 {
+    let below = octants_of(packed) & ((1u << octant_of(fine)) - 1u);
+    return first_sub_of(packed) + countOneBits(below);
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -361,7 +398,7 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
     if s == NONE {
         return;
     }
-    let sub = sub_index(cells[atomicLoad(&slots[s].cell) - 1u], info[i].cell);
+    let sub = sub_index(bitcast<u32>(slots[s].z_subs.y), info[i].cell);
     info[i].sub = sub;
     info[i].rank = atomicAdd(&subs[sub].count, 1u);
     if i < atomicLoad(&subs[sub].low) {
@@ -369,13 +406,18 @@ fn gather(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let p = points[i].xyz;
     let key = vec3<u32>(order_key(p.x), order_key(p.y), order_key(p.z));
-    for (var axis = 0u; axis < 3u; axis++) {
-        if key[axis] < atomicLoad(&subs[sub].lo[axis]) {
-            atomicMin(&subs[sub].lo[axis], key[axis]);
-        }
-        if key[axis] > atomicLoad(&subs[sub].hi[axis]) {
-            atomicMax(&subs[sub].hi[axis], key[axis]);
-        }
+    widen_box(sub, key, 0u);
+    widen_box(sub, key, 1u);
+    widen_box(sub, key, 2u);
+}
+
+// Sub-cell `sub`'s box along `axis` takes in the point of order keys `key`.
+fn widen_box(sub: u32, key: vec3<u32>, axis: u32) {
+    if key[axis] < atomicLoad(&subs[sub].lo[axis]) {
+        atomicMin(&subs[sub].lo[axis], key[axis]);
+    }
+    if key[axis] > atomicLoad(&subs[sub].hi[axis]) {
+        atomicMax(&subs[sub].hi[axis], key[axis]);
     }
 }
 
@@ -387,15 +429,19 @@ fn place(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     let first = cells[k].first_sub;
     for (var j = first; j < first + countOneBits(cells[k].octants); j++) {
-        var lo: vec3<f32>;
-        var hi: vec3<f32>;
-        for (var axis = 0u; axis < 3u; axis++) {
-            lo[axis] = from_order_key(atomicLoad(&subs[j].lo[axis]));
-            hi[axis] = from_order_key(atomicLoad(&subs[j].hi[axis]));
-        }
+        let lo = vec3<f32>(
+            from_order_key(atomicLoad(&subs[j].lo[0])),
+            from_order_key(atomicLoad(&subs[j].lo[1])),
+            from_order_key(atomicLoad(&subs[j].lo[2])),
+        );
+        let hi = vec3<f32>(
+            from_order_key(atomicLoad(&subs[j].hi[0])),
+            from_order_key(atomicLoad(&subs[j].hi[1])),
+            from_order_key(atomicLoad(&subs[j].hi[2])),
+        );
         let count = atomicLoad(&subs[j].count);
         let start = atomicAdd(&status[PLACED], count);
-        boxes[j] = Sub(lo, atomicLoad(&subs[j].low), hi, start, count);
+        boxes[j] = Sub(lo, hi, vec3<u32>(atomicLoad(&subs[j].low), start, count));
     }
 }
 
@@ -408,25 +454,25 @@ fn seed(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let sub = boxes[info[i].sub];
-    sorted[sub.start + info[i].rank] = i;
-    atomicStore(&parent[i], sub.low);
+    sorted[range_start(sub) + info[i].rank] = i;
+    atomicStore(&parent[i], lowest(sub));
     info[i].scanned = 0u;
 }
 
-// Slot of coarse cell c, or NONE (after the insert dispatch).
-fn find_slot(c: vec3<i32>) -> u32 {
+// The sub-cells of coarse cell c (pack_subs), or 0 when c holds no points (after number).
+fn subs_at(c: vec3<i32>) -> u32 {
     let h = hash(c);
     for (var probe = 0u; probe < params.max_probes; probe++) {
         let s = (h + probe) & params.table_mask;
-        if atomicLoad(&slots[s].rep) == 0u {
-            return NONE;
+        let z_subs = slots[s].z_subs;
+        if z_subs.y == 0 {
+            return 0u;
         }
-        let key = slots[s].coarse;
-        if all(vec3<i32>(key[0], key[1], key[2]) == c) {
-            return s;
+        if all(vec3<i32>(slots[s].coarse_xy, z_subs.x) == c) {
+            return bitcast<u32>(z_subs.y);
         }
     }
-    return NONE;
+    return 0u;
 }
 
 // Root of x with path halving, or NONE when MAX_FIND steps did not reach it.
@@ -508,15 +554,16 @@ fn far2(a_lo: vec3<f32>, a_hi: vec3<f32>, b_lo: vec3<f32>, b_hi: vec3<f32>) -> f
 // True when the pair's boxes leave it undecided and it has too many point pairs for the
 // hook: the scan pass tests it, from a's points (hook and scan decide this alike).
 fn left_to_scan(a: Sub, b: Sub) -> bool {
-    return a.count > INLINE_PAIRS / b.count && near2(a.lo, a.hi, b.lo, b.hi) <= params.r2_apart
+    return points_in(a) > INLINE_PAIRS / points_in(b)
+        && near2(a.lo, a.hi, b.lo, b.hi) <= params.r2_apart
         && far2(a.lo, a.hi, b.lo, b.hi) >= params.r2_joined;
 }
 
 // True when some point of a and some point of b are neighbours (at most INLINE_PAIRS tests).
 fn ranges_touch(a: Sub, b: Sub) -> bool {
-    for (var ia = a.start; ia < a.start + a.count; ia++) {
+    for (var ia = range_start(a); ia < range_start(a) + points_in(a); ia++) {
         let p = points[sorted[ia]].xyz;
-        for (var ib = b.start; ib < b.start + b.count; ib++) {
+        for (var ib = range_start(b); ib < range_start(b) + points_in(b); ib++) {
             if is_neighbour(p, points[sorted[ib]].xyz) {
                 return true;
             }
@@ -546,8 +593,10 @@ fn pair_by_boxes(a: Sub, b: Sub) -> u32 {
 fn settle_undecided(a_index: u32, b_index: u32) {
     let a = boxes[a_index];
     let b = boxes[b_index];
-    let large = a.count > INLINE_PAIRS / b.count;
-    if !walk(a.low, b.low, !large && ranges_touch(a, b)) && large {
+    let large = points_in(a) > INLINE_PAIRS / points_in(b);
+    let touch = !large && ranges_touch(a, b);
+    // A small pair that does not touch has nothing to unite or to mark: no walk.
+    if (touch || large) && !walk(lowest(a), lowest(b), touch) && large {
         // The scan pass runs in re-submissions only: marking a sub-cell asks for one.
         if atomicExchange(&subs[a_index].scan, 1u) == 0u {
             atomicOr(&status[STATUS_INCOMPLETE], 1u);
@@ -583,35 +632,105 @@ fn within_reach(lo: vec3<f32>, hi: vec3<f32>, other: vec3<i32>) -> bool {
         <= params.reach2_cells;
 }
 
-// The cell that coarse cell `c`'s slot numbered, or false when c holds no points.
-fn cell_at(c: vec3<i32>, found: ptr<function, Cell>) -> bool {
-    let s = find_slot(c);
-    if s == NONE {
-        return false;
-    }
-    *found = cells[atomicLoad(&slots[s].cell) - 1u];
-    return true;
+// Bits a * 8 + b of a 64-bit pair set (two words) for the sub-cells b in `row` (8 bits).
+fn pair_row(a: u32, row: u32) -> vec2<u32> {
+    let bits = row << (a % 4u * 8u);
+    return select(vec2<u32>(0u, bits), vec2<u32>(bits, 0u), a < 4u);
 }
 
-// Bit a * 8 + b of a 64-bit pair set (two words).
+// Bit a * 8 + b of a 64-bit pair set.
 fn pair_bit(a: u32, b: u32) -> vec2<u32> {
-    let bit = a * 8u + b;
-    return select(vec2<u32>(0u, 1u << (bit - 32u)), vec2<u32>(1u << bit, 0u), bit < 32u);
+    return pair_row(a, 1u << b);
 }
 
-// Settles the pairs (bit a * 8 + b) of sub-cells first_a + a and first_b + b: the joined pairs
-// in a loop of their own, with no point tests in it (llvmpipe runs a loop's body for the whole
-// SIMD group, so the point tests would cost every pair), then the undecided ones.
-fn settle_pairs(first_a: u32, first_b: u32, joined_pairs: vec2<u32>, undecided_pairs: vec2<u32>) {
-    var joined = joined_pairs;
-    for (var n = 0u; n < 64u && any(joined != vec2<u32>(0u)); n++) {
-        let bit = take_lowest(&joined);
-        walk(boxes[first_a + bit / 8u].low, boxes[first_b + bit % 8u].low, true);
+// A cell's pairs of sub-cells to settle, per hook task t: bit a * 8 + b of pairs[t] for its
+// sub-cell a and the b-th sub-cell of the task's cell; bit t of `tasks` while pairs[t] has
+// bits left.
+struct TaskPairs {
+    pairs: array<vec2<u32>, HOOK_TASKS>,
+    tasks: u32,
+}
+
+fn add_pairs(list: ptr<function, TaskPairs>, task: u32, pairs: vec2<u32>) {
+    if any(pairs != vec2<u32>(0u)) {
+        (*list).pairs[task] |= pairs;
+        (*list).tasks |= 1u << task;
     }
-    var undecided = undecided_pairs;
-    for (var n = 0u; n < 64u && any(undecided != vec2<u32>(0u)); n++) {
-        let bit = take_lowest(&undecided);
-        settle_undecided(first_a + bit / 8u, first_b + bit % 8u);
+}
+
+// Removes one pair from a non-empty list: (its task, its bit a * 8 + b).
+fn take_pair(list: ptr<function, TaskPairs>) -> vec2<u32> {
+    let task = firstTrailingBit((*list).tasks);
+    var pairs = (*list).pairs[task];
+    let bit = take_lowest(&pairs);
+    (*list).pairs[task] = pairs;
+    if all(pairs == vec2<u32>(0u)) {
+        (*list).tasks &= ~(1u << task);
+    }
+    return vec2<u32>(task, bit);
+}
+
+// The boxes' decisions on the pairs (a, b < a) of a cell's own sub-cells: joined pairs into
+// group[], undecided ones into `undecided`.
+fn decide_own_row(
+    own: ptr<function, array<Sub, 8>>,
+    group: ptr<function, array<u32, 8>>,
+    undecided: ptr<function, vec2<u32>>,
+    count_a: u32,
+    a: u32,
+) {
+    for (var b = 0u; b < 8u; b++) {
+        if b < a && a < count_a {
+            let kind = pair_by_boxes((*own)[a], (*own)[b]);
+            if kind == PAIR_JOINED {
+                (*group)[a] |= 1u << b;
+                (*group)[b] |= 1u << a;
+            } else if kind == PAIR_UNDECIDED {
+                *undecided |= pair_bit(a, b);
+            }
+        }
+    }
+}
+
+// Warshall's step over sub-cell c: a group holding c takes in c's group.
+fn close_groups_over(group: ptr<function, array<u32, 8>>, c: u32) {
+    for (var a = 0u; a < 8u; a++) {
+        if (((*group)[a] >> c) & 1u) != 0u {
+            (*group)[a] |= (*group)[c];
+        }
+    }
+}
+
+// The boxes' decisions on the pairs of a neighbour sub-cell b with a cell's own sub-cells.
+struct NeighbourPairs {
+    // The pairs to unite (bit a * 8 + b): one per group of own sub-cells joined to b.
+    joined: vec2<u32>,
+    // Bit a: the boxes join own sub-cell a to b.
+    joined_to: u32,
+    // Bit a: the boxes leave the pair of own sub-cell a and b undecided.
+    open: u32,
+}
+
+// Decides the pair of own sub-cell a (a constant) and neighbour sub-cell b.
+fn decide_neighbour_pair(
+    pairs: ptr<function, NeighbourPairs>,
+    own: ptr<function, array<Sub, 8>>,
+    group: ptr<function, array<u32, 8>>,
+    count_a: u32,
+    a: u32,
+    sub_b: Sub,
+    b: u32,
+) {
+    if a < count_a {
+        let kind = pair_by_boxes((*own)[a], sub_b);
+        if kind == PAIR_JOINED {
+            if ((*pairs).joined_to & (*group)[a]) == 0u {
+                (*pairs).joined |= pair_bit(a, b);
+            }
+            (*pairs).joined_to |= 1u << a;
+        } else if kind == PAIR_UNDECIDED {
+            (*pairs).open |= 1u << a;
+        }
     }
 }
 
@@ -642,29 +761,36 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
     for (var a = 0u; a < 8u; a++) {
         group[a] = 1u << a;
     }
-    for (var a = 1u; a < 8u; a++) {
-        for (var b = 0u; b < a; b++) {
-            if a < count_a {
-                let kind = pair_by_boxes(own[a], own[b]);
-                if kind == PAIR_JOINED {
-                    group[a] |= 1u << b;
-                    group[b] |= 1u << a;
-                } else if kind == PAIR_UNDECIDED {
-                    own_undecided |= pair_bit(a, b);
-                }
-            }
-        }
-    }
-    for (var c = 0u; c < 8u; c++) {
-        for (var a = 0u; a < 8u; a++) {
-            if ((group[a] >> c) & 1u) != 0u {
-                group[a] |= group[c];
-            }
-        }
-    }
-    // Task 0 (the cell's own sub-cell pairs) outside the loop over the neighbour cells:
-    // llvmpipe runs both sides of a branch for the whole SIMD group.
-    let stride = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
+    // One call per row and per closure step, each with a constant index, so that llvmpipe's
+    // compiler unrolls the loop of 8 inside (as two nested loops, presumably left as loops,
+    // they cost about a fifth of the hook).
+    decide_own_row(&own, &group, &own_undecided, count_a, 1u);
+    decide_own_row(&own, &group, &own_undecided, count_a, 2u);
+    decide_own_row(&own, &group, &own_undecided, count_a, 3u);
+    decide_own_row(&own, &group, &own_undecided, count_a, 4u);
+    decide_own_row(&own, &group, &own_undecided, count_a, 5u);
+    decide_own_row(&own, &group, &own_undecided, count_a, 6u);
+    decide_own_row(&own, &group, &own_undecided, count_a, 7u);
+    close_groups_over(&group, 0u);
+    close_groups_over(&group, 1u);
+    close_groups_over(&group, 2u);
+    close_groups_over(&group, 3u);
+    close_groups_over(&group, 4u);
+    close_groups_over(&group, 5u);
+    close_groups_over(&group, 6u);
+    close_groups_over(&group, 7u);
+    // The pairs to unite and those the boxes leave undecided, per task, settled after the
+    // loops over the tasks: one loop each for all of a cell's pairs, which runs as often as
+    // the lane with the most pairs needs, not once per task as often as the lane with the
+    // most in that task.
+    var joined_pairs: TaskPairs;
+    var undecided_pairs: TaskPairs;
+    // First sub-cell and sub-cell count of each task's cell.
+    var first_b: array<u32, HOOK_TASKS>;
+    var count_b: array<u32, HOOK_TASKS>;
+    first_b[0] = cell.first_sub;
+    // Task 0 (the cell's own sub-cell pairs) is no branch of the loop over the neighbour
+    // cells: llvmpipe runs both sides of a branch for the whole SIMD group.
     if gid.y == 0u {
         var joined = vec2<u32>(0u);
         var undecided = vec2<u32>(0u);
@@ -673,56 +799,73 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
             if a < count_a && first != a {
                 joined |= pair_bit(a, first);
             }
-            for (var b = 0u; b < a; b++) {
-                if ((group[a] >> b) & 1u) == 0u {
-                    undecided |= own_undecided & pair_bit(a, b);
-                }
-            }
+            // The open pairs (a, b < a) of the sub-cells b outside a's group.
+            undecided |= own_undecided & pair_row(a, ~group[a] & ((1u << a) - 1u));
         }
-        settle_pairs(cell.first_sub, cell.first_sub, joined, undecided);
+        add_pairs(&joined_pairs, 0u, joined);
+        add_pairs(&undecided_pairs, 0u, undecided);
     }
-    // This thread's neighbour tasks (gid.y of the dispatch's threads per cell).
+    // This thread's neighbour tasks (gid.y of the dispatch's threads per cell): the look-ups
+    // first (bit t of `found` while task t's cell has sub-cells left to visit).
+    let stride = clamp(params.hook_threads_per_cell, 1u, HOOK_TASKS);
+    var found = 0u;
     for (var task = select(gid.y, stride, gid.y == 0u); task < HOOK_TASKS; task += stride) {
-        // The pairs to unite, and those the boxes leave undecided (bit a * 8 + b), chosen
-        // first so that the loops of settle_pairs, with the union-find's loops, run once per
-        // pair to settle rather than once per pair of sub-cells: one union per group of own
-        // sub-cells joined to another sub-cell.
-        var joined = vec2<u32>(0u);
-        var undecided = vec2<u32>(0u);
         let other_cell = following_cell(cell.coarse, task);
-        var cell_b: Cell;
-        if !within_reach(box_lo, box_hi, other_cell) || !cell_at(other_cell, &cell_b) {
+        if !within_reach(box_lo, box_hi, other_cell) {
             continue;
         }
-        let first_b = cell_b.first_sub;
-        let count_b = countOneBits(cell_b.octants);
-        for (var b = 0u; b < count_b; b++) {
-            let sub_b = boxes[first_b + b];
-            if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) > params.r2_apart {
-                continue;
-            }
-            var joined_b = 0u;
-            var open_b = 0u;
+        let subs_b = subs_at(other_cell);
+        if subs_b != 0u {
+            first_b[task] = first_sub_of(subs_b);
+            count_b[task] = countOneBits(octants_of(subs_b));
+            found |= 1u << task;
+        }
+    }
+    // Then one loop over the sub-cells of all cells found, not one per cell. Of each sub-cell
+    // b, the pairs to unite and those the boxes leave undecided, chosen first so that the
+    // settle loops, with the union-find's loops, run once per pair to settle rather than once
+    // per pair of sub-cells: one union per group of own sub-cells joined to b.
+    var b = 0u;
+    for (var n = 0u; n < (HOOK_TASKS - 1u) * 8u && found != 0u; n++) {
+        let task = firstTrailingBit(found);
+        let sub_b = boxes[first_b[task] + b];
+        if near2(box_lo, box_hi, sub_b.lo, sub_b.hi) <= params.r2_apart {
+            // One call per own sub-cell, with a constant index (as the own pairs' above: a
+            // loop here cost 3 % more).
+            var pairs: NeighbourPairs;
+            decide_neighbour_pair(&pairs, &own, &group, count_a, 0u, sub_b, b);
+            decide_neighbour_pair(&pairs, &own, &group, count_a, 1u, sub_b, b);
+            decide_neighbour_pair(&pairs, &own, &group, count_a, 2u, sub_b, b);
+            decide_neighbour_pair(&pairs, &own, &group, count_a, 3u, sub_b, b);
+            decide_neighbour_pair(&pairs, &own, &group, count_a, 4u, sub_b, b);
+            decide_neighbour_pair(&pairs, &own, &group, count_a, 5u, sub_b, b);
+            decide_neighbour_pair(&pairs, &own, &group, count_a, 6u, sub_b, b);
+            decide_neighbour_pair(&pairs, &own, &group, count_a, 7u, sub_b, b);
+            var undecided = vec2<u32>(0u);
             for (var a = 0u; a < 8u; a++) {
-                if a < count_a {
-                    let kind = pair_by_boxes(own[a], sub_b);
-                    if kind == PAIR_JOINED {
-                        if (joined_b & group[a]) == 0u {
-                            joined |= pair_bit(a, b);
-                        }
-                        joined_b |= 1u << a;
-                    } else if kind == PAIR_UNDECIDED {
-                        open_b |= 1u << a;
-                    }
-                }
-            }
-            for (var a = 0u; a < 8u; a++) {
-                if ((open_b >> a) & 1u) != 0u && (joined_b & group[a]) == 0u {
+                if ((pairs.open >> a) & 1u) != 0u && (pairs.joined_to & group[a]) == 0u {
                     undecided |= pair_bit(a, b);
                 }
             }
+            add_pairs(&joined_pairs, task, pairs.joined);
+            add_pairs(&undecided_pairs, task, undecided);
         }
-        settle_pairs(cell.first_sub, first_b, joined, undecided);
+        b += 1u;
+        if b == count_b[task] {
+            found &= ~(1u << task);
+            b = 0u;
+        }
+    }
+    // The joined pairs in a loop of their own, with no point tests in it (llvmpipe runs a
+    // loop's body for the whole SIMD group, so the point tests would cost every pair).
+    for (var n = 0u; n < HOOK_TASKS * 64u && joined_pairs.tasks != 0u; n++) {
+        let pair = take_pair(&joined_pairs);
+        let b_index = first_b[pair.x] + pair.y % 8u;
+        walk(lowest(boxes[cell.first_sub + pair.y / 8u]), lowest(boxes[b_index]), true);
+    }
+    for (var n = 0u; n < HOOK_TASKS * 64u && undecided_pairs.tasks != 0u; n++) {
+        let pair = take_pair(&undecided_pairs);
+        settle_undecided(cell.first_sub + pair.y / 8u, first_b[pair.x] + pair.y % 8u);
     }
     if loops_were_cut() {
         atomicOr(&status[STATUS_INCOMPLETE], 1u);
@@ -730,19 +873,19 @@ fn hook(@builtin(global_invocation_id) gid: vec3<u32>) {
 }
 
 // Tests point p of sub-cell a (smallest index a_low) against b's points from index `begin`,
-// within the budget; returns how far it got: b.count when a and b are joined or b is done.
+// within the budget; returns how far it got: b's point count when a and b are joined or b is done.
 fn scan_against(p: vec3<f32>, a_low: u32, b: Sub, begin: u32, budget: ptr<function, u32>) -> u32 {
-    if walk(a_low, b.low, false) || near2(p, p, b.lo, b.hi) > params.r2_apart {
-        return b.count;
+    if walk(a_low, lowest(b), false) || near2(p, p, b.lo, b.hi) > params.r2_apart {
+        return points_in(b);
     }
     if far2(p, p, b.lo, b.hi) < params.r2_joined {
-        return select(begin, b.count, walk(a_low, b.low, true));
+        return select(begin, points_in(b), walk(a_low, lowest(b), true));
     }
-    let stop = begin + min(b.count - begin, *budget);
+    let stop = begin + min(points_in(b) - begin, *budget);
     for (var ib = begin; ib < stop; ib++) {
-        if is_neighbour(p, points[sorted[b.start + ib]].xyz) {
+        if is_neighbour(p, points[sorted[range_start(b) + ib]].xyz) {
             *budget -= ib + 1u - begin;
-            return select(begin, b.count, walk(a_low, b.low, true));
+            return select(begin, points_in(b), walk(a_low, lowest(b), true));
         }
     }
     *budget -= stop - begin;
@@ -763,22 +906,26 @@ fn scan(@builtin(global_invocation_id) gid: vec3<u32>) {
     let a_index = info[i].sub;
     let a = boxes[a_index];
     let p = points[i].xyz;
-    let cell = cells[atomicLoad(&slots[info[i].slot].cell) - 1u];
+    let coarse = coarse_of(info[i].cell);
+    let own_first = first_sub_of(bitcast<u32>(slots[info[i].slot].z_subs.y));
     let done_before = info[i].scanned;
     var counted = 0u;
     var budget = SCAN_BUDGET;
     var stopped = false;
     for (var task = 0u; task < HOOK_TASKS && !stopped; task++) {
-        var cell_b = cell;
-        var first = cell.first_sub;
+        var first = own_first;
         var end = a_index;
         if task > 0u {
-            let other = following_cell(cell.coarse, task);
-            if !within_reach(a.lo, a.hi, other) || !cell_at(other, &cell_b) {
+            let other = following_cell(coarse, task);
+            if !within_reach(a.lo, a.hi, other) {
                 continue;
             }
-            first = cell_b.first_sub;
-            end = first + countOneBits(cell_b.octants);
+            let subs_b = subs_at(other);
+            if subs_b == 0u {
+                continue;
+            }
+            first = first_sub_of(subs_b);
+            end = first + countOneBits(octants_of(subs_b));
         }
         for (var j = first; j < end && !stopped; j++) {
             let b = boxes[j];
@@ -786,12 +933,12 @@ fn scan(@builtin(global_invocation_id) gid: vec3<u32>) {
                 continue;
             }
             let start = counted;
-            counted += b.count;
+            counted += points_in(b);
             if counted <= done_before {
                 continue;
             }
-            let reached = scan_against(p, a.low, b, max(done_before, start) - start, &budget);
-            if reached < b.count {
+            let reached = scan_against(p, lowest(a), b, max(done_before, start) - start, &budget);
+            if reached < points_in(b) {
                 counted = start + reached;
                 stopped = true;
             }

@@ -458,7 +458,7 @@ pub const CELL_MARGIN: f32 = 1.05;
 const REACH_CELLS: f32 = 2.0 / CELL_MARGIN + 0.02;
 /// `GRID_LIMIT` in the shader: largest |cell coordinate| the GPU grid accepts.
 pub const GRID_LIMIT_CELLS: f32 = 65536.0;
-/// Bytes of one `Slot` in the shader (`rep`, `cell`, `octants`, `coarse`).
+/// Bytes of one `Slot` in the shader (`rep`, `octants`, `coarse_xy`, `z_subs`).
 const SLOT_BYTES: u64 = 24;
 /// Bytes of one `PointInfo` in the shader (fine cell, slot, sub-cell, rank, scan progress).
 const INFO_BYTES: u64 = 32;
