@@ -64,8 +64,8 @@ const MAX_PRIMITIVES: u32 = 256u;
 // The points (pixels) the check pass decides (any order: its decisions are per point and
 // OR-ed into the mask).
 @group(0) @binding(5) var<storage, read_write> checks: array<u32>;
-// The check pass's indirect dispatch arguments, written by the first pass (in a group of
-// its own: a dispatch cannot read its arguments from a buffer it binds).
+// Group 1, the first passes' own: the check pass's indirect dispatch arguments (a dispatch
+// cannot read its arguments from a buffer it binds) and, for crop_depth, its points.
 @group(1) @binding(0) var<storage, read_write> check_args: array<atomic<u32>, 3>;
 
 // The depth image's camera, pose and flying-pixel test (crop_depth only).
@@ -96,10 +96,11 @@ struct DepthParams {
 // The raw 16-bit depth image (0: no return).
 @group(0) @binding(7) var depth: texture_2d<u32>;
 // Cloud-frame xyz per pixel as f32 bits (a quiet NaN when invalid or flying), packed: four
-// pixels are three vec4s.
-@group(0) @binding(8) var<storage, read_write> out_points: array<vec4<u32>>;
-// `out_points` as words, for crop_depth_check's NaN over a flying pixel's 3 words.
-@group(0) @binding(9) var<storage, read_write> out_words: array<u32>;
+// pixels are three vec4s (crop_depth).
+@group(1) @binding(1) var<storage, read_write> out_points: array<vec4<u32>>;
+// The same buffer as words, for crop_depth_check's NaN over a flying pixel's 3 words (group
+// 2: no pipeline binds both views, so no dispatch holds two writable bindings of it).
+@group(2) @binding(0) var<storage, read_write> out_words: array<u32>;
 
 // Point p lies in primitive k (fields read only where its kind uses them).
 fn inside(k: u32, p: vec3<f32>) -> bool {
@@ -144,11 +145,15 @@ fn inside_any_primitive(p: vec3<f32>) -> bool {
 // Workgroups per dimension a dispatch may have (WebGPU's default limit).
 const MAX_GROUPS_X: u32 = 65535u;
 
-// The check pass's workgroups once `listed` items are in the list, as rows of at most
-// MAX_GROUPS_X: both dimensions grow with the count, so the largest values raised are the
-// final count's.
-fn raise_check_args(listed: u32) {
+// The check pass's workgroups once a thread has taken slots [first, listed) of the list,
+// as rows of at most MAX_GROUPS_X. Both dimensions grow with the count, and only a thread
+// whose slots begin a workgroup raises them: the one that begins the last workgroup raises
+// the final count's values, the others spare the atomics on the two words.
+fn raise_check_args(first: u32, listed: u32) {
     let groups = (listed + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+    if groups == (first + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE {
+        return;
+    }
     atomicMax(&check_args[0], min(groups, MAX_GROUPS_X));
     atomicMax(&check_args[1], (groups + MAX_GROUPS_X - 1u) / MAX_GROUPS_X);
 }
@@ -202,12 +207,13 @@ fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     atomicStore(&keep[w], 0u);
     if bits != 0u {
-        var slot = atomicAdd(&counts[2], countOneBits(bits));
+        let first_slot = atomicAdd(&counts[2], countOneBits(bits));
+        var slot = first_slot;
         for (var rest = bits; rest != 0u; rest &= rest - 1u) {
             checks[slot] = first + firstTrailingBit(rest);
             slot += 1u;
         }
-        raise_check_args(slot);
+        raise_check_args(first_slot, slot);
     }
 }
 
@@ -330,13 +336,21 @@ fn depth_pixel(u: u32, v: u32, k: u32) -> vec3<u32> {
     return bitcast<vec3<u32>>(c);
 }
 
-// Pixel k of the quad whose first pixel is (u, v): the row wraps at most once (the image
-// is at least 1 pixel wide, the quad 4 pixels long, wider images wrap at most once); nothing
-// beyond the image (the last quad of an image whose pixel count is not a multiple of 4).
+// Pixel k (< 4) of the quad whose first pixel is (u, v), without a division: u + k wraps
+// to the next rows at most 3 times (3 for an image 1 pixel wide, at most once from 4 pixels
+// wide); nothing beyond the image (the last quad of an image whose pixel count is not a
+// multiple of 4).
 fn depth_pixel_if_any(i: u32, u: u32, v: u32, k: u32) -> vec3<u32> {
-    let wrap = u + k >= depth_params.width;
-    let x = select(u + k, u + k - depth_params.width, wrap);
-    let y = v + select(0u, 1u, wrap);
+    var x = u + k;
+    var y = v;
+    let w = depth_params.width;
+    let wrap1 = x >= w;
+    x = select(x, x - w, wrap1);
+    let wrap2 = x >= w;
+    x = select(x, x - w, wrap2);
+    let wrap3 = x >= w;
+    x = select(x, x - w, wrap3);
+    y += u32(wrap1) + u32(wrap2) + u32(wrap3);
     if i + k < params.point_count {
         return depth_pixel(x, y, k);
     }
@@ -391,12 +405,13 @@ fn crop_depth(
             atomicAdd(&wg_valid, quad_valid);
         }
         if quad_check != 0u {
-            var slot = atomicAdd(&counts[2], countOneBits(quad_check));
+            let first_slot = atomicAdd(&counts[2], countOneBits(quad_check));
+            var slot = first_slot;
             list_check(1u, i, &slot);
             list_check(2u, i + 1u, &slot);
             list_check(4u, i + 2u, &slot);
             list_check(8u, i + 3u, &slot);
-            raise_check_args(slot);
+            raise_check_args(first_slot, slot);
         }
     }
     workgroupBarrier();

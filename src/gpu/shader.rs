@@ -201,11 +201,11 @@ impl CachedBindGroup {
 }
 
 /// Compiles `stage` once and builds one compute pipeline per entry point, all sharing
-/// `layouts`. Pipelines are labelled `<stage>::<entry point>`. Build them once and keep them.
+/// `layouts` (bind group i's layout; `None` for a group the entry points do not use). Pipelines are labelled `<stage>::<entry point>`. Build them once and keep them.
 pub fn compute_pipelines(
     ctx: &GpuContext,
     stage: &StageShader,
-    layouts: &[&wgpu::BindGroupLayout],
+    layouts: &[Option<&wgpu::BindGroupLayout>],
     entry_points: &[&str],
 ) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
     let source = stage.full_source();
@@ -214,11 +214,9 @@ pub fn compute_pipelines(
             label: Some(stage.name),
             source: wgpu::ShaderSource::Wgsl(source.into()),
         });
-        let layout_refs: Vec<Option<&wgpu::BindGroupLayout>> =
-            layouts.iter().map(|l| Some(*l)).collect();
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some(stage.name),
-            bind_group_layouts: &layout_refs,
+            bind_group_layouts: layouts,
             immediate_size: 0,
         });
         entry_points

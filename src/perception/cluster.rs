@@ -595,14 +595,14 @@ impl GpuClusterer {
             <[wgpu::ComputePipeline; 3]>::try_from(shader::compute_pipelines(
                 ctx,
                 &shader::CLUSTER,
-                &[&layout, &args_layout],
+                &[Some(&layout), Some(&args_layout)],
                 &["prepare", "prepare_cells", "prepare_scan"],
             )?)
             .unwrap_or_else(|_| unreachable!("one pipeline per entry point"));
         let passes = shader::compute_pipelines(
             ctx,
             &shader::CLUSTER,
-            &[&layout],
+            &[Some(&layout)],
             &[
                 "insert", "number", "gather", "place", "seed", "hook", "scan", "compress",
             ],

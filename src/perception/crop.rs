@@ -11,12 +11,14 @@
 //! `i`, which the voxel stage consumes directly on the GPU.
 //!
 //! [`crop_cpu`] is the reference (f64 geometry from [`crate::geometry`]); [`GpuCrop`] runs
-//! `shaders/crop.wgsl` (f32, one thread per mask word, no atomics). Both agree exactly except
-//! for points within f32 rounding (about 1e-6 m) of a boundary.
+//! `shaders/crop.wgsl` (f32; a first pass decides what the crop sphere alone decides and lists
+//! the points a robot primitive may hold, a check pass decides those and ORs their bits into
+//! the mask). Both agree exactly except for points within f32 rounding (about 1e-6 m) of a
+//! boundary.
 //!
 //! A frame can also come as the camera delivers it ([`DepthInput`]: 16-bit depth image,
-//! intrinsics, pose): then the same pass deprojects each pixel (f32 on the GPU), runs the
-//! flying-pixel test ([`super::flying`]) and writes the cloud-frame points the voxel stage
+//! intrinsics, pose): then the two depth passes deproject each pixel (f32 on the GPU), run the
+//! flying-pixel test ([`super::flying`]) and write the cloud-frame points the voxel stage
 //! reads, so the organized cloud never crosses the bus. [`crop_depth_cpu`] is its reference
 //! (deprojection in f64). The points agree within [`DEPTH_POINT_TOLERANCE`]; the keep mask
 //! exactly, except for pixels whose crop or flying-pixel decision lies within that rounding
@@ -76,7 +78,7 @@ const DEPTH_QUAD: u32 = 4;
 
 /// Robot primitives one crop takes: the GPU holds them in a fixed uniform array (crop.wgsl
 /// `MAX_PRIMITIVES`, 24 kB), which also bounds its loops far below lavapipe's 65,535
-/// iterations per shader invocation (32 points x 257 tests in `crop_mask`).
+/// iterations per shader invocation (one point against 256 in the check passes).
 pub const MAX_CROP_PRIMITIVES: usize = 256;
 
 /// Why a crop cannot run.
@@ -376,13 +378,21 @@ pub fn gpu_primitive(p: &Primitive) -> CropPrimitive {
 }
 
 /// What a first pass and the check pass over the points it lists share: the counters (the
-/// listed points among them), the check pass's indirect dispatch arguments, which the first
-/// pass writes, and their bind group (group 1, which the check pass must not bind).
+/// listed points among them) and the check pass's indirect dispatch arguments, which the
+/// first pass writes.
 struct CheckDispatch {
     /// Pixels with a depth, flying pixels and points listed for the check pass.
     counts: wgpu::Buffer,
     args: wgpu::Buffer,
-    args_group: wgpu::BindGroup,
+}
+
+/// The bind groups of a first pass and its check pass: group 0 for both, group 1 (the
+/// check pass's arguments, which the check pass must not bind) for the first pass, group 2
+/// for the check pass where it has one.
+struct PassGroups<'a> {
+    shared: &'a wgpu::BindGroup,
+    first: &'a wgpu::BindGroup,
+    check: Option<&'a wgpu::BindGroup>,
 }
 
 impl CheckDispatch {
@@ -393,7 +403,7 @@ impl CheckDispatch {
         encoder: &mut wgpu::CommandEncoder,
         label: &str,
         passes: &[wgpu::ComputePipeline; 2],
-        group: &wgpu::BindGroup,
+        groups: PassGroups<'_>,
         workgroups: u32,
         timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
     ) {
@@ -404,10 +414,13 @@ impl CheckDispatch {
             timestamp_writes: timestamps,
         });
         pass.set_pipeline(&passes[0]);
-        pass.set_bind_group(0, group, &[]);
-        pass.set_bind_group(1, &self.args_group, &[]);
+        pass.set_bind_group(0, groups.shared, &[]);
+        pass.set_bind_group(1, groups.first, &[]);
         pass.dispatch_workgroups(workgroups, 1, 1);
         pass.set_pipeline(&passes[1]);
+        if let Some(group) = groups.check {
+            pass.set_bind_group(2, group, &[]);
+        }
         pass.dispatch_workgroups_indirect(&self.args, 0);
     }
 }
@@ -435,7 +448,15 @@ pub struct GpuCrop {
     checks: wgpu::Buffer,
     check: CheckDispatch,
     group: CachedBindGroup,
+    /// crop_mask's group 1: the check pass's arguments.
+    cloud_first_group: wgpu::BindGroup,
     depth_group: CachedBindGroup,
+    /// crop_depth's group 1: the check pass's arguments and the points.
+    depth_first_group: CachedBindGroup,
+    /// crop_depth_check's group 2: the points as words.
+    depth_words_group: CachedBindGroup,
+    one_buffer_layout: wgpu::BindGroupLayout,
+    depth_first_layout: wgpu::BindGroupLayout,
     word_count: u32,
     point_count: u32,
 }
@@ -491,21 +512,34 @@ impl GpuCrop {
         let depth_layout = shader::bind_group_layout(
             ctx,
             "crop depth bind group layout",
-            &[base.as_slice(), &[Uniform, UintTexture2d, Storage, Storage]].concat(),
+            &[base.as_slice(), &[Uniform, UintTexture2d]].concat(),
         )?;
-        let check_args_layout =
-            shader::bind_group_layout(ctx, "crop check arguments layout", &[Storage])?;
-        // A first pass writes the check pass's arguments (group 1), which the check pass
-        // must not bind.
-        let passes = |layout: &wgpu::BindGroupLayout, first: &str, check: &str| {
-            let with_args = [layout, &check_args_layout];
-            Ok::<_, GpuError>([
-                shader::compute_pipelines(ctx, &shader::CROP, &with_args, &[first])?.remove(0),
-                shader::compute_pipelines(ctx, &shader::CROP, &[layout], &[check])?.remove(0),
-            ])
+        // One storage buffer: the check pass's arguments (crop_mask's group 1) or the depth
+        // points as words (crop_depth_check's group 2).
+        let one_buffer_layout =
+            shader::bind_group_layout(ctx, "crop one buffer layout", &[Storage])?;
+        // The check pass's arguments and the depth points (crop_depth's group 1).
+        let depth_first_layout =
+            shader::bind_group_layout(ctx, "crop depth first pass layout", &[Storage, Storage])?;
+        let pipeline = |layouts: &[Option<&wgpu::BindGroupLayout>], entry: &str| {
+            Ok::<_, GpuError>(
+                shader::compute_pipelines(ctx, &shader::CROP, layouts, &[entry])?.remove(0),
+            )
         };
-        let cloud_passes = passes(&layout, "crop_mask", "crop_check")?;
-        let depth_passes = passes(&depth_layout, "crop_depth", "crop_depth_check")?;
+        let cloud_passes = [
+            pipeline(&[Some(&layout), Some(&one_buffer_layout)], "crop_mask")?,
+            pipeline(&[Some(&layout)], "crop_check")?,
+        ];
+        let depth_passes = [
+            pipeline(
+                &[Some(&depth_layout), Some(&depth_first_layout)],
+                "crop_depth",
+            )?,
+            pipeline(
+                &[Some(&depth_layout), None, Some(&one_buffer_layout)],
+                "crop_depth_check",
+            )?,
+        ];
         let (params, depth_params, primitives, mask, depth, unused_points, counts) =
             ctx.scoped("crop buffers", |_| {
                 (
@@ -538,9 +572,9 @@ impl GpuCrop {
                 ),
             )
         })?;
-        let args_group = ctx.create_bind_group(&wgpu::BindGroupDescriptor {
+        let cloud_first_group = ctx.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("crop check arguments bind group"),
-            layout: &check_args_layout,
+            layout: &one_buffer_layout,
             entries: &[entry(0, &args)],
         });
         Ok(Self {
@@ -556,13 +590,14 @@ impl GpuCrop {
             depth,
             unused_points,
             checks,
-            check: CheckDispatch {
-                counts,
-                args,
-                args_group,
-            },
+            check: CheckDispatch { counts, args },
             group: CachedBindGroup::default(),
+            cloud_first_group,
             depth_group: CachedBindGroup::default(),
+            depth_first_group: CachedBindGroup::default(),
+            depth_words_group: CachedBindGroup::default(),
+            one_buffer_layout,
+            depth_first_layout,
             word_count: 0,
             point_count: 0,
         })
@@ -597,7 +632,7 @@ impl GpuCrop {
             + depth
     }
 
-    /// Sizes the mask and the depth pass's list of pixels for frames of up to `points`
+    /// Sizes the mask and the check pass's list of points for frames of up to `points`
     /// points / pixels, so that no frame up to that size allocates (the depth image's
     /// texture follows the image's width and height: allocated by the first depth frame of
     /// a camera).
@@ -605,18 +640,13 @@ impl GpuCrop {
         let words = 4 * mask_words(points) as u64;
         let checks = 4 * points as u64;
         ctx.check_storage_size("crop keep mask", words)?;
-        ctx.check_storage_size("crop depth checks", checks)?;
+        ctx.check_storage_size("crop checks", checks)?;
         ctx.scoped("crop buffers", |_| {
             if self.mask.size() < words {
                 self.mask = storage(ctx, "crop keep mask", words, wgpu::BufferUsages::COPY_SRC);
             }
             if self.checks.size() < checks {
-                self.checks = storage(
-                    ctx,
-                    "crop depth checks",
-                    checks,
-                    wgpu::BufferUsages::empty(),
-                );
+                self.checks = storage(ctx, "crop checks", checks, wgpu::BufferUsages::empty());
             }
         })?;
         Ok(())
@@ -632,6 +662,10 @@ impl GpuCrop {
     ) -> Result<(), CropError> {
         config.validate()?;
         scene.validate()?;
+        // One thread per mask word, at most 65535 workgroups in a dispatch.
+        if mask_words(point_count) as u64 > 65_535 * u64::from(shader::WORKGROUP_SIZE) {
+            return Err(CropError::TooManyPoints(point_count));
+        }
         self.write_params(ctx, point_count, config, Some(scene))
     }
 
@@ -790,13 +824,33 @@ impl GpuCrop {
                     binding: 7,
                     resource: wgpu::BindingResource::TextureView(&self.depth_view),
                 },
-                entry(8, out_points),
-                entry(9, out_points),
             ],
         );
+        let groups = PassGroups {
+            shared: group,
+            first: self.depth_first_group.get(
+                ctx,
+                "crop depth first pass bind group",
+                &self.depth_first_layout,
+                &[entry(0, &self.check.args), entry(1, out_points)],
+            ),
+            check: Some(self.depth_words_group.get(
+                ctx,
+                "crop depth words bind group",
+                &self.one_buffer_layout,
+                &[entry(0, out_points)],
+            )),
+        };
         let quads = shader::workgroups_for(self.point_count.div_ceil(DEPTH_QUAD));
         let passes = &self.depth_passes;
-        (self.check).record(encoder, "crop depth pass", passes, group, quads, timestamps);
+        (self.check).record(
+            encoder,
+            "crop depth pass",
+            passes,
+            groups,
+            quads,
+            timestamps,
+        );
     }
 
     /// Records the crop pass over `points` (packed xyz f32, as uploaded from [`Vec3`]s).
@@ -820,9 +874,14 @@ impl GpuCrop {
                 entry(5, &self.checks),
             ],
         );
+        let groups = PassGroups {
+            shared: group,
+            first: &self.cloud_first_group,
+            check: None,
+        };
         let words = shader::workgroups_for(self.word_count);
         let passes = &self.cloud_passes;
-        (self.check).record(encoder, "crop pass", passes, group, words, timestamps);
+        (self.check).record(encoder, "crop pass", passes, groups, words, timestamps);
     }
 
     /// Crops one cloud on its own (one submit, one readback): the keep mask and, with a

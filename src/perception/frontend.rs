@@ -944,6 +944,71 @@ mod tests {
         }
     }
 
+    /// The depth pass takes 4 pixels per thread without a division: in images 1, 2 and 3
+    /// pixels wide a thread's pixels span up to 4 rows, and each is read from its own row.
+    #[test]
+    fn depth_images_narrower_than_a_quad_are_read_pixel_by_pixel() {
+        let flying = FlyingPixelConfig {
+            enabled: false,
+            ..Default::default()
+        };
+        for width in 1..=3u32 {
+            let height = 9;
+            let k = PinholeIntrinsics {
+                width,
+                height,
+                fx: 4.0,
+                fy: 4.0,
+                cx: 1.0,
+                cy: 4.0,
+            };
+            // Every pixel's own depth, one without a return.
+            let data: Vec<u16> = (0..width * height)
+                .map(|i| if i == 5 { 0 } else { 900 + 7 * i as u16 })
+                .collect();
+            let image = crate::camera::DepthImage {
+                width,
+                height,
+                depth_scale_m: 0.001,
+                data,
+            };
+            let frame = FrameInput {
+                points: FramePoints::Depth(DepthInput {
+                    image: &image,
+                    intrinsics: &k,
+                    cloud_from_camera: Isometry3::identity(),
+                    flying: &flying,
+                }),
+                crop: None,
+                want_crop_keep: true,
+                shells: None,
+            };
+            let config = FrontendConfig::default();
+            let g = Frontend::new(Backend::Gpu, config.clone(), None)
+                .unwrap()
+                .process(&frame)
+                .unwrap();
+            let c = Frontend::new(Backend::Cpu, config, None)
+                .unwrap()
+                .process(&frame)
+                .unwrap();
+            let n = (width * height) as usize;
+            assert_eq!(c.depth.unwrap().valid, n - 1, "width {width}");
+            assert_eq!(g.depth, c.depth, "width {width}");
+            assert_eq!(g.crop_keep, c.crop_keep, "width {width}");
+            let (gp, cp) = (g.points.unwrap(), c.points.unwrap());
+            for (i, (a, b)) in gp.iter().zip(&cp).enumerate() {
+                assert_eq!(finite_bits(*a), finite_bits(*b), "width {width} pixel {i}");
+                if finite_bits(*a) {
+                    assert!(
+                        (*a - *b).abs().max_element() <= DEPTH_POINT_TOLERANCE * 2.5,
+                        "width {width} pixel {i}: {a} against {b}"
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn odd_sized_depth_images_without_a_crop_keep_every_valid_pixel() {
         let k = PinholeIntrinsics {

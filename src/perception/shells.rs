@@ -1125,12 +1125,12 @@ impl GpuShells {
             &[StorageReadOnly, StorageReadOnly, StorageReadOnly, Storage],
         )?;
         let pipeline =
-            shader::compute_pipelines(ctx, &shader::SHELLS, &[&layout], &["shell_moments"])?
+            shader::compute_pipelines(ctx, &shader::SHELLS, &[Some(&layout)], &["shell_moments"])?
                 .remove(0);
         let mut cluster_pipelines = shader::compute_pipelines(
             ctx,
             &shader::SHELLS,
-            &[&layout, &cluster_layout],
+            &[Some(&layout), Some(&cluster_layout)],
             &["cluster_sizes", "cluster_shell_moments"],
         )?;
         let cluster_moments = cluster_pipelines.remove(1);

@@ -926,7 +926,8 @@ impl GpuVoxel {
                 Storage,
             ],
         )?;
-        let pipelines = shader::compute_pipelines(ctx, &shader::VOXEL, &[&layout], &ENTRY_POINTS)?;
+        let pipelines =
+            shader::compute_pipelines(ctx, &shader::VOXEL, &[Some(&layout)], &ENTRY_POINTS)?;
         let scan_layout = shader::bind_group_layout(
             ctx,
             "voxel compaction schedule layout",
@@ -935,7 +936,7 @@ impl GpuVoxel {
         let mut scheduling = shader::compute_pipelines(
             ctx,
             &shader::VOXEL,
-            &[&layout, &scan_layout],
+            &[Some(&layout), Some(&scan_layout)],
             &["compact_scan", "plan", "list_args"],
         )?;
         let list_args = scheduling.pop().expect("three entry points");
