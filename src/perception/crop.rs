@@ -954,6 +954,15 @@ mod tests {
     use nalgebra::Vector3;
     use proptest::prelude::*;
 
+    /// A 1 m crop around the HIP; the primitives exactly as posed.
+    fn metre_crop_without_margin() -> CropConfig {
+        CropConfig {
+            radius_m: 1.0,
+            robot_margin_m: 0.0,
+            robot_margin_per_m2: 0.0,
+        }
+    }
+
     fn hip_scene(robot: &[Primitive]) -> CropScene<'_> {
         CropScene {
             hip_m: Point3::origin(),
@@ -1263,11 +1272,7 @@ mod tests {
         let pts: Vec<Vec3> = (0..96)
             .map(|i| Vec3::new(0.0, 0.0, 0.3 * i as f32 / 95.0))
             .collect();
-        let config = CropConfig {
-            radius_m: 1.0,
-            robot_margin_m: 0.0,
-            robot_margin_per_m2: 0.0,
-        };
+        let config = metre_crop_without_margin();
         let scene = hip_scene(&robot);
         let cpu = crop_cpu(&pts, &config, &scene).unwrap();
         assert_eq!(kept_indices(&cpu, pts.len()), (0..95).collect::<Vec<_>>());
@@ -1302,11 +1307,7 @@ mod tests {
                 radius_m: 1e-9,
             })
             .collect();
-        let config = CropConfig {
-            radius_m: 1.0,
-            robot_margin_m: 0.0,
-            robot_margin_per_m2: 0.0,
-        };
+        let config = metre_crop_without_margin();
         let scene = hip_scene(&robot);
         let cpu = crop_cpu(&pts, &config, &scene).unwrap();
         assert_eq!(kept_indices(&cpu, n).len(), n - 4);

@@ -944,6 +944,27 @@ mod tests {
         }
     }
 
+    /// A depth frame without a crop, its layers asked for, through the GPU and the CPU
+    /// front end (default configs).
+    fn uncropped_depth_frame_on_both_backends(
+        depth: DepthInput<'_>,
+    ) -> (FrontendOutput, FrontendOutput) {
+        let frame = FrameInput {
+            points: FramePoints::Depth(depth),
+            crop: None,
+            want_crop_keep: true,
+            shells: None,
+        };
+        let config = FrontendConfig::default();
+        let run = |backend| {
+            Frontend::new(backend, config.clone(), None)
+                .unwrap()
+                .process(&frame)
+                .unwrap()
+        };
+        (run(Backend::Gpu), run(Backend::Cpu))
+    }
+
     /// The depth pass takes 4 pixels per thread without a division: in images 1, 2 and 3
     /// pixels wide a thread's pixels span up to 4 rows, and each is read from its own row.
     #[test]
@@ -972,26 +993,13 @@ mod tests {
                 depth_scale_m: 0.001,
                 data,
             };
-            let frame = FrameInput {
-                points: FramePoints::Depth(DepthInput {
-                    image: &image,
-                    intrinsics: &k,
-                    cloud_from_camera: Isometry3::identity(),
-                    flying: &flying,
-                }),
-                crop: None,
-                want_crop_keep: true,
-                shells: None,
+            let depth = DepthInput {
+                image: &image,
+                intrinsics: &k,
+                cloud_from_camera: Isometry3::identity(),
+                flying: &flying,
             };
-            let config = FrontendConfig::default();
-            let g = Frontend::new(Backend::Gpu, config.clone(), None)
-                .unwrap()
-                .process(&frame)
-                .unwrap();
-            let c = Frontend::new(Backend::Cpu, config, None)
-                .unwrap()
-                .process(&frame)
-                .unwrap();
+            let (g, c) = uncropped_depth_frame_on_both_backends(depth);
             let n = (width * height) as usize;
             assert_eq!(c.depth.unwrap().valid, n - 1, "width {width}");
             assert_eq!(g.depth, c.depth, "width {width}");
@@ -1028,26 +1036,12 @@ mod tests {
             ],
         };
         let flying = FlyingPixelConfig::default();
-        let frame = FrameInput {
-            points: FramePoints::Depth(DepthInput {
-                image: &image,
-                intrinsics: &k,
-                cloud_from_camera: Isometry3::translation(0.1, 0.0, -0.2),
-                flying: &flying,
-            }),
-            crop: None,
-            want_crop_keep: true,
-            shells: None,
-        };
-        let config = FrontendConfig::default();
-        let g = Frontend::new(Backend::Gpu, config.clone(), None)
-            .unwrap()
-            .process(&frame)
-            .unwrap();
-        let c = Frontend::new(Backend::Cpu, config, None)
-            .unwrap()
-            .process(&frame)
-            .unwrap();
+        let (g, c) = uncropped_depth_frame_on_both_backends(DepthInput {
+            image: &image,
+            intrinsics: &k,
+            cloud_from_camera: Isometry3::translation(0.1, 0.0, -0.2),
+            flying: &flying,
+        });
         // A flat wall: no flying pixel; the last (odd) pixel is read from its half word.
         assert_eq!(
             c.depth,
