@@ -20,8 +20,10 @@
 //   gather   per point   join the point's sub-cell: its rank there (atomicAdd of the count),
 //                        the smallest index (atomicMin) and the bounding box (atomicMin/Max
 //                        of order_key), each atomic skipped when it cannot change the value
-//   place    per cell    give each sub-cell its range of sorted[] (atomicAdd of its count)
-//                        and write it decoded into boxes[], which the later passes read
+//   place    per sub-cell give it its range of sorted[] (atomicAdd of its count) and write
+//                        it decoded into boxes[], which the later passes read (dispatched
+//                        per point: at most one sub-cell per point; every lane of a SIMD
+//                        group busy, no loop over a cell's sub-cells)
 //   seed     per point   sorted[start + rank] = i; parent[i] = smallest index of the sub-cell
 //   hook     per cell    the cell's sub-cell pairs, then the 13 coarse cells that follow it in
 //   (x threads per cell) (z, y, x) order (each pair of cells once; these 14 tasks shared out
@@ -423,26 +425,23 @@ fn widen_box(sub: u32, key: vec3<u32>, axis: u32) {
 
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn place(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let k = gid.x;
-    if k >= cell_count() {
+    let j = gid.x;
+    if j >= atomicLoad(&status[SUB_COUNT]) {
         return;
     }
-    let first = cells[k].first_sub;
-    for (var j = first; j < first + countOneBits(cells[k].octants); j++) {
-        let lo = vec3<f32>(
-            from_order_key(atomicLoad(&subs[j].lo[0])),
-            from_order_key(atomicLoad(&subs[j].lo[1])),
-            from_order_key(atomicLoad(&subs[j].lo[2])),
-        );
-        let hi = vec3<f32>(
-            from_order_key(atomicLoad(&subs[j].hi[0])),
-            from_order_key(atomicLoad(&subs[j].hi[1])),
-            from_order_key(atomicLoad(&subs[j].hi[2])),
-        );
-        let count = atomicLoad(&subs[j].count);
-        let start = atomicAdd(&status[PLACED], count);
-        boxes[j] = Sub(lo, hi, vec3<u32>(atomicLoad(&subs[j].low), start, count));
-    }
+    let lo = vec3<f32>(
+        from_order_key(atomicLoad(&subs[j].lo[0])),
+        from_order_key(atomicLoad(&subs[j].lo[1])),
+        from_order_key(atomicLoad(&subs[j].lo[2])),
+    );
+    let hi = vec3<f32>(
+        from_order_key(atomicLoad(&subs[j].hi[0])),
+        from_order_key(atomicLoad(&subs[j].hi[1])),
+        from_order_key(atomicLoad(&subs[j].hi[2])),
+    );
+    let count = atomicLoad(&subs[j].count);
+    let start = atomicAdd(&status[PLACED], count);
+    boxes[j] = Sub(lo, hi, vec3<u32>(atomicLoad(&subs[j].low), start, count));
 }
 
 // Each sub-cell is one set from the start, under its smallest point; its points go to its

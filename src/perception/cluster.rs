@@ -487,10 +487,10 @@ pub const MAX_HASH_PROBES: u32 = 1024;
 const MAX_SUBMISSIONS: u32 = 16;
 /// A coarse cell's hook tasks: its own sub-cell pairs and its 13 following neighbour cells.
 const HOOK_TASKS: u32 = 14;
-/// The indirect dispatch arguments the `prepare*` passes write: per point `[x, 1, 1]` (prepare),
-/// per cell `[x, 1, 1]` and the hook's `[x, threads per cell, 1]` (prepare_cells, after
-/// insert), the scan's `[x, 1, 1]` (prepare_scan, after the hook: no workgroups when the hook
-/// marked no sub-cell).
+/// The indirect dispatch arguments the `prepare*` passes write: per point `[x, 1, 1]` (prepare;
+/// also place's, over the sub-cells, at most one per point), per cell `[x, 1, 1]` and the
+/// hook's `[x, threads per cell, 1]` (prepare_cells, after insert), the scan's `[x, 1, 1]`
+/// (prepare_scan, after the hook: no workgroups when the hook marked no sub-cell).
 const DISPATCH_ARGS_BYTES: u64 = 48;
 const CELL_ARGS_OFFSET: u64 = 12;
 const HOOK_ARGS_OFFSET: u64 = 24;
@@ -788,7 +788,7 @@ impl GpuClusterer {
             HOOK_ARGS_OFFSET
         } else if is(&self.scan) {
             SCAN_ARGS_OFFSET
-        } else if is(&self.number) || is(&self.place) {
+        } else if is(&self.number) {
             CELL_ARGS_OFFSET
         } else {
             0
