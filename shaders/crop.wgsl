@@ -142,20 +142,23 @@ fn inside_any_primitive(p: vec3<f32>) -> bool {
     return hit;
 }
 
-// Workgroups per dimension a dispatch may have (WebGPU's default limit).
+// Workgroups per dimension a dispatch may have (WebGPU's default limit; gpu/shader.rs
+// MAX_WORKGROUPS).
 const MAX_GROUPS_X: u32 = 65535u;
 
-// The check pass's workgroups once a thread has taken slots [first, listed) of the list,
-// as rows of at most MAX_GROUPS_X. Both dimensions grow with the count, and only a thread
-// whose slots begin a workgroup raises them: the one that begins the last workgroup raises
-// the final count's values, the others spare the atomics on the two words.
-fn raise_check_args(first: u32, listed: u32) {
-    let groups = (listed + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
-    if groups == (first + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE {
-        return;
+// Takes `n` consecutive slots of the check list for the calling thread; returns the first.
+// The check pass's workgroups are laid out in rows of at most MAX_GROUPS_X. Both dimensions
+// grow with the count, and only a thread whose slots begin a workgroup raises them: the one
+// that begins the last workgroup raises the final count's values, the others spare the
+// atomics on the two words.
+fn take_check_slots(n: u32) -> u32 {
+    let first = atomicAdd(&counts[2], n);
+    let groups = (first + n + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE;
+    if groups != (first + WORKGROUP_SIZE - 1u) / WORKGROUP_SIZE {
+        atomicMax(&check_args[0], min(groups, MAX_GROUPS_X));
+        atomicMax(&check_args[1], (groups + MAX_GROUPS_X - 1u) / MAX_GROUPS_X);
     }
-    atomicMax(&check_args[0], min(groups, MAX_GROUPS_X));
-    atomicMax(&check_args[1], (groups + MAX_GROUPS_X - 1u) / MAX_GROUPS_X);
+    return first;
 }
 
 // The first pass's thread 0 sets the check pass's third dimension.
@@ -165,7 +168,7 @@ fn init_check_args(gid: vec3<u32>) {
     }
 }
 
-// A check-pass thread: its workgroup in the rows raise_check_args laid out.
+// A check-pass thread: its workgroup in the rows take_check_slots laid out.
 struct CheckThread {
     @builtin(workgroup_id) group: vec3<u32>,
     @builtin(num_workgroups) groups: vec3<u32>,
@@ -207,13 +210,11 @@ fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
     }
     atomicStore(&keep[w], 0u);
     if bits != 0u {
-        let first_slot = atomicAdd(&counts[2], countOneBits(bits));
-        var slot = first_slot;
+        var slot = take_check_slots(countOneBits(bits));
         for (var rest = bits; rest != 0u; rest &= rest - 1u) {
             checks[slot] = first + firstTrailingBit(rest);
             slot += 1u;
         }
-        raise_check_args(first_slot, slot);
     }
 }
 
@@ -274,7 +275,8 @@ fn is_flying(u: u32, v: u32, p: vec3<f32>) -> bool {
             let x = u + dx - k;
             let y = v + dy - k;
             let inside = x < depth_params.width && y < depth_params.height;
-            let raw = select(0u, raw_depth(min(x, depth_params.width - 1u), min(y, depth_params.height - 1u)), inside);
+            let clamped = min(vec2<u32>(x, y), vec2<u32>(depth_params.width, depth_params.height) - 1u);
+            let raw = select(0u, raw_depth(clamped.x, clamped.y), inside);
             if raw != 0u && !(dx == k && dy == k) {
                 let d = deproject(x, y, raw) - p;
                 let c = cross(d, p);
@@ -405,13 +407,11 @@ fn crop_depth(
             atomicAdd(&wg_valid, quad_valid);
         }
         if quad_check != 0u {
-            let first_slot = atomicAdd(&counts[2], countOneBits(quad_check));
-            var slot = first_slot;
+            var slot = take_check_slots(countOneBits(quad_check));
             list_check(1u, i, &slot);
             list_check(2u, i + 1u, &slot);
             list_check(4u, i + 2u, &slot);
             list_check(8u, i + 3u, &slot);
-            raise_check_args(first_slot, slot);
         }
     }
     workgroupBarrier();

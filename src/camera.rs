@@ -49,13 +49,27 @@ pub struct DepthImage {
 }
 
 impl DepthImage {
+    /// Why `intrinsics` cannot deproject this image: their size differs from the image's, or
+    /// the data does not hold `width x height` pixels.
+    pub fn check_size(&self, intrinsics: &PinholeIntrinsics) -> Result<(), String> {
+        let (w, h) = (self.width, self.height);
+        if (intrinsics.width, intrinsics.height) != (w, h) {
+            return Err(format!(
+                "intrinsics for {} x {} pixels, image is {w} x {h}",
+                intrinsics.width, intrinsics.height
+            ));
+        }
+        if self.data.len() as u64 != u64::from(w) * u64::from(h) {
+            return Err(format!("{w} x {h} image holds {} pixels", self.data.len()));
+        }
+        Ok(())
+    }
+
     /// Organized cloud in the camera's optical frame, NaN where the depth is 0.
     ///
-    /// Returns `None` when the intrinsics' size differs from the image's.
+    /// Returns `None` when [`DepthImage::check_size`] refuses the intrinsics.
     pub fn deproject(&self, intrinsics: &PinholeIntrinsics) -> Option<PointCloud> {
-        if intrinsics.width != self.width || intrinsics.height != self.height {
-            return None;
-        }
+        self.check_size(intrinsics).ok()?;
         let mut points = Vec::with_capacity(self.data.len());
         for v in 0..self.height {
             for u in 0..self.width {
@@ -113,8 +127,7 @@ impl Frame {
 
     /// A frame of a depth image, whose cloud is its deprojection, made when first read.
     ///
-    /// Returns `None` when the intrinsics' size differs from the image's (as
-    /// [`DepthImage::deproject`]) or the image's data does not hold `width x height` pixels.
+    /// Returns `None` when [`DepthImage::check_size`] refuses the intrinsics.
     pub fn from_depth(
         camera_id: u32,
         stamp_s: f64,
@@ -122,12 +135,7 @@ impl Frame {
         depth: DepthImage,
         intrinsics: PinholeIntrinsics,
     ) -> Option<Self> {
-        let pixels = u64::from(depth.width) * u64::from(depth.height);
-        if (intrinsics.width, intrinsics.height) != (depth.width, depth.height)
-            || depth.data.len() as u64 != pixels
-        {
-            return None;
-        }
+        depth.check_size(&intrinsics).ok()?;
         Some(Self {
             camera_id,
             stamp_s,

@@ -12,6 +12,13 @@ pub const COMMON_WGSL: &str = include_str!("../../shaders/common.wgsl");
 /// Threads per workgroup of one-thread-per-item passes (`WORKGROUP_SIZE` in common.wgsl).
 pub const WORKGROUP_SIZE: u32 = 64;
 
+/// Workgroups one dimension of a dispatch may have (WebGPU's default
+/// `max_compute_workgroups_per_dimension`).
+pub const MAX_WORKGROUPS: u32 = 65_535;
+
+/// Threads one dimension of a dispatch of [`WORKGROUP_SIZE`]-thread workgroups holds.
+pub const MAX_THREADS: u64 = MAX_WORKGROUPS as u64 * WORKGROUP_SIZE as u64;
+
 /// A stage's WGSL file (without the common prefix).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct StageShader {

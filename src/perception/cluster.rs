@@ -496,7 +496,7 @@ const CELL_ARGS_OFFSET: u64 = 12;
 const HOOK_ARGS_OFFSET: u64 = 24;
 const SCAN_ARGS_OFFSET: u64 = 36;
 /// Largest point count one indirect dispatch of `WORKGROUP_SIZE` threads covers.
-const MAX_GPU_POINTS: u32 = 65_535 * shader::WORKGROUP_SIZE;
+const MAX_GPU_POINTS: u32 = shader::MAX_WORKGROUPS * shader::WORKGROUP_SIZE;
 /// GPU time is reported for these passes of the first submission.
 const TIMED_PASSES: [&str; 3] = ["cluster_grid", "cluster_hook", "cluster_compress"];
 

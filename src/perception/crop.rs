@@ -198,19 +198,9 @@ impl DepthInput<'_> {
         let bad = |e: crate::io::FormatError| CropError::BadDepth(e.to_string());
         crate::io::depth::check_intrinsics(self.intrinsics).map_err(bad)?;
         crate::io::depth::check_depth_scale(self.image.depth_scale_m).map_err(bad)?;
-        let (w, h) = (self.image.width, self.image.height);
-        if (self.intrinsics.width, self.intrinsics.height) != (w, h) {
-            return Err(CropError::BadDepth(format!(
-                "intrinsics for {} x {} pixels, image is {w} x {h}",
-                self.intrinsics.width, self.intrinsics.height
-            )));
-        }
-        if self.image.data.len() as u64 != u64::from(w) * u64::from(h) {
-            return Err(CropError::BadDepth(format!(
-                "{w} x {h} image holds {} pixels",
-                self.image.data.len()
-            )));
-        }
+        self.image
+            .check_size(self.intrinsics)
+            .map_err(CropError::BadDepth)?;
         let pose = self.cloud_from_camera.to_homogeneous();
         if !pose.iter().all(|v| v.is_finite()) {
             return Err(CropError::BadDepth("camera pose is not finite".into()));
@@ -662,8 +652,8 @@ impl GpuCrop {
     ) -> Result<(), CropError> {
         config.validate()?;
         scene.validate()?;
-        // One thread per mask word, at most 65535 workgroups in a dispatch.
-        if mask_words(point_count) as u64 > 65_535 * u64::from(shader::WORKGROUP_SIZE) {
+        // One thread per mask word, in one dimension of a dispatch.
+        if mask_words(point_count) as u64 > shader::MAX_THREADS {
             return Err(CropError::TooManyPoints(point_count));
         }
         self.write_params(ctx, point_count, config, Some(scene))
@@ -684,8 +674,8 @@ impl GpuCrop {
         if let Some(scene) = scene {
             scene.validate()?;
         }
-        // One thread per quad of pixels, at most 65535 workgroups in a dispatch.
-        if depth.len() as u64 > 65_535 * u64::from(shader::WORKGROUP_SIZE * DEPTH_QUAD) {
+        // One thread per quad of pixels, in one dimension of a dispatch.
+        if (depth.len() as u64).div_ceil(u64::from(DEPTH_QUAD)) > shader::MAX_THREADS {
             return Err(CropError::TooManyPoints(depth.len()));
         }
         let (width, height) = (depth.image.width, depth.image.height);
@@ -1296,7 +1286,7 @@ mod tests {
     #[test]
     fn a_check_list_longer_than_one_dispatch_row_is_checked_whole() {
         let ctx = crate::gpu::context::test_context();
-        let n = 65_535 * 64 + 5_000;
+        let n = shader::MAX_THREADS as usize + 5_000;
         // A line of points through the HIP; the sphere holds every 7th point from the end.
         let pts: Vec<Vec3> = (0..n)
             .map(|i| Vec3::new(0.5 * (i as f32 / n as f32 - 0.5), 0.0, 0.0))
@@ -1322,6 +1312,7 @@ mod tests {
             &[
                 ("DEPTH_QUAD", DEPTH_QUAD),
                 ("MAX_PRIMITIVES", MAX_CROP_PRIMITIVES as u32),
+                ("MAX_GROUPS_X", shader::MAX_WORKGROUPS),
             ],
         );
     }

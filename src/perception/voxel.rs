@@ -804,7 +804,7 @@ const DENSE_MAX_WORDS: u64 = DENSE_MAX_CELLS / 32;
 const BOUNDS_CHUNK: u32 = 32;
 const INSERT_CHUNK: u32 = 32;
 /// Points of a cloud the stage takes: one workgroup dimension of one thread per point.
-const MAX_POINTS: u64 = 65_535 * shader::WORKGROUP_SIZE as u64;
+const MAX_POINTS: u64 = shader::MAX_THREADS;
 /// Keep-mask words of the largest cloud: room of the listed words.
 const MAX_MASK_WORDS: u64 = MAX_POINTS.div_ceil(BOUNDS_CHUNK as u64);
 const SLOT_WORDS: u64 = 8;
