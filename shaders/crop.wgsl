@@ -24,7 +24,7 @@
 // the SIMD lanes); on a GPU both go through their caches (the texture's is 2D, which suits
 // the flying-pixel window); points are read and written a quad of points (three vec4s) at a
 // time. Every loop is bounded far below llvmpipe's 65,535 iterations per shader invocation:
-// 8 quads and 32 listed points in crop_mask, MAX_PRIMITIVES in crop_check, a (2 x 4 + 1)^2
+// 32 listed points in crop_mask, MAX_PRIMITIVES in crop_check, a (2 x 4 + 1)^2
 // window + MAX_PRIMITIVES in crop_depth_check.
 
 struct CropParams {
@@ -195,15 +195,9 @@ fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let first = 32u * w;
-    let last = min(first + 32u, params.point_count);
-    var bits = 0u;
-    for (var i = first; i < last; i += 4u) {
-        let v = 3u * (i >> 2u);
-        let q = unpack_quad(points[v], points[v + 1u], points[v + 2u]);
-        let b = i - first;
-        bits |= in_sphere_bit(first, b, q[0]) | in_sphere_bit(first, b + 1u, q[1])
-            | in_sphere_bit(first, b + 2u, q[2]) | in_sphere_bit(first, b + 3u, q[3]);
-    }
+    let bits = sphere_quad(first, 0u) | sphere_quad(first, 4u) | sphere_quad(first, 8u)
+        | sphere_quad(first, 12u) | sphere_quad(first, 16u) | sphere_quad(first, 20u)
+        | sphere_quad(first, 24u) | sphere_quad(first, 28u);
     if params.primitive_count == 0u {
         atomicStore(&keep[w], bits);
         return;
@@ -216,6 +210,20 @@ fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
             slot += 1u;
         }
     }
+}
+
+// Bits b .. b + 3 of the mask word of points first.. (b a multiple of 4): the quad at
+// first + b, read when it starts in the cloud. Called eight times in straight-line code: on
+// llvmpipe a loop over the quads made crop_mask four times slower.
+fn sphere_quad(first: u32, b: u32) -> u32 {
+    let i = first + b;
+    if i >= params.point_count {
+        return 0u;
+    }
+    let v = 3u * (i >> 2u);
+    let q = unpack_quad(points[v], points[v + 1u], points[v + 2u]);
+    return in_sphere_bit(first, b, q[0]) | in_sphere_bit(first, b + 1u, q[1])
+        | in_sphere_bit(first, b + 2u, q[2]) | in_sphere_bit(first, b + 3u, q[3]);
 }
 
 // Bit b of the mask word of points first.. for point first + b at p: set when the point is

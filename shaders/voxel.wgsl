@@ -4,8 +4,8 @@
 //   list_words, list_args - list the mask words with some point set and size the indirect
 //                 dispatches of bounds, mark and insert over them (a depth frame's crop keeps
 //                 few of its pixels)
-//   bounds      - min/max of the valid points (32 points per thread, then integer atomics
-//                 on order keys)
+//   bounds      - min/max of the valid points (32 points per thread, combined per
+//                 workgroup, then integer atomics on order keys)
 //   insert      - cell index (PCL's linear index relative to the min cell) into a hash table
 //                 with bounded linear probing; per cell: point count and the 64-bit fixed-point
 //                 sum of the points' offsets inside the cell (integer atomics: order-free).
@@ -199,13 +199,22 @@ fn bound_point(bits: u32, i: u32, p: vec3<f32>) {
 
 // Appends the mask words with some point set to `listed` (their order does not matter:
 // bounds, mark and insert combine points with order-free atomics), so that the passes over
-// the points skip the pixels a depth frame's crop leaves out without a thread each.
+// the points skip the pixels a depth frame's crop leaves out without a thread each. One
+// atomicAdd per workgroup takes its slots (on llvmpipe the two CPU threads contend for a
+// counter every thread adds to).
+var<workgroup> listed_base: u32;
+
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn list_words(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if gid.x >= (params.point_count + 31u) / 32u || mask_word(gid.x) == 0u {
-        return;
+fn list_words(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let wanted = gid.x < (params.point_count + 31u) / 32u && mask_word(gid.x) != 0u;
+    let s = workgroup_scan(lid.x, select(0u, 1u, wanted));
+    if lid.x == 0u && s.y > 0u {
+        listed_base = atomicAdd(&listed.count, s.y);
     }
-    listed.words[atomicAdd(&listed.count, 1u)] = gid.x;
+    workgroupBarrier();
+    if wanted {
+        listed.words[listed_base + s.x] = gid.x;
+    }
 }
 
 // Sizes the dispatches over the listed words: one bounds thread per word, one mark and
@@ -244,35 +253,52 @@ fn bound_quad(bits: u32, i: u32) {
     }
 }
 
-// Straight-line code over the word's eight quads (on llvmpipe a loop costs more).
+// Per thread of a bounds workgroup: (max keys, valid count) and (inverted min keys, 0).
+var<workgroup> bounds_of_thread: array<vec4<u32>, 2 * WORKGROUP_SIZE>;
+
+// Straight-line code over the word's eight quads (on llvmpipe a loop costs more); the
+// workgroup's threads combine their bounds before one thread's atomics (on llvmpipe the two
+// CPU threads contend for the header words every thread would update).
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn bounds(@builtin(global_invocation_id) gid: vec3<u32>) {
-    if gid.x >= atomicLoad(&listed.count) {
-        return;
-    }
-    let first = listed.words[gid.x] * BOUNDS_CHUNK;
-    let bits = mask_word(first >> 5u);
+fn bounds(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     bounds_count = 0u;
     bounds_hi = vec3<u32>(0u);
     bounds_lo_inv = vec3<u32>(0u);
-    bound_quad(bits, first);
-    bound_quad(bits, first + 4u);
-    bound_quad(bits, first + 8u);
-    bound_quad(bits, first + 12u);
-    bound_quad(bits, first + 16u);
-    bound_quad(bits, first + 20u);
-    bound_quad(bits, first + 24u);
-    bound_quad(bits, first + 28u);
-    if bounds_count == 0u {
+    if gid.x < atomicLoad(&listed.count) {
+        let first = listed.words[gid.x] * BOUNDS_CHUNK;
+        let bits = mask_word(first >> 5u);
+        bound_quad(bits, first);
+        bound_quad(bits, first + 4u);
+        bound_quad(bits, first + 8u);
+        bound_quad(bits, first + 12u);
+        bound_quad(bits, first + 16u);
+        bound_quad(bits, first + 20u);
+        bound_quad(bits, first + 24u);
+        bound_quad(bits, first + 28u);
+    }
+    bounds_of_thread[2u * lid.x] = vec4<u32>(bounds_hi, bounds_count);
+    bounds_of_thread[2u * lid.x + 1u] = vec4<u32>(bounds_lo_inv, 0u);
+    workgroupBarrier();
+    if lid.x != 0u {
         return;
     }
-    atomicAdd(&header.valid_count, bounds_count);
-    atomicMax(&header.max_key[0], bounds_hi.x);
-    atomicMax(&header.max_key[1], bounds_hi.y);
-    atomicMax(&header.max_key[2], bounds_hi.z);
-    atomicMax(&header.min_inv[0], bounds_lo_inv.x);
-    atomicMax(&header.min_inv[1], bounds_lo_inv.y);
-    atomicMax(&header.min_inv[2], bounds_lo_inv.z);
+    var hi = vec4<u32>(0u);
+    var lo_inv = vec4<u32>(0u);
+    for (var k = 0u; k < WORKGROUP_SIZE; k++) {
+        let t = bounds_of_thread[2u * k];
+        hi = vec4<u32>(max(hi.xyz, t.xyz), hi.w + t.w);
+        lo_inv = max(lo_inv, bounds_of_thread[2u * k + 1u]);
+    }
+    if hi.w == 0u {
+        return;
+    }
+    atomicAdd(&header.valid_count, hi.w);
+    atomicMax(&header.max_key[0], hi.x);
+    atomicMax(&header.max_key[1], hi.y);
+    atomicMax(&header.max_key[2], hi.z);
+    atomicMax(&header.min_inv[0], lo_inv.x);
+    atomicMax(&header.min_inv[1], lo_inv.y);
+    atomicMax(&header.min_inv[2], lo_inv.z);
 }
 
 // The grid: floor(min * inv_leaf) and the number of cells along each axis (PCL's min_b_ and
