@@ -13,7 +13,8 @@
 //                 iteration, merging runs of same-cell points; each iteration adds at most one
 //                 run to the table (see walk_step).
 //   compact_count, compact_scan, compact_scatter - stream compaction of the kept slots
-//                 (occupied, at least min_points) into sort_keys, in slot order: kept count per
+//                 (occupied, at least min_points; on the dense path only the first `cells`
+//                 slots are looked at) into sort_keys, in slot order: kept count per
 //                 512-slot block, one workgroup's exclusive prefix sum over the blocks (also
 //                 out_count, the sort size P = the next power of two >= max(out_count, 512)
 //                 and the indirect dispatch arguments of the sort and reduce dispatches), then
@@ -33,6 +34,7 @@
 //   mark        - one bit per occupied cell (the same walk; one atomicOr per run of points
 //                 whose cells share a bitmap word)
 //   word_count, word_scan, word_scatter - exclusive prefix count of the words' set bits
+//                 (word_scan also sizes the compaction's dispatches, on both paths)
 //   insert      - as on the hash path, but into slot = rank (no probing, no `cells` count)
 
 struct VoxelParams {
@@ -129,6 +131,8 @@ const SCHEDULE_WORD_BLOCKS: u32 = 4u;
 // INSERT_CHUNK points of the listed words (mark, insert).
 const SCHEDULE_LISTED_WORDS: u32 = 5u;
 const SCHEDULE_LISTED_CHUNKS: u32 = 6u;
+// Written by `word_scan`: one workgroup per COMPACT_BLOCK slots of the compaction.
+const SCHEDULE_COMPACT_BLOCKS: u32 = 7u;
 // The dense path runs when the grid has at most DENSE_MAX_CELLS cells and its bitmap at most
 // DENSE_WORDS_PER_POINT words per valid point plus DENSE_MIN_WORDS (voxel.rs `dense_grid`).
 const DENSE_MAX_CELLS: u32 = 134217728u;
@@ -618,16 +622,35 @@ fn word_count(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup_i
 }
 
 // One workgroup: the word blocks' exclusive offsets and the occupied cell count (no blocks
-// on the hash path, where `words` is 0).
+// on the hash path, where `words` is 0), and the compaction's dispatch arguments.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn word_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
     let total = scan_blocks(lid.x, (header.words + COMPACT_BLOCK - 1u) / COMPACT_BLOCK);
-    if lid.x == 0u && header.mode == 1u {
+    let dense = header.mode == 1u;
+    if lid.x == 0u && dense {
         atomicStore(&header.cells, total);
         if total > params.table_mask + 1u {
             atomicMax(&header.overflow, 1u);
         }
     }
+    let blocks = compact_blocks(dense, total);
+    for (var i = lid.x; i < params.schedule_entries; i += WORKGROUP_SIZE) {
+        if schedule[i].x == SCHEDULE_COMPACT_BLOCKS {
+            dispatch_args[3u * i] = blocks;
+            dispatch_args[3u * i + 1u] = 1u;
+            dispatch_args[3u * i + 2u] = 1u;
+        }
+    }
+}
+
+// The compaction's blocks of COMPACT_BLOCK slots: the whole table on the hash path; on the
+// dense path the slots of the `cells` occupied cells (slot = rank), which come first.
+fn compact_blocks(dense: bool, cells: u32) -> u32 {
+    let table_blocks = (params.table_mask + 1u) / COMPACT_BLOCK;
+    if dense {
+        return min((cells + COMPACT_BLOCK - 1u) / COMPACT_BLOCK, table_blocks);
+    }
+    return table_blocks;
 }
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -710,13 +733,13 @@ fn compact_count(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgrou
 // One workgroup: block offsets, out_count, sort size and the indirect dispatch arguments.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn compact_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
-    let total = scan_blocks(lid.x, (params.table_mask + 1u) / COMPACT_BLOCK);
+    let dense = header.mode == 1u;
+    let total = scan_blocks(lid.x, compact_blocks(dense, atomicLoad(&header.cells)));
     let size = 1u << (32u - countLeadingZeros(max(total, SORT_BLOCK) - 1u));
     if lid.x == 0u {
         atomicStore(&header.out_count, total);
         header.sort_size = size;
     }
-    let dense = header.mode == 1u;
     for (var i = lid.x; i < params.schedule_entries; i += WORKGROUP_SIZE) {
         let entry = schedule[i];
         if entry.x > SCHEDULE_REDUCE {

@@ -31,7 +31,8 @@
 //! index with bounded linear probing. Either way the per-cell sums of the points' offsets
 //! inside their cell are 64-bit fixed-point integers (2^-24 leaf resolution, integer atomics,
 //! so the result is byte-identical whatever the thread order); a stream compaction of the
-//! kept slots (prefix sums in a fixed order, no atomics) follows; on the hash path only, a
+//! kept slots (prefix sums in a fixed order, no atomics; on the dense path over the occupied
+//! cells' slots only) follows; on the hash path only, a
 //! bitonic sort of the kept cells' indices (padded to the next power of two, at least 512:
 //! the sort's dispatches are indirect, sized on the GPU from the compacted count, and get no
 //! workgroups on the dense path); and one mean per output cell. Its four passes (insert with
@@ -759,13 +760,12 @@ impl LeafAdapter {
 }
 
 /// Entry points of voxel.wgsl on the main bind group, in pipeline order.
-const ENTRY_POINTS: [&str; 14] = [
+const ENTRY_POINTS: [&str; 13] = [
     "list_words",
     "bounds",
     "dense_clear",
     "mark",
     "word_count",
-    "word_scan",
     "word_scatter",
     "insert",
     "compact_count",
@@ -798,6 +798,9 @@ const SCHEDULE_WORD_BLOCKS: u32 = 4;
 /// (bounds), one per `INSERT_CHUNK` points of the words (mark, insert).
 const SCHEDULE_LISTED_WORDS: u32 = 5;
 const SCHEDULE_LISTED_CHUNKS: u32 = 6;
+/// The compaction's workgroups `word_scan` sizes (voxel.wgsl): one per `COMPACT_BLOCK` slots,
+/// the whole table's on the hash path, the occupied cells' on the dense path.
+const SCHEDULE_COMPACT_BLOCKS: u32 = 7;
 /// Bitmap words of the largest dense grid.
 const DENSE_MAX_WORDS: u64 = DENSE_MAX_CELLS / 32;
 /// Points per thread of `bounds` (one keep-mask word) and `insert` (voxel.wgsl constants).
@@ -823,12 +826,14 @@ enum SortPass {
 pub struct GpuVoxel {
     layout: wgpu::BindGroupLayout,
     pipelines: Vec<wgpu::ComputePipeline>,
-    /// compact_scan and plan, with the schedule and dispatch-argument bind group.
+    /// compact_scan, plan, list_args and word_scan, with the schedule and dispatch-argument
+    /// bind group.
     scan_layout: wgpu::BindGroupLayout,
     scan: wgpu::ComputePipeline,
     plan: wgpu::ComputePipeline,
     list_args: wgpu::ComputePipeline,
-    /// Bind group 1 of compact_scan and plan: the dispatch schedule (its first
+    word_scan: wgpu::ComputePipeline,
+    /// Bind group 1 of the scheduling pipelines: the dispatch schedule (its first
     /// `schedule_entries` entries are this table's) and the indirect arguments.
     scan_group: CachedBindGroup,
     schedule: wgpu::Buffer,
@@ -846,6 +851,8 @@ pub struct GpuVoxel {
     /// Indirect-argument entries of the passes over the listed mask words.
     listed_words_entry: u32,
     listed_chunks_entry: u32,
+    /// Indirect-argument entry of compact_count and compact_scatter.
+    compact_blocks_entry: u32,
     /// Count and indices of the mask words with some point set (sized for the most points).
     listed: wgpu::Buffer,
     /// Dense path: occupancy bitmap and per-word prefix counts (sized for DENSE_MAX_CELLS).
@@ -937,11 +944,12 @@ impl GpuVoxel {
             ctx,
             &shader::VOXEL,
             &[Some(&layout), Some(&scan_layout)],
-            &["compact_scan", "plan", "list_args"],
+            &["compact_scan", "plan", "list_args", "word_scan"],
         )?;
-        let list_args = scheduling.pop().expect("three entry points");
-        let plan = scheduling.pop().expect("three entry points");
-        let scan = scheduling.pop().expect("three entry points");
+        let word_scan = scheduling.pop().expect("four entry points");
+        let list_args = scheduling.pop().expect("four entry points");
+        let plan = scheduling.pop().expect("four entry points");
+        let scan = scheduling.pop().expect("four entry points");
         let timer = StageTimer::new(ctx, "voxel", &TIMED_PASSES)?;
         let step_stride = u64::from(ctx.device().limits().min_uniform_buffer_offset_alignment)
             .max(std::mem::size_of::<SortStep>() as u64);
@@ -974,6 +982,7 @@ impl GpuVoxel {
             scan,
             plan,
             list_args,
+            word_scan,
             scan_group: CachedBindGroup::default(),
             schedule: buffers.2.clone(),
             schedule_entries: 0,
@@ -986,6 +995,7 @@ impl GpuVoxel {
             word_blocks_entry: 0,
             listed_words_entry: 0,
             listed_chunks_entry: 0,
+            compact_blocks_entry: 0,
             listed: buffers.5,
             bitmap: buffers.3,
             word_prefix: buffers.4,
@@ -1101,6 +1111,8 @@ impl GpuVoxel {
         schedule.push([SCHEDULE_LISTED_WORDS, 0]);
         let listed_chunks_entry = schedule.len() as u32;
         schedule.push([SCHEDULE_LISTED_CHUNKS, 0]);
+        let compact_blocks_entry = schedule.len() as u32;
+        schedule.push([SCHEDULE_COMPACT_BLOCKS, 0]);
         let stride = self.step_stride;
         let mut step_bytes = vec![0u8; (steps.len() as u64 * stride).max(stride) as usize];
         for (i, st) in steps.iter().enumerate() {
@@ -1151,6 +1163,7 @@ impl GpuVoxel {
         self.word_blocks_entry = word_blocks_entry;
         self.listed_words_entry = listed_words_entry;
         self.listed_chunks_entry = listed_chunks_entry;
+        self.compact_blocks_entry = compact_blocks_entry;
         self.table_slots = slots;
         Ok(())
     }
@@ -1278,7 +1291,6 @@ impl GpuVoxel {
             dense_clear,
             mark,
             word_count,
-            word_scan,
             word_scatter,
             insert,
             compact_count,
@@ -1288,7 +1300,6 @@ impl GpuVoxel {
             sort_merge,
             reduce,
         ] = std::array::from_fn(|i| &self.pipelines[i]);
-        let blocks = self.table_slots / COMPACT_BLOCK;
         let timer = self.timer.as_ref();
         fn timed_pass<'e>(
             encoder: &'e mut wgpu::CommandEncoder,
@@ -1327,7 +1338,7 @@ impl GpuVoxel {
             pass.dispatch_workgroups_indirect(&self.dispatch_args, listed_chunks);
             pass.set_pipeline(word_count);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.word_blocks_entry));
-            pass.set_pipeline(word_scan);
+            pass.set_pipeline(&self.word_scan);
             pass.dispatch_workgroups(1, 1, 1);
             pass.set_pipeline(word_scatter);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.word_blocks_entry));
@@ -1336,13 +1347,14 @@ impl GpuVoxel {
         }
         {
             let mut pass = timed_pass(encoder, timer, 1, bind_group);
+            let compact_blocks = args_at(self.compact_blocks_entry);
             pass.set_pipeline(compact_count);
-            pass.dispatch_workgroups(blocks, 1, 1);
+            pass.dispatch_workgroups_indirect(&self.dispatch_args, compact_blocks);
             pass.set_pipeline(&self.scan);
             pass.set_bind_group(1, scan_group, &[]);
             pass.dispatch_workgroups(1, 1, 1);
             pass.set_pipeline(compact_scatter);
-            pass.dispatch_workgroups(blocks, 1, 1);
+            pass.dispatch_workgroups_indirect(&self.dispatch_args, compact_blocks);
         }
         {
             let mut pass = timed_pass(encoder, timer, 2, bind_group);
@@ -1781,6 +1793,7 @@ pub(crate) mod tests {
                 ("SCHEDULE_WORD_BLOCKS", SCHEDULE_WORD_BLOCKS),
                 ("SCHEDULE_LISTED_WORDS", SCHEDULE_LISTED_WORDS),
                 ("SCHEDULE_LISTED_CHUNKS", SCHEDULE_LISTED_CHUNKS),
+                ("SCHEDULE_COMPACT_BLOCKS", SCHEDULE_COMPACT_BLOCKS),
                 ("DENSE_MAX_CELLS", DENSE_MAX_CELLS as u32),
                 ("DENSE_WORDS_PER_POINT", DENSE_WORDS_PER_POINT as u32),
                 ("DENSE_MIN_WORDS", DENSE_MIN_WORDS as u32),
