@@ -344,16 +344,27 @@ fn cell_count() -> u32 {
     return min(atomicLoad(&status[CELL_COUNT]), count());
 }
 
+// A workgroup numbers its cells' sub-cells with one atomicAdd.
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn number(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn number(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let k = gid.x;
-    if k >= cell_count() {
+    let numbered = k < cell_count();
+    var s = 0u;
+    var octants = 0u;
+    if numbered {
+        s = cells[k].slot;
+        octants = atomicLoad(&slots[s].octants);
+    }
+    let n_subs = countOneBits(octants);
+    let taken = workgroup_scan(lid.x, n_subs);
+    var group_first = 0u;
+    if lid.x == 0u && taken.y > 0u {
+        group_first = atomicAdd(&status[SUB_COUNT], taken.y);
+    }
+    let first = share_first(lid.x, group_first) + taken.x;
+    if !numbered {
         return;
     }
-    let s = cells[k].slot;
-    let octants = atomicLoad(&slots[s].octants);
-    let n_subs = countOneBits(octants);
-    let first = atomicAdd(&status[SUB_COUNT], n_subs);
     cells[k].first_sub = first;
     cells[k].octants = octants;
     slots[s].z_subs.y = bitcast<i32>(pack_subs(first, octants));
@@ -423,10 +434,22 @@ fn widen_box(sub: u32, key: vec3<u32>, axis: u32) {
     }
 }
 
+// A workgroup takes its sub-cells' ranges of sorted[] with one atomicAdd.
 @compute @workgroup_size(WORKGROUP_SIZE)
-fn place(@builtin(global_invocation_id) gid: vec3<u32>) {
+fn place(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let j = gid.x;
-    if j >= atomicLoad(&status[SUB_COUNT]) {
+    let placed = j < atomicLoad(&status[SUB_COUNT]);
+    var count = 0u;
+    if placed {
+        count = atomicLoad(&subs[j].count);
+    }
+    let taken = workgroup_scan(lid.x, count);
+    var group_start = 0u;
+    if lid.x == 0u && taken.y > 0u {
+        group_start = atomicAdd(&status[PLACED], taken.y);
+    }
+    let start = share_first(lid.x, group_start) + taken.x;
+    if !placed {
         return;
     }
     let lo = vec3<f32>(
@@ -439,8 +462,6 @@ fn place(@builtin(global_invocation_id) gid: vec3<u32>) {
         from_order_key(atomicLoad(&subs[j].hi[1])),
         from_order_key(atomicLoad(&subs[j].hi[2])),
     );
-    let count = atomicLoad(&subs[j].count);
-    let start = atomicAdd(&status[PLACED], count);
     boxes[j] = Sub(lo, hi, vec3<u32>(atomicLoad(&subs[j].low), start, count));
 }
 

@@ -55,3 +55,37 @@ fn hash_u32(x: u32) -> u32 {
 
 // Threads per workgroup of the one-thread-per-item passes (src/gpu/shader.rs WORKGROUP_SIZE).
 const WORKGROUP_SIZE: u32 = 64u;
+
+var<workgroup> scan_words: array<u32, WORKGROUP_SIZE>;
+
+// Exclusive prefix sum of `v` over the workgroup's threads in thread order: (sum of v over
+// the threads before `lid`, sum over all). Each thread adds up the workgroup's values after
+// one barrier (uniform addresses: on llvmpipe each barrier costs more than the 64 adds).
+// Called once per invocation, from uniform control flow only (a barrier inside).
+fn workgroup_scan(lid: u32, v: u32) -> vec2<u32> {
+    scan_words[lid] = v;
+    workgroupBarrier();
+    var before = 0u;
+    var total = 0u;
+    for (var k = 0u; k < WORKGROUP_SIZE; k += 4u) {
+        let q = vec4<u32>(scan_words[k], scan_words[k + 1u], scan_words[k + 2u], scan_words[k + 3u]);
+        let earlier = select(vec4<u32>(0u), q, k + vec4<u32>(0u, 1u, 2u, 3u) < vec4<u32>(lid));
+        before += earlier.x + earlier.y + earlier.z + earlier.w;
+        total += q.x + q.y + q.z + q.w;
+    }
+    return vec2<u32>(before, total);
+}
+
+var<workgroup> shared_first: u32;
+
+// Thread 0's `first` for every thread of the workgroup: with workgroup_scan, a workgroup
+// takes its threads' slots of a counter with one atomicAdd (on llvmpipe the two CPU threads
+// contend for a counter every thread adds to). From uniform control flow only (a barrier
+// inside).
+fn share_first(lid: u32, first: u32) -> u32 {
+    if lid == 0u {
+        shared_first = first;
+    }
+    workgroupBarrier();
+    return shared_first;
+}

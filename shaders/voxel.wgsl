@@ -203,21 +203,19 @@ fn bound_point(bits: u32, i: u32, p: vec3<f32>) {
 
 // Appends the mask words with some point set to `listed` (their order does not matter:
 // bounds, mark and insert combine points with order-free atomics), so that the passes over
-// the points skip the pixels a depth frame's crop leaves out without a thread each. One
-// atomicAdd per workgroup takes its slots (on llvmpipe the two CPU threads contend for a
-// counter every thread adds to).
-var<workgroup> listed_base: u32;
-
+// the points skip the pixels a depth frame's crop leaves out without a thread each. A
+// workgroup takes its slots with one atomicAdd.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn list_words(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let wanted = gid.x < (params.point_count + 31u) / 32u && mask_word(gid.x) != 0u;
     let s = workgroup_scan(lid.x, select(0u, 1u, wanted));
+    var first = 0u;
     if lid.x == 0u && s.y > 0u {
-        listed_base = atomicAdd(&listed.count, s.y);
+        first = atomicAdd(&listed.count, s.y);
     }
-    workgroupBarrier();
+    let slot = share_first(lid.x, first) + s.x;
     if wanted {
-        listed.words[listed_base + s.x] = gid.x;
+        listed.words[slot] = gid.x;
     }
 }
 
@@ -669,26 +667,6 @@ fn word_scatter(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgroup
 fn kept(slot: u32) -> bool {
     return atomicLoad(&table_keys[slot]) != 0u
         && atomicLoad(&table_data[slot * SLOT_WORDS]) >= params.min_points;
-}
-
-var<workgroup> scan_words: array<u32, WORKGROUP_SIZE>;
-
-// Exclusive prefix sum of `v` over the workgroup's threads in thread order: (sum of v over
-// the threads before `lid`, sum over all). Each thread adds up the workgroup's values after
-// one barrier (uniform addresses: on llvmpipe each barrier costs more than the 64 adds).
-// Called once per invocation, from uniform control flow only (a barrier inside).
-fn workgroup_scan(lid: u32, v: u32) -> vec2<u32> {
-    scan_words[lid] = v;
-    workgroupBarrier();
-    var before = 0u;
-    var total = 0u;
-    for (var k = 0u; k < WORKGROUP_SIZE; k += 4u) {
-        let q = vec4<u32>(scan_words[k], scan_words[k + 1u], scan_words[k + 2u], scan_words[k + 3u]);
-        let earlier = select(vec4<u32>(0u), q, k + vec4<u32>(0u, 1u, 2u, 3u) < vec4<u32>(lid));
-        before += earlier.x + earlier.y + earlier.z + earlier.w;
-        total += q.x + q.y + q.z + q.w;
-    }
-    return vec2<u32>(before, total);
 }
 
 // One workgroup: replaces the first `blocks` entries of block_sums with their exclusive
