@@ -15,12 +15,13 @@
 //                        numbers the cell: cells[] lists the occupied cells) and mark the
 //                        point's octant in the slot
 //   prepare_cells (1 thread) the per-cell passes' dispatch size from the cells insert numbered
-//   number   per cell    number the cell's occupied octants (its sub-cells, in subs[]) and
-//                        write them into its slot, where the look-ups of the hook find them
+//   number   per cell    number the cell's occupied octants (its sub-cells, in subs[]; one
+//                        atomicAdd per workgroup) and write them into its slot, where the
+//                        look-ups of the hook find them
 //   gather   per point   join the point's sub-cell: its rank there (atomicAdd of the count),
 //                        the smallest index (atomicMin) and the bounding box (atomicMin/Max
 //                        of order_key), each atomic skipped when it cannot change the value
-//   place    per sub-cell give it its range of sorted[] (atomicAdd of its count) and write
+//   place    per sub-cell give it its range of sorted[] (one atomicAdd per workgroup) and write
 //                        it decoded into boxes[], which the later passes read (dispatched
 //                        per point: at most one sub-cell per point; every lane of a SIMD
 //                        group busy, no loop over a cell's sub-cells)
@@ -69,7 +70,7 @@
 // STATUS_INCOMPLETE (a look-up or a loop over cells or sub-cells ended early skips a union
 // without a trace) and keeps no progress.
 // Uses common.wgsl (prepended): NONE, WORKGROUP_SIZE, finite_point, hash_u32, order_key,
-// from_order_key.
+// from_order_key, workgroup_scan, share_first.
 
 struct ClusterParams {
     // 1 / fine cell size; fine cell size = tolerance * CELL_MARGIN / 2 (host side), metres^-1.
@@ -339,6 +340,17 @@ fn insert(@builtin(global_invocation_id) gid: vec3<u32>) {
     atomicOr(&status[STATUS_OVERFLOW], 1u);
 }
 
+// The first of thread lid's `n` slots of the counter status[counter]: a workgroup takes its
+// threads' slots with one atomicAdd. From uniform control flow only (barriers inside).
+fn take_slots(lid: u32, n: u32, counter: u32) -> u32 {
+    let taken = workgroup_scan(lid, n);
+    var first = 0u;
+    if lid == 0u && taken.y > 0u {
+        first = atomicAdd(&status[counter], taken.y);
+    }
+    return share_first(lid, first) + taken.x;
+}
+
 // The cells numbered by insert (at most count()).
 fn cell_count() -> u32 {
     return min(atomicLoad(&status[CELL_COUNT]), count());
@@ -356,12 +368,7 @@ fn number(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
         octants = atomicLoad(&slots[s].octants);
     }
     let n_subs = countOneBits(octants);
-    let taken = workgroup_scan(lid.x, n_subs);
-    var group_first = 0u;
-    if lid.x == 0u && taken.y > 0u {
-        group_first = atomicAdd(&status[SUB_COUNT], taken.y);
-    }
-    let first = share_first(lid.x, group_first) + taken.x;
+    let first = take_slots(lid.x, n_subs, SUB_COUNT);
     if !numbered {
         return;
     }
@@ -443,12 +450,7 @@ fn place(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocatio
     if placed {
         count = atomicLoad(&subs[j].count);
     }
-    let taken = workgroup_scan(lid.x, count);
-    var group_start = 0u;
-    if lid.x == 0u && taken.y > 0u {
-        group_start = atomicAdd(&status[PLACED], taken.y);
-    }
-    let start = share_first(lid.x, group_start) + taken.x;
+    let start = take_slots(lid.x, count, PLACED);
     if !placed {
         return;
     }

@@ -14,16 +14,19 @@
 //                 run to the table (see walk_step).
 //   compact_count, compact_scan, compact_scatter - stream compaction of the kept slots
 //                 (occupied, at least min_points; on the dense path only the first `cells`
-//                 slots are looked at) into sort_keys, in slot order: kept count per
-//                 512-slot block, one workgroup's exclusive prefix sum over the blocks (also
-//                 out_count, the sort size P = the next power of two >= max(out_count, 512)
-//                 and the indirect dispatch arguments of the sort and reduce dispatches), then
-//                 each block's keys written at its offset plus their rank in the block (prefix
-//                 sums in workgroup memory, fixed order: no atomics, deterministic)
+//                 slots are looked at, and none with min_points 1: every occupied cell is
+//                 kept, its slot is its output index) into sort_keys, in slot order: kept
+//                 count per 512-slot block, one workgroup's exclusive prefix sum over the
+//                 blocks (also out_count, the sort size P = the next power of two >=
+//                 max(out_count, 512) and the indirect dispatch arguments of the sort and
+//                 reduce dispatches), then each block's keys written at its offset plus
+//                 their rank in the block (prefix sums in workgroup memory, fixed order: no
+//                 atomics, deterministic)
 //   sort_local, sort_global, sort_merge - bitonic sort of the first P keys (ascending = PCL
 //                 order; keys at out_count..P read as NONE), indirect: the stages with k > P
 //                 get no workgroups
-//   reduce      - output r = mean of the r-th smallest cell
+//   reduce      - output r = mean of the r-th smallest cell (its index from sort_keys, or
+//                 from the table's keys when the compaction kept every cell)
 // The table is cleared with clear_buffer before `insert` (0 = empty slot, key = index + 1).
 //
 // Dense path (chosen on the GPU by `plan` when the grid is small enough; the crop bounds it):
@@ -641,10 +644,20 @@ fn word_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
     }
 }
 
+// On the dense path with min_points 1 every occupied cell is kept: its slot (rank) is its
+// output index, and the compaction has nothing to do.
+fn keeps_every_cell(dense: bool) -> bool {
+    return dense && params.min_points <= 1u;
+}
+
 // The compaction's blocks of COMPACT_BLOCK slots: the whole table on the hash path; on the
-// dense path the slots of the `cells` occupied cells (slot = rank), which come first.
+// dense path the slots of the `cells` occupied cells (slot = rank), which come first, or
+// none when it keeps every cell.
 fn compact_blocks(dense: bool, cells: u32) -> u32 {
     let table_blocks = (params.table_mask + 1u) / COMPACT_BLOCK;
+    if keeps_every_cell(dense) {
+        return 0u;
+    }
     if dense {
         return min((cells + COMPACT_BLOCK - 1u) / COMPACT_BLOCK, table_blocks);
     }
@@ -712,7 +725,9 @@ fn compact_count(@builtin(local_invocation_id) lid: vec3<u32>, @builtin(workgrou
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn compact_scan(@builtin(local_invocation_id) lid: vec3<u32>) {
     let dense = header.mode == 1u;
-    let total = scan_blocks(lid.x, compact_blocks(dense, atomicLoad(&header.cells)));
+    let cells = atomicLoad(&header.cells);
+    let kept = scan_blocks(lid.x, compact_blocks(dense, cells));
+    let total = select(kept, min(cells, params.table_mask + 1u), keeps_every_cell(dense));
     let size = 1u << (32u - countLeadingZeros(max(total, SORT_BLOCK) - 1u));
     if lid.x == 0u {
         atomicStore(&header.out_count, total);
@@ -847,7 +862,10 @@ fn reduce(@builtin(global_invocation_id) gid: vec3<u32>) {
     if r >= atomicLoad(&header.out_count) {
         return;
     }
-    let index = sort_keys[r];
+    var index = sort_keys[r];
+    if keeps_every_cell(header.mode == 1u) {
+        index = atomicLoad(&table_keys[r]) - 1u;
+    }
     let key = index + 1u;
     var slot = 0u;
     if header.mode == 1u {

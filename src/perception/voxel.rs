@@ -32,7 +32,8 @@
 //! inside their cell are 64-bit fixed-point integers (2^-24 leaf resolution, integer atomics,
 //! so the result is byte-identical whatever the thread order); a stream compaction of the
 //! kept slots (prefix sums in a fixed order, no atomics; on the dense path over the occupied
-//! cells' slots only) follows; on the hash path only, a
+//! cells' slots only, and none with one point per voxel enough: slot = rank = output index)
+//! follows; on the hash path only, a
 //! bitonic sort of the kept cells' indices (padded to the next power of two, at least 512:
 //! the sort's dispatches are indirect, sized on the GPU from the compacted count, and get no
 //! workgroups on the dense path); and one mean per output cell. Its four passes (insert with
