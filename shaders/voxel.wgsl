@@ -1,9 +1,10 @@
 // Voxel grid (paper IV-B) with PCL VoxelGrid semantics, deterministic on the GPU.
 //
 // Dispatches, in this order (four timed compute passes: insert, compact, sort, reduce):
-//   list_words, list_args - list the mask words with some point set and size the indirect
-//                 dispatches of bounds, mark and insert over them (a depth frame's crop keeps
-//                 few of its pixels)
+//   list_words, list_args - with a mask only: list the mask words with some point set and
+//                 size the indirect dispatches of bounds, mark and insert over them (a depth
+//                 frame's crop keeps few of its pixels); without a mask they run over every
+//                 word, dispatched by the host
 //   bounds      - min/max of the valid points (32 points per thread, combined per
 //                 workgroup, then integer atomics on order keys)
 //   insert      - cell index (PCL's linear index relative to the min cell) into a hash table
@@ -238,13 +239,25 @@ fn list_args(@builtin(local_invocation_id) lid: vec3<u32>) {
     }
 }
 
-// First point of listed chunk `c` of INSERT_CHUNK points (NONE beyond the list).
-fn listed_chunk(c: u32) -> u32 {
-    let k = c / (32u / INSERT_CHUNK);
+// Listed mask word k: with a mask the k-th word list_words found with some point set,
+// without one word k; NONE beyond them.
+fn listed_word(k: u32) -> u32 {
+    if params.use_mask == 0u {
+        return select(NONE, k, k < (params.point_count + 31u) / 32u);
+    }
     if k >= atomicLoad(&listed.count) {
         return NONE;
     }
-    return 32u * listed.words[k] + (c % (32u / INSERT_CHUNK)) * INSERT_CHUNK;
+    return listed.words[k];
+}
+
+// First point of listed chunk `c` of INSERT_CHUNK points (NONE beyond the list).
+fn listed_chunk(c: u32) -> u32 {
+    let w = listed_word(c / (32u / INSERT_CHUNK));
+    if w == NONE {
+        return NONE;
+    }
+    return 32u * w + (c % (32u / INSERT_CHUNK)) * INSERT_CHUNK;
 }
 
 // The quad at i, when in the cloud and the mask.
@@ -269,8 +282,9 @@ fn bounds(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocati
     bounds_count = 0u;
     bounds_hi = vec3<u32>(0u);
     bounds_lo_inv = vec3<u32>(0u);
-    if gid.x < atomicLoad(&listed.count) {
-        let first = listed.words[gid.x] * BOUNDS_CHUNK;
+    let word = listed_word(gid.x);
+    if word != NONE {
+        let first = word * BOUNDS_CHUNK;
         let bits = mask_word(first >> 5u);
         bound_quad(bits, first);
         bound_quad(bits, first + 4u);

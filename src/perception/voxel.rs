@@ -1319,24 +1319,32 @@ impl GpuVoxel {
         let args_at = |entry: u32| 12 * u64::from(entry);
         {
             let mut pass = timed_pass(encoder, timer, 0, bind_group);
-            pass.set_pipeline(list_words);
-            let mask_words = self.point_count.div_ceil(BOUNDS_CHUNK);
-            pass.dispatch_workgroups(shader::workgroups_for(mask_words), 1, 1);
-            pass.set_pipeline(&self.list_args);
             pass.set_bind_group(1, scan_group, &[]);
-            pass.dispatch_workgroups(1, 1, 1);
-            let listed_chunks = args_at(self.listed_chunks_entry);
+            // With a mask, bounds, mark and insert run over the words list_words finds with
+            // some point set (sized on the GPU); without one, over every word.
+            let mask_words = self.point_count.div_ceil(BOUNDS_CHUNK);
+            let listed = |pass: &mut wgpu::ComputePass<'_>, entry: u32, per_word: u32| {
+                if self.use_mask {
+                    pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(entry));
+                } else {
+                    pass.dispatch_workgroups(shader::workgroups_for(mask_words * per_word), 1, 1);
+                }
+            };
+            if self.use_mask {
+                pass.set_pipeline(list_words);
+                pass.dispatch_workgroups(shader::workgroups_for(mask_words), 1, 1);
+                pass.set_pipeline(&self.list_args);
+                pass.dispatch_workgroups(1, 1, 1);
+            }
+            let chunks_per_word = BOUNDS_CHUNK / INSERT_CHUNK;
             pass.set_pipeline(bounds);
-            pass.dispatch_workgroups_indirect(
-                &self.dispatch_args,
-                args_at(self.listed_words_entry),
-            );
+            listed(&mut pass, self.listed_words_entry, 1);
             pass.set_pipeline(&self.plan);
             pass.dispatch_workgroups(1, 1, 1);
             pass.set_pipeline(dense_clear);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.words_entry));
             pass.set_pipeline(mark);
-            pass.dispatch_workgroups_indirect(&self.dispatch_args, listed_chunks);
+            listed(&mut pass, self.listed_chunks_entry, chunks_per_word);
             pass.set_pipeline(word_count);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.word_blocks_entry));
             pass.set_pipeline(&self.word_scan);
@@ -1344,7 +1352,7 @@ impl GpuVoxel {
             pass.set_pipeline(word_scatter);
             pass.dispatch_workgroups_indirect(&self.dispatch_args, args_at(self.word_blocks_entry));
             pass.set_pipeline(insert);
-            pass.dispatch_workgroups_indirect(&self.dispatch_args, listed_chunks);
+            listed(&mut pass, self.listed_chunks_entry, chunks_per_word);
         }
         {
             let mut pass = timed_pass(encoder, timer, 1, bind_group);
