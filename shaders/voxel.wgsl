@@ -154,6 +154,11 @@ fn load_quad(i: u32) -> array<vec3<f32>, 4> {
     return unpack_quad(points[v], points[v + 1u], points[v + 2u]);
 }
 
+// Mask words covering the cloud (32 points each).
+fn cloud_words() -> u32 {
+    return (params.point_count + 31u) / 32u;
+}
+
 // The mask word of points 32 w .. 32 w + 31 (all set without a mask): a chunk of points
 // that starts at a multiple of 32 / 8 reads it once.
 fn mask_word(w: u32) -> u32 {
@@ -211,7 +216,7 @@ fn bound_point(bits: u32, i: u32, p: vec3<f32>) {
 // workgroup takes its slots with one atomicAdd.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn list_words(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
-    let wanted = gid.x < (params.point_count + 31u) / 32u && mask_word(gid.x) != 0u;
+    let wanted = gid.x < cloud_words() && mask_word(gid.x) != 0u;
     let s = workgroup_scan(lid.x, select(0u, 1u, wanted));
     var first = 0u;
     if lid.x == 0u && s.y > 0u {
@@ -243,7 +248,7 @@ fn list_args(@builtin(local_invocation_id) lid: vec3<u32>) {
 // without one word k; NONE beyond them.
 fn listed_word(k: u32) -> u32 {
     if params.use_mask == 0u {
-        return select(NONE, k, k < (params.point_count + 31u) / 32u);
+        return select(NONE, k, k < cloud_words());
     }
     if k >= atomicLoad(&listed.count) {
         return NONE;

@@ -32,16 +32,15 @@
 //! inside their cell are 64-bit fixed-point integers (2^-24 leaf resolution, integer atomics,
 //! so the result is byte-identical whatever the thread order); a stream compaction of the
 //! kept slots (prefix sums in a fixed order, no atomics; on the dense path over the occupied
-//! cells' slots only, and none with one point per voxel enough: slot = rank = output index)
-//! follows; on the hash path only, a
-//! bitonic sort of the kept cells' indices (padded to the next power of two, at least 512:
-//! the sort's dispatches are indirect, sized on the GPU from the compacted count, and get no
-//! workgroups on the dense path); and one mean per output cell. Its four passes (insert with
-//! the bounds and the dense path's bitmap, compact, sort, reduce) carry their own timestamp
-//! queries, read back with the results. The overflow flag (probe budget exhausted, or more
-//! occupied cells than slots) is read back every frame: an overflowing table is retried with
-//! four times the slots up to `max_table_slots`, and beyond that the frame is an error, never
-//! a silently wrong result.
+//! cells' slots only, and none when `min_points_per_voxel` is 1: slot = rank = output index)
+//! follows; on the hash path only, a bitonic sort of the kept cells' indices (padded to the
+//! next power of two, at least 512: the sort's dispatches are indirect, sized on the GPU from
+//! the compacted count, and get no workgroups on the dense path); and one mean per output
+//! cell. Its four passes (insert with the bounds and the dense path's bitmap, compact, sort,
+//! reduce) carry their own timestamp queries, read back with the results. The overflow flag
+//! (probe budget exhausted, or more occupied cells than slots) is read back every frame: an
+//! overflowing table is retried with four times the slots up to `max_table_slots`, and beyond
+//! that the frame is an error, never a silently wrong result.
 //!
 //! [`LeafAdapter`] adapts the leaf between frames towards `target_points` (the paper keeps
 //! about 5000 points): surface points scale like `leaf^-2`.
