@@ -114,19 +114,53 @@ impl Primitive {
                 center_m,
                 rpy_rad,
                 half_extents_m,
-            } => {
-                let local = box_rotation(rpy_rad).inverse() * (p - center_m);
-                let q = local.abs() - half_extents_m;
-                let outside = q.map(|v| v.max(0.0)).norm();
-                let inside = q.max().min(0.0);
-                outside + inside
-            }
+            } => box_signed_distance(
+                &box_rotation(rpy_rad).inverse(),
+                center_m,
+                half_extents_m,
+                p,
+            ),
         }
     }
 
     /// True when `p` lies inside or on the primitive.
     pub fn contains(&self, p: &Point3<f64>) -> bool {
         self.signed_distance(p) <= 0.0
+    }
+
+    /// The primitive prepared for many point queries, e.g. a frame's crop.
+    pub fn prepared(&self) -> PreparedPrimitive {
+        let (bound_center_m, bound_radius_m) = match self {
+            Primitive::Sphere { center_m, radius_m } => (*center_m, *radius_m),
+            Primitive::Capsule { a_m, b_m, radius_m } => (
+                nalgebra::center(a_m, b_m),
+                0.5 * (b_m - a_m).norm() + radius_m,
+            ),
+            Primitive::OrientedBox {
+                center_m,
+                half_extents_m,
+                ..
+            } => (*center_m, half_extents_m.norm()),
+        };
+        // Wider than any rounding of the distances (m-scale values, f64).
+        let bound_radius_m = bound_radius_m * (1.0 + 1e-9) + 1e-9;
+        let shape = match self {
+            Primitive::OrientedBox {
+                center_m,
+                rpy_rad,
+                half_extents_m,
+            } => PreparedShape::OrientedBox {
+                center_m: *center_m,
+                box_from_frame: box_rotation(rpy_rad).inverse(),
+                half_extents_m: *half_extents_m,
+            },
+            other => PreparedShape::Other(other.clone()),
+        };
+        PreparedPrimitive {
+            bound_center_m,
+            bound_r2: bound_radius_m * bound_radius_m,
+            shape,
+        }
     }
 
     /// The primitive grown by `margin_m` on every side (sphere and capsule radii, box half
@@ -189,6 +223,58 @@ pub fn box_rotation(rpy_rad: &Vector3<f64>) -> Rotation3<f64> {
     Rotation3::from_euler_angles(rpy_rad.x, rpy_rad.y, rpy_rad.z)
 }
 
+/// Signed distance from `p` to a box given the rotation from its parent frame into the box's.
+fn box_signed_distance(
+    box_from_frame: &Rotation3<f64>,
+    center_m: &Point3<f64>,
+    half_extents_m: &Vector3<f64>,
+    p: &Point3<f64>,
+) -> f64 {
+    let q = (box_from_frame * (p - center_m)).abs() - half_extents_m;
+    let outside = q.map(|v| v.max(0.0)).norm();
+    let inside = q.max().min(0.0);
+    outside + inside
+}
+
+/// A [`Primitive`] prepared for many point queries: a bounding sphere rejects the points far
+/// from it, and a box's rotation is computed once (three sines and cosines per query
+/// otherwise); what is left is the arithmetic of [`Primitive::contains`], so the answers are
+/// the same.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PreparedPrimitive {
+    bound_center_m: Point3<f64>,
+    bound_r2: f64,
+    shape: PreparedShape,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+enum PreparedShape {
+    OrientedBox {
+        center_m: Point3<f64>,
+        box_from_frame: Rotation3<f64>,
+        half_extents_m: Vector3<f64>,
+    },
+    Other(Primitive),
+}
+
+impl PreparedPrimitive {
+    /// True when `p` lies inside or on the primitive.
+    pub fn contains(&self, p: &Point3<f64>) -> bool {
+        if (p - self.bound_center_m).norm_squared() > self.bound_r2 {
+            return false;
+        }
+        let distance = match &self.shape {
+            PreparedShape::OrientedBox {
+                center_m,
+                box_from_frame,
+                half_extents_m,
+            } => box_signed_distance(box_from_frame, center_m, half_extents_m, p),
+            PreparedShape::Other(primitive) => primitive.signed_distance(p),
+        };
+        distance <= 0.0
+    }
+}
+
 /// The point of segment `a`..`b` closest to `p` (a degenerate segment returns `a`).
 pub fn closest_point_on_segment(a: &Point3<f64>, b: &Point3<f64>, p: &Point3<f64>) -> Point3<f64> {
     let ab = b - a;
@@ -204,6 +290,7 @@ pub fn closest_point_on_segment(a: &Point3<f64>, b: &Point3<f64>, p: &Point3<f64
 mod tests {
     use super::*;
     use nalgebra::{Translation3, UnitQuaternion};
+    use proptest::prelude::*;
 
     #[test]
     fn box_distance_inside_and_outside() {
@@ -281,6 +368,65 @@ mod tests {
             c.validate(),
             Err(PrimitiveError::OutOfRange { name: "a_m", value, .. }) if value.is_nan()
         ));
+    }
+
+    fn any_primitive() -> impl Strategy<Value = Primitive> {
+        let point = || prop::array::uniform3(-1.0..1.0f64).prop_map(Point3::from);
+        prop_oneof![
+            (point(), 0.01..0.3f64)
+                .prop_map(|(center_m, radius_m)| Primitive::Sphere { center_m, radius_m }),
+            (point(), point(), 0.01..0.3f64)
+                .prop_map(|(a_m, b_m, radius_m)| { Primitive::Capsule { a_m, b_m, radius_m } }),
+            (
+                point(),
+                prop::array::uniform3(-3.2..3.2f64),
+                prop::array::uniform3(0.01..0.3f64)
+            )
+                .prop_map(|(center_m, rpy, half)| Primitive::OrientedBox {
+                    center_m,
+                    rpy_rad: Vector3::from(rpy),
+                    half_extents_m: Vector3::from(half),
+                }),
+        ]
+    }
+
+    /// The points of a primitive farthest from its bounding sphere's centre: a box's
+    /// corners, a capsule's cap tips.
+    fn extreme_points(prim: &Primitive) -> Vec<Point3<f64>> {
+        match prim {
+            Primitive::Sphere { center_m, radius_m } => {
+                vec![center_m + Vector3::new(*radius_m, 0.0, 0.0)]
+            }
+            Primitive::Capsule { a_m, b_m, radius_m } => {
+                let axis = (b_m - a_m).try_normalize(1e-12).unwrap_or(Vector3::x());
+                vec![a_m - axis * *radius_m, b_m + axis * *radius_m]
+            }
+            Primitive::OrientedBox {
+                center_m,
+                rpy_rad,
+                half_extents_m: h,
+            } => (0..8)
+                .map(|k| {
+                    let sign = |bit: i32| if k >> bit & 1 == 1 { 1.0 } else { -1.0 };
+                    let corner = Vector3::new(sign(0) * h.x, sign(1) * h.y, sign(2) * h.z);
+                    center_m + box_rotation(rpy_rad) * corner
+                })
+                .collect(),
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn prepared_primitives_answer_as_the_primitive_does(
+            prim in any_primitive(),
+            points in prop::collection::vec(prop::array::uniform3(-1.5..1.5f64), 64),
+        ) {
+            let prepared = prim.prepared();
+            let extremes = extreme_points(&prim);
+            for p in points.into_iter().map(Point3::from).chain(extremes) {
+                prop_assert_eq!(prepared.contains(&p), prim.contains(&p), "{:?} at {}", prim, p);
+            }
+        }
     }
 
     #[test]

@@ -46,6 +46,7 @@ use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::{PassTicks, StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
 use glam::Vec3;
+use rustc_hash::FxHashMap;
 use serde::{Deserialize, Serialize};
 
 /// Errors of the clustering stage.
@@ -360,8 +361,7 @@ pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, Clu
     order.sort_unstable();
     let mut subs: Vec<SubCell> = Vec::new();
     // Coarse cell -> range of its sub-cells in `subs`.
-    let mut coarse: std::collections::HashMap<[i64; 3], (u32, u32)> =
-        std::collections::HashMap::new();
+    let mut coarse: FxHashMap<[i64; 3], (u32, u32)> = FxHashMap::default();
     let mut at = 0;
     for run in order.chunk_by(|a, b| (a.0, a.1) == (b.0, b.1)) {
         let start = subs.len();
@@ -400,8 +400,10 @@ pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, Clu
             };
             for a in a0..a1 {
                 let first_b = if k == 13 { a + 1 } else { b0 };
+                // a's root changes only through this loop's unions.
+                let mut ra = find(&mut parent, a);
                 for b in first_b..b1 {
-                    let (ra, rb) = (find(&mut parent, a), find(&mut parent, b));
+                    let rb = find(&mut parent, b);
                     if ra == rb {
                         continue;
                     }
@@ -419,6 +421,7 @@ pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, Clu
                         });
                     if joined {
                         parent[ra.max(rb) as usize] = ra.min(rb);
+                        ra = ra.min(rb);
                     }
                 }
             }

@@ -29,7 +29,7 @@ use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{DepthImage, PinholeIntrinsics};
-use crate::geometry::{Primitive, PrimitiveError, box_rotation};
+use crate::geometry::{PreparedPrimitive, Primitive, PrimitiveError, box_rotation};
 use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
@@ -308,7 +308,11 @@ pub fn crop_cpu(
     scene.validate()?;
     let r2 = config.radius_m * config.radius_m;
     let margin = config.robot_margin_for(scene);
-    let robot: Vec<Primitive> = scene.robot.iter().map(|p| p.grown(margin)).collect();
+    let robot: Vec<PreparedPrimitive> = scene
+        .robot
+        .iter()
+        .map(|p| p.grown(margin).prepared())
+        .collect();
     let mut mask = vec![0u32; mask_words(points.len())];
     for (i, p) in points.iter().enumerate() {
         if !finite_bits(*p) {

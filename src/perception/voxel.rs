@@ -639,14 +639,19 @@ pub fn voxel_cpu_with_leaf(
     out.dense = dense_grid(cells, valid_in as u64);
     // Second pass: the keys of the blocks with valid points; on the dense path, the cell of
     // each run's first point is marked (the rest of the run is in the same cell).
-    let mut keys = vec![0u32; valid.len() * BLOCK];
+    // Only the blocks with a valid point get keys (a cropped depth frame has few).
+    let blocks: Vec<(usize, u32)> = valid
+        .iter()
+        .enumerate()
+        .filter(|&(_, &word)| word != 0)
+        .map(|(b, &word)| (b, word))
+        .collect();
+    let block_points = |b: usize| &points[b * BLOCK..points.len().min((b + 1) * BLOCK)];
+    let mut keys = vec![0u32; blocks.len() * BLOCK];
     let mut marks = out.dense.then(|| vec![0u64; cells.div_ceil(64) as usize]);
     let mut padded = [Vec3::ZERO; BLOCK];
-    let blocks = points.chunks(BLOCK).zip(&valid);
-    for ((block, &word), keys) in blocks.clone().zip(keys.as_chunks_mut::<BLOCK>().0) {
-        if word == 0 {
-            continue;
-        }
+    for (&(b, word), keys) in blocks.iter().zip(keys.as_chunks_mut::<BLOCK>().0) {
+        let block = block_points(b);
         let full = match <&[Vec3; BLOCK]>::try_from(block) {
             Ok(full) => full,
             Err(_) => {
@@ -680,7 +685,8 @@ pub fn voxel_cpu_with_leaf(
         // Consecutive points of a scan often share a cell: the run's sum stays in registers
         // and its rank is looked up once.
         let (mut run_key, mut slot, mut run) = (NOT_VALID, 0usize, CellSum::default());
-        for ((block, &word), keys) in blocks.zip(keys) {
+        for (&(b, word), keys) in blocks.iter().zip(keys) {
+            let block = block_points(b);
             for j in set_bits(word) {
                 let k = keys[j];
                 if k != run_key {
@@ -704,11 +710,10 @@ pub fn voxel_cpu_with_leaf(
     } else {
         // Key in the high half, input position in the low half: unique, so an unstable
         // sort orders the points of a cell by input position.
-        let mut order: Vec<u64> = valid
+        let mut order: Vec<u64> = blocks
             .iter()
             .zip(keys)
-            .enumerate()
-            .flat_map(|(b, (&word, keys))| {
+            .flat_map(|(&(b, word), keys)| {
                 set_bits(word).map(move |j| (u64::from(keys[j]) << 32) | (b * BLOCK + j) as u64)
             })
             .collect();
