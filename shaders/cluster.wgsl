@@ -77,10 +77,8 @@ struct ClusterParams {
     inv_cell: f32,
     // f32(tolerance)^2, the strict neighbour threshold, m^2.
     r2: f32,
-    // Always 1.0, read from memory: multiplying each square by it keeps a fused multiply-add
-    // from skipping the square's rounding (fma(p, 1, q) == p + q), so the test rounds like
-    // the CPU and FLANN do.
-    one: f32,
+    // Always 0, read from memory (see `rounded`).
+    opaque_zero: u32,
     // Slot count - 1 (slot count is a power of two).
     table_mask: u32,
     max_probes: u32,
@@ -247,13 +245,21 @@ fn hash(c: vec3<i32>) -> u32 {
     return hash_u32((u.x * 73856093u) ^ (u.y * 19349663u) ^ (u.z * 83492791u));
 }
 
-// PCL / FLANN L2_Simple<float>: ((dx*dx + dy*dy) + dz*dz) < r2, each square rounded.
+// v, rounded to f32 before any later arithmetic: an integer OR with a word that is zero only
+// at run time stands between v and its uses, so no compiler can fuse v's multiply into the
+// next add (a fused multiply-add skips the product's rounding) or reassociate across it.
+// (A multiplication by 1.0 read from memory does not hold: Mesa's NIR factors
+// a * one + b * one into (a + b) * one and then fuses a + b.)
+fn rounded(v: f32) -> f32 {
+    return bitcast<f32>(bitcast<u32>(v) | params.opaque_zero);
+}
+
+// PCL / FLANN L2_Simple<float>: ((dx*dx + dy*dy) + dz*dz) < r2, each square and the partial
+// sum rounded, as the CPU computes it.
 fn is_neighbour(a: vec3<f32>, b: vec3<f32>) -> bool {
     let d = a - b;
-    let one = params.one;
-    let xy = (d.x * d.x) * one + (d.y * d.y) * one;
-    let xyz = xy + (d.z * d.z) * one;
-    return xyz < params.r2;
+    let xy = rounded(rounded(d.x * d.x) + rounded(d.y * d.y));
+    return xy + rounded(d.z * d.z) < params.r2;
 }
 
 fn set_dispatch(at: u32, x: u32, y: u32) {

@@ -144,8 +144,9 @@ pub struct ClusterParams {
     pub inv_cell: f32,
     /// f32(tolerance)^2, m^2.
     pub r2: f32,
-    /// Always 1.0 (keeps fused multiply-adds from changing the neighbour test's rounding).
-    pub one: f32,
+    /// Always 0 (the neighbour test ORs it into each rounded value: see `rounded` in
+    /// cluster.wgsl).
+    pub opaque_zero: u32,
     pub table_mask: u32,
     pub max_probes: u32,
     pub capacity: u32,

@@ -689,7 +689,7 @@ impl GpuClusterer {
         b.params_value = ClusterParams {
             inv_cell: 2.0 / (config.tolerance_m * CELL_MARGIN),
             r2,
-            one: 1.0,
+            opaque_zero: 0,
             table_mask: b.table_slots - 1,
             max_probes: config.gpu_hash_max_probes,
             capacity: b.capacity,
