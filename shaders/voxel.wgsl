@@ -139,7 +139,7 @@ const SCHEDULE_LISTED_CHUNKS: u32 = 6u;
 const SCHEDULE_COMPACT_BLOCKS: u32 = 7u;
 // The dense path runs when the grid has at most DENSE_MAX_CELLS cells and its bitmap at most
 // DENSE_WORDS_PER_POINT words per valid point plus DENSE_MIN_WORDS (voxel.rs `dense_grid`).
-const DENSE_MAX_CELLS: u32 = 134217728u;
+const DENSE_MAX_CELLS: u32 = 134215680u;
 const DENSE_WORDS_PER_POINT: u32 = 8u;
 const DENSE_MIN_WORDS: u32 = 65536u;
 // Points per thread of `bounds` (one listed mask word) and of `insert` (a multiple of 4

@@ -147,8 +147,9 @@ impl GpuContext {
             // before every indirect dispatch to check its arguments (measured on an H100: the
             // voxel sort's ~20 indirect dispatches took 0.29 ms with it, 0.11 ms without).
             // Every indirect argument here is written by our own shaders from a count the
-            // host bounded (voxel: at most 2^22 kept cells -> at most 32768 workgroups;
-            // cluster: at most MAX_GPU_POINTS points), within the device limits.
+            // host bounded (voxel: at most 2^22 table slots and MAX_POINTS points; cluster:
+            // at most MAX_GPU_POINTS points), within WebGPU's default 65,535 workgroups per
+            // dimension (compile-time checks in voxel.rs).
             // `WGPU_VALIDATION_INDIRECT_CALL=1` turns it back on.
             flags: wgpu::InstanceFlags::default()
                 .difference(wgpu::InstanceFlags::VALIDATION_INDIRECT_CALL)

@@ -176,9 +176,9 @@ impl Default for VoxelConfig {
 /// iterations per shader invocation (a SIMD group, all its loops together; gallivm ends the
 /// loops silently beyond it): each of insert's at most `WALK_ITERATIONS` iterations flushes
 /// with up to 2 x `max_probes` probes, and compact_scan's threads walk 2 x slots /
-/// (512 x 64) block sums (32,768 at 2^29 slots).
+/// (512 x 64) block sums (256 at 2^22 slots).
 pub const MAX_PROBES_LIMIT: u32 = 750;
-pub const MAX_TABLE_SLOTS_LIMIT: u32 = 1 << 29;
+pub const MAX_TABLE_SLOTS_LIMIT: u32 = 1 << 22;
 /// Iterations of a mark or insert thread's walk over its chunk (voxel.wgsl `walk_step`): one
 /// per quad, one more per stop (at most one per point), and two to return the last runs.
 const WALK_ITERATIONS: u32 = INSERT_CHUNK / 4 + INSERT_CHUNK + 2;
@@ -187,6 +187,20 @@ const WALK_ITERATIONS: u32 = INSERT_CHUNK / 4 + INSERT_CHUNK + 2;
 const _: () = assert!(WALK_ITERATIONS * (2 * MAX_PROBES_LIMIT + 2) < 65_535);
 const _: () =
     assert!(2 * MAX_TABLE_SLOTS_LIMIT / (COMPACT_BLOCK * shader::WORKGROUP_SIZE) + 16 < 65_535);
+// Every indirect dispatch fits WebGPU's default 65,535 workgroups per dimension (indirect
+// arguments are not validated, gpu::context): the compaction and the sort over at most
+// MAX_TABLE_SLOTS_LIMIT slots, reduce over at most MAX_POINTS outputs, dense_clear over the
+// bitmap words of at most DENSE_MAX_CELLS cells.
+const _: () = assert!(MAX_TABLE_SLOTS_LIMIT / COMPACT_BLOCK <= shader::MAX_WORKGROUPS);
+const _: () = assert!(MAX_TABLE_SLOTS_LIMIT / 2 / shader::WORKGROUP_SIZE <= shader::MAX_WORKGROUPS);
+const _: () =
+    assert!(MAX_POINTS.div_ceil(shader::WORKGROUP_SIZE as u64) <= shader::MAX_WORKGROUPS as u64);
+const _: () = assert!(
+    DENSE_MAX_CELLS
+        .div_ceil(32)
+        .div_ceil(shader::WORKGROUP_SIZE as u64)
+        <= shader::MAX_WORKGROUPS as u64
+);
 
 /// Why a voxel grid cannot be computed.
 #[derive(Debug, thiserror::Error)]
@@ -256,7 +270,7 @@ impl VoxelConfig {
         }
         if self.max_table_slots > MAX_TABLE_SLOTS_LIMIT {
             return Err(VoxelError::BadSetting(
-                "max_table_slots must be at most 2^29".into(),
+                "max_table_slots must be at most 2^22".into(),
             ));
         }
         Ok(())
@@ -321,8 +335,10 @@ fn inv_leaf(leaf_m: f64) -> f32 {
     1.0 / leaf_m as f32
 }
 
-/// Largest grid (cells of the valid points' bounding box) indexed densely.
-pub const DENSE_MAX_CELLS: u64 = 1 << 27;
+/// Largest grid (cells of the valid points' bounding box) indexed densely: about 2^27 cells,
+/// so that `dense_clear`, one thread per bitmap word, needs at most
+/// [`shader::MAX_WORKGROUPS`] workgroups.
+pub const DENSE_MAX_CELLS: u64 = shader::MAX_WORKGROUPS as u64 * shader::WORKGROUP_SIZE as u64 * 32;
 /// A dense grid is used while its occupancy bitmap has at most this many 32-bit words per
 /// valid point, plus [`DENSE_MIN_WORDS`]: beyond that, scanning the bitmap costs more than
 /// sorting the points' cell indices.
