@@ -34,7 +34,7 @@ use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
 use crate::gpu::{GpuContext, GpuError};
-use crate::perception::flying::{FlyingPixelConfig, veil_points};
+use crate::perception::flying::{FlyingPixelConfig, Veiled, veil_points};
 use nalgebra::Isometry3;
 
 /// Crop settings.
@@ -210,20 +210,29 @@ impl DepthInput<'_> {
             .map_err(|e| CropError::BadDepth(format!("flying pixels: {e}")))
     }
 
-    /// Where the flying-pixel test looks: the HIP in the camera frame and the crop radius
-    /// (both f32, as the GPU takes them); without a crop, everywhere.
+    /// Where the flying-pixel test looks ([`veil_region`]).
     fn veil_region(&self, config: &CropConfig, scene: Option<&CropScene<'_>>) -> (Vec3, f32) {
-        match scene {
-            Some(scene) => {
-                let hip = self.cloud_from_camera.inverse() * scene.hip_m;
-                (
-                    Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32),
-                    config.radius_m as f32,
-                )
-            }
-            // The largest radius whose square is finite (WGSL may assume no infinities).
-            None => (Vec3::ZERO, f32::MAX.sqrt()),
+        veil_region(&self.cloud_from_camera, config, scene)
+    }
+}
+
+/// Where the flying-pixel test of a camera at `cloud_from_camera` looks: the HIP in the camera
+/// frame and the crop radius (both f32, as the GPU takes them); without a crop, everywhere.
+pub fn veil_region(
+    cloud_from_camera: &Isometry3<f64>,
+    config: &CropConfig,
+    scene: Option<&CropScene<'_>>,
+) -> (Vec3, f32) {
+    match scene {
+        Some(scene) => {
+            let hip = cloud_from_camera.inverse() * scene.hip_m;
+            (
+                Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32),
+                config.radius_m as f32,
+            )
         }
+        // The largest radius whose square is finite (WGSL may assume no infinities).
+        None => (Vec3::ZERO, f32::MAX.sqrt()),
     }
 }
 
@@ -250,7 +259,7 @@ pub fn crop_depth_cpu(
     config.validate()?;
     depth.validate()?;
     let (near, radius) = depth.veil_region(config, scene);
-    let (points, flying) = veil_points(
+    let Veiled { points, flying, .. } = veil_points(
         depth.image,
         depth.intrinsics,
         &depth.cloud_from_camera,

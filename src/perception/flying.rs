@@ -82,6 +82,65 @@ fn valid(p: Vec3) -> bool {
     p.is_finite() && p != Vec3::ZERO
 }
 
+/// The veil test of one organized cloud (camera frame): which pixels within `radius_m` of
+/// `near_cam` are flying pixels. An unorganized cloud (`height <= 1`), a size that is not
+/// `width x height` or a disabled config flags nothing.
+struct VeilTest<'a> {
+    points: &'a [Vec3],
+    width: usize,
+    height: usize,
+    near_cam: Vec3,
+    r2: f32,
+    /// |d x ray| < sin(min) |d|  <=>  the segment d is within `min` of the ray's line; with
+    /// ray = p / |p| and both sides squared: |d x p|^2 < sin^2(min) |d|^2 |p|^2 (no roots).
+    sin2_min: f32,
+    window: usize,
+    active: bool,
+}
+
+impl<'a> VeilTest<'a> {
+    fn new(
+        points: &'a [Vec3],
+        (width, height): (u32, u32),
+        near_cam: Vec3,
+        radius_m: f32,
+        config: &FlyingPixelConfig,
+    ) -> Self {
+        let (w, h) = (width as usize, height as usize);
+        Self {
+            points,
+            width: w,
+            height: h,
+            near_cam,
+            r2: radius_m * radius_m,
+            sin2_min: config.min_ray_angle_rad.sin().powi(2) as f32,
+            window: config.window_px as usize,
+            active: config.enabled && h > 1 && w * h == points.len(),
+        }
+    }
+
+    /// Valid pixel `i` (finite, not zero) is a flying pixel.
+    fn is_flying(&self, i: usize) -> bool {
+        let p = self.points[i];
+        if !self.active || p.distance_squared(self.near_cam) >= self.r2 {
+            return false;
+        }
+        let (w, k) = (self.width, self.window);
+        let (u, v) = (i % w, i / w);
+        let limit = self.sin2_min * p.length_squared();
+        let cols = u.saturating_sub(k)..(u + k + 1).min(w);
+        (v.saturating_sub(k)..(v + k + 1).min(self.height)).any(|y| {
+            self.points[y * w + cols.start..y * w + cols.end]
+                .iter()
+                .any(|&q| {
+                    let d = q - p;
+                    // The pixel itself (d = 0) and invalid neighbours never count.
+                    valid(q) && d.cross(p).length_squared() < limit * d.length_squared()
+                })
+        })
+    }
+}
+
 /// Which pixels of the organized cloud `points` (`width` x `height`, camera frame, NaN
 /// invalid) are flying pixels, among those within `radius_m` of `near_cam` (camera frame).
 /// Returns one flag per point; an unorganized cloud (`height <= 1`) or a disabled config
@@ -94,81 +153,79 @@ pub fn flying_pixels(
     radius_m: f32,
     config: &FlyingPixelConfig,
 ) -> Vec<bool> {
-    let mut flags = vec![false; points.len()];
-    let (w, h) = (width as usize, height as usize);
-    if !config.enabled || h <= 1 || w * h != points.len() {
-        return flags;
-    }
-    // |d x ray| < sin(min) |d|  <=>  the segment d is within `min` of the ray's line; with
-    // ray = p / |p| and both sides squared: |d x p|^2 < sin^2(min) |d|^2 |p|^2 (no roots).
-    let sin2_min = config.min_ray_angle_rad.sin().powi(2) as f32;
-    let k = config.window_px as usize;
-    let r2 = radius_m * radius_m;
-    for v in 0..h {
-        let rows = v.saturating_sub(k)..(v + k + 1).min(h);
-        for u in 0..w {
-            let i = v * w + u;
-            let p = points[i];
-            if !valid(p) || p.distance_squared(near_cam) >= r2 {
-                continue;
-            }
-            let limit = sin2_min * p.length_squared();
-            let cols = u.saturating_sub(k)..(u + k + 1).min(w);
-            flags[i] = rows.clone().any(|y| {
-                points[y * w + cols.start..y * w + cols.end]
-                    .iter()
-                    .any(|&q| {
-                        let d = q - p;
-                        // The pixel itself (d = 0) and invalid neighbours never count.
-                        valid(q) && d.cross(p).length_squared() < limit * d.length_squared()
-                    })
-            });
-        }
-    }
-    flags
+    let test = VeilTest::new(points, (width, height), near_cam, radius_m, config);
+    (0..points.len())
+        .map(|i| valid(points[i]) && test.is_flying(i))
+        .collect()
 }
 
-/// `cloud_from_camera` applied to every finite point (f64, then rounded to f32); invalid
-/// points stay as they are.
+/// `cloud_from_camera` applied to a point (f64, then rounded to f32).
+fn to_cloud_frame(p: Vec3, cloud_from_camera: &Isometry3<f64>) -> Vec3 {
+    let q = cloud_from_camera * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+    Vec3::new(q.x as f32, q.y as f32, q.z as f32)
+}
+
+/// `cloud_from_camera` applied to every finite point; invalid points stay as they are.
 pub fn to_world(points: &[Vec3], cloud_from_camera: &Isometry3<f64>) -> Vec<Vec3> {
     points
         .iter()
-        .map(|p| {
-            if !finite_bits(*p) {
-                return *p;
+        .map(|&p| {
+            if finite_bits(p) {
+                to_cloud_frame(p, cloud_from_camera)
+            } else {
+                p
             }
-            let q = cloud_from_camera * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-            Vec3::new(q.x as f32, q.y as f32, q.z as f32)
         })
         .collect()
 }
 
-/// The flying-pixel test and the pose on the CPU: the pixels of the organized `camera`
-/// cloud (camera frame) within `radius_m` of `near_cam` (camera frame) flagged, every point
-/// moved to the cloud frame with `cloud_from_camera`. Returns the cloud-frame points (NaN
-/// where invalid or flying) and the number of flying pixels.
+/// A camera cloud after the veil test and the pose.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Veiled {
+    /// Cloud-frame points: one per pixel, NaN where invalid or flying (organized), or only
+    /// the finite points that are not flying, in pixel order.
+    pub points: Vec<Vec3>,
+    /// Pixels with a point (finite and not zero).
+    pub valid: usize,
+    /// Flying pixels rejected.
+    pub flying: usize,
+}
+
+/// The flying-pixel test and the pose on the CPU, in one pass over the organized `camera`
+/// cloud (camera frame): the pixels within `radius_m` of `near_cam` (camera frame) tested,
+/// every other finite point moved to the cloud frame with `cloud_from_camera`; `organized`
+/// keeps a point per pixel.
 pub fn veil_cloud(
     camera: &PointCloud,
     cloud_from_camera: &Isometry3<f64>,
     near_cam: Vec3,
     radius_m: f32,
     config: &FlyingPixelConfig,
-) -> (Vec<Vec3>, usize) {
-    let flags = flying_pixels(
-        &camera.points,
-        camera.width,
-        camera.height,
-        near_cam,
-        radius_m,
-        config,
-    );
-    let mut points = to_world(&camera.points, cloud_from_camera);
-    let mut flying = 0;
-    for (p, _) in points.iter_mut().zip(&flags).filter(|(_, f)| **f) {
-        *p = Vec3::NAN;
-        flying += 1;
+    organized: bool,
+) -> Veiled {
+    let size = (camera.width, camera.height);
+    let test = VeilTest::new(&camera.points, size, near_cam, radius_m, config);
+    let (mut valid_pixels, mut flying) = (0, 0);
+    let points = (camera.points.iter().enumerate())
+        .filter_map(|(i, &p)| {
+            if !finite_bits(p) {
+                return organized.then_some(p);
+            }
+            if valid(p) {
+                valid_pixels += 1;
+                if test.is_flying(i) {
+                    flying += 1;
+                    return organized.then_some(Vec3::NAN);
+                }
+            }
+            Some(to_cloud_frame(p, cloud_from_camera))
+        })
+        .collect();
+    Veiled {
+        points,
+        valid: valid_pixels,
+        flying,
     }
-    (points, flying)
 }
 
 /// CPU reference of a depth frame's first pass before its crop: the image deprojected
@@ -181,7 +238,7 @@ pub fn veil_points(
     near_cam: Vec3,
     radius_m: f32,
     config: &FlyingPixelConfig,
-) -> Option<(Vec<Vec3>, usize)> {
+) -> Option<Veiled> {
     let camera = image.deproject(intrinsics)?;
     Some(veil_cloud(
         &camera,
@@ -189,6 +246,7 @@ pub fn veil_points(
         near_cam,
         radius_m,
         config,
+        true,
     ))
 }
 

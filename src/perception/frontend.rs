@@ -29,8 +29,10 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use glam::Vec3;
+use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 
+use crate::cloud::PointCloud;
 use crate::gpu::clock::{HostClock, PassOnHost};
 use crate::gpu::mirrors::VoxelHeader;
 use crate::gpu::timing::{StageTime, StageTimer};
@@ -40,8 +42,9 @@ use crate::perception::cluster::{
 };
 use crate::perception::crop::{
     CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop, crop_cpu,
-    crop_depth_cpu, mask_words,
+    crop_depth_cpu, mask_words, veil_region,
 };
+use crate::perception::flying::{FlyingPixelConfig, veil_cloud};
 use crate::perception::shells::{
     ClusteredPoints, GpuShells, SUMS_BYTES, ShellLayout, ShellSums, accumulate_cpu, read_sums,
 };
@@ -87,6 +90,21 @@ pub enum FramePoints<'a> {
     /// A depth image with its camera and pose: the first pass deprojects it, rejects flying
     /// pixels and crops ([`crop_depth_cpu`] is its reference).
     Depth(DepthInput<'a>),
+    /// An organized cloud in its camera's frame with the camera's pose (a depth camera's
+    /// PointCloud2): the front end rejects flying pixels and moves the points to the cloud
+    /// frame on the host ([`veil_cloud`]), then goes on as with [`FramePoints::Points`] (over
+    /// the finite points only, unless the frame wants the keep mask over its pixels).
+    CameraCloud(CameraCloud<'a>),
+}
+
+/// An organized camera-frame cloud, its pose and the flying-pixel test to run on it.
+#[derive(Clone, Copy, Debug)]
+pub struct CameraCloud<'a> {
+    pub cloud: &'a PointCloud,
+    /// Pose of the camera's optical frame in the cloud frame (where the crop scene lives).
+    pub cloud_from_camera: Isometry3<f64>,
+    /// Run within the crop radius of the HIP (every pixel without a crop).
+    pub flying: &'a FlyingPixelConfig,
 }
 
 impl FramePoints<'_> {
@@ -95,11 +113,28 @@ impl FramePoints<'_> {
         match self {
             FramePoints::Points(p) => p.len(),
             FramePoints::Depth(d) => d.len(),
+            FramePoints::CameraCloud(c) => c.cloud.points.len(),
         }
     }
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
+    }
+}
+
+/// A frame's points as a backend takes them: a camera cloud has become points on the host.
+#[derive(Clone, Copy)]
+enum HostPoints<'a> {
+    Points(&'a [Vec3]),
+    Depth(DepthInput<'a>),
+}
+
+impl HostPoints<'_> {
+    fn len(&self) -> usize {
+        match self {
+            HostPoints::Points(p) => p.len(),
+            HostPoints::Depth(d) => d.len(),
+        }
     }
 }
 
@@ -209,11 +244,50 @@ impl Frontend {
         })
     }
 
+    /// Runs one frame. A [`FramePoints::CameraCloud`] goes through the flying-pixel test and
+    /// its pose first, on the host, inside the frame's wall time on both backends.
     pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
-        match self {
-            Frontend::Gpu(g) => g.process(frame),
-            Frontend::Cpu(c) => c.process(frame),
+        let start = Instant::now();
+        let mut veiled = None;
+        let points = match frame.points {
+            FramePoints::Points(points) => HostPoints::Points(points),
+            FramePoints::Depth(input) => HostPoints::Depth(input),
+            FramePoints::CameraCloud(camera) => {
+                let crop = match self {
+                    Frontend::Gpu(g) => &g.config.crop,
+                    Frontend::Cpu(c) => &c.config.crop,
+                };
+                let pose = &camera.cloud_from_camera;
+                let (near, radius) = veil_region(pose, crop, frame.crop.as_ref());
+                // Without a keep mask to hand back, only the points that can be kept go on
+                // (in pixel order: the same cells, sums and clusters).
+                let organized = frame.wants_crop_keep();
+                let flying = camera.flying;
+                let v = veiled.insert(veil_cloud(
+                    camera.cloud,
+                    pose,
+                    near,
+                    radius,
+                    flying,
+                    organized,
+                ));
+                HostPoints::Points(&v.points)
+            }
+        };
+        let mut out = match self {
+            Frontend::Gpu(g) => g.run(frame, points),
+            Frontend::Cpu(c) => c.run(frame, points),
+        }?;
+        if let Some(v) = veiled {
+            out.depth = Some(DepthCounts {
+                valid: v.valid,
+                flying: v.flying,
+            });
+            out.points_in = frame.points.len();
+            out.points = frame.wants_crop_keep().then_some(v.points);
+            out.wall_ms = start.elapsed().as_secs_f64() * 1e3;
         }
+        Ok(out)
     }
 
     pub fn backend(&self) -> Backend {
@@ -272,10 +346,14 @@ impl CpuFrontend {
         })
     }
 
-    pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
+    fn run(
+        &mut self,
+        frame: &FrameInput<'_>,
+        input: HostPoints<'_>,
+    ) -> Result<FrontendOutput, FrontendError> {
         let start = Instant::now();
-        let (depth_points, mask, depth) = match &frame.points {
-            FramePoints::Points(points) => match &frame.crop {
+        let (depth_points, mask, depth) = match &input {
+            HostPoints::Points(points) => match &frame.crop {
                 Some(scene) => (
                     None,
                     Some(crop_cpu(points, &self.config.crop, scene)?),
@@ -283,7 +361,7 @@ impl CpuFrontend {
                 ),
                 None => (None, None, None),
             },
-            FramePoints::Depth(input) => {
+            HostPoints::Depth(input) => {
                 let c = crop_depth_cpu(input, &self.config.crop, frame.crop.as_ref())?;
                 let counts = DepthCounts {
                     valid: c.valid,
@@ -292,9 +370,9 @@ impl CpuFrontend {
                 (Some(c.points), Some(c.mask), Some(counts))
             }
         };
-        let points: &[Vec3] = match &frame.points {
-            FramePoints::Points(p) => p,
-            FramePoints::Depth(_) => depth_points.as_deref().unwrap_or_default(),
+        let points: &[Vec3] = match &input {
+            HostPoints::Points(p) => p,
+            HostPoints::Depth(_) => depth_points.as_deref().unwrap_or_default(),
         };
         let voxel = voxel_cpu_with_leaf(
             points,
@@ -309,7 +387,7 @@ impl CpuFrontend {
             .map(|layout| accumulate_cpu(&clusters.kept_points(&voxel.points), layout));
         let keep = frame.wants_crop_keep();
         Ok(FrontendOutput {
-            points_in: frame.points.len(),
+            points_in: input.len(),
             crop_keep: mask.filter(|_| keep),
             points: depth_points.filter(|_| keep),
             depth,
@@ -489,17 +567,21 @@ impl GpuFrontend {
         }
     }
 
-    pub fn process(&mut self, frame: &FrameInput<'_>) -> Result<FrontendOutput, FrontendError> {
+    fn run(
+        &mut self,
+        frame: &FrameInput<'_>,
+        input: HostPoints<'_>,
+    ) -> Result<FrontendOutput, FrontendError> {
         let start = Instant::now();
         let ctx = Arc::clone(&self.ctx);
-        let n = frame.points.len();
+        let n = input.len();
         let input_bytes = points_bytes(n);
         ctx.check_storage_size("frontend input points", input_bytes)?;
         if self.input.size() < input_bytes {
             self.input = make_buffer(&ctx, "frontend input points", input_bytes, INPUT_USAGE)?;
         }
-        let depth = match &frame.points {
-            FramePoints::Points(points) => {
+        let depth = match &input {
+            HostPoints::Points(points) => {
                 if n > 0 {
                     ctx.queue()
                         .write_buffer(&self.input, 0, bytemuck::cast_slice(points));
@@ -509,9 +591,9 @@ impl GpuFrontend {
                 }
                 false
             }
-            FramePoints::Depth(input) => {
+            HostPoints::Depth(depth) => {
                 self.crop
-                    .prepare_depth(&ctx, input, &self.config.crop, frame.crop.as_ref())?;
+                    .prepare_depth(&ctx, depth, &self.config.crop, frame.crop.as_ref())?;
                 true
             }
         };
@@ -828,34 +910,71 @@ mod tests {
         (best / sin2 - 1.0).abs() < 0.05
     }
 
+    /// A camera posed off the origin over the synthetic depth frames (crop radius 0.5 m), the
+    /// HIP 5 cm in front of their sphere and a robot link beside it.
+    #[derive(Clone)]
+    struct DepthFixture {
+        config: FrontendConfig,
+        pose: Isometry3<f64>,
+        k: PinholeIntrinsics,
+        flying: FlyingPixelConfig,
+        hip: Point3<f64>,
+        robot: [Primitive; 1],
+    }
+
+    impl DepthFixture {
+        fn new() -> Self {
+            let pose = Isometry3::from_parts(
+                Translation3::new(0.3, -0.2, 1.1),
+                UnitQuaternion::from_euler_angles(0.4, -0.3, 1.2),
+            );
+            Self {
+                config: FrontendConfig {
+                    crop: CropConfig {
+                        radius_m: 0.5,
+                        ..CropConfig::default()
+                    },
+                    ..FrontendConfig::default()
+                },
+                pose,
+                k: PinholeIntrinsics::PCL_GRABBER,
+                flying: FlyingPixelConfig::default(),
+                hip: pose * Point3::new(0.05, -0.05, 0.76),
+                robot: [Primitive::Capsule {
+                    a_m: pose * Point3::new(-0.05, 0.05, 0.8),
+                    b_m: pose * Point3::new(0.1, 0.1, 0.85),
+                    radius_m: 0.03,
+                }],
+            }
+        }
+
+        fn parts(
+            &self,
+        ) -> (
+            FrontendConfig,
+            Isometry3<f64>,
+            PinholeIntrinsics,
+            FlyingPixelConfig,
+        ) {
+            let c = self.clone();
+            (c.config, c.pose, c.k, c.flying)
+        }
+
+        fn scene(&self) -> CropScene<'_> {
+            CropScene {
+                hip_m: self.hip,
+                robot: &self.robot,
+                camera_m: None,
+            }
+        }
+    }
+
     #[test]
     fn gpu_depth_frames_match_the_cpu_reference_within_the_stated_tolerance() {
         let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
-        let config = FrontendConfig {
-            crop: CropConfig {
-                radius_m: 0.5,
-                ..CropConfig::default()
-            },
-            ..FrontendConfig::default()
-        };
-        let pose = Isometry3::from_parts(
-            Translation3::new(0.3, -0.2, 1.1),
-            UnitQuaternion::from_euler_angles(0.4, -0.3, 1.2),
-        );
-        let k = PinholeIntrinsics::PCL_GRABBER;
-        let flying = FlyingPixelConfig::default();
-        // HIP 5 cm in front of the synthetic frame's sphere, a robot link beside it.
-        let hip = pose * Point3::new(0.05, -0.05, 0.76);
-        let robot = [Primitive::Capsule {
-            a_m: pose * Point3::new(-0.05, 0.05, 0.8),
-            b_m: pose * Point3::new(0.1, 0.1, 0.85),
-            radius_m: 0.03,
-        }];
-        let scene = CropScene {
-            hip_m: hip,
-            robot: &robot,
-            camera_m: None,
-        };
+        let fixture = DepthFixture::new();
+        let (config, pose, k, flying) = fixture.parts();
+        let scene = fixture.scene();
         let mut gpu = Frontend::new(Backend::Gpu, config.clone(), Some(ctx)).unwrap();
         let mut cpu = Frontend::new(Backend::Cpu, config.clone(), None).unwrap();
         let sin2 = flying.min_ray_angle_rad.sin().powi(2);
@@ -914,8 +1033,8 @@ mod tests {
                     differing += 1;
                     let q = Point3::new(f64::from(b.x), f64::from(b.y), f64::from(b.z));
                     let near_crop = finite_bits(a) == finite_bits(b)
-                        && (((q - hip).norm() - 0.5).abs() < 1e-5
-                            || robot[0]
+                        && (((q - fixture.hip).norm() - 0.5).abs() < 1e-5
+                            || fixture.robot[0]
                                 .grown(config.crop.robot_margin_m)
                                 .signed_distance(&q)
                                 .abs()
@@ -967,6 +1086,63 @@ mod tests {
 
     /// The depth pass takes 4 pixels per thread without a division: in images 1, 2 and 3
     /// pixels wide a thread's pixels span up to 4 rows, and each is read from its own row.
+    /// A depth camera's cloud with its pose gives on the CPU what its depth image gives (the
+    /// flying pixels, the mask, the points, the voxels and clusters), with or without the keep
+    /// mask; the GPU's counts are the CPU's.
+    #[test]
+    fn a_camera_cloud_gives_what_its_depth_image_gives() {
+        let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
+        let fixture = DepthFixture::new();
+        let (config, pose, k, flying) = fixture.parts();
+        let scene = fixture.scene();
+        let bits = |p: &[Vec3]| -> Vec<[u32; 3]> {
+            p.iter().map(|v| v.to_array().map(f32::to_bits)).collect()
+        };
+        for keep in [true, false] {
+            let new = |backend| Frontend::new(backend, config.clone(), Some(ctx.clone())).unwrap();
+            let (mut from_image, mut from_cloud) = (new(Backend::Cpu), new(Backend::Cpu));
+            let mut gpu = new(Backend::Gpu);
+            for seed in 0..2 {
+                let image = synthetic_depth(seed);
+                let cloud = image.deproject(&k).unwrap();
+                let frame = |points| FrameInput {
+                    points,
+                    crop: Some(scene.clone()),
+                    want_crop_keep: keep,
+                    shells: None,
+                };
+                let image_frame = frame(FramePoints::Depth(DepthInput {
+                    image: &image,
+                    intrinsics: &k,
+                    cloud_from_camera: pose,
+                    flying: &flying,
+                }));
+                let cloud_frame = frame(FramePoints::CameraCloud(CameraCloud {
+                    cloud: &cloud,
+                    cloud_from_camera: pose,
+                    flying: &flying,
+                }));
+                let a = from_image.process(&image_frame).unwrap();
+                let b = from_cloud.process(&cloud_frame).unwrap();
+                let g = gpu.process(&cloud_frame).unwrap();
+                assert!(a.depth.unwrap().flying > 0, "{:?}", a.depth);
+                assert_eq!(b.depth, a.depth);
+                assert_eq!(g.depth, a.depth);
+                assert_eq!(b.points_in, a.points_in);
+                assert_eq!(b.crop_keep, a.crop_keep);
+                assert_eq!(a.points.is_some(), keep);
+                assert_eq!(b.points.as_deref().map(bits), a.points.as_deref().map(bits));
+                assert_eq!(b.voxel, a.voxel);
+                assert_eq!(b.clusters, a.clusters);
+                assert_eq!(g.voxel.points.len(), a.voxel.points.len());
+                let sizes = |c: &Clustering| -> Vec<usize> {
+                    c.clusters.iter().map(|c| c.indices.len()).collect()
+                };
+                assert_eq!(sizes(&g.clusters), sizes(&a.clusters));
+            }
+        }
+    }
+
     #[test]
     fn depth_images_narrower_than_a_quad_are_read_pixel_by_pixel() {
         let flying = FlyingPixelConfig {

@@ -47,9 +47,9 @@
 use super::cluster::Clustering;
 use super::crop::DepthInput;
 pub use super::flying::to_world;
-use super::flying::{FlyingPixelConfig, FlyingPixelConfigError, veil_cloud};
+use super::flying::{FlyingPixelConfig, FlyingPixelConfigError};
 use super::frontend::{
-    FrameInput, FramePoints, Frontend, FrontendConfig, FrontendError, FrontendOutput,
+    CameraCloud, FrameInput, FramePoints, Frontend, FrontendConfig, FrontendError, FrontendOutput,
 };
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
 use super::outliers::{OutlierConfig, OutlierConfigError, remove_isolated};
@@ -498,36 +498,25 @@ impl CameraChain {
         let pose = frame.world_from_camera;
         // On the GPU a frame that carries its depth image enters as the image: the first
         // pass deprojects it, rejects flying pixels and crops. Otherwise (CPU, or a source
-        // without an image) the cloud goes to the world frame and through the veil test here.
+        // without an image) the camera-frame cloud goes in with its pose, and the front end
+        // runs the veil test and the pose on the host.
         let flying_config = self.surface_config.flying_pixels.clone();
-        let depth = match (&self.ctx, frame.depth()) {
-            (Some(_), Some((image, intrinsics))) => Some(DepthInput {
+        let points = match (&self.ctx, frame.depth()) {
+            (Some(_), Some((image, intrinsics))) => FramePoints::Depth(DepthInput {
                 image,
                 intrinsics,
                 cloud_from_camera: pose,
                 flying: &flying_config,
             }),
-            _ => None,
-        };
-        let (mut world_points, mut flying) = match depth {
-            Some(_) => (Vec::new(), 0),
-            None => {
-                let hip_cam = pose.inverse() * hip_world;
-                veil_cloud(
-                    frame.cloud(),
-                    &pose,
-                    Vec3::new(hip_cam.x as f32, hip_cam.y as f32, hip_cam.z as f32),
-                    self.frontend_config.crop.radius_m as f32,
-                    &flying_config,
-                )
-            }
+            _ => FramePoints::CameraCloud(CameraCloud {
+                cloud: frame.cloud(),
+                cloud_from_camera: pose,
+                flying: &flying_config,
+            }),
         };
         let shells_layout = self.surface_config.frontend_shells(hip_world);
         let input = FrameInput {
-            points: match depth {
-                Some(d) => FramePoints::Depth(d),
-                None => FramePoints::Points(&world_points),
-            },
+            points,
             crop: Some(super::crop::CropScene {
                 hip_m: *hip_world,
                 robot,
@@ -585,10 +574,8 @@ impl CameraChain {
             // This frame was already answered on the CPU; keep every stage there.
             self.fall_back(e.clone())?;
         }
-        if let Some(counts) = front.depth {
-            flying = counts.flying;
-            world_points = front.points.take().unwrap_or_default();
-        }
+        let flying = front.depth.map_or(0, |counts| counts.flying);
+        let world_points = front.points.take().unwrap_or_default();
         Ok(ChainFrame {
             camera_id: frame.camera_id,
             stamp_s: frame.stamp_s,
@@ -728,13 +715,18 @@ mod tests {
             gpu.set_crop_keep(layers);
             let g = gpu.process(&f, &hip, &[]).unwrap();
             // The GPU chain took the image and left the cloud unmade; the CPU chain
-            // deprojected it.
+            // deprojected it and ran the flying-pixel test in its front end.
             assert!(!f.is_cloud_made());
             let c = cpu.process(&f, &hip, &[]).unwrap();
             assert!(f.is_cloud_made());
-            assert!(c.front.depth.is_none());
+            let cpu_counts = c
+                .front
+                .depth
+                .expect("the CPU front end took the camera cloud");
+            assert_eq!(cpu_counts.flying, c.flying_pixels);
             let counts = g.front.depth.expect("the GPU took the depth image");
             assert_eq!(counts.valid, f.cloud().finite_count());
+            assert_eq!(cpu_counts.valid, counts.valid);
             assert_eq!(g.flying_pixels, counts.flying);
             assert!(g.flying_pixels.abs_diff(c.flying_pixels) <= 20);
             assert!(c.flying_pixels > 0);

@@ -25,7 +25,8 @@
 //! (848x480, rendered before timing) through [`CameraChain`] as the node runs it (HIP and robot
 //! primitives at each frame's stamp, the node's default stage configs), on the GPU (the frame
 //! enters as its 16-bit depth image: deprojection, flying pixels and crop in the first pass)
-//! and on the CPU reference (the image's deprojected cloud, as a real source delivers it):
+//! and on the CPU reference (the image's deprojected cloud in the camera frame, as a real
+//! source delivers it: the flying-pixel test and the pose in the front end's time):
 //! GPU time per pass from timestamp queries, wall and CPU time of the front end and of the
 //! surface stages (memory, shell moments, fits), counts per stage.
 //!
