@@ -130,32 +130,31 @@ impl Primitive {
 
     /// The primitive prepared for many point queries, e.g. a frame's crop.
     pub fn prepared(&self) -> PreparedPrimitive {
-        let (bound_center_m, bound_radius_m) = match self {
-            Primitive::Sphere { center_m, radius_m } => (*center_m, *radius_m),
+        let (bound_center_m, bound_radius_m, shape) = match self {
+            Primitive::Sphere { center_m, radius_m } => {
+                (*center_m, *radius_m, PreparedShape::Other(self.clone()))
+            }
             Primitive::Capsule { a_m, b_m, radius_m } => (
                 nalgebra::center(a_m, b_m),
                 0.5 * (b_m - a_m).norm() + radius_m,
+                PreparedShape::Other(self.clone()),
             ),
-            Primitive::OrientedBox {
-                center_m,
-                half_extents_m,
-                ..
-            } => (*center_m, half_extents_m.norm()),
-        };
-        // Wider than any rounding of the distances (m-scale values, f64).
-        let bound_radius_m = bound_radius_m * (1.0 + 1e-9) + 1e-9;
-        let shape = match self {
             Primitive::OrientedBox {
                 center_m,
                 rpy_rad,
                 half_extents_m,
-            } => PreparedShape::OrientedBox {
-                center_m: *center_m,
-                box_from_frame: box_rotation(rpy_rad).inverse(),
-                half_extents_m: *half_extents_m,
-            },
-            other => PreparedShape::Other(other.clone()),
+            } => (
+                *center_m,
+                half_extents_m.norm(),
+                PreparedShape::OrientedBox {
+                    center_m: *center_m,
+                    box_from_frame: box_rotation(rpy_rad).inverse(),
+                    half_extents_m: *half_extents_m,
+                },
+            ),
         };
+        // Wider than any rounding of the distances (m-scale values, f64).
+        let bound_radius_m = bound_radius_m * (1.0 + 1e-9) + 1e-9;
         PreparedPrimitive {
             bound_center_m,
             bound_r2: bound_radius_m * bound_radius_m,

@@ -209,11 +209,6 @@ impl DepthInput<'_> {
             .validate()
             .map_err(|e| CropError::BadDepth(format!("flying pixels: {e}")))
     }
-
-    /// Where the flying-pixel test looks ([`veil_region`]).
-    fn veil_region(&self, config: &CropConfig, scene: Option<&CropScene<'_>>) -> (Vec3, f32) {
-        veil_region(&self.cloud_from_camera, config, scene)
-    }
 }
 
 /// Where the flying-pixel test of a camera at `cloud_from_camera` looks: the HIP in the camera
@@ -258,7 +253,7 @@ pub fn crop_depth_cpu(
 ) -> Result<DepthCrop, CropError> {
     config.validate()?;
     depth.validate()?;
-    let (near, radius) = depth.veil_region(config, scene);
+    let (near, radius) = veil_region(&depth.cloud_from_camera, config, scene);
     let Veiled { points, flying, .. } = veil_points(
         depth.image,
         depth.intrinsics,
@@ -715,7 +710,7 @@ impl GpuCrop {
                 self.depth.size(),
             );
         }
-        let (near, radius) = depth.veil_region(config, scene);
+        let (near, radius) = veil_region(&depth.cloud_from_camera, config, scene);
         let k = depth.intrinsics;
         let m = depth.cloud_from_camera.to_homogeneous();
         let row = |r: usize| {

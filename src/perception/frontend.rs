@@ -956,8 +956,7 @@ mod tests {
             PinholeIntrinsics,
             FlyingPixelConfig,
         ) {
-            let c = self.clone();
-            (c.config, c.pose, c.k, c.flying)
+            (self.config.clone(), self.pose, self.k, self.flying.clone())
         }
 
         fn scene(&self) -> CropScene<'_> {
