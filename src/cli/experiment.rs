@@ -21,8 +21,8 @@ use anyhow::{Context, Result, anyhow, bail};
 use hapcloud::lab::closed_loop::{
     self, EXPERIMENTS, RISE_SPEEDS_MPS, Run, RunMetrics, SWEEP_SPEEDS_MPS, SimConfig, SweepRow,
 };
-use hapcloud::lab::safe_speed;
 use hapcloud::lab::scene_loop::{self, SceneLoopOptions, SceneRun, SurfaceSource};
+use hapcloud::lab::{campaign, safe_speed};
 use hapcloud::robot::RobotModel;
 use hapcloud::scene::{Scene, builtin};
 use plotters::chart::{SeriesAnno, SeriesLabelStyle};
@@ -57,6 +57,15 @@ pub struct ExperimentArgs {
     /// safe-speed: also write every run's ticks (`STEM-SOURCE-SPEEDmps.csv`).
     #[arg(long)]
     trace: bool,
+    /// campaign: how many randomized approach episodes to run.
+    #[arg(long, default_value_t = 20)]
+    episodes: u32,
+    /// campaign: the seed the episodes are drawn from (episode i of seed s is always the same).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// campaign: how many worst episodes to write as scene files (`worst/`).
+    #[arg(long, default_value_t = 10)]
+    worst: usize,
 }
 
 const FONT: &str = "sans-serif";
@@ -77,7 +86,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
         for name in EXPERIMENTS
             .iter()
             .chain(&scene_loop::EXPERIMENTS)
-            .chain(&["safe-speed"])
+            .chain(&["safe-speed", "campaign"])
         {
             let what = match *name {
                 "impacts" => "three direct impacts on a virtual horizontal plane (Fig. 11)",
@@ -92,7 +101,10 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                     "rising_surface_realistic at 0.5/1.0/1.5 m/s through cameras, perception and fusion"
                 }
                 "safe-speed" => {
-                    "--scene's moving body at --speeds through perception and on the exact surface"
+                    "--scene's moving body at --speeds: perception, delayed oracle, exact surface"
+                }
+                "campaign" => {
+                    "--episodes randomized approaches at --speeds from three surface sources"
                 }
                 _ => "forehead_impacts_realistic through cameras, perception and fusion",
             };
@@ -232,22 +244,19 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             write_rows(&out.join(format!("{stem}.csv")), &sweep.rows)?;
             if args.trace {
                 for (r, ticks) in sweep.rows.iter().zip(&sweep.traces) {
-                    let source = format!("{:?}", r.source).to_lowercase();
+                    let source = r.source.name();
                     let name = format!("{stem}-{source}-{}mps.csv", r.speed_mps);
                     write_rows(&out.join(name), ticks)?;
                 }
             }
-            let series = [SurfaceSource::Perception, SurfaceSource::Exact].map(|source| {
+            let series = SurfaceSource::ALL.map(|source| {
                 let points = sweep
                     .rows
                     .iter()
                     .filter(|r| r.source == source)
                     .map(|r| (r.speed_mps, r.min_margin_m, r.max_penetration_m))
                     .collect();
-                match source {
-                    SurfaceSource::Perception => ("perception", RED, points),
-                    SurfaceSource::Exact => ("exact surface", BLUE, points),
-                }
+                (source_label(source), source_color(source), points)
             });
             plot_speeds(
                 &out.join(format!("{stem}.png")),
@@ -257,7 +266,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             )?;
             for r in &sweep.rows {
                 metrics.push((
-                    format!("{:?}", r.source).to_lowercase(),
+                    r.source.name().into(),
                     RunMetrics {
                         name: format!("{} {} m/s", sweep.scene, r.speed_mps),
                         max_penetration_m: r.max_penetration_m,
@@ -269,10 +278,14 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             }
             extra = serde_json::json!({
                 "safe_speed_mps": sweep.safe_speed_mps,
+                "oracle_safe_speed_mps": sweep.oracle_safe_speed_mps,
                 "exact_safe_speed_mps": sweep.exact_safe_speed_mps,
                 "camera_rate_hz": sweep.camera_rate_hz,
                 "sweep": sweep.rows,
             });
+        }
+        "campaign" => {
+            extra = campaign(&args.speeds, args.episodes, args.seed, args.worst, &out)?;
         }
         other => bail!(closed_loop::SimError::UnknownExperiment(other.into())),
     }
@@ -311,11 +324,14 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 m.name, mode, m.max_penetration_m, m.min_margin_m, m.fallback_ticks
             );
         }
-        if let (Some(safe), Some(exact)) = (
+        if let (Some(safe), Some(oracle), Some(exact)) = (
             extra.get("safe_speed_mps"),
+            extra.get("oracle_safe_speed_mps"),
             extra.get("exact_safe_speed_mps"),
         ) {
-            println!("safe speed: perception {safe} m/s, exact surface {exact} m/s");
+            println!(
+                "safe speed: perception {safe} m/s, delayed oracle {oracle} m/s, exact surface {exact} m/s"
+            );
         } else if let Some(safe) = extra.get("safe_speed_mps") {
             println!(
                 "safe speed (HIP centre stays outside): paper {} m/s, surface_velocity {} m/s",
@@ -324,6 +340,260 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
         }
         println!("wrote CSV and PNG files to {}", out.display());
     }
+    Ok(())
+}
+
+/// `campaign`: runs the episodes in parallel with a progress bar, writes the CSVs, the plots
+/// and the worst episodes' scene files, prints the summary; returns the JSON details.
+fn campaign(
+    speeds_mps: &[f64],
+    episodes: u32,
+    seed: u64,
+    worst: usize,
+    out: &Path,
+) -> Result<serde_json::Value> {
+    let config = campaign::CampaignConfig {
+        episodes,
+        seed,
+        speeds_mps: speeds_mps.to_vec(),
+    };
+    config.validate()?;
+    let bar = indicatif::ProgressBar::new(u64::from(episodes)).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} episodes, {eta} left",
+        )?,
+    );
+    let started = std::time::Instant::now();
+    let result = campaign::run(&config, &SceneLoopOptions::default(), &|| bar.inc(1))?;
+    bar.finish_and_clear();
+    let wall_s = started.elapsed().as_secs_f64();
+    let rows: Vec<campaign::RunRow> = result.rows().cloned().collect();
+    write_rows(&out.join("campaign-runs.csv"), &rows)?;
+    write_rows(&out.join("campaign-summary.csv"), &result.summary)?;
+    write_rows(&out.join("campaign-contacts.csv"), &result.contacts)?;
+    let draws: Vec<_> = result
+        .episodes
+        .iter()
+        .map(|e| EpisodeDraw {
+            episode: e.episode.index,
+            kind: e.episode.kind,
+            camera_rate_hz: e.episode.camera_rate_hz,
+            start_distance_m: e.episode.start_distance_m,
+            lateral_offset_m: e.episode.lateral_offset_m,
+            approach_x: e.episode.approach.x,
+            approach_y: e.episode.approach.y,
+            approach_z: e.episode.approach.z,
+            cpu_s: e.cpu_s,
+        })
+        .collect();
+    write_rows(&out.join("campaign-episodes.csv"), &draws)?;
+    let worst_dir = out.join("worst");
+    std::fs::create_dir_all(&worst_dir)
+        .with_context(|| format!("creating {}", worst_dir.display()))?;
+    let mut worst_files = Vec::new();
+    for (e, r) in result.worst_perception(worst) {
+        let path = worst_dir.join(format!("{}.toml", e.episode.scene.file.name));
+        let text = format!(
+            "# {}\n# perception's min margin {:.4} m at {} m/s with {} Hz cameras; reproduce with\n\
+             # hapcloud experiment safe-speed --scene {} --speeds {} --camera-rate-hz {} --out DIR\n{}",
+            e.episode.scene.file.description,
+            r.min_margin_m,
+            r.speed_mps,
+            r.camera_rate_hz,
+            path.display(),
+            r.speed_mps,
+            r.camera_rate_hz,
+            toml::to_string(&e.episode.scene.file)?
+        );
+        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        worst_files.push(serde_json::json!({
+            "file": path.display().to_string(),
+            "episode": e.episode.index,
+            "speed_mps": r.speed_mps,
+            "camera_rate_hz": r.camera_rate_hz,
+            "min_margin_m": r.min_margin_m,
+        }));
+    }
+    plot_campaign(&out.join("campaign-safe.png"), &result)?;
+    plot_campaign_margins(&out.join("campaign-margins.png"), &result)?;
+    let cpu: Vec<f64> = result.episodes.iter().map(|e| e.cpu_s).collect();
+    let cpu_total: f64 = cpu.iter().sum();
+    let cpu_max = cpu.iter().copied().fold(0.0, f64::max);
+    println!(
+        "campaign: {episodes} episodes of seed {seed} at {:?} m/s, 3 sources: wall {wall_s:.0} s, \
+         CPU {:.2} s per episode (worst {cpu_max:.2} s) on {} threads",
+        result.config.speeds_mps,
+        cpu_total / f64::from(episodes),
+        rayon::current_num_threads()
+    );
+    println!(
+        "{:>5} {:>4} {:15} {:>5} {:>8} {:>6} {:>8} {:>12} {:>10} {:>10} {:>8}",
+        "m/s",
+        "Hz",
+        "source",
+        "N",
+        "feasible",
+        "safe",
+        "fraction",
+        "of oracle's",
+        "median mm",
+        "worst mm",
+        "contact"
+    );
+    for r in &result.summary {
+        println!(
+            "{:5.2} {:>4} {:15} {:5} {:8} {:6} {:8.3} {:>12} {:10.1} {:10.1} {:8.3}",
+            r.speed_mps,
+            if r.camera_rate_hz == 0.0 {
+                "all".to_string()
+            } else {
+                format!("{}", r.camera_rate_hz)
+            },
+            r.source.name(),
+            r.episodes,
+            r.feasible,
+            r.safe,
+            r.safe_fraction,
+            format!("{:.3}", r.safe_fraction_of_oracle_survived),
+            r.median_margin_m * 1e3,
+            r.worst_margin_m * 1e3,
+            r.contact_within_limit_fraction
+        );
+    }
+    Ok(serde_json::json!({
+        "episodes": episodes,
+        "seed": seed,
+        "speeds_mps": result.config.speeds_mps,
+        "wall_s": wall_s,
+        "cpu_s_per_episode": cpu_total / f64::from(episodes),
+        "cpu_s_worst_episode": cpu_max,
+        "threads": rayon::current_num_threads(),
+        "summary": result.summary,
+        "contacts": result.contacts,
+        "worst": worst_files,
+    }))
+}
+
+/// One episode's draws and cost (`campaign-episodes.csv`).
+#[derive(serde::Serialize)]
+struct EpisodeDraw {
+    episode: u32,
+    kind: hapcloud::scene::episode::BodyKind,
+    camera_rate_hz: f64,
+    start_distance_m: f64,
+    lateral_offset_m: f64,
+    approach_x: f64,
+    approach_y: f64,
+    approach_z: f64,
+    cpu_s: f64,
+}
+
+/// Fraction safe over speed, one panel per camera rate, one curve per source (over the
+/// feasible episodes; perception's share of the oracle's survivors dashed).
+fn plot_campaign(path: &Path, c: &campaign::Campaign) -> Result<()> {
+    let root = canvas(path, (1100, 1100))?;
+    let panels = root.split_evenly((3, 1));
+    let v_max = c.config.speeds_mps.iter().copied().fold(0.0, f64::max) + 0.1;
+    for (panel_area, rate) in panels.iter().zip([30.0, 60.0, 90.0]) {
+        let n = c
+            .summary
+            .iter()
+            .find(|r| r.camera_rate_hz == rate)
+            .map_or(0, |r| r.episodes);
+        let lowest = c
+            .summary
+            .iter()
+            .flat_map(|r| [r.safe_fraction, r.safe_fraction_of_oracle_survived])
+            .filter(|f| f.is_finite())
+            .fold(1.0, f64::min);
+        let mut chart = panel(
+            panel_area,
+            PanelStyle::WIDE,
+            &format!("{rate} Hz cameras ({n} episodes): fraction safe"),
+            (0.0..v_max, "speed of the approaching body [m/s]"),
+            ((lowest - 0.05).max(0.0)..1.01, "fraction safe"),
+        )?;
+        for source in SurfaceSource::ALL {
+            let pts: Vec<(f64, f64)> = c
+                .summary
+                .iter()
+                .filter(|r| r.camera_rate_hz == rate && r.source == source)
+                .filter(|r| r.safe_fraction.is_finite())
+                .map(|r| (r.speed_mps, r.safe_fraction))
+                .collect();
+            let color = source_color(source);
+            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))?;
+            curve(&mut chart, pts, color, source_label(source))?;
+        }
+        let of_oracle: Vec<(f64, f64)> = c
+            .summary
+            .iter()
+            .filter(|r| r.camera_rate_hz == rate && r.source == SurfaceSource::Perception)
+            .filter(|r| r.safe_fraction_of_oracle_survived.is_finite())
+            .map(|r| (r.speed_mps, r.safe_fraction_of_oracle_survived))
+            .collect();
+        chart
+            .draw_series(DashedLineSeries::new(of_oracle, 6, 4, RED.stroke_width(1)))?
+            .label("perception, of the oracle's survivors")
+            .legend(swatch(RED));
+        legend_style(&mut chart, 14)
+            .position(SeriesLabelPosition::LowerLeft)
+            .draw()?;
+    }
+    root.present()?;
+    Ok(())
+}
+
+/// Median and worst minimum margin over the feasible episodes per speed and source.
+fn plot_campaign_margins(path: &Path, c: &campaign::Campaign) -> Result<()> {
+    let root = canvas(path, (1100, 600))?;
+    let v_max = c.config.speeds_mps.iter().copied().fold(0.0, f64::max) + 0.1;
+    let all: Vec<&campaign::SummaryRow> = c
+        .summary
+        .iter()
+        .filter(|r| r.camera_rate_hz == 0.0)
+        .collect();
+    let (lo, hi) = range(
+        all.iter()
+            .flat_map(|r| [r.median_margin_m, r.worst_margin_m])
+            .filter(|v| v.is_finite())
+            .chain([0.0]),
+    );
+    let mut chart = panel(
+        &root,
+        PanelStyle::WIDE,
+        &format!(
+            "{} episodes, every rate: min margin of the HIP centre (median solid, worst dashed)",
+            c.config.episodes
+        ),
+        (0.0..v_max, "speed of the approaching body [m/s]"),
+        (lo..hi, "min margin [m]"),
+    )?;
+    hline(&mut chart, v_max, 0.0, BLACK)?;
+    for source in SurfaceSource::ALL {
+        let of = |get: fn(&campaign::SummaryRow) -> f64| -> Vec<(f64, f64)> {
+            all.iter()
+                .filter(|r| r.source == source)
+                .map(|r| (r.speed_mps, get(r)))
+                .filter(|p| p.1.is_finite())
+                .collect()
+        };
+        let color = source_color(source);
+        curve(
+            &mut chart,
+            of(|r| r.median_margin_m),
+            color,
+            source_label(source),
+        )?;
+        chart.draw_series(DashedLineSeries::new(
+            of(|r| r.worst_margin_m),
+            6,
+            4,
+            color.stroke_width(2),
+        ))?;
+    }
+    legend_style(&mut chart, 14).draw()?;
+    root.present()?;
     Ok(())
 }
 
@@ -372,6 +642,22 @@ fn plot_sweep(path: &Path, rows: &[SweepRow], r_hip: f64) -> Result<()> {
 
 /// Points of one curve over speed: (speed m/s, min margin m, max penetration m).
 type SpeedSeries = (&'static str, RGBColor, Vec<(f64, f64, f64)>);
+
+fn source_label(source: SurfaceSource) -> &'static str {
+    match source {
+        SurfaceSource::Perception => "perception",
+        SurfaceSource::DelayedOracle => "delayed oracle",
+        SurfaceSource::Exact => "exact surface",
+    }
+}
+
+fn source_color(source: SurfaceSource) -> RGBColor {
+    match source {
+        SurfaceSource::Perception => RED,
+        SurfaceSource::DelayedOracle => RGBColor(230, 140, 0),
+        SurfaceSource::Exact => BLUE,
+    }
+}
 
 /// Min margin of the HIP centre and max penetration of the HIP sphere over speed, one curve
 /// per series.

@@ -7,7 +7,9 @@
 //! - [`closed_loop`]: the paper's closed-loop experiments (section VI) on a simulated plant.
 //! - [`scene_loop`]: the same with perception in the loop on a simulated scene.
 //! - [`safe_speed`]: the highest safe speed of a scene, perception against the exact surface.
+//! - [`campaign`]: randomized approach episodes through the closed loop, three surface sources.
 
+pub mod campaign;
 pub mod closed_loop;
 pub mod evaluation;
 pub mod safe_speed;

@@ -12,7 +12,7 @@
 use super::scene_loop::{
     SceneLoopError, SceneLoopOptions, SceneSample, SurfaceSource, simulate_scene,
 };
-use crate::scene::Scene;
+use crate::scene::{Scene, episode};
 use serde::Serialize;
 
 /// One run of the sweep.
@@ -30,6 +30,12 @@ pub struct SpeedRow {
     pub valid_estimates: usize,
     pub fallback_ticks: usize,
     pub safe: bool,
+    /// The body part whose true surface first touched the HIP sphere (None: none did).
+    pub contact_body: Option<String>,
+    /// Closing speed of body part and HIP along the normal at that touch, m/s.
+    pub contact_speed_mps: Option<f64>,
+    /// Force between hand and handle at that touch, N.
+    pub contact_handle_force_n: Option<f64>,
 }
 
 /// A finished sweep.
@@ -40,6 +46,8 @@ pub struct SafeSpeed {
     pub rows: Vec<SpeedRow>,
     /// Highest safe speed with perception in the loop, m/s (0: the slowest was unsafe).
     pub safe_speed_mps: f64,
+    /// The same with the delayed oracle.
+    pub oracle_safe_speed_mps: f64,
     /// The same on the exact surface.
     pub exact_safe_speed_mps: f64,
     /// Every tick of each run, in the order of `rows`.
@@ -47,8 +55,43 @@ pub struct SafeSpeed {
     pub traces: Vec<Vec<SceneSample>>,
 }
 
+/// Runs `at_rate` (a scene with its cameras at their rate) with its moving body at
+/// `speed_mps` from `source`: one row of a sweep, and the run's ticks.
+pub fn run_at_speed(
+    at_rate: &Scene,
+    speed_mps: f64,
+    source: SurfaceSource,
+    options: &SceneLoopOptions,
+) -> Result<(SpeedRow, Vec<SceneSample>), SceneLoopError> {
+    let camera_rate_hz = at_rate.file.cameras.first().map_or(0.0, |c| c.rate_hz);
+    let run = simulate_scene(
+        &at_rate.with_moving_body_speed(speed_mps)?,
+        &SceneLoopOptions {
+            surface_source: source,
+            ..options.clone()
+        },
+    )?;
+    let m = run.metrics;
+    let row = SpeedRow {
+        speed_mps,
+        camera_rate_hz,
+        source,
+        min_margin_m: m.min_margin_m,
+        max_penetration_m: m.max_penetration_m,
+        first_valid_margin_m: m.first_valid_margin_m,
+        valid_estimates: m.valid_estimates,
+        fallback_ticks: m.fallback_ticks,
+        safe: m.min_margin_m > 0.0 && m.fallback_ticks == 0,
+        contact_body: m.first_contact.as_ref().map(|c| c.body.clone()),
+        contact_speed_mps: m.first_contact.as_ref().map(|c| c.relative_speed_mps),
+        contact_handle_force_n: m.first_contact.as_ref().map(|c| c.handle_force_n),
+    };
+    Ok((row, run.samples))
+}
+
 /// Runs `scene` at every speed of `speeds_mps` (ascending after sorting) with its cameras at
-/// `camera_rate_hz`, through perception and on the exact surface.
+/// `camera_rate_hz`, through perception, the delayed oracle and on the exact surface. The
+/// moving body must approach the HIP ([`episode::check_approach`]).
 pub fn sweep(
     scene: &Scene,
     speeds_mps: &[f64],
@@ -58,36 +101,26 @@ pub fn sweep(
     let mut speeds = speeds_mps.to_vec();
     speeds.sort_by(f64::total_cmp);
     let at_rate = scene.with_camera_rate_hz(camera_rate_hz)?;
-    let mut rows = Vec::with_capacity(2 * speeds.len());
-    let mut traces = Vec::with_capacity(2 * speeds.len());
-    for source in [SurfaceSource::Perception, SurfaceSource::Exact] {
+    episode::check_approach(&at_rate)?;
+    let sources = [
+        SurfaceSource::Perception,
+        SurfaceSource::DelayedOracle,
+        SurfaceSource::Exact,
+    ];
+    let mut rows = Vec::with_capacity(sources.len() * speeds.len());
+    let mut traces = Vec::with_capacity(sources.len() * speeds.len());
+    for source in sources {
         for &speed in &speeds {
-            let run = simulate_scene(
-                &at_rate.with_moving_body_speed(speed)?,
-                &SceneLoopOptions {
-                    surface_source: source,
-                    ..options.clone()
-                },
-            )?;
-            let m = run.metrics;
-            rows.push(SpeedRow {
-                speed_mps: speed,
-                camera_rate_hz,
-                source,
-                min_margin_m: m.min_margin_m,
-                max_penetration_m: m.max_penetration_m,
-                first_valid_margin_m: m.first_valid_margin_m,
-                valid_estimates: m.valid_estimates,
-                fallback_ticks: m.fallback_ticks,
-                safe: m.min_margin_m > 0.0 && m.fallback_ticks == 0,
-            });
-            traces.push(run.samples);
+            let (row, samples) = run_at_speed(&at_rate, speed, source, options)?;
+            rows.push(row);
+            traces.push(samples);
         }
     }
     Ok(SafeSpeed {
         scene: scene.file.name.clone(),
         camera_rate_hz,
         safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::Perception),
+        oracle_safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::DelayedOracle),
         exact_safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::Exact),
         rows,
         traces,
@@ -118,6 +151,9 @@ mod tests {
             valid_estimates: 0,
             fallback_ticks: 0,
             safe,
+            contact_body: None,
+            contact_speed_mps: None,
+            contact_handle_force_n: None,
         }
     }
 
@@ -130,7 +166,7 @@ mod tests {
     fn perception_keeps_the_hip_clear_of_a_head_coming_obliquely_at_a_metre_per_second() {
         let scene = Scene::from_builtin("oblique_head_realistic").unwrap();
         let sweep = sweep(&scene, &[1.0], 30.0, &SceneLoopOptions::default()).unwrap();
-        assert_eq!(sweep.rows.len(), 2);
+        assert_eq!(sweep.rows.len(), 3);
         for row in &sweep.rows {
             assert!(row.safe && row.min_margin_m > 0.02, "{row:?}");
         }

@@ -69,6 +69,9 @@ pub struct SceneLoopOptions {
     pub backend: Backend,
     /// Where the constraints' surface comes from.
     pub surface_source: SurfaceSource,
+    /// Threads rendering each frame (None: the machine's parallelism; a campaign running
+    /// episodes in parallel renders each on one). Results do not depend on it.
+    pub render_threads: Option<usize>,
 }
 
 /// Where the constraints' surface comes from in a closed-loop scene run.
@@ -81,6 +84,74 @@ pub enum SurfaceSource {
     /// The exact nearest patient surface (ground truth) and its velocity: the ceiling that
     /// perception is measured against.
     Exact,
+    /// The exact surface as the cameras would deliver it (see [`DelayedOracle`]): geometry
+    /// perfect, timing the cameras' (rate, latency, jitter, drops). What any perception with
+    /// these cameras could survive; the gap to `exact` is what latency costs, the gap from it
+    /// to `perception` what estimation costs.
+    DelayedOracle,
+}
+
+impl SurfaceSource {
+    pub const ALL: [SurfaceSource; 3] = [
+        SurfaceSource::Exact,
+        SurfaceSource::DelayedOracle,
+        SurfaceSource::Perception,
+    ];
+
+    /// The name in files and tables.
+    pub fn name(self) -> &'static str {
+        match self {
+            SurfaceSource::Perception => "perception",
+            SurfaceSource::Exact => "exact",
+            SurfaceSource::DelayedOracle => "delayed_oracle",
+        }
+    }
+}
+
+/// The delayed oracle: at each frame's arrival (the scene's own arrival times, latency,
+/// jitter and drops) the exact nearest surface at the frame's capture time, to the HIP where
+/// it was then, with its exact velocity; at each tick the newest arrived one, moved along its
+/// velocity to the tick's time over at most fusion's `max_extrapolation_s` (what fusion's
+/// prediction does with perfect samples), held past it. No surface before the first arrival.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct DelayedOracle {
+    newest: Option<(f64, FusedSurface)>,
+}
+
+impl DelayedOracle {
+    /// A frame captured at `capture_s` arrived: `exact` is the exact surface then.
+    pub fn push(&mut self, capture_s: f64, exact: FusedSurface) {
+        if self.newest.is_none_or(|(t, _)| capture_s > t) {
+            self.newest = Some((capture_s, exact));
+        }
+    }
+
+    /// The surface at tick time `t_s`.
+    pub fn at(&self, t_s: f64, max_extrapolation_s: f64) -> FusedSurface {
+        let Some((capture_s, sample)) = self.newest else {
+            return FusedSurface {
+                stamp_s: t_s,
+                status: FusionStatus::NoData,
+                age_s: f64::INFINITY,
+                surface: None,
+                fit_degree: 0,
+                sample_count: 0,
+                camera_count: 0,
+            };
+        };
+        let Some(s) = sample.surface else {
+            return sample;
+        };
+        let ahead = (t_s - capture_s).clamp(0.0, max_extrapolation_s);
+        let mut out = known_surface(
+            t_s,
+            s.centroid_m + s.velocity_m_per_s * ahead,
+            s.normal,
+            s.velocity_m_per_s,
+        );
+        out.age_s = t_s - capture_s;
+        out
+    }
 }
 
 impl Default for SceneLoopOptions {
@@ -92,6 +163,7 @@ impl Default for SceneLoopOptions {
             surface: SurfaceConfig::default(),
             backend: Backend::Cpu,
             surface_source: SurfaceSource::Perception,
+            render_threads: None,
         }
     }
 }
@@ -189,6 +261,23 @@ pub struct SceneRunMetrics {
     pub mean_active_d_proj_error_m: f64,
     pub fallback_ticks: usize,
     pub ticks: usize,
+    /// The first tick at which the true surface touched the HIP sphere (margin below the
+    /// HIP radius); None when it never did.
+    pub first_contact: Option<FirstContact>,
+}
+
+/// The true surface's first touch of the HIP sphere in a run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FirstContact {
+    pub t_s: f64,
+    /// The body part touching (ground truth's name).
+    pub body: String,
+    /// Speed at which the body part and the HIP close along the contact normal, m/s (the
+    /// body's velocity minus the HIP's, on the normal from the body towards the HIP).
+    pub relative_speed_mps: f64,
+    /// Magnitude of the force between hand and handle at that tick (what the controller
+    /// renders through the handle), N.
+    pub handle_force_n: f64,
 }
 
 /// A finished run.
@@ -211,7 +300,10 @@ pub fn simulate_scene(
     if file.bodies.is_empty() {
         return Err(SceneLoopError::NoBodies(scene.origin.clone()));
     }
-    let sim = Simulator::new(scene)?;
+    let mut sim = Simulator::new(scene)?;
+    if let Some(threads) = options.render_threads {
+        sim = sim.with_threads(threads);
+    }
     let model = sim
         .robot_model()
         .ok_or_else(|| SceneLoopError::NoRobot(scene.origin.clone()))?
@@ -267,8 +359,10 @@ pub fn simulate_scene(
         mean_active_d_proj_error_m: 0.0,
         fallback_ticks: 0,
         ticks,
+        first_contact: None,
     };
     let mut error_sum = 0.0;
+    let mut oracle = DelayedOracle::default();
     // the side of the nearest surface the HIP was on (a thin plate can be passed through)
     let mut side: Option<(String, Vector3<f64>)> = None;
     for k in 0..ticks {
@@ -276,11 +370,20 @@ pub fn simulate_scene(
         history.push(*plant.q());
         let mut frames = 0;
         let arrivals = match options.surface_source {
-            SurfaceSource::Perception => sim.arrivals(t - period, t),
+            SurfaceSource::Perception | SurfaceSource::DelayedOracle => sim.arrivals(t - period, t),
             SurfaceSource::Exact => Vec::new(),
         };
         for timing in arrivals {
             let q_capture = joints_at(&history, timing.capture_s);
+            if options.surface_source == SurfaceSource::DelayedOracle {
+                let hip_then: Point3<f64> =
+                    model.world_from_hip(&q_capture).translation.vector.into();
+                let exact = exact_surface(&file.bodies, timing.capture_s, &hip_then, r_hip)
+                    .ok_or_else(|| SceneLoopError::NoBodies(scene.origin.clone()))?;
+                oracle.push(timing.capture_s, exact);
+                frames += 1;
+                continue;
+            }
             let shot = sim.frame_with_joints(&timing, &q_capture);
             // The crop grows the primitives by its own range-dependent margin, as in the node.
             let scene = PerceptionScene {
@@ -316,6 +419,9 @@ pub fn simulate_scene(
                     .ok_or_else(|| SceneLoopError::NoBodies(scene.origin.clone()))?;
                 haptic_loop.tick_on(surface, &robot)
             }
+            SurfaceSource::DelayedOracle => {
+                haptic_loop.tick_on(oracle.at(t, options.fusion.max_extrapolation_s), &robot)
+            }
         };
         let (fused, out) = (tick.fused, &tick.output);
         let truth = truth::closest(&file.bodies, t, &hip.position_m, r_hip)
@@ -341,6 +447,22 @@ pub fn simulate_scene(
         }
         metrics.tracking_ticks += usize::from(fused.is_tracking());
         metrics.fallback_ticks += usize::from(fallback);
+        if metrics.first_contact.is_none() && margin < r_hip {
+            let h = REFERENCE_STEP_S;
+            let body_velocity = file
+                .bodies
+                .iter()
+                .find(|b| b.name == truth.body)
+                .map_or(Vector3::zeros(), |b| {
+                    (b.motion.offset_at(t + h) - b.motion.offset_at(t - h)) / (2.0 * h)
+                });
+            metrics.first_contact = Some(FirstContact {
+                t_s: t,
+                body: truth.body.clone(),
+                relative_speed_mps: (body_velocity - hip.velocity_mps).dot(&truth.normal),
+                handle_force_n: plant.hand_force_n().norm(),
+            });
+        }
         metrics.min_margin_m = metrics.min_margin_m.min(margin);
         metrics.max_penetration_m = metrics.max_penetration_m.max(r_hip - margin);
         samples.push(SceneSample {

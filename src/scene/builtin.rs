@@ -90,6 +90,18 @@ pub fn text(name: &str) -> Option<String> {
     Some(text)
 }
 
+/// The parts every realistic built-in scene shares, as one scene file without a name, robot
+/// or duration of its own: the seated patient, the paper's two-camera mount and the realistic
+/// D435 effect list (the episode generator, [`super::episode`], builds on them).
+pub fn common_parts() -> Result<super::SceneFile, super::SceneError> {
+    toml::from_str(&format!("{PATIENT}\n{CAMERAS}\n{REALISTIC}")).map_err(|e| {
+        super::SceneError::Parse {
+            origin: "builtin:common".into(),
+            message: e.to_string(),
+        }
+    })
+}
+
 /// The rising-surface experiment (paper Fig. 12) at `speed_m_s` (the paper sweeps 0.1 to
 /// 1.5 m/s): body `surface` rises from 0.30 m below the HIP centre from t = 0.5 s, and the
 /// scene lasts until it has risen 0.45 m (15 cm past the HIP centre).

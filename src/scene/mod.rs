@@ -20,6 +20,7 @@
 pub mod builtin;
 pub mod config;
 pub mod effects;
+pub mod episode;
 pub mod export;
 pub mod motion;
 pub mod render;

@@ -1,0 +1,626 @@
+//! The safety campaign (`hapcloud experiment campaign`): randomized approach episodes
+//! ([`crate::scene::episode`]) each run through the closed loop at every tested speed from
+//! three surface sources (the exact surface, the delayed oracle, perception: see
+//! [`SurfaceSource`]), as `hapcloud experiment safe-speed` runs one scene. A run is safe when
+//! the true surface never reaches the HIP centre and the controller never falls back.
+//!
+//! Per speed, camera rate and source the campaign reports the fraction of episodes safe with
+//! its count, and the minimum-margin distribution (median, worst). An episode the exact
+//! surface does not survive at a speed is infeasible there (no perception could do better)
+//! and is counted apart; the oracle's and perception's fractions are over the feasible
+//! episodes, and perception's is also given over the episodes the delayed oracle survives
+//! (what any perception with these cameras could survive).
+//!
+//! Contact at the handle (the handle may touch the patient): per run, the closing speed of
+//! body part and HIP at the true surface's first touch of the HIP sphere gives the transient
+//! contact force of ISO/TS 15066's body model, `F = v sqrt(mu k)` with `mu` the reduced mass
+//! of the handle and the body part (1/mu = 1/m_handle + 1/m_body), compared with the region's
+//! transient limit ([`REGIONS`], REFERENCE.md).
+//!
+//! Episodes run in parallel (rayon, one per core, each rendering on one thread); results do
+//! not depend on the thread count or order.
+
+use super::safe_speed::{SpeedRow, run_at_speed};
+use super::scene_loop::{SceneLoopError, SceneLoopOptions, SurfaceSource};
+use crate::scene::episode::{self, BodyKind, Episode};
+use rayon::prelude::*;
+use serde::Serialize;
+
+/// Most episodes one campaign runs (beyond it a typo: 100,000 episodes are days of CPU).
+pub const MAX_EPISODES: u32 = 100_000;
+/// Most speeds one campaign runs.
+pub const MAX_SPEEDS: usize = 16;
+/// Speeds a campaign accepts, m/s (an episode lasts as long as its body takes to travel).
+pub const SPEEDS_MPS: std::ops::RangeInclusive<f64> = 0.1..=5.0;
+
+/// Why a campaign could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum CampaignError {
+    #[error("campaign: {0}")]
+    Value(String),
+    #[error("episode {index}: {source}")]
+    Episode {
+        index: u32,
+        #[source]
+        source: SceneLoopError,
+    },
+}
+
+/// What to run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CampaignConfig {
+    pub episodes: u32,
+    pub seed: u64,
+    pub speeds_mps: Vec<f64>,
+}
+
+impl CampaignConfig {
+    /// Checks the arguments; the error names the value.
+    pub fn validate(&self) -> Result<(), CampaignError> {
+        if !(1..=MAX_EPISODES).contains(&self.episodes) {
+            return Err(CampaignError::Value(format!(
+                "--episodes must be 1 to {MAX_EPISODES}, got {}",
+                self.episodes
+            )));
+        }
+        if self.speeds_mps.is_empty() || self.speeds_mps.len() > MAX_SPEEDS {
+            return Err(CampaignError::Value(format!(
+                "--speeds takes 1 to {MAX_SPEEDS} speeds, got {}",
+                self.speeds_mps.len()
+            )));
+        }
+        if let Some(v) = self.speeds_mps.iter().find(|v| !SPEEDS_MPS.contains(*v)) {
+            return Err(CampaignError::Value(format!(
+                "--speeds must be finite and in [{}, {}] m/s, got {v}",
+                SPEEDS_MPS.start(),
+                SPEEDS_MPS.end()
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// A body region of ISO/TS 15066's body model (Table A.2, A.3 via REFERENCE.md).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Region {
+    pub name: &'static str,
+    /// Effective spring constant, N/m.
+    pub stiffness_n_per_m: f64,
+    /// Effective body mass, kg.
+    pub mass_kg: f64,
+    /// Transient-contact force limit, N: twice the quasi-static limit, except head and face,
+    /// where contact is to be avoided and the quasi-static limit is kept.
+    pub transient_limit_n: f64,
+}
+
+/// The regions a campaign's contacts are judged by. The neck's limits are not among those
+/// REFERENCE.md lists: it is judged as the face, the strictest.
+pub const REGIONS: [Region; 6] = [
+    Region {
+        name: "skull",
+        stiffness_n_per_m: 150e3,
+        mass_kg: 4.4,
+        transient_limit_n: 130.0,
+    },
+    Region {
+        name: "face",
+        stiffness_n_per_m: 75e3,
+        mass_kg: 4.4,
+        transient_limit_n: 65.0,
+    },
+    Region {
+        name: "chest",
+        stiffness_n_per_m: 25e3,
+        mass_kg: 40.0,
+        transient_limit_n: 280.0,
+    },
+    Region {
+        name: "upper_arm",
+        stiffness_n_per_m: 30e3,
+        mass_kg: 3.0,
+        transient_limit_n: 300.0,
+    },
+    Region {
+        name: "forearm",
+        stiffness_n_per_m: 40e3,
+        mass_kg: 2.0,
+        transient_limit_n: 320.0,
+    },
+    Region {
+        name: "hand",
+        stiffness_n_per_m: 75e3,
+        mass_kg: 0.6,
+        transient_limit_n: 280.0,
+    },
+];
+
+/// Mass of the handle side of a contact, kg (REFERENCE.md: a 2 kg exoskeleton link).
+pub const HANDLE_MASS_KG: f64 = 2.0;
+
+fn region(name: &str) -> Region {
+    REGIONS
+        .iter()
+        .copied()
+        .find(|r| r.name == name)
+        .unwrap_or(REGIONS[1])
+}
+
+/// The region a touching body stands for: the episode's approaching body by its kind (a
+/// head-sized body as the skull, an arm as the forearm, a torso or plate as the chest), the
+/// seated patient's parts by name.
+pub fn region_of(body: &str, kind: BodyKind) -> Region {
+    let name = if body == episode::MOVING_BODY {
+        match kind {
+            BodyKind::Head => "skull",
+            BodyKind::Arm => "forearm",
+            BodyKind::Torso | BodyKind::Plate => "chest",
+        }
+    } else if body == "head" {
+        "skull"
+    } else if body == "torso" {
+        "chest"
+    } else if body.contains("upper_arm") {
+        "upper_arm"
+    } else if body.contains("forearm") {
+        "forearm"
+    } else if body.contains("hand") {
+        "hand"
+    } else {
+        "face"
+    };
+    region(name)
+}
+
+/// Transient contact force of the body model at closing speed `speed_mps`, N (zero when the
+/// two part).
+pub fn contact_force_n(region: &Region, speed_mps: f64) -> f64 {
+    let mu = 1.0 / (1.0 / HANDLE_MASS_KG + 1.0 / region.mass_kg);
+    speed_mps.max(0.0) * (mu * region.stiffness_n_per_m).sqrt()
+}
+
+/// One run of one episode: the CSV's row.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct RunRow {
+    pub episode: u32,
+    pub kind: BodyKind,
+    pub camera_rate_hz: f64,
+    pub start_distance_m: f64,
+    pub lateral_offset_m: f64,
+    pub speed_mps: f64,
+    pub source: SurfaceSource,
+    pub min_margin_m: f64,
+    pub fallback_ticks: usize,
+    pub safe: bool,
+    /// Body region of the first touch (empty: none).
+    pub contact_region: String,
+    pub contact_speed_mps: Option<f64>,
+    /// Body-model transient force at the first touch, N.
+    pub contact_force_n: Option<f64>,
+    pub contact_handle_force_n: Option<f64>,
+    /// No touch, or a touch within the region's transient limit.
+    pub contact_within_limit: bool,
+}
+
+/// An episode's runs and its cost.
+#[derive(Clone, Debug)]
+pub struct EpisodeResult {
+    pub episode: Episode,
+    pub rows: Vec<RunRow>,
+    /// CPU time of the episode's runs on its thread, seconds.
+    pub cpu_s: f64,
+}
+
+/// Runs one episode at every speed from every source.
+pub fn run_episode(
+    episode: Episode,
+    speeds_mps: &[f64],
+    options: &SceneLoopOptions,
+) -> Result<EpisodeResult, CampaignError> {
+    let started = crate::timing::thread_cpu_s();
+    let index = episode.index;
+    let wrap = |source| CampaignError::Episode { index, source };
+    let at_rate = episode
+        .scene
+        .with_camera_rate_hz(episode.camera_rate_hz)
+        .map_err(|e| wrap(e.into()))?;
+    let mut rows = Vec::with_capacity(speeds_mps.len() * SurfaceSource::ALL.len());
+    for &speed in speeds_mps {
+        for source in SurfaceSource::ALL {
+            let (row, _) = run_at_speed(&at_rate, speed, source, options).map_err(wrap)?;
+            rows.push(run_row(&episode, &row));
+        }
+    }
+    Ok(EpisodeResult {
+        episode,
+        rows,
+        cpu_s: crate::timing::thread_cpu_s() - started,
+    })
+}
+
+fn run_row(e: &Episode, r: &SpeedRow) -> RunRow {
+    let region = r.contact_body.as_deref().map(|b| region_of(b, e.kind));
+    let force = region
+        .zip(r.contact_speed_mps)
+        .map(|(g, v)| contact_force_n(&g, v));
+    RunRow {
+        episode: e.index,
+        kind: e.kind,
+        camera_rate_hz: r.camera_rate_hz,
+        start_distance_m: e.start_distance_m,
+        lateral_offset_m: e.lateral_offset_m,
+        speed_mps: r.speed_mps,
+        source: r.source,
+        min_margin_m: r.min_margin_m,
+        fallback_ticks: r.fallback_ticks,
+        safe: r.safe,
+        contact_region: region.map_or(String::new(), |g| g.name.into()),
+        contact_speed_mps: r.contact_speed_mps,
+        contact_force_n: force,
+        contact_handle_force_n: r.contact_handle_force_n,
+        contact_within_limit: region
+            .zip(force)
+            .is_none_or(|(g, f)| f <= g.transient_limit_n),
+    }
+}
+
+/// Fraction safe and margins of one source at one speed and camera rate.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct SummaryRow {
+    pub speed_mps: f64,
+    /// Camera rate, Hz (0: every rate together).
+    pub camera_rate_hz: f64,
+    pub source: SurfaceSource,
+    /// Episodes at this speed and rate.
+    pub episodes: usize,
+    /// Of them, those the exact surface survives (the others are infeasible).
+    pub feasible: usize,
+    /// Feasible episodes this source survives, and their fraction.
+    pub safe: usize,
+    pub safe_fraction: f64,
+    /// Episodes the delayed oracle survives, this source's safe ones among them and their
+    /// fraction (perception's target).
+    pub oracle_survived: usize,
+    pub safe_of_oracle_survived: usize,
+    pub safe_fraction_of_oracle_survived: f64,
+    /// Median and worst minimum margin over the feasible episodes, metres.
+    pub median_margin_m: f64,
+    pub worst_margin_m: f64,
+    /// Runs whose first touch stayed within its region's transient limit (or had none),
+    /// and their share of all episodes at this speed and rate.
+    pub contact_within_limit: usize,
+    pub contact_within_limit_fraction: f64,
+    /// Highest closing speed at a first touch, m/s (0: no touch).
+    pub worst_contact_speed_mps: f64,
+}
+
+fn fraction(part: usize, whole: usize) -> f64 {
+    if whole == 0 {
+        f64::NAN
+    } else {
+        part as f64 / whole as f64
+    }
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    let n = v.len();
+    if n % 2 == 1 {
+        v[n / 2]
+    } else {
+        0.5 * (v[n / 2 - 1] + v[n / 2])
+    }
+}
+
+/// The summary of `rows` per speed, camera rate (each, then all together) and source.
+pub fn summarize(rows: &[RunRow], speeds_mps: &[f64]) -> Vec<SummaryRow> {
+    let mut out = Vec::new();
+    for &speed in speeds_mps {
+        for rate in [30.0, 60.0, 90.0, 0.0] {
+            let at = |source: SurfaceSource| {
+                rows.iter().filter(move |r| {
+                    r.speed_mps == speed
+                        && r.source == source
+                        && (rate == 0.0 || r.camera_rate_hz == rate)
+                })
+            };
+            let safe_episodes = |source| {
+                at(source)
+                    .filter(|r| r.safe)
+                    .map(|r| r.episode)
+                    .collect::<std::collections::HashSet<u32>>()
+            };
+            let feasible = safe_episodes(SurfaceSource::Exact);
+            let oracle = safe_episodes(SurfaceSource::DelayedOracle);
+            for source in SurfaceSource::ALL {
+                let all: Vec<&RunRow> = at(source).collect();
+                let in_feasible: Vec<&RunRow> = all
+                    .iter()
+                    .copied()
+                    .filter(|r| feasible.contains(&r.episode))
+                    .collect();
+                let safe = in_feasible.iter().filter(|r| r.safe).count();
+                let safe_of_oracle = all
+                    .iter()
+                    .filter(|r| r.safe && oracle.contains(&r.episode))
+                    .count();
+                let margins: Vec<f64> = in_feasible.iter().map(|r| r.min_margin_m).collect();
+                let within = all.iter().filter(|r| r.contact_within_limit).count();
+                out.push(SummaryRow {
+                    speed_mps: speed,
+                    camera_rate_hz: rate,
+                    source,
+                    episodes: all.len(),
+                    feasible: feasible.len(),
+                    safe,
+                    safe_fraction: fraction(safe, feasible.len()),
+                    oracle_survived: oracle.len(),
+                    safe_of_oracle_survived: safe_of_oracle,
+                    safe_fraction_of_oracle_survived: fraction(safe_of_oracle, oracle.len()),
+                    worst_margin_m: margins.iter().copied().fold(f64::NAN, f64::min),
+                    median_margin_m: median(margins),
+                    contact_within_limit: within,
+                    contact_within_limit_fraction: fraction(within, all.len()),
+                    worst_contact_speed_mps: all
+                        .iter()
+                        .filter_map(|r| r.contact_speed_mps)
+                        .fold(0.0, f64::max),
+                });
+            }
+        }
+    }
+    out
+}
+
+/// Contacts of one source at one speed in one body region.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ContactRow {
+    pub speed_mps: f64,
+    pub source: SurfaceSource,
+    pub region: String,
+    pub contacts: usize,
+    pub within_limit: usize,
+    pub median_speed_mps: f64,
+    pub worst_speed_mps: f64,
+    pub worst_force_n: f64,
+    pub transient_limit_n: f64,
+}
+
+/// First touches per speed, source and body region.
+pub fn contacts(rows: &[RunRow], speeds_mps: &[f64]) -> Vec<ContactRow> {
+    let mut out = Vec::new();
+    for &speed in speeds_mps {
+        for source in SurfaceSource::ALL {
+            for g in REGIONS {
+                let touching: Vec<&RunRow> = rows
+                    .iter()
+                    .filter(|r| r.speed_mps == speed && r.source == source)
+                    .filter(|r| r.contact_region == g.name)
+                    .collect();
+                if touching.is_empty() {
+                    continue;
+                }
+                let speeds: Vec<f64> = touching
+                    .iter()
+                    .filter_map(|r| r.contact_speed_mps)
+                    .collect();
+                out.push(ContactRow {
+                    speed_mps: speed,
+                    source,
+                    region: g.name.into(),
+                    contacts: touching.len(),
+                    within_limit: touching.iter().filter(|r| r.contact_within_limit).count(),
+                    worst_speed_mps: speeds.iter().copied().fold(f64::NAN, f64::max),
+                    median_speed_mps: median(speeds),
+                    worst_force_n: touching
+                        .iter()
+                        .filter_map(|r| r.contact_force_n)
+                        .fold(f64::NAN, f64::max),
+                    transient_limit_n: g.transient_limit_n,
+                });
+            }
+        }
+    }
+    out
+}
+
+/// A finished campaign.
+#[derive(Clone, Debug)]
+pub struct Campaign {
+    pub config: CampaignConfig,
+    pub episodes: Vec<EpisodeResult>,
+    pub summary: Vec<SummaryRow>,
+    pub contacts: Vec<ContactRow>,
+}
+
+impl Campaign {
+    /// Every run, episode by episode.
+    pub fn rows(&self) -> impl Iterator<Item = &RunRow> {
+        self.episodes.iter().flat_map(|e| e.rows.iter())
+    }
+
+    /// The `count` perception runs with the lowest margin among those the delayed oracle
+    /// survives, one per episode (the episode's worst speed), worst first.
+    pub fn worst_perception(&self, count: usize) -> Vec<(&EpisodeResult, &RunRow)> {
+        let mut worst: Vec<(&EpisodeResult, &RunRow)> = self
+            .episodes
+            .iter()
+            .filter_map(|e| {
+                e.rows
+                    .iter()
+                    .filter(|r| r.source == SurfaceSource::Perception)
+                    .filter(|r| {
+                        e.rows.iter().any(|o| {
+                            o.source == SurfaceSource::DelayedOracle
+                                && o.speed_mps == r.speed_mps
+                                && o.safe
+                        })
+                    })
+                    .min_by(|a, b| a.min_margin_m.total_cmp(&b.min_margin_m))
+                    .map(|r| (e, r))
+            })
+            .collect();
+        worst.sort_by(|a, b| a.1.min_margin_m.total_cmp(&b.1.min_margin_m));
+        worst.truncate(count);
+        worst
+    }
+}
+
+/// Runs the campaign (see the module doc); `progress` is called after each episode.
+pub fn run(
+    config: &CampaignConfig,
+    options: &SceneLoopOptions,
+    progress: &(dyn Fn() + Sync),
+) -> Result<Campaign, CampaignError> {
+    config.validate()?;
+    let mut speeds = config.speeds_mps.clone();
+    speeds.sort_by(f64::total_cmp);
+    speeds.dedup();
+    let options = SceneLoopOptions {
+        render_threads: Some(1),
+        ..options.clone()
+    };
+    let episodes: Vec<EpisodeResult> = (0..config.episodes)
+        .into_par_iter()
+        .map(|index| {
+            let e = episode::generate(config.seed, index).map_err(|e| CampaignError::Episode {
+                index,
+                source: e.into(),
+            })?;
+            let result = run_episode(e, &speeds, &options);
+            progress();
+            result
+        })
+        .collect::<Result<_, _>>()?;
+    let rows: Vec<RunRow> = episodes.iter().flat_map(|e| e.rows.clone()).collect();
+    Ok(Campaign {
+        summary: summarize(&rows, &speeds),
+        contacts: contacts(&rows, &speeds),
+        config: CampaignConfig {
+            speeds_mps: speeds,
+            ..config.clone()
+        },
+        episodes,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// REFERENCE.md's transient speeds with a 2 kg link: skull about 0.3 m/s, chest 1.3,
+    /// forearm 1.6, hand 1.5 (the force reaches the limit there).
+    #[test]
+    fn the_body_model_reaches_each_limit_at_the_reference_speeds() {
+        for (name, v) in [
+            ("skull", 0.3),
+            ("chest", 1.3),
+            ("forearm", 1.6),
+            ("hand", 1.5),
+        ] {
+            let g = region(name);
+            let at_limit = g.transient_limit_n / contact_force_n(&g, 1.0);
+            assert!((at_limit - v).abs() < 0.05, "{name}: {at_limit}");
+        }
+        assert_eq!(contact_force_n(&region("chest"), -1.0), 0.0);
+    }
+
+    #[test]
+    fn bad_campaign_arguments_name_the_value() {
+        let ok = CampaignConfig {
+            episodes: 10,
+            seed: 1,
+            speeds_mps: vec![1.0],
+        };
+        ok.validate().unwrap();
+        for (config, needle) in [
+            (
+                CampaignConfig {
+                    episodes: 0,
+                    ..ok.clone()
+                },
+                "got 0",
+            ),
+            (
+                CampaignConfig {
+                    speeds_mps: vec![1.0, f64::NAN],
+                    ..ok.clone()
+                },
+                "got NaN",
+            ),
+            (
+                CampaignConfig {
+                    speeds_mps: vec![],
+                    ..ok.clone()
+                },
+                "--speeds takes",
+            ),
+            (
+                CampaignConfig {
+                    speeds_mps: vec![50.0],
+                    ..ok.clone()
+                },
+                "got 50",
+            ),
+        ] {
+            let err = config.validate().unwrap_err().to_string();
+            assert!(err.contains(needle), "{err}");
+        }
+    }
+
+    fn row(episode: u32, source: SurfaceSource, safe: bool, margin: f64) -> RunRow {
+        RunRow {
+            episode,
+            kind: BodyKind::Plate,
+            camera_rate_hz: 30.0,
+            start_distance_m: 0.4,
+            lateral_offset_m: 0.0,
+            speed_mps: 1.0,
+            source,
+            min_margin_m: margin,
+            fallback_ticks: 0,
+            safe,
+            contact_region: String::new(),
+            contact_speed_mps: None,
+            contact_force_n: None,
+            contact_handle_force_n: None,
+            contact_within_limit: true,
+        }
+    }
+
+    /// Episode 2 is infeasible (the exact surface fails): counted apart; perception's share
+    /// of the oracle's survivors counts only episodes the oracle survives.
+    #[test]
+    fn the_summary_counts_infeasible_episodes_apart() {
+        use SurfaceSource::{DelayedOracle, Exact, Perception};
+        let rows = [
+            row(0, Exact, true, 0.05),
+            row(0, DelayedOracle, true, 0.04),
+            row(0, Perception, true, 0.03),
+            row(1, Exact, true, 0.05),
+            row(1, DelayedOracle, false, -0.01),
+            row(1, Perception, false, -0.02),
+            row(2, Exact, false, -0.01),
+            row(2, DelayedOracle, false, -0.02),
+            row(2, Perception, false, -0.03),
+        ];
+        let s = summarize(&rows, &[1.0]);
+        let p = s
+            .iter()
+            .find(|r| r.source == Perception && r.camera_rate_hz == 30.0)
+            .unwrap();
+        assert_eq!((p.episodes, p.feasible, p.safe), (3, 2, 1));
+        assert_eq!(p.safe_fraction, 0.5);
+        assert_eq!((p.oracle_survived, p.safe_of_oracle_survived), (1, 1));
+        assert_eq!(p.worst_margin_m, -0.02);
+        assert_eq!(p.median_margin_m, 0.005);
+        let none = s
+            .iter()
+            .find(|r| r.source == Perception && r.camera_rate_hz == 60.0)
+            .unwrap();
+        assert_eq!(none.episodes, 0);
+        assert!(none.safe_fraction.is_nan());
+    }
+}

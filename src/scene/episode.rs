@@ -1,0 +1,517 @@
+//! Randomized approach episodes: seeded, reproducible scenes in which one body comes at the
+//! resting handle, for the safety campaign (`hapcloud experiment campaign`).
+//!
+//! Episode `index` of campaign seed `seed` is drawn from its own ChaCha8 stream (seed
+//! `seed`, stream `index`), so it does not depend on how many episodes are drawn or in what
+//! order. Each draws:
+//! - the HIP's resting pose: the built-in scenes' HIP (0.36, -0.16, 0.46) m plus up to
+//!   ±[`HIP_BOX_M`] per axis (the robot holds it by inverse kinematics);
+//! - the approach direction `u` (HIP to the body's start), uniform over the half-space facing
+//!   away from the robot's base (`u . (hip - base) >= 0`): a body cannot reach the handle
+//!   through the exoskeleton's own arm;
+//! - the body ([`BodyKind`]): a plate of any tilt up to [`MAX_PLATE_TILT_RAD`] from facing the
+//!   HIP, a head-sized ellipsoid, an arm-sized capsule or a torso-sized box, sizes uniform in
+//!   the ranges below and orientation uniform;
+//! - the lateral offset of its path (up to [`MAX_LATERAL_M`], redrawn until the body sweeps
+//!   through the HIP centre) and its start distance, the clearance between its surface and
+//!   the HIP centre (uniform in [`START_DISTANCE_M`]);
+//! - the cameras' rate (30, 60 or 90 Hz: the D435's depth rates), the second camera's phase,
+//!   the scene seed (every D435 effect's random draws: noise, holes, flying pixels, the
+//!   calibration bias, clock offsets, latency jitter, drops), the calibration bias's spread,
+//!   the latency jitter and the drop probability.
+//!
+//! The body starts moving at [`START_S`] at 1 m/s along `-u` and the scene lasts until its
+//! leading surface has gone [`PASS_M`] past the HIP centre; a campaign runs the episode at other speeds
+//! with [`super::Scene::with_moving_body_speed`] and other rates with
+//! [`super::Scene::with_camera_rate_hz`], as `hapcloud experiment safe-speed` does. An episode
+//! is an ordinary scene file (the patient, the paper's camera mount, the moving body, the
+//! robot holding the HIP, the realistic effect list): `toml::to_string` of [`Episode::scene`]
+//! loads back to the same scene.
+
+use super::config::{HipSegment, RobotConfig, RobotMotion};
+use super::effects::{DroppedFrames, Effect, ExtrinsicBias, Latency};
+use super::motion::Motion;
+use super::shape::Shape;
+use super::{BodyConfig, Scene, SceneError, builtin, truth};
+use nalgebra::{Point3, UnitQuaternion, Vector2, Vector3};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use std::f64::consts::PI;
+
+/// The robot's base, as in every built-in scene, metres.
+const BASE_XYZ_M: [f64; 3] = [0.0, -0.03, 0.55];
+/// The built-in scenes' resting HIP, metres, and the joints inverse kinematics starts from.
+const HIP_M: [f64; 3] = [0.36, -0.16, 0.46];
+const INITIAL_JOINTS_RAD: [f64; 6] = [0.0, 0.0, 0.2, 0.0, 1.2, 1.2];
+/// Half side of the box the resting HIP is drawn in, metres: a 12 cm cube around the
+/// built-in pose, all of it reachable from the initial joints (checked for every episode by
+/// the robot track's inverse kinematics).
+pub const HIP_BOX_M: f64 = 0.06;
+/// Clearance between the body's surface and the HIP centre at the start, metres: from the
+/// rising plate's 0.30 m to beyond REFERENCE.md's 0.46 m reach for 2 m/s at 90 Hz.
+pub const START_DISTANCE_M: std::ops::Range<f64> = 0.30..0.60;
+/// Largest lateral offset of the body's path from the HIP centre, metres (more than the HIP
+/// radius: grazing approaches are drawn too).
+pub const MAX_LATERAL_M: f64 = 0.06;
+/// Largest tilt of a plate's normal away from facing the HIP, radians (75 deg: nearly
+/// edge-on).
+pub const MAX_PLATE_TILT_RAD: f64 = 75.0 * PI / 180.0;
+/// The body rests until this time, seconds: fusion and the controller settle on the static
+/// scene first.
+pub const START_S: f64 = 0.3;
+/// How far the body's leading surface goes past the HIP centre, metres (the rising plate's
+/// 0.15 m): the robot must move the HIP that far plus its radius out of the way.
+pub const PASS_M: f64 = 0.15;
+/// The episode's nominal speed, m/s (a campaign sets its own).
+pub const NOMINAL_SPEED_MPS: f64 = 1.0;
+/// Name of the moving body in an episode's scene.
+pub const MOVING_BODY: &str = "approaching";
+
+/// The shape of the approaching body, and the body region it stands for in contact limits.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BodyKind {
+    /// A flat plate (a table edge, a tray, a forearm's flat side), half sides 0.10-0.20 m.
+    Plate,
+    /// A head-sized ellipsoid, semi-axes 0.085-0.105, 0.070-0.085, 0.100-0.125 m.
+    Head,
+    /// An arm-sized capsule, radius 0.030-0.050 m, 0.24-0.34 m long.
+    Arm,
+    /// A torso-sized box, half sides 0.08-0.12, 0.14-0.20, 0.22-0.30 m.
+    Torso,
+}
+
+impl BodyKind {
+    pub const ALL: [BodyKind; 4] = [
+        BodyKind::Plate,
+        BodyKind::Head,
+        BodyKind::Arm,
+        BodyKind::Torso,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            BodyKind::Plate => "plate",
+            BodyKind::Head => "head",
+            BodyKind::Arm => "arm",
+            BodyKind::Torso => "torso",
+        }
+    }
+}
+
+/// One drawn episode: its scene and the draws that made it.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Episode {
+    pub seed: u64,
+    pub index: u32,
+    pub kind: BodyKind,
+    /// Unit direction from the HIP centre to where the body starts (it moves along `-u`).
+    pub approach: Vector3<f64>,
+    /// Clearance between the body's surface and the HIP centre at the start, metres.
+    pub start_distance_m: f64,
+    /// Distance of the body's path from the HIP centre, metres.
+    pub lateral_offset_m: f64,
+    pub camera_rate_hz: f64,
+    #[serde(skip)]
+    pub scene: Scene,
+}
+
+fn uniform(rng: &mut ChaCha8Rng, range: std::ops::Range<f64>) -> f64 {
+    range.start + rng.random::<f64>() * (range.end - range.start)
+}
+
+/// A unit vector uniform on the sphere (normalised Gaussian triple).
+fn unit(rng: &mut ChaCha8Rng) -> Vector3<f64> {
+    loop {
+        let v = Vector3::from_fn(|_, _| rng.sample::<f64, _>(rand_distr::StandardNormal));
+        if v.norm() > 1e-6 {
+            return v.normalize();
+        }
+    }
+}
+
+/// A unit vector uniform among those perpendicular to `u`.
+fn perpendicular(rng: &mut ChaCha8Rng, u: &Vector3<f64>) -> Vector3<f64> {
+    loop {
+        let v = unit(rng);
+        let w = v - u * u.dot(&v);
+        if w.norm() > 1e-3 {
+            return w.normalize();
+        }
+    }
+}
+
+/// Roll-pitch-yaw (the scene files' fixed-axes convention) of `q`.
+fn rpy(q: &UnitQuaternion<f64>) -> Vector3<f64> {
+    let (r, p, y) = q.euler_angles();
+    Vector3::new(r, p, y)
+}
+
+/// A uniformly random rotation (a normalised Gaussian quaternion).
+fn random_rotation(rng: &mut ChaCha8Rng) -> UnitQuaternion<f64> {
+    let q = nalgebra::Quaternion::from_vector(nalgebra::Vector4::from_fn(|_, _| {
+        rng.sample::<f64, _>(rand_distr::StandardNormal)
+    }));
+    UnitQuaternion::from_quaternion(q)
+}
+
+/// The drawn shape with its centre at `c`, oriented for approach direction `u`.
+fn draw_shape(rng: &mut ChaCha8Rng, kind: BodyKind, c: Point3<f64>, u: &Vector3<f64>) -> Shape {
+    match kind {
+        BodyKind::Plate => {
+            let half = Vector2::new(uniform(rng, 0.10..0.20), uniform(rng, 0.10..0.20));
+            let tilt = uniform(rng, 0.0..MAX_PLATE_TILT_RAD);
+            let axis = nalgebra::Unit::new_normalize(perpendicular(rng, u));
+            let normal = UnitQuaternion::from_axis_angle(&axis, tilt) * u;
+            let spin = uniform(rng, 0.0..2.0 * PI);
+            let q = UnitQuaternion::rotation_between(&Vector3::z(), &normal)
+                .unwrap_or_else(|| UnitQuaternion::from_euler_angles(PI, 0.0, 0.0))
+                * UnitQuaternion::from_euler_angles(0.0, 0.0, spin);
+            Shape::PlanePatch {
+                center_m: c,
+                half_extents_m: half,
+                rpy_rad: rpy(&q),
+            }
+        }
+        BodyKind::Head => {
+            let radii = Vector3::new(
+                uniform(rng, 0.085..0.105),
+                uniform(rng, 0.070..0.085),
+                uniform(rng, 0.100..0.125),
+            );
+            Shape::Ellipsoid {
+                center_m: c,
+                radii_m: radii,
+                rpy_rad: rpy(&random_rotation(rng)),
+            }
+        }
+        BodyKind::Arm => {
+            let radius = uniform(rng, 0.030..0.050);
+            let half_length = uniform(rng, 0.12..0.17);
+            let axis = unit(rng);
+            Shape::Capsule {
+                a_m: c - axis * half_length,
+                b_m: c + axis * half_length,
+                radius_m: radius,
+            }
+        }
+        BodyKind::Torso => {
+            let half = Vector3::new(
+                uniform(rng, 0.08..0.12),
+                uniform(rng, 0.14..0.20),
+                uniform(rng, 0.22..0.30),
+            );
+            Shape::Box {
+                center_m: c,
+                half_extents_m: half,
+                rpy_rad: rpy(&random_rotation(rng)),
+            }
+        }
+    }
+}
+
+/// Signed distance from `hip` to `body` moved by `offset`.
+fn distance(body: &BodyConfig, offset: Vector3<f64>, hip: &Point3<f64>) -> f64 {
+    let moved = BodyConfig {
+        motion: Motion::ConstantVelocity {
+            velocity_m_s: offset,
+            start_s: 0.0,
+        },
+        ..body.clone()
+    };
+    truth::posed_body(&moved, 1.0).closest(hip).distance_m
+}
+
+/// Step of the scan along the body's path for where it sweeps the HIP centre, metres.
+const SCAN_STEP_M: f64 = 0.002;
+
+/// Where along `u` (offset `s u` of the body placed around the HIP) the body's surface is
+/// nearest the HIP centre, and that distance (scan of `[-1, 1]` m).
+fn nearest_along(body: &BodyConfig, u: &Vector3<f64>, hip: &Point3<f64>) -> (f64, f64) {
+    let steps = (2.0 / SCAN_STEP_M) as i32;
+    (0..=steps)
+        .map(|i| {
+            let s = -1.0 + f64::from(i) * SCAN_STEP_M;
+            (s, distance(body, u * s, hip))
+        })
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .unwrap_or((0.0, f64::INFINITY))
+}
+
+/// Draws episode `index` of campaign `seed` (see the module doc).
+pub fn generate(seed: u64, index: u32) -> Result<Episode, SceneError> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(u64::from(index));
+    let base = Vector3::from(BASE_XYZ_M);
+    let hip = Point3::from(
+        Vector3::from(HIP_M) + Vector3::from_fn(|_, _| uniform(&mut rng, -HIP_BOX_M..HIP_BOX_M)),
+    );
+    let away = (hip.coords - base).normalize();
+    let mut u = unit(&mut rng);
+    if u.dot(&away) < 0.0 {
+        u = -u;
+    }
+    let kind = BodyKind::ALL[rng.random_range(0..BodyKind::ALL.len())];
+    let w = perpendicular(&mut rng, &u);
+    // the shape around the HIP (offset 0), then the lateral offset, redrawn until the path
+    // sweeps the HIP centre
+    let centred = BodyConfig {
+        name: MOVING_BODY.into(),
+        geometry: draw_shape(&mut rng, kind, hip, &u),
+        motion: Motion::Static,
+        visible: true,
+    };
+    let mut lateral = uniform(&mut rng, 0.0..MAX_LATERAL_M);
+    let (body, s_cross) = loop {
+        let mut body = centred.clone();
+        body.geometry = shifted(&centred.geometry, w * lateral);
+        let (s, d) = nearest_along(&body, &u, &hip);
+        if d <= SCAN_STEP_M {
+            break (body, s);
+        }
+        if lateral == 0.0 {
+            return Err(invalid(
+                seed,
+                index,
+                format!("the drawn {} never reaches the HIP centre", kind.name()),
+            ));
+        }
+        lateral *= 0.5;
+        if lateral < 1e-3 {
+            lateral = 0.0;
+        }
+    };
+    // start where the surface is `start_distance` from the HIP centre (the distance grows
+    // monotonically past `s_cross`: a convex body moving away along a line)
+    let start_distance = uniform(&mut rng, START_DISTANCE_M);
+    let (mut lo, mut hi) = (s_cross, s_cross + 2.0);
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if distance(&body, u * mid, &hip) < start_distance {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let s_start = 0.5 * (lo + hi);
+    // where the leading surface reaches the HIP centre (the distance falls to zero between
+    // `s_cross` and the start)
+    let (mut lo, mut hi) = (s_cross, s_start);
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if distance(&body, u * mid, &hip) <= 0.0 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let travel_m = s_start - 0.5 * (lo + hi) + PASS_M;
+    let rate_hz = [30.0, 60.0, 90.0][rng.random_range(0..3usize)];
+    let phase_s = uniform(&mut rng, 0.0..1.0 / rate_hz);
+    let scene_seed = rng.random::<u64>();
+    let bias = ExtrinsicBias {
+        translation_std_m: uniform(&mut rng, 0.001..0.005),
+        rotation_std_rad: uniform(&mut rng, 0.1..0.4).to_radians(),
+    };
+    let jitter_std_s = uniform(&mut rng, 0.001..0.008);
+    let drop_probability = uniform(&mut rng, 0.0..0.05);
+
+    let mut file = builtin::common_parts()?;
+    let duration_s = START_S + travel_m / NOMINAL_SPEED_MPS;
+    file.name = format!("episode_{seed}_{index}");
+    file.description = format!(
+        "Campaign episode {index} of seed {seed}: approaching body of kind `{}` coming at the resting handle from \
+         ({:.3}, {:.3}, {:.3}), {start_distance:.3} m away, {lateral:.3} m off the HIP centre",
+        kind.name(),
+        u.x,
+        u.y,
+        u.z
+    );
+    file.seed = scene_seed;
+    file.duration_s = duration_s;
+    file.robot = Some(RobotConfig {
+        base_xyz_m: base,
+        base_rpy_rad: Vector3::zeros(),
+        visible: true,
+        motion: RobotMotion::HipPath {
+            start_m: hip,
+            initial_joints_rad: INITIAL_JOINTS_RAD.to_vec(),
+            segments: vec![HipSegment::Hold { duration_s }],
+        },
+    });
+    for (i, cam) in file.cameras.iter_mut().enumerate() {
+        cam.rate_hz = rate_hz;
+        cam.phase_s = if i == 0 { 0.0 } else { phase_s };
+    }
+    for effect in &mut file.effects {
+        match effect {
+            Effect::ExtrinsicBias(b) => *b = bias.clone(),
+            Effect::Latency(l) => {
+                *l = Latency {
+                    mean_s: None,
+                    jitter_std_s,
+                }
+            }
+            Effect::DroppedFrames(d) => {
+                *d = DroppedFrames {
+                    probability: drop_probability,
+                }
+            }
+            _ => {}
+        }
+    }
+    file.bodies.push(BodyConfig {
+        geometry: shifted(&body.geometry, u * s_start),
+        motion: Motion::ConstantVelocity {
+            velocity_m_s: -u * NOMINAL_SPEED_MPS,
+            start_s: START_S,
+        },
+        ..body
+    });
+    let scene = Scene::new(file, &format!("episode {index} of seed {seed}"))?;
+    Ok(Episode {
+        seed,
+        index,
+        kind,
+        approach: u,
+        start_distance_m: start_distance,
+        lateral_offset_m: lateral,
+        camera_rate_hz: rate_hz,
+        scene,
+    })
+}
+
+fn invalid(seed: u64, index: u32, message: String) -> SceneError {
+    SceneError::Invalid {
+        origin: format!("episode {index} of seed {seed}"),
+        message,
+    }
+}
+
+/// `shape` translated by `d`.
+fn shifted(shape: &Shape, d: Vector3<f64>) -> Shape {
+    let mut s = shape.clone();
+    match &mut s {
+        Shape::Sphere { center_m, .. }
+        | Shape::Ellipsoid { center_m, .. }
+        | Shape::Box { center_m, .. }
+        | Shape::PlanePatch { center_m, .. } => *center_m += d,
+        Shape::Capsule { a_m, b_m, .. } => {
+            *a_m += d;
+            *b_m += d;
+        }
+    }
+    s
+}
+
+/// Checks that `scene`'s moving body (its `constant_velocity` body) comes within the HIP
+/// sphere of the robot's scripted HIP during the scene (sampled every 5 ms): a campaign or
+/// safe-speed sweep on a body that passes by or moves away measures nothing. The error names
+/// the body and its closest clearance.
+pub fn check_approach(scene: &Scene) -> Result<(), SceneError> {
+    let invalid = |message: String| SceneError::Invalid {
+        origin: scene.origin.clone(),
+        message,
+    };
+    let sim = super::Simulator::new(scene)?;
+    let r_hip = sim
+        .hip_radius_m()
+        .ok_or_else(|| invalid("the scene has no robot: no HIP to approach".into()))?;
+    let body = scene
+        .file
+        .bodies
+        .iter()
+        .find(|b| matches!(b.motion, Motion::ConstantVelocity { .. }))
+        .ok_or_else(|| invalid("no body moves with constant_velocity".into()))?;
+    let steps = (sim.duration_s() / 0.005).ceil() as usize;
+    let closest = (0..=steps)
+        .filter_map(|i| {
+            let t = (i as f64 * 0.005).min(sim.duration_s());
+            let hip = sim.hip_at(t)?;
+            Some(truth::posed_body(body, t).closest(&hip).distance_m)
+        })
+        .fold(f64::INFINITY, f64::min);
+    if closest < r_hip {
+        Ok(())
+    } else {
+        Err(invalid(format!(
+            "body `{}` never approaches the HIP: its surface comes no closer than {closest:.3} m \
+             to the HIP centre (the HIP sphere's radius is {r_hip} m)",
+            body.name
+        )))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_episode_is_the_same_for_the_same_seed_and_index_and_differs_otherwise() {
+        let a = generate(7, 3).unwrap();
+        assert_eq!(a, generate(7, 3).unwrap());
+        assert_ne!(a.scene.file, generate(7, 4).unwrap().scene.file);
+        assert_ne!(a.scene.file, generate(8, 3).unwrap().scene.file);
+    }
+
+    /// Every drawn episode is a valid scene whose robot reaches its HIP, whose body starts at
+    /// the drawn clearance on the side facing away from the robot and sweeps the HIP centre.
+    #[test]
+    fn episodes_are_valid_scenes_whose_body_starts_away_and_sweeps_the_hip() {
+        let mut kinds = std::collections::BTreeSet::new();
+        let mut rates = std::collections::BTreeSet::new();
+        for index in 0..24 {
+            let e = generate(1, index).unwrap();
+            kinds.insert(e.kind);
+            rates.insert(e.camera_rate_hz as u32);
+            let sim = super::super::Simulator::new(&e.scene).unwrap();
+            let hip = sim.hip_at(0.0).unwrap();
+            let body = e.scene.file.bodies.last().unwrap();
+            assert_eq!(body.name, MOVING_BODY);
+            let d0 = truth::posed_body(body, 0.0).closest(&hip).distance_m;
+            assert!((d0 - e.start_distance_m).abs() < 1e-4, "{d0} {e:?}");
+            assert!(START_DISTANCE_M.contains(&e.start_distance_m));
+            let away = (hip.coords - Vector3::from(BASE_XYZ_M)).normalize();
+            assert!(e.approach.dot(&away) >= 0.0);
+            check_approach(&e.scene).unwrap();
+            let d_min = (0..=1000)
+                .map(|i| {
+                    let t = sim.duration_s() * f64::from(i) / 1000.0;
+                    truth::posed_body(body, t).closest(&hip).distance_m
+                })
+                .fold(f64::INFINITY, f64::min);
+            assert!(d_min < 0.01, "{d_min} {e:?}");
+        }
+        assert_eq!(kinds.len(), 4, "{kinds:?}");
+        assert_eq!(rates.len(), 3, "{rates:?}");
+    }
+
+    #[test]
+    fn a_written_episode_loads_back_to_the_same_scene() {
+        for index in 0..8 {
+            let e = generate(5, index).unwrap();
+            let text = toml::to_string(&e.scene.file).unwrap();
+            let back = Scene::from_toml_str(&text, "written").unwrap();
+            assert_eq!(back.file, e.scene.file);
+        }
+    }
+
+    #[test]
+    fn a_body_moving_away_is_named_with_its_clearance() {
+        let e = generate(2, 0).unwrap();
+        let mut file = e.scene.file.clone();
+        let body = file.bodies.last_mut().unwrap();
+        if let Motion::ConstantVelocity { velocity_m_s, .. } = &mut body.motion {
+            *velocity_m_s = -*velocity_m_s;
+        }
+        let err = check_approach(&Scene::new(file, "away").unwrap())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("`approaching` never approaches the HIP")
+                && err.contains("no closer than"),
+            "{err}"
+        );
+    }
+}

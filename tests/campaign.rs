@@ -1,0 +1,167 @@
+//! The safety campaign (`hapcloud experiment campaign`) and its episodes as a user runs them:
+//! a 20-episode campaign end to end, a written episode reproducing its runs through
+//! `experiment safe-speed`, and bad input.
+
+mod common;
+
+use common::{TempDir, run_err, run_json};
+use hapcloud::lab::campaign::run_episode;
+use hapcloud::lab::safe_speed;
+use hapcloud::lab::scene_loop::{SceneLoopOptions, SurfaceSource};
+use hapcloud::scene::{Scene, episode};
+
+/// An episode written as a scene file loads back to the same scene, and the safe-speed sweep
+/// of that file gives every source's run exactly as the campaign's episode run gave it.
+#[test]
+fn a_written_episode_reproduces_the_campaigns_runs() {
+    let e = episode::generate(3, 5).unwrap();
+    let dir = TempDir::new("campaign_episode");
+    let path = dir.path.join("episode.toml");
+    std::fs::write(&path, toml::to_string(&e.scene.file).unwrap()).unwrap();
+    let loaded = Scene::from_file(&path).unwrap();
+    assert_eq!(loaded.file, e.scene.file);
+    let options = SceneLoopOptions {
+        render_threads: Some(1),
+        ..SceneLoopOptions::default()
+    };
+    let speed = 1.5;
+    let campaign = run_episode(e.clone(), &[speed], &options).unwrap();
+    let sweep = safe_speed::sweep(&loaded, &[speed], e.camera_rate_hz, &options).unwrap();
+    assert_eq!(campaign.rows.len(), 3);
+    for row in &campaign.rows {
+        let again = sweep.rows.iter().find(|r| r.source == row.source).unwrap();
+        assert_eq!(
+            (row.min_margin_m, row.safe, row.contact_speed_mps),
+            (again.min_margin_m, again.safe, again.contact_speed_mps),
+            "{:?}",
+            row.source
+        );
+    }
+    // the exact surface is the ceiling: no source does better
+    let margin = |s| {
+        campaign
+            .rows
+            .iter()
+            .find(|r| r.source == s)
+            .unwrap()
+            .min_margin_m
+    };
+    assert!(margin(SurfaceSource::Exact) >= margin(SurfaceSource::DelayedOracle) - 1e-3);
+}
+
+/// Twenty episodes at two speeds: every file is written, every count adds up, the worst
+/// episodes' scene files load, and the summary's fractions are those of the runs' CSV.
+#[test]
+fn a_twenty_episode_campaign_writes_its_tables_plots_and_worst_episodes() {
+    let dir = TempDir::new("campaign_cli");
+    let d = dir.path.to_str().unwrap();
+    let json = run_json([
+        "experiment",
+        "campaign",
+        "--episodes",
+        "20",
+        "--seed",
+        "1",
+        "--speeds",
+        "1,2",
+        "--worst",
+        "3",
+        "--out",
+        d,
+        "--json",
+    ]);
+    let details = &json["details"];
+    assert_eq!(details["episodes"], 20);
+    for f in [
+        "campaign-runs.csv",
+        "campaign-summary.csv",
+        "campaign-contacts.csv",
+        "campaign-episodes.csv",
+        "campaign-safe.png",
+        "campaign-margins.png",
+    ] {
+        assert!(dir.path.join(f).metadata().unwrap().len() > 100, "{f}");
+    }
+    let runs = std::fs::read_to_string(dir.path.join("campaign-runs.csv")).unwrap();
+    assert_eq!(runs.lines().count(), 1 + 20 * 2 * 3);
+    let summary = details["summary"].as_array().unwrap();
+    // 2 speeds x (3 rates + all) x 3 sources
+    assert_eq!(summary.len(), 2 * 4 * 3);
+    for row in summary.iter().filter(|r| r["camera_rate_hz"] == 0.0) {
+        assert_eq!(row["episodes"], 20);
+        let (safe, feasible) = (
+            row["safe"].as_u64().unwrap(),
+            row["feasible"].as_u64().unwrap(),
+        );
+        assert!(safe <= feasible && feasible <= 20, "{row}");
+        if row["source"] == "exact" {
+            assert_eq!(safe, feasible);
+        }
+        let csv_safe = runs
+            .lines()
+            .skip(1)
+            .filter(|l| {
+                let f: Vec<&str> = l.split(',').collect();
+                f[5].parse::<f64>().unwrap() == row["speed_mps"].as_f64().unwrap()
+                    && f[6] == row["source"].as_str().unwrap()
+                    && f[9] == "true"
+            })
+            .count() as u64;
+        assert!(csv_safe >= safe, "{row}");
+    }
+    let worst = details["worst"].as_array().unwrap();
+    assert!(worst.len() <= 3);
+    for w in worst {
+        let scene = Scene::from_file(std::path::Path::new(w["file"].as_str().unwrap())).unwrap();
+        assert!(scene.file.name.starts_with("episode_1_"));
+    }
+}
+
+#[test]
+fn bad_campaign_arguments_are_refused_with_the_value() {
+    let dir = TempDir::new("campaign_bad");
+    let d = dir.path.to_str().unwrap();
+    let err = run_err(["experiment", "campaign", "--episodes", "0", "--out", d]);
+    assert!(
+        err.contains("--episodes must be 1 to") && err.contains("got 0"),
+        "{err}"
+    );
+    let err = run_err(["experiment", "campaign", "--speeds", "9", "--out", d]);
+    assert!(err.contains("got 9"), "{err}");
+    // an episode file edited into nonsense: the error names the value
+    let e = episode::generate(1, 0).unwrap();
+    let text = toml::to_string(&e.scene.file)
+        .unwrap()
+        .replace("rate_hz = ", "rate_hz = 1");
+    let path = dir.path.join("edited.toml");
+    std::fs::write(&path, text).unwrap();
+    let err = run_err([
+        "experiment",
+        "safe-speed",
+        "--scene",
+        path.to_str().unwrap(),
+        "--out",
+        d,
+    ]);
+    assert!(err.contains("rate_hz must be 30, 60 or 90"), "{err}");
+    // a body that moves away from the HIP
+    let mut file = e.scene.file.clone();
+    for b in &mut file.bodies {
+        if let hapcloud::scene::Motion::ConstantVelocity { velocity_m_s, .. } = &mut b.motion {
+            *velocity_m_s = -*velocity_m_s;
+        }
+    }
+    let path = dir.path.join("away.toml");
+    std::fs::write(&path, toml::to_string(&file).unwrap()).unwrap();
+    let err = run_err([
+        "experiment",
+        "safe-speed",
+        "--scene",
+        path.to_str().unwrap(),
+        "--speeds",
+        "1",
+        "--out",
+        d,
+    ]);
+    assert!(err.contains("never approaches the HIP"), "{err}");
+}
