@@ -76,6 +76,15 @@ const MAX_SPEEDS: usize = 32;
 /// to travel, so below 0.01 m/s one run would simulate hours.
 const SPEEDS_MPS: std::ops::RangeInclusive<f64> = 0.01..=20.0;
 
+/// The built-in scenes a `safe-speed` sweep can run: those with a moving body to set the
+/// speed of.
+fn swept_scenes() -> Vec<String> {
+    builtin::names()
+        .into_iter()
+        .filter(|n| Scene::from_builtin(n).is_ok_and(|s| s.with_moving_body_speed(1.0).is_ok()))
+        .collect()
+}
+
 fn register_font() -> Result<()> {
     plotters::style::register_font(FONT, FontStyle::Normal, epaint_default_fonts::UBUNTU_LIGHT)
         .map_err(|_| anyhow!("embedded plot font is invalid"))
@@ -215,9 +224,13 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             extra = serde_json::json!({ "perception": scene_metrics });
         }
         "safe-speed" => {
-            let scene_name = args.scene.context(
-                "safe-speed needs --scene NAME|FILE (a scene with a constant_velocity body)",
-            )?;
+            let scene_name = args.scene.with_context(|| {
+                format!(
+                    "safe-speed needs --scene NAME|FILE, a scene with one constant_velocity \
+                     body; built in: {}",
+                    swept_scenes().join(", ")
+                )
+            })?;
             if args.speeds.is_empty() || args.speeds.len() > MAX_SPEEDS {
                 bail!(
                     "--speeds takes 1 to {MAX_SPEEDS} speeds (each is two closed-loop runs), got {}",

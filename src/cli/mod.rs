@@ -4,6 +4,7 @@
 #[cfg(feature = "lab")]
 mod accuracy;
 mod can_decode;
+mod config;
 mod convert;
 #[cfg(feature = "lab")]
 mod experiment;
@@ -136,45 +137,54 @@ struct Cli {
     command: Command,
 }
 
+// The commands in the order a user meets them: the node and its recordings; the lab
+// (paper VI, the accuracy-time study, the accuracy target); the simulator; the stages one at
+// a time on files; tools.
 #[derive(Subcommand)]
 enum Command {
-    /// Convert a PCD/PLY cloud or a 16-bit depth image (with intrinsics) to PCD or PLY.
-    Convert(convert::Args),
-    /// Decode a candump -L log with the CAN protocol's DBC file.
-    CanDecode(can_decode::Args),
-    /// Open the GPU context and report the adapter (set WGPU_ADAPTER_NAME to choose one).
-    GpuInfo(gpu_info::Args),
-    /// Accuracy of the per-camera surface estimates on simulated scenes against ground truth.
-    #[cfg(feature = "lab")]
-    Accuracy(accuracy::Args),
-    /// Closest collision surface (centroid, normal, per-shell fits) of a cloud around a HIP.
-    Surface(surface::Args),
-    /// Crop a cloud: drop invalid points, points farther than --radius from the HIP and
-    /// points inside the robot's collision primitives (paper IV-A).
-    Crop(crop::Args),
-    /// Voxel-grid a cloud with PCL VoxelGrid semantics (paper IV-B), like pcl_voxel_grid.
-    Voxel(voxel::Args),
+    /// Run the perception node on a scene, recording, frame directory or live cameras.
+    ///
+    /// Frames -> per-camera surface estimates -> 800 Hz fused surface, haptic constraints and
+    /// joint torques; a progress line each second, a summary table (or --json) at the end;
+    /// optional MCAP recording (--record FILE.mcap), CAN (--can, --can-log), Zenoh outputs.
+    Run(run::Args),
+    /// Re-run an MCAP recording and check its estimates, fused surfaces and torques bit for bit.
+    Replay(replay::Args),
+    /// Show a scene, recording or frame directory in a window: clouds, shells, fits, plots.
+    #[cfg(feature = "viewer")]
+    View(view::Args),
     /// Closed-loop experiments of the paper (section VI) in simulation: CSV, PNG, metrics.
     #[cfg(feature = "lab")]
     Experiment(experiment::ExperimentArgs),
-    /// Run the perception node: frames -> surface estimates -> 800 Hz fused surface, with
-    /// stats, recording (--record FILE.mcap), Zenoh outputs and a JSON summary.
-    Run(run::Args),
-    /// Re-run an MCAP recording and check estimates, fused surfaces and torques bit for bit.
-    Replay(replay::Args),
-    /// Euclidean cluster extraction (PCL EuclideanClusterExtraction semantics).
-    Cluster(cluster::Args),
     /// Sweep the knobs that trade accuracy for time: CSV, markdown table, Pareto plot.
     #[cfg(feature = "lab")]
     Study(study::Args),
-    /// Show clouds, shells, fits, estimates and time plots of a timeline of frames in a
-    /// window (egui, wgpu).
-    #[cfg(feature = "viewer")]
-    View(view::Args),
-    /// List the built-in scenes (or print one as a complete scene file).
+    /// Accuracy of the surface estimates on simulated scenes against ground truth.
+    #[cfg(feature = "lab")]
+    Accuracy(accuracy::Args),
+    /// List the built-in scenes, or print one as a complete scene file to edit.
     Scenes(scenes::Args),
     /// Simulate a scene: per camera PCD + 16-bit PNG depth + JSON sidecar, and ground truth.
     Sim(sim::Args),
+    /// Convert a PCD/PLY cloud or a 16-bit depth image (with intrinsics) to PCD or PLY.
+    Convert(convert::Args),
+    /// Crop a cloud around a HIP and outside the robot (paper IV-A).
+    ///
+    /// Drops invalid points, points farther than --radius from the HIP and points inside the
+    /// robot's collision primitives.
+    Crop(crop::Args),
+    /// Voxel-grid a cloud with PCL VoxelGrid semantics (paper IV-B).
+    Voxel(voxel::Args),
+    /// Euclidean clusters of a cloud with PCL EuclideanClusterExtraction semantics (IV-C).
+    Cluster(cluster::Args),
+    /// Closest collision surface of a cloud around a HIP: centroid, normal, shell fits (IV-E).
+    Surface(surface::Args),
+    /// List the sections of a node config, or print the commented default config.
+    Config(config::Args),
+    /// Decode a candump -L log with the CAN protocol's DBC file.
+    CanDecode(can_decode::Args),
+    /// Open the GPU context and report the adapter (WGPU_ADAPTER_NAME chooses one).
+    GpuInfo(gpu_info::Args),
 }
 
 /// Standard output closed by its reader (`hapcloud scenes | head -1`): the reader has what it
@@ -197,6 +207,7 @@ pub fn main() -> ExitCode {
     let result: anyhow::Result<()> = match cli.command {
         Command::Convert(args) => convert::run(args),
         Command::CanDecode(args) => can_decode::run(args),
+        Command::Config(args) => config::run(args),
         Command::GpuInfo(args) => gpu_info::run(args),
         #[cfg(feature = "lab")]
         Command::Accuracy(args) => accuracy::run(args),

@@ -55,7 +55,7 @@ pub struct Args {
     backend: Option<Backend>,
     /// Record frames, estimates, ticks and robot states into this MCAP file (`FILE.mcap`;
     /// replay it with `hapcloud replay FILE.mcap`, open it in Foxglove or rosbags).
-    #[arg(long)]
+    #[arg(long, value_name = "FILE.mcap", value_parser = recording_path)]
     record: Option<PathBuf>,
     /// Publish the fused surface, haptic constraint, joint torque command and node status
     /// over Zenoh (`[zenoh]`, `[publish]` in --config); on by default with the `zenoh` source.
@@ -80,6 +80,23 @@ pub struct Args {
     #[cfg(feature = "viewer")]
     #[arg(long)]
     overlay: bool,
+}
+
+/// `--record`: the MCAP file a recording is written to (checked before anything starts).
+fn recording_path(arg: &str) -> Result<PathBuf, String> {
+    let path = PathBuf::from(arg);
+    if path.is_dir() {
+        return Err(format!(
+            "{arg} is a directory; a recording is written to one file: {}",
+            path.join("run.mcap").display()
+        ));
+    }
+    if path.extension().is_none_or(|e| e != "mcap") {
+        return Err(format!(
+            "a recording is written to a FILE.mcap (MCAP), got {arg}"
+        ));
+    }
+    Ok(path)
 }
 
 /// The scene `hapcloud run` plays when no source is given.
@@ -117,15 +134,15 @@ fn as_scene(arg: &str) -> Option<anyhow::Result<Scene>> {
 
 /// `--config`: the node's config and the tables of the other parts.
 #[derive(Default)]
-struct RunConfig {
-    node: NodeConfig,
-    mcap: McapReaderConfig,
+pub(super) struct RunConfig {
+    pub(super) node: NodeConfig,
+    pub(super) mcap: McapReaderConfig,
     #[cfg(feature = "ros2")]
-    zenoh: zenoh_io::ZenohConfig,
+    pub(super) zenoh: zenoh_io::ZenohConfig,
     #[cfg(feature = "ros2")]
-    zenoh_source: zenoh_io::ZenohSourceConfig,
+    pub(super) zenoh_source: zenoh_io::ZenohSourceConfig,
     #[cfg(feature = "ros2")]
-    publish: zenoh_io::ZenohPublisherConfig,
+    pub(super) publish: zenoh_io::ZenohPublisherConfig,
 }
 
 #[cfg(feature = "ros2")]
@@ -142,7 +159,7 @@ fn take<T: serde::de::DeserializeOwned + Default>(
     }
 }
 
-fn read_config(path: &std::path::Path) -> anyhow::Result<RunConfig> {
+pub(super) fn read_config(path: &std::path::Path) -> anyhow::Result<RunConfig> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let parse = || -> anyhow::Result<RunConfig> {

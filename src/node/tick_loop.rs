@@ -89,27 +89,35 @@ struct Progress {
 }
 
 impl Progress {
+    /// One line; a camera that sent nothing since the last line shows no rate, and neither
+    /// latency nor `d_proj` is shown without a frame or a surface (`-`).
     fn print(&self) {
         let rates: Vec<String> = self
             .per_camera
             .iter()
             .map(|(id, n)| format!("cam{id} {:.1} Hz", *n as f64 / self.span_s))
             .collect();
+        let (frames, latency) = if rates.is_empty() {
+            ("no frames".to_string(), "-".to_string())
+        } else {
+            (
+                rates.join(", "),
+                format!("{:.1} ms", self.last_latency_s * 1e3),
+            )
+        };
+        let d_proj = if self.d_proj_m.is_finite() {
+            format!("{:.1} mm", self.d_proj_m * 1e3)
+        } else {
+            "-".into()
+        };
         crate::stderr_line!(
-            "t {:7.2} s  {}  latency last {:.1} ms  ticks {}  misses {}  fusion {:?}  constraints {:?}{}  d_proj {:.1} mm",
+            "t {:7.2} s  {frames}  latency last {latency}  ticks {}  misses {}  fusion {:?}  constraints {:?}{}  d_proj {d_proj}",
             self.t_s,
-            if rates.is_empty() {
-                "no frames".into()
-            } else {
-                rates.join(", ")
-            },
-            self.last_latency_s * 1e3,
             self.ticks,
             self.misses,
             self.fusion,
             self.haptics,
             if self.held { " (held)" } else { "" },
-            self.d_proj_m * 1e3,
         );
     }
 }
