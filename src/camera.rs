@@ -70,24 +70,46 @@ impl DepthImage {
     /// Returns `None` when [`DepthImage::check_size`] refuses the intrinsics.
     pub fn deproject(&self, intrinsics: &PinholeIntrinsics) -> Option<PointCloud> {
         self.check_size(intrinsics).ok()?;
-        let mut points = Vec::with_capacity(self.data.len());
-        for v in 0..self.height {
-            for u in 0..self.width {
-                let raw = self.data[(v * self.width + u) as usize];
-                points.push(if raw == 0 {
-                    Vec3::splat(f32::NAN)
-                } else {
-                    let z = f64::from(raw) * self.depth_scale_m;
-                    Vec3::new(
-                        ((f64::from(u) - intrinsics.cx) * z / intrinsics.fx) as f32,
-                        ((f64::from(v) - intrinsics.cy) * z / intrinsics.fy) as f32,
-                        z as f32,
-                    )
-                });
-            }
-        }
-        PointCloud::organized(points, self.width, self.height)
+        let (w, h) = (self.width, self.height);
+        let points = self.deproject_rect(intrinsics, (0..w, 0..h));
+        PointCloud::organized(points, w, h)
     }
+
+    /// The camera-frame points of the pixels `u` x `v` (columns and rows, within the image
+    /// whose size [`DepthImage::check_size`] accepted), row by row, NaN where the depth is 0:
+    /// the same bits as those pixels of [`DepthImage::deproject`].
+    pub fn deproject_rect(
+        &self,
+        intrinsics: &PinholeIntrinsics,
+        (u, v): (std::ops::Range<u32>, std::ops::Range<u32>),
+    ) -> Vec<Vec3> {
+        let mut points = Vec::with_capacity(u.len() * v.len());
+        for y in v {
+            let row = y as usize * self.width as usize;
+            let raws = &self.data[row + u.start as usize..row + u.end as usize];
+            points.extend(
+                (u.start..u.end)
+                    .zip(raws)
+                    .map(|(x, &raw)| deproject_pixel(intrinsics, self.depth_scale_m, x, y, raw)),
+            );
+        }
+        points
+    }
+}
+
+/// Pixel `(u, v)` with raw depth `raw` in the camera's optical frame (f64, rounded to f32),
+/// NaN when `raw` is 0.
+#[inline]
+fn deproject_pixel(k: &PinholeIntrinsics, depth_scale_m: f64, u: u32, v: u32, raw: u16) -> Vec3 {
+    if raw == 0 {
+        return Vec3::splat(f32::NAN);
+    }
+    let z = f64::from(raw) * depth_scale_m;
+    Vec3::new(
+        ((f64::from(u) - k.cx) * z / k.fx) as f32,
+        ((f64::from(v) - k.cy) * z / k.fy) as f32,
+        z as f32,
+    )
 }
 
 /// What one camera delivers at one instant, as every source hands it to the node.

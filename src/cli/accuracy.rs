@@ -54,8 +54,7 @@ pub struct Args {
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut config: EvaluationConfig = match &args.config {
         Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("reading {}", path.display()))?;
+            let text = hapcloud::io::read_text(path)?;
             toml::from_str(&text)
                 .with_context(|| format!("{}: bad evaluation configuration", path.display()))?
         }

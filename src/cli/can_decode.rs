@@ -19,12 +19,13 @@ pub struct Args {
     /// Print one JSON object (`frames`, `unknown`, `messages` with their signals).
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    limit: super::InputLimit,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let text = match &args.dbc {
-        Some(path) => std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read {}", path.display()))?,
+        Some(path) => hapcloud::io::read_text(path)?,
         None => can::DBC_TEXT.to_string(),
     };
     let dbc = can::parse_dbc(&text).with_context(|| match &args.dbc {
@@ -36,9 +37,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let name = args.dbc.as_ref().map(|p| p.display().to_string());
         anyhow::bail!("{}: defines no message (BO_)", name.unwrap_or_default());
     }
-    let file = std::fs::File::open(&args.log)
-        .with_context(|| format!("cannot open {}", args.log.display()))?;
-    let frames = can::candump_frames(std::io::BufReader::new(file));
+    let log =
+        hapcloud::io::read_bytes_within(&args.log, args.limit.max_file_bytes, "--max-file-bytes")?;
+    let frames = can::candump_frames(log.as_slice());
     let mut out = std::io::BufWriter::new(std::io::stdout().lock());
     let printed = print(&args, &dbc, frames, &mut out).and_then(|()| Ok(out.flush()?));
     match printed {

@@ -31,6 +31,8 @@ pub struct Args {
     /// Print one JSON object instead of text.
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    limit: super::InputLimit,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -50,7 +52,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     };
     config.validate()?;
     let mut timings = Timings::default();
-    let cloud = timings.time("read", || io::read_cloud(&args.input))?;
+    let cloud = timings.time("read", || {
+        io::read_cloud_within(&args.input, &args.limit.limits())
+    })?;
     let ((clustering, submissions), adapter) = timings.run_stage(
         args.backend,
         "cluster",

@@ -35,6 +35,8 @@ pub struct Args {
     /// Print one JSON object describing the conversion.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    limit: super::InputLimit,
 }
 
 /// `--depth-scale-m`: within [`depth::DEPTH_SCALE_RANGE_M`].
@@ -62,7 +64,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 args.depth_scale_m
             );
         }
-        let image = depth::read(&args.input, args.depth_scale_m)?;
+        let image = depth::read_within(&args.input, args.depth_scale_m, &args.limit.limits())?;
         let intrinsics = PinholeIntrinsics {
             width: image.width,
             height: image.height,
@@ -76,7 +78,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .deproject(&intrinsics)
             .context("depth image and intrinsics disagree on the size")?
     } else {
-        io::read_cloud(&args.input)?
+        io::read_cloud_within(&args.input, &args.limit.limits())?
     };
     let encoding = match args.format {
         Format::Ascii => Encoding::Ascii,

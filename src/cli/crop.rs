@@ -46,6 +46,8 @@ pub struct Args {
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    limit: super::InputLimit,
 }
 
 /// The robot file: a list of primitives.
@@ -59,11 +61,10 @@ struct RobotFile {
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut timings = Timings::default();
     let (cloud, robot) = timings.time("read", || {
-        let cloud = hapcloud::io::read_cloud(&args.input)?;
+        let cloud = hapcloud::io::read_cloud_within(&args.input, &args.limit.limits())?;
         let robot = match &args.robot {
             Some(path) => {
-                let text = std::fs::read_to_string(path)
-                    .with_context(|| format!("reading {}", path.display()))?;
+                let text = hapcloud::io::read_text(path)?;
                 toml::from_str::<RobotFile>(&text)
                     .with_context(|| format!("{}: not a robot primitive list", path.display()))?
                     .primitive

@@ -298,7 +298,14 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             });
         }
         "campaign" => {
-            extra = campaign(&args.speeds, args.episodes, args.seed, args.worst, &out)?;
+            extra = campaign(
+                &args.speeds,
+                args.episodes,
+                args.seed,
+                args.worst,
+                &out,
+                args.json,
+            )?;
         }
         other => bail!(closed_loop::SimError::UnknownExperiment(other.into())),
     }
@@ -364,6 +371,7 @@ fn campaign(
     seed: u64,
     worst: usize,
     out: &Path,
+    json: bool,
 ) -> Result<serde_json::Value> {
     let config = campaign::CampaignConfig {
         episodes,
@@ -432,6 +440,21 @@ fn campaign(
     let cpu: Vec<f64> = result.episodes.iter().map(|e| e.cpu_s).collect();
     let cpu_total: f64 = cpu.iter().sum();
     let cpu_max = cpu.iter().copied().fold(0.0, f64::max);
+    let details = serde_json::json!({
+        "episodes": episodes,
+        "seed": seed,
+        "speeds_mps": result.config.speeds_mps,
+        "wall_s": wall_s,
+        "cpu_s_per_episode": cpu_total / f64::from(episodes),
+        "cpu_s_worst_episode": cpu_max,
+        "threads": rayon::current_num_threads(),
+        "summary": result.summary,
+        "contacts": result.contacts,
+        "worst": worst_files,
+    });
+    if json {
+        return Ok(details);
+    }
     println!(
         "campaign: {episodes} episodes of seed {seed} at {:?} m/s, 3 sources: wall {wall_s:.0} s, \
          CPU {:.2} s per episode (worst {cpu_max:.2} s) on {} threads",
@@ -473,18 +496,7 @@ fn campaign(
             r.contact_within_limit_fraction
         );
     }
-    Ok(serde_json::json!({
-        "episodes": episodes,
-        "seed": seed,
-        "speeds_mps": result.config.speeds_mps,
-        "wall_s": wall_s,
-        "cpu_s_per_episode": cpu_total / f64::from(episodes),
-        "cpu_s_worst_episode": cpu_max,
-        "threads": rayon::current_num_threads(),
-        "summary": result.summary,
-        "contacts": result.contacts,
-        "worst": worst_files,
-    }))
+    Ok(details)
 }
 
 /// One episode's draws and cost (`campaign-episodes.csv`).

@@ -126,6 +126,25 @@ mod numbers {
     }
 }
 
+/// The size limit of the files a stage command reads (flattened into its arguments).
+#[derive(clap::Args, Debug)]
+struct InputLimit {
+    /// Largest input file read, bytes: a FIFO, a device or a file still growing is read up
+    /// to this and refused.
+    #[arg(long, value_name = "BYTES", default_value_t = hapcloud::io::ReadLimits::default().max_file_bytes, value_parser = clap::value_parser!(u64).range(1..))]
+    max_file_bytes: u64,
+}
+
+impl InputLimit {
+    /// The read limits with this file size.
+    fn limits(&self) -> hapcloud::io::ReadLimits {
+        hapcloud::io::ReadLimits {
+            max_file_bytes: self.max_file_bytes,
+            ..Default::default()
+        }
+    }
+}
+
 #[derive(Parser)]
 #[command(
     name = "hapcloud",

@@ -160,8 +160,7 @@ fn take<T: serde::de::DeserializeOwned + Default>(
 }
 
 pub(super) fn read_config(path: &std::path::Path) -> anyhow::Result<RunConfig> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text = hapcloud::io::read_text(path)?;
     let parse = || -> anyhow::Result<RunConfig> {
         let mut table: toml::Table = toml::from_str(&text)?;
         let mcap: McapReaderConfig = take(&mut table, "mcap")?;

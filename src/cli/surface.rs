@@ -42,6 +42,8 @@ pub struct Args {
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    limit: super::InputLimit,
 }
 
 pub(crate) fn parse_method(s: &str) -> Result<CircleMethod, String> {
@@ -62,8 +64,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let hip = Point3::from(vec3("hip", &args.hip)?);
     let mut config: SurfaceConfig = match &args.config {
         Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("reading {}", path.display()))?;
+            let text = io::read_text(path)?;
             toml::from_str(&text)
                 .with_context(|| format!("{}: bad surface configuration", path.display()))?
         }
@@ -73,7 +74,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         config.shells.circle_method = m;
     }
     config.validate().context("surface configuration")?;
-    let cloud = io::read_cloud(&args.input)?;
+    let cloud = io::read_cloud_within(&args.input, &args.limit.limits())?;
     let view = match &args.view {
         Some(v) => {
             let v = vec3("view", v)?;

@@ -91,8 +91,7 @@ struct ViewFile {
 pub fn run(args: Args) -> anyhow::Result<()> {
     let file: ViewFile = match &args.config {
         Some(path) => {
-            let text = std::fs::read_to_string(path)
-                .with_context(|| format!("reading {}", path.display()))?;
+            let text = hapcloud::io::read_text(path)?;
             toml::from_str(&text).with_context(|| format!("{}", path.display()))?
         }
         None => ViewFile::default(),

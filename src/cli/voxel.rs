@@ -39,6 +39,8 @@ pub struct Args {
     /// Print one JSON object.
     #[arg(long)]
     json: bool,
+    #[command(flatten)]
+    limit: super::InputLimit,
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -50,7 +52,9 @@ enum FieldArg {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut timings = Timings::default();
-    let cloud = timings.time("read", || hapcloud::io::read_cloud(&args.input))?;
+    let cloud = timings.time("read", || {
+        hapcloud::io::read_cloud_within(&args.input, &args.limit.limits())
+    })?;
     let filter = (args.fmin.is_some() || args.fmax.is_some()).then(|| FilterLimits {
         axis: match args.field {
             FieldArg::X => Axis::X,

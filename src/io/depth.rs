@@ -236,13 +236,23 @@ fn format_of(path: &Path) -> Result<ImageFormat, Error> {
     })
 }
 
-/// Read a 16-bit depth image (PNG or TIFF, by extension) whose unit is `depth_scale_m`.
+/// Read a 16-bit depth image (PNG or TIFF, by extension) whose unit is `depth_scale_m`,
+/// within the default [`ReadLimits`].
 pub fn read(path: &Path, depth_scale_m: f64) -> Result<DepthImage, Error> {
+    read_within(path, depth_scale_m, &ReadLimits::default())
+}
+
+/// Read a 16-bit depth image; beyond `limits` (its size included) it is an error.
+pub fn read_within(
+    path: &Path,
+    depth_scale_m: f64,
+    limits: &ReadLimits,
+) -> Result<DepthImage, Error> {
     let format = format_of(path)?;
-    let bytes = read_bytes(path)?;
+    let bytes = read_bytes(path, limits)?;
     match format {
-        ImageFormat::Png => png_from_bytes(&bytes, depth_scale_m),
-        ImageFormat::Tiff => tiff_from_bytes(&bytes, depth_scale_m),
+        ImageFormat::Png => png_from_bytes_within(&bytes, depth_scale_m, limits),
+        ImageFormat::Tiff => tiff_from_bytes_within(&bytes, depth_scale_m, limits),
     }
     .map_err(|e| e.at(path))
 }

@@ -44,6 +44,9 @@ pub struct ReadLimits {
     pub max_pixels: u64,
     /// Most bytes a compressed block (PCD `binary_compressed`) may expand to (1 GiB).
     pub max_decoded_bytes: u64,
+    /// Most bytes read from one file (1 GiB): a path that does not end (a FIFO, a device
+    /// such as `/dev/zero`, a file still growing) is read up to this and refused.
+    pub max_file_bytes: u64,
 }
 
 impl Default for ReadLimits {
@@ -52,6 +55,7 @@ impl Default for ReadLimits {
             max_points: 1 << 24,
             max_pixels: 1 << 24,
             max_decoded_bytes: 1 << 30,
+            max_file_bytes: 1 << 30,
         }
     }
 }
@@ -63,6 +67,7 @@ impl ReadLimits {
             ("max_points", self.max_points),
             ("max_pixels", self.max_pixels),
             ("max_decoded_bytes", self.max_decoded_bytes),
+            ("max_file_bytes", self.max_file_bytes),
         ] {
             if value == 0 {
                 return Err(FormatError::Limit(format!("read limit {name} is 0")));
@@ -127,9 +132,67 @@ impl FormatError {
     }
 }
 
-/// Read a whole file, naming it in the error.
-pub(crate) fn read_bytes(path: &Path) -> Result<Vec<u8>, Error> {
-    std::fs::read(path).map_err(|e| FormatError::Io(e).at(path))
+/// Most bytes of a text file a command reads whole (a config, a scene, a DBC): 16 MiB.
+pub const MAX_TEXT_BYTES: u64 = 16 << 20;
+
+/// Read a whole file of at most `max_bytes` (`limit` names the setting in the error), naming
+/// the file in the error. A FIFO without a writer reads as empty instead of blocking the open;
+/// one that never ends, or a device, is read up to `max_bytes + 1` bytes and refused.
+pub fn read_bytes_within(path: &Path, max_bytes: u64, limit: &str) -> Result<Vec<u8>, Error> {
+    use std::io::Read;
+    use std::os::fd::AsRawFd;
+    use std::os::unix::fs::OpenOptionsExt;
+    let io = |e| FormatError::Io(e).at(path);
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)
+        .map_err(io)?;
+    // Blocking reads again: O_NONBLOCK was for the open of a FIFO only.
+    // SAFETY: fcntl on a descriptor `file` owns, with integer arguments only.
+    unsafe {
+        let flags = libc::fcntl(file.as_raw_fd(), libc::F_GETFL);
+        if flags < 0 || libc::fcntl(file.as_raw_fd(), libc::F_SETFL, flags & !libc::O_NONBLOCK) < 0
+        {
+            return Err(io(std::io::Error::last_os_error()));
+        }
+    }
+    let too_large = || {
+        FormatError::Limit(format!(
+            "more than {max_bytes} bytes, the limit ({limit}); a FIFO, a device or a file \
+             still growing is read up to it"
+        ))
+        .at(path)
+    };
+    let meta = file.metadata().map_err(io)?;
+    if meta.is_file() && meta.len() > max_bytes {
+        return Err(too_large());
+    }
+    let mut bytes = Vec::with_capacity(if meta.is_file() {
+        meta.len() as usize
+    } else {
+        0
+    });
+    file.take(max_bytes.saturating_add(1))
+        .read_to_end(&mut bytes)
+        .map_err(io)?;
+    if bytes.len() as u64 > max_bytes {
+        return Err(too_large());
+    }
+    Ok(bytes)
+}
+
+/// Read a whole text file of at most [`MAX_TEXT_BYTES`], naming it in the error.
+pub fn read_text(path: &Path) -> Result<String, Error> {
+    let bytes = read_bytes_within(path, MAX_TEXT_BYTES, "16 MiB for a text file")?;
+    String::from_utf8(bytes).map_err(|e| {
+        FormatError::Io(std::io::Error::new(std::io::ErrorKind::InvalidData, e)).at(path)
+    })
+}
+
+/// Read a whole file within `limits.max_file_bytes`, naming it in the error.
+pub(crate) fn read_bytes(path: &Path, limits: &ReadLimits) -> Result<Vec<u8>, Error> {
+    read_bytes_within(path, limits.max_file_bytes, "max_file_bytes")
 }
 
 /// Write a whole file, naming it in the error.
@@ -171,11 +234,16 @@ fn unknown_extension(path: &Path) -> Error {
         .at(path)
 }
 
-/// Read a PCD or PLY file, chosen by extension.
+/// Read a PCD or PLY file, chosen by extension, within the default [`ReadLimits`].
 pub fn read_cloud(path: &Path) -> Result<PointCloud, Error> {
+    read_cloud_within(path, &ReadLimits::default())
+}
+
+/// Read a PCD or PLY file, chosen by extension; beyond `limits` it is an error.
+pub fn read_cloud_within(path: &Path, limits: &ReadLimits) -> Result<PointCloud, Error> {
     match CloudFormat::from_path(path) {
-        Some(CloudFormat::Pcd) => pcd::read(path),
-        Some(CloudFormat::Ply) => ply::read(path),
+        Some(CloudFormat::Pcd) => pcd::read_within(path, limits),
+        Some(CloudFormat::Ply) => ply::read_within(path, limits),
         None => Err(unknown_extension(path)),
     }
 }
@@ -375,6 +443,35 @@ mod tests {
             err.to_string(),
             "over a read limit: 6 points declared, the limit is 5"
         );
+    }
+
+    /// A device that never ends, a regular file too large and a FIFO without a writer:
+    /// each ends at once, the first two with an error naming the limit.
+    #[test]
+    fn reads_stop_at_the_size_limit() {
+        let t = std::time::Instant::now();
+        let err = read_bytes_within(Path::new("/dev/zero"), 1 << 20, "max_file_bytes")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with("/dev/zero: over a read limit: more than 1048576 bytes")
+                && err.contains("max_file_bytes"),
+            "{err}"
+        );
+        let dir = std::env::temp_dir().join(format!("hapcloud-io-limit-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("big.pcd");
+        std::fs::write(&file, [0u8; 100]).unwrap();
+        assert_eq!(read_bytes_within(&file, 100, "x").unwrap().len(), 100);
+        let err = read_bytes_within(&file, 99, "x").unwrap_err().to_string();
+        assert!(err.contains("more than 99 bytes"), "{err}");
+        let fifo = dir.join("fifo.pcd");
+        let c_path = std::ffi::CString::new(fifo.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: mkfifo with a NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c_path.as_ptr(), 0o600) }, 0);
+        assert!(read_bytes_within(&fifo, 100, "x").unwrap().is_empty());
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert!(t.elapsed().as_secs() < 10, "{:?}", t.elapsed());
     }
 
     #[test]

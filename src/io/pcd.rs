@@ -569,9 +569,14 @@ pub fn from_bytes_within(bytes: &[u8], limits: &ReadLimits) -> Result<PointCloud
     }
 }
 
-/// Read a PCD file.
+/// Read a PCD file within the default [`ReadLimits`].
 pub fn read(path: &Path) -> Result<PointCloud, Error> {
-    from_bytes(&read_bytes(path)?).map_err(|e| e.at(path))
+    read_within(path, &ReadLimits::default())
+}
+
+/// Read a PCD file; beyond `limits` (its size included) it is an error.
+pub fn read_within(path: &Path, limits: &ReadLimits) -> Result<PointCloud, Error> {
+    from_bytes_within(&read_bytes(path, limits)?, limits).map_err(|e| e.at(path))
 }
 
 /// The fields the writer stores, with the value of each for point `i`.

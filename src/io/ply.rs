@@ -498,9 +498,14 @@ fn camera_pose(camera: &HashMap<String, f64>) -> Option<Isometry3<f64>> {
     ))
 }
 
-/// Read a PLY file.
+/// Read a PLY file within the default [`ReadLimits`].
 pub fn read(path: &Path) -> Result<PointCloud, Error> {
-    from_bytes(&read_bytes(path)?).map_err(|e| e.at(path))
+    read_within(path, &ReadLimits::default())
+}
+
+/// Read a PLY file; beyond `limits` (its size included) it is an error.
+pub fn read_within(path: &Path, limits: &ReadLimits) -> Result<PointCloud, Error> {
+    from_bytes_within(&read_bytes(path, limits)?, limits).map_err(|e| e.at(path))
 }
 
 /// Serialize a cloud as PLY: `float x y z`, `float nx ny nz` and `uchar red green blue alpha`

@@ -18,11 +18,11 @@ pub const BACKEND_CHOICE_FRAMES: usize = 5;
 
 /// The start-up rule of [`RunOptions::pick_backend`]: the front end on both backends
 /// ([`choose_backend`]) on the first [`BACKEND_CHOICE_FRAMES`] frames, each with the HIP and
-/// the robot primitives at its stamp and in the form each path takes it: the GPU a frame's
-/// depth image (deprojection and flying pixels in its first pass), the CPU the camera-frame
-/// cloud with its pose (flying pixels and the pose on the host, inside its time), as
-/// [`crate::perception::pipeline::CameraChain`] feeds them (with the kept clusters' shell
-/// sums the chain asks for). The faster by median wall time wins. `None` when the GPU does
+/// the robot primitives at its stamp and as [`crate::perception::pipeline::CameraChain`]
+/// feeds them (with the kept clusters' shell sums the chain asks for): a frame's depth image
+/// where it has one (deprojection, flying pixels and crop in the first pass: the GPU's over
+/// every pixel, the CPU's over the crop's pixel region), else the camera-frame cloud with its
+/// pose (flying pixels and the pose on the host, inside the front end's time). The faster by median wall time wins. `None` when the GPU does
 /// not open.
 pub fn measure_backends(
     config: &NodeConfig,
@@ -46,10 +46,10 @@ pub fn measure_backends(
         .iter()
         .map(|scene| config.surface.frontend_shells(&scene.hip_m))
         .collect();
-    let input = |i: usize, depth_image: bool| {
+    let input = |i: usize| {
         let (f, scene) = (&frames[i], &scenes[i]);
         let cloud_from_camera = f.world_from_camera;
-        let points = match f.depth().filter(|_| depth_image) {
+        let points = match f.depth() {
             Some((image, intrinsics)) => FramePoints::Depth(DepthInput {
                 image,
                 intrinsics,
@@ -73,12 +73,11 @@ pub fn measure_backends(
             shells: layouts[i].as_ref(),
         }
     };
-    let cpu: Vec<FrameInput<'_>> = (0..frames.len()).map(|i| input(i, false)).collect();
-    let gpu: Vec<FrameInput<'_>> = (0..frames.len()).map(|i| input(i, true)).collect();
+    let inputs: Vec<FrameInput<'_>> = (0..frames.len()).map(input).collect();
     Ok(Some(choose_backend(
         &config.frontend,
         Some(Arc::new(ctx)),
-        &cpu,
-        &gpu,
+        &inputs,
+        &inputs,
     )?))
 }

@@ -34,8 +34,9 @@ use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
 use crate::gpu::{GpuContext, GpuError};
-use crate::perception::flying::{FlyingPixelConfig, Veiled, veil_points};
+use crate::perception::flying::{FlyingPixelConfig, VeilTest, Veiled, to_cloud_frame, veil_points};
 use nalgebra::Isometry3;
+use std::ops::Range;
 
 /// Crop settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -281,6 +282,210 @@ pub fn crop_depth_cpu(
     })
 }
 
+/// A rectangle of pixels, columns `u` and rows `v` (half-open, within the image).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PixelRect {
+    pub u: Range<u32>,
+    pub v: Range<u32>,
+}
+
+impl PixelRect {
+    /// Every pixel of a `width` x `height` image.
+    pub fn full(width: u32, height: u32) -> Self {
+        Self {
+            u: 0..width,
+            v: 0..height,
+        }
+    }
+
+    /// No pixel.
+    pub fn empty() -> Self {
+        Self { u: 0..0, v: 0..0 }
+    }
+
+    pub fn pixels(&self) -> usize {
+        self.u.len() * self.v.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.pixels() == 0
+    }
+
+    /// The rectangle grown by `k` pixels on each side, within a `width` x `height` image.
+    fn grown(&self, k: u32, width: u32, height: u32) -> Self {
+        if self.is_empty() {
+            return Self::empty();
+        }
+        Self {
+            u: self.u.start.saturating_sub(k)..self.u.end.saturating_add(k).min(width),
+            v: self.v.start.saturating_sub(k)..self.v.end.saturating_add(k).min(height),
+        }
+    }
+}
+
+/// Slack of the pixel bound on the crop sphere, m: the f32 roundings of a deprojected point,
+/// of the pose and of the HIP in the camera frame move a point by about 1e-7 of the
+/// distances involved; a millionth of them plus 10 um keeps every pixel the crop (or the
+/// flying-pixel test, within the same radius) can decide otherwise.
+fn region_slack_m(config: &CropConfig, hip_cam: &Point3<f64>, pose: &Isometry3<f64>) -> f64 {
+    1e-5 + 1e-6 * (config.radius_m + hip_cam.coords.norm() + pose.translation.vector.norm())
+}
+
+/// Pixels of one image axis whose rays `t = (p - c) / f` lie in `[t_lo, t_hi]`, one pixel of
+/// margin on each side, within `0..size`.
+fn axis_pixels(t_lo: f64, t_hi: f64, c: f64, f: f64, size: u32) -> Range<u32> {
+    let side = f64::from(size);
+    let lo = (c + f * t_lo).floor() - 1.0;
+    let hi = (c + f * t_hi).ceil() + 2.0;
+    if !(lo.is_finite() && hi.is_finite()) {
+        return 0..size;
+    }
+    // In range before the casts (a ray far outside the image gives a huge pixel number).
+    let (lo, hi) = (lo.clamp(0.0, side) as u32, hi.clamp(0.0, side) as u32);
+    lo..hi.max(lo)
+}
+
+/// The pixels of a depth frame whose point the crop can keep: the crop sphere (the HIP and
+/// `radius_m`, in the camera frame) projected into the image, a pixel of margin around it.
+/// A depth pixel's point lies on its pixel's ray at a depth from one unit to 65,535 units,
+/// so a sphere entirely behind the camera or beyond that range projects onto no pixel; a
+/// sphere in front of the camera onto the box of its tangent cone; one that reaches behind
+/// the camera onto the box of its points' rays at depths of at least one unit. Without a
+/// scene (or an input that does not validate), the whole image.
+pub fn crop_region(
+    depth: &DepthInput<'_>,
+    config: &CropConfig,
+    scene: Option<&CropScene<'_>>,
+) -> PixelRect {
+    let (w, h) = (depth.image.width, depth.image.height);
+    let Some(scene) = scene else {
+        return PixelRect::full(w, h);
+    };
+    let pose = &depth.cloud_from_camera;
+    let c = pose.inverse() * scene.hip_m;
+    let r = config.radius_m + region_slack_m(config, &c, pose);
+    let k = depth.intrinsics;
+    let unit = depth.image.depth_scale_m;
+    if !(c.coords.iter().all(|v| v.is_finite()) && r.is_finite() && unit > 0.0) {
+        return PixelRect::full(w, h);
+    }
+    if c.z + r < unit || c.z - r > f64::from(u16::MAX) * unit {
+        return PixelRect::empty();
+    }
+    let bounds = |a: f64| {
+        if c.z > r {
+            // Planes x = t z through the camera tangent to the sphere:
+            // (a - t z)^2 = r^2 (1 + t^2) has the roots t = (a z -+ r sqrt(a^2 + z^2 - r^2))
+            // / (z^2 - r^2); every point of the sphere has x / z between them.
+            let d = c.z * c.z - r * r;
+            let s = r * (a * a + d).sqrt();
+            ((a * c.z - s) / d, (a * c.z + s) / d)
+        } else {
+            // The sphere's box: x in [a - r, a + r], z in [max(z - r, one unit), z + r].
+            let (z0, z1) = ((c.z - r).max(unit), c.z + r);
+            let t = [(a - r) / z0, (a - r) / z1, (a + r) / z0, (a + r) / z1];
+            (
+                t.iter().copied().fold(f64::INFINITY, f64::min),
+                t.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+            )
+        }
+    };
+    let (tx, ty) = (bounds(c.x), bounds(c.y));
+    let rect = PixelRect {
+        u: axis_pixels(tx.0, tx.1, k.cx, k.fx, w),
+        v: axis_pixels(ty.0, ty.1, k.cy, k.fy, h),
+    };
+    if rect.is_empty() {
+        PixelRect::empty()
+    } else {
+        rect
+    }
+}
+
+/// A depth frame's first pass on the CPU over the pixels its crop can keep
+/// ([`crop_region`]): what [`crop_depth_cpu`] keeps, as points.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthKept {
+    /// Cloud-frame points the crop keeps, in pixel order.
+    pub points: Vec<Vec3>,
+    /// Pixels with a depth (the whole image).
+    pub valid: usize,
+    /// Flying pixels rejected.
+    pub flying: usize,
+    /// The pixels read.
+    pub region: PixelRect,
+}
+
+/// A depth frame's first pass on the CPU in one pass over the 16-bit image inside the crop's
+/// pixel region ([`crop_region`], grown by the flying-pixel window for the neighbours):
+/// deprojection, flying-pixel test, pose and crop of each pixel, with no cloud of the whole
+/// frame. The points are those [`crop_depth_cpu`] keeps, bit for bit, in the same order; the
+/// counts are its counts.
+pub fn crop_depth_region_cpu(
+    depth: &DepthInput<'_>,
+    config: &CropConfig,
+    scene: Option<&CropScene<'_>>,
+) -> Result<DepthKept, CropError> {
+    config.validate()?;
+    depth.validate()?;
+    let crop = scene.map(|s| CpuCrop::new(config, s)).transpose()?;
+    let image = depth.image;
+    let (width, height) = (image.width, image.height);
+    let pose = &depth.cloud_from_camera;
+    let region = crop_region(depth, config, scene);
+    let (near, radius) = veil_region(pose, config, scene);
+    // The pixels read: the region and, for its flying-pixel test, their neighbours.
+    let window = if depth.flying.enabled {
+        depth.flying.window_px
+    } else {
+        0
+    };
+    let read = region.grown(window, width, height);
+    let camera = image.deproject_rect(depth.intrinsics, (read.u.clone(), read.v.clone()));
+    let size = (read.u.len() as u32, read.v.len() as u32);
+    let test = VeilTest::rect(&camera, size, height, near, radius, depth.flying);
+    // The crop sphere in the camera frame: a point farther from the HIP than the radius and
+    // the slack is dropped before its pose.
+    let hip_cam = scene.map(|s| pose.inverse() * s.hip_m);
+    let reach2 = hip_cam.map(|c| {
+        let reach = config.radius_m + region_slack_m(config, &c, pose);
+        reach * reach
+    });
+    let (mut points, mut flying) = (Vec::new(), 0);
+    let row_len = read.u.len();
+    for y in region.v.clone() {
+        let row = (y - read.v.start) as usize * row_len;
+        for x in region.u.clone() {
+            let i = row + (x - read.u.start) as usize;
+            let p = camera[i];
+            // A pixel with a depth has a finite point with z > 0.
+            if !finite_bits(p) {
+                continue;
+            }
+            if test.is_flying(i) {
+                flying += 1;
+                continue;
+            }
+            if let (Some(c), Some(reach2)) = (&hip_cam, reach2) {
+                let d = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)) - c;
+                if d.norm_squared() > reach2 {
+                    continue;
+                }
+            }
+            let q = to_cloud_frame(p, pose);
+            if crop.as_ref().is_none_or(|c| c.keeps(q)) {
+                points.push(q);
+            }
+        }
+    }
+    Ok(DepthKept {
+        points,
+        valid: image.data.iter().filter(|&&d| d != 0).count(),
+        flying,
+        region,
+    })
+}
+
 /// True when all three coordinates are finite, decided on the bit patterns.
 pub fn finite_bits(p: Vec3) -> bool {
     const EXP: u32 = 0x7f80_0000;
@@ -302,34 +507,52 @@ pub fn kept_indices(mask: &[u32], n: usize) -> Vec<usize> {
     (0..n).filter(|&i| mask_bit(mask, i)).collect()
 }
 
+/// The crop's decision for one point on the CPU (f64 geometry), prepared once per frame.
+struct CpuCrop {
+    hip: Point3<f64>,
+    r2: f64,
+    robot: Vec<PreparedPrimitive>,
+}
+
+impl CpuCrop {
+    fn new(config: &CropConfig, scene: &CropScene<'_>) -> Result<Self, CropError> {
+        config.validate()?;
+        scene.validate()?;
+        let margin = config.robot_margin_for(scene);
+        Ok(Self {
+            hip: scene.hip_m,
+            r2: config.radius_m * config.radius_m,
+            robot: scene
+                .robot
+                .iter()
+                .map(|p| p.grown(margin).prepared())
+                .collect(),
+        })
+    }
+
+    /// Point `p` (cloud frame) is finite, within the radius of the HIP and outside every
+    /// grown primitive.
+    fn keeps(&self, p: Vec3) -> bool {
+        if !finite_bits(p) {
+            return false;
+        }
+        let q = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+        (q - self.hip).norm_squared() <= self.r2 && !self.robot.iter().any(|r| r.contains(&q))
+    }
+}
+
 /// CPU reference: the keep mask of `points`.
 pub fn crop_cpu(
     points: &[Vec3],
     config: &CropConfig,
     scene: &CropScene<'_>,
 ) -> Result<Vec<u32>, CropError> {
-    config.validate()?;
-    scene.validate()?;
-    let r2 = config.radius_m * config.radius_m;
-    let margin = config.robot_margin_for(scene);
-    let robot: Vec<PreparedPrimitive> = scene
-        .robot
-        .iter()
-        .map(|p| p.grown(margin).prepared())
-        .collect();
+    let crop = CpuCrop::new(config, scene)?;
     let mut mask = vec![0u32; mask_words(points.len())];
     for (i, p) in points.iter().enumerate() {
-        if !finite_bits(*p) {
-            continue;
+        if crop.keeps(*p) {
+            mask[i / 32] |= 1 << (i % 32);
         }
-        let q = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-        if (q - scene.hip_m).norm_squared() > r2 {
-            continue;
-        }
-        if robot.iter().any(|prim| prim.contains(&q)) {
-            continue;
-        }
-        mask[i / 32] |= 1 << (i % 32);
     }
     Ok(mask)
 }
@@ -951,6 +1174,287 @@ mod tests {
     use super::*;
     use nalgebra::Vector3;
     use proptest::prelude::*;
+
+    /// The crop region's pass gives what the pass over every pixel keeps, bit for bit and in
+    /// the same order, with the same counts; returns the pixels it read.
+    fn region_equals_every_pixel(
+        depth: &DepthInput<'_>,
+        config: &CropConfig,
+        scene: &CropScene<'_>,
+    ) -> usize {
+        let all = crop_depth_cpu(depth, config, Some(scene)).unwrap();
+        let roi = crop_depth_region_cpu(depth, config, Some(scene)).unwrap();
+        let kept: Vec<[u32; 3]> = kept_indices(&all.mask, all.points.len())
+            .into_iter()
+            .map(|i| all.points[i].to_array().map(f32::to_bits))
+            .collect();
+        let got: Vec<[u32; 3]> = roi
+            .points
+            .iter()
+            .map(|p| p.to_array().map(f32::to_bits))
+            .collect();
+        assert_eq!(got, kept, "hip {:?}, region {:?}", scene.hip_m, roi.region);
+        assert_eq!(
+            (roi.valid, roi.flying),
+            (all.valid, all.flying),
+            "hip {:?}",
+            scene.hip_m
+        );
+        // Every kept pixel lies in the region.
+        let w = depth.image.width as usize;
+        for i in kept_indices(&all.mask, all.points.len()) {
+            let (u, v) = ((i % w) as u32, (i / w) as u32);
+            assert!(
+                roi.region.u.contains(&u) && roi.region.v.contains(&v),
+                "pixel {u}, {v}"
+            );
+        }
+        roi.region.pixels()
+    }
+
+    /// HIPs (camera frame) that test the region's cases: around the image's centre and at its
+    /// borders and corners at several depths, a sphere holding the camera, one reaching behind
+    /// it, one wholly behind it, one beyond the depth range and one beside the field of view.
+    fn test_hips(k: &PinholeIntrinsics) -> Vec<Point3<f64>> {
+        let ray =
+            |u: f64, v: f64, z: f64| Point3::new((u - k.cx) * z / k.fx, (v - k.cy) * z / k.fy, z);
+        let (w, h) = (f64::from(k.width), f64::from(k.height));
+        let mut hips = Vec::new();
+        for z in [0.6, 0.9, 1.4] {
+            for (u, v) in [
+                (0.5, 0.5),
+                (0.02, 0.5),
+                (0.98, 0.02),
+                (0.5, 0.99),
+                (1.0, 1.0),
+                (0.0, 0.0),
+            ] {
+                hips.push(ray(u * w, v * h, z));
+            }
+        }
+        hips.extend([
+            Point3::new(0.0, 0.0, 0.1),
+            Point3::new(0.05, 0.0, 0.25),
+            Point3::new(0.0, 0.0, -0.5),
+            Point3::new(0.0, 0.0, 70.0),
+            Point3::new(3.0, 0.0, 0.5),
+            Point3::new(-0.9, -0.6, 0.3),
+        ]);
+        hips
+    }
+
+    #[test]
+    fn the_region_pass_keeps_what_every_pixel_keeps_on_real_and_synthetic_frames() {
+        use crate::perception::test_data::{PCL_FRAMES, pcl_depth, synthetic_depth};
+        let k = PinholeIntrinsics::PCL_GRABBER;
+        let mut images: Vec<DepthImage> = PCL_FRAMES.iter().map(|f| pcl_depth(f)).collect();
+        images.push(synthetic_depth(4));
+        let flying = FlyingPixelConfig::default();
+        let wide = FlyingPixelConfig {
+            window_px: 3,
+            ..flying.clone()
+        };
+        let poses = [
+            Isometry3::identity(),
+            Isometry3::new(Vector3::new(0.3, -0.2, 1.1), Vector3::new(0.4, -0.3, 1.2)),
+        ];
+        let robot = [Primitive::Capsule {
+            a_m: Point3::new(0.0, 0.0, 0.7),
+            b_m: Point3::new(0.1, 0.05, 0.95),
+            radius_m: 0.04,
+        }];
+        let config = CropConfig::default();
+        let (mut read, mut empty, mut kept_any) = (0, 0, 0);
+        for (n, image) in images.iter().enumerate() {
+            for pose in &poses {
+                for (j, hip_cam) in test_hips(&k).into_iter().enumerate() {
+                    let depth = DepthInput {
+                        image,
+                        intrinsics: &k,
+                        cloud_from_camera: *pose,
+                        flying: if j % 2 == 0 { &flying } else { &wide },
+                    };
+                    // The robot's capsule in the camera frame as posed in the cloud frame.
+                    let posed = robot.clone().map(|p| match p {
+                        Primitive::Capsule { a_m, b_m, radius_m } => Primitive::Capsule {
+                            a_m: pose * a_m,
+                            b_m: pose * b_m,
+                            radius_m,
+                        },
+                        other => other,
+                    });
+                    let scene = CropScene {
+                        hip_m: pose * hip_cam,
+                        robot: if n % 2 == 0 { &posed } else { &[] },
+                        camera_m: Some(Point3::from(pose.translation.vector)),
+                    };
+                    let pixels = region_equals_every_pixel(&depth, &config, &scene);
+                    read += pixels;
+                    empty += usize::from(pixels == 0);
+                    let kept = crop_depth_region_cpu(&depth, &config, Some(&scene)).unwrap();
+                    kept_any += usize::from(!kept.points.is_empty());
+                }
+            }
+        }
+        let frames = images.len() * poses.len() * test_hips(&k).len();
+        // Behind the camera, beyond the range and beside the field of view: no pixel.
+        assert!(empty >= 3 * images.len() * poses.len(), "{empty}");
+        assert!(3 * kept_any > frames, "{kept_any} of {frames}");
+        // The regions read under half of the pixels on average.
+        assert!(read < frames * image_pixels(&k) / 2, "{read}");
+    }
+
+    fn image_pixels(k: &PinholeIntrinsics) -> usize {
+        (k.width * k.height) as usize
+    }
+
+    #[test]
+    fn without_a_scene_the_region_is_the_image_and_keeps_every_valid_pixel_that_is_not_flying() {
+        let image = crate::perception::test_data::synthetic_depth(6);
+        let k = PinholeIntrinsics::PCL_GRABBER;
+        let depth = DepthInput {
+            image: &image,
+            intrinsics: &k,
+            cloud_from_camera: Isometry3::identity(),
+            flying: &FlyingPixelConfig::default(),
+        };
+        let config = CropConfig::default();
+        let all = crop_depth_cpu(&depth, &config, None).unwrap();
+        let roi = crop_depth_region_cpu(&depth, &config, None).unwrap();
+        assert_eq!(roi.region, PixelRect::full(640, 480));
+        let kept: Vec<Vec3> = kept_indices(&all.mask, all.points.len())
+            .into_iter()
+            .map(|i| all.points[i])
+            .collect();
+        assert_eq!(roi.points, kept);
+        assert_eq!((roi.valid, roi.flying), (all.valid, all.flying));
+        assert!(roi.flying > 0);
+    }
+
+    #[test]
+    fn bad_depth_frames_are_errors_or_honest_empty_results() {
+        let k = PinholeIntrinsics {
+            width: 1,
+            height: 1,
+            fx: 500.0,
+            fy: 500.0,
+            cx: 0.5,
+            cy: 0.5,
+        };
+        let one = DepthImage {
+            width: 1,
+            height: 1,
+            depth_scale_m: 0.001,
+            data: vec![800],
+        };
+        let flying = FlyingPixelConfig::default();
+        let config = CropConfig::default();
+        let scene = CropScene {
+            hip_m: Point3::new(0.0, 0.0, 0.8),
+            robot: &[],
+            camera_m: None,
+        };
+        let depth = DepthInput {
+            image: &one,
+            intrinsics: &k,
+            cloud_from_camera: Isometry3::identity(),
+            flying: &flying,
+        };
+        // A 1x1 image: its one pixel, kept.
+        let kept = crop_depth_region_cpu(&depth, &config, Some(&scene)).unwrap();
+        assert_eq!((kept.points.len(), kept.valid, kept.flying), (1, 1, 0));
+        region_equals_every_pixel(&depth, &config, &scene);
+        // 65,535 x 65,535 declared over one pixel of data: an error, nothing allocated for it.
+        let huge = DepthImage {
+            width: 65_535,
+            height: 65_535,
+            ..one.clone()
+        };
+        let huge_k = PinholeIntrinsics {
+            width: 65_535,
+            height: 65_535,
+            cx: 32_767.0,
+            cy: 32_767.0,
+            ..k
+        };
+        let e = crop_depth_region_cpu(
+            &DepthInput {
+                image: &huge,
+                intrinsics: &huge_k,
+                ..depth
+            },
+            &config,
+            Some(&scene),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("65535 x 65535 image holds 1 pixels"), "{e}");
+        // Intrinsics that disagree with the image, and a principal point outside it.
+        let e = crop_depth_region_cpu(
+            &DepthInput {
+                intrinsics: &huge_k,
+                ..depth
+            },
+            &config,
+            Some(&scene),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("intrinsics for 65535 x 65535 pixels, image is 1 x 1"),
+            "{e}"
+        );
+        let outside = PinholeIntrinsics { cx: 5.0, ..k };
+        let e = crop_depth_region_cpu(
+            &DepthInput {
+                intrinsics: &outside,
+                ..depth
+            },
+            &config,
+            Some(&scene),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.contains("principal point cx = 5.0 px is outside the image"),
+            "{e}"
+        );
+        // A HIP that is not finite, and a pose that is not.
+        let nan = CropScene {
+            hip_m: Point3::new(f64::NAN, 0.0, 1.0),
+            ..scene.clone()
+        };
+        assert!(matches!(
+            crop_depth_region_cpu(&depth, &config, Some(&nan)),
+            Err(CropError::BadHip)
+        ));
+        let mut pose = Isometry3::identity();
+        pose.translation.vector.x = f64::INFINITY;
+        let e = crop_depth_region_cpu(
+            &DepthInput {
+                cloud_from_camera: pose,
+                ..depth
+            },
+            &config,
+            Some(&scene),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("camera pose is not finite"), "{e}");
+        // Behind the camera and beside the image: no pixel read, an empty result with the
+        // image's counts.
+        for hip in [Point3::new(0.0, 0.0, -1.0), Point3::new(5.0, 0.0, 0.5)] {
+            let scene = CropScene {
+                hip_m: hip,
+                ..scene.clone()
+            };
+            let kept = crop_depth_region_cpu(&depth, &config, Some(&scene)).unwrap();
+            assert_eq!(
+                (kept.region.clone(), kept.points.len(), kept.valid),
+                (PixelRect::empty(), 0, 1)
+            );
+        }
+    }
 
     /// A 1 m crop around the HIP; the primitives exactly as posed.
     fn metre_crop_without_margin() -> CropConfig {

@@ -82,10 +82,10 @@ fn valid(p: Vec3) -> bool {
     p.is_finite() && p != Vec3::ZERO
 }
 
-/// The veil test of one organized cloud (camera frame): which pixels within `radius_m` of
-/// `near_cam` are flying pixels. An unorganized cloud (`height <= 1`), a size that is not
-/// `width x height` or a disabled config flags nothing.
-struct VeilTest<'a> {
+/// The veil test of one organized cloud (camera frame), or of a rectangle of one: which
+/// pixels within `radius_m` of `near_cam` are flying pixels. An unorganized cloud
+/// (`height <= 1`), a size that is not `width x height` or a disabled config flags nothing.
+pub(crate) struct VeilTest<'a> {
     points: &'a [Vec3],
     width: usize,
     height: usize,
@@ -119,8 +119,25 @@ impl<'a> VeilTest<'a> {
         }
     }
 
+    /// The test of the rectangle `points` (`size`, row-major) cut from an image of
+    /// `image_height` rows: its pixels are tested as the whole image's pixels are wherever the
+    /// rectangle holds their whole window (a rectangle one row high of a taller image too).
+    pub(crate) fn rect(
+        points: &'a [Vec3],
+        size: (u32, u32),
+        image_height: u32,
+        near_cam: Vec3,
+        radius_m: f32,
+        config: &FlyingPixelConfig,
+    ) -> Self {
+        let mut test = Self::new(points, size, near_cam, radius_m, config);
+        let (w, h) = (size.0 as usize, size.1 as usize);
+        test.active = config.enabled && image_height > 1 && w * h == points.len();
+        test
+    }
+
     /// Valid pixel `i` (finite, not zero) is a flying pixel.
-    fn is_flying(&self, i: usize) -> bool {
+    pub(crate) fn is_flying(&self, i: usize) -> bool {
         let p = self.points[i];
         if !self.active || p.distance_squared(self.near_cam) >= self.r2 {
             return false;
@@ -160,7 +177,7 @@ pub fn flying_pixels(
 }
 
 /// `cloud_from_camera` applied to a point (f64, then rounded to f32).
-fn to_cloud_frame(p: Vec3, cloud_from_camera: &Isometry3<f64>) -> Vec3 {
+pub(crate) fn to_cloud_frame(p: Vec3, cloud_from_camera: &Isometry3<f64>) -> Vec3 {
     let q = cloud_from_camera * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
     Vec3::new(q.x as f32, q.y as f32, q.z as f32)
 }

@@ -42,7 +42,7 @@ use crate::perception::cluster::{
 };
 use crate::perception::crop::{
     CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop, crop_cpu,
-    crop_depth_cpu, mask_words, veil_region,
+    crop_depth_cpu, crop_depth_region_cpu, mask_words, veil_region,
 };
 use crate::perception::flying::{FlyingPixelConfig, veil_cloud};
 use crate::perception::shells::{
@@ -361,13 +361,24 @@ impl CpuFrontend {
                 ),
                 None => (None, None, None),
             },
-            HostPoints::Depth(input) => {
+            // The overlay's keep mask and points per pixel: every pixel read.
+            HostPoints::Depth(input) if frame.wants_crop_keep() => {
                 let c = crop_depth_cpu(input, &self.config.crop, frame.crop.as_ref())?;
                 let counts = DepthCounts {
                     valid: c.valid,
                     flying: c.flying,
                 };
                 (Some(c.points), Some(c.mask), Some(counts))
+            }
+            // Otherwise only the pixels the crop can keep, and only the kept points go on
+            // (in pixel order: the same cells, sums and clusters).
+            HostPoints::Depth(input) => {
+                let c = crop_depth_region_cpu(input, &self.config.crop, frame.crop.as_ref())?;
+                let counts = DepthCounts {
+                    valid: c.valid,
+                    flying: c.flying,
+                };
+                (Some(c.points), None, Some(counts))
             }
         };
         let points: &[Vec3] = match &input {

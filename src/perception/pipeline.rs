@@ -7,13 +7,13 @@
 //! 1. the frame's points to the world frame with the pose the camera reports (the HIP, the
 //!    robot primitives and the surface memory live there),
 //! 2. flying-pixel rejection on the organized image ([`super::flying`]): points hanging
-//!    between a foreground and a background surface go. On the GPU a frame that carries its
-//!    depth image skips steps 1 and 2 here: the image itself is the front end's input, and
-//!    its first pass deprojects, moves, tests and crops every pixel
-//!    ([`super::crop::DepthInput`]). For a real source the cloud is the image's
-//!    deprojection, so both paths see the same points (to the f32 deprojection's rounding);
-//!    the simulator's cloud is its unquantised depth and its image the 1 mm one a D435
-//!    delivers, so in simulation the two paths differ by that quantisation,
+//!    between a foreground and a background surface go. A frame that carries its depth
+//!    image skips steps 1 and 2 here on both backends: the image itself is the front end's
+//!    input, and its first pass deprojects, moves, tests and crops the pixels
+//!    ([`super::crop::DepthInput`]; the GPU every pixel, the CPU only those of the crop
+//!    sphere's projection, [`super::crop::crop_region`]). The simulator's cloud is its
+//!    unquantised depth and its image the 1 mm one a D435 delivers: both backends take the
+//!    image, as from a real camera,
 //! 3. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
 //!    the robot primitives, voxel grid, Euclidean clusters (paper IV-A to IV-C); the points of
 //!    the clusters the [`ClusterSelection`] picks go on (clusters below the size threshold are
@@ -496,19 +496,20 @@ impl CameraChain {
         robot: &[Primitive],
     ) -> Result<ChainFrame, ChainError> {
         let pose = frame.world_from_camera;
-        // On the GPU a frame that carries its depth image enters as the image: the first
-        // pass deprojects it, rejects flying pixels and crops. Otherwise (CPU, or a source
-        // without an image) the camera-frame cloud goes in with its pose, and the front end
-        // runs the veil test and the pose on the host.
+        // A frame that carries its depth image enters as the image: the first pass
+        // deprojects it, rejects flying pixels and crops (the GPU over every pixel, the CPU
+        // over the pixels the crop region covers). A source without an image hands the
+        // camera-frame cloud in with its pose, and the front end runs the veil test and the
+        // pose on the host.
         let flying_config = self.surface_config.flying_pixels.clone();
-        let points = match (&self.ctx, frame.depth()) {
-            (Some(_), Some((image, intrinsics))) => FramePoints::Depth(DepthInput {
+        let points = match frame.depth() {
+            Some((image, intrinsics)) => FramePoints::Depth(DepthInput {
                 image,
                 intrinsics,
                 cloud_from_camera: pose,
                 flying: &flying_config,
             }),
-            _ => FramePoints::CameraCloud(CameraCloud {
+            None => FramePoints::CameraCloud(CameraCloud {
                 cloud: frame.cloud(),
                 cloud_from_camera: pose,
                 flying: &flying_config,
@@ -689,7 +690,7 @@ mod tests {
     }
 
     #[test]
-    fn on_the_gpu_a_depth_frame_enters_as_its_image_and_agrees_with_the_cpu_chain() {
+    fn a_depth_frame_enters_as_its_image_on_both_backends_and_they_agree() {
         let (hip, closest, _) = hip_and_truth();
         let new = |backend| {
             CameraChain::new(
@@ -714,15 +715,10 @@ mod tests {
             cpu.set_crop_keep(layers);
             gpu.set_crop_keep(layers);
             let g = gpu.process(&f, &hip, &[]).unwrap();
-            // The GPU chain took the image and left the cloud unmade; the CPU chain
-            // deprojected it and ran the flying-pixel test in its front end.
-            assert!(!f.is_cloud_made());
+            // Both chains took the image and left the cloud unmade.
             let c = cpu.process(&f, &hip, &[]).unwrap();
-            assert!(f.is_cloud_made());
-            let cpu_counts = c
-                .front
-                .depth
-                .expect("the CPU front end took the camera cloud");
+            assert!(!f.is_cloud_made());
+            let cpu_counts = c.front.depth.expect("the CPU took the depth image");
             assert_eq!(cpu_counts.flying, c.flying_pixels);
             let counts = g.front.depth.expect("the GPU took the depth image");
             assert_eq!(counts.valid, f.cloud().finite_count());
@@ -756,6 +752,68 @@ mod tests {
             assert!((ge.centroid_m - closest).norm() < 8e-3);
         }
         assert!(gpu.gpu_fallback().is_none());
+    }
+
+    /// The CPU chain over the crop's pixel region gives what it gives over every pixel (with
+    /// the keep mask asked for, every pixel is read): voxels, clusters, shell sums, counts and
+    /// estimates, bit for bit, on both cameras of a simulated scene, frames spread over it.
+    #[test]
+    fn the_cpu_chain_over_the_crop_region_equals_the_chain_over_every_pixel_on_a_scene() {
+        use crate::robot::RobotModel;
+        use crate::scene::{Scene, Simulator};
+        let scene = Scene::from_builtin("torso_approach_realistic").unwrap();
+        let sim = Simulator::new(&scene).unwrap();
+        let base = scene.file.robot.as_ref().unwrap().world_from_base();
+        let robot = RobotModel::anyexo().unwrap().with_base(base);
+        let chain = |keep| {
+            let mut c = CameraChain::new(
+                Backend::Cpu,
+                FrontendConfig::default(),
+                SurfaceConfig::default(),
+                None,
+            )
+            .unwrap();
+            c.set_crop_keep(keep);
+            c
+        };
+        let (mut region, mut every) = (chain(false), chain(true));
+        let (mut kept, mut valid) = (0, 0);
+        for index in (0..120).step_by(8) {
+            for camera in 0..sim.cameras().len() as u32 {
+                // A frame the scene drops has no timing.
+                let Some(timing) = sim.timing(camera, index) else {
+                    continue;
+                };
+                let t = timing.stamp_s;
+                let (hip, joints) = (sim.hip_at(t).unwrap(), sim.joints_at(t).unwrap());
+                let primitives: Vec<_> = robot
+                    .collision_primitives_world(&joints)
+                    .into_iter()
+                    .map(|(_, p)| p)
+                    .collect();
+                let frame = sim.frame(&timing).frame;
+                let a = region.process(&frame, &hip, &primitives).unwrap();
+                let b = every.process(&frame, &hip, &primitives).unwrap();
+                assert!(a.world_points.is_empty() && a.front.crop_keep.is_none());
+                assert_eq!(b.world_points.len(), frame.depth().unwrap().0.data.len());
+                assert_eq!(a.front.depth, b.front.depth);
+                assert_eq!(
+                    a.front.voxel, b.front.voxel,
+                    "camera {camera} frame {index}"
+                );
+                assert_eq!(a.front.clusters, b.front.clusters);
+                assert_eq!(a.front.shell_sums, b.front.shell_sums);
+                assert_eq!(a.kept, b.kept);
+                assert_eq!(a.surface.sums, b.surface.sums);
+                assert_eq!(a.surface.abstraction, b.surface.abstraction);
+                kept += a.front.voxel.valid_in;
+                valid += usize::from(a.estimate().surface.is_some());
+            }
+        }
+        assert!(
+            kept > 10_000 && valid > 5,
+            "{kept} points kept, {valid} estimates"
+        );
     }
 
     /// The estimator's final input: the memory step's points without the isolated ones.

@@ -78,12 +78,38 @@ pub fn random_cloud(seed: u64, n: usize, side_m: f32) -> Vec<Vec3> {
         .collect()
 }
 
-/// A cloud from PCL's test data (`../shared/data/pcl/<name>` beside the crate).
+/// A cloud from PCL's test data (`$HAPCLOUD_PCL_DATA/<name>`, else `../shared/data/pcl/<name>`
+/// beside the crate, as the benchmarks look for it).
 pub fn pcl_cloud(name: &str) -> crate::cloud::PointCloud {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/pcl")
-        .join(name);
+    let dir = std::env::var_os("HAPCLOUD_PCL_DATA").map_or_else(
+        || std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/pcl"),
+        std::path::PathBuf::from,
+    );
+    let path = dir.join(name);
     crate::io::read_cloud(&path).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// A PCL frame as a 640x480 depth camera delivers it: each pixel's z in 1 mm units (0 where
+/// the frame has no point), for [`PinholeIntrinsics::PCL_GRABBER`].
+pub fn pcl_depth(name: &str) -> DepthImage {
+    let cloud = pcl_cloud(name);
+    let k = PinholeIntrinsics::PCL_GRABBER;
+    assert_eq!((cloud.width, cloud.height), (k.width, k.height), "{name}");
+    let data = (cloud.points.iter())
+        .map(|p| {
+            if p.z.is_finite() {
+                (p.z * 1000.0).round().clamp(0.0, 65535.0) as u16
+            } else {
+                0
+            }
+        })
+        .collect();
+    DepthImage {
+        width: k.width,
+        height: k.height,
+        depth_scale_m: 0.001,
+        data,
+    }
 }
 
 /// PCL's real 640x480 frames: the mug scene, five people, and the three grabber frames.
