@@ -4,7 +4,7 @@
 # Run from fuzz/ after `cargo afl build --release` and writing the seeds (docs/fuzzing.md).
 set -eu
 SECONDS_EACH=${SECONDS_EACH:-300}
-TARGETS=${*:-pcd ply depth_png depth_tiff candump dbc scene_toml config_toml recording ros2_messages hapcloud_messages}
+TARGETS=${*:-pcd ply depth_png depth_tiff candump dbc scene_toml config_toml recording ros2_messages hapcloud_messages mcap_messages playback}
 for t in $TARGETS; do
     AFL_SKIP_CPUFREQ=1 AFL_I_DONT_CARE_ABOUT_MISSING_CRASHES=1 AFL_NO_AFFINITY=1 \
     AFL_NO_UI=1 AFL_QUIET=1 \

@@ -251,7 +251,14 @@ fn frames_published_by_python_through_a_router() {
         same_points(&f.cloud().points, &expected_points(i as u32));
     }
     let c = source.counters();
-    assert_eq!((c[&0].malformed, c[&1].malformed, c[&0].drops), (0, 0, 0));
+    assert_eq!(
+        (
+            c[&0].malformed.total(),
+            c[&1].malformed.total(),
+            c[&0].drops
+        ),
+        (0, 0, 0)
+    );
 }
 
 fn tick(i: u64) -> TickRecord {
@@ -407,6 +414,7 @@ fn rosbags_reads_a_hapcloud_recording() {
     }
     w.finish().unwrap();
     let out: Value = serde_json::from_str(&python(&["read-mcap", path.to_str().unwrap()])).unwrap();
+    check_with_foxglove_packages(&path, 9);
     std::fs::remove_dir_all(&dir).unwrap();
     let topics = &out["topics"];
     let count = |t: &str| topics[t]["count"].as_u64().unwrap_or(0);
@@ -461,7 +469,24 @@ fn hapcloud_reads_a_rosbags_bag() {
     ]))
     .unwrap();
     let bag = PathBuf::from(out["bag"].as_str().unwrap());
-    let mut r = McapReader::open(&bag, &McapReaderConfig::default()).unwrap();
+    // rosbags declares each channel at its first message: the camera_info channel comes
+    // after the first image, which must still make the first frame.
+    let order: Value =
+        serde_json::from_str(&python(&["record-order", bag.to_str().unwrap()])).unwrap();
+    let at = |kind: &str, topic: &str| {
+        order["order"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .position(|r| r[0] == kind && r[1] == topic)
+            .unwrap()
+    };
+    assert!(
+        at("message", "/camera/camera/depth/image_rect_raw")
+            < at("channel", "/camera/camera/depth/camera_info"),
+        "{order}"
+    );
+    let mut r = McapReader::open(&bag, &McapReaderConfig::default(), Vec::new()).unwrap();
     let mut frames = Vec::new();
     while let Some(item) = r.next_item().unwrap() {
         if let McapItem::Frame(a) = item {
@@ -630,6 +655,7 @@ fn the_node_runs_on_python_cameras_and_rosbags_decodes_its_outputs() {
         "{summary}"
     );
     let of = |t: &str| lines.iter().filter(|l| l["type"] == t).collect::<Vec<_>>();
+    check_attachments(&lines);
     let joints = of("sensor_msgs/msg/JointState");
     assert!(joints.len() > 20, "{} messages", lines.len());
     assert!(lines.iter().all(|l| l["hash_ok"] == true));
@@ -647,6 +673,128 @@ fn the_node_runs_on_python_cameras_and_rosbags_decodes_its_outputs() {
     assert_eq!(last["cameras"].as_array().unwrap().len(), 2, "{last}");
     assert!(last["cameras"][0]["frames"].as_u64().unwrap() > 0, "{last}");
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The attachments of hapcloud's messages as zenoh-ext's own deserializer reads them
+/// `(int64, int64, bytes)`, as `ros2 topic echo` does: per publisher (one per topic) one
+/// GID, distinct from every other publisher's, and sequence numbers that go up by one from
+/// message to message (the listener joined late: it need not see 1).
+fn check_attachments(lines: &[Value]) {
+    let mut by_key: std::collections::BTreeMap<&str, Vec<&Value>> = Default::default();
+    for l in lines {
+        by_key
+            .entry(l["key"].as_str().unwrap())
+            .or_default()
+            .push(&l["attachment"]);
+    }
+    assert!(by_key.len() >= 4, "{:?}", by_key.keys());
+    let mut gids = std::collections::BTreeSet::new();
+    for (key, atts) in &by_key {
+        let gid = atts[0]["gid"].as_str().unwrap();
+        assert_eq!(gid.len(), 32, "{key}: {gid}");
+        assert!(gids.insert(gid), "{key} shares its GID {gid}");
+        let seq: Vec<i64> = atts
+            .iter()
+            .map(|a| {
+                assert_eq!(a["gid"].as_str(), Some(gid), "{key}");
+                assert!(a["time_ns"].as_i64().unwrap() > 1_600_000_000_000_000_000);
+                a["sequence"].as_i64().unwrap()
+            })
+            .collect();
+        assert!(
+            seq.windows(2).all(|w| w[1] == w[0] + 1),
+            "{key}: sequence {seq:?}"
+        );
+    }
+}
+
+/// realsense-ros publishes `/tf_static` once, transient local (rmw_zenoh: zenoh-ext's
+/// advanced publisher with a cache and publisher detection); the node started after it
+/// still gets the cameras' poses (its /tf_static subscriber asks the publisher's cache).
+#[test]
+fn a_camera_started_before_the_node_gives_its_pose() {
+    if !python_ready() {
+        return;
+    }
+    let (_router, zenoh) = router();
+    let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
+    let dir = temp_dir("tfonce");
+    let camera = Command::new("python3")
+        .arg(script())
+        .args(["stream", &port, "8", "15", "64", "48", "tfonce"])
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The transforms are out before the node exists.
+    std::thread::sleep(Duration::from_millis(2500));
+    let summary = node_summary(start_node(&dir, &port, 4.0));
+    let out = camera.wait_with_output().unwrap();
+    assert!(out.status.success());
+    for id in ["0", "1"] {
+        let c = &summary["cameras"][id];
+        assert_eq!(c["no_pose"], 0, "{summary}");
+        assert!(c["frames"].as_u64().unwrap() > 20, "{summary}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The node (`node_s` seconds) on the two cameras `interop.py stream ARGS` publishes
+/// through a router: the node's JSON summary, its stderr, and what the stream printed.
+fn node_on_stream(name: &str, node_s: f64, stream: &[&str]) -> (Value, String, Value) {
+    let (_router, zenoh) = router();
+    let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
+    let dir = temp_dir(name);
+    let node = start_node(&dir, &port, node_s);
+    let args: Vec<&str> = ["stream", &port].iter().chain(stream).copied().collect();
+    let sent: Value = serde_json::from_str(&python(&args)).unwrap();
+    let out = node.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "{stderr}");
+    std::fs::remove_dir_all(&dir).unwrap();
+    (serde_json::from_slice(&out.stdout).unwrap(), stderr, sent)
+}
+
+/// A publisher whose sequence numbers skip (a sender that dropped messages: congestion
+/// control "drop", a fragment timeout) costs frames counted as `publisher_skipped` on its
+/// camera, exactly the numbers skipped; attachments of another layout are not counted.
+#[test]
+fn numbers_a_publisher_skipped_are_counted() {
+    if !python_ready() {
+        return;
+    }
+    let (summary, _, sent) =
+        node_on_stream("skip", 5.0, &["3", "20", "64", "48", "attach", "skip"]);
+    let skipped = sent["skipped"].as_u64().unwrap();
+    assert!(skipped >= 10, "{sent}");
+    let c0 = &summary["cameras"]["0"];
+    assert_eq!(c0["publisher_skipped"].as_u64(), Some(skipped), "{summary}");
+    assert_eq!(summary["cameras"]["1"]["publisher_skipped"], 0, "{summary}");
+    assert!(c0["frames"].as_u64().unwrap() > 20, "{summary}");
+}
+
+/// Aligned depth (`aligned_depth_to_color`) comes with the colour camera's CameraInfo, whose
+/// plumb_bob distortion is not zero: each such info is refused, counted as `distorted` on its
+/// camera, and the node says once what to publish instead.
+#[test]
+fn aligned_depth_with_a_distorted_camera_info_is_refused_saying_what_to_publish() {
+    if !python_ready() {
+        return;
+    }
+    let (summary, stderr, _) =
+        node_on_stream("distorted", 4.0, &["2.5", "20", "64", "48", "distorted"]);
+    let c1 = &summary["cameras"]["1"];
+    let distorted = &c1["malformed_reasons"]["distorted"];
+    assert!(distorted.as_u64().unwrap() > 20, "{summary}");
+    assert_eq!(&c1["malformed"], distorted, "{summary}");
+    assert_eq!(c1["frames"], 0, "{summary}");
+    let frames0 = summary["cameras"]["0"]["frames"].as_u64().unwrap();
+    assert!(frames0 > 20, "{summary}");
+    let said = stderr.matches("aligned_depth_to_color").count();
+    assert_eq!(said, 1, "said once: {stderr}");
+    assert!(
+        stderr.contains("image_rect_raw and its camera_info"),
+        "{stderr}"
+    );
 }
 
 /// The router goes away mid-run and comes back on the same port: the node keeps its loop
@@ -845,6 +993,46 @@ fn a_flooding_publisher_costs_counted_drops_not_memory() {
 /// tokens, and every key parses by rmw_zenoh's rules into one node `/hapcloud`, a
 /// subscription per camera topic and `/tf_static`, and a publisher per output topic, with
 /// the type names and RIHS01 hashes of its data keys (checked against rosbags).
+/// The recording read by `mcap` and `mcap-ros2-support` (Foxglove's Python packages): profile
+/// `ros2`, each channel `cdr` with a `ros2msg` schema, its metadata as rosbag2 writes it
+/// (`offered_qos_profiles`: one profile, keep last 10, reliable, volatile;
+/// `topic_type_hash`: the type's RIHS01 hash by rosbags), every message decoded.
+fn check_with_foxglove_packages(path: &Path, channels: usize) {
+    let out: Value =
+        serde_json::from_str(&python(&["read-mcap-foxglove", path.to_str().unwrap()])).unwrap();
+    let hashes: Value =
+        serde_json::from_str(&python(&["hashes", msg_dir().to_str().unwrap()])).unwrap();
+    assert_eq!(out["profile"], "ros2", "{out}");
+    let chans = out["channels"].as_object().unwrap();
+    assert_eq!(chans.len(), channels, "{out}");
+    let mut messages = 0;
+    for (topic, c) in chans {
+        assert_eq!(
+            (&c["message_encoding"], &c["schema_encoding"]),
+            (&Value::from("cdr"), &Value::from("ros2msg")),
+            "{topic}"
+        );
+        let schema = c["schema"].as_str().unwrap();
+        assert_eq!(
+            c["metadata"]["topic_type_hash"], hashes[schema],
+            "{topic}: {c}"
+        );
+        let qos = c["qos"].as_array().unwrap();
+        assert_eq!(qos.len(), 1, "{topic}: {c}");
+        for (k, v) in [
+            ("history", 1),
+            ("depth", 10),
+            ("reliability", 1),
+            ("durability", 2),
+        ] {
+            assert_eq!(qos[0][k], v, "{topic}: {k}: {c}");
+        }
+        assert_eq!(qos[0]["deadline"]["sec"], 9223372036u64, "{topic}: {c}");
+        messages += c["messages"].as_u64().unwrap();
+    }
+    assert_eq!(out["decoded"].as_u64(), Some(messages));
+}
+
 #[test]
 fn the_node_and_its_topics_are_in_the_rmw_zenoh_graph() {
     if !python_ready() {
@@ -924,6 +1112,28 @@ fn the_node_and_its_topics_are_in_the_rmw_zenoh_graph() {
         assert!(
             published.iter().any(|p| p == t),
             "{t} missing: {published:?}"
+        );
+    }
+    // Every QoS field is written (rmw_zenoh releases read an empty one differently): the
+    // outputs reliable, volatile, keep last 10; the cameras best effort, keep last
+    // queue_samples (8); /tf_static reliable, transient local, keep last 100.
+    for e in entities.iter().filter(|e| e["kind"] != "node") {
+        let q = &e["qos"];
+        assert_eq!(q["explicit"], true, "{e}");
+        let expected = match (e["kind"].as_str(), e["topic"].as_str()) {
+            (Some("publisher"), _) => ["1", "2", "1", "10"],
+            (_, Some("/tf_static")) => ["1", "1", "1", "100"],
+            _ => ["2", "2", "1", "8"],
+        };
+        assert_eq!(
+            [
+                &q["reliability"],
+                &q["durability"],
+                &q["history"],
+                &q["depth"]
+            ],
+            expected.map(Value::from).each_ref(),
+            "{e}"
         );
     }
     // The entity ids are unique within the node.

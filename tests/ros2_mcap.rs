@@ -194,7 +194,7 @@ fn read(bytes: &[u8]) -> Read {
         }
     }
     out.truncated = r.truncated().map(str::to_string);
-    assert_eq!(r.assembler().counters().malformed, 0);
+    assert_eq!(r.assembler().counters().malformed.total(), 0);
     out
 }
 

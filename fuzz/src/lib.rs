@@ -6,12 +6,15 @@
 //! through the very same functions (it includes this file as a module), so a regression
 //! fails `cargo test` without a fuzzer installed. No part of the paper is implemented here.
 
+use hapcloud::camera::Frame;
+use hapcloud::cloud::PointCloud;
 use hapcloud::io::mcap::{McapItem, McapReader};
 use hapcloud::io::ros2::assemble::{CameraTopics, FrameAssembler, Pose};
 use hapcloud::io::ros2::hapcloud::{ControlTick, SurfaceEstimate};
 use hapcloud::io::ros2::{decode, topics};
 use hapcloud::io::{can, depth, pcd, ply};
 use hapcloud::node::NodeConfig;
+use hapcloud::node::playback::{RecordingSource, check_stamps};
 use hapcloud::node::record;
 use hapcloud::perception::pipeline::SurfaceConfig;
 use hapcloud::scene::Scene;
@@ -23,7 +26,7 @@ use std::sync::OnceLock;
 pub type Target = fn(&[u8]);
 
 /// Every target by name (the directory names under `fuzz/corpus/` and `fuzz/regressions/`).
-pub const TARGETS: [(&str, Target); 11] = [
+pub const TARGETS: [(&str, Target); 13] = [
     ("pcd", pcd),
     ("ply", ply),
     ("depth_png", depth_png),
@@ -35,6 +38,8 @@ pub const TARGETS: [(&str, Target); 11] = [
     ("recording", recording),
     ("ros2_messages", ros2_messages),
     ("hapcloud_messages", hapcloud_messages),
+    ("mcap_messages", mcap_messages),
+    ("playback", playback),
 ];
 
 /// PCD (`ascii`, `binary`, `binary_compressed`), as `hapcloud convert` reads it.
@@ -250,5 +255,99 @@ pub fn hapcloud_messages(data: &[u8]) {
                 }
             }
         }
+    }
+}
+
+/// The topics of the `mcap_messages` target and their types: a realsense-ros bag's depth
+/// camera, a lidar and `/tf_static`.
+pub const MCAP_TOPICS: [(&str, &str); 4] = [
+    (
+        "/camera/camera/depth/image_rect_raw",
+        "sensor_msgs/msg/Image",
+    ),
+    (
+        "/camera/camera/depth/camera_info",
+        "sensor_msgs/msg/CameraInfo",
+    ),
+    ("/lidar/points", "sensor_msgs/msg/PointCloud2"),
+    ("/tf_static", "tf2_msgs/msg/TFMessage"),
+];
+
+/// The MCAP reader's message path as `hapcloud run FILE.mcap` plays a ROS 2 bag: the input's
+/// `[topic index byte][u32 LE length][CDR payload]` records become the messages of a valid
+/// MCAP file (zstd chunks with good CRCs, each channel declared at its first message as
+/// rosbags writes them, log times from the record index), which the recording source then
+/// streams: cameras found from the channels, images held until their camera_info channel
+/// comes, messages decoded and paired, stamps checked against their neighbours, every refused
+/// message counted.
+pub fn mcap_messages(data: &[u8]) {
+    let file = recording_file();
+    if write_bag(file, data).is_err() {
+        return;
+    }
+    let Ok(mut source) = RecordingSource::open(file, &Default::default(), Vec::new()) else {
+        return;
+    };
+    while let Ok(Some(frame)) = source.next_frame() {
+        let _ = frame.cloud().points.len();
+    }
+    let _ = source.losses();
+}
+
+/// Writes the `mcap_messages` bag of `data`'s records to `path`.
+fn write_bag(path: &std::path::Path, data: &[u8]) -> Result<(), mcap::McapError> {
+    let file = std::io::BufWriter::new(std::fs::File::create(path)?);
+    let mut w = mcap::WriteOptions::new().profile("ros2").create(file)?;
+    let mut channels: [Option<u16>; MCAP_TOPICS.len()] = [None; MCAP_TOPICS.len()];
+    for (i, (topic, payload)) in records(data).enumerate() {
+        let t = usize::from(topic) % MCAP_TOPICS.len();
+        let (name, schema) = MCAP_TOPICS[t];
+        let channel_id = match channels[t] {
+            Some(id) => id,
+            None => {
+                let schema_id = w.add_schema(schema, "ros2msg", b"")?;
+                let id = w.add_channel(schema_id, name, "cdr", &Default::default())?;
+                channels[t] = Some(id);
+                id
+            }
+        };
+        let log_time = 1_000_000_000 + i as u64 * 33_000_000;
+        w.write_to_known_channel(
+            &mcap::records::MessageHeader {
+                channel_id,
+                sequence: i as u32,
+                log_time,
+                publish_time: log_time,
+            },
+            payload,
+        )?;
+    }
+    w.finish()?;
+    Ok(())
+}
+
+/// A recording's playback with arbitrary stamps: the input's 9-byte records `[camera
+/// byte][f64 LE stamp]` are frames in file order through the stamp check the node plays
+/// recordings with. Every frame must be played (in file order, with a finite stamp within
+/// the node's range) or counted, whatever the stamps (NaN, infinities, decades apart).
+pub fn playback(data: &[u8]) {
+    let frames: Vec<Frame> = data
+        .chunks_exact(9)
+        .map(|c| {
+            let stamp = f64::from_le_bytes(c[1..9].try_into().expect("8 bytes"));
+            let cloud = PointCloud::from_points(vec![glam::Vec3::Z]);
+            Frame::from_cloud(u32::from(c[0] % 4), stamp, Default::default(), cloud)
+        })
+        .collect();
+    let n = frames.len() as u64;
+    let (kept, refused) = check_stamps(frames.clone());
+    assert_eq!(kept.len() as u64 + refused.values().sum::<u64>(), n);
+    assert!(
+        kept.iter()
+            .all(|f| f.stamp_s.is_finite() && f.stamp_s.abs() <= hapcloud::node::MAX_STAMP_S)
+    );
+    let mut rest = frames.iter();
+    for k in &kept {
+        assert!(rest.any(|f| f.stamp_s.to_bits() == k.stamp_s.to_bits()));
     }
 }

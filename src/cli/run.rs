@@ -18,6 +18,7 @@
 use anyhow::Context;
 use hapcloud::gpu::Backend;
 use hapcloud::io::mcap::McapReaderConfig;
+use hapcloud::node::playback::RecordingSource;
 use hapcloud::node::{self, NodeConfig, NodeSummary, RunOptions, Source, record};
 use hapcloud::scene::{Scene, Simulator};
 use std::io::Write;
@@ -254,23 +255,35 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         Some(file) if file.ends_with(".mcap") || record::is_old_recording(file.as_ref()) => {
             let path = std::path::Path::new(file);
-            let read = record::read_frames(path, &run_config.mcap)?;
-            if let Some(cut) = &read.truncated {
-                hapcloud::stderr_line!("warning: {file}: {cut}; playing the frames before the cut");
-            }
+            // Streamed: the first frames are read here, the rest as they come due; a signal
+            // stops the reading at once, even on a FIFO that sends nothing.
+            let mut recording =
+                match RecordingSource::open(path, &run_config.mcap, vec![stop.clone()]) {
+                    Ok(r) => r,
+                    Err(e) => match signal.load(Ordering::SeqCst) {
+                        0 => return Err(e.into()),
+                        sig => {
+                            hapcloud::stderr_line!(
+                                "stopped by {} while reading {file}",
+                                signal_name(sig)
+                            );
+                            std::process::exit(128 + sig as i32)
+                        }
+                    },
+                };
             // A node recording without --config runs with the config it was recorded with.
-            if let (Some(meta), None) = (&read.meta, &args.config) {
+            if let (Some(meta), None) = (recording.meta(), &args.config) {
                 *config = meta.config.clone();
             }
             #[cfg(feature = "viewer")]
-            if read.meta.is_none() && args.config.is_none() {
-                config.hip_world_m = read
-                    .frames
+            if recording.meta().is_none() && args.config.is_none() {
+                config.hip_world_m = recording
+                    .ready()
                     .first()
                     .and_then(|f| hapcloud::viewer::source::hip_on_axis(f, 0.05))
                     .with_context(|| format!("{file}: no surface to put the HIP on"))?;
             }
-            Source::Timed(read.frames)
+            Source::Recording(Box::new(recording))
         }
         // The cloud-directory reader lives with the viewer (feature "viewer", on by default).
         #[cfg(feature = "viewer")]
@@ -389,8 +402,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             );
         }
     }
+    if let Some(cut) = &summary.source_truncated {
+        hapcloud::stderr_line!(
+            "warning: {}: {cut}; the frames before the cut played",
+            args.source.as_deref().unwrap_or_default()
+        );
+    }
     match signal.load(Ordering::SeqCst) {
-        0 => Ok(()),
+        0 => match &summary.source_error {
+            Some(e) => anyhow::bail!("the recording stopped before its end: {e}"),
+            None => Ok(()),
+        },
         sig => {
             hapcloud::stderr_line!(
                 "stopped by {}: constraints off, safe command sent, recording finished",
@@ -511,9 +533,36 @@ fn print_table(s: &NodeSummary) {
             c.lost.malformed
         );
     }
+    for (id, c) in &s.cameras {
+        let l = &c.lost;
+        let m = &l.malformed_reasons;
+        if l.publisher_skipped + l.unpaired + l.no_pose + l.out_of_order + l.bad_stamp + l.malformed
+            > 0
+        {
+            println!(
+                "camera {id} lost: publisher skipped {}  unpaired {}  no pose {}  out of order {}  \
+                 bad stamp {}  malformed {} (cdr {}, layout {}, truncated {}, encoding {}, \
+                 distorted {}, camera_info {}, stamp {}, value {})",
+                l.publisher_skipped,
+                l.unpaired,
+                l.no_pose,
+                l.out_of_order,
+                l.bad_stamp,
+                l.malformed,
+                m.cdr,
+                m.layout,
+                m.truncated,
+                m.encoding,
+                m.distorted,
+                m.camera_info,
+                m.stamp,
+                m.value
+            );
+        }
+    }
     println!(
-        "frames {}  dropped {}  malformed records {}",
-        s.frames, s.dropped_frames, s.malformed_records
+        "frames {}  dropped {}  malformed records {} (of /tf_static {})  bad stamps {}",
+        s.frames, s.dropped_frames, s.malformed_records, s.tf_static_malformed, s.bad_stamp_frames
     );
     println!(
         "ticks {}  tracking {}  stale {}  deadline misses {}  skipped slots {}{}",

@@ -30,13 +30,26 @@ use crate::control::record::TickRecord;
 use crate::surface::SurfaceEstimate;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::fs::File;
 use std::io::{BufWriter, Read, Seek, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
 
-/// Largest record accepted when reading (a forged length cannot exhaust memory).
+/// Default largest record (a chunk decompressed included) accepted when reading: a forged
+/// length or a chunk that decompresses to more cannot exhaust memory.
 pub const MAX_RECORD_BYTES: usize = 512 << 20;
+
+/// Default most bytes read from one recording (a FIFO, a device or a growing file never
+/// ends: reading stops here with an error naming the limit).
+pub const MAX_FILE_BYTES: u64 = 1 << 40;
+
+/// Messages of a `sensor_msgs/Image` channel kept while its `camera_info` channel is not
+/// declared yet (a writer that declares each channel at its first message, as rosbags does,
+/// declares the info after the first image); the oldest beyond this are dropped.
+const HELD_IMAGES: usize = 4;
 
 /// Why a recording cannot be written or read.
 #[derive(Debug, thiserror::Error)]
@@ -54,6 +67,17 @@ pub enum McapError {
     Message { topic: String, source: Ros2Error },
     #[error("config: {0}")]
     Config(String),
+    #[error(
+        "read {read} bytes, the limit mcap.{key} = {limit}: a file that never ends (a FIFO, a \
+         device, a file still growing) or a larger recording; raise the limit in the config's [mcap]"
+    )]
+    Limit {
+        key: &'static str,
+        read: u64,
+        limit: u64,
+    },
+    #[error("reading stopped (SIGINT or SIGTERM)")]
+    Stopped,
 }
 
 /// How chunks are compressed.
@@ -96,20 +120,64 @@ pub struct McapWriterConfig {
 }
 
 /// Reading settings.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct McapReaderConfig {
     /// The cameras; empty: found from the channels.
     pub cameras: Vec<CameraTopics>,
     /// Frame the `/tf_static` poses are expressed in; empty: the root of the tree.
     pub world_frame: String,
+    /// Most bytes read from the file, B (default 1 TiB); reading stops with an error there.
+    pub max_file_bytes: u64,
+    /// Largest record, a decompressed chunk included, B (default 512 MiB, 1 kB to 4 GiB).
+    pub max_record_bytes: u64,
+}
+
+impl Default for McapReaderConfig {
+    fn default() -> Self {
+        Self {
+            cameras: Vec::new(),
+            world_frame: String::new(),
+            max_file_bytes: MAX_FILE_BYTES,
+            max_record_bytes: MAX_RECORD_BYTES as u64,
+        }
+    }
 }
 
 impl McapReaderConfig {
     pub fn validate(&self) -> Result<(), String> {
+        if self.max_file_bytes == 0 {
+            return Err("mcap.max_file_bytes must be at least 1".into());
+        }
+        if !(1 << 10..=1 << 32).contains(&self.max_record_bytes) {
+            return Err(format!(
+                "mcap.max_record_bytes must be 1024 to 4294967296, got {}",
+                self.max_record_bytes
+            ));
+        }
         self.cameras.iter().try_for_each(CameraTopics::validate)
     }
 }
+
+/// The QoS hapcloud's topics are recorded with, as rosbag2 writes a channel's
+/// `offered_qos_profiles` (YAML, rmw's enum values, so Jazzy's reader and later ones take it):
+/// keep last 10 (history 1), reliable (1), volatile (2), automatic liveliness (1), durations
+/// infinite (`RMW_DURATION_INFINITE`). `ros2 bag play` offers each topic with it.
+pub const OFFERED_QOS_PROFILES: &str = "- history: 1
+  depth: 10
+  reliability: 1
+  durability: 2
+  deadline:
+    sec: 9223372036
+    nsec: 854775807
+  lifespan:
+    sec: 9223372036
+    nsec: 854775807
+  liveliness: 1
+  liveliness_lease_duration:
+    sec: 9223372036
+    nsec: 854775807
+  avoid_ros_namespace_conventions: false";
 
 /// Writes a recording.
 pub struct McapWriter<W: Write + Seek> {
@@ -178,9 +246,14 @@ impl<W: Write + Seek> McapWriter<W> {
                 id
             }
         };
-        let id = self
-            .out
-            .add_channel(schema, topic, "cdr", &BTreeMap::new())?;
+        let metadata = BTreeMap::from([
+            (
+                "offered_qos_profiles".to_string(),
+                OFFERED_QOS_PROFILES.to_string(),
+            ),
+            ("topic_type_hash".to_string(), desc.rihs01()),
+        ]);
+        let id = self.out.add_channel(schema, topic, "cdr", &metadata)?;
         self.channels.insert(topic.to_string(), id);
         Ok(id)
     }
@@ -380,6 +453,16 @@ struct ChannelInfo {
     schema: String,
 }
 
+/// What the reader saw of the file, for an error that says what is wrong with it.
+#[derive(Clone, Debug, Default)]
+pub struct FileFacts {
+    pub bytes_read: u64,
+    pub channels: usize,
+    pub messages: u64,
+    /// Channels whose schema id the file never defined: (topic, schema id).
+    pub missing_schemas: Vec<(String, u16)>,
+}
+
 /// Reads a recording or a ROS 2 bag, streaming.
 pub struct McapReader<R: Read> {
     input: R,
@@ -391,16 +474,91 @@ pub struct McapReader<R: Read> {
     /// Channels were declared since cameras were last looked for.
     undiscovered: bool,
     truncated: Option<String>,
-    bytes_read: u64,
+    facts: FileFacts,
+    max_file_bytes: u64,
+    /// Messages of image channels whose camera is not found yet, oldest first.
+    held: VecDeque<(u16, Vec<u8>)>,
+    /// Items made by held messages once their camera was found.
+    ready: VecDeque<McapItem>,
 }
 
-impl McapReader<std::io::BufReader<File>> {
-    pub fn open(path: &Path, config: &McapReaderConfig) -> Result<Self, McapError> {
-        let file = File::open(path).map_err(|error| McapError::Io {
+impl McapReader<std::io::BufReader<StoppableFile>> {
+    /// Opens `path`; a read ends with [`McapError::Stopped`] within [`STOP_POLL`] of one of
+    /// `stops` being set, even on a FIFO or a device that sends nothing.
+    pub fn open(
+        path: &Path,
+        config: &McapReaderConfig,
+        stops: Vec<Arc<AtomicBool>>,
+    ) -> Result<Self, McapError> {
+        let file = StoppableFile::open(path, stops).map_err(|error| McapError::Io {
             path: path.to_path_buf(),
             error,
         })?;
         Self::new(std::io::BufReader::with_capacity(1 << 20, file), config)
+    }
+}
+
+/// How often a blocked read looks at its stop flags.
+pub const STOP_POLL: Duration = Duration::from_millis(100);
+
+/// The error a [`StoppableFile`] read returns once stopped.
+#[derive(Debug, thiserror::Error)]
+#[error("reading stopped")]
+pub struct ReadStopped;
+
+/// A file, FIFO or device whose reads give up when asked: each read first waits (`poll`, at
+/// most [`STOP_POLL`] at a time) for data and checks the stop flags in between, so a source
+/// that never sends cannot keep the node from stopping. Opened non-blocking, so opening a
+/// FIFO does not wait for its writer either. (std's `File` has no timed read; `poll` is the
+/// one system call that does it.)
+pub struct StoppableFile {
+    file: File,
+    stops: Vec<Arc<AtomicBool>>,
+}
+
+impl StoppableFile {
+    pub fn open(path: &Path, stops: Vec<Arc<AtomicBool>>) -> std::io::Result<Self> {
+        use std::os::unix::fs::OpenOptionsExt;
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NONBLOCK)
+            .open(path)?;
+        Ok(Self { file, stops })
+    }
+}
+
+impl Read for StoppableFile {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        use std::os::fd::AsRawFd;
+        loop {
+            if self.stops.iter().any(|s| s.load(Ordering::Relaxed)) {
+                return Err(std::io::Error::other(ReadStopped));
+            }
+            let mut fd = libc::pollfd {
+                fd: self.file.as_raw_fd(),
+                events: libc::POLLIN,
+                revents: 0,
+            };
+            // SAFETY: one valid pollfd, alive for the call.
+            let ready = unsafe { libc::poll(&mut fd, 1, STOP_POLL.as_millis() as libc::c_int) };
+            if ready < 0 {
+                let e = std::io::Error::last_os_error();
+                if e.kind() == std::io::ErrorKind::Interrupted {
+                    continue;
+                }
+                return Err(e);
+            }
+            if ready > 0 {
+                match self.file.read(buf) {
+                    Err(e)
+                        if matches!(
+                            e.kind(),
+                            std::io::ErrorKind::WouldBlock | std::io::ErrorKind::Interrupted
+                        ) => {}
+                    r => return r,
+                }
+            }
+        }
     }
 }
 
@@ -415,7 +573,9 @@ impl<R: Read> McapReader<R> {
                 // A chunk is checked against its CRC before any of its messages is used:
                 // a damaged file is an error, never frames of garbage.
                 LinearReaderOptions::default()
-                    .with_record_length_limit(MAX_RECORD_BYTES)
+                    .with_record_length_limit(
+                        usize::try_from(config.max_record_bytes).unwrap_or(usize::MAX),
+                    )
                     .with_prevalidate_chunk_crcs(true),
             ),
             schemas: HashMap::new(),
@@ -424,8 +584,16 @@ impl<R: Read> McapReader<R> {
             auto: config.cameras.is_empty(),
             undiscovered: false,
             truncated: None,
-            bytes_read: 0,
+            facts: FileFacts::default(),
+            max_file_bytes: config.max_file_bytes,
+            held: VecDeque::new(),
+            ready: VecDeque::new(),
         })
+    }
+
+    /// What was read so far (bytes, channels, messages, channels without their schema).
+    pub fn facts(&self) -> &FileFacts {
+        &self.facts
     }
 
     /// Where and why the file ended early, once the reader got there (`None` for a whole
@@ -442,12 +610,15 @@ impl<R: Read> McapReader<R> {
     /// The next item; `Ok(None)` at the end of the file or at the cut of a truncated one.
     pub fn next_item(&mut self) -> Result<Option<McapItem>, McapError> {
         loop {
+            if let Some(item) = self.ready.pop_front() {
+                return Ok(Some(item));
+            }
             let event = match self.reader.next_event() {
                 None => return Ok(None),
                 Some(Err(mcap::McapError::UnexpectedEof)) => {
                     self.truncated = Some(format!(
                         "the file ends inside a record after {} bytes",
-                        self.bytes_read
+                        self.facts.bytes_read
                     ));
                     return Ok(None);
                 }
@@ -456,8 +627,22 @@ impl<R: Read> McapReader<R> {
             };
             let message = match event {
                 LinearReadEvent::ReadRequest(need) => {
-                    let n = self.input.read(self.reader.insert(need))?;
-                    self.bytes_read += n as u64;
+                    if self.facts.bytes_read >= self.max_file_bytes {
+                        return Err(McapError::Limit {
+                            key: "max_file_bytes",
+                            read: self.facts.bytes_read,
+                            limit: self.max_file_bytes,
+                        });
+                    }
+                    let left = self.max_file_bytes - self.facts.bytes_read;
+                    let need = need.min(usize::try_from(left).unwrap_or(usize::MAX));
+                    let n = match self.input.read(self.reader.insert(need)) {
+                        Err(e) if e.get_ref().is_some_and(|e| e.is::<ReadStopped>()) => {
+                            return Err(McapError::Stopped);
+                        }
+                        r => r?,
+                    };
+                    self.facts.bytes_read += n as u64;
                     self.reader.notify_read(n);
                     continue;
                 }
@@ -468,7 +653,19 @@ impl<R: Read> McapReader<R> {
                         None
                     }
                     mcap::records::Record::Channel(c) => {
-                        let schema = self.schemas.get(&c.schema_id).cloned().unwrap_or_default();
+                        // Schema id 0: a channel without a schema (not a ROS 2 message).
+                        let schema = match self.schemas.get(&c.schema_id) {
+                            Some(name) => name.clone(),
+                            None => {
+                                // The summary section repeats the channels: each counted once.
+                                if c.schema_id != 0 && !self.channels.contains_key(&c.id) {
+                                    self.facts
+                                        .missing_schemas
+                                        .push((c.topic.clone(), c.schema_id));
+                                }
+                                String::new()
+                            }
+                        };
                         self.channels.insert(
                             c.id,
                             ChannelInfo {
@@ -476,10 +673,12 @@ impl<R: Read> McapReader<R> {
                                 schema,
                             },
                         );
+                        self.facts.channels = self.channels.len();
                         self.undiscovered = true;
                         None
                     }
                     mcap::records::Record::Message { header, data } => {
+                        self.facts.messages += 1;
                         Some((header.channel_id, header.log_time, data.into_owned()))
                     }
                     mcap::records::Record::Metadata(m) => {
@@ -491,8 +690,8 @@ impl<R: Read> McapReader<R> {
                     _ => None,
                 },
             };
-            // Cameras are found once the channels before a message are known (a camera's
-            // channels are all declared before its first message).
+            // Cameras are found once the channels before a message are known; an image
+            // whose camera_info channel comes later is held until then.
             if message.is_some() && std::mem::take(&mut self.undiscovered) {
                 self.discover()?;
             }
@@ -563,6 +762,18 @@ impl<R: Read> McapReader<R> {
                 .add_camera(camera)
                 .map_err(McapError::Config)?;
         }
+        // Held images of a camera found now go to it, in file order.
+        let held = std::mem::take(&mut self.held);
+        for (channel, data) in held {
+            let topic = &self.channels[&channel].topic;
+            if self.assembler.role(topic).is_some() {
+                if let Some(a) = self.assembler.push(topic, &data) {
+                    self.ready.push_back(McapItem::Frame(a));
+                }
+            } else {
+                self.held.push_back((channel, data));
+            }
+        }
         Ok(())
     }
 
@@ -584,6 +795,14 @@ impl<R: Read> McapReader<R> {
         };
         if self.assembler.role(&topic).is_some() {
             return Ok(self.assembler.push(&topic, &data).map(McapItem::Frame));
+        }
+        if self.auto && schema == IMAGE.name {
+            // Its camera_info channel may be declared after it: held until then.
+            if self.held.len() == HELD_IMAGES {
+                self.held.pop_front();
+            }
+            self.held.push_back((channel, data));
+            return Ok(None);
         }
         if topic == topics::ESTIMATES && schema == EstimateMsg::DESC.name {
             let m: EstimateMsg = decode(&data).map_err(bad)?;

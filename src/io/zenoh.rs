@@ -7,8 +7,13 @@
 //! `<domain_id>/<topic without leading or trailing />/<DDS type name>/<RIHS01 hash>`; the
 //! source subscribes with `*` in the hash slot, so Humble's `TypeHashNotSupported` matches
 //! too. Payloads are CDR with the encapsulation header; rmw_zenoh's attachment (sequence
-//! number, source time stamp, publisher GID) is written by the publisher and ignored by the
-//! source (its layout changed between releases).
+//! number, source time stamp, publisher GID, serialized by zenoh-ext as `(i64, i64, bytes)`)
+//! is written per publisher (its own sequence from 1, its own GID) and read by the source,
+//! which counts the numbers each publisher skipped: messages lost before they reached this
+//! node (a sender whose congestion control drops, a fragment timeout on a big frame).
+//! `/tf_static` is transient local: the source subscribes to it as rmw_zenoh does, with
+//! zenoh-ext's advanced subscriber asking each publisher's cache for its history, so a camera
+//! started before the node still gives its pose.
 //!
 //! With rmw_zenoh keys the session is a ROS 2 node in the graph ([`graph`]): liveliness tokens
 //! for the node and each of its publishers and subscriptions, as rmw_zenoh declares them.
@@ -20,7 +25,7 @@
 //! reconnects in the background, `recv` times out meanwhile and `put`s are dropped
 //! (congestion control `Drop`), so the caller never blocks or panics.
 
-use super::ros2::assemble::{Assembled, CameraTopics, FrameAssembler, TF_STATIC};
+use super::ros2::assemble::{Assembled, CameraTopics, FrameAssembler, Malformed, TF_STATIC};
 use super::ros2::convert::{camera_info_from_intrinsics, image_from_depth, pointcloud2_from_cloud};
 use super::ros2::hapcloud::{FusedSurface, HapticConstraint, NodeStatus};
 use super::ros2::msgs::{CameraInfo, Header, Image, JointState, PointCloud2, TfMessage};
@@ -40,7 +45,8 @@ use zenoh::pubsub::{Publisher, Subscriber};
 use zenoh::qos::CongestionControl;
 
 pub mod graph;
-use graph::{Entity, GraphNode};
+use graph::{Entity, GraphNode, Qos};
+use zenoh_ext::{AdvancedSubscriber, AdvancedSubscriberBuilderExt, HistoryConfig};
 
 /// Why a Zenoh session, source or publisher failed.
 #[derive(Debug, thiserror::Error)]
@@ -286,8 +292,11 @@ pub struct CameraCounters {
     pub frames: u64,
     /// Samples dropped because the queue was full.
     pub drops: u64,
-    /// Samples that did not decode or convert.
-    pub malformed: u64,
+    /// Sequence numbers the camera's publishers skipped (messages lost before they reached
+    /// this node), from rmw_zenoh's attachment.
+    pub publisher_skipped: u64,
+    /// Samples that did not decode or convert, by why.
+    pub malformed: Malformed,
     /// Images, infos or clouds dropped without their partners of the same stamp.
     pub unpaired: u64,
     /// Frames dropped because no pose was known for them yet.
@@ -314,6 +323,8 @@ pub struct SourceStats {
     queue: Arc<Queue>,
     topic_camera: Arc<[Option<u32>]>,
     cameras: Arc<Mutex<BTreeMap<u32, CameraStats>>>,
+    /// `/tf_static` messages refused.
+    tf_static_malformed: Arc<std::sync::atomic::AtomicU64>,
 }
 
 impl SourceStats {
@@ -340,9 +351,17 @@ impl SourceStats {
         for (i, id) in self.topic_camera.iter().enumerate() {
             if let Some(c) = id.and_then(|id| out.get_mut(&id)) {
                 c.drops += self.queue.drops[i].load(std::sync::atomic::Ordering::Relaxed);
+                c.publisher_skipped +=
+                    self.queue.skipped[i].load(std::sync::atomic::Ordering::Relaxed);
             }
         }
         out
+    }
+
+    /// `/tf_static` messages refused (not finite, not a unit quaternion, bad CDR).
+    pub fn tf_static_malformed(&self) -> u64 {
+        self.tf_static_malformed
+            .load(std::sync::atomic::Ordering::Relaxed)
     }
 }
 
@@ -359,11 +378,48 @@ struct Queue {
     capacity: usize,
     /// Drops per subscribed topic.
     drops: Vec<std::sync::atomic::AtomicU64>,
+    /// Per subscribed topic, the sequence numbers its publishers skipped.
+    skipped: Vec<std::sync::atomic::AtomicU64>,
+    /// The last sequence number of each (topic, publisher GID).
+    sequences: Mutex<HashMap<(usize, Vec<u8>), i64>>,
+}
+
+/// Publishers whose sequence numbers are followed at once (beyond this the table starts
+/// afresh: a gap in between is not counted).
+const MAX_PUBLISHERS: usize = 256;
+
+impl Queue {
+    /// Counts the numbers skipped since the publisher's last sample on `topic`, from the
+    /// sample's rmw_zenoh attachment (`(i64 sequence, i64 time stamp, GID bytes)`); samples
+    /// without one, or with another layout, are not followed.
+    fn follow(&self, topic: usize, attachment: Option<&ZBytes>) {
+        let Some(Ok((sequence, _, gid))) =
+            attachment.map(zenoh_ext::z_deserialize::<(i64, i64, Vec<u8>)>)
+        else {
+            return;
+        };
+        let mut last = self
+            .sequences
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if last.len() >= MAX_PUBLISHERS && !last.contains_key(&(topic, gid.clone())) {
+            last.clear();
+        }
+        // A number at or below the last: the publisher restarted, counted afresh.
+        if let Some(previous) = last.insert((topic, gid), sequence)
+            && sequence > previous
+        {
+            let skipped = (sequence - previous - 1) as u64;
+            self.skipped[topic].fetch_add(skipped, std::sync::atomic::Ordering::Relaxed);
+        }
+    }
 }
 
 /// Camera frames from Zenoh.
 pub struct ZenohSource {
     _subscribers: Vec<Subscriber<()>>,
+    /// `/tf_static`'s, which asks late for what was published before it.
+    _static_tf: AdvancedSubscriber<()>,
     /// The node and its subscriptions in the ROS 2 graph (rmw_zenoh keys only).
     _graph: (Option<Arc<GraphNode>>, Vec<LivelinessToken>),
     topics: Vec<String>,
@@ -405,43 +461,64 @@ impl ZenohSource {
             ready: Condvar::new(),
             capacity: config.queue_samples,
             drops: topics.iter().map(|_| Default::default()).collect(),
+            skipped: topics.iter().map(|_| Default::default()).collect(),
+            sequences: Mutex::new(HashMap::new()),
         });
-        let mut subscribers = Vec::new();
-        for (i, (topic, desc, _)) in topics.iter().enumerate() {
+        let callback = |i: usize| {
             let q = Arc::clone(&queue);
+            move |sample: zenoh::sample::Sample| {
+                q.follow(i, sample.attachment());
+                let mut items = q.items.lock().unwrap_or_else(PoisonError::into_inner);
+                if items.len() >= q.capacity
+                    && let Some((t, _)) = items.pop_front()
+                {
+                    q.drops[t].fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                }
+                items.push_back((i, sample.payload().clone()));
+                q.ready.notify_one();
+            }
+        };
+        let static_tf_index = topics.len() - 1;
+        let mut subscribers = Vec::new();
+        for (i, (topic, desc, _)) in topics[..static_tf_index].iter().enumerate() {
             let sub = session
                 .declare_subscriber(zenoh.key(topic, desc, false))
-                .callback(move |sample| {
-                    let mut items = q.items.lock().unwrap_or_else(PoisonError::into_inner);
-                    if items.len() >= q.capacity
-                        && let Some((t, _)) = items.pop_front()
-                    {
-                        q.drops[t].fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                    }
-                    items.push_back((i, sample.payload().clone()));
-                    q.ready.notify_one();
-                })
+                .callback(callback(i))
                 .wait()
                 .map_err(zerr)?;
             subscribers.push(sub);
         }
+        // As rmw_zenoh's transient-local subscription: the history of every publisher, those
+        // that appear later included (found through their liveliness tokens).
+        let static_tf = session
+            .declare_subscriber(zenoh.key(TF_STATIC, TfMessage::DESC, false))
+            .history(
+                HistoryConfig::default()
+                    .detect_late_publishers()
+                    .max_samples(Qos::STATIC_TF.depth),
+            )
+            .callback(callback(static_tf_index))
+            .wait()
+            .map_err(zerr)?;
         let node = GraphNode::of(session, zenoh)?;
         let tokens = match &node {
             Some(node) => topics
                 .iter()
                 .map(|(topic, desc, _)| {
-                    node.declare(
-                        Entity::Subscription,
-                        topic,
-                        desc,
-                        &graph::sensor_qos(config.queue_samples),
-                    )
+                    let qos = if topic == TF_STATIC {
+                        Qos::STATIC_TF
+                    } else {
+                        Qos::sensor_data(config.queue_samples)
+                    };
+                    node.declare(Entity::Subscription, topic, desc, &qos)
+                        .map(|(token, _)| token)
                 })
                 .collect::<Result<_, _>>()?,
             None => Vec::new(),
         };
         Ok(Self {
             _subscribers: subscribers,
+            _static_tf: static_tf,
             _graph: (node, tokens),
             stats: SourceStats {
                 queue,
@@ -453,6 +530,7 @@ impl ZenohSource {
                         .map(|c| (c.camera_id, CameraStats::default()))
                         .collect(),
                 )),
+                tf_static_malformed: Default::default(),
             },
             topics: topics.into_iter().map(|t| t.0).collect(),
             assembler,
@@ -488,22 +566,23 @@ impl ZenohSource {
                 }
             };
             let bytes = payload.to_bytes();
-            let before = self.assembler.counters();
             let frame = self.assembler.push(&self.topics[topic], &bytes);
-            let after = self.assembler.counters();
             let mut cameras = self
                 .stats
                 .cameras
                 .lock()
                 .unwrap_or_else(PoisonError::into_inner);
-            // What this message cost is its topic's camera's (pairing is per camera).
-            if let Some(id) = self.stats.topic_camera[topic]
-                && let Some(c) = cameras.get_mut(&id)
-            {
-                c.counters.malformed += after.malformed - before.malformed;
-                c.counters.unpaired += after.unpaired - before.unpaired;
-                c.counters.no_pose += after.no_pose - before.no_pose;
+            for (id, n) in self.assembler.camera_counters() {
+                if let Some(c) = cameras.get_mut(&id) {
+                    c.counters.malformed = n.malformed;
+                    c.counters.unpaired = n.unpaired;
+                    c.counters.no_pose = n.no_pose;
+                }
             }
+            self.stats.tf_static_malformed.store(
+                self.assembler.tf_static_malformed().0.total(),
+                std::sync::atomic::Ordering::Relaxed,
+            );
             if let Some(f) = frame {
                 if let Some(c) = cameras.get_mut(&f.frame.camera_id) {
                     c.counters.frames += 1;
@@ -597,11 +676,33 @@ pub struct ZenohPublisher {
     session: zenoh::Session,
     zenoh: ZenohConfig,
     config: ZenohPublisherConfig,
-    publishers: HashMap<String, (Publisher<'static>, Option<LivelinessToken>)>,
+    publishers: HashMap<String, TopicPublisher>,
     node: Option<Arc<GraphNode>>,
-    sequence: i64,
-    gid: [u8; 16],
     last_tick_s: Option<f64>,
+}
+
+/// One topic's publisher: its graph token, its own sequence number and GID (as rmw_zenoh:
+/// `ros2 topic echo` reports a message lost when a publisher's sequence skips).
+struct TopicPublisher {
+    publisher: Publisher<'static>,
+    _token: Option<LivelinessToken>,
+    sequence: i64,
+    /// rmw_zenoh hashes the publisher's liveliness key into its GID (XXH3-128); hapcloud
+    /// takes SHA-256's first 16 bytes (the RIHS01 hash's crate): a distinct GID per
+    /// publisher.
+    gid: [u8; 16],
+}
+
+impl TopicPublisher {
+    /// rmw_zenoh's attachment, serialized by zenoh-ext: the next sequence number (i64, from
+    /// 1), the source time stamp (i64 ns since the UNIX epoch) and the GID (16 bytes).
+    fn attachment(&mut self) -> ZBytes {
+        self.sequence += 1;
+        let now_ns = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as i64);
+        zenoh_ext::z_serialize(&(self.sequence, now_ns, self.gid.to_vec()))
+    }
 }
 
 impl ZenohPublisher {
@@ -611,52 +712,49 @@ impl ZenohPublisher {
         config: &ZenohPublisherConfig,
     ) -> Result<Self, ZenohError> {
         config.validate()?;
-        let zid = session.zid().to_le_bytes();
-        let mut gid = [0u8; 16];
-        gid.copy_from_slice(&zid[..16]);
         Ok(Self {
             session: session.clone(),
             zenoh: zenoh.clone(),
             config: config.clone(),
             publishers: HashMap::new(),
             node: GraphNode::of(session, zenoh)?,
-            sequence: 0,
-            gid,
             last_tick_s: None,
         })
     }
 
-    /// rmw_zenoh's attachment: i64 sequence number, i64 source time stamp (ns), the GID's
-    /// length (16) and the GID.
-    fn attachment(&mut self) -> Vec<u8> {
-        self.sequence += 1;
-        let now_ns = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.as_nanos() as i64);
-        let mut out = Vec::with_capacity(33);
-        out.extend_from_slice(&self.sequence.to_le_bytes());
-        out.extend_from_slice(&now_ns.to_le_bytes());
-        out.push(16);
-        out.extend_from_slice(&self.gid);
-        out
-    }
-
     /// Declares the publisher of `topic` carrying `desc` (and its graph token), once.
     fn declare(&mut self, topic: &str, desc: &'static MsgDesc) -> Result<(), ZenohError> {
+        use sha2::Digest;
         if self.publishers.contains_key(topic) {
             return Ok(());
         }
-        let p = self
+        let key = self.zenoh.key(topic, desc, true);
+        let publisher = self
             .session
-            .declare_publisher(self.zenoh.key(topic, desc, true))
+            .declare_publisher(key.clone())
             .congestion_control(CongestionControl::Drop)
             .wait()
             .map_err(zerr)?;
-        let token = match &self.node {
-            Some(n) => Some(n.declare(Entity::Publisher, topic, desc, graph::QOS_DEFAULT)?),
-            None => None,
+        let (token, identity) = match &self.node {
+            Some(n) => {
+                let (token, token_key) =
+                    n.declare(Entity::Publisher, topic, desc, &Qos::DEFAULT)?;
+                (Some(token), token_key)
+            }
+            None => (None, format!("{}/{key}", self.session.zid())),
         };
-        self.publishers.insert(topic.to_string(), (p, token));
+        let hash = sha2::Sha256::digest(identity.as_bytes());
+        let mut gid = [0u8; 16];
+        gid.copy_from_slice(&hash[..16]);
+        self.publishers.insert(
+            topic.to_string(),
+            TopicPublisher {
+                publisher,
+                _token: token,
+                sequence: 0,
+                gid,
+            },
+        );
         Ok(())
     }
 
@@ -677,9 +775,9 @@ impl ZenohPublisher {
             source,
         })?;
         self.declare(topic, M::DESC)?;
-        let attachment = self.config.attachment.then(|| self.attachment());
-        let (publisher, _) = &self.publishers[topic];
-        let put = publisher.put(payload);
+        let p = self.publishers.get_mut(topic).expect("declared just above");
+        let attachment = self.config.attachment.then(|| p.attachment());
+        let put = p.publisher.put(payload);
         match attachment {
             Some(a) => put.attachment(a).wait(),
             None => put.wait(),
@@ -847,7 +945,7 @@ impl OutputThread {
                                 camera_id: id,
                                 frames: c.frames,
                                 drops: c.drops,
-                                malformed: c.malformed,
+                                malformed: c.malformed.total(),
                                 rate_hz,
                                 latency_p50_s: c.delivery_latency_p50_s,
                                 latency_p99_s: c.delivery_latency_p99_s,

@@ -58,6 +58,7 @@ mod backends;
 pub mod can_out;
 pub mod frame_queue;
 pub mod haptic_loop;
+pub mod playback;
 pub mod realtime;
 pub mod record;
 mod replay;
@@ -277,8 +278,11 @@ impl NodeConfig {
 
 /// Where frames come from.
 pub enum Source {
-    /// Frames delivered when the clock reaches their stamp (an MCAP recording's or bag's).
+    /// Frames delivered when the clock reaches their stamp.
     Timed(Vec<Frame>),
+    /// An MCAP recording's or ROS 2 bag's frames, read from the file as they come due and
+    /// delivered like [`Source::Timed`]; without `--duration` the run ends after the last.
+    Recording(Box<playback::RecordingSource>),
     /// Frames of a simulated scene, delivered like [`Source::Timed`]; the robot follows the
     /// scene's joint trajectory.
     Simulated {
@@ -394,14 +398,23 @@ pub fn run(
         Some(r) => r,
         None => RobotState::fixed(config)?,
     };
-    let timed_frames = match &source {
-        Source::Timed(frames) | Source::Simulated { frames, .. } => Some(frames),
-        #[cfg(feature = "ros2")]
-        Source::Zenoh(_) => None,
+    // Frames whose stamps disagree with their neighbours are refused (counted) before the
+    // clock is set from the stamps.
+    let mut source = source;
+    let refused_stamps = match &mut source {
+        Source::Timed(frames) | Source::Simulated { frames, .. } => {
+            let (kept, refused) = playback::check_stamps(std::mem::take(frames));
+            *frames = kept;
+            refused
+        }
+        _ => BTreeMap::new(),
     };
-    if let Some(frames) = timed_frames {
-        check_stamps(frames)?;
-    }
+    let (timed_frames, streamed) = match &mut source {
+        Source::Timed(frames) | Source::Simulated { frames, .. } => (Some(&frames[..]), false),
+        Source::Recording(r) => (Some(r.ready()), true),
+        #[cfg(feature = "ros2")]
+        Source::Zenoh(_) => (None, false),
+    };
     let (backend, backend_choice) = match (timed_frames, options.pick_backend) {
         (Some(frames), true) => {
             match measure_backends(config, frames, &robot, options.adapter.as_deref())? {
@@ -466,7 +479,7 @@ pub fn run(
     // Memory is locked first: locking a large process takes a while, and a live source's
     // clock starts at the wall time read below.
     let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
-    let (t_first, t_end) = clock_span(config, options, timed_frames);
+    let (t_first, t_end) = clock_span(config, options, timed_frames, streamed);
     let first_joints = robot.at(t_first);
     let clock = Clock {
         start: Instant::now(),
@@ -474,6 +487,14 @@ pub fn run(
         offset_bits: AtomicU64::new(t_first.to_bits()),
     };
     let shared = Shared::default();
+    shared
+        .source_end_bits
+        .store(f64::INFINITY.to_bits(), Ordering::Relaxed);
+    for (id, n) in refused_stamps {
+        shared.bad_stamps.fetch_add(n, Ordering::Relaxed);
+        shared.lose(id, |l| l.bad_stamp += n);
+    }
+    let stale_timeout_s = config.fusion.stale_timeout_s;
     let frame_queue = &FrameQueue::<Frame>::new(config.frame_queue_count);
     let (estimate_tx, estimate_rx) = mpsc::sync_channel::<Handover>(HANDOVER_CAPACITY);
     let (spent_tx, spent_rx) = mpsc::sync_channel(HANDOVER_CAPACITY);
@@ -534,7 +555,7 @@ pub fn run(
             .collect();
         let source_handle = scope.spawn(move || {
             guarded(shared, Worker::Source, || {
-                workers::source_thread(source, clock, frame_queue, shared, inject);
+                workers::source_thread(source, clock, frame_queue, shared, inject, stale_timeout_s);
                 Ok(())
             })
         });
@@ -597,25 +618,16 @@ fn validate_options(config: &NodeConfig, options: &RunOptions) -> Result<(), Nod
     Ok(())
 }
 
-/// A timed source's stamps must be finite and within [`MAX_STAMP_S`].
-fn check_stamps(frames: &[Frame]) -> Result<(), NodeError> {
-    match frames
-        .iter()
-        .enumerate()
-        .find(|(_, f)| !f.stamp_s.is_finite() || f.stamp_s.abs() > MAX_STAMP_S)
-    {
-        Some((i, f)) => Err(NodeError::Config(format!(
-            "frame {i} (camera {}) is stamped {} s: stamps must be finite and within {MAX_STAMP_S} s",
-            f.camera_id, f.stamp_s
-        ))),
-        None => Ok(()),
-    }
-}
-
 /// The node clock's first and last time: a timed source from its first stamp to its last
-/// plus the stale timeout (or `--duration`); a live source on the wall clock, on which the
-/// cameras stamp their frames.
-fn clock_span(config: &NodeConfig, options: &RunOptions, timed: Option<&Vec<Frame>>) -> (f64, f64) {
+/// plus the stale timeout (or `--duration`); a streamed recording from the first stamp of its
+/// first frames to the end its source sets once it has played the last (or `--duration`); a
+/// live source on the wall clock, on which the cameras stamp their frames.
+fn clock_span(
+    config: &NodeConfig,
+    options: &RunOptions,
+    timed: Option<&[Frame]>,
+    streamed: bool,
+) -> (f64, f64) {
     match timed {
         Some(frames) => {
             let first = frames
@@ -627,10 +639,11 @@ fn clock_span(config: &NodeConfig, options: &RunOptions, timed: Option<&Vec<Fram
                 .map(|f| f.stamp_s)
                 .fold(f64::NEG_INFINITY, f64::max);
             let first = if first.is_finite() { first } else { 0.0 };
-            let end = options.duration_s.map_or(
-                last.max(first) + config.fusion.stale_timeout_s + 0.05,
-                |d| first + d,
-            );
+            let end = match options.duration_s {
+                Some(d) => first + d,
+                None if streamed => f64::INFINITY,
+                None => last.max(first) + config.fusion.stale_timeout_s + 0.05,
+            };
             (first, end)
         }
         None => {
@@ -718,6 +731,17 @@ fn summarize(
         dropped_frames: shared.dropped.load(Ordering::Relaxed),
         malformed_records: shared.malformed.load(Ordering::Relaxed),
         handover_dropped: shared.handover_dropped.load(Ordering::Relaxed),
+        tf_static_malformed: shared.tf_static_malformed.load(Ordering::Relaxed),
+        source_error: shared
+            .source_error
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone(),
+        source_truncated: shared
+            .source_truncated
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone(),
         out_of_order_frames: shared.out_of_order.load(Ordering::Relaxed),
         bad_stamp_frames: shared.bad_stamps.load(Ordering::Relaxed),
         cameras,

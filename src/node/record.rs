@@ -83,7 +83,7 @@ pub enum RecordError {
 }
 
 /// An MCAP error, naming the file once.
-fn mcap_error(path: &Path, e: McapError) -> RecordError {
+pub(super) fn mcap_error(path: &Path, e: McapError) -> RecordError {
     RecordError::Mcap(match e {
         McapError::Io { .. } => e.to_string(),
         e => format!("{}: {e}", path.display()),
@@ -362,7 +362,8 @@ pub fn read(path: &Path) -> Result<Recording, RecordError> {
         reason,
     };
     let mcap_err = |e: McapError| mcap_error(path, e);
-    let mut reader = McapReader::open(path, &McapReaderConfig::default()).map_err(mcap_err)?;
+    let mut reader =
+        McapReader::open(path, &McapReaderConfig::default(), Vec::new()).map_err(mcap_err)?;
     let mut meta = None;
     let (mut frames, mut frame_joints, mut estimates, mut ticks) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -409,7 +410,7 @@ pub fn read(path: &Path) -> Result<Recording, RecordError> {
     })
 }
 
-fn parse_meta(metadata: &BTreeMap<String, String>) -> Result<RecordingMeta, String> {
+pub(super) fn parse_meta(metadata: &BTreeMap<String, String>) -> Result<RecordingMeta, String> {
     let text = metadata
         .get("meta")
         .ok_or("the hapcloud metadata record has no `meta`")?;
@@ -440,64 +441,26 @@ pub struct McapFrames {
     pub truncated: Option<String>,
 }
 
-/// The camera frames of any MCAP file: a node recording, or a ROS 2 bag (e.g. recorded from
-/// realsense-ros: Image + CameraInfo or PointCloud2 topics, found from the channels unless
-/// `config` names them; poses from `config` or `/tf_static`). No frame at all is an error
-/// saying why.
+/// The camera frames of any MCAP file, all in memory (the viewer's, a test's; `hapcloud run`
+/// streams them with [`super::playback::RecordingSource`]): a node recording, or a ROS 2 bag
+/// (e.g. recorded from realsense-ros: Image + CameraInfo or PointCloud2 topics, found from the
+/// channels unless `config` names them; poses from `config` or `/tf_static`), frames whose
+/// stamps disagree with their neighbours left out. No frame at all is an error saying why.
 pub fn read_frames(path: &Path, config: &McapReaderConfig) -> Result<McapFrames, RecordError> {
-    if is_old_recording(path) {
-        return Err(RecordError::OldFormat { path: path.into() });
+    let mut source = super::playback::RecordingSource::open(path, config, Vec::new())?;
+    let mut frames = Vec::new();
+    while let Some(f) = source.next_frame()? {
+        frames.push(f);
     }
-    let mcap_err = |e: McapError| mcap_error(path, e);
-    let mut reader = McapReader::open(path, config).map_err(mcap_err)?;
-    let (mut frames, mut meta) = (Vec::new(), None);
-    while let Some(item) = reader.next_item().map_err(mcap_err)? {
-        match item {
-            McapItem::Frame(a) => frames.push(a.frame),
-            McapItem::Metadata { name, metadata } if name == METADATA_NAME => {
-                meta = parse_meta(&metadata).ok();
-            }
-            _ => {}
-        }
-    }
-    let counters = reader.assembler().counters();
-    if frames.is_empty() {
-        let cameras = reader.assembler().cameras();
-        let reason = if cameras.is_empty() {
-            "no camera topics (a sensor_msgs/Image with a camera_info beside it, or a \
-             sensor_msgs/PointCloud2)"
-                .to_string()
-        } else if counters.no_pose > 0 {
-            format!(
-                "{} frames without a camera pose: record /tf_static, or give the camera's \
-                 world_from_camera in the config's [[mcap.cameras]]",
-                counters.no_pose
-            )
-        } else {
-            format!(
-                "no complete frame on {} ({counters:?}{})",
-                cameras
-                    .iter()
-                    .flat_map(|c| c.topics())
-                    .collect::<Vec<_>>()
-                    .join(", "),
-                reader
-                    .assembler()
-                    .last_error()
-                    .map(|e| format!("; last error: {e}"))
-                    .unwrap_or_default()
-            )
-        };
-        return Err(RecordError::Format {
-            path: path.into(),
-            reason,
-        });
+    let mut counters = crate::io::ros2::assemble::AssemblyCounters::default();
+    for l in source.losses().values() {
+        counters.add(&l.assembly);
     }
     Ok(McapFrames {
         frames,
-        meta,
+        meta: source.meta().cloned(),
         counters,
-        truncated: reader.truncated().map(str::to_string),
+        truncated: source.truncated().map(str::to_string),
     })
 }
 

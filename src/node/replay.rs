@@ -22,6 +22,9 @@ pub struct ReplayReport {
     /// The first difference, described.
     pub first_mismatch: Option<String>,
     pub backend: Backend,
+    /// Where and why the recording ended early (cut off mid-write): only the part before the
+    /// cut was compared.
+    pub truncated: Option<String>,
 }
 
 impl ReplayReport {
@@ -44,6 +47,7 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
         HapticLoop::new(config, robot.model().clone(), recording.meta.backend, None)?;
     let mut report = ReplayReport {
         frames: recording.frames.len() as u64,
+        truncated: recording.truncated.clone(),
         ..Default::default()
     };
     let note = |report: &mut ReplayReport, what: String| {

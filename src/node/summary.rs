@@ -8,6 +8,7 @@ use super::record::Behind;
 use crate::fusion::{CameraLatency, FusionCounters};
 use crate::gpu::Backend;
 use crate::gpu::clock::PassOnHost;
+use crate::io::ros2::assemble::Malformed;
 use crate::perception::frontend::BackendChoice;
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -40,15 +41,23 @@ pub struct FramesLost {
     /// Messages the live source's receive queue dropped when full: the source thread
     /// (decoding, pairing) was behind (`zenoh_source.queue_samples`).
     pub source_dropped: u64,
-    /// Messages that did not decode or convert.
+    /// Messages the camera's publishers sent numbers for but that never arrived: gaps in
+    /// each publisher's sequence numbers (rmw_zenoh's attachment), lost before this node (a
+    /// sender whose congestion control drops, a fragment timeout on a big frame).
+    pub publisher_skipped: u64,
+    /// Messages that did not decode or convert (a live source's or a recording's).
     pub malformed: u64,
+    /// The same, by why (bad CDR, point layout, truncated data, image encoding, distorted
+    /// camera info, other camera info, header stamp, other value).
+    pub malformed_reasons: Malformed,
     /// Images, infos or clouds that never met their partners of the same stamp.
     pub unpaired: u64,
     /// Frames without a known pose yet (no transform to the world frame).
     pub no_pose: u64,
     /// Frames stamped at or before the camera's last accepted frame.
     pub out_of_order: u64,
-    /// Streamed frames whose stamp is not finite or far from the node clock.
+    /// Frames whose stamp is not finite, far from the node clock (a live source) or from
+    /// its neighbours in the file (a recording).
     pub bad_stamp: u64,
 }
 
@@ -59,16 +68,25 @@ pub struct NodeSummary {
     pub frames: u64,
     /// Queued frames dropped for a newer one because perception was behind.
     pub dropped_frames: u64,
-    /// Malformed messages of a live source, dropped.
+    /// Malformed messages of a live source or a recording, dropped (the cameras' and
+    /// `/tf_static`'s).
     pub malformed_records: u64,
+    /// `/tf_static` messages refused (not finite, not a unit quaternion, bad CDR): the
+    /// cameras they would have placed count their frames `no_pose`.
+    pub tf_static_malformed: u64,
+    /// The error that ended a recording's playback before its end (damaged, over
+    /// `mcap.max_file_bytes`, reading stopped by a signal).
+    pub source_error: Option<String>,
+    /// Where and why a recording ended early (cut off mid-write): the frames before played.
+    pub source_truncated: Option<String>,
     /// Estimates perception could not hand to the loop because the loop had not taken the
     /// ones before (stalled for seconds).
     pub handover_dropped: u64,
     /// Frames refused where they entered because their camera had already delivered a
     /// frame stamped as late or later (stamps must increase per camera).
     pub out_of_order_frames: u64,
-    /// Streamed frames refused for a stamp that is not finite or more than 10 s from the
-    /// node clock.
+    /// Frames refused for a stamp that is not finite, more than 10 s from the node clock (a
+    /// live source) or from most of its neighbours in the file (a recording).
     pub bad_stamp_frames: u64,
     pub cameras: BTreeMap<u32, CameraSummary>,
     pub ticks: u64,

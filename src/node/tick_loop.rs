@@ -174,8 +174,14 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
         )));
         let warmup_ticks = self.config.tick_rate_hz.ceil() as u64;
         let loop_start = self.clock.start;
-        let stream_length_s = self.t_end - self.t_first;
         loop {
+            // A streamed recording's end is known once its source has played the last frame.
+            let t_end = if self.t_end.is_finite() {
+                self.t_end
+            } else {
+                f64::from_bits(self.shared.source_end_bits.load(Ordering::Acquire))
+            };
+            let stream_length_s = t_end - self.t_first;
             if self.shared.failed.load(Ordering::Acquire) {
                 break;
             }

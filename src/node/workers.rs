@@ -62,6 +62,14 @@ pub(super) struct Shared {
     /// accepted frame, or with a stamp that is not finite or far from the node clock.
     pub(super) out_of_order: AtomicU64,
     pub(super) bad_stamps: AtomicU64,
+    /// `/tf_static` messages the source refused.
+    pub(super) tf_static_malformed: AtomicU64,
+    /// The clock time a streamed recording ends at, set once its last frame is out (the
+    /// bits of infinity until then).
+    pub(super) source_end_bits: AtomicU64,
+    /// Why a recording stopped before its end, and where it was cut.
+    pub(super) source_error: Mutex<Option<String>>,
+    pub(super) source_truncated: Mutex<Option<String>>,
     /// Perception fell back from the GPU to the CPU.
     pub(super) gpu_fell_back: AtomicBool,
     /// A worker thread failed (panicked or returned an error): the loop stops at its next
@@ -92,7 +100,7 @@ impl Shared {
     }
 
     /// Updates `camera`'s counts of frames lost.
-    fn lose(&self, camera: u32, count: impl FnOnce(&mut FramesLost)) {
+    pub(super) fn lose(&self, camera: u32, count: impl FnOnce(&mut FramesLost)) {
         let mut lost = self.lost.lock().unwrap_or_else(PoisonError::into_inner);
         count(lost.entry(camera).or_default());
     }
@@ -423,6 +431,7 @@ pub(super) fn source_thread(
     queue: &FrameQueue<Frame>,
     shared: &Shared,
     inject: Option<(Worker, u64)>,
+    stale_timeout_s: f64,
 ) {
     // Perception drains what is queued and ends once the source does.
     let _close = CloseOnDrop(queue);
@@ -448,25 +457,62 @@ pub(super) fn source_thread(
             Err(_) => false,
         }
     };
+    // Sleeps until the frame is due, waking regularly to see a stop; false when stopped.
+    let wait_due = |stamp_s: f64| loop {
+        if shared.stop.load(Ordering::Relaxed) {
+            return false;
+        }
+        let due = clock.wall_at(stamp_s);
+        let now = Instant::now();
+        if now >= due {
+            return true;
+        }
+        std::thread::sleep((due - now).min(Duration::from_millis(20)));
+    };
     match source {
         Source::Timed(frames) | Source::Simulated { frames, .. } => {
             for frame in frames {
-                // Sleep until the frame is due, waking regularly to see a stop.
-                loop {
-                    if shared.stop.load(Ordering::Relaxed) {
-                        return;
-                    }
-                    let due = clock.wall_at(frame.stamp_s);
-                    let now = Instant::now();
-                    if now >= due {
-                        break;
-                    }
-                    std::thread::sleep((due - now).min(Duration::from_millis(20)));
-                }
-                if !offer(frame) {
+                if !wait_due(frame.stamp_s) || !offer(frame) {
                     return;
                 }
             }
+            shared.source_finished.store(true, Ordering::Release);
+        }
+        Source::Recording(mut recording) => {
+            let mut last_s = f64::NEG_INFINITY;
+            loop {
+                let next = recording.next_frame();
+                recording_losses(&recording, shared);
+                match next {
+                    Ok(Some(frame)) => {
+                        last_s = last_s.max(frame.stamp_s);
+                        if !wait_due(frame.stamp_s) || !offer(frame) {
+                            return;
+                        }
+                    }
+                    Ok(None) => break,
+                    Err(e) => {
+                        *shared
+                            .source_error
+                            .lock()
+                            .unwrap_or_else(PoisonError::into_inner) = Some(e.to_string());
+                        break;
+                    }
+                }
+            }
+            *shared
+                .source_truncated
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner) = recording.truncated().map(String::from);
+            // The run ends once fusion has gone stale after the last frame.
+            let end_s = if last_s.is_finite() {
+                last_s + stale_timeout_s + 0.05
+            } else {
+                clock.now_s()
+            };
+            shared
+                .source_end_bits
+                .store(end_s.to_bits(), Ordering::Release);
             shared.source_finished.store(true, Ordering::Release);
         }
         #[cfg(feature = "ros2")]
@@ -494,19 +540,50 @@ pub(super) fn source_thread(
     }
 }
 
+/// A recording's counts (what its reader refused, stamps that disagreed) into the node's
+/// per-camera losses.
+fn recording_losses(recording: &super::playback::RecordingSource, shared: &Shared) {
+    let losses = recording.losses();
+    let tf = recording.tf_static_malformed().total();
+    shared.tf_static_malformed.store(tf, Ordering::Relaxed);
+    shared.malformed.store(
+        losses
+            .values()
+            .map(|l| l.assembly.malformed.total())
+            .sum::<u64>()
+            + tf,
+        Ordering::Relaxed,
+    );
+    let refused: u64 = losses.values().map(|l| l.bad_stamps).sum();
+    shared.bad_stamps.store(refused, Ordering::Relaxed);
+    for (id, l) in losses {
+        shared.lose(id, |lost| {
+            lost.malformed = l.assembly.malformed.total();
+            lost.malformed_reasons = l.assembly.malformed;
+            lost.unpaired = l.assembly.unpaired;
+            lost.no_pose = l.assembly.no_pose;
+            lost.bad_stamp = l.bad_stamps;
+        });
+    }
+}
+
 /// The live source's own counts (its receive queue, decoding, pairing, poses) into the
 /// node's per-camera losses.
 #[cfg(feature = "ros2")]
 fn source_losses(stats: &crate::io::zenoh::SourceStats, shared: &Shared) {
     let counters = stats.counters();
+    let tf = stats.tf_static_malformed();
+    shared.tf_static_malformed.store(tf, Ordering::Relaxed);
     shared.malformed.store(
-        counters.values().map(|c| c.malformed).sum(),
+        counters.values().map(|c| c.malformed.total()).sum::<u64>() + tf,
         Ordering::Relaxed,
     );
     for (id, c) in counters {
         shared.lose(id, |l| {
             l.source_dropped = c.drops;
-            l.malformed = c.malformed;
+            l.publisher_skipped = c.publisher_skipped;
+            l.malformed = c.malformed.total();
+            l.malformed_reasons = c.malformed;
             l.unpaired = c.unpaired;
             l.no_pose = c.no_pose;
         });

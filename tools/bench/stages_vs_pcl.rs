@@ -23,12 +23,14 @@
 //!
 //! Then **D435 chain**: `--d435-frames` frames of the first camera of a built-in scene
 //! (848x480, rendered before timing) through [`CameraChain`] as the node runs it (HIP and robot
-//! primitives at each frame's stamp, the node's default stage configs), on the GPU (the frame
-//! enters as its 16-bit depth image: deprojection, flying pixels and crop in the first pass)
-//! and on the CPU reference (the image's deprojected cloud in the camera frame, as a real
-//! source delivers it: the flying-pixel test and the pose in the front end's time):
-//! GPU time per pass from timestamp queries, wall and CPU time of the front end and of the
-//! surface stages (memory, shell moments, fits), counts per stage.
+//! primitives at each frame's stamp, the node's default stage configs), on the GPU and on the
+//! CPU reference (the frame enters as its 16-bit depth image: deprojection, flying pixels and
+//! crop in the first pass, the CPU's over the crop's pixel region only): GPU time per pass
+//! from timestamp queries, wall and CPU time of the front end and of the surface stages
+//! (memory, shell moments, fits), counts per stage. The CPU chain over the crop region is
+//! timed against the same chain over the whole frame (the image deprojected into an
+//! organized cloud, the flying-pixel test and the pose over every pixel), alternating which
+//! runs first frame by frame; their estimates must be the same bits.
 //!
 //! Times. PCL: the compute time its tool prints (`[done, X ms ...]`: the filter alone; process
 //! start-up and file I/O excluded), best of the runs: a wall time, so on a loaded machine the
@@ -58,7 +60,9 @@ use hapcloud::gpu::timing::{StageTime, StageTimer};
 use hapcloud::gpu::{Backend, GpuContext};
 use hapcloud::node::NodeConfig;
 use hapcloud::perception::cluster::{ClusterConfig, GpuClusterer, cluster_cpu};
-use hapcloud::perception::crop::{CropConfig, CropScene, GpuCrop, crop_cpu, kept_indices};
+use hapcloud::perception::crop::{
+    CropConfig, CropScene, DepthInput, GpuCrop, crop_cpu, crop_region, kept_indices,
+};
 use hapcloud::perception::frontend::FramePoints;
 use hapcloud::perception::frontend::{FrameInput, Frontend, FrontendConfig};
 use hapcloud::perception::pipeline::{CameraChain, ChainFrame};
@@ -468,16 +472,6 @@ fn chain_counts(c: &ChainFrame, finite: usize) -> [usize; 6] {
     ]
 }
 
-/// The frame as a real depth source delivers it: the cloud is the depth image's deprojection
-/// (the simulator's own cloud is its unquantised depth). The GPU chain takes the image, the
-/// CPU chain the cloud.
-fn as_delivered(frame: Frame) -> Frame {
-    match frame.depth().and_then(|(image, k)| image.deproject(k)) {
-        Some(cloud) => frame.with_cloud(cloud),
-        None => frame,
-    }
-}
-
 /// GPU and CPU chain counts agree: integers decided by integers exactly (pixels with a
 /// depth, clusters, valid estimates), those behind a float threshold within the f32
 /// deprojection's reach (points at a crop or cell boundary: 0.5 % and 5).
@@ -523,13 +517,17 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
                 .into_iter()
                 .map(|(_, p)| p)
                 .collect();
-            frames.push((as_delivered(sim.frame(&timing).frame), hip, primitives));
+            frames.push((sim.frame(&timing).frame, hip, primitives));
         }
     }
     let Some((first, _, _)) = frames.first() else {
         bail!("scene {} rendered no frame of camera 0", args.scene);
     };
-    let (width, height) = (first.cloud().width, first.cloud().height);
+    let (width, height) = first.depth().map_or((0, 0), |(d, _)| (d.width, d.height));
+    let depth_pixels = |f: &Frame| {
+        f.depth()
+            .map_or(0, |(d, _)| d.data.iter().filter(|&&r| r != 0).count())
+    };
     let config = NodeConfig::default();
     let mut gpu = CameraChain::new(
         Backend::Gpu,
@@ -537,7 +535,23 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         config.surface.clone(),
         Some(Arc::clone(ctx)),
     )?;
-    let mut cpu = CameraChain::new(Backend::Cpu, config.frontend, config.surface, None)?;
+    let mut cpu = CameraChain::new(
+        Backend::Cpu,
+        config.frontend.clone(),
+        config.surface.clone(),
+        None,
+    )?;
+    // The CPU chain over the whole frame: the image deprojected into the organized cloud, the
+    // flying-pixel test and the pose over every pixel, then the crop (the path of a source
+    // that delivers an organized cloud, and the CPU chain's path for depth frames before the
+    // crop region).
+    let mut whole = CameraChain::new(
+        Backend::Cpu,
+        config.frontend.clone(),
+        config.surface.clone(),
+        None,
+    )?;
+    let mut region_vs_whole = RegionVsWhole::default();
     // Warm-up (lavapipe compiles shaders on their first dispatch), then a fresh memory.
     gpu.process(&frames[0].0, &frames[0].1, &frames[0].2)?;
     gpu.reset();
@@ -566,8 +580,8 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
             to_first.push(first.start_ns.saturating_sub(called) as f64 * 1e-6);
             after_last.push(returned.saturating_sub(last.end_ns) as f64 * 1e-6);
         }
-        let c = cpu.process(frame, hip, primitives)?;
-        let finite = frame.cloud().finite_count();
+        let c = region_vs_whole.run(&mut cpu, &mut whole, frame, hip, primitives, &config)?;
+        let finite = depth_pixels(frame);
         let (gc, cc) = (chain_counts(&g, finite), chain_counts(&c, finite));
         same &= counts_agree(&gc, &cc);
         counts.push(gc);
@@ -599,7 +613,7 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         args.scene
     );
     println!(
-        "counts: finite points {:.0}, after crop {:.0}, voxels {:.0}, clusters {:.0}, kept {:.0}; valid estimates {} of {}; GPU (depth image) and CPU (cloud) counts agree: {}",
+        "counts: finite points {:.0}, after crop {:.0}, voxels {:.0}, clusters {:.0}, kept {:.0}; valid estimates {} of {}; GPU and CPU counts agree: {}",
         count(0),
         count(1),
         count(2),
@@ -667,10 +681,130 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         total(&cpu_front, &cpu_surface, true),
         total(&cpu_front, &cpu_surface, false),
     );
+    same &= region_vs_whole.print(width, height);
     if args.d435_workers > 1 {
         shared_device(ctx, &frames, args.d435_workers)?;
     }
     Ok(same)
+}
+
+/// The CPU chain of a D435 frame (image -> surface estimate) over the crop's pixel region
+/// against the same chain over the whole frame, alternating which runs first frame by frame.
+#[derive(Default)]
+struct RegionVsWhole {
+    region: Times,
+    whole: Times,
+    /// Pixels the crop region holds, per frame.
+    pixels: Vec<f64>,
+    /// Frames whose estimates differ (the paths must give the same bits).
+    differ: usize,
+}
+
+impl RegionVsWhole {
+    fn run(
+        &mut self,
+        region: &mut CameraChain,
+        whole: &mut CameraChain,
+        frame: &Frame,
+        hip: &Point3<f64>,
+        primitives: &[hapcloud::geometry::Primitive],
+        config: &NodeConfig,
+    ) -> anyhow::Result<ChainFrame> {
+        let (image, intrinsics) = frame.depth().context("a simulated frame has its image")?;
+        let span = |c: &ChainFrame| SpanTime {
+            wall_ms: c.frontend_time.wall_ms + c.surface_time.wall_ms,
+            cpu_ms: c.frontend_time.cpu_ms + c.surface_time.cpu_ms,
+        };
+        let mut on_region = || -> anyhow::Result<(ChainFrame, SpanTime)> {
+            let c = region.process(frame, hip, primitives)?;
+            let t = span(&c);
+            Ok((c, t))
+        };
+        let mut on_whole = || -> anyhow::Result<(ChainFrame, SpanTime)> {
+            let watch = Stopwatch::start();
+            let cloud = image.deproject(intrinsics).context("sizes match")?;
+            let deprojection = watch.elapsed();
+            let cloud_frame = Frame::from_cloud(
+                frame.camera_id,
+                frame.stamp_s,
+                frame.world_from_camera,
+                cloud,
+            );
+            let c = whole.process(&cloud_frame, hip, primitives)?;
+            let t = span(&c);
+            Ok((
+                c,
+                SpanTime {
+                    wall_ms: t.wall_ms + deprojection.wall_ms,
+                    cpu_ms: t.cpu_ms + deprojection.cpu_ms,
+                },
+            ))
+        };
+        let ((r, rt), (w, wt)) = if self.pixels.len() % 2 == 0 {
+            let r = on_region()?;
+            (r, on_whole()?)
+        } else {
+            let w = on_whole()?;
+            (on_region()?, w)
+        };
+        self.region.push(rt, None);
+        self.whole.push(wt, None);
+        let depth = DepthInput {
+            image,
+            intrinsics,
+            cloud_from_camera: frame.world_from_camera,
+            flying: &config.surface.flying_pixels,
+        };
+        let scene = CropScene {
+            hip_m: *hip,
+            robot: primitives,
+            camera_m: Some(Point3::from(frame.world_from_camera.translation.vector)),
+        };
+        let rect = crop_region(&depth, &config.frontend.crop, Some(&scene));
+        self.pixels.push(rect.pixels() as f64);
+        if r.front.voxel != w.front.voxel
+            || r.front.clusters != w.front.clusters
+            || r.surface.abstraction != w.surface.abstraction
+        {
+            self.differ += 1;
+        }
+        Ok(r)
+    }
+
+    /// Prints the comparison; true when every frame's estimate was the same on both paths.
+    fn print(&self, width: u32, height: u32) -> bool {
+        let p90 = |v: &[f64]| {
+            let mut v = v.to_vec();
+            v.sort_by(f64::total_cmp);
+            v.get((v.len() * 9 / 10).min(v.len().saturating_sub(1)))
+                .copied()
+                .unwrap_or(f64::NAN)
+        };
+        let (r, w) = (
+            median(self.region.cpu_ms.clone()),
+            median(self.whole.cpu_ms.clone()),
+        );
+        println!(
+            "\nCPU chain, D435 frame -> surface estimate, {} frames alternating: crop region {:.2} ms thread CPU (p90 {:.2}; wall {:.2}), whole frame {:.2} ms (p90 {:.2}; wall {:.2}): x{:.2}; the region holds {:.0} of {} pixels (median; max {:.0}); estimates the same on both paths: {}",
+            self.pixels.len(),
+            r,
+            p90(&self.region.cpu_ms),
+            median(self.region.wall_ms.clone()),
+            w,
+            p90(&self.whole.cpu_ms),
+            median(self.whole.wall_ms.clone()),
+            w / r,
+            median(self.pixels.clone()),
+            width * height,
+            self.pixels.iter().copied().fold(0.0, f64::max),
+            if self.differ == 0 {
+                "yes".to_string()
+            } else {
+                format!("NO ({} frames differ)", self.differ)
+            }
+        );
+        self.differ == 0
+    }
 }
 
 /// The frames through `workers` GPU chains at once (one thread each, one shared device), as

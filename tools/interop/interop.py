@@ -8,9 +8,11 @@ Subcommands (all print JSON on stdout, diagnostics on stderr):
   publish PORT N              N depth Image + CameraInfo pairs (camera topic
                               /camera/camera/depth/...) and N PointCloud2 (/lidar/points),
                               serialized by rosbags, on rmw_zenoh keys through the router
-  listen PORT N SECONDS       decodes what hapcloud publishes on 0/hapcloud/** with rosbags;
-                              prints one JSON line per message, stops after N or SECONDS
-  stream PORT SECONDS RATE W H [garbage] [attach]
+  listen PORT N SECONDS       decodes what hapcloud publishes on 0/hapcloud/** with rosbags,
+                              and each attachment with zenoh-ext's deserializer as
+                              (int64, int64, bytes); prints one JSON line per message, stops
+                              after N or SECONDS
+  stream PORT SECONDS RATE W H [garbage] [attach] [skip] [tfonce] [distorted]
                               two live depth cameras as realsense-ros publishes them: Image
                               16UC1 + CameraInfo of a tilted plane 0.6 m ahead, W x H at RATE
                               Hz (0: as fast as it can, a flood), stamped with the wall clock,
@@ -18,8 +20,14 @@ Subcommands (all print JSON on stdout, diagnostics on stderr):
                               /tf_static (world -> camN_depth_optical_frame); with `garbage`,
                               every 10th image of cam0 is replaced by malformed CDR; with
                               `attach`, cam0's samples carry rmw_zenoh's attachment (sequence
-                              number, source time stamp, GID) and cam1's 3 bytes of junk;
-                              prints {"sent": N}
+                              number, source time stamp, GID; zenoh-ext serialized) and cam1's
+                              3 bytes of junk; with `skip` too, cam0's publishers skip one
+                              sequence number every 5th message; with `tfonce`, /tf_static
+                              goes out once, at the start, through zenoh-ext's
+                              AdvancedPublisher (cache, publisher detection), as rmw_zenoh
+                              publishes a transient-local topic; with `distorted`, cam1's
+                              CameraInfo has plumb_bob distortion (aligned depth's info);
+                              prints {"sent": N, "skipped": N}
   liveliness PORT             the ROS 2 graph as rmw_zenoh reads it: queries @ros2_lv/**,
                               parses each token key by rmw_zenoh's rules (liveliness_utils.cpp
                               Entity::make, keyexpr_to_qos); prints {"entities": [...],
@@ -31,6 +39,12 @@ Subcommands (all print JSON on stdout, diagnostics on stderr):
   write-bag DIR N             a realsense-like rosbag2 MCAP bag (zstd chunks): N depth frames
   read-mcap FILE              reads an MCAP with rosbags' AnyReader; prints per-topic counts
                               and decoded fields
+  read-mcap-foxglove FILE     reads an MCAP with the `mcap` and `mcap-ros2-support` packages:
+                              per channel its schema, message encoding, metadata
+                              (offered_qos_profiles parsed as YAML, topic_type_hash) and the
+                              message count, each message decoded; the profile
+  record-order FILE           the MCAP's records in file order (Channel topics and the topic
+                              of each Message), read with the `mcap` package
 The frames follow frame_values() so the Rust side can rebuild them independently.
 """
 
@@ -122,10 +136,13 @@ def cloud_msg(i):
                data=np.frombuffer(rec.tobytes(), dtype=np.uint8), is_dense=False)
 
 
-def session(port, mode):
+def session(port, mode, timestamping=False):
     import zenoh
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
+    if timestamping:
+        # As rmw_zenoh's session config: the advanced publisher's cache needs time stamps.
+        conf.insert_json5("timestamping/enabled", "true")
     conf.insert_json5("scouting/multicast/enabled", "false")
     if mode == "router":
         conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
@@ -192,10 +209,10 @@ def plane_depth_mm(w, h, fx, fy, cx, cy, t):
 
 
 def rmw_attachment(seq, gid):
-    """rmw_zenoh's attachment: i64 sequence number, i64 source time stamp (ns), the GID's
-    length and the GID (little-endian)."""
-    return (seq.to_bytes(8, "little", signed=True) + time.time_ns().to_bytes(8, "little")
-            + bytes([len(gid)]) + gid)
+    """rmw_zenoh's attachment, serialized by zenoh-ext: (int64 sequence number, int64 source
+    time stamp in ns, bytes GID)."""
+    from zenoh.ext import Int64, z_serialize
+    return z_serialize((Int64(seq), Int64(time.time_ns()), gid))
 
 
 class DepthCameras:
@@ -203,9 +220,10 @@ class DepthCameras:
     publishers on rmw_zenoh keys (dropped when congested), their poses on /tf_static, and a
     second of the swaying plane's frames computed up front so a publisher keeps its rate."""
 
-    def __init__(self, s, w, h):
+    def __init__(self, s, w, h, tf_once=False, distorted=False):
         import zenoh
         drop = zenoh.CongestionControl.DROP
+        self.distorted = distorted
         self.w, self.h = w, h
         self.fx = self.fy = 0.7 * w
         self.cx, self.cy = (w - 1) / 2, (h - 1) / 2
@@ -224,7 +242,15 @@ class DepthCameras:
                 translation=T["geometry_msgs/msg/Vector3"](x=p[0], y=p[1], z=p[2]),
                 rotation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
             for n, p in enumerate(CAM_POSES)])
-        self.tf_pub = s.declare_publisher(key("/tf_static", "tf2_msgs/msg/TFMessage"))
+        tf_key = key("/tf_static", "tf2_msgs/msg/TFMessage")
+        if tf_once:
+            # rmw_zenoh's transient-local publisher: a cache late joiners query, found
+            # through its liveliness token.
+            from zenoh.ext import CacheConfig, declare_advanced_publisher
+            self.tf_pub = declare_advanced_publisher(s, tf_key, cache=CacheConfig(max_samples=1),
+                                                     publisher_detection=True)
+        else:
+            self.tf_pub = s.declare_publisher(tf_key)
         self.tf_bytes = bytes(STORE.serialize_cdr(tf, "tf2_msgs/msg/TFMessage"))
         wait_matching([p for pair in self.pubs for p in pair], 10.0)
         self.frames = [np.frombuffer(plane_depth_mm(w, h, self.fx, self.fy, self.cx, self.cy, j / 8)
@@ -241,6 +267,8 @@ class DepthCameras:
     def put_info(self, n, stamp_t, **extra):
         """Camera n's camera info, stamped stamp_t."""
         info = camera_info(self.header(n, stamp_t), self.w, self.h, self.fx, self.fy, self.cx, self.cy)
+        if self.distorted and n == 1:
+            info.d = np.array([0.12, -0.25, 0.001, -0.0005, 0.1])
         self.pubs[n][1].put(bytes(STORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo")), **extra)
 
     def publish(self, n, stamp_t, phase_s, **extra):
@@ -251,41 +279,66 @@ class DepthCameras:
         self.pubs[n][0].put(bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")), **extra)
         self.put_info(n, stamp_t, **extra)
 
+    def publish_with(self, n, stamp_t, phase_s, extra_of):
+        """publish(), each of the two publishers with its own extra arguments (extra_of(0)
+        for the image, extra_of(1) for the info)."""
+        img = self.Image(header=self.header(n, stamp_t), height=self.h, width=self.w,
+                         encoding="16UC1", is_bigendian=0, step=self.w * 2,
+                         data=self.frames[int(phase_s * 8) % 8])
+        self.pubs[n][0].put(bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")), **extra_of(0))
+        self.put_info(n, stamp_t, **extra_of(1))
+
     def put_garbage(self, n, **extra):
         """A malformed Image (garbage CDR) on camera n."""
         self.pubs[n][0].put(b"\x00\x01\x00\x00\x07\x00\x00\x00garbage", **extra)
 
 
-def cmd_stream(port, seconds, rate, w, h, garbage, attach):
-    s = session(port, "client")
-    cams = DepthCameras(s, w, h)
+def cmd_stream(port, seconds, rate, w, h, garbage, attach, skip, tf_once, distorted):
+    s = session(port, "client", timestamping=tf_once)
+    cams = DepthCameras(s, w, h, tf_once, distorted)
+    if tf_once:
+        cams.put_tf()
     start = time.time()
     period = 1.0 / rate if rate > 0 else 0.0
     sent = 0
+    skipped = 0
     k = 0
-    gid = bytes(range(16))
+    # Each publisher (cam0's image and info) has its own GID and sequence, from 1.
+    gids = [bytes(range(16)), bytes(range(16, 32))]
+    seq = 0
     while time.time() - start < seconds:
         due = start + k * period
         now = time.time()
         if due > now:
             time.sleep(due - now)
-        if k % max(int(rate), 30) == 0:
+        if not tf_once and k % max(int(rate), 30) == 0:
             cams.put_tf()
+        seq += 1
+        if skip and k % 5 == 4:
+            seq += 1
+            skipped += 2
         for n in range(2):
             t = time.time()
             extra = {}
-            if attach:
-                extra["attachment"] = rmw_attachment(k, gid) if n == 0 else b"\xff\x00\x07"
+            if attach and n == 1:
+                extra["attachment"] = b"\xff\x00\x07"
             if garbage and n == 0 and k % 10 == 5:
-                cams.put_garbage(0, **extra)
-                cams.put_info(0, t, **extra)
+                cams.put_garbage(0, **with_attachment(extra, attach and n == 0, seq, gids[0]))
+                cams.put_info(0, t, **with_attachment(extra, attach and n == 0, seq, gids[1]))
+            elif attach and n == 0:
+                cams.publish_with(0, t, t - start,
+                                  lambda g, e=extra: with_attachment(e, True, seq, gids[g]))
             else:
                 cams.publish(n, t, t - start, **extra)
             sent += 1
         k += 1
-    print(json.dumps({"sent": sent}), flush=True)
+    print(json.dumps({"sent": sent, "skipped": skipped}), flush=True)
     time.sleep(0.2)
     s.close()
+
+
+def with_attachment(extra, attach, seq, gid):
+    return dict(extra, attachment=rmw_attachment(seq, gid)) if attach else extra
 
 
 ENTITY_KINDS = {"NN": "node", "MP": "publisher", "MS": "subscription",
@@ -307,7 +360,7 @@ def parse_qos(text):
     if not all(v == "" or v.isdigit() for v in sub):
         raise ValueError(f"QoS {text!r}: not numbers")
     return {"reliability": parts[0], "durability": parts[1], "history": sub[2],
-            "depth": sub[3]}
+            "depth": sub[3], "explicit": all(v != "" for v in sub)}
 
 
 def parse_token(key):
@@ -398,9 +451,14 @@ def cmd_listen(port, n, seconds, msg_dir):
         expected = STORE.hash_rihs01(msgtype)
         msg = STORE.deserialize_cdr(bytes(sample.payload.to_bytes()), msgtype)
         att = sample.attachment
+        decoded = None
+        if att is not None:
+            from zenoh.ext import Int64, z_deserialize
+            seq, ts, gid = z_deserialize(tuple[Int64, Int64, bytes], att)
+            decoded = {"sequence": int(seq), "time_ns": int(ts), "gid": bytes(gid).hex()}
         got.append({"key": k, "type": msgtype, "hash_ok": parts[-1] == expected,
                     "attachment_len": len(att.to_bytes()) if att is not None else 0,
-                    "msg": plain(msg)})
+                    "attachment": decoded, "msg": plain(msg)})
 
     sub = s.declare_subscriber("0/hapcloud/**", on_sample)
     print(json.dumps({"ready": True}), flush=True)
@@ -433,8 +491,6 @@ def cmd_write_bag(path, n):
         Q = STORE.types["geometry_msgs/msg/Quaternion"]
         tf_conn = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=STORE)
         img_conn = writer.add_connection(DEPTH_TOPIC, "sensor_msgs/msg/Image", typestore=STORE)
-        info_conn = writer.add_connection(INFO_TOPIC, "sensor_msgs/msg/CameraInfo",
-                                          typestore=STORE)
         # camera_link -> camera_depth_frame -> camera_depth_optical_frame, as realsense-ros.
         tf = TF(transforms=[
             TS(header=Header(stamp=stamp(0), frame_id="camera_link"),
@@ -448,10 +504,16 @@ def cmd_write_bag(path, n):
         ])
         writer.write(tf_conn, 100 * 10**9,
                      bytes(STORE.serialize_cdr(tf, "tf2_msgs/msg/TFMessage")))
+        info_conn = None
         for i in range(n):
             img, info = image_msgs(i)
             t = (100 + i) * 10**9 + 250_000_000 + i
             writer.write(img_conn, t, bytes(STORE.serialize_cdr(img, "sensor_msgs/msg/Image")))
+            # A recorder adds a topic when its first message comes: the camera_info
+            # connection (its channel record) after the first image.
+            if info_conn is None:
+                info_conn = writer.add_connection(INFO_TOPIC, "sensor_msgs/msg/CameraInfo",
+                                                  typestore=STORE)
             writer.write(info_conn, t,
                          bytes(STORE.serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
     print(json.dumps({"bag": str(next(Path(path).glob("*.mcap")))}))
@@ -475,6 +537,44 @@ def cmd_read_mcap(path):
     print(json.dumps(out))
 
 
+def cmd_read_mcap_foxglove(path):
+    """The file as Foxglove's Python packages read it: `mcap`'s reader, messages decoded by
+    `mcap-ros2-support` from the schemas in the file."""
+    from mcap.reader import make_reader
+    from ruamel.yaml import YAML
+    from mcap_ros2.decoder import DecoderFactory
+    out = {"channels": {}, "profile": None, "decoded": 0}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        out["profile"] = reader.get_header().profile
+        for schema, channel, _message, decoded in reader.iter_decoded_messages():
+            c = out["channels"].setdefault(channel.topic, {
+                "schema": schema.name, "schema_encoding": schema.encoding,
+                "message_encoding": channel.message_encoding,
+                "metadata": dict(channel.metadata),
+                "qos": YAML(typ="safe").load(channel.metadata.get("offered_qos_profiles", "null")),
+                "messages": 0})
+            c["messages"] += 1
+            out["decoded"] += 1
+            if c["messages"] == 1 and hasattr(decoded, "header"):
+                c["first_stamp"] = [decoded.header.stamp.sec, decoded.header.stamp.nanosec]
+    print(json.dumps(out))
+
+
+def cmd_record_order(path):
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+    order, topics = [], {}
+    with open(path, "rb") as f:
+        for r in StreamReader(f).records:
+            if isinstance(r, Channel):
+                topics[r.id] = r.topic
+                order.append(["channel", r.topic])
+            elif isinstance(r, Message):
+                order.append(["message", topics.get(r.channel_id)])
+    print(json.dumps({"order": order}))
+
+
 def main():
     cmd, args = sys.argv[1], sys.argv[2:]
     if cmd == "router":
@@ -484,8 +584,10 @@ def main():
     elif cmd == "listen":
         cmd_listen(int(args[0]), int(args[1]), float(args[2]), args[3])
     elif cmd == "stream":
+        flags = args[5:]
         cmd_stream(int(args[0]), float(args[1]), float(args[2]), int(args[3]), int(args[4]),
-                   "garbage" in args[5:], "attach" in args[5:])
+                   "garbage" in flags, "attach" in flags, "skip" in flags, "tfonce" in flags,
+                   "distorted" in flags)
     elif cmd == "liveliness":
         cmd_liveliness(int(args[0]), args[1])
     elif cmd == "reset":
@@ -496,6 +598,10 @@ def main():
         cmd_write_bag(args[0], int(args[1]))
     elif cmd == "read-mcap":
         cmd_read_mcap(args[0])
+    elif cmd == "read-mcap-foxglove":
+        cmd_read_mcap_foxglove(args[0])
+    elif cmd == "record-order":
+        cmd_record_order(args[0])
     else:
         sys.exit(f"unknown command {cmd}")
 

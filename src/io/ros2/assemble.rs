@@ -165,16 +165,92 @@ pub struct Assembled {
     pub joint_positions_rad: Vec<f64>,
 }
 
-/// Counters of what did not become a frame.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// Messages that did not decode or convert, by why.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct Malformed {
+    /// Not valid CDR (short data, bad encapsulation, a field that does not decode).
+    pub cdr: u64,
+    /// A PointCloud2 whose fields, steps or sizes do not make a point layout.
+    pub layout: u64,
+    /// Data shorter than the message declares.
+    pub truncated: u64,
+    /// An image encoding other than 16UC1 (mm) or 32FC1 (m).
+    pub encoding: u64,
+    /// A CameraInfo with a non-zero distortion (aligned depth with the colour camera's
+    /// distorted info): publish the depth camera's own rectified image and info instead.
+    pub distorted: u64,
+    /// Any other CameraInfo that is not usable pinhole intrinsics.
+    pub camera_info: u64,
+    /// A header stamp with nanoseconds of a second or more.
+    pub stamp: u64,
+    /// A value out of range (a pose, a depth scale, a size).
+    pub value: u64,
+}
+
+impl Malformed {
+    pub fn total(&self) -> u64 {
+        let Self {
+            cdr,
+            layout,
+            truncated,
+            encoding,
+            distorted,
+            camera_info,
+            stamp,
+            value,
+        } = *self;
+        cdr + layout + truncated + encoding + distorted + camera_info + stamp + value
+    }
+
+    /// Counts one message refused for `e`.
+    pub fn count(&mut self, e: &Ros2Error) {
+        *match e {
+            Ros2Error::Cdr { .. } | Ros2Error::Encapsulation { .. } | Ros2Error::BigEndian(_) => {
+                &mut self.cdr
+            }
+            Ros2Error::Layout(_) => &mut self.layout,
+            Ros2Error::Truncated(_) => &mut self.truncated,
+            Ros2Error::Encoding(_) => &mut self.encoding,
+            Ros2Error::Distorted { .. } => &mut self.distorted,
+            Ros2Error::CameraInfo(_) => &mut self.camera_info,
+            Ros2Error::Stamp(_) => &mut self.stamp,
+            Ros2Error::Value(_) => &mut self.value,
+        } += 1;
+    }
+
+    /// Adds `other`'s counts.
+    pub fn add(&mut self, other: &Malformed) {
+        self.cdr += other.cdr;
+        self.layout += other.layout;
+        self.truncated += other.truncated;
+        self.encoding += other.encoding;
+        self.distorted += other.distorted;
+        self.camera_info += other.camera_info;
+        self.stamp += other.stamp;
+        self.value += other.value;
+    }
+}
+
+/// Counters of what did not become a frame (of one camera, or of all).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 pub struct AssemblyCounters {
     pub frames: u64,
-    /// Messages that did not decode or convert.
-    pub malformed: u64,
+    /// Messages that did not decode or convert, by why.
+    pub malformed: Malformed,
     /// Images or infos dropped without a partner of the same stamp.
     pub unpaired: u64,
     /// Frames dropped because no pose was known for them yet.
     pub no_pose: u64,
+}
+
+impl AssemblyCounters {
+    /// Adds `other`'s counts.
+    pub fn add(&mut self, other: &AssemblyCounters) {
+        self.frames += other.frames;
+        self.malformed.add(&other.malformed);
+        self.unpaired += other.unpaired;
+        self.no_pose += other.no_pose;
+    }
 }
 
 #[derive(Default)]
@@ -193,7 +269,12 @@ pub struct FrameAssembler {
     /// child frame -> (parent frame, parent_from_child).
     tf: HashMap<String, (String, Isometry3<f64>)>,
     world_frame: String,
-    counters: AssemblyCounters,
+    /// Per camera (by index).
+    counters: Vec<AssemblyCounters>,
+    /// `/tf_static` messages refused (a transform that is not finite with a unit quaternion,
+    /// bad CDR).
+    tf_static_malformed: Malformed,
+    tf_static_error: Option<String>,
     last_error: Option<String>,
 }
 
@@ -209,7 +290,9 @@ impl FrameAssembler {
             pending: Vec::new(),
             tf: HashMap::new(),
             world_frame: world_frame.into(),
-            counters: AssemblyCounters::default(),
+            counters: Vec::new(),
+            tf_static_malformed: Malformed::default(),
+            tf_static_error: None,
             last_error: None,
         };
         for c in cameras {
@@ -237,6 +320,7 @@ impl FrameAssembler {
         self.roles.extend(roles);
         self.cameras.push(c);
         self.pending.push(Pending::default());
+        self.counters.push(AssemblyCounters::default());
         Ok(())
     }
 
@@ -249,8 +333,26 @@ impl FrameAssembler {
         self.roles.get(topic).copied()
     }
 
+    /// The counters of all cameras together.
     pub fn counters(&self) -> AssemblyCounters {
-        self.counters
+        let mut all = AssemblyCounters::default();
+        for c in &self.counters {
+            all.add(c);
+        }
+        all
+    }
+
+    /// Each camera's counters, by camera id.
+    pub fn camera_counters(&self) -> impl Iterator<Item = (u32, AssemblyCounters)> + '_ {
+        self.cameras
+            .iter()
+            .zip(&self.counters)
+            .map(|(c, n)| (c.camera_id, *n))
+    }
+
+    /// `/tf_static` messages refused, by why, and the last one's error.
+    pub fn tf_static_malformed(&self) -> (Malformed, Option<&str>) {
+        (self.tf_static_malformed, self.tf_static_error.as_deref())
     }
 
     /// Why the most recent message was counted as malformed.
@@ -265,8 +367,27 @@ impl FrameAssembler {
         match self.push_role(role, payload) {
             Ok(frame) => frame,
             Err(e) => {
-                self.counters.malformed += 1;
-                self.last_error = Some(format!("{topic}: {e}"));
+                let error = format!("{topic}: {e}");
+                match role {
+                    Role::TfStatic => {
+                        self.tf_static_malformed.count(&e);
+                        self.tf_static_error = Some(error.clone());
+                    }
+                    Role::Image(i) | Role::Info(i) | Role::Points(i) | Role::Meta(i) => {
+                        let m = &mut self.counters[i].malformed;
+                        m.count(&e);
+                        // Said once per camera: every info of such a camera is refused.
+                        if let Ros2Error::Distorted { .. } = e
+                            && m.distorted == 1
+                        {
+                            crate::stderr_line!(
+                                "warning: camera {}: {error}",
+                                self.cameras[i].camera_id
+                            );
+                        }
+                    }
+                }
+                self.last_error = Some(error);
                 None
             }
         }
@@ -283,27 +404,32 @@ impl FrameAssembler {
                 Ok(None)
             }
             Role::Meta(i) => {
-                push_bounded(&mut self.pending[i].metas, decode(payload)?);
+                let meta: FrameMeta = decode(payload)?;
+                check_stamp(&meta.header.stamp)?;
+                push_bounded(&mut self.pending[i].metas, meta);
                 Ok(None)
             }
             Role::Points(i) => {
                 let msg: PointCloud2 = decode(payload)?;
                 let header = msg.header.clone();
-                self.counters.unpaired += push_bounded(&mut self.pending[i].clouds, msg);
+                check_stamp(&header.stamp)?;
+                self.counters[i].unpaired += push_bounded(&mut self.pending[i].clouds, msg);
                 self.complete(i, &header)
             }
             Role::Image(i) => {
                 let img: Image = decode(payload)?;
                 let header = img.header.clone();
-                self.counters.unpaired += push_bounded(&mut self.pending[i].images, img);
+                check_stamp(&header.stamp)?;
+                self.counters[i].unpaired += push_bounded(&mut self.pending[i].images, img);
                 self.complete(i, &header)
             }
             Role::Info(i) => {
                 let info: CameraInfo = decode(payload)?;
+                check_stamp(&info.header.stamp)?;
                 // Checked now, so a bad info is counted once, not with every image.
                 intrinsics_from_camera_info(&info)?;
                 let header = info.header.clone();
-                self.counters.unpaired += push_bounded(&mut self.pending[i].infos, info);
+                self.counters[i].unpaired += push_bounded(&mut self.pending[i].infos, info);
                 self.complete(i, &header)
             }
         }
@@ -326,7 +452,7 @@ impl FrameAssembler {
         let (image, a) = take_matching(&mut p.images, |m| m.header.stamp == stamp);
         let (info, b) = take_matching(&mut p.infos, |m| m.header.stamp == stamp);
         let (points, c) = take_matching(&mut p.clouds, |m| m.header.stamp == stamp);
-        self.counters.unpaired += a + b + c;
+        self.counters[i].unpaired += a + b + c;
         let Some((stamp_s, pose, meta)) = self.pose(i, &stamp, &header.frame_id)? else {
             return Ok(None);
         };
@@ -348,11 +474,11 @@ impl FrameAssembler {
                 )));
             }
         };
-        Ok(Some(self.done(frame, meta)))
+        Ok(Some(self.done(i, frame, meta)))
     }
 
-    fn done(&mut self, frame: Frame, meta: Option<FrameMeta>) -> Assembled {
-        self.counters.frames += 1;
+    fn done(&mut self, i: usize, frame: Frame, meta: Option<FrameMeta>) -> Assembled {
+        self.counters[i].frames += 1;
         Assembled {
             frame,
             joint_positions_rad: meta.map(|m| m.joint_positions_rad).unwrap_or_default(),
@@ -396,7 +522,7 @@ impl FrameAssembler {
         match self.tf_pose(frame_id) {
             Some(pose) => Ok(Some((stamp_s, pose, None))),
             None => {
-                self.counters.no_pose += 1;
+                self.counters[i].no_pose += 1;
                 Ok(None)
             }
         }
@@ -421,6 +547,17 @@ impl FrameAssembler {
         }
         None
     }
+}
+
+/// A header stamp must have fewer than 1e9 nanoseconds (ROS 2's `builtin_interfaces/Time`).
+fn check_stamp(t: &Time) -> Result<(), Ros2Error> {
+    if t.nanosec >= 1_000_000_000 {
+        return Err(Ros2Error::Stamp(format!(
+            "header stamp {} s {} ns: nanosec must be below 1e9",
+            t.sec, t.nanosec
+        )));
+    }
+    Ok(())
 }
 
 /// Appends `item`, dropping the oldest beyond [`MAX_PENDING`]; returns how many were dropped.

@@ -285,10 +285,10 @@ pub fn intrinsics_from_camera_info(info: &CameraInfo) -> Result<PinholeIntrinsic
         )));
     }
     if info.d.iter().any(|&d| d != 0.0) {
-        return Err(Ros2Error::CameraInfo(format!(
-            "distortion {} {:?} is not supported (needs a rectified image)",
-            info.distortion_model, info.d
-        )));
+        return Err(Ros2Error::Distorted {
+            model: info.distortion_model.clone(),
+            d: info.d.iter().take(8).copied().collect(),
+        });
     }
     if info.binning_x > 1 || info.binning_y > 1 {
         return Err(Ros2Error::CameraInfo(format!(

@@ -44,6 +44,15 @@ pub enum Ros2Error {
     Encoding(String),
     #[error("camera info: {0}")]
     CameraInfo(String),
+    #[error(
+        "camera info: distortion {model} {d:?} is not supported: hapcloud deprojects rectified \
+         pinhole depth. Aligned depth (aligned_depth_to_color) comes with the colour camera's \
+         distorted info: subscribe to the depth camera's own image_rect_raw and its camera_info \
+         (zero distortion), or publish a rectified depth image with zero distortion"
+    )]
+    Distorted { model: String, d: Vec<f64> },
+    #[error("stamp: {0}")]
+    Stamp(String),
     #[error("bad value: {0}")]
     Value(String),
 }

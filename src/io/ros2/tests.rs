@@ -625,8 +625,8 @@ fn a_recorded_pose_that_is_not_a_rotation_is_malformed() {
         if i < 2 {
             assert!(frame.is_none());
             assert_eq!(
-                counters.malformed,
-                i as u64 + 1,
+                (counters.malformed.total(), counters.malformed.value),
+                (i as u64 + 1, i as u64 + 1),
                 "{:?}",
                 assembler.last_error()
             );
@@ -676,4 +676,103 @@ fn camera_infos_without_images_are_counted_and_bounded() {
             .is_some()
     );
     assert_eq!(assembler.counters().frames, 1);
+}
+
+/// What a camera or `/tf_static` sends that the assembler refuses is counted where it
+/// belongs and by why: a `/tf_static` with a NaN or non-unit quaternion in the transforms'
+/// count (no camera's), a header with `nanosec >= 1e9` as a bad stamp of its camera (and the
+/// next good frame still assembles: it did not move the camera's clock), a distorted camera
+/// info (aligned depth's) as `distorted` with a message that says what to publish, each
+/// camera's counts apart.
+#[test]
+fn refused_messages_are_counted_per_camera_and_reason() {
+    use super::assemble::{CameraTopics, FrameAssembler};
+    use super::msgs::{
+        Quaternion as RosQuaternion, TfMessage, Transform, TransformStamped, Vector3,
+    };
+    let cameras = vec![
+        CameraTopics::depth(0, "/a/depth"),
+        CameraTopics::depth(1, "/b/depth"),
+    ];
+    let mut assembler = FrameAssembler::new(cameras, "world").unwrap();
+    let tf = |child: &str, q: [f64; 4]| TfMessage {
+        transforms: vec![TransformStamped {
+            header: Header {
+                frame_id: "world".into(),
+                ..header(0.0)
+            },
+            child_frame_id: child.into(),
+            transform: Transform {
+                translation: Vector3 {
+                    x: 0.0,
+                    y: 0.0,
+                    z: 1.0,
+                },
+                rotation: RosQuaternion {
+                    x: q[0],
+                    y: q[1],
+                    z: q[2],
+                    w: q[3],
+                },
+            },
+        }],
+    };
+    for q in [[f64::NAN, 0.0, 0.0, 1.0], [0.0; 4], [0.0, 0.0, 0.5, 0.5]] {
+        let bytes = encode(&tf("cam", q)).unwrap();
+        assert!(assembler.push("/tf_static", &bytes).is_none());
+    }
+    let (tf_bad, tf_error) = assembler.tf_static_malformed();
+    assert_eq!(tf_bad.total(), 3, "{tf_error:?}");
+    assert!(tf_error.unwrap().contains("/tf_static"), "{tf_error:?}");
+    assert_eq!(assembler.counters().malformed.total(), 0);
+    let good = encode(&tf("cam", [0.0, 0.0, 0.0, 1.0])).unwrap();
+    assert!(assembler.push("/tf_static", &good).is_none());
+
+    let frame_of = |stamp: Time| {
+        let h = Header {
+            stamp,
+            frame_id: "cam".into(),
+        };
+        (
+            encode(&image_from_depth(h.clone(), &depth())).unwrap(),
+            encode(&camera_info_from_intrinsics(h, &intrinsics())).unwrap(),
+        )
+    };
+    // Camera 0: a stamp of 2e9 nanoseconds, then a good frame at 1 s.
+    let (img, info) = frame_of(Time {
+        sec: 5,
+        nanosec: 2_000_000_000,
+    });
+    assert!(assembler.push("/a/depth", &img).is_none());
+    assert!(assembler.push("/a/camera_info", &info).is_none());
+    let (img, info) = frame_of(Time { sec: 1, nanosec: 0 });
+    assert!(assembler.push("/a/depth", &img).is_none());
+    let frame = assembler
+        .push("/a/camera_info", &info)
+        .expect("a good frame");
+    assert_eq!(frame.frame.stamp_s, 1.0);
+    // Camera 1: aligned depth with the colour camera's distorted info.
+    let h = Header {
+        stamp: Time { sec: 2, nanosec: 0 },
+        frame_id: "cam".into(),
+    };
+    let mut info = camera_info_from_intrinsics(h, &intrinsics());
+    info.d = vec![0.12, -0.25, 0.001, -0.0005, 0.1];
+    assert!(
+        assembler
+            .push("/b/camera_info", &encode(&info).unwrap())
+            .is_none()
+    );
+    let error = assembler.last_error().unwrap();
+    assert!(
+        error.contains("image_rect_raw") && error.contains("aligned"),
+        "{error}"
+    );
+    let counts: std::collections::BTreeMap<u32, _> = assembler.camera_counters().collect();
+    assert_eq!(counts[&0].malformed.stamp, 2, "{:?}", counts[&0]);
+    assert_eq!(counts[&0].malformed.total(), 2, "{:?}", counts[&0]);
+    assert_eq!(counts[&0].frames, 1);
+    assert_eq!(counts[&1].malformed.distorted, 1, "{:?}", counts[&1]);
+    assert_eq!(counts[&1].malformed.total(), 1, "{:?}", counts[&1]);
+    assert_eq!(assembler.counters().malformed.total(), 3);
 }

@@ -19,8 +19,52 @@ use zenoh::liveliness::LivelinessToken;
 /// The liveliness key space of rmw_zenoh.
 pub const ADMIN_SPACE: &str = "@ros2_lv";
 
-/// rmw's default QoS profile (reliable, volatile, keep last 10): every field left empty.
-pub const QOS_DEFAULT: &str = "::,:,:,:,,";
+/// A publisher's or subscription's QoS, as its graph token states it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Qos {
+    /// Reliable (rmw 1), else best effort (2).
+    pub reliable: bool,
+    /// Transient local (rmw 1: late joiners get the last `depth` messages), else volatile (2).
+    pub transient_local: bool,
+    /// Keep last `depth` (history 1).
+    pub depth: usize,
+}
+
+impl Qos {
+    /// rmw's default profile: reliable, volatile, keep last 10.
+    pub const DEFAULT: Qos = Qos {
+        reliable: true,
+        transient_local: false,
+        depth: 10,
+    };
+
+    /// rmw's sensor-data profile: best effort, volatile, keep last `depth`.
+    pub fn sensor_data(depth: usize) -> Qos {
+        Qos {
+            reliable: false,
+            transient_local: false,
+            depth,
+        }
+    }
+
+    /// tf2's static listener: reliable, transient local, keep last 100.
+    pub const STATIC_TF: Qos = Qos {
+        reliable: true,
+        transient_local: true,
+        depth: 100,
+    };
+
+    /// The token's QoS chunk, every field written: deadline and lifespan unspecified (0, 0),
+    /// automatic liveliness (1) with an unspecified lease.
+    pub fn key(&self) -> String {
+        format!(
+            "{}:{}:1,{}:0,0:0,0:1,0,0",
+            if self.reliable { 1 } else { 2 },
+            if self.transient_local { 1 } else { 2 },
+            self.depth
+        )
+    }
+}
 
 /// What a token stands for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -97,41 +141,40 @@ impl GraphNode {
         entity: Entity,
         topic: &str,
         desc: &MsgDesc,
-        qos: &str,
+        qos: &Qos,
     ) -> String {
         let kind = match entity {
             Entity::Publisher => "MP",
             Entity::Subscription => "MS",
         };
         format!(
-            "{}/{id}/{kind}/{}/{}/{}/{}/{qos}",
+            "{}/{id}/{kind}/{}/{}/{}/{}/{}",
             self.prefix,
             self.names,
             mangle(&format!("/{}", topic.trim_matches('/'))),
             desc.dds_name(),
-            desc.rihs01()
+            desc.rihs01(),
+            qos.key()
         )
     }
 
     /// Declares a publisher or subscription of `topic`; it leaves the graph when the token
-    /// is dropped.
+    /// is dropped. Returns the token and its key.
     pub fn declare(
         &self,
         entity: Entity,
         topic: &str,
         desc: &MsgDesc,
-        qos: &str,
-    ) -> Result<LivelinessToken, ZenohError> {
+        qos: &Qos,
+    ) -> Result<(LivelinessToken, String), ZenohError> {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
-        self.session
+        let key = self.entity_key(id, entity, topic, desc, qos);
+        let token = self
+            .session
             .liveliness()
-            .declare_token(self.entity_key(id, entity, topic, desc, qos))
+            .declare_token(&key)
             .wait()
-            .map_err(zerr)
+            .map_err(zerr)?;
+        Ok((token, key))
     }
-}
-
-/// A best-effort, keep-last-`depth` subscription's QoS (rmw's sensor-data profile).
-pub fn sensor_qos(depth: usize) -> String {
-    format!("2::,{depth}:,:,:,,")
 }

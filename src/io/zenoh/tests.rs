@@ -255,7 +255,7 @@ fn frames_cross_zenoh_bit_for_bit() {
     }
     let c = src.counters();
     assert_eq!(c[&1].frames, 2);
-    assert_eq!((c[&0].drops, c[&0].malformed), (0, 0));
+    assert_eq!((c[&0].drops, c[&0].malformed.total()), (0, 0));
 }
 
 #[test]
@@ -314,7 +314,7 @@ fn humble_keys_malformed_samples_and_tf_static() {
     sb.put(&image_key, vec![0u8, 1, 0, 0, 9, 9]).wait().unwrap();
     sb.put(&image_key, Vec::<u8>::new()).wait().unwrap();
     assert!(src.recv(Duration::from_millis(500)).is_none());
-    assert_eq!(src.counters()[&0].malformed, 2);
+    assert_eq!(src.counters()[&0].malformed.total(), 2);
     assert!(
         src.assembler()
             .last_error()
@@ -404,22 +404,26 @@ fn the_session_is_one_ros2_node_with_its_subscriptions_and_publishers() {
     settle();
     let keys = tokens(&sa);
     let node = format!("@ros2_lv/0/{zid}/0/0/NN/%/%/hapcloud");
-    let sub = |id: u32, topic: &str, desc: &MsgDesc| {
+    // Every QoS field written: cameras best effort (2), volatile (2), keep last (1) 64;
+    // /tf_static reliable, transient local, keep last 100; outputs reliable, volatile, keep
+    // last 10; deadline and lifespan unspecified, automatic liveliness.
+    let sub = |id: u32, topic: &str, desc: &MsgDesc, qos: &str| {
         format!(
-            "@ros2_lv/0/{zid}/0/{id}/MS/%/%/hapcloud/{}/{}/{}/2::,64:,:,:,,",
+            "@ros2_lv/0/{zid}/0/{id}/MS/%/%/hapcloud/{}/{}/{}/{qos}:0,0:0,0:1,0,0",
             topic.replace('/', "%"),
             desc.dds_name(),
             desc.rihs01()
         )
     };
+    let sensor = "2:2:1,64";
     let mut expected = vec![
         node.clone(),
-        sub(1, &topics::depth_image(0), Image::DESC),
-        sub(2, &topics::camera_info(0), CameraInfo::DESC),
-        sub(3, &topics::points(1), PointCloud2::DESC),
-        sub(4, TF_STATIC, TfMessage::DESC),
+        sub(1, &topics::depth_image(0), Image::DESC, sensor),
+        sub(2, &topics::camera_info(0), CameraInfo::DESC, sensor),
+        sub(3, &topics::points(1), PointCloud2::DESC, sensor),
+        sub(4, TF_STATIC, TfMessage::DESC, "1:1:1,100"),
         format!(
-            "@ros2_lv/0/{zid}/0/5/MP/%/%/hapcloud/%hapcloud%status/{}/{}/::,:,:,:,,",
+            "@ros2_lv/0/{zid}/0/5/MP/%/%/hapcloud/%hapcloud%status/{}/{}/1:2:1,10:0,0:0,0:1,0,0",
             NodeStatus::DESC.dds_name(),
             NodeStatus::DESC.rihs01()
         ),
@@ -441,4 +445,93 @@ fn the_session_is_one_ros2_node_with_its_subscriptions_and_publishers() {
     let _src = ZenohSource::new(&sb, &bridge, &cameras()).unwrap();
     settle();
     assert_eq!(tokens(&sa), Vec::<String>::new());
+}
+
+/// The numbers each publisher's sequence skips are counted on its topic, publishers apart
+/// (by GID); a publisher that restarts (its number goes back) starts afresh, and an
+/// attachment of another layout (or none) is not followed.
+#[test]
+fn gaps_in_each_publishers_sequence_are_counted() {
+    let q = Queue {
+        items: Mutex::new(VecDeque::new()),
+        ready: Condvar::new(),
+        capacity: 1,
+        drops: (0..2).map(|_| Default::default()).collect(),
+        skipped: (0..2).map(|_| Default::default()).collect(),
+        sequences: Mutex::new(HashMap::new()),
+    };
+    let att = |seq: i64, gid: u8| zenoh_ext::z_serialize(&(seq, 1i64, vec![gid; 16]));
+    for (seq, gid) in [
+        (1, 1),
+        (1, 2),
+        (2, 1),
+        (3, 1),
+        (2, 2),
+        (5, 1),
+        (6, 1),
+        (3, 2),
+        (9, 1),
+    ] {
+        q.follow(0, Some(&att(seq, gid)));
+    }
+    // Publisher 1: 4 missing, then 7 and 8; publisher 2: none.
+    let skipped = |t: usize| q.skipped[t].load(std::sync::atomic::Ordering::Relaxed);
+    assert_eq!(skipped(0), 3);
+    // A restart, then its next number: nothing more.
+    q.follow(0, Some(&att(1, 1)));
+    q.follow(0, Some(&att(2, 1)));
+    assert_eq!(skipped(0), 3);
+    // The same GID on another topic is another publisher.
+    q.follow(1, Some(&att(7, 1)));
+    q.follow(1, Some(&att(8, 1)));
+    assert_eq!(skipped(1), 0);
+    q.follow(1, Some(&ZBytes::from(vec![0xff, 0x00, 0x07])));
+    q.follow(1, None);
+    q.follow(1, Some(&att(10, 1)));
+    assert_eq!(skipped(1), 1);
+}
+
+/// Each of a node's publishers has its own GID and its own sequence from 1, in the
+/// attachment zenoh-ext's deserializer reads as `(i64, i64, bytes)`.
+#[test]
+fn each_publisher_numbers_its_own_messages() {
+    let (a, b) = configs(free_port());
+    let sa = open_session(&a).unwrap();
+    let sb = open_session(&b).unwrap();
+    let got = Arc::new(Mutex::new(Vec::new()));
+    let sink = got.clone();
+    let _sub = sa
+        .declare_subscriber("0/**")
+        .callback(move |s| {
+            let att = s
+                .attachment()
+                .map(zenoh_ext::z_deserialize::<(i64, i64, Vec<u8>)>);
+            sink.lock().unwrap().push((s.key_expr().to_string(), att));
+        })
+        .wait()
+        .unwrap();
+    let mut publ = ZenohPublisher::new(&sb, &b, &ZenohPublisherConfig::default()).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    for _ in 0..3 {
+        publ.publish_status(&NodeStatus::default()).unwrap();
+        publ.publish(topics::TF, &TfMessage::default()).unwrap();
+    }
+    let until = Instant::now() + Duration::from_secs(10);
+    while got.lock().unwrap().len() < 6 && Instant::now() < until {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let got = got.lock().unwrap();
+    let mut by_key: BTreeMap<&str, Vec<(i64, Vec<u8>)>> = BTreeMap::new();
+    for (key, att) in got.iter() {
+        let (seq, stamp_ns, gid) = att.as_ref().unwrap().as_ref().unwrap().clone();
+        assert!(stamp_ns > 0);
+        by_key.entry(key).or_default().push((seq, gid));
+    }
+    assert_eq!(by_key.len(), 2, "{by_key:?}");
+    let gids: Vec<&Vec<u8>> = by_key.values().map(|v| &v[0].1).collect();
+    assert_ne!(gids[0], gids[1]);
+    for v in by_key.values() {
+        assert_eq!(v.iter().map(|m| m.0).collect::<Vec<_>>(), [1, 2, 3]);
+        assert!(v.iter().all(|m| m.1 == v[0].1 && m.1.len() == 16));
+    }
 }
