@@ -16,6 +16,15 @@
 //! per camera with the robot where the loop put it, run through the per-camera chain and
 //! fusion, and the controller acts on the fused surface; the metrics come from the scene's
 //! ground truth. The plots show the controller's `d_proj` beside the true one.
+//!
+//! `safe-speed --scene S` sweeps one scene's moving body over `--speeds` from three surface
+//! sources (perception, delayed oracle, exact surface). `campaign --episodes N --seed S` runs
+//! N randomized approach episodes ([`hapcloud::lab::campaign`]) at `--speeds` from the three
+//! sources in parallel and writes `campaign-runs.csv` (one row per episode, speed and
+//! source), `campaign-summary.csv` (fraction safe and margins per speed, camera rate and
+//! source), `campaign-contacts.csv` (first touches per body region against ISO/TS 15066),
+//! `campaign-episodes.csv` (each episode's draws and CPU time), `campaign-safe.png`,
+//! `campaign-margins.png` and the `--worst` perception episodes as scene files in `worst/`.
 
 use anyhow::{Context, Result, anyhow, bail};
 use hapcloud::lab::closed_loop::{
