@@ -72,6 +72,11 @@ pub struct ExperimentArgs {
     /// campaign: the seed the episodes are drawn from (episode i of seed s is always the same).
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// safe-speed and campaign: node config (TOML, `hapcloud::node::NodeConfig`; its
+    /// [frontend], [surface], [lookahead], [fusion] and [controller] are used; missing fields
+    /// default).
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// campaign: how many worst episodes to write as scene files (`worst/`).
     #[arg(long, default_value_t = 10)]
     worst: usize,
@@ -127,6 +132,18 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
     register_font()?;
     let model = RobotModel::anyexo()?;
     let cfg = SimConfig::default();
+    let loop_options = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let node: hapcloud::node::NodeConfig =
+                toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+            node.validate()
+                .with_context(|| format!("checking {}", path.display()))?;
+            SceneLoopOptions::from_node_config(&node)
+        }
+        None => SceneLoopOptions::default(),
+    };
     let mut metrics: Vec<(String, RunMetrics)> = Vec::new();
     let mut extra = serde_json::Value::Null;
     match name.as_str() {
@@ -242,13 +259,8 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 );
             }
             let scene = Scene::from_name_or_path(&scene_name)?;
-            let sweep = safe_speed::sweep(
-                &scene,
-                &args.speeds,
-                args.camera_rate_hz,
-                &SceneLoopOptions::default(),
-            )
-            .with_context(|| format!("safe-speed sweep of {}", scene.origin))?;
+            let sweep = safe_speed::sweep(&scene, &args.speeds, args.camera_rate_hz, &loop_options)
+                .with_context(|| format!("safe-speed sweep of {}", scene.origin))?;
             let stem = format!("safe-speed-{}-{}hz", sweep.scene, sweep.camera_rate_hz);
             write_rows(&out.join(format!("{stem}.csv")), &sweep.rows)?;
             if args.trace {
@@ -301,6 +313,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 args.worst,
                 &out,
                 args.json,
+                (&loop_options, args.config.as_deref()),
             )?;
         }
         other => bail!(closed_loop::SimError::UnknownExperiment(other.into())),
@@ -368,7 +381,9 @@ fn campaign(
     worst: usize,
     out: &Path,
     json: bool,
+    (options, config_path): (&SceneLoopOptions, Option<&Path>),
 ) -> Result<serde_json::Value> {
+    let config_arg = config_path.map_or(String::new(), |p| format!(" --config {}", p.display()));
     let config = campaign::CampaignConfig {
         episodes,
         seed,
@@ -381,7 +396,7 @@ fn campaign(
         )?,
     );
     let started = std::time::Instant::now();
-    let result = campaign::run(&config, &SceneLoopOptions::default(), &|| bar.inc(1))?;
+    let result = campaign::run(&config, options, &|| bar.inc(1))?;
     bar.finish_and_clear();
     let wall_s = started.elapsed().as_secs_f64();
     let rows: Vec<campaign::RunRow> = result.rows().cloned().collect();
@@ -412,7 +427,7 @@ fn campaign(
         let path = worst_dir.join(format!("{}.toml", e.episode.scene.file.name));
         let text = format!(
             "# {}\n# perception's min margin {:.4} m at {} m/s with {} Hz cameras; reproduce with\n\
-             # hapcloud experiment safe-speed --scene {} --speeds {} --camera-rate-hz {} --out DIR\n{}",
+             # hapcloud experiment safe-speed --scene {} --speeds {} --camera-rate-hz {}{config_arg} --out DIR\n{}",
             e.episode.scene.file.description,
             r.min_margin_m,
             r.speed_mps,
