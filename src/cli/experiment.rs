@@ -16,6 +16,15 @@
 //! per camera with the robot where the loop put it, run through the per-camera chain and
 //! fusion, and the controller acts on the fused surface; the metrics come from the scene's
 //! ground truth. The plots show the controller's `d_proj` beside the true one.
+//!
+//! `safe-speed --scene S` sweeps one scene's moving body over `--speeds` from three surface
+//! sources (perception, delayed oracle, exact surface). `campaign --episodes N --seed S` runs
+//! N randomized approach episodes ([`hapcloud::lab::campaign`]) at `--speeds` from the three
+//! sources in parallel and writes `campaign-runs.csv` (one row per episode, speed and
+//! source), `campaign-summary.csv` (fraction safe and margins per speed, camera rate and
+//! source), `campaign-contacts.csv` (first touches per body region against ISO/TS 15066),
+//! `campaign-episodes.csv` (each episode's draws and CPU time), `campaign-safe.png`,
+//! `campaign-margins.png` and the `--worst` perception episodes as scene files in `worst/`.
 
 use anyhow::{Context, Result, anyhow, bail};
 use hapcloud::lab::closed_loop::{
@@ -63,6 +72,11 @@ pub struct ExperimentArgs {
     /// campaign: the seed the episodes are drawn from (episode i of seed s is always the same).
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// safe-speed and campaign: node config (TOML, `hapcloud::node::NodeConfig`; its
+    /// [frontend], [surface], [lookahead], [fusion] and [controller] are used; missing fields
+    /// default).
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// campaign: how many worst episodes to write as scene files (`worst/`).
     #[arg(long, default_value_t = 10)]
     worst: usize,
@@ -127,6 +141,18 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
     register_font()?;
     let model = RobotModel::anyexo()?;
     let cfg = SimConfig::default();
+    let loop_options = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let node: hapcloud::node::NodeConfig =
+                toml::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+            node.validate()
+                .with_context(|| format!("checking {}", path.display()))?;
+            SceneLoopOptions::from_node_config(&node)
+        }
+        None => SceneLoopOptions::default(),
+    };
     let mut metrics: Vec<(String, RunMetrics)> = Vec::new();
     let mut extra = serde_json::Value::Null;
     match name.as_str() {
@@ -246,13 +272,8 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 );
             }
             let scene = Scene::from_name_or_path(&scene_name)?;
-            let sweep = safe_speed::sweep(
-                &scene,
-                &args.speeds,
-                args.camera_rate_hz,
-                &SceneLoopOptions::default(),
-            )
-            .with_context(|| format!("safe-speed sweep of {}", scene.origin))?;
+            let sweep = safe_speed::sweep(&scene, &args.speeds, args.camera_rate_hz, &loop_options)
+                .with_context(|| format!("safe-speed sweep of {}", scene.origin))?;
             let stem = format!("safe-speed-{}-{}hz", sweep.scene, sweep.camera_rate_hz);
             write_rows(&out.join(format!("{stem}.csv")), &sweep.rows)?;
             if args.trace {
@@ -305,6 +326,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 args.worst,
                 &out,
                 args.json,
+                (&loop_options, args.config.as_deref()),
             )?;
         }
         other => bail!(closed_loop::SimError::UnknownExperiment(other.into())),
@@ -372,7 +394,9 @@ fn campaign(
     worst: usize,
     out: &Path,
     json: bool,
+    (options, config_path): (&SceneLoopOptions, Option<&Path>),
 ) -> Result<serde_json::Value> {
+    let config_arg = config_path.map_or(String::new(), |p| format!(" --config {}", p.display()));
     let config = campaign::CampaignConfig {
         episodes,
         seed,
@@ -385,7 +409,7 @@ fn campaign(
         )?,
     );
     let started = std::time::Instant::now();
-    let result = campaign::run(&config, &SceneLoopOptions::default(), &|| bar.inc(1))?;
+    let result = campaign::run(&config, options, &|| bar.inc(1))?;
     bar.finish_and_clear();
     let wall_s = started.elapsed().as_secs_f64();
     let rows: Vec<campaign::RunRow> = result.rows().cloned().collect();
@@ -416,7 +440,7 @@ fn campaign(
         let path = worst_dir.join(format!("{}.toml", e.episode.scene.file.name));
         let text = format!(
             "# {}\n# perception's min margin {:.4} m at {} m/s with {} Hz cameras; reproduce with\n\
-             # hapcloud experiment safe-speed --scene {} --speeds {} --camera-rate-hz {} --out DIR\n{}",
+             # hapcloud experiment safe-speed --scene {} --speeds {} --camera-rate-hz {}{config_arg} --out DIR\n{}",
             e.episode.scene.file.description,
             r.min_margin_m,
             r.speed_mps,

@@ -615,7 +615,7 @@ mod tests {
         assert_eq!(p.safe_fraction, 0.5);
         assert_eq!((p.oracle_survived, p.safe_of_oracle_survived), (1, 1));
         assert_eq!(p.worst_margin_m, -0.02);
-        assert_eq!(p.median_margin_m, 0.005);
+        assert!((p.median_margin_m - 0.005).abs() < 1e-12);
         let none = s
             .iter()
             .find(|r| r.source == Perception && r.camera_rate_hz == 60.0)

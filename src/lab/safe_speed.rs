@@ -1,9 +1,11 @@
 //! The safe speed of a scene with perception in the loop: the scene's moving body (the one
 //! with `constant_velocity` motion) runs at each speed along its own direction through the
 //! closed loop of [`super::scene_loop`] (cameras at the chosen rate with the scene's effects,
-//! the per-camera chain, fusion, constraints, controller, plant), and again on the exact
+//! the per-camera chain, fusion, constraints, controller, plant), again with the delayed
+//! oracle (exact geometry at the cameras' timing: what latency alone costs) and on the exact
 //! surface, the ceiling perception is measured against. Paper section VII's limit comes from
-//! eq. 1, `v <= (r_out - r_in) / dt`.
+//! eq. 1, `v <= (r_out - r_in) / dt`. A moving body that never comes within the HIP sphere is
+//! refused ([`crate::scene::episode::check_approach`]).
 //!
 //! A speed is safe when the true surface never reaches the HIP centre (minimum margin > 0,
 //! i.e. the HIP sphere is entered by less than `r_HIP`) and the controller never falls back;

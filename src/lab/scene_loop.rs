@@ -46,6 +46,7 @@ use crate::node::haptic_loop::{HapticLoop, RobotInput};
 use crate::node::robot_state::PerceptionScene;
 use crate::node::{NodeConfig, NodeError};
 use crate::perception::frontend::FrontendConfig;
+use crate::perception::lookahead::LookaheadConfig;
 use crate::perception::pipeline::SurfaceConfig;
 use crate::robot::JointState;
 use crate::robot::JointVector;
@@ -65,6 +66,7 @@ pub struct SceneLoopOptions {
     pub fusion: FusionConfig,
     pub frontend: FrontendConfig,
     pub surface: SurfaceConfig,
+    pub lookahead: LookaheadConfig,
     /// Where the perception stages run (CPU reference by default).
     pub backend: Backend,
     /// Where the constraints' surface comes from.
@@ -161,6 +163,7 @@ impl Default for SceneLoopOptions {
             fusion: FusionConfig::default(),
             frontend: FrontendConfig::default(),
             surface: SurfaceConfig::default(),
+            lookahead: LookaheadConfig::default(),
             backend: Backend::Cpu,
             surface_source: SurfaceSource::Perception,
             render_threads: None,
@@ -190,10 +193,25 @@ impl SceneLoopOptions {
             tick_rate_hz: 1.0 / self.sim.controller.haptics.period_s,
             frontend: self.frontend.clone(),
             surface: self.surface.clone(),
+            lookahead: self.lookahead.clone(),
             fusion: self.fusion,
             controller: self.sim.controller.clone(),
             ..NodeConfig::default()
         }
+    }
+
+    /// The default options with a node config's perception, fusion and controller (what
+    /// `--config` of `experiment safe-speed` and `campaign` sets).
+    pub fn from_node_config(config: &NodeConfig) -> Self {
+        let mut options = Self {
+            frontend: config.frontend.clone(),
+            surface: config.surface.clone(),
+            lookahead: config.lookahead.clone(),
+            fusion: config.fusion,
+            ..Self::default()
+        };
+        options.sim.controller = config.controller.clone();
+        options
     }
 }
 
