@@ -519,6 +519,8 @@ impl CpuCrop {
         config.validate()?;
         scene.validate()?;
         let margin = config.robot_margin_for(scene);
+        // Only the primitives that reach into the crop sphere: a point is tested against
+        // them once it lies within the radius.
         Ok(Self {
             hip: scene.hip_m,
             r2: config.radius_m * config.radius_m,
@@ -526,6 +528,7 @@ impl CpuCrop {
                 .robot
                 .iter()
                 .map(|p| p.grown(margin).prepared())
+                .filter(|p| p.may_meet_ball(&scene.hip_m, config.radius_m))
                 .collect(),
         })
     }
