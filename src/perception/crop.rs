@@ -22,7 +22,9 @@
 //! reads, so the organized cloud never crosses the bus. [`crop_depth_cpu`] is its reference
 //! (deprojection in f64). The points agree within [`DEPTH_POINT_TOLERANCE`]; the keep mask
 //! exactly, except for pixels whose crop or flying-pixel decision lies within that rounding
-//! of its threshold.
+//! of its threshold. On the CPU a depth frame reads only the pixels the crop can keep: the
+//! crop sphere projected into the image ([`crop_region`]), deprojected, tested and cropped in
+//! one pass ([`crop_depth_region_cpu`]: the points [`crop_depth_cpu`] keeps, bit for bit).
 
 use glam::Vec3;
 use nalgebra::Point3;
