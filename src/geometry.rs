@@ -257,6 +257,13 @@ enum PreparedShape {
 }
 
 impl PreparedPrimitive {
+    /// False when no point within `radius_m` of `center_m` lies inside the primitive: its
+    /// bounding sphere does not meet that ball (1 um of slack for rounding).
+    pub fn may_meet_ball(&self, center_m: &Point3<f64>, radius_m: f64) -> bool {
+        let reach = self.bound_r2.sqrt() + radius_m + 1e-6;
+        (center_m - self.bound_center_m).norm_squared() <= reach * reach
+    }
+
     /// True when `p` lies inside or on the primitive.
     pub fn contains(&self, p: &Point3<f64>) -> bool {
         if (p - self.bound_center_m).norm_squared() > self.bound_r2 {

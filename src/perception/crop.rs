@@ -22,7 +22,9 @@
 //! reads, so the organized cloud never crosses the bus. [`crop_depth_cpu`] is its reference
 //! (deprojection in f64). The points agree within [`DEPTH_POINT_TOLERANCE`]; the keep mask
 //! exactly, except for pixels whose crop or flying-pixel decision lies within that rounding
-//! of its threshold.
+//! of its threshold. On the CPU a depth frame reads only the pixels the crop can keep: the
+//! crop sphere projected into the image ([`crop_region`]), deprojected, tested and cropped in
+//! one pass ([`crop_depth_region_cpu`]: the points [`crop_depth_cpu`] keeps, bit for bit).
 
 use glam::Vec3;
 use nalgebra::Point3;
@@ -519,6 +521,8 @@ impl CpuCrop {
         config.validate()?;
         scene.validate()?;
         let margin = config.robot_margin_for(scene);
+        // Only the primitives that reach into the crop sphere: a point is tested against
+        // them once it lies within the radius.
         Ok(Self {
             hip: scene.hip_m,
             r2: config.radius_m * config.radius_m,
@@ -526,6 +530,7 @@ impl CpuCrop {
                 .robot
                 .iter()
                 .map(|p| p.grown(margin).prepared())
+                .filter(|p| p.may_meet_ball(&scene.hip_m, config.radius_m))
                 .collect(),
         })
     }

@@ -740,7 +740,7 @@ impl RegionVsWhole {
                 },
             ))
         };
-        let ((r, rt), (w, wt)) = if self.pixels.len() % 2 == 0 {
+        let ((r, rt), (w, wt)) = if self.pixels.len().is_multiple_of(2) {
             let r = on_region()?;
             (r, on_whole()?)
         } else {
