@@ -306,6 +306,15 @@ t pipe "" scenes --print head_close_clean
 t pipe "" scenes --json
 t pipe "" --help
 
+t err "no config section" config --print no_such_section
+t err "is a key, not a section" config --print tick_rate_hz
+t pipe "" config
+t pipe "" config --print
+t pipe "" config --print frontend.voxel
+t err "over a read limit" voxel /dev/zero --leaf 0.01 --max-file-bytes 1000
+t err "--max-file-bytes" voxel /dev/zero --leaf 0.01 --max-file-bytes 0
+t err "FILE.mcap" run --record "$D"
+
 t err "--rising-speed" sim rising_surface_clean --out "$D/s" --rising-speed 1e300
 t err "--rising-speed" sim head_close_clean --out "$D/s" --rising-speed 0.5
 t err "--frames" sim head_close_clean --out "$D/s" --frames -1

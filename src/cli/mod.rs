@@ -1,5 +1,6 @@
 //! Subcommands of the `hapcloud` binary. Each subcommand lives in its own file here and
-//! only wires library stages together; `--json` output is one JSON object on stdout.
+//! only wires library stages together; `--json` output is one JSON object on stdout, and
+//! every file a command reads is bounded in size (`--max-file-bytes`, `io::read_text`).
 
 #[cfg(feature = "lab")]
 mod accuracy;

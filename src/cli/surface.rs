@@ -1,11 +1,11 @@
 //! `hapcloud surface IN --hip x,y,z [--view x,y,z]`: the collision surface (paper Alg. 1-2)
 //! of one cloud file around a HIP.
 //!
-//! The cloud (PCD or PLY, read by the project's readers) is taken as the front end's cleaned
-//! cloud in its own frame; the HIP is in that frame too. Eq. 2 orients the normals against
-//! `--view`, or by default against the rays from the file's sensor position (PCD `VIEWPOINT`). One frame has no
-//! memory yet, so this shows the shell abstraction: every shell's outcome and fit, the paper's
-//! centroid and the curvature-corrected one.
+//! The cloud (PCD or PLY) is taken as the front end's cleaned cloud in its own frame; the HIP
+//! is in that frame too. Eq. 2 orients the normals against `--view`, or by default against
+//! the rays from the file's sensor position (PCD `VIEWPOINT`). One frame has no memory yet, so
+//! this shows the shell abstraction: every shell's outcome and fit, the paper's centroid and
+//! the curvature-corrected one.
 
 use anyhow::{Context, bail};
 use clap::Args as ClapArgs;

@@ -7,10 +7,10 @@
 //! node recording (`hapcloud run --record FILE.mcap`): its frames run through the
 //! stages again for the point layers, and the node's recorded estimates and fused surfaces are
 //! shown; or the frames of a ROS 2 bag (MCAP, e.g. realsense-ros) or of a directory of
-//! PCD/PLY frames of one camera (e.g. PCL's grabber sequences): the stages run on every frame with the HIP fixed (`--hip`, or placed in front of the surface
-//! point nearest the optical axis). `--screenshot`
-//! saves what the window shows as PNG and closes it (run under `xvfb-run` without a display);
-//! `--json` prints a summary of the timeline instead of opening a window.
+//! PCD/PLY frames of one camera (e.g. PCL's grabber sequences): the stages run on every frame
+//! with the HIP fixed (`--hip`, or placed in front of the surface point nearest the optical
+//! axis). `--screenshot` saves what the window shows as PNG and closes it (run under
+//! `xvfb-run` without a display); `--json` prints a summary of the timeline instead.
 
 use anyhow::{Context, bail};
 use hapcloud::node::NodeConfig;

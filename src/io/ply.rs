@@ -842,7 +842,7 @@ mod tests {
             assert!(err.to_string().contains(name), "{err}");
             assert!(err.to_string().contains("is a list"), "{err}");
         }
-        // A list under another name is skipped as before.
+        // A list under another name is skipped too.
         let text = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
                     property float z\nproperty list uchar int extra\nend_header\n1 2 3 2 7 8\n";
         assert_eq!(
