@@ -10,13 +10,16 @@
 //! pushing tick) and ticks (`/hapcloud/ticks`, `hapcloud_msgs/ControlTick`). Every value that
 //! replay compares is stored unrounded, so frames, estimates and ticks read back bit for bit.
 //!
-//! Reading streams the file (bounded memory; chunks decompressed one at a time with zstd or
-//! lz4) through [`FrameAssembler`]: cameras are named in the config or found from the
-//! channels (each `Image` topic with a `camera_info` beside it, hapcloud's `PointCloud2`
-//! topics, and other `PointCloud2` topics only before a depth camera is found). A file cut
-//! off mid-write (a crash) reads up to its last complete record and reports the cut
-//! ([`McapReader::truncated`]); the writer closes a chunk
-//! after every frame so at most the frame being written is lost.
+//! Reading streams the file (bounded memory: chunks decompressed one at a time with zstd or
+//! lz4, none larger than `max_record_bytes`; reading stops at `max_file_bytes`, so a FIFO or
+//! a device that never ends is an error naming the limit) through [`FrameAssembler`]:
+//! cameras are named in the config or found from the channels (each `Image` topic with a
+//! `camera_info` beside it, its first images held until that channel is declared;
+//! hapcloud's `PointCloud2` topics, and other `PointCloud2` topics only before a depth camera
+//! is found). A file cut off mid-write (a crash) reads up to its last complete record and
+//! reports the cut ([`McapReader::truncated`]); the writer closes a chunk after every frame
+//! so at most the frame being written is lost. Channels are written with rosbag2's metadata
+//! (`offered_qos_profiles`, `topic_type_hash`), so `ros2 bag play` offers the recorded QoS.
 
 use super::ros2::assemble::{Assembled, CameraTopics, FrameAssembler};
 use super::ros2::convert::{

@@ -351,63 +351,119 @@ pub fn is_old_recording(path: &Path) -> bool {
     path.is_dir() && (path.join("meta.json").is_file() || path.join("frames.hcr").is_file())
 }
 
-/// Reads a recording; a file that is not one (a ROS 2 bag without hapcloud's metadata, an
+/// Reads a whole recording into memory (tests, the viewer; `hapcloud replay` streams it with
+/// [`RecordingReader`]); a file that is not one (a ROS 2 bag without hapcloud's metadata, an
 /// old recording directory, a malformed message) is an error naming it.
 pub fn read(path: &Path) -> Result<Recording, RecordError> {
-    if is_old_recording(path) {
-        return Err(RecordError::OldFormat { path: path.into() });
-    }
-    let format = |reason: String| RecordError::Format {
-        path: path.into(),
-        reason,
-    };
-    let mcap_err = |e: McapError| mcap_error(path, e);
-    let mut reader =
-        McapReader::open(path, &McapReaderConfig::default(), Vec::new()).map_err(mcap_err)?;
-    let mut meta = None;
+    let mut reader = RecordingReader::open(path)?;
     let (mut frames, mut frame_joints, mut estimates, mut ticks) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    while let Some(item) = reader.next_item().map_err(mcap_err)? {
+    while let Some(item) = reader.next_item()? {
         match item {
-            McapItem::Metadata { name, metadata } if name == METADATA_NAME => {
-                meta = Some(parse_meta(&metadata).map_err(format)?);
+            RecordItem::Frame(f, q) => {
+                frames.push(*f);
+                frame_joints.push(q);
             }
-            // Frames before the metadata: not a node recording (said below).
-            McapItem::Frame(_) if meta.is_none() => {}
-            McapItem::Frame(a) => {
-                let q: &[f64] = &a.joint_positions_rad;
-                if q.len() != crate::robot::DOF {
-                    return Err(format(format!(
-                        "frame of camera {} at {} s has {} joint positions, not {}",
-                        a.frame.camera_id,
-                        a.frame.stamp_s,
-                        q.len(),
-                        crate::robot::DOF
-                    )));
-                }
-                frame_joints.push(JointVector::from_column_slice(q));
-                frames.push(a.frame);
-            }
-            McapItem::Estimate(k, e) => estimates.push((k, e)),
-            McapItem::Tick(t) => ticks.push(t),
-            McapItem::Metadata { .. } | McapItem::Other { .. } => {}
+            RecordItem::Estimate(k, e) => estimates.push((k, e)),
+            RecordItem::Tick(t) => ticks.push(*t),
         }
     }
-    let Some(meta) = meta else {
-        return Err(format(
-            "no hapcloud metadata: not a node recording (`hapcloud run FILE.mcap` plays the \
-             camera frames of any ROS 2 bag)"
-                .into(),
-        ));
-    };
     Ok(Recording {
-        meta,
+        truncated: reader.truncated().map(str::to_string),
+        meta: reader.meta,
         frames,
         frame_joints,
         estimates,
         ticks,
-        truncated: reader.truncated().map(str::to_string),
     })
+}
+
+/// One item of a node recording, in file order.
+pub enum RecordItem {
+    /// A frame perception processed and the joint positions it used.
+    Frame(Box<Frame>, JointVector),
+    /// An estimate and the index of the tick that pushed it into fusion.
+    Estimate(u64, SurfaceEstimate),
+    Tick(Box<TickRecord>),
+}
+
+/// A node recording read item by item, nothing kept: its metadata (which the writer puts
+/// first) checked at the start.
+pub struct RecordingReader {
+    path: PathBuf,
+    reader: McapReader<std::io::BufReader<crate::io::mcap::StoppableFile>>,
+    pub meta: RecordingMeta,
+}
+
+impl RecordingReader {
+    pub fn open(path: &Path) -> Result<Self, RecordError> {
+        if is_old_recording(path) {
+            return Err(RecordError::OldFormat { path: path.into() });
+        }
+        let format = |reason: String| RecordError::Format {
+            path: path.into(),
+            reason,
+        };
+        let mut reader = McapReader::open(path, &McapReaderConfig::default(), Vec::new())
+            .map_err(|e| mcap_error(path, e))?;
+        loop {
+            match reader.next_item().map_err(|e| mcap_error(path, e))? {
+                Some(McapItem::Metadata { name, metadata }) if name == METADATA_NAME => {
+                    let meta = parse_meta(&metadata).map_err(format)?;
+                    return Ok(Self {
+                        path: path.into(),
+                        reader,
+                        meta,
+                    });
+                }
+                Some(McapItem::Metadata { .. } | McapItem::Other { .. }) => {}
+                Some(_) | None => {
+                    return Err(format(
+                        "no hapcloud metadata: not a node recording (`hapcloud run FILE.mcap` \
+                         plays the camera frames of any ROS 2 bag)"
+                            .into(),
+                    ));
+                }
+            }
+        }
+    }
+
+    /// The next frame, estimate or tick; `None` at the end (or the cut).
+    pub fn next_item(&mut self) -> Result<Option<RecordItem>, RecordError> {
+        loop {
+            let item = self
+                .reader
+                .next_item()
+                .map_err(|e| mcap_error(&self.path, e))?;
+            return Ok(Some(match item {
+                None => return Ok(None),
+                Some(McapItem::Frame(a)) => {
+                    let q: &[f64] = &a.joint_positions_rad;
+                    if q.len() != crate::robot::DOF {
+                        return Err(RecordError::Format {
+                            path: self.path.clone(),
+                            reason: format!(
+                                "frame of camera {} at {} s has {} joint positions, not {}",
+                                a.frame.camera_id,
+                                a.frame.stamp_s,
+                                q.len(),
+                                crate::robot::DOF
+                            ),
+                        });
+                    }
+                    RecordItem::Frame(Box::new(a.frame), JointVector::from_column_slice(q))
+                }
+                Some(McapItem::Estimate(k, e)) => RecordItem::Estimate(k, e),
+                Some(McapItem::Tick(t)) => RecordItem::Tick(Box::new(t)),
+                Some(McapItem::Metadata { .. } | McapItem::Other { .. }) => continue,
+            }));
+        }
+    }
+
+    /// Where and why the file ended early, once the reader got there.
+    pub fn truncated(&self) -> Option<&str> {
+        self.reader.truncated()
+    }
 }
 
 pub(super) fn parse_meta(metadata: &BTreeMap<String, String>) -> Result<RecordingMeta, String> {

@@ -4,12 +4,14 @@
 
 use super::NodeError;
 use super::haptic_loop::{HapticLoop, RobotInput};
-use super::record;
+use super::record::{self, RecordItem};
 use super::robot_state::RobotState;
 use crate::camera::Frame;
 use crate::gpu::Backend;
+use crate::robot::JointVector;
 use crate::surface::SurfaceEstimate;
 use serde::Serialize;
+use std::collections::VecDeque;
 
 /// What `hapcloud replay` found.
 #[derive(Clone, Debug, Default, Serialize)]
@@ -34,90 +36,91 @@ impl ReplayReport {
     }
 }
 
-/// Re-runs a recording through the haptic loop: each recorded frame goes in (same config and
-/// backend, the HIP and primitives of its recorded joints) before the tick that consumed its
-/// estimate, and each tick runs at its recorded time on its recorded robot state; estimates
-/// and ticks (fused surface, constraint values, torques) are compared bit for bit with what
-/// was recorded.
+/// Re-runs a recording through the haptic loop, streaming it (a few frames held, whatever
+/// its length): each recorded frame goes in (same config and backend, the HIP and
+/// primitives of its recorded joints) before the tick that consumed its estimate, and each
+/// tick runs at its recorded time on its recorded robot state; estimates and ticks (fused
+/// surface, constraint values, torques) are compared bit for bit with what was recorded.
 pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
-    let recording = record::read(path)?;
-    let config = &recording.meta.config;
-    let robot = RobotState::recorded(config, &recording.meta.robot)?;
+    let mut recording = record::RecordingReader::open(path)?;
+    let config = recording.meta.config.clone();
+    let robot = RobotState::recorded(&config, &recording.meta.robot)?;
     let mut haptic_loop =
-        HapticLoop::new(config, robot.model().clone(), recording.meta.backend, None)?;
-    let mut report = ReplayReport {
-        frames: recording.frames.len() as u64,
-        truncated: recording.truncated.clone(),
-        ..Default::default()
-    };
+        HapticLoop::new(&config, robot.model().clone(), recording.meta.backend, None)?;
+    let mut report = ReplayReport::default();
     let note = |report: &mut ReplayReport, what: String| {
         if report.first_mismatch.is_none() {
             report.first_mismatch = Some(what);
         }
     };
-    // Recorded frames with the estimate the node consumed, in perception's order.
-    let mut consumed = recording
-        .frames
-        .iter()
-        .zip(&recording.frame_joints)
-        .zip(&recording.estimates)
-        .enumerate()
-        .peekable();
-    let push = |haptic_loop: &mut HapticLoop,
-                report: &mut ReplayReport,
-                i: usize,
-                frame: &Frame,
-                q: &crate::robot::JointVector,
-                recorded: &SurfaceEstimate|
+    // Every value of an estimate, unrounded, as its recorded message.
+    let bytes = |e: &SurfaceEstimate| {
+        crate::io::ros2::encode(&crate::io::ros2::hapcloud::SurfaceEstimate::new(
+            Default::default(),
+            0,
+            e,
+        ))
+        .map_err(|e| NodeError::Config(format!("estimate: {e}")))
+    };
+    // Frames and estimates read and not pushed yet, in perception's order: the i-th frame
+    // made the i-th estimate.
+    let mut frames: VecDeque<(Box<Frame>, JointVector)> = VecDeque::new();
+    let mut estimates: VecDeque<(u64, SurfaceEstimate)> = VecDeque::new();
+    let mut pushed = 0u64;
+    let mut push = |haptic_loop: &mut HapticLoop,
+                    report: &mut ReplayReport,
+                    (frame, q): (Box<Frame>, JointVector),
+                    recorded: SurfaceEstimate|
      -> Result<(), NodeError> {
-        let record = haptic_loop.push_frame(frame, &robot.perception_scene(q))?;
-        // Every value of an estimate, unrounded, as its recorded message.
-        let bytes = |e: &SurfaceEstimate| {
-            crate::io::ros2::encode(&crate::io::ros2::hapcloud::SurfaceEstimate::new(
-                Default::default(),
-                0,
-                e,
-            ))
-            .map_err(|e| NodeError::Config(format!("estimate: {e}")))
-        };
-        let (a, b) = (bytes(record.estimate())?, bytes(recorded)?);
+        let record = haptic_loop.push_frame(&frame, &robot.perception_scene(&q))?;
         report.estimates_compared += 1;
-        if a != b {
+        if bytes(record.estimate())? != bytes(&recorded)? {
             report.estimate_mismatches += 1;
             note(
                 report,
                 format!(
-                    "estimate {i} (camera {}, stamp {} s)",
+                    "estimate {pushed} (camera {}, stamp {} s)",
                     recorded.camera_id, recorded.stamp_s
                 ),
             );
         }
+        pushed += 1;
         Ok(())
     };
-    let mut ticks = Vec::with_capacity(recording.ticks.len());
-    for tick in &recording.ticks {
-        while let Some((i, ((frame, q), (_, recorded)))) =
-            consumed.next_if(|(_, (_, (index, _)))| *index <= tick.index)
-        {
-            push(&mut haptic_loop, &mut report, i, frame, q, recorded)?;
+    while let Some(item) = recording.next_item()? {
+        match item {
+            RecordItem::Frame(f, q) => {
+                report.frames += 1;
+                frames.push_back((f, q));
+            }
+            RecordItem::Estimate(k, e) => estimates.push_back((k, e)),
+            RecordItem::Tick(tick) => {
+                // The frames whose estimates this tick (or an earlier one) consumed go first.
+                while !frames.is_empty()
+                    && let Some((_, e)) = estimates.pop_front_if(|(k, _)| *k <= tick.index)
+                {
+                    let frame = frames.pop_front().expect("checked not empty");
+                    push(&mut haptic_loop, &mut report, frame, e)?;
+                }
+                let joints = tick.control.joints;
+                let again = haptic_loop
+                    .tick(tick.fused.stamp_s, &RobotInput::without_force(joints))
+                    .record(tick.index, joints, tick.late_s);
+                report.ticks_compared += 1;
+                if record::deterministic_bytes(&again) != record::deterministic_bytes(&tick) {
+                    report.tick_mismatches += 1;
+                    note(
+                        &mut report,
+                        format!("tick {} (t = {} s)", tick.index, tick.fused.stamp_s),
+                    );
+                }
+            }
         }
-        let joints = tick.control.joints;
-        let again = haptic_loop.tick(tick.fused.stamp_s, &RobotInput::without_force(joints));
-        ticks.push((tick, again.record(tick.index, joints, tick.late_s)));
     }
-    for (i, ((frame, q), (_, recorded))) in consumed {
-        push(&mut haptic_loop, &mut report, i, frame, q, recorded)?;
+    while let (Some(frame), Some((_, e))) = (frames.pop_front(), estimates.pop_front()) {
+        push(&mut haptic_loop, &mut report, frame, e)?;
     }
-    for (tick, again) in ticks {
-        report.ticks_compared += 1;
-        if record::deterministic_bytes(&again) != record::deterministic_bytes(tick) {
-            report.tick_mismatches += 1;
-            note(
-                &mut report,
-                format!("tick {} (t = {} s)", tick.index, tick.fused.stamp_s),
-            );
-        }
-    }
+    report.truncated = recording.truncated().map(str::to_string);
     report.backend = haptic_loop.perception().backend();
     Ok(report)
 }
