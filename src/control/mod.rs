@@ -891,7 +891,7 @@ mod tests {
         );
         let bad_floor = SurfaceState {
             velocity_m_per_s: Vector3::new(f64::NAN, 0.0, 0.0),
-            ..under_forearm.clone()
+            ..under_forearm
         };
         surfaces[0] = Some(&bad_floor);
         assert_eq!(
