@@ -189,3 +189,77 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
         "ticks allocated (tick index, t, allocations): {worst:?}"
     );
 }
+
+/// The controller with every guard: ANYexo's five keep-off guards and the handle each get a
+/// surface (a plane rising under the arm at 1.5 m/s, the robot with the patient's hand
+/// simulated by `lab::closed_loop::Plant`), through `Controller::tick_guarded`. The solver's
+/// buffers grow to the largest level QP they have seen (`control::hqp::HqpWorkspace`): the
+/// first run of the approach is the warm-up (it allocated in 2 ticks of 800, the first QPs
+/// of two levels), and in the same approach run again no tick allocates.
+#[test]
+fn a_guarded_control_tick_allocates_nothing() {
+    use hapcloud::control::{Controller, ControllerConfig, ControllerInput, Intent};
+    use hapcloud::haptics::known_surface;
+    use hapcloud::lab::closed_loop::{Plant, SimConfig};
+    use hapcloud::robot::{RobotModel, start_pose};
+    use nalgebra::{Point3, Vector3};
+
+    let model = RobotModel::anyexo().unwrap();
+    let config = SimConfig::default();
+    let controller = Controller::new(model.clone(), ControllerConfig::default()).unwrap();
+    let guards = controller.guards();
+    let mut plant = Plant::new(&model, &config, start_pose());
+    let period = config.controller.haptics.period_s;
+    let hip_z = model.world_from_hip(&start_pose()).translation.vector.z;
+    let (mut counted, mut active, mut worst) = (0u64, 0u64, Vec::new());
+    for (pass, k) in (0..2).flat_map(|pass| (0..800usize).map(move |k| (pass, k))) {
+        if k == 0 && pass == 1 {
+            plant = Plant::new(&model, &config, start_pose());
+        }
+        let t = k as f64 * period;
+        let z = hip_z - 0.35 + (1.5 * t).min(0.3);
+        let vz = if 1.5 * t < 0.3 { 1.5 } else { 0.0 };
+        let poses = model.forward_kinematics(plant.q());
+        let at = |p: Point3<f64>| {
+            known_surface(
+                t,
+                Point3::new(p.x, p.y, z),
+                Vector3::z_axis(),
+                Vector3::new(0.0, 0.0, vz),
+            )
+        };
+        let handle = at(guards.handle().world(&poses).a_m);
+        let keep_off: Vec<_> = guards
+            .keep_off()
+            .iter()
+            .map(|&g| at(guards.guards()[g].world(&poses).a_m))
+            .collect();
+        let tracked: Vec<_> = keep_off.iter().map(|s| s.tracked()).collect();
+        let input = ControllerInput {
+            q: *plant.q(),
+            qd: *plant.qd(),
+            surface: handle.tracked(),
+            interaction_force_n: plant.hand_force_n(),
+            intent: Intent::Transparent,
+        };
+        let (out, n) = allocations(|| controller.tick_guarded(&input, &tracked));
+        if pass == 1 {
+            counted += 1;
+            active += u64::from(out.keep_off.iter().any(|c| !c.rows.is_empty()));
+            if n > 0 && worst.len() < 10 {
+                worst.push((k, n));
+            }
+        }
+        plant
+            .step(t, &out.tau_nm, |_| {
+                (Vector3::zeros(), Vector3::zeros(), Vector3::zeros())
+            })
+            .unwrap();
+    }
+    println!("{counted} guarded ticks counted, {active} with keep-off rows");
+    assert!(active > 100, "keep-off rows in {active} ticks only");
+    assert!(
+        worst.is_empty(),
+        "ticks allocated (index, allocations): {worst:?}"
+    );
+}

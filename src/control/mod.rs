@@ -10,7 +10,9 @@
 //! 1. equation of motion (eliminated) with the actuator torque limits `|tau| <= tau_max`;
 //! 2. joint position limits (predicted over a horizon) and joint velocity limits;
 //! 3. fixed collision constraint: the HIP stays in front of fixed planes (the base plate);
-//! 4. online collision avoidance: the haptic constraints of [`crate::haptics`];
+//! 4. online collision avoidance: the haptic constraints of [`crate::haptics`] for the
+//!    handle, and the keep-off rows of every other guard ([`crate::robot::guards`]) that has
+//!    a surface this tick;
 //! 5. what the user asks for ([`Intent`]): a joint torque command (default: gravity
 //!    compensation with light damping, i.e. a transparent exoskeleton) or a HIP acceleration;
 //! 6. minimal joint accelerations, `qdd = -k qd` (`k = 0` is the paper's level 5).
@@ -28,6 +30,13 @@
 //! shows it: ours meets the torque intent exactly and the HIP gives way to the push; Table
 //! I's leaves the intent no freedom and the accelerations at zero.
 //!
+//! Guards: [`Controller::tick_guarded`] takes one surface per keep-off guard (in
+//! [`GuardSet::keep_off`] order) besides the handle's; [`Controller::tick`] is the same with
+//! none. While no keep-off guard has rows, the hierarchy has exactly the shapes of the
+//! single-HIP controller (its own buffers), so its results are those of the paper's
+//! single-HIP mode bit for bit; with keep-off rows, level 4 holds the handle's rows and two
+//! per keep-off guard (unused ones `0 <= 0`).
+//!
 //! A failed solve or non-finite input never panics: the controller returns the safe command
 //! (gravity compensation and joint damping, saturated) with a status saying why.
 
@@ -37,6 +46,7 @@ pub mod record;
 
 use crate::geometry::MAX_PRIMITIVE_M;
 use crate::haptics::{self, HapticConfig, HapticConstraints};
+use crate::robot::guards::{GuardConfig, GuardError, GuardSet, MAX_GUARDS};
 use crate::robot::{DOF, HipKinematics, JointMatrix, JointVector, RobotModel};
 use crate::surface::SurfaceState;
 use arrayvec::ArrayVec;
@@ -70,6 +80,8 @@ pub struct ControllerConfig {
     pub damping_nms_per_rad: f64,
     /// Gain `k` of the minimal-acceleration task `qdd = -k qd`, 1/s.
     pub min_acceleration_damping_per_s: f64,
+    /// The robot's guards: the handle (HIP) and the keep-off spheres and capsules.
+    pub guards: GuardConfig,
 }
 
 impl Default for ControllerConfig {
@@ -85,6 +97,7 @@ impl Default for ControllerConfig {
             }],
             damping_nms_per_rad: 0.3,
             min_acceleration_damping_per_s: 5.0,
+            guards: GuardConfig::default(),
         }
     }
 }
@@ -96,6 +109,8 @@ pub enum ControllerConfigError {
     Haptics(#[from] haptics::HapticConfigError),
     #[error("controller config: {0}")]
     Value(String),
+    #[error(transparent)]
+    Guards(#[from] GuardError),
 }
 
 impl ControllerConfig {
@@ -105,6 +120,7 @@ impl ControllerConfig {
     /// [`MAX_PRIMITIVE_M`] of the origin); the error names the key.
     pub fn validate(&self) -> Result<(), ControllerConfigError> {
         self.haptics.validate()?;
+        self.guards.validate()?;
         self.check().map_err(ControllerConfigError::Value)
     }
 
@@ -211,6 +227,9 @@ pub struct ControllerOutput {
     pub message: String,
     /// The haptic constraints of this tick (d_proj, rate, status).
     pub haptics: HapticConstraints,
+    /// The constraints of each keep-off guard, in [`GuardSet::keep_off`] order (status
+    /// `NoSurface` for a guard without a surface); empty when the input was rejected.
+    pub keep_off: ArrayVec<HapticConstraints, MAX_GUARDS>,
     /// Per-level report of the cascade (empty on fallback).
     pub levels: ArrayVec<LevelReport, MAX_LEVELS>,
     /// Levels whose QP the active-set method failed, solved by clarabel instead
@@ -224,10 +243,22 @@ pub struct ControllerOutput {
 pub struct Controller {
     model: RobotModel,
     config: ControllerConfig,
+    guards: GuardSet,
     solver: HierarchicalSolver,
     /// Borrowed by one tick at a time (a tick never calls another).
-    workspace: RefCell<Workspace>,
+    workspace: RefCell<Workspaces>,
 }
+
+/// The single-HIP hierarchy, and the one with keep-off rows (when there are keep-off
+/// guards).
+#[derive(Clone, Debug)]
+struct Workspaces {
+    single: Workspace,
+    guarded: Option<Workspace>,
+}
+
+/// No surface for any keep-off guard.
+const NO_SURFACES: [Option<&SurfaceState>; MAX_GUARDS] = [None; MAX_GUARDS];
 
 /// What a tick writes into instead of allocating: the six levels (shapes fixed by the
 /// configuration, rewritten in place each tick) and the solver's buffers.
@@ -254,12 +285,25 @@ fn fill_rows(task: &mut Task, rows: impl Iterator<Item = (RowSVector<f64, DOF>, 
 impl Controller {
     pub fn new(model: RobotModel, config: ControllerConfig) -> Result<Self, ControllerConfigError> {
         config.validate()?;
+        let guards = GuardSet::new(&model, &config.guards)?;
+        let keep_off_rows = guards.keep_off().len() * usize::from(config.haptics.enable_position)
+            + guards.keep_off().len() * usize::from(config.haptics.enable_velocity);
+        let guarded = (keep_off_rows > 0).then(|| Workspace::new(&config, keep_off_rows));
         Ok(Self {
-            workspace: RefCell::new(Workspace::new(&config)),
+            workspace: RefCell::new(Workspaces {
+                single: Workspace::new(&config, 0),
+                guarded,
+            }),
             model,
             config,
+            guards,
             solver: HierarchicalSolver::new(DOF, HqpSettings::default()),
         })
+    }
+
+    /// The guards (handle and keep-off) the controller keeps track of.
+    pub fn guards(&self) -> &GuardSet {
+        &self.guards
     }
 
     pub fn model(&self) -> &RobotModel {
@@ -285,8 +329,19 @@ impl Controller {
         JointVector::from_fn(|i, _| tau[i].clamp(-effort[i], effort[i]))
     }
 
-    /// One control tick: constraints, hierarchy, torques.
+    /// One control tick: constraints, hierarchy, torques; no keep-off guard has a surface.
     pub fn tick(&self, input: &ControllerInput<'_>) -> ControllerOutput {
+        self.tick_guarded(input, &NO_SURFACES[..self.guards.keep_off().len()])
+    }
+
+    /// One control tick with a surface (or none) per keep-off guard, `keep_off[i]` for the
+    /// guard `guards().keep_off()[i]`; the handle's surface is `input.surface`. A slice of
+    /// another length is bad input (the safe command).
+    pub fn tick_guarded(
+        &self,
+        input: &ControllerInput<'_>,
+        keep_off: &[Option<&SurfaceState>],
+    ) -> ControllerOutput {
         let finite = input
             .q
             .iter()
@@ -297,14 +352,30 @@ impl Controller {
             Intent::Torque(t) => t.iter().all(|v| v.is_finite()),
             Intent::HipAcceleration(a) => a.iter().all(|v| v.is_finite()),
         };
-        let surface_finite = input.surface.is_none_or(|s| {
-            s.centroid_m
-                .coords
-                .iter()
-                .chain(s.normal.iter())
-                .chain(s.velocity_m_per_s.iter())
-                .all(|v| v.is_finite())
-        });
+        let finite_surface = |s: &Option<&SurfaceState>| {
+            s.is_none_or(|s| {
+                s.centroid_m
+                    .coords
+                    .iter()
+                    .chain(s.normal.iter())
+                    .chain(s.velocity_m_per_s.iter())
+                    .all(|v| v.is_finite())
+            })
+        };
+        let surface_finite = finite_surface(&input.surface) && keep_off.iter().all(finite_surface);
+        let guards = self.guards.keep_off();
+        if keep_off.len() != guards.len() {
+            return self.fallback(
+                input,
+                ControlStatus::BadInput,
+                format!(
+                    "{} keep-off surfaces for {} keep-off guards",
+                    keep_off.len(),
+                    guards.len()
+                ),
+                None,
+            );
+        }
         if !finite.copied().all(f64::is_finite) || !intent_finite || !surface_finite {
             return self.fallback(
                 input,
@@ -314,7 +385,10 @@ impl Controller {
             );
         }
         let (q, qd) = (&input.q, &input.qd);
-        let hip = self.model.hip_kinematics(q, qd);
+        let motion = self.model.link_motion(q, qd);
+        let hip_link = self.model.hip_link();
+        let hip_m = Point3::from(motion.world_from_link[hip_link].translation.vector);
+        let hip = self.model.point_kinematics(&motion, qd, hip_link, &hip_m);
         let mass = self.model.mass_matrix(q);
         let bias = self.model.bias_forces(q, qd);
         // generalised interaction force J^T F
@@ -327,9 +401,35 @@ impl Controller {
             qd,
             &mass,
         );
-        let mut workspace = self.workspace.borrow_mut();
-        let ws = &mut *workspace;
-        self.fill_tasks(ws, input, &hip, &mass, &bias, &jtf, &haptic);
+        let margin = self.guards.keep_off_margin_m();
+        let keep_off_rows: ArrayVec<HapticConstraints, MAX_GUARDS> = guards
+            .iter()
+            .zip(keep_off)
+            .map(|(&g, surface)| {
+                let Some(surface) = surface else {
+                    return HapticConstraints::no_surface();
+                };
+                let guard = &self.guards.guards()[g];
+                let p = guard
+                    .world(&motion.world_from_link)
+                    .closest_point(&surface.centroid_m);
+                haptics::keep_off_constraints(
+                    &self.config.haptics,
+                    margin,
+                    surface,
+                    &self.model.point_kinematics(&motion, qd, guard.link, &p),
+                    guard.radius_m,
+                    qd,
+                )
+            })
+            .collect();
+        let mut workspaces = self.workspace.borrow_mut();
+        let workspaces = &mut *workspaces;
+        let ws = match &mut workspaces.guarded {
+            Some(guarded) if keep_off_rows.iter().any(|c| !c.rows.is_empty()) => guarded,
+            _ => &mut workspaces.single,
+        };
+        self.fill_tasks(ws, input, &hip, &mass, &bias, &jtf, &haptic, &keep_off_rows);
         match self.solver.solve_in(&ws.tasks, &mut ws.hqp) {
             Ok(sol) => {
                 let qdd = JointVector::from_column_slice(sol.x.as_slice());
@@ -347,16 +447,20 @@ impl Controller {
                     status: ControlStatus::Ok,
                     message: String::new(),
                     haptics: haptic,
+                    keep_off: keep_off_rows,
                     levels: sol.levels.clone(),
                     qp_fallbacks,
                 }
             }
-            Err(e) => self.fallback(
-                input,
-                ControlStatus::SolverFailed,
-                e.to_string(),
-                Some(haptic),
-            ),
+            Err(e) => ControllerOutput {
+                keep_off: keep_off_rows,
+                ..self.fallback(
+                    input,
+                    ControlStatus::SolverFailed,
+                    e.to_string(),
+                    Some(haptic),
+                )
+            },
         }
     }
 
@@ -389,13 +493,8 @@ impl Controller {
             qdd: JointVector::zeros(),
             status,
             message,
-            haptics: haptic.unwrap_or(HapticConstraints {
-                status: haptics::HapticStatus::NoSurface,
-                d_proj_m: f64::NAN,
-                d_rate_mps: f64::NAN,
-                jacobian: RowSVector::zeros(),
-                rows: ArrayVec::new(),
-            }),
+            haptics: haptic.unwrap_or_else(HapticConstraints::no_surface),
+            keep_off: ArrayVec::new(),
             levels: ArrayVec::new(),
             qp_fallbacks: 0,
         }
@@ -412,6 +511,7 @@ impl Controller {
         bias: &JointVector,
         jtf: &JointVector,
         haptic: &HapticConstraints,
+        keep_off: &[HapticConstraints],
     ) {
         let (q, qd) = (&input.q, &input.qd);
         let effort = self.effort();
@@ -453,8 +553,15 @@ impl Controller {
                 (r.row, r.bound)
             }),
         );
-        // 4. haptic constraints
-        fill_rows(t4, haptic.rows.iter().map(|r| (r.row, r.bound)));
+        // 4. haptic constraints: the handle's, then the keep-off guards'
+        fill_rows(
+            t4,
+            haptic
+                .rows
+                .iter()
+                .chain(keep_off.iter().flat_map(|c| &c.rows))
+                .map(|r| (r.row, r.bound)),
+        );
         // 5. intent
         let hip_rows = matches!(input.intent, Intent::HipAcceleration(_));
         if (t5.a.nrows() == 3) != hip_rows {
@@ -481,8 +588,9 @@ impl Controller {
 }
 
 impl Workspace {
-    /// The six levels in the shapes of `config` (the constant rows already written).
-    fn new(config: &ControllerConfig) -> Self {
+    /// The six levels in the shapes of `config`, level 4 with `keep_off_rows` rows for the
+    /// keep-off guards (the constant rows already written).
+    fn new(config: &ControllerConfig, keep_off_rows: usize) -> Self {
         let mut limits = DMatrix::zeros(2 * DOF, DOF);
         limits.view_mut((0, 0), (DOF, DOF)).fill_with_identity();
         limits
@@ -509,7 +617,7 @@ impl Workspace {
                 Task::new("joint position and velocity limits", DOF)
                     .inequalities(limits, DVector::zeros(2 * DOF)),
                 inequalities("fixed collision constraint", config.fixed_planes.len()),
-                inequalities("online collision avoidance", haptic_rows),
+                inequalities("online collision avoidance", haptic_rows + keep_off_rows),
                 equalities("intent: torque", DOF),
                 Task::new("minimal joint accelerations", DOF)
                     .equalities(DMatrix::identity(DOF, DOF), DVector::zeros(DOF)),
@@ -665,8 +773,8 @@ mod tests {
             &qd,
             &mass,
         );
-        let mut ws = Workspace::new(c.config());
-        c.fill_tasks(&mut ws, &input, &hip, &mass, &bias, &jtf, &haptic);
+        let mut ws = Workspace::new(c.config(), 0);
+        c.fill_tasks(&mut ws, &input, &hip, &mass, &bias, &jtf, &haptic, &[]);
         let mut tasks = ws.tasks;
         assert_eq!(tasks[4].name, "intent: torque");
         assert_eq!(tasks[5].name, "minimal joint accelerations");
@@ -692,6 +800,104 @@ mod tests {
             table_i.levels[5]
         );
         assert!(table_i.x.norm() < 1e-6, "{}", table_i.x);
+    }
+
+    /// Without keep-off surfaces the default guard set gives the single-HIP controller's
+    /// output bit for bit; with one, the forearm guard gets its own rows and is braked.
+    #[test]
+    fn keep_off_guard_rows() {
+        let c = controller();
+        let single = Controller::new(
+            RobotModel::anyexo().unwrap(),
+            ControllerConfig {
+                guards: GuardConfig::single_hip(),
+                ..ControllerConfig::default()
+            },
+        )
+        .unwrap();
+        let model = c.model();
+        let q = pose();
+        let hip = model.hip_kinematics(&q, &JointVector::zeros());
+        let jpinv = hip.jacobian.pseudo_inverse(1e-9).unwrap();
+        let qd = jpinv * Vector3::new(0.0, 0.0, -1.0);
+        let floor = |z: f64| {
+            haptics::known_surface(
+                0.0,
+                Point3::new(0.2, -0.2, z),
+                Vector3::z_axis(),
+                Vector3::zeros(),
+            )
+            .surface
+            .unwrap()
+        };
+        let hip_floor = floor(hip.position_m.z - 0.045);
+        let input = ControllerInput {
+            q,
+            qd,
+            surface: Some(&hip_floor),
+            interaction_force_n: Vector3::new(1.0, -2.0, -5.0),
+            intent: Intent::Transparent,
+        };
+        let (a, b) = (c.tick(&input), single.tick(&input));
+        assert_eq!(a.tau_nm, b.tau_nm);
+        assert_eq!(a.qdd, b.qdd);
+        assert_eq!(a.haptics, b.haptics);
+        assert_eq!(a.keep_off.len(), 5);
+        assert!(
+            a.keep_off
+                .iter()
+                .all(|k| k.status == haptics::HapticStatus::NoSurface)
+        );
+        assert!(b.keep_off.is_empty());
+        // the forearm's capsule 3 cm above a floor, moving down with the HIP
+        let guards = c.guards();
+        let forearm = &guards.guards()[guards.keep_off()[0]];
+        assert_eq!(forearm.name, "forearm");
+        let motion = model.link_motion(&q, &qd);
+        let seg = forearm.world(&motion.world_from_link);
+        let low = if seg.a_m.z < seg.b_m.z {
+            seg.a_m
+        } else {
+            seg.b_m
+        };
+        let under_forearm = floor(low.z - forearm.radius_m - 0.03);
+        let mut surfaces = [None; 5];
+        surfaces[0] = Some(&under_forearm);
+        let out = c.tick_guarded(&input, &surfaces);
+        assert_eq!(out.status, ControlStatus::Ok);
+        let k = &out.keep_off[0];
+        assert_eq!(k.status, haptics::HapticStatus::Active);
+        assert_eq!(k.rows.len(), 2);
+        assert!(out.keep_off[1..].iter().all(|k| k.rows.is_empty()));
+        let p = seg.closest_point(&under_forearm.centroid_m);
+        let d = (p.z - under_forearm.centroid_m.z) - forearm.radius_m;
+        assert!((k.d_proj_m - d).abs() < 1e-12, "{} vs {d}", k.d_proj_m);
+        // the commanded acceleration of the forearm's closest point decelerates its approach
+        let pk = model.point_kinematics(&motion, &qd, forearm.link, &p);
+        let acc = pk.jacobian * out.qdd + pk.bias_acceleration_mps2;
+        assert!(pk.velocity_mps.z < -0.3, "{}", pk.velocity_mps);
+        assert!(acc.z > 1.0, "forearm point acceleration {acc}");
+        // the predicted clearance of the positional row is met
+        for r in &k.rows {
+            assert!((r.row * out.qdd)[0] <= r.bound + 1e-6, "{r:?}");
+        }
+        // a slice of the wrong length is bad input
+        let out = c.tick_guarded(&input, &surfaces[..2]);
+        assert_eq!(out.status, ControlStatus::BadInput);
+        assert!(
+            out.message.contains("2 keep-off surfaces for 5"),
+            "{}",
+            out.message
+        );
+        let bad_floor = SurfaceState {
+            velocity_m_per_s: Vector3::new(f64::NAN, 0.0, 0.0),
+            ..under_forearm
+        };
+        surfaces[0] = Some(&bad_floor);
+        assert_eq!(
+            c.tick_guarded(&input, &surfaces).status,
+            ControlStatus::BadInput
+        );
     }
 
     #[test]

@@ -31,6 +31,10 @@
 //!   patient's arm when the surface jumps.
 //! - The constraints switch off when the HIP is farther than the activation distance above or
 //!   there is no surface to constrain against (the grey areas of the paper's Fig. 9).
+//! - Keep-off guards ([`keep_off_constraints`], [`crate::robot::guards`]): parts of the robot
+//!   that must never touch get the positional and velocity rows on `d_proj - margin`, with
+//!   eq. 12's ramp starting at zero speed at the margin; `d_proj` and `J_c` are taken at the
+//!   point of the guard's segment closest to the surface's centroid.
 //!
 //! Input: the [`SurfaceState`] the haptic loop constrains against (the fused surface while
 //! it tracks, or held), or that of [`known_surface`] for virtual walls.
@@ -244,16 +248,29 @@ impl HapticConfig {
     /// The speed limit `vc(d)`: eq. 12's ramp, capped by the braking envelope (module doc),
     /// m/s.
     pub fn speed_limit_mps(&self, d_proj_m: f64) -> f64 {
-        let t = ((d_proj_m - self.ramp_offset_m) / self.ramp_width_m).clamp(0.0, 1.0);
-        let ramp = self.min_speed_mps + t * (self.max_speed_mps - self.min_speed_mps);
-        let slope = (self.max_speed_mps - self.min_speed_mps) / self.ramp_width_m;
+        self.ramp_limit_mps(self.min_speed_mps, self.ramp_offset_m, d_proj_m)
+    }
+
+    /// The speed limit of a keep-off guard at `d_proj_m`: eq. 12's ramp (and braking
+    /// envelope) with `v_min = 0` and `d_offset = margin_m`, so the allowed approach speed
+    /// reaches zero at the margin, m/s.
+    pub fn keep_off_speed_limit_mps(&self, margin_m: f64, d_proj_m: f64) -> f64 {
+        self.ramp_limit_mps(0.0, margin_m, d_proj_m)
+    }
+
+    /// Eq. 12's ramp from `v_min` at `d_offset` to `max_speed_mps` over `ramp_width_m`,
+    /// capped by the braking envelope, at `d_proj_m`, m/s.
+    fn ramp_limit_mps(&self, v_min: f64, d_offset: f64, d_proj_m: f64) -> f64 {
+        let t = ((d_proj_m - d_offset) / self.ramp_width_m).clamp(0.0, 1.0);
+        let ramp = v_min + t * (self.max_speed_mps - v_min);
+        let slope = (self.max_speed_mps - v_min) / self.ramp_width_m;
         let a = self.braking_decel_mps2;
         // where following the ramp needs more than `a`: the envelope's tangent point
-        let v1 = (a / slope).max(self.min_speed_mps);
+        let v1 = (a / slope).max(v_min);
         if slope <= 0.0 || ramp <= v1 {
             return ramp;
         }
-        let d1 = self.ramp_offset_m + (v1 - self.min_speed_mps) / slope;
+        let d1 = d_offset + (v1 - v_min) / slope;
         ramp.min((v1 * v1 + 2.0 * a * (d_proj_m - d1).max(0.0)).sqrt())
     }
 
@@ -342,6 +359,62 @@ pub fn positional_row(
     }
 }
 
+/// `d_proj` (eq. 7), its rate, `J_c` (eq. 8) and `n . Jdot qd` of a ball of `radius_m`
+/// around the point `point` against `surface`.
+struct Contact {
+    d_proj_m: f64,
+    d_rate_mps: f64,
+    jacobian: RowSVector<f64, 6>,
+    bias: f64,
+}
+
+fn contact(
+    config: &HapticConfig,
+    surface: &SurfaceState,
+    point: &HipKinematics,
+    radius_m: f64,
+    qd: &JointVector,
+) -> Contact {
+    let n = surface.normal.into_inner();
+    let d_proj_m = surface.point().d_proj_m(&point.position_m, radius_m);
+    // eq. 8: J_c = n^T J_s,trans
+    let jacobian = n.transpose() * point.jacobian;
+    let surface_rate = if config.use_surface_velocity {
+        n.dot(&surface.velocity_m_per_s)
+    } else {
+        0.0
+    };
+    Contact {
+        d_proj_m,
+        d_rate_mps: (jacobian * qd)[0] - surface_rate,
+        jacobian,
+        bias: n.dot(&point.bias_acceleration_mps2),
+    }
+}
+
+impl HapticConstraints {
+    /// No surface to constrain against: no rows, `d_proj` and its rate NaN.
+    pub fn no_surface() -> Self {
+        Self {
+            status: HapticStatus::NoSurface,
+            d_proj_m: f64::NAN,
+            d_rate_mps: f64::NAN,
+            jacobian: RowSVector::zeros(),
+            rows: ArrayVec::new(),
+        }
+    }
+
+    fn far(c: &Contact) -> Self {
+        Self {
+            status: HapticStatus::Far,
+            d_proj_m: c.d_proj_m,
+            d_rate_mps: c.d_rate_mps,
+            jacobian: c.jacobian,
+            rows: ArrayVec::new(),
+        }
+    }
+}
+
 /// Evaluates eq. 7-14 for the HIP state `hip` (see [`crate::robot::RobotModel::hip_kinematics`])
 /// with joint velocities `qd`, mass matrix `mass`, HIP radius `hip_radius_m`.
 pub fn haptic_constraints(
@@ -352,35 +425,18 @@ pub fn haptic_constraints(
     qd: &JointVector,
     mass: &JointMatrix,
 ) -> HapticConstraints {
-    let inactive = |status| HapticConstraints {
-        status,
-        d_proj_m: f64::NAN,
-        d_rate_mps: f64::NAN,
-        jacobian: RowSVector::zeros(),
-        rows: ArrayVec::new(),
-    };
     let Some(surface) = surface else {
-        return inactive(HapticStatus::NoSurface);
+        return HapticConstraints::no_surface();
     };
-    let n = surface.normal.into_inner();
-    let d_proj_m = surface.point().d_proj_m(&hip.position_m, hip_radius_m);
-    // eq. 8: J_c = n^T J_s,trans
-    let jacobian = n.transpose() * hip.jacobian;
-    let surface_rate = if config.use_surface_velocity {
-        n.dot(&surface.velocity_m_per_s)
-    } else {
-        0.0
-    };
-    let d_rate_mps = (jacobian * qd)[0] - surface_rate;
-    let bias = n.dot(&hip.bias_acceleration_mps2);
+    let c = contact(config, surface, hip, hip_radius_m, qd);
+    let Contact {
+        d_proj_m,
+        d_rate_mps,
+        jacobian,
+        bias,
+    } = c;
     if d_proj_m > config.activation_reach_m(d_rate_mps) {
-        return HapticConstraints {
-            status: HapticStatus::Far,
-            d_proj_m,
-            d_rate_mps,
-            jacobian,
-            rows: ArrayVec::new(),
-        };
+        return HapticConstraints::far(&c);
     }
     let mut rows = ArrayVec::new();
     if config.enable_position {
@@ -416,6 +472,56 @@ pub fn haptic_constraints(
         d_proj_m,
         d_rate_mps,
         jacobian,
+        rows,
+    }
+}
+
+/// The rows of a keep-off guard (never touches): a ball of `radius_m` around `point` (the
+/// point of the guard's segment closest to the surface's centroid, with its Jacobian) holds
+/// `d_proj >= margin_m`. The positional row (eq. 9-11) predicts `d_proj - margin_m >= 0`;
+/// the velocity row (eq. 12-14) limits the approach by
+/// [`HapticConfig::keep_off_speed_limit_mps`], zero at the margin. No force row: a keep-off
+/// guard is not meant to push. Activation as for the handle, on `d_proj - margin_m`. A guard
+/// without a surface has no rows ([`HapticConstraints::no_surface`]).
+pub fn keep_off_constraints(
+    config: &HapticConfig,
+    margin_m: f64,
+    surface: &SurfaceState,
+    point: &HipKinematics,
+    radius_m: f64,
+    qd: &JointVector,
+) -> HapticConstraints {
+    let c = contact(config, surface, point, radius_m, qd);
+    let clearance = c.d_proj_m - margin_m;
+    if clearance > config.activation_reach_m(c.d_rate_mps) {
+        return HapticConstraints::far(&c);
+    }
+    let mut rows = ArrayVec::new();
+    if config.enable_position {
+        let horizon = config.position_gain * config.period_s;
+        rows.push(positional_row(
+            horizon,
+            clearance,
+            c.d_rate_mps,
+            &c.jacobian,
+            c.bias,
+        ));
+    }
+    if config.enable_velocity {
+        let horizon = config.velocity_gain * config.period_s;
+        rows.push(ConstraintRow {
+            kind: ConstraintKind::Velocity,
+            row: -c.jacobian * horizon,
+            bound: config.keep_off_speed_limit_mps(margin_m, c.d_proj_m)
+                + c.d_rate_mps
+                + horizon * c.bias,
+        });
+    }
+    HapticConstraints {
+        status: HapticStatus::Active,
+        d_proj_m: c.d_proj_m,
+        d_rate_mps: c.d_rate_mps,
+        jacobian: c.jacobian,
         rows,
     }
 }

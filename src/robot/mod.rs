@@ -13,12 +13,15 @@
 //! `world_from_link = world_from_base * ... * parent_from_joint * Rot(axis, q)`; the HIP
 //! translational Jacobian is `z_j x (p_hip - p_j)` per ancestor joint (world frame), and its
 //! bias acceleration `Jdot qd` comes from the classical forward acceleration recursion. The
-//! dynamics (RNEA, CRBA) live in [`dynamics`].
+//! dynamics (RNEA, CRBA) live in [`dynamics`]. The same recursion gives any point's Jacobian
+//! and bias ([`RobotModel::point_kinematics`]), which the guards of [`guards`] (the HIP and
+//! the keep-off spheres and capsules) use.
 //!
 //! Collision geometry: URDF `<sphere>`, `<box>` and the `<capsule radius length>` extension
 //! (segment along the collision frame's z axis, centred, `length` between ball centres).
 
 pub mod dynamics;
+pub mod guards;
 
 use crate::geometry::Primitive;
 use arrayvec::ArrayVec;
@@ -507,7 +510,11 @@ impl RobotModel {
         link: usize,
         point_link_m: &Point3<f64>,
     ) -> PointJacobian {
-        let p = poses[link] * point_link_m;
+        self.jacobian_at(poses, link, &(poses[link] * point_link_m))
+    }
+
+    /// Translational Jacobian of the world point `p`, moving with link `link`.
+    fn jacobian_at(&self, poses: &[Isometry3<f64>], link: usize, p: &Point3<f64>) -> PointJacobian {
         let mut jac = PointJacobian::zeros();
         for (i, dof) in self.actuated_chain(link) {
             let z = self.world_axis(i, poses);
@@ -517,11 +524,10 @@ impl RobotModel {
         jac
     }
 
-    /// HIP position (world, m), translational Jacobian (world) and bias acceleration
-    /// `Jdot qd` (world, m/s^2) in one pass: the HIP's acceleration is `J qdd + Jdot qd`.
-    pub fn hip_kinematics(&self, q: &JointVector, qd: &JointVector) -> HipKinematics {
+    /// Poses and motion of every link at `q`, `qd` (with `qdd = 0`): what
+    /// [`RobotModel::point_kinematics`] needs for any number of points in one pass.
+    pub fn link_motion(&self, q: &JointVector, qd: &JointVector) -> LinkMotion {
         let poses = self.forward_kinematics(q);
-        let jacobian = self.point_jacobian_from_poses(&poses, self.hip_link, &Point3::origin());
         // classical forward recursion with qdd = 0 (world coordinates)
         let n = self.links.len();
         let zeros = || (0..n).map(|_| Vector3::zeros()).collect::<PerLink<_>>();
@@ -540,13 +546,43 @@ impl RobotModel {
             wd[i] = wd[p] + w[p].cross(&zq);
             a[i] = a[p] + wd[p].cross(&dp) + w[p].cross(&w[p].cross(&dp));
         }
-        let hip = self.hip_link;
+        LinkMotion {
+            world_from_link: poses,
+            angular_velocity: w,
+            angular_bias: wd,
+            origin_bias: a,
+        }
+    }
+
+    /// Position, Jacobian, velocity and bias acceleration `Jdot qd` of the world point
+    /// `p_m` taken as fixed on link `link`, for the motion `motion` of the joint velocities
+    /// `qd`.
+    pub fn point_kinematics(
+        &self,
+        motion: &LinkMotion,
+        qd: &JointVector,
+        link: usize,
+        p_m: &Point3<f64>,
+    ) -> HipKinematics {
+        let jacobian = self.jacobian_at(&motion.world_from_link, link, p_m);
+        let r = p_m - motion.world_from_link[link].translation.vector;
+        let (w, wd) = (&motion.angular_velocity[link], &motion.angular_bias[link]);
         HipKinematics {
-            position_m: Point3::from(poses[hip].translation.vector),
+            position_m: *p_m,
             velocity_mps: jacobian * qd,
             jacobian,
-            bias_acceleration_mps2: a[hip],
+            bias_acceleration_mps2: motion.origin_bias[link]
+                + wd.cross(&r.coords)
+                + w.cross(&w.cross(&r.coords)),
         }
+    }
+
+    /// HIP position (world, m), translational Jacobian (world) and bias acceleration
+    /// `Jdot qd` (world, m/s^2) in one pass: the HIP's acceleration is `J qdd + Jdot qd`.
+    pub fn hip_kinematics(&self, q: &JointVector, qd: &JointVector) -> HipKinematics {
+        let motion = self.link_motion(q, qd);
+        let hip = Point3::from(motion.world_from_link[self.hip_link].translation.vector);
+        self.point_kinematics(&motion, qd, self.hip_link, &hip)
     }
 
     /// Clamps `q` into the joint position limits.
@@ -555,12 +591,26 @@ impl RobotModel {
     }
 }
 
-/// HIP kinematic state for one joint state.
+/// Poses and motion of every link for one joint state (see [`RobotModel::link_motion`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct LinkMotion {
+    /// `world_from_link`, topological order.
+    pub world_from_link: PerLink<Isometry3<f64>>,
+    /// Angular velocity of each link, world frame, rad/s.
+    pub angular_velocity: PerLink<Vector3<f64>>,
+    /// Angular acceleration of each link at `qdd = 0`, world frame, rad/s^2.
+    pub angular_bias: PerLink<Vector3<f64>>,
+    /// Acceleration of each link's origin at `qdd = 0`, world frame, m/s^2.
+    pub origin_bias: PerLink<Vector3<f64>>,
+}
+
+/// Kinematic state of a point of the robot (the HIP, or a guard's point) for one joint
+/// state.
 #[derive(Clone, Debug, PartialEq)]
 pub struct HipKinematics {
-    /// HIP position, world frame, metres.
+    /// Position, world frame, metres.
     pub position_m: Point3<f64>,
-    /// HIP velocity `J qd`, world frame, m/s.
+    /// Velocity `J qd`, world frame, m/s.
     pub velocity_mps: Vector3<f64>,
     /// Translational Jacobian, world frame.
     pub jacobian: PointJacobian,

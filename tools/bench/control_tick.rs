@@ -22,6 +22,11 @@
 //! (a preempted tick waits for a whole time slice, milliseconds), while the CPU time counts
 //! only the tick's own work; the load average is printed before and after.
 //!
+//! The case `guards` times the same states once more through `tick_guarded` with a surface
+//! for every keep-off guard of ANYexo's default set (5 guards), each placed like the
+//! handle's (`d_proj` -3 .. 12 cm from the guard's segment point closest to it in 70 % of
+//! the ticks, else beyond activation), next to `all` (the handle alone) in the same run.
+//!
 //! Run: `cargo bench --bench control_tick`.
 
 use hapcloud::control::hqp::LevelMethod;
@@ -130,7 +135,12 @@ fn main() {
     let tick_s = 1.0 / 800.0;
     let frame_s = 1.0 / 30.0;
     let mut next_frame = [0.0, 0.5 * frame_s];
-    let mut cases = vec![Case::new("free"), Case::new("contact"), Case::new("all")];
+    let mut cases = vec![
+        Case::new("free"),
+        Case::new("contact"),
+        Case::new("all"),
+        Case::new("guards"),
+    ];
     println!(
         "load average (1, 5, 15 min) before: {} on {} CPUs",
         load_average(),
@@ -195,6 +205,42 @@ fn main() {
         for c in [usize::from(contact), 2] {
             cases[c].record(us, cpu_us, allocated, &out);
         }
+        // every keep-off guard with a surface of its own
+        let poses = model.forward_kinematics(&q);
+        let guards = controller.guards();
+        let keep_off: Vec<_> = guards
+            .keep_off()
+            .iter()
+            .map(|&g| {
+                let seg = guards.guards()[g].world(&poses);
+                let p = seg.closest_point(&centroid);
+                let d = if rng.random_bool(0.7) {
+                    rng.random_range(-0.03..0.12)
+                } else {
+                    rng.random_range(0.2..0.5)
+                };
+                let c = Point3::from(p - normal.into_inner() * (d + seg.radius_m));
+                known_surface(t, c, normal, velocity)
+            })
+            .collect();
+        let tracked: Vec<_> = keep_off.iter().map(|s| s.tracked()).collect();
+        let allocations_start = allocations();
+        let start = Instant::now();
+        let cpu_start = thread_cpu_s();
+        black_box(fusion.tick(black_box(t)));
+        let out = controller.tick_guarded(
+            black_box(&ControllerInput {
+                q,
+                qd,
+                surface: surface.tracked(),
+                interaction_force_n: force,
+                intent: Intent::Transparent,
+            }),
+            black_box(&tracked),
+        );
+        let cpu_us = (thread_cpu_s() - cpu_start) * 1e6;
+        let us = start.elapsed().as_secs_f64() * 1e6;
+        cases[3].record(us, cpu_us, allocations() - allocations_start, &out);
     }
     cases.extend(closed_loop_cases(&model));
     println!(
