@@ -6,25 +6,15 @@
 //! stamps). At each control tick ([`Fusion::tick`]):
 //!
 //! 1. **Regression (eq. 3-5).** The samples of the last `window_s` of all cameras are fitted
-//!    per coordinate by a weighted polynomial in capture time, weights falling with age and
-//!    scaled by quality. Beyond the paper: per-camera zero-sum offsets absorb calibration
-//!    bias; the degree (0, 1, 2) is the lowest the data cannot reject (Lepski's rule);
-//!    outliers are rejected against the common polynomial. The fit is evaluated at the tick's
-//!    time, predicting the surface over the frames' latency (clamped to
-//!    `max_extrapolation_s`, reported by [`Fusion::prediction`]); its derivative is the
-//!    surface's own velocity. Far-field (look-ahead) samples ([`Fusion::push_far_field`])
-//!    track an approaching surface before the shells see it; from the shells' first
-//!    estimate on, the shells alone set the surface and the look-ahead's history only its
-//!    motion (the line of its approach through the shells' first samples, until they can
-//!    judge a line of their own), and once the shells lose the surface for
-//!    `shells_lost_after_s` the look-ahead tracks it alone again. A confirmed switch to a surface
-//!    that comes first (earlier contact time `T = d / max(a, a_min)`, the look-ahead's
-//!    distance `d` over the surface's own approach speed `a`) restarts their history, which
-//!    approaches until the degree rule can judge a line: eq. 3's line with the slope `a n`
-//!    (the newest of the samples' own approach speeds, each measured against its camera's
-//!    previous frame, free of the cameras' biases: from the first sample, which needs no second to
-//!    confirm the switch; without them the centroid line's from the second sample), capped
-//!    at `max_approach_speed_mps`.
+//!    per coordinate by a weighted polynomial in capture time (weights fall with age and scale
+//!    with quality), with per-camera zero-sum offsets for calibration bias, the lowest degree
+//!    (0, 1, 2) the data cannot reject (Lepski's rule) and outlier rejection. The fit is
+//!    evaluated at the tick's time, predicting over the frames' latency (at most
+//!    `max_extrapolation_s`); its derivative is the surface's velocity. Far-field samples
+//!    ([`Fusion::push_far_field`], the look-ahead) track an approaching surface until the
+//!    shells see it; then the shells set the surface and the look-ahead only its approach
+//!    line, until the shells lose it for `shells_lost_after_s`. A surface that comes first
+//!    (earlier contact time `d / max(a, a_min)`) replaces the tracked one.
 //! 2. **PID smoothing (eq. 6)** with velocity feed-forward moves the output towards the fitted
 //!    target (not while only far-field samples are fitted: the output is the fit); the
 //!    normal is smoothed as angles of a chart re-centred on it every tick, so it is

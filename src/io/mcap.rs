@@ -122,7 +122,8 @@ pub struct McapWriterConfig {
     pub frames: FrameEncoding,
 }
 
-/// Reading settings.
+/// How an MCAP recording or ROS 2 bag is read: which topics are cameras, the world frame, and
+/// the bounds on what one file may make hapcloud read.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct McapReaderConfig {

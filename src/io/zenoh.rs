@@ -613,7 +613,7 @@ impl ZenohSource {
     }
 }
 
-/// Publisher settings.
+/// What the node publishes over Zenoh as ROS 2 messages, and how often.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ZenohPublisherConfig {

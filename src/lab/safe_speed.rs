@@ -163,7 +163,7 @@ mod tests {
     /// far side (realistic effects, 30 Hz, 60 ms latency), at the paper's 1 m/s: the
     /// look-ahead's sphere sees it from 0.3 m, fusion tracks it past the torso it had tracked,
     /// the shells' normals face the HIP, and the HIP is moved out of its way with perception
-    /// as on the exact surface. Before these it passed through the HIP centre by 50-74 mm.
+    /// as on the exact surface.
     #[test]
     fn perception_keeps_the_hip_clear_of_a_head_coming_obliquely_at_a_metre_per_second() {
         let scene = Scene::from_builtin("oblique_head_realistic").unwrap();

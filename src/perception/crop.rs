@@ -52,9 +52,9 @@ pub struct CropConfig {
     /// the frame says where its camera is ([`CropScene::camera_m`]): the D435's depth noise
     /// grows with the square of the range (3.8 mm per m^2 at 848x480, REFERENCE.md), and with
     /// a calibration error of a few mm it scatters the robot's own surface past a fixed
-    /// margin. 11 mm/m^2 (three sigma) on 5 mm: 7.8 mm at 0.5 m, 16 mm at 1 m. At 1 m a flat
-    /// 10 mm left a sheet of the handle's points 6-10 cm from the HIP (torso_approach camera
-    /// 0: 9.9 -> 6.3 mm RMS); at 0.5 m it ate the body next to the contact.
+    /// margin. 11 mm/m^2 (three sigma) on 5 mm: 7.8 mm at 0.5 m, 16 mm at 1 m. A flat margin
+    /// cannot serve both ranges: 10 mm leaves a sheet of the handle's points near the HIP at
+    /// 1 m and eats the body next to the contact at 0.5 m.
     pub robot_margin_per_m2: f64,
 }
 

@@ -1,44 +1,22 @@
 //! Look-ahead beyond the shells: a coarse estimate of the surface that will reach the HIP
-//! first, from every point the crop sphere kept (out to its 0.3 m radius), so an approaching
-//! surface is tracked before it reaches the shells' reach, lifting eq. 1's bound
-//! `v_perp <= (r_out - r_in) / dt`.
+//! first, from every point the crop sphere kept, so an approaching surface is tracked before
+//! it reaches the shells, lifting eq. 1's bound `v_perp <= (r_out - r_in) / dt`.
 //!
-//! **Surfaces of one frame.** Kept points are tried as patch centres nearest the HIP `h`
-//! first. The first whose patch (points within `patch_radius_m`) is populated and flat gives
-//! a plane (mean and smallest-eigenvalue eigenvector of the patch covariance, f64, oriented
-//! towards the HIP): its point closest to the HIP (kept within the patch), the normal and
-//! the HIP's distance from the plane, the same `(c, n)` the shells give (paper Alg. 2
-//! output), coarser. A curved body (a head) is seen only on its camera side, which may not
-//! be the side facing the HIP: a sphere fitted to the wider patch (`sphere_patch_radius_m`;
-//! algebraic Kasa fit, f64) replaces the plane when its radius is body-like and it explains
-//! the patch clearly better than a plane, and its point nearest the HIP (hidden from the
-//! cameras, or not) gives `(c, n)` and the distance. The points within `same_surface_m` of
-//! that plane or sphere then leave the candidates and the next surface is fitted the same
-//! way, up to `max_surfaces_count`. Beyond the nearest, a surface counts only when it faces
-//! the HIP (distance at least `min_facing_cos` of the distance to its closest point): a
-//! torso's side seen edge-on has a plane 2 cm from the HIP 0.27 m from its points. When the
-//! nearest kept point lies within `min_distance_m` the surface is the shells' business and
-//! nothing is returned.
+//! **Surfaces of one frame.** Kept points nearest the HIP are tried as patch centres; a
+//! populated, flat patch gives a plane (eigenvector of the patch covariance, f64), and a
+//! sphere fitted to a wider patch (Kasa, f64) replaces it when its radius is body-like and it
+//! explains the patch clearly better. Either gives the `(c, n)` of Alg. 2's output and the
+//! HIP's distance. Its points leave the candidates and the next surface is fitted, up to
+//! `max_surfaces_count`; beyond the nearest, a surface counts only when it faces the HIP
+//! (`min_facing_cos`). Within `min_distance_m` the surface is the shells' and nothing is
+//! returned.
 //!
-//! **The surface that comes first.** One frame cannot tell which surface moves; the
-//! camera's previous frame can, free of its calibration bias. Each surface is matched to
-//! the previous frame's surface of the same camera whose normal is within
-//! `same_surface_rad` and whose offset along the normal changed by at most
-//! `max_surface_speed_mps` over the frame gap (plus `same_surface_m`); its own approach
-//! speed is that offset's rate,
-//! `a = n_k . (c_k - c_{k-1}) / (t_k - t_{k-1})` (towards the HIP positive; the HIP's own
-//! motion is left out, a plane's closest point sliding within it has no part along `n`),
-//! and its contact time `T = d / max(a, min_closing_speed_mps)` (an unmatched surface:
-//! `a = 0`). The one estimate per frame is the surface with the smallest `T`: at rest, the
-//! nearest; a plate rising at 2 m/s from 0.29 m beside a torso at 0.26 m, the plate from its
-//! second frame in the crop sphere, 20 ms before it is nearer than the torso. Its speed `a`
-//! and `T` go to fusion ([`crate::fusion::Fusion::push_far_field`]), which switches its
-//! far-field history to the surface that comes first and starts it with `a`.
-//!
-//! The estimate is a warning, not a contact model: fusion fits it only until the shells see
-//! the surface. It adds no constraint of its own: a surface moving away or sliding past has
-//! `a <= 0`, ordered by distance as at rest, and a non-negative rate along its normal, which
-//! the velocity constraint (eq. 12-14, fed with the surface velocity) lets pass.
+//! **The surface that comes first.** Each surface is matched to the same camera's previous
+//! surface (normal within `same_surface_rad`, offset change within `max_surface_speed_mps`);
+//! its approach speed is `a = n_k . (c_k - c_{k-1}) / (t_k - t_{k-1})` and its contact time
+//! `T = d / max(a, min_closing_speed_mps)`. The frame's estimate is the surface with the
+//! smallest `T`; fusion ([`crate::fusion::Fusion::push_far_field`]) tracks it until the shells
+//! see it. It adds no constraint of its own: a surface moving away has `a <= 0`.
 
 use crate::surface::FarFieldEstimate;
 use glam::Vec3;

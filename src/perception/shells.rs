@@ -100,13 +100,13 @@ pub struct ShellConfig {
     /// `torso_approach_realistic` camera 0 (D435 noise 1 m away, the chest partly hidden by
     /// the handle) the fields that missed the closest point by 14-23 mm had 7-41 mm, the
     /// ones within 4 mm 1.3-2.4 mm; 3-4 mm also dropped fields that kept `head_close` and
-    /// `reach_other_arm` within their jump limit (docs/accuracy.md).
+    /// `reach_other_arm` within their jump limit.
     pub quadric_max_closest_se_m: f64,
     /// The height field keeps its quadratic terms only where their F statistic against the
     /// plane exceeds this ([`fit::height_field`]); a flatter patch is fitted as a plane.
     /// 1 (default): where they raise the adjusted R^2 (Theil's criterion). On the flat chest
     /// of `torso_approach_realistic` this removes a jump; 2-4 removes more but fits planes to
-    /// the head seen from 1 m (forehead 1.37 -> 1.88 mm at 4; docs/accuracy.md). 0 keeps
+    /// the head seen from 1 m (forehead error 1.88 mm at 4, 1.37 mm at 1). 0 keeps
     /// every curvature; infinity fits planes only.
     pub quadric_min_curvature_f: f64,
     /// Where Alg. 2 rests on one shell (the rejection kept one of the fits: a lone partial
@@ -117,7 +117,7 @@ pub struct ShellConfig {
     /// a partial patch, and the plane's closest point, the HIP's foot, is determined where
     /// the quadric's is not. 10: on `torso_approach_realistic` (the chest 1 m from the
     /// cameras, partly hidden by the handle) those fields have F 0.3-7; a clearly curved cap
-    /// (the head seen from 0.5 m: F 75) keeps Alg. 2's estimate (docs/accuracy.md). 0: never.
+    /// (the head seen from 0.5 m: F 75) keeps Alg. 2's estimate. 0: never.
     pub quadric_plane_max_f: f64,
     /// A fit whose normal's standard error exceeds this does not take part in the rejection
     /// and Alg. 2's average (it still feeds the height field), rad. The error is
@@ -125,7 +125,7 @@ pub struct ShellConfig {
     /// estimated as the RMS residual of a curved height field over the fits near the
     /// surface (module doc). 10 deg: on `torso_approach_realistic` (D435 noise
     /// 1 m away) a 5-point cap cut through the noise at the chest has 13 deg and pulled
-    /// Alg. 2's average 13 mm off; 15 deg keeps it (docs/accuracy.md). The best-determined
+    /// Alg. 2's average 13 mm off; 15 deg keeps it. The best-determined
     /// fit always stays. Infinity: every fit takes part.
     pub max_normal_error_rad: f64,
     /// Fewest fitted shells (before the rejection) for a valid estimate.

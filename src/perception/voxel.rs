@@ -77,8 +77,11 @@ impl Axis {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FilterLimits {
+    /// The coordinate tested (PCL's filter field name).
     pub axis: Axis,
+    /// Lower limit of that coordinate, metres.
     pub min_m: f64,
+    /// Upper limit of that coordinate, metres.
     pub max_m: f64,
     /// Keep the points outside `[min_m, max_m]` instead of inside.
     #[serde(default)]

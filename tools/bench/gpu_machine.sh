@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The measurements of docs/gpu_h100.md on a lent GPU machine, from the release binaries and
+# The real-GPU measurements of docs/benchmarks.md on a GPU machine, from the release binaries and
 # data that docs/benchmarks.md ("On a GPU machine without cargo, PCL or `../shared`") puts in
 # bench-carry/ (plus `hapcloud` and a 90 Hz copy of the default scene, see below):
 #
