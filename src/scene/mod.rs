@@ -50,11 +50,8 @@ use std::sync::Mutex;
 pub enum SceneError {
     #[error("no built-in scene (or file) `{name}` (built-in scenes: {known})")]
     UnknownBuiltin { name: String, known: String },
-    #[error("cannot read scene file {path}: {source}")]
-    Read {
-        path: String,
-        source: std::io::Error,
-    },
+    #[error("cannot read scene file: {0}")]
+    Read(crate::io::Error),
     #[error("scene {origin}: {message}")]
     Parse { origin: String, message: String },
     #[error("scene {origin}: {message}")]
@@ -83,10 +80,7 @@ impl Scene {
 
     /// A scene file on disk.
     pub fn from_file(path: &Path) -> Result<Self, SceneError> {
-        let text = std::fs::read_to_string(path).map_err(|source| SceneError::Read {
-            path: path.display().to_string(),
-            source,
-        })?;
+        let text = crate::io::read_text(path).map_err(SceneError::Read)?;
         Self::from_toml_str(&text, &path.display().to_string())
     }
 
@@ -556,6 +550,17 @@ impl Simulator {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_scene_path_that_never_ends_stops_at_the_text_limit() {
+        let err = Scene::from_file(Path::new("/dev/zero"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("/dev/zero") && err.contains("16 MiB"),
+            "unexpected error: {err}"
+        );
+    }
 
     fn invalid(text: &str) -> String {
         Scene::from_toml_str(text, "test").unwrap_err().to_string()
