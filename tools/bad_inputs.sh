@@ -311,7 +311,8 @@ t err "is a key, not a section" config --print tick_rate_hz
 t pipe "" config
 t pipe "" config --print
 t pipe "" config --print frontend.voxel
-t err "over a read limit" voxel /dev/zero --leaf 0.01 --max-file-bytes 1000
+ln -sf /dev/zero "$D/zero.pcd"
+t err "over a read limit" voxel "$D/zero.pcd" --leaf 0.01 --max-file-bytes 1000
 t err "--max-file-bytes" voxel /dev/zero --leaf 0.01 --max-file-bytes 0
 t err "FILE.mcap" run --record "$D"
 

@@ -53,6 +53,15 @@ pub enum GuardRole {
     KeepOff,
 }
 
+/// A collision element's index, refused with the key's name when it is negative or not an
+/// integer (serde's own error names only the enclosing table).
+fn collision_index<'de, D: serde::Deserializer<'de>>(d: D) -> Result<usize, D::Error> {
+    let index = i64::deserialize(d)?;
+    usize::try_from(index).map_err(|_| {
+        serde::de::Error::custom(format!("collision: element index {index} is negative"))
+    })
+}
+
 /// Where a guard's sphere or capsule comes from, in its link's frame.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
@@ -60,7 +69,7 @@ pub enum GuardGeometry {
     /// The HIP sphere: the link's origin, the radius of the URDF's HIP visual sphere.
     Hip,
     /// The link's URDF collision element with this index (0 = the first).
-    Collision(usize),
+    Collision(#[serde(deserialize_with = "collision_index")] usize),
     /// A ball of `radius_m` around `center_m`, link frame.
     Sphere { center_m: [f64; 3], radius_m: f64 },
     /// The segment `a_m`..`b_m` swept by a ball of `radius_m`, link frame.
@@ -427,11 +436,17 @@ impl GuardSet {
             b_m,
             radius_m: radius_m + spec.inflation_m,
         };
-        for end in [a_m, b_m] {
+        let keys = match &spec.geometry {
+            GuardGeometry::Hip => ["hip", "hip"],
+            GuardGeometry::Collision(_) => ["collision", "collision"],
+            GuardGeometry::Sphere { .. } => ["center_m", "center_m"],
+            GuardGeometry::Capsule { .. } => ["a_m", "b_m"],
+        };
+        for (end, key) in [a_m, b_m].into_iter().zip(keys) {
             let off = off_link_m(model, link, &end);
             if off > radius_m + 1e-12 {
                 return Err(format!(
-                    "guard `{name}` lies outside link `{}`: its point {:?} is {off:.4} m from the link's geometry and bones, more than its radius {radius_m} m",
+                    "guard `{name}` lies outside link `{}`: its {key} {:?} is {off:.4} m from the link's geometry and bones, more than its radius {radius_m} m",
                     spec.link,
                     end.coords.as_slice()
                 ));
