@@ -807,7 +807,7 @@ impl Fusion {
         let Some(fit) = self.fit else {
             self.was_tracking = false;
             self.prediction = Prediction::default();
-            return no_data(t_s);
+            return FusedSurface::no_data(t_s);
         };
         let t_s = if t_s.is_finite() {
             t_s
@@ -901,18 +901,6 @@ fn target_at(fit: &Fit, config: &FusionConfig, t_s: f64) -> Option<(Target, Vect
         };
         (target, velocity)
     })
-}
-
-fn no_data(t_s: f64) -> FusedSurface {
-    FusedSurface {
-        stamp_s: t_s,
-        status: FusionStatus::NoData,
-        age_s: f64::INFINITY,
-        surface: None,
-        fit_degree: 0,
-        sample_count: 0,
-        camera_count: 0,
-    }
 }
 
 impl Smoothed {

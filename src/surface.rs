@@ -163,6 +163,19 @@ impl SurfaceState {
 }
 
 impl FusedSurface {
+    /// The fused surface of a tick with no sample to fuse.
+    pub fn no_data(stamp_s: f64) -> Self {
+        Self {
+            stamp_s,
+            status: FusionStatus::NoData,
+            age_s: f64::INFINITY,
+            surface: None,
+            fit_degree: 0,
+            sample_count: 0,
+            camera_count: 0,
+        }
+    }
+
     /// True when the surface is fresh and consistent and may drive a constraint.
     pub fn is_tracking(&self) -> bool {
         self.status == FusionStatus::Tracking

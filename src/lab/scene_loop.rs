@@ -131,15 +131,7 @@ impl DelayedOracle {
     /// The surface at tick time `t_s`.
     pub fn at(&self, t_s: f64, max_extrapolation_s: f64) -> FusedSurface {
         let Some((capture_s, sample)) = self.newest else {
-            return FusedSurface {
-                stamp_s: t_s,
-                status: FusionStatus::NoData,
-                age_s: f64::INFINITY,
-                surface: None,
-                fit_degree: 0,
-                sample_count: 0,
-                camera_count: 0,
-            };
+            return FusedSurface::no_data(t_s);
         };
         let Some(s) = sample.surface else {
             return sample;
