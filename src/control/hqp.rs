@@ -224,6 +224,48 @@ impl Default for HqpWorkspace {
     }
 }
 
+impl HqpWorkspace {
+    /// Grows every buffer to what [`HierarchicalSolver::solve_in`] needs for hierarchies of
+    /// `n` unknowns shaped like `tasks` (each level's rows at most as many as there), so that
+    /// already the first solve allocates nothing (the clarabel fallback aside). Growing
+    /// only: calls for several shapes keep the largest.
+    pub fn reserve(&mut self, n: usize, tasks: &[Task]) {
+        let total: usize = tasks.iter().map(|t| t.d.nrows()).sum();
+        let me = tasks.iter().map(|t| t.a.nrows()).max().unwrap_or(0);
+        let k = tasks.iter().map(|t| t.d.nrows()).max().unwrap_or(0);
+        // a level's QP: its `nz + k` unknowns (nz <= n), its own and the higher rows
+        let (nv, rows) = (n + k, k + total);
+        for (buf, len) in [
+            (&mut self.basis, n * n),
+            (&mut self.basis_next, n * n),
+            (&mut self.dh, total * n),
+            (&mut self.fh, total),
+            (&mut self.az, me * n),
+            (&mut self.r, me),
+            (&mut self.hess, n * n),
+            (&mut self.chol, n * n),
+            (&mut self.grad, n),
+            (&mut self.z_ls, n),
+            (&mut self.dz, k * n),
+            (&mut self.s, k),
+            (&mut self.dhz, total * n),
+            (&mut self.sh, total),
+            (&mut self.qp_h, nv * nv),
+            (&mut self.qp_c, nv),
+            (&mut self.qp_a, rows * nv),
+            (&mut self.qp_b, rows),
+            (&mut self.gram, n * n),
+            (&mut self.eigenvectors, n * n),
+        ] {
+            qp::sized(buf, len);
+        }
+        if self.solution.x.len() != n {
+            self.solution.x = DVector::zeros(n);
+        }
+        self.qp.reserve(rows, nv);
+    }
+}
+
 /// A `rows x cols` matrix view on the first entries of `buf` (grown when short).
 fn view_mut(buf: &mut Vec<f64>, rows: usize, cols: usize) -> DMatrixViewMut<'_, f64> {
     DMatrixViewMut::from_slice(qp::sized(buf, rows * cols), rows, cols)

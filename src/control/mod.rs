@@ -611,8 +611,7 @@ impl Workspace {
         let equalities = |name, rows| {
             Task::new(name, DOF).equalities(DMatrix::zeros(rows, DOF), DVector::zeros(rows))
         };
-        Self {
-            tasks: [
+        let tasks = [
                 inequalities("equation of motion, torque limits", 2 * DOF),
                 Task::new("joint position and velocity limits", DOF)
                     .inequalities(limits, DVector::zeros(2 * DOF)),
@@ -621,9 +620,16 @@ impl Workspace {
                 equalities("intent: torque", DOF),
                 Task::new("minimal joint accelerations", DOF)
                     .equalities(DMatrix::identity(DOF, DOF), DVector::zeros(DOF)),
-            ],
-            other_intent: equalities("intent: HIP acceleration", 3),
-            hqp: HqpWorkspace::default(),
+            ];
+        let other_intent = equalities("intent: HIP acceleration", 3);
+        // Every solver buffer sized for these levels now: the first tick allocates nothing.
+        let mut hqp = HqpWorkspace::default();
+        hqp.reserve(DOF, &tasks);
+        hqp.reserve(DOF, std::slice::from_ref(&other_intent));
+        Self {
+            tasks,
+            other_intent,
+            hqp,
         }
     }
 }

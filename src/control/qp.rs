@@ -158,6 +158,28 @@ impl QpWorkspace {
     pub fn x(&self, n: usize) -> &[f64] {
         &self.x[..n]
     }
+
+    /// Grows every buffer to what [`solve_active_set_in`] needs for up to `m` rows and `n`
+    /// unknowns (growing only).
+    pub fn reserve(&mut self, m: usize, n: usize) {
+        for (buf, len) in [
+            (&mut self.a, m * n),
+            (&mut self.b, m),
+            (&mut self.l, n * n),
+            (&mut self.j, n * n),
+            (&mut self.r, n * n),
+            (&mut self.x, n),
+            (&mut self.d, n),
+            (&mut self.z, n),
+            (&mut self.np, n),
+        ] {
+            sized(buf, len);
+        }
+        sized(&mut self.usable, m);
+        self.active.reserve(n);
+        self.u.reserve(n + 1);
+        self.dual.reserve(n);
+    }
 }
 
 /// The first `len` entries of `buf`, grown (with `T::default()`) when shorter.
