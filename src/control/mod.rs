@@ -612,15 +612,15 @@ impl Workspace {
             Task::new(name, DOF).equalities(DMatrix::zeros(rows, DOF), DVector::zeros(rows))
         };
         let tasks = [
-                inequalities("equation of motion, torque limits", 2 * DOF),
-                Task::new("joint position and velocity limits", DOF)
-                    .inequalities(limits, DVector::zeros(2 * DOF)),
-                inequalities("fixed collision constraint", config.fixed_planes.len()),
-                inequalities("online collision avoidance", haptic_rows + keep_off_rows),
-                equalities("intent: torque", DOF),
-                Task::new("minimal joint accelerations", DOF)
-                    .equalities(DMatrix::identity(DOF, DOF), DVector::zeros(DOF)),
-            ];
+            inequalities("equation of motion, torque limits", 2 * DOF),
+            Task::new("joint position and velocity limits", DOF)
+                .inequalities(limits, DVector::zeros(2 * DOF)),
+            inequalities("fixed collision constraint", config.fixed_planes.len()),
+            inequalities("online collision avoidance", haptic_rows + keep_off_rows),
+            equalities("intent: torque", DOF),
+            Task::new("minimal joint accelerations", DOF)
+                .equalities(DMatrix::identity(DOF, DOF), DVector::zeros(DOF)),
+        ];
         let other_intent = equalities("intent: HIP acceleration", 3);
         // Every solver buffer sized for these levels now: the first tick allocates nothing.
         let mut hqp = HqpWorkspace::default();

@@ -300,6 +300,7 @@ pub fn evaluate_scene(
                 .into_iter()
                 .map(|(_, p)| p)
                 .collect(),
+            guards: Vec::new(),
         };
         let sim_frame = sim.frame(&timing);
         let (out, total) = Stopwatch::time(|| perception.process(&sim_frame.frame, &robot_scene));

@@ -403,6 +403,7 @@ pub fn simulate_scene(
                     .into_iter()
                     .map(|(_, p)| p)
                     .collect(),
+                guards: Vec::new(),
             };
             let record = haptic_loop.push_frame(&shot.frame, &scene)?;
             if record.estimate().surface.is_some() {

@@ -703,6 +703,7 @@ pub fn run_setting(
                 let scene = PerceptionScene {
                     hip_m: rec.truth.hip_m,
                     primitives: rec.robot.clone(),
+                    guards: Vec::new(),
                 };
                 let record = haptic_loop
                     .push_frame(&rec.frame, &scene)

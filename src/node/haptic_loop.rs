@@ -9,6 +9,11 @@
 //!   stale policy decides whether the constraints may use it, and the controller builds the
 //!   haptic constraints (eq. 7-14) and solves the Table I hierarchy for the robot state.
 //!
+//! With keep-off guards (the whole arm, [`crate::robot::guards`]) each frame's record holds
+//! one estimate per guard besides the handle's ([`CameraChain::process_guarded`]); each guard
+//! has its own fusion in [`ControlLoop`], and the tick hands every guard's constraint surface
+//! to [`Controller::tick_guarded`] under the same stale policy as the handle's.
+//!
 //! The node's runtime runs the two halves on two threads ([`HapticLoop::into_halves`]);
 //! replay, the closed-loop experiments, the study, the evaluation and the viewer drive the
 //! whole loop in simulated time.
@@ -23,9 +28,11 @@ use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticConstraints;
 use crate::perception::lookahead::Lookahead;
 use crate::perception::pipeline::{CameraChain, ChainFrame};
+use crate::robot::guards::MAX_GUARDS;
 use crate::robot::{JointState, RobotModel};
 use crate::surface::{FarFieldEstimate, SurfaceEstimate};
 use crate::surface::{FusedSurface, FusionStatus, SurfaceState};
+use arrayvec::ArrayVec;
 use nalgebra::{Isometry3, Vector3};
 use std::sync::Arc;
 
@@ -71,6 +78,9 @@ impl RobotInput {
 pub struct Tick {
     /// Fusion's surface at the tick's time (tracking or not).
     pub fused: FusedSurface,
+    /// Each keep-off guard's fused surface, in the controller's keep-off order (empty while
+    /// no keep-off guard is fused: the single-HIP mode, or a surface given from outside).
+    pub keep_off: ArrayVec<FusedSurface, MAX_GUARDS>,
     /// True when the constraints used a surface held over stale cameras.
     pub held: bool,
     /// Torques, joint accelerations, status and the haptic constraints (eq. 7-14).
@@ -208,7 +218,9 @@ impl Perception {
         frame: &Frame,
         scene: &PerceptionScene,
     ) -> Result<FrameRecord, NodeError> {
-        let chain = self.chain.process(frame, &scene.hip_m, &scene.primitives)?;
+        let chain =
+            self.chain
+                .process_guarded(frame, &scene.hip_m, &scene.primitives, &scene.guards)?;
         if let (Some(reason), false) = (self.chain.gpu_fallback(), self.warned) {
             crate::stderr_line!("warning: GPU failed ({reason}); perception continues on the CPU");
             self.warned = true;
@@ -234,6 +246,8 @@ impl Perception {
 /// The control half: fusion, the stale policy, the haptic constraints and the controller.
 pub struct ControlLoop {
     fusion: Fusion,
+    /// One fusion per keep-off guard, in the controller's keep-off order.
+    guard_fusions: Vec<Fusion>,
     controller: Controller,
     on_stale: StalePolicy,
     stale_timeout_s: f64,
@@ -242,9 +256,17 @@ pub struct ControlLoop {
 
 impl ControlLoop {
     pub fn new(config: &NodeConfig, model: RobotModel) -> Result<Self, NodeError> {
+        let controller = Controller::new(model, config.controller.clone())?;
+        let guard_fusions = controller
+            .guards()
+            .keep_off()
+            .iter()
+            .map(|_| Fusion::new(config.fusion))
+            .collect::<Result<_, _>>()?;
         Ok(Self {
             fusion: Fusion::new(config.fusion)?,
-            controller: Controller::new(model, config.controller.clone())?,
+            guard_fusions,
+            controller,
             on_stale: config.on_stale,
             stale_timeout_s: config.fusion.stale_timeout_s,
             stale_hold_max_s: config.stale_hold_max_s,
@@ -257,6 +279,25 @@ impl ControlLoop {
 
     pub fn controller(&self) -> &Controller {
         &self.controller
+    }
+
+    /// Each keep-off guard's fusion, in the controller's keep-off order.
+    pub fn guard_fusions(&self) -> &[Fusion] {
+        &self.guard_fusions
+    }
+
+    /// Keep-off guard `index`'s estimate from one camera frame joins that guard's window,
+    /// having arrived at `arrival_s`; an index beyond the controller's keep-off guards is
+    /// ignored (a record from another guard set).
+    pub fn push_guard_estimate(
+        &mut self,
+        index: usize,
+        estimate: &SurfaceEstimate,
+        arrival_s: f64,
+    ) {
+        if let Some(fusion) = self.guard_fusions.get_mut(index) {
+            push_into(fusion, estimate, None, arrival_s);
+        }
     }
 
     /// A camera's estimate (and its far-field estimate, if any) joins fusion's window,
@@ -280,22 +321,45 @@ impl ControlLoop {
     /// (transparent intent: gravity compensation and damping, paper Table I).
     pub fn tick(&mut self, t_s: f64, robot: &RobotInput) -> Tick {
         let fused = self.fusion.tick(t_s);
-        self.tick_on(fused, robot)
+        let keep_off = self.guard_fusions.iter_mut().map(|f| f.tick(t_s)).collect();
+        self.tick_guarded_on(fused, keep_off, robot)
     }
 
     /// The constraints and the controller on a surface given from outside instead of
     /// fusion's (a virtual wall, or the exact surface of a simulation).
     pub fn tick_on(&self, fused: FusedSurface, robot: &RobotInput) -> Tick {
+        self.tick_guarded_on(fused, ArrayVec::new(), robot)
+    }
+
+    /// [`Self::tick_on`] with a fused surface per keep-off guard (`keep_off[i]` for the
+    /// controller's keep-off guard `i`; missing ones have no surface). Each guard's
+    /// constraint surface follows the stale policy on its own fusion, as the handle's does.
+    pub fn tick_guarded_on(
+        &self,
+        fused: FusedSurface,
+        keep_off: ArrayVec<FusedSurface, MAX_GUARDS>,
+        robot: &RobotInput,
+    ) -> Tick {
         let (surface, held) = self.constraint_surface(&fused);
-        let output = self.controller.tick(&ControllerInput {
-            q: robot.joints.q_rad,
-            qd: robot.joints.qd_rad_per_s,
-            surface: surface.as_ref(),
-            interaction_force_n: robot.interaction_force_n,
-            intent: Intent::Transparent,
-        });
+        let guards = self.controller.guards().keep_off().len();
+        let states: ArrayVec<Option<SurfaceState>, MAX_GUARDS> = (0..guards)
+            .map(|i| keep_off.get(i).and_then(|f| self.constraint_surface(f).0))
+            .collect();
+        let surfaces: ArrayVec<Option<&SurfaceState>, MAX_GUARDS> =
+            states.iter().map(Option::as_ref).collect();
+        let output = self.controller.tick_guarded(
+            &ControllerInput {
+                q: robot.joints.q_rad,
+                qd: robot.joints.qd_rad_per_s,
+                surface: surface.as_ref(),
+                interaction_force_n: robot.interaction_force_n,
+                intent: Intent::Transparent,
+            },
+            &surfaces,
+        );
         Tick {
             fused,
+            keep_off,
             held,
             output,
         }
@@ -311,6 +375,7 @@ impl ControlLoop {
     pub fn stop(&mut self, t_s: f64, robot: &RobotInput) -> Tick {
         Tick {
             fused: self.fusion.tick(t_s),
+            keep_off: self.guard_fusions.iter_mut().map(|f| f.tick(t_s)).collect(),
             held: false,
             output: self
                 .controller
@@ -444,6 +509,10 @@ impl HapticLoop {
         let record = self.perception.process(frame, scene)?;
         self.control
             .push_estimate(record.estimate(), record.far_field.as_ref(), frame.stamp_s);
+        for (i, guard) in record.chain.guards.iter().enumerate() {
+            self.control
+                .push_guard_estimate(i, guard.estimate(), frame.stamp_s);
+        }
         Ok(record)
     }
 

@@ -19,6 +19,7 @@
 
 use super::{NodeConfig, NodeError};
 use crate::geometry::Primitive;
+use crate::robot::guards::{GuardConfig, GuardSegment, GuardSet};
 use crate::robot::{DOF, JointState, JointVector, RobotModel};
 use crate::scene::Simulator;
 use nalgebra::{Isometry3, Point3, Translation3};
@@ -77,13 +78,19 @@ enum Joints {
 pub struct RobotState {
     model: RobotModel,
     joints: Joints,
+    /// The guards perception estimates a surface for ([`RobotState::with_guards`]).
+    guards: Option<GuardSet>,
 }
 
-/// The HIP and the robot's primitives, world frame, for one camera frame.
+/// The HIP, the robot's primitives and its keep-off guards, world frame, for one camera
+/// frame.
 #[derive(Clone, Debug)]
 pub struct PerceptionScene {
     pub hip_m: Point3<f64>,
     pub primitives: Vec<Primitive>,
+    /// The keep-off guards posed at the frame's stamp, in [`GuardSet::keep_off`] order
+    /// (empty in the single-HIP mode and for a robot without joint states).
+    pub guards: Vec<GuardSegment>,
 }
 
 impl RobotState {
@@ -98,6 +105,7 @@ impl RobotState {
         Ok(Self {
             model: model.with_base(Isometry3::from_parts(base, Default::default())),
             joints: Joints::Fixed(q),
+            guards: None,
         })
     }
 
@@ -107,6 +115,7 @@ impl RobotState {
         Some(Self {
             model,
             joints: Joints::Simulated(simulator),
+            guards: None,
         })
     }
 
@@ -114,14 +123,26 @@ impl RobotState {
     pub fn recorded(config: &NodeConfig, meta: &RobotMeta) -> Result<Self, NodeError> {
         config.robot.validate()?;
         let model = RobotModel::anyexo().map_err(|e| NodeError::Robot(e.to_string()))?;
-        Ok(Self {
+        Self {
             model: model.with_base(meta.world_from_base),
             joints: if meta.joint_states {
                 Joints::Recorded
             } else {
                 Joints::Fixed(JointVector::zeros())
             },
-        })
+            guards: None,
+        }
+        .with_guards(&config.controller.guards)
+    }
+
+    /// The robot with the guards of `config`: each perception scene carries its keep-off
+    /// guards posed at the scene's joints (with joint states only: without them the robot
+    /// is not cropped, and its own links would be the surface).
+    pub fn with_guards(mut self, config: &GuardConfig) -> Result<Self, NodeError> {
+        let set =
+            GuardSet::new(&self.model, config).map_err(|e| NodeError::Robot(e.to_string()))?;
+        self.guards = Some(set);
+        Ok(self)
     }
 
     pub fn model(&self) -> &RobotModel {
@@ -173,7 +194,21 @@ impl RobotState {
         } else {
             Vec::new()
         };
-        PerceptionScene { hip_m, primitives }
+        let guards = match &self.guards {
+            Some(set) if self.has_joint_states() && !set.keep_off().is_empty() => {
+                let poses = self.model.forward_kinematics(q);
+                set.keep_off()
+                    .iter()
+                    .map(|&i| set.guards()[i].world(&poses))
+                    .collect()
+            }
+            _ => Vec::new(),
+        };
+        PerceptionScene {
+            hip_m,
+            primitives,
+            guards,
+        }
     }
 }
 

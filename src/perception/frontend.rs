@@ -290,6 +290,22 @@ impl Frontend {
         Ok(out)
     }
 
+    /// The crop radius of the frames to come, metres (a whole-arm chain crops the union of
+    /// its guards' reaches, [`crate::perception::pipeline::CameraChain::process_guarded`]).
+    pub fn set_crop_radius_m(&mut self, radius_m: f64) -> Result<(), FrontendError> {
+        let crop = match self {
+            Frontend::Gpu(g) => &mut g.config.crop,
+            Frontend::Cpu(c) => &mut c.config.crop,
+        };
+        let next = CropConfig {
+            radius_m,
+            ..crop.clone()
+        };
+        next.validate()?;
+        *crop = next;
+        Ok(())
+    }
+
     pub fn backend(&self) -> Backend {
         match self {
             Frontend::Gpu(_) => Backend::Gpu,

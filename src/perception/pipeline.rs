@@ -26,6 +26,21 @@
 //!    the CPU ([`SurfaceEstimator::estimate_summed`]); `NearestToHip` leaves the moments to
 //!    the estimator (on the GPU a second submission).
 //!
+//! **Whole arm** ([`CameraChain::process_guarded`]): with keep-off guards (spheres and
+//! capsules of the robot's links, [`crate::robot::guards`]) the frame is cropped once to one
+//! ball holding the HIP's crop ball and every guard's reach ([`crop_ball`]), voxelised and
+//! clustered once; each guard then has its own estimator per camera (memory and shells) on
+//! the kept clusters' points within its reach. A capsule's points are selected by their
+//! distance to its segment; its shells are centred on `p*`, the point of the segment closest
+//! to the nearest of them (a sphere's: its centre), with the configured radii grown by the
+//! guard's radius (memory radii too), so every guard looks as far beyond its own skin. The
+//! estimate is eq. 7's surface for `p*` (the controller takes `d_proj` and eq. 8's Jacobian
+//! at the segment's point closest to the fused centroid). A guard whose reach holds too few
+//! points (the robot's own links, cropped out, hide the body) has no surface
+//! (`estimate.surface = None`), never a made-up distance. Keep-off guards' moments are
+//! computed on the CPU on either backend. Without keep-off guards the chain is the
+//! single-HIP chain, bit for bit.
+//!
 //! Each frame reports wall and thread CPU time of the front end and of the estimator
 //! ([`crate::timing`]) next to the front end's per-pass GPU timestamp times. A GPU failure
 //! (front end or shell moments) switches the chain to the CPU references for good and is
@@ -61,6 +76,7 @@ use crate::camera::Frame;
 use crate::geometry::Primitive;
 use crate::gpu::clock::HostClock;
 use crate::gpu::{Backend, GpuContext, GpuError};
+use crate::robot::guards::GuardSegment;
 use crate::surface::SurfaceEstimate;
 use crate::timing::{SpanTime, Stopwatch};
 use glam::Vec3;
@@ -362,6 +378,83 @@ pub struct ChainFrame {
     pub frontend_time: SpanTime,
     /// Wall and thread CPU time of the estimator (memory, shell moments, fits).
     pub surface_time: SpanTime,
+    /// One estimate per keep-off guard given to [`CameraChain::process_guarded`], in its
+    /// order (empty in the single-HIP mode).
+    pub guards: Vec<GuardFrame>,
+    /// Wall and thread CPU time of the keep-off guards' estimators together.
+    pub guards_time: SpanTime,
+}
+
+/// One keep-off guard's surface from one camera frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GuardFrame {
+    /// The guard posed in the world at the frame's stamp.
+    pub segment: GuardSegment,
+    /// The shells' origin `p*`: the point of the segment closest to the nearest kept point
+    /// within the guard's reach (without one, the segment's middle).
+    pub origin_m: Point3<f64>,
+    /// Kept points within the guard's reach: the estimator's input.
+    pub points: usize,
+    /// The estimator's output (memory step, shell sums, abstraction with the estimate).
+    pub surface: SurfaceFrame,
+}
+
+impl GuardFrame {
+    pub fn estimate(&self) -> &SurfaceEstimate {
+        &self.surface.abstraction.estimate
+    }
+}
+
+/// The estimator settings of a keep-off guard of radius `radius_m`: the shell and memory
+/// radii of `base` grown by it (so the guard sees as far beyond its skin as the radii say).
+pub fn guard_surface_config(base: &SurfaceConfig, radius_m: f64) -> SurfaceConfig {
+    let mut config = base.clone();
+    for r in &mut config.shells.radii_m {
+        *r += radius_m;
+    }
+    config.memory.inner_radius_m += radius_m;
+    config.memory.outer_radius_m += radius_m;
+    config
+}
+
+/// How far beyond its core a keep-off guard of radius `radius_m` looks with `base`: its
+/// outermost shell or memory radius, metres.
+pub fn guard_reach_m(base: &SurfaceConfig, radius_m: f64) -> f64 {
+    let config = guard_surface_config(base, radius_m);
+    config
+        .shells
+        .outer_radius_m()
+        .max(config.memory.outer_radius_m)
+}
+
+/// The ball a whole-arm frame is cropped to: the HIP's crop ball (`hip`, `radius_m`) grown
+/// to hold each guard's reach (the balls of radius `guard_reach_m` around its segment's
+/// ends, whose hull is the reach's capsule), ball by ball (Ritter's bounding sphere, at
+/// most about 5 % above the smallest). Without guards: exactly the HIP's ball.
+pub fn crop_ball(
+    hip: &Point3<f64>,
+    radius_m: f64,
+    guards: &[GuardSegment],
+    base: &SurfaceConfig,
+) -> (Point3<f64>, f64) {
+    let (mut c, mut r) = (*hip, radius_m);
+    for g in guards {
+        let reach = guard_reach_m(base, g.radius_m);
+        for end in [g.a_m, g.b_m] {
+            let d = (end - c).norm();
+            if d + reach <= r {
+                continue;
+            }
+            if d + r <= reach {
+                (c, r) = (end, reach);
+                continue;
+            }
+            let grown = 0.5 * (r + d + reach);
+            c += (end - c) * ((grown - r) / d);
+            r = grown;
+        }
+    }
+    (c, r)
 }
 
 impl ChainFrame {
@@ -380,6 +473,8 @@ pub struct CameraChain {
     frontend: Frontend,
     ctx: Option<Arc<GpuContext>>,
     estimators: BTreeMap<u32, SurfaceEstimator>,
+    /// Per camera id and keep-off guard index, that guard's estimator.
+    guard_estimators: BTreeMap<(u32, usize), SurfaceEstimator>,
     gpu_fallback: Option<String>,
     want_crop_keep: bool,
     /// Frame size the front end's buffers are sized for.
@@ -408,6 +503,7 @@ impl CameraChain {
             surface_config: surface,
             ctx,
             estimators: BTreeMap::new(),
+            guard_estimators: BTreeMap::new(),
             gpu_fallback: None,
             want_crop_keep: false,
             reserved_points: 0,
@@ -471,7 +567,11 @@ impl CameraChain {
 
     /// Forget every camera's remembered surface (e.g. after a gap in the stream).
     pub fn reset(&mut self) {
-        for estimator in self.estimators.values_mut() {
+        for estimator in self
+            .estimators
+            .values_mut()
+            .chain(self.guard_estimators.values_mut())
+        {
             estimator.reset();
         }
     }
@@ -495,7 +595,27 @@ impl CameraChain {
         hip_world: &Point3<f64>,
         robot: &[Primitive],
     ) -> Result<ChainFrame, ChainError> {
+        self.process_guarded(frame, hip_world, robot, &[])
+    }
+
+    /// [`Self::process`] for the whole arm: besides the handle's estimate, one per keep-off
+    /// guard of `guards` (posed in the world frame at the frame's stamp), in their order,
+    /// from the same crop, voxel grid and clusters (module doc).
+    pub fn process_guarded(
+        &mut self,
+        frame: &Frame,
+        hip_world: &Point3<f64>,
+        robot: &[Primitive],
+        guards: &[GuardSegment],
+    ) -> Result<ChainFrame, ChainError> {
         let pose = frame.world_from_camera;
+        let (crop_centre, crop_radius) = crop_ball(
+            hip_world,
+            self.frontend_config.crop.radius_m,
+            guards,
+            &self.surface_config,
+        );
+        self.frontend.set_crop_radius_m(crop_radius)?;
         // A frame that carries its depth image enters as the image: the first pass
         // deprojects it, rejects flying pixels and crops (the GPU over every pixel, the CPU
         // over the pixels the crop region covers). A source without an image hands the
@@ -519,7 +639,7 @@ impl CameraChain {
         let input = FrameInput {
             points,
             crop: Some(super::crop::CropScene {
-                hip_m: *hip_world,
+                hip_m: crop_centre,
                 robot,
                 camera_m: Some(Point3::from(pose.translation.vector)),
             }),
@@ -575,6 +695,26 @@ impl CameraChain {
             // This frame was already answered on the CPU; keep every stage there.
             self.fall_back(e.clone())?;
         }
+        let mut guards_time = SpanTime::default();
+        let guard_frames = if guards.is_empty() {
+            Vec::new()
+        } else {
+            let watch = Stopwatch::start();
+            let candidates = match self.surface_config.clusters {
+                ClusterSelection::All => None,
+                ClusterSelection::NearestToHip => {
+                    Some(front.clusters.kept_points(&front.voxel.points))
+                }
+            };
+            let candidates = candidates.as_deref().unwrap_or(&kept);
+            let frames = guards
+                .iter()
+                .enumerate()
+                .map(|(g, segment)| self.guard_frame(g, segment, candidates, camera, id, stamp))
+                .collect::<Result<Vec<_>, _>>()?;
+            guards_time = watch.elapsed();
+            frames
+        };
         let flying = front.depth.map_or(0, |counts| counts.flying);
         let world_points = front.points.take().unwrap_or_default();
         Ok(ChainFrame {
@@ -587,6 +727,52 @@ impl CameraChain {
             surface,
             frontend_time,
             surface_time,
+            guards: guard_frames,
+            guards_time,
+        })
+    }
+
+    /// Keep-off guard `index`'s estimate from the kept points `candidates` (world frame).
+    fn guard_frame(
+        &mut self,
+        index: usize,
+        segment: &GuardSegment,
+        candidates: &[Vec3],
+        camera: Point3<f64>,
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> Result<GuardFrame, ChainError> {
+        let reach = guard_reach_m(&self.surface_config, segment.radius_m);
+        let mut nearest: Option<(f64, Point3<f64>)> = None;
+        let points: Vec<Vec3> = candidates
+            .iter()
+            .copied()
+            .filter(|p| {
+                let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                let core = segment.closest_point(&x);
+                let d = (x - core).norm();
+                if nearest.is_none_or(|(best, _)| d < best) {
+                    nearest = Some((d, core));
+                }
+                d <= reach
+            })
+            .collect();
+        let origin = match nearest {
+            Some((d, core)) if d <= reach => core,
+            _ => nalgebra::center(&segment.a_m, &segment.b_m),
+        };
+        let estimator = match self.guard_estimators.entry((camera_id, index)) {
+            std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::btree_map::Entry::Vacant(v) => v.insert(SurfaceEstimator::new(
+                guard_surface_config(&self.surface_config, segment.radius_m),
+            )?),
+        };
+        let surface = estimator.estimate(&points, &origin, camera, camera_id, stamp_s);
+        Ok(GuardFrame {
+            segment: *segment,
+            origin_m: origin,
+            points: points.len(),
+            surface,
         })
     }
 }
@@ -938,6 +1124,166 @@ mod tests {
         };
         assert!(near(&first.kept) > 100);
         assert_eq!(near(&cropped.kept), 0);
+    }
+
+    /// A capsule guard (radius 5 cm, 20 cm long, across the view) 4 cm in front of the
+    /// test sphere, the HIP 0.5 m to the side: world frame, with the true closest point and
+    /// normal of the sphere to the guard.
+    fn guard_in_front_of_the_sphere() -> (GuardSegment, Point3<f64>, Point3<f64>, Vector3<f64>) {
+        let centre = Point3::from(CENTRE_CAM);
+        let (r_guard, gap) = (0.05, 0.04);
+        let core = centre - Vector3::z() * (RADIUS_M + gap + r_guard);
+        let segment = GuardSegment {
+            a_m: pose() * (core - Vector3::x() * 0.1),
+            b_m: pose() * (core + Vector3::x() * 0.1),
+            radius_m: r_guard,
+        };
+        let hip = pose() * (centre + Vector3::x() * 0.5);
+        let closest = pose() * (centre - Vector3::z() * RADIUS_M);
+        (segment, hip, closest, pose() * -Vector3::z())
+    }
+
+    #[test]
+    fn the_crop_ball_is_the_hips_without_guards_and_holds_every_guards_reach() {
+        let config = SurfaceConfig::default();
+        let hip = Point3::new(0.3, -0.2, 0.9);
+        assert_eq!(crop_ball(&hip, 0.3, &[], &config), (hip, 0.3));
+        let guards = [
+            GuardSegment {
+                a_m: hip + Vector3::new(0.1, 0.0, 0.0),
+                b_m: hip + Vector3::new(0.4, 0.1, 0.0),
+                radius_m: 0.06,
+            },
+            GuardSegment {
+                a_m: hip + Vector3::new(0.02, 0.01, 0.0),
+                b_m: hip + Vector3::new(0.02, 0.01, 0.0),
+                radius_m: 0.04,
+            },
+            GuardSegment {
+                a_m: hip + Vector3::new(0.5, 0.3, 0.1),
+                b_m: hip + Vector3::new(0.7, 0.3, 0.4),
+                radius_m: 0.05,
+            },
+        ];
+        let (c, r) = crop_ball(&hip, 0.3, &guards, &config);
+        assert!((hip - c).norm() + 0.3 <= r + 1e-12);
+        for g in &guards {
+            let reach = guard_reach_m(&config, g.radius_m);
+            assert!((reach - (g.radius_m + 0.10)).abs() < 1e-12);
+            for t in 0..=10 {
+                let p = g.a_m + (g.b_m - g.a_m) * (f64::from(t) / 10.0);
+                assert!(
+                    (p - c).norm() + reach <= r + 1e-12,
+                    "{p} outside ({c}, {r})"
+                );
+            }
+        }
+        // No bigger than the ball through the two farthest reaches.
+        assert!(r < 0.3 + (guards[2].b_m - hip).norm() + 0.15);
+    }
+
+    #[test]
+    fn a_keep_off_capsule_finds_the_surface_in_front_of_it_from_the_same_front_end() {
+        let (guard, hip, closest, normal) = guard_in_front_of_the_sphere();
+        let mut chain = CameraChain::new(
+            Backend::Cpu,
+            FrontendConfig::default(),
+            SurfaceConfig::default(),
+            None,
+        )
+        .unwrap();
+        for seed in 0..3 {
+            let f = frame(seed, 0);
+            let out = chain.process_guarded(&f, &hip, &[], &[guard]).unwrap();
+            // The HIP is 0.5 m from the sphere: the handle sees nothing of it.
+            assert!(out.estimate().surface.is_none());
+            let g = &out.guards[0];
+            assert!(g.points > 100, "{} points in the guard's reach", g.points);
+            let e = g.estimate().surface.expect("the guard's surface");
+            let err_mm = (e.centroid_m - closest).norm() * 1e3;
+            let angle = e.normal.dot(&normal).clamp(-1.0, 1.0).acos().to_degrees();
+            assert!(err_mm < 8.0, "seed {seed}: centroid off by {err_mm} mm");
+            assert!(angle < 5.0, "seed {seed}: normal off by {angle} deg");
+            // d_proj (eq. 7) at the segment's point closest to the centroid: the 4 cm gap.
+            let p = guard.closest_point(&e.centroid_m);
+            let d_proj = (p - e.centroid_m).dot(&e.normal) - guard.radius_m;
+            assert!(
+                (d_proj - 0.04).abs() < 0.008,
+                "seed {seed}: d_proj {d_proj}"
+            );
+            assert!((g.origin_m - guard.closest_point(&closest)).norm() < 0.02);
+        }
+        // The same frame without the guard: cropped around the HIP alone, the sphere is gone.
+        let alone = chain.process(&frame(3, 1), &hip, &[]).unwrap();
+        let centre = pose() * Point3::from(CENTRE_CAM);
+        let on_sphere = |pts: &[Vec3]| {
+            pts.iter()
+                .filter(|q| {
+                    let q = Point3::new(f64::from(q.x), f64::from(q.y), f64::from(q.z));
+                    (q - centre).norm() < RADIUS_M + 0.01
+                })
+                .count()
+        };
+        assert!(alone.guards.is_empty());
+        assert_eq!(on_sphere(&alone.kept), 0);
+        let again = chain.process_guarded(&frame(3, 1), &hip, &[], &[guard]);
+        assert!(on_sphere(&again.unwrap().kept) > 100);
+    }
+
+    #[test]
+    fn a_guard_whose_view_the_robot_blocks_has_no_surface() {
+        let (guard, hip, _, _) = guard_in_front_of_the_sphere();
+        let mut chain = CameraChain::new(
+            Backend::Cpu,
+            FrontendConfig::default(),
+            SurfaceConfig::default(),
+            None,
+        )
+        .unwrap();
+        // A robot link over the whole sphere: nothing of the body is left in the reach.
+        let link = Primitive::Sphere {
+            center_m: pose() * Point3::from(CENTRE_CAM),
+            radius_m: RADIUS_M + 0.02,
+        };
+        for seed in 0..2 {
+            let out = chain
+                .process_guarded(&frame(seed, 0), &hip, std::slice::from_ref(&link), &[guard])
+                .unwrap();
+            let g = &out.guards[0];
+            assert_eq!(g.points, 0);
+            assert!(g.estimate().surface.is_none(), "{:?}", g.estimate());
+            assert_eq!(g.estimate().quality, 0.0);
+        }
+    }
+
+    /// The single-HIP chain after whole-arm frames is the single-HIP chain: the crop radius
+    /// goes back to the configured one, and the handle's layers are those of a chain that
+    /// never saw a guard, bit for bit.
+    #[test]
+    fn without_guards_the_chain_is_the_single_hip_chain_bit_for_bit() {
+        let (hip, _, _) = hip_and_truth();
+        let (guard, _, _, _) = guard_in_front_of_the_sphere();
+        let new = || {
+            CameraChain::new(
+                Backend::Cpu,
+                FrontendConfig::default(),
+                SurfaceConfig::default(),
+                None,
+            )
+            .unwrap()
+        };
+        let (mut used, mut fresh) = (new(), new());
+        used.process_guarded(&frame(0, 0), &hip, &[], &[guard])
+            .unwrap();
+        for seed in 1..3 {
+            let a = used.process(&frame(seed, 1), &hip, &[]).unwrap();
+            let b = fresh.process(&frame(seed, 1), &hip, &[]).unwrap();
+            assert_eq!(a.front.voxel, b.front.voxel);
+            assert_eq!(a.front.clusters, b.front.clusters);
+            assert_eq!(a.kept, b.kept);
+            assert_eq!(a.surface.abstraction, b.surface.abstraction);
+            assert!(a.guards.is_empty());
+        }
     }
 
     #[test]
