@@ -397,8 +397,7 @@ pub fn run(
     let robot = match robot {
         Some(r) => r,
         None => RobotState::fixed(config)?,
-    }
-    .with_guards(&config.controller.guards)?;
+    };
     // Frames whose stamps disagree with their neighbours are refused (counted) before the
     // clock is set from the stamps.
     let mut source = source;

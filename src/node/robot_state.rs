@@ -123,7 +123,7 @@ impl RobotState {
     pub fn recorded(config: &NodeConfig, meta: &RobotMeta) -> Result<Self, NodeError> {
         config.robot.validate()?;
         let model = RobotModel::anyexo().map_err(|e| NodeError::Robot(e.to_string()))?;
-        Self {
+        Ok(Self {
             model: model.with_base(meta.world_from_base),
             joints: if meta.joint_states {
                 Joints::Recorded
@@ -131,8 +131,7 @@ impl RobotState {
                 Joints::Fixed(JointVector::zeros())
             },
             guards: None,
-        }
-        .with_guards(&config.controller.guards)
+        })
     }
 
     /// The robot with the guards of `config`: each perception scene carries its keep-off

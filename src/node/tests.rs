@@ -1069,6 +1069,7 @@ fn every_keep_off_guard_is_perceived_fused_and_constrained_in_the_haptic_loop() 
     let mut haptic_loop =
         HapticLoop::new(&config, robot.model().clone(), Backend::Cpu, None).unwrap();
     let (mut estimates, mut errors, mut tracking) = (0usize, Vec::new(), 0usize);
+    let mut per_guard = vec![Vec::new(); 5];
     for timing in sim.arrivals(1.2, 4.5) {
         let t = timing.stamp_s;
         let state = robot.at(t);
@@ -1077,14 +1078,16 @@ fn every_keep_off_guard_is_perceived_fused_and_constrained_in_the_haptic_loop() 
         let frame = sim.frame(&timing).frame;
         let record = haptic_loop.push_frame(&frame, &perception_scene).unwrap();
         assert_eq!(record.chain.guards.len(), 5);
-        for g in &record.chain.guards {
+        for (i, g) in record.chain.guards.iter().enumerate() {
             let Some(e) = g.estimate().surface else {
                 continue;
             };
             estimates += 1;
             let p = g.segment.closest_point(&e.centroid_m);
             let d_proj = (p - e.centroid_m).dot(&e.normal) - g.segment.radius_m;
-            errors.push((d_proj - guard_gap_m(&scene, &g.segment, t)).abs());
+            let truth = guard_gap_m(&scene, &g.segment, t);
+            per_guard[i].push((d_proj, truth));
+            errors.push((d_proj - truth).abs());
         }
         let tick = haptic_loop.tick(t, &haptic_loop::RobotInput::without_force(state));
         assert_eq!(tick.keep_off.len(), 5);
@@ -1094,6 +1097,15 @@ fn every_keep_off_guard_is_perceived_fused_and_constrained_in_the_haptic_loop() 
             .iter()
             .filter(|f| f.status == FusionStatus::Tracking)
             .count();
+    }
+    for (i, v) in per_guard.iter().enumerate() {
+        let min = |f: fn(&(f64, f64)) -> f64| v.iter().map(f).fold(f64::INFINITY, f64::min);
+        println!(
+            "guard {i}: {} estimates, min d_proj {:.3} m, min true gap {:.3} m",
+            v.len(),
+            min(|x| x.0),
+            min(|x| x.1)
+        );
     }
     errors.sort_by(f64::total_cmp);
     let median = errors.get(errors.len() / 2).copied().unwrap_or(f64::NAN);

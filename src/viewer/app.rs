@@ -226,7 +226,7 @@ impl ViewerApp {
             });
         }
         let hip_color = frame.map_or(draw::HIP_COLOR, draw::hip_color);
-        let toggles: [(&mut bool, &str, Color32); 8] = [
+        let toggles: [(&mut bool, &str, Color32); 9] = [
             (&mut self.layers.hip, "HIP sphere", hip_color),
             (&mut self.layers.hip_projection, "HIP projection", hip_color),
             (&mut self.layers.shells, "shells", draw::SHELL_COLOR),
@@ -243,6 +243,11 @@ impl ViewerApp {
             (&mut self.layers.patch, "surface patch", draw::PATCH_COLOR),
             (&mut self.layers.fused, "fused surface", draw::FUSED_COLOR),
             (&mut self.layers.truth, "ground truth", draw::TRUTH_COLOR),
+            (
+                &mut self.layers.guards,
+                "keep-off guards",
+                draw::GUARD_COLOR,
+            ),
         ];
         for (on, label, color) in toggles {
             ui.horizontal(|ui| {

@@ -11,7 +11,7 @@
 //! projection on the fused surface plane; the HIP sphere takes the colour of the haptic
 //! constraint state ([`hip_color`]). The returned [`DrawStats`] count what was actually drawn.
 
-use super::frame::{PointRole, ViewFrame};
+use super::frame::{GuardView, PointRole, ViewFrame};
 use super::orbit::{OrbitCamera, Projector};
 use super::patch::SurfacePatch;
 use crate::haptics::HapticStatus;
@@ -46,6 +46,8 @@ pub const CAMERA_ESTIMATE_COLOR: Color32 = Color32::from_rgb(110, 170, 255);
 pub const FUSED_COLOR: Color32 = Color32::from_rgb(40, 90, 255);
 pub const TRUTH_COLOR: Color32 = Color32::from_rgb(230, 60, 230);
 pub const PATCH_COLOR: Color32 = Color32::from_rgb(60, 190, 170);
+/// A keep-off guard (its core's silhouette and its outermost shell), and its fused surface.
+pub const GUARD_COLOR: Color32 = Color32::from_rgb(80, 200, 120);
 
 /// Circle fits cycle through these (paper Fig. 7: green and yellow circle normals).
 const CIRCLE_FIT_COLORS: [Color32; 4] = [
@@ -96,6 +98,8 @@ pub struct Layers {
     pub patch: bool,
     pub fused: bool,
     pub truth: bool,
+    /// The keep-off guards with their shells and fused surfaces.
+    pub guards: bool,
 }
 
 impl Default for Layers {
@@ -111,6 +115,7 @@ impl Default for Layers {
             patch: true,
             fused: true,
             truth: true,
+            guards: true,
         }
     }
 }
@@ -143,6 +148,8 @@ pub struct DrawStats {
     pub hip_projection: bool,
     /// Colour the HIP sphere was drawn in (None when hidden or off screen).
     pub hip_color: Option<Color32>,
+    /// Keep-off guards drawn (their cores on screen).
+    pub guards: usize,
 }
 
 /// Display sizes.
@@ -506,8 +513,67 @@ pub fn paint_frame(
     {
         stats.fused = paint_surface_point(painter, proj, f, style, Stroke::new(3.0, FUSED_COLOR));
     }
+    if layers.guards {
+        for g in &frame.guards {
+            stats.guards += usize::from(paint_guard(painter, proj, g, layers, style));
+        }
+    }
     paint_axes(painter, proj, orbit.target_m, orbit.distance_m);
     stats
+}
+
+/// A keep-off guard: its core's silhouette (a circle of its radius at each end of the
+/// segment, joined), its outermost shell around the latest shells' origin, its fused
+/// surface and its name with `d_proj`; false when the core is off screen.
+fn paint_guard(
+    painter: &Painter,
+    proj: &Projector,
+    g: &GuardView,
+    layers: &Layers,
+    style: &DrawStyle,
+) -> bool {
+    let (Some((a, da)), Some((b, db))) = (proj.project(v3(&g.a_m)), proj.project(v3(&g.b_m)))
+    else {
+        return false;
+    };
+    let near = g.d_proj_m.is_some_and(|d| d < 0.02);
+    let color = if near { HIP_BINDING_COLOR } else { GUARD_COLOR };
+    let stroke = Stroke::new(1.5, color);
+    let (ra, rb) = (
+        proj.radius_px(g.radius_m as f32, da),
+        proj.radius_px(g.radius_m as f32, db),
+    );
+    painter.circle(a, ra, color.gamma_multiply(0.25), stroke);
+    painter.circle(b, rb, color.gamma_multiply(0.25), stroke);
+    painter.line_segment(
+        [a, b],
+        Stroke::new(ra.min(rb).max(1.0) * 2.0, color.gamma_multiply(0.25)),
+    );
+    if layers.shells
+        && let (Some(origin), Some(r)) = (g.origin_m, g.shell_radii_m.last())
+        && let Some((o, depth)) = proj.project(v3(&origin))
+    {
+        painter.circle_stroke(
+            o,
+            proj.radius_px(*r as f32, depth),
+            Stroke::new(1.0, SHELL_COLOR),
+        );
+    }
+    if let Some(f) = &g.fused {
+        paint_surface_point(painter, proj, f, style, Stroke::new(2.0, GUARD_COLOR));
+    }
+    let label = match g.d_proj_m {
+        Some(d) => format!("{} {:.0} mm", g.name, d * 1e3),
+        None => g.name.clone(),
+    };
+    painter.text(
+        a.lerp(b, 0.5) - Vec2::new(0.0, ra.max(rb) + 2.0),
+        egui::Align2::CENTER_BOTTOM,
+        label,
+        egui::FontId::proportional(10.0),
+        color,
+    );
+    true
 }
 
 #[cfg(test)]

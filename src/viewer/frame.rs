@@ -8,6 +8,9 @@
 //! rate, constraint activity, per-stage latency) ride along so that a timeline of frames is
 //! also the data of the time plots. Nothing here depends on egui.
 //!
+//! With keep-off guards (the whole arm) a frame also holds each guard's sphere or capsule,
+//! its shells, its fused surface and its `d_proj` ([`GuardView`]).
+//!
 //! Frames come from a [`ViewerSource`]: a finished timeline (a recording or a simulated run),
 //! or a channel the node feeds while it runs (`hapcloud run --overlay`).
 
@@ -148,6 +151,26 @@ pub struct FrameSamples {
     pub latencies: Vec<StageLatency>,
 }
 
+/// A keep-off guard at one instant: its core and radius, its shells, the surface its
+/// constraints used and its `d_proj` (eq. 7 at the core's point closest to that surface).
+#[derive(Clone, Debug, PartialEq)]
+pub struct GuardView {
+    pub name: String,
+    /// The core segment's ends (equal for a sphere), world frame, metres.
+    pub a_m: Point3<f64>,
+    pub b_m: Point3<f64>,
+    pub radius_m: f64,
+    /// Radii of the guard's shells around `origin_m` (the configured radii grown by the
+    /// guard's radius), metres.
+    pub shell_radii_m: Vec<f64>,
+    /// The shells' origin `p*` of the guard's latest estimate with a surface, if any.
+    pub origin_m: Option<Point3<f64>>,
+    /// The fused surface the guard's constraints used, when they had one.
+    pub fused: Option<SurfacePoint>,
+    /// Its `d_proj`, metres (None without a surface).
+    pub d_proj_m: Option<f64>,
+}
+
 /// Everything drawn for one instant.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ViewFrame {
@@ -165,6 +188,8 @@ pub struct ViewFrame {
     /// The true closest surface point, when the source is simulated.
     pub truth: Option<SurfacePoint>,
     pub samples: FrameSamples,
+    /// The keep-off guards (empty in the single-HIP mode and for recorded sources).
+    pub guards: Vec<GuardView>,
 }
 
 /// Errors of an estimate against ground truth.
@@ -282,6 +307,7 @@ mod tests {
             cameras: vec![],
             fused: Some(sp([0.0, 0.0, 0.1], [0.0, 0.0, 1.0])),
             truth: None,
+            guards: Vec::new(),
             samples: FrameSamples::default(),
         };
         let foot = frame.hip_projection().unwrap();

@@ -54,6 +54,8 @@ pub struct PlotData {
     /// Eq. 7 on the ground truth (true closest point and normal).
     pub true_d_proj_mm: Series,
     pub d_proj_rate_mm_per_s: Series,
+    /// `d_proj` of each keep-off guard to its fused surface, one series per guard.
+    pub guard_d_proj_mm: Vec<Series>,
     /// `-vc(d_proj)` of eq. 12: the velocity constraint keeps the rate above it.
     pub neg_speed_limit_mm_per_s: Series,
     pub constraints: Vec<ConstraintTrace>,
@@ -87,6 +89,12 @@ impl PlotData {
             }
             if let Some(v) = s.d_proj_rate_m_per_s {
                 d.d_proj_rate_mm_per_s.points.push([t, v * 1e3]);
+            }
+            for g in &f.guards {
+                if let Some(v) = g.d_proj_m {
+                    let name = format!("{} d_proj (mm)", g.name);
+                    push_named(&mut d.guard_d_proj_mm, &name, [t, v * 1e3]);
+                }
             }
             if let Some(v) = s.speed_limit_m_per_s {
                 d.neg_speed_limit_mm_per_s.points.push([t, -v * 1e3]);
@@ -155,6 +163,9 @@ pub fn show_plots(ui: &mut egui::Ui, data: &PlotData, now_s: f64) {
         p.line(line(&data.d_proj_mm));
         if !data.true_d_proj_mm.points.is_empty() {
             p.line(line(&data.true_d_proj_mm).color(Color32::from_rgb(230, 60, 230)));
+        }
+        for g in &data.guard_d_proj_mm {
+            p.line(line(g));
         }
         p.vline(cursor());
     });
@@ -231,6 +242,7 @@ mod tests {
                 centroid_m: Point3::new(0.0, 0.0, 0.0),
                 normal: up,
             }),
+            guards: Vec::new(),
             samples: FrameSamples {
                 d_proj_m: Some(d),
                 d_proj_rate_m_per_s: None,

@@ -117,6 +117,7 @@ impl CameraViews {
             cameras: self.cameras.values().cloned().collect(),
             fused: None,
             truth,
+            guards: Vec::new(),
             samples: FrameSamples {
                 latencies: std::mem::take(&mut self.pending),
                 ..FrameSamples::default()

@@ -11,16 +11,21 @@
 //! difference of the trajectory): where the scene's motion would need the controller to hold
 //! it back.
 //!
+//! The robot carries the node config's guards (`[controller.guards]`): each keep-off guard is
+//! perceived and fused on its own, and the frame shows it ([`GuardView`]: core, shells, the
+//! surface its constraints used and its `d_proj`).
+//!
 //! Camera frames are stored thinned per layer ([`super::frame::PointLayer::thinned`]): a few
 //! seconds of two full D435 clouds per tick would not fit in memory.
 
 use super::constraints::apply_loop_tick;
-use super::frame::{StageLatency, ViewFrame};
+use super::frame::{GuardView, StageLatency, ViewFrame};
 use super::records::CameraViews;
 use crate::gpu::Backend;
-use crate::node::haptic_loop::{HapticLoop, RobotInput};
+use crate::node::haptic_loop::{HapticLoop, RobotInput, Tick};
 use crate::node::robot_state::RobotState;
 use crate::node::{NodeConfig, NodeError};
+use crate::perception::pipeline::guard_surface_config;
 use crate::scene::Simulator;
 use crate::surface::SurfacePoint;
 use crate::timing::Stopwatch;
@@ -130,7 +135,8 @@ pub fn timeline_from_scene(
 ) -> Result<Vec<ViewFrame>, SceneViewError> {
     config.validate()?;
     let robot = RobotState::simulated(simulator.clone())
-        .ok_or_else(|| SceneViewError::NoRobot(simulator.scene().origin.clone()))?;
+        .ok_or_else(|| SceneViewError::NoRobot(simulator.scene().origin.clone()))?
+        .with_guards(&node.controller.guards)?;
     let end_s = simulator.duration_s();
     if config.start_s > end_s {
         return Err(SceneViewError::StartPastEnd {
@@ -159,13 +165,22 @@ pub fn timeline_from_scene(
     );
     // Frames captured before the first tick warm up the surface memory and fusion window.
     let mut previous_s = config.start_s - node.fusion.window_s;
+    // Per keep-off guard, the shells' origin of its latest estimate with a surface.
+    let mut origins = Vec::new();
     let mut timeline = Vec::with_capacity(ticks);
     for k in 0..ticks {
         let t_s = config.start_s + k as f64 / config.view_rate_hz;
         for timing in simulator.arrivals(previous_s, t_s) {
             let frame = simulator.frame(&timing).frame;
             let scene = robot.perception_scene(&robot.at(frame.stamp_s).q_rad);
-            views.record(&haptic_loop.push_frame(&frame, &scene)?);
+            let record = haptic_loop.push_frame(&frame, &scene)?;
+            origins.resize(record.chain.guards.len(), None);
+            for (origin, g) in origins.iter_mut().zip(&record.chain.guards) {
+                if g.estimate().surface.is_some() {
+                    *origin = Some(g.origin_m);
+                }
+            }
+            views.record(&record);
         }
         previous_s = t_s;
         let joints = robot.at(t_s);
@@ -186,6 +201,7 @@ pub fn timeline_from_scene(
             latency_s: tick_time.wall_ms * 1e-3,
         });
         apply_loop_tick(&mut view, &tick, &node.controller.haptics, Some(&qdd));
+        view.guards = guard_views(&haptic_loop, &robot, &q, &tick, &origins, node);
         for cam in &mut view.cameras {
             cam.layers = std::mem::take(&mut cam.layers)
                 .into_iter()
@@ -195,6 +211,49 @@ pub fn timeline_from_scene(
         timeline.push(view);
     }
     Ok(timeline)
+}
+
+/// Each keep-off guard of the loop's controller at the joints `q`, with what `tick` did with
+/// it and the shells' origins of its latest estimates.
+fn guard_views(
+    haptic_loop: &HapticLoop,
+    robot: &RobotState,
+    q: &crate::robot::JointVector,
+    tick: &Tick,
+    origins: &[Option<nalgebra::Point3<f64>>],
+    node: &NodeConfig,
+) -> Vec<GuardView> {
+    let set = haptic_loop.control().controller().guards();
+    let poses = robot.model().forward_kinematics(q);
+    set.keep_off()
+        .iter()
+        .enumerate()
+        .map(|(i, &g)| {
+            let guard = &set.guards()[g];
+            let segment = guard.world(&poses);
+            let constraints = tick.output.keep_off.get(i);
+            GuardView {
+                name: guard.name.clone(),
+                a_m: segment.a_m,
+                b_m: segment.b_m,
+                radius_m: segment.radius_m,
+                shell_radii_m: guard_surface_config(&node.surface, segment.radius_m)
+                    .shells
+                    .radii_m,
+                origin_m: origins.get(i).copied().flatten(),
+                fused: tick
+                    .keep_off
+                    .get(i)
+                    .filter(|f| f.is_tracking())
+                    .and_then(|f| f.surface)
+                    .map(|s| s.point()),
+                d_proj_m: constraints
+                    .filter(|c| c.status != crate::haptics::HapticStatus::NoSurface)
+                    .map(|c| c.d_proj_m)
+                    .filter(|d| d.is_finite()),
+            }
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -257,5 +316,38 @@ mod tests {
                 }
             }
         }
+    }
+    /// The overlay of the whole arm: every keep-off guard of the default set with its core,
+    /// shells and, where it has a fused surface, its `d_proj`, plotted one series per guard.
+    #[test]
+    fn forearm_close_shows_every_keep_off_guard_and_plots_its_d_proj() {
+        let scene = Scene::from_builtin("forearm_close_clean").unwrap();
+        let sim = Arc::new(Simulator::new(&scene).unwrap());
+        let config = SceneViewConfig {
+            start_s: 2.0,
+            duration_s: 0.6,
+            view_rate_hz: 10.0,
+            ..SceneViewConfig::default()
+        };
+        let timeline = timeline_from_scene(&sim, &NodeConfig::default(), &config).unwrap();
+        let names = [
+            "forearm",
+            "elbow",
+            "upper_arm",
+            "shoulder",
+            "shoulder_rotation",
+        ];
+        for f in &timeline {
+            let shown: Vec<_> = f.guards.iter().map(|g| g.name.as_str()).collect();
+            assert_eq!(shown, names);
+            for g in &f.guards {
+                assert!(g.radius_m > 0.0 && g.shell_radii_m[0] > g.radius_m);
+                assert_eq!(g.d_proj_m.is_some(), g.fused.is_some(), "{}", g.name);
+            }
+        }
+        let plots = super::super::plots::PlotData::from_timeline(&timeline);
+        let near: Vec<_> = plots.guard_d_proj_mm.iter().map(|s| &s.name).collect();
+        assert!(!near.is_empty(), "no guard had a fused surface");
+        println!("guards with a d_proj: {near:?}");
     }
 }

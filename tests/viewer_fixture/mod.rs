@@ -277,6 +277,7 @@ pub fn timeline() -> Vec<ViewFrame> {
                 centroid_m: o + HEAD_RADIUS_M * u.into_inner(),
                 normal: u,
             }),
+            guards: Vec::new(),
             samples: FrameSamples {
                 d_proj_m,
                 d_proj_rate_m_per_s: rate,
