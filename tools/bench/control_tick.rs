@@ -25,7 +25,9 @@
 //! The case `guards` times the same states once more through `tick_guarded` with a surface
 //! for every keep-off guard of ANYexo's default set (5 guards), each placed like the
 //! handle's (`d_proj` -3 .. 12 cm from the guard's segment point closest to it in 70 % of
-//! the ticks, else beyond activation), next to `all` (the handle alone) in the same run.
+//! the ticks, else beyond activation), next to `all` (the handle alone) in the same run; as
+//! in the node's `ControlLoop`, each keep-off guard has its own Fusion (fed the same 30 Hz
+//! estimates), and the case's tick evaluates all six.
 //!
 //! Run: `cargo bench --bench control_tick`.
 
@@ -131,6 +133,12 @@ fn main() {
     let controller =
         Controller::new(model.clone(), ControllerConfig::default()).expect("default config");
     let mut fusion = Fusion::new(FusionConfig::default()).expect("default fusion config");
+    let mut guard_fusions: Vec<Fusion> = controller
+        .guards()
+        .keep_off()
+        .iter()
+        .map(|_| Fusion::new(FusionConfig::default()).expect("default fusion config"))
+        .collect();
     let mut rng = ChaCha8Rng::seed_from_u64(7);
     let tick_s = 1.0 / 800.0;
     let frame_s = 1.0 / 30.0;
@@ -175,7 +183,7 @@ fn main() {
         let surface = known_surface(t, centroid, normal, velocity);
         for (k, next) in next_frame.iter_mut().enumerate() {
             while *next <= t {
-                fusion.push(&SurfaceEstimate {
+                let estimate = SurfaceEstimate {
                     camera_id: k as u32,
                     stamp_s: *next,
                     surface: Some(SurfacePoint {
@@ -184,7 +192,11 @@ fn main() {
                     }),
                     shells: Vec::new(),
                     quality: 1.0,
-                });
+                };
+                fusion.push(&estimate);
+                for f in &mut guard_fusions {
+                    f.push(&estimate);
+                }
                 *next += frame_s;
             }
         }
@@ -228,6 +240,9 @@ fn main() {
         let start = Instant::now();
         let cpu_start = thread_cpu_s();
         black_box(fusion.tick(black_box(t)));
+        for f in &mut guard_fusions {
+            black_box(f.tick(black_box(t)));
+        }
         let out = controller.tick_guarded(
             black_box(&ControllerInput {
                 q,
