@@ -29,11 +29,12 @@
 //! **Whole arm** ([`CameraChain::process_guarded`]): with keep-off guards (spheres and
 //! capsules of the robot's links, [`crate::robot::guards`]) the frame is cropped once to one
 //! ball holding the HIP's crop ball and every guard's reach ([`crop_ball`]), voxelised and
-//! clustered once; each guard then has its own estimator per camera (memory and shells) on
+//! clustered once; each guard then has its own estimator per camera (shells and fits) on
 //! the kept clusters' points within its reach. A capsule's points are selected by their
 //! distance to its segment; its shells are centred on `p*`, the point of the segment closest
 //! to the nearest of them (a sphere's: its centre), with the configured radii grown by the
-//! guard's radius (memory radii too), so every guard looks as far beyond its own skin. The
+//! guard's radius, so every guard looks as far beyond its own skin, and without surface
+//! memory ([`guard_surface_config`]). The
 //! estimate is eq. 7's surface for `p*` (the controller takes `d_proj` and eq. 8's Jacobian
 //! at the segment's point closest to the fused centroid). A guard whose reach holds too few
 //! points (the robot's own links, cropped out, hide the body) has no surface
@@ -405,26 +406,24 @@ impl GuardFrame {
     }
 }
 
-/// The estimator settings of a keep-off guard of radius `radius_m`: the shell and memory
-/// radii of `base` grown by it (so the guard sees as far beyond its skin as the radii say).
+/// The estimator settings of a keep-off guard of radius `radius_m`: the shell radii of `base`
+/// grown by it (so the guard sees as far beyond its skin as the radii say), and no surface
+/// memory: Alg. 1 registers the annulus around a point that approaches the surface, while a
+/// guard's shell origin slides along its segment from frame to frame (and the memory was
+/// 80 % of the guards' estimator time, `cargo bench --bench surface`).
 pub fn guard_surface_config(base: &SurfaceConfig, radius_m: f64) -> SurfaceConfig {
     let mut config = base.clone();
     for r in &mut config.shells.radii_m {
         *r += radius_m;
     }
-    config.memory.inner_radius_m += radius_m;
-    config.memory.outer_radius_m += radius_m;
+    config.memory.enabled = false;
     config
 }
 
 /// How far beyond its core a keep-off guard of radius `radius_m` looks with `base`: its
-/// outermost shell or memory radius, metres.
+/// outermost shell radius, metres.
 pub fn guard_reach_m(base: &SurfaceConfig, radius_m: f64) -> f64 {
-    let config = guard_surface_config(base, radius_m);
-    config
-        .shells
-        .outer_radius_m()
-        .max(config.memory.outer_radius_m)
+    base.shells.outer_radius_m() + radius_m
 }
 
 /// The ball a whole-arm frame is cropped to: the HIP's crop ball (`hip`, `radius_m`) grown

@@ -6,7 +6,11 @@
 //! (`perception::pipeline`): the pose applied to every pixel and the flying-pixel test within
 //! the crop radius, on a simulated D435 frame of `head_close_realistic` and of
 //! `forehead_impacts_realistic` (cameras 0.5 m and 1 m from the HIP). Prints the median and
-//! p90 of each, in microseconds.
+//! p90 of each, in microseconds. Last, the whole CPU chain per frame (`CameraChain`: crop,
+//! voxel grid, clusters, memory, shells, fits) in the single-HIP mode and with ANYexo's 5
+//! keep-off guards (`process_guarded`: one crop of the union, an estimator per guard) on the
+//! same simulated D435 frames of `forearm_close_realistic` and `torso_approach_realistic`,
+//! the two chains alternating frame by frame, with the ratio of their medians.
 //!
 //! Run: `cargo bench --bench surface`.
 
@@ -110,6 +114,91 @@ fn main() {
     for name in ["head_close_realistic", "forehead_impacts_realistic"] {
         organized_frame_steps(name);
     }
+    for name in ["forearm_close_realistic", "torso_approach_realistic"] {
+        whole_arm_chain(name);
+    }
+}
+
+/// Wall time per frame of the CPU chain without and with the keep-off guards, on the frames
+/// of `scene` between 1.5 and 3.5 s (both cameras).
+fn whole_arm_chain(scene: &str) {
+    use hapcloud::gpu::Backend;
+    use hapcloud::node::robot_state::RobotState;
+    use hapcloud::perception::frontend::FrontendConfig;
+    use hapcloud::perception::pipeline::{CameraChain, SurfaceConfig};
+    use hapcloud::robot::guards::GuardConfig;
+    use std::sync::Arc;
+    let scene = Scene::from_builtin(scene).expect("built-in scene");
+    let sim = Arc::new(Simulator::new(&scene).expect("simulator"));
+    let robot = RobotState::simulated(sim.clone())
+        .expect("robot")
+        .with_guards(&GuardConfig::default())
+        .expect("default guards");
+    let frames: Vec<_> = sim
+        .arrivals(1.5, 3.5)
+        .iter()
+        .map(|t| {
+            let frame = sim.frame(t).frame;
+            let scene = robot.perception_scene(&robot.at(t.stamp_s).q_rad);
+            (frame, scene)
+        })
+        .collect();
+    let chain = || {
+        CameraChain::new(
+            Backend::Cpu,
+            FrontendConfig::default(),
+            SurfaceConfig::default(),
+            None,
+        )
+        .expect("CPU chain")
+    };
+    let (mut single, mut whole) = (chain(), chain());
+    let (mut a, mut b, mut guards_ms) = (Vec::new(), Vec::new(), Vec::new());
+    // Per frame, summed over the guards: memory, moments, fits (ms), their input points;
+    // and the points the union crop kept.
+    let mut split = [0.0; 5];
+    for (frame, s) in &frames {
+        let start = Instant::now();
+        black_box(single.process(frame, &s.hip_m, &s.primitives).expect("frame"));
+        a.push(start.elapsed().as_secs_f64() * 1e3);
+        let start = Instant::now();
+        let out = whole
+            .process_guarded(frame, &s.hip_m, &s.primitives, &s.guards)
+            .expect("frame");
+        b.push(start.elapsed().as_secs_f64() * 1e3);
+        guards_ms.push(out.guards_time.wall_ms);
+        for g in &out.guards {
+            split[0] += g.surface.memory_time.wall_ms;
+            split[1] += g.surface.moments_time.wall_ms;
+            split[2] += g.surface.fits_time.wall_ms;
+            split[3] += g.points as f64;
+        }
+        split[4] += out.front.voxel.valid_in as f64;
+    }
+    for v in [&mut a, &mut b, &mut guards_ms] {
+        v.sort_by(f64::total_cmp);
+    }
+    let (n, m) = (a.len(), |v: &[f64]| v[v.len() / 2]);
+    println!(
+        "{}: CPU chain per frame over {n} frames: single HIP median {:.2} ms p90 {:.2} ms; \
+         5 keep-off guards median {:.2} ms p90 {:.2} ms (their estimators {:.2} ms); ratio of medians {:.2}",
+        scene.origin,
+        m(&a),
+        a[n * 9 / 10],
+        m(&b),
+        b[n * 9 / 10],
+        m(&guards_ms),
+        m(&b) / m(&a)
+    );
+    let per = |v: f64| v / n as f64;
+    println!(
+        "  per frame, 5 guards together (mean): memory {:.2} ms, moments {:.2} ms, fits {:.2} ms, {:.0} points in their reaches; {:.0} points kept by the union crop",
+        per(split[0]),
+        per(split[1]),
+        per(split[2]),
+        per(split[3]),
+        per(split[4])
+    );
 }
 
 /// `to_world` and `flying_pixels` on camera 0's frame of `scene` at t = 2 s (the HIP at the
