@@ -711,7 +711,7 @@ fn bad_scene_files_give_clear_errors() {
 #[test]
 fn every_builtin_scene_loads_and_the_realistic_ones_differ_only_by_effects() {
     let names = builtin::names();
-    assert_eq!(names.len(), 16);
+    assert_eq!(names.len(), 18);
     for name in names.iter().filter(|n| n.ends_with("_clean")) {
         let clean = Scene::from_builtin(name).unwrap();
         let real = Scene::from_builtin(&name.replace("_clean", "_realistic")).unwrap();

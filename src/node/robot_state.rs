@@ -265,4 +265,58 @@ mod tests {
         assert_eq!(a.hip_m, b.hip_m);
         assert_eq!(a.primitives, b.primitives);
     }
+
+    /// Guards that cannot be built are a clear error naming the guard; a robot without joint
+    /// states (fixed) poses no keep-off guard (its links are not cropped), one with them
+    /// poses every keep-off guard, in the set's order.
+    #[test]
+    fn guards_are_posed_with_joint_states_and_bad_ones_are_named() {
+        use crate::robot::guards::{GuardConfig, GuardGeometry};
+        let scene = Scene::from_builtin("forearm_to_torso_clean").unwrap();
+        let sim = Arc::new(Simulator::new(&scene).unwrap());
+        let mut bad = GuardConfig::default();
+        bad.guards[1].geometry = GuardGeometry::Sphere {
+            center_m: [0.0, 0.0, 0.0],
+            radius_m: -0.02,
+        };
+        let e = RobotState::simulated(sim.clone())
+            .unwrap()
+            .with_guards(&bad)
+            .err()
+            .expect("negative radius refused")
+            .to_string();
+        assert!(e.contains("forearm") && e.contains("radius_m"), "{e}");
+        let mut no_handle = GuardConfig::default();
+        no_handle.guards.remove(0);
+        let e = RobotState::simulated(sim.clone())
+            .unwrap()
+            .with_guards(&no_handle)
+            .err()
+            .expect("no handle refused")
+            .to_string();
+        assert!(e.contains("no handle"), "{e}");
+        let robot = RobotState::simulated(sim.clone())
+            .unwrap()
+            .with_guards(&GuardConfig::default())
+            .unwrap();
+        let q = robot.at(2.0).q_rad;
+        let scene = robot.perception_scene(&q);
+        assert_eq!(scene.guards.len(), 5);
+        let poses = robot.model().forward_kinematics(&q);
+        let set =
+            crate::robot::guards::GuardSet::new(robot.model(), &GuardConfig::default()).unwrap();
+        for (posed, &i) in scene.guards.iter().zip(set.keep_off()) {
+            assert_eq!(*posed, set.guards()[i].world(&poses));
+        }
+        let fixed = RobotState::fixed(&NodeConfig::default())
+            .unwrap()
+            .with_guards(&GuardConfig::default())
+            .unwrap();
+        assert!(fixed.perception_scene(&q).guards.is_empty());
+        let single = RobotState::simulated(sim)
+            .unwrap()
+            .with_guards(&GuardConfig::single_hip())
+            .unwrap();
+        assert!(single.perception_scene(&q).guards.is_empty());
+    }
 }

@@ -36,7 +36,13 @@
 //! guard's radius, so every guard looks as far beyond its own skin, and without surface
 //! memory ([`guard_surface_config`]). The
 //! estimate is eq. 7's surface for `p*` (the controller takes `d_proj` and eq. 8's Jacobian
-//! at the segment's point closest to the fused centroid). A guard whose reach holds too few
+//! at the segment's point closest to the fused centroid). Eq. 7 measures along the fitted
+//! normal, which holds for a surface in front of the guard; beside the edge of a surface (a
+//! link passing the torso's side, whose front face extends as a plane through the link) it
+//! does not: where the fitted normal and the direction from the guard's 5 nearest points to
+//! its core differ by more than 45 deg, the estimate is those points' mean with that
+//! direction (`GuardFrame::nearest_points_surface`), the distance measured to what is seen. A
+//! guard whose reach holds too few
 //! points (the robot's own links, cropped out, hide the body) has no surface
 //! (`estimate.surface = None`), never a made-up distance. Keep-off guards' moments are
 //! computed on the CPU on either backend. Without keep-off guards the chain is the
@@ -81,7 +87,7 @@ use crate::robot::guards::GuardSegment;
 use crate::surface::SurfaceEstimate;
 use crate::timing::{SpanTime, Stopwatch};
 use glam::Vec3;
-use nalgebra::Point3;
+use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -398,7 +404,18 @@ pub struct GuardFrame {
     pub points: usize,
     /// The estimator's output (memory step, shell sums, abstraction with the estimate).
     pub surface: SurfaceFrame,
+    /// The fitted surface's normal disagreed with the direction from the nearest points to
+    /// the guard (more than [`GUARD_NORMAL_AGREEMENT_RAD`]), so the estimate is the nearest
+    /// points' mean with that direction (module doc).
+    pub nearest_points_surface: bool,
 }
+
+/// Most angle between a keep-off guard's fitted normal and the direction from its nearest
+/// points to its core before the nearest points decide (module doc), rad.
+pub const GUARD_NORMAL_AGREEMENT_RAD: f64 = std::f64::consts::FRAC_PI_4;
+
+/// How many of a keep-off guard's nearest points make the nearest-points surface.
+const GUARD_NEAREST_POINTS: usize = 5;
 
 impl GuardFrame {
     pub fn estimate(&self) -> &SurfaceEstimate {
@@ -742,23 +759,22 @@ impl CameraChain {
         stamp_s: f64,
     ) -> Result<GuardFrame, ChainError> {
         let reach = guard_reach_m(&self.surface_config, segment.radius_m);
-        let mut nearest: Option<(f64, Point3<f64>)> = None;
-        let points: Vec<Vec3> = candidates
+        // Within the reach: each point with its distance to the core.
+        let (points, mut near): (Vec<Vec3>, Vec<(f64, Point3<f64>)>) = candidates
             .iter()
-            .copied()
-            .filter(|p| {
+            .filter_map(|p| {
                 let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-                let core = segment.closest_point(&x);
-                let d = (x - core).norm();
-                if nearest.is_none_or(|(best, _)| d < best) {
-                    nearest = Some((d, core));
-                }
-                d <= reach
+                let d = (x - segment.closest_point(&x)).norm();
+                (d <= reach).then_some((*p, (d, x)))
             })
-            .collect();
-        let origin = match nearest {
-            Some((d, core)) if d <= reach => core,
-            _ => nalgebra::center(&segment.a_m, &segment.b_m),
+            .unzip();
+        let k = GUARD_NEAREST_POINTS.min(near.len());
+        if k > 0 {
+            near.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
+        }
+        let origin = match near.iter().min_by(|a, b| a.0.total_cmp(&b.0)) {
+            Some((_, x)) => segment.closest_point(x),
+            None => nalgebra::center(&segment.a_m, &segment.b_m),
         };
         let estimator = match self.guard_estimators.entry((camera_id, index)) {
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
@@ -766,12 +782,31 @@ impl CameraChain {
                 guard_surface_config(&self.surface_config, segment.radius_m),
             )?),
         };
-        let surface = estimator.estimate(&points, &origin, camera, camera_id, stamp_s);
+        let mut surface = estimator.estimate(&points, &origin, camera, camera_id, stamp_s);
+        let mut nearest_points_surface = false;
+        if let Some(fitted) = &mut surface.abstraction.estimate.surface {
+            // The nearest points' mean and the direction from it to the core.
+            let mean = near[..k]
+                .iter()
+                .fold(Vector3::zeros(), |sum, (_, x)| sum + x.coords)
+                / k as f64;
+            let q = Point3::from(mean);
+            if let Some(towards) = nalgebra::Unit::try_new(segment.closest_point(&q) - q, 1e-9)
+                && fitted.normal.dot(&towards) < GUARD_NORMAL_AGREEMENT_RAD.cos()
+            {
+                *fitted = crate::surface::SurfacePoint {
+                    centroid_m: q,
+                    normal: towards,
+                };
+                nearest_points_surface = true;
+            }
+        }
         Ok(GuardFrame {
             segment: *segment,
             origin_m: origin,
             points: points.len(),
             surface,
+            nearest_points_surface,
         })
     }
 }

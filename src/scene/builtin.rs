@@ -6,7 +6,9 @@
 //! paper's two cameras about 1 m away; and two with
 //! the same two-camera mount brought 0.4-0.65 m from the handle (the range of the
 //! accuracy target): `forearm_close`, touching and sliding along the left forearm, and
-//! `head_close`, touching the forehead and sliding to the right temple. Each comes in a
+//! `head_close`, touching the forehead and sliding to the right temple; and one for the
+//! whole arm, `forearm_to_torso`, where the exoskeleton's forearm and elbow (keep-off
+//! guards), not the handle, come closest to the body. Each comes in a
 //! `_clean` variant (no effects: the exact analytic surface) and a `_realistic` one (D435
 //! noise, holes, occlusion, an extrinsic bias of a few mm, timing effects).
 //!
@@ -64,6 +66,11 @@ const EXPERIMENTS: &[(&str, &str, &str)] = &[
         "head_close",
         include_str!("../../tools/scenes/head_close.toml"),
         CAMERAS_HEAD_CLOSE,
+    ),
+    (
+        "forearm_to_torso",
+        include_str!("../../tools/scenes/forearm_to_torso.toml"),
+        CAMERAS,
     ),
 ];
 

@@ -159,7 +159,11 @@ fn whole_arm_chain(scene: &str) {
     let mut split = [0.0; 5];
     for (frame, s) in &frames {
         let start = Instant::now();
-        black_box(single.process(frame, &s.hip_m, &s.primitives).expect("frame"));
+        black_box(
+            single
+                .process(frame, &s.hip_m, &s.primitives)
+                .expect("frame"),
+        );
         a.push(start.elapsed().as_secs_f64() * 1e3);
         let start = Instant::now();
         let out = whole
