@@ -8,7 +8,12 @@ use common::{TempDir, run_err, run_json, run_ok};
 fn scenes_lists_every_builtin_and_prints_one() {
     let json = run_json(["scenes", "--json"]);
     let scenes = json["scenes"].as_array().unwrap();
-    assert_eq!(scenes.len(), 16);
+    assert_eq!(scenes.len(), 18);
+    assert!(
+        scenes
+            .iter()
+            .any(|s| s["name"] == "forearm_to_torso_realistic")
+    );
     assert!(scenes.iter().any(|s| s["name"] == "oblique_head_realistic"));
     assert!(
         scenes
