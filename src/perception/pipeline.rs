@@ -1264,6 +1264,43 @@ mod tests {
         assert!(on_sphere(&again.unwrap().kept) > 100);
     }
 
+    /// The GPU front end crops the same union ball (its crop radius set per frame): the
+    /// guard's estimate agrees with the CPU chain's.
+    #[test]
+    fn the_gpu_chain_crops_the_union_and_the_guards_estimate_agrees_with_the_cpu() {
+        let (guard, hip, _, _) = guard_in_front_of_the_sphere();
+        let new = |backend| {
+            CameraChain::new(
+                backend,
+                FrontendConfig::default(),
+                SurfaceConfig::default(),
+                None,
+            )
+        };
+        let mut cpu = new(Backend::Cpu).unwrap();
+        let mut gpu = new(Backend::Gpu).expect("GPU tests need Vulkan");
+        for seed in 0..2 {
+            let f = frame(seed, 0);
+            let c = cpu.process_guarded(&f, &hip, &[], &[guard]).unwrap();
+            let g = gpu.process_guarded(&f, &hip, &[], &[guard]).unwrap();
+            let (cg, gg) = (&c.guards[0], &g.guards[0]);
+            assert!(gg.points.abs_diff(cg.points) <= cg.points / 100 + 1);
+            let (ce, ge) = (
+                cg.estimate().surface.expect("CPU guard surface"),
+                gg.estimate().surface.expect("GPU guard surface"),
+            );
+            assert!((ce.centroid_m - ge.centroid_m).norm() < 1e-3);
+            assert!(ce.normal.dot(&ge.normal) > 0.5f64.to_radians().cos());
+        }
+        // Back to the HIP's own crop ball on both.
+        let (c, g) = (
+            cpu.process(&frame(2, 1), &hip, &[]).unwrap(),
+            gpu.process(&frame(2, 1), &hip, &[]).unwrap(),
+        );
+        assert_eq!(c.front.voxel.valid_in, g.front.voxel.valid_in);
+        assert!(gpu.gpu_fallback().is_none());
+    }
+
     #[test]
     fn a_guard_whose_view_the_robot_blocks_has_no_surface() {
         let (guard, hip, _, _) = guard_in_front_of_the_sphere();
