@@ -510,7 +510,7 @@ fn campaign(
             r.speed_mps,
             match (r.kind, r.camera_rate_hz) {
                 (Some(kind), _) => kind.name().to_string(),
-                (None, rate) if rate == 0.0 => "all".to_string(),
+                (None, 0.0) => "all".to_string(),
                 (None, rate) => format!("{rate}"),
             },
             r.source.name(),
