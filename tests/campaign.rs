@@ -75,6 +75,7 @@ fn a_twenty_episode_campaign_writes_its_tables_plots_and_worst_episodes() {
     for f in [
         "campaign-runs.csv",
         "campaign-summary.csv",
+        "campaign-kinds.csv",
         "campaign-contacts.csv",
         "campaign-episodes.csv",
         "campaign-safe.png",
@@ -87,6 +88,17 @@ fn a_twenty_episode_campaign_writes_its_tables_plots_and_worst_episodes() {
     let summary = details["summary"].as_array().unwrap();
     // (3 rates + all) x 3 sources
     assert_eq!(summary.len(), 4 * 3);
+    // 4 body kinds x 3 sources, each source's kinds adding up to the 20 episodes
+    let by_kind = details["by_kind"].as_array().unwrap();
+    assert_eq!(by_kind.len(), 4 * 3);
+    for source in ["exact", "delayed_oracle", "perception"] {
+        let episodes: u64 = by_kind
+            .iter()
+            .filter(|r| r["source"] == source)
+            .map(|r| r["episodes"].as_u64().unwrap())
+            .sum();
+        assert_eq!(episodes, 20, "{source}");
+    }
     for row in summary.iter().filter(|r| r["camera_rate_hz"] == 0.0) {
         assert_eq!(row["episodes"], 20);
         let (safe, feasible) = (

@@ -22,7 +22,8 @@
 //! N randomized approach episodes ([`hapcloud::lab::campaign`]) at `--speeds` from the three
 //! sources in parallel and writes `campaign-runs.csv` (one row per episode, speed and
 //! source), `campaign-summary.csv` (fraction safe and margins per speed, camera rate and
-//! source), `campaign-contacts.csv` (first touches per body region against ISO/TS 15066),
+//! source), `campaign-kinds.csv` (the same per speed, approaching body kind and source),
+//! `campaign-contacts.csv` (first touches per body region against ISO/TS 15066),
 //! `campaign-episodes.csv` (each episode's draws and CPU time), `campaign-safe.png`,
 //! `campaign-margins.png` and the `--worst` perception episodes as scene files in `worst/`.
 
@@ -415,6 +416,7 @@ fn campaign(
     let rows: Vec<campaign::RunRow> = result.rows().cloned().collect();
     write_rows(&out.join("campaign-runs.csv"), &rows)?;
     write_rows(&out.join("campaign-summary.csv"), &result.summary)?;
+    write_rows(&out.join("campaign-kinds.csv"), &result.by_kind)?;
     write_rows(&out.join("campaign-contacts.csv"), &result.contacts)?;
     let draws: Vec<_> = result
         .episodes
@@ -473,6 +475,7 @@ fn campaign(
         "cpu_s_worst_episode": cpu_max,
         "threads": rayon::current_num_threads(),
         "summary": result.summary,
+        "by_kind": result.by_kind,
         "contacts": result.contacts,
         "worst": worst_files,
     });
@@ -487,9 +490,9 @@ fn campaign(
         rayon::current_num_threads()
     );
     println!(
-        "{:>5} {:>4} {:15} {:>5} {:>8} {:>6} {:>8} {:>12} {:>10} {:>10} {:>8}",
+        "{:>5} {:>7} {:15} {:>5} {:>8} {:>6} {:>8} {:>12} {:>10} {:>10} {:>8}",
         "m/s",
-        "Hz",
+        "Hz|body",
         "source",
         "N",
         "feasible",
@@ -500,14 +503,15 @@ fn campaign(
         "worst mm",
         "contact"
     );
-    for r in &result.summary {
+    // every rate and kind, then each body kind over every rate
+    for r in result.summary.iter().chain(&result.by_kind) {
         println!(
-            "{:5.2} {:>4} {:15} {:5} {:8} {:6} {:8.3} {:>12} {:10.1} {:10.1} {:8.3}",
+            "{:5.2} {:>7} {:15} {:5} {:8} {:6} {:8.3} {:>12} {:10.1} {:10.1} {:8.3}",
             r.speed_mps,
-            if r.camera_rate_hz == 0.0 {
-                "all".to_string()
-            } else {
-                format!("{}", r.camera_rate_hz)
+            match (r.kind, r.camera_rate_hz) {
+                (Some(kind), _) => kind.name().to_string(),
+                (None, 0.0) => "all".to_string(),
+                (None, rate) => format!("{rate}"),
             },
             r.source.name(),
             r.episodes,

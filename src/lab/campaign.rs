@@ -269,8 +269,10 @@ pub struct SummaryRow {
     pub speed_mps: f64,
     /// Camera rate, Hz (0: every rate together).
     pub camera_rate_hz: f64,
+    /// The approaching body's kind (none: every kind together).
+    pub kind: Option<BodyKind>,
     pub source: SurfaceSource,
-    /// Episodes at this speed and rate.
+    /// Episodes at this speed, rate and kind.
     pub episodes: usize,
     /// Of them, those the exact surface survives (the others are infeasible).
     pub feasible: usize,
@@ -319,59 +321,82 @@ pub fn summarize(rows: &[RunRow], speeds_mps: &[f64]) -> Vec<SummaryRow> {
     let mut out = Vec::new();
     for &speed in speeds_mps {
         for rate in [30.0, 60.0, 90.0, 0.0] {
-            let at = |source: SurfaceSource| {
-                rows.iter().filter(move |r| {
-                    r.speed_mps == speed
-                        && r.source == source
-                        && (rate == 0.0 || r.camera_rate_hz == rate)
-                })
-            };
-            let safe_episodes = |source| {
-                at(source)
-                    .filter(|r| r.safe)
-                    .map(|r| r.episode)
-                    .collect::<std::collections::HashSet<u32>>()
-            };
-            let feasible = safe_episodes(SurfaceSource::Exact);
-            let oracle = safe_episodes(SurfaceSource::DelayedOracle);
-            for source in SurfaceSource::ALL {
-                let all: Vec<&RunRow> = at(source).collect();
-                let in_feasible: Vec<&RunRow> = all
-                    .iter()
-                    .copied()
-                    .filter(|r| feasible.contains(&r.episode))
-                    .collect();
-                let safe = in_feasible.iter().filter(|r| r.safe).count();
-                let safe_of_oracle = all
-                    .iter()
-                    .filter(|r| r.safe && oracle.contains(&r.episode))
-                    .count();
-                let margins: Vec<f64> = in_feasible.iter().map(|r| r.min_margin_m).collect();
-                let within = all.iter().filter(|r| r.contact_within_limit).count();
-                out.push(SummaryRow {
-                    speed_mps: speed,
-                    camera_rate_hz: rate,
-                    source,
-                    episodes: all.len(),
-                    feasible: feasible.len(),
-                    safe,
-                    safe_fraction: fraction(safe, feasible.len()),
-                    oracle_survived: oracle.len(),
-                    safe_of_oracle_survived: safe_of_oracle,
-                    safe_fraction_of_oracle_survived: fraction(safe_of_oracle, oracle.len()),
-                    worst_margin_m: margins.iter().copied().fold(f64::NAN, f64::min),
-                    median_margin_m: median(margins),
-                    contact_within_limit: within,
-                    contact_within_limit_fraction: fraction(within, all.len()),
-                    worst_contact_speed_mps: all
-                        .iter()
-                        .filter_map(|r| r.contact_speed_mps)
-                        .fold(0.0, f64::max),
-                });
-            }
+            out.extend(summary_at(rows, speed, rate, None));
         }
     }
     out
+}
+
+/// The summary of `rows` per speed, body kind and source, every camera rate together: which
+/// bodies perception loses (the worst episodes' cause).
+pub fn summarize_by_kind(rows: &[RunRow], speeds_mps: &[f64]) -> Vec<SummaryRow> {
+    let mut out = Vec::new();
+    for &speed in speeds_mps {
+        for kind in BodyKind::ALL {
+            out.extend(summary_at(rows, speed, 0.0, Some(kind)));
+        }
+    }
+    out
+}
+
+/// One summary row per source of the runs at `speed`, camera `rate` (0: every rate) and
+/// body `kind` (none: every kind).
+fn summary_at(rows: &[RunRow], speed: f64, rate: f64, kind: Option<BodyKind>) -> Vec<SummaryRow> {
+    let at = |source: SurfaceSource| {
+        rows.iter().filter(move |r| {
+            r.speed_mps == speed
+                && r.source == source
+                && (rate == 0.0 || r.camera_rate_hz == rate)
+                && kind.is_none_or(|k| r.kind == k)
+        })
+    };
+    let safe_episodes = |source| {
+        at(source)
+            .filter(|r| r.safe)
+            .map(|r| r.episode)
+            .collect::<std::collections::HashSet<u32>>()
+    };
+    let feasible = safe_episodes(SurfaceSource::Exact);
+    let oracle = safe_episodes(SurfaceSource::DelayedOracle);
+    SurfaceSource::ALL
+        .into_iter()
+        .map(|source| {
+            let all: Vec<&RunRow> = at(source).collect();
+            let in_feasible: Vec<&RunRow> = all
+                .iter()
+                .copied()
+                .filter(|r| feasible.contains(&r.episode))
+                .collect();
+            let safe = in_feasible.iter().filter(|r| r.safe).count();
+            let safe_of_oracle = all
+                .iter()
+                .filter(|r| r.safe && oracle.contains(&r.episode))
+                .count();
+            let margins: Vec<f64> = in_feasible.iter().map(|r| r.min_margin_m).collect();
+            let within = all.iter().filter(|r| r.contact_within_limit).count();
+            SummaryRow {
+                speed_mps: speed,
+                camera_rate_hz: rate,
+                kind,
+                source,
+                episodes: all.len(),
+                feasible: feasible.len(),
+                safe,
+                safe_fraction: fraction(safe, feasible.len()),
+                oracle_survived: oracle.len(),
+                safe_of_oracle_survived: safe_of_oracle,
+                safe_fraction_of_oracle_survived: fraction(safe_of_oracle, oracle.len()),
+                worst_margin_m: margins.iter().copied().fold(f64::NAN, f64::min),
+                median_margin_m: median(margins),
+                contact_within_limit: within,
+                contact_within_limit_fraction: fraction(within, all.len()),
+                worst_contact_speed_mps: all
+                    .iter()
+                    .filter_map(|r| r.contact_speed_mps)
+                    .fold(0.0, f64::max),
+            }
+        })
+        .collect()
 }
 
 /// Contacts of one source at one speed in one body region.
@@ -432,6 +457,8 @@ pub struct Campaign {
     pub config: CampaignConfig,
     pub episodes: Vec<EpisodeResult>,
     pub summary: Vec<SummaryRow>,
+    /// The summary per body kind, every camera rate together.
+    pub by_kind: Vec<SummaryRow>,
     pub contacts: Vec<ContactRow>,
 }
 
@@ -497,6 +524,7 @@ pub fn run(
     let rows: Vec<RunRow> = episodes.iter().flat_map(|e| e.rows.clone()).collect();
     Ok(Campaign {
         summary: summarize(&rows, &speeds),
+        by_kind: summarize_by_kind(&rows, &speeds),
         contacts: contacts(&rows, &speeds),
         config: CampaignConfig {
             speeds_mps: speeds,
@@ -622,5 +650,56 @@ mod tests {
             .unwrap();
         assert_eq!(none.episodes, 0);
         assert!(none.safe_fraction.is_nan());
+    }
+
+    /// Per body kind: each kind's rows count its own episodes only, and the kinds' counts
+    /// add up to the all-kinds row.
+    #[test]
+    fn the_summary_by_kind_splits_the_episodes_by_body() {
+        use SurfaceSource::{DelayedOracle, Exact, Perception};
+        let with_kind = |kind, r: RunRow| RunRow { kind, ..r };
+        let rows = [
+            row(0, Exact, true, 0.05),
+            row(0, DelayedOracle, true, 0.04),
+            row(0, Perception, true, 0.03),
+            with_kind(BodyKind::Torso, row(1, Exact, true, 0.05)),
+            with_kind(BodyKind::Torso, row(1, DelayedOracle, true, 0.04)),
+            with_kind(BodyKind::Torso, row(1, Perception, false, -0.08)),
+            with_kind(BodyKind::Torso, row(2, Exact, true, 0.05)),
+            with_kind(BodyKind::Torso, row(2, DelayedOracle, true, 0.03)),
+            with_kind(BodyKind::Torso, row(2, Perception, true, 0.01)),
+        ];
+        let kinds = summarize_by_kind(&rows, &[1.0]);
+        assert_eq!(kinds.len(), BodyKind::ALL.len() * SurfaceSource::ALL.len());
+        let perception = |kind| {
+            kinds
+                .iter()
+                .find(|r| r.source == Perception && r.kind == Some(kind))
+                .unwrap()
+        };
+        let torso = perception(BodyKind::Torso);
+        assert_eq!((torso.episodes, torso.safe_of_oracle_survived), (2, 1));
+        assert_eq!(torso.worst_margin_m, -0.08);
+        let plate = perception(BodyKind::Plate);
+        assert_eq!((plate.episodes, plate.safe), (1, 1));
+        assert_eq!(perception(BodyKind::Head).episodes, 0);
+        let all = summarize(&rows, &[1.0]);
+        let all = all
+            .iter()
+            .find(|r| r.source == Perception && r.camera_rate_hz == 0.0)
+            .unwrap();
+        assert_eq!(all.kind, None);
+        let kinds_sum = |f: fn(&SummaryRow) -> usize| {
+            kinds
+                .iter()
+                .filter(|r| r.source == Perception)
+                .map(f)
+                .sum::<usize>()
+        };
+        assert_eq!(kinds_sum(|r| r.episodes), all.episodes);
+        assert_eq!(
+            kinds_sum(|r| r.safe_of_oracle_survived),
+            all.safe_of_oracle_survived
+        );
     }
 }
