@@ -593,19 +593,27 @@ impl CpuCrop {
     }
 }
 
-/// CPU reference: the keep mask of `points`.
+/// CPU reference: the keep mask of `points`, blocks of 32,768 points on rayon's threads
+/// (each point's bit is its own: the same mask whatever the thread count).
 pub fn crop_cpu(
     points: &[Vec3],
     config: &CropConfig,
     scene: &CropScene<'_>,
 ) -> Result<Vec<u32>, CropError> {
+    use rayon::prelude::*;
+    /// Mask words one rayon task fills (32,768 points).
+    const TASK_WORDS: usize = 1024;
     let crop = CpuCrop::new(config, scene)?;
     let mut mask = vec![0u32; mask_words(points.len())];
-    for (i, p) in points.iter().enumerate() {
-        if crop.keeps(*p) {
-            mask[i / 32] |= 1 << (i % 32);
-        }
-    }
+    mask.par_chunks_mut(TASK_WORDS)
+        .zip(points.par_chunks(32 * TASK_WORDS))
+        .for_each(|(words, points)| {
+            for (i, p) in points.iter().enumerate() {
+                if crop.keeps(*p) {
+                    words[i / 32] |= 1 << (i % 32);
+                }
+            }
+        });
     Ok(mask)
 }
 
@@ -1367,9 +1375,10 @@ mod tests {
 
     /// The region pass on rayon pools of 1 and of 4 threads, each reusing its buffers from
     /// frame to frame (frames of different sizes, regions growing and shrinking): the same
-    /// points, bit for bit, and the same counts.
+    /// points, bit for bit, and the same counts; and the pass over every pixel (the veil test
+    /// and the crop's mask, also on rayon) the same on both.
     #[test]
-    fn the_region_pass_gives_the_same_bits_on_one_thread_and_on_four() {
+    fn the_depth_passes_give_the_same_bits_on_one_thread_and_on_four() {
         use crate::perception::test_data::{PCL_FRAMES, pcl_depth, synthetic_depth};
         let k = PinholeIntrinsics::PCL_GRABBER;
         let mut images: Vec<DepthImage> = PCL_FRAMES.iter().map(|f| pcl_depth(f)).collect();
@@ -1401,12 +1410,21 @@ mod tests {
                         let kept =
                             crop_depth_region_cpu(&depth, &config, Some(&scene), &mut scratch)
                                 .unwrap();
-                        let bits: Vec<[u32; 3]> = kept
-                            .points
-                            .iter()
-                            .map(|p| p.to_array().map(f32::to_bits))
-                            .collect();
-                        out.push((bits, kept.valid, kept.flying, kept.region));
+                        // The pass over every pixel: the veil test and the crop's mask.
+                        let all = crop_depth_cpu(&depth, &config, Some(&scene)).unwrap();
+                        let bits = |points: &[Vec3]| -> Vec<[u32; 3]> {
+                            points
+                                .iter()
+                                .map(|p| p.to_array().map(f32::to_bits))
+                                .collect()
+                        };
+                        out.push((
+                            bits(&kept.points),
+                            kept.valid,
+                            kept.flying,
+                            kept.region,
+                            (bits(&all.points), all.mask, all.flying),
+                        ));
                     }
                 }
             });
