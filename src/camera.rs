@@ -71,29 +71,29 @@ impl DepthImage {
     pub fn deproject(&self, intrinsics: &PinholeIntrinsics) -> Option<PointCloud> {
         self.check_size(intrinsics).ok()?;
         let (w, h) = (self.width, self.height);
-        let points = self.deproject_rect(intrinsics, (0..w, 0..h));
+        let mut points = vec![Vec3::ZERO; self.data.len()];
+        if w > 0 {
+            for (y, row) in (0..h).zip(points.chunks_exact_mut(w as usize)) {
+                self.deproject_row(intrinsics, 0..w, y, row);
+            }
+        }
         PointCloud::organized(points, w, h)
     }
 
-    /// The camera-frame points of the pixels `u` x `v` (columns and rows, within the image
-    /// whose size [`DepthImage::check_size`] accepted), row by row, NaN where the depth is 0:
-    /// the same bits as those pixels of [`DepthImage::deproject`].
-    pub fn deproject_rect(
+    /// The camera-frame points of the pixels `u` of row `y` into `out` (one per pixel, within
+    /// an image whose size [`DepthImage::check_size`] accepted), NaN where the depth is 0.
+    pub fn deproject_row(
         &self,
         intrinsics: &PinholeIntrinsics,
-        (u, v): (std::ops::Range<u32>, std::ops::Range<u32>),
-    ) -> Vec<Vec3> {
-        let mut points = Vec::with_capacity(u.len() * v.len());
-        for y in v {
-            let row = y as usize * self.width as usize;
-            let raws = &self.data[row + u.start as usize..row + u.end as usize];
-            points.extend(
-                (u.start..u.end)
-                    .zip(raws)
-                    .map(|(x, &raw)| deproject_pixel(intrinsics, self.depth_scale_m, x, y, raw)),
-            );
+        u: std::ops::Range<u32>,
+        y: u32,
+        out: &mut [Vec3],
+    ) {
+        let row = y as usize * self.width as usize;
+        let raws = &self.data[row + u.start as usize..row + u.end as usize];
+        for ((x, &raw), p) in u.zip(raws).zip(out) {
+            *p = deproject_pixel(intrinsics, self.depth_scale_m, x, y, raw);
         }
-        points
     }
 }
 

@@ -120,6 +120,17 @@ head -c 3000 "$D/small.ply" >"$D/cut.ply"
 head -c 2000 "$PNG" >"$D/cut.png"
 head -c 20000 "$D/rec.mcap" >"$D/cut.mcap"
 head -c 100 "$D/can.log" >"$D/cut.log"
+# 16-bit depth PNGs: one pixel of 800 mm, and one whose header declares 65,535 x 65,535 over
+# that pixel's data.
+python3 - "$D" <<'PY'
+import struct, sys, zlib
+def chunk(kind, data):
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+for name, (w, h) in {"one.png": (1, 1), "huge.png": (65535, 65535)}.items():
+    ihdr = chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0))
+    idat = chunk(b"IDAT", zlib.compress(b"\x00" + struct.pack(">H", 800)))
+    open(f"{sys.argv[1]}/{name}", "wb").write(b"\x89PNG\r\n\x1a\n" + ihdr + idat + chunk(b"IEND", b""))
+PY
 mkdir -p "$D/dir.pcd" "$D/emptydir" "$D/frames"
 cp "$SMALL" "$D/frames/"
 # A PCD header that declares a million points over a few bytes, and one with NaN in WIDTH.
@@ -211,6 +222,10 @@ t err "intrinsics" convert "$PNG" "$D/o.pcd" --intrinsics 0,600,424,240
 t err "intrinsics" convert "$PNG" "$D/o.pcd" --intrinsics 600,600,424
 t err "intrinsics" convert "$PNG" "$D/o.pcd" --intrinsics 1e300,600,424,240
 t err "intrinsics" convert "$PNG" "$D/o.pcd"
+t err "principal point" convert "$PNG" "$D/o.pcd" --intrinsics 600,600,900,240
+t err "principal point" convert "$D/one.png" "$D/o.pcd" --intrinsics 600,600,5000,0.5
+t ok "" convert "$D/one.png" "$D/o.pcd" --intrinsics 600,600,0.5,0.5
+t err "read limit" convert "$D/huge.png" "$D/o.pcd" --intrinsics 600,600,32767,32767
 t err "cut.png" convert "$D/cut.png" "$D/o.pcd" --intrinsics 600,600,424,240
 t err "empty.png" convert "$D/empty.png" "$D/o.pcd" --intrinsics 600,600,424,240
 t err "cut.ply" convert "$D/cut.ply" "$D/o.pcd"

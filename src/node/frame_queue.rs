@@ -21,6 +21,12 @@
 //! ([`FrameQueue::pop_for`]), so a camera's frames always reach the same worker (its surface
 //! memory lives there) and each worker serves its cameras in turn as above.
 //!
+//! The queue also times its service ([`QueueService`]): a worker's time on a frame runs from
+//! taking it to taking its next (perception, fusion's window fit, the hand-over), and each
+//! drop records how long the dropped frame's worker had then been on its current frame, so a
+//! drop for lack of time (the worker busy) is told from one that is not (the worker waiting),
+//! and the frames that outlasted their cameras' periods are counted with their times.
+//!
 //! std's `sync_channel` can only refuse the new frame when full, so this is a
 //! `Mutex<VecDeque>` with a `Condvar` (no crate needed for a few lines); the consumer blocks
 //! on the condition variable, never spins. Memory: at most `per_camera` frames per camera.
@@ -31,8 +37,14 @@
 //! panicked while holding it) is taken over as is: the queue's state is valid after every
 //! statement.
 
+use super::summary::{Histogram, QueueService};
 use std::collections::VecDeque;
 use std::sync::{Condvar, Mutex, MutexGuard, PoisonError};
+use std::time::Instant;
+
+/// Service times are binned at 0.1 ms up to 1 s (a longer one counts in the last bin).
+const SERVICE_BIN_S: f64 = 1e-4;
+const SERVICE_RANGE_S: f64 = 1.0;
 
 /// A queue with `per_camera` slots per camera whose `push` evicts that camera's oldest item
 /// when its slots are full.
@@ -51,6 +63,22 @@ struct State<T> {
     last_served: Vec<(u32, u64)>,
     pops: u64,
     closed: bool,
+    /// The most workers a share named (a camera's worker is its number modulo this).
+    workers: usize,
+    /// Per worker: since when it has been on its current item, and the drops of its
+    /// cameras' items since.
+    busy: Vec<Option<Busy>>,
+    service: Histogram,
+    busy_at_drop: Histogram,
+    overrun_service: Histogram,
+    overrun_items: u64,
+    idle_drops: u64,
+}
+
+#[derive(Clone, Copy)]
+struct Busy {
+    since: Instant,
+    drops: u64,
 }
 
 impl<T> State<T> {
@@ -59,6 +87,31 @@ impl<T> State<T> {
             .iter()
             .position(|&c| c == camera)
             .expect("every queued camera is numbered when its first item arrives")
+    }
+
+    /// A worker comes back for its next item: the one it was on is done.
+    fn finished(&mut self, worker: usize) {
+        if let Some(Some(busy)) = self.busy.get_mut(worker).map(Option::take) {
+            let s = busy.since.elapsed().as_secs_f64();
+            self.service.add(s);
+            if busy.drops > 0 {
+                self.overrun_service.add(s);
+                self.overrun_items += 1;
+            }
+        }
+    }
+
+    /// A queued item of `camera` was dropped: its worker's state at that instant.
+    fn dropped(&mut self, camera: u32) {
+        let worker = self.camera_number(camera) % self.workers.max(1);
+        match self.busy.get_mut(worker) {
+            Some(Some(busy)) => {
+                busy.drops += 1;
+                let s = busy.since.elapsed().as_secs_f64();
+                self.busy_at_drop.add(s);
+            }
+            _ => self.idle_drops += 1,
+        }
     }
 
     /// The pop that last served `camera`, 0 if none did.
@@ -76,6 +129,13 @@ impl<T> State<T> {
             .filter(|&i| self.camera_number(self.items[i].0) % workers == share.worker)
             .min_by_key(|&i| (self.last_served(self.items[i].0), i))?;
         let (camera, item) = self.items.remove(next)?;
+        if self.busy.len() <= share.worker {
+            self.busy.resize(share.worker + 1, None);
+        }
+        self.busy[share.worker] = Some(Busy {
+            since: Instant::now(),
+            drops: 0,
+        });
         self.pops += 1;
         match self.last_served.iter_mut().find(|(c, _)| *c == camera) {
             Some((_, pop)) => *pop = self.pops,
@@ -115,6 +175,13 @@ impl<T> FrameQueue<T> {
                 last_served: Vec::new(),
                 pops: 0,
                 closed: false,
+                workers: 1,
+                busy: Vec::new(),
+                service: Histogram::new(SERVICE_BIN_S, SERVICE_RANGE_S),
+                busy_at_drop: Histogram::new(SERVICE_BIN_S, SERVICE_RANGE_S),
+                overrun_service: Histogram::new(SERVICE_BIN_S, SERVICE_RANGE_S),
+                overrun_items: 0,
+                idle_drops: 0,
             }),
             ready: Condvar::new(),
             per_camera,
@@ -150,7 +217,9 @@ impl<T> FrameQueue<T> {
                     place = Some(i);
                 }
             }
-            place.map(|last| std::mem::replace(&mut state.items[last].1, item))
+            let evicted = place.map(|last| std::mem::replace(&mut state.items[last].1, item));
+            state.dropped(camera);
+            evicted
         } else {
             state.items.push_back((camera, item));
             None
@@ -172,6 +241,8 @@ impl<T> FrameQueue<T> {
     /// cameras.
     pub fn pop_for(&self, share: Share) -> Option<T> {
         let mut state = self.lock();
+        state.workers = state.workers.max(share.workers);
+        state.finished(share.worker);
         loop {
             if let Some(item) = state.take_next(share) {
                 return Some(item);
@@ -183,6 +254,19 @@ impl<T> FrameQueue<T> {
                 .ready
                 .wait(state)
                 .unwrap_or_else(PoisonError::into_inner);
+        }
+    }
+
+    /// How the workers served the queue so far: every item's service time (taken to the
+    /// worker's next take), and at each drop the dropped item's worker's state.
+    pub fn service(&self) -> QueueService {
+        let state = self.lock();
+        QueueService {
+            service_ms: state.service.percentiles(),
+            busy_at_drop_ms: state.busy_at_drop.percentiles(),
+            drops_while_idle: state.idle_drops,
+            overrun_frames: state.overrun_items,
+            overrun_service_ms: state.overrun_service.percentiles(),
         }
     }
 
@@ -404,6 +488,31 @@ mod tests {
         assert_eq!(q.pop_for(share(1)), None);
         assert_eq!(q.pop_for(share(0)), Some((7, 3)));
         assert_eq!(q.pop_for(share(0)), None);
+    }
+
+    /// A drop while the camera's worker is on a frame counts as busy, with how long it had
+    /// been; a drop before any worker took a frame counts as idle; the frame during which a
+    /// drop happened is an overrun, timed from its take to the worker's next take.
+    #[test]
+    fn drops_record_their_workers_state() {
+        let q = FrameQueue::new(1);
+        q.push(0, 1).unwrap();
+        assert_eq!(q.push(0, 2), Ok(Some(1)));
+        assert_eq!(q.pop(), Some(2));
+        std::thread::sleep(Duration::from_millis(3));
+        q.push(0, 3).unwrap();
+        assert_eq!(q.push(0, 4), Ok(Some(3)));
+        q.push(1, 5).unwrap();
+        // Camera 1, never served, goes first.
+        assert_eq!(q.pop(), Some(5));
+        assert_eq!(q.pop(), Some(4));
+        let service = q.service();
+        assert_eq!((service.drops_while_idle, service.overrun_frames), (1, 1));
+        // One drop while busy for at least 3 ms; the overrun frame took at least as long.
+        assert!(service.busy_at_drop_ms.p50 >= 3.0, "{service:?}");
+        assert!(service.overrun_service_ms.p50 >= 3.0, "{service:?}");
+        // Two frames done (the one in service at the end is not), one of them over 3 ms.
+        assert!(service.service_ms.p99 >= 3.0, "{service:?}");
     }
 
     #[test]

@@ -73,7 +73,7 @@ mod tests;
 pub use backends::{BACKEND_CHOICE_FRAMES, measure_backends};
 pub use realtime::{RealtimeConfig, RealtimeStatus};
 pub use replay::{ReplayReport, replay};
-pub use summary::{CameraSummary, CanSummary, FramesLost, NodeSummary, Percentiles};
+pub use summary::{CameraSummary, CanSummary, FramesLost, NodeSummary, Percentiles, QueueService};
 pub use workers::Worker;
 
 use crate::camera::Frame;
@@ -599,6 +599,7 @@ pub fn run(
         backend_choice,
         can,
         behind.map(|b| b.get()).unwrap_or_default(),
+        frame_queue.service(),
     ))
 }
 
@@ -703,6 +704,7 @@ fn summarize(
     backend_choice: Option<BackendChoice>,
     can: Option<CanCounters>,
     behind: Behind,
+    queue: QueueService,
 ) -> NodeSummary {
     let duration_s = stats.duration_s;
     let lost = shared
@@ -758,6 +760,7 @@ fn summarize(
         jitter_ms: stats.jitter.percentiles(),
         tick_work_ms: stats.work.percentiles(),
         perception_ms: report.times.percentiles(),
+        queue,
         gpu_on_host: report.gpu_split.summary(),
         realtime: stats.realtime,
         recording_error: shared

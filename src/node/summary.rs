@@ -61,6 +61,25 @@ pub struct FramesLost {
     pub bad_stamp: u64,
 }
 
+/// How perception's workers served the frame queue, and the state of a frame's worker when
+/// the frame was dropped from the queue: a drop for lack of time finds the worker busy.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct QueueService {
+    /// Per frame, a worker's time from taking it to taking its next: perception, fusion's
+    /// window fit and the hand-over to the loop (p99 and beyond: up to 1 s), ms.
+    pub service_ms: Percentiles,
+    /// At each queue drop, how long the dropped frame's worker had been on its current
+    /// frame, ms.
+    pub busy_at_drop_ms: Percentiles,
+    /// Queue drops while the dropped frame's worker was between frames (none when every
+    /// drop is for lack of time).
+    pub drops_while_idle: u64,
+    /// Frames during whose service a frame of their worker's cameras was dropped, and their
+    /// service times.
+    pub overrun_frames: u64,
+    pub overrun_service_ms: Percentiles,
+}
+
 /// What a run did (the `--json` object of `hapcloud run`).
 #[derive(Clone, Debug, Serialize)]
 pub struct NodeSummary {
@@ -113,6 +132,8 @@ pub struct NodeSummary {
     pub tick_work_ms: Percentiles,
     /// Perception time per frame.
     pub perception_ms: Percentiles,
+    /// The frame queue's service and the context of its drops.
+    pub queue: QueueService,
     /// Real-time scheduling and memory locking of the control loop, and what was refused.
     pub realtime: RealtimeStatus,
     /// With `--record`: the write error that stopped the recording (the node went on

@@ -3,6 +3,11 @@
 //! perception (the per-camera chain, paper IV-A to IV-E, and fusion's window fit, IV-F
 //! eq. 4-5, handed to the control loop); the node clock; the shared counters; a failing
 //! worker recorded instead of unwinding.
+//!
+//! On the CPU backend a frame's parallel passes (the depth pass's row bands, an organized
+//! cloud's veil test, the crop's mask) run on rayon's global pool, one thread per core, beside
+//! the workers; their outputs are the same bits whatever the pool's size, and the loop's
+//! thread keeps its deadlines over them by its real-time priority ([`super::realtime`]).
 
 #[cfg(feature = "ros2")]
 use super::MAX_STAMP_S;

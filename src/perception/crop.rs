@@ -418,16 +418,33 @@ pub struct DepthKept {
     pub region: PixelRect,
 }
 
+/// Rows of the crop region one task of [`crop_depth_region_cpu`] takes: bands are cut by
+/// rows, not by threads, so the points come out in pixel order whatever the thread count.
+const BAND_ROWS: u32 = 8;
+
+/// The buffers of [`crop_depth_region_cpu`], kept by its caller from frame to frame: the
+/// deprojected pixels read and each row band's points (a frame then allocates only its output
+/// once they have seen its size).
+#[derive(Debug, Default)]
+pub struct RegionScratch {
+    camera: Vec<Vec3>,
+    bands: Vec<(Vec<Vec3>, usize)>,
+}
+
 /// A depth frame's first pass on the CPU in one pass over the 16-bit image inside the crop's
 /// pixel region ([`crop_region`], grown by the flying-pixel window for the neighbours):
 /// deprojection, flying-pixel test, pose and crop of each pixel, with no cloud of the whole
-/// frame. The points are those [`crop_depth_cpu`] keeps, bit for bit, in the same order; the
+/// frame. Rows are deprojected, and bands of [`BAND_ROWS`] rows tested, on rayon's threads
+/// (the caller's pool); each pixel's decision is its own, so the points are those
+/// [`crop_depth_cpu`] keeps, bit for bit, in the same order, with any number of threads; the
 /// counts are its counts.
 pub fn crop_depth_region_cpu(
     depth: &DepthInput<'_>,
     config: &CropConfig,
     scene: Option<&CropScene<'_>>,
+    scratch: &mut RegionScratch,
 ) -> Result<DepthKept, CropError> {
+    use rayon::prelude::*;
     config.validate()?;
     depth.validate()?;
     let crop = scene.map(|s| CpuCrop::new(config, s)).transpose()?;
@@ -443,9 +460,22 @@ pub fn crop_depth_region_cpu(
         0
     };
     let read = region.grown(window, width, height);
-    let camera = image.deproject_rect(depth.intrinsics, (read.u.clone(), read.v.clone()));
-    let size = (read.u.len() as u32, read.v.len() as u32);
-    let test = VeilTest::rect(&camera, size, height, near, radius, depth.flying);
+    let row_len = read.u.len();
+    let camera = &mut scratch.camera;
+    camera.clear();
+    camera.resize(read.pixels(), Vec3::ZERO);
+    if row_len > 0 {
+        camera
+            .par_chunks_mut(row_len)
+            .enumerate()
+            .for_each(|(row, out)| {
+                let y = read.v.start + row as u32;
+                image.deproject_row(depth.intrinsics, read.u.clone(), y, out);
+            });
+    }
+    let camera = &scratch.camera[..];
+    let size = (row_len as u32, read.v.len() as u32);
+    let test = VeilTest::rect(camera, size, height, near, radius, depth.flying);
     // The crop sphere in the camera frame: a point farther from the HIP than the radius and
     // the slack is dropped before its pose.
     let hip_cam = scene.map(|s| pose.inverse() * s.hip_m);
@@ -453,37 +483,54 @@ pub fn crop_depth_region_cpu(
         let reach = config.radius_m + region_slack_m(config, &c, pose);
         reach * reach
     });
-    let (mut points, mut flying) = (Vec::new(), 0);
-    let row_len = read.u.len();
-    for y in region.v.clone() {
-        let row = (y - read.v.start) as usize * row_len;
-        for x in region.u.clone() {
-            let i = row + (x - read.u.start) as usize;
-            let p = camera[i];
-            // A pixel with a depth has a finite point with z > 0.
-            if !finite_bits(p) {
-                continue;
-            }
-            if test.is_flying(i) {
-                flying += 1;
-                continue;
-            }
-            if let (Some(c), Some(reach2)) = (&hip_cam, reach2) {
-                let d = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)) - c;
-                if d.norm_squared() > reach2 {
+    let band = |rows: Range<u32>, points: &mut Vec<Vec3>| {
+        let mut flying = 0;
+        for y in rows {
+            let row = (y - read.v.start) as usize * row_len;
+            for x in region.u.clone() {
+                let i = row + (x - read.u.start) as usize;
+                let p = camera[i];
+                // A pixel with a depth has a finite point with z > 0.
+                if !finite_bits(p) {
                     continue;
                 }
-            }
-            let q = to_cloud_frame(p, pose);
-            if crop.as_ref().is_none_or(|c| c.keeps(q)) {
-                points.push(q);
+                if test.is_flying(i) {
+                    flying += 1;
+                    continue;
+                }
+                if let (Some(c), Some(reach2)) = (&hip_cam, reach2) {
+                    let d = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)) - c;
+                    if d.norm_squared() > reach2 {
+                        continue;
+                    }
+                }
+                let q = to_cloud_frame(p, pose);
+                if crop.as_ref().is_none_or(|c| c.keeps(q)) {
+                    points.push(q);
+                }
             }
         }
+        flying
+    };
+    let bands = region.v.len().div_ceil(BAND_ROWS as usize);
+    scratch.bands.resize_with(bands, Default::default);
+    scratch.bands[..bands]
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(b, (points, flying))| {
+            let start = region.v.start + b as u32 * BAND_ROWS;
+            points.clear();
+            *flying = band(start..(start + BAND_ROWS).min(region.v.end), points);
+        });
+    let kept = &scratch.bands[..bands];
+    let mut points = Vec::with_capacity(kept.iter().map(|(p, _)| p.len()).sum());
+    for (p, _) in kept {
+        points.extend_from_slice(p);
     }
     Ok(DepthKept {
         points,
         valid: image.data.iter().filter(|&&d| d != 0).count(),
-        flying,
+        flying: kept.iter().map(|(_, f)| f).sum(),
         region,
     })
 }
@@ -546,19 +593,27 @@ impl CpuCrop {
     }
 }
 
-/// CPU reference: the keep mask of `points`.
+/// CPU reference: the keep mask of `points`, blocks of 32,768 points on rayon's threads
+/// (each point's bit is its own: the same mask whatever the thread count).
 pub fn crop_cpu(
     points: &[Vec3],
     config: &CropConfig,
     scene: &CropScene<'_>,
 ) -> Result<Vec<u32>, CropError> {
+    use rayon::prelude::*;
+    /// Mask words one rayon task fills (32,768 points).
+    const TASK_WORDS: usize = 1024;
     let crop = CpuCrop::new(config, scene)?;
     let mut mask = vec![0u32; mask_words(points.len())];
-    for (i, p) in points.iter().enumerate() {
-        if crop.keeps(*p) {
-            mask[i / 32] |= 1 << (i % 32);
-        }
-    }
+    mask.par_chunks_mut(TASK_WORDS)
+        .zip(points.par_chunks(32 * TASK_WORDS))
+        .for_each(|(words, points)| {
+            for (i, p) in points.iter().enumerate() {
+                if crop.keeps(*p) {
+                    words[i / 32] |= 1 << (i % 32);
+                }
+            }
+        });
     Ok(mask)
 }
 
@@ -1180,6 +1235,15 @@ mod tests {
     use nalgebra::Vector3;
     use proptest::prelude::*;
 
+    /// The region pass with buffers of its own.
+    fn region(
+        depth: &DepthInput<'_>,
+        config: &CropConfig,
+        scene: Option<&CropScene<'_>>,
+    ) -> Result<DepthKept, CropError> {
+        crop_depth_region_cpu(depth, config, scene, &mut RegionScratch::default())
+    }
+
     /// The crop region's pass gives what the pass over every pixel keeps, bit for bit and in
     /// the same order, with the same counts; returns the pixels it read.
     fn region_equals_every_pixel(
@@ -1188,7 +1252,7 @@ mod tests {
         scene: &CropScene<'_>,
     ) -> usize {
         let all = crop_depth_cpu(depth, config, Some(scene)).unwrap();
-        let roi = crop_depth_region_cpu(depth, config, Some(scene)).unwrap();
+        let roi = region(depth, config, Some(scene)).unwrap();
         let kept: Vec<[u32; 3]> = kept_indices(&all.mask, all.points.len())
             .into_iter()
             .map(|i| all.points[i].to_array().map(f32::to_bits))
@@ -1296,7 +1360,7 @@ mod tests {
                     let pixels = region_equals_every_pixel(&depth, &config, &scene);
                     read += pixels;
                     empty += usize::from(pixels == 0);
-                    let kept = crop_depth_region_cpu(&depth, &config, Some(&scene)).unwrap();
+                    let kept = region(&depth, &config, Some(&scene)).unwrap();
                     kept_any += usize::from(!kept.points.is_empty());
                 }
             }
@@ -1307,6 +1371,69 @@ mod tests {
         assert!(3 * kept_any > frames, "{kept_any} of {frames}");
         // The regions read under half of the pixels on average.
         assert!(read < frames * image_pixels(&k) / 2, "{read}");
+    }
+
+    /// The region pass on rayon pools of 1 and of 4 threads, each reusing its buffers from
+    /// frame to frame (frames of different sizes, regions growing and shrinking): the same
+    /// points, bit for bit, and the same counts; and the pass over every pixel (the veil test
+    /// and the crop's mask, also on rayon) the same on both.
+    #[test]
+    fn the_depth_passes_give_the_same_bits_on_one_thread_and_on_four() {
+        use crate::perception::test_data::{PCL_FRAMES, pcl_depth, synthetic_depth};
+        let k = PinholeIntrinsics::PCL_GRABBER;
+        let mut images: Vec<DepthImage> = PCL_FRAMES.iter().map(|f| pcl_depth(f)).collect();
+        images.push(synthetic_depth(9));
+        let flying = FlyingPixelConfig::default();
+        let pose = Isometry3::new(Vector3::new(0.3, -0.2, 1.1), Vector3::new(0.4, -0.3, 1.2));
+        let config = CropConfig::default();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut scratch = RegionScratch::default();
+            let mut out = Vec::new();
+            pool.install(|| {
+                for image in &images {
+                    for hip_cam in test_hips(&k) {
+                        let depth = DepthInput {
+                            image,
+                            intrinsics: &k,
+                            cloud_from_camera: pose,
+                            flying: &flying,
+                        };
+                        let scene = CropScene {
+                            hip_m: pose * hip_cam,
+                            robot: &[],
+                            camera_m: Some(Point3::from(pose.translation.vector)),
+                        };
+                        let kept =
+                            crop_depth_region_cpu(&depth, &config, Some(&scene), &mut scratch)
+                                .unwrap();
+                        // The pass over every pixel: the veil test and the crop's mask.
+                        let all = crop_depth_cpu(&depth, &config, Some(&scene)).unwrap();
+                        let bits = |points: &[Vec3]| -> Vec<[u32; 3]> {
+                            points
+                                .iter()
+                                .map(|p| p.to_array().map(f32::to_bits))
+                                .collect()
+                        };
+                        out.push((
+                            bits(&kept.points),
+                            kept.valid,
+                            kept.flying,
+                            kept.region,
+                            (bits(&all.points), all.mask, all.flying),
+                        ));
+                    }
+                }
+            });
+            out
+        };
+        let (one, four) = (run(1), run(4));
+        assert_eq!(one.len(), images.len() * test_hips(&k).len());
+        assert!(one.iter().filter(|(p, ..)| p.len() > 1000).count() > 10);
+        assert!(one == four, "the points differ between 1 and 4 threads");
     }
 
     fn image_pixels(k: &PinholeIntrinsics) -> usize {
@@ -1325,7 +1452,7 @@ mod tests {
         };
         let config = CropConfig::default();
         let all = crop_depth_cpu(&depth, &config, None).unwrap();
-        let roi = crop_depth_region_cpu(&depth, &config, None).unwrap();
+        let roi = region(&depth, &config, None).unwrap();
         assert_eq!(roi.region, PixelRect::full(640, 480));
         let kept: Vec<Vec3> = kept_indices(&all.mask, all.points.len())
             .into_iter()
@@ -1366,7 +1493,7 @@ mod tests {
             flying: &flying,
         };
         // A 1x1 image: its one pixel, kept.
-        let kept = crop_depth_region_cpu(&depth, &config, Some(&scene)).unwrap();
+        let kept = region(&depth, &config, Some(&scene)).unwrap();
         assert_eq!((kept.points.len(), kept.valid, kept.flying), (1, 1, 0));
         region_equals_every_pixel(&depth, &config, &scene);
         // 65,535 x 65,535 declared over one pixel of data: an error, nothing allocated for it.
@@ -1382,7 +1509,7 @@ mod tests {
             cy: 32_767.0,
             ..k
         };
-        let e = crop_depth_region_cpu(
+        let e = region(
             &DepthInput {
                 image: &huge,
                 intrinsics: &huge_k,
@@ -1395,7 +1522,7 @@ mod tests {
         .to_string();
         assert!(e.contains("65535 x 65535 image holds 1 pixels"), "{e}");
         // Intrinsics that disagree with the image, and a principal point outside it.
-        let e = crop_depth_region_cpu(
+        let e = region(
             &DepthInput {
                 intrinsics: &huge_k,
                 ..depth
@@ -1410,7 +1537,7 @@ mod tests {
             "{e}"
         );
         let outside = PinholeIntrinsics { cx: 5.0, ..k };
-        let e = crop_depth_region_cpu(
+        let e = region(
             &DepthInput {
                 intrinsics: &outside,
                 ..depth
@@ -1430,12 +1557,12 @@ mod tests {
             ..scene.clone()
         };
         assert!(matches!(
-            crop_depth_region_cpu(&depth, &config, Some(&nan)),
+            region(&depth, &config, Some(&nan)),
             Err(CropError::BadHip)
         ));
         let mut pose = Isometry3::identity();
         pose.translation.vector.x = f64::INFINITY;
-        let e = crop_depth_region_cpu(
+        let e = region(
             &DepthInput {
                 cloud_from_camera: pose,
                 ..depth
@@ -1453,7 +1580,7 @@ mod tests {
                 hip_m: hip,
                 ..scene.clone()
             };
-            let kept = crop_depth_region_cpu(&depth, &config, Some(&scene)).unwrap();
+            let kept = region(&depth, &config, Some(&scene)).unwrap();
             assert_eq!(
                 (kept.region.clone(), kept.points.len(), kept.valid),
                 (PixelRect::empty(), 0, 1)

@@ -208,10 +208,14 @@ pub struct Veiled {
     pub flying: usize,
 }
 
+/// Points of [`veil_cloud`] one rayon task takes: cut by count, not by thread, so the points
+/// come out in pixel order, the same bits whatever the thread count.
+const VEIL_CHUNK: usize = 1 << 14;
+
 /// The flying-pixel test and the pose on the CPU, in one pass over the organized `camera`
 /// cloud (camera frame): the pixels within `radius_m` of `near_cam` (camera frame) tested,
 /// every other finite point moved to the cloud frame with `cloud_from_camera`; `organized`
-/// keeps a point per pixel.
+/// keeps a point per pixel. Chunks of [`VEIL_CHUNK`] points run on rayon's threads.
 pub fn veil_cloud(
     camera: &PointCloud,
     cloud_from_camera: &Isometry3<f64>,
@@ -220,28 +224,41 @@ pub fn veil_cloud(
     config: &FlyingPixelConfig,
     organized: bool,
 ) -> Veiled {
+    use rayon::prelude::*;
     let size = (camera.width, camera.height);
     let test = VeilTest::new(&camera.points, size, near_cam, radius_m, config);
-    let (mut valid_pixels, mut flying) = (0, 0);
-    let points = (camera.points.iter().enumerate())
-        .filter_map(|(i, &p)| {
-            if !finite_bits(p) {
-                return organized.then_some(p);
-            }
-            if valid(p) {
-                valid_pixels += 1;
-                if test.is_flying(i) {
-                    flying += 1;
-                    return organized.then_some(Vec3::NAN);
-                }
-            }
-            Some(to_cloud_frame(p, cloud_from_camera))
+    let chunks: Vec<(Vec<Vec3>, usize, usize)> = camera
+        .points
+        .par_chunks(VEIL_CHUNK)
+        .enumerate()
+        .map(|(c, chunk)| {
+            let (mut valid_pixels, mut flying) = (0, 0);
+            let points = (chunk.iter().enumerate())
+                .filter_map(|(j, &p)| {
+                    if !finite_bits(p) {
+                        return organized.then_some(p);
+                    }
+                    if valid(p) {
+                        valid_pixels += 1;
+                        if test.is_flying(c * VEIL_CHUNK + j) {
+                            flying += 1;
+                            return organized.then_some(Vec3::NAN);
+                        }
+                    }
+                    Some(to_cloud_frame(p, cloud_from_camera))
+                })
+                .collect();
+            (points, valid_pixels, flying)
         })
         .collect();
+    let mut points = Vec::with_capacity(chunks.iter().map(|(p, ..)| p.len()).sum());
+    for (p, ..) in &chunks {
+        points.extend_from_slice(p);
+    }
     Veiled {
         points,
-        valid: valid_pixels,
-        flying,
+        valid: chunks.iter().map(|(_, v, _)| v).sum(),
+        flying: chunks.iter().map(|(.., f)| f).sum(),
     }
 }
 

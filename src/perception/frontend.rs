@@ -41,8 +41,8 @@ use crate::perception::cluster::{
     ClusterConfig, ClusterError, ClusterInput, Clustering, GpuClusterer, cluster_cpu,
 };
 use crate::perception::crop::{
-    CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop, crop_cpu,
-    crop_depth_cpu, crop_depth_region_cpu, mask_words, veil_region,
+    CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop, RegionScratch,
+    crop_cpu, crop_depth_cpu, crop_depth_region_cpu, mask_words, veil_region,
 };
 use crate::perception::flying::{FlyingPixelConfig, veil_cloud};
 use crate::perception::shells::{
@@ -351,6 +351,8 @@ impl Frontend {
 pub struct CpuFrontend {
     config: FrontendConfig,
     leaf: LeafAdapter,
+    /// The depth pass's buffers, reused from frame to frame.
+    region: RegionScratch,
 }
 
 impl CpuFrontend {
@@ -359,6 +361,7 @@ impl CpuFrontend {
         Ok(Self {
             leaf: LeafAdapter::new(&config.voxel),
             config,
+            region: RegionScratch::default(),
         })
     }
 
@@ -389,7 +392,12 @@ impl CpuFrontend {
             // Otherwise only the pixels the crop can keep, and only the kept points go on
             // (in pixel order: the same cells, sums and clusters).
             HostPoints::Depth(input) => {
-                let c = crop_depth_region_cpu(input, &self.config.crop, frame.crop.as_ref())?;
+                let c = crop_depth_region_cpu(
+                    input,
+                    &self.config.crop,
+                    frame.crop.as_ref(),
+                    &mut self.region,
+                )?;
                 let counts = DepthCounts {
                     valid: c.valid,
                     flying: c.flying,

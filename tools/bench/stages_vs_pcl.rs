@@ -46,7 +46,8 @@
 //!
 //! Run: `cargo bench --bench stages_vs_pcl [-- FILES...] [--data DIR] [--radius R] [--leaf L]
 //! [--tolerance T] [--min-size A] [--max-size B] [--runs N] [--scene NAME]
-//! [--d435-frames N]`. The data folder is `--data`, else `$HAPCLOUD_PCL_DATA`, else
+//! [--d435-frames N] [--cpu-threads N]`. The run executes on a rayon pool of `--cpu-threads`
+//! (default 1: the CPU stages' thread CPU time is all their work, on one core). The data folder is `--data`, else `$HAPCLOUD_PCL_DATA`, else
 //! `../shared/data/pcl` beside the crate. Needs a Vulkan device (lavapipe is fine) and, for
 //! the comparison, pcl-tools (`.ci/run` installs it). The built executable runs on its own
 //! (no cargo, no source tree): README "Benchmarks" says how to carry it to a GPU machine.
@@ -123,6 +124,11 @@ struct Args {
     /// the device as the node's perception workers do (1: skip).
     #[arg(long, default_value_t = 2)]
     d435_workers: usize,
+    /// Threads of the rayon pool the whole run executes on (the CPU stages' parallel passes).
+    /// 1: every CPU stage runs on the calling thread, so its thread CPU time is the stage's
+    /// whole CPU time (one core); more: compare the wall times.
+    #[arg(long, default_value_t = 1)]
+    cpu_threads: usize,
     /// Passed by `cargo bench`; ignored.
     #[arg(long, hide = true)]
     bench: bool,
@@ -874,6 +880,14 @@ fn shared_device(
 fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     anyhow::ensure!(args.runs > 0, "--runs must be positive");
+    anyhow::ensure!(args.cpu_threads > 0, "--cpu-threads must be positive");
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(args.cpu_threads)
+        .build()?
+        .install(|| run(args))
+}
+
+fn run(args: Args) -> anyhow::Result<()> {
     let data = args
         .data
         .clone()
@@ -932,9 +946,10 @@ fn main() -> anyhow::Result<()> {
     let mut cpu_front = Frontend::new(Backend::Cpu, frontend_config.clone(), None)?;
     let mut gpu_front = Frontend::new(Backend::Gpu, frontend_config, Some(Arc::clone(&ctx)))?;
     println!(
-        "load average (1, 5, 15 min) {} on {} CPUs",
+        "load average (1, 5, 15 min) {} on {} CPUs; CPU stages on {} rayon thread(s)",
         load_average(),
-        std::thread::available_parallelism().map_or(1, |n| n.get())
+        std::thread::available_parallelism().map_or(1, |n| n.get()),
+        rayon::current_num_threads()
     );
     println!(
         "crop radius {} m around the camera, leaf {} m, tolerance {} m, cluster size [{}, {}], {} runs; GPU: {} ({}){}",
