@@ -843,6 +843,34 @@ fn sim_output_reads_back_through_the_io_readers() {
         rows += 1;
     }
     assert_eq!(rows, 4);
+    // Per keep-off guard of ANYexo's default set: 8 columns after the HIP's, each row's
+    // gap equal to the simulator's truth for that guard at the frame's capture time.
+    let mut reader = csv::Reader::from_path(dir.join("ground_truth.csv")).unwrap();
+    let header = reader.headers().unwrap().clone();
+    let set = hapcloud::robot::guards::GuardSet::new(
+        sim.robot_model().unwrap(),
+        &hapcloud::robot::guards::GuardConfig::default(),
+    )
+    .unwrap();
+    assert_eq!(
+        header.len(),
+        TruthRow::COLUMNS.len() + 8 * set.keep_off().len()
+    );
+    assert_eq!(
+        &header.iter().take(15).collect::<Vec<_>>(),
+        &TruthRow::COLUMNS
+    );
+    let column = |name: &str| header.iter().position(|h| h == name).unwrap();
+    for record in reader.records() {
+        let record = record.unwrap();
+        let t: f64 = record[column("capture_s")].parse().unwrap();
+        for (name, truth) in sim.guard_truth(t, None, &set) {
+            let gap: f64 = record[column(&format!("{name}_gap_m"))].parse().unwrap();
+            let nz: f64 = record[column(&format!("{name}_normal_z"))].parse().unwrap();
+            assert_eq!((gap, nz), (truth.gap_m, truth.normal.z), "{name}");
+            assert_eq!(&record[column(&format!("{name}_body"))], truth.body);
+        }
+    }
     let again = Scene::from_file(&dir.join("scene.toml")).unwrap();
     assert_eq!(again.file, scene.file);
     std::fs::remove_dir_all(&dir).unwrap();

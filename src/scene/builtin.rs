@@ -24,6 +24,12 @@ const CAMERAS_FOREARM_CLOSE: &str =
     include_str!("../../tools/scenes/common/cameras_forearm_close.toml");
 const CAMERAS_HEAD_CLOSE: &str = include_str!("../../tools/scenes/common/cameras_head_close.toml");
 const REALISTIC: &str = include_str!("../../tools/scenes/common/realistic_effects.toml");
+/// The seated patient's thighs: whole-arm scenes add them (the other scenes' views and
+/// results stay as they are).
+const THIGHS: &str = include_str!("../../tools/scenes/common/thighs.toml");
+
+/// Built-in scenes whose patient has thighs.
+const WITH_THIGHS: &[&str] = &["forearm_to_torso"];
 
 /// The experiments, each embedded once, with the camera mount they are seen through.
 const EXPERIMENTS: &[(&str, &str, &str)] = &[
@@ -91,6 +97,10 @@ pub fn text(name: &str) -> Option<String> {
     };
     let (_, own, cameras) = EXPERIMENTS.iter().find(|(n, _, _)| *n == base)?;
     let mut text = format!("name = \"{name}\"\n{own}\n{PATIENT}\n{cameras}\n");
+    if WITH_THIGHS.contains(&base) {
+        text.push_str(THIGHS);
+        text.push('\n');
+    }
     if realistic {
         text.push_str(REALISTIC);
     }
