@@ -711,7 +711,7 @@ fn bad_scene_files_give_clear_errors() {
 #[test]
 fn every_builtin_scene_loads_and_the_realistic_ones_differ_only_by_effects() {
     let names = builtin::names();
-    assert_eq!(names.len(), 18);
+    assert_eq!(names.len(), 20);
     for name in names.iter().filter(|n| n.ends_with("_clean")) {
         let clean = Scene::from_builtin(name).unwrap();
         let real = Scene::from_builtin(&name.replace("_clean", "_realistic")).unwrap();
@@ -843,6 +843,34 @@ fn sim_output_reads_back_through_the_io_readers() {
         rows += 1;
     }
     assert_eq!(rows, 4);
+    // Per keep-off guard of ANYexo's default set: 8 columns after the HIP's, each row's
+    // gap equal to the simulator's truth for that guard at the frame's capture time.
+    let mut reader = csv::Reader::from_path(dir.join("ground_truth.csv")).unwrap();
+    let header = reader.headers().unwrap().clone();
+    let set = hapcloud::robot::guards::GuardSet::new(
+        sim.robot_model().unwrap(),
+        &hapcloud::robot::guards::GuardConfig::default(),
+    )
+    .unwrap();
+    assert_eq!(
+        header.len(),
+        TruthRow::COLUMNS.len() + 8 * set.keep_off().len()
+    );
+    assert_eq!(
+        &header.iter().take(15).collect::<Vec<_>>(),
+        &TruthRow::COLUMNS
+    );
+    let column = |name: &str| header.iter().position(|h| h == name).unwrap();
+    for record in reader.records() {
+        let record = record.unwrap();
+        let t: f64 = record[column("capture_s")].parse().unwrap();
+        for (name, truth) in sim.guard_truth(t, None, &set) {
+            let gap: f64 = record[column(&format!("{name}_gap_m"))].parse().unwrap();
+            let nz: f64 = record[column(&format!("{name}_normal_z"))].parse().unwrap();
+            assert_eq!((gap, nz), (truth.gap_m, truth.normal.z), "{name}");
+            assert_eq!(&record[column(&format!("{name}_body"))], truth.body);
+        }
+    }
     let again = Scene::from_file(&dir.join("scene.toml")).unwrap();
     assert_eq!(again.file, scene.file);
     std::fs::remove_dir_all(&dir).unwrap();
@@ -870,4 +898,64 @@ fn rising_surface_speed_is_a_parameter() {
         }
     }
     assert!(builtin::rising_surface(-1.0, false).is_err());
+}
+
+/// The least true gap of each keep-off guard (ANYexo's default set) over a built-in scene,
+/// sampled every 10 ms: (guard, gap m, body).
+fn least_guard_gaps(name: &str) -> Vec<(String, f64, String)> {
+    let scene = Scene::from_builtin(name).unwrap();
+    let sim = Simulator::new(&scene).unwrap();
+    let set = hapcloud::robot::guards::GuardSet::new(
+        sim.robot_model().unwrap(),
+        &hapcloud::robot::guards::GuardConfig::default(),
+    )
+    .unwrap();
+    let mut least: Vec<(String, f64, String)> = Vec::new();
+    for k in 0..=(sim.duration_s() / 0.01).floor() as usize {
+        for (i, (g, t)) in sim
+            .guard_truth(k as f64 * 0.01, None, &set)
+            .into_iter()
+            .enumerate()
+        {
+            if least.len() <= i {
+                least.push((g, f64::INFINITY, String::new()));
+            }
+            if t.gap_m < least[i].1 {
+                least[i] = (least[i].0.clone(), t.gap_m, t.body);
+            }
+        }
+    }
+    least
+}
+
+/// Whole-arm scenes: the intended keep-off guard comes within 3 cm of the intended body
+/// (without touching it) while the handle stays far from every body.
+#[test]
+fn whole_arm_scenes_bring_their_guard_within_3_cm() {
+    for (name, guard, body) in [
+        ("forearm_to_torso_clean", "forearm", "torso"),
+        ("other_hand_to_forearm_clean", "forearm", "reaching_hand"),
+        (
+            "other_hand_to_forearm_realistic",
+            "forearm",
+            "reaching_hand",
+        ),
+    ] {
+        let least = least_guard_gaps(name);
+        let (_, gap, hit) = least.iter().find(|(g, _, _)| g == guard).unwrap();
+        assert!(
+            *gap > 0.0 && *gap < 0.03 && hit == body,
+            "{name}: {guard} least gap {gap} m to {hit}"
+        );
+        let scene = Scene::from_builtin(name).unwrap();
+        let sim = Simulator::new(&scene).unwrap();
+        let handle = (0..=(sim.duration_s() / 0.01).floor() as usize)
+            .filter_map(|k| sim.ground_truth(k as f64 * 0.01))
+            .map(|t| t.gap_m)
+            .fold(f64::INFINITY, f64::min);
+        if name.starts_with("other_hand") {
+            assert!(handle > 0.1, "{name}: the handle came {handle} m close");
+        }
+        println!("{name}: {least:?}, handle {handle:.3} m");
+    }
 }

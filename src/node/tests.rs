@@ -1030,24 +1030,15 @@ fn a_tick_rate_slower_than_the_longest_controller_period_is_named() {
     }
 }
 
-/// The true gap of a keep-off guard to the scene's bodies at `t_s`: the smallest distance of
-/// a point of its segment (41 samples) to a body surface, minus its radius.
+/// The true gap of a keep-off guard to the scene's bodies at `t_s`
+/// ([`crate::scene::truth::closest_to_guard`]).
 fn guard_gap_m(
     scene: &crate::scene::Scene,
     guard: &crate::robot::guards::GuardSegment,
     t_s: f64,
 ) -> f64 {
-    let bodies: Vec<_> = scene
-        .file
-        .bodies
-        .iter()
-        .map(|b| crate::scene::truth::posed_body(b, t_s))
-        .collect();
-    (0..=40)
-        .map(|k| guard.a_m + (guard.b_m - guard.a_m) * (f64::from(k) / 40.0))
-        .flat_map(|p| bodies.iter().map(move |b| b.closest(&p).distance_m))
-        .fold(f64::INFINITY, f64::min)
-        - guard.radius_m
+    crate::scene::truth::closest_to_guard(&scene.file.bodies, t_s, guard)
+        .map_or(f64::INFINITY, |t| t.gap_m)
 }
 
 /// Per keep-off guard, `(estimated d_proj, true gap)` of every camera estimate with a surface,

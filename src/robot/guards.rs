@@ -136,10 +136,19 @@ impl Default for GuardConfig {
                     },
                 ),
                 keep_off("upper_arm", "upper_arm_link", GuardGeometry::Collision(0)),
+                // the abduction drive's 8 x 10 x 12 cm box (URDF collision 0) as a capsule
+                // on its 12 cm axis, 6 cm long, radius 5.1 cm: with the 2 cm inflation it
+                // holds every corner of the box; the box's circumscribing capsule (radius
+                // 6.4 cm, ends 6.4 cm beyond the box's end faces) would reach 5 cm below the
+                // shoulder joint, into the patient's own strapped shoulder
                 keep_off(
                     "shoulder",
                     "shoulder_abduction_link",
-                    GuardGeometry::Collision(0),
+                    GuardGeometry::Capsule {
+                        a_m: [-0.05, -0.06, 0.06],
+                        b_m: [-0.05, -0.06, 0.12],
+                        radius_m: 0.051,
+                    },
                 ),
                 keep_off(
                     "shoulder_rotation",
@@ -555,11 +564,34 @@ mod tests {
         let fa = &set.guards()[1];
         assert!((fa.radius_m - 0.045).abs() < 1e-15);
         assert!(((fa.b_m - fa.a_m).norm() - 0.18).abs() < 1e-12);
-        // the shoulder's 0.08 x 0.10 x 0.12 m box: capsule along z, radius the half diagonal
-        // of the 0.08 x 0.10 cross-section
+        // a box's circumscribing capsule (the shoulder's 0.08 x 0.10 x 0.12 m box): along z,
+        // radius the half diagonal of the 0.08 x 0.10 cross-section
         let sh = &set.guards()[4];
-        assert!(((sh.b_m - sh.a_m).norm() - 0.12).abs() < 1e-12);
-        assert!((sh.radius_m - (0.04f64.hypot(0.05) + 0.02)).abs() < 1e-12);
+        let shoulder_box = &m.links()[sh.link].collision[0];
+        let (a, b, r) = bounding_segment(shoulder_box);
+        assert!(((b - a).norm() - 0.12).abs() < 1e-12);
+        assert!((r - 0.04f64.hypot(0.05)).abs() < 1e-12);
+        // the default shoulder guard fits the box tighter: every corner of the box lies
+        // within the guard (inflation included)
+        let seg = GuardSegment {
+            a_m: sh.a_m,
+            b_m: sh.b_m,
+            radius_m: sh.radius_m,
+        };
+        let Primitive::OrientedBox {
+            center_m,
+            half_extents_m: h,
+            ..
+        } = shoulder_box
+        else {
+            panic!("{shoulder_box:?}")
+        };
+        for k in 0..8 {
+            let sign = |bit: usize| if k >> bit & 1 == 1 { 1.0 } else { -1.0 };
+            let corner = center_m + Vector3::new(sign(0) * h.x, sign(1) * h.y, sign(2) * h.z);
+            let d = seg.signed_distance_m(&corner);
+            assert!(d < 0.0, "corner {corner:?}: {d}");
+        }
         // single-HIP mode: the handle alone
         let single = GuardSet::new(&m, &GuardConfig::single_hip()).unwrap();
         assert_eq!(single.guards().len(), 1);

@@ -7,8 +7,9 @@
 //! the same two-camera mount brought 0.4-0.65 m from the handle (the range of the
 //! accuracy target): `forearm_close`, touching and sliding along the left forearm, and
 //! `head_close`, touching the forehead and sliding to the right temple; and one for the
-//! whole arm, `forearm_to_torso`, where the exoskeleton's forearm and elbow (keep-off
-//! guards), not the handle, come closest to the body. Each comes in a
+//! whole arm, where a keep-off guard, not the handle, comes closest to the body:
+//! `forearm_to_torso` (the exoskeleton's forearm and elbow swung in towards the torso) and
+//! `other_hand_to_forearm` (the patient's left hand reaching for the exoskeleton's forearm). Each comes in a
 //! `_clean` variant (no effects: the exact analytic surface) and a `_realistic` one (D435
 //! noise, holes, occlusion, an extrinsic bias of a few mm, timing effects).
 //!
@@ -24,6 +25,12 @@ const CAMERAS_FOREARM_CLOSE: &str =
     include_str!("../../tools/scenes/common/cameras_forearm_close.toml");
 const CAMERAS_HEAD_CLOSE: &str = include_str!("../../tools/scenes/common/cameras_head_close.toml");
 const REALISTIC: &str = include_str!("../../tools/scenes/common/realistic_effects.toml");
+/// The seated patient's thighs: whole-arm scenes add them (the other scenes' views and
+/// results stay as they are).
+const THIGHS: &str = include_str!("../../tools/scenes/common/thighs.toml");
+
+/// Built-in scenes whose patient has thighs.
+const WITH_THIGHS: &[&str] = &["forearm_to_torso", "other_hand_to_forearm"];
 
 /// The experiments, each embedded once, with the camera mount they are seen through.
 const EXPERIMENTS: &[(&str, &str, &str)] = &[
@@ -72,6 +79,11 @@ const EXPERIMENTS: &[(&str, &str, &str)] = &[
         include_str!("../../tools/scenes/forearm_to_torso.toml"),
         CAMERAS,
     ),
+    (
+        "other_hand_to_forearm",
+        include_str!("../../tools/scenes/other_hand_to_forearm.toml"),
+        CAMERAS,
+    ),
 ];
 
 /// Names of every built-in scene, in a fixed order.
@@ -91,6 +103,10 @@ pub fn text(name: &str) -> Option<String> {
     };
     let (_, own, cameras) = EXPERIMENTS.iter().find(|(n, _, _)| *n == base)?;
     let mut text = format!("name = \"{name}\"\n{own}\n{PATIENT}\n{cameras}\n");
+    if WITH_THIGHS.contains(&base) {
+        text.push_str(THIGHS);
+        text.push('\n');
+    }
     if realistic {
         text.push_str(REALISTIC);
     }

@@ -8,10 +8,19 @@
 //! DIR/<camera>/frame_NNNNN.json          intrinsics, poses, stamps (a FrameSidecar)
 //! DIR/ground_truth.csv                   one row per written frame (a TruthRow)
 //! ```
+//!
+//! `ground_truth.csv` holds a [`TruthRow`]'s columns (the HIP's truth), then, for each
+//! keep-off guard `G` of ANYexo's default set ([`GuardConfig::default`]) in its order, the
+//! truth of that guard ([`super::truth::closest_to_guard`]): `G_closest_x_m`, `G_closest_y_m`,
+//! `G_closest_z_m` (nearest body point, world, m), `G_normal_x`, `G_normal_y`, `G_normal_z`
+//! (outward unit normal there), `G_gap_m` (distance from the guard's core minus its radius,
+//! m; negative inside a body) and `G_body`. A reader of [`TruthRow`] ignores the extra columns.
 
 use super::Simulator;
+use super::truth::GuardTruth;
 use crate::camera::PinholeIntrinsics;
 use crate::io::{self, Encoding};
+use crate::robot::guards::{GuardConfig, GuardSet};
 use nalgebra::Isometry3;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -97,6 +106,82 @@ pub struct TruthRow {
     pub body: String,
 }
 
+impl TruthRow {
+    /// The column names, in the order serde writes them.
+    pub const COLUMNS: [&'static str; 15] = [
+        "camera",
+        "index",
+        "capture_s",
+        "hip_x_m",
+        "hip_y_m",
+        "hip_z_m",
+        "closest_x_m",
+        "closest_y_m",
+        "closest_z_m",
+        "normal_x",
+        "normal_y",
+        "normal_z",
+        "distance_m",
+        "gap_m",
+        "body",
+    ];
+
+    /// The row's values in [`TruthRow::COLUMNS`]' order (shortest round-trip decimal form).
+    fn fields(&self) -> Vec<String> {
+        let mut out = vec![
+            self.camera.clone(),
+            self.index.to_string(),
+            self.capture_s.to_string(),
+        ];
+        out.extend(
+            [
+                self.hip_x_m,
+                self.hip_y_m,
+                self.hip_z_m,
+                self.closest_x_m,
+                self.closest_y_m,
+                self.closest_z_m,
+                self.normal_x,
+                self.normal_y,
+                self.normal_z,
+                self.distance_m,
+                self.gap_m,
+            ]
+            .map(|v| v.to_string()),
+        );
+        out.push(self.body.clone());
+        out
+    }
+}
+
+/// Per keep-off guard, the names of its truth columns in `ground_truth.csv`.
+pub fn guard_columns(guard: &str) -> [String; 8] {
+    [
+        "closest_x_m",
+        "closest_y_m",
+        "closest_z_m",
+        "normal_x",
+        "normal_y",
+        "normal_z",
+        "gap_m",
+        "body",
+    ]
+    .map(|c| format!("{guard}_{c}"))
+}
+
+fn guard_fields(t: &GuardTruth) -> [String; 8] {
+    [
+        t.closest_m.x.to_string(),
+        t.closest_m.y.to_string(),
+        t.closest_m.z.to_string(),
+        t.normal.x.to_string(),
+        t.normal.y.to_string(),
+        t.normal.z.to_string(),
+        t.gap_m.to_string(),
+        t.body.clone(),
+    ]
+}
+
 /// What [`write_sequence`] wrote.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct Summary {
@@ -127,7 +212,28 @@ pub fn write_sequence(
             .count();
     }
     let truth_path = dir.join("ground_truth.csv");
-    let mut truth = csv::Writer::from_path(&truth_path).map_err(|e| file_error(&truth_path, e))?;
+    let guards = sim
+        .robot_model()
+        .map(|m| GuardSet::new(m, &GuardConfig::default()))
+        .transpose()
+        .map_err(|e| file_error(&truth_path, e))?;
+    let guard_names: Vec<String> = guards.as_ref().map_or_else(Vec::new, |g| {
+        g.keep_off()
+            .iter()
+            .map(|&i| g.guards()[i].name.clone())
+            .collect()
+    });
+    let mut truth = csv::WriterBuilder::new()
+        .has_headers(false)
+        .from_path(&truth_path)
+        .map_err(|e| file_error(&truth_path, e))?;
+    let header = TruthRow::COLUMNS
+        .iter()
+        .map(|c| c.to_string())
+        .chain(guard_names.iter().flat_map(|g| guard_columns(g)));
+    truth
+        .write_record(header)
+        .map_err(|e| file_error(&truth_path, e))?;
     for timing in sim.arrivals(f64::NEG_INFINITY, sim.duration_s()) {
         let c = timing.camera_id as usize;
         if frames_per_camera.is_some_and(|n| counts[c] >= n) {
@@ -163,24 +269,38 @@ pub fn write_sequence(
             std::fs::write(&json_path, json).map_err(|e| file_error(&json_path, e))?;
         }
         if let Some(gt) = sim.ground_truth(timing.capture_s) {
+            let row = TruthRow {
+                camera: cam.name.clone(),
+                index: timing.index,
+                capture_s: timing.capture_s,
+                hip_x_m: gt.hip_m.x,
+                hip_y_m: gt.hip_m.y,
+                hip_z_m: gt.hip_m.z,
+                closest_x_m: gt.closest_m.x,
+                closest_y_m: gt.closest_m.y,
+                closest_z_m: gt.closest_m.z,
+                normal_x: gt.normal.x,
+                normal_y: gt.normal.y,
+                normal_z: gt.normal.z,
+                distance_m: gt.distance_m,
+                gap_m: gt.gap_m,
+                body: gt.body,
+            };
+            let per_guard = guards
+                .as_ref()
+                .map_or_else(Vec::new, |g| sim.guard_truth(timing.capture_s, None, g));
+            if per_guard.len() != guard_names.len() {
+                return Err(file_error(
+                    &truth_path,
+                    "a keep-off guard has no truth (the scene has no bodies)",
+                ));
+            }
+            let record = row
+                .fields()
+                .into_iter()
+                .chain(per_guard.iter().flat_map(|(_, t)| guard_fields(t)));
             truth
-                .serialize(TruthRow {
-                    camera: cam.name.clone(),
-                    index: timing.index,
-                    capture_s: timing.capture_s,
-                    hip_x_m: gt.hip_m.x,
-                    hip_y_m: gt.hip_m.y,
-                    hip_z_m: gt.hip_m.z,
-                    closest_x_m: gt.closest_m.x,
-                    closest_y_m: gt.closest_m.y,
-                    closest_z_m: gt.closest_m.z,
-                    normal_x: gt.normal.x,
-                    normal_y: gt.normal.y,
-                    normal_z: gt.normal.z,
-                    distance_m: gt.distance_m,
-                    gap_m: gt.gap_m,
-                    body: gt.body,
-                })
+                .write_record(record)
                 .map_err(|e| file_error(&truth_path, e))?;
             summary.truth_rows += 1;
         }

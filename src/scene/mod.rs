@@ -38,6 +38,7 @@ pub use truth::GroundTruth;
 
 use crate::camera::{Frame, PinholeIntrinsics};
 use crate::robot::JointVector;
+use crate::robot::guards::GuardSet;
 use effects::Compiled;
 use nalgebra::{Isometry3, Point3, Translation3};
 use render::{FrameKey, RawView};
@@ -353,6 +354,31 @@ impl Simulator {
     pub fn ground_truth_for(&self, t_s: f64, hip_m: &Point3<f64>) -> Option<GroundTruth> {
         let radius = self.hip_radius_m()?;
         truth::closest(&self.scene.file.bodies, t_s, hip_m, radius)
+    }
+
+    /// Truth per keep-off guard of `guards` at `t_s`, the robot on its trajectory (or at
+    /// `joints` when given): the body point nearest each guard, in [`GuardSet::keep_off`]'s
+    /// order with the guard's name (empty without a robot or without bodies).
+    pub fn guard_truth(
+        &self,
+        t_s: f64,
+        joints: Option<&JointVector>,
+        guards: &GuardSet,
+    ) -> Vec<(String, truth::GuardTruth)> {
+        let (Some(model), Some(q)) = (self.robot_model(), joints.copied().or(self.joints_at(t_s)))
+        else {
+            return Vec::new();
+        };
+        let poses = model.forward_kinematics(&q);
+        guards
+            .keep_off()
+            .iter()
+            .filter_map(|&i| {
+                let g = &guards.guards()[i];
+                truth::closest_to_guard(&self.scene.file.bodies, t_s, &g.world(&poses))
+                    .map(|t| (g.name.clone(), t))
+            })
+            .collect()
     }
 
     /// Timing of frame `index` of camera `camera_id` (None when the frame is dropped).

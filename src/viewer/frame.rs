@@ -169,6 +169,9 @@ pub struct GuardView {
     pub fused: Option<SurfacePoint>,
     /// Its `d_proj`, metres (None without a surface).
     pub d_proj_m: Option<f64>,
+    /// The simulated scene's truth for the guard (the nearest body point and the true gap,
+    /// [`crate::scene::truth::closest_to_guard`]); None for other sources.
+    pub truth: Option<crate::scene::truth::GuardTruth>,
 }
 
 /// Everything drawn for one instant.

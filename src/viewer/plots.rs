@@ -54,7 +54,8 @@ pub struct PlotData {
     /// Eq. 7 on the ground truth (true closest point and normal).
     pub true_d_proj_mm: Series,
     pub d_proj_rate_mm_per_s: Series,
-    /// `d_proj` of each keep-off guard to its fused surface, one series per guard.
+    /// `d_proj` of each keep-off guard to its fused surface, one series per guard, and
+    /// each guard's true gap where the source is simulated.
     pub guard_d_proj_mm: Vec<Series>,
     /// `-vc(d_proj)` of eq. 12: the velocity constraint keeps the rate above it.
     pub neg_speed_limit_mm_per_s: Series,
@@ -94,6 +95,10 @@ impl PlotData {
                 if let Some(v) = g.d_proj_m {
                     let name = format!("{} d_proj (mm)", g.name);
                     push_named(&mut d.guard_d_proj_mm, &name, [t, v * 1e3]);
+                }
+                if let Some(truth) = &g.truth {
+                    let name = format!("{} true gap (mm)", g.name);
+                    push_named(&mut d.guard_d_proj_mm, &name, [t, truth.gap_m * 1e3]);
                 }
             }
             if let Some(v) = s.speed_limit_m_per_s {

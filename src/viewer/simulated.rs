@@ -202,6 +202,14 @@ pub fn timeline_from_scene(
         });
         apply_loop_tick(&mut view, &tick, &node.controller.haptics, Some(&qdd));
         view.guards = guard_views(&haptic_loop, &robot, &q, &tick, &origins, node);
+        let set = haptic_loop.control().controller().guards();
+        for (view, (_, truth)) in
+            view.guards
+                .iter_mut()
+                .zip(simulator.guard_truth(t_s, Some(&q), set))
+        {
+            view.truth = Some(truth);
+        }
         for cam in &mut view.cameras {
             cam.layers = std::mem::take(&mut cam.layers)
                 .into_iter()
@@ -251,6 +259,7 @@ fn guard_views(
                     .filter(|c| c.status != crate::haptics::HapticStatus::NoSurface)
                     .map(|c| c.d_proj_m)
                     .filter(|d| d.is_finite()),
+                truth: None,
             }
         })
         .collect()
@@ -343,11 +352,17 @@ mod tests {
             for g in &f.guards {
                 assert!(g.radius_m > 0.0 && g.shell_radii_m[0] > g.radius_m);
                 assert_eq!(g.d_proj_m.is_some(), g.fused.is_some(), "{}", g.name);
+                let truth = g.truth.as_ref().expect("a simulated guard has its truth");
+                assert!(truth.gap_m.is_finite() && (truth.normal.norm() - 1.0).abs() < 1e-9);
             }
         }
         let plots = super::super::plots::PlotData::from_timeline(&timeline);
         let near: Vec<_> = plots.guard_d_proj_mm.iter().map(|s| &s.name).collect();
         assert!(!near.is_empty(), "no guard had a fused surface");
+        assert!(
+            near.iter().any(|n| n.ends_with("true gap (mm)")),
+            "{near:?}"
+        );
         println!("guards with a d_proj: {near:?}");
     }
 }
