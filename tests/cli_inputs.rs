@@ -6,6 +6,7 @@ mod common;
 
 use common::{TempDir, hapcloud};
 use std::io::Write;
+use std::os::unix::fs::OpenOptionsExt;
 use std::path::{Path, PathBuf};
 use std::process::{Output, Stdio};
 use std::time::{Duration, Instant};
@@ -102,12 +103,21 @@ fn an_endless_fifo_stops_at_the_limit_and_one_without_writer_does_not_hang() {
     let tmp = TempDir::new("cli_inputs_fifo");
     let path = fifo(&tmp.path, "endless.pcd");
     let writer_path = path.clone();
-    // Writes until the reader closes its end (EPIPE); Rust ignores SIGPIPE.
+    // A reader end held open lets the writer open the FIFO before the command starts (the
+    // command reads a FIFO without a writer as empty); it is closed once the command is done.
+    let hold_open = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(&path)
+        .unwrap();
+    let (opened, writer_ready) = std::sync::mpsc::channel();
+    // Writes until every reader has closed its end (EPIPE); Rust ignores SIGPIPE.
     let writer = std::thread::spawn(move || {
         let mut f = std::fs::OpenOptions::new()
             .write(true)
             .open(&writer_path)
             .unwrap();
+        opened.send(()).unwrap();
         let block = vec![b'0'; 1 << 16];
         let mut written = 0u64;
         while f.write_all(&block).is_ok() {
@@ -115,6 +125,7 @@ fn an_endless_fifo_stops_at_the_limit_and_one_without_writer_does_not_hang() {
         }
         written
     });
+    writer_ready.recv().unwrap();
     let out = run_bounded(
         &[
             "voxel".as_ref(),
@@ -128,6 +139,7 @@ fn an_endless_fifo_stops_at_the_limit_and_one_without_writer_does_not_hang() {
         ],
         Duration::from_secs(20),
     );
+    drop(hold_open);
     assert_over_limit(&out, &path, "more than 1000000 bytes");
     let written = writer.join().unwrap();
     assert!(written < 64 << 20, "{written} bytes written");
