@@ -829,6 +829,16 @@ mod tests {
         )
     }
 
+    /// A chain with the default front end and surface settings on `backend`.
+    fn default_chain(backend: Backend) -> Result<CameraChain, ChainError> {
+        CameraChain::new(
+            backend,
+            FrontendConfig::default(),
+            SurfaceConfig::default(),
+            None,
+        )
+    }
+
     fn frame(seed: u64, camera_id: u32) -> Frame {
         let cloud = PointCloud::organized(synthetic_frame(seed), 640, 480).unwrap();
         Frame::from_cloud(camera_id, seed as f64 / 30.0, pose(), cloud)
@@ -912,16 +922,8 @@ mod tests {
     #[test]
     fn a_depth_frame_enters_as_its_image_on_both_backends_and_they_agree() {
         let (hip, closest, _) = hip_and_truth();
-        let new = |backend| {
-            CameraChain::new(
-                backend,
-                FrontendConfig::default(),
-                SurfaceConfig::default(),
-                None,
-            )
-        };
-        let mut cpu = new(Backend::Cpu).unwrap();
-        let mut gpu = new(Backend::Gpu).expect("GPU tests need Vulkan");
+        let mut cpu = default_chain(Backend::Cpu).unwrap();
+        let mut gpu = default_chain(Backend::Gpu).expect("GPU tests need Vulkan");
         for seed in 0..2 {
             let f = Frame::from_depth(
                 0,
@@ -1269,16 +1271,8 @@ mod tests {
     #[test]
     fn the_gpu_chain_crops_the_union_and_the_guards_estimate_agrees_with_the_cpu() {
         let (guard, hip, _, _) = guard_in_front_of_the_sphere();
-        let new = |backend| {
-            CameraChain::new(
-                backend,
-                FrontendConfig::default(),
-                SurfaceConfig::default(),
-                None,
-            )
-        };
-        let mut cpu = new(Backend::Cpu).unwrap();
-        let mut gpu = new(Backend::Gpu).expect("GPU tests need Vulkan");
+        let mut cpu = default_chain(Backend::Cpu).unwrap();
+        let mut gpu = default_chain(Backend::Gpu).expect("GPU tests need Vulkan");
         for seed in 0..2 {
             let f = frame(seed, 0);
             let c = cpu.process_guarded(&f, &hip, &[], &[guard]).unwrap();
