@@ -89,6 +89,11 @@ impl<T> State<T> {
             .expect("every queued camera is numbered when its first item arrives")
     }
 
+    /// The worker that takes `camera`'s items when `workers` share the queue.
+    fn worker_of(&self, camera: u32, workers: usize) -> usize {
+        self.camera_number(camera) % workers.max(1)
+    }
+
     /// A worker comes back for its next item: the one it was on is done.
     fn finished(&mut self, worker: usize) {
         if let Some(Some(busy)) = self.busy.get_mut(worker).map(Option::take) {
@@ -103,7 +108,7 @@ impl<T> State<T> {
 
     /// A queued item of `camera` was dropped: its worker's state at that instant.
     fn dropped(&mut self, camera: u32) {
-        let worker = self.camera_number(camera) % self.workers.max(1);
+        let worker = self.worker_of(camera, self.workers);
         match self.busy.get_mut(worker) {
             Some(Some(busy)) => {
                 busy.drops += 1;
@@ -124,9 +129,8 @@ impl<T> State<T> {
 
     /// The oldest queued item, among the cameras of `share`, of the camera served longest ago.
     fn take_next(&mut self, share: Share) -> Option<T> {
-        let workers = share.workers.max(1);
         let next = (0..self.items.len())
-            .filter(|&i| self.camera_number(self.items[i].0) % workers == share.worker)
+            .filter(|&i| self.worker_of(self.items[i].0, share.workers) == share.worker)
             .min_by_key(|&i| (self.last_served(self.items[i].0), i))?;
         let (camera, item) = self.items.remove(next)?;
         if self.busy.len() <= share.worker {

@@ -321,8 +321,13 @@ impl ControlLoop {
     /// (transparent intent: gravity compensation and damping, paper Table I).
     pub fn tick(&mut self, t_s: f64, robot: &RobotInput) -> Tick {
         let fused = self.fusion.tick(t_s);
-        let keep_off = self.guard_fusions.iter_mut().map(|f| f.tick(t_s)).collect();
+        let keep_off = self.fuse_guards(t_s);
         self.tick_guarded_on(fused, keep_off, robot)
+    }
+
+    /// Each keep-off guard's fusion at `t_s`, in the controller's keep-off order.
+    fn fuse_guards(&mut self, t_s: f64) -> ArrayVec<FusedSurface, MAX_GUARDS> {
+        self.guard_fusions.iter_mut().map(|f| f.tick(t_s)).collect()
     }
 
     /// The constraints and the controller on a surface given from outside instead of
@@ -375,7 +380,7 @@ impl ControlLoop {
     pub fn stop(&mut self, t_s: f64, robot: &RobotInput) -> Tick {
         Tick {
             fused: self.fusion.tick(t_s),
-            keep_off: self.guard_fusions.iter_mut().map(|f| f.tick(t_s)).collect(),
+            keep_off: self.fuse_guards(t_s),
             held: false,
             output: self
                 .controller

@@ -1492,6 +1492,11 @@ mod tests {
             cloud_from_camera: Isometry3::identity(),
             flying: &flying,
         };
+        let error_of = |input: DepthInput<'_>| {
+            region(&input, &config, Some(&scene))
+                .unwrap_err()
+                .to_string()
+        };
         // A 1x1 image: its one pixel, kept.
         let kept = region(&depth, &config, Some(&scene)).unwrap();
         assert_eq!((kept.points.len(), kept.valid, kept.flying), (1, 1, 0));
@@ -1509,44 +1514,26 @@ mod tests {
             cy: 32_767.0,
             ..k
         };
-        let e = region(
-            &DepthInput {
-                image: &huge,
-                intrinsics: &huge_k,
-                ..depth
-            },
-            &config,
-            Some(&scene),
-        )
-        .unwrap_err()
-        .to_string();
+        let e = error_of(DepthInput {
+            image: &huge,
+            intrinsics: &huge_k,
+            ..depth
+        });
         assert!(e.contains("65535 x 65535 image holds 1 pixels"), "{e}");
         // Intrinsics that disagree with the image, and a principal point outside it.
-        let e = region(
-            &DepthInput {
-                intrinsics: &huge_k,
-                ..depth
-            },
-            &config,
-            Some(&scene),
-        )
-        .unwrap_err()
-        .to_string();
+        let e = error_of(DepthInput {
+            intrinsics: &huge_k,
+            ..depth
+        });
         assert!(
             e.contains("intrinsics for 65535 x 65535 pixels, image is 1 x 1"),
             "{e}"
         );
         let outside = PinholeIntrinsics { cx: 5.0, ..k };
-        let e = region(
-            &DepthInput {
-                intrinsics: &outside,
-                ..depth
-            },
-            &config,
-            Some(&scene),
-        )
-        .unwrap_err()
-        .to_string();
+        let e = error_of(DepthInput {
+            intrinsics: &outside,
+            ..depth
+        });
         assert!(
             e.contains("principal point cx = 5.0 px is outside the image"),
             "{e}"
@@ -1562,16 +1549,10 @@ mod tests {
         ));
         let mut pose = Isometry3::identity();
         pose.translation.vector.x = f64::INFINITY;
-        let e = region(
-            &DepthInput {
-                cloud_from_camera: pose,
-                ..depth
-            },
-            &config,
-            Some(&scene),
-        )
-        .unwrap_err()
-        .to_string();
+        let e = error_of(DepthInput {
+            cloud_from_camera: pose,
+            ..depth
+        });
         assert!(e.contains("camera pose is not finite"), "{e}");
         // Behind the camera and beside the image: no pixel read, an empty result with the
         // image's counts.

@@ -772,7 +772,7 @@ impl CameraChain {
         if k > 0 {
             near.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
         }
-        let origin = match near.iter().min_by(|a, b| a.0.total_cmp(&b.0)) {
+        let origin = match near[..k].iter().min_by(|a, b| a.0.total_cmp(&b.0)) {
             Some((_, x)) => segment.closest_point(x),
             None => nalgebra::center(&segment.a_m, &segment.b_m),
         };
@@ -857,20 +857,8 @@ mod tests {
     #[test]
     fn the_chain_finds_the_sphere_in_the_world_frame_on_both_backends() {
         let (hip, closest, normal) = hip_and_truth();
-        let mut cpu = CameraChain::new(
-            Backend::Cpu,
-            FrontendConfig::default(),
-            SurfaceConfig::default(),
-            None,
-        )
-        .unwrap();
-        let mut gpu = CameraChain::new(
-            Backend::Gpu,
-            FrontendConfig::default(),
-            SurfaceConfig::default(),
-            None,
-        )
-        .expect("GPU tests need Vulkan");
+        let mut cpu = default_chain(Backend::Cpu).unwrap();
+        let mut gpu = default_chain(Backend::Gpu).expect("GPU tests need Vulkan");
         assert_eq!((cpu.backend(), gpu.backend()), (Backend::Cpu, Backend::Gpu));
         for seed in 0..3 {
             let f = frame(seed, 0);
@@ -988,13 +976,7 @@ mod tests {
         let base = scene.file.robot.as_ref().unwrap().world_from_base();
         let robot = RobotModel::anyexo().unwrap().with_base(base);
         let chain = |keep| {
-            let mut c = CameraChain::new(
-                Backend::Cpu,
-                FrontendConfig::default(),
-                SurfaceConfig::default(),
-                None,
-            )
-            .unwrap();
+            let mut c = default_chain(Backend::Cpu).unwrap();
             c.set_crop_keep(keep);
             c
         };
@@ -1128,13 +1110,7 @@ mod tests {
     #[test]
     fn each_camera_keeps_its_own_memory_and_a_robot_primitive_is_cropped() {
         let (hip, _, _) = hip_and_truth();
-        let mut p = CameraChain::new(
-            Backend::Cpu,
-            FrontendConfig::default(),
-            SurfaceConfig::default(),
-            None,
-        )
-        .unwrap();
+        let mut p = default_chain(Backend::Cpu).unwrap();
         let first = p.process(&frame(0, 0), &hip, &[]).unwrap();
         let again = p.process(&frame(1, 0), &hip, &[]).unwrap();
         let other = p.process(&frame(1, 1), &hip, &[]).unwrap();
@@ -1221,13 +1197,7 @@ mod tests {
     #[test]
     fn a_keep_off_capsule_finds_the_surface_in_front_of_it_from_the_same_front_end() {
         let (guard, hip, closest, normal) = guard_in_front_of_the_sphere();
-        let mut chain = CameraChain::new(
-            Backend::Cpu,
-            FrontendConfig::default(),
-            SurfaceConfig::default(),
-            None,
-        )
-        .unwrap();
+        let mut chain = default_chain(Backend::Cpu).unwrap();
         for seed in 0..3 {
             let f = frame(seed, 0);
             let out = chain.process_guarded(&f, &hip, &[], &[guard]).unwrap();
@@ -1298,13 +1268,7 @@ mod tests {
     #[test]
     fn a_guard_whose_view_the_robot_blocks_has_no_surface() {
         let (guard, hip, _, _) = guard_in_front_of_the_sphere();
-        let mut chain = CameraChain::new(
-            Backend::Cpu,
-            FrontendConfig::default(),
-            SurfaceConfig::default(),
-            None,
-        )
-        .unwrap();
+        let mut chain = default_chain(Backend::Cpu).unwrap();
         // A robot link over the whole sphere: nothing of the body is left in the reach.
         let link = Primitive::Sphere {
             center_m: pose() * Point3::from(CENTRE_CAM),
@@ -1328,15 +1292,7 @@ mod tests {
     fn without_guards_the_chain_is_the_single_hip_chain_bit_for_bit() {
         let (hip, _, _) = hip_and_truth();
         let (guard, _, _, _) = guard_in_front_of_the_sphere();
-        let new = || {
-            CameraChain::new(
-                Backend::Cpu,
-                FrontendConfig::default(),
-                SurfaceConfig::default(),
-                None,
-            )
-            .unwrap()
-        };
+        let new = || default_chain(Backend::Cpu).unwrap();
         let (mut used, mut fresh) = (new(), new());
         used.process_guarded(&frame(0, 0), &hip, &[], &[guard])
             .unwrap();
