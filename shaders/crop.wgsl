@@ -8,7 +8,9 @@
 //
 // A point cloud: `crop_mask`, one thread per mask word, keeps the finite points in the crop
 // sphere, or lists them when the frame has robot primitives; `crop_check` tests a listed
-// point against the primitives. A depth image: `crop_depth`, per pixel and without loops,
+// point against the primitives. A depth image: `crop_depth`, per pixel of a rectangle of
+// it (the whole image, or the crop's pixel region, whose pixels and their flying-pixel
+// neighbours are all the host uploads: crop.rs `crop_region`) and without loops,
 // deprojects (pinhole, f32), moves the point to the cloud frame with the camera's pose,
 // writes it for the voxel pass (NaN without a depth), and keeps it when it lies in the crop
 // sphere and neither the flying-pixel (veil) test of src/perception/flying.rs nor a robot
@@ -87,9 +89,12 @@ struct DepthParams {
     height: u32,
     // Half width of the neighbour window (px); 0 turns the test off.
     window: u32,
-    _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // The pixels the passes run over: the rectangle of `region_width` columns from column
+    // `region_u` and of point_count / region_width rows from row `region_v` (the whole
+    // image, or the crop's pixel region). Point i is its pixel i in row-major order.
+    region_u: u32,
+    region_v: u32,
+    region_width: u32,
 }
 
 @group(0) @binding(6) var<uniform> depth_params: DepthParams;
@@ -346,14 +351,21 @@ fn depth_pixel(u: u32, v: u32, k: u32) -> vec3<u32> {
     return bitcast<vec3<u32>>(c);
 }
 
-// Pixel k (< 4) of the quad whose first pixel is (u, v), without a division: u + k wraps
-// to the next rows at most 3 times (3 for an image 1 pixel wide, at most once from 4 pixels
-// wide); nothing beyond the image (the last quad of an image whose pixel count is not a
-// multiple of 4).
+// Image pixel of the passes' point i (its pixel in the region, row-major).
+fn region_pixel(i: u32) -> vec2<u32> {
+    let v = i / depth_params.region_width;
+    let u = i - v * depth_params.region_width;
+    return vec2<u32>(depth_params.region_u + u, depth_params.region_v + v);
+}
+
+// Pixel k (< 4) of the quad whose first pixel is (u, v) of the region, without a division:
+// u + k wraps to the region's next rows at most 3 times (3 for a region 1 pixel wide, at
+// most once from 4 pixels wide); nothing beyond the region (the last quad of a region whose
+// pixel count is not a multiple of 4).
 fn depth_pixel_if_any(i: u32, u: u32, v: u32, k: u32) -> vec3<u32> {
     var x = u + k;
     var y = v;
-    let w = depth_params.width;
+    let w = depth_params.region_width;
     let wrap1 = x >= w;
     x = select(x, x - w, wrap1);
     let wrap2 = x >= w;
@@ -362,7 +374,7 @@ fn depth_pixel_if_any(i: u32, u: u32, v: u32, k: u32) -> vec3<u32> {
     x = select(x, x - w, wrap3);
     y += u32(wrap1) + u32(wrap2) + u32(wrap3);
     if i + k < params.point_count {
-        return depth_pixel(x, y, k);
+        return depth_pixel(depth_params.region_u + x, depth_params.region_v + y, k);
     }
     return vec3<u32>(NAN_BITS);
 }
@@ -375,8 +387,8 @@ fn list_check(bit: u32, i: u32, slot: ptr<function, u32>) {
     }
 }
 
-// First pass of a depth frame, one thread per quad of pixels (neighbouring threads read and
-// write neighbouring memory): every pixel's cloud-frame point, the keep bits of the pixels
+// First pass of a depth frame, one thread per quad of the region's pixels (neighbouring
+// threads read and write neighbouring memory): every pixel's cloud-frame point, the keep bits of the pixels
 // it decides (the workgroup ORs them into whole mask words) and the list of the others.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn crop_depth(
@@ -396,9 +408,9 @@ fn crop_depth(
         quad_valid = 0u;
         quad_keep = 0u;
         quad_check = 0u;
-        let v = i / depth_params.width;
-        let u = i - v * depth_params.width;
-        let q0 = depth_pixel(u, v, 0u);
+        let v = i / depth_params.region_width;
+        let u = i - v * depth_params.region_width;
+        let q0 = depth_pixel(depth_params.region_u + u, depth_params.region_v + v, 0u);
         let q1 = depth_pixel_if_any(i, u, v, 1u);
         let q2 = depth_pixel_if_any(i, u, v, 2u);
         let q3 = depth_pixel_if_any(i, u, v, 3u);
@@ -446,10 +458,9 @@ fn crop_depth_check(t: CheckThread) {
     if i == NONE {
         return;
     }
-    let v = i / depth_params.width;
-    let u = i - v * depth_params.width;
-    let p = deproject(u, v, raw_depth(u, v));
-    if in_veil_region(p) && is_flying(u, v, p) {
+    let px = region_pixel(i);
+    let p = deproject(px.x, px.y, raw_depth(px.x, px.y));
+    if in_veil_region(p) && is_flying(px.x, px.y, p) {
         out_words[3u * i] = NAN_BITS;
         out_words[3u * i + 1u] = NAN_BITS;
         out_words[3u * i + 2u] = NAN_BITS;

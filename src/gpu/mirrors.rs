@@ -57,9 +57,11 @@ pub struct DepthParams {
     pub height: u32,
     /// Half width of the neighbour window (px); 0: no flying-pixel test.
     pub window: u32,
-    pub _pad0: u32,
-    pub _pad1: u32,
-    pub _pad2: u32,
+    /// The rectangle the passes run over: first column and row, width (px); its rows are
+    /// `point_count / region_width`.
+    pub region_u: u32,
+    pub region_v: u32,
+    pub region_width: u32,
 }
 
 /// `VoxelParams` in voxel.wgsl.

@@ -197,6 +197,11 @@ impl DepthInput<'_> {
         self.image.data.is_empty()
     }
 
+    /// Pixels of the whole image with a depth (not 0).
+    pub fn valid_pixels(&self) -> usize {
+        self.image.data.iter().filter(|&&d| d != 0).count()
+    }
+
     fn validate(&self) -> Result<(), CropError> {
         let bad = |e: crate::io::FormatError| CropError::BadDepth(e.to_string());
         crate::io::depth::check_intrinsics(self.intrinsics).map_err(bad)?;
@@ -951,46 +956,79 @@ impl GpuCrop {
     }
 
     /// Uploads a depth frame (the 16-bit image, 2 bytes per pixel) and this frame's
-    /// parameters for [`GpuCrop::record_depth`]; without a scene every valid pixel that is
-    /// not flying is kept.
+    /// parameters for [`GpuCrop::record_depth`], whose passes then run over the pixels of
+    /// `region` (`None`: every pixel; point i is the region's pixel i in row-major order).
+    /// Only the region's pixels and, for the flying-pixel test, their neighbours are
+    /// uploaded. Without a scene every valid pixel that is not flying is kept. `region` must
+    /// lie in the image (an empty one runs no pixel).
     pub fn prepare_depth(
         &mut self,
         ctx: &GpuContext,
         depth: &DepthInput<'_>,
         config: &CropConfig,
         scene: Option<&CropScene<'_>>,
+        region: Option<&PixelRect>,
     ) -> Result<(), CropError> {
         config.validate()?;
         depth.validate()?;
         if let Some(scene) = scene {
             scene.validate()?;
         }
-        // One thread per quad of pixels, in one dimension of a dispatch.
-        if (depth.len() as u64).div_ceil(u64::from(DEPTH_QUAD)) > shader::MAX_THREADS {
-            return Err(CropError::TooManyPoints(depth.len()));
-        }
         let (width, height) = (depth.image.width, depth.image.height);
+        let region = region.cloned().unwrap_or(PixelRect::full(width, height));
+        if region.u.end > width || region.v.end > height {
+            return Err(CropError::BadDepth(format!(
+                "pixel region {region:?} exceeds the {width} x {height} image"
+            )));
+        }
+        let pixels = region.pixels();
+        // One thread per quad of pixels, in one dimension of a dispatch.
+        if (pixels as u64).div_ceil(u64::from(DEPTH_QUAD)) > shader::MAX_THREADS {
+            return Err(CropError::TooManyPoints(pixels));
+        }
         let largest = ctx.device().limits().max_texture_dimension_2d;
         if width.max(height) > largest {
             return Err(CropError::BadDepth(format!(
                 "{width} x {height} image exceeds the GPU's {largest} px texture side"
             )));
         }
-        self.write_params(ctx, depth.len(), config, scene)?;
+        self.write_params(ctx, pixels, config, scene)?;
         if (self.depth.width(), self.depth.height()) != (width.max(1), height.max(1)) {
             self.depth = ctx.scoped("crop depth image", |_| depth_texture(ctx, width, height))?;
             self.depth_view = self.depth.create_view(&Default::default());
         }
-        if !depth.is_empty() {
+        let window = if depth.flying.enabled {
+            depth.flying.window_px
+        } else {
+            0
+        };
+        // The pixels the passes read: the region's and their flying-pixel neighbours, in
+        // their place in the image-sized texture (the rest of it is never read).
+        let read = region.grown(window, width, height);
+        if !read.is_empty() {
+            let first = read.v.start as usize * width as usize + read.u.start as usize;
             ctx.queue().write_texture(
-                self.depth.as_image_copy(),
-                bytemuck::cast_slice(&depth.image.data),
+                wgpu::TexelCopyTextureInfo {
+                    texture: &self.depth,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d {
+                        x: read.u.start,
+                        y: read.v.start,
+                        z: 0,
+                    },
+                    aspect: wgpu::TextureAspect::All,
+                },
+                bytemuck::cast_slice(&depth.image.data[first..]),
                 wgpu::TexelCopyBufferLayout {
                     offset: 0,
                     bytes_per_row: Some(2 * width),
-                    rows_per_image: Some(height),
+                    rows_per_image: Some(read.v.len() as u32),
                 },
-                self.depth.size(),
+                wgpu::Extent3d {
+                    width: read.u.len() as u32,
+                    height: read.v.len() as u32,
+                    depth_or_array_layers: 1,
+                },
             );
         }
         let (near, radius) = veil_region(&depth.cloud_from_camera, config, scene);
@@ -1017,12 +1055,10 @@ impl GpuCrop {
             sin2_min: depth.flying.min_ray_angle_rad.sin().powi(2) as f32,
             width: depth.image.width,
             height: depth.image.height,
-            window: if depth.flying.enabled {
-                depth.flying.window_px
-            } else {
-                0
-            },
-            ..Default::default()
+            window,
+            region_u: region.u.start,
+            region_v: region.v.start,
+            region_width: region.u.len() as u32,
         };
         ctx.queue()
             .write_buffer(&self.depth_params, 0, bytemuck::bytes_of(&params));
@@ -1079,9 +1115,9 @@ impl GpuCrop {
     }
 
     /// Records the first passes of a depth frame ([`GpuCrop::prepare_depth`]): the
-    /// cloud-frame points into `out_points` (12 bytes per pixel, at least
+    /// cloud-frame points into `out_points` (12 bytes per pixel of the region, at least
     /// [`super::voxel::points_bytes`] in all), the keep mask and the counters (cleared here);
-    /// `crop_depth` over every pixel, then `crop_depth_check` over the pixels it listed.
+    /// `crop_depth` over the region's pixels, then `crop_depth_check` over those it listed.
     pub fn record_depth(
         &mut self,
         ctx: &GpuContext,

@@ -1,9 +1,12 @@
 //! The per-frame front end (paper IV-A to IV-C): crop -> voxel grid -> clustering.
 //!
 //! On the GPU ([`GpuFrontend`]) a frame is one command encoder and one submit. A frame that
-//! comes as a depth image ([`FramePoints::Depth`]: 2 bytes per pixel, 0.8 MB at 848x480)
-//! is uploaded as such, and the first pass deprojects it, rejects flying pixels and crops
-//! ([`crate::perception::crop`]), writing the cloud-frame points on the GPU; a point cloud
+//! comes as a depth image ([`FramePoints::Depth`]: 2 bytes per pixel) is uploaded as such,
+//! only the rows and columns of the crop's pixel region ([`crate::perception::crop::crop_region`],
+//! grown by the flying-pixel window) unless the frame wants the keep mask over every pixel,
+//! and the first pass deprojects the region's pixels, rejects flying pixels and crops
+//! ([`crate::perception::crop`]), writing their cloud-frame points on the GPU (no cloud of
+//! the whole frame; the CPU's region pass reads the same pixels); a point cloud
 //! (PCD, PointCloud2) is uploaded as points (all of them: dropping the invalid pixels first
 //! saved GPU time on lavapipe but cost more CPU time than it saved upload on an H100) and
 //! the first pass crops it. Then the voxel passes (read the mask; clears with
@@ -41,8 +44,9 @@ use crate::perception::cluster::{
     ClusterConfig, ClusterError, ClusterInput, Clustering, GpuClusterer, cluster_cpu,
 };
 use crate::perception::crop::{
-    CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop, RegionScratch,
-    crop_cpu, crop_depth_cpu, crop_depth_region_cpu, mask_words, veil_region,
+    CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop, PixelRect,
+    RegionScratch, crop_cpu, crop_depth_cpu, crop_depth_region_cpu, crop_region, mask_words,
+    veil_region,
 };
 use crate::perception::flying::{FlyingPixelConfig, veil_cloud};
 use crate::perception::shells::{
@@ -609,7 +613,16 @@ impl GpuFrontend {
     ) -> Result<FrontendOutput, FrontendError> {
         let start = Instant::now();
         let ctx = Arc::clone(&self.ctx);
-        let n = input.len();
+        let keep = frame.wants_crop_keep();
+        // Without a keep mask over the image to hand back, a depth frame's passes run over
+        // the crop's pixel region only (the pixels and counts the CPU's region pass reads).
+        let region = match &input {
+            HostPoints::Depth(depth) if !keep => {
+                Some(crop_region(depth, &self.config.crop, frame.crop.as_ref()))
+            }
+            _ => None,
+        };
+        let n = region.as_ref().map_or(input.len(), PixelRect::pixels);
         let input_bytes = points_bytes(n);
         ctx.check_storage_size("frontend input points", input_bytes)?;
         if self.input.size() < input_bytes {
@@ -627,13 +640,19 @@ impl GpuFrontend {
                 false
             }
             HostPoints::Depth(depth) => {
+                let scene = frame.crop.as_ref();
+                let config = &self.config.crop;
                 self.crop
-                    .prepare_depth(&ctx, depth, &self.config.crop, frame.crop.as_ref())?;
+                    .prepare_depth(&ctx, depth, config, scene, region.as_ref())?;
                 true
             }
         };
+        // The pixels with a depth in the whole image, when the passes read only the region.
+        let image_valid = match (&input, &region) {
+            (HostPoints::Depth(depth), Some(_)) => Some(depth.valid_pixels()),
+            _ => None,
+        };
         let first_pass = frame.first_pass();
-        let keep = frame.wants_crop_keep();
         let leaf_m = self.leaf.leaf_m;
         self.voxel
             .prepare(&ctx, n, first_pass, &self.config.voxel, leaf_m)?;
@@ -778,11 +797,11 @@ impl GpuFrontend {
             .unwrap_or_default();
         self.leaf.update(&self.config.voxel, voxel.points.len());
         Ok(FrontendOutput {
-            points_in: n,
+            points_in: input.len(),
             crop_keep: keep.then_some(keep_mask),
             points: (keep && depth).then_some(points),
             depth: depth.then_some(DepthCounts {
-                valid: counts[0] as usize,
+                valid: image_valid.unwrap_or(counts[0] as usize),
                 flying: counts[1] as usize,
             }),
             voxel,

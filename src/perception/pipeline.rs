@@ -10,8 +10,9 @@
 //!    between a foreground and a background surface go. A frame that carries its depth
 //!    image skips steps 1 and 2 here on both backends: the image itself is the front end's
 //!    input, and its first pass deprojects, moves, tests and crops the pixels
-//!    ([`super::crop::DepthInput`]; the GPU every pixel, the CPU only those of the crop
-//!    sphere's projection, [`super::crop::crop_region`]). The simulator's cloud is its
+//!    ([`super::crop::DepthInput`]; both backends only the pixels of the crop sphere's
+//!    projection, [`super::crop::crop_region`], unless the keep mask over every pixel is
+//!    asked for). The simulator's cloud is its
 //!    unquantised depth and its image the 1 mm one a D435 delivers: both backends take the
 //!    image, as from a real camera,
 //! 3. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
@@ -633,8 +634,8 @@ impl CameraChain {
         );
         self.frontend.set_crop_radius_m(crop_radius)?;
         // A frame that carries its depth image enters as the image: the first pass
-        // deprojects it, rejects flying pixels and crops (the GPU over every pixel, the CPU
-        // over the pixels the crop region covers). A source without an image hands the
+        // deprojects it, rejects flying pixels and crops, over the pixels the crop region
+        // covers (every pixel when the keep mask is asked for). A source without an image hands the
         // camera-frame cloud in with its pose, and the front end runs the veil test and the
         // pose on the host.
         let flying_config = self.surface_config.flying_pixels.clone();
