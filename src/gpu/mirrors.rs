@@ -133,7 +133,23 @@ pub struct ShellParams {
     pub capacity: u32,
     pub min_size: u32,
     pub max_size: u32,
-    pub _pad: u32,
+    /// Keep-off guards the guard entry points sum.
+    pub guard_count: u32,
+    pub bounds: [u32; SHELL_SLOTS],
+    pub inv_radius: [f32; SHELL_SLOTS],
+}
+
+/// `GuardShells` in shells.wgsl: one keep-off guard's segment, reach and shells.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct GuardShellParams {
+    /// Segment ends (xyz, m); `a[3]`: squared reach (m^2), `b[3]`: outermost shell radius (m).
+    pub a: [f32; 4],
+    pub b: [f32; 4],
+    /// The segment's middle (xyz, m), the origin without a point; `middle[3]`: steps per m.
+    pub middle: [f32; 4],
+    pub shell_count: u32,
+    pub _pad: [u32; 3],
     pub bounds: [u32; SHELL_SLOTS],
     pub inv_radius: [f32; SHELL_SLOTS],
 }
@@ -191,6 +207,7 @@ pub const MIRRORS: &[Mirror] = &[
     mirror::<VoxelHeader>(shader::VOXEL, "VoxelHeader"),
     mirror::<SortStep>(shader::VOXEL, "SortStep"),
     mirror::<ShellParams>(shader::SHELLS, "ShellParams"),
+    mirror::<GuardShellParams>(shader::SHELLS, "GuardShells"),
     mirror::<ClusterParams>(shader::CLUSTER, "ClusterParams"),
 ];
 

@@ -15,7 +15,10 @@
 //! stage results into one readback buffer, of which the frame's bytes are mapped once. When the
 //! caller gives the frame's [`ShellLayout`] ([`FrameInput::shells`]), the same submission adds
 //! the per-shell sums of the kept clusters' points (paper Alg. 2's input; `shaders/shells.wgsl`)
-//! and reads back those 9 kB with the frame ([`FrontendOutput::shell_sums`]). Only when a bounded union-find pass of the
+//! and reads back those 9 kB with the frame ([`FrontendOutput::shell_sums`]); with keep-off
+//! guards ([`Frontend::set_guard_shells`]) it also finds each guard's shell origin and sums
+//! its shells over the same points, 9 kB per guard ([`Frontend::take_guard_sums`]). Only
+//! when a bounded union-find pass of the
 //! clustering ran out of steps does the cluster stage add small submissions of its own
 //! (see [`crate::perception::cluster`]). Each stage is one or more compute passes bracketed by
 //! timestamps, so the frame reports the GPU time per stage, and, where the context's clock is
@@ -50,7 +53,8 @@ use crate::perception::crop::{
 };
 use crate::perception::flying::{FlyingPixelConfig, veil_cloud};
 use crate::perception::shells::{
-    ClusteredPoints, GpuShells, SUMS_BYTES, ShellLayout, ShellSums, accumulate_cpu, read_sums,
+    ClusteredPoints, GUARD_RESULT_BYTES, GpuShells, GuardShells, GuardSums, MAX_GPU_GUARDS,
+    SUMS_BYTES, ShellLayout, ShellSums, accumulate_cpu, read_guards, read_sums,
 };
 use crate::perception::voxel::{
     GpuVoxel, LeafAdapter, VoxelConfig, VoxelError, VoxelOutput, points_bytes, voxel_cpu_with_leaf,
@@ -317,6 +321,33 @@ impl Frontend {
         }
     }
 
+    /// The keep-off guards whose per-shell sums the GPU front end adds to the frames to come,
+    /// in the frame's one submission ([`Self::take_guard_sums`]); at most [`MAX_GPU_GUARDS`].
+    /// The CPU front end sums none: its caller's estimators do.
+    pub fn set_guard_shells(&mut self, guards: &[GuardShells]) -> Result<(), FrontendError> {
+        if let Frontend::Gpu(g) = self {
+            if guards.len() > MAX_GPU_GUARDS {
+                return Err(FrontendError::Gpu(GpuError::Validation {
+                    context: "keep-off guard shells".into(),
+                    message: format!("{} guards, at most {MAX_GPU_GUARDS}", guards.len()),
+                }));
+            }
+            g.guards.clear();
+            g.guards.extend_from_slice(guards);
+        }
+        Ok(())
+    }
+
+    /// The last frame's per-guard sums, in [`Self::set_guard_shells`]'s order: `None` on the
+    /// CPU, without guards, and when the frame's clustering needed submissions of its own
+    /// (the labels then changed after the guard passes).
+    pub fn take_guard_sums(&mut self) -> Option<Vec<GuardSums>> {
+        match self {
+            Frontend::Gpu(g) => g.guard_sums.take(),
+            Frontend::Cpu(_) => None,
+        }
+    }
+
     /// Sizes the GPU buffers for frames of up to `points` points or pixels
     /// ([`GpuFrontend::reserve`]); nothing on the CPU.
     pub fn reserve(&mut self, points: usize) -> Result<(), FrontendError> {
@@ -451,9 +482,10 @@ fn cluster_input(voxel: &GpuVoxel) -> ClusterInput<'_> {
 
 /// The front end's own timed passes (the voxel and cluster stages time their passes
 /// themselves and read their timestamps back with their results).
-const STAGES: [&str; 2] = ["crop", "shells"];
+const STAGES: [&str; 3] = ["crop", "shells", "guards"];
 const CROP_PASS: usize = 0;
 const SHELLS_PASS: usize = 1;
+const GUARDS_PASS: usize = 2;
 
 /// The kept clusters' points of the frame as [`GpuShells::record_clusters`] reads them.
 fn clustered_points<'a>(
@@ -485,6 +517,10 @@ pub struct GpuFrontend {
     input: wgpu::Buffer,
     readback: wgpu::Buffer,
     leaf: LeafAdapter,
+    /// Keep-off guards whose shells each frame sums ([`Frontend::set_guard_shells`]).
+    guards: Vec<GuardShells>,
+    /// The last frame's per-guard sums.
+    guard_sums: Option<Vec<GuardSums>>,
 }
 
 fn make_buffer(
@@ -531,6 +567,8 @@ impl GpuFrontend {
             timer,
             input,
             readback,
+            guards: Vec::new(),
+            guard_sums: None,
         })
     }
 
@@ -560,8 +598,10 @@ impl GpuFrontend {
         self.cluster.reserve(&ctx, capacity, &self.config.cluster)?;
         self.shells.reserve_clusters(&ctx, capacity)?;
         // The largest readback: timestamps, voxel and cluster results, shell sums, keep mask,
-        // points.
-        let needed = self.readback_layout(points, capacity, true, true, true).end;
+        // points, keep-off guards.
+        let needed = self
+            .readback_layout(points, capacity, true, true, true, MAX_GPU_GUARDS)
+            .end;
         if self.readback.size() < needed {
             self.readback = make_buffer(&ctx, "frontend readback", needed, READBACK_USAGE)?;
         }
@@ -586,6 +626,7 @@ impl GpuFrontend {
         shells: bool,
         keep: bool,
         points: bool,
+        guards: usize,
     ) -> Readback {
         let ts = self.timer.as_ref().map_or(0, |t| t.readback_bytes());
         let cluster = ts + self.voxel.readback_bytes();
@@ -595,6 +636,7 @@ impl GpuFrontend {
         let points_at = keep_at + keep_bytes;
         let points_bytes = if points { 12 * n as u64 } else { 0 };
         let counts_at = points_at + points_bytes;
+        let guards_at = counts_at + DEPTH_COUNT_BYTES;
         Readback {
             voxel: ts,
             cluster,
@@ -602,7 +644,8 @@ impl GpuFrontend {
             keep: keep_at,
             points: points_at,
             counts: counts_at,
-            end: counts_at + DEPTH_COUNT_BYTES,
+            guards: guards_at,
+            end: guards_at + GUARD_RESULT_BYTES * guards as u64,
         }
     }
 
@@ -613,6 +656,8 @@ impl GpuFrontend {
     ) -> Result<FrontendOutput, FrontendError> {
         let start = Instant::now();
         let ctx = Arc::clone(&self.ctx);
+        self.guard_sums = None;
+        let guards = self.guards.len();
         let keep = frame.wants_crop_keep();
         // Without a keep mask over the image to hand back, a depth frame's passes run over
         // the crop's pixel region only (the pixels and counts the CPU's region pass reads).
@@ -657,13 +702,20 @@ impl GpuFrontend {
         self.voxel
             .prepare(&ctx, n, first_pass, &self.config.voxel, leaf_m)?;
         let mut retries = 0;
-        let (mut voxel, mut ticks, shells_tick, cluster_bytes, sums, keep_mask, points, counts) = loop {
+        let (mut voxel, mut ticks, shell_ticks, cluster_bytes, sums, guard_sums, rest) = loop {
             // The cluster stage reads the voxel output in place: its capacity is the voxel
             // table's, its point count the header's `out_count`, known only on the GPU.
             let capacity = self.voxel.table_slots();
             self.cluster.reserve(&ctx, capacity, &self.config.cluster)?;
             self.shells.reserve_clusters(&ctx, capacity)?;
-            let at = self.readback_layout(n, capacity, frame.shells.is_some(), keep, keep && depth);
+            let at = self.readback_layout(
+                n,
+                capacity,
+                frame.shells.is_some(),
+                keep,
+                keep && depth,
+                guards,
+            );
             if self.readback.size() < at.end {
                 self.readback = make_buffer(&ctx, "frontend readback", at.end, READBACK_USAGE)?;
             }
@@ -684,17 +736,24 @@ impl GpuFrontend {
             self.voxel.record(&ctx, &mut encoder, &self.input, mask);
             self.cluster
                 .encode(&ctx, &mut encoder, &cluster_input(&self.voxel))?;
-            if let Some(layout) = frame.shells {
+            if frame.shells.is_some() || guards > 0 {
                 let input = clustered_points(&self.voxel, &self.cluster, &self.config.cluster);
                 self.shells.record_clusters(
                     &ctx,
                     &mut encoder,
                     &input,
-                    layout,
-                    writes(SHELLS_PASS),
+                    frame.shells,
+                    &self.guards,
+                    [writes(SHELLS_PASS), writes(GUARDS_PASS)],
                 )?;
-                self.shells
-                    .copy_sums(&mut encoder, &self.readback, at.shells);
+                if frame.shells.is_some() {
+                    self.shells
+                        .copy_sums(&mut encoder, &self.readback, at.shells);
+                }
+                if guards > 0 {
+                    self.shells
+                        .copy_guards(&mut encoder, &self.readback, at.guards, guards);
+                }
             }
             if let Some(t) = &self.timer {
                 t.resolve_into(&mut encoder, &self.readback, 0);
@@ -725,6 +784,7 @@ impl GpuFrontend {
                 let voxel = &mut self.voxel;
                 let timer = self.timer.as_ref();
                 let config = &self.config.voxel;
+                let guard_shells = &self.guards;
                 let readback = (&self.readback, at.end);
                 ctx.submit_and_read("frontend frame", encoder.finish(), readback, |b| {
                     let times = timer
@@ -737,36 +797,32 @@ impl GpuFrontend {
                     let keep: Vec<u32> = bytemuck::pod_collect_to_vec(&b[r(at.keep, at.points)]);
                     let points: Vec<Vec3> =
                         bytemuck::pod_collect_to_vec(&b[r(at.points, at.counts)]);
-                    let counts: [u32; 2] = bytemuck::pod_read_unaligned(&b[r(at.counts, at.end)]);
+                    let counts: [u32; 2] =
+                        bytemuck::pod_read_unaligned(&b[r(at.counts, at.guards)]);
+                    let guard_sums =
+                        (guards > 0).then(|| read_guards(&b[r(at.guards, at.end)], guard_shells));
                     (
                         voxel,
                         times,
                         b[r(at.cluster, at.shells)].to_vec(),
                         sums,
-                        keep,
-                        points,
-                        counts,
+                        guard_sums,
+                        (keep, points, counts),
                     )
                 })?
             };
-            let (voxel, times, cluster_bytes, sums, keep_mask, points, counts) = result;
+            let (voxel, times, cluster_bytes, sums, guard_sums, rest) = result;
             if let Some((v, voxel_times)) = voxel? {
                 let pass = |k: usize, ran: bool| times.get(k).copied().filter(|_| ran);
-                let shells_tick = pass(SHELLS_PASS, frame.shells.is_some());
+                let shell_ticks = [
+                    pass(SHELLS_PASS, frame.shells.is_some() || guards > 0),
+                    pass(GUARDS_PASS, guards > 0),
+                ];
                 let times = pass(CROP_PASS, first_pass)
                     .into_iter()
                     .chain(voxel_times)
                     .collect::<Vec<_>>();
-                break (
-                    v,
-                    times,
-                    shells_tick,
-                    cluster_bytes,
-                    sums,
-                    keep_mask,
-                    points,
-                    counts,
-                );
+                break (v, times, shell_ticks, cluster_bytes, sums, guard_sums, rest);
             }
             retries += 1;
         };
@@ -778,8 +834,12 @@ impl GpuFrontend {
             voxel.points.len() as u32,
             &self.config.cluster,
         )?;
+        let (keep_mask, points, counts) = rest;
         ticks.extend(cluster_stats.gpu_ticks);
-        ticks.extend(shells_tick);
+        ticks.extend(shell_ticks.into_iter().flatten());
+        // The guards' sums are the final clusters' only when the clustering took no
+        // submission of its own; otherwise the caller's estimators sum them on the CPU.
+        self.guard_sums = guard_sums.filter(|_| cluster_stats.submissions <= 1);
         // A union-find that needed more submissions changed the labels after the frame's
         // shell pass: the CPU reference sums the final clusters instead.
         let shell_sums = match frame.shells {
@@ -822,6 +882,7 @@ struct Readback {
     keep: u64,
     points: u64,
     counts: u64,
+    guards: u64,
     end: u64,
 }
 

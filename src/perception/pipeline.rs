@@ -45,9 +45,11 @@
 //! direction (`GuardFrame::nearest_points_surface`), the distance measured to what is seen. A
 //! guard whose reach holds too few
 //! points (the robot's own links, cropped out, hide the body) has no surface
-//! (`estimate.surface = None`), never a made-up distance. Keep-off guards' moments are
-//! computed on the CPU on either backend. Without keep-off guards the chain is the
-//! single-HIP chain, bit for bit.
+//! (`estimate.surface = None`), never a made-up distance. On the GPU the front end sums every
+//! keep-off guard's shells in the frame's one submission (the origin found there in f32:
+//! [`GuardShells`]) and the guard's estimator corrects those sums on the CPU as the HIP's
+//! ([`SurfaceEstimator::estimate_summed`]); on the CPU each guard's estimator sums its own.
+//! Without keep-off guards the chain is the single-HIP chain, bit for bit.
 //!
 //! Each frame reports wall and thread CPU time of the front end and of the estimator
 //! ([`crate::timing`]) next to the front end's per-pass GPU timestamp times. A GPU failure
@@ -77,8 +79,8 @@ use super::frontend::{
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
 use super::outliers::{OutlierConfig, OutlierConfigError, remove_isolated};
 use super::shells::{
-    self, GpuShells, ShellAbstraction, ShellConfig, ShellConfigError, ShellLayout, ShellSums,
-    Viewpoint,
+    self, GpuShells, GuardShells, GuardSums, MAX_GPU_GUARDS, ShellAbstraction, ShellConfig,
+    ShellConfigError, ShellLayout, ShellSums, Viewpoint,
 };
 use crate::camera::Frame;
 use crate::geometry::Primitive;
@@ -633,6 +635,25 @@ impl CameraChain {
             &self.surface_config,
         );
         self.frontend.set_crop_radius_m(crop_radius)?;
+        // Every keep-off guard's shells summed in the GPU frame's submission (up to
+        // MAX_GPU_GUARDS; beyond, and on the CPU, each guard's estimator sums its own).
+        let on_gpu = if guards.len() <= MAX_GPU_GUARDS {
+            guards
+        } else {
+            &[]
+        };
+        let guard_shells: Vec<GuardShells> = on_gpu
+            .iter()
+            .map(|g| GuardShells {
+                a_m: g.a_m,
+                b_m: g.b_m,
+                reach_m: guard_reach_m(&self.surface_config, g.radius_m),
+                radii_m: guard_surface_config(&self.surface_config, g.radius_m)
+                    .shells
+                    .radii_m,
+            })
+            .collect();
+        self.frontend.set_guard_shells(&guard_shells)?;
         // A frame that carries its depth image enters as the image: the first pass
         // deprojects it, rejects flying pixels and crops, over the pixels the crop region
         // covers (every pixel when the keep mask is asked for). A source without an image hands the
@@ -681,6 +702,7 @@ impl CameraChain {
             Err(e) => return Err(e.into()),
         };
         let frontend_time = watch.elapsed();
+        let gpu_guards = self.frontend.take_guard_sums().unwrap_or_default();
         let kept =
             self.surface_config
                 .clusters
@@ -724,10 +746,16 @@ impl CameraChain {
                 }
             };
             let candidates = candidates.as_deref().unwrap_or(&kept);
+            // The GPU's sums per guard when it summed every guard this frame.
+            let on_gpu = gpu_guards.len() == guards.len();
+            let mut gpu = gpu_guards.into_iter();
             let frames = guards
                 .iter()
                 .enumerate()
-                .map(|(g, segment)| self.guard_frame(g, segment, candidates, camera, id, stamp))
+                .map(|(g, segment)| {
+                    let sums = gpu.next().filter(|_| on_gpu);
+                    self.guard_frame(g, segment, candidates, sums, camera, id, stamp)
+                })
                 .collect::<Result<Vec<_>, _>>()?;
             guards_time = watch.elapsed();
             frames
@@ -749,12 +777,15 @@ impl CameraChain {
         })
     }
 
-    /// Keep-off guard `index`'s estimate from the kept points `candidates` (world frame).
+    /// Keep-off guard `index`'s estimate from the kept points `candidates` (world frame);
+    /// with `gpu`, the GPU front end's sums of those points and the origin it chose for them.
+    #[allow(clippy::too_many_arguments)]
     fn guard_frame(
         &mut self,
         index: usize,
         segment: &GuardSegment,
         candidates: &[Vec3],
+        gpu: Option<GuardSums>,
         camera: Point3<f64>,
         camera_id: u32,
         stamp_s: f64,
@@ -773,9 +804,10 @@ impl CameraChain {
         if k > 0 {
             near.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
         }
-        let origin = match near[..k].iter().min_by(|a, b| a.0.total_cmp(&b.0)) {
-            Some((_, x)) => segment.closest_point(x),
-            None => nalgebra::center(&segment.a_m, &segment.b_m),
+        let origin = match (&gpu, near[..k].iter().min_by(|a, b| a.0.total_cmp(&b.0))) {
+            (Some(gpu), _) => gpu.origin_m,
+            (None, Some((_, x))) => segment.closest_point(x),
+            (None, None) => nalgebra::center(&segment.a_m, &segment.b_m),
         };
         let estimator = match self.guard_estimators.entry((camera_id, index)) {
             std::collections::btree_map::Entry::Occupied(e) => e.into_mut(),
@@ -783,7 +815,17 @@ impl CameraChain {
                 guard_surface_config(&self.surface_config, segment.radius_m),
             )?),
         };
-        let mut surface = estimator.estimate(&points, &origin, camera, camera_id, stamp_s);
+        let mut surface = match gpu {
+            Some(gpu) => estimator.estimate_summed(
+                &points,
+                (gpu.sums, Backend::Gpu),
+                &origin,
+                camera,
+                camera_id,
+                stamp_s,
+            ),
+            None => estimator.estimate(&points, &origin, camera, camera_id, stamp_s),
+        };
         let mut nearest_points_surface = false;
         if let Some(fitted) = &mut surface.abstraction.estimate.surface {
             // The nearest points' mean and the direction from it to the core.

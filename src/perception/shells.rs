@@ -23,7 +23,7 @@ use super::fit::{
     self, AXIS, CircleMethod, FitError, FitLimits, HeightField, MOMENT_COUNT, Moments, PARENT,
     circle3d, plane3d,
 };
-use crate::gpu::mirrors::ShellParams;
+use crate::gpu::mirrors::{GuardShellParams, ShellParams};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::{GpuContext, GpuError};
 use crate::surface::{ShellFit, ShellFitKind, SurfaceEstimate, SurfacePoint};
@@ -1064,6 +1064,85 @@ fn curvature_correction(
 const RESULT_WORDS: usize = MAX_SHELLS * MOMENT_COUNT * 2 + 2;
 /// Bytes of the GPU sums a frame reads back ([`GpuShells::copy_sums`], [`read_sums`]).
 pub const SUMS_BYTES: u64 = (RESULT_WORDS * 4) as u64;
+/// Keep-off guards whose shells one GPU frame sums (shells.wgsl `MAX_GUARDS`, a uniform
+/// array of 5 kB); a chain with more leaves them to the CPU.
+pub const MAX_GPU_GUARDS: usize = 16;
+/// u32 words of one guard's state on the GPU (shells.wgsl `GUARD_STATE_WORDS`).
+const GUARD_STATE_WORDS: usize = 8;
+/// Bytes of one keep-off guard's results in a frame's readback ([`GpuShells::copy_guards`]).
+pub const GUARD_RESULT_BYTES: u64 = (GUARD_STATE_WORDS * 4) as u64 + SUMS_BYTES;
+
+/// A keep-off guard's shells as the GPU front end sums them (shells.wgsl, guard entry
+/// points): its segment, its reach (kept points within it of the segment count) and its shell
+/// radii; the origin is chosen on the GPU, the point of the segment closest to the nearest
+/// kept point within reach (f32), or the segment's middle without one.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GuardShells {
+    pub a_m: Point3<f64>,
+    pub b_m: Point3<f64>,
+    pub reach_m: f64,
+    /// Shell radii ([`ShellConfig::radii_m`] rules).
+    pub radii_m: Vec<f64>,
+}
+
+impl GuardShells {
+    /// The guard's shells about `origin` (the constants do not depend on it).
+    pub fn layout(&self, origin: &Point3<f64>) -> ShellLayout {
+        ShellLayout::new(origin, &self.radii_m)
+    }
+
+    fn gpu(&self) -> GuardShellParams {
+        let layout = self.layout(&self.a_m);
+        let n = layout.shell_count();
+        let middle = nalgebra::center(&self.a_m, &self.b_m);
+        let v4 = |p: &Point3<f64>, w: f32| [p.x as f32, p.y as f32, p.z as f32, w];
+        let mut params = GuardShellParams {
+            a: v4(&self.a_m, (self.reach_m * self.reach_m) as f32),
+            b: v4(&self.b_m, layout.outer_radius),
+            middle: v4(&middle, layout.steps_per_m),
+            shell_count: n as u32,
+            ..Default::default()
+        };
+        params.bounds[..n].copy_from_slice(&layout.bounds);
+        params.inv_radius[..n].copy_from_slice(&layout.inv_radius);
+        params
+    }
+}
+
+/// One keep-off guard's per-shell sums from the GPU front end's frame.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GuardSums {
+    /// The shells' origin the GPU chose (f32), the layout's origin
+    /// ([`GuardShells::layout`]).
+    pub origin_m: Point3<f64>,
+    /// The kept voxel point nearest the segment within reach (index into the front end's
+    /// voxel output), `None` without one (the origin is then the segment's middle).
+    pub nearest: Option<u32>,
+    /// The sums of the kept points within reach about `origin_m`: the integers
+    /// [`accumulate_cpu`] gives for them.
+    pub sums: ShellSums,
+}
+
+/// The [`GuardSums`] of `guards` in the bytes [`GpuShells::copy_guards`] wrote.
+pub fn read_guards(bytes: &[u8], guards: &[GuardShells]) -> Vec<GuardSums> {
+    let state_bytes = GUARD_STATE_WORDS * 4 * guards.len();
+    let states: Vec<u32> = bytemuck::pod_collect_to_vec(&bytes[..state_bytes]);
+    guards
+        .iter()
+        .enumerate()
+        .map(|(g, guard)| {
+            let w = &states[g * GUARD_STATE_WORDS..(g + 1) * GUARD_STATE_WORDS];
+            let f = |i: usize| f64::from(f32::from_bits(w[i]));
+            let origin_m = Point3::new(f(4), f(5), f(6));
+            let at = state_bytes + g * SUMS_BYTES as usize;
+            GuardSums {
+                nearest: (w[7] == 1).then_some(!w[1]),
+                sums: read_sums(&bytes[at..], &guard.layout(&origin_m)),
+                origin_m,
+            }
+        })
+        .collect()
+}
 /// Workgroups at most per pass; threads stride over the points beyond that.
 const MAX_WORKGROUPS: u32 = 256;
 /// Points the point buffer holds from the start (192 kB): a D435 frame's selected clusters
@@ -1109,6 +1188,14 @@ pub struct GpuShells {
     sizes: Option<wgpu::Buffer>,
     group: CachedBindGroup,
     cluster_group: CachedBindGroup,
+    /// `guard_nearest`, `guard_first`, `guard_origin`, `guard_shell_moments`.
+    guard_passes: [wgpu::ComputePipeline; 4],
+    /// [`MAX_GPU_GUARDS`] guards' [`GuardShellParams`] (uniform).
+    guard_params: wgpu::Buffer,
+    /// `GUARD_STATE_WORDS` per guard: nearest point, its index, the origin.
+    guard_state: wgpu::Buffer,
+    /// Group 2 of the guard passes: the two buffers above.
+    guard_group: wgpu::BindGroup,
 }
 
 impl GpuShells {
@@ -1135,6 +1222,21 @@ impl GpuShells {
         )?;
         let cluster_moments = cluster_pipelines.remove(1);
         let cluster_sizes = cluster_pipelines.remove(0);
+        let guard_layout =
+            shader::bind_group_layout(ctx, "shells guard bind group layout", &[Uniform, Storage])?;
+        let guard_passes: [wgpu::ComputePipeline; 4] = shader::compute_pipelines(
+            ctx,
+            &shader::SHELLS,
+            &[Some(&layout), Some(&cluster_layout), Some(&guard_layout)],
+            &[
+                "guard_nearest",
+                "guard_first",
+                "guard_origin",
+                "guard_shell_moments",
+            ],
+        )?
+        .try_into()
+        .expect("four entry points");
         let tables: Vec<u32> = PARENT.iter().chain(AXIS.iter()).copied().collect();
         let (params, tables_buf, points, sums, readback) = ctx.scoped("shells buffers", |_| {
             let buffer = |label: &str, size: u64, usage: wgpu::BufferUsages| {
@@ -1162,14 +1264,52 @@ impl GpuShells {
                     INITIAL_POINTS * std::mem::size_of::<Vec3>() as u64,
                     U::STORAGE | U::COPY_DST,
                 ),
+                // The HIP's sums, then each keep-off guard's.
                 buffer(
                     "shells sums",
-                    SUMS_BYTES,
+                    SUMS_BYTES * (1 + MAX_GPU_GUARDS as u64),
                     U::STORAGE | U::COPY_DST | U::COPY_SRC,
                 ),
                 buffer("shells readback", SUMS_BYTES, U::MAP_READ | U::COPY_DST),
             )
         })?;
+        let (guard_params, guard_state) = ctx.scoped("shells guard buffers", |_| {
+            use wgpu::BufferUsages as U;
+            let buffer = |label: &str, size: usize, usage: wgpu::BufferUsages| {
+                ctx.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(label),
+                    size: size as u64,
+                    usage,
+                    mapped_at_creation: false,
+                })
+            };
+            (
+                buffer(
+                    "shells guards",
+                    MAX_GPU_GUARDS * std::mem::size_of::<GuardShellParams>(),
+                    U::UNIFORM | U::COPY_DST,
+                ),
+                buffer(
+                    "shells guard state",
+                    MAX_GPU_GUARDS * GUARD_STATE_WORDS * 4,
+                    U::STORAGE | U::COPY_DST | U::COPY_SRC,
+                ),
+            )
+        })?;
+        let guard_group = ctx.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("shells guard bind group"),
+            layout: &guard_layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: guard_params.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: guard_state.as_entire_binding(),
+                },
+            ],
+        });
         ctx.queue()
             .write_buffer(&tables_buf, 0, bytemuck::cast_slice(&tables));
         Ok(Self {
@@ -1186,6 +1326,10 @@ impl GpuShells {
             sizes: None,
             group: CachedBindGroup::default(),
             cluster_group: CachedBindGroup::default(),
+            guard_passes,
+            guard_params,
+            guard_state,
+            guard_group,
         })
     }
 
@@ -1197,6 +1341,8 @@ impl GpuShells {
             &self.points,
             &self.sums,
             &self.readback,
+            &self.guard_params,
+            &self.guard_state,
         ]
         .iter()
         .map(|b| b.size())
@@ -1204,16 +1350,20 @@ impl GpuShells {
             + self.sizes.as_ref().map_or(0, wgpu::Buffer::size)
     }
 
-    fn write_params(&self, ctx: &GpuContext, layout: &ShellLayout, params: ShellParams) {
-        let mut params = ShellParams {
-            hip: layout.hip,
-            outer_radius: layout.outer_radius,
-            steps_per_m: layout.steps_per_m,
-            shell_count: layout.shell_count() as u32,
-            ..params
-        };
-        params.bounds[..layout.shell_count()].copy_from_slice(&layout.bounds);
-        params.inv_radius[..layout.shell_count()].copy_from_slice(&layout.inv_radius);
+    /// Writes `params` with `layout`'s constants (`None`: no HIP shells, zero shells).
+    fn write_params(&self, ctx: &GpuContext, layout: Option<&ShellLayout>, params: ShellParams) {
+        let mut params = params;
+        if let Some(layout) = layout {
+            params = ShellParams {
+                hip: layout.hip,
+                outer_radius: layout.outer_radius,
+                steps_per_m: layout.steps_per_m,
+                shell_count: layout.shell_count() as u32,
+                ..params
+            };
+            params.bounds[..layout.shell_count()].copy_from_slice(&layout.bounds);
+            params.inv_radius[..layout.shell_count()].copy_from_slice(&layout.inv_radius);
+        }
         ctx.queue()
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
     }
@@ -1259,7 +1409,7 @@ impl GpuShells {
             point_count: n,
             ..ShellParams::default()
         };
-        self.write_params(ctx, layout, params);
+        self.write_params(ctx, Some(layout), params);
         if n > 0 {
             ctx.queue()
                 .write_buffer(&self.points, 0, bytemuck::cast_slice(points));
@@ -1307,27 +1457,45 @@ impl GpuShells {
     }
 
     /// Records, into the front end's frame, the per-shell sums of the points of `input`'s
-    /// kept clusters for `layout`: the sums cleared, then one timed pass of two dispatches,
+    /// kept clusters for `layout` (when given) and for each keep-off guard of `guards` (at most
+    /// [`MAX_GPU_GUARDS`]): the sums cleared, then one timed pass (`timestamps[0]`) of
     /// `cluster_sizes` (one thread per point, its count read on the GPU) and
-    /// `cluster_shell_moments` (threads striding over the points). [`Self::copy_sums`] then
-    /// puts them in the frame's readback.
+    /// `cluster_shell_moments` (threads striding over the points), and with guards a second
+    /// timed pass (`timestamps[1]`) of the guard entry points (shells.wgsl). [`Self::copy_sums`]
+    /// and [`Self::copy_guards`] then put them in the frame's readback.
     pub fn record_clusters(
         &mut self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
         input: &ClusteredPoints<'_>,
-        layout: &ShellLayout,
-        timestamp_writes: Option<wgpu::ComputePassTimestampWrites<'_>>,
+        layout: Option<&ShellLayout>,
+        guards: &[GuardShells],
+        timestamps: [Option<wgpu::ComputePassTimestampWrites<'_>>; 2],
     ) -> Result<(), GpuError> {
+        if guards.len() > MAX_GPU_GUARDS {
+            return Err(GpuError::Validation {
+                context: "shells guards".into(),
+                message: format!(
+                    "{} keep-off guards, at most {MAX_GPU_GUARDS} in one frame",
+                    guards.len()
+                ),
+            });
+        }
         self.reserve_clusters(ctx, input.capacity)?;
         let params = ShellParams {
             count_word: input.count_word,
             capacity: input.capacity,
             min_size: *input.kept_sizes.start(),
             max_size: *input.kept_sizes.end(),
+            guard_count: guards.len() as u32,
             ..ShellParams::default()
         };
         self.write_params(ctx, layout, params);
+        if !guards.is_empty() {
+            let gpu: Vec<GuardShellParams> = guards.iter().map(GuardShells::gpu).collect();
+            ctx.queue()
+                .write_buffer(&self.guard_params, 0, bytemuck::cast_slice(&gpu));
+        }
         let group = self.group(ctx);
         let sizes = self.sizes.as_ref().expect("reserved above");
         let entries =
@@ -1347,19 +1515,59 @@ impl GpuShells {
             .clone();
         encoder.clear_buffer(&self.sums, 0, None);
         encoder.clear_buffer(sizes, 0, Some(4 * u64::from(input.capacity)));
+        let [shells_writes, guards_writes] = timestamps;
+        let (args, offset) = input.per_point_dispatch;
+        let groups = shader::workgroups_for(input.capacity).clamp(1, MAX_WORKGROUPS);
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("shells cluster moments"),
+                timestamp_writes: shells_writes,
+            });
+            pass.set_bind_group(0, &group, &[]);
+            pass.set_bind_group(1, &cluster_group, &[]);
+            pass.set_pipeline(&self.cluster_sizes);
+            pass.dispatch_workgroups_indirect(args, offset);
+            if layout.is_some() {
+                pass.set_pipeline(&self.cluster_moments);
+                pass.dispatch_workgroups(groups, 1, 1);
+            }
+        }
+        if guards.is_empty() {
+            return Ok(());
+        }
+        encoder.clear_buffer(&self.guard_state, 0, None);
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("shells cluster moments"),
-            timestamp_writes,
+            label: Some("shells guard moments"),
+            timestamp_writes: guards_writes,
         });
         pass.set_bind_group(0, &group, &[]);
         pass.set_bind_group(1, &cluster_group, &[]);
-        pass.set_pipeline(&self.cluster_sizes);
-        let (args, offset) = input.per_point_dispatch;
+        pass.set_bind_group(2, &self.guard_group, &[]);
+        let [nearest, first, origin, moments] = &self.guard_passes;
+        pass.set_pipeline(nearest);
         pass.dispatch_workgroups_indirect(args, offset);
-        pass.set_pipeline(&self.cluster_moments);
-        let groups = shader::workgroups_for(input.capacity).clamp(1, MAX_WORKGROUPS);
-        pass.dispatch_workgroups(groups, 1, 1);
+        pass.set_pipeline(first);
+        pass.dispatch_workgroups_indirect(args, offset);
+        pass.set_pipeline(origin);
+        pass.dispatch_workgroups(1, 1, 1);
+        pass.set_pipeline(moments);
+        pass.dispatch_workgroups(groups, guards.len() as u32, 1);
         Ok(())
+    }
+
+    /// Copies `guards` keep-off guards' results ([`GUARD_RESULT_BYTES`] each: their states,
+    /// then their sums) into `dst` at `offset` (a multiple of 4), for [`read_guards`].
+    pub fn copy_guards(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        dst: &wgpu::Buffer,
+        offset: u64,
+        guards: usize,
+    ) {
+        let states = (GUARD_STATE_WORDS * 4 * guards) as u64;
+        encoder.copy_buffer_to_buffer(&self.guard_state, 0, dst, offset, states);
+        let sums = SUMS_BYTES * guards as u64;
+        encoder.copy_buffer_to_buffer(&self.sums, SUMS_BYTES, dst, offset + states, sums);
     }
 
     /// Copies the sums ([`SUMS_BYTES`]) into `dst` at `offset` (a multiple of 4).
@@ -1436,6 +1644,14 @@ mod tests {
         assert_eq!(
             constant("SHELL_COUNTERS"),
             naga::Expression::Literal(naga::Literal::U32((RESULT_WORDS - 2) as u32))
+        );
+        shader::assert_u32_constants(
+            &shader::SHELLS,
+            &[
+                ("SHELL_RESULT_WORDS", RESULT_WORDS as u32),
+                ("MAX_GUARDS", MAX_GPU_GUARDS as u32),
+                ("GUARD_STATE_WORDS", GUARD_STATE_WORDS as u32),
+            ],
         );
     }
 
