@@ -12,7 +12,14 @@
 //! same simulated D435 frames of `forearm_close_realistic` and `torso_approach_realistic`,
 //! the two chains alternating frame by frame, with the ratio of their medians.
 //!
-//! Run: `cargo bench --bench surface`.
+//! `--gpu-stages` instead runs the GPU chain (the adapter `WGPU_ADAPTER_NAME` names, else the
+//! best one) on the frames of `forearm_to_torso_realistic` and `torso_approach_realistic` and
+//! prints each front-end pass's GPU time from timestamp queries: the depth pass over the
+//! crop's pixel region against the pass over every pixel (the keep mask asked for), and the
+//! single HIP against ANYexo's 5 keep-off guards (their moments in the frame's submission,
+//! pass `guards`).
+//!
+//! Run: `cargo bench --bench surface` (`-- --gpu-stages`).
 
 #[path = "../../tests/synthetic/mod.rs"]
 #[allow(dead_code)]
@@ -50,6 +57,12 @@ fn time(name: &str, runs: usize, mut f: impl FnMut()) {
 }
 
 fn main() {
+    if std::env::args().any(|a| a == "--gpu-stages") {
+        for name in ["forearm_to_torso_realistic", "torso_approach_realistic"] {
+            gpu_stages(name);
+        }
+        return;
+    }
     let head = Shape::Sphere {
         center: Point3::origin(),
         radius: 0.09,
@@ -119,13 +132,19 @@ fn main() {
     }
 }
 
-/// Wall time per frame of the CPU chain without and with the keep-off guards, on the frames
-/// of `scene` between 1.5 and 3.5 s (both cameras).
-fn whole_arm_chain(scene: &str) {
-    use hapcloud::gpu::Backend;
+/// The frames of built-in `scene` between 1.5 and 3.5 s (both cameras), each with the HIP,
+/// robot primitives and ANYexo's default keep-off guards posed at its stamp; and the scene's
+/// name.
+fn arm_frames(
+    scene: &str,
+) -> (
+    String,
+    Vec<(
+        hapcloud::camera::Frame,
+        hapcloud::node::robot_state::PerceptionScene,
+    )>,
+) {
     use hapcloud::node::robot_state::RobotState;
-    use hapcloud::perception::frontend::FrontendConfig;
-    use hapcloud::perception::pipeline::{CameraChain, SurfaceConfig};
     use hapcloud::robot::guards::GuardConfig;
     use std::sync::Arc;
     let scene = Scene::from_builtin(scene).expect("built-in scene");
@@ -134,7 +153,7 @@ fn whole_arm_chain(scene: &str) {
         .expect("robot")
         .with_guards(&GuardConfig::default())
         .expect("default guards");
-    let frames: Vec<_> = sim
+    let frames = sim
         .arrivals(1.5, 3.5)
         .iter()
         .map(|t| {
@@ -143,15 +162,99 @@ fn whole_arm_chain(scene: &str) {
             (frame, scene)
         })
         .collect();
-    let chain = || {
-        CameraChain::new(
-            Backend::Cpu,
-            FrontendConfig::default(),
-            SurfaceConfig::default(),
-            None,
-        )
-        .expect("CPU chain")
+    (scene.origin.clone(), frames)
+}
+
+/// A chain with the default settings on `backend`.
+fn default_chain(
+    backend: hapcloud::gpu::Backend,
+    ctx: Option<std::sync::Arc<GpuContext>>,
+) -> hapcloud::perception::pipeline::CameraChain {
+    use hapcloud::perception::frontend::FrontendConfig;
+    use hapcloud::perception::pipeline::{CameraChain, SurfaceConfig};
+    let config = (FrontendConfig::default(), SurfaceConfig::default());
+    CameraChain::new(backend, config.0, config.1, ctx).expect("chain")
+}
+
+/// GPU time per front-end pass (timestamp queries) per frame of `scene`'s frames between 1.5
+/// and 3.5 s, for three GPU chains run on each frame in turn: single HIP over the crop's
+/// pixel region, 5 keep-off guards over the region, 5 guards over every pixel (keep mask).
+fn gpu_stages(scene: &str) {
+    use hapcloud::gpu::Backend;
+    use std::collections::BTreeMap;
+    use std::sync::Arc;
+    let (origin, frames) = arm_frames(scene);
+    let ctx = Arc::new(GpuContext::new().expect("a Vulkan adapter"));
+    if ctx.timestamp_period_ns().is_none() {
+        println!("{}: no timestamp queries, no GPU times", ctx.adapter().name);
+        return;
+    }
+    let mut chains = [
+        (
+            "single HIP, region",
+            default_chain(Backend::Gpu, Some(ctx.clone())),
+            false,
+        ),
+        (
+            "5 guards, region",
+            default_chain(Backend::Gpu, Some(ctx.clone())),
+            true,
+        ),
+        (
+            "5 guards, every pixel",
+            default_chain(Backend::Gpu, Some(ctx.clone())),
+            true,
+        ),
+    ];
+    chains[2].1.set_crop_keep(true);
+    // Per chain: per pass, its GPU ms per frame; the chain's wall ms per frame.
+    let mut times: Vec<(BTreeMap<&'static str, Vec<f64>>, Vec<f64>)> =
+        vec![Default::default(); chains.len()];
+    for (frame, s) in &frames {
+        for ((_, chain, guarded), (passes, wall)) in chains.iter_mut().zip(&mut times) {
+            let guards = if *guarded { &s.guards[..] } else { &[] };
+            let start = Instant::now();
+            let out = chain
+                .process_guarded(frame, &s.hip_m, &s.primitives, guards)
+                .expect("frame");
+            wall.push(start.elapsed().as_secs_f64() * 1e3);
+            let mut frame_passes: BTreeMap<&'static str, f64> = BTreeMap::new();
+            for t in &out.front.gpu_times {
+                *frame_passes.entry(t.stage).or_default() += t.gpu_ms;
+            }
+            for (stage, ms) in frame_passes {
+                passes.entry(stage).or_default().push(ms);
+            }
+        }
+    }
+    println!(
+        "{origin}: GPU chain on {} ({} frames), GPU ms per pass: median / worst",
+        ctx.adapter().name,
+        frames.len()
+    );
+    let stat = |v: &mut Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        (v[v.len() / 2], v[v.len() - 1])
     };
+    for ((name, _, _), (passes, wall)) in chains.iter().zip(&mut times) {
+        let (w, worst) = stat(wall);
+        let mut line = format!("  {name:<22} wall {w:.2} / {worst:.2} ms;");
+        let mut total = 0.0;
+        for (stage, v) in passes.iter_mut() {
+            let (m, worst) = stat(v);
+            total += m;
+            line += &format!(" {stage} {m:.3} / {worst:.3}");
+        }
+        println!("{line}; sum of medians {total:.2} ms");
+    }
+}
+
+/// Wall time per frame of the CPU chain without and with the keep-off guards, on the frames
+/// of `scene` between 1.5 and 3.5 s (both cameras).
+fn whole_arm_chain(scene: &str) {
+    use hapcloud::gpu::Backend;
+    let (origin, frames) = arm_frames(scene);
+    let chain = || default_chain(Backend::Cpu, None);
     let (mut single, mut whole) = (chain(), chain());
     let (mut a, mut b, mut guards_ms) = (Vec::new(), Vec::new(), Vec::new());
     // Per frame, summed over the guards: memory, moments, fits (ms), their input points;
@@ -186,7 +289,7 @@ fn whole_arm_chain(scene: &str) {
     println!(
         "{}: CPU chain per frame over {n} frames: single HIP median {:.2} ms p90 {:.2} ms; \
          5 keep-off guards median {:.2} ms p90 {:.2} ms (their estimators {:.2} ms); ratio of medians {:.2}",
-        scene.origin,
+        origin,
         m(&a),
         a[n * 9 / 10],
         m(&b),
