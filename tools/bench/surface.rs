@@ -132,18 +132,19 @@ fn main() {
     }
 }
 
+/// A camera frame with the HIP, robot primitives and keep-off guards at its stamp.
+type ArmFrame = (
+    hapcloud::camera::Frame,
+    hapcloud::node::robot_state::PerceptionScene,
+);
+
+/// Per front-end pass, its GPU ms per frame.
+type PassTimes = std::collections::BTreeMap<&'static str, Vec<f64>>;
+
 /// The frames of built-in `scene` between 1.5 and 3.5 s (both cameras), each with the HIP,
 /// robot primitives and ANYexo's default keep-off guards posed at its stamp; and the scene's
 /// name.
-fn arm_frames(
-    scene: &str,
-) -> (
-    String,
-    Vec<(
-        hapcloud::camera::Frame,
-        hapcloud::node::robot_state::PerceptionScene,
-    )>,
-) {
+fn arm_frames(scene: &str) -> (String, Vec<ArmFrame>) {
     use hapcloud::node::robot_state::RobotState;
     use hapcloud::robot::guards::GuardConfig;
     use std::sync::Arc;
@@ -208,8 +209,7 @@ fn gpu_stages(scene: &str) {
     ];
     chains[2].1.set_crop_keep(true);
     // Per chain: per pass, its GPU ms per frame; the chain's wall ms per frame.
-    let mut times: Vec<(BTreeMap<&'static str, Vec<f64>>, Vec<f64>)> =
-        vec![Default::default(); chains.len()];
+    let mut times: Vec<(PassTimes, Vec<f64>)> = vec![Default::default(); chains.len()];
     for (frame, s) in &frames {
         for ((_, chain, guarded), (passes, wall)) in chains.iter_mut().zip(&mut times) {
             let guards = if *guarded { &s.guards[..] } else { &[] };
