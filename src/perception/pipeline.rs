@@ -804,6 +804,10 @@ impl CameraChain {
         if k > 0 {
             near.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
         }
+        // The GPU's sums serve when it saw points within reach exactly when the host does
+        // (f32 against f64 only at the reach's edge); otherwise this guard's estimator sums
+        // its own.
+        let gpu = gpu.filter(|g| g.nearest.is_some() == (k > 0));
         let origin = match (&gpu, near[..k].iter().min_by(|a, b| a.0.total_cmp(&b.0))) {
             (Some(gpu), _) => gpu.origin_m,
             (None, Some((_, x))) => segment.closest_point(x),
