@@ -402,23 +402,29 @@ pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, Clu
                 let first_b = if k == 13 { a + 1 } else { b0 };
                 // a's root changes only through this loop's unions.
                 let mut ra = find(&mut parent, a);
+                let sa = &subs[a as usize];
                 for b in first_b..b1 {
                     let rb = find(&mut parent, b);
                     if ra == rb {
                         continue;
                     }
-                    let (sa, sb) = (&subs[a as usize], &subs[b as usize]);
-                    let (near, far) = box_distances(sa, sb);
-                    if near > r2_64 * (1.0 + BOX_MARGIN) {
-                        continue;
-                    }
-                    let joined = far < r2_64 * (1.0 - BOX_MARGIN)
-                        || order[sa.start..sa.end].iter().any(|&(_, _, i)| {
-                            let p = points[i as usize];
-                            order[sb.start..sb.end]
-                                .iter()
-                                .any(|&(_, _, j)| is_neighbour(p, points[j as usize], r2))
-                        });
+                    let sb = &subs[b as usize];
+                    // Two one-point sub-cells (most of a voxel grid's output) are decided by
+                    // the predicate itself (their boxes are their points); others by their
+                    // boxes, else by their points' pairs.
+                    let joined = if sa.end - sa.start == 1 && sb.end - sb.start == 1 {
+                        is_neighbour(Vec3::from(sa.lo), Vec3::from(sb.lo), r2)
+                    } else {
+                        let (near, far) = box_distances(sa, sb);
+                        near <= r2_64 * (1.0 + BOX_MARGIN)
+                            && (far < r2_64 * (1.0 - BOX_MARGIN)
+                                || order[sa.start..sa.end].iter().any(|&(_, _, i)| {
+                                    let p = points[i as usize];
+                                    order[sb.start..sb.end]
+                                        .iter()
+                                        .any(|&(_, _, j)| is_neighbour(p, points[j as usize], r2))
+                                }))
+                    };
                     if joined {
                         parent[ra.max(rb) as usize] = ra.min(rb);
                         ra = ra.min(rb);

@@ -466,8 +466,8 @@ pub fn crop_depth_region_cpu(
     };
     let read = region.grown(window, width, height);
     let row_len = read.u.len();
+    // Every element is written by the deprojection below: only new capacity is filled.
     let camera = &mut scratch.camera;
-    camera.clear();
     camera.resize(read.pixels(), Vec3::ZERO);
     if row_len > 0 {
         camera

@@ -145,16 +145,20 @@ impl<'a> VeilTest<'a> {
         let (w, k) = (self.width, self.window);
         let (u, v) = (i % w, i / w);
         let limit = self.sin2_min * p.length_squared();
-        let cols = u.saturating_sub(k)..(u + k + 1).min(w);
-        (v.saturating_sub(k)..(v + k + 1).min(self.height)).any(|y| {
-            self.points[y * w + cols.start..y * w + cols.end]
-                .iter()
-                .any(|&q| {
-                    let d = q - p;
-                    // The pixel itself (d = 0) and invalid neighbours never count.
-                    valid(q) && d.cross(p).length_squared() < limit * d.length_squared()
-                })
-        })
+        let (c0, c1) = (u.saturating_sub(k), (u + k + 1).min(w));
+        for y in v.saturating_sub(k)..(v + k + 1).min(self.height) {
+            for (x, &q) in (c0..c1).zip(&self.points[y * w + c0..y * w + c1]) {
+                // The pixel itself (d = 0) never counts, nor does an invalid neighbour.
+                if x == u && y == v {
+                    continue;
+                }
+                let d = q - p;
+                if d.cross(p).length_squared() < limit * d.length_squared() && valid(q) {
+                    return true;
+                }
+            }
+        }
+        false
     }
 }
 
