@@ -505,6 +505,96 @@ fn apply_passes(
     }
 }
 
+/// The nearest point of a patient body that a camera sees, with the body's name.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VisiblePoint {
+    /// World frame, metres.
+    pub point_m: nalgebra::Point3<f64>,
+    /// The body (scene name, without the `patient:` prefix).
+    pub body: String,
+}
+
+/// Relative depth tolerance of "the ray's first hit is this point" (f64 roots).
+const SAME_HIT_REL: f64 = 1e-9;
+
+impl super::Simulator {
+    /// The patient surface point nearest to `hip_m` (world) that camera `camera_id` sees at
+    /// `t_s` with the exoskeleton at `joints` (it occludes as in [`super::Simulator::frame_with_joints`]),
+    /// geometry exact, no image effects; None when the camera sees no patient body.
+    ///
+    /// When the nearest patient point of all is in the image and the first hit on its ray,
+    /// it is the answer (one ray). Otherwise every pixel is cast without effects and the
+    /// nearest patient pixel wins: the answer is then exact to the pixel grid.
+    pub fn nearest_visible(
+        &self,
+        camera_id: u32,
+        t_s: f64,
+        joints: &crate::robot::JointVector,
+        hip_m: &nalgebra::Point3<f64>,
+    ) -> Option<VisiblePoint> {
+        let cam = &self.cameras[camera_id as usize];
+        let k = &cam.intrinsics;
+        let (solids, labels) = self.posed_in_camera(camera_id, t_s, Some(joints));
+        let patient = |i: usize| labels[i].strip_prefix("patient:");
+        let hip = cam.world_from_camera_true.inverse() * hip_m;
+        let first_hit = |d: &Vector3<f64>| {
+            solids
+                .iter()
+                .enumerate()
+                .filter_map(|(i, s)| s.ray_hit(d).map(|t| (i, t)))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+        };
+        let visible = |p: &Vector3<f64>| -> bool {
+            if p.z <= NEAR_M {
+                return false;
+            }
+            let (u, v) = (k.cx + k.fx * p.x / p.z, k.cy + k.fy * p.y / p.z);
+            let inside = (-0.5..k.width as f64 - 0.5).contains(&u)
+                && (-0.5..k.height as f64 - 0.5).contains(&v);
+            inside && first_hit(&(p / p.z)).is_some_and(|(_, t)| t >= p.z * (1.0 - SAME_HIT_REL))
+        };
+        let world = |p: Vector3<f64>, i: usize| VisiblePoint {
+            point_m: cam.world_from_camera_true * nalgebra::Point3::from(p),
+            body: patient(i).unwrap_or_default().to_string(),
+        };
+        let nearest = (0..solids.len())
+            .filter(|&i| patient(i).is_some())
+            .map(|i| (i, solids[i].closest(&hip)))
+            .min_by(|a, b| a.1.distance_m.total_cmp(&b.1.distance_m))?;
+        if visible(&nearest.1.point_m.coords) {
+            return Some(world(nearest.1.point_m.coords, nearest.0));
+        }
+        let raw = cast(
+            k,
+            &solids,
+            &Passes::default(),
+            FrameKey {
+                seed: 0,
+                camera: camera_id,
+                frame: 0,
+            },
+            1,
+            Scratch::default(),
+        );
+        let w = raw.width;
+        raw.label
+            .iter()
+            .enumerate()
+            .filter(|&(_, &l)| l != NO_HIT && patient(l as usize).is_some())
+            .map(|(i, &l)| {
+                let (u, v) = ((i % w) as f64, (i / w) as f64);
+                let d = Vector3::new((u - k.cx) / k.fx, (v - k.cy) / k.fy, 1.0);
+                (d * raw.depth_m[i], l as usize)
+            })
+            .min_by(|a, b| {
+                (a.0 - hip.coords)
+                    .norm_squared()
+                    .total_cmp(&(b.0 - hip.coords).norm_squared())
+            })
+            .map(|(p, l)| world(p, l))
+    }
+}
+
 /// `x.round()` for `x >= 0` (ties away from zero) without the libm call `f64::round` becomes
 /// on baseline x86-64; negative inputs give 0 (no depth).
 #[inline]
