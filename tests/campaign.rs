@@ -27,7 +27,7 @@ fn a_written_episode_reproduces_the_campaigns_runs() {
     let speed = 1.5;
     let campaign = run_episode(e.clone(), &[speed], &options).unwrap();
     let sweep = safe_speed::sweep(&loaded, &[speed], e.camera_rate_hz, &options).unwrap();
-    assert_eq!(campaign.rows.len(), 3);
+    assert_eq!(campaign.rows.len(), 4);
     for row in &campaign.rows {
         let again = sweep.rows.iter().find(|r| r.source == row.source).unwrap();
         assert_eq!(
@@ -84,14 +84,14 @@ fn a_twenty_episode_campaign_writes_its_tables_plots_and_worst_episodes() {
         assert!(dir.path.join(f).metadata().unwrap().len() > 100, "{f}");
     }
     let runs = std::fs::read_to_string(dir.path.join("campaign-runs.csv")).unwrap();
-    assert_eq!(runs.lines().count(), 1 + 20 * 3);
+    assert_eq!(runs.lines().count(), 1 + 20 * 4);
     let summary = details["summary"].as_array().unwrap();
-    // (3 rates + all) x 3 sources
-    assert_eq!(summary.len(), 4 * 3);
-    // 4 body kinds x 3 sources, each source's kinds adding up to the 20 episodes
+    // (3 rates + all) x 4 sources
+    assert_eq!(summary.len(), 4 * 4);
+    // 4 body kinds x 4 sources, each source's kinds adding up to the 20 episodes
     let by_kind = details["by_kind"].as_array().unwrap();
-    assert_eq!(by_kind.len(), 4 * 3);
-    for source in ["exact", "delayed_oracle", "perception"] {
+    assert_eq!(by_kind.len(), 4 * 4);
+    for source in ["exact", "delayed_oracle", "visible_oracle", "perception"] {
         let episodes: u64 = by_kind
             .iter()
             .filter(|r| r["source"] == source)

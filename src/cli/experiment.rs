@@ -17,12 +17,12 @@
 //! fusion, and the controller acts on the fused surface; the metrics come from the scene's
 //! ground truth. The plots show the controller's `d_proj` beside the true one.
 //!
-//! `safe-speed --scene S` sweeps one scene's moving body over `--speeds` from three surface
-//! sources (perception, delayed oracle, exact surface). `campaign --episodes N --seed S` runs
-//! N randomized approach episodes ([`hapcloud::lab::campaign`]) at `--speeds` from the three
-//! sources in parallel and writes `campaign-runs.csv` (one row per episode, speed and
-//! source), `campaign-summary.csv` (fraction safe and margins per speed, camera rate and
-//! source), `campaign-kinds.csv` (the same per speed, approaching body kind and source),
+//! `safe-speed --scene S` sweeps one scene's moving body over `--speeds` from four surface
+//! sources (perception, visible oracle, delayed oracle, exact surface). `campaign --episodes N
+//! --seed S` runs N randomized approach episodes ([`hapcloud::lab::campaign`]) at `--speeds`
+//! from the four sources in parallel and writes `campaign-runs.csv` (one row per episode,
+//! speed and source), `campaign-summary.csv` (fraction safe and margins per speed, camera
+//! rate and source), `campaign-kinds.csv` (the same per speed, approaching body kind and source),
 //! `campaign-contacts.csv` (first touches per body region against ISO/TS 15066),
 //! `campaign-episodes.csv` (each episode's draws and CPU time), `campaign-safe.png`,
 //! `campaign-margins.png` and the `--worst` perception episodes as scene files in `worst/`.
@@ -125,10 +125,10 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                     "rising_surface_realistic at 0.5/1.0/1.5 m/s through cameras, perception and fusion"
                 }
                 "safe-speed" => {
-                    "--scene's moving body at --speeds: perception, delayed oracle, exact surface"
+                    "--scene's moving body at --speeds: perception, visible and delayed oracle, exact surface"
                 }
                 "campaign" => {
-                    "--episodes randomized approaches at --speeds from three surface sources"
+                    "--episodes randomized approaches at --speeds from four surface sources"
                 }
                 _ => "forehead_impacts_realistic through cameras, perception and fusion",
             };
@@ -314,6 +314,7 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             extra = serde_json::json!({
                 "safe_speed_mps": sweep.safe_speed_mps,
                 "oracle_safe_speed_mps": sweep.oracle_safe_speed_mps,
+                "visible_oracle_safe_speed_mps": sweep.visible_oracle_safe_speed_mps,
                 "exact_safe_speed_mps": sweep.exact_safe_speed_mps,
                 "camera_rate_hz": sweep.camera_rate_hz,
                 "sweep": sweep.rows,
@@ -367,13 +368,14 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 m.name, mode, m.max_penetration_m, m.min_margin_m, m.fallback_ticks
             );
         }
-        if let (Some(safe), Some(oracle), Some(exact)) = (
+        if let (Some(safe), Some(oracle), Some(visible), Some(exact)) = (
             extra.get("safe_speed_mps"),
             extra.get("oracle_safe_speed_mps"),
+            extra.get("visible_oracle_safe_speed_mps"),
             extra.get("exact_safe_speed_mps"),
         ) {
             println!(
-                "safe speed: perception {safe} m/s, delayed oracle {oracle} m/s, exact surface {exact} m/s"
+                "safe speed: perception {safe} m/s, visible oracle {visible} m/s, delayed oracle {oracle} m/s, exact surface {exact} m/s"
             );
         } else if let Some(safe) = extra.get("safe_speed_mps") {
             println!(
@@ -483,14 +485,14 @@ fn campaign(
         return Ok(details);
     }
     println!(
-        "campaign: {episodes} episodes of seed {seed} at {:?} m/s, 3 sources: wall {wall_s:.0} s, \
+        "campaign: {episodes} episodes of seed {seed} at {:?} m/s, 4 sources: wall {wall_s:.0} s, \
          CPU {:.2} s per episode (worst {cpu_max:.2} s) on {} threads",
         result.config.speeds_mps,
         cpu_total / f64::from(episodes),
         rayon::current_num_threads()
     );
     println!(
-        "{:>5} {:>7} {:15} {:>5} {:>8} {:>6} {:>8} {:>12} {:>10} {:>10} {:>8}",
+        "{:>5} {:>7} {:15} {:>5} {:>8} {:>6} {:>8} {:>12} {:>13} {:>10} {:>10} {:>8}",
         "m/s",
         "Hz|body",
         "source",
@@ -499,6 +501,7 @@ fn campaign(
         "safe",
         "fraction",
         "of oracle's",
+        "of visible's",
         "median mm",
         "worst mm",
         "contact"
@@ -506,7 +509,7 @@ fn campaign(
     // every rate and kind, then each body kind over every rate
     for r in result.summary.iter().chain(&result.by_kind) {
         println!(
-            "{:5.2} {:>7} {:15} {:5} {:8} {:6} {:8.3} {:>12} {:10.1} {:10.1} {:8.3}",
+            "{:5.2} {:>7} {:15} {:5} {:8} {:6} {:8.3} {:>12} {:>13} {:10.1} {:10.1} {:8.3}",
             r.speed_mps,
             match (r.kind, r.camera_rate_hz) {
                 (Some(kind), _) => kind.name().to_string(),
@@ -519,6 +522,7 @@ fn campaign(
             r.safe,
             r.safe_fraction,
             format!("{:.3}", r.safe_fraction_of_oracle_survived),
+            format!("{:.3}", r.safe_fraction_of_visible_survived),
             r.median_margin_m * 1e3,
             r.worst_margin_m * 1e3,
             r.contact_within_limit_fraction
@@ -542,7 +546,8 @@ struct EpisodeDraw {
 }
 
 /// Fraction safe over speed, one panel per camera rate, one curve per source (over the
-/// feasible episodes; perception's share of the oracle's survivors dashed).
+/// feasible episodes; perception's share of the delayed and of the visible oracle's survivors
+/// dashed).
 fn plot_campaign(path: &Path, c: &campaign::Campaign) -> Result<()> {
     let root = canvas(path, (1100, 1100))?;
     let panels = root.split_evenly((3, 1));
@@ -578,17 +583,36 @@ fn plot_campaign(path: &Path, c: &campaign::Campaign) -> Result<()> {
             chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, color.filled())))?;
             curve(&mut chart, pts, color, source_label(source))?;
         }
-        let of_oracle: Vec<(f64, f64)> = c
-            .summary
-            .iter()
-            .filter(|r| r.camera_rate_hz == rate && r.source == SurfaceSource::Perception)
-            .filter(|r| r.safe_fraction_of_oracle_survived.is_finite())
-            .map(|r| (r.speed_mps, r.safe_fraction_of_oracle_survived))
-            .collect();
-        chart
-            .draw_series(DashedLineSeries::new(of_oracle, 6, 4, RED.stroke_width(1)))?
-            .label("perception, of the oracle's survivors")
-            .legend(swatch(RED));
+        let share = |of: fn(&campaign::SummaryRow) -> f64| -> Vec<(f64, f64)> {
+            c.summary
+                .iter()
+                .filter(|r| r.camera_rate_hz == rate && r.source == SurfaceSource::Perception)
+                .filter(|r| of(r).is_finite())
+                .map(|r| (r.speed_mps, of(r)))
+                .collect()
+        };
+        for (of, color, label) in [
+            (
+                (|r| r.safe_fraction_of_oracle_survived) as fn(&campaign::SummaryRow) -> f64,
+                RED,
+                "perception, of the delayed oracle's survivors",
+            ),
+            (
+                |r| r.safe_fraction_of_visible_survived,
+                source_color(SurfaceSource::VisibleOracle),
+                "perception, of the visible oracle's survivors",
+            ),
+        ] {
+            chart
+                .draw_series(DashedLineSeries::new(
+                    share(of),
+                    6,
+                    4,
+                    color.stroke_width(1),
+                ))?
+                .label(label)
+                .legend(swatch(color));
+        }
         legend_style(&mut chart, 14)
             .position(SeriesLabelPosition::LowerLeft)
             .draw()?;
@@ -700,6 +724,7 @@ fn source_label(source: SurfaceSource) -> &'static str {
     match source {
         SurfaceSource::Perception => "perception",
         SurfaceSource::DelayedOracle => "delayed oracle",
+        SurfaceSource::VisibleOracle => "visible oracle",
         SurfaceSource::Exact => "exact surface",
     }
 }
@@ -708,6 +733,7 @@ fn source_color(source: SurfaceSource) -> RGBColor {
     match source {
         SurfaceSource::Perception => RED,
         SurfaceSource::DelayedOracle => RGBColor(230, 140, 0),
+        SurfaceSource::VisibleOracle => RGBColor(0, 150, 60),
         SurfaceSource::Exact => BLUE,
     }
 }

@@ -1,15 +1,16 @@
 //! The safety campaign (`hapcloud experiment campaign`): randomized approach episodes
 //! ([`crate::scene::episode`]) each run through the closed loop at every tested speed from
-//! three surface sources (the exact surface, the delayed oracle, perception: see
-//! [`SurfaceSource`]), as `hapcloud experiment safe-speed` runs one scene. A run is safe when
+//! four surface sources (the exact surface, the delayed oracle, the visible oracle,
+//! perception: see [`SurfaceSource`]), as `hapcloud experiment safe-speed` runs one scene. A run is safe when
 //! the true surface never reaches the HIP centre and the controller never falls back.
 //!
 //! Per speed, camera rate and source the campaign reports the fraction of episodes safe with
 //! its count, and the minimum-margin distribution (median, worst). An episode the exact
 //! surface does not survive at a speed is infeasible there (no perception could do better)
-//! and is counted apart; the oracle's and perception's fractions are over the feasible
-//! episodes, and perception's is also given over the episodes the delayed oracle survives
-//! (what any perception with these cameras could survive).
+//! and is counted apart; the oracles' and perception's fractions are over the feasible
+//! episodes, and each source's is also given over the episodes the delayed oracle survives
+//! (what latency allows) and over those the visible oracle survives (what latency and the
+//! cameras' views allow: what any perception with these cameras could survive).
 //!
 //! Contact at the handle (the handle may touch the patient): per run, the closing speed of
 //! body part and HIP at the true surface's first touch of the HIP sphere gives the transient
@@ -293,6 +294,11 @@ pub struct SummaryRow {
     pub contact_within_limit_fraction: f64,
     /// Highest closing speed at a first touch, m/s (0: no touch).
     pub worst_contact_speed_mps: f64,
+    /// Episodes the visible oracle survives, this source's safe ones among them and their
+    /// fraction (perception's share of what these cameras' views allow).
+    pub visible_survived: usize,
+    pub safe_of_visible_survived: usize,
+    pub safe_fraction_of_visible_survived: f64,
 }
 
 fn fraction(part: usize, whole: usize) -> f64 {
@@ -358,6 +364,7 @@ fn summary_at(rows: &[RunRow], speed: f64, rate: f64, kind: Option<BodyKind>) ->
     };
     let feasible = safe_episodes(SurfaceSource::Exact);
     let oracle = safe_episodes(SurfaceSource::DelayedOracle);
+    let visible = safe_episodes(SurfaceSource::VisibleOracle);
     SurfaceSource::ALL
         .into_iter()
         .map(|source| {
@@ -368,10 +375,12 @@ fn summary_at(rows: &[RunRow], speed: f64, rate: f64, kind: Option<BodyKind>) ->
                 .filter(|r| feasible.contains(&r.episode))
                 .collect();
             let safe = in_feasible.iter().filter(|r| r.safe).count();
-            let safe_of_oracle = all
-                .iter()
-                .filter(|r| r.safe && oracle.contains(&r.episode))
-                .count();
+            let safe_of = |survivors: &std::collections::HashSet<u32>| {
+                all.iter()
+                    .filter(|r| r.safe && survivors.contains(&r.episode))
+                    .count()
+            };
+            let (safe_of_oracle, safe_of_visible) = (safe_of(&oracle), safe_of(&visible));
             let margins: Vec<f64> = in_feasible.iter().map(|r| r.min_margin_m).collect();
             let within = all.iter().filter(|r| r.contact_within_limit).count();
             SummaryRow {
@@ -394,6 +403,9 @@ fn summary_at(rows: &[RunRow], speed: f64, rate: f64, kind: Option<BodyKind>) ->
                     .iter()
                     .filter_map(|r| r.contact_speed_mps)
                     .fold(0.0, f64::max),
+                visible_survived: visible.len(),
+                safe_of_visible_survived: safe_of_visible,
+                safe_fraction_of_visible_survived: fraction(safe_of_visible, visible.len()),
             }
         })
         .collect()
@@ -642,6 +654,9 @@ mod tests {
         assert_eq!((p.episodes, p.feasible, p.safe), (3, 2, 1));
         assert_eq!(p.safe_fraction, 0.5);
         assert_eq!((p.oracle_survived, p.safe_of_oracle_survived), (1, 1));
+        // without visible-oracle runs nothing survives it
+        assert_eq!((p.visible_survived, p.safe_of_visible_survived), (0, 0));
+        assert!(p.safe_fraction_of_visible_survived.is_nan());
         assert_eq!(p.worst_margin_m, -0.02);
         assert!((p.median_margin_m - 0.005).abs() < 1e-12);
         let none = s
@@ -650,6 +665,37 @@ mod tests {
             .unwrap();
         assert_eq!(none.episodes, 0);
         assert!(none.safe_fraction.is_nan());
+    }
+
+    /// Episode 1's near face is hidden: the delayed oracle survives it, the visible oracle
+    /// and perception do not. Perception's share is 1 of 2 of the delayed oracle's survivors
+    /// and 1 of 1 of the visible oracle's.
+    #[test]
+    fn perception_is_also_counted_over_the_visible_oracles_survivors() {
+        use SurfaceSource::{DelayedOracle, Exact, Perception, VisibleOracle};
+        let rows = [
+            row(0, Exact, true, 0.05),
+            row(0, DelayedOracle, true, 0.04),
+            row(0, VisibleOracle, true, 0.04),
+            row(0, Perception, true, 0.03),
+            row(1, Exact, true, 0.05),
+            row(1, DelayedOracle, true, 0.03),
+            row(1, VisibleOracle, false, -0.01),
+            row(1, Perception, false, -0.02),
+        ];
+        let s = summarize(&rows, &[1.0]);
+        let at = |source| {
+            s.iter()
+                .find(|r| r.source == source && r.camera_rate_hz == 0.0)
+                .unwrap()
+        };
+        let p = at(Perception);
+        assert_eq!((p.oracle_survived, p.safe_of_oracle_survived), (2, 1));
+        assert_eq!((p.visible_survived, p.safe_of_visible_survived), (1, 1));
+        assert_eq!(p.safe_fraction_of_oracle_survived, 0.5);
+        assert_eq!(p.safe_fraction_of_visible_survived, 1.0);
+        let v = at(VisibleOracle);
+        assert_eq!((v.safe, v.safe_of_oracle_survived), (1, 1));
     }
 
     /// Per body kind: each kind's rows count its own episodes only, and the kinds' counts

@@ -48,9 +48,10 @@ use crate::node::{NodeConfig, NodeError};
 use crate::perception::frontend::FrontendConfig;
 use crate::perception::lookahead::LookaheadConfig;
 use crate::perception::pipeline::SurfaceConfig;
+use crate::perception::pipeline::crop_ball;
 use crate::robot::JointState;
 use crate::robot::JointVector;
-use crate::scene::{Scene, SceneError, Simulator, truth};
+use crate::scene::{ReadRegion, Scene, SceneError, Simulator, truth};
 use crate::surface::{FusedSurface, FusionStatus};
 use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
@@ -74,6 +75,10 @@ pub struct SceneLoopOptions {
     /// Threads rendering each frame (None: the machine's parallelism; a campaign running
     /// episodes in parallel renders each on one). Results do not depend on it.
     pub render_threads: Option<usize>,
+    /// Render only the image rows the chain reads (the crop ball's and the flying-pixel
+    /// window's, [`Simulator::frame_within`]); the chain's results are the same as with
+    /// whole frames.
+    pub render_read_rows_only: bool,
 }
 
 /// Where the constraints' surface comes from in a closed-loop scene run.
@@ -91,12 +96,18 @@ pub enum SurfaceSource {
     /// these cameras could survive; the gap to `exact` is what latency costs, the gap from it
     /// to `perception` what estimation costs.
     DelayedOracle,
+    /// The delayed oracle restricted to what the cameras see (see [`VisibleOracle`]): per
+    /// frame, the nearest patient point that frame's camera sees, geometry exact. The gap
+    /// from `delayed_oracle` to it is what visibility costs, the gap from it to
+    /// `perception` what estimation costs.
+    VisibleOracle,
 }
 
 impl SurfaceSource {
-    pub const ALL: [SurfaceSource; 3] = [
+    pub const ALL: [SurfaceSource; 4] = [
         SurfaceSource::Exact,
         SurfaceSource::DelayedOracle,
+        SurfaceSource::VisibleOracle,
         SurfaceSource::Perception,
     ];
 
@@ -106,6 +117,7 @@ impl SurfaceSource {
             SurfaceSource::Perception => "perception",
             SurfaceSource::Exact => "exact",
             SurfaceSource::DelayedOracle => "delayed_oracle",
+            SurfaceSource::VisibleOracle => "visible_oracle",
         }
     }
 }
@@ -130,21 +142,81 @@ impl DelayedOracle {
 
     /// The surface at tick time `t_s`.
     pub fn at(&self, t_s: f64, max_extrapolation_s: f64) -> FusedSurface {
-        let Some((capture_s, sample)) = self.newest else {
-            return FusedSurface::no_data(t_s);
+        match self.newest {
+            Some((capture_s, sample)) => moved(capture_s, &sample, t_s, max_extrapolation_s),
+            None => FusedSurface::no_data(t_s),
+        }
+    }
+}
+
+/// `sample` (captured at `capture_s`) at tick time `t_s`: moved along its velocity over at
+/// most `max_extrapolation_s`, held past it.
+fn moved(
+    capture_s: f64,
+    sample: &FusedSurface,
+    t_s: f64,
+    max_extrapolation_s: f64,
+) -> FusedSurface {
+    let Some(s) = sample.surface else {
+        return *sample;
+    };
+    let ahead = (t_s - capture_s).clamp(0.0, max_extrapolation_s);
+    let mut out = known_surface(
+        t_s,
+        s.centroid_m + s.velocity_m_per_s * ahead,
+        s.normal,
+        s.velocity_m_per_s,
+    );
+    out.age_s = t_s - capture_s;
+    out
+}
+
+/// The visible oracle: the delayed oracle restricted to the patient surface the cameras see.
+/// At each frame's arrival, the nearest patient point that frame's camera sees at its capture
+/// time (exoskeleton and patient occluding, no image effects:
+/// [`crate::scene::Simulator::nearest_visible`]), to the HIP where it was then, with its
+/// body's velocity and the normal from that point to the HIP; per camera the newest. At each
+/// tick, of the cameras' newest samples captured within `max_extrapolation_s` of the newest
+/// one, each moved as the delayed oracle moves its sample, the one nearest the HIP: the
+/// union of what the cameras see. A camera that sees no patient body has no sample.
+#[derive(Clone, Debug, Default)]
+pub struct VisibleOracle {
+    /// Per camera id: the newest capture time and its surface (None: nothing seen).
+    cameras: Vec<Option<(f64, Option<FusedSurface>)>>,
+}
+
+impl VisibleOracle {
+    /// Camera `camera` delivered a frame captured at `capture_s` in which `seen` is the
+    /// nearest patient surface (None: no patient body in view).
+    pub fn push(&mut self, camera: usize, capture_s: f64, seen: Option<FusedSurface>) {
+        if self.cameras.len() <= camera {
+            self.cameras.resize(camera + 1, None);
+        }
+        let slot = &mut self.cameras[camera];
+        if slot.is_none_or(|(t, _)| capture_s > t) {
+            *slot = Some((capture_s, seen));
+        }
+    }
+
+    /// The surface at tick time `t_s` for the HIP at `hip_m`.
+    pub fn at(&self, t_s: f64, max_extrapolation_s: f64, hip_m: &Point3<f64>) -> FusedSurface {
+        let newest = self
+            .cameras
+            .iter()
+            .flatten()
+            .map(|(t, _)| *t)
+            .fold(f64::NEG_INFINITY, f64::max);
+        let gap = |f: &FusedSurface| {
+            f.surface
+                .map_or(f64::INFINITY, |s| s.point().d_proj_m(hip_m, 0.0))
         };
-        let Some(s) = sample.surface else {
-            return sample;
-        };
-        let ahead = (t_s - capture_s).clamp(0.0, max_extrapolation_s);
-        let mut out = known_surface(
-            t_s,
-            s.centroid_m + s.velocity_m_per_s * ahead,
-            s.normal,
-            s.velocity_m_per_s,
-        );
-        out.age_s = t_s - capture_s;
-        out
+        self.cameras
+            .iter()
+            .flatten()
+            .filter(|(t, _)| *t >= newest - max_extrapolation_s)
+            .filter_map(|(t, seen)| seen.map(|f| moved(*t, &f, t_s, max_extrapolation_s)))
+            .min_by(|a, b| gap(a).total_cmp(&gap(b)))
+            .unwrap_or_else(|| FusedSurface::no_data(t_s))
     }
 }
 
@@ -159,6 +231,7 @@ impl Default for SceneLoopOptions {
             backend: Backend::Cpu,
             surface_source: SurfaceSource::Perception,
             render_threads: None,
+            render_read_rows_only: true,
         }
     }
 }
@@ -373,6 +446,7 @@ pub fn simulate_scene(
     };
     let mut error_sum = 0.0;
     let mut oracle = DelayedOracle::default();
+    let mut visible = VisibleOracle::default();
     // the side of the nearest surface the HIP was on (a thin plate can be passed through)
     let mut side: Option<(String, Vector3<f64>)> = None;
     for k in 0..ticks {
@@ -380,7 +454,9 @@ pub fn simulate_scene(
         history.push(*plant.q());
         let mut frames = 0;
         let arrivals = match options.surface_source {
-            SurfaceSource::Perception | SurfaceSource::DelayedOracle => sim.arrivals(t - period, t),
+            SurfaceSource::Perception
+            | SurfaceSource::DelayedOracle
+            | SurfaceSource::VisibleOracle => sim.arrivals(t - period, t),
             SurfaceSource::Exact => Vec::new(),
         };
         for timing in arrivals {
@@ -394,10 +470,38 @@ pub fn simulate_scene(
                 frames += 1;
                 continue;
             }
-            let shot = sim.frame_with_joints(&timing, &q_capture);
+            if options.surface_source == SurfaceSource::VisibleOracle {
+                let hip_then: Point3<f64> =
+                    model.world_from_hip(&q_capture).translation.vector.into();
+                let seen = sim
+                    .nearest_visible(timing.camera_id, timing.capture_s, &q_capture, &hip_then)
+                    .and_then(|p| visible_surface(&file.bodies, timing.capture_s, &hip_then, &p));
+                visible.push(timing.camera_id as usize, timing.capture_s, seen);
+                frames += 1;
+                continue;
+            }
+            let hip_then: Point3<f64> = model.world_from_hip(&q_capture).translation.vector.into();
+            let shot = if options.render_read_rows_only {
+                // the chain reads the points in the crop ball (no keep-off guards here) and
+                // the flying-pixel test's window around them
+                let (centre_m, radius_m) = crop_ball(
+                    &hip_then,
+                    options.frontend.crop.radius_m,
+                    &[],
+                    &options.surface,
+                );
+                let region = ReadRegion {
+                    centre_m,
+                    radius_m,
+                    window_rows: options.surface.flying_pixels.window_px as usize,
+                };
+                sim.frame_within(&timing, &q_capture, &region)
+            } else {
+                sim.frame_with_joints(&timing, &q_capture)
+            };
             // The crop grows the primitives by its own range-dependent margin, as in the node.
             let scene = PerceptionScene {
-                hip_m: model.world_from_hip(&q_capture).translation.vector.into(),
+                hip_m: hip_then,
                 primitives: model
                     .collision_primitives_world(&q_capture)
                     .into_iter()
@@ -433,6 +537,10 @@ pub fn simulate_scene(
             SurfaceSource::DelayedOracle => {
                 haptic_loop.tick_on(oracle.at(t, options.fusion.max_extrapolation_s), &robot)
             }
+            SurfaceSource::VisibleOracle => haptic_loop.tick_on(
+                visible.at(t, options.fusion.max_extrapolation_s, &hip.position_m),
+                &robot,
+            ),
         };
         let (fused, out) = (tick.fused, &tick.output);
         let truth = truth::closest(&file.bodies, t, &hip.position_m, r_hip)
@@ -536,6 +644,27 @@ fn exact_surface(
     ))
 }
 
+/// The surface of a visible patient point `seen` for the HIP at `hip_m` at `t_s`: its
+/// normal from the point to the HIP (so `d_m` is their distance), its body's velocity by a
+/// central difference of the body's motion over [`REFERENCE_STEP_S`]. None when the HIP
+/// centre is on the point.
+fn visible_surface(
+    bodies: &[crate::scene::BodyConfig],
+    t_s: f64,
+    hip_m: &Point3<f64>,
+    seen: &crate::scene::render::VisiblePoint,
+) -> Option<FusedSurface> {
+    let h = REFERENCE_STEP_S;
+    let normal = Unit::try_new(hip_m - seen.point_m, 1e-12)?;
+    let velocity = bodies
+        .iter()
+        .find(|b| b.name == seen.body)
+        .map_or(Vector3::zeros(), |b| {
+            (b.motion.offset_at(t_s + h) - b.motion.offset_at(t_s - h)) / (2.0 * h)
+        });
+    Some(known_surface(t_s, seen.point_m, normal, velocity))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -560,6 +689,97 @@ mod tests {
         assert!(m.max_penetration_m > 0.0, "{m:?}");
         let again = simulate_scene(&scene, &options).unwrap();
         assert_eq!(format!("{:?}", run), format!("{:?}", again));
+    }
+
+    /// An episode's patient replaced by one resting sphere `offset_m` from the HIP, and the
+    /// simulator, the joints and the HIP at t = 0.
+    fn sphere_near_the_hip(
+        offset: impl Fn(&Simulator, &Point3<f64>) -> Vector3<f64>,
+    ) -> (Scene, Point3<f64>, JointVector) {
+        let mut scene = crate::scene::episode::generate(35, 0).unwrap().scene;
+        let sim = Simulator::new(&scene).unwrap();
+        let hip = sim.hip_at(0.0).unwrap();
+        let q = sim.joints_at(0.0).unwrap();
+        scene.file.bodies = vec![crate::scene::BodyConfig {
+            name: "ball".into(),
+            geometry: crate::scene::shape::Shape::Sphere {
+                center_m: hip + offset(&sim, &hip),
+                radius_m: 0.06,
+            },
+            motion: Default::default(),
+            visible: true,
+        }];
+        (Scene::new(scene.file, "test").unwrap(), hip, q)
+    }
+
+    /// The distance from `hip` of the delayed and the visible oracle's surface after one
+    /// frame of each camera of `scene` at t = 0.
+    fn oracle_distances(scene: &Scene, hip: &Point3<f64>, q: &JointVector) -> (f64, f64) {
+        let sim = Simulator::new(scene).unwrap().with_threads(1);
+        let (mut delayed, mut visible) = (DelayedOracle::default(), VisibleOracle::default());
+        let r = sim.robot_model().unwrap().hip_radius_m();
+        for cam in sim.cameras() {
+            let exact = exact_surface(&scene.file.bodies, 0.0, hip, r).unwrap();
+            delayed.push(0.0, exact);
+            let seen = sim
+                .nearest_visible(cam.id, 0.0, q, hip)
+                .and_then(|p| visible_surface(&scene.file.bodies, 0.0, hip, &p));
+            visible.push(cam.id as usize, 0.0, seen);
+        }
+        let d = |f: FusedSurface| f.surface.unwrap().point().d_proj_m(hip, 0.0);
+        (d(delayed.at(0.0, 0.13)), d(visible.at(0.0, 0.13, hip)))
+    }
+
+    /// A ball between the cameras and the HIP shows them its far side only: the visible
+    /// oracle's nearest seen point is on the ball's rim as the cameras see it, farther from
+    /// the HIP than the ball's nearest point the delayed oracle uses. A ball beside the HIP,
+    /// its near side in view, gives both the same distance.
+    #[test]
+    fn the_visible_oracle_sees_only_what_the_cameras_see() {
+        let towards_cameras = |sim: &Simulator, hip: &Point3<f64>| {
+            let mean = sim
+                .cameras()
+                .iter()
+                .map(|c| (c.world_from_camera_true.translation.vector - hip.coords).normalize())
+                .sum::<Vector3<f64>>();
+            mean.normalize() * 0.25
+        };
+        let (scene, hip, q) = sphere_near_the_hip(towards_cameras);
+        let (delayed, visible) = oracle_distances(&scene, &hip, &q);
+        assert!((delayed - 0.19).abs() < 1e-9, "{delayed}");
+        assert!(visible > delayed + 0.02, "hidden: {visible} vs {delayed}");
+        let beside = |_: &Simulator, _: &Point3<f64>| Vector3::new(0.0, 0.25, 0.0);
+        let (scene, hip, q) = sphere_near_the_hip(beside);
+        let (delayed, visible) = oracle_distances(&scene, &hip, &q);
+        assert!(
+            (visible - delayed).abs() < 1e-9,
+            "in view: {visible} vs {delayed}"
+        );
+    }
+
+    /// Rendering only the rows the chain reads changes nothing the chain computes: the
+    /// realistic oblique head (extrinsic bias, lateral jitter, flying pixels, holes,
+    /// speckle) and the rising plate at 1.5 m/s give the same run tick for tick.
+    #[test]
+    fn rendering_only_the_rows_the_chain_reads_gives_the_same_run() {
+        for scene in [
+            Scene::from_builtin("oblique_head_realistic").unwrap(),
+            builtin::rising_surface(1.5, true).unwrap(),
+        ] {
+            let rows_only = SceneLoopOptions::default();
+            let whole = SceneLoopOptions {
+                render_read_rows_only: false,
+                ..SceneLoopOptions::default()
+            };
+            let a = simulate_scene(&scene, &rows_only).unwrap();
+            let b = simulate_scene(&scene, &whole).unwrap();
+            assert!(
+                a.metrics.tracking_ticks > a.metrics.ticks / 2,
+                "{:?}",
+                a.metrics
+            );
+            assert_eq!(format!("{a:?}"), format!("{b:?}"), "{}", scene.origin);
+        }
     }
 
     #[test]

@@ -219,6 +219,15 @@ pub struct SimFrame {
     pub world_from_camera_true: Isometry3<f64>,
 }
 
+/// What a frame's consumer reads ([`Simulator::frame_within`]): the points within `radius_m`
+/// of `centre_m` (world), and image neighbours up to `window_rows` rows from them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReadRegion {
+    pub centre_m: Point3<f64>,
+    pub radius_m: f64,
+    pub window_rows: usize,
+}
+
 /// Runs a scene: frames, robot motion and ground truth at any time.
 pub struct Simulator {
     scene: Scene,
@@ -465,18 +474,51 @@ impl Simulator {
     /// Renders the frame with `timing` (from [`Simulator::timing`] or
     /// [`Simulator::arrivals`]).
     pub fn frame(&self, timing: &FrameTiming) -> SimFrame {
-        self.render_frame(timing, None)
+        self.render_frame(timing, None, None)
     }
 
     /// Renders the frame with `timing` with the exoskeleton at `joints` instead of its
     /// scripted trajectory: a closed-loop simulation drives the robot itself
     /// (the lab's scene loop, `hapcloud::lab::scene_loop`).
     pub fn frame_with_joints(&self, timing: &FrameTiming, joints: &JointVector) -> SimFrame {
-        self.render_frame(timing, Some(joints))
+        self.render_frame(timing, Some(joints), None)
     }
 
-    fn render_frame(&self, timing: &FrameTiming, joints: Option<&JointVector>) -> SimFrame {
+    /// [`Simulator::frame_with_joints`] for a consumer that reads only the points within
+    /// `region`'s ball (world frame, as the frame's reported pose puts them) and image
+    /// neighbours up to `region.window_rows` rows away: only the image rows that can hold
+    /// them are rendered (the others are invalid). Those rows are as in the whole frame.
+    pub fn frame_within(
+        &self,
+        timing: &FrameTiming,
+        joints: &JointVector,
+        region: &ReadRegion,
+    ) -> SimFrame {
+        self.render_frame(timing, Some(joints), Some(region))
+    }
+
+    fn render_frame(
+        &self,
+        timing: &FrameTiming,
+        joints: Option<&JointVector>,
+        region: Option<&ReadRegion>,
+    ) -> SimFrame {
         let cam = &self.cameras[timing.camera_id as usize];
+        let k = &cam.intrinsics;
+        let (finish_rows, cast_rows) = match region {
+            None => (0..k.height as usize, 0..k.height as usize),
+            Some(r) => {
+                let centre = cam.world_from_camera_reported.inverse() * r.centre_m;
+                let lateral_px = self.effects.passes.lateral.as_ref().map(|l| l.sigma_px);
+                render::rows_for_ball(
+                    k,
+                    &centre.coords,
+                    r.radius_m,
+                    lateral_px.map_or(0.0, |s| 4.0 * s) + 1.0,
+                    r.window_rows,
+                )
+            }
+        };
         let (solids, label_names) = self.posed_in_camera(cam.id, timing.capture_s, joints);
         let key = FrameKey {
             seed: self.scene.file.seed,
@@ -491,8 +533,8 @@ impl Simulator {
             .and_then(|mut pool| pool.pop())
             .unwrap_or_default();
         let raw: RawView =
-            render::cast(&cam.intrinsics, &solids, passes, key, self.threads, scratch);
-        let (cloud, depth) = render::finish(&cam.intrinsics, &raw, passes, key, self.threads);
+            render::cast(k, &solids, passes, key, self.threads, (scratch, cast_rows));
+        let (cloud, depth) = render::finish(k, &raw, passes, key, (self.threads, finish_rows));
         let (labels, scratch) = raw.into_parts();
         if let Ok(mut pool) = self.scratch.lock() {
             pool.push(scratch);

@@ -29,6 +29,7 @@ use crate::cloud::PointCloud;
 use glam::Vec3;
 use nalgebra::Vector3;
 use rand::RngExt;
+use std::ops::Range;
 use std::sync::Mutex;
 
 /// Rows per unit of work handed to a thread.
@@ -86,14 +87,15 @@ impl RawView {
     }
 }
 
-/// Casts every pixel's ray against `solids` (posed in the camera's optical frame).
+/// Casts every pixel's ray of image rows `rows` against `solids` (posed in the camera's
+/// optical frame); the other rows hit nothing.
 pub(crate) fn cast(
     k: &PinholeIntrinsics,
     solids: &[Solid],
     passes: &Passes,
     key: FrameKey,
     threads: usize,
-    scratch: Scratch,
+    (scratch, rows): (Scratch, Range<usize>),
 ) -> RawView {
     let (w, h) = (k.width as usize, k.height as usize);
     let want_cos = passes.holes.is_some();
@@ -138,6 +140,9 @@ pub(crate) fn cast(
             };
             for (r, (drow, lrow)) in depth.chunks_mut(w).zip(label.chunks_mut(w)).enumerate() {
                 let v = band * BAND_ROWS + r;
+                if !rows.contains(&v) {
+                    continue;
+                }
                 row_spans(k, solids, &bounds, v, margin_px, &mut spans);
                 if let Some(sigma) = lateral_px {
                     // Jitter only the columns some solid can cover, left to right.
@@ -248,6 +253,36 @@ pub(crate) fn screen_bounds(k: &PinholeIntrinsics, solid: &Solid) -> Option<[f64
     Some(b)
 }
 
+/// Rows a frame must keep for a consumer that reads only the points within `radius_m` of
+/// `centre` (the camera's optical frame) and, for image filters, `window_rows` rows around
+/// them: the rows whose wedge of rays (widened by `margin_px` for lateral jitter) meets the
+/// ball, widened by `window_rows`. Returns (rows to finish, rows to cast: one more each side,
+/// which the effects' edge tests read). A ball meeting no row gives empty ranges.
+pub(crate) fn rows_for_ball(
+    k: &PinholeIntrinsics,
+    centre: &Vector3<f64>,
+    radius_m: f64,
+    margin_px: f64,
+    window_rows: usize,
+) -> (Range<usize>, Range<usize>) {
+    let h = k.height as usize;
+    let meets = |v: usize| {
+        let y_lo = (v as f64 - margin_px - k.cy) / k.fy;
+        let y_hi = (v as f64 + margin_px - k.cy) / k.fy;
+        let d_lo = (centre.y - y_lo * centre.z) / (1.0 + y_lo * y_lo).sqrt();
+        let d_hi = (centre.y - y_hi * centre.z) / (1.0 + y_hi * y_hi).sqrt();
+        // The planes extend behind the camera too: a superset of the rays' wedge.
+        !(d_lo < -radius_m || d_hi > radius_m)
+    };
+    let (Some(first), Some(last)) = ((0..h).find(|&v| meets(v)), (0..h).rfind(|&v| meets(v)))
+    else {
+        return (0..0, 0..0);
+    };
+    let finish = first.saturating_sub(window_rows)..(last + window_rows + 1).min(h);
+    let cast = finish.start.saturating_sub(1)..(finish.end + 1).min(h);
+    (finish, cast)
+}
+
 /// For image row `v`: every solid that can cover a pixel of the row, with a conservative
 /// pixel span `[u0, u1]` (widened by `margin_px`): the intersection of the solid's screen
 /// bounds with the column range of its bounding sphere cut by the row's wedge of rays.
@@ -317,14 +352,17 @@ fn row_spans(
     }
 }
 
-/// Applies the image effects to `raw` and builds the organized cloud (optical frame, NaN for
-/// invalid pixels) and the 16-bit depth image (1 mm units, 0 invalid).
+/// Applies the image effects to the rows `rows` of `raw` and builds the organized cloud
+/// (optical frame, NaN for invalid pixels) and the 16-bit depth image (1 mm units, 0
+/// invalid); the other rows are invalid. Each row's effects draw from the row's own streams
+/// and read the clean depth of the rows beside it: a row of `rows` whose neighbours were
+/// cast comes out as in a whole frame.
 pub(crate) fn finish(
     k: &PinholeIntrinsics,
     raw: &RawView,
     passes: &Passes,
     key: FrameKey,
-    threads: usize,
+    (threads, rows): (usize, Range<usize>),
 ) -> (PointCloud, DepthImage) {
     let (w, h) = (raw.width, raw.height);
     let mut points = vec![Vec3::splat(f32::NAN); w * h];
@@ -348,6 +386,9 @@ pub(crate) fn finish(
                 .enumerate()
             {
                 let v = band * BAND_ROWS + r;
+                if !rows.contains(&v) {
+                    continue;
+                }
                 z_row.copy_from_slice(&raw.depth_m[v * w..(v + 1) * w]);
                 apply_passes(k, raw, passes, key, v, &mut z_row);
                 let dv = v as f64 - k.cy;
@@ -505,6 +546,96 @@ fn apply_passes(
     }
 }
 
+/// The nearest point of a patient body that a camera sees, with the body's name.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VisiblePoint {
+    /// World frame, metres.
+    pub point_m: nalgebra::Point3<f64>,
+    /// The body (scene name, without the `patient:` prefix).
+    pub body: String,
+}
+
+/// Relative depth tolerance of "the ray's first hit is this point" (f64 roots).
+const SAME_HIT_REL: f64 = 1e-9;
+
+impl super::Simulator {
+    /// The patient surface point nearest to `hip_m` (world) that camera `camera_id` sees at
+    /// `t_s` with the exoskeleton at `joints` (it occludes as in [`super::Simulator::frame_with_joints`]),
+    /// geometry exact, no image effects; None when the camera sees no patient body.
+    ///
+    /// When the nearest patient point of all is in the image and the first hit on its ray,
+    /// it is the answer (one ray). Otherwise every pixel is cast without effects and the
+    /// nearest patient pixel wins: the answer is then exact to the pixel grid.
+    pub fn nearest_visible(
+        &self,
+        camera_id: u32,
+        t_s: f64,
+        joints: &crate::robot::JointVector,
+        hip_m: &nalgebra::Point3<f64>,
+    ) -> Option<VisiblePoint> {
+        let cam = &self.cameras[camera_id as usize];
+        let k = &cam.intrinsics;
+        let (solids, labels) = self.posed_in_camera(camera_id, t_s, Some(joints));
+        let patient = |i: usize| labels[i].strip_prefix("patient:");
+        let hip = cam.world_from_camera_true.inverse() * hip_m;
+        let first_hit = |d: &Vector3<f64>| {
+            solids
+                .iter()
+                .enumerate()
+                .filter_map(|(i, s)| s.ray_hit(d).map(|t| (i, t)))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+        };
+        let visible = |p: &Vector3<f64>| -> bool {
+            if p.z <= NEAR_M {
+                return false;
+            }
+            let (u, v) = (k.cx + k.fx * p.x / p.z, k.cy + k.fy * p.y / p.z);
+            let inside = (-0.5..k.width as f64 - 0.5).contains(&u)
+                && (-0.5..k.height as f64 - 0.5).contains(&v);
+            inside && first_hit(&(p / p.z)).is_some_and(|(_, t)| t >= p.z * (1.0 - SAME_HIT_REL))
+        };
+        let world = |p: Vector3<f64>, i: usize| VisiblePoint {
+            point_m: cam.world_from_camera_true * nalgebra::Point3::from(p),
+            body: patient(i).unwrap_or_default().to_string(),
+        };
+        let nearest = (0..solids.len())
+            .filter(|&i| patient(i).is_some())
+            .map(|i| (i, solids[i].closest(&hip)))
+            .min_by(|a, b| a.1.distance_m.total_cmp(&b.1.distance_m))?;
+        if visible(&nearest.1.point_m.coords) {
+            return Some(world(nearest.1.point_m.coords, nearest.0));
+        }
+        let raw = cast(
+            k,
+            &solids,
+            &Passes::default(),
+            FrameKey {
+                seed: 0,
+                camera: camera_id,
+                frame: 0,
+            },
+            1,
+            (Scratch::default(), 0..k.height as usize),
+        );
+        let w = raw.width;
+        raw.label
+            .iter()
+            .enumerate()
+            .filter(|&(_, &l)| l != NO_HIT && patient(l as usize).is_some())
+            .map(|(i, &l)| {
+                let (u, v) = ((i % w) as f64, (i / w) as f64);
+                let d = Vector3::new((u - k.cx) / k.fx, (v - k.cy) / k.fy, 1.0);
+                (d * raw.depth_m[i], l as usize)
+            })
+            .min_by(|a, b| {
+                (a.0 - hip.coords)
+                    .norm_squared()
+                    .total_cmp(&(b.0 - hip.coords).norm_squared())
+            })
+            .map(|(p, l)| world(p, l))
+    }
+}
+
 /// `x.round()` for `x >= 0` (ties away from zero) without the libm call `f64::round` becomes
 /// on baseline x86-64; negative inputs give 0 (no depth).
 #[inline]
@@ -585,7 +716,7 @@ mod tests {
                 ..Passes::default()
             };
             let key = FrameKey { seed: 3, camera: 0, frame: 1 };
-            let raw = cast(&k, &solids, &passes, key, 2, Scratch::default());
+            let raw = cast(&k, &solids, &passes, key, 2, (Scratch::default(), 0..k.height as usize));
             let (w, h) = (k.width as usize, k.height as usize);
             for v in 0..h {
                 // The same jitter the caster drew is not observable here, so compare the
@@ -611,7 +742,7 @@ mod tests {
             }
             if lateral {
                 // Jittered rays hit about as many pixels as straight ones.
-                let straight = cast(&k, &solids, &Passes::default(), key, 1, Scratch::default());
+                let straight = cast(&k, &solids, &Passes::default(), key, 1, (Scratch::default(), 0..k.height as usize));
                 let count = |r: &RawView| r.label.iter().filter(|&&l| l != NO_HIT).count() as f64;
                 prop_assert!((count(&raw) - count(&straight)).abs() <= 0.05 * count(&straight) + 20.0);
             }
