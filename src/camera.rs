@@ -175,6 +175,18 @@ impl Frame {
         }
     }
 
+    /// The frame without a cloud beside its depth image (made again by deprojection when
+    /// read): what a depth camera delivers. A frame of points only keeps them.
+    pub fn without_given_cloud(self) -> Self {
+        match self.depth {
+            Some(_) => Self {
+                cloud: OnceLock::new(),
+                ..self
+            },
+            None => self,
+        }
+    }
+
     /// The frame without its depth image; its cloud stays what it was (deprojected now if
     /// it was not yet).
     pub fn without_depth(mut self) -> Self {
@@ -299,9 +311,18 @@ mod tests {
             .with_cloud(given.clone());
         assert!(frame.is_cloud_made() && frame.depth().is_some());
         assert_eq!(frame.cloud(), &given);
+        // Without the given cloud the image's deprojection is the cloud again.
+        let image_only = frame.without_given_cloud();
+        assert!(!image_only.is_cloud_made() && image_only.depth().is_some());
+        let (depth, intrinsics) = image_only.depth().unwrap();
+        assert_eq!(
+            bits(image_only.cloud()),
+            bits(&depth.deproject(intrinsics).unwrap())
+        );
         let frame = Frame::from_cloud(0, 0.0, pose, given.clone());
         assert!(frame.is_cloud_made() && frame.depth().is_none());
         assert_eq!(frame.cloud(), &given);
+        assert_eq!(frame.without_given_cloud().cloud(), &given, "points only: kept");
     }
 
     #[test]
