@@ -296,6 +296,7 @@ fn tick(i: u64) -> TickRecord {
             tau_nm: v(1.5),
             qdd_rad_per_s2: v(-0.2),
         },
+        keep_off: Default::default(),
         late_s: 0.0,
         work_s: 0.0,
     }

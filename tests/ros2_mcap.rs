@@ -5,7 +5,7 @@ use glam::Vec3;
 use hapcloud::camera::{DepthImage, Frame, PinholeIntrinsics};
 use hapcloud::cloud::PointCloud;
 use hapcloud::control::ControlStatus;
-use hapcloud::control::record::{ControlRecord, TickRecord};
+use hapcloud::control::record::{ControlRecord, GuardRecord, GuardRecords, TickRecord};
 use hapcloud::haptics::HapticStatus;
 use hapcloud::io::mcap::{
     ChunkCompression, FrameEncoding, McapItem, McapReader, McapReaderConfig, McapWriter,
@@ -131,9 +131,52 @@ fn tick(i: u64) -> TickRecord {
             tau_nm: v(1.5),
             qdd_rad_per_s2: v(-0.2),
         },
+        keep_off: guards(i),
         late_s: 1e-5,
         work_s: 2e-5,
     }
+}
+
+/// Two keep-off guards: one with a tracked surface and its constraint, one without a surface
+/// (NaN distances, no data).
+fn guards(i: u64) -> GuardRecords {
+    let fused = FusedSurface {
+        stamp_s: i as f64 / 800.0,
+        status: FusionStatus::Tracking,
+        age_s: 0.03,
+        surface: Some(SurfaceState {
+            centroid_m: Point3::new(0.1, 0.2, 0.3 + i as f64),
+            normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
+            velocity_m_per_s: Vector3::new(0.0, 0.0, -0.01),
+            fit_centroid_m: Point3::new(0.11, 0.2, 0.3),
+            fit_normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
+        }),
+        fit_degree: 1,
+        sample_count: 7,
+        camera_count: 1,
+    };
+    [
+        GuardRecord {
+            fused,
+            held: false,
+            haptic_status: HapticStatus::Active,
+            d_proj_m: 0.012 + i as f64 * 1e-3,
+            d_rate_mps: -0.3,
+            alpha_p_m: 0.002,
+            alpha_v_mps: -0.1,
+        },
+        GuardRecord {
+            fused: FusedSurface::no_data(i as f64 / 800.0),
+            held: false,
+            haptic_status: HapticStatus::NoSurface,
+            d_proj_m: f64::NAN,
+            d_rate_mps: f64::NAN,
+            alpha_p_m: f64::NAN,
+            alpha_v_mps: f64::NAN,
+        },
+    ]
+    .into_iter()
+    .collect()
 }
 
 fn assert_same_tick(a: &TickRecord, b: &TickRecord) {
@@ -162,6 +205,8 @@ fn write(config: McapWriterConfig, frames: &[Frame]) -> Vec<u8> {
             .unwrap();
         w.write_estimate(i as u64 * 10, &estimate(i as u32))
             .unwrap();
+        w.write_guard_estimates(i as u64 * 10, &[estimate(i as u32), estimate(7)])
+            .unwrap();
         w.write_tick(&tick(i as u64)).unwrap();
     }
     w.finish().unwrap().into_inner()
@@ -170,7 +215,9 @@ fn write(config: McapWriterConfig, frames: &[Frame]) -> Vec<u8> {
 struct Read {
     frames: Vec<(Frame, Vec<f64>)>,
     estimates: Vec<(u64, SurfaceEstimate)>,
+    guard_estimates: Vec<(u64, Vec<SurfaceEstimate>)>,
     ticks: Vec<TickRecord>,
+    guards: Vec<(u64, GuardRecords)>,
     others: Vec<String>,
     truncated: Option<String>,
 }
@@ -180,7 +227,9 @@ fn read(bytes: &[u8]) -> Read {
     let mut out = Read {
         frames: Vec::new(),
         estimates: Vec::new(),
+        guard_estimates: Vec::new(),
         ticks: Vec::new(),
+        guards: Vec::new(),
         others: Vec::new(),
         truncated: None,
     };
@@ -189,6 +238,8 @@ fn read(bytes: &[u8]) -> Read {
             McapItem::Frame(a) => out.frames.push((a.frame, a.joint_positions_rad)),
             McapItem::Estimate(t, e) => out.estimates.push((t, e)),
             McapItem::Tick(t) => out.ticks.push(t),
+            McapItem::GuardEstimates(t, e) => out.guard_estimates.push((t, e)),
+            McapItem::Guards(k, g) => out.guards.push((k, g)),
             McapItem::Other { topic, .. } => out.others.push(topic),
             McapItem::Metadata { name, .. } => out.others.push(name),
         }
@@ -226,6 +277,28 @@ fn frames_estimates_and_ticks_read_back_bit_for_bit() {
         assert_eq!(got.ticks.len(), sent.len());
         for (i, t) in got.ticks.iter().enumerate() {
             assert_same_tick(t, &tick(i as u64));
+        }
+        // The keep-off guards: a frame's estimates and each tick's guards, bit for bit.
+        assert_eq!(got.guard_estimates.len(), sent.len());
+        for (i, (t, e)) in got.guard_estimates.iter().enumerate() {
+            assert_eq!(
+                (*t, &e[..]),
+                (i as u64 * 10, &[estimate(i as u32), estimate(7)][..])
+            );
+        }
+        assert_eq!(got.guards.len(), sent.len());
+        for (i, (k, g)) in got.guards.iter().enumerate() {
+            let expected = tick(i as u64);
+            let got_tick = TickRecord {
+                keep_off: *g,
+                ..expected
+            };
+            assert_eq!(*k, i as u64);
+            assert_eq!(g.as_slice().len(), 2);
+            assert_eq!(
+                hapcloud::node::record::guard_bytes(&got_tick),
+                hapcloud::node::record::guard_bytes(&expected)
+            );
         }
         assert!(got.others.iter().all(|t| t == "/tf"), "{:?}", got.others);
     }

@@ -73,7 +73,9 @@ mod tests;
 pub use backends::{BACKEND_CHOICE_FRAMES, measure_backends};
 pub use realtime::{RealtimeConfig, RealtimeStatus};
 pub use replay::{ReplayReport, replay};
-pub use summary::{CameraSummary, CanSummary, FramesLost, NodeSummary, Percentiles, QueueService};
+pub use summary::{
+    CameraSummary, CanSummary, FramesLost, GuardSummary, NodeSummary, Percentiles, QueueService,
+};
 pub use workers::Worker;
 
 use crate::camera::Frame;
@@ -394,10 +396,12 @@ pub fn run(
         Source::Simulated { simulator, .. } => RobotState::simulated(simulator.clone()),
         _ => None,
     };
+    // Perception estimates a surface per keep-off guard (posed with joint states only).
     let robot = match robot {
         Some(r) => r,
         None => RobotState::fixed(config)?,
-    };
+    }
+    .with_guards(&config.controller.guards)?;
     // Frames whose stamps disagree with their neighbours are refused (counted) before the
     // clock is set from the stamps.
     let mut source = source;
@@ -466,6 +470,7 @@ pub fn run(
                 config: config.clone(),
                 backend: perceptions[0].backend(),
                 robot: robot.meta(),
+                keep_off_perception: true,
             };
             let (f, t) = record::create(path, &meta)?;
             (Some(f), Some(t))
@@ -475,7 +480,8 @@ pub fn run(
     let behind = tick_recorder.as_ref().map(TickRecorder::behind);
     // What the loop needs is made before the clock starts: until the loop's thread runs at
     // real-time priority, the first deadlines could pass while it is preempted.
-    let (stats, window) = (LoopStats::new(), FusionWindow::new(config)?);
+    let window = FusionWindow::new(config)?;
+    let stats = LoopStats::new(window.guard_count());
     // Memory is locked first: locking a large process takes a while, and a live source's
     // clock starts at the wall time read below.
     let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
@@ -778,6 +784,11 @@ fn summarize(
         backend_choice,
         gpu_buffer_bytes: report.gpu_buffer_bytes,
         fusion: report.fusion,
+        guards: record::keep_off_names(config)
+            .into_iter()
+            .zip(&stats.guards)
+            .map(|(name, g)| g.summary(name, stats.ticks))
+            .collect(),
         camera_latency: report.camera_latency,
         stopped_early: stats.stopped_early,
         can: can.map(|counters| CanSummary {
