@@ -1,11 +1,13 @@
 //! MCAP recordings: frames, estimates and ticks written and read back bit for bit, a file cut
 //! off mid-write keeps every complete record, and random bytes never panic the reader.
 
+mod common;
+
 use glam::Vec3;
 use hapcloud::camera::{DepthImage, Frame, PinholeIntrinsics};
 use hapcloud::cloud::PointCloud;
 use hapcloud::control::ControlStatus;
-use hapcloud::control::record::{ControlRecord, GuardRecord, GuardRecords, TickRecord};
+use hapcloud::control::record::{ControlRecord, GuardRecords, TickRecord};
 use hapcloud::haptics::HapticStatus;
 use hapcloud::io::mcap::{
     ChunkCompression, FrameEncoding, McapItem, McapReader, McapReaderConfig, McapWriter,
@@ -131,52 +133,10 @@ fn tick(i: u64) -> TickRecord {
             tau_nm: v(1.5),
             qdd_rad_per_s2: v(-0.2),
         },
-        keep_off: guards(i),
+        keep_off: common::two_guard_records(i as f64 / 800.0, i as f64),
         late_s: 1e-5,
         work_s: 2e-5,
     }
-}
-
-/// Two keep-off guards: one with a tracked surface and its constraint, one without a surface
-/// (NaN distances, no data).
-fn guards(i: u64) -> GuardRecords {
-    let fused = FusedSurface {
-        stamp_s: i as f64 / 800.0,
-        status: FusionStatus::Tracking,
-        age_s: 0.03,
-        surface: Some(SurfaceState {
-            centroid_m: Point3::new(0.1, 0.2, 0.3 + i as f64),
-            normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
-            velocity_m_per_s: Vector3::new(0.0, 0.0, -0.01),
-            fit_centroid_m: Point3::new(0.11, 0.2, 0.3),
-            fit_normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
-        }),
-        fit_degree: 1,
-        sample_count: 7,
-        camera_count: 1,
-    };
-    [
-        GuardRecord {
-            fused,
-            held: false,
-            haptic_status: HapticStatus::Active,
-            d_proj_m: 0.012 + i as f64 * 1e-3,
-            d_rate_mps: -0.3,
-            alpha_p_m: 0.002,
-            alpha_v_mps: -0.1,
-        },
-        GuardRecord {
-            fused: FusedSurface::no_data(i as f64 / 800.0),
-            held: false,
-            haptic_status: HapticStatus::NoSurface,
-            d_proj_m: f64::NAN,
-            d_rate_mps: f64::NAN,
-            alpha_p_m: f64::NAN,
-            alpha_v_mps: f64::NAN,
-        },
-    ]
-    .into_iter()
-    .collect()
 }
 
 fn assert_same_tick(a: &TickRecord, b: &TickRecord) {

@@ -342,6 +342,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 options.backend.to_string()
             },
             stats,
+            hapcloud::node::record::keep_off_names(config),
         )?;
         Some((s, thread))
     } else {

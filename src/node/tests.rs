@@ -302,6 +302,7 @@ fn zenoh_source_runs_the_node_and_outputs_are_published() {
         },
         "cpu".into(),
         Some(source.stats()),
+        record::keep_off_names(&config()),
     )
     .unwrap();
     let received = Arc::new(std::sync::Mutex::new(Vec::<f64>::new()));
