@@ -687,7 +687,8 @@ fn announce(
         }
     );
     if can {
-        let load = config.can.bus_load(config.tick_rate_hz);
+        let keep_off = !record::keep_off_names(config).is_empty();
+        let load = config.can.bus_load(config.tick_rate_hz, keep_off);
         crate::stderr_line!(
             "CAN: {:.0} frames/s, {:.0} kbit/s worst case, {:.1} % of {:.0} kbit/s",
             load.frames_per_s,
@@ -793,7 +794,10 @@ fn summarize(
         stopped_early: stats.stopped_early,
         can: can.map(|counters| CanSummary {
             counters,
-            bus_load: config.can.bus_load(config.tick_rate_hz),
+            bus_load: config.can.bus_load(
+                config.tick_rate_hz,
+                !record::keep_off_names(config).is_empty(),
+            ),
         }),
         duration_s,
         speed: options.speed,
