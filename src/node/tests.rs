@@ -668,6 +668,35 @@ fn overlay_views_follow_the_robot_and_carry_truth_and_constraints() {
             .iter()
             .any(|c| c.estimate.as_ref().is_some_and(|e| e.surface.is_some()))
     }));
+    // Every keep-off guard is drawn, posed at the frame's stamp, and the views that follow a
+    // tick carry the d_proj the plots draw for each guard with a surface.
+    let set = crate::robot::guards::GuardSet::new(model, &config.controller.guards).unwrap();
+    for v in &views {
+        let names: Vec<_> = v.guards.iter().map(|g| g.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "forearm",
+                "elbow",
+                "upper_arm",
+                "shoulder",
+                "shoulder_rotation"
+            ]
+        );
+        let poses = model.forward_kinematics(&sim.joints_at(v.stamp_s).unwrap());
+        for (g, &i) in v.guards.iter().zip(set.keep_off()) {
+            let posed = set.guards()[i].world(&poses);
+            assert!((g.a_m - posed.a_m).norm() < 1e-9 && (g.b_m - posed.b_m).norm() < 1e-9);
+            assert!(g.shell_radii_m.iter().all(|r| *r > posed.radius_m));
+        }
+    }
+    let plotted = views
+        .iter()
+        .flat_map(|v| &v.guards)
+        .filter(|g| g.d_proj_m.is_some())
+        .count();
+    println!("guard d_proj samples in the overlay's views: {plotted}");
+    assert!(plotted > 0, "no guard's d_proj reached the views");
 }
 
 /// The last torque command and status a candump log holds.
