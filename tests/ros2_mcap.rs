@@ -197,9 +197,9 @@ fn read(bytes: &[u8]) -> Read {
         match item {
             McapItem::Frame(a) => out.frames.push((a.frame, a.joint_positions_rad)),
             McapItem::Estimate(t, e) => out.estimates.push((t, e)),
-            McapItem::Tick(t) => out.ticks.push(t),
+            McapItem::Tick(t) => out.ticks.push(*t),
             McapItem::GuardEstimates(t, e) => out.guard_estimates.push((t, e)),
-            McapItem::Guards(k, g) => out.guards.push((k, g)),
+            McapItem::Guards(k, g) => out.guards.push((k, *g)),
             McapItem::Other { topic, .. } => out.others.push(topic),
             McapItem::Metadata { name, .. } => out.others.push(name),
         }

@@ -466,15 +466,15 @@ fn cloud_is_deprojection(
 /// One item of a recording, in file order.
 #[derive(Clone, Debug)]
 pub enum McapItem {
-    Frame(Assembled),
+    Frame(Box<Assembled>),
     /// A surface estimate and the tick that pushed it.
     Estimate(u64, SurfaceEstimate),
     /// A frame's keep-off guard estimates and the tick that pushed them.
     GuardEstimates(u64, Vec<SurfaceEstimate>),
     /// A tick without its keep-off guards ([`TickRecord::keep_off`] empty): they follow as
     /// [`McapItem::Guards`] of the same index.
-    Tick(TickRecord),
-    Guards(u64, GuardRecords),
+    Tick(Box<TickRecord>),
+    Guards(u64, Box<GuardRecords>),
     /// A metadata record (name, string pairs).
     Metadata {
         name: String,
@@ -809,7 +809,7 @@ impl<R: Read> McapReader<R> {
             let topic = &self.channels[&channel].topic;
             if self.assembler.role(topic).is_some() {
                 if let Some(a) = self.assembler.push(topic, &data) {
-                    self.ready.push_back(McapItem::Frame(a));
+                    self.ready.push_back(McapItem::Frame(Box::new(a)));
                 }
             } else {
                 self.held.push_back((channel, data));
@@ -835,7 +835,10 @@ impl<R: Read> McapReader<R> {
             source,
         };
         if self.assembler.role(&topic).is_some() {
-            return Ok(self.assembler.push(&topic, &data).map(McapItem::Frame));
+            return Ok(self
+                .assembler
+                .push(&topic, &data)
+                .map(|a| McapItem::Frame(Box::new(a))));
         }
         if self.auto && schema == IMAGE.name {
             // Its camera_info channel may be declared after it: held until then.
@@ -858,11 +861,13 @@ impl<R: Read> McapReader<R> {
         if topic == topics::GUARDS && schema == GuardStates::DESC.name {
             let m: GuardStates = decode(&data).map_err(bad)?;
             let (index, records) = m.to_records().map_err(bad)?;
-            return Ok(Some(McapItem::Guards(index, records)));
+            return Ok(Some(McapItem::Guards(index, Box::new(records))));
         }
         if topic == topics::TICKS && schema == ControlTick::DESC.name {
             let m: ControlTick = decode(&data).map_err(bad)?;
-            return Ok(Some(McapItem::Tick(m.to_tick_record().map_err(bad)?)));
+            return Ok(Some(McapItem::Tick(Box::new(
+                m.to_tick_record().map_err(bad)?,
+            ))));
         }
         Ok(Some(McapItem::Other {
             topic,

@@ -412,7 +412,7 @@ pub fn read(path: &Path) -> Result<Recording, RecordError> {
             RecordItem::GuardEstimates(k, e) => guard_estimates.push((k, e)),
             RecordItem::Tick(t) => ticks.push(*t),
             RecordItem::Guards(index, guards) => match ticks.last_mut() {
-                Some(t) if t.index == index => t.keep_off = guards,
+                Some(t) if t.index == index => t.keep_off = *guards,
                 _ => {
                     return Err(RecordError::Format {
                         path: path.into(),
@@ -443,7 +443,7 @@ pub enum RecordItem {
     GuardEstimates(u64, Vec<SurfaceEstimate>),
     /// A tick; its keep-off guards follow as [`RecordItem::Guards`] of its index.
     Tick(Box<TickRecord>),
-    Guards(u64, GuardRecords),
+    Guards(u64, Box<GuardRecords>),
 }
 
 /// A node recording read item by item, nothing kept: its metadata (which the writer puts
@@ -513,7 +513,7 @@ impl RecordingReader {
                     RecordItem::Frame(Box::new(a.frame), JointVector::from_column_slice(q))
                 }
                 Some(McapItem::Estimate(k, e)) => RecordItem::Estimate(k, e),
-                Some(McapItem::Tick(t)) => RecordItem::Tick(Box::new(t)),
+                Some(McapItem::Tick(t)) => RecordItem::Tick(t),
                 Some(McapItem::GuardEstimates(k, e)) => RecordItem::GuardEstimates(k, e),
                 Some(McapItem::Guards(k, g)) => RecordItem::Guards(k, g),
                 Some(McapItem::Metadata { .. } | McapItem::Other { .. }) => continue,

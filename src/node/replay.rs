@@ -143,7 +143,7 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
                 report.guard_ticks_compared += 1;
                 let same = last_again.filter(|t| t.index == index).is_some_and(|t| {
                     let recorded = TickRecord {
-                        keep_off: guards,
+                        keep_off: *guards,
                         ..t
                     };
                     record::guard_bytes(&t) == record::guard_bytes(&recorded)
