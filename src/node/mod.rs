@@ -11,13 +11,15 @@
 //!    cameras' frames in turn,
 //! 2. **perception** (`perception_workers` threads sharing the GPU context, each with its
 //!    share of the cameras): the per-camera chain ([`CameraChain`]: crop, voxel grid,
-//!    clusters, and one surface estimator with its memory per camera), then hands each
-//!    [`SurfaceEstimate`] to the loop through a channel,
+//!    clusters, and one surface estimator with its memory per camera; with keep-off guards
+//!    one estimate per guard besides, from the same crop and clusters), fits fusion's
+//!    windows (the handle's and each guard's) and hands each frame's estimates and fits to
+//!    the loop through a channel,
 //! 3. **control loop** (the calling thread): absolute deadlines `start + k / rate` (no drift:
 //!    a late tick does not push the later ones back; a loop more than one period behind skips
 //!    the slots already past, counted, instead of running them late in a burst), each tick drains the channel without
 //!    blocking, pushes the estimates into [`Fusion`] (paper IV-F) and evaluates the fused
-//!    surface at the tick's time; then the haptic constraints (paper V, eq. 7-14,
+//!    surface at the tick's time (and each keep-off guard's); then the haptic constraints (paper V, eq. 7-14,
 //!    [`crate::haptics`]) and the hierarchical controller ([`crate::control`]) turn it into
 //!    a joint torque command for the robot state at the tick ([`robot_state`]: the scene's
 //!    joint trajectory for a simulated source, a standing robot otherwise). The tick's outputs
