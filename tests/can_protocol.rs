@@ -9,7 +9,7 @@
 //!   16-byte `struct can_frame` datagrams) decode to the values sent.
 
 use hapcloud::io::can::{
-    self, CanBackend, CanConstraint, CanJointState, CanSender, CanStatus, CanSurface,
+    self, CanBackend, CanConstraint, CanJointState, CanKeepOff, CanSender, CanStatus, CanSurface,
     CanTorqueCommand, CanValue, CandumpWriter, Decoder, encode,
 };
 use proptest::prelude::*;
@@ -58,6 +58,26 @@ fn arb_value() -> impl Strategy<Value = CanValue> {
                 counter,
             })
         });
+    let keep_off = (
+        prop::array::uniform3(-3.2f64..3.2),
+        0u8..8,
+        0u8..3,
+        prop::array::uniform3(any::<bool>()),
+        any::<u8>(),
+    )
+        .prop_map(|([d, rate, p], guard_index, status, flags, counter)| {
+            CanValue::KeepOff(CanKeepOff {
+                d_proj_m: d,
+                d_rate_m_s: rate,
+                alpha_p_m: p,
+                guard_index,
+                status,
+                position_active: flags[0],
+                blind_guard: flags[1],
+                held: flags[2],
+                counter,
+            })
+        });
     let surface = (
         0u8..16,
         0u8..16,
@@ -98,7 +118,7 @@ fn arb_value() -> impl Strategy<Value = CanValue> {
                 })
             },
         );
-    prop_oneof![torque, joints, constraint, surface, status]
+    prop_oneof![torque, joints, constraint, keep_off, surface, status]
 }
 
 /// Every signal of a value by its DBC name, with the resolution (LSB) the protocol gives it.
@@ -132,6 +152,17 @@ fn expected_signals(value: &CanValue) -> Vec<(String, f64, f64)> {
             out.push(("ForceActive".into(), b(v.force_active), 1.0));
             out.push(("SurfaceValid".into(), b(v.surface_valid), 1.0));
             out.push(("ConstraintCounter".into(), f64::from(v.counter), 1.0));
+        }
+        CanValue::KeepOff(v) => {
+            out.push(("GuardDProj".into(), v.d_proj_m, 1e-4));
+            out.push(("GuardDRate".into(), v.d_rate_m_s, 1e-4));
+            out.push(("GuardAlphaP".into(), v.alpha_p_m, 1e-4));
+            out.push(("GuardIndex".into(), f64::from(v.guard_index), 1.0));
+            out.push(("GuardStatus".into(), f64::from(v.status), 1.0));
+            out.push(("GuardPositionActive".into(), b(v.position_active), 1.0));
+            out.push(("GuardBlind".into(), b(v.blind_guard), 1.0));
+            out.push(("GuardHeld".into(), b(v.held), 1.0));
+            out.push(("GuardCounter".into(), f64::from(v.counter), 1.0));
         }
         CanValue::Surface(v) => {
             for (k, axis) in ["X", "Y", "Z"].iter().enumerate() {
@@ -240,6 +271,7 @@ fn dbc_describes_exactly_the_protocol() {
         can::id::JOINT_STATE_3_4,
         can::id::JOINT_STATE_5_6,
         can::id::HAPTIC_CONSTRAINT,
+        can::id::KEEP_OFF_GUARD,
         can::id::SURFACE_CENTROID,
         can::id::SURFACE_NORMAL,
         can::id::NODE_STATUS,
@@ -355,14 +387,53 @@ fn can_decode_command_reads_a_log() {
     };
     log.write_value(1_700_000_000.0, &CanValue::Constraint(constraint))
         .unwrap();
+    // The nearest keep-off guard (the elbow, index 1), 12.3 mm off its surface and closing.
+    let guard = CanKeepOff {
+        d_proj_m: 0.0123,
+        d_rate_m_s: -0.25,
+        alpha_p_m: 0.0021,
+        guard_index: 1,
+        status: 0,
+        position_active: true,
+        blind_guard: true,
+        held: false,
+        counter: 7,
+    };
+    log.write_value(1_700_000_000.001, &CanValue::KeepOff(guard))
+        .unwrap();
     log.flush().unwrap();
     let out = common::run_ok(["can-decode".as_ref(), "--json".as_ref(), path.as_os_str()]);
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(json["frames"], 1);
+    assert_eq!(json["frames"], 2);
     assert_eq!(json["unknown"], 0);
     let message = &json["messages"][0];
     assert_eq!(message["name"], "HapticConstraint");
     let d_proj = message["signals"]["DProj"].as_f64().unwrap();
     assert!((d_proj - 0.0421).abs() <= 1e-4, "{d_proj}");
     assert_eq!(message["signals"]["ConstraintCounter"], 7.0);
+    let message = &json["messages"][1];
+    assert_eq!(message["name"], "KeepOffGuard");
+    let signals = &message["signals"];
+    let d_proj = signals["GuardDProj"].as_f64().unwrap();
+    assert!((d_proj - 0.0123).abs() <= 1e-4, "{d_proj}");
+    let rate = signals["GuardDRate"].as_f64().unwrap();
+    assert!((rate + 0.25).abs() <= 1e-4, "{rate}");
+    for (name, v) in [
+        ("GuardIndex", 1.0),
+        ("GuardStatus", 0.0),
+        ("GuardPositionActive", 1.0),
+        ("GuardBlind", 1.0),
+        ("GuardHeld", 0.0),
+        ("GuardCounter", 7.0),
+    ] {
+        assert_eq!(signals[name], v, "{name}: {message}");
+    }
+    // The text output names the message and its signals.
+    let out = common::run_ok(["can-decode".as_ref(), path.as_os_str()]);
+    let text = String::from_utf8(out.stdout).unwrap();
+    let line = text.lines().nth(1).unwrap();
+    assert!(
+        line.contains("121 KeepOffGuard") && line.contains("GuardIndex=1"),
+        "{text}"
+    );
 }

@@ -218,6 +218,35 @@ fn can_log_of_a_scene_run_decodes_with_the_dbc_to_the_recorded_values() {
                 assert_eq!(signals["EstimateValid"], f64::from(e.surface.is_some()));
                 surfaces += 1;
             }
+            "KeepOffGuard" => {
+                // The keep-off guard nearest its surface (the robot follows the scene: its
+                // guards are posed), at the status rate.
+                assert_eq!(tick.index % 8, 0, "keep-off guard at 100 Hz");
+                let guards = tick.keep_off.as_slice();
+                assert_eq!(guards.len(), 5);
+                match tick.keep_off.nearest() {
+                    Some((i, g)) => {
+                        assert_eq!(signals["GuardIndex"], i as f64);
+                        assert_signal(&signals, "GuardDProj", g.d_proj_m, 1e-4);
+                        assert_signal(&signals, "GuardAlphaP", g.alpha_p_m, 1e-4);
+                        assert!(
+                            guards
+                                .iter()
+                                .all(|o| o.d_proj_m.is_nan() || o.d_proj_m >= g.d_proj_m)
+                        );
+                    }
+                    None => {
+                        assert_eq!(signals["GuardIndex"], 7.0);
+                        assert_eq!(signals["GuardStatus"], 2.0);
+                        assert_eq!(signals["GuardDProj"], 0.0);
+                    }
+                }
+                let blind = guards
+                    .iter()
+                    .any(|g| g.haptic_status == hapcloud::haptics::HapticStatus::NoSurface);
+                assert_eq!(signals["GuardBlind"], f64::from(blind));
+                assert_eq!(signals["GuardCounter"], counter);
+            }
             "SurfaceNormal" => {}
             other => panic!("unexpected message {other}"),
         }
@@ -225,6 +254,7 @@ fn can_log_of_a_scene_run_decodes_with_the_dbc_to_the_recorded_values() {
     let n = ticks.len();
     assert_eq!(seen["TorqueCommand_1_4"], n);
     assert_eq!(seen["HapticConstraint"], n);
+    assert_eq!(seen["KeepOffGuard"], seen["NodeStatus"]);
     assert_eq!(surfaces, recording.estimates.len());
     assert!(surfaces > 0, "no estimate reached fusion: {summary}");
     let load = summary["can"]["bus_load"]["load_fraction"]

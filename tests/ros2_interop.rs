@@ -3,6 +3,8 @@
 //! subscriber) and `rosbags` (CDR, RIHS01 hashes, rosbag2 MCAP). Skipped, with a message,
 //! only when those Python modules are missing (`pip install -r tools/interop/requirements.txt`).
 
+mod common;
+
 use glam::Vec3;
 use hapcloud::camera::Frame;
 use hapcloud::control::ControlStatus;
@@ -296,6 +298,7 @@ fn tick(i: u64) -> TickRecord {
             tau_nm: v(1.5),
             qdd_rad_per_s2: v(-0.2),
         },
+        keep_off: common::two_guard_records(10.0 + i as f64 / 800.0, i as f64),
         late_s: 0.0,
         work_s: 0.0,
     }
@@ -308,7 +311,7 @@ fn rosbags_decodes_what_hapcloud_publishes() {
     }
     let (_router, zenoh) = router();
     let port = zenoh.connect[0].rsplit(':').next().unwrap().to_string();
-    let wanted = 12;
+    let wanted = 16;
     let (mut listener, out) = Proc::start(&[
         "listen",
         &port,
@@ -319,6 +322,7 @@ fn rosbags_decodes_what_hapcloud_publishes() {
     let session = open_session(&zenoh).unwrap();
     let mut publisher =
         ZenohPublisher::new(&session, &zenoh, &ZenohPublisherConfig::default()).unwrap();
+    publisher.set_guard_names(vec!["forearm".into(), "elbow".into()]);
     // Publish until the listener has what it wants (routes take a moment to form).
     let until = Instant::now() + Duration::from_secs(15);
     let mut i = 0;
@@ -366,11 +370,33 @@ fn rosbags_decodes_what_hapcloud_publishes() {
                 assert_eq!(effort, t.control.tau_nm.as_slice());
                 assert_eq!(m["name"][0], "joint1");
             }
+            "hapcloud_msgs/msg/GuardStates" => {
+                // One fused surface and constraint per keep-off guard: the first tracked and
+                // active, the second without a surface (NaN distance, NO_DATA, NO_SURFACE).
+                assert_eq!(m["index"].as_u64(), Some(t.index));
+                let g = t.keep_off.as_slice();
+                let guards = m["guards"].as_array().unwrap();
+                assert_eq!(guards.len(), 2, "{m}");
+                assert_eq!(guards[0]["name"], "forearm");
+                assert_eq!(
+                    guards[0]["constraint"]["d_proj_m"].as_f64(),
+                    Some(g[0].d_proj_m)
+                );
+                assert_eq!(guards[0]["constraint"]["status"], 0);
+                assert_eq!(
+                    guards[0]["fused"]["centroid_m"][2].as_f64(),
+                    g[0].fused.surface.map(|s| s.centroid_m.z)
+                );
+                assert_eq!(guards[1]["name"], "elbow");
+                assert_eq!(guards[1]["constraint"]["d_proj_m"], "nan");
+                assert_eq!(guards[1]["constraint"]["status"], 2);
+                assert_eq!(guards[1]["fused"]["status"], 3);
+            }
             other => panic!("unexpected {other}"),
         }
         kinds.insert(l["type"].as_str().unwrap().to_string());
     }
-    assert_eq!(kinds.len(), 3, "{kinds:?}");
+    assert_eq!(kinds.len(), 4, "{kinds:?}");
 }
 
 #[test]
@@ -409,12 +435,23 @@ fn rosbags_reads_a_hapcloud_recording() {
     let mut simulated = frame.clone().with_cloud(cloud);
     simulated.camera_id = 3;
     w.write_frame(&simulated, &[0.5; 6]).unwrap();
+    w.set_guard_names(vec!["forearm".into(), "elbow".into()]);
+    let estimate = hapcloud::surface::SurfaceEstimate {
+        camera_id: 2,
+        stamp_s: 1.0 / 3.0,
+        surface: None,
+        shells: Vec::new(),
+        quality: 0.0,
+    };
+    w.write_guard_estimates(0, &[estimate.clone(), estimate])
+        .unwrap();
     for i in 0..3 {
         w.write_tick(&tick(i)).unwrap();
     }
     w.finish().unwrap();
     let out: Value = serde_json::from_str(&python(&["read-mcap", path.to_str().unwrap()])).unwrap();
-    check_with_foxglove_packages(&path, 9);
+    // Foxglove's packages decode the keep-off guards' messages too (11 channels).
+    check_with_foxglove_packages(&path, 11);
     std::fs::remove_dir_all(&dir).unwrap();
     let topics = &out["topics"];
     let count = |t: &str| topics[t]["count"].as_u64().unwrap_or(0);
@@ -452,6 +489,33 @@ fn rosbags_reads_a_hapcloud_recording() {
     );
     let tau = &first["/hapcloud/ticks"]["tau_nm"];
     assert_eq!(tau[5].as_f64(), Some(tick(0).control.tau_nm[5]));
+    // rosbags decodes each tick's keep-off guards: names, a surface and its constraint, and
+    // a guard without a surface (NaN distance, NO_DATA, NO_SURFACE).
+    assert_eq!(count("/hapcloud/guards"), 3, "{out}");
+    assert_eq!(count("/hapcloud/guard_estimates"), 1, "{out}");
+    let guards = &first["/hapcloud/guards"]["guards"];
+    let first_tick = tick(0);
+    let g0 = &first_tick.keep_off.as_slice()[0];
+    assert_eq!(guards[0]["name"], "forearm", "{guards}");
+    assert_eq!(guards[1]["name"], "elbow", "{guards}");
+    assert_eq!(
+        guards[0]["constraint"]["d_proj_m"].as_f64(),
+        Some(g0.d_proj_m)
+    );
+    assert_eq!(guards[0]["constraint"]["status"], 0);
+    assert_eq!(
+        guards[0]["fused"]["centroid_m"][2].as_f64(),
+        g0.fused.surface.map(|s| s.centroid_m.z)
+    );
+    assert_eq!(guards[1]["constraint"]["d_proj_m"], "nan", "{guards}");
+    assert_eq!(guards[1]["constraint"]["status"], 2);
+    assert_eq!(guards[1]["fused"]["status"], 3);
+    let estimates = &first["/hapcloud/guard_estimates"];
+    assert_eq!(
+        estimates["guards"].as_array().map(Vec::len),
+        Some(2),
+        "{estimates}"
+    );
 }
 
 #[test]
@@ -667,6 +731,38 @@ fn the_node_runs_on_python_cameras_and_rosbags_decodes_its_outputs() {
     assert!(active > 0, "no active constraint published");
     let surfaces = of("hapcloud_msgs/msg/FusedSurface");
     assert!(surfaces.iter().any(|l| l["msg"]["status"] == 0));
+    // Every keep-off guard of ANYexo's default set, named; the live source has no joint
+    // states, so no guard is posed: each has no surface, no distance.
+    let guards = of("hapcloud_msgs/msg/GuardStates");
+    assert!(guards.len() > 20, "{} GuardStates", guards.len());
+    for g in &guards {
+        let names: Vec<_> = g["msg"]["guards"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|g| g["name"].as_str().unwrap())
+            .collect();
+        assert_eq!(
+            names,
+            [
+                "forearm",
+                "elbow",
+                "upper_arm",
+                "shoulder",
+                "shoulder_rotation"
+            ]
+        );
+        for guard in g["msg"]["guards"].as_array().unwrap() {
+            assert_eq!(guard["constraint"]["status"], 2, "{guard}");
+            assert_eq!(guard["constraint"]["d_proj_m"], "nan", "{guard}");
+        }
+    }
+    let summary_guards = summary["guards"].as_array().unwrap();
+    assert_eq!(summary_guards.len(), 5, "{summary}");
+    for g in summary_guards {
+        assert_eq!(g["no_surface_ticks"], summary["ticks"], "{g}");
+        assert_eq!(g["d_proj_min_mm"], Value::Null, "{g}");
+    }
     let status = of("hapcloud_msgs/msg/NodeStatus");
     assert!(!status.is_empty());
     let last = &status.last().unwrap()["msg"];
@@ -1105,6 +1201,7 @@ fn the_node_and_its_topics_are_in_the_rmw_zenoh_graph() {
     let published = topics("publisher");
     for t in [
         "/hapcloud/fused_surface hapcloud_msgs/msg/FusedSurface",
+        "/hapcloud/guards hapcloud_msgs/msg/GuardStates",
         "/hapcloud/haptic_constraint hapcloud_msgs/msg/HapticConstraint",
         "/hapcloud/joint_command sensor_msgs/msg/JointState",
         "/hapcloud/status hapcloud_msgs/msg/NodeStatus",
@@ -1197,6 +1294,15 @@ fn a_simulated_gpu_run_replays_bit_for_bit_and_rosbags_opens_it() {
     assert_eq!(report["ticks_compared"], summary["ticks"], "{report}");
     assert_eq!(report["estimate_mismatches"], 0, "{report}");
     assert_eq!(report["tick_mismatches"], 0, "{report}");
+    // The keep-off guards: every tick's and every frame's, reproduced bit for bit.
+    assert_eq!(report["guard_ticks_compared"], summary["ticks"], "{report}");
+    assert_eq!(
+        report["guard_estimates_compared"].as_u64(),
+        Some(recording.frames.len() as u64),
+        "{report}"
+    );
+    assert_eq!(report["guard_tick_mismatches"], 0, "{report}");
+    assert_eq!(report["guard_estimate_mismatches"], 0, "{report}");
     if python_ready() {
         let out: Value =
             serde_json::from_str(&python(&["read-mcap", file.to_str().unwrap()])).unwrap();
@@ -1210,6 +1316,21 @@ fn a_simulated_gpu_run_replays_bit_for_bit_and_rosbags_opens_it() {
             );
         }
         assert_eq!(count("/hapcloud/ticks"), summary["ticks"].as_u64().unwrap());
+        assert_eq!(
+            count("/hapcloud/guards"),
+            summary["ticks"].as_u64().unwrap()
+        );
+        assert_eq!(
+            count("/hapcloud/guard_estimates"),
+            recording.frames.len() as u64
+        );
+        assert_eq!(
+            out["first"]["/hapcloud/guards"]["guards"]
+                .as_array()
+                .map(Vec::len),
+            Some(5),
+            "{out}"
+        );
         assert_eq!(
             out["first"]["/hapcloud/camera0/depth/image_rect_raw"]["encoding"],
             "16UC1"

@@ -1,11 +1,13 @@
 //! MCAP recordings: frames, estimates and ticks written and read back bit for bit, a file cut
 //! off mid-write keeps every complete record, and random bytes never panic the reader.
 
+mod common;
+
 use glam::Vec3;
 use hapcloud::camera::{DepthImage, Frame, PinholeIntrinsics};
 use hapcloud::cloud::PointCloud;
 use hapcloud::control::ControlStatus;
-use hapcloud::control::record::{ControlRecord, TickRecord};
+use hapcloud::control::record::{ControlRecord, GuardRecords, TickRecord};
 use hapcloud::haptics::HapticStatus;
 use hapcloud::io::mcap::{
     ChunkCompression, FrameEncoding, McapItem, McapReader, McapReaderConfig, McapWriter,
@@ -131,6 +133,7 @@ fn tick(i: u64) -> TickRecord {
             tau_nm: v(1.5),
             qdd_rad_per_s2: v(-0.2),
         },
+        keep_off: common::two_guard_records(i as f64 / 800.0, i as f64),
         late_s: 1e-5,
         work_s: 2e-5,
     }
@@ -162,6 +165,8 @@ fn write(config: McapWriterConfig, frames: &[Frame]) -> Vec<u8> {
             .unwrap();
         w.write_estimate(i as u64 * 10, &estimate(i as u32))
             .unwrap();
+        w.write_guard_estimates(i as u64 * 10, &[estimate(i as u32), estimate(7)])
+            .unwrap();
         w.write_tick(&tick(i as u64)).unwrap();
     }
     w.finish().unwrap().into_inner()
@@ -170,7 +175,9 @@ fn write(config: McapWriterConfig, frames: &[Frame]) -> Vec<u8> {
 struct Read {
     frames: Vec<(Frame, Vec<f64>)>,
     estimates: Vec<(u64, SurfaceEstimate)>,
+    guard_estimates: Vec<(u64, Vec<SurfaceEstimate>)>,
     ticks: Vec<TickRecord>,
+    guards: Vec<(u64, GuardRecords)>,
     others: Vec<String>,
     truncated: Option<String>,
 }
@@ -180,7 +187,9 @@ fn read(bytes: &[u8]) -> Read {
     let mut out = Read {
         frames: Vec::new(),
         estimates: Vec::new(),
+        guard_estimates: Vec::new(),
         ticks: Vec::new(),
+        guards: Vec::new(),
         others: Vec::new(),
         truncated: None,
     };
@@ -188,7 +197,9 @@ fn read(bytes: &[u8]) -> Read {
         match item {
             McapItem::Frame(a) => out.frames.push((a.frame, a.joint_positions_rad)),
             McapItem::Estimate(t, e) => out.estimates.push((t, e)),
-            McapItem::Tick(t) => out.ticks.push(t),
+            McapItem::Tick(t) => out.ticks.push(*t),
+            McapItem::GuardEstimates(t, e) => out.guard_estimates.push((t, e)),
+            McapItem::Guards(k, g) => out.guards.push((k, *g)),
             McapItem::Other { topic, .. } => out.others.push(topic),
             McapItem::Metadata { name, .. } => out.others.push(name),
         }
@@ -226,6 +237,28 @@ fn frames_estimates_and_ticks_read_back_bit_for_bit() {
         assert_eq!(got.ticks.len(), sent.len());
         for (i, t) in got.ticks.iter().enumerate() {
             assert_same_tick(t, &tick(i as u64));
+        }
+        // The keep-off guards: a frame's estimates and each tick's guards, bit for bit.
+        assert_eq!(got.guard_estimates.len(), sent.len());
+        for (i, (t, e)) in got.guard_estimates.iter().enumerate() {
+            assert_eq!(
+                (*t, &e[..]),
+                (i as u64 * 10, &[estimate(i as u32), estimate(7)][..])
+            );
+        }
+        assert_eq!(got.guards.len(), sent.len());
+        for (i, (k, g)) in got.guards.iter().enumerate() {
+            let expected = tick(i as u64);
+            let got_tick = TickRecord {
+                keep_off: *g,
+                ..expected
+            };
+            assert_eq!(*k, i as u64);
+            assert_eq!(g.as_slice().len(), 2);
+            assert_eq!(
+                hapcloud::node::record::guard_bytes(&got_tick),
+                hapcloud::node::record::guard_bytes(&expected)
+            );
         }
         assert!(got.others.iter().all(|t| t == "/tf"), "{:?}", got.others);
     }

@@ -75,8 +75,13 @@ fn allocations<T>(f: impl FnOnce() -> T) -> (T, u64) {
 fn a_control_tick_allocates_nothing_after_warm_up() {
     let scene = Scene::from_builtin("torso_approach_realistic").unwrap();
     let simulator = Arc::new(Simulator::new(&scene).unwrap());
-    let robot = RobotState::simulated(simulator.clone()).unwrap();
+    // ANYexo's default guards: perception estimates a surface per keep-off guard, and the
+    // loop takes each guard window's fit and records each frame's guard estimates.
     let config = NodeConfig::default();
+    let robot = RobotState::simulated(simulator.clone())
+        .unwrap()
+        .with_guards(&config.controller.guards)
+        .unwrap();
     let (mut perception, mut control) =
         HapticLoop::new(&config, robot.model().clone(), Backend::Cpu, None)
             .unwrap()
@@ -90,6 +95,7 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
         config: config.clone(),
         backend: Backend::Cpu,
         robot: robot.meta(),
+        keep_off_perception: true,
     };
     let (frame_recorder, mut recorder) = record::create(&dir.join("rec.mcap"), &meta).unwrap();
     let can_log = dir.join("can.log");
@@ -116,6 +122,8 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
     let mut next = frames.iter().peekable();
     // Fits perception made, handed to the loop at the next tick (as the node does).
     let mut ready = Vec::with_capacity(frames.len());
+    let mut guard_fits = Vec::with_capacity(frames.len() * 8);
+    let mut guard_ticks = 0u64;
     let mut estimates = Vec::with_capacity(frames.len());
     let (mut counted, mut active, mut with_estimates, mut total) = (0u64, 0u64, 0u64, 0u64);
     let mut worst: Vec<(u64, f64, u64)> = Vec::new();
@@ -132,17 +140,32 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
                 .process(frame, &robot.perception_scene(&q))
                 .unwrap();
             ready.push(window.push(record.estimate(), record.far_field.as_ref(), t));
+            let guard_estimates: Vec<_> = record
+                .chain
+                .guards
+                .iter()
+                .map(|g| g.estimate().clone())
+                .collect();
+            for (i, e) in guard_estimates.iter().enumerate() {
+                guard_fits.push((i, window.push_guard(i, e, t)));
+            }
             // Boxed by perception, moved on by the loop.
-            estimates.push(Box::new(record.estimate().clone()));
+            estimates.push((Box::new(record.estimate().clone()), guard_estimates));
         }
         let handed = ready.len() as u64;
         let (status, n) = allocations(|| {
             for fit in ready.iter().flatten() {
                 control.use_fit(*fit);
             }
-            for estimate in estimates.drain(..) {
+            for (i, fit) in &guard_fits {
+                if let Some(fit) = fit {
+                    control.use_guard_fit(*i, *fit);
+                }
+            }
+            for (estimate, guard_estimates) in estimates.drain(..) {
                 can.estimate(t, &estimate);
                 recorder.estimate(k, estimate).unwrap();
+                recorder.guard_estimates(k, guard_estimates).unwrap();
             }
             let joints = robot.at(t);
             let tick = control
@@ -151,9 +174,18 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
             recorder.tick(&tick).unwrap();
             can.tick(t, &tick, &health);
             let _ = observer.try_send(NodeEvent::Tick(tick));
-            tick.control.haptic_status
+            let guarded = tick
+                .keep_off
+                .as_slice()
+                .iter()
+                .filter(|g| g.fused.surface.is_some())
+                .count();
+            (tick.control.haptic_status, guarded)
         });
+        let (status, guarded) = status;
         ready.clear();
+        guard_fits.clear();
+        guard_ticks += u64::from(guarded > 0);
         if warm {
             counted += 1;
             total += n;
@@ -181,7 +213,12 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
         "{counted} ticks counted after warm-up, {active} with the constraint active, \
          {with_estimates} with new estimates, {total} allocations; allocating ticks (index, t, allocations): {worst:?}"
     );
+    println!("{guard_ticks} ticks with a keep-off guard's fused surface");
     assert!(counted > 1000, "only {counted} ticks after warm-up");
+    assert!(
+        guard_ticks > 100,
+        "{guard_ticks} ticks with a guard's surface"
+    );
     assert!(active > 100, "constraint active in {active} ticks only");
     assert!(with_estimates > 20, "{with_estimates} ticks with estimates");
     assert!(

@@ -360,6 +360,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 options.backend.to_string()
             },
             stats,
+            hapcloud::node::record::keep_off_names(config),
         )?;
         Some((s, thread))
     } else {
@@ -607,6 +608,23 @@ fn print_table(s: &NodeSummary) {
             "standing (no joint states)"
         }
     );
+    if !s.guards.is_empty() {
+        println!(
+            "keep-off guard      valid_estimates  fused ticks  d_proj min / p50 mm  active %  no surface ticks"
+        );
+        let mm = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.1}"));
+        for g in &s.guards {
+            println!(
+                "{:<18}  {:>15}  {:>11}  {:>19}  {:>8.1}  {:>16}",
+                g.name,
+                g.valid_estimates,
+                g.fused_surface_ticks,
+                format!("{} / {}", mm(g.d_proj_min_mm), mm(g.d_proj_p50_mm)),
+                g.constraint_active_fraction * 100.0,
+                g.no_surface_ticks
+            );
+        }
+    }
     if s.recording_error.is_some()
         || s.unrecorded_frames + s.unrecorded_estimates + s.unrecorded_ticks > 0
     {

@@ -13,6 +13,7 @@
 //! | 0x111 | JointState_3_4     | same, joints 3-4                                              |
 //! | 0x112 | JointState_5_6     | same, joints 5-6                                              |
 //! | 0x120 | HapticConstraint   | d_proj (eq. 7), alpha_P (eq. 9), alpha_V (eq. 13) (0.1 mm, 0.1 mm/s), active flags |
+//! | 0x121 | KeepOffGuard       | the nearest keep-off guard: d_proj, rate, alpha_P (0.1 mm, 0.1 mm/s), index, status, flags, counter |
 //! | 0x130 | SurfaceCentroid    | centroid c (0.1 mm), camera id, counter, quality (0.01), valid|
 //! | 0x131 | SurfaceNormal      | normal n (1e-4), camera id, counter                           |
 //! | 0x140 | NodeStatus         | deadline misses, fault flags, backend, latency (0.1 ms), heartbeat |
@@ -46,6 +47,7 @@ pub mod id {
     pub const JOINT_STATE_3_4: u16 = 0x111;
     pub const JOINT_STATE_5_6: u16 = 0x112;
     pub const HAPTIC_CONSTRAINT: u16 = 0x120;
+    pub const KEEP_OFF_GUARD: u16 = 0x121;
     pub const SURFACE_CENTROID: u16 = 0x130;
     pub const SURFACE_NORMAL: u16 = 0x131;
     pub const NODE_STATUS: u16 = 0x140;
@@ -199,6 +201,33 @@ pub struct CanConstraint {
     pub counter: u8,
 }
 
+/// [`CanKeepOff::guard_index`] when no keep-off guard has a surface.
+pub const NO_GUARD: u8 = 7;
+
+/// The keep-off guard nearest its surface (KeepOffGuard): its constraint values (eq. 7 at
+/// the guard's segment point, eq. 9 with `d_proj >= keep_off_margin_m`) and status. Without
+/// any guard's surface: index [`NO_GUARD`], status no surface, the values 0 (never a made-up
+/// distance: the status says there is none).
+#[derive(Clone, Debug, PartialEq)]
+pub struct CanKeepOff {
+    /// `d_proj` of the nearest guard, metres.
+    pub d_proj_m: f64,
+    /// Its rate, metres per second.
+    pub d_rate_m_s: f64,
+    /// Its positional constraint value alpha_P, metres (0 when the row is off).
+    pub alpha_p_m: f64,
+    /// Its index in the controller's keep-off order (0..=6), or [`NO_GUARD`].
+    pub guard_index: u8,
+    /// 0 active, 1 far, 2 no surface (HapticConstraint's codes).
+    pub status: u8,
+    pub position_active: bool,
+    /// Some keep-off guard has no surface this tick.
+    pub blind_guard: bool,
+    /// The nearest guard's constraint uses a surface held over stale cameras.
+    pub held: bool,
+    pub counter: u8,
+}
+
 /// One camera's surface estimate (SurfaceCentroid + SurfaceNormal).
 #[derive(Clone, Debug, PartialEq)]
 pub struct CanSurface {
@@ -259,6 +288,7 @@ pub enum CanValue {
     TorqueCommand(CanTorqueCommand),
     JointState(CanJointState),
     Constraint(CanConstraint),
+    KeepOff(CanKeepOff),
     Surface(CanSurface),
     Status(CanStatus),
 }
@@ -354,6 +384,19 @@ pub fn encode(value: &CanValue) -> Encoded {
                 .flag(unsigned(51, 1, 1.0), v.surface_valid)
                 .put(unsigned(56, 8, 1.0), f64::from(v.counter));
             emit(id::HAPTIC_CONSTRAINT, &p);
+        }
+        CanValue::KeepOff(v) => {
+            let mut p = Packer::new();
+            p.put(signed16(0, LENGTH_M), v.d_proj_m)
+                .put(signed16(16, LENGTH_M), v.d_rate_m_s)
+                .put(signed16(32, LENGTH_M), v.alpha_p_m)
+                .put(unsigned(48, 3, 1.0), f64::from(v.guard_index))
+                .put(unsigned(51, 2, 1.0), f64::from(v.status))
+                .flag(unsigned(53, 1, 1.0), v.position_active)
+                .flag(unsigned(54, 1, 1.0), v.blind_guard)
+                .flag(unsigned(55, 1, 1.0), v.held)
+                .put(unsigned(56, 8, 1.0), f64::from(v.counter));
+            emit(id::KEEP_OFF_GUARD, &p);
         }
         CanValue::Surface(v) => {
             let mut c = Packer::new();
@@ -485,6 +528,17 @@ impl Decoder {
                 velocity_active: flag(49),
                 force_active: flag(50),
                 surface_valid: flag(51),
+                counter: uint(56, 8),
+            })),
+            id::KEEP_OFF_GUARD => Some(CanValue::KeepOff(CanKeepOff {
+                d_proj_m: s16(0, LENGTH_M),
+                d_rate_m_s: s16(16, LENGTH_M),
+                alpha_p_m: s16(32, LENGTH_M),
+                guard_index: uint(48, 3),
+                status: uint(51, 2),
+                position_active: flag(53),
+                blind_guard: flag(54),
+                held: flag(55),
                 counter: uint(56, 8),
             })),
             id::SURFACE_CENTROID => {

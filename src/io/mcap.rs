@@ -25,11 +25,13 @@ use super::ros2::assemble::{Assembled, CameraTopics, FrameAssembler};
 use super::ros2::convert::{
     camera_info_from_intrinsics, image_from_depth, pointcloud2_from_cloud, transform_from_isometry,
 };
-use super::ros2::hapcloud::{ControlTick, FrameMeta, SurfaceEstimate as EstimateMsg};
+use super::ros2::hapcloud::{
+    ControlTick, FrameMeta, GuardEstimates, GuardStates, SurfaceEstimate as EstimateMsg,
+};
 use super::ros2::msgs::{CAMERA_INFO, Header, IMAGE, POINT_CLOUD2, TfMessage, TransformStamped};
 use super::ros2::{Ros2Error, RosMessage, decode, encode, time_from_seconds, topics};
 use crate::camera::Frame;
-use crate::control::record::TickRecord;
+use crate::control::record::{GuardRecords, TickRecord};
 use crate::surface::SurfaceEstimate;
 use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use serde::{Deserialize, Serialize};
@@ -192,6 +194,8 @@ pub struct McapWriter<W: Write + Seek> {
     sequence: u32,
     /// Per camera: whether its frames carry their cloud beside their image.
     cloud_beside_image: HashMap<u32, bool>,
+    /// The keep-off guards' names, in the controller's keep-off order (`GuardStates`).
+    guard_names: Vec<String>,
 }
 
 fn ns(stamp_s: f64) -> u64 {
@@ -229,7 +233,14 @@ impl<W: Write + Seek> McapWriter<W> {
             channels: HashMap::new(),
             sequence: 0,
             cloud_beside_image: HashMap::new(),
+            guard_names: Vec::new(),
         })
+    }
+
+    /// Names the keep-off guards of the ticks' `GuardStates` (the controller's keep-off
+    /// order).
+    pub fn set_guard_names(&mut self, names: Vec<String>) {
+        self.guard_names = names;
     }
 
     fn channel(
@@ -391,12 +402,33 @@ impl<W: Write + Seek> McapWriter<W> {
         )
     }
 
-    /// Writes a control tick.
+    /// Writes a frame's keep-off guard estimates (`/hapcloud/guard_estimates`) and the index
+    /// of the tick that pushed them into fusion.
+    pub fn write_guard_estimates(
+        &mut self,
+        tick: u64,
+        es: &[SurfaceEstimate],
+    ) -> Result<(), McapError> {
+        let stamp_s = es.first().map_or(0.0, |e| e.stamp_s);
+        let header = Header {
+            stamp: time_from_seconds(stamp_s),
+            frame_id: topics::WORLD_FRAME.into(),
+        };
+        let m = GuardEstimates::new(header, tick, es);
+        self.write(topics::GUARD_ESTIMATES, stamp_s, &m)
+    }
+
+    /// Writes a control tick, and its keep-off guards (`/hapcloud/guards`) when it has any.
     pub fn write_tick(&mut self, t: &TickRecord) -> Result<(), McapError> {
         let header = Header {
             stamp: time_from_seconds(t.fused.stamp_s),
             frame_id: topics::WORLD_FRAME.into(),
         };
+        if !t.keep_off.as_slice().is_empty() {
+            let guards = GuardStates::new(header.clone(), t, &self.guard_names);
+            self.write(topics::TICKS, t.fused.stamp_s, &ControlTick::new(header, t))?;
+            return self.write(topics::GUARDS, t.fused.stamp_s, &guards);
+        }
         self.write(topics::TICKS, t.fused.stamp_s, &ControlTick::new(header, t))
     }
 
@@ -434,10 +466,15 @@ fn cloud_is_deprojection(
 /// One item of a recording, in file order.
 #[derive(Clone, Debug)]
 pub enum McapItem {
-    Frame(Assembled),
+    Frame(Box<Assembled>),
     /// A surface estimate and the tick that pushed it.
     Estimate(u64, SurfaceEstimate),
-    Tick(TickRecord),
+    /// A frame's keep-off guard estimates and the tick that pushed them.
+    GuardEstimates(u64, Vec<SurfaceEstimate>),
+    /// A tick without its keep-off guards ([`TickRecord::keep_off`] empty): they follow as
+    /// [`McapItem::Guards`] of the same index.
+    Tick(Box<TickRecord>),
+    Guards(u64, Box<GuardRecords>),
     /// A metadata record (name, string pairs).
     Metadata {
         name: String,
@@ -772,7 +809,7 @@ impl<R: Read> McapReader<R> {
             let topic = &self.channels[&channel].topic;
             if self.assembler.role(topic).is_some() {
                 if let Some(a) = self.assembler.push(topic, &data) {
-                    self.ready.push_back(McapItem::Frame(a));
+                    self.ready.push_back(McapItem::Frame(Box::new(a)));
                 }
             } else {
                 self.held.push_back((channel, data));
@@ -798,7 +835,10 @@ impl<R: Read> McapReader<R> {
             source,
         };
         if self.assembler.role(&topic).is_some() {
-            return Ok(self.assembler.push(&topic, &data).map(McapItem::Frame));
+            return Ok(self
+                .assembler
+                .push(&topic, &data)
+                .map(|a| McapItem::Frame(Box::new(a))));
         }
         if self.auto && schema == IMAGE.name {
             // Its camera_info channel may be declared after it: held until then.
@@ -813,9 +853,21 @@ impl<R: Read> McapReader<R> {
             let (tick, e) = m.to_estimate().map_err(bad)?;
             return Ok(Some(McapItem::Estimate(tick, e)));
         }
+        if topic == topics::GUARD_ESTIMATES && schema == GuardEstimates::DESC.name {
+            let m: GuardEstimates = decode(&data).map_err(bad)?;
+            let (tick, es) = m.to_estimates().map_err(bad)?;
+            return Ok(Some(McapItem::GuardEstimates(tick, es)));
+        }
+        if topic == topics::GUARDS && schema == GuardStates::DESC.name {
+            let m: GuardStates = decode(&data).map_err(bad)?;
+            let (index, records) = m.to_records().map_err(bad)?;
+            return Ok(Some(McapItem::Guards(index, Box::new(records))));
+        }
         if topic == topics::TICKS && schema == ControlTick::DESC.name {
             let m: ControlTick = decode(&data).map_err(bad)?;
-            return Ok(Some(McapItem::Tick(m.to_tick_record().map_err(bad)?)));
+            return Ok(Some(McapItem::Tick(Box::new(
+                m.to_tick_record().map_err(bad)?,
+            ))));
         }
         Ok(Some(McapItem::Other {
             topic,

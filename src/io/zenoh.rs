@@ -27,7 +27,7 @@
 
 use super::ros2::assemble::{Assembled, CameraTopics, FrameAssembler, Malformed, TF_STATIC};
 use super::ros2::convert::{camera_info_from_intrinsics, image_from_depth, pointcloud2_from_cloud};
-use super::ros2::hapcloud::{FusedSurface, HapticConstraint, NodeStatus};
+use super::ros2::hapcloud::{FusedSurface, GuardStates, HapticConstraint, NodeStatus};
 use super::ros2::msgs::{CameraInfo, Header, Image, JointState, PointCloud2, TfMessage};
 use super::ros2::typedesc::MsgDesc;
 use super::ros2::{Ros2Error, RosMessage, encode, time_from_seconds, topics};
@@ -679,6 +679,9 @@ pub struct ZenohPublisher {
     publishers: HashMap<String, TopicPublisher>,
     node: Option<Arc<GraphNode>>,
     last_tick_s: Option<f64>,
+    /// The keep-off guards' names, in the controller's keep-off order (none: the single-HIP
+    /// mode, no `/hapcloud/guards`).
+    guard_names: Vec<String>,
 }
 
 /// One topic's publisher: its graph token, its own sequence number and GID (as rmw_zenoh:
@@ -719,6 +722,7 @@ impl ZenohPublisher {
             publishers: HashMap::new(),
             node: GraphNode::of(session, zenoh)?,
             last_tick_s: None,
+            guard_names: Vec::new(),
         })
     }
 
@@ -763,6 +767,9 @@ impl ZenohPublisher {
     pub fn declare_outputs(&mut self) -> Result<(), ZenohError> {
         self.declare(topics::FUSED_SURFACE, FusedSurface::DESC)?;
         self.declare(topics::HAPTIC_CONSTRAINT, HapticConstraint::DESC)?;
+        if !self.guard_names.is_empty() {
+            self.declare(topics::GUARDS, GuardStates::DESC)?;
+        }
         self.declare(topics::JOINT_COMMAND, JointState::DESC)?;
         self.declare(topics::STATUS, NodeStatus::DESC)
     }
@@ -785,8 +792,15 @@ impl ZenohPublisher {
         .map_err(zerr)
     }
 
+    /// Names the keep-off guards of the ticks' `GuardStates` (the controller's keep-off
+    /// order); with names, [`Self::declare_outputs`] declares `/hapcloud/guards`.
+    pub fn set_guard_names(&mut self, names: Vec<String>) {
+        self.guard_names = names;
+    }
+
     /// Publishes a tick's fused surface, haptic constraint and joint torque command (effort,
-    /// with the joint positions and velocities it was computed for), at most at
+    /// with the joint positions and velocities it was computed for), and with keep-off guards
+    /// every guard's fused surface and constraint (`/hapcloud/guards`), at most at
     /// `tick_rate_hz` on the tick clock. Returns whether it published.
     pub fn publish_tick(&mut self, t: &TickRecord) -> Result<bool, ZenohError> {
         let stamp_s = t.fused.stamp_s;
@@ -809,6 +823,10 @@ impl ZenohPublisher {
             topics::HAPTIC_CONSTRAINT,
             &HapticConstraint::new(header.clone(), stamp_s, &t.control),
         )?;
+        if !t.keep_off.as_slice().is_empty() {
+            let guards = GuardStates::new(header.clone(), t, &self.guard_names);
+            self.publish(topics::GUARDS, &guards)?;
+        }
         let c = &t.control;
         let joints = JointState {
             header: Header {
@@ -882,15 +900,18 @@ pub struct OutputThread {
 
 impl OutputThread {
     /// Starts publishing on `session`; `backend` names perception's backend in the status,
-    /// `source` is the live camera source's counters, if any.
+    /// `source` is the live camera source's counters, if any, `guard_names` the keep-off
+    /// guards' (their `/hapcloud/guards`).
     pub fn spawn(
         session: &zenoh::Session,
         zenoh: &ZenohConfig,
         config: &ZenohPublisherConfig,
         backend: String,
         source: Option<SourceStats>,
+        guard_names: Vec<String>,
     ) -> Result<Self, ZenohError> {
         let mut publisher = ZenohPublisher::new(session, zenoh, config)?;
+        publisher.set_guard_names(guard_names);
         publisher.declare_outputs()?;
         let (tx, rx) = std::sync::mpsc::sync_channel::<TickRecord>(config.queue_ticks);
         let dropped = Arc::new(std::sync::atomic::AtomicU64::new(0));

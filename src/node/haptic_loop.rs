@@ -21,14 +21,14 @@
 use super::robot_state::PerceptionScene;
 use super::{NodeConfig, NodeError, StalePolicy};
 use crate::camera::Frame;
-use crate::control::record::{ControlRecord, TickRecord};
+use crate::control::record::{ControlRecord, GuardRecord, TickRecord};
 use crate::control::{Controller, ControllerInput, ControllerOutput, Intent};
 use crate::fusion::{Fit, Fusion, PushOutcome};
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticConstraints;
 use crate::perception::lookahead::Lookahead;
 use crate::perception::pipeline::{CameraChain, ChainFrame};
-use crate::robot::guards::MAX_GUARDS;
+use crate::robot::guards::{GuardRole, MAX_GUARDS};
 use crate::robot::{JointState, RobotModel};
 use crate::surface::{FarFieldEstimate, SurfaceEstimate};
 use crate::surface::{FusedSurface, FusionStatus, SurfaceState};
@@ -94,10 +94,23 @@ impl Tick {
 
     /// The record of this tick, number `index` of the loop, for the robot state `joints`.
     pub fn record(&self, index: u64, joints: JointState, late_s: f64) -> TickRecord {
+        let fused_guard = |i| {
+            self.keep_off
+                .get(i)
+                .copied()
+                .unwrap_or(FusedSurface::no_data(self.fused.stamp_s))
+        };
         TickRecord {
             index,
             fused: self.fused,
             control: ControlRecord::new(joints, self.held, &self.output),
+            keep_off: self
+                .output
+                .keep_off
+                .iter()
+                .enumerate()
+                .map(|(i, c)| GuardRecord::new(fused_guard(i), c))
+                .collect(),
             late_s,
             work_s: 0.0,
         }
@@ -317,6 +330,14 @@ impl ControlLoop {
         self.fusion.use_fit(fit);
     }
 
+    /// [`Self::use_fit`] for keep-off guard `index` (ignored beyond the controller's keep-off
+    /// guards).
+    pub fn use_guard_fit(&mut self, index: usize, fit: Fit) {
+        if let Some(fusion) = self.guard_fusions.get_mut(index) {
+            fusion.use_fit(fit);
+        }
+    }
+
     /// Fusion at `t_s`, then the constraints and the controller for the robot state
     /// (transparent intent: gravity compensation and damping, paper Table I).
     pub fn tick(&mut self, t_s: f64, robot: &RobotInput) -> Tick {
@@ -427,16 +448,47 @@ fn push_into(
 /// Fusion's window where the threaded node keeps it, on the perception thread: estimates join
 /// it as perception finishes them and it is fitted there (the regression allocates), so the
 /// 800 Hz tick only evaluates the latest fit ([`ControlLoop::use_fit`]). The fits are the ones
-/// a [`ControlLoop`] fitting its own window makes from the same estimates.
+/// a [`ControlLoop`] fitting its own window makes from the same estimates. Each keep-off
+/// guard of `config.controller.guards` has its own window beside the handle's.
 pub struct FusionWindow {
     fusion: Fusion,
+    guards: Vec<Fusion>,
 }
 
 impl FusionWindow {
     pub fn new(config: &NodeConfig) -> Result<Self, NodeError> {
+        let keep_off = config
+            .controller
+            .guards
+            .guards
+            .iter()
+            .filter(|g| g.role == GuardRole::KeepOff)
+            .count();
         Ok(Self {
             fusion: Fusion::new(config.fusion)?,
+            guards: (0..keep_off)
+                .map(|_| Fusion::new(config.fusion))
+                .collect::<Result<_, _>>()?,
         })
+    }
+
+    /// Keep-off guard `index`'s estimate joins its window (see
+    /// [`ControlLoop::push_guard_estimate`]); returns the fit of that window with it (`None`
+    /// beyond the config's keep-off guards, or before a first fit).
+    pub fn push_guard(
+        &mut self,
+        index: usize,
+        estimate: &SurfaceEstimate,
+        arrival_s: f64,
+    ) -> Option<Fit> {
+        let fusion = self.guards.get_mut(index)?;
+        push_into(fusion, estimate, None, arrival_s);
+        fusion.refit()
+    }
+
+    /// Keep-off guards with a window.
+    pub fn guard_count(&self) -> usize {
+        self.guards.len()
     }
 
     /// The estimate joins the window (see [`ControlLoop::push_estimate`]); returns the fit of

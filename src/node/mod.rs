@@ -11,13 +11,15 @@
 //!    cameras' frames in turn,
 //! 2. **perception** (`perception_workers` threads sharing the GPU context, each with its
 //!    share of the cameras): the per-camera chain ([`CameraChain`]: crop, voxel grid,
-//!    clusters, and one surface estimator with its memory per camera), then hands each
-//!    [`SurfaceEstimate`] to the loop through a channel,
+//!    clusters, and one surface estimator with its memory per camera; with keep-off guards
+//!    one estimate per guard besides, from the same crop and clusters), fits fusion's
+//!    windows (the handle's and each guard's) and hands each frame's estimates and fits to
+//!    the loop through a channel,
 //! 3. **control loop** (the calling thread): absolute deadlines `start + k / rate` (no drift:
 //!    a late tick does not push the later ones back; a loop more than one period behind skips
 //!    the slots already past, counted, instead of running them late in a burst), each tick drains the channel without
 //!    blocking, pushes the estimates into [`Fusion`] (paper IV-F) and evaluates the fused
-//!    surface at the tick's time; then the haptic constraints (paper V, eq. 7-14,
+//!    surface at the tick's time (and each keep-off guard's); then the haptic constraints (paper V, eq. 7-14,
 //!    [`crate::haptics`]) and the hierarchical controller ([`crate::control`]) turn it into
 //!    a joint torque command for the robot state at the tick ([`robot_state`]: the scene's
 //!    joint trajectory for a simulated source, a standing robot otherwise). The tick's outputs
@@ -73,7 +75,9 @@ mod tests;
 pub use backends::{BACKEND_CHOICE_FRAMES, measure_backends};
 pub use realtime::{RealtimeConfig, RealtimeStatus};
 pub use replay::{ReplayReport, replay};
-pub use summary::{CameraSummary, CanSummary, FramesLost, NodeSummary, Percentiles, QueueService};
+pub use summary::{
+    CameraSummary, CanSummary, FramesLost, GuardSummary, NodeSummary, Percentiles, QueueService,
+};
 pub use workers::Worker;
 
 use crate::camera::Frame;
@@ -394,10 +398,12 @@ pub fn run(
         Source::Simulated { simulator, .. } => RobotState::simulated(simulator.clone()),
         _ => None,
     };
+    // Perception estimates a surface per keep-off guard (posed with joint states only).
     let robot = match robot {
         Some(r) => r,
         None => RobotState::fixed(config)?,
-    };
+    }
+    .with_guards(&config.controller.guards)?;
     // Frames whose stamps disagree with their neighbours are refused (counted) before the
     // clock is set from the stamps.
     let mut source = source;
@@ -466,6 +472,7 @@ pub fn run(
                 config: config.clone(),
                 backend: perceptions[0].backend(),
                 robot: robot.meta(),
+                keep_off_perception: true,
             };
             let (f, t) = record::create(path, &meta)?;
             (Some(f), Some(t))
@@ -475,7 +482,8 @@ pub fn run(
     let behind = tick_recorder.as_ref().map(TickRecorder::behind);
     // What the loop needs is made before the clock starts: until the loop's thread runs at
     // real-time priority, the first deadlines could pass while it is preempted.
-    let (stats, window) = (LoopStats::new(), FusionWindow::new(config)?);
+    let window = FusionWindow::new(config)?;
+    let stats = LoopStats::new(window.guard_count());
     // Memory is locked first: locking a large process takes a while, and a live source's
     // clock starts at the wall time read below.
     let mut realtime = RealtimeGuard::lock_memory(&config.realtime);
@@ -681,7 +689,8 @@ fn announce(
         }
     );
     if can {
-        let load = config.can.bus_load(config.tick_rate_hz);
+        let keep_off = !record::keep_off_names(config).is_empty();
+        let load = config.can.bus_load(config.tick_rate_hz, keep_off);
         crate::stderr_line!(
             "CAN: {:.0} frames/s, {:.0} kbit/s worst case, {:.1} % of {:.0} kbit/s",
             load.frames_per_s,
@@ -778,11 +787,19 @@ fn summarize(
         backend_choice,
         gpu_buffer_bytes: report.gpu_buffer_bytes,
         fusion: report.fusion,
+        guards: record::keep_off_names(config)
+            .into_iter()
+            .zip(&stats.guards)
+            .map(|(name, g)| g.summary(name, stats.ticks))
+            .collect(),
         camera_latency: report.camera_latency,
         stopped_early: stats.stopped_early,
         can: can.map(|counters| CanSummary {
             counters,
-            bus_load: config.can.bus_load(config.tick_rate_hz),
+            bus_load: config.can.bus_load(
+                config.tick_rate_hz,
+                !record::keep_off_names(config).is_empty(),
+            ),
         }),
         duration_s,
         speed: options.speed,

@@ -18,11 +18,11 @@
 use super::NodeConfig;
 use super::robot_state::RobotMeta;
 use crate::camera::Frame;
-use crate::control::record::TickRecord;
+use crate::control::record::{GuardRecords, TickRecord};
 use crate::gpu::Backend;
 use crate::io::mcap::{McapError, McapItem, McapReader, McapReaderConfig, McapWriter};
 use crate::io::ros2::encode;
-use crate::io::ros2::hapcloud::ControlTick;
+use crate::io::ros2::hapcloud::{ControlTick, GuardStates};
 use crate::io::ros2::msgs::Header;
 use crate::robot::JointVector;
 use crate::surface::SurfaceEstimate;
@@ -50,6 +50,10 @@ pub struct RecordingMeta {
     pub backend: Backend,
     /// The robot's base pose and whether the source had joint states.
     pub robot: RobotMeta,
+    /// Perception estimated a surface per keep-off guard (`controller.guards`; a recording
+    /// without this key was made before: replay perceives the handle alone, as it did).
+    #[serde(default)]
+    pub keep_off_perception: bool,
 }
 
 /// The deterministic part of a tick (index, fused surface, controller; not the timing) as
@@ -63,6 +67,13 @@ pub fn deterministic_bytes(tick: &TickRecord) -> Vec<u8> {
     };
     encode(&ControlTick::new(Header::default(), &timeless))
         .expect("a ControlTick always serializes: fixed fields, six joints")
+}
+
+/// Every value of a tick's keep-off guards, unrounded, as their message (unnamed): what
+/// replay compares beside [`deterministic_bytes`].
+pub fn guard_bytes(tick: &TickRecord) -> Vec<u8> {
+    encode(&GuardStates::new(Header::default(), tick, &[]))
+        .expect("a GuardStates always serializes: fixed fields, at most MAX_GUARDS guards")
 }
 
 /// Why a recording cannot be written or read.
@@ -105,6 +116,8 @@ pub const QUEUE_FRAMES: usize = 8;
 pub enum Item {
     Frame(Box<Frame>, JointVector),
     Estimate(u64, Box<SurfaceEstimate>),
+    /// The keep-off guards' estimates of one frame, with the tick that pushed them.
+    GuardEstimates(u64, Vec<SurfaceEstimate>),
     Tick(TickRecord),
 }
 
@@ -120,6 +133,7 @@ impl<W: std::io::Write + std::io::Seek + Send + 'static> ItemWriter for McapWrit
         match item {
             Item::Frame(frame, q) => self.write_frame(frame, q.as_slice()),
             Item::Estimate(k, e) => self.write_estimate(*k, e),
+            Item::GuardEstimates(k, e) => self.write_guard_estimates(*k, e),
             Item::Tick(t) => self.write_tick(t),
         }
         .map_err(|e| e.to_string())
@@ -177,7 +191,7 @@ impl Sink {
     fn offer(&self, item: Item) -> Result<(), RecordError> {
         let counter = match &item {
             Item::Frame(..) => &self.behind.frames,
-            Item::Estimate(..) => &self.behind.estimates,
+            Item::Estimate(..) | Item::GuardEstimates(..) => &self.behind.estimates,
             Item::Tick(_) => &self.behind.ticks,
         };
         match self.tx.try_send(item) {
@@ -232,7 +246,20 @@ pub fn create(
     writer
         .write_metadata(METADATA_NAME, BTreeMap::from([("meta".into(), json)]))
         .map_err(mcap_err)?;
+    writer.set_guard_names(keep_off_names(&meta.config));
     spawn_writer(path, writer, QUEUE_ITEMS)
+}
+
+/// The keep-off guards' names of `config`, in the controller's keep-off order.
+pub fn keep_off_names(config: &NodeConfig) -> Vec<String> {
+    config
+        .controller
+        .guards
+        .guards
+        .iter()
+        .filter(|g| g.role == crate::robot::guards::GuardRole::KeepOff)
+        .map(|g| g.name.clone())
+        .collect()
 }
 
 /// The writer thread taking items from a channel of `capacity` items, and its two recorders.
@@ -303,6 +330,19 @@ impl TickRecorder {
         self.sink.offer(Item::Estimate(tick, e))
     }
 
+    /// Queues a frame's keep-off guard estimates with the tick that pushed them, without
+    /// waiting (none in the single-HIP mode: nothing is queued).
+    pub fn guard_estimates(
+        &mut self,
+        tick: u64,
+        estimates: Vec<SurfaceEstimate>,
+    ) -> Result<(), RecordError> {
+        if estimates.is_empty() {
+            return Ok(());
+        }
+        self.sink.offer(Item::GuardEstimates(tick, estimates))
+    }
+
     /// Queues a tick without waiting or allocating.
     pub fn tick(&mut self, t: &TickRecord) -> Result<(), RecordError> {
         self.sink.offer(Item::Tick(*t))
@@ -341,6 +381,9 @@ pub struct Recording {
     pub frame_joints: Vec<JointVector>,
     /// (tick index that pushed it, estimate), in push order.
     pub estimates: Vec<(u64, SurfaceEstimate)>,
+    /// (tick index that pushed them, one frame's keep-off guard estimates), in push order.
+    pub guard_estimates: Vec<(u64, Vec<SurfaceEstimate>)>,
+    /// The ticks, each with its keep-off guards.
     pub ticks: Vec<TickRecord>,
     /// Where and why the file ended early (a crash mid-write), if it did.
     pub truncated: Option<String>,
@@ -356,8 +399,9 @@ pub fn is_old_recording(path: &Path) -> bool {
 /// old recording directory, a malformed message) is an error naming it.
 pub fn read(path: &Path) -> Result<Recording, RecordError> {
     let mut reader = RecordingReader::open(path)?;
-    let (mut frames, mut frame_joints, mut estimates, mut ticks) =
+    let (mut frames, mut frame_joints, mut estimates, mut guard_estimates) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let mut ticks: Vec<TickRecord> = Vec::new();
     while let Some(item) = reader.next_item()? {
         match item {
             RecordItem::Frame(f, q) => {
@@ -365,7 +409,17 @@ pub fn read(path: &Path) -> Result<Recording, RecordError> {
                 frame_joints.push(q);
             }
             RecordItem::Estimate(k, e) => estimates.push((k, e)),
+            RecordItem::GuardEstimates(k, e) => guard_estimates.push((k, e)),
             RecordItem::Tick(t) => ticks.push(*t),
+            RecordItem::Guards(index, guards) => match ticks.last_mut() {
+                Some(t) if t.index == index => t.keep_off = *guards,
+                _ => {
+                    return Err(RecordError::Format {
+                        path: path.into(),
+                        reason: format!("keep-off guards of tick {index} without that tick"),
+                    });
+                }
+            },
         }
     }
     Ok(Recording {
@@ -374,6 +428,7 @@ pub fn read(path: &Path) -> Result<Recording, RecordError> {
         frames,
         frame_joints,
         estimates,
+        guard_estimates,
         ticks,
     })
 }
@@ -384,7 +439,11 @@ pub enum RecordItem {
     Frame(Box<Frame>, JointVector),
     /// An estimate and the index of the tick that pushed it into fusion.
     Estimate(u64, SurfaceEstimate),
+    /// One frame's keep-off guard estimates and the tick that pushed them.
+    GuardEstimates(u64, Vec<SurfaceEstimate>),
+    /// A tick; its keep-off guards follow as [`RecordItem::Guards`] of its index.
     Tick(Box<TickRecord>),
+    Guards(u64, Box<GuardRecords>),
 }
 
 /// A node recording read item by item, nothing kept: its metadata (which the writer puts
@@ -454,7 +513,9 @@ impl RecordingReader {
                     RecordItem::Frame(Box::new(a.frame), JointVector::from_column_slice(q))
                 }
                 Some(McapItem::Estimate(k, e)) => RecordItem::Estimate(k, e),
-                Some(McapItem::Tick(t)) => RecordItem::Tick(Box::new(t)),
+                Some(McapItem::Tick(t)) => RecordItem::Tick(t),
+                Some(McapItem::GuardEstimates(k, e)) => RecordItem::GuardEstimates(k, e),
+                Some(McapItem::Guards(k, g)) => RecordItem::Guards(k, g),
                 Some(McapItem::Metadata { .. } | McapItem::Other { .. }) => continue,
             }));
         }

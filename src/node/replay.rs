@@ -7,6 +7,7 @@ use super::haptic_loop::{HapticLoop, RobotInput};
 use super::record::{self, RecordItem};
 use super::robot_state::RobotState;
 use crate::camera::Frame;
+use crate::control::record::TickRecord;
 use crate::gpu::Backend;
 use crate::robot::JointVector;
 use crate::surface::SurfaceEstimate;
@@ -21,6 +22,12 @@ pub struct ReplayReport {
     pub estimate_mismatches: u64,
     pub ticks_compared: u64,
     pub tick_mismatches: u64,
+    /// Frames' keep-off guard estimates (one set per frame) and ticks' keep-off guards
+    /// compared (none in a recording of the single-HIP mode or made without them).
+    pub guard_estimates_compared: u64,
+    pub guard_estimate_mismatches: u64,
+    pub guard_ticks_compared: u64,
+    pub guard_tick_mismatches: u64,
     /// The first difference, described.
     pub first_mismatch: Option<String>,
     pub backend: Backend,
@@ -32,7 +39,10 @@ pub struct ReplayReport {
 impl ReplayReport {
     /// True when every estimate and every tick was reproduced bit for bit.
     pub fn identical(&self) -> bool {
-        self.estimate_mismatches == 0 && self.tick_mismatches == 0
+        self.estimate_mismatches == 0
+            && self.tick_mismatches == 0
+            && self.guard_estimate_mismatches == 0
+            && self.guard_tick_mismatches == 0
     }
 }
 
@@ -45,6 +55,11 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
     let mut recording = record::RecordingReader::open(path)?;
     let config = recording.meta.config.clone();
     let robot = RobotState::recorded(&config, &recording.meta.robot)?;
+    let robot = if recording.meta.keep_off_perception {
+        robot.with_guards(&config.controller.guards)?
+    } else {
+        robot
+    };
     let mut haptic_loop =
         HapticLoop::new(&config, robot.model().clone(), recording.meta.backend, None)?;
     let mut report = ReplayReport::default();
@@ -66,27 +81,56 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
     // made the i-th estimate.
     let mut frames: VecDeque<(Box<Frame>, JointVector)> = VecDeque::new();
     let mut estimates: VecDeque<(u64, SurfaceEstimate)> = VecDeque::new();
+    // Each frame's keep-off guard estimates, recorded right after its estimate.
+    let mut guard_estimates: VecDeque<Vec<SurfaceEstimate>> = VecDeque::new();
+    let guard_bytes = |es: &[SurfaceEstimate]| {
+        crate::io::ros2::encode(&crate::io::ros2::hapcloud::GuardEstimates::new(
+            Default::default(),
+            0,
+            es,
+        ))
+        .map_err(|e| NodeError::Config(format!("guard estimates: {e}")))
+    };
     let mut pushed = 0u64;
     let mut push = |haptic_loop: &mut HapticLoop,
                     report: &mut ReplayReport,
+                    guard_estimates: &mut VecDeque<Vec<SurfaceEstimate>>,
                     (frame, q): (Box<Frame>, JointVector),
                     recorded: SurfaceEstimate|
      -> Result<(), NodeError> {
         let record = haptic_loop.push_frame(&frame, &robot.perception_scene(&q))?;
         report.estimates_compared += 1;
+        let what = format!(
+            "estimate {pushed} (camera {}, stamp {} s)",
+            recorded.camera_id, recorded.stamp_s
+        );
         if bytes(record.estimate())? != bytes(&recorded)? {
             report.estimate_mismatches += 1;
-            note(
-                report,
-                format!(
-                    "estimate {pushed} (camera {}, stamp {} s)",
-                    recorded.camera_id, recorded.stamp_s
-                ),
-            );
+            note(report, what.clone());
+        }
+        let guards: Vec<SurfaceEstimate> = record
+            .chain
+            .guards
+            .iter()
+            .map(|g| g.estimate().clone())
+            .collect();
+        if !guards.is_empty() {
+            report.guard_estimates_compared += 1;
+            let same = guard_estimates
+                .pop_front()
+                .map(|r| guard_bytes(&r))
+                .transpose()?
+                .is_some_and(|r| r == guard_bytes(&guards).unwrap_or_default());
+            if !same {
+                report.guard_estimate_mismatches += 1;
+                note(report, format!("keep-off guards of {what}"));
+            }
         }
         pushed += 1;
         Ok(())
     };
+    // The last tick run again, for its keep-off guards (recorded after it).
+    let mut last_again: Option<TickRecord> = None;
     while let Some(item) = recording.next_item()? {
         match item {
             RecordItem::Frame(f, q) => {
@@ -94,13 +138,34 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
                 frames.push_back((f, q));
             }
             RecordItem::Estimate(k, e) => estimates.push_back((k, e)),
+            RecordItem::GuardEstimates(_, e) => guard_estimates.push_back(e),
+            RecordItem::Guards(index, guards) => {
+                report.guard_ticks_compared += 1;
+                let same = last_again.filter(|t| t.index == index).is_some_and(|t| {
+                    let recorded = TickRecord {
+                        keep_off: *guards,
+                        ..t
+                    };
+                    record::guard_bytes(&t) == record::guard_bytes(&recorded)
+                });
+                if !same {
+                    report.guard_tick_mismatches += 1;
+                    note(&mut report, format!("keep-off guards of tick {index}"));
+                }
+            }
             RecordItem::Tick(tick) => {
                 // The frames whose estimates this tick (or an earlier one) consumed go first.
                 while !frames.is_empty()
                     && let Some((_, e)) = estimates.pop_front_if(|(k, _)| *k <= tick.index)
                 {
                     let frame = frames.pop_front().expect("checked not empty");
-                    push(&mut haptic_loop, &mut report, frame, e)?;
+                    push(
+                        &mut haptic_loop,
+                        &mut report,
+                        &mut guard_estimates,
+                        frame,
+                        e,
+                    )?;
                 }
                 let joints = tick.control.joints;
                 let again = haptic_loop
@@ -114,11 +179,18 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
                         format!("tick {} (t = {} s)", tick.index, tick.fused.stamp_s),
                     );
                 }
+                last_again = Some(again);
             }
         }
     }
     while let (Some(frame), Some((_, e))) = (frames.pop_front(), estimates.pop_front()) {
-        push(&mut haptic_loop, &mut report, frame, e)?;
+        push(
+            &mut haptic_loop,
+            &mut report,
+            &mut guard_estimates,
+            frame,
+            e,
+        )?;
     }
     report.truncated = recording.truncated().map(str::to_string);
     report.backend = haptic_loop.perception().backend();

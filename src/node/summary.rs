@@ -157,6 +157,8 @@ pub struct NodeSummary {
     /// GPU memory the front end holds at the end (buffers sized once for the largest frame).
     pub gpu_buffer_bytes: Option<u64>,
     pub fusion: FusionCounters,
+    /// Per keep-off guard, in the controller's keep-off order (empty in the single-HIP mode).
+    pub guards: Vec<GuardSummary>,
     /// Per camera: estimate arrival at the loop minus the frame's capture stamp.
     pub camera_latency: Vec<CameraLatency>,
     /// The run was stopped from outside before its end (Ctrl-C, SIGTERM, the overlay closed):
@@ -168,6 +170,28 @@ pub struct NodeSummary {
     pub gpu_on_host: Option<GpuOnHost>,
     pub duration_s: f64,
     pub speed: f64,
+}
+
+/// One keep-off guard over a run: its fused surface (its own fusion, paper IV-F) and its
+/// keep-off constraint (eq. 7 at its segment point, `d_proj >= keep_off_margin_m`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct GuardSummary {
+    /// The guard's name in `controller.guards`.
+    pub name: String,
+    /// Frames whose estimate for the guard had a surface.
+    pub valid_estimates: u64,
+    /// Ticks with the guard's fused surface tracking.
+    pub fused_surface_ticks: u64,
+    /// The guard's `d_proj` over the ticks that had one, mm: the nearest, and the median
+    /// (upper edge of its 0.1 mm bin); `None` when no tick had a surface.
+    pub d_proj_min_mm: Option<f64>,
+    pub d_proj_p50_mm: Option<f64>,
+    /// Ticks with the guard's keep-off rows in force, and their fraction of all ticks.
+    pub constraint_active_ticks: u64,
+    pub constraint_active_fraction: f64,
+    /// Ticks without a surface for the guard (never seen, stale and not held): no
+    /// constraint, and no distance made up.
+    pub no_surface_ticks: u64,
 }
 
 /// What went on the CAN bus, and the bus load the configured rates imply.
@@ -314,6 +338,70 @@ impl Histogram {
     }
 }
 
+/// `d_proj` is binned from [`D_PROJ_FLOOR_M`] (a guard through the surface) at 0.1 mm over
+/// [`D_PROJ_RANGE_M`]; the nearest is kept exactly.
+const D_PROJ_FLOOR_M: f64 = -0.5;
+const D_PROJ_RANGE_M: f64 = 3.0;
+const D_PROJ_BIN_M: f64 = 1e-4;
+
+/// One keep-off guard's counts in the loop (fixed size: the tick adds without allocating).
+pub(super) struct GuardStats {
+    pub(super) valid_estimates: u64,
+    pub(super) fused: u64,
+    pub(super) active: u64,
+    pub(super) no_surface: u64,
+    pub(super) d_proj_min_m: f64,
+    /// `d_proj - D_PROJ_FLOOR_M`, m.
+    pub(super) d_proj: Histogram,
+}
+
+impl GuardStats {
+    fn new() -> Self {
+        Self {
+            valid_estimates: 0,
+            fused: 0,
+            active: 0,
+            no_surface: 0,
+            d_proj_min_m: f64::INFINITY,
+            d_proj: Histogram::prefaulted(D_PROJ_BIN_M, D_PROJ_RANGE_M),
+        }
+    }
+
+    /// One tick of the guard.
+    pub(super) fn add(&mut self, g: &crate::control::record::GuardRecord) {
+        use crate::haptics::HapticStatus;
+        self.fused += u64::from(g.fused.status == crate::surface::FusionStatus::Tracking);
+        match g.haptic_status {
+            HapticStatus::Active => self.active += 1,
+            HapticStatus::NoSurface => self.no_surface += 1,
+            HapticStatus::Far => {}
+        }
+        if g.d_proj_m.is_finite() {
+            self.d_proj_min_m = self.d_proj_min_m.min(g.d_proj_m);
+            self.d_proj.add(g.d_proj_m - D_PROJ_FLOOR_M);
+        }
+    }
+
+    pub(super) fn summary(&self, name: String, ticks: u64) -> GuardSummary {
+        let seen = self.d_proj.total > 0;
+        GuardSummary {
+            name,
+            valid_estimates: self.valid_estimates,
+            fused_surface_ticks: self.fused,
+            d_proj_min_mm: seen.then_some(self.d_proj_min_m * 1e3),
+            // percentiles() scales by 1e3: mm here
+            d_proj_p50_mm: seen.then(|| self.d_proj.percentiles().p50 + D_PROJ_FLOOR_M * 1e3),
+            constraint_active_ticks: self.active,
+            constraint_active_fraction: if ticks > 0 {
+                self.active as f64 / ticks as f64
+            } else {
+                0.0
+            },
+            no_surface_ticks: self.no_surface,
+        }
+    }
+}
+
 pub(super) struct LoopStats {
     pub(super) ticks: u64,
     pub(super) tracking: u64,
@@ -332,11 +420,15 @@ pub(super) struct LoopStats {
     pub(super) work: Histogram,
     pub(super) realtime: RealtimeStatus,
     pub(super) duration_s: f64,
+    /// Per keep-off guard, in the controller's keep-off order.
+    pub(super) guards: Vec<GuardStats>,
 }
 
 impl LoopStats {
-    pub(super) fn new() -> Self {
+    /// The statistics of a loop with `guards` keep-off guards.
+    pub(super) fn new(guards: usize) -> Self {
         Self {
+            guards: (0..guards).map(|_| GuardStats::new()).collect(),
             ticks: 0,
             tracking: 0,
             stale: 0,

@@ -302,6 +302,7 @@ fn zenoh_source_runs_the_node_and_outputs_are_published() {
         },
         "cpu".into(),
         Some(source.stats()),
+        record::keep_off_names(&config()),
     )
     .unwrap();
     let received = Arc::new(std::sync::Mutex::new(Vec::<f64>::new()));
@@ -667,6 +668,35 @@ fn overlay_views_follow_the_robot_and_carry_truth_and_constraints() {
             .iter()
             .any(|c| c.estimate.as_ref().is_some_and(|e| e.surface.is_some()))
     }));
+    // Every keep-off guard is drawn, posed at the frame's stamp, and the views that follow a
+    // tick carry the d_proj the plots draw for each guard with a surface.
+    let set = crate::robot::guards::GuardSet::new(model, &config.controller.guards).unwrap();
+    for v in &views {
+        let names: Vec<_> = v.guards.iter().map(|g| g.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "forearm",
+                "elbow",
+                "upper_arm",
+                "shoulder",
+                "shoulder_rotation"
+            ]
+        );
+        let poses = model.forward_kinematics(&sim.joints_at(v.stamp_s).unwrap());
+        for (g, &i) in v.guards.iter().zip(set.keep_off()) {
+            let posed = set.guards()[i].world(&poses);
+            assert!((g.a_m - posed.a_m).norm() < 1e-9 && (g.b_m - posed.b_m).norm() < 1e-9);
+            assert!(g.shell_radii_m.iter().all(|r| *r > posed.radius_m));
+        }
+    }
+    let plotted = views
+        .iter()
+        .flat_map(|v| &v.guards)
+        .filter(|g| g.d_proj_m.is_some())
+        .count();
+    println!("guard d_proj samples in the overlay's views: {plotted}");
+    assert!(plotted > 0, "no guard's d_proj reached the views");
 }
 
 /// The last torque command and status a candump log holds.
@@ -1126,4 +1156,139 @@ fn the_forearm_and_elbow_guards_see_the_torso_they_swing_towards() {
         }
         assert!(tracking > 0);
     }
+}
+
+/// The threaded node with the whole arm (`forearm_to_torso_clean`, ANYexo's default guards):
+/// the workers hand every keep-off guard's estimate and window fit to the loop, whose ticks
+/// constrain with every guard's fused surface. The summary reports each guard (the forearm
+/// and the elbow drive see the torso they swing towards; a guard without a surface counts
+/// its ticks as no surface, with no distance), and the recording replays bit for bit, the
+/// guards' estimates and per-tick surfaces and constraints included.
+#[test]
+fn the_threaded_node_fuses_and_constrains_every_guard_and_replays_them() {
+    use crate::scene::{Scene, Simulator};
+    let _serial = serial();
+    let scene = Scene::from_builtin("forearm_to_torso_clean").unwrap();
+    let sim = Arc::new(Simulator::new(&scene).unwrap());
+    let frames: Vec<Frame> = sim
+        .arrivals(0.5, 2.6)
+        .iter()
+        .map(|t| sim.frame(t).frame)
+        .collect();
+    let dir = temp_dir("guards");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("guards.mcap");
+    let opts = RunOptions {
+        record: Some(file.clone()),
+        ..options(0.25)
+    };
+    let source = Source::Simulated {
+        frames,
+        simulator: sim,
+    };
+    let mut guard_ticks = 0u64;
+    let summary = run(&config(), source, &opts, |t| {
+        guard_ticks += u64::from(t.keep_off.as_slice().len() == 5);
+    })
+    .unwrap();
+    let names: Vec<&str> = summary.guards.iter().map(|g| g.name.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "forearm",
+            "elbow",
+            "upper_arm",
+            "shoulder",
+            "shoulder_rotation"
+        ]
+    );
+    assert_eq!(guard_ticks, summary.ticks);
+    for g in &summary.guards {
+        println!("{g:?}");
+        assert!(g.no_surface_ticks <= summary.ticks, "{g:?}");
+        assert_eq!(g.d_proj_min_mm.is_some(), g.d_proj_p50_mm.is_some());
+        assert_eq!(
+            g.d_proj_min_mm.is_none(),
+            g.no_surface_ticks == summary.ticks,
+            "a guard has a distance exactly when it had a surface: {g:?}"
+        );
+        assert!(
+            (g.constraint_active_fraction
+                - g.constraint_active_ticks as f64 / summary.ticks as f64)
+                .abs()
+                < 1e-12
+        );
+    }
+    for g in &summary.guards[..2] {
+        assert!(g.valid_estimates > 20, "{g:?}");
+        assert!(g.fused_surface_ticks > 100, "{g:?}");
+        assert!(g.constraint_active_ticks > 0, "{g:?}");
+        let (min, p50) = (g.d_proj_min_mm.unwrap(), g.d_proj_p50_mm.unwrap());
+        // The true gaps come down to 18 (forearm) and 27 mm (elbow drive).
+        assert!(min < 60.0 && min <= p50, "{g:?}");
+    }
+    let report = replay(&file).unwrap();
+    assert!(report.identical(), "{report:?}");
+    assert_eq!(report.ticks_compared, summary.ticks);
+    assert_eq!(report.guard_ticks_compared, summary.ticks);
+    assert_eq!(report.guard_estimates_compared, summary.frames);
+    let back = record::read(&file).unwrap();
+    assert!(back.meta.keep_off_perception);
+    assert_eq!(back.guard_estimates.len() as u64, summary.frames);
+    assert!(back.ticks.iter().all(|t| t.keep_off.as_slice().len() == 5));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A recording made before the keep-off guards (its metadata without
+/// `keep_off_perception`, no `/hapcloud/guards` or `/hapcloud/guard_estimates`) still
+/// replays bit for bit: replay perceives the handle alone, as its node did.
+#[test]
+fn a_recording_without_the_guards_still_replays() {
+    use crate::io::mcap::{McapItem, McapReader, McapReaderConfig, McapWriter};
+    let _serial = serial();
+    let dir = temp_dir("old-replay");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("new.mcap");
+    let opts = RunOptions {
+        record: Some(file.clone()),
+        ..options(1.0)
+    };
+    let summary = run_on_planes(0.5, &opts).unwrap();
+    let old = dir.join("old.mcap");
+    let mut reader = McapReader::open(&file, &McapReaderConfig::default(), Vec::new()).unwrap();
+    let mut writer = McapWriter::create(&old, Default::default()).unwrap();
+    let mut dropped = 0u64;
+    while let Some(item) = reader.next_item().unwrap() {
+        match item {
+            McapItem::Metadata { name, metadata } => {
+                let mut meta: serde_json::Value = serde_json::from_str(&metadata["meta"]).unwrap();
+                assert!(
+                    meta.as_object_mut()
+                        .unwrap()
+                        .remove("keep_off_perception")
+                        .is_some()
+                );
+                let json = BTreeMap::from([("meta".into(), meta.to_string())]);
+                writer.write_metadata(&name, json).unwrap();
+            }
+            McapItem::Frame(a) => writer
+                .write_frame(&a.frame, &a.joint_positions_rad)
+                .unwrap(),
+            McapItem::Estimate(k, e) => writer.write_estimate(k, &e).unwrap(),
+            McapItem::Tick(t) => writer.write_tick(&t).unwrap(),
+            McapItem::Guards(..) | McapItem::GuardEstimates(..) => dropped += 1,
+            McapItem::Other { .. } => {}
+        }
+    }
+    writer.finish().unwrap();
+    // The fixed robot poses no guard: every tick's guards had no surface.
+    assert_eq!(dropped, summary.ticks);
+    let back = record::read(&old).unwrap();
+    assert!(!back.meta.keep_off_perception);
+    assert!(back.ticks.iter().all(|t| t.keep_off.as_slice().is_empty()));
+    let report = replay(&old).unwrap();
+    assert!(report.identical(), "{report:?}");
+    assert_eq!(report.ticks_compared, summary.ticks);
+    assert_eq!(report.guard_ticks_compared, 0);
+    std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -14,7 +14,7 @@ use super::realtime::{DeadlineWait, thread_page_faults};
 use super::record::TickRecorder;
 use super::robot_state::RobotState;
 use super::summary::LoopStats;
-use super::workers::{Clock, Handover, Shared, Worker, injected};
+use super::workers::{Clock, Handover, Shared, Spent, Worker, injected};
 use super::{NodeConfig, NodeError, NodeEvent, OBSERVER_TICK_EVERY, RunOptions};
 use crate::control::ControlStatus;
 use crate::control::record::TickRecord;
@@ -22,7 +22,7 @@ use crate::gpu::Backend;
 use crate::haptics::HapticStatus;
 use crate::io::can::fault;
 use crate::robot::JointState;
-use crate::surface::{FusionStatus, SurfaceEstimate};
+use crate::surface::FusionStatus;
 use arrayvec::ArrayVec;
 use std::sync::atomic::Ordering;
 use std::sync::mpsc::{self, Receiver, SyncSender};
@@ -44,7 +44,7 @@ pub(super) struct TickLoop<'a, F> {
     pub(super) control: ControlLoop,
     pub(super) estimates: Receiver<Handover>,
     /// Spent estimates back to perception, which frees them (full: freed here).
-    pub(super) spent: SyncSender<Box<SurfaceEstimate>>,
+    pub(super) spent: SyncSender<Spent>,
     pub(super) can: Option<CanThread>,
     pub(super) recorder: Option<TickRecorder>,
     pub(super) on_tick: F,
@@ -243,12 +243,25 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
             f64::from_bits(self.clock.offset_bits.load(Ordering::Acquire)) + k as f64 * tick_s;
         // Estimates are handed over without blocking; fusion's window was fitted on the
         // perception thread, the tick evaluates the newest fit.
-        while let Ok((estimate, fit)) = self.estimates.try_recv() {
+        while let Ok(Handover {
+            estimate,
+            fit,
+            guards,
+        }) = self.estimates.try_recv()
+        {
             if let Some(c) = self.can.as_mut() {
                 c.estimate(t_tick, &estimate);
             }
             if let Some(fit) = fit {
                 self.control.use_fit(fit);
+            }
+            for (i, fit) in guards.fits.iter().enumerate() {
+                if let Some(fit) = fit {
+                    self.control.use_guard_fit(i, *fit);
+                }
+            }
+            for (stats, e) in self.stats.guards.iter_mut().zip(&guards.estimates) {
+                stats.valid_estimates += u64::from(e.surface.is_some());
             }
             if b.pending_latency.len() < b.pending_latency.capacity() {
                 b.pending_latency.push(estimate.stamp_s);
@@ -266,7 +279,10 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
             }
             match self.recorder.as_mut() {
                 Some(r) => {
-                    if let Err(e) = r.estimate(k, estimate) {
+                    if let Err(e) = r
+                        .estimate(k, estimate)
+                        .and_then(|()| r.guard_estimates(k, guards.estimates))
+                    {
                         self.shared.recording_failed(&e);
                         self.recorder = None;
                         self.stats.unrecorded_estimates += 1;
@@ -276,7 +292,7 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
                     if self.options.record.is_some() {
                         self.stats.unrecorded_estimates += 1;
                     }
-                    let _ = self.spent.try_send(estimate);
+                    let _ = self.spent.try_send((estimate, guards.estimates));
                 }
             }
         }
@@ -298,6 +314,9 @@ impl<F: FnMut(&TickRecord)> TickLoop<'_, F> {
         stats.active += u64::from(record.haptic_status == HapticStatus::Active);
         stats.held += u64::from(record.held);
         stats.fallbacks += u64::from(record.status != ControlStatus::Ok);
+        for (g, r) in stats.guards.iter_mut().zip(tick.keep_off.as_slice()) {
+            g.add(r);
+        }
         let finished = Instant::now();
         tick.work_s = (finished - started).as_secs_f64();
         stats.work.add(tick.work_s);

@@ -21,7 +21,9 @@ use crate::camera::Frame;
 use crate::fusion::{CameraLatency, Fit, FusionCounters};
 use crate::gpu::Backend;
 use crate::gpu::clock::monotonic_ns;
+use crate::robot::guards::MAX_GUARDS;
 use crate::surface::SurfaceEstimate;
+use arrayvec::ArrayVec;
 use std::collections::BTreeMap;
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -214,15 +216,30 @@ pub(super) struct WorkerReport {
     gpu_buffer_bytes: Option<u64>,
 }
 
-/// An estimate handed to the control loop, with the fit of fusion's window that includes it
-/// (boxed here, so the loop moves it on to the recording without allocating).
-pub(super) type Handover = (Box<SurfaceEstimate>, Option<Fit>);
+/// A frame's estimates handed to the control loop: the handle's, with the fit of fusion's
+/// window that includes it (boxed here, so the loop moves it on to the recording without
+/// allocating), and each keep-off guard's with its window's fit.
+pub(super) struct Handover {
+    pub(super) estimate: Box<SurfaceEstimate>,
+    pub(super) fit: Option<Fit>,
+    pub(super) guards: GuardHandover,
+}
+
+/// The keep-off guards' estimates of one frame, in the controller's keep-off order (empty in
+/// the single-HIP mode and for a robot without joint states), and each guard window's fit.
+pub struct GuardHandover {
+    pub estimates: Vec<SurfaceEstimate>,
+    pub fits: ArrayVec<Option<Fit>, MAX_GUARDS>,
+}
+
+/// What the loop hands back to perception to free: a spent handle estimate and the guards'.
+pub(super) type Spent = (Box<SurfaceEstimate>, Vec<SurfaceEstimate>);
 
 /// The hand-over of estimates to the control loop, and the loop's way of returning spent
 /// estimates back (both preallocated: neither side allocates or frees to pass one on).
 pub(super) struct HandoverChannels {
     pub(super) estimates: SyncSender<Handover>,
-    pub(super) spent: Receiver<Box<SurfaceEstimate>>,
+    pub(super) spent: Receiver<Spent>,
 }
 
 /// What the perception workers share: fusion's window (fitted here, off the control loop's
@@ -360,11 +377,27 @@ pub(super) fn perception_worker(
                 _ => {}
             }
         }
-        let fit = outputs
-            .window
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner)
-            .push(&estimate, record.far_field.as_ref(), clock.now_s());
+        let guard_estimates: Vec<SurfaceEstimate> = record
+            .chain
+            .guards
+            .iter()
+            .map(|g| g.estimate().clone())
+            .collect();
+        let (fit, guard_fits) = {
+            let mut window = outputs
+                .window
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            let now_s = clock.now_s();
+            let fit = window.push(&estimate, record.far_field.as_ref(), now_s);
+            let fits: ArrayVec<Option<Fit>, MAX_GUARDS> = guard_estimates
+                .iter()
+                .take(window.guard_count().min(MAX_GUARDS))
+                .enumerate()
+                .map(|(i, e)| window.push_guard(i, e, now_s))
+                .collect();
+            (fit, fits)
+        };
         if let Some(o) = &observer {
             // Dropped when the observer is behind (or gone).
             let _ = o.try_send(NodeEvent::Frame(Box::new(record)));
@@ -377,7 +410,15 @@ pub(super) fn perception_worker(
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
         while handover.spent.try_recv().is_ok() {}
-        match handover.estimates.try_send((Box::new(estimate), fit)) {
+        let handed = Handover {
+            estimate: Box::new(estimate),
+            fit,
+            guards: GuardHandover {
+                estimates: guard_estimates,
+                fits: guard_fits,
+            },
+        };
+        match handover.estimates.try_send(handed) {
             Ok(()) => {}
             // After the loop's end nobody takes them: not a drop.
             Err(TrySendError::Full(_)) if !shared.stop.load(Ordering::Acquire) => {

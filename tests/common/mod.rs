@@ -90,3 +90,49 @@ pub fn run_node<S: AsRef<OsStr>>(source: S, args: &[&OsStr]) -> serde_json::Valu
     all.push(source.as_ref());
     run_json(all)
 }
+
+/// Two keep-off guards of a tick at `stamp_s`: one with a tracked surface (its centroid `z_m`
+/// up) and its constraint, one without a surface (NaN distances, no data).
+pub fn two_guard_records(stamp_s: f64, z_m: f64) -> hapcloud::control::record::GuardRecords {
+    use hapcloud::control::record::GuardRecord;
+    use hapcloud::haptics::HapticStatus;
+    use hapcloud::surface::{FusedSurface, FusionStatus, SurfaceState};
+    use nalgebra::{Point3, Unit, Vector3};
+    let fused = FusedSurface {
+        stamp_s,
+        status: FusionStatus::Tracking,
+        age_s: 0.03,
+        surface: Some(SurfaceState {
+            centroid_m: Point3::new(0.1, 0.2, 0.3 + z_m),
+            normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
+            velocity_m_per_s: Vector3::new(0.0, 0.0, -0.01),
+            fit_centroid_m: Point3::new(0.11, 0.2, 0.3),
+            fit_normal: Unit::new_normalize(Vector3::new(0.0, 0.6, 0.8)),
+        }),
+        fit_degree: 1,
+        sample_count: 7,
+        camera_count: 1,
+    };
+    [
+        GuardRecord {
+            fused,
+            held: false,
+            haptic_status: HapticStatus::Active,
+            d_proj_m: 0.012 + z_m * 1e-3,
+            d_rate_mps: -0.3,
+            alpha_p_m: 0.002,
+            alpha_v_mps: -0.1,
+        },
+        GuardRecord {
+            fused: FusedSurface::no_data(stamp_s),
+            held: false,
+            haptic_status: HapticStatus::NoSurface,
+            d_proj_m: f64::NAN,
+            d_rate_mps: f64::NAN,
+            alpha_p_m: f64::NAN,
+            alpha_v_mps: f64::NAN,
+        },
+    ]
+    .into_iter()
+    .collect()
+}

@@ -12,7 +12,7 @@ use super::Ros2Error;
 use super::msgs::{HEADER, Header, RosMessage};
 use super::typedesc::{Elem, MsgDesc, Prim, Shape, constant, field, msg, prim};
 use crate::control::ControlStatus;
-use crate::control::record::{ControlRecord, TickRecord};
+use crate::control::record::{ControlRecord, GuardRecord, GuardRecords, TickRecord};
 use crate::haptics::HapticStatus;
 use crate::robot::JointState as Joints;
 use crate::robot::JointVector;
@@ -168,11 +168,7 @@ impl HapticConstraint {
         Self {
             header,
             stamp_s,
-            status: match c.haptic_status {
-                HapticStatus::Active => 0,
-                HapticStatus::Far => 1,
-                HapticStatus::NoSurface => 2,
-            },
+            status: haptic_status_code(c.haptic_status),
             held: c.held,
             d_proj_m: c.d_proj_m,
             d_rate_mps: c.d_rate_mps,
@@ -459,9 +455,177 @@ impl ControlTick {
                 tau_nm: joints("tau_nm", &self.tau_nm)?,
                 qdd_rad_per_s2: joints("qdd_rad_per_s2", &self.qdd_rad_per_s2)?,
             },
+            // The keep-off guards travel in their own message (GuardStates).
+            keep_off: GuardRecords::default(),
             late_s: self.late_s,
             work_s: self.work_s,
         })
+    }
+}
+
+pub static GUARD_STATE: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/GuardState",
+    constants: &[],
+    fields: &[
+        prim("name", Prim::String),
+        msg("fused", &FUSED_SURFACE),
+        msg("constraint", &HAPTIC_CONSTRAINT),
+    ],
+};
+
+/// `hapcloud_msgs/msg/GuardState`: one keep-off guard's fused surface and constraint at one
+/// tick.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct GuardState {
+    pub name: String,
+    pub fused: FusedSurface,
+    pub constraint: HapticConstraint,
+}
+
+impl GuardState {
+    pub fn new(header: Header, name: &str, g: &GuardRecord) -> Self {
+        let c = &g.fused;
+        Self {
+            name: name.into(),
+            fused: FusedSurface::new(header.clone(), c),
+            constraint: HapticConstraint {
+                header,
+                stamp_s: c.stamp_s,
+                status: haptic_status_code(g.haptic_status),
+                held: g.held,
+                d_proj_m: g.d_proj_m,
+                d_rate_mps: g.d_rate_mps,
+                position_active: !g.alpha_p_m.is_nan(),
+                alpha_p_m: g.alpha_p_m,
+                velocity_active: !g.alpha_v_mps.is_nan(),
+                alpha_v_mps: g.alpha_v_mps,
+                force_active: false,
+            },
+        }
+    }
+
+    /// The node's guard record back, bit for bit.
+    pub fn to_record(&self) -> Result<GuardRecord, Ros2Error> {
+        let k = &self.constraint;
+        Ok(GuardRecord {
+            fused: self.fused.to_fused()?,
+            held: k.held,
+            haptic_status: k.haptic_status()?,
+            d_proj_m: k.d_proj_m,
+            d_rate_mps: k.d_rate_mps,
+            alpha_p_m: k.alpha_p_m,
+            alpha_v_mps: k.alpha_v_mps,
+        })
+    }
+}
+
+pub static GUARD_STATES: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/GuardStates",
+    constants: &[],
+    fields: &[
+        msg("header", &HEADER),
+        prim("index", Prim::UInt64),
+        prim("stamp_s", Prim::Float64),
+        field("guards", Elem::Msg(&GUARD_STATE), Shape::Seq),
+    ],
+};
+
+/// `hapcloud_msgs/msg/GuardStates`: every keep-off guard at one tick, in the controller's
+/// keep-off order.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct GuardStates {
+    pub header: Header,
+    pub index: u64,
+    pub stamp_s: f64,
+    pub guards: Vec<GuardState>,
+}
+
+impl GuardStates {
+    /// The message of tick `t`'s keep-off guards, named by `names` (the controller's
+    /// keep-off order; a guard beyond them is named by its index).
+    pub fn new(header: Header, t: &TickRecord, names: &[String]) -> Self {
+        Self {
+            guards: t
+                .keep_off
+                .as_slice()
+                .iter()
+                .enumerate()
+                .map(|(i, g)| {
+                    let name = names.get(i).cloned().unwrap_or_else(|| i.to_string());
+                    GuardState::new(header.clone(), &name, g)
+                })
+                .collect(),
+            header,
+            index: t.index,
+            stamp_s: t.fused.stamp_s,
+        }
+    }
+
+    /// The tick index and its guards' records back, bit for bit.
+    pub fn to_records(&self) -> Result<(u64, GuardRecords), Ros2Error> {
+        if self.guards.len() > crate::robot::guards::MAX_GUARDS {
+            return Err(Ros2Error::Value(format!(
+                "{} guards, at most {}",
+                self.guards.len(),
+                crate::robot::guards::MAX_GUARDS
+            )));
+        }
+        let records: Vec<GuardRecord> = self
+            .guards
+            .iter()
+            .map(GuardState::to_record)
+            .collect::<Result<_, _>>()?;
+        Ok((self.index, records.into_iter().collect()))
+    }
+}
+
+pub static GUARD_ESTIMATES: MsgDesc = MsgDesc {
+    name: "hapcloud_msgs/msg/GuardEstimates",
+    constants: &[],
+    fields: &[
+        msg("header", &HEADER),
+        prim("tick", Prim::UInt64),
+        prim("camera_id", Prim::UInt32),
+        prim("stamp_s", Prim::Float64),
+        field("guards", Elem::Msg(&SURFACE_ESTIMATE), Shape::Seq),
+    ],
+};
+
+/// `hapcloud_msgs/msg/GuardEstimates`: the keep-off guards' estimates of one camera frame
+/// and the tick that pushed them into fusion.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct GuardEstimates {
+    pub header: Header,
+    pub tick: u64,
+    pub camera_id: u32,
+    pub stamp_s: f64,
+    pub guards: Vec<SurfaceEstimate>,
+}
+
+impl GuardEstimates {
+    /// The message of one frame's guard estimates `es` (all of one camera and stamp: the
+    /// first one's are the message's).
+    pub fn new(header: Header, tick: u64, es: &[Estimate]) -> Self {
+        Self {
+            tick,
+            camera_id: es.first().map_or(0, |e| e.camera_id),
+            stamp_s: es.first().map_or(f64::NAN, |e| e.stamp_s),
+            guards: es
+                .iter()
+                .map(|e| SurfaceEstimate::new(header.clone(), tick, e))
+                .collect(),
+            header,
+        }
+    }
+
+    /// The tick index and the node's estimates back, bit for bit.
+    pub fn to_estimates(&self) -> Result<(u64, Vec<Estimate>), Ros2Error> {
+        let estimates = self
+            .guards
+            .iter()
+            .map(|g| g.to_estimate().map(|(_, e)| e))
+            .collect::<Result<_, _>>()?;
+        Ok((self.tick, estimates))
     }
 }
 
@@ -552,6 +716,15 @@ impl NodeStatus {
     }
 }
 
+/// The `status` field of `HapticConstraint`.
+fn haptic_status_code(status: HapticStatus) -> u8 {
+    match status {
+        HapticStatus::Active => 0,
+        HapticStatus::Far => 1,
+        HapticStatus::NoSurface => 2,
+    }
+}
+
 /// The `control_status` field of `ControlTick` and `NodeStatus`.
 fn control_status_code(status: ControlStatus) -> u8 {
     match status {
@@ -580,6 +753,15 @@ impl RosMessage for FrameMeta {
 impl RosMessage for ControlTick {
     const DESC: &'static MsgDesc = &CONTROL_TICK;
 }
+impl RosMessage for GuardState {
+    const DESC: &'static MsgDesc = &GUARD_STATE;
+}
+impl RosMessage for GuardStates {
+    const DESC: &'static MsgDesc = &GUARD_STATES;
+}
+impl RosMessage for GuardEstimates {
+    const DESC: &'static MsgDesc = &GUARD_ESTIMATES;
+}
 impl RosMessage for CameraStatus {
     const DESC: &'static MsgDesc = &CAMERA_STATUS;
 }
@@ -588,13 +770,16 @@ impl RosMessage for NodeStatus {
 }
 
 /// Every hapcloud message type, for shipping and checking the `msg/` definitions.
-pub static ALL: [&MsgDesc; 8] = [
+pub static ALL: [&MsgDesc; 11] = [
     &FUSED_SURFACE,
     &HAPTIC_CONSTRAINT,
     &SHELL_FIT,
     &SURFACE_ESTIMATE,
     &FRAME_META,
     &CONTROL_TICK,
+    &GUARD_STATE,
+    &GUARD_STATES,
+    &GUARD_ESTIMATES,
     &CAMERA_STATUS,
     &NODE_STATUS,
 ];

@@ -134,6 +134,11 @@ pub mod topics {
     /// Recordings: `hapcloud_msgs/SurfaceEstimate` and `hapcloud_msgs/ControlTick`.
     pub const ESTIMATES: &str = "/hapcloud/estimates";
     pub const TICKS: &str = "/hapcloud/ticks";
+    /// `hapcloud_msgs/GuardStates`: every keep-off guard's fused surface and constraint per
+    /// tick (published at the fused surface's rate, recorded every tick).
+    pub const GUARDS: &str = "/hapcloud/guards";
+    /// Recordings: `hapcloud_msgs/GuardEstimates`, the keep-off guards' estimates per frame.
+    pub const GUARD_ESTIMATES: &str = "/hapcloud/guard_estimates";
 
     fn camera(id: u32, rest: &str) -> String {
         format!("/hapcloud/camera{id}/{rest}")
