@@ -388,3 +388,77 @@ fn the_text_summary_says_how_the_control_loop_ran() {
         "{line}"
     );
 }
+
+/// cantools (software hapcloud did not write; tools/interop/can_decode.py) reads a scene run's
+/// candump log with hapcloud.dbc to the same messages and signal values as hapcloud's decoder.
+#[test]
+fn cantools_decodes_the_can_log_as_hapcloud_does() {
+    use socketcan::Frame as _;
+    let ready = std::process::Command::new("python3")
+        .args(["-c", "import cantools"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !ready {
+        eprintln!(
+            "SKIPPED: python3 with cantools is missing (pip install -r tools/interop/requirements.txt)"
+        );
+        return;
+    }
+    let tmp = TempDir::new("cli_run_cantools");
+    let log = tmp.path.join("node.log");
+    let args: Vec<&OsStr> = vec![
+        "--duration".as_ref(),
+        "0.25".as_ref(),
+        "--speed".as_ref(),
+        "0.1".as_ref(),
+        "--can-log".as_ref(),
+        log.as_os_str(),
+    ];
+    run_node("torso_approach_clean", &args);
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = std::process::Command::new("python3")
+        .arg(root.join("tools/interop/can_decode.py"))
+        .arg(root.join("hapcloud.dbc"))
+        .arg(&log)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "can_decode.py: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let theirs: Vec<serde_json::Value> = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+
+    let dbc = can::parse_dbc(can::DBC_TEXT).unwrap();
+    let logged =
+        can::read_candump(std::io::BufReader::new(std::fs::File::open(&log).unwrap())).unwrap();
+    assert_eq!(theirs.len(), logged.len());
+    let mut names = std::collections::BTreeSet::new();
+    for (entry, their) in logged.iter().zip(&theirs) {
+        let (name, signals) = can::decode_with_dbc(&dbc, &entry.frame).expect("a protocol id");
+        assert_eq!(their["id"], u64::from(entry.frame.raw_id()), "{their}");
+        assert_eq!(their["name"], name, "{their}");
+        let their_signals = their["signals"].as_object().unwrap();
+        assert_eq!(their_signals.len(), signals.len(), "{name}: {their}");
+        for (signal, value) in signals {
+            let got = their_signals[signal].as_f64().unwrap();
+            assert!(
+                (got - value).abs() <= 1e-9 * value.abs().max(1.0),
+                "{name}.{signal}: cantools {got}, hapcloud {value}"
+            );
+        }
+        names.insert(name);
+    }
+    for expected in [
+        "HapticConstraint",
+        "KeepOffGuard",
+        "NodeStatus",
+        "TorqueCommand_1_4",
+    ] {
+        assert!(names.contains(expected), "{expected} not logged: {names:?}");
+    }
+}
