@@ -322,7 +322,11 @@ mod tests {
         let frame = Frame::from_cloud(0, 0.0, pose, given.clone());
         assert!(frame.is_cloud_made() && frame.depth().is_none());
         assert_eq!(frame.cloud(), &given);
-        assert_eq!(frame.without_given_cloud().cloud(), &given, "points only: kept");
+        assert_eq!(
+            frame.without_given_cloud().cloud(),
+            &given,
+            "points only: kept"
+        );
     }
 
     #[test]
