@@ -1292,3 +1292,21 @@ fn a_recording_without_the_guards_still_replays() {
     assert_eq!(report.guard_ticks_compared, 0);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The shipped single-HIP configuration is the paper's mode: the handle alone, every other
+/// key at its default.
+#[test]
+fn the_shipped_single_hip_config_is_the_handle_alone() {
+    let text = include_str!("../../tools/configs/single_hip.toml");
+    let config: NodeConfig = toml::from_str(text).unwrap();
+    assert_eq!(
+        config.controller.guards,
+        crate::robot::guards::GuardConfig::single_hip()
+    );
+    let mut default = NodeConfig::default();
+    default.controller.guards = config.controller.guards.clone();
+    assert_eq!(
+        toml::to_string(&config).unwrap(),
+        toml::to_string(&default).unwrap()
+    );
+}
