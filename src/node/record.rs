@@ -50,8 +50,8 @@ pub struct RecordingMeta {
     pub backend: Backend,
     /// The robot's base pose and whether the source had joint states.
     pub robot: RobotMeta,
-    /// Perception estimated a surface per keep-off guard (`controller.guards`; a recording
-    /// without this key was made before: replay perceives the handle alone, as it did).
+    /// Perception estimated a surface per keep-off guard (`controller.guards`); false when
+    /// absent, and replay then perceives the handle alone.
     #[serde(default)]
     pub keep_off_perception: bool,
 }

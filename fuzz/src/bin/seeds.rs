@@ -391,6 +391,7 @@ fn recordings(recording: Option<&Path>) {
             world_from_base: nalgebra::Isometry3::identity(),
             joint_states: true,
         },
+        keep_off_perception: false,
     };
     write(
         "recording",
