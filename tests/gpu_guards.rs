@@ -9,10 +9,11 @@
 //!   f32, the origin in f64, the moments on the CPU) within the tolerance stated here
 //!   (centroid, normal, `d_proj`), as does the handle's.
 
+mod common;
+
+use common::posed_frames;
 use std::sync::Arc;
 
-use hapcloud::camera::Frame;
-use hapcloud::geometry::Primitive;
 use hapcloud::gpu::{Backend, GpuContext};
 use hapcloud::perception::frontend::FrontendConfig;
 use hapcloud::perception::outliers::remove_isolated;
@@ -20,9 +21,7 @@ use hapcloud::perception::pipeline::{
     CameraChain, ChainFrame, SurfaceConfig, guard_reach_m, guard_surface_config,
 };
 use hapcloud::perception::shells::accumulate_cpu;
-use hapcloud::robot::RobotModel;
-use hapcloud::robot::guards::{GuardConfig, GuardSegment, GuardSet};
-use hapcloud::scene::{Scene, Simulator};
+use hapcloud::robot::guards::GuardSegment;
 use hapcloud::surface::SurfacePoint;
 use nalgebra::Point3;
 
@@ -32,52 +31,6 @@ use nalgebra::Point3;
 /// (measured on lavapipe over these frames: at most 1.6 um and 7e-4 deg).
 const CENTROID_TOLERANCE_M: f64 = 1e-4;
 const NORMAL_TOLERANCE_DEG: f64 = 0.1;
-
-/// Frames of both cameras of `forearm_to_torso_realistic` with the HIP, the robot
-/// primitives and the keep-off guards posed at each frame's joints.
-struct ArmFrame {
-    frame: Frame,
-    hip: Point3<f64>,
-    robot: Vec<Primitive>,
-    guards: Vec<GuardSegment>,
-}
-
-fn arm_frames(step: usize) -> Vec<ArmFrame> {
-    let scene = Scene::from_builtin("forearm_to_torso_realistic").unwrap();
-    let sim = Simulator::new(&scene).unwrap();
-    let base = scene.file.robot.as_ref().unwrap().world_from_base();
-    let model = RobotModel::anyexo().unwrap().with_base(base);
-    let set = GuardSet::new(&model, &GuardConfig::default()).unwrap();
-    let mut frames = Vec::new();
-    for index in (0..120).step_by(step) {
-        for camera in 0..sim.cameras().len() as u32 {
-            let Some(timing) = sim.timing(camera, index) else {
-                continue;
-            };
-            let t = timing.stamp_s;
-            let (hip, joints) = (sim.hip_at(t).unwrap(), sim.joints_at(t).unwrap());
-            let robot = model
-                .collision_primitives_world(&joints)
-                .into_iter()
-                .map(|(_, p)| p)
-                .collect();
-            let poses = model.forward_kinematics(&joints);
-            let guards = set
-                .keep_off()
-                .iter()
-                .map(|&i| set.guards()[i].world(&poses))
-                .collect();
-            let frame = sim.frame(&timing).frame;
-            frames.push(ArmFrame {
-                frame,
-                hip,
-                robot,
-                guards,
-            });
-        }
-    }
-    frames
-}
 
 fn chain(backend: Backend, ctx: Option<Arc<GpuContext>>) -> CameraChain {
     let config = (FrontendConfig::default(), SurfaceConfig::default());
@@ -100,7 +53,7 @@ fn every_guards_gpu_moments_equal_the_cpu_reference_and_its_estimate_the_cpu_cha
     let (mut guard_frames, mut surfaces, mut placed) = (0, 0, 0);
     let (mut worst_m, mut worst_deg, mut worst_dproj_m): (f64, f64, f64) = (0.0, 0.0, 0.0);
     let (mut worst_origin_m, mut worst_handle_m): (f64, f64) = (0.0, 0.0);
-    for f in arm_frames(6) {
+    for f in posed_frames("forearm_to_torso_realistic", 6) {
         let what = format!("camera {} at {:.3} s", f.frame.camera_id, f.frame.stamp_s);
         let g: ChainFrame = gpu
             .process_guarded(&f.frame, &f.hip, &f.robot, &f.guards)

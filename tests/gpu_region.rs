@@ -6,48 +6,21 @@
 //! (integer counts exactly; a point's crop or flying-pixel decision only within f32 rounding
 //! of its threshold). A region beside, behind or beyond the camera is an empty, honest frame.
 
+mod common;
+
+use common::{PosedFrame, posed_frames};
 use std::sync::Arc;
 
-use hapcloud::camera::Frame;
-use hapcloud::geometry::Primitive;
 use hapcloud::gpu::{Backend, GpuContext};
 use hapcloud::perception::crop::{CropScene, DepthInput, crop_region};
 use hapcloud::perception::frontend::{
     FrameInput, FramePoints, Frontend, FrontendConfig, FrontendOutput,
 };
 use hapcloud::perception::pipeline::{CameraChain, SurfaceConfig};
-use hapcloud::robot::RobotModel;
-use hapcloud::scene::{Scene, Simulator};
 use nalgebra::{Point3, Vector3};
 
 fn context() -> Arc<GpuContext> {
     Arc::new(GpuContext::new().expect("GPU tests need Vulkan (lavapipe)"))
-}
-
-/// Every `step`-th frame of both cameras of a built-in scene, with the HIP and the posed
-/// robot primitives at its stamp.
-fn scene_frames(name: &str, step: usize) -> Vec<(Frame, Point3<f64>, Vec<Primitive>)> {
-    let scene = Scene::from_builtin(name).unwrap();
-    let sim = Simulator::new(&scene).unwrap();
-    let base = scene.file.robot.as_ref().unwrap().world_from_base();
-    let robot = RobotModel::anyexo().unwrap().with_base(base);
-    let mut frames = Vec::new();
-    for index in (0..120).step_by(step) {
-        for camera in 0..sim.cameras().len() as u32 {
-            let Some(timing) = sim.timing(camera, index) else {
-                continue;
-            };
-            let t = timing.stamp_s;
-            let (hip, joints) = (sim.hip_at(t).unwrap(), sim.joints_at(t).unwrap());
-            let primitives = robot
-                .collision_primitives_world(&joints)
-                .into_iter()
-                .map(|(_, p)| p)
-                .collect();
-            frames.push((sim.frame(&timing).frame, hip, primitives));
-        }
-    }
-    frames
 }
 
 /// The front end's results that do not depend on how many pixels the first pass ran over
@@ -79,7 +52,10 @@ fn the_gpu_region_pass_keeps_what_every_pixel_keeps_and_agrees_with_the_cpu_regi
     let (mut frames, mut kept, mut pixels, mut image_pixels) = (0, 0, 0, 0);
     let mut worst_mm: f64 = 0.0;
     for name in ["torso_approach_realistic", "forearm_to_torso_realistic"] {
-        for (frame, hip, robot) in scene_frames(name, 12) {
+        for PosedFrame {
+            frame, hip, robot, ..
+        } in posed_frames(name, 12)
+        {
             let what = format!("{name} camera {} at {} s", frame.camera_id, frame.stamp_s);
             let a = region.process(&frame, &hip, &robot).unwrap();
             let b = every.process(&frame, &hip, &robot).unwrap();
@@ -150,7 +126,7 @@ fn the_gpu_region_pass_keeps_what_every_pixel_keeps_and_agrees_with_the_cpu_regi
 #[test]
 fn a_region_outside_the_image_behind_or_beyond_the_camera_is_an_empty_honest_frame() {
     let ctx = context();
-    let (frame, _, robot) = scene_frames("torso_approach_realistic", 200).remove(0);
+    let PosedFrame { frame, robot, .. } = posed_frames("torso_approach_realistic", 200).remove(0);
     let (image, k) = frame.depth().unwrap();
     let pose = frame.world_from_camera;
     let flying = SurfaceConfig::default().flying_pixels;

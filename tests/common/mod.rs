@@ -1,6 +1,6 @@
 //! Shared by the integration tests that run the `hapcloud` binary: the command, its JSON
 //! output or its error message, PCL's real grabber frames and bunny scan, scratch
-//! directories, and running the node with a JSON summary.
+//! directories, running the node with a JSON summary, and a built-in scene's frames posed.
 // Each test binary compiles this module and uses only part of it.
 #![allow(dead_code)]
 
@@ -135,4 +135,53 @@ pub fn two_guard_records(stamp_s: f64, z_m: f64) -> hapcloud::control::record::G
     ]
     .into_iter()
     .collect()
+}
+
+/// A simulated camera frame with what perception is given at its stamp: the HIP, the posed
+/// robot primitives and ANYexo's keep-off guards.
+pub struct PosedFrame {
+    pub frame: hapcloud::camera::Frame,
+    pub hip: nalgebra::Point3<f64>,
+    pub robot: Vec<hapcloud::geometry::Primitive>,
+    pub guards: Vec<hapcloud::robot::guards::GuardSegment>,
+}
+
+/// Every `step`-th of the first 120 frames of each camera of built-in scene `name`, posed.
+pub fn posed_frames(name: &str, step: usize) -> Vec<PosedFrame> {
+    use hapcloud::robot::guards::{GuardConfig, GuardSet};
+    let scene = hapcloud::scene::Scene::from_builtin(name).unwrap();
+    let sim = hapcloud::scene::Simulator::new(&scene).unwrap();
+    let base = scene.file.robot.as_ref().unwrap().world_from_base();
+    let model = hapcloud::robot::RobotModel::anyexo()
+        .unwrap()
+        .with_base(base);
+    let set = GuardSet::new(&model, &GuardConfig::default()).unwrap();
+    let mut frames = Vec::new();
+    for index in (0..120).step_by(step) {
+        for camera in 0..sim.cameras().len() as u32 {
+            let Some(timing) = sim.timing(camera, index) else {
+                continue;
+            };
+            let t = timing.stamp_s;
+            let (hip, joints) = (sim.hip_at(t).unwrap(), sim.joints_at(t).unwrap());
+            let robot = model
+                .collision_primitives_world(&joints)
+                .into_iter()
+                .map(|(_, p)| p)
+                .collect();
+            let poses = model.forward_kinematics(&joints);
+            let guards = set
+                .keep_off()
+                .iter()
+                .map(|&i| set.guards()[i].world(&poses))
+                .collect();
+            frames.push(PosedFrame {
+                frame: sim.frame(&timing).frame,
+                hip,
+                robot,
+                guards,
+            });
+        }
+    }
+    frames
 }
