@@ -1,6 +1,7 @@
 //! `hapcloud run` and `hapcloud replay` end to end: on PCL's real grabber frames (the JSON
 //! summary's fields, a recording, its bit-for-bit replay, clear errors), and on a short
-//! built-in scene with the CAN log decoded by the DBC and checked against the recording.
+//! built-in scene with the CAN log decoded by the DBC (hapcloud's decoder and cantools) and
+//! checked against the recording.
 
 mod common;
 
@@ -261,6 +262,7 @@ fn can_log_of_a_scene_run_decodes_with_the_dbc_to_the_recorded_values() {
         .as_f64()
         .unwrap();
     assert!(load > 0.3 && load < 0.5, "{load}");
+    assert_cantools_decodes_as_hapcloud(&log, &dbc, &logged);
 }
 
 #[test]
@@ -389,10 +391,14 @@ fn the_text_summary_says_how_the_control_loop_ran() {
     );
 }
 
-/// cantools (software hapcloud did not write; tools/interop/can_decode.py) reads a scene run's
-/// candump log with hapcloud.dbc to the same messages and signal values as hapcloud's decoder.
-#[test]
-fn cantools_decodes_the_can_log_as_hapcloud_does() {
+/// cantools (software hapcloud did not write; tools/interop/can_decode.py) reads the candump
+/// log `log` with hapcloud.dbc to the same messages and signal values as hapcloud's decoder
+/// gave for `logged`; skipped, saying so, without python3's cantools.
+fn assert_cantools_decodes_as_hapcloud(
+    log: &std::path::Path,
+    dbc: &can_dbc::Dbc,
+    logged: &[can::LoggedFrame],
+) {
     use socketcan::Frame as _;
     let ready = std::process::Command::new("python3")
         .args(["-c", "import cantools"])
@@ -400,26 +406,15 @@ fn cantools_decodes_the_can_log_as_hapcloud_does() {
         .is_ok_and(|s| s.success());
     if !ready {
         eprintln!(
-            "SKIPPED: python3 with cantools is missing (pip install -r tools/interop/requirements.txt)"
+            "SKIPPED cantools: python3 with cantools is missing (pip install -r tools/interop/requirements.txt)"
         );
         return;
     }
-    let tmp = TempDir::new("cli_run_cantools");
-    let log = tmp.path.join("node.log");
-    let args: Vec<&OsStr> = vec![
-        "--duration".as_ref(),
-        "0.25".as_ref(),
-        "--speed".as_ref(),
-        "0.1".as_ref(),
-        "--can-log".as_ref(),
-        log.as_os_str(),
-    ];
-    run_node("torso_approach_clean", &args);
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let out = std::process::Command::new("python3")
         .arg(root.join("tools/interop/can_decode.py"))
         .arg(root.join("hapcloud.dbc"))
-        .arg(&log)
+        .arg(log)
         .output()
         .unwrap();
     assert!(
@@ -432,14 +427,10 @@ fn cantools_decodes_the_can_log_as_hapcloud_does() {
         .lines()
         .map(|l| serde_json::from_str(l).unwrap())
         .collect();
-
-    let dbc = can::parse_dbc(can::DBC_TEXT).unwrap();
-    let logged =
-        can::read_candump(std::io::BufReader::new(std::fs::File::open(&log).unwrap())).unwrap();
     assert_eq!(theirs.len(), logged.len());
     let mut names = std::collections::BTreeSet::new();
     for (entry, their) in logged.iter().zip(&theirs) {
-        let (name, signals) = can::decode_with_dbc(&dbc, &entry.frame).expect("a protocol id");
+        let (name, signals) = can::decode_with_dbc(dbc, &entry.frame).expect("a protocol id");
         assert_eq!(their["id"], u64::from(entry.frame.raw_id()), "{their}");
         assert_eq!(their["name"], name, "{their}");
         let their_signals = their["signals"].as_object().unwrap();

@@ -80,6 +80,19 @@ pub struct GuardRecord {
 }
 
 impl GuardRecord {
+    /// A keep-off guard without a surface at `stamp_s`: no data, no constraint, NaN distances.
+    pub fn no_surface(stamp_s: f64) -> Self {
+        Self {
+            fused: FusedSurface::no_data(stamp_s),
+            held: false,
+            haptic_status: HapticStatus::NoSurface,
+            d_proj_m: f64::NAN,
+            d_rate_mps: f64::NAN,
+            alpha_p_m: f64::NAN,
+            alpha_v_mps: f64::NAN,
+        }
+    }
+
     /// The record of a keep-off guard's fused surface and constraints. The constraint used a
     /// held surface when fusion was stale and the constraint still had one.
     pub fn new(fused: FusedSurface, c: &HapticConstraints) -> Self {
@@ -106,18 +119,9 @@ pub struct GuardRecords {
 
 impl Default for GuardRecords {
     fn default() -> Self {
-        let none = GuardRecord {
-            fused: FusedSurface::no_data(f64::NAN),
-            held: false,
-            haptic_status: HapticStatus::NoSurface,
-            d_proj_m: f64::NAN,
-            d_rate_mps: f64::NAN,
-            alpha_p_m: f64::NAN,
-            alpha_v_mps: f64::NAN,
-        };
         Self {
             len: 0,
-            items: [none; MAX_GUARDS],
+            items: [GuardRecord::no_surface(f64::NAN); MAX_GUARDS],
         }
     }
 }

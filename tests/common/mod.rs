@@ -123,15 +123,7 @@ pub fn two_guard_records(stamp_s: f64, z_m: f64) -> hapcloud::control::record::G
             alpha_p_m: 0.002,
             alpha_v_mps: -0.1,
         },
-        GuardRecord {
-            fused: FusedSurface::no_data(stamp_s),
-            held: false,
-            haptic_status: HapticStatus::NoSurface,
-            d_proj_m: f64::NAN,
-            d_rate_mps: f64::NAN,
-            alpha_p_m: f64::NAN,
-            alpha_v_mps: f64::NAN,
-        },
+        GuardRecord::no_surface(stamp_s),
     ]
     .into_iter()
     .collect()
