@@ -62,12 +62,13 @@ use hapcloud::gpu::{Backend, GpuContext};
 use hapcloud::node::NodeConfig;
 use hapcloud::perception::cluster::{ClusterConfig, GpuClusterer, cluster_cpu};
 use hapcloud::perception::crop::{
-    CropConfig, CropScene, DepthInput, GpuCrop, crop_cpu, crop_region, kept_indices,
+    CropConfig, CropScene, DepthInput, GpuCrop, RegionScratch, crop_cpu, crop_depth_region_cpu,
+    crop_region, kept_indices,
 };
 use hapcloud::perception::frontend::FramePoints;
 use hapcloud::perception::frontend::{FrameInput, Frontend, FrontendConfig};
 use hapcloud::perception::pipeline::{CameraChain, ChainFrame};
-use hapcloud::perception::voxel::{GpuVoxel, VoxelConfig, voxel_cpu};
+use hapcloud::perception::voxel::{GpuVoxel, VoxelConfig, voxel_cpu, voxel_cpu_with_leaf};
 use hapcloud::robot::RobotModel;
 use hapcloud::scene::{Scene, Simulator};
 use hapcloud::timing::{SpanTime, Stopwatch, load_average};
@@ -688,6 +689,7 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         total(&cpu_front, &cpu_surface, false),
     );
     same &= region_vs_whole.print(width, height);
+    region_vs_whole.print_stages();
     if args.d435_workers > 1 {
         shared_device(ctx, &frames, args.d435_workers)?;
     }
@@ -704,6 +706,25 @@ struct RegionVsWhole {
     pixels: Vec<f64>,
     /// Frames whose estimates differ (the paths must give the same bits).
     differ: usize,
+    /// Per frame of the region chain: each CPU stage's thread CPU time.
+    stages: Vec<StageTimes>,
+    /// The region pass's buffers for the stages' re-run.
+    scratch: RegionScratch,
+}
+
+/// One frame's CPU stages, thread CPU ms: the region pass, voxel grid and clustering re-run on
+/// the chain's own inputs (their outputs must equal the chain's), the surface stages as the
+/// chain timed them.
+struct StageTimes {
+    /// The frame had an estimate (the body within the HIP's reach: memory and fits work).
+    contact: bool,
+    region: f64,
+    voxel: f64,
+    clusters: f64,
+    memory: f64,
+    moments: f64,
+    fits: f64,
+    chain: f64,
 }
 
 impl RegionVsWhole {
@@ -768,6 +789,8 @@ impl RegionVsWhole {
         };
         let rect = crop_region(&depth, &config.frontend.crop, Some(&scene));
         self.pixels.push(rect.pixels() as f64);
+        let stages = self.stage_times(&r, rt, &depth, &scene, config)?;
+        self.stages.push(stages);
         if r.front.voxel != w.front.voxel
             || r.front.clusters != w.front.clusters
             || r.surface.abstraction != w.surface.abstraction
@@ -775,6 +798,82 @@ impl RegionVsWhole {
             self.differ += 1;
         }
         Ok(r)
+    }
+
+    /// Times the region chain's CPU stages on `r`'s frame one by one.
+    fn stage_times(
+        &mut self,
+        r: &ChainFrame,
+        chain: SpanTime,
+        depth: &DepthInput<'_>,
+        scene: &CropScene<'_>,
+        config: &NodeConfig,
+    ) -> anyhow::Result<StageTimes> {
+        let front = &config.frontend;
+        let (kept, region) = Stopwatch::time(|| {
+            crop_depth_region_cpu(depth, &front.crop, Some(scene), &mut self.scratch)
+        });
+        let kept = kept?;
+        let (voxel, voxel_t) = Stopwatch::time(|| {
+            voxel_cpu_with_leaf(&kept.points, None, &front.voxel, r.front.voxel.leaf_m)
+        });
+        let voxel = voxel?;
+        let (clusters, clusters_t) = Stopwatch::time(|| cluster_cpu(&voxel.points, &front.cluster));
+        if voxel != r.front.voxel || clusters? != r.front.clusters {
+            bail!("the CPU stages re-run on a frame's input differ from its chain's output");
+        }
+        Ok(StageTimes {
+            contact: r.estimate().surface.is_some(),
+            region: region.cpu_ms,
+            voxel: voxel_t.cpu_ms,
+            clusters: clusters_t.cpu_ms,
+            memory: r.surface.memory_time.cpu_ms,
+            moments: r.surface.moments_time.cpu_ms,
+            fits: r.surface.fits_time.cpu_ms,
+            chain: chain.cpu_ms,
+        })
+    }
+
+    /// Each CPU stage's thread CPU time, median / p90 / max, in the frames without and with
+    /// an estimate.
+    fn print_stages(&self) {
+        type Pick = fn(&StageTimes) -> f64;
+        let columns: [(&str, Pick); 7] = [
+            ("region pass", |s| s.region),
+            ("voxel grid", |s| s.voxel),
+            ("clusters", |s| s.clusters),
+            ("memory + isolated points", |s| s.memory),
+            ("shell moments", |s| s.moments),
+            ("fits", |s| s.fits),
+            ("whole chain", |s| s.chain),
+        ];
+        println!(
+            "\nCPU chain over the crop region, each stage's thread CPU ms re-run on the chain's input: median / p90 / max"
+        );
+        println!("\n| stage | no estimate | with an estimate (contact) |");
+        println!("|---|---|---|");
+        for (name, pick) in columns {
+            let cell = |contact: bool| {
+                let mut v: Vec<f64> = self
+                    .stages
+                    .iter()
+                    .filter(|s| s.contact == contact)
+                    .map(pick)
+                    .collect();
+                if v.is_empty() {
+                    return "-".to_string();
+                }
+                v.sort_by(f64::total_cmp);
+                format!(
+                    "{:.3} / {:.3} / {:.3} (N = {})",
+                    v[v.len() / 2],
+                    v[(v.len() * 9 / 10).min(v.len() - 1)],
+                    v[v.len() - 1],
+                    v.len()
+                )
+            };
+            println!("| {name} | {} | {} |", cell(false), cell(true));
+        }
     }
 
     /// Prints the comparison; true when every frame's estimate was the same on both paths.
