@@ -46,7 +46,6 @@ use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::{PassTicks, StageTime, StageTimer};
 use crate::gpu::{GpuContext, GpuError};
 use glam::Vec3;
-use rustc_hash::FxHashMap;
 use serde::{Deserialize, Serialize};
 
 /// Errors of the clustering stage.
@@ -66,6 +65,11 @@ pub enum ClusterError {
          origin; the GPU grid cannot place it exactly"
     )]
     OutOfGridRange { limit_cells: f32, limit_m: f32 },
+    #[error(
+        "the cloud spreads over {cells} distinct grid cells along one axis; the CPU grid \
+         keys at most {max}"
+    )]
+    TooSpread { cells: usize, max: usize },
     #[error("GPU union-find did not converge in {submissions} submissions")]
     NotConverged { submissions: u32 },
     #[error("GPU returned non-canonical labels (point {index} has label {label})")]
@@ -324,23 +328,66 @@ fn find(parent: &mut [u32], mut x: u32) -> u32 {
     x
 }
 
-/// CPU reference: canonical component id per point.
-///
-/// Points are sorted into coarse grid cells (side: the tolerance times [`CPU_CELL_MARGIN`])
-/// split into 2 x 2 x 2 sub-cells. All points of a sub-cell are neighbours of each other, so
-/// a sub-cell is one set from the start (coincident or nearly coincident points cost
-/// nothing). A union-find over the sub-cells then joins each pair of sub-cells in
-/// neighbouring coarse cells (half stencil, each pair once) that holds at least one
-/// neighbour pair: decided by their bounding boxes when those are far enough apart or close
-/// enough together, else by testing point pairs with [`is_neighbour`] until the first hit.
-/// The canonical id of a set is its smallest point index.
-pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, ClusterError> {
-    check_len(points)?;
-    let r2 = tolerance_m * tolerance_m;
-    let cell = f64::from(tolerance_m) * CPU_CELL_MARGIN;
-    let inv_sub = 2.0 / cell;
-    // (coarse cell, octant of the sub-cell in it, point index), finite points only.
-    let mut order: Vec<([i64; 3], u8, u32)> = Vec::with_capacity(points.len());
+/// Bits of one axis of a packed coarse-cell key ([`cell_keys`]): three axes and the
+/// octant's 3 bits fill 63 bits.
+const KEY_AXIS_BITS: u32 = 20;
+
+/// Per axis, a map from coarse cell coordinates to key coordinates that keeps neighbours
+/// neighbours: the offset from the smallest coordinate (plus one, so that a neighbour's
+/// coordinate below it stays non-negative) when the span fits [`KEY_AXIS_BITS`], else the
+/// distinct coordinates ranked with a gap of 2 wherever they differ by more than 1 (a cloud
+/// spread over more than 20,000 km of tolerances: only adjacency matters).
+enum AxisMap {
+    Offset(i64),
+    Ranked(Vec<(i64, u64)>),
+}
+
+impl AxisMap {
+    fn new(values: impl Iterator<Item = i64> + Clone) -> Result<Self, ClusterError> {
+        let (lo, hi) = values
+            .clone()
+            .fold((i64::MAX, i64::MIN), |(lo, hi), v| (lo.min(v), hi.max(v)));
+        let limit = (1i64 << KEY_AXIS_BITS) - 2;
+        if lo > hi || hi - lo < limit {
+            return Ok(Self::Offset(lo.min(hi) - 1));
+        }
+        let mut distinct: Vec<i64> = values.collect();
+        distinct.sort_unstable();
+        distinct.dedup();
+        let mut ranked = Vec::with_capacity(distinct.len());
+        let mut key = 1u64;
+        for (i, &v) in distinct.iter().enumerate() {
+            if i > 0 {
+                key += if v - distinct[i - 1] == 1 { 1 } else { 2 };
+            }
+            ranked.push((v, key));
+        }
+        if key as i64 >= limit {
+            return Err(ClusterError::TooSpread {
+                cells: distinct.len(),
+                max: (limit / 2) as usize,
+            });
+        }
+        Ok(Self::Ranked(ranked))
+    }
+
+    fn key(&self, v: i64) -> u64 {
+        match self {
+            Self::Offset(origin) => (v - origin) as u64,
+            Self::Ranked(ranked) => ranked[ranked.partition_point(|&(w, _)| w < v)].1,
+        }
+    }
+}
+
+/// A coarse cell's key from its (z, y, x) key coordinates.
+fn coarse_key(z: u64, y: u64, x: u64) -> u64 {
+    (z << (2 * KEY_AXIS_BITS)) | (y << KEY_AXIS_BITS) | x
+}
+
+/// Sub-cell key and point index of each finite point, sorted: coarse cells in (z, y, x)
+/// order, the octant (bits x, y, z) in the low 3 bits, points in index order.
+fn cell_keys(points: &[Vec3], inv_sub: f64) -> Result<Vec<(u64, u32)>, ClusterError> {
+    let mut cells: Vec<([i64; 3], u32)> = Vec::with_capacity(points.len());
     for (i, p) in points.iter().enumerate() {
         if !p.is_finite() {
             continue;
@@ -352,28 +399,58 @@ pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, Clu
                 limit_m: (CPU_GRID_LIMIT / inv_sub) as f32,
             });
         }
-        let s = s.map(|v| v as i64);
-        // (z, y, x) order of the coarse cells; the octant's bits are x, y, z.
-        let coarse = [s[2] >> 1, s[1] >> 1, s[0] >> 1];
-        let octant = (s[0] & 1) | ((s[1] & 1) << 1) | ((s[2] & 1) << 2);
-        order.push((coarse, octant as u8, i as u32));
+        cells.push((s.map(|v| v as i64), i as u32));
     }
-    order.sort_unstable();
+    let [ax, ay, az] = [0, 1, 2].map(|k| AxisMap::new(cells.iter().map(move |(s, _)| s[k] >> 1)));
+    let (ax, ay, az) = (ax?, ay?, az?);
+    let mut keys: Vec<(u64, u32)> = cells
+        .iter()
+        .map(|&(s, i)| {
+            let coarse = coarse_key(az.key(s[2] >> 1), ay.key(s[1] >> 1), ax.key(s[0] >> 1));
+            let octant = (s[0] & 1) | ((s[1] & 1) << 1) | ((s[2] & 1) << 2);
+            ((coarse << 3) | octant as u64, i)
+        })
+        .collect();
+    keys.sort_unstable();
+    Ok(keys)
+}
+
+/// The 13 coarse cells after a cell in (z, y, x) order, as 4 rows of (dz, dy) beside the
+/// cell's own row: x + 1 in its row, then x - 1 ..= x + 1 in each of these.
+const FOLLOWING_ROWS: [(u64, i64); 4] = [(0, 1), (1, -1), (1, 0), (1, 1)];
+
+/// CPU reference: canonical component id per point.
+///
+/// Points are sorted into coarse grid cells (side: the tolerance times [`CPU_CELL_MARGIN`])
+/// split into 2 x 2 x 2 sub-cells, by one packed integer key per point (cells in (z, y, x)
+/// order, [`cell_keys`]). All points of a sub-cell are neighbours of each other, so a
+/// sub-cell is one set from the start (coincident or nearly coincident points cost nothing).
+/// A union-find over the sub-cells then joins each pair of sub-cells in neighbouring coarse
+/// cells (half stencil: the cell itself and the 13 after it, found by one cursor per row
+/// walking the sorted cells, no hashing) that holds at least one neighbour pair: two
+/// one-point sub-cells by [`is_neighbour`] itself, others by their bounding boxes when those
+/// are far enough apart or close enough together, else by testing point pairs with
+/// [`is_neighbour`] until the first hit. The canonical id of a set is its smallest point
+/// index.
+pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, ClusterError> {
+    check_len(points)?;
+    let r2 = tolerance_m * tolerance_m;
+    let cell = f64::from(tolerance_m) * CPU_CELL_MARGIN;
+    let order = cell_keys(points, 2.0 / cell)?;
     let mut subs: Vec<SubCell> = Vec::new();
-    // Coarse cell -> range of its sub-cells in `subs`.
-    let mut coarse: FxHashMap<[i64; 3], (u32, u32)> = FxHashMap::default();
+    // Coarse cells, ascending key, with their range in `subs`.
+    let mut coarse: Vec<(u64, u32, u32)> = Vec::new();
     let mut at = 0;
-    for run in order.chunk_by(|a, b| (a.0, a.1) == (b.0, b.1)) {
-        let start = subs.len();
+    for run in order.chunk_by(|a, b| a.0 == b.0) {
         let mut sub = SubCell {
             start: at,
             end: at + run.len(),
-            min_index: run[0].2,
+            min_index: run[0].1,
             lo: [f32::INFINITY; 3],
             hi: [f32::NEG_INFINITY; 3],
         };
         at = sub.end;
-        for &(_, _, i) in run {
+        for &(_, i) in run {
             let p = points[i as usize];
             for k in 0..3 {
                 sub.lo[k] = sub.lo[k].min(p[k]);
@@ -381,55 +458,92 @@ pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, Clu
             }
         }
         subs.push(sub);
-        coarse
-            .entry(run[0].0)
-            .and_modify(|r| r.1 = subs.len() as u32)
-            .or_insert((start as u32, subs.len() as u32));
+        let key = run[0].0 >> 3;
+        match coarse.last_mut() {
+            Some(last) if last.0 == key => last.2 = subs.len() as u32,
+            _ => coarse.push((key, subs.len() as u32 - 1, subs.len() as u32)),
+        }
     }
     let mut parent: Vec<u32> = (0..subs.len() as u32).collect();
     let r2_64 = f64::from(r2);
-    let mut cells: Vec<([i64; 3], (u32, u32))> = coarse.iter().map(|(k, v)| (*k, *v)).collect();
-    cells.sort_unstable();
-    for (key, (a0, a1)) in cells {
-        // The own cell and the 13 cells after it in (z, y, x) order.
-        for k in 13..27i64 {
-            let off = [k / 9 - 1, k / 3 % 3 - 1, k % 3 - 1];
-            let other = [key[0] + off[0], key[1] + off[1], key[2] + off[2]];
-            let Some(&(b0, b1)) = coarse.get(&other) else {
-                continue;
-            };
-            for a in a0..a1 {
-                let first_b = if k == 13 { a + 1 } else { b0 };
-                // a's root changes only through this loop's unions.
-                let mut ra = find(&mut parent, a);
-                let sa = &subs[a as usize];
-                for b in first_b..b1 {
-                    let rb = find(&mut parent, b);
-                    if ra == rb {
-                        continue;
-                    }
-                    let sb = &subs[b as usize];
-                    // Two one-point sub-cells (most of a voxel grid's output) are decided by
-                    // the predicate itself (their boxes are their points); others by their
-                    // boxes, else by their points' pairs.
-                    let joined = if sa.end - sa.start == 1 && sb.end - sb.start == 1 {
-                        is_neighbour(Vec3::from(sa.lo), Vec3::from(sb.lo), r2)
-                    } else {
-                        let (near, far) = box_distances(sa, sb);
-                        near <= r2_64 * (1.0 + BOX_MARGIN)
-                            && (far < r2_64 * (1.0 - BOX_MARGIN)
-                                || order[sa.start..sa.end].iter().any(|&(_, _, i)| {
-                                    let p = points[i as usize];
-                                    order[sb.start..sb.end]
-                                        .iter()
-                                        .any(|&(_, _, j)| is_neighbour(p, points[j as usize], r2))
-                                }))
-                    };
-                    if joined {
-                        parent[ra.max(rb) as usize] = ra.min(rb);
-                        ra = ra.min(rb);
-                    }
+    // Whether two sub-cells hold a neighbour pair: two one-point sub-cells (most of a voxel
+    // grid's output) by the predicate itself, others by their boxes where those decide.
+    let subs_join = |sa: &SubCell, sb: &SubCell| {
+        if sa.end - sa.start == 1 && sb.end - sb.start == 1 {
+            return is_neighbour(Vec3::from(sa.lo), Vec3::from(sb.lo), r2);
+        }
+        let (near, far) = box_distances(sa, sb);
+        near <= r2_64 * (1.0 + BOX_MARGIN)
+            && (far < r2_64 * (1.0 - BOX_MARGIN)
+                || order[sa.start..sa.end].iter().any(|&(_, i)| {
+                    let p = points[i as usize];
+                    order[sb.start..sb.end]
+                        .iter()
+                        .any(|&(_, j)| is_neighbour(p, points[j as usize], r2))
+                }))
+    };
+    // Every pair of sub-cells of two cells (of one cell: each pair once) whose sets differ.
+    let join_pairs = |parent: &mut [u32], (a0, a1): (u32, u32), (b0, b1): (u32, u32)| {
+        for a in a0..a1 {
+            let first_b = if a0 == b0 { a + 1 } else { b0 };
+            for b in first_b..b1 {
+                let (ra, rb) = (find(parent, a), find(parent, b));
+                if ra != rb && subs_join(&subs[a as usize], &subs[b as usize]) {
+                    parent[ra.max(rb) as usize] = ra.min(rb);
                 }
+            }
+        }
+    };
+    // First each cell's own sub-cells; a cell whose sub-cells then form one set (a surface
+    // through it) is `whole`.
+    let whole: Vec<bool> = coarse
+        .iter()
+        .map(|&(_, a0, a1)| {
+            join_pairs(&mut parent, (a0, a1), (a0, a1));
+            let root = find(&mut parent, a0);
+            (a0 + 1..a1).all(|s| find(&mut parent, s) == root)
+        })
+        .collect();
+    // Then each cell with the 13 after it. Two whole cells are one set as soon as one pair
+    // of their sub-cells joins: one look at their roots, then pairs until the first join.
+    let mut join_cells = |c: usize, d: usize| {
+        let ((_, a0, a1), (_, b0, b1)) = (coarse[c], coarse[d]);
+        if !(whole[c] && whole[d]) {
+            join_pairs(&mut parent, (a0, a1), (b0, b1));
+            return;
+        }
+        let (ra, rb) = (find(&mut parent, a0), find(&mut parent, b0));
+        if ra != rb
+            && (a0..a1).any(|a| (b0..b1).any(|b| subs_join(&subs[a as usize], &subs[b as usize])))
+        {
+            parent[ra.max(rb) as usize] = ra.min(rb);
+        }
+    };
+    // Per following row, the first coarse cell not before the current cell's x - 1 there;
+    // the targets grow with the cell's key, so each cursor only moves forward.
+    let mut cursors = [0usize; 4];
+    for (c, &(key, _, _)) in coarse.iter().enumerate() {
+        if coarse.get(c + 1).is_some_and(|next| next.0 == key + 1) {
+            join_cells(c, c + 1);
+        }
+        for (row, &(dz, dy)) in FOLLOWING_ROWS.iter().enumerate() {
+            // Key coordinates are at least 1 and below the axis limit, so the row's keys
+            // from x - 1 to x + 1 neither wrap nor spill into the next axis.
+            let base = key + (dz << (2 * KEY_AXIS_BITS));
+            let base = if dy < 0 {
+                base - (1 << KEY_AXIS_BITS)
+            } else {
+                base + ((dy as u64) << KEY_AXIS_BITS)
+            };
+            let (lo, hi) = (base - 1, base + 1);
+            let cursor = &mut cursors[row];
+            while *cursor < coarse.len() && coarse[*cursor].0 < lo {
+                *cursor += 1;
+            }
+            let mut d = *cursor;
+            while d < coarse.len() && coarse[d].0 <= hi {
+                join_cells(c, d);
+                d += 1;
             }
         }
     }
@@ -442,7 +556,7 @@ pub fn components_cpu(points: &[Vec3], tolerance_m: f32) -> Result<Vec<u32>, Clu
     let mut component: Vec<u32> = (0..points.len() as u32).collect();
     for s in 0..subs.len() as u32 {
         let id = min_index[find(&mut parent, s) as usize];
-        for &(_, _, i) in &order[subs[s as usize].start..subs[s as usize].end] {
+        for &(_, i) in &order[subs[s as usize].start..subs[s as usize].end] {
             component[i as usize] = id;
         }
     }
@@ -1269,6 +1383,26 @@ mod tests {
                 cell * tol + Vec3::from(rng.random::<[f32; 3]>()) * (tol * 0.1)
             })
             .collect();
+        assert_eq!(
+            components_cpu(&pts, tol).unwrap(),
+            components_brute(&pts, tol)
+        );
+    }
+
+    /// A cloud spread beyond the packed key's span (1,000 km of 2 cm cells along x) is
+    /// keyed by ranked cell coordinates: neighbours across the gap stay apart, those within a
+    /// group join as the brute force joins them.
+    #[test]
+    fn clouds_wider_than_the_key_span_are_ranked() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let tol = 0.02f32;
+        let mut pts = Vec::new();
+        for x0 in [-1.0e6f32, -0.5, 0.0, 3.0e5, 1.0e6] {
+            for _ in 0..60 {
+                let d = Vec3::from(rng.random::<[f32; 3]>()) * 0.08;
+                pts.push(Vec3::new(x0, 0.0, 0.0) + d);
+            }
+        }
         assert_eq!(
             components_cpu(&pts, tol).unwrap(),
             components_brute(&pts, tol)
