@@ -10,8 +10,10 @@
 //!
 //! Each point within `reach_m` of the HIP (the shells' outer radius: nothing farther reaches
 //! the fits) is kept when at least `min_neighbours` other points lie within `radius_m`
-//! ([`NearestSearch`] over the points within `reach_m + radius_m`; it holds coincident points
-//! once with their count, so a degenerate cloud of 10^5 identical points takes linear time).
+//! (a dense grid of radius-wide cells answers a point with enough neighbours well within the
+//! radius; any other asks a [`NearestSearch`] over the points within `reach_m + radius_m`,
+//! which holds coincident points once with their count, so a degenerate cloud of 10^5
+//! identical points takes linear time).
 //! Points farther out pass unchanged. The test depends only on the point set, not its order,
 //! so the shells' sums stay bit for bit independent of the point order. The removed points
 //! come back too: the estimator subtracts their shell sums from sums the front end computed
@@ -95,16 +97,135 @@ pub fn remove_isolated(
     if near.is_empty() {
         return (finite, Vec::new());
     }
-    let search = NearestSearch::new(near);
     // The point itself is within the radius (distance 0): it needs neighbours + 1 points.
     let k = NonZeroUsize::new(config.min_neighbours as usize + 1).expect("k >= 2");
     let radius2 = config.radius_m * config.radius_m;
+    let grid = NeighbourGrid::new(&near, hip, reach_m + config.radius_m, config.radius_m);
+    let mut search = None;
     let (kept, removed): (Vec<_>, Vec<_>) =
         finite.into_iter().zip(&located).partition(|(_, (c, d))| {
-            *d > reach_m || search.count_within(&Point3::from(*c), radius2, k) >= k.get()
+            *d > reach_m
+                || grid
+                    .as_ref()
+                    .is_some_and(|g| g.surely_has(&near, c, radius2, k.get()))
+                || search
+                    .get_or_insert_with(|| NearestSearch::new(near.clone()))
+                    .count_within(&Point3::from(*c), radius2, k)
+                    >= k.get()
         });
     let points_of = |pairs: Vec<(Vec3, _)>| pairs.into_iter().map(|(p, _)| p).collect();
     (points_of(kept), points_of(removed))
+}
+
+/// Relative margin under the squared radius within which a point counts for
+/// [`NeighbourGrid::surely_has`]: far above the few ulps by which two ways of summing three
+/// squares in f64 can differ, so the k-d tree's own distance is within the radius too.
+const SURE_MARGIN: f64 = 1e-9;
+/// The most grid cells per point [`NeighbourGrid`] allocates (with a floor for small
+/// clouds); a sparser cloud in a wider reach goes to the k-d tree alone.
+const GRID_CELLS_PER_POINT: usize = 8;
+const GRID_MIN_CELLS: usize = 4096;
+
+/// The points within `reach` of the HIP in a dense grid of cells one radius wide (a counting
+/// sort by cell): a point's neighbours within the radius lie in the 27 cells around its own.
+/// It answers the common case, a point of a surface with enough neighbours well within the
+/// radius, in a few distance tests; every other point asks the k-d tree, so each decision is
+/// the tree's.
+struct NeighbourGrid {
+    origin: [f64; 3],
+    inv_cell: f64,
+    dims: [usize; 3],
+    /// Per cell, the start of its points in `order` (one more entry: the end).
+    starts: Vec<u32>,
+    /// Point indices, cell by cell.
+    order: Vec<u32>,
+}
+
+impl NeighbourGrid {
+    /// `None` when the grid would hold too many cells for the points.
+    fn new(points: &[Point3<f64>], hip: &Point3<f64>, reach: f64, cell: f64) -> Option<Self> {
+        let side = (2.0 * reach / cell).ceil() + 1.0;
+        let budget = (GRID_CELLS_PER_POINT * points.len()).max(GRID_MIN_CELLS);
+        if !(side.is_finite() && side.powi(3) <= budget as f64) {
+            return None;
+        }
+        let n = side as usize;
+        let origin = [hip.x - reach, hip.y - reach, hip.z - reach];
+        let mut grid = Self {
+            origin,
+            inv_cell: 1.0 / cell,
+            dims: [n; 3],
+            starts: vec![0; n * n * n + 1],
+            order: vec![0; points.len()],
+        };
+        let cells: Vec<usize> = points
+            .iter()
+            .map(|p| {
+                grid.cell_of(&[p.x, p.y, p.z])
+                    .map_or(usize::MAX, |c| grid.index(c))
+            })
+            .collect();
+        if cells.contains(&usize::MAX) {
+            return None;
+        }
+        for &c in &cells {
+            grid.starts[c + 1] += 1;
+        }
+        for c in 0..n * n * n {
+            grid.starts[c + 1] += grid.starts[c];
+        }
+        let mut next = grid.starts.clone();
+        for (i, &c) in cells.iter().enumerate() {
+            grid.order[next[c] as usize] = i as u32;
+            next[c] += 1;
+        }
+        Some(grid)
+    }
+
+    fn cell_of(&self, c: &[f64; 3]) -> Option<[usize; 3]> {
+        let mut cell = [0; 3];
+        for k in 0..3 {
+            let v = ((c[k] - self.origin[k]) * self.inv_cell).floor();
+            if !(v >= 0.0 && v < self.dims[k] as f64) {
+                return None;
+            }
+            cell[k] = v as usize;
+        }
+        Some(cell)
+    }
+
+    fn index(&self, [x, y, z]: [usize; 3]) -> usize {
+        (z * self.dims[1] + y) * self.dims[0] + x
+    }
+
+    /// At least `k` of `points` (the point at `c` itself included) lie within
+    /// `radius2 * (1 - SURE_MARGIN)` of `c`. False says nothing.
+    fn surely_has(&self, points: &[Point3<f64>], c: &[f64; 3], radius2: f64, k: usize) -> bool {
+        let Some(cell) = self.cell_of(c) else {
+            return false;
+        };
+        let sure2 = radius2 * (1.0 - SURE_MARGIN);
+        let mut found = 0;
+        for z in cell[2].saturating_sub(1)..(cell[2] + 2).min(self.dims[2]) {
+            for y in cell[1].saturating_sub(1)..(cell[1] + 2).min(self.dims[1]) {
+                let row = self.index([0, y, z]);
+                let x0 = cell[0].saturating_sub(1);
+                let x1 = (cell[0] + 2).min(self.dims[0]);
+                let (s, e) = (self.starts[row + x0], self.starts[row + x1]);
+                for &i in &self.order[s as usize..e as usize] {
+                    let p = &points[i as usize];
+                    let (dx, dy, dz) = (p.x - c[0], p.y - c[1], p.z - c[2]);
+                    if dx * dx + dy * dy + dz * dz < sure2 {
+                        found += 1;
+                        if found >= k {
+                            return true;
+                        }
+                    }
+                }
+            }
+        }
+        false
+    }
 }
 
 #[cfg(test)]
@@ -165,6 +286,46 @@ mod tests {
         let (all, none) = remove_isolated(&points, &hip, 0.1, &off);
         assert_eq!((all.len(), none.len()), (points.len(), 0));
         assert!(remove_isolated(&[], &hip, 0.1, &config).0.is_empty());
+    }
+
+    /// Every decision is the exact count's: points on a lattice whose spacing is the radius
+    /// (neighbours at exactly the radius count) and random points around them, with
+    /// coincident ones, against a brute-force count within the radius.
+    #[test]
+    fn decisions_equal_a_brute_force_count() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let hip = Point3::new(0.0, 0.0, 0.0);
+        let config = OutlierConfig {
+            radius_m: 0.25,
+            ..OutlierConfig::default()
+        };
+        let mut points: Vec<Vec3> = (-6..=6)
+            .flat_map(|i| (-6..=6).map(move |j| Vec3::new(i as f32 * 0.25, j as f32 * 0.25, 0.5)))
+            .filter(|_| rng.random_bool(0.5))
+            .collect();
+        points.extend((0..300).map(|_| (Vec3::from(rng.random::<[f32; 3]>()) - 0.5) * 3.0));
+        points.extend_from_slice(&points[..20].to_vec());
+        let reach = 1.2;
+        let (kept, removed) = remove_isolated(&points, &hip, reach, &config);
+        let r2 = config.radius_m * config.radius_m;
+        let f64s = |p: &Vec3| Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+        let (mut want_kept, mut want_removed) = (Vec::new(), Vec::new());
+        for p in &points {
+            let c = f64s(p);
+            let count = points
+                .iter()
+                .filter(|q| (f64s(q) - c).norm_squared() <= r2)
+                .count();
+            if (c - hip).norm() > reach || count > config.min_neighbours as usize {
+                want_kept.push(*p);
+            } else {
+                want_removed.push(*p);
+            }
+        }
+        assert!(!want_removed.is_empty() && want_kept.len() > 100);
+        assert_eq!(kept, want_kept);
+        assert_eq!(removed, want_removed);
     }
 
     #[test]
