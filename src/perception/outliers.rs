@@ -305,7 +305,7 @@ mod tests {
             .filter(|_| rng.random_bool(0.5))
             .collect();
         points.extend((0..300).map(|_| (Vec3::from(rng.random::<[f32; 3]>()) - 0.5) * 3.0));
-        points.extend_from_slice(&points[..20].to_vec());
+        points.extend_from_within(..20);
         let reach = 1.2;
         let (kept, removed) = remove_isolated(&points, &hip, reach, &config);
         let r2 = config.radius_m * config.radius_m;
