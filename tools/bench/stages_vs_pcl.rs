@@ -30,7 +30,11 @@
 //! (memory, shell moments, fits), counts per stage. The CPU chain over the crop region is
 //! timed against the same chain over the whole frame (the image deprojected into an
 //! organized cloud, the flying-pixel test and the pose over every pixel), alternating which
-//! runs first frame by frame; their estimates must be the same bits.
+//! runs first frame by frame; their estimates must be the same bits. Last, each CPU stage's
+//! thread CPU time per frame (the region pass, voxel grid and clustering re-run on the chain's
+//! own input, their outputs checked equal to the chain's; memory, moments and fits as the
+//! chain timed them), median / p90 / max over the frames without an estimate and over those
+//! with one (the body within the HIP's reach: the surface memory registers).
 //!
 //! Times. PCL: the compute time its tool prints (`[done, X ms ...]`: the filter alone; process
 //! start-up and file I/O excluded), best of the runs: a wall time, so on a loaded machine the
