@@ -2,11 +2,12 @@
 //!
 //! On the GPU ([`GpuFrontend`]) a frame is one command encoder and one submit. A frame that
 //! comes as a depth image ([`FramePoints::Depth`]: 2 bytes per pixel) is uploaded as such,
-//! only the rows and columns of the crop's pixel region ([`crate::perception::crop::crop_region`],
-//! grown by the flying-pixel window) unless the frame wants the keep mask over every pixel,
-//! and the first pass deprojects the region's pixels, rejects flying pixels and crops
+//! only the rows and columns of the bounding rectangle of the crop's pixel region
+//! ([`crate::perception::crop::crop_region_with_reach`], grown by the flying-pixel window)
+//! unless the frame wants the keep mask over every pixel, and the first pass deprojects the
+//! rectangle's pixels, crops them and rejects flying pixels among those kept
 //! ([`crate::perception::crop`]), writing their cloud-frame points on the GPU (no cloud of
-//! the whole frame; the CPU's region pass reads the same pixels); a point cloud
+//! the whole frame; the CPU's region pass reads the region's spans); a point cloud
 //! (PCD, PointCloud2) is uploaded as points (all of them: dropping the invalid pixels first
 //! saved GPU time on lavapipe but cost more CPU time than it saved upload on an H100) and
 //! the first pass crops it. Then the voxel passes (read the mask; clears with
@@ -111,7 +112,7 @@ pub struct CameraCloud<'a> {
     pub cloud: &'a PointCloud,
     /// Pose of the camera's optical frame in the cloud frame (where the crop scene lives).
     pub cloud_from_camera: Isometry3<f64>,
-    /// Run within the crop radius of the HIP (every pixel without a crop).
+    /// Run on the points the crop keeps (every point without a crop).
     pub flying: &'a FlyingPixelConfig,
 }
 
@@ -205,7 +206,8 @@ pub struct FrontendOutput {
     /// `i % 32` of word `i / 32` is set when input point `i` survived
     /// ([`crate::perception::crop::mask_bit`]).
     pub crop_keep: Option<Vec<u32>>,
-    /// A depth frame's cloud-frame point per pixel (NaN: no depth or flying) when the frame
+    /// A depth frame's cloud-frame point per pixel (NaN: no depth, or a flying pixel the
+    /// crop keeps) when the frame
     /// asked for the keep mask.
     pub points: Option<Vec<Vec3>>,
     /// A depth frame's counts.

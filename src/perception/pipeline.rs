@@ -10,9 +10,9 @@
 //!    between a foreground and a background surface go. A frame that carries its depth
 //!    image skips steps 1 and 2 here on both backends: the image itself is the front end's
 //!    input, and its first pass deprojects, moves, tests and crops the pixels
-//!    ([`super::crop::DepthInput`]; both backends only the pixels of the crop sphere's
-//!    projection, [`super::crop::crop_region`], unless the keep mask over every pixel is
-//!    asked for). The simulator's cloud is its
+//!    ([`super::crop::DepthInput`]; both backends only the pixels of the crop's
+//!    projection, [`super::crop::crop_region_with_reach`], unless the keep mask over every
+//!    pixel is asked for). The simulator's cloud is its
 //!    unquantised depth and its image the 1 mm one a D435 delivers: both backends take the
 //!    image, as from a real camera,
 //! 3. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
@@ -1286,8 +1286,8 @@ mod tests {
         assert!(on_sphere(&again.unwrap().kept) > 100);
     }
 
-    /// The GPU front end crops the same union ball (its crop radius set per frame): the
-    /// guard's estimate agrees with the CPU chain's.
+    /// The GPU front end crops the same union of the HIP's ball and the guard's reach
+    /// capsule (set per frame): the guard's estimate agrees with the CPU chain's.
     #[test]
     fn the_gpu_chain_crops_the_union_and_the_guards_estimate_agrees_with_the_cpu() {
         let (guard, hip, _, _) = guard_in_front_of_the_sphere();
@@ -1335,8 +1335,8 @@ mod tests {
         }
     }
 
-    /// The single-HIP chain after whole-arm frames is the single-HIP chain: the crop radius
-    /// goes back to the configured one, and the handle's layers are those of a chain that
+    /// The single-HIP chain after whole-arm frames is the single-HIP chain: the crop goes
+    /// back to the HIP's ball, and the handle's layers are those of a chain that
     /// never saw a guard, bit for bit.
     #[test]
     fn without_guards_the_chain_is_the_single_hip_chain_bit_for_bit() {
