@@ -1,24 +1,27 @@
-// Crop (paper IV-A): keep a point when it is finite (integer test on the bits), within
-// `radius` of the HIP, and outside every robot collision primitive posed in the cloud frame.
-// Each frame takes two passes: a first pass over every point decides what the crop sphere
-// alone decides and lists the rest; a check pass, dispatched indirectly with the arguments
+// Crop (paper IV-A): keep a point when it is finite (integer test on the bits), in the
+// crop's reach (within `radius` of the HIP, or within a keep-off guard's reach capsule: the
+// union, crop.rs ReachCapsule), and outside every robot collision primitive posed in the
+// cloud frame.
+// Each frame takes two passes: a first pass over every point decides what the reach alone
+// decides and lists the rest; a check pass, dispatched indirectly with the arguments
 // the first pass wrote, decides the listed points and ORs their bits into the keep mask (bit
 // b of word w = point 32 w + b). OR is order-free, so the mask does not depend on the
 // list's order or the thread order.
 //
-// A point cloud: `crop_mask`, one thread per mask word, keeps the finite points in the crop
-// sphere, or lists them when the frame has robot primitives; `crop_check` tests a listed
+// A point cloud: `crop_mask`, one thread per mask word, keeps the finite points in the
+// reach, or lists them when the frame has robot primitives; `crop_check` tests a listed
 // point against the primitives. A depth image: `crop_depth`, per pixel of a rectangle of
 // it (the whole image, or the crop's pixel region, whose pixels and their flying-pixel
 // neighbours are all the host uploads: crop.rs `crop_region`) and without loops,
 // deprojects (pinhole, f32), moves the point to the cloud frame with the camera's pose,
-// writes it for the voxel pass (NaN without a depth), and keeps it when it lies in the crop
-// sphere and neither the flying-pixel (veil) test of src/perception/flying.rs nor a robot
-// primitive concerns it; it lists the pixels they concern. `crop_depth_check`, one thread
-// per listed pixel: the veil test on the camera-frame neighbours (a flying pixel's point
-// becomes a NaN), then the primitives. On llvmpipe every loop costs its exec-mask
-// bookkeeping even at 0 iterations, so the loops run only for the points that need them
-// (D435 frames: about 5 % of the image).
+// writes it for the voxel pass (NaN without a depth), and keeps it when it lies in the
+// reach and neither the flying-pixel (veil) test of src/perception/flying.rs nor a robot
+// primitive concerns it; it lists the pixels in the reach they may concern.
+// `crop_depth_check`, one thread per listed pixel: the primitives, then, for a pixel they
+// leave, the veil test on the camera-frame neighbours (a flying pixel's point becomes a
+// NaN). On llvmpipe every loop costs its exec-mask bookkeeping even at 0 iterations, so the
+// loops run only for the points that need them (D435 frames: about 5 % of the image), and
+// the reach's loop over the keep-off capsules only in a frame that has them.
 //
 // Reads shaped for lavapipe as well as for GPUs: the primitives sit in a uniform buffer and
 // the depth image in an R16Uint texture (llvmpipe gathers uniform and texel reads with vector
@@ -29,13 +32,23 @@
 // 32 listed points in crop_mask, MAX_PRIMITIVES in crop_check, a (2 x 4 + 1)^2
 // window + MAX_PRIMITIVES in crop_depth_check.
 
+// A keep-off guard's reach: the points within sqrt(a_r2.w) of the segment a_r2.xyz .. b.xyz.
+struct ReachCapsule {
+    a_r2: vec4<f32>,
+    b: vec4<f32>,
+}
+
+// Keep-off reach capsules a frame may carry (crop.rs MAX_REACH_CAPSULES).
+const MAX_REACH: u32 = 16u;
+
 struct CropParams {
     // HIP position (xyz) and squared crop radius (w).
     hip_r2: vec4<f32>,
     point_count: u32,
     primitive_count: u32,
     word_count: u32,
-    _pad: u32,
+    reach_count: u32,
+    reach: array<ReachCapsule, MAX_REACH>,
 }
 
 // kind 0: sphere (a = centre, radius); 1: capsule (segment a..b, radius);
@@ -76,8 +89,6 @@ struct DepthParams {
     row_x: vec4<f32>,
     row_y: vec4<f32>,
     row_z: vec4<f32>,
-    // Centre of the flying-pixel test, camera frame (xyz), and its squared radius (w).
-    near_r2: vec4<f32>,
     fx: f32,
     fy: f32,
     cx: f32,
@@ -133,9 +144,26 @@ fn inside(k: u32, p: vec3<f32>) -> bool {
     return dot(d, d) <= r * r;
 }
 
-fn in_crop_sphere(p: vec3<f32>) -> bool {
+// Point p lies in the crop's reach: the HIP's ball or a keep-off capsule (its closest
+// segment point a + t (b - a), t = clamp((p - a).(b - a) / |b - a|^2, 0, 1), as crop.rs).
+fn in_crop_reach(p: vec3<f32>) -> bool {
     let d = p - params.hip_r2.xyz;
-    return dot(d, d) <= params.hip_r2.w;
+    var reached = dot(d, d) <= params.hip_r2.w;
+    if params.reach_count == 0u {
+        return reached;
+    }
+    for (var k = 0u; k < params.reach_count; k++) {
+        let a = params.reach[k].a_r2.xyz;
+        let ab = params.reach[k].b.xyz - a;
+        let len2 = dot(ab, ab);
+        var t = 0.0;
+        if len2 > 0.0 {
+            t = clamp(dot(p - a, ab) / len2, 0.0, 1.0);
+        }
+        let e = p - (a + t * ab);
+        reached = reached | (dot(e, e) <= params.reach[k].a_r2.w);
+    }
+    return reached;
 }
 
 // Without an early exit, so the loop counter and the primitive reads stay uniform.
@@ -190,7 +218,7 @@ fn listed_point(t: CheckThread) -> u32 {
 }
 
 // First pass of a point cloud, one thread per mask word (32 points) and without the
-// primitive loop: a finite point in the crop sphere is kept, or, when the frame has robot
+// primitive loop: a finite point in the crop's reach is kept, or, when the frame has robot
 // primitives, listed for crop_check.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -200,9 +228,9 @@ fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let first = 32u * w;
-    let bits = sphere_quad(first, 0u) | sphere_quad(first, 4u) | sphere_quad(first, 8u)
-        | sphere_quad(first, 12u) | sphere_quad(first, 16u) | sphere_quad(first, 20u)
-        | sphere_quad(first, 24u) | sphere_quad(first, 28u);
+    let bits = reach_quad(first, 0u) | reach_quad(first, 4u) | reach_quad(first, 8u)
+        | reach_quad(first, 12u) | reach_quad(first, 16u) | reach_quad(first, 20u)
+        | reach_quad(first, 24u) | reach_quad(first, 28u);
     if params.primitive_count == 0u {
         atomicStore(&keep[w], bits);
         return;
@@ -220,21 +248,21 @@ fn crop_mask(@builtin(global_invocation_id) gid: vec3<u32>) {
 // Bits b .. b + 3 of the mask word of points first.. (b a multiple of 4): the quad at
 // first + b, read when it starts in the cloud. Called eight times in straight-line code: on
 // llvmpipe a loop over the quads made crop_mask four times slower.
-fn sphere_quad(first: u32, b: u32) -> u32 {
+fn reach_quad(first: u32, b: u32) -> u32 {
     let i = first + b;
     if i >= params.point_count {
         return 0u;
     }
     let v = 3u * (i >> 2u);
     let q = unpack_quad(points[v], points[v + 1u], points[v + 2u]);
-    return in_sphere_bit(first, b, q[0]) | in_sphere_bit(first, b + 1u, q[1])
-        | in_sphere_bit(first, b + 2u, q[2]) | in_sphere_bit(first, b + 3u, q[3]);
+    return in_reach_bit(first, b, q[0]) | in_reach_bit(first, b + 1u, q[1])
+        | in_reach_bit(first, b + 2u, q[2]) | in_reach_bit(first, b + 3u, q[3]);
 }
 
 // Bit b of the mask word of points first.. for point first + b at p: set when the point is
-// in the cloud, finite and in the crop sphere.
-fn in_sphere_bit(first: u32, b: u32, p: vec3<f32>) -> u32 {
-    if first + b < params.point_count && finite_point(p) && in_crop_sphere(p) {
+// in the cloud, finite and in the crop's reach.
+fn in_reach_bit(first: u32, b: u32, p: vec3<f32>) -> u32 {
+    if first + b < params.point_count && finite_point(p) && in_crop_reach(p) {
         return 1u << b;
     }
     return 0u;
@@ -309,13 +337,6 @@ fn to_cloud(p: vec3<f32>) -> vec3<f32> {
     );
 }
 
-// Whether the flying-pixel test looks at camera-frame point p: within the crop radius of
-// the HIP.
-fn in_veil_region(p: vec3<f32>) -> bool {
-    let n = p - depth_params.near_r2.xyz;
-    return depth_params.window > 0u && dot(n, n) < depth_params.near_r2.w;
-}
-
 // Pixels per crop_depth thread: four consecutive pixels (in row-major order) are one
 // vec4 store of the thread's 12 output words and 4 bits of a mask word.
 const DEPTH_QUAD: u32 = 4u;
@@ -332,8 +353,8 @@ var<private> quad_keep: u32;
 var<private> quad_check: u32;
 
 // Pixel (u, v) (bit k of the quad): its cloud-frame point as bits, a NaN when it has no
-// depth. Without loops: a pixel the flying-pixel test or a robot primitive may remove goes
-// to crop_depth_check; one inside the crop sphere that neither concerns is kept here.
+// depth. A pixel in the reach that the flying-pixel test or a robot primitive may remove
+// goes to crop_depth_check; one that neither concerns is kept here.
 fn depth_pixel(u: u32, v: u32, k: u32) -> vec3<u32> {
     let raw = raw_depth(u, v);
     if raw == 0u {
@@ -342,11 +363,12 @@ fn depth_pixel(u: u32, v: u32, k: u32) -> vec3<u32> {
     quad_valid += 1u;
     let p = deproject(u, v, raw);
     let c = to_cloud(p);
-    let in_crop = in_crop_sphere(c);
-    if in_veil_region(p) || (in_crop && params.primitive_count > 0u) {
-        quad_check |= 1u << k;
-    } else if in_crop {
-        quad_keep |= 1u << k;
+    if in_crop_reach(c) {
+        if depth_params.window > 0u || params.primitive_count > 0u {
+            quad_check |= 1u << k;
+        } else {
+            quad_keep |= 1u << k;
+        }
     }
     return bitcast<vec3<u32>>(c);
 }
@@ -449,9 +471,9 @@ fn crop_depth(
     }
 }
 
-// Second pass of a depth frame, one thread per pixel crop_depth listed: the flying-pixel
-// test (a flying pixel's point becomes a NaN) and the robot primitives; a kept pixel's bit
-// is OR-ed into the mask.
+// Second pass of a depth frame, one thread per pixel crop_depth listed (in the reach): the
+// robot primitives, then the flying-pixel test of a pixel they leave (a flying pixel's point
+// becomes a NaN and is counted); a kept pixel's bit is OR-ed into the mask.
 @compute @workgroup_size(WORKGROUP_SIZE)
 fn crop_depth_check(t: CheckThread) {
     let i = listed_point(t);
@@ -460,15 +482,15 @@ fn crop_depth_check(t: CheckThread) {
     }
     let px = region_pixel(i);
     let p = deproject(px.x, px.y, raw_depth(px.x, px.y));
-    if in_veil_region(p) && is_flying(px.x, px.y, p) {
+    if inside_any_primitive(to_cloud(p)) {
+        return;
+    }
+    if depth_params.window > 0u && is_flying(px.x, px.y, p) {
         out_words[3u * i] = NAN_BITS;
         out_words[3u * i + 1u] = NAN_BITS;
         out_words[3u * i + 2u] = NAN_BITS;
         atomicAdd(&counts[1], 1u);
         return;
     }
-    let c = to_cloud(p);
-    if in_crop_sphere(c) && !inside_any_primitive(c) {
-        atomicOr(&keep[i / 32u], 1u << (i % 32u));
-    }
+    atomicOr(&keep[i / 32u], 1u << (i % 32u));
 }

@@ -100,7 +100,13 @@ impl DepthImage {
 /// Pixel `(u, v)` with raw depth `raw` in the camera's optical frame (f64, rounded to f32),
 /// NaN when `raw` is 0.
 #[inline]
-fn deproject_pixel(k: &PinholeIntrinsics, depth_scale_m: f64, u: u32, v: u32, raw: u16) -> Vec3 {
+pub(crate) fn deproject_pixel(
+    k: &PinholeIntrinsics,
+    depth_scale_m: f64,
+    u: u32,
+    v: u32,
+    raw: u16,
+) -> Vec3 {
     if raw == 0 {
         return Vec3::splat(f32::NAN);
     }

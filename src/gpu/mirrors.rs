@@ -16,7 +16,19 @@ pub struct CropParams {
     pub point_count: u32,
     pub primitive_count: u32,
     pub word_count: u32,
-    pub _pad: u32,
+    /// Keep-off reach capsules in `reach`.
+    pub reach_count: u32,
+    pub reach: [ReachCapsuleGpu; crate::perception::crop::MAX_REACH_CAPSULES],
+}
+
+/// `ReachCapsule` in crop.wgsl: a keep-off guard's reach.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+pub struct ReachCapsuleGpu {
+    /// Segment start (xyz, m) and squared radius (w, m^2).
+    pub a_r2: [f32; 4],
+    /// Segment end (xyz, m).
+    pub b: [f32; 4],
 }
 
 /// `CropPrimitive` in crop.wgsl.
@@ -43,8 +55,6 @@ pub struct DepthParams {
     pub row_x: [f32; 4],
     pub row_y: [f32; 4],
     pub row_z: [f32; 4],
-    /// Centre of the flying-pixel test in the camera frame (xyz, m), squared radius (w, m^2).
-    pub near_r2: [f32; 4],
     pub fx: f32,
     pub fy: f32,
     pub cx: f32,
@@ -202,6 +212,7 @@ const fn mirror<T>(shader: StageShader, wgsl_name: &'static str) -> Mirror {
 pub const MIRRORS: &[Mirror] = &[
     mirror::<CropParams>(shader::CROP, "CropParams"),
     mirror::<CropPrimitive>(shader::CROP, "CropPrimitive"),
+    mirror::<ReachCapsuleGpu>(shader::CROP, "ReachCapsule"),
     mirror::<DepthParams>(shader::CROP, "DepthParams"),
     mirror::<VoxelParams>(shader::VOXEL, "VoxelParams"),
     mirror::<VoxelHeader>(shader::VOXEL, "VoxelHeader"),

@@ -1,43 +1,56 @@
 //! Crop: extraction of relevant points (paper section IV-A).
 //!
 //! A point is kept when (1) its three coordinates are finite, decided by an integer test on
-//! the f32 bit pattern (exponent bits not all ones), (2) it lies within `radius_m` of the
-//! haptic interaction point (HIP), i.e. not outside the paper's "inverted sphere", and
-//! (3) it lies outside every robot collision primitive ([`Primitive`], posed in the cloud
-//! frame), each grown by `robot_margin_m` plus `robot_margin_per_m2` times the squared
-//! camera-to-HIP distance (the sensor's noise, which grows with the square of the range, and
-//! the calibration error scatter the robot's own surface points to both sides of it; a
-//! primitive that only just encloses the robot leaves half of them, right next to the HIP). The result is a keep mask of 32-bit words, bit `i % 32` of word `i / 32` for point
-//! `i`, which the voxel stage consumes directly on the GPU.
+//! the f32 bit pattern (exponent bits not all ones), (2) it lies in the crop's reach: within
+//! `radius_m` of the haptic interaction point (HIP), i.e. not outside the paper's "inverted
+//! sphere", or, for the whole arm, within some keep-off guard's reach capsule
+//! ([`ReachCapsule`]: `|p - closest point of segment a..b| <= radius_m`; the union of the
+//! HIP's ball and the capsules, not one ball around them), and (3) it lies outside every
+//! robot collision primitive ([`Primitive`], posed in the cloud frame), each grown by
+//! `robot_margin_m` plus `robot_margin_per_m2` times the squared camera-to-HIP distance (the
+//! sensor's noise, which grows with the square of the range, and the calibration error
+//! scatter the robot's own surface points to both sides of it; a primitive that only just
+//! encloses the robot leaves half of them, right next to the HIP). The result is a keep mask
+//! of 32-bit words, bit `i % 32` of word `i / 32` for point `i`, which the voxel stage
+//! consumes directly on the GPU.
 //!
 //! [`crop_cpu`] is the reference (f64 geometry from [`crate::geometry`]); [`GpuCrop`] runs
-//! `shaders/crop.wgsl` (f32; a first pass decides what the crop sphere alone decides and lists
-//! the points a robot primitive may hold, a check pass decides those and ORs their bits into
-//! the mask). Both agree exactly except for points within f32 rounding (about 1e-6 m) of a
-//! boundary.
+//! `shaders/crop.wgsl` (f32, the same closest-point formula for the capsules; a first pass
+//! decides what the reach alone decides and lists the points a robot primitive may hold, a
+//! check pass decides those and ORs their bits into the mask). Both agree exactly except for
+//! points within f32 rounding (about 1e-6 m) of a boundary.
 //!
 //! A frame can also come as the camera delivers it ([`DepthInput`]: 16-bit depth image,
-//! intrinsics, pose): then the two depth passes deproject each pixel (f32 on the GPU), run the
-//! flying-pixel test ([`super::flying`]) and write the cloud-frame points the voxel stage
-//! reads, so the organized cloud never crosses the bus. [`crop_depth_cpu`] is its reference
-//! (deprojection in f64). The points agree within [`DEPTH_POINT_TOLERANCE`]; the keep mask
-//! exactly, except for pixels whose crop or flying-pixel decision lies within that rounding
-//! of its threshold. On the CPU a depth frame reads only the pixels the crop can keep: the
-//! crop sphere projected into the image ([`crop_region`]), deprojected, tested and cropped in
-//! one pass ([`crop_depth_region_cpu`]: the points [`crop_depth_cpu`] keeps, bit for bit).
+//! intrinsics, pose): then the two depth passes deproject each pixel (f32 on the GPU), crop
+//! it, run the flying-pixel test ([`super::flying`]) on the pixels the crop keeps (the only
+//! ones it can remove: `flying` counts those it removed) and write the cloud-frame points the
+//! voxel stage reads, so the organized cloud never crosses the bus. [`crop_depth_cpu`] is its
+//! reference (deprojection in f64). The points agree within [`DEPTH_POINT_TOLERANCE`]; the
+//! keep mask exactly, except for pixels whose crop or flying-pixel decision lies within that
+//! rounding of its threshold. A depth frame's passes read only the pixels the crop can keep
+//! ([`crop_region`]: each capsule's projection, its pixel rectangle, merged row by row into
+//! spans; the GPU takes their bounding rectangle). On the CPU ([`crop_depth_region_cpu`]) a
+//! pixel whose raw depth lies outside its span's depth interval (the capsules' depths, in
+//! depth units) is dropped on that integer compare, before any arithmetic; the others are
+//! deprojected, posed, cropped and, when kept, tested for flying in one pass (the points
+//! [`crop_depth_cpu`] keeps, bit for bit). The pixel bounds and the depth interval hold the
+//! capsules grown by a slack of 10 um plus a millionth of the distances involved, which
+//! covers the f32 roundings of the GPU's deprojection and pose as well as the CPU's.
 
 use glam::Vec3;
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{DepthImage, PinholeIntrinsics};
+use crate::camera::{DepthImage, PinholeIntrinsics, deproject_pixel};
 use crate::geometry::{PreparedPrimitive, Primitive, PrimitiveError, box_rotation};
-use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams};
+use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams, ReachCapsuleGpu};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
 use crate::gpu::{GpuContext, GpuError};
-use crate::perception::flying::{FlyingPixelConfig, VeilTest, Veiled, to_cloud_frame, veil_points};
-use nalgebra::Isometry3;
+use crate::perception::flying::{
+    DepthVeilTest, FlyingPixelConfig, VeilTest, to_cloud_frame, to_world,
+};
+use nalgebra::{Isometry3, Vector3};
 use std::ops::Range;
 
 /// Crop settings.
@@ -84,6 +97,42 @@ const DEPTH_QUAD: u32 = 4;
 /// iterations per shader invocation (one point against 256 in the check passes).
 pub const MAX_CROP_PRIMITIVES: usize = 256;
 
+/// Keep-off reach capsules one crop takes besides the HIP's ball: the GPU holds them in
+/// `CropParams` (crop.wgsl `MAX_REACH`), as many as the front end sums guards' shells for.
+pub const MAX_REACH_CAPSULES: usize = crate::perception::shells::MAX_GPU_GUARDS;
+
+/// A keep-off guard's reach in the cloud frame, which the crop keeps besides the HIP's
+/// ball: the points within `radius_m` of the segment `a_m..b_m` (a sphere when the ends
+/// coincide), its closest point `a + t (b - a)` with `t = clamp((p - a).(b - a) / |b - a|^2,
+/// 0, 1)` as crop.wgsl computes it.
+pub type ReachCapsule = crate::robot::guards::GuardSegment;
+
+/// Squared distance from `p` to the segment of `capsule`, m^2.
+pub(crate) fn reach_squared_distance(capsule: &ReachCapsule, p: &Point3<f64>) -> f64 {
+    (p - capsule.closest_point(p)).norm_squared()
+}
+
+/// Checks keep-off reach capsules: at most [`MAX_REACH_CAPSULES`], finite ends, a radius
+/// above 0 and at most [`MAX_CROP_RADIUS_M`].
+pub fn validate_reach(keep_off: &[ReachCapsule]) -> Result<(), CropError> {
+    if keep_off.len() > MAX_REACH_CAPSULES {
+        return Err(CropError::TooManyReachCapsules(keep_off.len()));
+    }
+    for (index, c) in keep_off.iter().enumerate() {
+        let bad = |what: String| Err(CropError::BadReach { index, what });
+        if !(c.a_m.iter().chain(c.b_m.iter())).all(|v| v.is_finite()) {
+            return bad(format!("ends must be finite, got {} and {}", c.a_m, c.b_m));
+        }
+        if !(c.radius_m > 0.0 && c.radius_m <= MAX_CROP_RADIUS_M) {
+            let r = c.radius_m;
+            return bad(format!(
+                "radius_m must lie in (0, {MAX_CROP_RADIUS_M}] m, got {r}"
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Why a crop cannot run.
 #[derive(Debug, thiserror::Error)]
 pub enum CropError {
@@ -105,6 +154,10 @@ pub enum CropError {
     BadDepth(String),
     #[error("{0} robot primitives, at most {MAX_CROP_PRIMITIVES} can be cropped")]
     TooManyPrimitives(usize),
+    #[error("keep-off reach capsule {index}: {what}")]
+    BadReach { index: usize, what: String },
+    #[error("{0} keep-off reach capsules, at most {MAX_REACH_CAPSULES} can be cropped")]
+    TooManyReachCapsules(usize),
     #[error("cloud of {0} points is too large for one crop pass")]
     TooManyPoints(usize),
     #[error(transparent)]
@@ -177,7 +230,7 @@ pub struct DepthInput<'a> {
     pub intrinsics: &'a PinholeIntrinsics,
     /// Pose of the camera's optical frame in the cloud frame (where the crop scene lives).
     pub cloud_from_camera: Isometry3<f64>,
-    /// The flying-pixel (veil) test, run within the crop radius of the HIP (every pixel
+    /// The flying-pixel (veil) test, run on the pixels the crop keeps (every valid pixel
     /// without a crop).
     pub flying: &'a FlyingPixelConfig,
 }
@@ -219,60 +272,39 @@ impl DepthInput<'_> {
     }
 }
 
-/// Where the flying-pixel test of a camera at `cloud_from_camera` looks: the HIP in the camera
-/// frame and the crop radius (both f32, as the GPU takes them); without a crop, everywhere.
-pub fn veil_region(
-    cloud_from_camera: &Isometry3<f64>,
-    config: &CropConfig,
-    scene: Option<&CropScene<'_>>,
-) -> (Vec3, f32) {
-    match scene {
-        Some(scene) => {
-            let hip = cloud_from_camera.inverse() * scene.hip_m;
-            (
-                Vec3::new(hip.x as f32, hip.y as f32, hip.z as f32),
-                config.radius_m as f32,
-            )
-        }
-        // The largest radius whose square is finite (WGSL may assume no infinities).
-        None => (Vec3::ZERO, f32::MAX.sqrt()),
-    }
-}
-
 /// What the first pass of a depth frame produced (CPU reference or GPU readback).
 #[derive(Clone, Debug, PartialEq)]
 pub struct DepthCrop {
-    /// Cloud-frame point per pixel, NaN where the depth is 0 or the pixel is flying.
+    /// Cloud-frame point per pixel, NaN where the depth is 0 or the pixel is a flying pixel
+    /// the crop keeps.
     pub points: Vec<Vec3>,
-    /// Keep mask over the pixels (valid, not flying, kept by the crop).
+    /// Keep mask over the pixels (valid, kept by the crop, not flying).
     pub mask: Vec<u32>,
     /// Pixels with a depth.
     pub valid: usize,
-    /// Flying pixels rejected.
+    /// Flying pixels removed from the pixels the crop keeps.
     pub flying: usize,
 }
 
-/// CPU reference of a depth frame's first pass: deprojection, flying pixels and pose
-/// ([`veil_points`]), then [`crop_cpu`] (every finite point kept without a scene).
+/// CPU reference of a depth frame's first pass: every pixel deprojected
+/// ([`DepthImage::deproject`], f64) and posed, the crop's keep mask ([`crop_cpu_with_reach`];
+/// without a scene every finite point), then the flying-pixel test on the kept pixels: a
+/// flying pixel's bit is cleared and its point made NaN.
 pub fn crop_depth_cpu(
     depth: &DepthInput<'_>,
     config: &CropConfig,
     scene: Option<&CropScene<'_>>,
+    keep_off: &[ReachCapsule],
 ) -> Result<DepthCrop, CropError> {
     config.validate()?;
     depth.validate()?;
-    let (near, radius) = veil_region(&depth.cloud_from_camera, config, scene);
-    let Veiled { points, flying, .. } = veil_points(
-        depth.image,
-        depth.intrinsics,
-        &depth.cloud_from_camera,
-        near,
-        radius,
-        depth.flying,
-    )
-    .ok_or_else(|| CropError::BadDepth("intrinsics do not match the image".into()))?;
-    let mask = match scene {
-        Some(scene) => crop_cpu(&points, config, scene)?,
+    let camera = depth
+        .image
+        .deproject(depth.intrinsics)
+        .ok_or_else(|| CropError::BadDepth("intrinsics do not match the image".into()))?;
+    let mut points = to_world(&camera.points, &depth.cloud_from_camera);
+    let mut mask = match scene {
+        Some(scene) => crop_cpu_with_reach(&points, config, scene, keep_off)?,
         None => {
             let mut mask = vec![0u32; mask_words(points.len())];
             for (i, _) in points.iter().enumerate().filter(|(_, p)| finite_bits(**p)) {
@@ -281,16 +313,26 @@ pub fn crop_depth_cpu(
             mask
         }
     };
+    let size = (depth.image.width, depth.image.height);
+    let test = VeilTest::everywhere(&camera.points, size, depth.flying);
+    let mut flying = 0;
+    for i in kept_indices(&mask, points.len()) {
+        if test.is_flying(i) {
+            mask[i / 32] &= !(1 << (i % 32));
+            points[i] = Vec3::NAN;
+            flying += 1;
+        }
+    }
     Ok(DepthCrop {
         points,
         mask,
-        valid: depth.image.data.iter().filter(|&&d| d != 0).count(),
+        valid: depth.valid_pixels(),
         flying,
     })
 }
 
 /// A rectangle of pixels, columns `u` and rows `v` (half-open, within the image).
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct PixelRect {
     pub u: Range<u32>,
     pub v: Range<u32>,
@@ -330,12 +372,109 @@ impl PixelRect {
     }
 }
 
-/// Slack of the pixel bound on the crop sphere, m: the f32 roundings of a deprojected point,
-/// of the pose and of the HIP in the camera frame move a point by about 1e-7 of the
-/// distances involved; a millionth of them plus 10 um keeps every pixel the crop (or the
-/// flying-pixel test, within the same radius) can decide otherwise.
-fn region_slack_m(config: &CropConfig, hip_cam: &Point3<f64>, pose: &Isometry3<f64>) -> f64 {
-    1e-5 + 1e-6 * (config.radius_m + hip_cam.coords.norm() + pose.translation.vector.norm())
+/// One row's run of pixels the crop can keep, and the raw depths (depth units, inclusive)
+/// its kept points can have.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RowSpan {
+    pub v: u32,
+    pub u: Range<u32>,
+    pub depth: (u16, u16),
+}
+
+/// The pixels of a depth frame whose point the crop can keep ([`crop_region`]): spans in
+/// row-major order (disjoint, ascending), and their bounding rectangle.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct CropRegion {
+    pub spans: Vec<RowSpan>,
+    pub bounds: PixelRect,
+}
+
+impl CropRegion {
+    /// Every pixel of a `width` x `height` image, at any depth.
+    pub fn full(width: u32, height: u32) -> Self {
+        let row = |v| RowSpan {
+            v,
+            u: 0..width,
+            depth: (1, u16::MAX),
+        };
+        let spans = if width == 0 {
+            Vec::new()
+        } else {
+            (0..height).map(row).collect()
+        };
+        Self::from_spans(spans)
+    }
+
+    /// Pixel rectangles with their raw depth intervals, merged row by row: on each row the
+    /// rectangles that overlap make one span (their depth intervals' hull).
+    fn from_rects(rects: &[(PixelRect, (u16, u16))]) -> Self {
+        let rows = rects.iter().map(|(r, _)| r.v.start).min().unwrap_or(0)
+            ..rects.iter().map(|(r, _)| r.v.end).max().unwrap_or(0);
+        let mut spans = Vec::new();
+        let mut row: Vec<(Range<u32>, (u16, u16))> = Vec::with_capacity(rects.len());
+        for v in rows {
+            row.clear();
+            row.extend(
+                (rects.iter())
+                    .filter(|(r, _)| r.v.contains(&v))
+                    .map(|(r, d)| (r.u.clone(), *d)),
+            );
+            row.sort_by_key(|(u, _)| u.start);
+            let mut open: Option<(Range<u32>, (u16, u16))> = None;
+            for (u, d) in row.drain(..) {
+                match &mut open {
+                    Some((o, od)) if u.start < o.end => {
+                        o.end = o.end.max(u.end);
+                        *od = (od.0.min(d.0), od.1.max(d.1));
+                    }
+                    _ => {
+                        if let Some((u, depth)) = open.replace((u, d)) {
+                            spans.push(RowSpan { v, u, depth });
+                        }
+                    }
+                }
+            }
+            if let Some((u, depth)) = open {
+                spans.push(RowSpan { v, u, depth });
+            }
+        }
+        Self::from_spans(spans)
+    }
+
+    fn from_spans(spans: Vec<RowSpan>) -> Self {
+        let bounds = match (spans.first(), spans.last()) {
+            (Some(first), Some(last)) => PixelRect {
+                u: spans.iter().map(|s| s.u.start).min().unwrap_or(0)
+                    ..spans.iter().map(|s| s.u.end).max().unwrap_or(0),
+                v: first.v..last.v + 1,
+            },
+            _ => PixelRect::empty(),
+        };
+        Self { spans, bounds }
+    }
+
+    /// Pixels of the spans.
+    pub fn pixels(&self) -> usize {
+        self.spans.iter().map(|s| s.u.len()).sum()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.spans.is_empty()
+    }
+
+    /// Whether pixel `(u, v)` lies in a span.
+    pub fn contains(&self, u: u32, v: u32) -> bool {
+        self.spans.iter().any(|s| s.v == v && s.u.contains(&u))
+    }
+}
+
+/// Slack of the pixel bound and the depth interval on a capsule of radius `radius_m` with
+/// ends `a` and `b` (camera frame), m: the f32 roundings of a deprojected point, of the pose
+/// and of the capsule in the camera frame move a point by about 1e-7 of the distances
+/// involved; a millionth of them plus 10 um keeps every pixel the crop can decide otherwise.
+fn region_slack_m(radius_m: f64, a: &Point3<f64>, b: &Point3<f64>, pose: &Isometry3<f64>) -> f64 {
+    let far = a.coords.norm().max(b.coords.norm());
+    1e-5 + 1e-6 * (radius_m + far + pose.translation.vector.norm())
 }
 
 /// Pixels of one image axis whose rays `t = (p - c) / f` lie in `[t_lo, t_hi]`, one pixel of
@@ -352,189 +491,203 @@ fn axis_pixels(t_lo: f64, t_hi: f64, c: f64, f: f64, size: u32) -> Range<u32> {
     lo..hi.max(lo)
 }
 
-/// The pixels of a depth frame whose point the crop can keep: the crop sphere (the HIP and
-/// `radius_m`, in the camera frame) projected into the image, a pixel of margin around it.
-/// A depth pixel's point lies on its pixel's ray at a depth from one unit to 65,535 units,
-/// so a sphere entirely behind the camera or beyond that range projects onto no pixel; a
-/// sphere in front of the camera onto the box of its tangent cone; one that reaches behind
-/// the camera onto the box of its points' rays at depths of at least one unit. Without a
-/// scene (or an input that does not validate), the whole image.
-pub fn crop_region(
-    depth: &DepthInput<'_>,
-    config: &CropConfig,
-    scene: Option<&CropScene<'_>>,
-) -> PixelRect {
-    let (w, h) = (depth.image.width, depth.image.height);
-    let Some(scene) = scene else {
-        return PixelRect::full(w, h);
-    };
-    let pose = &depth.cloud_from_camera;
-    let c = pose.inverse() * scene.hip_m;
-    let r = config.radius_m + region_slack_m(config, &c, pose);
-    let k = depth.intrinsics;
-    let unit = depth.image.depth_scale_m;
-    if !(c.coords.iter().all(|v| v.is_finite()) && r.is_finite() && unit > 0.0) {
-        return PixelRect::full(w, h);
+/// The pixels and raw depths of a capsule (camera frame, ends `a` and `b`, radius `r` with
+/// its slack): a depth pixel's point lies on its pixel's ray at a depth from one unit to
+/// 65,535 units, so a capsule wholly behind the camera or beyond that range covers no pixel.
+/// In front of the camera it projects into the hull of its end balls' projections, so into
+/// the box of their tangent cones; one that reaches behind the camera into the box of its
+/// bounding box's rays at depths of at least one unit.
+fn capsule_pixels(
+    a: &Point3<f64>,
+    b: &Point3<f64>,
+    r: f64,
+    k: &PinholeIntrinsics,
+    unit: f64,
+    (w, h): (u32, u32),
+) -> Option<(PixelRect, (u16, u16))> {
+    let (z0, z1) = (a.z.min(b.z) - r, a.z.max(b.z) + r);
+    let last = f64::from(u16::MAX);
+    if z1 < unit || z0 > last * unit {
+        return None;
     }
-    if c.z + r < unit || c.z - r > f64::from(u16::MAX) * unit {
-        return PixelRect::empty();
-    }
-    let bounds = |a: f64| {
-        if c.z > r {
-            // Planes x = t z through the camera tangent to the sphere:
-            // (a - t z)^2 = r^2 (1 + t^2) has the roots t = (a z -+ r sqrt(a^2 + z^2 - r^2))
-            // / (z^2 - r^2); every point of the sphere has x / z between them.
-            let d = c.z * c.z - r * r;
-            let s = r * (a * a + d).sqrt();
-            ((a * c.z - s) / d, (a * c.z + s) / d)
+    let bounds = |ax: f64, bx: f64| {
+        if a.z > r && b.z > r {
+            // Planes x = t z through the camera tangent to a ball at (x, z):
+            // (x - t z)^2 = r^2 (1 + t^2) has the roots t = (x z -+ r sqrt(x^2 + z^2 - r^2))
+            // / (z^2 - r^2); every point of the ball has x / z between them.
+            let tangents = |x: f64, z: f64| {
+                let d = z * z - r * r;
+                let s = r * (x * x + d).sqrt();
+                ((x * z - s) / d, (x * z + s) / d)
+            };
+            let (l0, h0) = tangents(ax, a.z);
+            let (l1, h1) = tangents(bx, b.z);
+            (l0.min(l1), h0.max(h1))
         } else {
-            // The sphere's box: x in [a - r, a + r], z in [max(z - r, one unit), z + r].
-            let (z0, z1) = ((c.z - r).max(unit), c.z + r);
-            let t = [(a - r) / z0, (a - r) / z1, (a + r) / z0, (a + r) / z1];
+            // The capsule's box: x in [min - r, max + r], z in [max(z0, one unit), z1].
+            let (x0, x1) = (ax.min(bx) - r, ax.max(bx) + r);
+            let (z0, z1) = (z0.max(unit), z1);
+            let t = [x0 / z0, x0 / z1, x1 / z0, x1 / z1];
             (
                 t.iter().copied().fold(f64::INFINITY, f64::min),
                 t.iter().copied().fold(f64::NEG_INFINITY, f64::max),
             )
         }
     };
-    let (tx, ty) = (bounds(c.x), bounds(c.y));
+    let (tx, ty) = (bounds(a.x, b.x), bounds(a.y, b.y));
     let rect = PixelRect {
         u: axis_pixels(tx.0, tx.1, k.cx, k.fx, w),
         v: axis_pixels(ty.0, ty.1, k.cy, k.fy, h),
     };
-    if rect.is_empty() {
-        PixelRect::empty()
-    } else {
-        rect
+    // Within [z0, z1] in units: the integers from floor to ceil, at least 1 (0 is no depth).
+    let depth = (
+        (z0 / unit).floor().clamp(1.0, last) as u16,
+        (z1 / unit).ceil().clamp(1.0, last) as u16,
+    );
+    (!rect.is_empty()).then_some((rect, depth))
+}
+
+/// The pixels of a depth frame whose point the HIP's crop ball can keep
+/// ([`crop_region_with_reach`] without keep-off capsules).
+pub fn crop_region(
+    depth: &DepthInput<'_>,
+    config: &CropConfig,
+    scene: Option<&CropScene<'_>>,
+) -> CropRegion {
+    crop_region_with_reach(depth, config, scene, &[])
+}
+
+/// The pixels of a depth frame whose point the crop can keep: the HIP's ball and each
+/// keep-off capsule projected into the image ([`capsule_pixels`], a pixel of margin around
+/// each), merged row by row, each span with the raw depths its capsules hold. Without a
+/// scene (or an input that does not validate), the whole image at every depth; no span when
+/// no capsule lies in front of the camera within its range and its field of view.
+pub fn crop_region_with_reach(
+    depth: &DepthInput<'_>,
+    config: &CropConfig,
+    scene: Option<&CropScene<'_>>,
+    keep_off: &[ReachCapsule],
+) -> CropRegion {
+    let (w, h) = (depth.image.width, depth.image.height);
+    let Some(scene) = scene else {
+        return CropRegion::full(w, h);
+    };
+    let pose = &depth.cloud_from_camera;
+    let camera_from_cloud = pose.inverse();
+    let unit = depth.image.depth_scale_m;
+    let hip = (scene.hip_m, scene.hip_m, config.radius_m);
+    let capsules = keep_off.iter().map(|c| (c.a_m, c.b_m, c.radius_m));
+    let mut rects = Vec::with_capacity(1 + keep_off.len());
+    for (a, b, r) in std::iter::once(hip).chain(capsules) {
+        let (a, b) = (camera_from_cloud * a, camera_from_cloud * b);
+        let r = r + region_slack_m(r, &a, &b, pose);
+        let finite = a
+            .coords
+            .iter()
+            .chain(b.coords.iter())
+            .all(|v| v.is_finite());
+        if !(finite && r.is_finite() && unit > 0.0) {
+            return CropRegion::full(w, h);
+        }
+        rects.extend(capsule_pixels(&a, &b, r, depth.intrinsics, unit, (w, h)));
     }
+    CropRegion::from_rects(&rects)
 }
 
 /// A depth frame's first pass on the CPU over the pixels its crop can keep
-/// ([`crop_region`]): what [`crop_depth_cpu`] keeps, as points.
+/// ([`crop_region_with_reach`]): what [`crop_depth_cpu`] keeps, as points.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DepthKept {
     /// Cloud-frame points the crop keeps, in pixel order.
     pub points: Vec<Vec3>,
     /// Pixels with a depth (the whole image).
     pub valid: usize,
-    /// Flying pixels rejected.
+    /// Flying pixels removed from the pixels the crop keeps.
     pub flying: usize,
     /// The pixels read.
-    pub region: PixelRect,
+    pub region: CropRegion,
 }
 
-/// Rows of the crop region one task of [`crop_depth_region_cpu`] takes: bands are cut by
-/// rows, not by threads, so the points come out in pixel order whatever the thread count.
-const BAND_ROWS: u32 = 8;
+/// Spans of the crop region one task of [`crop_depth_region_cpu`] takes: tasks are cut by
+/// spans, not by threads, so the points come out in pixel order whatever the thread count.
+const TASK_SPANS: usize = 8;
 
-/// The buffers of [`crop_depth_region_cpu`], kept by its caller from frame to frame: the
-/// deprojected pixels read and each row band's points (a frame then allocates only its output
-/// once they have seen its size).
+/// The buffers of [`crop_depth_region_cpu`], kept by its caller from frame to frame: each
+/// task's points (a frame then allocates only its output and its region once they have seen
+/// its size).
 #[derive(Debug, Default)]
 pub struct RegionScratch {
-    camera: Vec<Vec3>,
-    bands: Vec<(Vec<Vec3>, usize)>,
+    tasks: Vec<(Vec<Vec3>, usize)>,
 }
 
 /// A depth frame's first pass on the CPU in one pass over the 16-bit image inside the crop's
-/// pixel region ([`crop_region`], grown by the flying-pixel window for the neighbours):
-/// deprojection, flying-pixel test, pose and crop of each pixel, with no cloud of the whole
-/// frame. Rows are deprojected, and bands of [`BAND_ROWS`] rows tested, on rayon's threads
-/// (the caller's pool); each pixel's decision is its own, so the points are those
-/// [`crop_depth_cpu`] keeps, bit for bit, in the same order, with any number of threads; the
-/// counts are its counts.
+/// region ([`crop_region_with_reach`]), with no cloud of the whole frame: a pixel whose raw
+/// depth lies outside its span's depth interval goes on that integer compare (a pixel
+/// without a depth too: the interval starts at 1); the others are deprojected and posed, and
+/// the crop tests them; a kept pixel then gets the flying-pixel test, its neighbours
+/// deprojected as it reads them ([`DepthVeilTest`]). Tasks of [`TASK_SPANS`] spans run on
+/// rayon's threads (the caller's pool); each pixel's decision is its own, so the points are
+/// those [`crop_depth_cpu`] keeps, bit for bit, in the same order, with any number of
+/// threads; the counts are its counts.
 pub fn crop_depth_region_cpu(
     depth: &DepthInput<'_>,
     config: &CropConfig,
     scene: Option<&CropScene<'_>>,
+    keep_off: &[ReachCapsule],
     scratch: &mut RegionScratch,
 ) -> Result<DepthKept, CropError> {
     use rayon::prelude::*;
     config.validate()?;
     depth.validate()?;
-    let crop = scene.map(|s| CpuCrop::new(config, s)).transpose()?;
+    let crop = scene
+        .map(|s| CpuCrop::new(config, s, keep_off))
+        .transpose()?;
     let image = depth.image;
-    let (width, height) = (image.width, image.height);
+    let (k, unit) = (depth.intrinsics, image.depth_scale_m);
+    let width = image.width as usize;
     let pose = &depth.cloud_from_camera;
-    let region = crop_region(depth, config, scene);
-    let (near, radius) = veil_region(pose, config, scene);
-    // The pixels read: the region and, for its flying-pixel test, their neighbours.
-    let window = if depth.flying.enabled {
-        depth.flying.window_px
-    } else {
-        0
-    };
-    let read = region.grown(window, width, height);
-    let row_len = read.u.len();
-    // Every element is written by the deprojection below: only new capacity is filled.
-    let camera = &mut scratch.camera;
-    camera.resize(read.pixels(), Vec3::ZERO);
-    if row_len > 0 {
-        camera
-            .par_chunks_mut(row_len)
-            .enumerate()
-            .for_each(|(row, out)| {
-                let y = read.v.start + row as u32;
-                image.deproject_row(depth.intrinsics, read.u.clone(), y, out);
-            });
-    }
-    let camera = &scratch.camera[..];
-    let size = (row_len as u32, read.v.len() as u32);
-    let test = VeilTest::rect(camera, size, height, near, radius, depth.flying);
-    // The crop sphere in the camera frame: a point farther from the HIP than the radius and
-    // the slack is dropped before its pose.
-    let hip_cam = scene.map(|s| pose.inverse() * s.hip_m);
-    let reach2 = hip_cam.map(|c| {
-        let reach = config.radius_m + region_slack_m(config, &c, pose);
-        reach * reach
-    });
-    let band = |rows: Range<u32>, points: &mut Vec<Vec3>| {
+    let region = crop_region_with_reach(depth, config, scene, keep_off);
+    let test = DepthVeilTest::new(image, k, depth.flying);
+    let task = |spans: &[RowSpan], points: &mut Vec<Vec3>| {
         let mut flying = 0;
-        for y in rows {
-            let row = (y - read.v.start) as usize * row_len;
-            for x in region.u.clone() {
-                let i = row + (x - read.u.start) as usize;
-                let p = camera[i];
-                // A pixel with a depth has a finite point with z > 0.
-                if !finite_bits(p) {
+        for s in spans {
+            let row = &image.data[s.v as usize * width..][..width];
+            for x in s.u.clone() {
+                let raw = row[x as usize];
+                if raw < s.depth.0 || raw > s.depth.1 {
                     continue;
                 }
-                if test.is_flying(i) {
-                    flying += 1;
-                    continue;
-                }
-                if let (Some(c), Some(reach2)) = (&hip_cam, reach2) {
-                    let d = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)) - c;
-                    if d.norm_squared() > reach2 {
-                        continue;
-                    }
-                }
+                let p = deproject_pixel(k, unit, x, s.v, raw);
                 let q = to_cloud_frame(p, pose);
-                if crop.as_ref().is_none_or(|c| c.keeps(q)) {
+                if !crop.as_ref().is_none_or(|c| c.keeps(q)) {
+                    continue;
+                }
+                if test.is_flying(x, s.v, p) {
+                    flying += 1;
+                } else {
                     points.push(q);
                 }
             }
         }
         flying
     };
-    let bands = region.v.len().div_ceil(BAND_ROWS as usize);
-    scratch.bands.resize_with(bands, Default::default);
-    scratch.bands[..bands]
+    let tasks = region.spans.len().div_ceil(TASK_SPANS);
+    scratch.tasks.resize_with(tasks, Default::default);
+    scratch.tasks[..tasks]
         .par_iter_mut()
-        .enumerate()
-        .for_each(|(b, (points, flying))| {
-            let start = region.v.start + b as u32 * BAND_ROWS;
+        .zip(region.spans.par_chunks(TASK_SPANS))
+        .for_each(|((points, flying), spans)| {
             points.clear();
-            *flying = band(start..(start + BAND_ROWS).min(region.v.end), points);
+            *flying = task(spans, points);
         });
-    let kept = &scratch.bands[..bands];
+    let kept = &scratch.tasks[..tasks];
     let mut points = Vec::with_capacity(kept.iter().map(|(p, _)| p.len()).sum());
     for (p, _) in kept {
         points.extend_from_slice(p);
     }
     Ok(DepthKept {
         points,
-        valid: image.data.iter().filter(|&&d| d != 0).count(),
+        valid: depth.valid_pixels(),
         flying: kept.iter().map(|(_, f)| f).sum(),
         region,
     })
@@ -562,53 +715,78 @@ pub fn kept_indices(mask: &[u32], n: usize) -> Vec<usize> {
 }
 
 /// The crop's decision for one point on the CPU (f64 geometry), prepared once per frame.
-struct CpuCrop {
+pub(crate) struct CpuCrop {
     hip: Point3<f64>,
     r2: f64,
+    keep_off: Vec<ReachCapsule>,
     robot: Vec<PreparedPrimitive>,
 }
 
 impl CpuCrop {
-    fn new(config: &CropConfig, scene: &CropScene<'_>) -> Result<Self, CropError> {
+    pub(crate) fn new(
+        config: &CropConfig,
+        scene: &CropScene<'_>,
+        keep_off: &[ReachCapsule],
+    ) -> Result<Self, CropError> {
         config.validate()?;
         scene.validate()?;
+        validate_reach(keep_off)?;
         let margin = config.robot_margin_for(scene);
-        // Only the primitives that reach into the crop sphere: a point is tested against
-        // them once it lies within the radius.
+        // Only the primitives that reach into the HIP's ball or a capsule's bounding ball: a
+        // point is tested against them once it lies in the crop's reach.
+        let mut balls = vec![(scene.hip_m, config.radius_m)];
+        balls.extend(keep_off.iter().map(|c| {
+            let half: Vector3<f64> = (c.b_m - c.a_m) * 0.5;
+            (c.a_m + half, half.norm() + c.radius_m)
+        }));
         Ok(Self {
             hip: scene.hip_m,
             r2: config.radius_m * config.radius_m,
+            keep_off: keep_off.to_vec(),
             robot: scene
                 .robot
                 .iter()
                 .map(|p| p.grown(margin).prepared())
-                .filter(|p| p.may_meet_ball(&scene.hip_m, config.radius_m))
+                .filter(|p| balls.iter().any(|(c, r)| p.may_meet_ball(c, *r)))
                 .collect(),
         })
     }
 
-    /// Point `p` (cloud frame) is finite, within the radius of the HIP and outside every
-    /// grown primitive.
-    fn keeps(&self, p: Vec3) -> bool {
+    /// Point `p` (cloud frame) is finite, within the radius of the HIP or a keep-off
+    /// capsule's, and outside every grown primitive.
+    pub(crate) fn keeps(&self, p: Vec3) -> bool {
         if !finite_bits(p) {
             return false;
         }
         let q = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-        (q - self.hip).norm_squared() <= self.r2 && !self.robot.iter().any(|r| r.contains(&q))
+        let reached = (q - self.hip).norm_squared() <= self.r2
+            || (self.keep_off.iter())
+                .any(|c| reach_squared_distance(c, &q) <= c.radius_m * c.radius_m);
+        reached && !self.robot.iter().any(|r| r.contains(&q))
     }
 }
 
-/// CPU reference: the keep mask of `points`, blocks of 32,768 points on rayon's threads
-/// (each point's bit is its own: the same mask whatever the thread count).
+/// CPU reference of the HIP's crop ([`crop_cpu_with_reach`] without keep-off capsules).
 pub fn crop_cpu(
     points: &[Vec3],
     config: &CropConfig,
     scene: &CropScene<'_>,
 ) -> Result<Vec<u32>, CropError> {
+    crop_cpu_with_reach(points, config, scene, &[])
+}
+
+/// CPU reference: the keep mask of `points`, blocks of 32,768 points on rayon's threads
+/// (each point's bit is its own: the same mask whatever the thread count).
+pub fn crop_cpu_with_reach(
+    points: &[Vec3],
+    config: &CropConfig,
+    scene: &CropScene<'_>,
+    keep_off: &[ReachCapsule],
+) -> Result<Vec<u32>, CropError> {
     use rayon::prelude::*;
     /// Mask words one rayon task fills (32,768 points).
     const TASK_WORDS: usize = 1024;
-    let crop = CpuCrop::new(config, scene)?;
+    let crop = CpuCrop::new(config, scene, keep_off)?;
     let mut mask = vec![0u32; mask_words(points.len())];
     mask.par_chunks_mut(TASK_WORDS)
         .zip(points.par_chunks(32 * TASK_WORDS))
@@ -945,6 +1123,7 @@ impl GpuCrop {
         point_count: usize,
         config: &CropConfig,
         scene: &CropScene<'_>,
+        keep_off: &[ReachCapsule],
     ) -> Result<(), CropError> {
         config.validate()?;
         scene.validate()?;
@@ -952,7 +1131,7 @@ impl GpuCrop {
         if mask_words(point_count) as u64 > shader::MAX_THREADS {
             return Err(CropError::TooManyPoints(point_count));
         }
-        self.write_params(ctx, point_count, config, Some(scene))
+        self.write_params(ctx, point_count, config, Some(scene), keep_off)
     }
 
     /// Uploads a depth frame (the 16-bit image, 2 bytes per pixel) and this frame's
@@ -967,6 +1146,7 @@ impl GpuCrop {
         depth: &DepthInput<'_>,
         config: &CropConfig,
         scene: Option<&CropScene<'_>>,
+        keep_off: &[ReachCapsule],
         region: Option<&PixelRect>,
     ) -> Result<(), CropError> {
         config.validate()?;
@@ -992,7 +1172,7 @@ impl GpuCrop {
                 "{width} x {height} image exceeds the GPU's {largest} px texture side"
             )));
         }
-        self.write_params(ctx, pixels, config, scene)?;
+        self.write_params(ctx, pixels, config, scene, keep_off)?;
         if (self.depth.width(), self.depth.height()) != (width.max(1), height.max(1)) {
             self.depth = ctx.scoped("crop depth image", |_| depth_texture(ctx, width, height))?;
             self.depth_view = self.depth.create_view(&Default::default());
@@ -1031,7 +1211,6 @@ impl GpuCrop {
                 },
             );
         }
-        let (near, radius) = veil_region(&depth.cloud_from_camera, config, scene);
         let k = depth.intrinsics;
         let m = depth.cloud_from_camera.to_homogeneous();
         let row = |r: usize| {
@@ -1046,7 +1225,6 @@ impl GpuCrop {
             row_x: row(0),
             row_y: row(1),
             row_z: row(2),
-            near_r2: [near.x, near.y, near.z, radius * radius],
             fx: k.fx as f32,
             fy: k.fy as f32,
             cx: k.cx as f32,
@@ -1071,7 +1249,9 @@ impl GpuCrop {
         point_count: usize,
         config: &CropConfig,
         scene: Option<&CropScene<'_>>,
+        keep_off: &[ReachCapsule],
     ) -> Result<(), CropError> {
+        validate_reach(keep_off)?;
         let n = u32::try_from(point_count).map_err(|_| CropError::TooManyPoints(point_count))?;
         let words = mask_words(point_count) as u64;
         let prims: Vec<CropPrimitive> = scene.map_or_else(Vec::new, |scene| {
@@ -1096,12 +1276,23 @@ impl GpuCrop {
             }
             None => [0.0, 0.0, 0.0, f32::MAX],
         };
+        // Keep-off capsules only with a scene (without one every finite point is kept).
+        let keep_off = if scene.is_some() { keep_off } else { &[] };
+        let mut reach = [ReachCapsuleGpu::default(); MAX_REACH_CAPSULES];
+        for (gpu, c) in reach.iter_mut().zip(keep_off) {
+            let r2 = (c.radius_m * c.radius_m) as f32;
+            *gpu = ReachCapsuleGpu {
+                a_r2: [c.a_m.x as f32, c.a_m.y as f32, c.a_m.z as f32, r2],
+                b: v4(c.b_m.coords),
+            };
+        }
         let params = CropParams {
             hip_r2,
             point_count: n,
             primitive_count: prims.len() as u32,
             word_count: words as u32,
-            _pad: 0,
+            reach_count: keep_off.len() as u32,
+            reach,
         };
         ctx.queue()
             .write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
@@ -1211,7 +1402,7 @@ impl GpuCrop {
         scene: &CropScene<'_>,
         timer: Option<&StageTimer>,
     ) -> Result<(Vec<u32>, Option<f64>), CropError> {
-        self.prepare(ctx, points.len(), config, scene)?;
+        self.prepare(ctx, points.len(), config, scene, &[])?;
         if points.is_empty() {
             return Ok((Vec::new(), None));
         }
@@ -1271,13 +1462,13 @@ mod tests {
     use nalgebra::Vector3;
     use proptest::prelude::*;
 
-    /// The region pass with buffers of its own.
+    /// The region pass of the HIP's crop with buffers of its own.
     fn region(
         depth: &DepthInput<'_>,
         config: &CropConfig,
         scene: Option<&CropScene<'_>>,
     ) -> Result<DepthKept, CropError> {
-        crop_depth_region_cpu(depth, config, scene, &mut RegionScratch::default())
+        crop_depth_region_cpu(depth, config, scene, &[], &mut RegionScratch::default())
     }
 
     /// The crop region's pass gives what the pass over every pixel keeps, bit for bit and in
@@ -1286,9 +1477,12 @@ mod tests {
         depth: &DepthInput<'_>,
         config: &CropConfig,
         scene: &CropScene<'_>,
+        keep_off: &[ReachCapsule],
     ) -> usize {
-        let all = crop_depth_cpu(depth, config, Some(scene)).unwrap();
-        let roi = region(depth, config, Some(scene)).unwrap();
+        let all = crop_depth_cpu(depth, config, Some(scene), keep_off).unwrap();
+        let mut scratch = RegionScratch::default();
+        let roi =
+            crop_depth_region_cpu(depth, config, Some(scene), keep_off, &mut scratch).unwrap();
         let kept: Vec<[u32; 3]> = kept_indices(&all.mask, all.points.len())
             .into_iter()
             .map(|i| all.points[i].to_array().map(f32::to_bits))
@@ -1309,10 +1503,7 @@ mod tests {
         let w = depth.image.width as usize;
         for i in kept_indices(&all.mask, all.points.len()) {
             let (u, v) = ((i % w) as u32, (i / w) as u32);
-            assert!(
-                roi.region.u.contains(&u) && roi.region.v.contains(&v),
-                "pixel {u}, {v}"
-            );
+            assert!(roi.region.contains(u, v), "pixel {u}, {v}");
         }
         roi.region.pixels()
     }
@@ -1393,7 +1584,7 @@ mod tests {
                         robot: if n % 2 == 0 { &posed } else { &[] },
                         camera_m: Some(Point3::from(pose.translation.vector)),
                     };
-                    let pixels = region_equals_every_pixel(&depth, &config, &scene);
+                    let pixels = region_equals_every_pixel(&depth, &config, &scene, &[]);
                     read += pixels;
                     empty += usize::from(pixels == 0);
                     let kept = region(&depth, &config, Some(&scene)).unwrap();
@@ -1407,6 +1598,148 @@ mod tests {
         assert!(3 * kept_any > frames, "{kept_any} of {frames}");
         // The regions read under half of the pixels on average.
         assert!(read < frames * image_pixels(&k) / 2, "{read}");
+    }
+
+    /// Keep-off reach capsules (camera frame) that test the union's cases: links across and
+    /// beside the HIP at several depths, a sphere (both ends equal), one reaching behind the
+    /// camera, one wholly behind it, one beyond the depth range, one beside the field of view.
+    fn test_capsules() -> Vec<Vec<ReachCapsule>> {
+        let c = |a: [f64; 3], b: [f64; 3], r: f64| ReachCapsule {
+            a_m: Point3::from(a),
+            b_m: Point3::from(b),
+            radius_m: r,
+        };
+        vec![
+            vec![c([-0.4, 0.2, 0.7], [0.3, 0.25, 0.9], 0.12)],
+            vec![
+                c([-0.3, -0.3, 1.2], [-0.3, -0.3, 1.2], 0.2),
+                c([0.2, -0.2, 0.5], [0.4, 0.3, 1.6], 0.08),
+                c([0.0, 0.0, 0.6], [0.0, 0.0, 0.6], 0.05),
+            ],
+            vec![c([0.1, 0.0, -0.3], [0.1, 0.1, 0.6], 0.1)],
+            vec![c([0.0, 0.0, -1.5], [0.3, 0.0, -0.5], 0.2)],
+            vec![c([0.0, 0.0, 70.0], [0.0, 0.0, 75.0], 0.5)],
+            vec![c([3.0, 0.0, 0.5], [3.5, 0.2, 0.6], 0.3)],
+        ]
+    }
+
+    /// With keep-off capsules the region pass keeps what the pass over every pixel keeps, bit
+    /// for bit, with the same counts and every kept pixel in a span; the kept points are those
+    /// within the HIP's ball or a capsule; the spans read fewer pixels than their bounding
+    /// rectangle when the capsules lie apart.
+    #[test]
+    fn the_union_region_pass_keeps_what_every_pixel_keeps_and_only_points_in_the_union() {
+        use crate::perception::test_data::{PCL_FRAMES, pcl_depth, synthetic_depth};
+        let k = PinholeIntrinsics::PCL_GRABBER;
+        let mut images: Vec<DepthImage> = PCL_FRAMES.iter().map(|f| pcl_depth(f)).collect();
+        images.push(synthetic_depth(5));
+        let flying = FlyingPixelConfig::default();
+        let pose = Isometry3::new(Vector3::new(0.3, -0.2, 1.1), Vector3::new(0.4, -0.3, 1.2));
+        let robot = [Primitive::Capsule {
+            a_m: pose * Point3::new(0.0, 0.0, 0.7),
+            b_m: pose * Point3::new(0.1, 0.05, 0.95),
+            radius_m: 0.04,
+        }];
+        let config = CropConfig {
+            radius_m: 0.15,
+            ..CropConfig::default()
+        };
+        let (mut beyond_ball, mut tighter, mut empty) = (0, 0, 0);
+        for image in &images {
+            for (j, capsules) in test_capsules().into_iter().enumerate() {
+                let keep_off: Vec<ReachCapsule> = (capsules.iter())
+                    .map(|c| ReachCapsule {
+                        a_m: pose * c.a_m,
+                        b_m: pose * c.b_m,
+                        ..*c
+                    })
+                    .collect();
+                let depth = DepthInput {
+                    image,
+                    intrinsics: &k,
+                    cloud_from_camera: pose,
+                    flying: &flying,
+                };
+                // The HIP's ball beside the field of view (set 1 and the sets from 3 on): what
+                // is read is the capsules'.
+                let hip = if j % 2 == 0 && j < 3 {
+                    [0.0, 0.0, 0.9]
+                } else {
+                    [5.0, 0.0, 1.0]
+                };
+                let scene = CropScene {
+                    hip_m: pose * Point3::from(hip),
+                    robot: &robot,
+                    camera_m: Some(Point3::from(pose.translation.vector)),
+                };
+                let read = region_equals_every_pixel(&depth, &config, &scene, &keep_off);
+                let all = crop_depth_cpu(&depth, &config, Some(&scene), &keep_off).unwrap();
+                for i in kept_indices(&all.mask, all.points.len()) {
+                    let p = all.points[i];
+                    let q = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                    let in_ball = (q - scene.hip_m).norm() <= config.radius_m;
+                    let in_capsule = (keep_off.iter())
+                        .any(|c| reach_squared_distance(c, &q).sqrt() <= c.radius_m);
+                    assert!(in_ball || in_capsule, "pixel {i} at {q:?}");
+                    beyond_ball += usize::from(!in_ball);
+                }
+                let region = crop_region_with_reach(&depth, &config, Some(&scene), &keep_off);
+                tighter += usize::from(region.pixels() < region.bounds.pixels());
+                empty += usize::from(read == 0);
+            }
+        }
+        // Behind the camera, beyond the range, beside the field of view: no pixel read with
+        // the HIP's ball beside it too.
+        assert_eq!(empty, 3 * images.len(), "{empty}");
+        assert!(beyond_ball > 10_000, "{beyond_ball}");
+        assert!(tighter >= images.len(), "{tighter}");
+    }
+
+    #[test]
+    fn bad_keep_off_capsules_are_errors_naming_them() {
+        let image = crate::perception::test_data::synthetic_depth(1);
+        let k = PinholeIntrinsics::PCL_GRABBER;
+        let flying = FlyingPixelConfig::default();
+        let depth = DepthInput {
+            image: &image,
+            intrinsics: &k,
+            cloud_from_camera: Isometry3::identity(),
+            flying: &flying,
+        };
+        let config = CropConfig::default();
+        let scene = CropScene {
+            hip_m: Point3::new(0.0, 0.0, 0.9),
+            robot: &[],
+            camera_m: None,
+        };
+        let good = ReachCapsule {
+            a_m: Point3::new(0.0, 0.0, 0.8),
+            b_m: Point3::new(0.1, 0.0, 0.9),
+            radius_m: 0.1,
+        };
+        let mut scratch = RegionScratch::default();
+        let mut run = |keep_off: &[ReachCapsule]| {
+            crop_depth_region_cpu(&depth, &config, Some(&scene), keep_off, &mut scratch)
+                .map(|k| k.points.len())
+                .map_err(|e| e.to_string())
+        };
+        assert!(run(&[good]).unwrap() > 0);
+        let nan = ReachCapsule {
+            b_m: Point3::new(f64::NAN, 0.0, 0.9),
+            ..good
+        };
+        let e = run(&[good, nan]).unwrap_err();
+        assert!(e.contains("keep-off reach capsule 1"), "{e}");
+        for radius_m in [0.0, -0.1, f64::INFINITY, 1e3] {
+            let e = run(&[ReachCapsule { radius_m, ..good }]).unwrap_err();
+            assert!(e.contains("capsule 0"), "{e}");
+        }
+        let many = vec![good; MAX_REACH_CAPSULES + 1];
+        assert!(run(&many).unwrap_err().contains("at most 16"));
+        assert!(run(&many[1..]).is_ok());
+        // The reference and the cloud crop refuse them alike.
+        assert!(crop_depth_cpu(&depth, &config, Some(&scene), &[nan]).is_err());
+        assert!(crop_cpu_with_reach(&[Vec3::ZERO], &config, &scene, &[nan]).is_err());
     }
 
     /// The region pass on rayon pools of 1 and of 4 threads, each reusing its buffers from
@@ -1443,11 +1776,11 @@ mod tests {
                             robot: &[],
                             camera_m: Some(Point3::from(pose.translation.vector)),
                         };
-                        let kept =
-                            crop_depth_region_cpu(&depth, &config, Some(&scene), &mut scratch)
-                                .unwrap();
-                        // The pass over every pixel: the veil test and the crop's mask.
-                        let all = crop_depth_cpu(&depth, &config, Some(&scene)).unwrap();
+                        let scene = Some(&scene);
+                        let kept = crop_depth_region_cpu(&depth, &config, scene, &[], &mut scratch)
+                            .unwrap();
+                        // The pass over every pixel: the crop's mask and the veil test.
+                        let all = crop_depth_cpu(&depth, &config, scene, &[]).unwrap();
                         let bits = |points: &[Vec3]| -> Vec<[u32; 3]> {
                             points
                                 .iter()
@@ -1487,9 +1820,10 @@ mod tests {
             flying: &FlyingPixelConfig::default(),
         };
         let config = CropConfig::default();
-        let all = crop_depth_cpu(&depth, &config, None).unwrap();
+        let all = crop_depth_cpu(&depth, &config, None, &[]).unwrap();
         let roi = region(&depth, &config, None).unwrap();
-        assert_eq!(roi.region, PixelRect::full(640, 480));
+        assert_eq!(roi.region, CropRegion::full(640, 480));
+        assert_eq!(roi.region.bounds, PixelRect::full(640, 480));
         let kept: Vec<Vec3> = kept_indices(&all.mask, all.points.len())
             .into_iter()
             .map(|i| all.points[i])
@@ -1536,7 +1870,7 @@ mod tests {
         // A 1x1 image: its one pixel, kept.
         let kept = region(&depth, &config, Some(&scene)).unwrap();
         assert_eq!((kept.points.len(), kept.valid, kept.flying), (1, 1, 0));
-        region_equals_every_pixel(&depth, &config, &scene);
+        region_equals_every_pixel(&depth, &config, &scene, &[]);
         // 65,535 x 65,535 declared over one pixel of data: an error, nothing allocated for it.
         let huge = DepthImage {
             width: 65_535,
@@ -1600,7 +1934,7 @@ mod tests {
             let kept = region(&depth, &config, Some(&scene)).unwrap();
             assert_eq!(
                 (kept.region.clone(), kept.points.len(), kept.valid),
-                (PixelRect::empty(), 0, 1)
+                (CropRegion::default(), 0, 1)
             );
         }
     }

@@ -17,17 +17,16 @@
 //! holes anyway. Both sides of a depth edge lose a pixel; that is the price of never keeping a
 //! point that hangs between two surfaces.
 //!
-//! Only pixels within `radius_m` of the HIP are tested (the caller passes the crop radius:
-//! nothing farther reaches the estimator), so the cost is a few neighbour tests per point near
-//! the HIP rather than per image pixel. Unorganized clouds have no neighbours and pass
-//! unchanged.
+//! Only the pixels the crop keeps are tested (nothing else reaches the estimator), so the cost
+//! is a few neighbour tests per kept point rather than per image pixel. Unorganized clouds
+//! have no neighbours and pass unchanged.
 //!
-//! A frame that arrives as a depth image gets this test on the GPU, in the front end's first
-//! pass (`crop_depth` in `shaders/crop.wgsl`, beside deprojection and crop);
-//! [`veil_points`] is that pass's CPU reference up to the crop: deprojection in f64
-//! ([`DepthImage::deproject`]), this test on the camera-frame points, the camera's pose.
+//! A frame that arrives as a depth image gets this test in the front end's first pass, after
+//! the crop (`crop_depth_check` in `shaders/crop.wgsl` on the GPU; on the CPU
+//! [`DepthVeilTest`], which deprojects the neighbours from the 16-bit image as it reads them,
+//! and `crop::crop_depth_cpu`, the reference, on the deprojected image).
 
-use crate::camera::{DepthImage, PinholeIntrinsics};
+use crate::camera::{DepthImage, PinholeIntrinsics, deproject_pixel};
 use crate::cloud::PointCloud;
 use crate::perception::crop::finite_bits;
 use glam::Vec3;
@@ -119,21 +118,14 @@ impl<'a> VeilTest<'a> {
         }
     }
 
-    /// The test of the rectangle `points` (`size`, row-major) cut from an image of
-    /// `image_height` rows: its pixels are tested as the whole image's pixels are wherever the
-    /// rectangle holds their whole window (a rectangle one row high of a taller image too).
-    pub(crate) fn rect(
+    /// The test of every valid pixel of the organized cloud `points` (`size`, row-major).
+    pub(crate) fn everywhere(
         points: &'a [Vec3],
         size: (u32, u32),
-        image_height: u32,
-        near_cam: Vec3,
-        radius_m: f32,
         config: &FlyingPixelConfig,
     ) -> Self {
-        let mut test = Self::new(points, size, near_cam, radius_m, config);
-        let (w, h) = (size.0 as usize, size.1 as usize);
-        test.active = config.enabled && image_height > 1 && w * h == points.len();
-        test
+        // The largest radius whose square is finite.
+        Self::new(points, size, Vec3::ZERO, f32::MAX.sqrt(), config)
     }
 
     /// Valid pixel `i` (finite, not zero) is a flying pixel.
@@ -154,6 +146,62 @@ impl<'a> VeilTest<'a> {
                 }
                 let d = q - p;
                 if d.cross(p).length_squared() < limit * d.length_squared() && valid(q) {
+                    return true;
+                }
+            }
+        }
+        false
+    }
+}
+
+/// The veil test of a 16-bit depth image's pixels, each neighbour deprojected as it is read
+/// (the same f64 deprojection, rounded to f32, as [`DepthImage::deproject`], and the same
+/// arithmetic as [`VeilTest`]: the same decisions bit for bit, with no cloud of the image).
+pub(crate) struct DepthVeilTest<'a> {
+    image: &'a DepthImage,
+    intrinsics: &'a PinholeIntrinsics,
+    sin2_min: f32,
+    window: u32,
+    active: bool,
+}
+
+impl<'a> DepthVeilTest<'a> {
+    /// The test of `image` (whose size `intrinsics` matches) under `config`; an image one
+    /// row high or a disabled config flags nothing.
+    pub(crate) fn new(
+        image: &'a DepthImage,
+        intrinsics: &'a PinholeIntrinsics,
+        config: &FlyingPixelConfig,
+    ) -> Self {
+        Self {
+            image,
+            intrinsics,
+            sin2_min: config.min_ray_angle_rad.sin().powi(2) as f32,
+            window: config.window_px,
+            active: config.enabled && image.height > 1,
+        }
+    }
+
+    /// Pixel `(u, v)`, whose camera-frame point is `p` (it has a depth), is a flying pixel.
+    pub(crate) fn is_flying(&self, u: u32, v: u32, p: Vec3) -> bool {
+        if !self.active {
+            return false;
+        }
+        let (image, k) = (self.image, self.window);
+        let (w, h) = (image.width, image.height);
+        let limit = self.sin2_min * p.length_squared();
+        let (c0, c1) = (u.saturating_sub(k), u.saturating_add(k + 1).min(w));
+        for y in v.saturating_sub(k)..v.saturating_add(k + 1).min(h) {
+            let row = &image.data[y as usize * w as usize..][..w as usize];
+            for x in c0..c1 {
+                let raw = row[x as usize];
+                // The pixel itself (d = 0) never counts, nor does one without a depth.
+                if raw == 0 || (x == u && y == v) {
+                    continue;
+                }
+                let q = deproject_pixel(self.intrinsics, image.depth_scale_m, x, y, raw);
+                let d = q - p;
+                if d.cross(p).length_squared() < limit * d.length_squared() {
                     return true;
                 }
             }
@@ -216,21 +264,20 @@ pub struct Veiled {
 /// come out in pixel order, the same bits whatever the thread count.
 const VEIL_CHUNK: usize = 1 << 14;
 
-/// The flying-pixel test and the pose on the CPU, in one pass over the organized `camera`
-/// cloud (camera frame): the pixels within `radius_m` of `near_cam` (camera frame) tested,
-/// every other finite point moved to the cloud frame with `cloud_from_camera`; `organized`
-/// keeps a point per pixel. Chunks of [`VEIL_CHUNK`] points run on rayon's threads.
+/// The pose and the flying-pixel test on the CPU, in one pass over the organized `camera`
+/// cloud (camera frame): every finite point moved to the cloud frame with
+/// `cloud_from_camera`, and those `tested` takes (the crop keeps) tested; `organized` keeps a
+/// point per pixel. Chunks of [`VEIL_CHUNK`] points run on rayon's threads.
 pub fn veil_cloud(
     camera: &PointCloud,
     cloud_from_camera: &Isometry3<f64>,
-    near_cam: Vec3,
-    radius_m: f32,
+    tested: &(dyn Fn(Vec3) -> bool + Sync),
     config: &FlyingPixelConfig,
     organized: bool,
 ) -> Veiled {
     use rayon::prelude::*;
     let size = (camera.width, camera.height);
-    let test = VeilTest::new(&camera.points, size, near_cam, radius_m, config);
+    let test = VeilTest::everywhere(&camera.points, size, config);
     let chunks: Vec<(Vec<Vec3>, usize, usize)> = camera
         .points
         .par_chunks(VEIL_CHUNK)
@@ -242,14 +289,15 @@ pub fn veil_cloud(
                     if !finite_bits(p) {
                         return organized.then_some(p);
                     }
+                    let q = to_cloud_frame(p, cloud_from_camera);
                     if valid(p) {
                         valid_pixels += 1;
-                        if test.is_flying(c * VEIL_CHUNK + j) {
+                        if tested(q) && test.is_flying(c * VEIL_CHUNK + j) {
                             flying += 1;
                             return organized.then_some(Vec3::NAN);
                         }
                     }
-                    Some(to_cloud_frame(p, cloud_from_camera))
+                    Some(q)
                 })
                 .collect();
             (points, valid_pixels, flying)
@@ -264,28 +312,6 @@ pub fn veil_cloud(
         valid: chunks.iter().map(|(_, v, _)| v).sum(),
         flying: chunks.iter().map(|(.., f)| f).sum(),
     }
-}
-
-/// CPU reference of a depth frame's first pass before its crop: the image deprojected
-/// ([`DepthImage::deproject`], f64), then [`veil_cloud`]. `None` when the intrinsics' size is
-/// not the image's.
-pub fn veil_points(
-    image: &DepthImage,
-    intrinsics: &PinholeIntrinsics,
-    cloud_from_camera: &Isometry3<f64>,
-    near_cam: Vec3,
-    radius_m: f32,
-    config: &FlyingPixelConfig,
-) -> Option<Veiled> {
-    let camera = image.deproject(intrinsics)?;
-    Some(veil_cloud(
-        &camera,
-        cloud_from_camera,
-        near_cam,
-        radius_m,
-        config,
-        true,
-    ))
 }
 
 #[cfg(test)]

@@ -2,11 +2,12 @@
 //!
 //! On the GPU ([`GpuFrontend`]) a frame is one command encoder and one submit. A frame that
 //! comes as a depth image ([`FramePoints::Depth`]: 2 bytes per pixel) is uploaded as such,
-//! only the rows and columns of the crop's pixel region ([`crate::perception::crop::crop_region`],
-//! grown by the flying-pixel window) unless the frame wants the keep mask over every pixel,
-//! and the first pass deprojects the region's pixels, rejects flying pixels and crops
+//! only the rows and columns of the bounding rectangle of the crop's pixel region
+//! ([`crate::perception::crop::crop_region_with_reach`], grown by the flying-pixel window)
+//! unless the frame wants the keep mask over every pixel, and the first pass deprojects the
+//! rectangle's pixels, crops them and rejects flying pixels among those kept
 //! ([`crate::perception::crop`]), writing their cloud-frame points on the GPU (no cloud of
-//! the whole frame; the CPU's region pass reads the same pixels); a point cloud
+//! the whole frame; the CPU's region pass reads the region's spans); a point cloud
 //! (PCD, PointCloud2) is uploaded as points (all of them: dropping the invalid pixels first
 //! saved GPU time on lavapipe but cost more CPU time than it saved upload on an H100) and
 //! the first pass crops it. Then the voxel passes (read the mask; clears with
@@ -47,9 +48,9 @@ use crate::perception::cluster::{
     ClusterConfig, ClusterError, ClusterInput, Clustering, GpuClusterer, cluster_cpu,
 };
 use crate::perception::crop::{
-    CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop, PixelRect,
-    RegionScratch, crop_cpu, crop_depth_cpu, crop_depth_region_cpu, crop_region, mask_words,
-    veil_region,
+    CpuCrop, CropConfig, CropError, CropScene, DEPTH_COUNT_BYTES, DepthInput, GpuCrop,
+    ReachCapsule, RegionScratch, crop_cpu_with_reach, crop_depth_cpu, crop_depth_region_cpu,
+    crop_region_with_reach, mask_words, validate_reach,
 };
 use crate::perception::flying::{FlyingPixelConfig, veil_cloud};
 use crate::perception::shells::{
@@ -111,7 +112,7 @@ pub struct CameraCloud<'a> {
     pub cloud: &'a PointCloud,
     /// Pose of the camera's optical frame in the cloud frame (where the crop scene lives).
     pub cloud_from_camera: Isometry3<f64>,
-    /// Run within the crop radius of the HIP (every pixel without a crop).
+    /// Run on the points the crop keeps (every point without a crop).
     pub flying: &'a FlyingPixelConfig,
 }
 
@@ -205,7 +206,8 @@ pub struct FrontendOutput {
     /// `i % 32` of word `i / 32` is set when input point `i` survived
     /// ([`crate::perception::crop::mask_bit`]).
     pub crop_keep: Option<Vec<u32>>,
-    /// A depth frame's cloud-frame point per pixel (NaN: no depth or flying) when the frame
+    /// A depth frame's cloud-frame point per pixel (NaN: no depth, or a flying pixel the
+    /// crop keeps) when the frame
     /// asked for the keep mask.
     pub points: Option<Vec<Vec3>>,
     /// A depth frame's counts.
@@ -261,22 +263,25 @@ impl Frontend {
             FramePoints::Points(points) => HostPoints::Points(points),
             FramePoints::Depth(input) => HostPoints::Depth(input),
             FramePoints::CameraCloud(camera) => {
-                let crop = match self {
-                    Frontend::Gpu(g) => &g.config.crop,
-                    Frontend::Cpu(c) => &c.config.crop,
+                let (crop, keep_off) = match self {
+                    Frontend::Gpu(g) => (&g.config.crop, &g.keep_off),
+                    Frontend::Cpu(c) => (&c.config.crop, &c.keep_off),
                 };
-                let pose = &camera.cloud_from_camera;
-                let (near, radius) = veil_region(pose, crop, frame.crop.as_ref());
+                // The flying-pixel test on the points the crop keeps (every point without a
+                // crop), decided on the host.
+                let crop = (frame.crop.as_ref())
+                    .map(|scene| CpuCrop::new(crop, scene, keep_off))
+                    .transpose()?;
+                let tested = |q: Vec3| crop.as_ref().is_none_or(|c| c.keeps(q));
                 // Without a keep mask to hand back, only the points that can be kept go on
                 // (in pixel order: the same cells, sums and clusters).
                 let organized = frame.wants_crop_keep();
-                let flying = camera.flying;
+                let pose = &camera.cloud_from_camera;
                 let v = veiled.insert(veil_cloud(
                     camera.cloud,
                     pose,
-                    near,
-                    radius,
-                    flying,
+                    &tested,
+                    camera.flying,
                     organized,
                 ));
                 HostPoints::Points(&v.points)
@@ -298,19 +303,19 @@ impl Frontend {
         Ok(out)
     }
 
-    /// The crop radius of the frames to come, metres (a whole-arm chain crops the union of
-    /// its guards' reaches, [`crate::perception::pipeline::CameraChain::process_guarded`]).
-    pub fn set_crop_radius_m(&mut self, radius_m: f64) -> Result<(), FrontendError> {
-        let crop = match self {
-            Frontend::Gpu(g) => &mut g.config.crop,
-            Frontend::Cpu(c) => &mut c.config.crop,
+    /// The keep-off reach capsules the frames to come are cropped to besides the HIP's ball
+    /// (cloud frame; at most [`crate::perception::crop::MAX_REACH_CAPSULES`]): a whole-arm
+    /// chain crops the union of the HIP's ball and its guards' reaches
+    /// ([`crate::perception::pipeline::CameraChain::process_guarded`]). A capsule with a
+    /// non-finite end or a radius outside (0, 100] m is an error naming it.
+    pub fn set_keep_off(&mut self, keep_off: &[ReachCapsule]) -> Result<(), FrontendError> {
+        validate_reach(keep_off)?;
+        let current = match self {
+            Frontend::Gpu(g) => &mut g.keep_off,
+            Frontend::Cpu(c) => &mut c.keep_off,
         };
-        let next = CropConfig {
-            radius_m,
-            ..crop.clone()
-        };
-        next.validate()?;
-        *crop = next;
+        current.clear();
+        current.extend_from_slice(keep_off);
         Ok(())
     }
 
@@ -385,6 +390,8 @@ impl Frontend {
 /// CPU reference front end.
 pub struct CpuFrontend {
     config: FrontendConfig,
+    /// Keep-off reach capsules of the frames to come ([`Frontend::set_keep_off`]).
+    keep_off: Vec<ReachCapsule>,
     leaf: LeafAdapter,
     /// The depth pass's buffers, reused from frame to frame.
     region: RegionScratch,
@@ -396,6 +403,7 @@ impl CpuFrontend {
         Ok(Self {
             leaf: LeafAdapter::new(&config.voxel),
             config,
+            keep_off: Vec::new(),
             region: RegionScratch::default(),
         })
     }
@@ -410,14 +418,20 @@ impl CpuFrontend {
             HostPoints::Points(points) => match &frame.crop {
                 Some(scene) => (
                     None,
-                    Some(crop_cpu(points, &self.config.crop, scene)?),
+                    Some(crop_cpu_with_reach(
+                        points,
+                        &self.config.crop,
+                        scene,
+                        &self.keep_off,
+                    )?),
                     None,
                 ),
                 None => (None, None, None),
             },
             // The overlay's keep mask and points per pixel: every pixel read.
             HostPoints::Depth(input) if frame.wants_crop_keep() => {
-                let c = crop_depth_cpu(input, &self.config.crop, frame.crop.as_ref())?;
+                let scene = frame.crop.as_ref();
+                let c = crop_depth_cpu(input, &self.config.crop, scene, &self.keep_off)?;
                 let counts = DepthCounts {
                     valid: c.valid,
                     flying: c.flying,
@@ -431,6 +445,7 @@ impl CpuFrontend {
                     input,
                     &self.config.crop,
                     frame.crop.as_ref(),
+                    &self.keep_off,
                     &mut self.region,
                 )?;
                 let counts = DepthCounts {
@@ -517,6 +532,8 @@ pub struct GpuFrontend {
     input: wgpu::Buffer,
     readback: wgpu::Buffer,
     leaf: LeafAdapter,
+    /// Keep-off reach capsules of the frames to come ([`Frontend::set_keep_off`]).
+    keep_off: Vec<ReachCapsule>,
     /// Keep-off guards whose shells each frame sums ([`Frontend::set_guard_shells`]).
     guards: Vec<GuardShells>,
     /// The last frame's per-guard sums.
@@ -567,6 +584,7 @@ impl GpuFrontend {
             timer,
             input,
             readback,
+            keep_off: Vec::new(),
             guards: Vec::new(),
             guard_sums: None,
         })
@@ -660,14 +678,21 @@ impl GpuFrontend {
         let guards = self.guards.len();
         let keep = frame.wants_crop_keep();
         // Without a keep mask over the image to hand back, a depth frame's passes run over
-        // the crop's pixel region only (the pixels and counts the CPU's region pass reads).
+        // the bounding rectangle of the crop's pixel region only (which holds the pixels the
+        // CPU's region pass reads).
         let region = match &input {
-            HostPoints::Depth(depth) if !keep => {
-                Some(crop_region(depth, &self.config.crop, frame.crop.as_ref()))
-            }
+            HostPoints::Depth(depth) if !keep => Some(
+                crop_region_with_reach(
+                    depth,
+                    &self.config.crop,
+                    frame.crop.as_ref(),
+                    &self.keep_off,
+                )
+                .bounds,
+            ),
             _ => None,
         };
-        let n = region.as_ref().map_or(input.len(), PixelRect::pixels);
+        let n = region.as_ref().map_or(input.len(), |r| r.pixels());
         let input_bytes = points_bytes(n);
         ctx.check_storage_size("frontend input points", input_bytes)?;
         if self.input.size() < input_bytes {
@@ -680,15 +705,18 @@ impl GpuFrontend {
                         .write_buffer(&self.input, 0, bytemuck::cast_slice(points));
                 }
                 if let Some(scene) = &frame.crop {
-                    self.crop.prepare(&ctx, n, &self.config.crop, scene)?;
+                    let keep_off = &self.keep_off;
+                    self.crop
+                        .prepare(&ctx, n, &self.config.crop, scene, keep_off)?;
                 }
                 false
             }
             HostPoints::Depth(depth) => {
                 let scene = frame.crop.as_ref();
                 let config = &self.config.crop;
+                let keep_off = &self.keep_off;
                 self.crop
-                    .prepare_depth(&ctx, depth, config, scene, region.as_ref())?;
+                    .prepare_depth(&ctx, depth, config, scene, keep_off, region.as_ref())?;
                 true
             }
         };
@@ -990,7 +1018,7 @@ mod tests {
     use crate::camera::PinholeIntrinsics;
     use crate::geometry::Primitive;
     use crate::gpu::context::Created;
-    use crate::perception::crop::{DEPTH_POINT_TOLERANCE, finite_bits, mask_bit};
+    use crate::perception::crop::{DEPTH_POINT_TOLERANCE, finite_bits, kept_indices, mask_bit};
     use crate::perception::flying::FlyingPixelConfig;
     use crate::perception::shells::{FIXED_ONE, ShellConfig};
     use crate::perception::test_data::{
@@ -1083,6 +1111,9 @@ mod tests {
         }
     }
 
+    /// The HIP's ball alone, then with two keep-off reach capsules (camera frame: a link
+    /// across the sphere's side and one beside the HIP; the union keeps what the HIP's ball
+    /// does not).
     #[test]
     fn gpu_depth_frames_match_the_cpu_reference_within_the_stated_tolerance() {
         let ctx = Arc::new(GpuContext::new().expect("GPU tests need Vulkan"));
@@ -1093,7 +1124,21 @@ mod tests {
         let mut cpu = Frontend::new(Backend::Cpu, config.clone(), None).unwrap();
         let sin2 = flying.min_ray_angle_rad.sin().powi(2);
         let t = pose.translation.vector.norm() as f32;
-        for seed in 0..2 {
+        let capsules = [
+            ReachCapsule {
+                a_m: pose * Point3::new(-0.4, 0.2, 0.7),
+                b_m: pose * Point3::new(0.3, 0.25, 0.9),
+                radius_m: 0.12,
+            },
+            ReachCapsule {
+                a_m: pose * Point3::new(-0.3, -0.3, 1.2),
+                b_m: pose * Point3::new(-0.3, -0.3, 1.2),
+                radius_m: 0.2,
+            },
+        ];
+        for (keep_off, seed) in [(&capsules[..0], 0), (&capsules[..0], 1), (&capsules, 0)] {
+            gpu.set_keep_off(keep_off).unwrap();
+            cpu.set_keep_off(keep_off).unwrap();
             let image = synthetic_depth(seed);
             let frame = FrameInput {
                 points: FramePoints::Depth(DepthInput {
@@ -1146,8 +1191,14 @@ mod tests {
                 if finite_bits(a) != finite_bits(b) || mask_bit(&gk, i) != mask_bit(&ck, i) {
                     differing += 1;
                     let q = Point3::new(f64::from(b.x), f64::from(b.y), f64::from(b.z));
+                    let near_capsule = |c: &ReachCapsule| {
+                        (crate::perception::crop::reach_squared_distance(c, &q).sqrt() - c.radius_m)
+                            .abs()
+                            < 1e-5
+                    };
                     let near_crop = finite_bits(a) == finite_bits(b)
                         && (((q - fixture.hip).norm() - 0.5).abs() < 1e-5
+                            || keep_off.iter().any(near_capsule)
                             || fixture.robot[0]
                                 .grown(config.crop.robot_margin_m)
                                 .signed_distance(&q)
@@ -1174,6 +1225,29 @@ mod tests {
                 "{gn} vs {cn} voxels"
             );
             assert_eq!(g.clusters.clusters.len(), c.clusters.clusters.len());
+            // The union keeps points the HIP's ball does not.
+            let in_ball = |p: &Vec3| {
+                let q = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                (q - fixture.hip).norm() <= 0.5
+            };
+            let beyond_ball = (kept_indices(&ck, cp.len()).into_iter())
+                .filter(|&i| !in_ball(&cp[i]))
+                .count();
+            assert_eq!(beyond_ball > 1000, !keep_off.is_empty(), "{beyond_ball}");
+            // The GPU's passes over the region's bounding rectangle keep what they keep over
+            // every pixel (the same shader: exactly), the CPU's over its spans the same points.
+            let region_frame = FrameInput {
+                want_crop_keep: false,
+                ..frame.clone()
+            };
+            let (gr, cr) = (
+                gpu.process(&region_frame).unwrap(),
+                cpu.process(&region_frame).unwrap(),
+            );
+            let kept = |m: &[u32]| m.iter().map(|w| w.count_ones() as usize).sum::<usize>();
+            assert_eq!(gr.voxel.valid_in, kept(&gk));
+            assert_eq!(cr.voxel.valid_in, kept(&ck));
+            assert_eq!((gr.depth, cr.depth), (g.depth, c.depth));
         }
     }
 

@@ -10,9 +10,9 @@
 //!    between a foreground and a background surface go. A frame that carries its depth
 //!    image skips steps 1 and 2 here on both backends: the image itself is the front end's
 //!    input, and its first pass deprojects, moves, tests and crops the pixels
-//!    ([`super::crop::DepthInput`]; both backends only the pixels of the crop sphere's
-//!    projection, [`super::crop::crop_region`], unless the keep mask over every pixel is
-//!    asked for). The simulator's cloud is its
+//!    ([`super::crop::DepthInput`]; both backends only the pixels of the crop's
+//!    projection, [`super::crop::crop_region_with_reach`], unless the keep mask over every
+//!    pixel is asked for). The simulator's cloud is its
 //!    unquantised depth and its image the 1 mm one a D435 delivers: both backends take the
 //!    image, as from a real camera,
 //! 3. the front end ([`Frontend`], GPU or its CPU reference): crop around the HIP and outside
@@ -28,9 +28,9 @@
 //!    the estimator (on the GPU a second submission).
 //!
 //! **Whole arm** ([`CameraChain::process_guarded`]): with keep-off guards (spheres and
-//! capsules of the robot's links, [`crate::robot::guards`]) the frame is cropped once to one
-//! ball holding the HIP's crop ball and every guard's reach ([`crop_ball`]), voxelised and
-//! clustered once; each guard then has its own estimator per camera (shells and fits) on
+//! capsules of the robot's links, [`crate::robot::guards`]) the frame is cropped once to the
+//! union of the HIP's crop ball and every guard's reach capsule (its segment grown by
+//! [`guard_reach_m`]; [`super::crop::ReachCapsule`]), voxelised and clustered once; each guard then has its own estimator per camera (shells and fits) on
 //! the kept clusters' points within its reach. A capsule's points are selected by their
 //! distance to its segment; its shells are centred on `p*`, the point of the segment closest
 //! to the nearest of them (a sphere's: its centre), with the configured radii grown by the
@@ -70,7 +70,7 @@
 //!    correction (Alg. 2) -> [`SurfaceEstimate`].
 
 use super::cluster::Clustering;
-use super::crop::DepthInput;
+use super::crop::{DepthInput, ReachCapsule};
 pub use super::flying::to_world;
 use super::flying::{FlyingPixelConfig, FlyingPixelConfigError};
 use super::frontend::{
@@ -446,10 +446,11 @@ pub fn guard_reach_m(base: &SurfaceConfig, radius_m: f64) -> f64 {
     base.shells.outer_radius_m() + radius_m
 }
 
-/// The ball a whole-arm frame is cropped to: the HIP's crop ball (`hip`, `radius_m`) grown
-/// to hold each guard's reach (the balls of radius `guard_reach_m` around its segment's
-/// ends, whose hull is the reach's capsule), ball by ball (Ritter's bounding sphere, at
-/// most about 5 % above the smallest). Without guards: exactly the HIP's ball.
+/// A ball holding a whole-arm frame's crop, the union of the HIP's crop ball (`hip`,
+/// `radius_m`) and each guard's reach capsule (the hull of the balls of radius
+/// `guard_reach_m` around its segment's ends), grown ball by ball (Ritter's bounding sphere,
+/// at most about 5 % above the smallest): a bound on the rows the chain can read, for a
+/// renderer that renders only those. Without guards: exactly the HIP's ball.
 pub fn crop_ball(
     hip: &Point3<f64>,
     radius_m: f64,
@@ -628,13 +629,15 @@ impl CameraChain {
         guards: &[GuardSegment],
     ) -> Result<ChainFrame, ChainError> {
         let pose = frame.world_from_camera;
-        let (crop_centre, crop_radius) = crop_ball(
-            hip_world,
-            self.frontend_config.crop.radius_m,
-            guards,
-            &self.surface_config,
-        );
-        self.frontend.set_crop_radius_m(crop_radius)?;
+        // The crop keeps the union of the HIP's ball and every guard's reach capsule.
+        let reach_m = |g: &GuardSegment| guard_reach_m(&self.surface_config, g.radius_m);
+        let reach: Vec<ReachCapsule> = (guards.iter())
+            .map(|g| ReachCapsule {
+                radius_m: reach_m(g),
+                ..*g
+            })
+            .collect();
+        self.frontend.set_keep_off(&reach)?;
         // Every keep-off guard's shells summed in the GPU frame's submission (up to
         // MAX_GPU_GUARDS; beyond, and on the CPU, each guard's estimator sums its own).
         let on_gpu = if guards.len() <= MAX_GPU_GUARDS {
@@ -647,7 +650,7 @@ impl CameraChain {
             .map(|g| GuardShells {
                 a_m: g.a_m,
                 b_m: g.b_m,
-                reach_m: guard_reach_m(&self.surface_config, g.radius_m),
+                reach_m: reach_m(g),
                 radii_m: guard_surface_config(&self.surface_config, g.radius_m)
                     .shells
                     .radii_m,
@@ -677,7 +680,7 @@ impl CameraChain {
         let input = FrameInput {
             points,
             crop: Some(super::crop::CropScene {
-                hip_m: crop_centre,
+                hip_m: *hip_world,
                 robot,
                 camera_m: Some(Point3::from(pose.translation.vector)),
             }),
@@ -1283,8 +1286,8 @@ mod tests {
         assert!(on_sphere(&again.unwrap().kept) > 100);
     }
 
-    /// The GPU front end crops the same union ball (its crop radius set per frame): the
-    /// guard's estimate agrees with the CPU chain's.
+    /// The GPU front end crops the same union of the HIP's ball and the guard's reach
+    /// capsule (set per frame): the guard's estimate agrees with the CPU chain's.
     #[test]
     fn the_gpu_chain_crops_the_union_and_the_guards_estimate_agrees_with_the_cpu() {
         let (guard, hip, _, _) = guard_in_front_of_the_sphere();
@@ -1332,8 +1335,8 @@ mod tests {
         }
     }
 
-    /// The single-HIP chain after whole-arm frames is the single-HIP chain: the crop radius
-    /// goes back to the configured one, and the handle's layers are those of a chain that
+    /// The single-HIP chain after whole-arm frames is the single-HIP chain: the crop goes
+    /// back to the HIP's ball, and the handle's layers are those of a chain that
     /// never saw a guard, bit for bit.
     #[test]
     fn without_guards_the_chain_is_the_single_hip_chain_bit_for_bit() {

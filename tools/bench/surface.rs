@@ -8,9 +8,12 @@
 //! `forehead_impacts_realistic` (cameras 0.5 m and 1 m from the HIP). Prints the median and
 //! p90 of each, in microseconds. Last, the whole CPU chain per frame (`CameraChain`: crop,
 //! voxel grid, clusters, memory, shells, fits) in the single-HIP mode and with ANYexo's 5
-//! keep-off guards (`process_guarded`: one crop of the union, an estimator per guard) on the
-//! same simulated D435 frames of `forearm_close_realistic` and `torso_approach_realistic`,
-//! the two chains alternating frame by frame, with the ratio of their medians.
+//! keep-off guards (`process_guarded`: one crop of the union of the HIP's ball and the
+//! guards' reach capsules, an estimator per guard) on the same simulated D435 frames of
+//! `forearm_to_torso_realistic` and `torso_approach_realistic`, the two chains alternating
+//! frame by frame, with the ratio of their medians and their front ends' (crop, voxel grid,
+//! clusters), wall time and the thread's CPU time. `--arm-chain` runs only that part, on one
+//! thread (its CPU time is then all the work).
 //!
 //! `--gpu-stages` instead runs the GPU chain (the adapter `WGPU_ADAPTER_NAME` names, else the
 //! best one) on the frames of `forearm_to_torso_realistic` and `torso_approach_realistic` and
@@ -19,7 +22,7 @@
 //! single HIP against ANYexo's 5 keep-off guards (their moments in the frame's submission,
 //! pass `guards`).
 //!
-//! Run: `cargo bench --bench surface` (`-- --gpu-stages`).
+//! Run: `cargo bench --bench surface` (`-- --gpu-stages`, `-- --arm-chain`).
 
 #[path = "../../tests/synthetic/mod.rs"]
 #[allow(dead_code)]
@@ -56,11 +59,25 @@ fn time(name: &str, runs: usize, mut f: impl FnMut()) {
     );
 }
 
+/// The whole-arm scenes of the chain benchmarks.
+const ARM_SCENES: [&str; 2] = ["forearm_to_torso_realistic", "torso_approach_realistic"];
+
 fn main() {
     if std::env::args().any(|a| a == "--gpu-stages") {
-        for name in ["forearm_to_torso_realistic", "torso_approach_realistic"] {
+        for name in ARM_SCENES {
             gpu_stages(name);
         }
+        return;
+    }
+    if std::env::args().any(|a| a == "--arm-chain") {
+        // One core: every rayon task of the chains runs on this thread, so its CPU time is
+        // all the work, whatever else loads the machine.
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build();
+        pool.expect("one-thread pool").install(|| {
+            for name in ARM_SCENES {
+                whole_arm_chain(name);
+            }
+        });
         return;
     }
     let head = Shape::Sphere {
@@ -127,7 +144,7 @@ fn main() {
     for name in ["head_close_realistic", "forehead_impacts_realistic"] {
         organized_frame_steps(name);
     }
-    for name in ["forearm_close_realistic", "torso_approach_realistic"] {
+    for name in ARM_SCENES {
         whole_arm_chain(name);
     }
 }
@@ -257,22 +274,31 @@ fn whole_arm_chain(scene: &str) {
     let chain = || default_chain(Backend::Cpu, None);
     let (mut single, mut whole) = (chain(), chain());
     let (mut a, mut b, mut guards_ms) = (Vec::new(), Vec::new(), Vec::new());
+    // The front ends' wall time (crop, voxel grid, clusters), single HIP and 5 guards.
+    let (mut fa, mut fb) = (Vec::new(), Vec::new());
+    // The chains' thread CPU time (front end, estimator, guards' estimators), ms.
+    let (mut ca, mut cb) = (Vec::new(), Vec::new());
+    let cpu = |c: &hapcloud::perception::pipeline::ChainFrame| {
+        c.frontend_time.cpu_ms + c.surface_time.cpu_ms + c.guards_time.cpu_ms
+    };
     // Per frame, summed over the guards: memory, moments, fits (ms), their input points;
     // and the points the union crop kept.
     let mut split = [0.0; 5];
     for (frame, s) in &frames {
         let start = Instant::now();
-        black_box(
-            single
-                .process(frame, &s.hip_m, &s.primitives)
-                .expect("frame"),
-        );
+        let one = single
+            .process(frame, &s.hip_m, &s.primitives)
+            .expect("frame");
         a.push(start.elapsed().as_secs_f64() * 1e3);
+        ca.push(cpu(&one));
+        fa.push(black_box(one).frontend_time.wall_ms);
         let start = Instant::now();
         let out = whole
             .process_guarded(frame, &s.hip_m, &s.primitives, &s.guards)
             .expect("frame");
         b.push(start.elapsed().as_secs_f64() * 1e3);
+        fb.push(out.frontend_time.wall_ms);
+        cb.push(cpu(&out));
         guards_ms.push(out.guards_time.wall_ms);
         for g in &out.guards {
             split[0] += g.surface.memory_time.wall_ms;
@@ -282,7 +308,15 @@ fn whole_arm_chain(scene: &str) {
         }
         split[4] += out.front.voxel.valid_in as f64;
     }
-    for v in [&mut a, &mut b, &mut guards_ms] {
+    for v in [
+        &mut a,
+        &mut b,
+        &mut guards_ms,
+        &mut fa,
+        &mut fb,
+        &mut ca,
+        &mut cb,
+    ] {
         v.sort_by(f64::total_cmp);
     }
     let (n, m) = (a.len(), |v: &[f64]| v[v.len() / 2]);
@@ -296,6 +330,22 @@ fn whole_arm_chain(scene: &str) {
         b[n * 9 / 10],
         m(&guards_ms),
         m(&b) / m(&a)
+    );
+    println!(
+        "  front end (crop, voxel grid, clusters): single HIP median {:.2} ms p90 {:.2} ms; 5 guards median {:.2} ms p90 {:.2} ms; ratio of medians {:.2}",
+        m(&fa),
+        fa[n * 9 / 10],
+        m(&fb),
+        fb[n * 9 / 10],
+        m(&fb) / m(&fa)
+    );
+    println!(
+        "  thread CPU time of the chain: single HIP median {:.2} ms p90 {:.2} ms; 5 guards median {:.2} ms p90 {:.2} ms; ratio of medians {:.2}",
+        m(&ca),
+        ca[n * 9 / 10],
+        m(&cb),
+        cb[n * 9 / 10],
+        m(&cb) / m(&ca)
     );
     let per = |v: f64| v / n as f64;
     println!(
