@@ -206,6 +206,7 @@ fn draw_shape(rng: &mut ChaCha8Rng, kind: BodyKind, c: Point3<f64>, u: &Vector3<
                 center_m: c,
                 half_extents_m: half,
                 rpy_rad: rpy(&random_rotation(rng)),
+                rounding_m: 0.0,
             }
         }
     }
