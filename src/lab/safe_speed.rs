@@ -4,8 +4,9 @@
 //! the per-camera chain, fusion, constraints, controller, plant), again with the delayed
 //! oracle (exact geometry at the cameras' timing: what latency alone costs), with the visible
 //! oracle (the same on what the cameras see: what visibility adds) and on the exact surface, the ceiling perception is measured against. Paper section VII's limit comes from
-//! eq. 1, `v <= (r_out - r_in) / dt`. A moving body that never comes within the HIP sphere is
-//! refused ([`crate::scene::episode::check_approach`]).
+//! eq. 1, `v <= (r_out - r_in) / dt`. A moving body that never comes within the HIP sphere
+//! (nor, with the keep-off guards, touches one of them) is refused
+//! ([`crate::scene::episode::check_approach`]).
 //!
 //! A speed is safe when the true surface never reaches the HIP centre (minimum margin > 0,
 //! i.e. the HIP sphere is entered by less than `r_HIP`) and the controller never falls back;
@@ -157,7 +158,11 @@ pub fn sweep(
     let mut speeds = speeds_mps.to_vec();
     speeds.sort_by(f64::total_cmp);
     let at_rate = scene.with_camera_rate_hz(camera_rate_hz)?;
-    episode::check_approach(&at_rate)?;
+    if options.keep_off {
+        episode::check_approach_guarded(&at_rate, &options.sim.controller.guards)?;
+    } else {
+        episode::check_approach(&at_rate)?;
+    }
     let sources = [
         SurfaceSource::Perception,
         SurfaceSource::VisibleOracle,
@@ -298,6 +303,15 @@ mod tests {
         single.sim.controller.guards = crate::robot::guards::GuardConfig::single_hip();
         let err = run_at_speed(&at_rate, 1.5, SurfaceSource::Exact, &single).unwrap_err();
         assert!(err.to_string().contains("no keep-off guard"), "{err}");
+        // A body that stops short of the handle and of every guard is refused, naming both.
+        let short = Scene::from_builtin("other_hand_to_forearm_clean").unwrap();
+        let err = sweep(&short, &[1.0], 30.0, &options)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("never approaches the HIP") && err.contains("`forearm`, stays 0.01"),
+            "{err}"
+        );
         // Without the keep-off guards a run reports none.
         let (_, none, _) = run_at_speed(
             &at_rate,
