@@ -18,7 +18,9 @@
 //! ground truth. The plots show the controller's `d_proj` beside the true one.
 //!
 //! `safe-speed --scene S` sweeps one scene's moving body over `--speeds` from four surface
-//! sources (perception, visible oracle, delayed oracle, exact surface). `campaign --episodes N
+//! sources (perception, visible oracle, delayed oracle, exact surface); with `--keep-off`
+//! the keep-off guards run too and `STEM-guards.csv` has each guard's minimum true `d_proj`
+//! and contact per run. `campaign --episodes N
 //! --seed S` runs N randomized approach episodes ([`hapcloud::lab::campaign`]) at `--speeds`
 //! from the four sources in parallel and writes `campaign-runs.csv` (one row per episode,
 //! speed and source), `campaign-summary.csv` (fraction safe and margins per speed, camera
@@ -67,6 +69,11 @@ pub struct ExperimentArgs {
     /// safe-speed: also write every run's ticks (`STEM-SOURCE-SPEEDmps.csv`).
     #[arg(long)]
     trace: bool,
+    /// safe-speed: run the controller's keep-off guards (the whole arm) from each source too
+    /// and report every guard's minimum true d_proj, contact and safe speed
+    /// (`STEM-guards.csv`).
+    #[arg(long)]
+    keep_off: bool,
     /// campaign: how many randomized approach episodes to run.
     #[arg(long, default_value_t = 20)]
     episodes: u32,
@@ -153,6 +160,13 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             SceneLoopOptions::from_node_config(&node)
         }
         None => SceneLoopOptions::default(),
+    };
+    if args.keep_off && name != "safe-speed" {
+        bail!("--keep-off is an option of safe-speed, not of {name}");
+    }
+    let loop_options = SceneLoopOptions {
+        keep_off: args.keep_off,
+        ..loop_options
     };
     let mut metrics: Vec<(String, RunMetrics)> = Vec::new();
     let mut extra = serde_json::Value::Null;
@@ -277,6 +291,9 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 .with_context(|| format!("safe-speed sweep of {}", scene.origin))?;
             let stem = format!("safe-speed-{}-{}hz", sweep.scene, sweep.camera_rate_hz);
             write_rows(&out.join(format!("{stem}.csv")), &sweep.rows)?;
+            if args.keep_off {
+                write_rows(&out.join(format!("{stem}-guards.csv")), &sweep.guard_rows)?;
+            }
             if args.trace {
                 for (r, ticks) in sweep.rows.iter().zip(&sweep.traces) {
                     let source = r.source.name();
@@ -318,6 +335,8 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 "exact_safe_speed_mps": sweep.exact_safe_speed_mps,
                 "camera_rate_hz": sweep.camera_rate_hz,
                 "sweep": sweep.rows,
+                "guards": sweep.guard_rows,
+                "guard_safe_speed_mps": sweep.guard_safe_speed_mps,
             });
         }
         "campaign" => {

@@ -227,7 +227,7 @@ pub fn run_episode(
     let mut rows = Vec::with_capacity(speeds_mps.len() * SurfaceSource::ALL.len());
     for &speed in speeds_mps {
         for source in SurfaceSource::ALL {
-            let (row, _) = run_at_speed(&at_rate, speed, source, options).map_err(wrap)?;
+            let (row, _, _) = run_at_speed(&at_rate, speed, source, options).map_err(wrap)?;
             rows.push(run_row(&episode, &row));
         }
     }

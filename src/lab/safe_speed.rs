@@ -4,15 +4,21 @@
 //! the per-camera chain, fusion, constraints, controller, plant), again with the delayed
 //! oracle (exact geometry at the cameras' timing: what latency alone costs), with the visible
 //! oracle (the same on what the cameras see: what visibility adds) and on the exact surface, the ceiling perception is measured against. Paper section VII's limit comes from
-//! eq. 1, `v <= (r_out - r_in) / dt`. A moving body that never comes within the HIP sphere is
-//! refused ([`crate::scene::episode::check_approach`]).
+//! eq. 1, `v <= (r_out - r_in) / dt`. A moving body that never comes within the HIP sphere
+//! (nor, with the keep-off guards, touches one of them) is refused
+//! ([`crate::scene::episode::check_approach`]).
 //!
 //! A speed is safe when the true surface never reaches the HIP centre (minimum margin > 0,
 //! i.e. the HIP sphere is entered by less than `r_HIP`) and the controller never falls back;
 //! the safe speed is the highest tested speed below which every tested speed is safe.
+//!
+//! With the keep-off guards on ([`SceneLoopOptions::keep_off`], `--keep-off`), every run
+//! also reports each keep-off guard's minimum true `d_proj` and whether it touched the body
+//! (`d_proj < 0`: a keep-off guard may not touch at all), and each guard has its own safe
+//! speed per source, by the same rule with "never touched" as safe.
 
 use super::scene_loop::{
-    SceneLoopError, SceneLoopOptions, SceneSample, SurfaceSource, simulate_scene,
+    GuardRunMetrics, SceneLoopError, SceneLoopOptions, SceneSample, SurfaceSource, simulate_scene,
 };
 use crate::scene::{Scene, episode};
 use serde::Serialize;
@@ -40,6 +46,32 @@ pub struct SpeedRow {
     pub contact_handle_force_n: Option<f64>,
 }
 
+/// One keep-off guard in one run of the sweep.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct GuardSpeedRow {
+    pub speed_mps: f64,
+    pub camera_rate_hz: f64,
+    pub source: SurfaceSource,
+    pub guard: String,
+    /// Smallest true `d_proj` of the guard over the run, metres.
+    pub min_d_proj_m: f64,
+    /// The body part nearest the guard then.
+    pub body: String,
+    /// The guard touched the body (`min_d_proj_m < 0`).
+    pub contact: bool,
+    /// When it first did, seconds.
+    pub contact_t_s: Option<f64>,
+}
+
+/// A keep-off guard's safe speed from one source.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct GuardSafeSpeed {
+    pub guard: String,
+    pub source: SurfaceSource,
+    /// Highest tested speed below which the guard never touched the body, m/s.
+    pub safe_speed_mps: f64,
+}
+
 /// A finished sweep.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct SafeSpeed {
@@ -54,19 +86,25 @@ pub struct SafeSpeed {
     pub visible_oracle_safe_speed_mps: f64,
     /// The same on the exact surface.
     pub exact_safe_speed_mps: f64,
+    /// Each keep-off guard in each run (empty without the keep-off guards), by source,
+    /// speed and guard.
+    pub guard_rows: Vec<GuardSpeedRow>,
+    /// Each keep-off guard's safe speed per source.
+    pub guard_safe_speed_mps: Vec<GuardSafeSpeed>,
     /// Every tick of each run, in the order of `rows`.
     #[serde(skip)]
     pub traces: Vec<Vec<SceneSample>>,
 }
 
 /// Runs `at_rate` (a scene with its cameras at their rate) with its moving body at
-/// `speed_mps` from `source`: one row of a sweep, and the run's ticks.
+/// `speed_mps` from `source`: one row of a sweep, one per keep-off guard (with
+/// [`SceneLoopOptions::keep_off`]), and the run's ticks.
 pub fn run_at_speed(
     at_rate: &Scene,
     speed_mps: f64,
     source: SurfaceSource,
     options: &SceneLoopOptions,
-) -> Result<(SpeedRow, Vec<SceneSample>), SceneLoopError> {
+) -> Result<(SpeedRow, Vec<GuardSpeedRow>, Vec<SceneSample>), SceneLoopError> {
     let camera_rate_hz = at_rate.file.cameras.first().map_or(0.0, |c| c.rate_hz);
     let run = simulate_scene(
         &at_rate.with_moving_body_speed(speed_mps)?,
@@ -90,7 +128,21 @@ pub fn run_at_speed(
         contact_speed_mps: m.first_contact.as_ref().map(|c| c.relative_speed_mps),
         contact_handle_force_n: m.first_contact.as_ref().map(|c| c.handle_force_n),
     };
-    Ok((row, run.samples))
+    let guards = run
+        .guards
+        .into_iter()
+        .map(|g: GuardRunMetrics| GuardSpeedRow {
+            speed_mps,
+            camera_rate_hz,
+            source,
+            contact: g.min_d_proj_m < 0.0,
+            guard: g.guard,
+            min_d_proj_m: g.min_d_proj_m,
+            body: g.body,
+            contact_t_s: g.contact_t_s,
+        })
+        .collect();
+    Ok((row, guards, run.samples))
 }
 
 /// Runs `scene` at every speed of `speeds_mps` (ascending after sorting) with its cameras at
@@ -106,7 +158,11 @@ pub fn sweep(
     let mut speeds = speeds_mps.to_vec();
     speeds.sort_by(f64::total_cmp);
     let at_rate = scene.with_camera_rate_hz(camera_rate_hz)?;
-    episode::check_approach(&at_rate)?;
+    if options.keep_off {
+        episode::check_approach_guarded(&at_rate, &options.sim.controller.guards)?;
+    } else {
+        episode::check_approach(&at_rate)?;
+    }
     let sources = [
         SurfaceSource::Perception,
         SurfaceSource::VisibleOracle,
@@ -115,11 +171,34 @@ pub fn sweep(
     ];
     let mut rows = Vec::with_capacity(sources.len() * speeds.len());
     let mut traces = Vec::with_capacity(sources.len() * speeds.len());
+    let mut guard_rows = Vec::new();
     for source in sources {
         for &speed in &speeds {
-            let (row, samples) = run_at_speed(&at_rate, speed, source, options)?;
+            let (row, guards, samples) = run_at_speed(&at_rate, speed, source, options)?;
             rows.push(row);
+            guard_rows.extend(guards);
             traces.push(samples);
+        }
+    }
+    let mut guard_safe_speed_mps = Vec::new();
+    for source in sources {
+        let mut names: Vec<&str> = Vec::new();
+        for r in guard_rows.iter().filter(|r| r.source == source) {
+            if !names.contains(&r.guard.as_str()) {
+                names.push(&r.guard);
+            }
+        }
+        for guard in names {
+            guard_safe_speed_mps.push(GuardSafeSpeed {
+                guard: guard.to_string(),
+                source,
+                safe_speed_mps: guard_rows
+                    .iter()
+                    .filter(|r| r.source == source && r.guard == guard)
+                    .take_while(|r| !r.contact)
+                    .map(|r| r.speed_mps)
+                    .fold(0.0, f64::max),
+            });
         }
     }
     Ok(SafeSpeed {
@@ -129,6 +208,8 @@ pub fn sweep(
         oracle_safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::DelayedOracle),
         visible_oracle_safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::VisibleOracle),
         exact_safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::Exact),
+        guard_rows,
+        guard_safe_speed_mps,
         rows,
         traces,
     })
@@ -185,6 +266,61 @@ mod tests {
         }
         assert_eq!(sweep.safe_speed_mps, 1.0);
         assert_eq!(sweep.exact_safe_speed_mps, 1.0);
+    }
+
+    /// The plate rising at 1.5 m/s under the resting arm meets the forearm guard before the
+    /// handle (its true gap, without control, reaches -45 mm): with the keep-off guards on
+    /// the exact surface, every guard is reported and the forearm never touches; a
+    /// single-HIP config has no keep-off guard to run and says so.
+    #[test]
+    fn keep_off_guards_are_reported_per_guard_and_kept_off_on_the_exact_surface() {
+        let scene = Scene::from_builtin("rising_surface_clean").unwrap();
+        let options = SceneLoopOptions {
+            keep_off: true,
+            ..SceneLoopOptions::default()
+        };
+        let at_rate = scene.with_camera_rate_hz(30.0).unwrap();
+        let (row, guards, _) = run_at_speed(&at_rate, 1.5, SurfaceSource::Exact, &options).unwrap();
+        assert!(row.safe, "{row:?}");
+        let names: Vec<&str> = guards.iter().map(|g| g.guard.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "forearm",
+                "elbow",
+                "upper_arm",
+                "shoulder",
+                "shoulder_rotation"
+            ]
+        );
+        let forearm = &guards[0];
+        assert_eq!(forearm.body, "surface");
+        assert!(
+            !forearm.contact && forearm.min_d_proj_m > 0.005,
+            "{forearm:?}"
+        );
+        let mut single = options.clone();
+        single.sim.controller.guards = crate::robot::guards::GuardConfig::single_hip();
+        let err = run_at_speed(&at_rate, 1.5, SurfaceSource::Exact, &single).unwrap_err();
+        assert!(err.to_string().contains("no keep-off guard"), "{err}");
+        // A body that stops short of the handle and of every guard is refused, naming both.
+        let short = Scene::from_builtin("other_hand_to_forearm_clean").unwrap();
+        let err = sweep(&short, &[1.0], 30.0, &options)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("never approaches the HIP") && err.contains("`forearm`, stays 0.01"),
+            "{err}"
+        );
+        // Without the keep-off guards a run reports none.
+        let (_, none, _) = run_at_speed(
+            &at_rate,
+            1.5,
+            SurfaceSource::Exact,
+            &SceneLoopOptions::default(),
+        )
+        .unwrap();
+        assert!(none.is_empty());
     }
 
     #[test]

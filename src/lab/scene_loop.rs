@@ -32,6 +32,14 @@
 //! fused surface's own error is reported beside them: the controller's `d_proj` minus the
 //! true one while the constraints are active.
 //!
+//! With [`SceneLoopOptions::keep_off`] the controller's keep-off guards
+//! ([`crate::robot::guards`], ANYexo's forearm, elbow, upper arm and shoulder by default) run
+//! too, each from the same source as the handle: perception's estimate per guard, the
+//! delayed or visible oracle queried at the guard's core point nearest the body, or the exact
+//! surface there; each guard's true `d_proj` (its core's distance to the patient less its
+//! radius, [`truth::closest_to_guard`]) is tracked per tick, and a guard below 0 is in contact
+//! (a keep-off guard may not touch at all).
+//!
 //! Approximations: the frames are rendered and processed instantly at their arrival tick
 //! (the scene's latency is in the arrival time; perception's own compute time is not added),
 //! and the CPU reference stages run by default (`backend`), which the GPU stages match.
@@ -51,8 +59,10 @@ use crate::perception::pipeline::SurfaceConfig;
 use crate::perception::pipeline::crop_ball;
 use crate::robot::JointState;
 use crate::robot::JointVector;
+use crate::robot::guards::{GuardError, GuardSegment, GuardSet, MAX_GUARDS};
 use crate::scene::{ReadRegion, Scene, SceneError, Simulator, truth};
 use crate::surface::{FusedSurface, FusionStatus};
+use arrayvec::ArrayVec;
 use nalgebra::{Point3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
@@ -79,6 +89,9 @@ pub struct SceneLoopOptions {
     /// window's, [`Simulator::frame_within`]); the chain's results are the same as with
     /// whole frames.
     pub render_read_rows_only: bool,
+    /// Run the controller's keep-off guards from the same surface source as the handle and
+    /// measure each guard's true `d_proj` (off: the handle alone, as in the paper).
+    pub keep_off: bool,
 }
 
 /// Where the constraints' surface comes from in a closed-loop scene run.
@@ -232,6 +245,7 @@ impl Default for SceneLoopOptions {
             surface_source: SurfaceSource::Perception,
             render_threads: None,
             render_read_rows_only: true,
+            keep_off: false,
         }
     }
 }
@@ -249,6 +263,12 @@ pub enum SceneLoopError {
     Sim(#[from] SimError),
     #[error(transparent)]
     Node(#[from] NodeError),
+    #[error(transparent)]
+    Guards(#[from] GuardError),
+    #[error(
+        "the controller's guards have no keep-off guard (a single-HIP config): nothing to keep off the body in {0}"
+    )]
+    NoKeepOffGuards(String),
 }
 
 impl SceneLoopOptions {
@@ -363,11 +383,27 @@ pub struct FirstContact {
     pub handle_force_n: f64,
 }
 
+/// A keep-off guard's run: how near its true surface came to the body.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GuardRunMetrics {
+    pub guard: String,
+    /// Smallest true `d_proj` over the run (core's distance to the patient less the guard's
+    /// radius), metres; below 0 the guard touched the body.
+    pub min_d_proj_m: f64,
+    /// The body part nearest at that tick.
+    pub body: String,
+    /// The first tick at which the guard touched the body (None: never).
+    pub contact_t_s: Option<f64>,
+}
+
 /// A finished run.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SceneRun {
     pub samples: Vec<SceneSample>,
     pub metrics: SceneRunMetrics,
+    /// One per keep-off guard, in the controller's keep-off order (empty without
+    /// [`SceneLoopOptions::keep_off`]).
+    pub guards: Vec<GuardRunMetrics>,
 }
 
 /// Finite-difference step of the hand reference's derivatives, seconds.
@@ -447,6 +483,39 @@ pub fn simulate_scene(
     let mut error_sum = 0.0;
     let mut oracle = DelayedOracle::default();
     let mut visible = VisibleOracle::default();
+    // the keep-off guards, posed at a joint vector
+    let keep_off = if options.keep_off {
+        let set = GuardSet::new(&model, &options.sim.controller.guards)?;
+        let guards: Vec<_> = set
+            .keep_off()
+            .iter()
+            .map(|&i| set.guards()[i].clone())
+            .collect();
+        if guards.is_empty() {
+            return Err(SceneLoopError::NoKeepOffGuards(scene.origin.clone()));
+        }
+        guards
+    } else {
+        Vec::new()
+    };
+    let posed = |q: &JointVector| -> Vec<GuardSegment> {
+        if keep_off.is_empty() {
+            return Vec::new();
+        }
+        let poses = model.forward_kinematics(q);
+        keep_off.iter().map(|g| g.world(&poses)).collect()
+    };
+    let mut guard_oracles = vec![DelayedOracle::default(); keep_off.len()];
+    let mut guard_visible = vec![VisibleOracle::default(); keep_off.len()];
+    let mut guard_metrics: Vec<GuardRunMetrics> = keep_off
+        .iter()
+        .map(|g| GuardRunMetrics {
+            guard: g.name.clone(),
+            min_d_proj_m: f64::INFINITY,
+            body: String::new(),
+            contact_t_s: None,
+        })
+        .collect();
     // the side of the nearest surface the HIP was on (a thin plate can be passed through)
     let mut side: Option<(String, Vector3<f64>)> = None;
     for k in 0..ticks {
@@ -461,7 +530,23 @@ pub fn simulate_scene(
         };
         for timing in arrivals {
             let q_capture = joints_at(&history, timing.capture_s);
+            let guards_then = posed(&q_capture);
+            // each guard's core point nearest the body at the capture
+            let cores_then: Vec<_> = guards_then
+                .iter()
+                .map(|g| {
+                    truth::closest_to_guard(&file.bodies, timing.capture_s, g)
+                        .map(|t| (t.core_m, g.radius_m))
+                })
+                .collect();
             if options.surface_source == SurfaceSource::DelayedOracle {
+                for (o, core) in guard_oracles.iter_mut().zip(&cores_then) {
+                    if let Some(s) =
+                        core.and_then(|(c, r)| exact_surface(&file.bodies, timing.capture_s, &c, r))
+                    {
+                        o.push(timing.capture_s, s);
+                    }
+                }
                 let hip_then: Point3<f64> =
                     model.world_from_hip(&q_capture).translation.vector.into();
                 let exact = exact_surface(&file.bodies, timing.capture_s, &hip_then, r_hip)
@@ -477,17 +562,24 @@ pub fn simulate_scene(
                     .nearest_visible(timing.camera_id, timing.capture_s, &q_capture, &hip_then)
                     .and_then(|p| visible_surface(&file.bodies, timing.capture_s, &hip_then, &p));
                 visible.push(timing.camera_id as usize, timing.capture_s, seen);
+                for (o, core) in guard_visible.iter_mut().zip(&cores_then) {
+                    let seen = core.and_then(|(c, _)| {
+                        sim.nearest_visible(timing.camera_id, timing.capture_s, &q_capture, &c)
+                            .and_then(|p| visible_surface(&file.bodies, timing.capture_s, &c, &p))
+                    });
+                    o.push(timing.camera_id as usize, timing.capture_s, seen);
+                }
                 frames += 1;
                 continue;
             }
             let hip_then: Point3<f64> = model.world_from_hip(&q_capture).translation.vector.into();
             let shot = if options.render_read_rows_only {
-                // the chain reads the points in the crop ball (no keep-off guards here) and
-                // the flying-pixel test's window around them
+                // the chain reads the points in the crop ball (the HIP's and the keep-off
+                // guards' reach) and the flying-pixel test's window around them
                 let (centre_m, radius_m) = crop_ball(
                     &hip_then,
                     options.frontend.crop.radius_m,
-                    &[],
+                    &guards_then,
                     &options.surface,
                 );
                 let region = ReadRegion {
@@ -507,7 +599,7 @@ pub fn simulate_scene(
                     .into_iter()
                     .map(|(_, p)| p)
                     .collect(),
-                guards: Vec::new(),
+                guards: guards_then,
             };
             let record = haptic_loop.push_frame(&shot.frame, &scene)?;
             if record.estimate().surface.is_some() {
@@ -527,21 +619,62 @@ pub fn simulate_scene(
             },
             interaction_force_n: plant.hand_force_n(),
         };
+        // each keep-off guard's truth now: its core point nearest the body and its d_proj
+        let guard_truth: Vec<_> = posed(plant.q())
+            .iter()
+            .map(|g| truth::closest_to_guard(&file.bodies, t, g).map(|tr| (tr, g.radius_m)))
+            .collect();
+        let extrapolation = options.fusion.max_extrapolation_s;
+        let no_data = || FusedSurface::no_data(t);
         let tick = match options.surface_source {
             SurfaceSource::Perception => haptic_loop.tick(t, &robot),
             SurfaceSource::Exact => {
                 let surface = exact_surface(&file.bodies, t, &hip.position_m, r_hip)
                     .ok_or_else(|| SceneLoopError::NoBodies(scene.origin.clone()))?;
-                haptic_loop.tick_on(surface, &robot)
+                let guards: ArrayVec<FusedSurface, MAX_GUARDS> = guard_truth
+                    .iter()
+                    .map(|g| {
+                        g.as_ref()
+                            .and_then(|(tr, r)| exact_surface(&file.bodies, t, &tr.core_m, *r))
+                            .unwrap_or_else(no_data)
+                    })
+                    .collect();
+                haptic_loop
+                    .control()
+                    .tick_guarded_on(surface, guards, &robot)
             }
-            SurfaceSource::DelayedOracle => {
-                haptic_loop.tick_on(oracle.at(t, options.fusion.max_extrapolation_s), &robot)
-            }
-            SurfaceSource::VisibleOracle => haptic_loop.tick_on(
-                visible.at(t, options.fusion.max_extrapolation_s, &hip.position_m),
+            SurfaceSource::DelayedOracle => haptic_loop.control().tick_guarded_on(
+                oracle.at(t, extrapolation),
+                guard_oracles
+                    .iter()
+                    .map(|o| o.at(t, extrapolation))
+                    .collect(),
+                &robot,
+            ),
+            SurfaceSource::VisibleOracle => haptic_loop.control().tick_guarded_on(
+                visible.at(t, extrapolation, &hip.position_m),
+                guard_visible
+                    .iter()
+                    .zip(&guard_truth)
+                    .map(|(o, g)| match g {
+                        Some((tr, _)) => o.at(t, extrapolation, &tr.core_m),
+                        None => no_data(),
+                    })
+                    .collect(),
                 &robot,
             ),
         };
+        for (m, g) in guard_metrics.iter_mut().zip(&guard_truth) {
+            if let Some((tr, _)) = g {
+                if tr.gap_m < m.min_d_proj_m {
+                    m.min_d_proj_m = tr.gap_m;
+                    m.body = tr.body.clone();
+                }
+                if tr.gap_m < 0.0 && m.contact_t_s.is_none() {
+                    m.contact_t_s = Some(t);
+                }
+            }
+        }
         let (fused, out) = (tick.fused, &tick.output);
         let truth = truth::closest(&file.bodies, t, &hip.position_m, r_hip)
             .ok_or_else(|| SceneLoopError::NoBodies(scene.origin.clone()))?;
@@ -621,7 +754,11 @@ pub fn simulate_scene(
     if metrics.active_ticks > 0 {
         metrics.mean_active_d_proj_error_m = error_sum / metrics.active_ticks as f64;
     }
-    Ok(SceneRun { samples, metrics })
+    Ok(SceneRun {
+        samples,
+        metrics,
+        guards: guard_metrics,
+    })
 }
 
 /// The exact nearest patient surface to `hip_m` at `t_s` as a tracking surface, its velocity

@@ -8,7 +8,10 @@
 //! accuracy target): `forearm_close`, touching and sliding along the left forearm, and
 //! `head_close`, touching the forehead and sliding to the right temple; and one for the
 //! whole arm, where a keep-off guard, not the handle, comes closest to the body:
-//! `forearm_to_torso` (the exoskeleton's forearm and elbow swung in towards the torso) and
+//! `forearm_to_torso` (the exoskeleton's forearm and elbow swung in towards the torso),
+//! `forearm_to_thigh` (the forearm lowered across the lap, its elbow drive onto the right
+//! thigh), `elbow_to_torso` (the elbow drive swung in to the torso's flank),
+//! `shoulder_beside_head` (the shoulder mechanism rising beside the head) and
 //! `other_hand_to_forearm` (the patient's left hand reaching for the exoskeleton's forearm). Each comes in a
 //! `_clean` variant (no effects: the exact analytic surface) and a `_realistic` one (D435
 //! noise, holes, occlusion, an extrinsic bias of a few mm, timing effects).
@@ -30,7 +33,13 @@ const REALISTIC: &str = include_str!("../../tools/scenes/common/realistic_effect
 const THIGHS: &str = include_str!("../../tools/scenes/common/thighs.toml");
 
 /// Built-in scenes whose patient has thighs.
-const WITH_THIGHS: &[&str] = &["forearm_to_torso", "other_hand_to_forearm"];
+const WITH_THIGHS: &[&str] = &[
+    "forearm_to_torso",
+    "forearm_to_thigh",
+    "elbow_to_torso",
+    "shoulder_beside_head",
+    "other_hand_to_forearm",
+];
 
 /// The experiments, each embedded once, with the camera mount they are seen through.
 const EXPERIMENTS: &[(&str, &str, &str)] = &[
@@ -77,6 +86,21 @@ const EXPERIMENTS: &[(&str, &str, &str)] = &[
     (
         "forearm_to_torso",
         include_str!("../../tools/scenes/forearm_to_torso.toml"),
+        CAMERAS,
+    ),
+    (
+        "forearm_to_thigh",
+        include_str!("../../tools/scenes/forearm_to_thigh.toml"),
+        CAMERAS,
+    ),
+    (
+        "elbow_to_torso",
+        include_str!("../../tools/scenes/elbow_to_torso.toml"),
+        CAMERAS,
+    ),
+    (
+        "shoulder_beside_head",
+        include_str!("../../tools/scenes/shoulder_beside_head.toml"),
         CAMERAS,
     ),
     (

@@ -206,6 +206,7 @@ fn draw_shape(rng: &mut ChaCha8Rng, kind: BodyKind, c: Point3<f64>, u: &Vector3<
                 center_m: c,
                 half_extents_m: half,
                 rpy_rad: rpy(&random_rotation(rng)),
+                rounding_m: 0.0,
             }
         }
     }
@@ -439,6 +440,59 @@ pub fn check_approach(scene: &Scene) -> Result<(), SceneError> {
             "body `{}` never approaches the HIP: its surface comes no closer than {closest:.3} m \
              to the HIP centre (the HIP sphere's radius is {r_hip} m)",
             body.name
+        )))
+    }
+}
+
+/// [`check_approach`] for the whole arm: also Ok when the moving body touches a keep-off
+/// guard of `guards` (posed along the scripted trajectory, sampled every 5 ms; true `d_proj`
+/// below 0). The error names the body, its clearance to the HIP and its nearest guard.
+pub fn check_approach_guarded(
+    scene: &Scene,
+    guards: &crate::robot::guards::GuardConfig,
+) -> Result<(), SceneError> {
+    let hip_message = match check_approach(scene) {
+        Ok(()) => return Ok(()),
+        Err(SceneError::Invalid { message, .. }) => message,
+        Err(e) => return Err(e),
+    };
+    let invalid = |message: String| SceneError::Invalid {
+        origin: scene.origin.clone(),
+        message,
+    };
+    let sim = super::Simulator::new(scene)?;
+    let model = sim
+        .robot_model()
+        .ok_or_else(|| invalid(hip_message.clone()))?;
+    let set =
+        crate::robot::guards::GuardSet::new(model, guards).map_err(|e| invalid(e.to_string()))?;
+    let body = scene
+        .file
+        .bodies
+        .iter()
+        .find(|b| matches!(b.motion, Motion::ConstantVelocity { .. }))
+        .ok_or_else(|| invalid(hip_message.clone()))?;
+    let steps = (sim.duration_s() / 0.005).ceil() as usize;
+    let (gap, guard) = (0..=steps)
+        .filter_map(|i| {
+            let t = (i as f64 * 0.005).min(sim.duration_s());
+            let poses = model.forward_kinematics(&sim.joints_at(t)?);
+            set.keep_off()
+                .iter()
+                .filter_map(|&k| {
+                    let g = &set.guards()[k];
+                    truth::closest_to_guard(std::slice::from_ref(body), t, &g.world(&poses))
+                        .map(|tr| (tr.gap_m, g.name.as_str()))
+                })
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+        })
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .unwrap_or((f64::INFINITY, "none"));
+    if gap < 0.0 {
+        Ok(())
+    } else {
+        Err(invalid(format!(
+            "{hip_message}; nor does it touch a keep-off guard: the nearest, `{guard}`, stays {gap:.3} m away"
         )))
     }
 }

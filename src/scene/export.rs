@@ -154,19 +154,14 @@ impl TruthRow {
     }
 }
 
-/// Per keep-off guard, the names of its truth columns in `ground_truth.csv`.
+/// The columns of [`TruthRow::COLUMNS`] a keep-off guard's truth has too, by index: the
+/// closest point, the normal, the gap and the body.
+const GUARD_COLUMNS: [usize; 8] = [6, 7, 8, 9, 10, 11, 13, 14];
+
+/// Per keep-off guard, the names of its truth columns in `ground_truth.csv`: those of
+/// [`GUARD_COLUMNS`] prefixed with the guard's name.
 pub fn guard_columns(guard: &str) -> [String; 8] {
-    [
-        "closest_x_m",
-        "closest_y_m",
-        "closest_z_m",
-        "normal_x",
-        "normal_y",
-        "normal_z",
-        "gap_m",
-        "body",
-    ]
-    .map(|c| format!("{guard}_{c}"))
+    GUARD_COLUMNS.map(|i| format!("{guard}_{}", TruthRow::COLUMNS[i]))
 }
 
 fn guard_fields(t: &GuardTruth) -> [String; 8] {

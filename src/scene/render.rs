@@ -691,6 +691,7 @@ mod tests {
                 center_m: Point3::new(0.0, 0.1, near + 0.8),
                 half_extents_m: nalgebra::Vector3::new(0.3, 0.05, 0.1),
                 rpy_rad: nalgebra::Vector3::new(0.0, 0.5, 0.2),
+                rounding_m: 0.0,
             },
             Shape::PlanePatch {
                 center_m: Point3::new(0.0, 0.0, near + 1.5),

@@ -45,12 +45,16 @@ pub enum Shape {
         b_m: Point3<f64>,
         radius_m: f64,
     },
-    /// Box with half side lengths `half_extents_m`, rotated by roll-pitch-yaw.
+    /// Box with half side lengths `half_extents_m`, rotated by roll-pitch-yaw; with
+    /// `rounding_m > 0` its edges and corners are rounded with that radius (the box shrunk by
+    /// `rounding_m` and swept by a ball of it: the faces stay where they are).
     Box {
         center_m: Point3<f64>,
         half_extents_m: Vector3<f64>,
         #[serde(default)]
         rpy_rad: Vector3<f64>,
+        #[serde(default, skip_serializing_if = "is_zero")]
+        rounding_m: f64,
     },
     /// Flat rectangle in its own x-y plane (normal = its z axis), half sides `half_extents_m`;
     /// seen from both sides. With `rpy_rad = 0` it is horizontal.
@@ -60,6 +64,10 @@ pub enum Shape {
         #[serde(default)]
         rpy_rad: Vector3<f64>,
     },
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 impl From<&Primitive> for Shape {
@@ -82,6 +90,7 @@ impl From<&Primitive> for Shape {
                 center_m: *center_m,
                 half_extents_m: *half_extents_m,
                 rpy_rad: *rpy_rad,
+                rounding_m: 0.0,
             },
         }
     }
@@ -149,6 +158,19 @@ impl Shape {
         if let Some((name, v)) = each(&sizes).find(|(_, v)| *v <= 0.0) {
             return Err(format!("{name} must be positive, got {v} m"));
         }
+        if let Shape::Box {
+            half_extents_m,
+            rounding_m,
+            ..
+        } = self
+        {
+            let smallest = half_extents_m.min();
+            if !(*rounding_m >= 0.0 && *rounding_m <= smallest) {
+                return Err(format!(
+                    "rounding_m = {rounding_m} must be between 0 and the smallest half extent ({smallest} m)"
+                ));
+            }
+        }
         Ok(())
     }
 }
@@ -208,6 +230,14 @@ enum RayPre {
         c: Vector3<f64>,
         half: Vector2<f64>,
     },
+    /// A rounded box: its outer box (the first test, and the hit itself where it lands on a
+    /// flat face), then the convex pieces whose union it is (the inner box stretched by the
+    /// rounding along each axis, and a capsule on each of the inner box's 12 edges).
+    Rounded {
+        outer: std::boxed::Box<Solid>,
+        inner: Oriented<3>,
+        pieces: Vec<Solid>,
+    },
 }
 
 impl RayPre {
@@ -243,6 +273,7 @@ impl RayPre {
                     cap_b: b.norm_squared() - r * r,
                 }
             }
+            SolidKind::Rounded { inner, r } => RayPre::rounded(inner, *r),
             SolidKind::Box(Oriented {
                 c,
                 local_from_frame,
@@ -292,6 +323,59 @@ enum SolidKind {
     Box(Oriented<3>),
     /// A rectangle in its local xy plane (normal: local +z).
     Plane(Oriented<2>),
+    /// The box `inner` swept by a ball of radius `r`.
+    Rounded {
+        inner: Oriented<3>,
+        r: f64,
+    },
+}
+
+impl RayPre {
+    /// The ray constants of `inner` swept by a ball of radius `r`.
+    fn rounded(inner: &Oriented<3>, r: f64) -> Self {
+        let frame_from_local = inner.local_from_frame.transpose();
+        let solid = |kind: SolidKind| Solid {
+            ray: RayPre::new(&kind),
+            kind,
+            bound_center: inner.c,
+            bound_radius: inner.half.norm() + r,
+        };
+        let stretched = |grow: Vector3<f64>| {
+            solid(SolidKind::Box(Oriented {
+                c: inner.c,
+                local_from_frame: inner.local_from_frame,
+                half: inner.half + grow,
+            }))
+        };
+        let mut pieces: Vec<Solid> = (0..3)
+            .map(|i| {
+                let mut grow = Vector3::zeros();
+                grow[i] = r;
+                stretched(grow)
+            })
+            .collect();
+        for axis in 0..3 {
+            let (j, k) = ((axis + 1) % 3, (axis + 2) % 3);
+            for corner in 0..4 {
+                let mut end = Vector3::zeros();
+                end[j] = if corner & 1 == 0 { -1.0 } else { 1.0 } * inner.half[j];
+                end[k] = if corner & 2 == 0 { -1.0 } else { 1.0 } * inner.half[k];
+                let (mut a, mut b) = (end, end);
+                a[axis] = -inner.half[axis];
+                b[axis] = inner.half[axis];
+                pieces.push(solid(SolidKind::Capsule {
+                    a: inner.c + frame_from_local * a,
+                    b: inner.c + frame_from_local * b,
+                    r,
+                }));
+            }
+        }
+        RayPre::Rounded {
+            outer: std::boxed::Box::new(stretched(Vector3::repeat(r))),
+            inner: inner.clone(),
+            pieces,
+        }
+    }
 }
 
 /// A box (`D` = 3) or plane patch (`D` = 2) posed in some frame: what the two share.
@@ -319,6 +403,38 @@ impl<const D: usize> Oriented<D> {
             c: (a_from_b * center_m).coords,
             local_from_frame: frame_from_local.inverse().into_inner(),
             half,
+        }
+    }
+}
+
+impl Oriented<3> {
+    /// The box's surface point closest to `p` (posed frame), its outward normal and the
+    /// signed distance.
+    fn closest(&self, p: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>, f64) {
+        let Oriented {
+            c,
+            local_from_frame,
+            half,
+        } = self;
+        let q = local_from_frame * (p - c);
+        let clamped = q.zip_map(half, |v, h| v.clamp(-h, h));
+        let world_from_local = local_from_frame.transpose();
+        if clamped != q {
+            let out = q - clamped;
+            (
+                c + world_from_local * clamped,
+                world_from_local * out.normalize(),
+                out.norm(),
+            )
+        } else {
+            let gap = half - q.abs();
+            let axis = gap.imin();
+            let sign = if q[axis] < 0.0 { -1.0 } else { 1.0 };
+            let mut x = q;
+            x[axis] = sign * half[axis];
+            let mut n = Vector3::zeros();
+            n[axis] = sign;
+            (c + world_from_local * x, world_from_local * n, -gap[axis])
         }
     }
 }
@@ -367,10 +483,17 @@ impl Solid {
                 center_m,
                 half_extents_m,
                 rpy_rad,
+                rounding_m,
             } => {
-                let o = Oriented::new(a_from_b, center_m, rpy_rad, *half_extents_m);
+                let r = *rounding_m;
+                let o = Oriented::new(a_from_b, center_m, rpy_rad, half_extents_m.add_scalar(-r));
                 let c = o.c;
-                (SolidKind::Box(o), c, half_extents_m.norm())
+                let kind = if r > 0.0 {
+                    SolidKind::Rounded { inner: o, r }
+                } else {
+                    SolidKind::Box(o)
+                };
+                (kind, c, half_extents_m.norm())
             }
             Shape::PlanePatch {
                 center_m,
@@ -422,6 +545,15 @@ impl Solid {
                 local_from_frame,
                 half,
             }) => oriented(c, local_from_frame, *half),
+            SolidKind::Rounded {
+                inner:
+                    Oriented {
+                        c,
+                        local_from_frame,
+                        half,
+                    },
+                r,
+            } => oriented(c, local_from_frame, half.add_scalar(*r)),
             SolidKind::Plane(Oriented {
                 c,
                 local_from_frame,
@@ -526,6 +658,24 @@ impl Solid {
                 let q = local_from_frame * (d * t - c);
                 (q.x.abs() <= half.x && q.y.abs() <= half.y).then_some(t)
             }
+            RayPre::Rounded {
+                outer,
+                inner,
+                pieces,
+            } => {
+                let t = outer.ray_hit(d)?;
+                // On a flat face of the outer box (at most one coordinate beyond the inner
+                // box) the outer hit is on the rounded surface, hence its first point.
+                let q = inner.local_from_frame * (d * t - inner.c);
+                let beyond = (0..3).filter(|&i| q[i].abs() > inner.half[i]).count();
+                if beyond <= 1 {
+                    return Some(t);
+                }
+                pieces
+                    .iter()
+                    .filter_map(|p| p.ray_hit(d))
+                    .min_by(f64::total_cmp)
+            }
         }
     }
 
@@ -563,6 +713,11 @@ impl Solid {
             SolidKind::Plane(Oriented {
                 local_from_frame, ..
             }) => local_from_frame.row(2).transpose(),
+            SolidKind::Rounded { inner, .. } => {
+                let q = inner.local_from_frame * (p - inner.c);
+                let out = q - q.zip_map(&inner.half, |v, h| v.clamp(-h, h));
+                inner.local_from_frame.transpose() * out.normalize()
+            }
         }
     }
 
@@ -598,31 +753,12 @@ impl Solid {
                     if inside { -dist } else { dist },
                 )
             }
-            SolidKind::Box(Oriented {
-                c,
-                local_from_frame,
-                half,
-            }) => {
-                let q = local_from_frame * (p - c);
-                let clamped = q.zip_map(half, |v, h| v.clamp(-h, h));
-                let world_from_local = local_from_frame.transpose();
-                if clamped != q {
-                    let out = q - clamped;
-                    (
-                        c + world_from_local * clamped,
-                        world_from_local * out.normalize(),
-                        out.norm(),
-                    )
-                } else {
-                    let gap = half - q.abs();
-                    let axis = gap.imin();
-                    let sign = if q[axis] < 0.0 { -1.0 } else { 1.0 };
-                    let mut x = q;
-                    x[axis] = sign * half[axis];
-                    let mut n = Vector3::zeros();
-                    n[axis] = sign;
-                    (c + world_from_local * x, world_from_local * n, -gap[axis])
-                }
+            SolidKind::Box(o) => o.closest(&p),
+            SolidKind::Rounded { inner, r } => {
+                // The surface of a convex solid swept by a ball is its own pushed out by the
+                // ball's radius, along the normal, inside and out.
+                let (x, n, d) = inner.closest(&p);
+                (x + n * *r, n, d - r)
             }
             SolidKind::Plane(Oriented {
                 c,
@@ -856,6 +992,13 @@ mod tests {
                 center_m: Point3::new(0.0, 0.0, 1.2),
                 half_extents_m: Vector3::new(0.11, 0.18, 0.07),
                 rpy_rad: Vector3::new(0.2, 0.4, -0.3),
+                rounding_m: 0.0,
+            },
+            Shape::Box {
+                center_m: Point3::new(0.02, -0.03, 0.95),
+                half_extents_m: Vector3::new(0.10, 0.17, 0.12),
+                rpy_rad: Vector3::new(-0.3, 0.5, 0.4),
+                rounding_m: 0.05,
             },
             Shape::PlanePatch {
                 center_m: Point3::new(0.0, 0.1, 0.7),
@@ -875,7 +1018,7 @@ mod tests {
     proptest! {
         /// A ray hit lies on the surface: the exact closest-point distance there is ~0.
         #[test]
-        fn ray_hits_lie_on_the_surface(u in -0.25f64..0.25, v in -0.25f64..0.25, k in 0usize..5) {
+        fn ray_hits_lie_on_the_surface(u in -0.25f64..0.25, v in -0.25f64..0.25, k in 0usize..6) {
             let solid = Solid::new(&shapes()[k], &pose());
             let d = Vector3::new(u, v, 1.0);
             if let Some(t) = solid.ray_hit(&d) {
@@ -887,7 +1030,7 @@ mod tests {
 
         /// The closest point beats every surface point found by dense ray sampling.
         #[test]
-        fn closest_point_is_closest(px in -0.3f64..0.3, py in -0.3f64..0.3, pz in 0.5f64..1.5, k in 0usize..5) {
+        fn closest_point_is_closest(px in -0.3f64..0.3, py in -0.3f64..0.3, pz in 0.5f64..1.5, k in 0usize..6) {
             let solid = Solid::new(&shapes()[k], &pose());
             let p = Point3::new(px, py, pz);
             let c = solid.closest(&p);
@@ -908,7 +1051,7 @@ mod tests {
 
     #[test]
     fn normals_point_outward() {
-        for (k, shape) in shapes().iter().enumerate().take(4) {
+        for (k, shape) in shapes().iter().enumerate().take(5) {
             let solid = Solid::new(shape, &pose());
             let d = (solid.bound_center + Vector3::new(0.01, 0.005, 0.0)).normalize();
             let t = solid.ray_hit(&d).unwrap();
@@ -936,6 +1079,32 @@ mod tests {
         let c = s.closest(&Point3::new(0.05, 0.02, 0.0));
         assert!(c.distance_m < 0.0);
         assert!(s.signed_distance(&c.point_m).abs() < 1e-12);
+    }
+
+    /// A rounded box keeps its faces and pulls its corners in: beyond a corner the distance is
+    /// to the inner box's corner less the rounding; a rounding beyond a half extent is named.
+    #[test]
+    fn rounded_box_keeps_faces_and_rounds_corners() {
+        let shape = |rounding_m| Shape::Box {
+            center_m: Point3::origin(),
+            half_extents_m: Vector3::new(0.10, 0.17, 0.26),
+            rpy_rad: Vector3::zeros(),
+            rounding_m,
+        };
+        let s = Solid::new(&shape(0.05), &Isometry3::identity());
+        let face = s.closest(&Point3::new(0.3, 0.02, -0.1));
+        assert!((face.distance_m - 0.2).abs() < 1e-12, "{face:?}");
+        let corner = Point3::new(0.2, 0.27, 0.36);
+        let inner = Point3::new(0.05, 0.12, 0.21);
+        let c = s.closest(&corner);
+        assert!((c.distance_m - ((corner - inner).norm() - 0.05)).abs() < 1e-12);
+        let sharp = Solid::new(&shape(0.0), &Isometry3::identity()).closest(&corner);
+        assert!(c.distance_m > sharp.distance_m + 0.03);
+        assert!(shape(0.05).validate().is_ok());
+        assert_eq!(
+            shape(0.11).validate().unwrap_err(),
+            "rounding_m = 0.11 must be between 0 and the smallest half extent (0.1 m)"
+        );
     }
 
     #[test]
