@@ -1131,11 +1131,11 @@ fn whole_arm_through_the_loop(name: &str, t0: f64, t1: f64) -> (Vec<Vec<(f64, f6
 /// The whole arm through the haptic loop: each frame's record holds one estimate per
 /// keep-off guard (ANYexo's 5), each guard's fusion gets them, and the tick hands every
 /// guard's fused surface to the controller. In `forearm_to_torso` the forearm and the elbow
-/// drive swing in to 1.8 and 2.7 cm from the torso: their estimated `d_proj` (eq. 7 at the
-/// segment's point closest to the centroid) follows the true gap within 1.5 cm (median), and
-/// at the closest approach the estimate is never farther than the truth plus 1.5 cm (it
-/// errs on the near side, by at most 5 cm: measured 3-4 cm, the torso's box edge beside
-/// the links).
+/// drive swing in to 1.9 and 3.9 cm from the torso's rounded front edge: their estimated
+/// `d_proj` (eq. 7 at the segment's point closest to the centroid) follows the true gap
+/// within 1.5 cm (median), and at the closest approach the estimate is never farther than
+/// the truth plus 1.5 cm nor nearer than the truth minus 5 cm (measured: 0.6 cm nearer to
+/// 0.2 cm farther).
 #[test]
 fn the_forearm_and_elbow_guards_see_the_torso_they_swing_towards() {
     for scene in ["forearm_to_torso_clean", "forearm_to_torso_realistic"] {

@@ -41,8 +41,10 @@
 //! normal, which holds for a surface in front of the guard; beside the edge of a surface (a
 //! link passing the torso's side, whose front face extends as a plane through the link) it
 //! does not: where the fitted normal and the direction from the guard's 5 nearest points to
-//! its core differ by more than 45 deg, the estimate is those points' mean with that
-//! direction (`GuardFrame::nearest_points_surface`), the distance measured to what is seen. A
+//! its core differ by more than 45 deg, or where no seen point lies within one shell's width
+//! of the plane's point nearest the guard (a plane fitted on a rounded edge, extended past
+//! it), the estimate is those points' mean with that direction
+//! (`GuardFrame::nearest_points_surface`), the distance measured to what is seen. A
 //! guard whose reach holds too few
 //! points (the robot's own links, cropped out, hide the body) has no surface
 //! (`estimate.surface = None`), never a made-up distance. On the GPU the front end sums every
@@ -408,14 +410,24 @@ pub struct GuardFrame {
     /// The estimator's output (memory step, shell sums, abstraction with the estimate).
     pub surface: SurfaceFrame,
     /// The fitted surface's normal disagreed with the direction from the nearest points to
-    /// the guard (more than [`GUARD_NORMAL_AGREEMENT_RAD`]), so the estimate is the nearest
-    /// points' mean with that direction (module doc).
+    /// the guard (more than [`GUARD_NORMAL_AGREEMENT_RAD`]), or no seen point lies where the
+    /// fitted plane comes nearest the guard, so the estimate is the nearest points' mean
+    /// with that direction (module doc).
     pub nearest_points_surface: bool,
 }
 
 /// Most angle between a keep-off guard's fitted normal and the direction from its nearest
 /// points to its core before the nearest points decide (module doc), rad.
 pub const GUARD_NORMAL_AGREEMENT_RAD: f64 = std::f64::consts::FRAC_PI_4;
+
+/// One shell's width, m: the finest spacing the shells resolve (the smallest gap between
+/// consecutive radii; one shell's radius when there is one).
+fn shell_width_m(radii_m: &[f64]) -> f64 {
+    radii_m
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .fold(radii_m.first().copied().unwrap_or(0.0), f64::min)
+}
 
 /// How many of a keep-off guard's nearest points make the nearest-points surface.
 const GUARD_NEAREST_POINTS: usize = 5;
@@ -841,8 +853,18 @@ impl CameraChain {
                 .fold(Vector3::zeros(), |sum, (_, x)| sum + x.coords)
                 / k as f64;
             let q = Point3::from(mean);
+            // Where the fitted plane comes nearest the guard: the foot on it of the
+            // segment's point closest to the centroid. The plane holds there only if a
+            // seen point lies within one shell's width of that foot.
+            let core = segment.closest_point(&fitted.centroid_m);
+            let foot =
+                core - fitted.normal.into_inner() * (core - fitted.centroid_m).dot(&fitted.normal);
+            let support_m = shell_width_m(&self.surface_config.shells.radii_m);
+            let seen_at_foot = near
+                .iter()
+                .any(|(_, x)| (x - foot).norm_squared() <= support_m * support_m);
             if let Some(towards) = nalgebra::Unit::try_new(segment.closest_point(&q) - q, 1e-9)
-                && fitted.normal.dot(&towards) < GUARD_NORMAL_AGREEMENT_RAD.cos()
+                && (fitted.normal.dot(&towards) < GUARD_NORMAL_AGREEMENT_RAD.cos() || !seen_at_foot)
             {
                 *fitted = crate::surface::SurfacePoint {
                     centroid_m: q,
