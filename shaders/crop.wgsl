@@ -21,7 +21,8 @@
 // leave, the veil test on the camera-frame neighbours (a flying pixel's point becomes a
 // NaN). On llvmpipe every loop costs its exec-mask bookkeeping even at 0 iterations, so the
 // loops run only for the points that need them (D435 frames: about 5 % of the image), and
-// the reach's loop over the keep-off capsules only in a frame that has them.
+// the reach's loop over the keep-off capsules is compiled only into the pipelines of frames
+// that have them (override REACH_CAPSULES).
 //
 // Reads shaped for lavapipe as well as for GPUs: the primitives sit in a uniform buffer and
 // the depth image in an R16Uint texture (llvmpipe gathers uniform and texel reads with vector
@@ -40,6 +41,13 @@ struct ReachCapsule {
 
 // Keep-off reach capsules a frame may carry (crop.rs MAX_REACH_CAPSULES).
 const MAX_REACH: u32 = 16u;
+
+// Whether this pipeline has the reach's loop over the keep-off capsules: crop.rs builds
+// crop_mask and crop_depth with it for frames that carry capsules and without it for the
+// HIP's ball alone. A uniform test of reach_count does not spare llvmpipe the loop's code
+// (with a reach array shorter than 16 a frame without capsules took crop_depth about 40
+// times its time).
+override REACH_CAPSULES: bool = true;
 
 struct CropParams {
     // HIP position (xyz) and squared crop radius (w).
@@ -149,7 +157,7 @@ fn inside(k: u32, p: vec3<f32>) -> bool {
 fn in_crop_reach(p: vec3<f32>) -> bool {
     let d = p - params.hip_r2.xyz;
     var reached = dot(d, d) <= params.hip_r2.w;
-    if params.reach_count == 0u {
+    if !REACH_CAPSULES || params.reach_count == 0u {
         return reached;
     }
     for (var k = 0u; k < params.reach_count; k++) {

@@ -215,6 +215,18 @@ pub fn compute_pipelines(
     layouts: &[Option<&wgpu::BindGroupLayout>],
     entry_points: &[&str],
 ) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
+    compute_pipelines_with(ctx, stage, layouts, entry_points, &[])
+}
+
+/// [`compute_pipelines`] with values for the shader's pipeline-overridable constants
+/// (`override` declarations, by name).
+pub fn compute_pipelines_with(
+    ctx: &GpuContext,
+    stage: &StageShader,
+    layouts: &[Option<&wgpu::BindGroupLayout>],
+    entry_points: &[&str],
+    constants: &[(&str, f64)],
+) -> Result<Vec<wgpu::ComputePipeline>, GpuError> {
     let source = stage.full_source();
     ctx.scoped(&format!("building {} shader", stage.name), |device| {
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -234,7 +246,10 @@ pub fn compute_pipelines(
                     layout: Some(&layout),
                     module: &module,
                     entry_point: Some(entry),
-                    compilation_options: wgpu::PipelineCompilationOptions::default(),
+                    compilation_options: wgpu::PipelineCompilationOptions {
+                        constants,
+                        ..Default::default()
+                    },
                     cache: None,
                 })
             })

@@ -866,7 +866,7 @@ impl CheckDispatch {
         &self,
         encoder: &mut wgpu::CommandEncoder,
         label: &str,
-        passes: &[wgpu::ComputePipeline; 2],
+        passes: [&wgpu::ComputePipeline; 2],
         groups: PassGroups<'_>,
         workgroups: u32,
         timestamps: Option<wgpu::ComputePassTimestampWrites<'_>>,
@@ -877,11 +877,11 @@ impl CheckDispatch {
             label: Some(label),
             timestamp_writes: timestamps,
         });
-        pass.set_pipeline(&passes[0]);
+        pass.set_pipeline(passes[0]);
         pass.set_bind_group(0, groups.shared, &[]);
         pass.set_bind_group(1, groups.first, &[]);
         pass.dispatch_workgroups(workgroups, 1, 1);
-        pass.set_pipeline(&passes[1]);
+        pass.set_pipeline(passes[1]);
         if let Some(group) = groups.check {
             pass.set_bind_group(2, group, &[]);
         }
@@ -894,10 +894,10 @@ impl CheckDispatch {
 pub struct GpuCrop {
     layout: wgpu::BindGroupLayout,
     /// `crop_mask` and `crop_check`.
-    cloud_passes: [wgpu::ComputePipeline; 2],
+    cloud_passes: FirstAndCheck,
     depth_layout: wgpu::BindGroupLayout,
     /// `crop_depth` and `crop_depth_check`.
-    depth_passes: [wgpu::ComputePipeline; 2],
+    depth_passes: FirstAndCheck,
     params: wgpu::Buffer,
     depth_params: wgpu::Buffer,
     /// `MAX_CROP_PRIMITIVES` primitives (uniform).
@@ -923,6 +923,24 @@ pub struct GpuCrop {
     depth_first_layout: wgpu::BindGroupLayout,
     word_count: u32,
     point_count: u32,
+    /// Keep-off capsules of the frame's parameters: whether the first passes run the
+    /// pipelines with the reach's capsule loop.
+    reach_count: u32,
+}
+
+/// A crop's first pass built without and with the reach's loop over the keep-off capsules
+/// (crop.wgsl `REACH_CAPSULES`: on llvmpipe the loop's code costs a frame without capsules
+/// even when it runs no iteration), and its check pass.
+struct FirstAndCheck {
+    first: [wgpu::ComputePipeline; 2],
+    check: wgpu::ComputePipeline,
+}
+
+impl FirstAndCheck {
+    /// The passes of a frame with `reach_count` keep-off capsules.
+    fn for_reach(&self, reach_count: u32) -> [&wgpu::ComputePipeline; 2] {
+        [&self.first[usize::from(reach_count > 0)], &self.check]
+    }
 }
 
 fn storage(ctx: &GpuContext, label: &str, bytes: u64, extra: wgpu::BufferUsages) -> wgpu::Buffer {
@@ -990,20 +1008,35 @@ impl GpuCrop {
                 shader::compute_pipelines(ctx, &shader::CROP, layouts, &[entry])?.remove(0),
             )
         };
-        let cloud_passes = [
-            pipeline(&[Some(&layout), Some(&one_buffer_layout)], "crop_mask")?,
-            pipeline(&[Some(&layout)], "crop_check")?,
-        ];
-        let depth_passes = [
-            pipeline(
+        // A first pass without and with the keep-off capsules' loop.
+        let first = |layouts: &[Option<&wgpu::BindGroupLayout>], entry: &str| {
+            let with = |reach: bool| {
+                let constants = [("REACH_CAPSULES", f64::from(u8::from(reach)))];
+                let built = shader::compute_pipelines_with(
+                    ctx,
+                    &shader::CROP,
+                    layouts,
+                    &[entry],
+                    &constants,
+                );
+                Ok::<_, GpuError>(built?.remove(0))
+            };
+            Ok::<_, GpuError>([with(false)?, with(true)?])
+        };
+        let cloud_passes = FirstAndCheck {
+            first: first(&[Some(&layout), Some(&one_buffer_layout)], "crop_mask")?,
+            check: pipeline(&[Some(&layout)], "crop_check")?,
+        };
+        let depth_passes = FirstAndCheck {
+            first: first(
                 &[Some(&depth_layout), Some(&depth_first_layout)],
                 "crop_depth",
             )?,
-            pipeline(
+            check: pipeline(
                 &[Some(&depth_layout), None, Some(&one_buffer_layout)],
                 "crop_depth_check",
             )?,
-        ];
+        };
         let (params, depth_params, primitives, mask, depth, unused_points, counts) =
             ctx.scoped("crop buffers", |_| {
                 (
@@ -1064,6 +1097,7 @@ impl GpuCrop {
             depth_first_layout,
             word_count: 0,
             point_count: 0,
+            reach_count: 0,
         })
     }
 
@@ -1302,6 +1336,7 @@ impl GpuCrop {
         }
         self.word_count = words as u32;
         self.point_count = n;
+        self.reach_count = keep_off.len() as u32;
         Ok(())
     }
 
@@ -1350,7 +1385,7 @@ impl GpuCrop {
             )),
         };
         let quads = shader::workgroups_for(self.point_count.div_ceil(DEPTH_QUAD));
-        let passes = &self.depth_passes;
+        let passes = self.depth_passes.for_reach(self.reach_count);
         (self.check).record(
             encoder,
             "crop depth pass",
@@ -1388,7 +1423,7 @@ impl GpuCrop {
             check: None,
         };
         let words = shader::workgroups_for(self.word_count);
-        let passes = &self.cloud_passes;
+        let passes = self.cloud_passes.for_reach(self.reach_count);
         (self.check).record(encoder, "crop pass", passes, groups, words, timestamps);
     }
 
