@@ -1298,8 +1298,7 @@ fn a_simulated_gpu_run_replays_bit_for_bit_and_rosbags_opens_it() {
     // perception when the run ends has no estimate), reproduced bit for bit.
     assert_eq!(report["guard_ticks_compared"], summary["ticks"], "{report}");
     assert_eq!(
-        report["guard_estimates_compared"],
-        report["estimates_compared"],
+        report["guard_estimates_compared"], report["estimates_compared"],
         "{report}"
     );
     assert_eq!(report["guard_tick_mismatches"], 0, "{report}");

@@ -815,7 +815,7 @@ impl RegionVsWhole {
     ) -> anyhow::Result<StageTimes> {
         let front = &config.frontend;
         let (kept, region) = Stopwatch::time(|| {
-            crop_depth_region_cpu(depth, &front.crop, Some(scene), &mut self.scratch)
+            crop_depth_region_cpu(depth, &front.crop, Some(scene), &[], &mut self.scratch)
         });
         let kept = kept?;
         let (voxel, voxel_t) = Stopwatch::time(|| {
