@@ -134,24 +134,46 @@ impl<'a> VeilTest<'a> {
         if !self.active || p.distance_squared(self.near_cam) >= self.r2 {
             return false;
         }
-        let (w, k) = (self.width, self.window);
-        let (u, v) = (i % w, i / w);
-        let limit = self.sin2_min * p.length_squared();
-        let (c0, c1) = (u.saturating_sub(k), (u + k + 1).min(w));
-        for y in v.saturating_sub(k)..(v + k + 1).min(self.height) {
-            for (x, &q) in (c0..c1).zip(&self.points[y * w + c0..y * w + c1]) {
-                // The pixel itself (d = 0) never counts, nor does an invalid neighbour.
-                if x == u && y == v {
-                    continue;
-                }
+        let w = self.width;
+        veiled_by_a_neighbour(
+            p,
+            (i % w, i / w),
+            (w, self.height),
+            self.window,
+            self.sin2_min,
+            |x, y| Some(self.points[y * w + x]).filter(|&q| valid(q)),
+        )
+    }
+}
+
+/// Whether a neighbour of pixel `(u, v)` (within `window` pixels, in a `width` x `height`
+/// image) veils its camera-frame point `p`: the segment `d` between them lies within the
+/// minimum ray angle of `p`'s ray, `|d x p|^2 < sin2_min |d|^2 |p|^2`. `neighbour(x, y)` is
+/// that pixel's point, `None` when it has none; the pixel itself (d = 0) never counts.
+fn veiled_by_a_neighbour(
+    p: Vec3,
+    (u, v): (usize, usize),
+    (width, height): (usize, usize),
+    window: usize,
+    sin2_min: f32,
+    neighbour: impl Fn(usize, usize) -> Option<Vec3>,
+) -> bool {
+    let limit = sin2_min * p.length_squared();
+    let (c0, c1) = (u.saturating_sub(window), (u + window + 1).min(width));
+    for y in v.saturating_sub(window)..(v + window + 1).min(height) {
+        for x in c0..c1 {
+            if x == u && y == v {
+                continue;
+            }
+            if let Some(q) = neighbour(x, y) {
                 let d = q - p;
-                if d.cross(p).length_squared() < limit * d.length_squared() && valid(q) {
+                if d.cross(p).length_squared() < limit * d.length_squared() {
                     return true;
                 }
             }
         }
-        false
     }
+    false
 }
 
 /// The veil test of a 16-bit depth image's pixels, each neighbour deprojected as it is read
@@ -187,26 +209,28 @@ impl<'a> DepthVeilTest<'a> {
         if !self.active {
             return false;
         }
-        let (image, k) = (self.image, self.window);
-        let (w, h) = (image.width, image.height);
-        let limit = self.sin2_min * p.length_squared();
-        let (c0, c1) = (u.saturating_sub(k), u.saturating_add(k + 1).min(w));
-        for y in v.saturating_sub(k)..v.saturating_add(k + 1).min(h) {
-            let row = &image.data[y as usize * w as usize..][..w as usize];
-            for x in c0..c1 {
-                let raw = row[x as usize];
-                // The pixel itself (d = 0) never counts, nor does one without a depth.
-                if raw == 0 || (x == u && y == v) {
-                    continue;
-                }
-                let q = deproject_pixel(self.intrinsics, image.depth_scale_m, x, y, raw);
-                let d = q - p;
-                if d.cross(p).length_squared() < limit * d.length_squared() {
-                    return true;
-                }
-            }
-        }
-        false
+        let image = self.image;
+        let w = image.width as usize;
+        veiled_by_a_neighbour(
+            p,
+            (u as usize, v as usize),
+            (w, image.height as usize),
+            self.window as usize,
+            self.sin2_min,
+            |x, y| {
+                // A neighbour without a depth has no point.
+                let raw = image.data[y * w + x];
+                (raw != 0).then(|| {
+                    deproject_pixel(
+                        self.intrinsics,
+                        image.depth_scale_m,
+                        x as u32,
+                        y as u32,
+                        raw,
+                    )
+                })
+            },
+        )
     }
 }
 

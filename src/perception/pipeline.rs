@@ -860,11 +860,11 @@ impl CameraChain {
             let foot =
                 core - fitted.normal.into_inner() * (core - fitted.centroid_m).dot(&fitted.normal);
             let support_m = shell_width_m(&self.surface_config.shells.radii_m);
-            let seen_at_foot = near
-                .iter()
-                .any(|(_, x)| (x - foot).norm_squared() <= support_m * support_m);
+            let seen_at_foot =
+                || (near.iter()).any(|(_, x)| (x - foot).norm_squared() <= support_m * support_m);
             if let Some(towards) = nalgebra::Unit::try_new(segment.closest_point(&q) - q, 1e-9)
-                && (fitted.normal.dot(&towards) < GUARD_NORMAL_AGREEMENT_RAD.cos() || !seen_at_foot)
+                && (fitted.normal.dot(&towards) < GUARD_NORMAL_AGREEMENT_RAD.cos()
+                    || !seen_at_foot())
             {
                 *fitted = crate::surface::SurfacePoint {
                     centroid_m: q,
