@@ -406,6 +406,19 @@ fn shifted(shape: &Shape, d: Vector3<f64>) -> Shape {
     s
 }
 
+/// The scene's moving body: its first `constant_velocity` body.
+fn moving_body(scene: &Scene) -> Option<&BodyConfig> {
+    (scene.file.bodies.iter()).find(|b| matches!(b.motion, Motion::ConstantVelocity { .. }))
+}
+
+/// The times [`check_approach`] and [`check_approach_guarded`] sample a scene at: every
+/// 5 ms from 0 to its end, the end included.
+fn approach_times(sim: &super::Simulator) -> impl Iterator<Item = f64> + '_ {
+    const STEP_S: f64 = 0.005;
+    let steps = (sim.duration_s() / STEP_S).ceil() as usize;
+    (0..=steps).map(move |i| (i as f64 * STEP_S).min(sim.duration_s()))
+}
+
 /// Checks that `scene`'s moving body (its `constant_velocity` body) comes within the HIP
 /// sphere of the robot's scripted HIP during the scene (sampled every 5 ms): a campaign or
 /// safe-speed sweep on a body that passes by or moves away measures nothing. The error names
@@ -419,16 +432,10 @@ pub fn check_approach(scene: &Scene) -> Result<(), SceneError> {
     let r_hip = sim
         .hip_radius_m()
         .ok_or_else(|| invalid("the scene has no robot: no HIP to approach".into()))?;
-    let body = scene
-        .file
-        .bodies
-        .iter()
-        .find(|b| matches!(b.motion, Motion::ConstantVelocity { .. }))
-        .ok_or_else(|| invalid("no body moves with constant_velocity".into()))?;
-    let steps = (sim.duration_s() / 0.005).ceil() as usize;
-    let closest = (0..=steps)
-        .filter_map(|i| {
-            let t = (i as f64 * 0.005).min(sim.duration_s());
+    let body =
+        moving_body(scene).ok_or_else(|| invalid("no body moves with constant_velocity".into()))?;
+    let closest = approach_times(&sim)
+        .filter_map(|t| {
             let hip = sim.hip_at(t)?;
             Some(truth::posed_body(body, t).closest(&hip).distance_m)
         })
@@ -466,16 +473,9 @@ pub fn check_approach_guarded(
         .ok_or_else(|| invalid(hip_message.clone()))?;
     let set =
         crate::robot::guards::GuardSet::new(model, guards).map_err(|e| invalid(e.to_string()))?;
-    let body = scene
-        .file
-        .bodies
-        .iter()
-        .find(|b| matches!(b.motion, Motion::ConstantVelocity { .. }))
-        .ok_or_else(|| invalid(hip_message.clone()))?;
-    let steps = (sim.duration_s() / 0.005).ceil() as usize;
-    let (gap, guard) = (0..=steps)
-        .filter_map(|i| {
-            let t = (i as f64 * 0.005).min(sim.duration_s());
+    let body = moving_body(scene).ok_or_else(|| invalid(hip_message.clone()))?;
+    let (gap, guard) = approach_times(&sim)
+        .filter_map(|t| {
             let poses = model.forward_kinematics(&sim.joints_at(t)?);
             set.keep_off()
                 .iter()
