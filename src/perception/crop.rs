@@ -48,7 +48,7 @@ use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
 use crate::gpu::{GpuContext, GpuError};
 use crate::perception::flying::{
-    DepthVeilTest, FlyingPixelConfig, VeilTest, to_cloud_frame, to_world,
+    DepthVeilTest, FlyingPixelConfig, VeilTest, VeilWindow, to_cloud_frame, to_world,
 };
 use nalgebra::{Isometry3, Vector3};
 use std::ops::Range;
@@ -650,6 +650,7 @@ pub fn crop_depth_region_cpu(
     let test = DepthVeilTest::new(image, k, depth.flying);
     let task = |spans: &[RowSpan], points: &mut Vec<Vec3>| {
         let mut flying = 0;
+        let mut window = VeilWindow::default();
         for s in spans {
             let row = &image.data[s.v as usize * width..][..width];
             for x in s.u.clone() {
@@ -662,7 +663,7 @@ pub fn crop_depth_region_cpu(
                 if !crop.as_ref().is_none_or(|c| c.keeps(q)) {
                     continue;
                 }
-                if test.is_flying(x, s.v, p) {
+                if test.is_flying(x, s.v, p, &mut window) {
                     flying += 1;
                 } else {
                     points.push(q);

@@ -176,15 +176,44 @@ fn veiled_by_a_neighbour(
     false
 }
 
-/// The veil test of a 16-bit depth image's pixels, each neighbour deprojected as it is read
+/// The veil test of a 16-bit depth image's pixels, each neighbour deprojected from the image
 /// (the same f64 deprojection, rounded to f32, as [`DepthImage::deproject`], and the same
 /// arithmetic as [`VeilTest`]: the same decisions bit for bit, with no cloud of the image).
+/// The neighbours' points are kept in a [`VeilWindow`] from one tested pixel to the next, so
+/// a run of kept pixels along a row deprojects one new column of the window per pixel
+/// (`2 w + 1` points) instead of every neighbour (`(2 w + 1)^2 - 1`).
 pub(crate) struct DepthVeilTest<'a> {
     image: &'a DepthImage,
     intrinsics: &'a PinholeIntrinsics,
     sin2_min: f32,
     window: u32,
     active: bool,
+}
+
+/// Columns of the largest neighbour window (`window_px` <= 4).
+const WINDOW_COLUMNS: usize = 9;
+
+/// The deprojected neighbour window of the pixel a [`DepthVeilTest`] tested last: columns
+/// `from..to` of rows `v - w ..= v + w` (within the image), column `x` in slot
+/// `x % WINDOW_COLUMNS`, row `y` at `y + w - v`; `None` where a pixel has no depth. One per
+/// thread of a region pass.
+#[derive(Clone, Debug)]
+pub(crate) struct VeilWindow {
+    v: u32,
+    from: u32,
+    to: u32,
+    points: [[Option<Vec3>; WINDOW_COLUMNS]; WINDOW_COLUMNS],
+}
+
+impl Default for VeilWindow {
+    fn default() -> Self {
+        Self {
+            v: 0,
+            from: 0,
+            to: 0,
+            points: [[None; WINDOW_COLUMNS]; WINDOW_COLUMNS],
+        }
+    }
 }
 
 impl<'a> DepthVeilTest<'a> {
@@ -205,31 +234,42 @@ impl<'a> DepthVeilTest<'a> {
     }
 
     /// Pixel `(u, v)`, whose camera-frame point is `p` (it has a depth), is a flying pixel.
-    pub(crate) fn is_flying(&self, u: u32, v: u32, p: Vec3) -> bool {
+    /// `cache` holds the window of the pixel tested before (any pixel, or none): the columns
+    /// it shares with this one's window are read from it, the others deprojected into it.
+    pub(crate) fn is_flying(&self, u: u32, v: u32, p: Vec3, cache: &mut VeilWindow) -> bool {
         if !self.active {
             return false;
         }
         let image = self.image;
-        let w = image.width as usize;
+        let (w, h) = (image.width, image.height);
+        let r = self.window;
+        let (c0, c1) = (u.saturating_sub(r), (u + r + 1).min(w));
+        let (r0, r1) = (v.saturating_sub(r), (v + r + 1).min(h));
+        // Columns of this window the cache holds for this row: from its start up to `to`.
+        let start = if cache.v == v && cache.from <= c0 && c0 < cache.to {
+            cache.to.min(c1)
+        } else {
+            c0
+        };
+        let width = w as usize;
+        for x in start..c1 {
+            let column = &mut cache.points[x as usize % WINDOW_COLUMNS];
+            for y in r0..r1 {
+                // A neighbour without a depth has no point.
+                let raw = image.data[y as usize * width + x as usize];
+                column[(y + r - v) as usize] = (raw != 0)
+                    .then(|| deproject_pixel(self.intrinsics, image.depth_scale_m, x, y, raw));
+            }
+        }
+        (cache.v, cache.from, cache.to) = (v, c0, c1);
+        let points = &cache.points;
         veiled_by_a_neighbour(
             p,
             (u as usize, v as usize),
-            (w, image.height as usize),
-            self.window as usize,
+            (width, h as usize),
+            r as usize,
             self.sin2_min,
-            |x, y| {
-                // A neighbour without a depth has no point.
-                let raw = image.data[y * w + x];
-                (raw != 0).then(|| {
-                    deproject_pixel(
-                        self.intrinsics,
-                        image.depth_scale_m,
-                        x as u32,
-                        y as u32,
-                        raw,
-                    )
-                })
-            },
+            |x, y| points[x % WINDOW_COLUMNS][y + r as usize - v as usize],
         )
     }
 }
