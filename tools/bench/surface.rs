@@ -318,6 +318,12 @@ fn whole_arm_chain(scene: &str) {
     // Per frame: the crop region's pixels, the points the crop keeps, the voxel grid's
     // points and the kept clusters' points; single HIP, then 5 guards.
     let mut sizes = [[0.0; 4]; 2];
+    let add_sizes = |sizes: &mut [f64; 4], out: &hapcloud::perception::pipeline::ChainFrame| {
+        let voxel = &out.front.voxel;
+        sizes[1] += voxel.valid_in as f64;
+        sizes[2] += voxel.points.len() as f64;
+        sizes[3] += out.front.clusters.kept_points(&voxel.points).len() as f64;
+    };
     for (frame, s) in &frames {
         for (g, guards) in [&[][..], &s.guards[..]].into_iter().enumerate() {
             sizes[g][0] += region_pixels(frame, s, guards) as f64;
@@ -329,15 +335,7 @@ fn whole_arm_chain(scene: &str) {
         a.push(start.elapsed().as_secs_f64() * 1e3);
         ca.push(cpu(&one));
         fa.push(one.frontend_time.wall_ms);
-        for (g, out) in [(0, &one)] {
-            sizes[g][1] += out.front.voxel.valid_in as f64;
-            sizes[g][2] += out.front.voxel.points.len() as f64;
-            sizes[g][3] += out
-                .front
-                .clusters
-                .kept_points(&out.front.voxel.points)
-                .len() as f64;
-        }
+        add_sizes(&mut sizes[0], &one);
         black_box(one);
         let start = Instant::now();
         let out = whole
@@ -354,13 +352,7 @@ fn whole_arm_chain(scene: &str) {
             split[3] += g.points as f64;
         }
         split[4] += out.front.voxel.valid_in as f64;
-        sizes[1][1] += out.front.voxel.valid_in as f64;
-        sizes[1][2] += out.front.voxel.points.len() as f64;
-        sizes[1][3] += out
-            .front
-            .clusters
-            .kept_points(&out.front.voxel.points)
-            .len() as f64;
+        add_sizes(&mut sizes[1], &out);
     }
     for v in [
         &mut a,
