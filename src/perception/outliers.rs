@@ -10,10 +10,11 @@
 //!
 //! Each point within `reach_m` of the HIP (the shells' outer radius: nothing farther reaches
 //! the fits) is kept when at least `min_neighbours` other points lie within `radius_m`
-//! (a dense grid of radius-wide cells answers a point with enough neighbours well within the
-//! radius; any other asks a [`NearestSearch`] over the points within `reach_m + radius_m`,
-//! which holds coincident points once with their count, so a degenerate cloud of 10^5
-//! identical points takes linear time).
+//! among the points within `reach_m + radius_m`: a sparse grid of radius-wide cells decides
+//! each point whose count is clear by a margin of 1e-9 of the squared radius either way; a
+//! point with a neighbour at the radius to within rounding asks a [`NearestSearch`], which
+//! holds coincident points once with their count, so a degenerate cloud of 10^5 identical
+//! points takes linear time.
 //! Points farther out pass unchanged. The test depends only on the point set, not its order,
 //! so the shells' sums stay bit for bit independent of the point order. The removed points
 //! come back too: the estimator subtracts their shell sums from sums the front end computed
@@ -100,84 +101,114 @@ pub fn remove_isolated(
     // The point itself is within the radius (distance 0): it needs neighbours + 1 points.
     let k = NonZeroUsize::new(config.min_neighbours as usize + 1).expect("k >= 2");
     let radius2 = config.radius_m * config.radius_m;
-    let grid = NeighbourGrid::new(&near, hip, reach_m + config.radius_m, config.radius_m);
+    let grid = NeighbourGrid::new(&near, config.radius_m);
     let mut search = None;
     let (kept, removed): (Vec<_>, Vec<_>) =
         finite.into_iter().zip(&located).partition(|(_, (c, d))| {
             *d > reach_m
-                || grid
-                    .as_ref()
-                    .is_some_and(|g| g.surely_has(&near, c, radius2, k.get()))
-                || search
-                    .get_or_insert_with(|| NearestSearch::new(near.clone()))
-                    .count_within(&Point3::from(*c), radius2, k)
-                    >= k.get()
+                || match grid.as_ref().and_then(|g| g.decide(c, radius2, k.get())) {
+                    Some(keep) => keep,
+                    None => {
+                        search
+                            .get_or_insert_with(|| NearestSearch::new(near.clone()))
+                            .count_within(&Point3::from(*c), radius2, k)
+                            >= k.get()
+                    }
+                }
         });
     let points_of = |pairs: Vec<(Vec3, _)>| pairs.into_iter().map(|(p, _)| p).collect();
     (points_of(kept), points_of(removed))
 }
 
-/// Relative margin under the squared radius within which a point counts for
-/// [`NeighbourGrid::surely_has`]: far above the few ulps by which two ways of summing three
-/// squares in f64 can differ, so the k-d tree's own distance is within the radius too.
+/// Relative margin around the squared radius within which [`NeighbourGrid::decide`] leaves a
+/// point to the k-d tree: far above the few ulps by which two ways of summing three squares
+/// in f64 can differ, so a point the grid counts within (or beyond) the radius is within (or
+/// beyond) it by the tree's own distance too.
 const SURE_MARGIN: f64 = 1e-9;
-/// The most grid cells per point [`NeighbourGrid`] allocates (with a floor for small
-/// clouds); a sparser cloud in a wider reach goes to the k-d tree alone.
-const GRID_CELLS_PER_POINT: usize = 8;
-const GRID_MIN_CELLS: usize = 4096;
+/// Cells are this much wider than the radius, so the 27 cells around a point's own hold
+/// every point within the radius grown by [`SURE_MARGIN`], whatever the rounding of a cell
+/// index.
+const CELL_MARGIN: f64 = 1e-6;
 
-/// The points within `reach` of the HIP in a dense grid of cells one radius wide (a counting
-/// sort by cell): a point's neighbours within the radius lie in the 27 cells around its own.
-/// It answers the common case, a point of a surface with enough neighbours well within the
-/// radius, in a few distance tests; every other point asks the k-d tree, so each decision is
-/// the tree's.
+/// The most rows of cells [`NeighbourGrid`] holds per point (with a floor for small clouds);
+/// a sparser cloud in a wider box goes to the k-d tree alone.
+const GRID_ROWS_PER_POINT: usize = 8;
+const GRID_MIN_ROWS: usize = 4096;
+
+/// The points in a grid of cells one radius wide over their bounding box, stored by rows of
+/// cells along x: a dense table of the rows' starts, and within each row the points sorted by
+/// their cell's x (a counting sort by row, then a sort of each short row), with their
+/// coordinates beside them. A point's neighbours within the radius lie in the 27 cells around
+/// its own: three cells of each of nine rows. It decides a point whose count is clear (a point
+/// of a surface with enough neighbours well within the radius, a stray with too few even a
+/// little beyond it) in a few distance tests; a point with a neighbour at the radius to within
+/// rounding asks the k-d tree, so each decision is the tree's. Rows, not a dense array of
+/// cells: the points of a surface fill a small part of their box (a guard's reach holds a few
+/// hundred points in 10^4 cells).
 struct NeighbourGrid {
     origin: [f64; 3],
     inv_cell: f64,
     dims: [usize; 3],
-    /// Per cell, the start of its points in `order` (one more entry: the end).
-    starts: Vec<u32>,
-    /// Point indices, cell by cell.
-    order: Vec<u32>,
+    /// Per row (y fastest, then z), the start of its points in `x_cells`/`coords` (one more
+    /// entry: the end).
+    row_starts: Vec<u32>,
+    /// Per point, row by row and by x cell within a row: its x cell and its coordinates.
+    x_cells: Vec<u32>,
+    coords: Vec<[f64; 3]>,
 }
 
 impl NeighbourGrid {
-    /// `None` when the grid would hold too many cells for the points.
-    fn new(points: &[Point3<f64>], hip: &Point3<f64>, reach: f64, cell: f64) -> Option<Self> {
-        let side = (2.0 * reach / cell).ceil() + 1.0;
-        let budget = (GRID_CELLS_PER_POINT * points.len()).max(GRID_MIN_CELLS);
-        if !(side.is_finite() && side.powi(3) <= budget as f64) {
+    /// `None` for no points or when their box holds too many rows for them.
+    fn new(points: &[Point3<f64>], radius: f64) -> Option<Self> {
+        let first = points.first()?;
+        let (mut lo, mut hi) = ([first.x, first.y, first.z], [first.x, first.y, first.z]);
+        for p in points {
+            for (k, c) in [p.x, p.y, p.z].into_iter().enumerate() {
+                lo[k] = lo[k].min(c);
+                hi[k] = hi[k].max(c);
+            }
+        }
+        let cell = radius * (1.0 + CELL_MARGIN);
+        let side = |k: usize| ((hi[k] - lo[k]) / cell).floor() + 1.0;
+        let budget = (GRID_ROWS_PER_POINT * points.len()).max(GRID_MIN_ROWS) as f64;
+        if !(side(1) * side(2) <= budget && side(0) < f64::from(u32::MAX)) {
             return None;
         }
-        let n = side as usize;
-        let origin = [hip.x - reach, hip.y - reach, hip.z - reach];
+        let dims = [side(0) as usize, side(1) as usize, side(2) as usize];
+        let rows = dims[1] * dims[2];
         let mut grid = Self {
-            origin,
+            origin: lo,
             inv_cell: 1.0 / cell,
-            dims: [n; 3],
-            starts: vec![0; n * n * n + 1],
-            order: vec![0; points.len()],
+            dims,
+            row_starts: vec![0; rows + 1],
+            x_cells: vec![0; points.len()],
+            coords: vec![[0.0; 3]; points.len()],
         };
-        let cells: Vec<usize> = points
+        let cells: Vec<[usize; 3]> = points
             .iter()
-            .map(|p| {
-                grid.cell_of(&[p.x, p.y, p.z])
-                    .map_or(usize::MAX, |c| grid.index(c))
-            })
-            .collect();
-        if cells.contains(&usize::MAX) {
-            return None;
+            .map(|p| grid.cell_of(&[p.x, p.y, p.z]))
+            .collect::<Option<_>>()?;
+        let row_of = |c: &[usize; 3]| c[2] * dims[1] + c[1];
+        for c in &cells {
+            grid.row_starts[row_of(c) + 1] += 1;
         }
-        for &c in &cells {
-            grid.starts[c + 1] += 1;
+        for r in 0..rows {
+            grid.row_starts[r + 1] += grid.row_starts[r];
         }
-        for c in 0..n * n * n {
-            grid.starts[c + 1] += grid.starts[c];
+        let mut next = grid.row_starts.clone();
+        let mut in_rows = vec![(0u32, 0u32); points.len()];
+        for (i, c) in cells.iter().enumerate() {
+            let row = row_of(c);
+            in_rows[next[row] as usize] = (c[0] as u32, i as u32);
+            next[row] += 1;
         }
-        let mut next = grid.starts.clone();
-        for (i, &c) in cells.iter().enumerate() {
-            grid.order[next[c] as usize] = i as u32;
-            next[c] += 1;
+        for r in 0..rows {
+            in_rows[grid.row_starts[r] as usize..grid.row_starts[r + 1] as usize].sort_unstable();
+        }
+        for (slot, (x, i)) in in_rows.into_iter().enumerate() {
+            let p = &points[i as usize];
+            grid.x_cells[slot] = x;
+            grid.coords[slot] = [p.x, p.y, p.z];
         }
         Some(grid)
     }
@@ -194,37 +225,39 @@ impl NeighbourGrid {
         Some(cell)
     }
 
-    fn index(&self, [x, y, z]: [usize; 3]) -> usize {
-        (z * self.dims[1] + y) * self.dims[0] + x
-    }
-
-    /// At least `k` of `points` (the point at `c` itself included) lie within
-    /// `radius2 * (1 - SURE_MARGIN)` of `c`. False says nothing.
-    fn surely_has(&self, points: &[Point3<f64>], c: &[f64; 3], radius2: f64, k: usize) -> bool {
-        let Some(cell) = self.cell_of(c) else {
-            return false;
-        };
-        let sure2 = radius2 * (1.0 - SURE_MARGIN);
-        let mut found = 0;
+    /// Whether at least `k` points (the point at `c` itself included) lie within `radius2`
+    /// of `c`: `Some` when the count within `radius2 * (1 - SURE_MARGIN)` reaches `k` or the
+    /// count within `radius2 * (1 + SURE_MARGIN)` does not, else `None`.
+    fn decide(&self, c: &[f64; 3], radius2: f64, k: usize) -> Option<bool> {
+        let cell = self.cell_of(c)?;
+        let (sure2, loose2) = (radius2 * (1.0 - SURE_MARGIN), radius2 * (1.0 + SURE_MARGIN));
+        let (mut sure, mut loose) = (0, 0);
+        let (x0, x1) = (cell[0].saturating_sub(1) as u32, cell[0] as u32 + 1);
         for z in cell[2].saturating_sub(1)..(cell[2] + 2).min(self.dims[2]) {
             for y in cell[1].saturating_sub(1)..(cell[1] + 2).min(self.dims[1]) {
-                let row = self.index([0, y, z]);
-                let x0 = cell[0].saturating_sub(1);
-                let x1 = (cell[0] + 2).min(self.dims[0]);
-                let (s, e) = (self.starts[row + x0], self.starts[row + x1]);
-                for &i in &self.order[s as usize..e as usize] {
-                    let p = &points[i as usize];
-                    let (dx, dy, dz) = (p.x - c[0], p.y - c[1], p.z - c[2]);
-                    if dx * dx + dy * dy + dz * dz < sure2 {
-                        found += 1;
-                        if found >= k {
-                            return true;
+                let row = z * self.dims[1] + y;
+                let (s, e) = (
+                    self.row_starts[row] as usize,
+                    self.row_starts[row + 1] as usize,
+                );
+                let s = s + self.x_cells[s..e].partition_point(|&x| x < x0);
+                for (&x, p) in self.x_cells[s..e].iter().zip(&self.coords[s..e]) {
+                    if x > x1 {
+                        break;
+                    }
+                    let (dx, dy, dz) = (p[0] - c[0], p[1] - c[1], p[2] - c[2]);
+                    let d2 = dx * dx + dy * dy + dz * dz;
+                    if d2 < sure2 {
+                        sure += 1;
+                        if sure >= k {
+                            return Some(true);
                         }
                     }
+                    loose += usize::from(d2 <= loose2);
                 }
             }
         }
-        false
+        (loose < k).then_some(false)
     }
 }
 
@@ -288,6 +321,29 @@ mod tests {
         assert!(remove_isolated(&[], &hip, 0.1, &config).0.is_empty());
     }
 
+    /// `remove_isolated`'s split of `points` equals a brute-force count within the radius.
+    fn assert_brute_force(points: &[Vec3], hip: &Point3<f64>, reach: f64, config: &OutlierConfig) {
+        let (kept, removed) = remove_isolated(points, hip, reach, config);
+        let r2 = config.radius_m * config.radius_m;
+        let f64s = |p: &Vec3| Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+        let (mut want_kept, mut want_removed) = (Vec::new(), Vec::new());
+        for p in points {
+            let c = f64s(p);
+            let count = points
+                .iter()
+                .filter(|q| (f64s(q) - c).norm_squared() <= r2)
+                .count();
+            if (c - hip).norm() > reach || count > config.min_neighbours as usize {
+                want_kept.push(*p);
+            } else {
+                want_removed.push(*p);
+            }
+        }
+        assert!(!want_removed.is_empty() && want_kept.len() > 100);
+        assert_eq!(kept, want_kept);
+        assert_eq!(removed, want_removed);
+    }
+
     /// Every decision is the exact count's: points on a lattice whose spacing is the radius
     /// (neighbours at exactly the radius count) and random points around them, with
     /// coincident ones, against a brute-force count within the radius.
@@ -306,26 +362,40 @@ mod tests {
             .collect();
         points.extend((0..300).map(|_| (Vec3::from(rng.random::<[f32; 3]>()) - 0.5) * 3.0));
         points.extend_from_within(..20);
-        let reach = 1.2;
-        let (kept, removed) = remove_isolated(&points, &hip, reach, &config);
-        let r2 = config.radius_m * config.radius_m;
-        let f64s = |p: &Vec3| Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-        let (mut want_kept, mut want_removed) = (Vec::new(), Vec::new());
-        for p in &points {
-            let c = f64s(p);
-            let count = points
-                .iter()
-                .filter(|q| (f64s(q) - c).norm_squared() <= r2)
-                .count();
-            if (c - hip).norm() > reach || count > config.min_neighbours as usize {
-                want_kept.push(*p);
-            } else {
-                want_removed.push(*p);
-            }
+        assert_brute_force(&points, &hip, 1.2, &config);
+    }
+
+    /// A keep-off guard's case: a reach of 17 cm around a tilted, noisy 1 cm sheet (a few
+    /// hundred points in a box of 10^4 radius-wide cells), strays beside it and pairs of
+    /// points just inside and just outside the radius of each other.
+    #[test]
+    fn a_sparse_sheet_in_a_wide_reach_decides_as_a_brute_force_count() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        let hip = Point3::new(0.01, -0.02, 0.05);
+        let config = OutlierConfig::default();
+        let mut points: Vec<Vec3> = (-16..=16)
+            .flat_map(|i| (-16..=16).map(move |j| (i, j)))
+            .map(|(i, j)| {
+                let (x, y) = (i as f32 * 0.01, j as f32 * 0.01);
+                Vec3::new(x, y, 0.4 * x - 0.3 * y)
+                    + (Vec3::from(rng.random::<[f32; 3]>()) - 0.5) * 0.004
+            })
+            .collect();
+        points.extend((0..60).map(|_| (Vec3::from(rng.random::<[f32; 3]>()) - 0.5) * 0.36));
+        let r = config.radius_m as f32;
+        for (i, offset) in [r * (1.0 - 1e-6), r, r * (1.0 + 1e-6)]
+            .into_iter()
+            .enumerate()
+        {
+            let a = Vec3::new(0.1, -0.1, 0.12 + i as f32 * 0.03);
+            points.extend([
+                a,
+                a + Vec3::new(offset, 0.0, 0.0),
+                a - Vec3::new(0.0, offset, 0.0),
+            ]);
         }
-        assert!(!want_removed.is_empty() && want_kept.len() > 100);
-        assert_eq!(kept, want_kept);
-        assert_eq!(removed, want_removed);
+        assert_brute_force(&points, &hip, 0.17, &config);
     }
 
     #[test]

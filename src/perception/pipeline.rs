@@ -458,6 +458,22 @@ pub fn guard_reach_m(base: &SurfaceConfig, radius_m: f64) -> f64 {
     base.shells.outer_radius_m() + radius_m
 }
 
+/// Margin of [`reach_box`], metres: far above the rounding of the box's corners to f32
+/// (about 1e-7 m at a few metres from the origin).
+const REACH_BOX_MARGIN_M: f64 = 1e-4;
+
+/// A test that is false for every f32 point farther than `reach` from `segment`'s core: the
+/// segment's axis-aligned box grown by `reach` and [`REACH_BOX_MARGIN_M`], in f32. It passes
+/// a point on six compares, where the exact test projects it onto the segment in f64.
+fn reach_box(segment: &GuardSegment, reach: f64) -> impl Fn(&Vec3) -> bool + use<> {
+    let grow = reach + REACH_BOX_MARGIN_M;
+    let (a, b) = (segment.a_m.coords, segment.b_m.coords);
+    let lo = a.inf(&b).map(|c| (c - grow) as f32);
+    let hi = a.sup(&b).map(|c| (c + grow) as f32);
+    let (lo, hi) = (Vec3::new(lo.x, lo.y, lo.z), Vec3::new(hi.x, hi.y, hi.z));
+    move |p: &Vec3| p.cmpge(lo).all() && p.cmple(hi).all()
+}
+
 /// A ball holding a whole-arm frame's crop, the union of the HIP's crop ball (`hip`,
 /// `radius_m`) and each guard's reach capsule (the hull of the balls of radius
 /// `guard_reach_m` around its segment's ends), grown ball by ball (Ritter's bounding sphere,
@@ -806,9 +822,11 @@ impl CameraChain {
         stamp_s: f64,
     ) -> Result<GuardFrame, ChainError> {
         let reach = guard_reach_m(&self.surface_config, segment.radius_m);
+        let within_box = reach_box(segment, reach);
         // Within the reach: each point with its distance to the core.
         let (points, mut near): (Vec<Vec3>, Vec<(f64, Point3<f64>)>) = candidates
             .iter()
+            .filter(|p| within_box(p))
             .filter_map(|p| {
                 let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
                 let d = (x - segment.closest_point(&x)).norm();

@@ -22,7 +22,12 @@
 //! single HIP against ANYexo's 5 keep-off guards (their moments in the frame's submission,
 //! pass `guards`).
 //!
-//! Run: `cargo bench --bench surface` (`-- --gpu-stages`, `-- --arm-chain`).
+//! `--arm-profile single|guards FROM TO` runs one of the two CPU chains alone, on one thread,
+//! ten times over both scenes' frames stamped between FROM and TO seconds: a steady load for
+//! `perf record` (e.g. `1.5 2.0`: the approach; `2.0 3.5`: torso_approach's contacts).
+//!
+//! Run: `cargo bench --bench surface` (`-- --gpu-stages`, `-- --arm-chain`,
+//! `-- --arm-profile guards 2.0 3.5`).
 
 #[path = "../../tests/synthetic/mod.rs"]
 #[allow(dead_code)]
@@ -69,7 +74,28 @@ fn main() {
         }
         return;
     }
-    if std::env::args().any(|a| a == "--arm-chain") {
+    let args: Vec<String> = std::env::args().collect();
+    if let Some(at) = args.iter().position(|a| a == "--arm-profile") {
+        let usage = "--arm-profile single|guards FROM_S TO_S";
+        let guarded = match args.get(at + 1).map(String::as_str) {
+            Some("single") => false,
+            Some("guards") => true,
+            _ => panic!("{usage}"),
+        };
+        let seconds = |i: usize| -> f64 {
+            let arg = args.get(at + i).expect(usage);
+            arg.parse().expect(usage)
+        };
+        let (from, to) = (seconds(2), seconds(3));
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build();
+        pool.expect("one-thread pool").install(|| {
+            for name in ARM_SCENES {
+                arm_profile(name, guarded, from, to);
+            }
+        });
+        return;
+    }
+    if args.iter().any(|a| a == "--arm-chain") {
         // One core: every rayon task of the chains runs on this thread, so its CPU time is
         // all the work, whatever else loads the machine.
         let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build();
@@ -162,6 +188,11 @@ type PassTimes = std::collections::BTreeMap<&'static str, Vec<f64>>;
 /// robot primitives and ANYexo's default keep-off guards posed at its stamp; and the scene's
 /// name.
 fn arm_frames(scene: &str) -> (String, Vec<ArmFrame>) {
+    arm_frames_between(scene, 1.5, 3.5)
+}
+
+/// The frames of built-in `scene` stamped between `from` and `to` seconds, as [`arm_frames`].
+fn arm_frames_between(scene: &str, from: f64, to: f64) -> (String, Vec<ArmFrame>) {
     use hapcloud::node::robot_state::RobotState;
     use hapcloud::robot::guards::GuardConfig;
     use std::sync::Arc;
@@ -172,7 +203,7 @@ fn arm_frames(scene: &str) -> (String, Vec<ArmFrame>) {
         .with_guards(&GuardConfig::default())
         .expect("default guards");
     let frames = sim
-        .arrivals(1.5, 3.5)
+        .arrivals(from, to)
         .iter()
         .map(|t| {
             let frame = sim.frame(t).frame;
@@ -284,14 +315,28 @@ fn whole_arm_chain(scene: &str) {
     // Per frame, summed over the guards: memory, moments, fits (ms), their input points;
     // and the points the union crop kept.
     let mut split = [0.0; 5];
+    // Per frame: the crop region's pixels, the points the crop keeps, the voxel grid's
+    // points and the kept clusters' points; single HIP, then 5 guards.
+    let mut sizes = [[0.0; 4]; 2];
+    let add_sizes = |sizes: &mut [f64; 4], out: &hapcloud::perception::pipeline::ChainFrame| {
+        let voxel = &out.front.voxel;
+        sizes[1] += voxel.valid_in as f64;
+        sizes[2] += voxel.points.len() as f64;
+        sizes[3] += out.front.clusters.kept_points(&voxel.points).len() as f64;
+    };
     for (frame, s) in &frames {
+        for (g, guards) in [&[][..], &s.guards[..]].into_iter().enumerate() {
+            sizes[g][0] += region_pixels(frame, s, guards) as f64;
+        }
         let start = Instant::now();
         let one = single
             .process(frame, &s.hip_m, &s.primitives)
             .expect("frame");
         a.push(start.elapsed().as_secs_f64() * 1e3);
         ca.push(cpu(&one));
-        fa.push(black_box(one).frontend_time.wall_ms);
+        fa.push(one.frontend_time.wall_ms);
+        add_sizes(&mut sizes[0], &one);
+        black_box(one);
         let start = Instant::now();
         let out = whole
             .process_guarded(frame, &s.hip_m, &s.primitives, &s.guards)
@@ -307,6 +352,7 @@ fn whole_arm_chain(scene: &str) {
             split[3] += g.points as f64;
         }
         split[4] += out.front.voxel.valid_in as f64;
+        add_sizes(&mut sizes[1], &out);
     }
     for v in [
         &mut a,
@@ -355,6 +401,116 @@ fn whole_arm_chain(scene: &str) {
         per(split[2]),
         per(split[3]),
         per(split[4])
+    );
+    let [one, all] = sizes.map(|v| v.map(per));
+    println!(
+        "  per frame (mean), single HIP vs 5 guards: crop region {:.0} vs {:.0} pixels (x{:.2}); \
+         kept by the crop {:.0} vs {:.0} (x{:.2}); voxel points {:.0} vs {:.0} (x{:.2}); \
+         kept clusters' points {:.0} vs {:.0} (x{:.2})",
+        one[0],
+        all[0],
+        all[0] / one[0],
+        one[1],
+        all[1],
+        all[1] / one[1],
+        one[2],
+        all[2],
+        all[2] / one[2],
+        one[3],
+        all[3],
+        all[3] / one[3]
+    );
+}
+
+/// The pixels of the crop's region of `frame` (every pixel of a frame without a depth
+/// image) for the HIP's ball and `guards`' reach capsules, as the CPU front end reads them.
+fn region_pixels(
+    frame: &hapcloud::camera::Frame,
+    s: &hapcloud::node::robot_state::PerceptionScene,
+    guards: &[hapcloud::robot::guards::GuardSegment],
+) -> usize {
+    use hapcloud::perception::crop::{CropScene, DepthInput, ReachCapsule, crop_region_with_reach};
+    use hapcloud::perception::frontend::FrontendConfig;
+    use hapcloud::perception::pipeline::{SurfaceConfig, guard_reach_m};
+    let Some((image, intrinsics)) = frame.depth() else {
+        return frame.cloud().points.len();
+    };
+    let surface = SurfaceConfig::default();
+    let reach: Vec<ReachCapsule> = guards
+        .iter()
+        .map(|g| ReachCapsule {
+            radius_m: guard_reach_m(&surface, g.radius_m),
+            ..*g
+        })
+        .collect();
+    let depth = DepthInput {
+        image,
+        intrinsics,
+        cloud_from_camera: frame.world_from_camera,
+        flying: &surface.flying_pixels,
+    };
+    let scene = CropScene {
+        hip_m: s.hip_m,
+        robot: &s.primitives,
+        camera_m: Some(Point3::from(frame.world_from_camera.translation.vector)),
+    };
+    crop_region_with_reach(
+        &depth,
+        &FrontendConfig::default().crop,
+        Some(&scene),
+        &reach,
+    )
+    .pixels()
+}
+
+/// One CPU chain (single HIP, or with the 5 keep-off guards) ten times over `scene`'s frames
+/// stamped between `from` and `to` seconds, for a profiler; prints the thread CPU median and
+/// a digest of what the chain reported (the handle's and every guard's abstraction, shell
+/// sums, input and isolated point counts, shell origin), to compare two builds.
+fn arm_profile(scene: &str, guarded: bool, from: f64, to: f64) {
+    use hapcloud::gpu::Backend;
+    let (origin, frames) = arm_frames_between(scene, from, to);
+    let mut chain = default_chain(Backend::Cpu, None);
+    let mut cpu_ms = Vec::new();
+    let mut digest = std::hash::DefaultHasher::new();
+    for _ in 0..10 {
+        for (frame, s) in &frames {
+            let guards = if guarded { &s.guards[..] } else { &[] };
+            let out = chain
+                .process_guarded(frame, &s.hip_m, &s.primitives, guards)
+                .expect("frame");
+            cpu_ms
+                .push(out.frontend_time.cpu_ms + out.surface_time.cpu_ms + out.guards_time.cpu_ms);
+            let surfaces = std::iter::once((&out.surface, out.kept.len(), None, false)).chain(
+                (out.guards.iter()).map(|g| {
+                    (
+                        &g.surface,
+                        g.points,
+                        Some(g.origin_m),
+                        g.nearest_points_surface,
+                    )
+                }),
+            );
+            for (surface, points, origin, nearest) in surfaces {
+                let text = format!(
+                    "{:?} {:?} {} {points} {origin:?} {nearest}",
+                    surface.abstraction, surface.sums, surface.isolated_points
+                );
+                std::hash::Hash::hash(&text, &mut digest);
+            }
+        }
+    }
+    cpu_ms.sort_by(f64::total_cmp);
+    let median = cpu_ms.get(cpu_ms.len() / 2).copied().unwrap_or(f64::NAN);
+    println!(
+        "{origin}: {} frames x 10, {}: thread CPU median {median:.2} ms; digest {:016x}",
+        frames.len(),
+        if guarded {
+            "5 keep-off guards"
+        } else {
+            "single HIP"
+        },
+        std::hash::Hasher::finish(&digest)
     );
 }
 
