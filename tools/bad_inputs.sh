@@ -355,6 +355,8 @@ t ok "" accuracy head_close_clean --duration 0.2 --backend cpu --json
 t err "--speeds" experiment safe-speed --scene rising_surface_clean --out "$D/e" --speeds nan
 t err "--camera-rate-hz" experiment safe-speed --scene rising_surface_clean --out "$D/e" --camera-rate-hz 0
 t err "no_such_experiment" experiment no_such_experiment --out "$D/e"
+t err "--target" experiment campaign --target no_such_target --out "$D/e"
+t err "single-HIP" experiment campaign --target keep-off --config tools/configs/single_hip.toml --episodes 1 --out "$D/e"
 t pipe "" experiment --list
 
 t err "window_s" study --quick --backend cpu --out "$D/st" --config "$(config 'window_s = nan')"
