@@ -435,6 +435,7 @@ fn draw_path(
         geometry: draw_shape(rng, kind, aim, &u),
         motion: Motion::Static,
         visible: true,
+        carried_by: None,
     };
     let mut lateral = uniform(rng, 0.0..MAX_LATERAL_M);
     let (body, s_cross) = loop {
