@@ -1,6 +1,7 @@
 //! The safety campaign (`hapcloud experiment campaign`) and its episodes as a user runs them:
 //! a 20-episode campaign end to end, a written episode reproducing its runs through
-//! `experiment safe-speed`, and bad input.
+//! `experiment safe-speed`, the same for a small campaign aimed at the keep-off guards, and
+//! bad input.
 
 mod common;
 
@@ -127,6 +128,115 @@ fn a_twenty_episode_campaign_writes_its_tables_plots_and_worst_episodes() {
         let scene = Scene::from_file(std::path::Path::new(w["file"].as_str().unwrap())).unwrap();
         assert!(scene.file.name.starts_with("episode_1_"));
     }
+}
+
+/// A keep-off episode written as a scene file: `safe-speed --keep-off` on it gives every
+/// source's run and every keep-off guard's least d_proj exactly as the campaign's run gave
+/// them.
+#[test]
+fn a_written_keep_off_episode_reproduces_the_campaigns_guard_rows() {
+    let guards = hapcloud::robot::guards::GuardConfig::default();
+    let e = episode::generate_keep_off(2, 1, &guards).unwrap();
+    let dir = TempDir::new("campaign_keep_off_episode");
+    let path = dir.path.join("episode.toml");
+    std::fs::write(&path, toml::to_string(&e.scene.file).unwrap()).unwrap();
+    let loaded = Scene::from_file(&path).unwrap();
+    assert_eq!(loaded.file, e.scene.file);
+    let options = SceneLoopOptions {
+        render_threads: Some(1),
+        keep_off: true,
+        ..SceneLoopOptions::default()
+    };
+    let speed = 1.5;
+    let campaign = run_episode(e.clone(), &[speed], &options).unwrap();
+    let sweep = safe_speed::sweep(&loaded, &[speed], e.camera_rate_hz, &options).unwrap();
+    // 4 sources x 5 keep-off guards
+    assert_eq!(campaign.guards.len(), 4 * 5);
+    assert_eq!(sweep.guard_rows.len(), campaign.guards.len());
+    let target = e.guard.as_deref().unwrap();
+    for row in &campaign.guards {
+        assert_eq!(row.target, target);
+        let again = (sweep.guard_rows.iter())
+            .find(|r| r.source == row.source && r.guard == row.guard)
+            .unwrap();
+        assert_eq!(
+            (row.min_d_proj_m, row.contact, &row.body),
+            (again.min_d_proj_m, again.contact, &again.body),
+            "{:?} {}",
+            row.source,
+            row.guard
+        );
+    }
+}
+
+/// Two keep-off episodes through the command: the guard tables are written with a row per
+/// episode, source and keep-off guard, the summary has every target guard; a single-HIP
+/// config has no keep-off guard to aim at and says so.
+#[test]
+fn a_keep_off_campaign_writes_its_guard_tables() {
+    let dir = TempDir::new("campaign_keep_off_cli");
+    let d = dir.path.to_str().unwrap();
+    let json = run_json([
+        "experiment",
+        "campaign",
+        "--target",
+        "keep-off",
+        "--episodes",
+        "2",
+        "--seed",
+        "2",
+        "--speeds",
+        "1.5",
+        "--out",
+        d,
+        "--json",
+    ]);
+    let details = &json["details"];
+    assert_eq!(details["target"], "keep-off");
+    let guards = std::fs::read_to_string(dir.path.join("campaign-guards.csv")).unwrap();
+    assert_eq!(guards.lines().count(), 1 + 2 * 4 * 5);
+    assert!(guards.starts_with("episode,kind,target,"), "{guards}");
+    let episodes = std::fs::read_to_string(dir.path.join("campaign-episodes.csv")).unwrap();
+    assert!(episodes.starts_with("episode,kind,target,"), "{episodes}");
+    let summary = details["keep_off"].as_array().unwrap();
+    // 4 rates x (5 targets + all) x 4 sources
+    assert_eq!(summary.len(), 4 * 6 * 4);
+    for row in summary
+        .iter()
+        .filter(|r| r["camera_rate_hz"] == 0.0 && r["target"] == "all")
+    {
+        assert_eq!(row["episodes"], 2, "{row}");
+        let (free, feasible) = (
+            row["contact_free"].as_u64().unwrap(),
+            row["feasible"].as_u64().unwrap(),
+        );
+        assert!(free <= feasible, "{row}");
+        if row["source"] == "exact" {
+            assert_eq!(free, feasible, "{row}");
+        }
+    }
+    let single = concat!(env!("CARGO_MANIFEST_DIR"), "/tools/configs/single_hip.toml");
+    let err = run_err([
+        "experiment",
+        "campaign",
+        "--target",
+        "keep-off",
+        "--config",
+        single,
+        "--episodes",
+        "1",
+        "--out",
+        d,
+    ]);
+    assert!(
+        err.contains("single-HIP") && err.contains("single_hip.toml"),
+        "{err}"
+    );
+    let err = run_err(["experiment", "campaign", "--target", "elbow", "--out", d]);
+    assert!(
+        err.contains("--target") && err.contains("keep-off"),
+        "{err}"
+    );
 }
 
 #[test]

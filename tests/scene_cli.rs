@@ -8,7 +8,7 @@ use common::{TempDir, run_err, run_json, run_ok};
 fn scenes_lists_every_builtin_and_prints_one() {
     let json = run_json(["scenes", "--json"]);
     let scenes = json["scenes"].as_array().unwrap();
-    assert_eq!(scenes.len(), 26);
+    assert_eq!(scenes.len(), 28);
     assert!(
         scenes
             .iter()

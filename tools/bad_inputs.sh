@@ -109,6 +109,8 @@ SMALL=$D/small.pcd
 "$BIN" run head_close_clean --duration 0.3 --speed 10 --backend cpu --json \
     --record "$D/rec.mcap" --can-log "$D/can.log" >/dev/null 2>&1
 "$BIN" scenes --print head_close_clean >"$D/scene.toml"
+# The leaning patient's group carrying a body the scene does not have.
+"$BIN" scenes --print leaning_onto_forearm_clean | sed 's/"left_hand"\]/"left_hand", "tail"]/' >"$D/group_missing.toml"
 : >"$D/empty.pcd"
 : >"$D/empty.ply"
 : >"$D/empty.png"
@@ -341,6 +343,7 @@ t err "/proc" sim head_close_clean --out /proc/nowhere --frames 1
 t err "duration_s" sim "$(scene_with duration_s 1e12)" --out "$D/s" --frames 1
 t err "seed" sim "$(scene_with seed -1)" --out "$D/s" --frames 1
 t ok "" sim head_close_clean --out "$D/s" --frames 1 --seed 18446744073709551615
+t err "no body called .tail." sim "$D/group_missing.toml" --out "$D/s" --frames 1
 t pipe "" sim head_close_clean --out "$D/s2" --frames 1 --json
 
 t err "--duration" accuracy head_close_clean --duration nan --backend cpu
@@ -355,6 +358,8 @@ t ok "" accuracy head_close_clean --duration 0.2 --backend cpu --json
 t err "--speeds" experiment safe-speed --scene rising_surface_clean --out "$D/e" --speeds nan
 t err "--camera-rate-hz" experiment safe-speed --scene rising_surface_clean --out "$D/e" --camera-rate-hz 0
 t err "no_such_experiment" experiment no_such_experiment --out "$D/e"
+t err "--target" experiment campaign --target no_such_target --out "$D/e"
+t err "single-HIP" experiment campaign --target keep-off --config tools/configs/single_hip.toml --episodes 1 --out "$D/e"
 t pipe "" experiment --list
 
 t err "window_s" study --quick --backend cpu --out "$D/st" --config "$(config 'window_s = nan')"

@@ -28,6 +28,10 @@
 //! `campaign-contacts.csv` (first touches per body region against ISO/TS 15066),
 //! `campaign-episodes.csv` (each episode's draws and CPU time), `campaign-safe.png`,
 //! `campaign-margins.png` and the `--worst` perception episodes as scene files in `worst/`.
+//! `campaign --target keep-off` aims the episodes at the controller's keep-off guards and
+//! also writes `campaign-guards.csv` (one row per episode, speed, source and keep-off guard)
+//! and `campaign-guard-summary.csv` (contact-free fractions per speed, camera rate, target
+//! guard and source); its worst episodes reproduce with `safe-speed --keep-off`.
 
 use anyhow::{Context, Result, anyhow, bail};
 use hapcloud::lab::closed_loop::{
@@ -88,6 +92,10 @@ pub struct ExperimentArgs {
     /// campaign: how many worst episodes to write as scene files (`worst/`).
     #[arg(long, default_value_t = 10)]
     worst: usize,
+    /// campaign: what the episodes' bodies come at: the resting handle, or a keep-off guard
+    /// of the controller's config (the keep-off guards then run in every run).
+    #[arg(long, default_value = "handle", value_parser = ["handle", "keep-off"])]
+    target: String,
 }
 
 const FONT: &str = "sans-serif";
@@ -162,7 +170,14 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
         None => SceneLoopOptions::default(),
     };
     if args.keep_off && name != "safe-speed" {
-        bail!("--keep-off is an option of safe-speed, not of {name}");
+        bail!("--keep-off is an option of safe-speed, not of {name} (campaign: --target keep-off)");
+    }
+    let target = match args.target.as_str() {
+        "keep-off" => campaign::Target::KeepOff,
+        _ => campaign::Target::Handle,
+    };
+    if target != campaign::Target::Handle && name != "campaign" {
+        bail!("--target is an option of campaign, not of {name}");
     }
     let loop_options = SceneLoopOptions {
         keep_off: args.keep_off,
@@ -341,9 +356,12 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
         }
         "campaign" => {
             extra = campaign(
-                &args.speeds,
-                args.episodes,
-                args.seed,
+                campaign::CampaignConfig {
+                    episodes: args.episodes,
+                    seed: args.seed,
+                    speeds_mps: args.speeds.clone(),
+                    target,
+                },
                 args.worst,
                 &out,
                 args.json,
@@ -410,20 +428,15 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
 /// `campaign`: runs the episodes in parallel with a progress bar, writes the CSVs, the plots
 /// and the worst episodes' scene files, prints the summary; returns the JSON details.
 fn campaign(
-    speeds_mps: &[f64],
-    episodes: u32,
-    seed: u64,
+    config: campaign::CampaignConfig,
     worst: usize,
     out: &Path,
     json: bool,
     (options, config_path): (&SceneLoopOptions, Option<&Path>),
 ) -> Result<serde_json::Value> {
     let config_arg = config_path.map_or(String::new(), |p| format!(" --config {}", p.display()));
-    let config = campaign::CampaignConfig {
-        episodes,
-        seed,
-        speeds_mps: speeds_mps.to_vec(),
-    };
+    let (episodes, seed) = (config.episodes, config.seed);
+    let keep_off = config.target == campaign::Target::KeepOff;
     config.validate()?;
     let bar = indicatif::ProgressBar::new(u64::from(episodes)).with_style(
         indicatif::ProgressStyle::with_template(
@@ -431,7 +444,13 @@ fn campaign(
         )?,
     );
     let started = std::time::Instant::now();
-    let result = campaign::run(&config, options, &|| bar.inc(1))?;
+    let result = campaign::run(&config, options, &|| bar.inc(1)).with_context(|| {
+        format!(
+            "campaign --target {}{}",
+            config.target.name(),
+            config_path.map_or(String::new(), |p| format!(" with --config {}", p.display()))
+        )
+    })?;
     bar.finish_and_clear();
     let wall_s = started.elapsed().as_secs_f64();
     let rows: Vec<campaign::RunRow> = result.rows().cloned().collect();
@@ -439,12 +458,18 @@ fn campaign(
     write_rows(&out.join("campaign-summary.csv"), &result.summary)?;
     write_rows(&out.join("campaign-kinds.csv"), &result.by_kind)?;
     write_rows(&out.join("campaign-contacts.csv"), &result.contacts)?;
+    if keep_off {
+        let guards: Vec<campaign::GuardRow> = result.guard_rows().cloned().collect();
+        write_rows(&out.join("campaign-guards.csv"), &guards)?;
+        write_rows(&out.join("campaign-guard-summary.csv"), &result.keep_off)?;
+    }
     let draws: Vec<_> = result
         .episodes
         .iter()
         .map(|e| EpisodeDraw {
             episode: e.episode.index,
             kind: e.episode.kind,
+            target: e.episode.guard.clone(),
             camera_rate_hz: e.episode.camera_rate_hz,
             start_distance_m: e.episode.start_distance_m,
             lateral_offset_m: e.episode.lateral_offset_m,
@@ -459,7 +484,28 @@ fn campaign(
     std::fs::create_dir_all(&worst_dir)
         .with_context(|| format!("creating {}", worst_dir.display()))?;
     let mut worst_files = Vec::new();
-    for (e, r) in result.worst_perception(worst) {
+    for (e, speed, d_proj) in result.worst_keep_off(if keep_off { worst } else { 0 }) {
+        let path = worst_dir.join(format!("{}.toml", e.episode.scene.file.name));
+        let rate = e.episode.camera_rate_hz;
+        let guard = e.episode.guard.as_deref().unwrap_or_default();
+        let text = format!(
+            "# {}\n# perception's least d_proj of keep-off guard `{guard}` {d_proj:.4} m at {speed} m/s with {rate} Hz cameras; reproduce with\n\
+             # hapcloud experiment safe-speed --keep-off --scene {} --speeds {speed} --camera-rate-hz {rate}{config_arg} --out DIR\n{}",
+            e.episode.scene.file.description,
+            path.display(),
+            toml::to_string(&e.episode.scene.file)?
+        );
+        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        worst_files.push(serde_json::json!({
+            "file": path.display().to_string(),
+            "episode": e.episode.index,
+            "target": guard,
+            "speed_mps": speed,
+            "camera_rate_hz": rate,
+            "min_d_proj_m": d_proj,
+        }));
+    }
+    for (e, r) in result.worst_perception(if keep_off { 0 } else { worst }) {
         let path = worst_dir.join(format!("{}.toml", e.episode.scene.file.name));
         let text = format!(
             "# {}\n# perception's min margin {:.4} m at {} m/s with {} Hz cameras; reproduce with\n\
@@ -500,13 +546,26 @@ fn campaign(
         "contacts": result.contacts,
         "worst": worst_files,
     });
+    let details = if keep_off {
+        let mut d = details;
+        d["target"] = serde_json::json!(config.target.name());
+        d["keep_off"] = serde_json::json!(result.keep_off);
+        d
+    } else {
+        details
+    };
     if json {
         return Ok(details);
     }
     println!(
-        "campaign: {episodes} episodes of seed {seed} at {:?} m/s, 4 sources: wall {wall_s:.0} s, \
+        "campaign: {episodes} episodes of seed {seed} at {:?} m/s{}, 4 sources: wall {wall_s:.0} s, \
          CPU {:.2} s per episode (worst {cpu_max:.2} s) on {} threads",
         result.config.speeds_mps,
+        if keep_off {
+            " aimed at keep-off guards"
+        } else {
+            ""
+        },
         cpu_total / f64::from(episodes),
         rayon::current_num_threads()
     );
@@ -547,7 +606,51 @@ fn campaign(
             r.contact_within_limit_fraction
         );
     }
+    if keep_off {
+        print_keep_off(&result.keep_off);
+    }
     Ok(details)
+}
+
+/// The keep-off table: every camera rate together, per speed, target guard and source.
+fn print_keep_off(rows: &[campaign::GuardSummaryRow]) {
+    println!(
+        "keep-off guards (every rate): contact-free runs of the feasible episodes, of the oracles' contact-free ones"
+    );
+    println!(
+        "{:>5} {:17} {:15} {:>5} {:>8} {:>6} {:>8} {:>12} {:>13} {:>7} {:>7} {:>10} {:>10}",
+        "m/s",
+        "target",
+        "source",
+        "N",
+        "feasible",
+        "free",
+        "fraction",
+        "of oracle's",
+        "of visible's",
+        "target",
+        "other",
+        "median mm",
+        "worst mm"
+    );
+    for r in rows.iter().filter(|r| r.camera_rate_hz == 0.0) {
+        println!(
+            "{:5.2} {:17} {:15} {:5} {:8} {:6} {:8.3} {:>12} {:>13} {:7} {:7} {:10.1} {:10.1}",
+            r.speed_mps,
+            r.target,
+            r.source.name(),
+            r.episodes,
+            r.feasible,
+            r.contact_free,
+            r.contact_free_fraction,
+            format!("{:.3}", r.contact_free_fraction_of_oracle_survived),
+            format!("{:.3}", r.contact_free_fraction_of_visible_survived),
+            r.target_contacts,
+            r.other_guard_contacts,
+            r.median_target_d_proj_m * 1e3,
+            r.worst_target_d_proj_m * 1e3
+        );
+    }
 }
 
 /// One episode's draws and cost (`campaign-episodes.csv`).
@@ -555,6 +658,9 @@ fn campaign(
 struct EpisodeDraw {
     episode: u32,
     kind: hapcloud::scene::episode::BodyKind,
+    /// The keep-off guard aimed at (a handle campaign has no such column).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    target: Option<String>,
     camera_rate_hz: f64,
     start_distance_m: f64,
     lateral_offset_m: f64,

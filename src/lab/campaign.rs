@@ -18,11 +18,23 @@
 //! of the handle and the body part (1/mu = 1/m_handle + 1/m_body), compared with the region's
 //! transient limit ([`REGIONS`], REFERENCE.md).
 //!
+//! Aimed at the keep-off guards (`--target keep-off`, [`Target::KeepOff`]), each episode's
+//! body comes at a keep-off guard drawn from the controller's config
+//! ([`episode::generate_keep_off`]) and every run also runs the keep-off guards and tracks
+//! each one's true `d_proj` (a keep-off guard may not touch at all). A run is contact-free
+//! when no keep-off guard touches a body; an episode whose exact-surface run is not
+//! contact-free is infeasible. Per speed, camera rate, target guard and source the
+//! campaign reports the contact-free fraction over the feasible episodes and over the
+//! delayed and the visible oracle's contact-free episodes, and counts apart the runs in which
+//! the target guard touched and those in which another guard did (a reaction that pushed
+//! another link into the patient); the handle's margin is reported as above.
+//!
 //! Episodes run in parallel (rayon, one per core, each rendering on one thread); results do
 //! not depend on the thread count or order.
 
 use super::safe_speed::{SpeedRow, run_at_speed};
 use super::scene_loop::{SceneLoopError, SceneLoopOptions, SurfaceSource};
+use crate::robot::guards::GuardRole;
 use crate::scene::episode::{self, BodyKind, Episode};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -47,12 +59,37 @@ pub enum CampaignError {
     },
 }
 
+/// What a campaign's episodes come at.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Target {
+    /// The resting handle ([`episode::generate`]).
+    #[default]
+    Handle,
+    /// A keep-off guard of the controller's config ([`episode::generate_keep_off`]); the
+    /// keep-off guards run in every run ([`SceneLoopOptions::keep_off`]).
+    KeepOff,
+}
+
+impl Target {
+    pub const ALL: [Target; 2] = [Target::Handle, Target::KeepOff];
+
+    /// The name on the command line (`--target`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Target::Handle => "handle",
+            Target::KeepOff => "keep-off",
+        }
+    }
+}
+
 /// What to run.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CampaignConfig {
     pub episodes: u32,
     pub seed: u64,
     pub speeds_mps: Vec<f64>,
+    pub target: Target,
 }
 
 impl CampaignConfig {
@@ -202,11 +239,31 @@ pub struct RunRow {
     pub contact_within_limit: bool,
 }
 
+/// One keep-off guard in one run of a keep-off episode: `campaign-guards.csv`'s row, the
+/// episode's draws and [`super::safe_speed::GuardSpeedRow`]'s fields.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct GuardRow {
+    pub episode: u32,
+    pub kind: BodyKind,
+    /// The keep-off guard the episode's body comes at.
+    pub target: String,
+    pub camera_rate_hz: f64,
+    pub speed_mps: f64,
+    pub source: SurfaceSource,
+    pub guard: String,
+    pub min_d_proj_m: f64,
+    pub body: String,
+    pub contact: bool,
+    pub contact_t_s: Option<f64>,
+}
+
 /// An episode's runs and its cost.
 #[derive(Clone, Debug)]
 pub struct EpisodeResult {
     pub episode: Episode,
     pub rows: Vec<RunRow>,
+    /// Each keep-off guard in each run (empty unless the keep-off guards run).
+    pub guards: Vec<GuardRow>,
     /// CPU time of the episode's runs on its thread, seconds.
     pub cpu_s: f64,
 }
@@ -225,15 +282,31 @@ pub fn run_episode(
         .with_camera_rate_hz(episode.camera_rate_hz)
         .map_err(|e| wrap(e.into()))?;
     let mut rows = Vec::with_capacity(speeds_mps.len() * SurfaceSource::ALL.len());
+    let mut guards = Vec::new();
     for &speed in speeds_mps {
         for source in SurfaceSource::ALL {
-            let (row, _, _) = run_at_speed(&at_rate, speed, source, options).map_err(wrap)?;
+            let (row, guard_rows, _) =
+                run_at_speed(&at_rate, speed, source, options).map_err(wrap)?;
             rows.push(run_row(&episode, &row));
+            guards.extend(guard_rows.into_iter().map(|g| GuardRow {
+                episode: episode.index,
+                kind: episode.kind,
+                target: episode.guard.clone().unwrap_or_default(),
+                camera_rate_hz: g.camera_rate_hz,
+                speed_mps: g.speed_mps,
+                source: g.source,
+                guard: g.guard,
+                min_d_proj_m: g.min_d_proj_m,
+                body: g.body,
+                contact: g.contact,
+                contact_t_s: g.contact_t_s,
+            }));
         }
     }
     Ok(EpisodeResult {
         episode,
         rows,
+        guards,
         cpu_s: crate::timing::thread_cpu_s() - started,
     })
 }
@@ -463,6 +536,181 @@ pub fn contacts(rows: &[RunRow], speeds_mps: &[f64]) -> Vec<ContactRow> {
     out
 }
 
+/// One run of a keep-off episode over all its guards.
+#[derive(Clone, Debug, PartialEq)]
+struct KeepOffRun<'a> {
+    episode: u32,
+    camera_rate_hz: f64,
+    target: &'a str,
+    speed_mps: f64,
+    source: SurfaceSource,
+    /// The target guard's least true `d_proj`, metres.
+    target_d_proj_m: f64,
+    target_contact: bool,
+    /// Another keep-off guard touched a body.
+    other_contact: bool,
+}
+
+impl KeepOffRun<'_> {
+    fn contact_free(&self) -> bool {
+        !self.target_contact && !self.other_contact
+    }
+}
+
+/// The runs of `rows` (one per episode, speed and source, in `rows`' order).
+fn keep_off_runs(rows: &[GuardRow]) -> Vec<KeepOffRun<'_>> {
+    let mut runs: Vec<KeepOffRun<'_>> = Vec::new();
+    for r in rows {
+        let is_target = r.guard == r.target;
+        let same = |k: &KeepOffRun<'_>| {
+            k.episode == r.episode && k.speed_mps == r.speed_mps && k.source == r.source
+        };
+        let run = match runs.last_mut().filter(|k| same(k)) {
+            Some(run) => run,
+            None => {
+                runs.push(KeepOffRun {
+                    episode: r.episode,
+                    camera_rate_hz: r.camera_rate_hz,
+                    target: &r.target,
+                    speed_mps: r.speed_mps,
+                    source: r.source,
+                    target_d_proj_m: f64::INFINITY,
+                    target_contact: false,
+                    other_contact: false,
+                });
+                runs.last_mut().unwrap_or_else(|| unreachable!("pushed"))
+            }
+        };
+        if is_target {
+            run.target_d_proj_m = r.min_d_proj_m;
+            run.target_contact = r.contact;
+        } else {
+            run.other_contact |= r.contact;
+        }
+    }
+    runs
+}
+
+/// Keep-off guards' contacts of one source at one speed, camera rate and target guard.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct GuardSummaryRow {
+    pub speed_mps: f64,
+    /// Camera rate, Hz (0: every rate together).
+    pub camera_rate_hz: f64,
+    /// The keep-off guard the episodes' bodies come at (`all`: every target together).
+    pub target: String,
+    pub source: SurfaceSource,
+    /// Episodes at this speed, rate and target.
+    pub episodes: usize,
+    /// Of them, those whose exact-surface run no keep-off guard touches (the others are
+    /// infeasible).
+    pub feasible: usize,
+    /// Feasible episodes this source runs without any keep-off guard touching, and their
+    /// fraction.
+    pub contact_free: usize,
+    pub contact_free_fraction: f64,
+    /// Episodes the delayed oracle runs contact-free, this source's contact-free ones among
+    /// them and their fraction.
+    pub oracle_survived: usize,
+    pub contact_free_of_oracle_survived: usize,
+    pub contact_free_fraction_of_oracle_survived: f64,
+    /// The same over the visible oracle's contact-free episodes.
+    pub visible_survived: usize,
+    pub contact_free_of_visible_survived: usize,
+    pub contact_free_fraction_of_visible_survived: f64,
+    /// Runs (of all episodes) in which the target guard touched the body.
+    pub target_contacts: usize,
+    /// Runs (of all episodes) in which another keep-off guard touched a body: a reaction
+    /// that pushed another link into the patient.
+    pub other_guard_contacts: usize,
+    /// Median and worst least `d_proj` of the target guard over the feasible episodes,
+    /// metres.
+    pub median_target_d_proj_m: f64,
+    pub worst_target_d_proj_m: f64,
+}
+
+/// The keep-off summary of `rows` per speed, camera rate (each, then all together), target
+/// guard (each in `targets`' order, then all together) and source.
+pub fn summarize_keep_off(
+    rows: &[GuardRow],
+    speeds_mps: &[f64],
+    targets: &[String],
+) -> Vec<GuardSummaryRow> {
+    let runs = keep_off_runs(rows);
+    let mut out = Vec::new();
+    for &speed in speeds_mps {
+        for rate in [30.0, 60.0, 90.0, 0.0] {
+            for target in targets.iter().map(|t| Some(t.as_str())).chain([None]) {
+                out.extend(keep_off_summary_at(&runs, speed, rate, target));
+            }
+        }
+    }
+    out
+}
+
+fn keep_off_summary_at(
+    runs: &[KeepOffRun<'_>],
+    speed: f64,
+    rate: f64,
+    target: Option<&str>,
+) -> Vec<GuardSummaryRow> {
+    let at = |source: SurfaceSource| {
+        runs.iter().filter(move |r| {
+            r.speed_mps == speed
+                && r.source == source
+                && (rate == 0.0 || r.camera_rate_hz == rate)
+                && target.is_none_or(|t| r.target == t)
+        })
+    };
+    let free = |source| {
+        at(source)
+            .filter(|r| r.contact_free())
+            .map(|r| r.episode)
+            .collect::<std::collections::HashSet<u32>>()
+    };
+    let feasible = free(SurfaceSource::Exact);
+    let oracle = free(SurfaceSource::DelayedOracle);
+    let visible = free(SurfaceSource::VisibleOracle);
+    SurfaceSource::ALL
+        .into_iter()
+        .map(|source| {
+            let all: Vec<&KeepOffRun<'_>> = at(source).collect();
+            let free_of = |set: &std::collections::HashSet<u32>| {
+                all.iter()
+                    .filter(|r| r.contact_free() && set.contains(&r.episode))
+                    .count()
+            };
+            let contact_free = free_of(&feasible);
+            let (of_oracle, of_visible) = (free_of(&oracle), free_of(&visible));
+            let gaps: Vec<f64> = all
+                .iter()
+                .filter(|r| feasible.contains(&r.episode))
+                .map(|r| r.target_d_proj_m)
+                .collect();
+            GuardSummaryRow {
+                speed_mps: speed,
+                camera_rate_hz: rate,
+                target: target.unwrap_or("all").to_string(),
+                source,
+                episodes: all.len(),
+                feasible: feasible.len(),
+                contact_free,
+                contact_free_fraction: fraction(contact_free, feasible.len()),
+                oracle_survived: oracle.len(),
+                contact_free_of_oracle_survived: of_oracle,
+                contact_free_fraction_of_oracle_survived: fraction(of_oracle, oracle.len()),
+                visible_survived: visible.len(),
+                contact_free_of_visible_survived: of_visible,
+                contact_free_fraction_of_visible_survived: fraction(of_visible, visible.len()),
+                target_contacts: all.iter().filter(|r| r.target_contact).count(),
+                other_guard_contacts: all.iter().filter(|r| r.other_contact).count(),
+                worst_target_d_proj_m: gaps.iter().copied().fold(f64::NAN, f64::min),
+                median_target_d_proj_m: median(gaps),
+            }
+        })
+        .collect()
+}
+
 /// A finished campaign.
 #[derive(Clone, Debug)]
 pub struct Campaign {
@@ -472,6 +720,8 @@ pub struct Campaign {
     /// The summary per body kind, every camera rate together.
     pub by_kind: Vec<SummaryRow>,
     pub contacts: Vec<ContactRow>,
+    /// The keep-off summary (empty for a handle campaign).
+    pub keep_off: Vec<GuardSummaryRow>,
 }
 
 impl Campaign {
@@ -505,6 +755,38 @@ impl Campaign {
         worst.truncate(count);
         worst
     }
+
+    /// Every keep-off guard's row, episode by episode.
+    pub fn guard_rows(&self) -> impl Iterator<Item = &GuardRow> {
+        self.episodes.iter().flat_map(|e| e.guards.iter())
+    }
+
+    /// The `count` perception runs of a keep-off campaign with the least target-guard
+    /// `d_proj` among those the delayed oracle runs contact-free, one per episode (the
+    /// episode's worst speed), worst first: the episode and the speed.
+    pub fn worst_keep_off(&self, count: usize) -> Vec<(&EpisodeResult, f64, f64)> {
+        let mut worst: Vec<(&EpisodeResult, f64, f64)> = self
+            .episodes
+            .iter()
+            .filter_map(|e| {
+                let runs = keep_off_runs(&e.guards);
+                runs.iter()
+                    .filter(|r| r.source == SurfaceSource::Perception)
+                    .filter(|r| {
+                        runs.iter().any(|o| {
+                            o.source == SurfaceSource::DelayedOracle
+                                && o.speed_mps == r.speed_mps
+                                && o.contact_free()
+                        })
+                    })
+                    .min_by(|a, b| a.target_d_proj_m.total_cmp(&b.target_d_proj_m))
+                    .map(|r| (e, r.speed_mps, r.target_d_proj_m))
+            })
+            .collect();
+        worst.sort_by(|a, b| a.2.total_cmp(&b.2));
+        worst.truncate(count);
+        worst
+    }
 }
 
 /// Runs the campaign (see the module doc); `progress` is called after each episode.
@@ -514,17 +796,35 @@ pub fn run(
     progress: &(dyn Fn() + Sync),
 ) -> Result<Campaign, CampaignError> {
     config.validate()?;
+    let guards = &options.sim.controller.guards;
+    let targets: Vec<String> = (guards.guards.iter())
+        .filter(|g| g.role == GuardRole::KeepOff)
+        .map(|g| g.name.clone())
+        .collect();
+    let keep_off = config.target == Target::KeepOff;
+    if keep_off && targets.is_empty() {
+        return Err(CampaignError::Value(
+            "--target keep-off needs keep-off guards, but the controller's guards are a \
+             single-HIP config (the handle alone)"
+                .into(),
+        ));
+    }
     let mut speeds = config.speeds_mps.clone();
     speeds.sort_by(f64::total_cmp);
     speeds.dedup();
     let options = SceneLoopOptions {
         render_threads: Some(1),
+        keep_off,
         ..options.clone()
     };
     let episodes: Vec<EpisodeResult> = (0..config.episodes)
         .into_par_iter()
         .map(|index| {
-            let e = episode::generate(config.seed, index).map_err(|e| CampaignError::Episode {
+            let drawn = match config.target {
+                Target::Handle => episode::generate(config.seed, index),
+                Target::KeepOff => episode::generate_keep_off(config.seed, index, guards),
+            };
+            let e = drawn.map_err(|e| CampaignError::Episode {
                 index,
                 source: e.into(),
             })?;
@@ -534,7 +834,13 @@ pub fn run(
         })
         .collect::<Result<_, _>>()?;
     let rows: Vec<RunRow> = episodes.iter().flat_map(|e| e.rows.clone()).collect();
+    let guard_rows: Vec<GuardRow> = episodes.iter().flat_map(|e| e.guards.clone()).collect();
     Ok(Campaign {
+        keep_off: if keep_off {
+            summarize_keep_off(&guard_rows, &speeds, &targets)
+        } else {
+            Vec::new()
+        },
         summary: summarize(&rows, &speeds),
         by_kind: summarize_by_kind(&rows, &speeds),
         contacts: contacts(&rows, &speeds),
@@ -573,6 +879,7 @@ mod tests {
             episodes: 10,
             seed: 1,
             speeds_mps: vec![1.0],
+            target: Target::Handle,
         };
         ok.validate().unwrap();
         for (config, needle) in [
@@ -696,6 +1003,71 @@ mod tests {
         assert_eq!(p.safe_fraction_of_visible_survived, 1.0);
         let v = at(VisibleOracle);
         assert_eq!((v.safe, v.safe_of_oracle_survived), (1, 1));
+    }
+
+    fn guard_row(episode: u32, source: SurfaceSource, guard: &str, min_d_proj_m: f64) -> GuardRow {
+        GuardRow {
+            episode,
+            kind: BodyKind::Arm,
+            target: "forearm".into(),
+            camera_rate_hz: 30.0,
+            speed_mps: 1.5,
+            source,
+            guard: guard.into(),
+            min_d_proj_m,
+            body: "approaching".into(),
+            contact: min_d_proj_m < 0.0,
+            contact_t_s: (min_d_proj_m < 0.0).then_some(1.0),
+        }
+    }
+
+    /// Episode 0: every source keeps the forearm off, perception pushes the elbow into the
+    /// torso (another guard's contact: not contact-free). Episode 1: the delayed oracle lets
+    /// the forearm touch. Episode 2: infeasible (the exact surface pushes the upper arm in).
+    #[test]
+    fn the_keep_off_summary_counts_target_and_other_guards_apart() {
+        use SurfaceSource::{DelayedOracle, Exact, Perception};
+        let mut rows = Vec::new();
+        for (episode, source, forearm, elbow, upper_arm) in [
+            (0, Exact, 0.02, 0.03, 0.05),
+            (0, DelayedOracle, 0.01, 0.03, 0.05),
+            (0, Perception, 0.005, -0.004, 0.05),
+            (1, Exact, 0.02, 0.03, 0.05),
+            (1, DelayedOracle, -0.01, 0.03, 0.05),
+            (1, Perception, 0.004, 0.03, 0.05),
+            (2, Exact, 0.02, 0.03, -0.002),
+            (2, DelayedOracle, -0.03, 0.03, 0.05),
+            (2, Perception, -0.02, 0.03, 0.05),
+        ] {
+            rows.push(guard_row(episode, source, "forearm", forearm));
+            rows.push(guard_row(episode, source, "elbow", elbow));
+            rows.push(guard_row(episode, source, "upper_arm", upper_arm));
+        }
+        let targets = ["forearm".to_string(), "elbow".to_string()];
+        let s = summarize_keep_off(&rows, &[1.5], &targets);
+        // 4 rates x (2 targets + all) x 4 sources
+        assert_eq!(s.len(), 4 * 3 * 4);
+        let at = |target: &str, source| {
+            s.iter()
+                .find(|r| r.camera_rate_hz == 0.0 && r.target == target && r.source == source)
+                .unwrap()
+        };
+        let p = at("forearm", Perception);
+        assert_eq!((p.episodes, p.feasible, p.contact_free), (3, 2, 1));
+        assert_eq!(p.contact_free_fraction, 0.5);
+        assert_eq!(
+            (p.oracle_survived, p.contact_free_of_oracle_survived),
+            (1, 0)
+        );
+        assert_eq!((p.target_contacts, p.other_guard_contacts), (1, 1));
+        assert_eq!(p.worst_target_d_proj_m, 0.004);
+        assert!((p.median_target_d_proj_m - 0.0045).abs() < 1e-12);
+        let o = at("forearm", DelayedOracle);
+        assert_eq!((o.contact_free, o.target_contacts), (1, 2));
+        let e = at("forearm", Exact);
+        assert_eq!((e.contact_free, e.other_guard_contacts), (2, 1));
+        assert_eq!(at("all", Perception).episodes, 3);
+        assert_eq!(at("elbow", Perception).episodes, 0);
     }
 
     /// Per body kind: each kind's rows count its own episodes only, and the kinds' counts

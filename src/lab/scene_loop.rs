@@ -706,7 +706,7 @@ pub fn simulate_scene(
                 .iter()
                 .find(|b| b.name == truth.body)
                 .map_or(Vector3::zeros(), |b| {
-                    (b.motion.offset_at(t + h) - b.motion.offset_at(t - h)) / (2.0 * h)
+                    b.point_velocity(t, &truth.closest_m, h)
                 });
             metrics.first_contact = Some(FirstContact {
                 t_s: t,
@@ -797,7 +797,7 @@ fn visible_surface(
         .iter()
         .find(|b| b.name == seen.body)
         .map_or(Vector3::zeros(), |b| {
-            (b.motion.offset_at(t_s + h) - b.motion.offset_at(t_s - h)) / (2.0 * h)
+            b.point_velocity(t_s, &seen.point_m, h)
         });
     Some(known_surface(t_s, seen.point_m, normal, velocity))
 }
@@ -845,6 +845,7 @@ mod tests {
             },
             motion: Default::default(),
             visible: true,
+            carried_by: None,
         }];
         (Scene::new(scene.file, "test").unwrap(), hip, q)
     }

@@ -12,7 +12,10 @@
 //! `forearm_to_thigh` (the forearm lowered across the lap, its elbow drive onto the right
 //! thigh), `elbow_to_torso` (the elbow drive swung in to the torso's flank),
 //! `shoulder_beside_head` (the shoulder mechanism rising beside the head) and
-//! `other_hand_to_forearm` (the patient's left hand reaching for the exoskeleton's forearm). Each comes in a
+//! `other_hand_to_forearm` (the patient's left hand reaching for the exoskeleton's forearm)
+//! and `leaning_onto_forearm` (the seated patient's upper body leaning forward about the hips
+//! onto the exoskeleton's forearm: a `[[group]]` rotation carrying torso, neck, head and left
+//! arm). Each comes in a
 //! `_clean` variant (no effects: the exact analytic surface) and a `_realistic` one (D435
 //! noise, holes, occlusion, an extrinsic bias of a few mm, timing effects).
 //!
@@ -39,6 +42,7 @@ const WITH_THIGHS: &[&str] = &[
     "elbow_to_torso",
     "shoulder_beside_head",
     "other_hand_to_forearm",
+    "leaning_onto_forearm",
 ];
 
 /// The experiments, each embedded once, with the camera mount they are seen through.
@@ -106,6 +110,11 @@ const EXPERIMENTS: &[(&str, &str, &str)] = &[
     (
         "other_hand_to_forearm",
         include_str!("../../tools/scenes/other_hand_to_forearm.toml"),
+        CAMERAS,
+    ),
+    (
+        "leaning_onto_forearm",
+        include_str!("../../tools/scenes/leaning_onto_forearm.toml"),
         CAMERAS,
     ),
 ];

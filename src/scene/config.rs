@@ -13,7 +13,7 @@
 //!   analytic surface).
 
 use super::effects::Effect;
-use super::motion::Motion;
+use super::motion::{Motion, Rotation};
 use super::shape::Shape;
 use crate::camera::PinholeIntrinsics;
 use nalgebra::{Isometry3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
@@ -41,6 +41,21 @@ pub struct SceneFile {
     /// Sensor effects, applied only when listed.
     #[serde(rename = "effect")]
     pub effects: Vec<Effect>,
+    /// Bodies that move together as one rigid part (each body in at most one group).
+    #[serde(rename = "group", skip_serializing_if = "Vec::is_empty")]
+    pub groups: Vec<BodyGroup>,
+}
+
+/// Named bodies moving together: each is carried by the group's rotation on top of its own
+/// motion (a patient leaning forward: torso, neck, head and arm rotating about the hips,
+/// the torso still breathing).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BodyGroup {
+    pub name: String,
+    /// The bodies it carries, by name.
+    pub bodies: Vec<String>,
+    pub rotation: Rotation,
 }
 
 impl Default for SceneFile {
@@ -54,6 +69,7 @@ impl Default for SceneFile {
             robot: None,
             cameras: Vec::new(),
             effects: Vec::new(),
+            groups: Vec::new(),
         }
     }
 }
@@ -71,6 +87,35 @@ pub struct BodyConfig {
     /// False for a surface that exists for ground truth and control only (not rendered).
     #[serde(default = "yes")]
     pub visible: bool,
+    /// The rotation of the `[[group]]` carrying the body (set from the scene's groups by
+    /// [`SceneFile::carry_groups`]; None: the body moves by its own motion alone).
+    #[serde(skip)]
+    pub carried_by: Option<Rotation>,
+}
+
+impl BodyConfig {
+    /// World from the body's frame at `t_s`: its own motion's offset, carried by its group.
+    pub fn pose_at(&self, t_s: f64) -> Isometry3<f64> {
+        let own = Translation3::from(self.motion.offset_at(t_s));
+        match &self.carried_by {
+            None => own.into(),
+            Some(r) => r.pose_at(t_s) * own,
+        }
+    }
+
+    /// Velocity of the body's point that is at `point_m` (world) at `t_s`, m/s (central
+    /// difference over `h_s`).
+    pub fn point_velocity(&self, t_s: f64, point_m: &Point3<f64>, h_s: f64) -> Vector3<f64> {
+        match &self.carried_by {
+            None => {
+                (self.motion.offset_at(t_s + h_s) - self.motion.offset_at(t_s - h_s)) / (2.0 * h_s)
+            }
+            Some(_) => {
+                let local = self.pose_at(t_s).inverse() * point_m;
+                (self.pose_at(t_s + h_s) * local - self.pose_at(t_s - h_s) * local) / (2.0 * h_s)
+            }
+        }
+    }
 }
 
 fn yes() -> bool {
@@ -279,6 +324,31 @@ impl SceneFile {
             ));
         }
         let mut names = std::collections::HashSet::new();
+        let mut grouped = std::collections::HashMap::new();
+        for group in &self.groups {
+            let ctx = |e: String| format!("group `{}`: {e}", group.name);
+            if group.bodies.is_empty() {
+                return Err(ctx("carries no body".into()));
+            }
+            for name in &group.bodies {
+                if !self.bodies.iter().any(|b| &b.name == name) {
+                    return Err(ctx(format!(
+                        "no body called `{name}` (bodies: {})",
+                        self.bodies
+                            .iter()
+                            .map(|b| b.name.as_str())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )));
+                }
+                if let Some(other) = grouped.insert(name.as_str(), group.name.as_str()) {
+                    return Err(ctx(format!(
+                        "body `{name}` is already carried by group `{other}`"
+                    )));
+                }
+            }
+            group.rotation.validate().map_err(ctx)?;
+        }
         for body in &self.bodies {
             let ctx = |e: String| format!("body `{}`: {e}", body.name);
             if body.name.is_empty() {
@@ -375,6 +445,18 @@ impl SceneFile {
             return Err(format!("effect `{}` is listed twice", w[0]));
         }
         Ok(())
+    }
+}
+
+impl SceneFile {
+    /// Gives every body its group's rotation ([`BodyConfig::carried_by`]; None outside
+    /// every group). The scene's groups must be valid ([`SceneFile::validate`]).
+    pub fn carry_groups(&mut self) {
+        for body in &mut self.bodies {
+            body.carried_by = (self.groups.iter())
+                .find(|g| g.bodies.contains(&body.name))
+                .map(|g| g.rotation.clone());
+        }
     }
 }
 

@@ -31,8 +31,10 @@
 use super::config::{HipSegment, RobotConfig, RobotMotion};
 use super::effects::{DroppedFrames, Effect, ExtrinsicBias, Latency};
 use super::motion::Motion;
+use super::robot_track::RobotTrack;
 use super::shape::Shape;
 use super::{BodyConfig, Scene, SceneError, builtin, truth};
+use crate::robot::guards::{GuardConfig, GuardSegment, GuardSet};
 use nalgebra::{Point3, UnitQuaternion, Vector2, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -106,7 +108,9 @@ pub struct Episode {
     pub seed: u64,
     pub index: u32,
     pub kind: BodyKind,
-    /// Unit direction from the HIP centre to where the body starts (it moves along `-u`).
+    /// The keep-off guard the body comes at (None: the handle).
+    pub guard: Option<String>,
+    /// Unit direction from the HIP centre (a keep-off episode: from its guard's aim point) to where the body starts (it moves along `-u`).
     pub approach: Vector3<f64>,
     /// Clearance between the body's surface and the HIP centre at the start, metres.
     pub start_distance_m: f64,
@@ -212,29 +216,21 @@ fn draw_shape(rng: &mut ChaCha8Rng, kind: BodyKind, c: Point3<f64>, u: &Vector3<
     }
 }
 
-/// Signed distance from `hip` to `body` moved by `offset`.
-fn distance(body: &BodyConfig, offset: Vector3<f64>, hip: &Point3<f64>) -> f64 {
-    let moved = BodyConfig {
-        motion: Motion::ConstantVelocity {
-            velocity_m_s: offset,
-            start_s: 0.0,
-        },
-        ..body.clone()
-    };
-    truth::posed_body(&moved, 1.0).closest(hip).distance_m
-}
-
 /// Step of the scan along the body's path for where it sweeps the HIP centre, metres.
 const SCAN_STEP_M: f64 = 0.002;
 
-/// Where along `u` (offset `s u` of the body placed around the HIP) the body's surface is
-/// nearest the HIP centre, and that distance (scan of `[-1, 1]` m).
-fn nearest_along(body: &BodyConfig, u: &Vector3<f64>, hip: &Point3<f64>) -> (f64, f64) {
+/// Where along `u` (offset `s u` of the body placed around its aim point) the body's surface
+/// is nearest the target by `to_target`, and that distance (scan of `[-1, 1]` m).
+fn nearest_along(
+    body: &BodyConfig,
+    u: &Vector3<f64>,
+    to_target: &dyn Fn(&BodyConfig, Vector3<f64>) -> f64,
+) -> (f64, f64) {
     let steps = (2.0 / SCAN_STEP_M) as i32;
     (0..=steps)
         .map(|i| {
             let s = -1.0 + f64::from(i) * SCAN_STEP_M;
-            (s, distance(body, u * s, hip))
+            (s, to_target(body, u * s))
         })
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .unwrap_or((0.0, f64::INFINITY))
@@ -245,94 +241,130 @@ pub fn generate(seed: u64, index: u32) -> Result<Episode, SceneError> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(u64::from(index));
     let base = Vector3::from(BASE_XYZ_M);
-    let hip = Point3::from(
-        Vector3::from(HIP_M) + Vector3::from_fn(|_, _| uniform(&mut rng, -HIP_BOX_M..HIP_BOX_M)),
-    );
+    let hip = draw_hip(&mut rng);
     let away = (hip.coords - base).normalize();
     let mut u = unit(&mut rng);
     if u.dot(&away) < 0.0 {
         u = -u;
     }
     let kind = BodyKind::ALL[rng.random_range(0..BodyKind::ALL.len())];
-    let w = perpendicular(&mut rng, &u);
-    // the shape around the HIP (offset 0), then the lateral offset, redrawn until the path
-    // sweeps the HIP centre
-    let centred = BodyConfig {
-        name: MOVING_BODY.into(),
-        geometry: draw_shape(&mut rng, kind, hip, &u),
-        motion: Motion::Static,
-        visible: true,
-    };
-    let mut lateral = uniform(&mut rng, 0.0..MAX_LATERAL_M);
-    let (body, s_cross) = loop {
-        let mut body = centred.clone();
-        body.geometry = shifted(&centred.geometry, w * lateral);
-        let (s, d) = nearest_along(&body, &u, &hip);
-        if d <= SCAN_STEP_M {
-            break (body, s);
-        }
-        if lateral == 0.0 {
-            return Err(invalid(
-                seed,
-                index,
-                format!("the drawn {} never reaches the HIP centre", kind.name()),
-            ));
-        }
-        lateral *= 0.5;
-        if lateral < 1e-3 {
-            lateral = 0.0;
-        }
-    };
-    // start where the surface is `start_distance` from the HIP centre (the distance grows
-    // monotonically past `s_cross`: a convex body moving away along a line)
-    let start_distance = uniform(&mut rng, START_DISTANCE_M);
-    let (mut lo, mut hi) = (s_cross, s_cross + 2.0);
-    for _ in 0..60 {
-        let mid = 0.5 * (lo + hi);
-        if distance(&body, u * mid, &hip) < start_distance {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    let s_start = 0.5 * (lo + hi);
-    // where the leading surface reaches the HIP centre (the distance falls to zero between
-    // `s_cross` and the start)
-    let (mut lo, mut hi) = (s_cross, s_start);
-    for _ in 0..60 {
-        let mid = 0.5 * (lo + hi);
-        if distance(&body, u * mid, &hip) <= 0.0 {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    let travel_m = s_start - 0.5 * (lo + hi) + PASS_M;
-    let rate_hz = [30.0, 60.0, 90.0][rng.random_range(0..3usize)];
-    let phase_s = uniform(&mut rng, 0.0..1.0 / rate_hz);
-    let scene_seed = rng.random::<u64>();
-    let bias = ExtrinsicBias {
-        translation_std_m: uniform(&mut rng, 0.001..0.005),
-        rotation_std_rad: uniform(&mut rng, 0.1..0.4).to_radians(),
-    };
-    let jitter_std_s = uniform(&mut rng, 0.001..0.008);
-    let drop_probability = uniform(&mut rng, 0.0..0.05);
+    let path = draw_path(
+        &mut rng,
+        (seed, index),
+        kind,
+        (hip, u),
+        &point(hip, SCAN_STEP_M),
+    )?;
+    assemble(
+        &mut rng,
+        (seed, index),
+        (
+            format!("episode_{seed}_{index}"),
+            "episode",
+            "the resting handle".into(),
+            "the HIP centre",
+        ),
+        (kind, u, hip),
+        path,
+        None,
+    )
+}
 
-    let mut file = builtin::common_parts()?;
-    let duration_s = START_S + travel_m / NOMINAL_SPEED_MPS;
-    file.name = format!("episode_{seed}_{index}");
-    file.description = format!(
-        "Campaign episode {index} of seed {seed}: approaching body of kind `{}` coming at the resting handle from \
-         ({:.3}, {:.3}, {:.3}), {start_distance:.3} m away, {lateral:.3} m off the HIP centre",
-        kind.name(),
-        u.x,
-        u.y,
-        u.z
-    );
-    file.seed = scene_seed;
-    file.duration_s = duration_s;
-    file.robot = Some(RobotConfig {
-        base_xyz_m: base,
+/// Stream of keep-off episode `index`: `KEEP_OFF_STREAM + index`, apart from every handle
+/// episode's stream.
+const KEEP_OFF_STREAM: u64 = 1 << 32;
+/// Draws of guard, direction and body a keep-off episode makes until its body starts clear
+/// of the HIP sphere and of every keep-off guard.
+const KEEP_OFF_DRAWS: usize = 32;
+
+/// Draws keep-off episode `index` of campaign `seed` for the guards `guards`: as
+/// [`generate`], but aimed at a keep-off guard drawn uniformly from the config's
+/// (`Episode::guard`). The body's path crosses that guard's capsule (its sweep comes within
+/// the guard's radius of its core); the approach direction is uniform over the half-space
+/// facing away from the robot's base at the guard (`u . (c - base) >= 0`, `c` the middle of
+/// its core); the aim point is uniform along the core, the lateral offset (up to
+/// [`MAX_LATERAL_M`], halved until the path crosses the capsule) and the start clearance
+/// (between the body's surface and the core, uniform in [`START_DISTANCE_M`]) as for the
+/// handle; the leading surface goes [`PASS_M`] past the core. Guard, direction and body are
+/// redrawn (at most [`KEEP_OFF_DRAWS`] times) while the body would start touching the HIP
+/// sphere or a keep-off guard.
+pub fn generate_keep_off(
+    seed: u64,
+    index: u32,
+    guards: &GuardConfig,
+) -> Result<Episode, SceneError> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(KEEP_OFF_STREAM + u64::from(index));
+    let base = Vector3::from(BASE_XYZ_M);
+    let hip = draw_hip(&mut rng);
+    // the robot holding the HIP: its guards where the scene's robot will hold them
+    let track = RobotTrack::new(&holding(hip, 1e-3), 1e-3)
+        .map_err(|m| invalid(seed, index, format!("robot: {m}")))?;
+    let model = track.model();
+    let set = GuardSet::new(model, guards).map_err(|e| invalid(seed, index, e.to_string()))?;
+    if set.keep_off().is_empty() {
+        return Err(invalid(
+            seed,
+            index,
+            "the guard config has no keep-off guard (a single-HIP config): nothing to aim at"
+                .into(),
+        ));
+    }
+    let poses = model.forward_kinematics(&track.joints_at(0.0));
+    let posed: Vec<(&str, GuardSegment)> = (set.keep_off().iter())
+        .map(|&k| (set.guards()[k].name.as_str(), set.guards()[k].world(&poses)))
+        .collect();
+    let r_hip = model.hip_radius_m();
+    for _ in 0..KEEP_OFF_DRAWS {
+        let (name, target) = posed[rng.random_range(0..posed.len())];
+        let middle = nalgebra::center(&target.a_m, &target.b_m);
+        let mut u = unit(&mut rng);
+        if u.dot(&(middle.coords - base)) < 0.0 {
+            u = -u;
+        }
+        let kind = BodyKind::ALL[rng.random_range(0..BodyKind::ALL.len())];
+        let aim = target.a_m + (target.b_m - target.a_m) * rng.random::<f64>();
+        let path = draw_path(&mut rng, (seed, index), kind, (aim, u), &target)?;
+        let start = path.offset_m;
+        let clear = core_distance(&path.body, start, &point(hip, 0.0)) > r_hip
+            && posed
+                .iter()
+                .all(|(_, g)| core_distance(&path.body, start, g) > g.radius_m);
+        if !clear {
+            continue;
+        }
+        return assemble(
+            &mut rng,
+            (seed, index),
+            (
+                format!("episode_keep_off_{seed}_{index}"),
+                "keep-off episode",
+                format!("keep-off guard `{name}`"),
+                "its aim point on the guard's core",
+            ),
+            (kind, u, hip),
+            path,
+            Some(name.to_string()),
+        );
+    }
+    Err(invalid(
+        seed,
+        index,
+        format!("no body drawn in {KEEP_OFF_DRAWS} tries starts clear of the robot's guards"),
+    ))
+}
+
+/// The resting HIP: the built-in scenes' plus up to ±[`HIP_BOX_M`] per axis.
+fn draw_hip(rng: &mut ChaCha8Rng) -> Point3<f64> {
+    Point3::from(
+        Vector3::from(HIP_M) + Vector3::from_fn(|_, _| uniform(rng, -HIP_BOX_M..HIP_BOX_M)),
+    )
+}
+
+/// The robot at its base holding the HIP at `hip` for `duration_s`.
+fn holding(hip: Point3<f64>, duration_s: f64) -> RobotConfig {
+    RobotConfig {
+        base_xyz_m: Vector3::from(BASE_XYZ_M),
         base_rpy_rad: Vector3::zeros(),
         visible: true,
         motion: RobotMotion::HipPath {
@@ -340,7 +372,161 @@ pub fn generate(seed: u64, index: u32) -> Result<Episode, SceneError> {
             initial_joints_rad: INITIAL_JOINTS_RAD.to_vec(),
             segments: vec![HipSegment::Hold { duration_s }],
         },
-    });
+    }
+}
+
+/// The point `p` as a segment of no length swept by `radius_m`.
+fn point(p: Point3<f64>, radius_m: f64) -> GuardSegment {
+    GuardSegment {
+        a_m: p,
+        b_m: p,
+        radius_m,
+    }
+}
+
+/// Signed distance from `core`'s segment (its radius left out) to `body` moved by `offset`.
+fn core_distance(body: &BodyConfig, offset: Vector3<f64>, core: &GuardSegment) -> f64 {
+    let moved = BodyConfig {
+        motion: Motion::ConstantVelocity {
+            velocity_m_s: offset,
+            start_s: 0.0,
+        },
+        ..body.clone()
+    };
+    let bare = GuardSegment {
+        radius_m: 0.0,
+        ..*core
+    };
+    truth::closest_to_guard(std::slice::from_ref(&moved), 1.0, &bare)
+        .map_or(f64::INFINITY, |t| t.gap_m)
+}
+
+/// A moving body's drawn path: the body around its target, shifted laterally, and where
+/// along `u` it starts.
+struct Path {
+    body: BodyConfig,
+    /// Lateral offset of the path from the aim point, metres.
+    lateral_m: f64,
+    /// Clearance between the body's surface and the target at the start, metres.
+    start_distance_m: f64,
+    /// The body's offset along `u` at the start (`s_start u`).
+    offset_m: Vector3<f64>,
+    /// How far it travels: to where its leading surface reaches the target, then
+    /// [`PASS_M`] on, metres.
+    travel_m: f64,
+}
+
+/// Draws the body of `kind` around `aim`, its lateral offset (halved until its path along
+/// `u` comes within `target`'s radius of its segment) and its start clearance (from the
+/// segment), and places its start.
+fn draw_path(
+    rng: &mut ChaCha8Rng,
+    (seed, index): (u64, u32),
+    kind: BodyKind,
+    (aim, u): (Point3<f64>, Vector3<f64>),
+    target: &GuardSegment,
+) -> Result<Path, SceneError> {
+    let to_target = |b: &BodyConfig, offset: Vector3<f64>| core_distance(b, offset, target);
+    let w = perpendicular(rng, &u);
+    // the shape around the aim point (offset 0), then the lateral offset, redrawn until the
+    // path sweeps the target
+    let centred = BodyConfig {
+        name: MOVING_BODY.into(),
+        geometry: draw_shape(rng, kind, aim, &u),
+        motion: Motion::Static,
+        visible: true,
+        carried_by: None,
+    };
+    let mut lateral = uniform(rng, 0.0..MAX_LATERAL_M);
+    let (body, s_cross) = loop {
+        let mut body = centred.clone();
+        body.geometry = shifted(&centred.geometry, w * lateral);
+        let (s, d) = nearest_along(&body, &u, &to_target);
+        if d <= target.radius_m {
+            break (body, s);
+        }
+        if lateral == 0.0 {
+            return Err(invalid(
+                seed,
+                index,
+                format!("the drawn {} never reaches its target", kind.name()),
+            ));
+        }
+        lateral *= 0.5;
+        if lateral < 1e-3 {
+            lateral = 0.0;
+        }
+    };
+    // start where the surface is `start_distance` from the target (the distance grows
+    // monotonically past `s_cross`: a convex body moving away along a line)
+    let start_distance = uniform(rng, START_DISTANCE_M);
+    let (mut lo, mut hi) = (s_cross, s_cross + 2.0);
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if to_target(&body, u * mid) < start_distance {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let s_start = 0.5 * (lo + hi);
+    // where the leading surface reaches the target (the distance falls to zero between
+    // `s_cross` and the start)
+    let (mut lo, mut hi) = (s_cross, s_start);
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if to_target(&body, u * mid) <= 0.0 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Ok(Path {
+        body,
+        lateral_m: lateral,
+        start_distance_m: start_distance,
+        offset_m: u * s_start,
+        travel_m: s_start - 0.5 * (lo + hi) + PASS_M,
+    })
+}
+
+/// The episode's scene, named `name` and described as an `episode` coming at `target`, its
+/// path `off` by the lateral offset: the common parts, the robot holding `hip`, the cameras'
+/// rate and phase, the effects' draws and the moving body on `path` along `-u`.
+fn assemble(
+    rng: &mut ChaCha8Rng,
+    (seed, index): (u64, u32),
+    (name, episode, target, off): (String, &str, String, &str),
+    (kind, u, hip): (BodyKind, Vector3<f64>, Point3<f64>),
+    path: Path,
+    guard: Option<String>,
+) -> Result<Episode, SceneError> {
+    let rate_hz = [30.0, 60.0, 90.0][rng.random_range(0..3usize)];
+    let phase_s = uniform(rng, 0.0..1.0 / rate_hz);
+    let scene_seed = rng.random::<u64>();
+    let bias = ExtrinsicBias {
+        translation_std_m: uniform(rng, 0.001..0.005),
+        rotation_std_rad: uniform(rng, 0.1..0.4).to_radians(),
+    };
+    let jitter_std_s = uniform(rng, 0.001..0.008);
+    let drop_probability = uniform(rng, 0.0..0.05);
+
+    let mut file = builtin::common_parts()?;
+    let duration_s = START_S + path.travel_m / NOMINAL_SPEED_MPS;
+    file.name = name;
+    file.description = format!(
+        "Campaign {episode} {index} of seed {seed}: approaching body of kind `{}` coming at {target} from \
+         ({:.3}, {:.3}, {:.3}), {:.3} m away, {:.3} m off {off}",
+        kind.name(),
+        u.x,
+        u.y,
+        u.z,
+        path.start_distance_m,
+        path.lateral_m
+    );
+    file.seed = scene_seed;
+    file.duration_s = duration_s;
+    file.robot = Some(holding(hip, duration_s));
     for (i, cam) in file.cameras.iter_mut().enumerate() {
         cam.rate_hz = rate_hz;
         cam.phase_s = if i == 0 { 0.0 } else { phase_s };
@@ -363,21 +549,22 @@ pub fn generate(seed: u64, index: u32) -> Result<Episode, SceneError> {
         }
     }
     file.bodies.push(BodyConfig {
-        geometry: shifted(&body.geometry, u * s_start),
+        geometry: shifted(&path.body.geometry, path.offset_m),
         motion: Motion::ConstantVelocity {
             velocity_m_s: -u * NOMINAL_SPEED_MPS,
             start_s: START_S,
         },
-        ..body
+        ..path.body
     });
     let scene = Scene::new(file, &format!("episode {index} of seed {seed}"))?;
     Ok(Episode {
         seed,
         index,
         kind,
+        guard,
         approach: u,
-        start_distance_m: start_distance,
-        lateral_offset_m: lateral,
+        start_distance_m: path.start_distance_m,
+        lateral_offset_m: path.lateral_m,
         camera_rate_hz: rate_hz,
         scene,
     })
@@ -539,6 +726,131 @@ mod tests {
         }
         assert_eq!(kinds.len(), 4, "{kinds:?}");
         assert_eq!(rates.len(), 3, "{rates:?}");
+    }
+
+    /// The handle's episodes are drawn exactly as before keep-off episodes existed: seed 3's
+    /// first four draws, as the campaign of that build wrote them to
+    /// `campaign-episodes.csv` and its worst episodes' scene files.
+    #[test]
+    fn the_handle_episodes_are_drawn_as_before() {
+        let drawn = [
+            (
+                BodyKind::Head,
+                90.0,
+                0.48035235062401976,
+                0.013377333789610863,
+                [
+                    0.3574639940491999,
+                    -0.24069600139759703,
+                    -0.9023773755306599,
+                ],
+                Some(10820783743816355085),
+            ),
+            (
+                BodyKind::Head,
+                60.0,
+                0.40022057229129554,
+                0.044368400414797,
+                [0.37209781420819726, 0.6349536993768152, -0.6770354616334204],
+                None,
+            ),
+            (
+                BodyKind::Head,
+                60.0,
+                0.5949333682374818,
+                0.05522749502119236,
+                [
+                    0.9868716049316227,
+                    -0.08915785498867036,
+                    -0.13466741355466266,
+                ],
+                Some(5169279896034574112),
+            ),
+            (
+                BodyKind::Plate,
+                60.0,
+                0.3800307134448721,
+                0.057309757386076604,
+                [
+                    0.48963890060642606,
+                    -0.4572292274302336,
+                    -0.7424252020213767,
+                ],
+                None,
+            ),
+        ];
+        for (index, (kind, rate, start, lateral, u, scene_seed)) in (0..).zip(drawn) {
+            let e = generate(3, index).unwrap();
+            assert_eq!(
+                (
+                    e.kind,
+                    e.camera_rate_hz,
+                    e.start_distance_m,
+                    e.lateral_offset_m
+                ),
+                (kind, rate, start, lateral),
+                "{index}"
+            );
+            assert_eq!(e.approach, Vector3::from(u), "{index}");
+            assert_eq!(e.guard, None);
+            assert_eq!(e.scene.file.name, format!("episode_3_{index}"));
+            if let Some(seed) = scene_seed {
+                assert_eq!(e.scene.file.seed, seed, "{index}");
+            }
+        }
+    }
+
+    /// Keep-off episodes: each aims at a keep-off guard of the config, its body starts clear
+    /// of the HIP sphere and of every keep-off guard, at the drawn clearance from its
+    /// target's core, on the side facing away from the base, and its path crosses the
+    /// target's capsule with the robot holding still. A single-HIP config is refused.
+    #[test]
+    fn keep_off_episodes_cross_their_guard_from_a_clear_start() {
+        let config = GuardConfig::default();
+        let mut targets = std::collections::BTreeSet::new();
+        for index in 0..12 {
+            let e = generate_keep_off(4, index, &config).unwrap();
+            assert_eq!(e, generate_keep_off(4, index, &config).unwrap());
+            assert!(e.scene.file.name.starts_with("episode_keep_off_4_"));
+            let name = e.guard.clone().unwrap();
+            let sim = super::super::Simulator::new(&e.scene).unwrap();
+            let model = sim.robot_model().unwrap();
+            let set = GuardSet::new(model, &config).unwrap();
+            let poses = model.forward_kinematics(&sim.joints_at(0.0).unwrap());
+            let body = e.scene.file.bodies.last().unwrap();
+            let gap = |g: &crate::robot::guards::Guard, t: f64| {
+                truth::closest_to_guard(std::slice::from_ref(body), t, &g.world(&poses))
+                    .unwrap()
+                    .gap_m
+            };
+            for &k in set.keep_off() {
+                assert!(gap(&set.guards()[k], 0.0) > 0.0, "{e:?}");
+            }
+            let hip = sim.hip_at(0.0).unwrap();
+            let r_hip = sim.hip_radius_m().unwrap();
+            assert!(truth::posed_body(body, 0.0).closest(&hip).distance_m > r_hip);
+            let target = (set.guards().iter()).find(|g| g.name == name).unwrap();
+            let seg = target.world(&poses);
+            let d0 = gap(target, 0.0) + seg.radius_m;
+            assert!((d0 - e.start_distance_m).abs() < 1e-4, "{d0} {e:?}");
+            let middle = nalgebra::center(&seg.a_m, &seg.b_m);
+            assert!(e.approach.dot(&(middle.coords - Vector3::from(BASE_XYZ_M))) >= 0.0);
+            let deepest = (0..=1000)
+                .map(|i| gap(target, sim.duration_s() * f64::from(i) / 1000.0))
+                .fold(f64::INFINITY, f64::min);
+            assert!(deepest < 0.0, "{deepest} {e:?}");
+            check_approach_guarded(&e.scene, &config).unwrap();
+            targets.insert(name);
+        }
+        assert!(targets.len() >= 3, "{targets:?}");
+        assert_ne!(
+            generate_keep_off(4, 0, &config).unwrap().scene.file.bodies,
+            generate(4, 0).unwrap().scene.file.bodies
+        );
+        let err = generate_keep_off(4, 0, &GuardConfig::single_hip())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("single-HIP"), "{err}");
     }
 
     #[test]

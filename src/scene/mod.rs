@@ -29,10 +29,11 @@ pub mod shape;
 pub mod truth;
 
 pub use config::{
-    BodyConfig, CameraConfig, HipSegment, Resolution, RobotConfig, RobotMotion, SceneFile,
+    BodyConfig, BodyGroup, CameraConfig, HipSegment, Resolution, RobotConfig, RobotMotion,
+    SceneFile,
 };
 pub use effects::Effect;
-pub use motion::Motion;
+pub use motion::{Motion, Rotation};
 pub use shape::{Shape, Solid};
 pub use truth::GroundTruth;
 
@@ -40,7 +41,7 @@ use crate::camera::{Frame, PinholeIntrinsics};
 use crate::robot::JointVector;
 use crate::robot::guards::GuardSet;
 use effects::Compiled;
-use nalgebra::{Isometry3, Point3, Translation3};
+use nalgebra::{Isometry3, Point3};
 use render::{FrameKey, RawView};
 use robot_track::RobotTrack;
 use std::path::Path;
@@ -105,11 +106,12 @@ impl Scene {
     }
 
     /// Validates an in-memory scene (e.g. a built-in one with a changed parameter).
-    pub fn new(file: SceneFile, origin: &str) -> Result<Self, SceneError> {
+    pub fn new(mut file: SceneFile, origin: &str) -> Result<Self, SceneError> {
         file.validate().map_err(|message| SceneError::Invalid {
             origin: origin.into(),
             message,
         })?;
+        file.carry_groups();
         Ok(Self {
             file,
             origin: origin.into(),
@@ -596,7 +598,7 @@ impl Simulator {
             .filter(|b| b.visible)
             .map(|b| Posed {
                 shape: b.geometry.clone(),
-                world_from_shape: Translation3::from(b.motion.offset_at(t_s)).into(),
+                world_from_shape: b.pose_at(t_s),
                 label: format!("patient:{}", b.name),
             })
             .collect();
@@ -741,6 +743,118 @@ mod tests {
         // The rising surface keeps its own speed rule (0.5 + 0.45 / v).
         let rising = builtin::rising_surface(1.5, true).unwrap();
         assert!((rising.file.duration_s - 0.8).abs() < 1e-12);
+    }
+
+    /// A `[[group]]` carries its bodies as one rigid part on top of their own motions: the
+    /// leaning scene's torso turns about the hip axis and still breathes, its points move at
+    /// `omega x r`, the thighs stay; a written scene loads back the same.
+    #[test]
+    fn a_group_carries_its_bodies_about_its_pivot() {
+        let scene = Scene::from_builtin("leaning_onto_forearm_clean").unwrap();
+        let body = |name: &str| scene.file.bodies.iter().find(|b| b.name == name).unwrap();
+        let (torso, thigh) = (body("torso"), body("right_thigh"));
+        let rotation = torso.carried_by.clone().unwrap();
+        assert!(thigh.carried_by.is_none());
+        let pivot = rotation.pivot_m;
+        // fully leaned at 3.2 s: a point of the torso's front, breathing offset included
+        let (t, x) = (3.2, Point3::new(0.10, 0.0, 0.40));
+        let angle = rotation.angle_at(t);
+        assert_eq!(angle, 0.3);
+        let breathing = torso.motion.offset_at(t);
+        let turned = torso.pose_at(t) * x;
+        let (s, c) = angle.sin_cos();
+        let r = x + breathing - pivot;
+        let expected = pivot + nalgebra::Vector3::new(c * r.x + s * r.z, r.y, -s * r.x + c * r.z);
+        assert!((turned - expected).norm() < 1e-12, "{turned} {expected}");
+        assert_eq!(
+            thigh.pose_at(t),
+            Isometry3::from(nalgebra::Translation3::from(thigh.motion.offset_at(t)))
+        );
+        // mid-lean at 2.25 s: the velocity of a carried point is omega x r (plus breathing's)
+        let t = 2.25;
+        let p = torso.pose_at(t) * x;
+        let h = 1e-5;
+        let omega = (rotation.angle_at(t + h) - rotation.angle_at(t - h)) / (2.0 * h);
+        let r = p - pivot;
+        let breathing_rate =
+            (torso.motion.offset_at(t + h) - torso.motion.offset_at(t - h)) / (2.0 * h);
+        let expected =
+            nalgebra::Vector3::y().cross(&r) * omega + torso.pose_at(t).rotation * breathing_rate;
+        let v = torso.point_velocity(t, &p, h);
+        assert!((v - expected).norm() < 1e-6, "{v} {expected}");
+        assert!(v.x > 0.1, "leaning forward: {v}");
+        let text = toml::to_string(&scene.file).unwrap();
+        assert!(text.contains("[[group]]"), "{text}");
+        assert_eq!(
+            Scene::from_toml_str(&text, "written").unwrap().file,
+            scene.file
+        );
+    }
+
+    /// Scenes without a `[[group]]` pose every body by its own motion alone, exactly as
+    /// before groups existed, and write no group key.
+    #[test]
+    fn a_scene_without_groups_poses_its_bodies_by_their_own_motion() {
+        for name in builtin::names() {
+            let scene = Scene::from_builtin(&name).unwrap();
+            if name.starts_with("leaning_onto_forearm") {
+                continue;
+            }
+            assert!(scene.file.groups.is_empty(), "{name}");
+            assert!(
+                !toml::to_string(&scene.file).unwrap().contains("group"),
+                "{name}"
+            );
+            for b in &scene.file.bodies {
+                assert!(b.carried_by.is_none(), "{name}");
+                for t in [0.0, 0.7, 1.9] {
+                    let own = Isometry3::from(nalgebra::Translation3::from(b.motion.offset_at(t)));
+                    assert_eq!(b.pose_at(t), own, "{name} {}", b.name);
+                }
+            }
+        }
+    }
+
+    /// A group naming a body the scene does not have, a body in two groups, a group without
+    /// bodies and a bad rotation are errors naming the group and the problem.
+    #[test]
+    fn bad_groups_are_named() {
+        let text = builtin::text("leaning_onto_forearm_clean").unwrap();
+        let bodies = "bodies = [\"torso\", \"neck\", \"head\", \"left_upper_arm\", \"left_forearm\", \"left_hand\"]";
+        assert!(text.contains(bodies));
+        let second = "\n[[group]]\nname = \"again\"\nbodies = [\"head\"]\nrotation = { pivot_m = [0.0, 0.0, 0.1], axis = [0.0, 1.0, 0.0], times_s = [0.0], angles_rad = [0.0] }\n";
+        for (changed, needle) in [
+            (
+                text.replace(bodies, "bodies = [\"torso\", \"tail\"]"),
+                "group `upper_body`: no body called `tail`",
+            ),
+            (text.replace(bodies, "bodies = []"), "carries no body"),
+            (
+                format!("{text}{second}"),
+                "`head` is already carried by group `upper_body`",
+            ),
+            (
+                text.replace(
+                    "angles_rad = [0.0, 0.3, 0.3, 0.0]",
+                    "angles_rad = [0.0, 0.3, 9.0, 0.0]",
+                ),
+                "angles_rad",
+            ),
+            (
+                text.replace("axis = [0.0, 1.0, 0.0]", "axis = [0.0, 0.0, 0.0]"),
+                "axis must be finite and non-zero",
+            ),
+            (
+                text.replace(
+                    "times_s = [1.5, 3.0, 3.5, 4.5]",
+                    "times_s = [1.5, 3.0, 3.0, 4.5]",
+                ),
+                "strictly increasing",
+            ),
+        ] {
+            let err = invalid(&changed);
+            assert!(err.contains(needle), "{needle}: {err}");
+        }
     }
 
     #[test]

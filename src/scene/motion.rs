@@ -7,7 +7,7 @@
 //! planned approach, impact and sliding motions.
 
 use super::config::HipSegment;
-use nalgebra::{Point3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3, Translation3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 /// Fastest body motion a scene may declare, m/s (the safe-speed sweeps go to 2.5 m/s).
@@ -138,6 +138,86 @@ impl Motion {
                 )
             }
         }
+    }
+}
+
+/// A rigid rotation over time about the axis `axis` through `pivot_m` (a seated patient's
+/// upper body leaning about the hip axis): `angles_rad` at increasing `times_s`, minimum-jerk
+/// blends between them, held outside. A point `x` of a carried body moves to
+/// `pivot + R(angle(t)) (x - pivot)`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Rotation {
+    pub pivot_m: Point3<f64>,
+    /// Rotation axis (normalised when used); a positive angle turns right-handed about it.
+    pub axis: Vector3<f64>,
+    pub times_s: Vec<f64>,
+    pub angles_rad: Vec<f64>,
+}
+
+impl Rotation {
+    /// The angle at `t_s`, radians.
+    pub fn angle_at(&self, t_s: f64) -> f64 {
+        let i = self.times_s.partition_point(|&t| t <= t_s);
+        if i == 0 {
+            return self.angles_rad[0];
+        }
+        if i == self.times_s.len() {
+            return self.angles_rad[i - 1];
+        }
+        let (t0, t1) = (self.times_s[i - 1], self.times_s[i]);
+        let (a0, a1) = (self.angles_rad[i - 1], self.angles_rad[i]);
+        a0 + (a1 - a0) * min_jerk((t_s - t0) / (t1 - t0))
+    }
+
+    /// The rigid motion at `t_s`: world from the carried body's frame at rest.
+    pub fn pose_at(&self, t_s: f64) -> Isometry3<f64> {
+        let pivot = Translation3::from(self.pivot_m.coords);
+        let turn =
+            UnitQuaternion::from_axis_angle(&Unit::new_normalize(self.axis), self.angle_at(t_s));
+        pivot * turn * pivot.inverse()
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        use super::config::MAX_DURATION_S;
+        use super::effects::in_range;
+        let (times, angles) = (&self.times_s, &self.angles_rad);
+        if times.is_empty() || times.len() != angles.len() {
+            return Err(format!(
+                "a rotation needs one angle per time, got {} times and {} angles",
+                times.len(),
+                angles.len()
+            ));
+        }
+        if times.iter().any(|t| !t.is_finite()) || times.windows(2).any(|w| w[1] <= w[0]) {
+            return Err("rotation times_s must be finite and strictly increasing".into());
+        }
+        for t in times {
+            in_range("rotation times_s", *t, -MAX_DURATION_S, MAX_DURATION_S)?;
+        }
+        for a in angles {
+            in_range(
+                "rotation angles_rad",
+                *a,
+                -std::f64::consts::PI,
+                std::f64::consts::PI,
+            )?;
+        }
+        for v in self.pivot_m.iter() {
+            in_range("rotation pivot_m", *v, -MAX_OFFSET_M, MAX_OFFSET_M)?;
+        }
+        if !self
+            .axis
+            .iter()
+            .all(|v| v.is_finite() && v.abs() <= MAX_OFFSET_M)
+            || self.axis.norm() < 1e-9
+        {
+            return Err(format!(
+                "rotation axis must be finite and non-zero, got {:?}",
+                self.axis.as_slice()
+            ));
+        }
+        Ok(())
     }
 }
 

@@ -18,7 +18,7 @@ use crate::robot::guards::GuardSegment;
 
 use super::config::BodyConfig;
 use super::shape::Solid;
-use nalgebra::{Isometry3, Point3, Translation3, Vector3};
+use nalgebra::{Point3, Vector3};
 use serde::Serialize;
 
 /// What the estimator should find at one instant.
@@ -117,8 +117,7 @@ fn nearest_on_core(solid: &Solid, guard: &GuardSegment) -> Point3<f64> {
 
 /// Body `body` posed at `t_s`, in the world frame.
 pub fn posed_body(body: &BodyConfig, t_s: f64) -> Solid {
-    let world_from_body: Isometry3<f64> = Translation3::from(body.motion.offset_at(t_s)).into();
-    Solid::new(&body.geometry, &world_from_body)
+    Solid::new(&body.geometry, &body.pose_at(t_s))
 }
 
 /// The truth for a HIP at `hip_m` with `hip_radius_m`, among `bodies` at `t_s` (None when
