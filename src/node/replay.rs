@@ -77,9 +77,11 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
         ))
         .map_err(|e| NodeError::Config(format!("estimate: {e}")))
     };
-    // Frames and estimates read and not pushed yet, in perception's order: the i-th frame
-    // made the i-th estimate.
-    let mut frames: VecDeque<(Box<Frame>, JointVector)> = VecDeque::new();
+    // Frames and estimates read and not pushed yet. A camera's frames are perceived in
+    // order by one worker, so its i-th recorded frame made its i-th estimate; the workers'
+    // estimates interleave in the order fusion took them, which is the order they are pushed
+    // again.
+    let mut frames = CameraFrames::default();
     let mut estimates: VecDeque<(u64, SurfaceEstimate)> = VecDeque::new();
     // Each frame's keep-off guard estimates, recorded right after its estimate.
     let mut guard_estimates: VecDeque<Vec<SurfaceEstimate>> = VecDeque::new();
@@ -135,7 +137,7 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
         match item {
             RecordItem::Frame(f, q) => {
                 report.frames += 1;
-                frames.push_back((f, q));
+                frames.push(f, q);
             }
             RecordItem::Estimate(k, e) => estimates.push_back((k, e)),
             RecordItem::GuardEstimates(_, e) => guard_estimates.push_back(e),
@@ -155,10 +157,10 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
             }
             RecordItem::Tick(tick) => {
                 // The frames whose estimates this tick (or an earlier one) consumed go first.
-                while !frames.is_empty()
-                    && let Some((_, e)) = estimates.pop_front_if(|(k, _)| *k <= tick.index)
+                while let Some((_, e)) =
+                    estimates.pop_front_if(|(k, e)| *k <= tick.index && frames.has(e.camera_id))
                 {
-                    let frame = frames.pop_front().expect("checked not empty");
+                    let frame = frames.pop(e.camera_id).expect("checked it has one");
                     push(
                         &mut haptic_loop,
                         &mut report,
@@ -183,7 +185,8 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
             }
         }
     }
-    while let (Some(frame), Some((_, e))) = (frames.pop_front(), estimates.pop_front()) {
+    while let Some((_, e)) = estimates.pop_front_if(|(_, e)| frames.has(e.camera_id)) {
+        let frame = frames.pop(e.camera_id).expect("checked it has one");
         push(
             &mut haptic_loop,
             &mut report,
@@ -195,4 +198,25 @@ pub fn replay(path: &std::path::Path) -> Result<ReplayReport, NodeError> {
     report.truncated = recording.truncated().map(str::to_string);
     report.backend = haptic_loop.perception().backend();
     Ok(report)
+}
+
+/// Recorded frames not pushed yet, per camera, in the order each camera's worker took them.
+#[derive(Default)]
+struct CameraFrames(std::collections::BTreeMap<u32, VecDeque<(Box<Frame>, JointVector)>>);
+
+impl CameraFrames {
+    fn push(&mut self, frame: Box<Frame>, q: JointVector) {
+        self.0
+            .entry(frame.camera_id)
+            .or_default()
+            .push_back((frame, q));
+    }
+
+    fn has(&self, camera_id: u32) -> bool {
+        self.0.get(&camera_id).is_some_and(|f| !f.is_empty())
+    }
+
+    fn pop(&mut self, camera_id: u32) -> Option<(Box<Frame>, JointVector)> {
+        self.0.get_mut(&camera_id)?.pop_front()
+    }
 }

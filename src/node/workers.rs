@@ -383,6 +383,13 @@ pub(super) fn perception_worker(
             .iter()
             .map(|g| g.estimate().clone())
             .collect();
+        // Fusion's window takes the estimates in the order the tick receives them (and a
+        // recording keeps them): with several workers, the push and the hand-over are one
+        // critical section, so replay's one window fits what the node's fitted.
+        let handover = outputs
+            .handover
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
         let (fit, guard_fits) = {
             let mut window = outputs
                 .window
@@ -405,10 +412,6 @@ pub(super) fn perception_worker(
         let entry = counts.entry(frame.camera_id).or_default();
         entry.0 += 1;
         entry.1 += u64::from(estimate.surface.is_some());
-        let handover = outputs
-            .handover
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner);
         while handover.spent.try_recv().is_ok() {}
         let handed = Handover {
             estimate: Box::new(estimate),
