@@ -618,7 +618,7 @@ fn print_keep_off(rows: &[campaign::GuardSummaryRow]) {
         "keep-off guards (every rate): contact-free runs of the feasible episodes, of the oracles' contact-free ones"
     );
     println!(
-        "{:>5} {:17} {:15} {:>5} {:>8} {:>6} {:>8} {:>12} {:>13} {:>7} {:>7} {:>10} {:>10}",
+        "{:>5} {:17} {:15} {:>5} {:>8} {:>6} {:>8} {:>12} {:>13} {:>7} {:>7} {:>8} {:>10} {:>10}",
         "m/s",
         "target",
         "source",
@@ -630,12 +630,13 @@ fn print_keep_off(rows: &[campaign::GuardSummaryRow]) {
         "of visible's",
         "target",
         "other",
+        "patient",
         "median mm",
         "worst mm"
     );
     for r in rows.iter().filter(|r| r.camera_rate_hz == 0.0) {
         println!(
-            "{:5.2} {:17} {:15} {:5} {:8} {:6} {:8.3} {:>12} {:>13} {:7} {:7} {:10.1} {:10.1}",
+            "{:5.2} {:17} {:15} {:5} {:8} {:6} {:8.3} {:>12} {:>13} {:7} {:7} {:8} {:10.1} {:10.1}",
             r.speed_mps,
             r.target,
             r.source.name(),
@@ -647,6 +648,7 @@ fn print_keep_off(rows: &[campaign::GuardSummaryRow]) {
             format!("{:.3}", r.contact_free_fraction_of_visible_survived),
             r.target_contacts,
             r.other_guard_contacts,
+            r.other_guard_patient_contacts,
             r.median_target_d_proj_m * 1e3,
             r.worst_target_d_proj_m * 1e3
         );

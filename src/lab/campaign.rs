@@ -549,6 +549,9 @@ struct KeepOffRun<'a> {
     target_contact: bool,
     /// Another keep-off guard touched a body.
     other_contact: bool,
+    /// Another keep-off guard touched one of the patient's own bodies (not the approaching
+    /// one): a reaction that pushed another link into the patient.
+    other_patient_contact: bool,
 }
 
 impl KeepOffRun<'_> {
@@ -577,6 +580,7 @@ fn keep_off_runs(rows: &[GuardRow]) -> Vec<KeepOffRun<'_>> {
                     target_d_proj_m: f64::INFINITY,
                     target_contact: false,
                     other_contact: false,
+                    other_patient_contact: false,
                 });
                 runs.last_mut().unwrap_or_else(|| unreachable!("pushed"))
             }
@@ -586,6 +590,7 @@ fn keep_off_runs(rows: &[GuardRow]) -> Vec<KeepOffRun<'_>> {
             run.target_contact = r.contact;
         } else {
             run.other_contact |= r.contact;
+            run.other_patient_contact |= r.contact && r.body != episode::MOVING_BODY;
         }
     }
     runs
@@ -620,9 +625,12 @@ pub struct GuardSummaryRow {
     pub contact_free_fraction_of_visible_survived: f64,
     /// Runs (of all episodes) in which the target guard touched the body.
     pub target_contacts: usize,
-    /// Runs (of all episodes) in which another keep-off guard touched a body: a reaction
-    /// that pushed another link into the patient.
+    /// Runs (of all episodes) in which another keep-off guard touched a body (the
+    /// approaching one sweeping on past its target, or the patient).
     pub other_guard_contacts: usize,
+    /// Of them, the runs in which another keep-off guard touched the patient's own bodies
+    /// (deepest there): a reaction that pushed another link into the patient.
+    pub other_guard_patient_contacts: usize,
     /// Median and worst least `d_proj` of the target guard over the feasible episodes,
     /// metres.
     pub median_target_d_proj_m: f64,
@@ -704,6 +712,10 @@ fn keep_off_summary_at(
                 contact_free_fraction_of_visible_survived: fraction(of_visible, visible.len()),
                 target_contacts: all.iter().filter(|r| r.target_contact).count(),
                 other_guard_contacts: all.iter().filter(|r| r.other_contact).count(),
+                other_guard_patient_contacts: all
+                    .iter()
+                    .filter(|r| r.other_patient_contact)
+                    .count(),
                 worst_target_d_proj_m: gaps.iter().copied().fold(f64::NAN, f64::min),
                 median_target_d_proj_m: median(gaps),
             }
@@ -1022,7 +1034,7 @@ mod tests {
     }
 
     /// Episode 0: every source keeps the forearm off, perception pushes the elbow into the
-    /// torso (another guard's contact: not contact-free). Episode 1: the delayed oracle lets
+    /// torso (another guard's contact with the patient: not contact-free). Episode 1: the delayed oracle lets
     /// the forearm touch. Episode 2: infeasible (the exact surface pushes the upper arm in).
     #[test]
     fn the_keep_off_summary_counts_target_and_other_guards_apart() {
@@ -1043,6 +1055,9 @@ mod tests {
             rows.push(guard_row(episode, source, "elbow", elbow));
             rows.push(guard_row(episode, source, "upper_arm", upper_arm));
         }
+        // episode 0's elbow is pushed into the torso, episode 2's upper arm meets the
+        // approaching body
+        rows[7].body = "torso".into();
         let targets = ["forearm".to_string(), "elbow".to_string()];
         let s = summarize_keep_off(&rows, &[1.5], &targets);
         // 4 rates x (2 targets + all) x 4 sources
@@ -1059,13 +1074,27 @@ mod tests {
             (p.oracle_survived, p.contact_free_of_oracle_survived),
             (1, 0)
         );
-        assert_eq!((p.target_contacts, p.other_guard_contacts), (1, 1));
+        assert_eq!(
+            (
+                p.target_contacts,
+                p.other_guard_contacts,
+                p.other_guard_patient_contacts
+            ),
+            (1, 1, 1)
+        );
         assert_eq!(p.worst_target_d_proj_m, 0.004);
         assert!((p.median_target_d_proj_m - 0.0045).abs() < 1e-12);
         let o = at("forearm", DelayedOracle);
         assert_eq!((o.contact_free, o.target_contacts), (1, 2));
         let e = at("forearm", Exact);
-        assert_eq!((e.contact_free, e.other_guard_contacts), (2, 1));
+        assert_eq!(
+            (
+                e.contact_free,
+                e.other_guard_contacts,
+                e.other_guard_patient_contacts
+            ),
+            (2, 1, 0)
+        );
         assert_eq!(at("all", Perception).episodes, 3);
         assert_eq!(at("elbow", Perception).episodes, 0);
     }
