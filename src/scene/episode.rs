@@ -728,8 +728,8 @@ mod tests {
         assert_eq!(rates.len(), 3, "{rates:?}");
     }
 
-    /// The handle's episodes are drawn exactly as before keep-off episodes existed: seed 3's
-    /// first four draws, as the campaign of that build wrote them to
+    /// The handle's episodes keep their draws whatever other targets the generator serves:
+    /// seed 3's first four draws are pinned as a handle campaign writes them to
     /// `campaign-episodes.csv` and its worst episodes' scene files.
     #[test]
     fn the_handle_episodes_are_drawn_as_before() {

@@ -791,8 +791,8 @@ mod tests {
         );
     }
 
-    /// Scenes without a `[[group]]` pose every body by its own motion alone, exactly as
-    /// before groups existed, and write no group key.
+    /// Scenes without a `[[group]]` pose every body by its own motion alone and write no
+    /// group key.
     #[test]
     fn a_scene_without_groups_poses_its_bodies_by_their_own_motion() {
         for name in builtin::names() {
