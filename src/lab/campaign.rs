@@ -38,6 +38,7 @@ use crate::robot::guards::GuardRole;
 use crate::scene::episode::{self, BodyKind, Episode};
 use rayon::prelude::*;
 use serde::Serialize;
+use std::collections::HashSet;
 
 /// Most episodes one campaign runs (beyond it a typo: 100,000 episodes are days of CPU).
 pub const MAX_EPISODES: u32 = 100_000;
@@ -418,6 +419,42 @@ pub fn summarize_by_kind(rows: &[RunRow], speeds_mps: &[f64]) -> Vec<SummaryRow>
     out
 }
 
+/// The episodes a summary cell's fractions count over: those whose exact-surface run
+/// succeeded (feasible; the others are infeasible) and those each oracle's run succeeded in
+/// (what latency, and latency and the cameras' views, allow). The handle's summary and the
+/// keep-off summary differ only in what success is.
+struct Survivors {
+    feasible: HashSet<u32>,
+    oracle: HashSet<u32>,
+    visible: HashSet<u32>,
+}
+
+impl Survivors {
+    /// From the episodes whose run from each source succeeded.
+    fn new<I: Iterator<Item = u32>>(succeeded: impl Fn(SurfaceSource) -> I) -> Self {
+        Self {
+            feasible: succeeded(SurfaceSource::Exact).collect(),
+            oracle: succeeded(SurfaceSource::DelayedOracle).collect(),
+            visible: succeeded(SurfaceSource::VisibleOracle).collect(),
+        }
+    }
+
+    /// How many of a source's `succeeded` episodes are feasible, how many the delayed oracle
+    /// and how many the visible oracle survived.
+    fn count(&self, succeeded: impl Iterator<Item = u32>) -> [usize; 3] {
+        let mut counts = [0; 3];
+        for episode in succeeded {
+            for (n, set) in counts
+                .iter_mut()
+                .zip([&self.feasible, &self.oracle, &self.visible])
+            {
+                *n += usize::from(set.contains(&episode));
+            }
+        }
+        counts
+    }
+}
+
 /// One summary row per source of the runs at `speed`, camera `rate` (0: every rate) and
 /// body `kind` (none: every kind).
 fn summary_at(rows: &[RunRow], speed: f64, rate: f64, kind: Option<BodyKind>) -> Vec<SummaryRow> {
@@ -429,32 +466,22 @@ fn summary_at(rows: &[RunRow], speed: f64, rate: f64, kind: Option<BodyKind>) ->
                 && kind.is_none_or(|k| r.kind == k)
         })
     };
-    let safe_episodes = |source| {
-        at(source)
-            .filter(|r| r.safe)
-            .map(|r| r.episode)
-            .collect::<std::collections::HashSet<u32>>()
-    };
-    let feasible = safe_episodes(SurfaceSource::Exact);
-    let oracle = safe_episodes(SurfaceSource::DelayedOracle);
-    let visible = safe_episodes(SurfaceSource::VisibleOracle);
+    let survivors = Survivors::new(|source| at(source).filter(|r| r.safe).map(|r| r.episode));
+    let Survivors {
+        feasible,
+        oracle,
+        visible,
+    } = &survivors;
     SurfaceSource::ALL
         .into_iter()
         .map(|source| {
             let all: Vec<&RunRow> = at(source).collect();
-            let in_feasible: Vec<&RunRow> = all
-                .iter()
-                .copied()
+            let [safe, safe_of_oracle, safe_of_visible] =
+                survivors.count(all.iter().filter(|r| r.safe).map(|r| r.episode));
+            let margins: Vec<f64> = (all.iter())
                 .filter(|r| feasible.contains(&r.episode))
+                .map(|r| r.min_margin_m)
                 .collect();
-            let safe = in_feasible.iter().filter(|r| r.safe).count();
-            let safe_of = |survivors: &std::collections::HashSet<u32>| {
-                all.iter()
-                    .filter(|r| r.safe && survivors.contains(&r.episode))
-                    .count()
-            };
-            let (safe_of_oracle, safe_of_visible) = (safe_of(&oracle), safe_of(&visible));
-            let margins: Vec<f64> = in_feasible.iter().map(|r| r.min_margin_m).collect();
             let within = all.iter().filter(|r| r.contact_within_limit).count();
             SummaryRow {
                 speed_mps: speed,
@@ -670,26 +697,19 @@ fn keep_off_summary_at(
                 && target.is_none_or(|t| r.target == t)
         })
     };
-    let free = |source| {
-        at(source)
-            .filter(|r| r.contact_free())
-            .map(|r| r.episode)
-            .collect::<std::collections::HashSet<u32>>()
-    };
-    let feasible = free(SurfaceSource::Exact);
-    let oracle = free(SurfaceSource::DelayedOracle);
-    let visible = free(SurfaceSource::VisibleOracle);
+    let survivors =
+        Survivors::new(|source| at(source).filter(|r| r.contact_free()).map(|r| r.episode));
+    let Survivors {
+        feasible,
+        oracle,
+        visible,
+    } = &survivors;
     SurfaceSource::ALL
         .into_iter()
         .map(|source| {
             let all: Vec<&KeepOffRun<'_>> = at(source).collect();
-            let free_of = |set: &std::collections::HashSet<u32>| {
-                all.iter()
-                    .filter(|r| r.contact_free() && set.contains(&r.episode))
-                    .count()
-            };
-            let contact_free = free_of(&feasible);
-            let (of_oracle, of_visible) = (free_of(&oracle), free_of(&visible));
+            let [contact_free, of_oracle, of_visible] =
+                survivors.count((all.iter()).filter(|r| r.contact_free()).map(|r| r.episode));
             let gaps: Vec<f64> = all
                 .iter()
                 .filter(|r| feasible.contains(&r.episode))
