@@ -45,10 +45,11 @@
 //! and the CPU reference stages run by default (`backend`), which the GPU stages match.
 
 use crate::control::ControlStatus;
+use crate::control::hqp::LevelReport;
 use crate::fusion::FusionConfig;
 use crate::gpu::Backend;
-use crate::haptics::HapticStatus;
 use crate::haptics::known_surface;
+use crate::haptics::{ConstraintKind, HapticStatus};
 use crate::lab::closed_loop::{HandReference, Plant, SimConfig, SimError};
 use crate::node::haptic_loop::{HapticLoop, RobotInput};
 use crate::node::robot_state::PerceptionScene;
@@ -300,6 +301,16 @@ impl SceneLoopOptions {
     }
 }
 
+/// Largest slack over the cascade's levels `levels` (0 when none was solved).
+fn level_slack(reports: &[LevelReport], levels: std::ops::Range<usize>) -> f64 {
+    reports
+        .get(levels)
+        .into_iter()
+        .flatten()
+        .flat_map(|l| l.slacks.iter().copied())
+        .fold(0.0, f64::max)
+}
+
 /// One controller tick's record.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SceneSample {
@@ -337,6 +348,22 @@ pub struct SceneSample {
     pub hand_force_z_n: f64,
     /// Controller fell back to the safe command.
     pub fallback: bool,
+    /// The keep-off guard nearest a body this tick (truth; empty without keep-off guards).
+    pub guard: String,
+    /// Its true `d_proj`, metres (NaN without keep-off guards).
+    pub guard_true_d_proj_m: f64,
+    /// Its `d_proj` the controller saw, metres (NaN without a surface).
+    pub guard_d_proj_m: f64,
+    /// The rate of that `d_proj`, m/s (NaN without a surface).
+    pub guard_d_rate_mps: f64,
+    /// Its constraint's status (none without keep-off guards).
+    pub guard_status: Option<HapticStatus>,
+    /// Its velocity row's bound `alpha_V`, m/s (NaN when off).
+    pub guard_alpha_v_mps: f64,
+    /// Largest slack of the online collision level (4): how far its rows were missed.
+    pub collision_slack: f64,
+    /// Largest slack of the joint and torque limit levels (1-2).
+    pub limit_slack: f64,
 }
 
 /// Summary of a run.
@@ -505,6 +532,14 @@ pub fn simulate_scene(
         let poses = model.forward_kinematics(q);
         keep_off.iter().map(|g| g.world(&poses)).collect()
     };
+    // the slowest camera's rate and the controller's braking deceleration: how a keep-off
+    // guard's oracle and exact surfaces choose the body that comes first
+    let slowest_rate_hz = sim
+        .cameras()
+        .iter()
+        .map(|c| c.rate_hz)
+        .fold(f64::INFINITY, f64::min);
+    let decel = options.sim.controller.haptics.braking_decel_mps2;
     let mut guard_oracles = vec![DelayedOracle::default(); keep_off.len()];
     let mut guard_visible = vec![VisibleOracle::default(); keep_off.len()];
     let mut guard_metrics: Vec<GuardRunMetrics> = keep_off
@@ -540,10 +575,19 @@ pub fn simulate_scene(
                 })
                 .collect();
             if options.surface_source == SurfaceSource::DelayedOracle {
-                for (o, core) in guard_oracles.iter_mut().zip(&cores_then) {
-                    if let Some(s) =
-                        core.and_then(|(c, r)| exact_surface(&file.bodies, timing.capture_s, &c, r))
-                    {
+                // the frame's information is acted on until two frames later
+                let reaction_s = timing.arrival_s - timing.capture_s + 2.0 / slowest_rate_hz;
+                for (o, g) in guard_oracles.iter_mut().zip(&guards_then) {
+                    let first =
+                        first_to_reach(&file.bodies, timing.capture_s, g, reaction_s, decel);
+                    if let Some(s) = first.and_then(|(b, tr)| {
+                        exact_surface(
+                            std::slice::from_ref(b),
+                            timing.capture_s,
+                            &tr.core_m,
+                            g.radius_m,
+                        )
+                    }) {
                         o.push(timing.capture_s, s);
                     }
                 }
@@ -631,11 +675,13 @@ pub fn simulate_scene(
             SurfaceSource::Exact => {
                 let surface = exact_surface(&file.bodies, t, &hip.position_m, r_hip)
                     .ok_or_else(|| SceneLoopError::NoBodies(scene.origin.clone()))?;
-                let guards: ArrayVec<FusedSurface, MAX_GUARDS> = guard_truth
+                let guards: ArrayVec<FusedSurface, MAX_GUARDS> = posed(plant.q())
                     .iter()
                     .map(|g| {
-                        g.as_ref()
-                            .and_then(|(tr, r)| exact_surface(&file.bodies, t, &tr.core_m, *r))
+                        first_to_reach(&file.bodies, t, g, 0.0, decel)
+                            .and_then(|(b, tr)| {
+                                exact_surface(std::slice::from_ref(b), t, &tr.core_m, g.radius_m)
+                            })
                             .unwrap_or_else(no_data)
                     })
                     .collect();
@@ -688,6 +734,13 @@ pub fn simulate_scene(
             }
             _ => side = Some((truth.body.clone(), truth.normal)),
         }
+        let nearest_guard = guard_truth
+            .iter()
+            .enumerate()
+            .filter_map(|(i, g)| g.as_ref().map(|(tr, _)| (i, tr.gap_m)))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(i, _)| i);
+        let guard_rows = nearest_guard.and_then(|i| out.keep_off.get(i));
         let active = out.haptics.status == HapticStatus::Active;
         let fallback = out.status != ControlStatus::Ok;
         let true_d_proj = margin - r_hip;
@@ -748,6 +801,18 @@ pub fn simulate_scene(
             frames,
             hand_force_z_n: plant.hand_force_n().z,
             fallback,
+            guard: nearest_guard.map_or(String::new(), |i| keep_off[i].name.clone()),
+            guard_true_d_proj_m: nearest_guard
+                .and_then(|i| guard_truth[i].as_ref())
+                .map_or(f64::NAN, |(tr, _)| tr.gap_m),
+            guard_d_proj_m: guard_rows.map_or(f64::NAN, |c| c.d_proj_m),
+            guard_d_rate_mps: guard_rows.map_or(f64::NAN, |c| c.d_rate_mps),
+            guard_status: guard_rows.map(|c| c.status),
+            guard_alpha_v_mps: guard_rows
+                .and_then(|c| c.row(ConstraintKind::Velocity))
+                .map_or(f64::NAN, |r| r.bound),
+            collision_slack: level_slack(&out.levels, 3..4),
+            limit_slack: level_slack(&out.levels, 0..2),
         });
         plant.step(t, &out.tau_nm, reference)?;
     }
@@ -779,6 +844,35 @@ fn exact_surface(
         Unit::new_normalize(now.normal),
         (after.closest_m - before.closest_m) / (2.0 * h),
     ))
+}
+
+/// The body a keep-off guard's exact and delayed-oracle surfaces are taken from at `t_s`,
+/// with its truth for the guard: the one whose clearance less the reach of its closing speed
+/// `c` (towards the guard's core, 0 for a body at rest or moving away) is least,
+/// `gap - (c reaction_s + c^2 / (2 a))`, `a` the controller's braking deceleration. A fast
+/// body behind a nearer one at rest (the torso beside the elbow) is the one the guard must
+/// brake for as soon as the reaction and braking it needs exceed the gap; the nearest body
+/// would show it only once it is nearer than the other, too late at 1.5-2 m/s.
+fn first_to_reach<'a>(
+    bodies: &'a [crate::scene::BodyConfig],
+    t_s: f64,
+    guard: &GuardSegment,
+    reaction_s: f64,
+    decel_mps2: f64,
+) -> Option<(&'a crate::scene::BodyConfig, truth::GuardTruth)> {
+    bodies
+        .iter()
+        .filter_map(|b| {
+            let tr = truth::closest_to_guard(std::slice::from_ref(b), t_s, guard)?;
+            let closing = b
+                .point_velocity(t_s, &tr.closest_m, REFERENCE_STEP_S)
+                .dot(&tr.normal)
+                .max(0.0);
+            let left = tr.gap_m - closing * reaction_s - closing * closing / (2.0 * decel_mps2);
+            Some((left, b, tr))
+        })
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, b, tr)| (b, tr))
 }
 
 /// The surface of a visible patient point `seen` for the HIP at `hip_m` at `t_s`: its
@@ -826,6 +920,54 @@ mod tests {
         assert!(m.max_penetration_m > 0.0, "{m:?}");
         let again = simulate_scene(&scene, &options).unwrap();
         assert_eq!(format!("{:?}", run), format!("{:?}", again));
+    }
+
+    /// A keep-off guard 0.05 m from a torso at rest and 0.30 m from a ball coming at it at
+    /// `speed` m/s: its surface comes from the ball once the ball's reach (reaction time
+    /// times speed plus braking distance) passes the torso's gap, from the torso before.
+    #[test]
+    fn a_guard_brakes_for_the_body_that_comes_first_not_the_nearest() {
+        use crate::scene::motion::Motion;
+        use crate::scene::shape::Shape;
+        let guard = GuardSegment {
+            a_m: Point3::new(0.0, -0.1, 0.0),
+            b_m: Point3::new(0.0, 0.1, 0.0),
+            radius_m: 0.04,
+        };
+        // at `x` at t = 0, moving at `vx` since t = -1 s
+        let sphere = |name: &str, x: f64, r: f64, vx: f64| crate::scene::BodyConfig {
+            name: name.into(),
+            geometry: Shape::Sphere {
+                center_m: Point3::new(x - vx, 0.0, 0.0),
+                radius_m: r,
+            },
+            motion: Motion::ConstantVelocity {
+                velocity_m_s: Vector3::new(vx, 0.0, 0.0),
+                start_s: -1.0,
+            },
+            visible: true,
+            carried_by: None,
+        };
+        let chosen = |speed: f64, reaction_s: f64| {
+            let bodies = [
+                sphere("torso", -0.24, 0.15, 0.0),
+                sphere("ball", 0.40, 0.06, -speed),
+            ];
+            let (b, tr) = first_to_reach(&bodies, 0.0, &guard, reaction_s, 7.0).unwrap();
+            (b.name.clone(), tr.gap_m)
+        };
+        let (torso, gap) = chosen(0.0, 0.1);
+        assert_eq!(torso, "torso");
+        assert!((gap - 0.05).abs() < 1e-6, "{gap}");
+        // 0.5 m/s: reach 0.05 + 0.018 m, under the ball's 0.30 m gap less the torso's 0.05
+        assert_eq!(chosen(0.5, 0.1).0, "torso");
+        // 1.5 m/s: reach 0.15 + 0.16 m, beyond it
+        let (ball, gap) = chosen(1.5, 0.1);
+        assert_eq!(ball, "ball");
+        assert!((gap - 0.30).abs() < 1e-6, "{gap}");
+        // without reaction time (the exact surface) only the braking distance counts
+        assert_eq!(chosen(1.5, 0.0).0, "torso");
+        assert_eq!(chosen(2.0, 0.0).0, "ball");
     }
 
     /// An episode's patient replaced by one resting sphere `offset_m` from the HIP, and the
