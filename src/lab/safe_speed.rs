@@ -22,7 +22,7 @@ use super::scene_loop::{
 };
 use crate::robot::guards::{GuardConfig, GuardSet};
 use crate::scene::approach::{self, Approach, Retimed};
-use crate::scene::{Scene, Simulator, episode, truth};
+use crate::scene::{Scene, SceneError, Simulator, episode, truth};
 use serde::Serialize;
 
 /// The sources a sweep runs, in its rows' order.
@@ -268,13 +268,15 @@ pub struct UnguardedRow {
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ApproachSweep {
     pub approach: Approach,
+    /// The nearer approaches that could not be re-timed, and why.
+    pub skipped: Vec<String>,
     /// The re-timed scenes, one per speed (ascending).
     pub retimed: Vec<Retimed>,
     pub unguarded: Vec<UnguardedRow>,
 }
 
-/// Sweeps `scene`'s approach ([`approach::derive`]: the keep-off guard and body that come
-/// nearest and what closes their gap) re-timed to close at each of `speeds_mps`
+/// Sweeps `scene`'s approach (the nearest of [`approach::candidates`] that re-times: a
+/// keep-off guard and body and what closes their gap) re-timed to close at each of `speeds_mps`
 /// ([`approach::Approach::retime`]), cameras at `camera_rate_hz`, from every source with
 /// the keep-off guards on; each speed also runs unguarded (the single-HIP config on the
 /// exact surface), which shows whether the re-timed motion would touch without them.
@@ -288,10 +290,31 @@ pub fn sweep_approach(
     speeds.sort_by(f64::total_cmp);
     let at_rate = scene.with_camera_rate_hz(camera_rate_hz)?;
     let guards = &options.sim.controller.guards;
-    let approach = approach::derive(&at_rate, guards)?;
-    let retimed = (speeds.iter())
-        .map(|&v| approach.retime(&at_rate, guards, v))
-        .collect::<Result<Vec<_>, _>>()?;
+    // the nearest approach that can be re-timed to every speed
+    let mut skipped = Vec::new();
+    let mut chosen = None;
+    for candidate in approach::candidates(&at_rate, guards)? {
+        let retimed = candidate.and_then(|a| {
+            let r = (speeds.iter())
+                .map(|&v| a.retime(&at_rate, guards, v))
+                .collect::<Result<Vec<_>, _>>()?;
+            Ok((a, r))
+        });
+        match retimed {
+            Ok(r) => {
+                chosen = Some(r);
+                break;
+            }
+            Err(e) => skipped.push(e.to_string()),
+        }
+    }
+    let (approach, retimed) = chosen.ok_or_else(|| SceneError::Invalid {
+        origin: at_rate.origin.clone(),
+        message: format!(
+            "no approach of a keep-off guard to a body can be re-timed: {}",
+            skipped.join("; ")
+        ),
+    })?;
     let guarded = SceneLoopOptions {
         keep_off: true,
         ..options.clone()
@@ -314,6 +337,7 @@ pub fn sweep_approach(
     Ok((
         ApproachSweep {
             approach,
+            skipped,
             retimed,
             unguarded,
         },

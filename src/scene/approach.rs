@@ -2,9 +2,10 @@
 //! chosen speed (`hapcloud experiment safe-speed --keep-off` on a scene without a body that
 //! comes at the handle, and `experiment whole-arm`).
 //!
-//! [`derive`] samples the scene as scripted (the robot on its inverse-kinematics path, the
-//! bodies on their motions) every [`SAMPLE_S`] and takes the keep-off guard and body whose
-//! true gap `g(t)` (the guard's `d_proj`, [`truth::closest_to_guard`]) is least. Over the
+//! [`candidates`] samples the scene as scripted (the robot on its inverse-kinematics path,
+//! the bodies on their motions) every [`SAMPLE_S`] and takes each keep-off guard and body
+//! whose true gap `g(t)` (the guard's `d_proj`, [`truth::closest_to_guard`]) comes within
+//! [`APPROACH_GAP_M`], nearest first (a sweep uses the nearest that can be re-timed). Over the
 //! final approach (the last [`FINAL_GAP_M`] of gap closed before that least gap) the gap's
 //! change splits into what the robot's motion closes (bodies held) and what the bodies'
 //! motions close (robot held); the larger part is the mover: a HIP path `move` segment, a
@@ -12,12 +13,13 @@
 //!
 //! [`Approach::retime`] carries that motion on past contact and re-times it: the closing
 //! speed is `v_c = -dg/dt` where the scripted gap crosses 0.
-//! - The robot: one minimum-jerk move along the segment's line from its start `A` to
-//!   `A + 2 s_c u` (`s_c` the HIP travel at which the guard would touch), so the contact is
+//! - The robot: the scene's move grazes the body, so the link is driven into it instead:
+//!   one minimum-jerk HIP move along `u`, the direction of HIP motion that closes the gap
+//!   fastest at the least gap's pose (through the inverse kinematics), from [`PASS_M`]
+//!   before the contact to [`PASS_M`] past it (less where out of reach), so the contact is
 //!   at mid-move, where the HIP is fastest and accelerates least; its duration `T` scales
 //!   `v_c` as `1/T` (the path's geometry does not depend on `T`). The robot rests
-//!   [`REST_S`] first, and the move starts nearer the contact when the far end is out of
-//!   reach.
+//!   [`REST_S`] first.
 //! - A `constant_velocity` body: the same direction at the speed that gives `v_c`, on until
 //!   it is [`PASS_M`] past contact.
 //! - A group: its rotation from the closing interval's first angle `a0` to
@@ -163,10 +165,15 @@ fn guard_set(scene: &Scene, sim: &Simulator, guards: &GuardConfig) -> Result<Gua
     Ok(set)
 }
 
-/// The approach of `scene` for the keep-off guards of `guards` (see the module doc). An
-/// error names what is missing: no robot or body, no guard within [`APPROACH_GAP_M`] of a
-/// body (with the nearest pair), a gap that only opens, or a mover that cannot be re-timed.
-pub fn derive(scene: &Scene, guards: &GuardConfig) -> Result<Approach, SceneError> {
+/// The approaches of `scene` for the keep-off guards of `guards`, nearest first (see the
+/// module doc): each pair of keep-off guard and body that comes within [`APPROACH_GAP_M`],
+/// with its least gap, as an approach or the error that says why it has none (a gap that
+/// only opens, a mover that cannot be re-timed). An error names what is missing: no robot
+/// or body, or no guard within [`APPROACH_GAP_M`] of a body (with the nearest pair).
+pub fn candidates(
+    scene: &Scene,
+    guards: &GuardConfig,
+) -> Result<Vec<Result<Approach, SceneError>>, SceneError> {
     let sim = Simulator::new(scene)?;
     let set = guard_set(scene, &sim, guards)?;
     let model = sim.robot_model().expect("guard_set checked the robot");
@@ -174,39 +181,58 @@ pub fn derive(scene: &Scene, guards: &GuardConfig) -> Result<Approach, SceneErro
     if bodies.is_empty() {
         return Err(invalid(scene, "the scene has no body to approach".into()));
     }
-    // the least gap over time, keep-off guards and bodies
-    let mut least = (f64::INFINITY, 0.0, 0usize, 0usize);
+    // the least gap of each keep-off guard and body over time: (gap, t, guard, body)
+    let mut least: Vec<(f64, f64, usize, usize)> = Vec::new();
+    for &k in set.keep_off() {
+        for b in 0..bodies.len() {
+            least.push((f64::INFINITY, 0.0, k, b));
+        }
+    }
     for t in times(sim.duration_s(), SAMPLE_S) {
         let Some(q) = sim.joints_at(t) else { continue };
         let poses = model.forward_kinematics(&q);
-        for &k in set.keep_off() {
-            let seg = set.guards()[k].world(&poses);
-            for (b, body) in bodies.iter().enumerate() {
-                if let Some(tr) = truth::closest_to_guard(std::slice::from_ref(body), t, &seg) {
-                    if tr.gap_m < least.0 {
-                        least = (tr.gap_m, t, k, b);
-                    }
+        for pair in &mut least {
+            let seg = set.guards()[pair.2].world(&poses);
+            let body = std::slice::from_ref(&bodies[pair.3]);
+            if let Some(tr) = truth::closest_to_guard(body, t, &seg) {
+                if tr.gap_m < pair.0 {
+                    (pair.0, pair.1) = (tr.gap_m, t);
                 }
             }
         }
     }
-    let (least_gap, t_min, guard, b) = least;
-    let guard_name = set.guards()[guard].name.clone();
-    let body = &bodies[b];
-    if least_gap >= APPROACH_GAP_M {
+    least.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (gap, t, k, b) = least[0];
+    if gap >= APPROACH_GAP_M {
         return Err(invalid(
             scene,
             format!(
                 "no keep-off guard comes within {APPROACH_GAP_M} m of a body: the nearest, \
-                 `{guard_name}`, stays {least_gap:.3} m from `{}` (t = {t_min:.3} s): no \
-                 approach to re-time",
-                body.name
+                 `{}`, stays {gap:.3} m from `{}` (t = {t:.3} s): no approach to re-time",
+                set.guards()[k].name,
+                bodies[b].name
             ),
         ));
     }
+    Ok(least
+        .iter()
+        .take_while(|p| p.0 < APPROACH_GAP_M)
+        .map(|&p| approach_of(scene, &set, p))
+        .collect())
+}
+
+/// The approach of keep-off guard `guard` and body `b` of `scene`, nearest (`least_gap`)
+/// at `t_min`.
+fn approach_of(
+    scene: &Scene,
+    set: &GuardSet,
+    (least_gap, t_min, guard, b): (f64, f64, usize, usize),
+) -> Result<Approach, SceneError> {
+    let guard_name = set.guards()[guard].name.clone();
+    let body = &scene.file.bodies[b];
     let probe = GapProbe {
-        sim,
-        set,
+        sim: Simulator::new(scene)?,
+        set: set.clone(),
         guard,
         body,
     };
