@@ -637,6 +637,17 @@ fn whole_arm(
             "sweep": sweep.rows,
         }));
     }
+    if rows.is_empty() {
+        let why: Vec<String> = (errors.iter())
+            .map(|e| {
+                format!(
+                    "{} at {} Hz: {}",
+                    e["scene"], e["camera_rate_hz"], e["error"]
+                )
+            })
+            .collect();
+        bail!("no whole-arm scene could be swept: {}", why.join("; "));
+    }
     write_rows(&out.join("whole-arm.csv"), &rows)?;
     write_rows(&out.join("whole-arm-summary.csv"), &summary)?;
     let mut text = String::from("scene,camera_rate_hz,error\n");

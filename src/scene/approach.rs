@@ -242,12 +242,13 @@ fn approach_of(
     while first > 0 && probe.gap(steps[first], steps[first]) < least_gap + FINAL_GAP_M {
         first -= 1;
     }
-    if first == steps.len() - 1 || probe.gap(steps[first], steps[first]) < least_gap + 1e-3 {
+    if probe.gap(steps[first], steps[first]) < least_gap + FINAL_GAP_M {
         return Err(invalid(
             scene,
             format!(
                 "guard `{guard_name}` and body `{}` are nearest ({least_gap:.3} m) at t = \
-                 {t_min:.3} s without anything closing the gap before: no approach to re-time",
+                 {t_min:.3} s, but nothing closed their gap by {FINAL_GAP_M} m before: no \
+                 approach to re-time",
                 body.name
             ),
         ));
