@@ -311,8 +311,9 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             let scene_name = args.scene.with_context(|| {
                 format!(
                     "safe-speed needs --scene NAME|FILE, a scene with one constant_velocity \
-                     body; built in: {}",
-                    swept_scenes().join(", ")
+                     body; built in: {} (with --keep-off also the whole-arm scenes: {})",
+                    swept_scenes().join(", "),
+                    builtin::whole_arm_names().join(", ")
                 )
             })?;
             check_speeds(&args.speeds)?;

@@ -60,6 +60,10 @@ const MIN_GAP_GRADIENT: f64 = 0.1;
 /// How often the robot's move is shortened (by a quarter) when its far end is out of reach.
 const REACH_TRIES: usize = 4;
 
+/// A line of HIP motion: its point `B`, direction `u`, the joints at `B` and the HIP travel
+/// from `B` along `u` to contact.
+type RobotLine = (Point3<f64>, Vector3<f64>, Vec<f64>, f64);
+
 /// What closes the gap of an approach.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -194,10 +198,10 @@ pub fn candidates(
         for pair in &mut least {
             let seg = set.guards()[pair.2].world(&poses);
             let body = std::slice::from_ref(&bodies[pair.3]);
-            if let Some(tr) = truth::closest_to_guard(body, t, &seg) {
-                if tr.gap_m < pair.0 {
-                    (pair.0, pair.1) = (tr.gap_m, t);
-                }
+            if let Some(tr) = truth::closest_to_guard(body, t, &seg)
+                && tr.gap_m < pair.0
+            {
+                (pair.0, pair.1) = (tr.gap_m, t);
             }
         }
     }
@@ -540,10 +544,12 @@ impl Approach {
         for t in times(end, CONTACT_STEP_S).filter(|&t| t >= from_s) {
             let g = probe.gap(t, t);
             deepest = deepest.min(g);
-            if let Some((tp, gp)) = prev {
-                if contact.is_none() && gp >= 0.0 && g < 0.0 {
-                    contact = Some(tp + (t - tp) * gp / (gp - g));
-                }
+            if let Some((tp, gp)) = prev
+                && contact.is_none()
+                && gp >= 0.0
+                && g < 0.0
+            {
+                contact = Some(tp + (t - tp) * gp / (gp - g));
             }
             prev = Some((t, g));
         }
@@ -579,11 +585,7 @@ impl Approach {
     /// gradient through the damped least-squares inverse kinematics at `B`'s joints), and
     /// the HIP travel from `B` along `u` to contact (probed up to `2 PASS_M`).
     /// Returns `B`, `u`, the joints at `B` and that travel.
-    fn robot_line(
-        &self,
-        scene: &Scene,
-        guards: &GuardConfig,
-    ) -> Result<(Point3<f64>, Vector3<f64>, Vec<f64>, f64), SceneError> {
+    fn robot_line(&self, scene: &Scene, guards: &GuardConfig) -> Result<RobotLine, SceneError> {
         let sim = Simulator::new(scene)?;
         let probe = self.gap_probe(scene, Simulator::new(scene)?, guards)?;
         let t = self.least_gap_t_s;
