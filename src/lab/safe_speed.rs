@@ -289,6 +289,17 @@ pub fn sweep_approach(
     let mut speeds = speeds_mps.to_vec();
     speeds.sort_by(f64::total_cmp);
     let at_rate = scene.with_camera_rate_hz(camera_rate_hz)?;
+    if let Some(v) = (speeds.iter()).find(|v| !approach::CLOSING_SPEEDS_MPS.contains(*v)) {
+        return Err(SceneError::Invalid {
+            origin: at_rate.origin.clone(),
+            message: format!(
+                "a closing speed must be finite and in [{}, {}] m/s, got {v}",
+                approach::CLOSING_SPEEDS_MPS.start(),
+                approach::CLOSING_SPEEDS_MPS.end()
+            ),
+        }
+        .into());
+    }
     let guards = &options.sim.controller.guards;
     // the nearest approach that can be re-timed to every speed
     let mut skipped = Vec::new();
