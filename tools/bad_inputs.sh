@@ -360,6 +360,20 @@ t err "--camera-rate-hz" experiment safe-speed --scene rising_surface_clean --ou
 t err "no_such_experiment" experiment no_such_experiment --out "$D/e"
 t err "--target" experiment campaign --target no_such_target --out "$D/e"
 t err "single-HIP" experiment campaign --target keep-off --config tools/configs/single_hip.toml --episodes 1 --out "$D/e"
+# Whole-arm sweeps: closing speeds out of range, a robot that never moves, a hand reaching
+# away, a single-HIP config, bad rates and scenes.
+"$BIN" scenes --print forearm_to_torso_clean >"$D/forearm_to_torso.toml" 2>/dev/null
+sed -E 's/to_m = \[0.24, 0.03, 0.27\]/to_m = [0.36, -0.16, 0.46]/' "$D/forearm_to_torso.toml" >"$D/whole_arm_still.toml"
+"$BIN" scenes --print other_hand_to_forearm_clean >"$D/other_hand.toml" 2>/dev/null
+sed -E 's/velocity_m_s = \[-0.00835, -0.14924, 0.01252\]/velocity_m_s = [0.00835, 0.14924, -0.01252]/' "$D/other_hand.toml" >"$D/whole_arm_away.toml"
+t err "closing speed.*got 6" experiment safe-speed --keep-off --scene forearm_to_torso_clean --out "$D/e" --speeds 6
+t err "--speeds" experiment whole-arm --scene forearm_to_torso_clean --out "$D/e" --speeds 0
+t err "--speeds" experiment whole-arm --scene forearm_to_torso_clean --out "$D/e" --speeds -1
+t err "--rates" experiment whole-arm --scene forearm_to_torso_clean --out "$D/e" --rates nan
+t err "nothing closed|no keep-off guard comes within" experiment safe-speed --keep-off --scene "$D/whole_arm_still.toml" --out "$D/e" --speeds 1
+t err "no keep-off guard comes within|no approach" experiment safe-speed --keep-off --scene "$D/whole_arm_away.toml" --out "$D/e" --speeds 1
+t err "single-HIP" experiment safe-speed --keep-off --scene forearm_to_torso_clean --config tools/configs/single_hip.toml --out "$D/e" --speeds 1
+t err "no_such_scene" experiment whole-arm --scene no_such_scene --rates 30 --speeds 1 --out "$D/e" --json
 t pipe "" experiment --list
 
 t err "window_s" study --quick --backend cpu --out "$D/st" --config "$(config 'window_s = nan')"

@@ -40,7 +40,7 @@ use hapcloud::lab::closed_loop::{
 use hapcloud::lab::scene_loop::{self, SceneLoopOptions, SceneRun, SurfaceSource};
 use hapcloud::lab::{campaign, safe_speed};
 use hapcloud::robot::RobotModel;
-use hapcloud::scene::{Scene, builtin};
+use hapcloud::scene::{Scene, builtin, episode};
 use plotters::chart::{SeriesAnno, SeriesLabelStyle};
 use plotters::coord::Shift;
 use plotters::coord::types::RangedCoordf64;
@@ -61,7 +61,10 @@ pub struct ExperimentArgs {
     /// List the experiments and exit.
     #[arg(long)]
     list: bool,
-    /// safe-speed: the scene (built-in name or scene file) whose moving body is swept.
+    /// safe-speed: the scene (built-in name or scene file) whose moving body is swept (with
+    /// --keep-off, a scene whose moving body touches neither the HIP nor a keep-off guard
+    /// has its approach re-timed to each speed); whole-arm: one scene instead of every
+    /// whole-arm built-in.
     #[arg(long)]
     scene: Option<String>,
     /// safe-speed: the speeds of the moving body, m/s.
@@ -70,6 +73,9 @@ pub struct ExperimentArgs {
     /// safe-speed: the cameras' depth rate (the D435's 30, 60 or 90 Hz at 848x480).
     #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, default_value_t = 30.0)]
     camera_rate_hz: f64,
+    /// whole-arm: the cameras' depth rates to sweep at, Hz.
+    #[arg(long, value_parser = super::numbers::positive, allow_negative_numbers = true, value_delimiter = ',', default_value = "30,90")]
+    rates: Vec<f64>,
     /// safe-speed: also write every run's ticks (`STEM-SOURCE-SPEEDmps.csv`).
     #[arg(long)]
     trace: bool,
@@ -115,6 +121,25 @@ fn swept_scenes() -> Vec<String> {
         .collect()
 }
 
+/// A sweep's `--speeds`: 1 to [`MAX_SPEEDS`], each in [`SPEEDS_MPS`].
+fn check_speeds(speeds: &[f64]) -> Result<()> {
+    if speeds.is_empty() || speeds.len() > MAX_SPEEDS {
+        bail!(
+            "--speeds takes 1 to {MAX_SPEEDS} speeds (each is two closed-loop runs), got {}",
+            speeds.len()
+        );
+    }
+    if !speeds.iter().all(|v| SPEEDS_MPS.contains(v)) {
+        bail!(
+            "--speeds must be finite and in [{}, {}] m/s, got {:?}",
+            SPEEDS_MPS.start(),
+            SPEEDS_MPS.end(),
+            speeds
+        );
+    }
+    Ok(())
+}
+
 fn register_font() -> Result<()> {
     plotters::style::register_font(FONT, FontStyle::Normal, epaint_default_fonts::UBUNTU_LIGHT)
         .map_err(|_| anyhow!("embedded plot font is invalid"))
@@ -122,11 +147,11 @@ fn register_font() -> Result<()> {
 
 pub fn run(args: ExperimentArgs) -> Result<()> {
     if args.list {
-        for name in EXPERIMENTS
-            .iter()
-            .chain(&scene_loop::EXPERIMENTS)
-            .chain(&["safe-speed", "campaign"])
-        {
+        for name in EXPERIMENTS.iter().chain(&scene_loop::EXPERIMENTS).chain(&[
+            "safe-speed",
+            "whole-arm",
+            "campaign",
+        ]) {
             let what = match *name {
                 "impacts" => "three direct impacts on a virtual horizontal plane (Fig. 11)",
                 "sliding" => "press onto the plane and slide along it (Fig. 11)",
@@ -144,6 +169,9 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 }
                 "campaign" => {
                     "--episodes randomized approaches at --speeds from four surface sources"
+                }
+                "whole-arm" => {
+                    "every whole-arm scene's approach re-timed to --speeds at --rates, keep-off guards on"
                 }
                 _ => "forehead_impacts_realistic through cameras, perception and fusion",
             };
@@ -283,31 +311,43 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
             let scene_name = args.scene.with_context(|| {
                 format!(
                     "safe-speed needs --scene NAME|FILE, a scene with one constant_velocity \
-                     body; built in: {}",
-                    swept_scenes().join(", ")
+                     body; built in: {} (with --keep-off also the whole-arm scenes: {})",
+                    swept_scenes().join(", "),
+                    builtin::whole_arm_names().join(", ")
                 )
             })?;
-            if args.speeds.is_empty() || args.speeds.len() > MAX_SPEEDS {
-                bail!(
-                    "--speeds takes 1 to {MAX_SPEEDS} speeds (each is two closed-loop runs), got {}",
-                    args.speeds.len()
-                );
-            }
-            if !args.speeds.iter().all(|v| SPEEDS_MPS.contains(v)) {
-                bail!(
-                    "--speeds must be finite and in [{}, {}] m/s, got {:?}",
-                    SPEEDS_MPS.start(),
-                    SPEEDS_MPS.end(),
-                    args.speeds
-                );
-            }
+            check_speeds(&args.speeds)?;
             let scene = Scene::from_name_or_path(&scene_name)?;
-            let sweep = safe_speed::sweep(&scene, &args.speeds, args.camera_rate_hz, &loop_options)
-                .with_context(|| format!("safe-speed sweep of {}", scene.origin))?;
+            // with the keep-off guards, a scene whose moving body touches neither the HIP
+            // nor a guard has its approach re-timed (a whole-arm scene)
+            let whole_arm = args.keep_off
+                && episode::check_approach_guarded(
+                    &scene.with_camera_rate_hz(args.camera_rate_hz)?,
+                    &loop_options.sim.controller.guards,
+                )
+                .is_err();
+            let (sweep, approach) = if whole_arm {
+                let (a, sweep) = safe_speed::sweep_approach(
+                    &scene,
+                    &args.speeds,
+                    args.camera_rate_hz,
+                    &loop_options,
+                )
+                .with_context(|| format!("safe-speed sweep of {}'s approach", scene.origin))?;
+                (sweep, Some(a))
+            } else {
+                let sweep =
+                    safe_speed::sweep(&scene, &args.speeds, args.camera_rate_hz, &loop_options)
+                        .with_context(|| format!("safe-speed sweep of {}", scene.origin))?;
+                (sweep, None)
+            };
             let stem = format!("safe-speed-{}-{}hz", sweep.scene, sweep.camera_rate_hz);
             write_rows(&out.join(format!("{stem}.csv")), &sweep.rows)?;
             if args.keep_off {
                 write_rows(&out.join(format!("{stem}-guards.csv")), &sweep.guard_rows)?;
+            }
+            if let Some(a) = &approach {
+                write_rows(&out.join(format!("{stem}-unguarded.csv")), &a.unguarded)?;
             }
             if args.trace {
                 for (r, ticks) in sweep.rows.iter().zip(&sweep.traces) {
@@ -353,6 +393,17 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 "guards": sweep.guard_rows,
                 "guard_safe_speed_mps": sweep.guard_safe_speed_mps,
             });
+            if let Some(a) = approach {
+                extra["approach"] = serde_json::json!(a);
+            }
+        }
+        "whole-arm" => {
+            extra = whole_arm(
+                (&args.scene, &args.speeds, &args.rates),
+                args.json,
+                &out,
+                &loop_options,
+            )?;
         }
         "campaign" => {
             extra = campaign(
@@ -423,6 +474,226 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
         println!("wrote CSV and PNG files to {}", out.display());
     }
     Ok(())
+}
+
+/// One keep-off guard in one whole-arm run (`whole-arm.csv`).
+#[derive(serde::Serialize)]
+struct WholeArmRow {
+    scene: String,
+    /// The approach's guard, body and mover.
+    approach_guard: String,
+    approach_body: String,
+    mover: String,
+    guard: String,
+    speed_mps: f64,
+    camera_rate_hz: f64,
+    /// A surface source, or `unguarded` (the single-HIP config on the exact surface).
+    source: String,
+    min_d_proj_m: f64,
+    body: String,
+    contact: bool,
+}
+
+/// One scene, rate and source of a whole-arm sweep (`whole-arm-summary.csv`).
+#[derive(serde::Serialize)]
+struct WholeArmSummary {
+    scene: String,
+    camera_rate_hz: f64,
+    source: String,
+    approach_guard: String,
+    /// Highest tested speed up to which no keep-off guard touched the body, m/s (0: the
+    /// slowest touched).
+    safe_speed_mps: f64,
+    /// Lowest tested speed at which one did (None: none did).
+    first_contact_speed_mps: Option<f64>,
+    /// Least true d_proj of any keep-off guard over the speeds, metres, and that guard.
+    least_d_proj_m: f64,
+    least_guard: String,
+}
+
+/// `whole-arm`: every whole-arm built-in (or `--scene`) at every rate of `--rates`, its
+/// approach re-timed to each of `--speeds` ([`safe_speed::sweep_approach`]), scenes and rates
+/// in parallel; writes `whole-arm.csv`, `whole-arm-summary.csv` and `whole-arm-errors.csv`
+/// (scenes whose approach could not be re-timed) and returns the JSON details.
+fn whole_arm(
+    (scene, speeds, rates): (&Option<String>, &[f64], &[f64]),
+    json: bool,
+    out: &Path,
+    options: &SceneLoopOptions,
+) -> Result<serde_json::Value> {
+    use rayon::prelude::*;
+    check_speeds(speeds)?;
+    let scenes = match scene {
+        Some(s) => vec![s.clone()],
+        None => builtin::whole_arm_names(),
+    };
+    let options = SceneLoopOptions {
+        render_threads: Some(1),
+        ..options.clone()
+    };
+    let jobs: Vec<(String, f64)> = (scenes.iter())
+        .flat_map(|s| rates.iter().map(move |&r| (s.clone(), r)))
+        .collect();
+    let started = std::time::Instant::now();
+    let results: Vec<_> = jobs
+        .par_iter()
+        .map(|(name, rate)| {
+            let job = std::time::Instant::now();
+            let result = Scene::from_name_or_path(name)
+                .map_err(anyhow::Error::from)
+                .and_then(|scene| Ok(safe_speed::sweep_approach(&scene, speeds, *rate, &options)?));
+            eprintln!(
+                "{name} at {rate} Hz: {} in {:.1} s",
+                if result.is_ok() { "done" } else { "refused" },
+                job.elapsed().as_secs_f64()
+            );
+            (name.clone(), *rate, result)
+        })
+        .collect();
+    let mut rows = Vec::new();
+    let mut summary = Vec::new();
+    let mut errors = Vec::new();
+    let mut details = Vec::new();
+    for (name, rate, result) in results {
+        let (a, sweep) = match result {
+            Ok(r) => r,
+            Err(e) => {
+                errors.push(serde_json::json!({"scene": name, "camera_rate_hz": rate, "error": format!("{e:#}")}));
+                continue;
+            }
+        };
+        let row = |guard: &str, speed: f64, source: &str, d: f64, body: &str, contact: bool| {
+            WholeArmRow {
+                scene: name.clone(),
+                approach_guard: a.approach.guard.clone(),
+                approach_body: a.approach.body.clone(),
+                mover: a.approach.mover.to_string(),
+                guard: guard.into(),
+                speed_mps: speed,
+                camera_rate_hz: rate,
+                source: source.into(),
+                min_d_proj_m: d,
+                body: body.into(),
+                contact,
+            }
+        };
+        let first = rows.len();
+        for g in &sweep.guard_rows {
+            rows.push(row(
+                &g.guard,
+                g.speed_mps,
+                g.source.name(),
+                g.min_d_proj_m,
+                &g.body,
+                g.contact,
+            ));
+        }
+        for g in &a.unguarded {
+            rows.push(row(
+                &g.guard,
+                g.speed_mps,
+                "unguarded",
+                g.min_d_proj_m,
+                &g.body,
+                g.contact,
+            ));
+        }
+        let sources: Vec<&str> = SurfaceSource::ALL
+            .iter()
+            .map(|s| s.name())
+            .chain(["unguarded"])
+            .collect();
+        for source in sources {
+            let mine: Vec<&WholeArmRow> = rows[first..]
+                .iter()
+                .filter(|r| r.source == source)
+                .collect();
+            let mut speeds: Vec<f64> = mine.iter().map(|r| r.speed_mps).collect();
+            speeds.sort_by(f64::total_cmp);
+            speeds.dedup();
+            let touched = |v: f64| mine.iter().any(|r| r.speed_mps == v && r.contact);
+            let first_contact = speeds.iter().copied().find(|&v| touched(v));
+            let least = mine
+                .iter()
+                .min_by(|x, y| x.min_d_proj_m.total_cmp(&y.min_d_proj_m));
+            summary.push(WholeArmSummary {
+                scene: name.clone(),
+                camera_rate_hz: rate,
+                source: source.into(),
+                approach_guard: a.approach.guard.clone(),
+                safe_speed_mps: speeds
+                    .iter()
+                    .copied()
+                    .take_while(|&v| !touched(v))
+                    .fold(0.0, f64::max),
+                first_contact_speed_mps: first_contact,
+                least_d_proj_m: least.map_or(f64::INFINITY, |r| r.min_d_proj_m),
+                least_guard: least.map_or(String::new(), |r| r.guard.clone()),
+            });
+        }
+        details.push(serde_json::json!({
+            "scene": name,
+            "camera_rate_hz": rate,
+            "approach": a,
+            "sweep": sweep.rows,
+        }));
+    }
+    if rows.is_empty() {
+        let why: Vec<String> = (errors.iter())
+            .map(|e| {
+                format!(
+                    "{} at {} Hz: {}",
+                    e["scene"], e["camera_rate_hz"], e["error"]
+                )
+            })
+            .collect();
+        bail!("no whole-arm scene could be swept: {}", why.join("; "));
+    }
+    write_rows(&out.join("whole-arm.csv"), &rows)?;
+    write_rows(&out.join("whole-arm-summary.csv"), &summary)?;
+    let mut text = String::from("scene,camera_rate_hz,error\n");
+    for e in &errors {
+        text.push_str(&format!(
+            "{},{},\"{}\"\n",
+            e["scene"].as_str().unwrap_or(""),
+            e["camera_rate_hz"],
+            e["error"].as_str().unwrap_or("").replace('"', "'")
+        ));
+    }
+    std::fs::write(out.join("whole-arm-errors.csv"), text)?;
+    if !json {
+        println!(
+            "{:34} {:>5} {:15} {:10} {:>8} {:>13} {:>9} guard",
+            "scene", "Hz", "source", "approach", "safe m/s", "first contact", "least mm"
+        );
+        for s in &summary {
+            println!(
+                "{:34} {:>5} {:15} {:10} {:>8} {:>13} {:>9.1} {}",
+                s.scene,
+                s.camera_rate_hz,
+                s.source,
+                s.approach_guard,
+                s.safe_speed_mps,
+                s.first_contact_speed_mps
+                    .map_or("-".into(), |v| v.to_string()),
+                s.least_d_proj_m * 1e3,
+                s.least_guard
+            );
+        }
+        for e in &errors {
+            println!(
+                "refused: {} at {} Hz: {}",
+                e["scene"], e["camera_rate_hz"], e["error"]
+            );
+        }
+    }
+    Ok(serde_json::json!({
+        "wall_s": started.elapsed().as_secs_f64(),
+        "threads": rayon::current_num_threads(),
+        "summary": summary,
+        "scenes": details,
+        "errors": errors,
+    }))
 }
 
 /// `campaign`: runs the episodes in parallel with a progress bar, writes the CSVs, the plots

@@ -20,8 +20,18 @@
 use super::scene_loop::{
     GuardRunMetrics, SceneLoopError, SceneLoopOptions, SceneSample, SurfaceSource, simulate_scene,
 };
-use crate::scene::{Scene, episode};
+use crate::robot::guards::{GuardConfig, GuardSet};
+use crate::scene::approach::{self, Approach, Retimed};
+use crate::scene::{Scene, SceneError, Simulator, episode, truth};
 use serde::Serialize;
+
+/// The sources a sweep runs, in its rows' order.
+const SOURCES: [SurfaceSource; 4] = [
+    SurfaceSource::Perception,
+    SurfaceSource::VisibleOracle,
+    SurfaceSource::DelayedOracle,
+    SurfaceSource::Exact,
+];
 
 /// One run of the sweep.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -105,9 +115,24 @@ pub fn run_at_speed(
     source: SurfaceSource,
     options: &SceneLoopOptions,
 ) -> Result<(SpeedRow, Vec<GuardSpeedRow>, Vec<SceneSample>), SceneLoopError> {
-    let camera_rate_hz = at_rate.file.cameras.first().map_or(0.0, |c| c.rate_hz);
-    let run = simulate_scene(
+    run_scene(
         &at_rate.with_moving_body_speed(speed_mps)?,
+        speed_mps,
+        source,
+        options,
+    )
+}
+
+/// Runs `scene` (already at its speed) from `source`: the row of [`run_at_speed`].
+fn run_scene(
+    scene: &Scene,
+    speed_mps: f64,
+    source: SurfaceSource,
+    options: &SceneLoopOptions,
+) -> Result<(SpeedRow, Vec<GuardSpeedRow>, Vec<SceneSample>), SceneLoopError> {
+    let camera_rate_hz = scene.file.cameras.first().map_or(0.0, |c| c.rate_hz);
+    let run = simulate_scene(
+        scene,
         &SceneLoopOptions {
             surface_source: source,
             ..options.clone()
@@ -163,16 +188,10 @@ pub fn sweep(
     } else {
         episode::check_approach(&at_rate)?;
     }
-    let sources = [
-        SurfaceSource::Perception,
-        SurfaceSource::VisibleOracle,
-        SurfaceSource::DelayedOracle,
-        SurfaceSource::Exact,
-    ];
-    let mut rows = Vec::with_capacity(sources.len() * speeds.len());
-    let mut traces = Vec::with_capacity(sources.len() * speeds.len());
+    let mut rows = Vec::with_capacity(SOURCES.len() * speeds.len());
+    let mut traces = Vec::with_capacity(SOURCES.len() * speeds.len());
     let mut guard_rows = Vec::new();
-    for source in sources {
+    for source in SOURCES {
         for &speed in &speeds {
             let (row, guards, samples) = run_at_speed(&at_rate, speed, source, options)?;
             rows.push(row);
@@ -180,8 +199,19 @@ pub fn sweep(
             traces.push(samples);
         }
     }
+    Ok(collect(scene, camera_rate_hz, rows, guard_rows, traces))
+}
+
+/// The sweep's safe speeds from its runs.
+fn collect(
+    scene: &Scene,
+    camera_rate_hz: f64,
+    rows: Vec<SpeedRow>,
+    guard_rows: Vec<GuardSpeedRow>,
+    traces: Vec<Vec<SceneSample>>,
+) -> SafeSpeed {
     let mut guard_safe_speed_mps = Vec::new();
-    for source in sources {
+    for source in SOURCES {
         let mut names: Vec<&str> = Vec::new();
         for r in guard_rows.iter().filter(|r| r.source == source) {
             if !names.contains(&r.guard.as_str()) {
@@ -201,7 +231,7 @@ pub fn sweep(
             });
         }
     }
-    Ok(SafeSpeed {
+    SafeSpeed {
         scene: scene.file.name.clone(),
         camera_rate_hz,
         safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::Perception),
@@ -212,7 +242,175 @@ pub fn sweep(
         guard_safe_speed_mps,
         rows,
         traces,
-    })
+    }
+}
+
+/// A keep-off guard in the unguarded run of a re-timed scene (the controller's single-HIP
+/// mode: the handle alone constrained), from the run's joint positions.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct UnguardedRow {
+    pub speed_mps: f64,
+    pub camera_rate_hz: f64,
+    pub guard: String,
+    /// Smallest true `d_proj` of the guard over the run, metres.
+    pub min_d_proj_m: f64,
+    /// The body part nearest the guard then.
+    pub body: String,
+    pub contact: bool,
+    pub contact_t_s: Option<f64>,
+    /// Speed at which guard and body closed at that contact (the gap's fall over the tick
+    /// before it), m/s.
+    pub contact_closing_speed_mps: Option<f64>,
+}
+
+/// What a whole-arm sweep adds to its [`SafeSpeed`]: the scene's approach, re-timed to each
+/// speed, and each speed's unguarded run.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ApproachSweep {
+    pub approach: Approach,
+    /// The nearer approaches that could not be re-timed, and why.
+    pub skipped: Vec<String>,
+    /// The re-timed scenes, one per speed (ascending).
+    pub retimed: Vec<Retimed>,
+    pub unguarded: Vec<UnguardedRow>,
+}
+
+/// Sweeps `scene`'s approach (the nearest of [`approach::candidates`] that re-times: a
+/// keep-off guard and body and what closes their gap) re-timed to close at each of `speeds_mps`
+/// ([`approach::Approach::retime`]), cameras at `camera_rate_hz`, from every source with
+/// the keep-off guards on; each speed also runs unguarded (the single-HIP config on the
+/// exact surface), which shows whether the re-timed motion would touch without them.
+pub fn sweep_approach(
+    scene: &Scene,
+    speeds_mps: &[f64],
+    camera_rate_hz: f64,
+    options: &SceneLoopOptions,
+) -> Result<(ApproachSweep, SafeSpeed), SceneLoopError> {
+    let mut speeds = speeds_mps.to_vec();
+    speeds.sort_by(f64::total_cmp);
+    let at_rate = scene.with_camera_rate_hz(camera_rate_hz)?;
+    if let Some(v) = (speeds.iter()).find(|v| !approach::CLOSING_SPEEDS_MPS.contains(*v)) {
+        return Err(SceneError::Invalid {
+            origin: at_rate.origin.clone(),
+            message: format!(
+                "a closing speed must be finite and in [{}, {}] m/s, got {v}",
+                approach::CLOSING_SPEEDS_MPS.start(),
+                approach::CLOSING_SPEEDS_MPS.end()
+            ),
+        }
+        .into());
+    }
+    let guards = &options.sim.controller.guards;
+    // the nearest approach that can be re-timed to every speed
+    let mut skipped = Vec::new();
+    let mut chosen = None;
+    for candidate in approach::candidates(&at_rate, guards)? {
+        let retimed = candidate.and_then(|a| {
+            let r = (speeds.iter())
+                .map(|&v| a.retime(&at_rate, guards, v))
+                .collect::<Result<Vec<_>, _>>()?;
+            Ok((a, r))
+        });
+        match retimed {
+            Ok(r) => {
+                chosen = Some(r);
+                break;
+            }
+            Err(e) => skipped.push(e.to_string()),
+        }
+    }
+    let (approach, retimed) = chosen.ok_or_else(|| SceneError::Invalid {
+        origin: at_rate.origin.clone(),
+        message: format!(
+            "no approach of a keep-off guard to a body can be re-timed: {}",
+            skipped.join("; ")
+        ),
+    })?;
+    let guarded = SceneLoopOptions {
+        keep_off: true,
+        ..options.clone()
+    };
+    let mut rows = Vec::with_capacity(SOURCES.len() * speeds.len());
+    let mut traces = Vec::with_capacity(SOURCES.len() * speeds.len());
+    let mut guard_rows = Vec::new();
+    for source in SOURCES {
+        for r in &retimed {
+            let (row, guards, samples) = run_scene(&r.scene, r.speed_mps, source, &guarded)?;
+            rows.push(row);
+            guard_rows.extend(guards);
+            traces.push(samples);
+        }
+    }
+    let mut unguarded = Vec::new();
+    for r in &retimed {
+        unguarded.extend(unguarded_rows(r, camera_rate_hz, options)?);
+    }
+    Ok((
+        ApproachSweep {
+            approach,
+            skipped,
+            retimed,
+            unguarded,
+        },
+        collect(scene, camera_rate_hz, rows, guard_rows, traces),
+    ))
+}
+
+/// Runs `r`'s scene with the single-HIP config on the exact surface and measures each
+/// keep-off guard of `options`' config at every tick.
+fn unguarded_rows(
+    r: &Retimed,
+    camera_rate_hz: f64,
+    options: &SceneLoopOptions,
+) -> Result<Vec<UnguardedRow>, SceneLoopError> {
+    let mut single = SceneLoopOptions {
+        keep_off: false,
+        surface_source: SurfaceSource::Exact,
+        ..options.clone()
+    };
+    single.sim.controller.guards = GuardConfig::single_hip();
+    let run = simulate_scene(&r.scene, &single)?;
+    let sim = Simulator::new(&r.scene)?;
+    let model = sim
+        .robot_model()
+        .ok_or_else(|| SceneLoopError::NoRobot(r.scene.origin.clone()))?;
+    let set = GuardSet::new(model, &options.sim.controller.guards)?;
+    let period = options.sim.controller.haptics.period_s;
+    let bodies = &r.scene.file.bodies;
+    let mut out = Vec::new();
+    for &k in set.keep_off() {
+        let g = &set.guards()[k];
+        let mut row = UnguardedRow {
+            speed_mps: r.speed_mps,
+            camera_rate_hz,
+            guard: g.name.clone(),
+            min_d_proj_m: f64::INFINITY,
+            body: String::new(),
+            contact: false,
+            contact_t_s: None,
+            contact_closing_speed_mps: None,
+        };
+        let mut before: Option<f64> = None;
+        for (i, q) in run.joints.iter().enumerate() {
+            let t = i as f64 * period;
+            let seg = g.world(&model.forward_kinematics(q));
+            let Some(tr) = truth::closest_to_guard(bodies, t, &seg) else {
+                continue;
+            };
+            if tr.gap_m < row.min_d_proj_m {
+                row.min_d_proj_m = tr.gap_m;
+                row.body = tr.body.clone();
+            }
+            if tr.gap_m < 0.0 && !row.contact {
+                row.contact = true;
+                row.contact_t_s = Some(t);
+                row.contact_closing_speed_mps = before.map(|b| (b - tr.gap_m) / period);
+            }
+            before = Some(tr.gap_m);
+        }
+        out.push(row);
+    }
+    Ok(out)
 }
 
 /// The highest speed of `source`'s rows (ascending) below which every row is safe.

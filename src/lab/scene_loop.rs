@@ -431,6 +431,8 @@ pub struct SceneRun {
     /// One per keep-off guard, in the controller's keep-off order (empty without
     /// [`SceneLoopOptions::keep_off`]).
     pub guards: Vec<GuardRunMetrics>,
+    /// The robot's joint positions at every tick.
+    pub joints: Vec<JointVector>,
 }
 
 /// Finite-difference step of the hand reference's derivatives, seconds.
@@ -823,6 +825,7 @@ pub fn simulate_scene(
         samples,
         metrics,
         guards: guard_metrics,
+        joints: history,
     })
 }
 

@@ -35,8 +35,9 @@ const REALISTIC: &str = include_str!("../../tools/scenes/common/realistic_effect
 /// results stay as they are).
 const THIGHS: &str = include_str!("../../tools/scenes/common/thighs.toml");
 
-/// Built-in scenes whose patient has thighs.
-const WITH_THIGHS: &[&str] = &[
+/// The whole-arm built-ins (a keep-off guard, not the handle, comes closest to the body):
+/// their patient has thighs.
+const WHOLE_ARM: &[&str] = &[
     "forearm_to_torso",
     "forearm_to_thigh",
     "elbow_to_torso",
@@ -127,6 +128,14 @@ pub fn names() -> Vec<String> {
         .collect()
 }
 
+/// Names of the whole-arm built-in scenes, each `_clean` then `_realistic`.
+pub fn whole_arm_names() -> Vec<String> {
+    WHOLE_ARM
+        .iter()
+        .flat_map(|n| [format!("{n}_clean"), format!("{n}_realistic")])
+        .collect()
+}
+
 /// The full TOML text of built-in scene `name`.
 pub fn text(name: &str) -> Option<String> {
     let (base, realistic) = if let Some(b) = name.strip_suffix("_clean") {
@@ -136,7 +145,7 @@ pub fn text(name: &str) -> Option<String> {
     };
     let (_, own, cameras) = EXPERIMENTS.iter().find(|(n, _, _)| *n == base)?;
     let mut text = format!("name = \"{name}\"\n{own}\n{PATIENT}\n{cameras}\n");
-    if WITH_THIGHS.contains(&base) {
+    if WHOLE_ARM.contains(&base) {
         text.push_str(THIGHS);
         text.push('\n');
     }

@@ -17,6 +17,7 @@
 //! The simulator never imports the estimator (perception): the truth stays independent of
 //! what it judges. It shares only the robot model and the geometry types.
 
+pub mod approach;
 pub mod builtin;
 pub mod config;
 pub mod effects;

@@ -13,7 +13,7 @@ use nalgebra::{Matrix3, Point3};
 /// Sampling rate of a solved HIP path, Hz.
 pub const IK_RATE_HZ: f64 = 1000.0;
 /// Damping of the least-squares step, metres.
-const IK_DAMPING_M: f64 = 0.02;
+pub(crate) const IK_DAMPING_M: f64 = 0.02;
 /// Iterations per sample (warm-started, so a few suffice).
 const IK_ITERATIONS: usize = 20;
 /// Largest accepted distance between the commanded and the reached HIP, metres.
