@@ -541,8 +541,8 @@ fn hull(values: impl IntoIterator<Item = f64>) -> (f64, f64) {
     })
 }
 
-/// The pixels of a capsule (camera frame, ends `a` and `b`, radius `r` with its slack) row by
-/// row, into `out` as spans of reach `reach`. Row `v`'s points lie in the plane `y = t z`, `t = (v - cy) / fy`, whose
+/// The pixels of a capsule (camera frame, ends `a` and `b`, radius `r` with its slack) in the
+/// image of `depth`, row by row, into `out` as spans of reach `reach`. Row `v`'s points lie in the plane `y = t z`, `t = (v - cy) / fy`, whose
 /// unit normal is `n = (0, 1, -t) / l`, `l = sqrt(1 + t^2)`; in the plane a point has the
 /// coordinates `x` and `s = (t y + z) / l`, its depth is `z = s / l` and its column ray
 /// `x / z = l x / s`. The segment's points `c(k) = a + k (b - a)` lie at the signed distances
@@ -557,13 +557,13 @@ fn capsule_rows(
     a: &Point3<f64>,
     b: &Point3<f64>,
     r: f64,
-    k: &PinholeIntrinsics,
-    unit: f64,
-    size: (u32, u32),
+    depth: &DepthInput<'_>,
     reach: u32,
     out: &mut Vec<RowSpan>,
 ) {
-    let Some((rect, depth)) = capsule_pixels(a, b, r, k, unit, size) else {
+    let (k, unit) = (depth.intrinsics, depth.image.depth_scale_m);
+    let size = (depth.image.width, depth.image.height);
+    let Some((rect, rect_depth)) = capsule_pixels(a, b, r, k, unit, size) else {
         return;
     };
     let last = f64::from(u16::MAX);
@@ -572,7 +572,7 @@ fn capsule_rows(
         let l = (1.0 + t * t).sqrt();
         let mut piece = |u: Range<u32>, depth| out.push(RowSpan { v, u, depth, reach });
         if !l.is_finite() {
-            piece(rect.u.clone(), depth);
+            piece(rect.u.clone(), rect_depth);
             continue;
         }
         let delta = |p: &Point3<f64>| (p.y - t * p.z) / l;
@@ -587,7 +587,7 @@ fn capsule_rows(
             let (e0, e1) = ((-r - da) / dd, (r - da) / dd);
             (e0.min(e1).max(0.0), e0.max(e1).min(1.0))
         };
-        if !(k0 <= k1) {
+        if k0.partial_cmp(&k1).is_none_or(std::cmp::Ordering::is_gt) {
             continue;
         }
         let (d0, d1) = (da + k0 * dd, da + k1 * dd);
@@ -625,7 +625,7 @@ fn capsule_rows(
             (s_lo / l / unit).floor().clamp(1.0, last) as u16,
             (s_hi / l / unit).ceil().clamp(1.0, last) as u16,
         );
-        let z = (z.0.max(depth.0), z.1.min(depth.1));
+        let z = (z.0.max(rect_depth.0), z.1.min(rect_depth.1));
         if !u.is_empty() && z.0 <= z.1 {
             piece(u, z);
         }
@@ -674,8 +674,7 @@ pub fn crop_region_with_reach(
         if !(finite && r.is_finite() && unit > 0.0) {
             return CropRegion::full(w, h);
         }
-        let (k, size) = (depth.intrinsics, (w, h));
-        capsule_rows(&a, &b, r, k, unit, size, 1 << j, &mut pieces);
+        capsule_rows(&a, &b, r, depth, 1 << j, &mut pieces);
     }
     CropRegion::from_pieces(pieces)
 }
