@@ -497,31 +497,10 @@ fn capsule_pixels(
     if z1 < unit || z0 > last * unit {
         return None;
     }
-    let bounds = |ax: f64, bx: f64| {
-        if a.z > r && b.z > r {
-            // Planes x = t z through the camera tangent to a ball at (x, z):
-            // (x - t z)^2 = r^2 (1 + t^2) has the roots t = (x z -+ r sqrt(x^2 + z^2 - r^2))
-            // / (z^2 - r^2); every point of the ball has x / z between them.
-            let tangents = |x: f64, z: f64| {
-                let d = z * z - r * r;
-                let s = r * (x * x + d).sqrt();
-                ((x * z - s) / d, (x * z + s) / d)
-            };
-            let (l0, h0) = tangents(ax, a.z);
-            let (l1, h1) = tangents(bx, b.z);
-            (l0.min(l1), h0.max(h1))
-        } else {
-            // The capsule's box: x in [min - r, max + r], z in [max(z0, one unit), z1].
-            let (x0, x1) = (ax.min(bx) - r, ax.max(bx) + r);
-            let (z0, z1) = (z0.max(unit), z1);
-            let t = [x0 / z0, x0 / z1, x1 / z0, x1 / z1];
-            (
-                t.iter().copied().fold(f64::INFINITY, f64::min),
-                t.iter().copied().fold(f64::NEG_INFINITY, f64::max),
-            )
-        }
-    };
-    let (tx, ty) = (bounds(a.x, b.x), bounds(a.y, b.y));
+    let (tx, ty) = (
+        ray_slopes((a.x, a.z), (b.x, b.z), r, unit),
+        ray_slopes((a.y, a.z), (b.y, b.z), r, unit),
+    );
     let rect = PixelRect {
         u: axis_pixels(tx.0, tx.1, k.cx, k.fx, w),
         v: axis_pixels(ty.0, ty.1, k.cy, k.fy, h),
@@ -532,6 +511,27 @@ fn capsule_pixels(
         (z1 / unit).ceil().clamp(1.0, last) as u16,
     );
     (!rect.is_empty()).then_some((rect, depth))
+}
+
+/// The slopes `x / z` (least, greatest) of the rays from the camera through a capsule of the
+/// (x, z) plane with ends `p` and `q` (each `(x, z)`) and radius `r`. With both ends deeper
+/// than `r`, the lines x = t z tangent to its end discs: (x - t z)^2 = r^2 (1 + t^2) has the
+/// roots t = (x z -+ r sqrt(x^2 + z^2 - r^2)) / (z^2 - r^2), and every point of a disc has
+/// x / z between them. Otherwise its box: x within `r` of the ends', z from the least end's
+/// less `r` (at least `min_z`) to the greatest end's plus `r`.
+fn ray_slopes(p: (f64, f64), q: (f64, f64), r: f64, min_z: f64) -> (f64, f64) {
+    if p.1 > r && q.1 > r {
+        let tangents = |(x, z): (f64, f64)| {
+            let d = z * z - r * r;
+            let s = r * (x * x + d).sqrt();
+            [(x * z - s) / d, (x * z + s) / d]
+        };
+        hull(tangents(p).into_iter().chain(tangents(q)))
+    } else {
+        let (x0, x1) = (p.0.min(q.0) - r, p.0.max(q.0) + r);
+        let (z0, z1) = ((p.1.min(q.1) - r).max(min_z), p.1.max(q.1) + r);
+        hull([x0 / z0, x0 / z1, x1 / z0, x1 / z1])
+    }
 }
 
 /// The smallest and largest of `values`.
@@ -605,20 +605,7 @@ fn capsule_rows(
         if s_hi < l * unit || s_lo > l * last * unit {
             continue;
         }
-        let (m_lo, m_hi) = if s0 > rho && s1 > rho {
-            // The end discs' tangents through the camera (as in `capsule_pixels`).
-            let tangents = |x: f64, s: f64| {
-                let d = s * s - rho * rho;
-                let q = rho * (x * x + d).sqrt();
-                [(x * s - q) / d, (x * s + q) / d]
-            };
-            hull(tangents(x0, s0).into_iter().chain(tangents(x1, s1)))
-        } else {
-            // The flat capsule's box at depths of at least one unit.
-            let (xa, xb) = (x0.min(x1) - rho, x0.max(x1) + rho);
-            let (sa, sb) = (s_lo.max(l * unit), s_hi);
-            hull([xa / sa, xa / sb, xb / sa, xb / sb])
-        };
+        let (m_lo, m_hi) = ray_slopes((x0, s0), (x1, s1), rho, l * unit);
         let u = axis_pixels(l * m_lo, l * m_hi, k.cx, k.fx, size.0);
         let u = u.start.max(rect.u.start)..u.end.min(rect.u.end);
         let z = (
