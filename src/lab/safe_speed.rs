@@ -188,28 +188,32 @@ pub fn sweep(
     } else {
         episode::check_approach(&at_rate)?;
     }
-    let mut rows = Vec::with_capacity(SOURCES.len() * speeds.len());
-    let mut traces = Vec::with_capacity(SOURCES.len() * speeds.len());
+    let at_speeds = (speeds.iter())
+        .map(|&v| Ok((at_rate.with_moving_body_speed(v)?, v)))
+        .collect::<Result<Vec<_>, SceneLoopError>>()?;
+    let runs: Vec<(&Scene, f64)> = at_speeds.iter().map(|(s, v)| (s, *v)).collect();
+    sweep_runs(scene, camera_rate_hz, &runs, options)
+}
+
+/// Runs each of `runs` (a scene already at its speed, and that speed) from every source,
+/// sources outermost (the rows' order), and gives the sweep's safe speeds from those runs.
+fn sweep_runs(
+    scene: &Scene,
+    camera_rate_hz: f64,
+    runs: &[(&Scene, f64)],
+    options: &SceneLoopOptions,
+) -> Result<SafeSpeed, SceneLoopError> {
+    let mut rows = Vec::with_capacity(SOURCES.len() * runs.len());
+    let mut traces = Vec::with_capacity(SOURCES.len() * runs.len());
     let mut guard_rows = Vec::new();
     for source in SOURCES {
-        for &speed in &speeds {
-            let (row, guards, samples) = run_at_speed(&at_rate, speed, source, options)?;
+        for &(at_speed, speed) in runs {
+            let (row, guards, samples) = run_scene(at_speed, speed, source, options)?;
             rows.push(row);
             guard_rows.extend(guards);
             traces.push(samples);
         }
     }
-    Ok(collect(scene, camera_rate_hz, rows, guard_rows, traces))
-}
-
-/// The sweep's safe speeds from its runs.
-fn collect(
-    scene: &Scene,
-    camera_rate_hz: f64,
-    rows: Vec<SpeedRow>,
-    guard_rows: Vec<GuardSpeedRow>,
-    traces: Vec<Vec<SceneSample>>,
-) -> SafeSpeed {
     let mut guard_safe_speed_mps = Vec::new();
     for source in SOURCES {
         let mut names: Vec<&str> = Vec::new();
@@ -231,7 +235,7 @@ fn collect(
             });
         }
     }
-    SafeSpeed {
+    Ok(SafeSpeed {
         scene: scene.file.name.clone(),
         camera_rate_hz,
         safe_speed_mps: safe_speed_mps(&rows, SurfaceSource::Perception),
@@ -242,7 +246,7 @@ fn collect(
         guard_safe_speed_mps,
         rows,
         traces,
-    }
+    })
 }
 
 /// A keep-off guard in the unguarded run of a re-timed scene (the controller's single-HIP
@@ -330,17 +334,8 @@ pub fn sweep_approach(
         keep_off: true,
         ..options.clone()
     };
-    let mut rows = Vec::with_capacity(SOURCES.len() * speeds.len());
-    let mut traces = Vec::with_capacity(SOURCES.len() * speeds.len());
-    let mut guard_rows = Vec::new();
-    for source in SOURCES {
-        for r in &retimed {
-            let (row, guards, samples) = run_scene(&r.scene, r.speed_mps, source, &guarded)?;
-            rows.push(row);
-            guard_rows.extend(guards);
-            traces.push(samples);
-        }
-    }
+    let runs: Vec<(&Scene, f64)> = retimed.iter().map(|r| (&r.scene, r.speed_mps)).collect();
+    let safe_speed = sweep_runs(scene, camera_rate_hz, &runs, &guarded)?;
     let mut unguarded = Vec::new();
     for r in &retimed {
         unguarded.extend(unguarded_rows(r, camera_rate_hz, options)?);
@@ -352,7 +347,7 @@ pub fn sweep_approach(
             retimed,
             unguarded,
         },
-        collect(scene, camera_rate_hz, rows, guard_rows, traces),
+        safe_speed,
     ))
 }
 

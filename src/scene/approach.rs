@@ -29,7 +29,7 @@
 //! nominal timing and is corrected once against the re-timed scene's measured `v_c`.
 
 use super::config::{HipSegment, RobotMotion};
-use super::episode::{PASS_M, START_S};
+use super::episode::{PASS_M, START_S, sample_times};
 use super::motion::{Motion, Rotation, min_jerk};
 use super::robot_track::IK_DAMPING_M;
 use super::{BodyConfig, Scene, SceneError, Simulator, truth};
@@ -147,12 +147,6 @@ impl GapProbe<'_> {
     }
 }
 
-/// Times `0, step, ...` up to `end_s`, the end included.
-fn times(end_s: f64, step_s: f64) -> impl Iterator<Item = f64> {
-    let n = (end_s / step_s).ceil() as usize;
-    (0..=n).map(move |i| (i as f64 * step_s).min(end_s))
-}
-
 /// The guard set of `guards` on `sim`'s robot, with a keep-off guard.
 fn guard_set(scene: &Scene, sim: &Simulator, guards: &GuardConfig) -> Result<GuardSet, SceneError> {
     let model = sim
@@ -192,7 +186,7 @@ pub fn candidates(
             least.push((f64::INFINITY, 0.0, k, b));
         }
     }
-    for t in times(sim.duration_s(), SAMPLE_S) {
+    for t in sample_times(sim.duration_s(), SAMPLE_S) {
         let Some(q) = sim.joints_at(t) else { continue };
         let poses = model.forward_kinematics(&q);
         for pair in &mut least {
@@ -241,7 +235,7 @@ fn approach_of(
         body,
     };
     // the final approach: back from the least gap to where the gap was FINAL_GAP_M more
-    let steps: Vec<f64> = times(t_min, SAMPLE_S).collect();
+    let steps: Vec<f64> = sample_times(t_min, SAMPLE_S).collect();
     let mut first = steps.len() - 1;
     while first > 0 && probe.gap(steps[first], steps[first]) < least_gap + FINAL_GAP_M {
         first -= 1;
@@ -541,7 +535,7 @@ impl Approach {
         let mut deepest = f64::INFINITY;
         let mut prev: Option<(f64, f64)> = None;
         let mut contact = None;
-        for t in times(end, CONTACT_STEP_S).filter(|&t| t >= from_s) {
+        for t in sample_times(end, CONTACT_STEP_S).filter(|&t| t >= from_s) {
             let g = probe.gap(t, t);
             deepest = deepest.min(g);
             if let Some((tp, gp)) = prev

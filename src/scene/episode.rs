@@ -600,10 +600,14 @@ fn moving_body(scene: &Scene) -> Option<&BodyConfig> {
 
 /// The times [`check_approach`] and [`check_approach_guarded`] sample a scene at: every
 /// 5 ms from 0 to its end, the end included.
-fn approach_times(sim: &super::Simulator) -> impl Iterator<Item = f64> + '_ {
-    const STEP_S: f64 = 0.005;
-    let steps = (sim.duration_s() / STEP_S).ceil() as usize;
-    (0..=steps).map(move |i| (i as f64 * STEP_S).min(sim.duration_s()))
+fn approach_times(sim: &super::Simulator) -> impl Iterator<Item = f64> {
+    sample_times(sim.duration_s(), 0.005)
+}
+
+/// Times `0, step, ...` up to `end_s`, the end included.
+pub(super) fn sample_times(end_s: f64, step_s: f64) -> impl Iterator<Item = f64> {
+    let n = (end_s / step_s).ceil() as usize;
+    (0..=n).map(move |i| (i as f64 * step_s).min(end_s))
 }
 
 /// Checks that `scene`'s moving body (its `constant_velocity` body) comes within the HIP
