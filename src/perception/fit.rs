@@ -99,10 +99,47 @@ const fn parents() -> ([u32; MOMENT_COUNT], [u32; MOMENT_COUNT]) {
     (parent, axis)
 }
 
+/// How many monomials have degree at most `d`, for `d` = 0..=4: they come first in
+/// [`EXPONENTS`], so a product with a monomial of degree `4 - d` ranges over that prefix.
+const UP_TO_DEGREE: [usize; MAX_DEGREE + 1] = [1, 4, 10, 20, 35];
+
+/// Per pair of monomials whose degrees sum to at most 4, the index of their product
+/// (`u8::MAX` for the others): [`Poly::mul`]'s lookup instead of a search of [`EXPONENTS`].
+const PRODUCT: [[u8; MOMENT_COUNT]; MOMENT_COUNT] = products();
+
+const fn products() -> [[u8; MOMENT_COUNT]; MOMENT_COUNT] {
+    let mut out = [[u8::MAX; MOMENT_COUNT]; MOMENT_COUNT];
+    let mut a = 0;
+    while a < MOMENT_COUNT {
+        let mut b = 0;
+        while b < MOMENT_COUNT {
+            let (ea, eb) = (EXPONENTS[a], EXPONENTS[b]);
+            let e = [ea[0] + eb[0], ea[1] + eb[1], ea[2] + eb[2]];
+            if (e[0] + e[1] + e[2]) as usize <= MAX_DEGREE {
+                out[a][b] = monomial_index(e) as u8;
+            }
+            b += 1;
+        }
+        a += 1;
+    }
+    out
+}
+
 /// Degree of the monomial at index `n`.
 pub fn degree(n: usize) -> usize {
-    EXPONENTS[n].iter().map(|&e| usize::from(e)).sum()
+    DEGREE[n] as usize
 }
+
+/// [`degree`] of each monomial.
+const DEGREE: [u8; MOMENT_COUNT] = {
+    let mut out = [0u8; MOMENT_COUNT];
+    let mut n = 0;
+    while n < MOMENT_COUNT {
+        out[n] = EXPONENTS[n][0] + EXPONENTS[n][1] + EXPONENTS[n][2];
+        n += 1;
+    }
+    out
+};
 
 /// A polynomial of degree <= 4 in `(dx, dy, dz)`, coefficients in [`EXPONENTS`] order.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -131,12 +168,12 @@ impl Poly {
             if ca == 0.0 {
                 continue;
             }
-            for (b, &cb) in other.0.iter().enumerate() {
-                if cb == 0.0 || degree(a) + degree(b) > MAX_DEGREE {
-                    continue;
+            // The monomials `b` whose product with `a` has degree <= 4: a prefix.
+            let fits = UP_TO_DEGREE[MAX_DEGREE - degree(a)];
+            for (&cb, &ab) in other.0[..fits].iter().zip(&PRODUCT[a][..fits]) {
+                if cb != 0.0 {
+                    out[usize::from(ab)] += ca * cb;
                 }
-                let (ea, eb) = (EXPONENTS[a], EXPONENTS[b]);
-                out[monomial_index([ea[0] + eb[0], ea[1] + eb[1], ea[2] + eb[2]])] += ca * cb;
             }
         }
         Poly(out)
@@ -838,6 +875,58 @@ mod tests {
             e[AXIS[n] as usize] += 1;
             assert_eq!(e, EXPONENTS[n]);
             assert!((PARENT[n] as usize) < n);
+        }
+        for a in 0..MOMENT_COUNT {
+            assert_eq!(
+                usize::from(DEGREE[a]),
+                EXPONENTS[a].iter().map(|&e| usize::from(e)).sum::<usize>()
+            );
+            for b in 0..MOMENT_COUNT {
+                let (ea, eb) = (EXPONENTS[a], EXPONENTS[b]);
+                let e = [ea[0] + eb[0], ea[1] + eb[1], ea[2] + eb[2]];
+                match PRODUCT[a][b] {
+                    u8::MAX => assert!(degree(a) + degree(b) > MAX_DEGREE),
+                    ab => assert_eq!(EXPONENTS[usize::from(ab)], e),
+                }
+                assert_eq!(
+                    b < UP_TO_DEGREE[MAX_DEGREE - degree(a).min(MAX_DEGREE)],
+                    degree(a) + degree(b) <= MAX_DEGREE
+                );
+            }
+        }
+    }
+
+    /// `Poly::mul` term by term in the order of the two polynomials' indices, the product's
+    /// index searched in `EXPONENTS`: the definition the table-driven product must equal bit
+    /// for bit (zero, negative zero and non-finite coefficients included).
+    #[test]
+    fn the_product_equals_its_definition_bit_for_bit() {
+        let definition = |p: &Poly, q: &Poly| {
+            let mut out = [0.0; MOMENT_COUNT];
+            for (a, &ca) in p.0.iter().enumerate() {
+                for (b, &cb) in q.0.iter().enumerate() {
+                    if ca != 0.0 && cb != 0.0 && degree(a) + degree(b) <= MAX_DEGREE {
+                        let (ea, eb) = (EXPONENTS[a], EXPONENTS[b]);
+                        out[monomial_index([ea[0] + eb[0], ea[1] + eb[1], ea[2] + eb[2]])] +=
+                            ca * cb;
+                    }
+                }
+            }
+            Poly(out)
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let special = [0.0, -0.0, f64::INFINITY, f64::NAN, 1e300];
+        for _ in 0..500 {
+            let mut poly = || {
+                Poly(std::array::from_fn(|_| match rng.random_range(0..8) {
+                    0..3 => 0.0,
+                    3 => special[rng.random_range(0..special.len())],
+                    _ => rng.random::<f64>() - 0.5,
+                }))
+            };
+            let (p, q) = (poly(), poly());
+            let bits = |p: Poly| p.0.map(f64::to_bits);
+            assert_eq!(bits(p.mul(&q)), bits(definition(&p, &q)));
         }
     }
 

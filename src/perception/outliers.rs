@@ -130,6 +130,19 @@ const SURE_MARGIN: f64 = 1e-9;
 /// index.
 const CELL_MARGIN: f64 = 1e-6;
 
+/// The nine rows of cells around a point's own (z and y offsets), its own first.
+const NEIGHBOUR_ROWS: [(isize, isize); 9] = [
+    (0, 0),
+    (0, -1),
+    (0, 1),
+    (-1, 0),
+    (1, 0),
+    (-1, -1),
+    (-1, 1),
+    (1, -1),
+    (1, 1),
+];
+
 /// The most rows of cells [`NeighbourGrid`] holds per point (with a floor for small clouds);
 /// a sparser cloud in a wider box goes to the k-d tree alone.
 const GRID_ROWS_PER_POINT: usize = 8;
@@ -216,7 +229,9 @@ impl NeighbourGrid {
     fn cell_of(&self, c: &[f64; 3]) -> Option<[usize; 3]> {
         let mut cell = [0; 3];
         for k in 0..3 {
-            let v = ((c[k] - self.origin[k]) * self.inv_cell).floor();
+            // Within [0, dims) the cast truncates, which is the floor there (`f64::floor` is
+            // a libm call on x86-64's baseline).
+            let v = (c[k] - self.origin[k]) * self.inv_cell;
             if !(v >= 0.0 && v < self.dims[k] as f64) {
                 return None;
             }
@@ -233,28 +248,37 @@ impl NeighbourGrid {
         let (sure2, loose2) = (radius2 * (1.0 - SURE_MARGIN), radius2 * (1.0 + SURE_MARGIN));
         let (mut sure, mut loose) = (0, 0);
         let (x0, x1) = (cell[0].saturating_sub(1) as u32, cell[0] as u32 + 1);
-        for z in cell[2].saturating_sub(1)..(cell[2] + 2).min(self.dims[2]) {
-            for y in cell[1].saturating_sub(1)..(cell[1] + 2).min(self.dims[1]) {
-                let row = z * self.dims[1] + y;
-                let (s, e) = (
-                    self.row_starts[row] as usize,
-                    self.row_starts[row + 1] as usize,
-                );
-                let s = s + self.x_cells[s..e].partition_point(|&x| x < x0);
-                for (&x, p) in self.x_cells[s..e].iter().zip(&self.coords[s..e]) {
-                    if x > x1 {
-                        break;
-                    }
-                    let (dx, dy, dz) = (p[0] - c[0], p[1] - c[1], p[2] - c[2]);
-                    let d2 = dx * dx + dy * dy + dz * dz;
-                    if d2 < sure2 {
-                        sure += 1;
-                        if sure >= k {
-                            return Some(true);
-                        }
-                    }
-                    loose += usize::from(d2 <= loose2);
+        // The point's own row first: a point of a surface finds itself and its neighbours
+        // there and returns early. The counts, and so the answer, do not depend on the order.
+        for (oz, oy) in NEIGHBOUR_ROWS {
+            let (Some(z), Some(y)) = (
+                cell[2].checked_add_signed(oz),
+                cell[1].checked_add_signed(oy),
+            ) else {
+                continue;
+            };
+            if z >= self.dims[2] || y >= self.dims[1] {
+                continue;
+            }
+            let row = z * self.dims[1] + y;
+            let (s, e) = (
+                self.row_starts[row] as usize,
+                self.row_starts[row + 1] as usize,
+            );
+            let s = s + self.x_cells[s..e].partition_point(|&x| x < x0);
+            for (&x, p) in self.x_cells[s..e].iter().zip(&self.coords[s..e]) {
+                if x > x1 {
+                    break;
                 }
+                let (dx, dy, dz) = (p[0] - c[0], p[1] - c[1], p[2] - c[2]);
+                let d2 = dx * dx + dy * dy + dz * dz;
+                if d2 < sure2 {
+                    sure += 1;
+                    if sure >= k {
+                        return Some(true);
+                    }
+                }
+                loose += usize::from(d2 <= loose2);
             }
         }
         (loose < k).then_some(false)
