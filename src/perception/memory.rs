@@ -24,6 +24,7 @@
 //! `mse_epsilon_m2`. The result reports convergence, iterations, fitness (fraction of source
 //! points with a correspondence) and the inlier RMSE.
 
+use super::outliers::NeighbourGrid;
 use glam::Vec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use nalgebra::{
@@ -383,6 +384,14 @@ pub fn icp(
         IcpMethod::PointToPoint => Vec::new(),
     };
     let max_d2 = config.max_correspondence_m * config.max_correspondence_m;
+    // Correspondences lie within the maximum distance: a grid of cells that wide finds them
+    // among the 27 cells around a point (the same nearest point as the tree), the tree
+    // where the target's box holds too many cells for its points.
+    let grid = NeighbourGrid::new(&target.points, config.max_correspondence_m);
+    let correspondence = |q: &Point3<f64>| match &grid {
+        Some(grid) => grid.nearest_within(&[q.x, q.y, q.z], max_d2),
+        None => Some(target.nearest(q)).filter(|&(_, d2)| d2 <= max_d2),
+    };
     let mut transform = initial;
     let mut prev_mse = f64::INFINITY;
     let mut converged = false;
@@ -395,19 +404,18 @@ pub fn icp(
         let mut sum_d2 = 0.0;
         // The searches on rayon's threads, the sums in the source's order (the same bits
         // with any thread count).
-        let nearest: Vec<(Point3<f64>, usize, f64)> = source
+        let nearest: Vec<(Point3<f64>, Option<(usize, f64)>)> = source
             .par_iter()
             .with_min_len(PAR_MIN_QUERIES)
             .map(|p| {
                 let q = transform * p;
-                let (i, d2) = target.nearest(&q);
-                (q, i, d2)
+                (q, correspondence(&q))
             })
             .collect();
-        for (q, i, d2) in nearest {
-            if d2 > max_d2 {
+        for (q, found) in nearest {
+            let Some((i, d2)) = found else {
                 continue;
-            }
+            };
             if config.method == IcpMethod::PointToPlane {
                 if normals[i] == Vector3::zeros() {
                     continue;
@@ -441,18 +449,13 @@ pub fn icp(
         }
         prev_mse = mse;
     }
-    let distances: Vec<f64> = source
+    let distances: Vec<Option<f64>> = source
         .par_iter()
         .with_min_len(PAR_MIN_QUERIES)
-        .map(|p| target.nearest(&(transform * p)).1)
+        .map(|p| correspondence(&(transform * p)).map(|(_, d2)| d2))
         .collect();
-    let (inliers, sum_d2) = distances.iter().fold((0usize, 0.0), |(n, s), &d2| {
-        if d2 <= max_d2 {
-            (n + 1, s + d2)
-        } else {
-            (n, s)
-        }
-    });
+    let (inliers, sum_d2) =
+        (distances.iter().flatten()).fold((0usize, 0.0), |(n, s), &d2| (n + 1, s + d2));
     Ok(IcpResult {
         target_from_source: transform,
         converged,
@@ -670,9 +673,16 @@ impl SurfaceMemory {
                 .collect()
         };
         if !near.is_empty() {
-            let current = NearestSearch::new(near);
             let cover2 = config.cover_radius_m * config.cover_radius_m;
-            merged.retain(|p| current.nearest(p).1 > cover2);
+            match NeighbourGrid::new(&near, config.cover_radius_m) {
+                Some(grid) => {
+                    merged.retain(|p| grid.nearest_within(&[p.x, p.y, p.z], cover2).is_none())
+                }
+                None => {
+                    let current = NearestSearch::new(near);
+                    merged.retain(|p| current.nearest(p).1 > cover2);
+                }
+            }
         }
         step.merged_points = merged.len();
         step.points.extend(

@@ -157,8 +157,9 @@ const GRID_MIN_ROWS: usize = 4096;
 /// little beyond it) in a few distance tests; a point with a neighbour at the radius to within
 /// rounding asks the k-d tree, so each decision is the tree's. Rows, not a dense array of
 /// cells: the points of a surface fill a small part of their box (a guard's reach holds a few
-/// hundred points in 10^4 cells).
-struct NeighbourGrid {
+/// hundred points in 10^4 cells). ICP finds its correspondences within the maximum distance
+/// in it too ([`NeighbourGrid::nearest_within`]).
+pub(super) struct NeighbourGrid {
     origin: [f64; 3],
     inv_cell: f64,
     dims: [usize; 3],
@@ -168,11 +169,13 @@ struct NeighbourGrid {
     /// Per point, row by row and by x cell within a row: its x cell and its coordinates.
     x_cells: Vec<u32>,
     coords: Vec<[f64; 3]>,
+    /// Per point, its index in the points the grid was built from.
+    index: Vec<u32>,
 }
 
 impl NeighbourGrid {
     /// `None` for no points or when their box holds too many rows for them.
-    fn new(points: &[Point3<f64>], radius: f64) -> Option<Self> {
+    pub(super) fn new(points: &[Point3<f64>], radius: f64) -> Option<Self> {
         let first = points.first()?;
         let (mut lo, mut hi) = ([first.x, first.y, first.z], [first.x, first.y, first.z]);
         for p in points {
@@ -196,6 +199,7 @@ impl NeighbourGrid {
             row_starts: vec![0; rows + 1],
             x_cells: vec![0; points.len()],
             coords: vec![[0.0; 3]; points.len()],
+            index: vec![0; points.len()],
         };
         let cells: Vec<[usize; 3]> = points
             .iter()
@@ -222,6 +226,7 @@ impl NeighbourGrid {
             let p = &points[i as usize];
             grid.x_cells[slot] = x;
             grid.coords[slot] = [p.x, p.y, p.z];
+            grid.index[slot] = i;
         }
         Some(grid)
     }
@@ -238,6 +243,59 @@ impl NeighbourGrid {
             cell[k] = v as usize;
         }
         Some(cell)
+    }
+
+    /// The point nearest `c` among those within squared distance `radius2` of it (at most
+    /// the squared radius the grid was built with), as its index in the grid's points and
+    /// the squared distance; the lowest index among equal distances (a coincident point's
+    /// first, as [`NearestSearch::nearest`]). `c` may lie outside the points' box.
+    pub(super) fn nearest_within(&self, c: &[f64; 3], radius2: f64) -> Option<(usize, f64)> {
+        // Per axis, the cells one either side of `c`'s own, within the grid.
+        let mut range = [(0usize, 0usize); 3];
+        for (k, r) in range.iter_mut().enumerate() {
+            let v = (c[k] - self.origin[k]) * self.inv_cell;
+            if !(v > -2.0 && v < self.dims[k] as f64 + 1.0) {
+                return None;
+            }
+            // floor(v) + 2 (v + 2 > 0): cells floor(v) - 1 ..= floor(v) + 1.
+            let f = (v + 2.0) as usize;
+            let hi = f.checked_sub(1)?.min(self.dims[k] - 1);
+            let lo = f.saturating_sub(3);
+            if lo > hi {
+                return None;
+            }
+            *r = (lo, hi);
+        }
+        let (x0, x1) = (range[0].0 as u32, range[0].1 as u32);
+        let mut best: Option<(u32, f64)> = None;
+        for z in range[2].0..=range[2].1 {
+            for y in range[1].0..=range[1].1 {
+                let row = z * self.dims[1] + y;
+                let (s, e) = (
+                    self.row_starts[row] as usize,
+                    self.row_starts[row + 1] as usize,
+                );
+                let s = s + self.x_cells[s..e].partition_point(|&x| x < x0);
+                for ((&x, p), &i) in (self.x_cells[s..e].iter())
+                    .zip(&self.coords[s..e])
+                    .zip(&self.index[s..e])
+                {
+                    if x > x1 {
+                        break;
+                    }
+                    let (dx, dy, dz) = (p[0] - c[0], p[1] - c[1], p[2] - c[2]);
+                    let d2 = dx * dx + dy * dy + dz * dz;
+                    let nearer = match best {
+                        None => d2 <= radius2,
+                        Some((j, b)) => d2 < b || (d2 == b && i < j),
+                    };
+                    if nearer {
+                        best = Some((i, d2));
+                    }
+                }
+            }
+        }
+        best.map(|(i, d2)| (i as usize, d2))
     }
 
     /// Whether at least `k` points (the point at `c` itself included) lie within `radius2`
@@ -420,6 +478,51 @@ mod tests {
             ]);
         }
         assert_brute_force(&points, &hip, 0.17, &config);
+    }
+
+    /// ICP's correspondence search: the nearest grid point within the radius of queries in
+    /// and around the points' box (beyond it by more than the radius too) equals a
+    /// brute-force search, ties (coincident points, a lattice at exactly the radius) to the
+    /// lowest index.
+    #[test]
+    fn nearest_within_the_radius_equals_a_brute_force_search() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(17);
+        let radius = 0.01;
+        let mut points: Vec<Point3<f64>> = (0..400)
+            .map(|_| Point3::from(rng.random::<[f64; 3]>().map(|c| (c - 0.5) * 0.12)))
+            .collect();
+        points.extend((0..5).flat_map(|i| {
+            (0..5)
+                .map(move |j| Point3::new(0.2 + radius * f64::from(i), radius * f64::from(j), 0.0))
+        }));
+        points.extend_from_within(..30);
+        let grid = NeighbourGrid::new(&points, radius).expect("a grid");
+        let r2 = radius * radius;
+        let mut queries: Vec<Point3<f64>> = (0..3000)
+            .map(|_| Point3::from(rng.random::<[f64; 3]>().map(|c| (c - 0.5) * 0.2)))
+            .collect();
+        queries.extend(
+            points
+                .iter()
+                .map(|p| p + nalgebra::Vector3::new(0.0, 0.0, 0.5 * radius)),
+        );
+        queries.extend([Point3::new(1.0, 0.0, 0.0), Point3::new(-0.0605, 0.0, 0.0)]);
+        let mut found = 0;
+        for q in &queries {
+            let brute = points
+                .iter()
+                .enumerate()
+                .map(|(i, p)| {
+                    let (dx, dy, dz) = (p.x - q.x, p.y - q.y, p.z - q.z);
+                    (i, dx * dx + dy * dy + dz * dz)
+                })
+                .filter(|&(_, d2)| d2 <= r2)
+                .min_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+            assert_eq!(grid.nearest_within(&[q.x, q.y, q.z], r2), brute, "{q}");
+            found += usize::from(brute.is_some());
+        }
+        assert!(found > 500 && found < queries.len(), "{found}");
     }
 
     #[test]
