@@ -392,14 +392,20 @@ pub fn shell_of(p: Vec3, layout: &ShellLayout) -> Option<(usize, [f32; 3])> {
 }
 
 /// Fixed-point monomials of one offset in shell `shell` (the shader's exact arithmetic).
+#[inline]
 pub fn fixed_monomials(d: [f32; 3], inv_radius: f32) -> [i32; MOMENT_COUNT] {
-    let s = d.map(|c| c * inv_radius);
+    let s = [d[0] * inv_radius, d[1] * inv_radius, d[2] * inv_radius];
     let mut mono = [0f32; MOMENT_COUNT];
     mono[0] = 1.0;
     for n in 1..MOMENT_COUNT {
         mono[n] = mono[PARENT[n] as usize] * s[AXIS[n] as usize];
     }
-    mono.map(|m| round_ties_even(m * FIXED_ONE) as i32)
+    // A loop, not `array::map`, which the compiler left as a call per point.
+    let mut fixed = [0i32; MOMENT_COUNT];
+    for (f, m) in fixed.iter_mut().zip(mono) {
+        *f = round_ties_even(m * FIXED_ONE) as i32;
+    }
+    fixed
 }
 
 /// `x.round_ties_even()`, bit for bit: a value below 2^23 in magnitude is rounded by adding
