@@ -404,7 +404,7 @@ pub fn icp(
         let mut sum_d2 = 0.0;
         // The searches on rayon's threads, the sums in the source's order (the same bits
         // with any thread count).
-        let nearest: Vec<(Point3<f64>, Option<(usize, f64)>)> = source
+        let nearest: Vec<_> = source
             .par_iter()
             .with_min_len(PAR_MIN_QUERIES)
             .map(|p| {
