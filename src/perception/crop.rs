@@ -42,14 +42,14 @@ use glam::Vec3;
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{DepthImage, PinholeIntrinsics, deproject_pixel};
+use crate::camera::{DepthImage, PinholeIntrinsics};
 use crate::geometry::{PreparedPrimitive, Primitive, PrimitiveError, box_rotation};
 use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams, ReachCapsuleGpu};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
 use crate::gpu::{GpuContext, GpuError};
 use crate::perception::flying::{
-    DepthVeilTest, FlyingPixelConfig, VeilTest, VeilWindow, to_cloud_frame, to_world,
+    DepthRows, DepthVeilTest, FlyingPixelConfig, RowSlot, VeilTest, to_cloud_frame, to_world,
 };
 use nalgebra::{Isometry3, Vector3};
 use std::ops::Range;
@@ -682,25 +682,37 @@ pub struct DepthKept {
 
 /// Spans of the crop region one task of [`crop_depth_region_cpu`] takes: tasks are cut by
 /// spans, not by threads, so the points come out in pixel order whatever the thread count.
-const TASK_SPANS: usize = 8;
+/// A task deprojects its first span's window rows afresh, so the task holds a few dozen
+/// rows (a D435 frame's region has a few hundred).
+const TASK_SPANS: usize = 32;
 
 /// The buffers of [`crop_depth_region_cpu`], kept by its caller from frame to frame: each
-/// task's points (a frame then allocates only its output and its region once they have seen
-/// its size).
+/// task's points and deprojected rows (a frame then allocates only its output and its
+/// region once they have seen its size).
 #[derive(Debug, Default)]
 pub struct RegionScratch {
-    tasks: Vec<(Vec<Vec3>, usize)>,
+    tasks: Vec<RegionTask>,
+}
+
+/// One task's buffers of [`crop_depth_region_cpu`]: its kept points, flying-pixel count and
+/// deprojected rows.
+#[derive(Debug, Default)]
+struct RegionTask {
+    points: Vec<Vec3>,
+    flying: usize,
+    rows: Vec<RowSlot>,
 }
 
 /// A depth frame's first pass on the CPU in one pass over the 16-bit image inside the crop's
 /// region ([`crop_region_with_reach`]), with no cloud of the whole frame: a pixel whose raw
 /// depth lies outside its span's depth interval goes on that integer compare (a pixel
-/// without a depth too: the interval starts at 1); the others are deprojected and posed, and
-/// the crop tests them; a kept pixel then gets the flying-pixel test, its neighbours
-/// deprojected as it reads them ([`DepthVeilTest`]). Tasks of [`TASK_SPANS`] spans run on
-/// rayon's threads (the caller's pool); each pixel's decision is its own, so the points are
-/// those [`crop_depth_cpu`] keeps, bit for bit, in the same order, with any number of
-/// threads; the counts are its counts.
+/// without a depth too: the interval starts at 1); the others are posed and the crop tests
+/// them; a kept pixel then gets the flying-pixel test ([`DepthVeilTest`]). Each span's rows
+/// (its own and the neighbour window's) are deprojected once into a task's [`DepthRows`]
+/// before its pixels are read. Tasks of [`TASK_SPANS`] spans run on rayon's threads (the
+/// caller's pool); each pixel's decision is its own, so the points are those
+/// [`crop_depth_cpu`] keeps, bit for bit, in the same order, with any number of threads;
+/// the counts are its counts.
 pub fn crop_depth_region_cpu(
     depth: &DepthInput<'_>,
     config: &CropConfig,
@@ -715,53 +727,50 @@ pub fn crop_depth_region_cpu(
         .map(|s| CpuCrop::new(config, s, keep_off))
         .transpose()?;
     let image = depth.image;
-    let (k, unit) = (depth.intrinsics, image.depth_scale_m);
     let width = image.width as usize;
     let pose = &depth.cloud_from_camera;
     let region = crop_region_with_reach(depth, config, scene, keep_off);
-    let test = DepthVeilTest::new(image, k, depth.flying);
-    let task = |spans: &[RowSpan], points: &mut Vec<Vec3>| {
-        let mut flying = 0;
-        let mut window = VeilWindow::default();
+    let test = DepthVeilTest::new(image, depth.flying);
+    let run = |spans: &[RowSpan], task: &mut RegionTask| {
+        task.points.clear();
+        task.flying = 0;
+        let mut rows = DepthRows::new(image, depth.intrinsics, test.window(), &mut task.rows);
         for s in spans {
+            rows.cover(s.v, s.u.clone());
             let row = &image.data[s.v as usize * width..][..width];
             for x in s.u.clone() {
                 let raw = row[x as usize];
                 if raw < s.depth.0 || raw > s.depth.1 {
                     continue;
                 }
-                let p = deproject_pixel(k, unit, x, s.v, raw);
+                let p = rows.point(x, s.v);
                 let q = to_cloud_frame(p, pose);
                 if !crop.as_ref().is_none_or(|c| c.keeps_within(q, s.reach)) {
                     continue;
                 }
-                if test.is_flying(x, s.v, p, &mut window) {
-                    flying += 1;
+                if test.is_flying(x, s.v, p, &rows) {
+                    task.flying += 1;
                 } else {
-                    points.push(q);
+                    task.points.push(q);
                 }
             }
         }
-        flying
     };
     let tasks = region.spans.len().div_ceil(TASK_SPANS);
     scratch.tasks.resize_with(tasks, Default::default);
     scratch.tasks[..tasks]
         .par_iter_mut()
         .zip(region.spans.par_chunks(TASK_SPANS))
-        .for_each(|((points, flying), spans)| {
-            points.clear();
-            *flying = task(spans, points);
-        });
-    let kept = &scratch.tasks[..tasks];
-    let mut points = Vec::with_capacity(kept.iter().map(|(p, _)| p.len()).sum());
-    for (p, _) in kept {
-        points.extend_from_slice(p);
+        .for_each(|(task, spans)| run(spans, task));
+    let done = &scratch.tasks[..tasks];
+    let mut points = Vec::with_capacity(done.iter().map(|t| t.points.len()).sum());
+    for t in done {
+        points.extend_from_slice(&t.points);
     }
     Ok(DepthKept {
         points,
         valid: depth.valid_pixels(),
-        flying: kept.iter().map(|(_, f)| f).sum(),
+        flying: done.iter().map(|t| t.flying).sum(),
         region,
     })
 }
