@@ -365,6 +365,14 @@ impl<'a> DepthRows<'a> {
         &self.slots[y as usize % self.period]
     }
 
+    /// The camera-frame points of pixels `x .. x + 4` of row `y` in lanes (x, y, z), `x`
+    /// within the image: those [`Self::cover`] deprojected, the others whatever the slot
+    /// holds.
+    #[inline]
+    pub(crate) fn lanes(&self, x: u32, y: u32) -> [Vec4; 3] {
+        self.slot(y).lanes((x + self.window) as usize)
+    }
+
     /// The camera-frame point of pixel `(x, y)` (NaN without a depth), which [`Self::cover`]
     /// deprojected.
     #[inline]
