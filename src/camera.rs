@@ -98,8 +98,7 @@ impl DepthImage {
 }
 
 /// Pixel `(u, v)` with raw depth `raw` in the camera's optical frame (f64, rounded to f32),
-/// NaN when `raw` is 0. Computed either way and then selected, so a loop over a row's pixels
-/// has no branch and vectorises.
+/// NaN when `raw` is 0.
 #[inline]
 pub(crate) fn deproject_pixel(
     k: &PinholeIntrinsics,
@@ -108,13 +107,15 @@ pub(crate) fn deproject_pixel(
     v: u32,
     raw: u16,
 ) -> Vec3 {
+    if raw == 0 {
+        return Vec3::splat(f32::NAN);
+    }
     let z = f64::from(raw) * depth_scale_m;
-    let p = Vec3::new(
+    Vec3::new(
         ((f64::from(u) - k.cx) * z / k.fx) as f32,
         ((f64::from(v) - k.cy) * z / k.fy) as f32,
         z as f32,
-    );
-    if raw == 0 { Vec3::splat(f32::NAN) } else { p }
+    )
 }
 
 /// What one camera delivers at one instant, as every source hands it to the node.

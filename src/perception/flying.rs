@@ -160,14 +160,16 @@ fn veiled_by_a_neighbour(
     neighbour: impl Fn(usize, usize) -> Option<Vec3>,
 ) -> bool {
     let limit = sin2_min * p.length_squared();
+    // Every window pixel takes a lane in turn, NaN where it has no point and for the pixel
+    // itself; each four lanes are tested together.
     let mut lanes = [[f32::NAN; 4]; 3];
     let mut n = 0;
     let (c0, c1) = (u.saturating_sub(window), (u + window + 1).min(width));
     for y in v.saturating_sub(window)..(v + window + 1).min(height) {
         for x in c0..c1 {
-            let Some(q) = neighbour(x, y).filter(|_| (x, y) != (u, v)) else {
-                continue;
-            };
+            let q = neighbour(x, y)
+                .filter(|_| (x, y) != (u, v))
+                .unwrap_or(Vec3::NAN);
             for (lane, c) in lanes.iter_mut().zip(q.to_array()) {
                 lane[n] = c;
             }
@@ -260,8 +262,7 @@ impl DepthVeilTest {
 /// ([`crate::camera::deproject_pixel`], NaN where it has no depth) as a pass over row spans
 /// needs it: the rows `v - w ..= v + w` of the span on row `v` and its columns grown by `w`
 /// (`w` the veil window). Row `y` lives in slot `y % (2 w + 1)` over the columns it covers,
-/// so consecutive rows' spans reuse what is deprojected; each row's run is a branch-free
-/// loop the compiler vectorises.
+/// so consecutive rows' spans reuse what is deprojected.
 pub(crate) struct DepthRows<'a> {
     image: &'a DepthImage,
     intrinsics: &'a PinholeIntrinsics,
