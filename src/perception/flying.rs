@@ -608,6 +608,33 @@ mod tests {
     }
 
     proptest! {
+        /// Four neighbours at once decide as one at a time (`Vec3::cross` and
+        /// `Vec3::length_squared`), bit for bit, and a NaN lane never veils.
+        #[test]
+        fn four_lanes_decide_as_one_point_at_a_time(
+            p in prop::array::uniform3(-2f32..2.0),
+            q in prop::array::uniform4(prop::array::uniform3(-2f32..2.0)),
+            near in prop::array::uniform4(any::<bool>()),
+            nan in 0usize..5,
+            sin2 in 0.001f32..0.9,
+        ) {
+            let p = Vec3::from_array(p) + Vec3::Z * 2.5;
+            // Some neighbours close to the ray through p, where the test decides.
+            let q: Vec<Vec3> = (0..4)
+                .map(|i| if near[i] { p * (1.0 + q[i][0] * 0.1) + Vec3::from_array(q[i]) * 1e-3 } else { Vec3::from_array(q[i]) })
+                .collect();
+            let limit = sin2 * p.length_squared();
+            let lane = |c: fn(Vec3) -> f32| {
+                Vec4::from_array([0, 1, 2, 3].map(|i| if i == nan { f32::NAN } else { c(q[i]) }))
+            };
+            let got = veil_lanes(p, limit, lane(|v| v.x), lane(|v| v.y), lane(|v| v.z));
+            for (i, &qi) in q.iter().enumerate() {
+                let d = qi - p;
+                let one = i != nan && d.cross(p).length_squared() < limit * d.length_squared();
+                prop_assert_eq!(got >> i & 1 == 1, one, "lane {}", i);
+            }
+        }
+
         /// A plane seen at any incidence below 80 deg - 1 deg, at any depth and noise-free,
         /// loses no pixel.
         #[test]
