@@ -257,6 +257,12 @@ enum PreparedShape {
 }
 
 impl PreparedPrimitive {
+    /// The bounding sphere: its centre and squared radius (no point outside it lies inside
+    /// the primitive).
+    pub fn bounding_ball(&self) -> (Point3<f64>, f64) {
+        (self.bound_center_m, self.bound_r2)
+    }
+
     /// False when no point within `radius_m` of `center_m` lies inside the primitive: its
     /// bounding sphere does not meet that ball (1 um of slack for rounding).
     pub fn may_meet_ball(&self, center_m: &Point3<f64>, radius_m: f64) -> bool {

@@ -30,26 +30,29 @@
 //! rounding of its threshold. A depth frame's passes read only the pixels the crop can keep
 //! ([`crop_region`]: each capsule's projection row by row, the columns and depths where the
 //! row's plane of rays cuts it, merged into spans; the GPU takes their bounding rectangle).
-//! On the CPU ([`crop_depth_region_cpu`]) a pixel whose raw depth lies outside its span's
-//! depth interval (the capsules' depths on its row, in depth units) is dropped on that
-//! integer compare, before any arithmetic; the others are deprojected, posed, cropped and,
-//! when kept, tested for flying in one pass (the points [`crop_depth_cpu`] keeps, bit for
+//! On the CPU ([`crop_depth_region_cpu`]) each span's rows are deprojected once; on a span
+//! only the HIP's ball can hold, four pixels at a time are tested in the camera frame (f32,
+//! the ball shrunk and grown by the slack below): surely inside and beside every robot
+//! primitive's bounding sphere is kept without the f64 test, maybe inside takes it, the rest
+//! go; on other spans a pixel whose raw depth lies outside the span's depth interval (the
+//! capsules' depths on its row, in depth units) goes on that integer compare. Kept pixels
+//! are tested for flying in the same pass (the points [`crop_depth_cpu`] keeps, bit for
 //! bit). The pixel bounds and the depth interval hold the
 //! capsules grown by a slack of 10 um plus a millionth of the distances involved, which
 //! covers the f32 roundings of the GPU's deprojection and pose as well as the CPU's.
 
-use glam::Vec3;
+use glam::{Vec3, Vec4};
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{DepthImage, PinholeIntrinsics, deproject_pixel};
+use crate::camera::{DepthImage, PinholeIntrinsics};
 use crate::geometry::{PreparedPrimitive, Primitive, PrimitiveError, box_rotation};
 use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams, ReachCapsuleGpu};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
 use crate::gpu::{GpuContext, GpuError};
 use crate::perception::flying::{
-    DepthVeilTest, FlyingPixelConfig, VeilTest, VeilWindow, to_cloud_frame, to_world,
+    DepthRows, DepthVeilTest, FlyingPixelConfig, RowSlot, VeilTest, to_cloud_frame, to_world,
 };
 use nalgebra::{Isometry3, Vector3};
 use std::ops::Range;
@@ -682,25 +685,37 @@ pub struct DepthKept {
 
 /// Spans of the crop region one task of [`crop_depth_region_cpu`] takes: tasks are cut by
 /// spans, not by threads, so the points come out in pixel order whatever the thread count.
-const TASK_SPANS: usize = 8;
+/// A task deprojects its first span's window rows afresh, so the task holds a few dozen
+/// rows (a D435 frame's region has a few hundred).
+const TASK_SPANS: usize = 32;
 
 /// The buffers of [`crop_depth_region_cpu`], kept by its caller from frame to frame: each
-/// task's points (a frame then allocates only its output and its region once they have seen
-/// its size).
+/// task's points and deprojected rows (a frame then allocates only its output and its
+/// region once they have seen its size).
 #[derive(Debug, Default)]
 pub struct RegionScratch {
-    tasks: Vec<(Vec<Vec3>, usize)>,
+    tasks: Vec<RegionTask>,
+}
+
+/// One task's buffers of [`crop_depth_region_cpu`]: its kept points, flying-pixel count and
+/// deprojected rows.
+#[derive(Debug, Default)]
+struct RegionTask {
+    points: Vec<Vec3>,
+    flying: usize,
+    rows: Vec<RowSlot>,
 }
 
 /// A depth frame's first pass on the CPU in one pass over the 16-bit image inside the crop's
 /// region ([`crop_region_with_reach`]), with no cloud of the whole frame: a pixel whose raw
 /// depth lies outside its span's depth interval goes on that integer compare (a pixel
-/// without a depth too: the interval starts at 1); the others are deprojected and posed, and
-/// the crop tests them; a kept pixel then gets the flying-pixel test, its neighbours
-/// deprojected as it reads them ([`DepthVeilTest`]). Tasks of [`TASK_SPANS`] spans run on
-/// rayon's threads (the caller's pool); each pixel's decision is its own, so the points are
-/// those [`crop_depth_cpu`] keeps, bit for bit, in the same order, with any number of
-/// threads; the counts are its counts.
+/// without a depth too: the interval starts at 1); the others are posed and the crop tests
+/// them; a kept pixel then gets the flying-pixel test ([`DepthVeilTest`]). Each span's rows
+/// (its own and the neighbour window's) are deprojected once into a task's [`DepthRows`]
+/// before its pixels are read. Tasks of [`TASK_SPANS`] spans run on rayon's threads (the
+/// caller's pool); each pixel's decision is its own, so the points are those
+/// [`crop_depth_cpu`] keeps, bit for bit, in the same order, with any number of threads;
+/// the counts are its counts.
 pub fn crop_depth_region_cpu(
     depth: &DepthInput<'_>,
     config: &CropConfig,
@@ -715,53 +730,73 @@ pub fn crop_depth_region_cpu(
         .map(|s| CpuCrop::new(config, s, keep_off))
         .transpose()?;
     let image = depth.image;
-    let (k, unit) = (depth.intrinsics, image.depth_scale_m);
     let width = image.width as usize;
     let pose = &depth.cloud_from_camera;
     let region = crop_region_with_reach(depth, config, scene, keep_off);
-    let test = DepthVeilTest::new(image, k, depth.flying);
-    let task = |spans: &[RowSpan], points: &mut Vec<Vec3>| {
-        let mut flying = 0;
-        let mut window = VeilWindow::default();
+    let test = DepthVeilTest::new(image, depth.flying);
+    let ball = crop.as_ref().map(|c| c.camera_ball(pose));
+    let run = |spans: &[RowSpan], task: &mut RegionTask| {
+        task.points.clear();
+        task.flying = 0;
+        let mut rows = DepthRows::new(image, depth.intrinsics, test.window(), &mut task.rows);
         for s in spans {
-            let row = &image.data[s.v as usize * width..][..width];
-            for x in s.u.clone() {
-                let raw = row[x as usize];
-                if raw < s.depth.0 || raw > s.depth.1 {
-                    continue;
-                }
-                let p = deproject_pixel(k, unit, x, s.v, raw);
+            rows.cover(s.v, s.u.clone());
+            // Pixel `x` of the span, which may be kept: posed, cropped (unless `cropped`
+            // says the crop keeps it), tested for flying.
+            let mut decide = |x: u32, cropped: bool, rows: &DepthRows<'_>| {
+                let p = rows.point(x, s.v);
                 let q = to_cloud_frame(p, pose);
-                if !crop.as_ref().is_none_or(|c| c.keeps_within(q, s.reach)) {
-                    continue;
+                if !(cropped || crop.as_ref().is_none_or(|c| c.keeps_within(q, s.reach))) {
+                    return;
                 }
-                if test.is_flying(x, s.v, p, &mut window) {
-                    flying += 1;
+                if test.is_flying(x, s.v, p, rows) {
+                    task.flying += 1;
                 } else {
-                    points.push(q);
+                    task.points.push(q);
+                }
+            };
+            match &ball {
+                // Only the HIP's ball can hold the span's points: four pixels at a time, those
+                // the crop keeps for sure and those it may keep go on.
+                Some(ball) if s.reach == 1 => {
+                    for x in s.u.clone().step_by(4) {
+                        let lanes = (1u32 << (s.u.end - x).min(4)) - 1;
+                        let (sure, maybe) = ball.lanes(rows.lanes(x, s.v));
+                        let mut on = (sure | maybe) & lanes;
+                        while on != 0 {
+                            let lane = on.trailing_zeros();
+                            decide(x + lane, sure >> lane & 1 == 1, &rows);
+                            on &= on - 1;
+                        }
+                    }
+                }
+                _ => {
+                    let row = &image.data[s.v as usize * width..][..width];
+                    for x in s.u.clone() {
+                        let raw = row[x as usize];
+                        if (s.depth.0..=s.depth.1).contains(&raw) {
+                            decide(x, false, &rows);
+                        }
+                    }
                 }
             }
         }
-        flying
     };
     let tasks = region.spans.len().div_ceil(TASK_SPANS);
     scratch.tasks.resize_with(tasks, Default::default);
     scratch.tasks[..tasks]
         .par_iter_mut()
         .zip(region.spans.par_chunks(TASK_SPANS))
-        .for_each(|((points, flying), spans)| {
-            points.clear();
-            *flying = task(spans, points);
-        });
-    let kept = &scratch.tasks[..tasks];
-    let mut points = Vec::with_capacity(kept.iter().map(|(p, _)| p.len()).sum());
-    for (p, _) in kept {
-        points.extend_from_slice(p);
+        .for_each(|(task, spans)| run(spans, task));
+    let done = &scratch.tasks[..tasks];
+    let mut points = Vec::with_capacity(done.iter().map(|t| t.points.len()).sum());
+    for t in done {
+        points.extend_from_slice(&t.points);
     }
     Ok(DepthKept {
         points,
         valid: depth.valid_pixels(),
-        flying: kept.iter().map(|(_, f)| f).sum(),
+        flying: done.iter().map(|t| t.flying).sum(),
         region,
     })
 }
@@ -785,6 +820,43 @@ pub fn mask_bit(mask: &[u32], i: usize) -> bool {
 /// Indices of the points a keep mask keeps, ascending.
 pub fn kept_indices(mask: &[u32], n: usize) -> Vec<usize> {
     (0..n).filter(|&i| mask_bit(mask, i)).collect()
+}
+
+/// The crop of the HIP's ball in a camera's frame, f32, for a pass over its pixels four at a
+/// time: which points lie surely within the ball and beside every robot primitive's bounding
+/// sphere (kept by [`CpuCrop`] without its f64 test), and which may lie within the ball
+/// (they take the f64 test). The ball's radius is shrunk and grown, each sphere's grown, by
+/// the slack of [`region_slack_m`], which covers the roundings of the pose (f64, rounded to
+/// f32), of the centres and of the f32 distances.
+pub(crate) struct CameraBall {
+    centre: [Vec4; 3],
+    /// `(radius - slack)^2` (0 when the slack is larger) and `(radius + slack)^2`.
+    inner: Vec4,
+    outer: Vec4,
+    /// The bounding spheres of the robot primitives [`CpuCrop`] tests in the HIP's ball:
+    /// centre and `(radius + slack)^2`.
+    robot: Vec<([Vec4; 3], Vec4)>,
+}
+
+/// Squared f32 distances of four points (x, y, z lanes) to `centre`.
+#[inline]
+fn distance2_lanes(p: &[Vec4; 3], centre: &[Vec4; 3]) -> Vec4 {
+    let [ex, ey, ez] = [0, 1, 2].map(|i| p[i] - centre[i]);
+    ex * ex + ey * ey + ez * ez
+}
+
+impl CameraBall {
+    /// Of four camera-frame points (x, y, z lanes; NaN: no point): the lanes the crop keeps
+    /// for sure and the lanes that need its f64 test (bit `i` for lane `i`).
+    #[inline]
+    pub(crate) fn lanes(&self, p: [Vec4; 3]) -> (u32, u32) {
+        let d2 = distance2_lanes(&p, &self.centre);
+        let near_robot = (self.robot.iter()).fold(0, |m, (c, limit)| {
+            m | distance2_lanes(&p, c).cmple(*limit).bitmask()
+        });
+        let sure = d2.cmplt(self.inner).bitmask() & !near_robot;
+        (sure, d2.cmple(self.outer).bitmask() & !sure)
+    }
 }
 
 /// The crop's decision for one point on the CPU (f64 geometry), prepared once per frame.
@@ -830,6 +902,30 @@ impl CpuCrop {
             robot,
             robot_of,
         })
+    }
+
+    /// The HIP's ball and its robot primitives seen from a camera at `cloud_from_camera`.
+    pub(crate) fn camera_ball(&self, cloud_from_camera: &Isometry3<f64>) -> CameraBall {
+        let lanes = |c: Point3<f64>| [c.x, c.y, c.z].map(|v| Vec4::splat(v as f32));
+        let in_camera = |c: &Point3<f64>| cloud_from_camera.inverse_transform_point(c);
+        let slack = |r: f64, c: &Point3<f64>| region_slack_m(r, c, c, cloud_from_camera);
+        let centre = in_camera(&self.hip);
+        let r = self.r2.sqrt();
+        let (inner, outer) = ((r - slack(r, &centre)).max(0.0), r + slack(r, &centre));
+        let robot = (self.robot_of[0].iter())
+            .map(|&i| {
+                let (c, r2) = self.robot[i].bounding_ball();
+                let (c, r) = (in_camera(&c), r2.sqrt());
+                let grown = r + slack(r, &c);
+                (lanes(c), Vec4::splat((grown * grown) as f32))
+            })
+            .collect();
+        CameraBall {
+            centre: lanes(centre),
+            inner: Vec4::splat((inner * inner) as f32),
+            outer: Vec4::splat((outer * outer) as f32),
+            robot,
+        }
     }
 
     /// Point `p` (cloud frame) is finite, within the radius of the HIP or a keep-off

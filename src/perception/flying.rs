@@ -29,9 +29,10 @@
 use crate::camera::{DepthImage, PinholeIntrinsics, deproject_pixel};
 use crate::cloud::PointCloud;
 use crate::perception::crop::finite_bits;
-use glam::Vec3;
+use glam::{Vec3, Vec4};
 use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
+use std::ops::Range;
 
 /// Settings of the flying-pixel rejection.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -147,9 +148,9 @@ impl<'a> VeilTest<'a> {
 }
 
 /// Whether a neighbour of pixel `(u, v)` (within `window` pixels, in a `width` x `height`
-/// image) veils its camera-frame point `p`: the segment `d` between them lies within the
-/// minimum ray angle of `p`'s ray, `|d x p|^2 < sin2_min |d|^2 |p|^2`. `neighbour(x, y)` is
-/// that pixel's point, `None` when it has none; the pixel itself (d = 0) never counts.
+/// image) veils its camera-frame point `p` ([`veil_lanes`]). `neighbour(x, y)` is that
+/// pixel's point, `None` when it has none; the neighbours (not the pixel itself) are tested
+/// four at a time.
 fn veiled_by_a_neighbour(
     p: Vec3,
     (u, v): (usize, usize),
@@ -159,118 +160,226 @@ fn veiled_by_a_neighbour(
     neighbour: impl Fn(usize, usize) -> Option<Vec3>,
 ) -> bool {
     let limit = sin2_min * p.length_squared();
+    // Every window pixel takes a lane in turn, NaN where it has no point and for the pixel
+    // itself; each four lanes are tested together.
+    let mut lanes = [[f32::NAN; 4]; 3];
+    let mut n = 0;
     let (c0, c1) = (u.saturating_sub(window), (u + window + 1).min(width));
     for y in v.saturating_sub(window)..(v + window + 1).min(height) {
         for x in c0..c1 {
-            if x == u && y == v {
-                continue;
+            let q = neighbour(x, y)
+                .filter(|_| (x, y) != (u, v))
+                .unwrap_or(Vec3::NAN);
+            for (lane, c) in lanes.iter_mut().zip(q.to_array()) {
+                lane[n] = c;
             }
-            if let Some(q) = neighbour(x, y) {
-                let d = q - p;
-                if d.cross(p).length_squared() < limit * d.length_squared() {
+            n += 1;
+            if n == 4 {
+                let [qx, qy, qz] = lanes.map(Vec4::from_array);
+                if veil_lanes(p, limit, qx, qy, qz) != 0 {
                     return true;
                 }
+                n = 0;
             }
         }
     }
-    false
+    let [qx, qy, qz] = lanes.map(Vec4::from_array);
+    veil_lanes(p, limit, qx, qy, qz) & ((1 << n) - 1) != 0
 }
 
-/// The veil test of a 16-bit depth image's pixels, each neighbour deprojected from the image
-/// (the same f64 deprojection, rounded to f32, as [`DepthImage::deproject`], and the same
-/// arithmetic as [`VeilTest`]: the same decisions bit for bit, with no cloud of the image).
-/// The neighbours' points are kept in a [`VeilWindow`] from one tested pixel to the next, so
-/// a run of kept pixels along a row deprojects one new column of the window per pixel
-/// (`2 w + 1` points) instead of every neighbour (`(2 w + 1)^2 - 1`).
-pub(crate) struct DepthVeilTest<'a> {
-    image: &'a DepthImage,
-    intrinsics: &'a PinholeIntrinsics,
+/// The veil criterion on four neighbours at once: bit `i` set when lane `i` of `(qx, qy, qz)`
+/// (a camera-frame point `q`) veils `p`, the segment `d = q - p` lying within the minimum ray
+/// angle of `p`'s ray: `|d x p|^2 < limit |d|^2` with `limit = sin2_min |p|^2`, each lane in
+/// the arithmetic of `Vec3::cross` and `Vec3::length_squared` (IEEE f32 lane by lane: the
+/// same bits as one point at a time). A lane with a NaN never veils; `q = p` (`d = 0`) never
+/// does either.
+#[inline]
+fn veil_lanes(p: Vec3, limit: f32, qx: Vec4, qy: Vec4, qz: Vec4) -> u32 {
+    let (px, py, pz) = (Vec4::splat(p.x), Vec4::splat(p.y), Vec4::splat(p.z));
+    let (dx, dy, dz) = (qx - px, qy - py, qz - pz);
+    let cx = dy * pz - py * dz;
+    let cy = dz * px - pz * dx;
+    let cz = dx * py - px * dy;
+    let c2 = cx * cx + cy * cy + cz * cz;
+    let d2 = dx * dx + dy * dy + dz * dz;
+    c2.cmplt(Vec4::splat(limit) * d2).bitmask()
+}
+
+/// The veil test of a 16-bit depth image's pixels, the neighbours read from the rows a
+/// [`DepthRows`] deprojected (the same f64 deprojection, rounded to f32, as
+/// [`DepthImage::deproject`], and the same criterion, [`veil_lanes`], as [`VeilTest`]: the
+/// same decisions bit for bit, with no cloud of the image).
+pub(crate) struct DepthVeilTest {
     sin2_min: f32,
     window: u32,
     active: bool,
 }
 
-/// Columns of the largest neighbour window (`window_px` <= 4).
-const WINDOW_COLUMNS: usize = 9;
-
-/// The deprojected neighbour window of the pixel a [`DepthVeilTest`] tested last: columns
-/// `from..to` of rows `v - w ..= v + w` (within the image), column `x` in slot
-/// `x % WINDOW_COLUMNS`, row `y` at `y + w - v`; `None` where a pixel has no depth. One per
-/// thread of a region pass.
-#[derive(Clone, Debug)]
-pub(crate) struct VeilWindow {
-    v: u32,
-    from: u32,
-    to: u32,
-    points: [[Option<Vec3>; WINDOW_COLUMNS]; WINDOW_COLUMNS],
-}
-
-impl Default for VeilWindow {
-    fn default() -> Self {
+impl DepthVeilTest {
+    /// The test of `image` under `config`; an image one row high or a disabled config flags
+    /// nothing.
+    pub(crate) fn new(image: &DepthImage, config: &FlyingPixelConfig) -> Self {
         Self {
-            v: 0,
-            from: 0,
-            to: 0,
-            points: [[None; WINDOW_COLUMNS]; WINDOW_COLUMNS],
-        }
-    }
-}
-
-impl<'a> DepthVeilTest<'a> {
-    /// The test of `image` (whose size `intrinsics` matches) under `config`; an image one
-    /// row high or a disabled config flags nothing.
-    pub(crate) fn new(
-        image: &'a DepthImage,
-        intrinsics: &'a PinholeIntrinsics,
-        config: &FlyingPixelConfig,
-    ) -> Self {
-        Self {
-            image,
-            intrinsics,
             sin2_min: config.min_ray_angle_rad.sin().powi(2) as f32,
             window: config.window_px,
             active: config.enabled && image.height > 1,
         }
     }
 
+    /// Half width of the neighbour window the test reads (0 when it reads none).
+    pub(crate) fn window(&self) -> u32 {
+        if self.active { self.window } else { 0 }
+    }
+
     /// Pixel `(u, v)`, whose camera-frame point is `p` (it has a depth), is a flying pixel.
-    /// `cache` holds the window of the pixel tested before (any pixel, or none): the columns
-    /// it shares with this one's window are read from it, the others deprojected into it.
-    pub(crate) fn is_flying(&self, u: u32, v: u32, p: Vec3, cache: &mut VeilWindow) -> bool {
+    /// `rows` holds the pixel's neighbour window ([`DepthRows`] of this test's
+    /// [`Self::window`], covering the pixel's span): each window row's `2 w + 1` columns are
+    /// read four lanes at a time straight from its slot (the pixel itself, `d = 0`, and the
+    /// columns beside the image, NaN, never veil; lanes past the window are masked off).
+    pub(crate) fn is_flying(&self, u: u32, v: u32, p: Vec3, rows: &DepthRows<'_>) -> bool {
         if !self.active {
             return false;
         }
-        let image = self.image;
-        let (w, h) = (image.width, image.height);
-        let r = self.window;
-        let (c0, c1) = (u.saturating_sub(r), (u + r + 1).min(w));
-        let (r0, r1) = (v.saturating_sub(r), (v + r + 1).min(h));
-        // Columns of this window the cache holds for this row: from its start up to `to`.
-        let start = if cache.v == v && cache.from <= c0 && c0 < cache.to {
-            cache.to.min(c1)
-        } else {
-            c0
-        };
-        let width = w as usize;
-        for x in start..c1 {
-            let column = &mut cache.points[x as usize % WINDOW_COLUMNS];
-            for y in r0..r1 {
-                // A neighbour without a depth has no point.
-                let raw = image.data[y as usize * width + x as usize];
-                column[(y + r - v) as usize] = (raw != 0)
-                    .then(|| deproject_pixel(self.intrinsics, image.depth_scale_m, x, y, raw));
+        let limit = self.sin2_min * p.length_squared();
+        let (w, columns) = (self.window, 2 * self.window as usize + 1);
+        let height = rows.image.height;
+        for y in v.saturating_sub(w)..(v + w + 1).min(height) {
+            let slot = rows.slot(y);
+            // Column `u - w` is at index `u` (the slot's front pad is `w` wide).
+            for first in (0..columns).step_by(4) {
+                let [qx, qy, qz] = slot.lanes(u as usize + first);
+                let mask = (1u32 << (columns - first).min(4)) - 1;
+                if veil_lanes(p, limit, qx, qy, qz) & mask != 0 {
+                    return true;
+                }
             }
         }
-        (cache.v, cache.from, cache.to) = (v, c0, c1);
-        let points = &cache.points;
-        veiled_by_a_neighbour(
-            p,
-            (u as usize, v as usize),
-            (width, h as usize),
-            r as usize,
-            self.sin2_min,
-            |x, y| points[x % WINDOW_COLUMNS][y + r as usize - v as usize],
-        )
+        false
+    }
+}
+
+/// Camera-frame points of rows of a depth image, each pixel deprojected once
+/// ([`crate::camera::deproject_pixel`], NaN where it has no depth) as a pass over row spans
+/// needs it: the rows `v - w ..= v + w` of the span on row `v` and its columns grown by `w`
+/// (`w` the veil window). Row `y` lives in slot `y % (2 w + 1)` over the columns it covers,
+/// so consecutive rows' spans reuse what is deprojected.
+pub(crate) struct DepthRows<'a> {
+    image: &'a DepthImage,
+    intrinsics: &'a PinholeIntrinsics,
+    window: u32,
+    /// Slots in use: `2 w + 1`.
+    period: usize,
+    slots: &'a mut Vec<RowSlot>,
+}
+
+/// One row of [`DepthRows`]: row `v`, columns `cols` deprojected, coordinates in lanes
+/// (`x`, `y`, `z`: column `c` at index `c + w`, NaN in the `w` columns beside the image on
+/// each side and 3 more at the end, so four lanes load from any window column).
+#[derive(Debug, Default)]
+pub(crate) struct RowSlot {
+    v: u32,
+    cols: Range<u32>,
+    x: Vec<f32>,
+    y: Vec<f32>,
+    z: Vec<f32>,
+}
+
+impl RowSlot {
+    /// Lanes `i .. i + 4` of the three coordinates.
+    #[inline]
+    fn lanes(&self, i: usize) -> [Vec4; 3] {
+        [&self.x, &self.y, &self.z].map(|c| Vec4::from_slice(&c[i..i + 4]))
+    }
+}
+
+impl<'a> DepthRows<'a> {
+    /// Rows of `image` (whose size `intrinsics` matches) for spans with neighbour windows of
+    /// half width `window`, in `slots`, the caller's buffers (what they held is forgotten).
+    pub(crate) fn new(
+        image: &'a DepthImage,
+        intrinsics: &'a PinholeIntrinsics,
+        window: u32,
+        slots: &'a mut Vec<RowSlot>,
+    ) -> Self {
+        let period = 2 * window as usize + 1;
+        if slots.len() < period {
+            slots.resize_with(period, RowSlot::default);
+        }
+        let len = image.width as usize + 2 * window as usize + 3;
+        for slot in slots.iter_mut() {
+            slot.cols = 0..0;
+            if slot.x.len() != len {
+                // A new layout: every column NaN, so the pads are.
+                for c in [&mut slot.x, &mut slot.y, &mut slot.z] {
+                    c.clear();
+                    c.resize(len, f32::NAN);
+                }
+            }
+        }
+        Self {
+            image,
+            intrinsics,
+            window,
+            period,
+            slots,
+        }
+    }
+
+    /// Deprojects what is missing of the rows `v - w ..= v + w` (within the image) over the
+    /// columns `u` grown by `w` (within the image).
+    pub(crate) fn cover(&mut self, v: u32, u: Range<u32>) {
+        let (width, height, w) = (self.image.width, self.image.height, self.window);
+        let want = u.start.saturating_sub(w)..(u.end + w).min(width);
+        let (k, unit) = (self.intrinsics, self.image.depth_scale_m);
+        for y in v.saturating_sub(w)..(v + w + 1).min(height) {
+            let slot = &mut self.slots[y as usize % self.period];
+            let have = if slot.v == y { slot.cols.clone() } else { 0..0 };
+            let new = if have.is_empty() {
+                want.clone()
+            } else {
+                have.start.min(want.start)..have.end.max(want.end)
+            };
+            let row = &self.image.data[y as usize * width as usize..][..width as usize];
+            // The columns of `new` left and right of `have` (all of them when it is empty).
+            let left = new.start..have.start.max(new.start);
+            let right = have.end.max(new.start)..new.end;
+            for part in [left, right] {
+                let (a, b) = (part.start as usize, part.end as usize);
+                let at = a + w as usize..b + w as usize;
+                let (xs, ys, zs) = (
+                    &mut slot.x[at.clone()],
+                    &mut slot.y[at.clone()],
+                    &mut slot.z[at],
+                );
+                for ((((x, &raw), px), py), pz) in part.zip(&row[a..b]).zip(xs).zip(ys).zip(zs) {
+                    let p = deproject_pixel(k, unit, x, y, raw);
+                    (*px, *py, *pz) = (p.x, p.y, p.z);
+                }
+            }
+            (slot.v, slot.cols) = (y, new);
+        }
+    }
+
+    /// The slot of row `y`.
+    #[inline]
+    fn slot(&self, y: u32) -> &RowSlot {
+        &self.slots[y as usize % self.period]
+    }
+
+    /// The camera-frame points of pixels `x .. x + 4` of row `y` in lanes (x, y, z), `x`
+    /// within the image: those [`Self::cover`] deprojected, the others whatever the slot
+    /// holds.
+    #[inline]
+    pub(crate) fn lanes(&self, x: u32, y: u32) -> [Vec4; 3] {
+        self.slot(y).lanes((x + self.window) as usize)
+    }
+
+    /// The camera-frame point of pixel `(x, y)` (NaN without a depth), which [`Self::cover`]
+    /// deprojected.
+    #[inline]
+    pub(crate) fn point(&self, x: u32, y: u32) -> Vec3 {
+        let (slot, i) = (self.slot(y), (x + self.window) as usize);
+        Vec3::new(slot.x[i], slot.y[i], slot.z[i])
     }
 }
 
@@ -499,6 +608,33 @@ mod tests {
     }
 
     proptest! {
+        /// Four neighbours at once decide as one at a time (`Vec3::cross` and
+        /// `Vec3::length_squared`), bit for bit, and a NaN lane never veils.
+        #[test]
+        fn four_lanes_decide_as_one_point_at_a_time(
+            p in prop::array::uniform3(-2f32..2.0),
+            q in prop::array::uniform4(prop::array::uniform3(-2f32..2.0)),
+            near in prop::array::uniform4(any::<bool>()),
+            nan in 0usize..5,
+            sin2 in 0.001f32..0.9,
+        ) {
+            let p = Vec3::from_array(p) + Vec3::Z * 2.5;
+            // Some neighbours close to the ray through p, where the test decides.
+            let q: Vec<Vec3> = (0..4)
+                .map(|i| if near[i] { p * (1.0 + q[i][0] * 0.1) + Vec3::from_array(q[i]) * 1e-3 } else { Vec3::from_array(q[i]) })
+                .collect();
+            let limit = sin2 * p.length_squared();
+            let lane = |c: fn(Vec3) -> f32| {
+                Vec4::from_array([0, 1, 2, 3].map(|i| if i == nan { f32::NAN } else { c(q[i]) }))
+            };
+            let got = veil_lanes(p, limit, lane(|v| v.x), lane(|v| v.y), lane(|v| v.z));
+            for (i, &qi) in q.iter().enumerate() {
+                let d = qi - p;
+                let one = i != nan && d.cross(p).length_squared() < limit * d.length_squared();
+                prop_assert_eq!(got >> i & 1 == 1, one, "lane {}", i);
+            }
+        }
+
         /// A plane seen at any incidence below 80 deg - 1 deg, at any depth and noise-free,
         /// loses no pixel.
         #[test]

@@ -32,8 +32,8 @@
 //! organized cloud, the flying-pixel test and the pose over every pixel), alternating which
 //! runs first frame by frame; their estimates must be the same bits. Last, each CPU stage's
 //! thread CPU time per frame (the region pass, voxel grid and clustering re-run on the chain's
-//! own input, their outputs checked equal to the chain's; memory, moments and fits as the
-//! chain timed them), median / p90 / max over the frames without an estimate and over those
+//! own input, `--stage-runs` times each, their outputs checked equal to the chain's; memory,
+//! moments and fits as the chain timed them), median / p90 / max over the frames without an estimate and over those
 //! with one (the body within the HIP's reach: the surface memory registers).
 //!
 //! Times. PCL: the compute time its tool prints (`[done, X ms ...]`: the filter alone; process
@@ -50,7 +50,8 @@
 //!
 //! Run: `cargo bench --bench stages_vs_pcl [-- FILES...] [--data DIR] [--radius R] [--leaf L]
 //! [--tolerance T] [--min-size A] [--max-size B] [--runs N] [--scene NAME]
-//! [--d435-frames N] [--cpu-threads N]`. The run executes on a rayon pool of `--cpu-threads`
+//! [--d435-frames N] [--d435-only] [--d435-workers N] [--stage-runs N] [--cpu-threads N]`.
+//! The run executes on a rayon pool of `--cpu-threads`
 //! (default 1: the CPU stages' thread CPU time is all their work, on one core). The data folder is `--data`, else `$HAPCLOUD_PCL_DATA`, else
 //! `../shared/data/pcl` beside the crate. Needs a Vulkan device (lavapipe is fine) and, for
 //! the comparison, pcl-tools (`.ci/run` installs it). The built executable runs on its own
@@ -129,6 +130,11 @@ struct Args {
     /// the device as the node's perception workers do (1: skip).
     #[arg(long, default_value_t = 2)]
     d435_workers: usize,
+    /// Times each re-run CPU stage of the D435 chain (region pass, voxel grid, clusters) runs
+    /// per frame; its time is the median of the runs (more: steadier stage times, and a
+    /// longer run for `perf record`).
+    #[arg(long, default_value_t = 1)]
+    stage_runs: usize,
     /// Threads of the rayon pool the whole run executes on (the CPU stages' parallel passes).
     /// 1: every CPU stage runs on the calling thread, so its thread CPU time is the stage's
     /// whole CPU time (one core); more: compare the wall times.
@@ -562,7 +568,10 @@ fn d435_chain(ctx: &Arc<GpuContext>, args: &Args) -> anyhow::Result<bool> {
         config.surface.clone(),
         None,
     )?;
-    let mut region_vs_whole = RegionVsWhole::default();
+    let mut region_vs_whole = RegionVsWhole {
+        stage_runs: args.stage_runs,
+        ..RegionVsWhole::default()
+    };
     // Warm-up (lavapipe compiles shaders on their first dispatch), then a fresh memory.
     gpu.process(&frames[0].0, &frames[0].1, &frames[0].2)?;
     gpu.reset();
@@ -714,6 +723,8 @@ struct RegionVsWhole {
     stages: Vec<StageTimes>,
     /// The region pass's buffers for the stages' re-run.
     scratch: RegionScratch,
+    /// Runs of each re-run stage per frame (`--stage-runs`).
+    stage_runs: usize,
 }
 
 /// One frame's CPU stages, thread CPU ms: the region pass, voxel grid and clustering re-run on
@@ -814,23 +825,26 @@ impl RegionVsWhole {
         config: &NodeConfig,
     ) -> anyhow::Result<StageTimes> {
         let front = &config.frontend;
-        let (kept, region) = Stopwatch::time(|| {
-            crop_depth_region_cpu(depth, &front.crop, Some(scene), &[], &mut self.scratch)
+        let runs = self.stage_runs;
+        let scratch = &mut self.scratch;
+        let (kept, region) = median_runs(runs, || {
+            crop_depth_region_cpu(depth, &front.crop, Some(scene), &[], scratch)
         });
         let kept = kept?;
-        let (voxel, voxel_t) = Stopwatch::time(|| {
+        let (voxel, voxel_t) = median_runs(runs, || {
             voxel_cpu_with_leaf(&kept.points, None, &front.voxel, r.front.voxel.leaf_m)
         });
         let voxel = voxel?;
-        let (clusters, clusters_t) = Stopwatch::time(|| cluster_cpu(&voxel.points, &front.cluster));
+        let (clusters, clusters_t) =
+            median_runs(runs, || cluster_cpu(&voxel.points, &front.cluster));
         if voxel != r.front.voxel || clusters? != r.front.clusters {
             bail!("the CPU stages re-run on a frame's input differ from its chain's output");
         }
         Ok(StageTimes {
             contact: r.estimate().surface.is_some(),
-            region: region.cpu_ms,
-            voxel: voxel_t.cpu_ms,
-            clusters: clusters_t.cpu_ms,
+            region,
+            voxel: voxel_t,
+            clusters: clusters_t,
             memory: r.surface.memory_time.cpu_ms,
             moments: r.surface.moments_time.cpu_ms,
             fits: r.surface.fits_time.cpu_ms,
@@ -852,7 +866,8 @@ impl RegionVsWhole {
             ("whole chain", |s| s.chain),
         ];
         println!(
-            "\nCPU chain over the crop region, each stage's thread CPU ms re-run on the chain's input: median / p90 / max"
+            "\nCPU chain over the crop region, each stage's thread CPU ms re-run on the chain's input (median of {} runs per frame): median / p90 / max",
+            self.stage_runs
         );
         println!("\n| stage | no estimate | with an estimate (contact) |");
         println!("|---|---|---|");
@@ -914,6 +929,19 @@ impl RegionVsWhole {
         );
         self.differ == 0
     }
+}
+
+/// `f` run `runs` times (at least once): its last output and the median of its thread CPU
+/// times, ms.
+fn median_runs<T>(runs: usize, mut f: impl FnMut() -> T) -> (T, f64) {
+    let (mut out, t) = Stopwatch::time(&mut f);
+    let mut times = vec![t.cpu_ms];
+    for _ in 1..runs {
+        let (o, t) = Stopwatch::time(&mut f);
+        out = o;
+        times.push(t.cpu_ms);
+    }
+    (out, median(times))
 }
 
 /// The frames through `workers` GPU chains at once (one thread each, one shared device), as
@@ -984,6 +1012,7 @@ fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     anyhow::ensure!(args.runs > 0, "--runs must be positive");
     anyhow::ensure!(args.cpu_threads > 0, "--cpu-threads must be positive");
+    anyhow::ensure!(args.stage_runs > 0, "--stage-runs must be positive");
     rayon::ThreadPoolBuilder::new()
         .num_threads(args.cpu_threads)
         .build()?
