@@ -30,12 +30,12 @@
 //! rounding of its threshold. A depth frame's passes read only the pixels the crop can keep
 //! ([`crop_region`]: each capsule's projection row by row, the columns and depths where the
 //! row's plane of rays cuts it, merged into spans; the GPU takes their bounding rectangle).
-//! On the CPU ([`crop_depth_region_cpu`]) each span's rows are deprojected once; on a span
-//! only the HIP's ball can hold, four pixels at a time are tested in the camera frame (f32,
-//! the ball shrunk and grown by the slack below): surely inside and beside every robot
-//! primitive's bounding sphere is kept without the f64 test, maybe inside takes it, the rest
-//! go; on other spans a pixel whose raw depth lies outside the span's depth interval (the
-//! capsules' depths on its row, in depth units) goes on that integer compare. Kept pixels
+//! On the CPU ([`crop_depth_region_cpu`]) each span's rows are deprojected once and read
+//! four pixels at a time in the camera frame (f32, each reach of the span a capsule, the
+//! HIP's ball one whose ends coincide, shrunk and grown by the slack below): surely inside a
+//! reach and beside its robot primitives' bounding spheres is kept without the f64 test,
+//! maybe inside takes it, the rest go; without a scene a pixel whose raw depth lies outside
+//! the span's depth interval goes on that integer compare. Kept pixels
 //! are tested for flying in the same pass (the points [`crop_depth_cpu`] keeps, bit for
 //! bit). The pixel bounds and the depth interval hold the
 //! capsules grown by a slack of 10 um plus a millionth of the distances involved, which
