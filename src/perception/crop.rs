@@ -30,12 +30,12 @@
 //! rounding of its threshold. A depth frame's passes read only the pixels the crop can keep
 //! ([`crop_region`]: each capsule's projection row by row, the columns and depths where the
 //! row's plane of rays cuts it, merged into spans; the GPU takes their bounding rectangle).
-//! On the CPU ([`crop_depth_region_cpu`]) each span's rows are deprojected once; on a span
-//! only the HIP's ball can hold, four pixels at a time are tested in the camera frame (f32,
-//! the ball shrunk and grown by the slack below): surely inside and beside every robot
-//! primitive's bounding sphere is kept without the f64 test, maybe inside takes it, the rest
-//! go; on other spans a pixel whose raw depth lies outside the span's depth interval (the
-//! capsules' depths on its row, in depth units) goes on that integer compare. Kept pixels
+//! On the CPU ([`crop_depth_region_cpu`]) each span's rows are deprojected once and read
+//! four pixels at a time in the camera frame (f32, each reach of the span a capsule, the
+//! HIP's ball one whose ends coincide, shrunk and grown by the slack below): surely inside a
+//! reach and beside its robot primitives' bounding spheres is kept without the f64 test,
+//! maybe inside takes it, the rest go; without a scene a pixel whose raw depth lies outside
+//! the span's depth interval goes on that integer compare. Kept pixels
 //! are tested for flying in the same pass (the points [`crop_depth_cpu`] keeps, bit for
 //! bit). The pixel bounds and the depth interval hold the
 //! capsules grown by a slack of 10 um plus a millionth of the distances involved, which
@@ -734,7 +734,7 @@ pub fn crop_depth_region_cpu(
     let pose = &depth.cloud_from_camera;
     let region = crop_region_with_reach(depth, config, scene, keep_off);
     let test = DepthVeilTest::new(image, depth.flying);
-    let ball = crop.as_ref().map(|c| c.camera_ball(pose));
+    let reach = crop.as_ref().map(|c| c.camera_reach(pose));
     let run = |spans: &[RowSpan], task: &mut RegionTask| {
         task.points.clear();
         task.flying = 0;
@@ -755,13 +755,13 @@ pub fn crop_depth_region_cpu(
                     task.points.push(q);
                 }
             };
-            match &ball {
-                // Only the HIP's ball can hold the span's points: four pixels at a time, those
-                // the crop keeps for sure and those it may keep go on.
-                Some(ball) if s.reach == 1 => {
+            match &reach {
+                // Four pixels at a time in the camera frame: those the crop keeps for sure and
+                // those it may keep go on.
+                Some(reach) => {
                     for x in s.u.clone().step_by(4) {
                         let lanes = (1u32 << (s.u.end - x).min(4)) - 1;
-                        let (sure, maybe) = ball.lanes(rows.lanes(x, s.v));
+                        let (sure, maybe) = reach.lanes(rows.lanes(x, s.v), s.reach);
                         let mut on = (sure | maybe) & lanes;
                         while on != 0 {
                             let lane = on.trailing_zeros();
@@ -822,19 +822,31 @@ pub fn kept_indices(mask: &[u32], n: usize) -> Vec<usize> {
     (0..n).filter(|&i| mask_bit(mask, i)).collect()
 }
 
-/// The crop of the HIP's ball in a camera's frame, f32, for a pass over its pixels four at a
-/// time: which points lie surely within the ball and beside every robot primitive's bounding
-/// sphere (kept by [`CpuCrop`] without its f64 test), and which may lie within the ball
-/// (they take the f64 test). The ball's radius is shrunk and grown, each sphere's grown, by
-/// the slack of [`region_slack_m`], which covers the roundings of the pose (f64, rounded to
-/// f32), of the centres and of the f32 distances.
-pub(crate) struct CameraBall {
-    centre: [Vec4; 3],
+/// The crop's reaches in a camera's frame, f32, for a pass over its pixels four at a time:
+/// which points lie surely within a reach and beside every robot primitive's bounding
+/// sphere that meets it (kept by [`CpuCrop`] without its f64 test), and which may lie within
+/// one (they take the f64 test). Each reach is a capsule (the HIP's ball one whose ends
+/// coincide); its radius is shrunk and grown, each sphere's grown, by the slack of
+/// [`region_slack_m`], which covers the roundings of the pose (f64, rounded to f32), of the
+/// ends and centres and of the f32 distances. A computed closest point lies on the segment
+/// within rounding whatever the rounding of its parameter, and the distance to the segment's
+/// points is 1-Lipschitz, so the f32 distance errs by the same order as the ball's.
+pub(crate) struct CameraReach {
+    /// Per reach (bit `j` of [`RowSpan::reach`]), see [`LaneCapsule`].
+    reaches: Vec<LaneCapsule>,
+}
+
+/// One reach of [`CameraReach`] in x, y, z lanes: segment `a..a + ab`, and the robot's
+/// bounding spheres that meet its bounding ball.
+struct LaneCapsule {
+    a: [Vec4; 3],
+    ab: [Vec4; 3],
+    /// `1 / |ab|^2`, 0 for a ball (the closest point is then `a`).
+    inv_len2: Vec4,
     /// `(radius - slack)^2` (0 when the slack is larger) and `(radius + slack)^2`.
     inner: Vec4,
     outer: Vec4,
-    /// The bounding spheres of the robot primitives [`CpuCrop`] tests in the HIP's ball:
-    /// centre and `(radius + slack)^2`.
+    /// Centre and `(radius + slack)^2` of the robot primitives [`CpuCrop`] tests in it.
     robot: Vec<([Vec4; 3], Vec4)>,
 }
 
@@ -845,17 +857,41 @@ fn distance2_lanes(p: &[Vec4; 3], centre: &[Vec4; 3]) -> Vec4 {
     ex * ex + ey * ey + ez * ez
 }
 
-impl CameraBall {
-    /// Of four camera-frame points (x, y, z lanes; NaN: no point): the lanes the crop keeps
-    /// for sure and the lanes that need its f64 test (bit `i` for lane `i`).
+impl LaneCapsule {
+    /// Squared f32 distances of four points to the segment: closest point `a + t ab`,
+    /// `t = clamp((p - a).ab / |ab|^2, 0, 1)` (a NaN lane stays NaN).
     #[inline]
-    pub(crate) fn lanes(&self, p: [Vec4; 3]) -> (u32, u32) {
-        let d2 = distance2_lanes(&p, &self.centre);
-        let near_robot = (self.robot.iter()).fold(0, |m, (c, limit)| {
-            m | distance2_lanes(&p, c).cmple(*limit).bitmask()
-        });
-        let sure = d2.cmplt(self.inner).bitmask() & !near_robot;
-        (sure, d2.cmple(self.outer).bitmask() & !sure)
+    fn distance2(&self, p: &[Vec4; 3]) -> Vec4 {
+        let ap = [0, 1, 2].map(|i| p[i] - self.a[i]);
+        let dot = ap[0] * self.ab[0] + ap[1] * self.ab[1] + ap[2] * self.ab[2];
+        let t = (dot * self.inv_len2).max(Vec4::ZERO).min(Vec4::ONE);
+        let [ex, ey, ez] = [0, 1, 2].map(|i| ap[i] - t * self.ab[i]);
+        ex * ex + ey * ey + ez * ez
+    }
+}
+
+impl CameraReach {
+    /// Of four camera-frame points (x, y, z lanes; NaN: no point) that only the reaches in
+    /// `reach` can hold: the lanes the crop keeps for sure and the lanes that need its f64
+    /// test (bit `i` for lane `i`). The other lanes lie surely outside those reaches.
+    #[inline]
+    pub(crate) fn lanes(&self, p: [Vec4; 3], reach: u32) -> (u32, u32) {
+        let (mut sure, mut maybe) = (0, 0);
+        for (j, c) in self.reaches.iter().enumerate() {
+            if reach >> j & 1 == 0 {
+                continue;
+            }
+            let d2 = c.distance2(&p);
+            maybe |= d2.cmple(c.outer).bitmask();
+            let inside = d2.cmplt(c.inner).bitmask() & !sure;
+            if inside != 0 {
+                let near_robot = (c.robot.iter()).fold(0, |m, (centre, limit)| {
+                    m | distance2_lanes(&p, centre).cmple(*limit).bitmask()
+                });
+                sure |= inside & !near_robot;
+            }
+        }
+        (sure, maybe & !sure)
     }
 }
 
@@ -904,28 +940,42 @@ impl CpuCrop {
         })
     }
 
-    /// The HIP's ball and its robot primitives seen from a camera at `cloud_from_camera`.
-    pub(crate) fn camera_ball(&self, cloud_from_camera: &Isometry3<f64>) -> CameraBall {
-        let lanes = |c: Point3<f64>| [c.x, c.y, c.z].map(|v| Vec4::splat(v as f32));
+    /// The HIP's ball, the keep-off capsules and their robot primitives seen from a camera
+    /// at `cloud_from_camera`.
+    pub(crate) fn camera_reach(&self, cloud_from_camera: &Isometry3<f64>) -> CameraReach {
+        let lanes = |c: Vector3<f64>| [c.x, c.y, c.z].map(|v| Vec4::splat(v as f32));
         let in_camera = |c: &Point3<f64>| cloud_from_camera.inverse_transform_point(c);
-        let slack = |r: f64, c: &Point3<f64>| region_slack_m(r, c, c, cloud_from_camera);
-        let centre = in_camera(&self.hip);
-        let r = self.r2.sqrt();
-        let (inner, outer) = ((r - slack(r, &centre)).max(0.0), r + slack(r, &centre));
-        let robot = (self.robot_of[0].iter())
-            .map(|&i| {
-                let (c, r2) = self.robot[i].bounding_ball();
-                let (c, r) = (in_camera(&c), r2.sqrt());
-                let grown = r + slack(r, &c);
-                (lanes(c), Vec4::splat((grown * grown) as f32))
+        let square = |v: f64| Vec4::splat((v * v) as f32);
+        let hip = (self.hip, self.hip, self.r2.sqrt());
+        let ends =
+            std::iter::once(hip).chain(self.keep_off.iter().map(|c| (c.a_m, c.b_m, c.radius_m)));
+        let reaches = (ends.zip(&self.robot_of))
+            .map(|((a, b, r), robot_of)| {
+                let (a, b) = (in_camera(&a), in_camera(&b));
+                let slack = region_slack_m(r, &a, &b, cloud_from_camera);
+                let ab = b - a;
+                let len2 = ab.norm_squared();
+                let robot = (robot_of.iter())
+                    .map(|&i| {
+                        let (c, r2) = self.robot[i].bounding_ball();
+                        let (c, r) = (in_camera(&c), r2.sqrt());
+                        (
+                            lanes(c.coords),
+                            square(r + region_slack_m(r, &c, &c, cloud_from_camera)),
+                        )
+                    })
+                    .collect();
+                LaneCapsule {
+                    a: lanes(a.coords),
+                    ab: lanes(ab),
+                    inv_len2: Vec4::splat(if len2 > 0.0 { (1.0 / len2) as f32 } else { 0.0 }),
+                    inner: square((r - slack).max(0.0)),
+                    outer: square(r + slack),
+                    robot,
+                }
             })
             .collect();
-        CameraBall {
-            centre: lanes(centre),
-            inner: Vec4::splat((inner * inner) as f32),
-            outer: Vec4::splat((outer * outer) as f32),
-            robot,
-        }
+        CameraReach { reaches }
     }
 
     /// Point `p` (cloud frame) is finite, within the radius of the HIP or a keep-off
@@ -2367,6 +2417,77 @@ mod tests {
             for (i, p) in points.iter().enumerate() {
                 if mask_bit(&cpu, i) != mask_bit(&gpu, i) {
                     prop_assert!(near_boundary(*p, &config, &scene), "point {} {:?}", i, p);
+                }
+            }
+        }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(64))]
+
+        /// The camera-frame lane test of the HIP's ball and keep-off capsules is
+        /// conservative: every lane it keeps for sure the f64 crop keeps, and every lane it
+        /// drops (neither sure nor maybe) the f64 crop drops, for points scattered within a
+        /// few micrometres of a reach's surface and anywhere around it.
+        #[test]
+        fn camera_lanes_never_decide_against_the_f64_crop(
+            (tx, ty, tz) in (-2.0..2.0f64, -2.0..2.0f64, -1.0..1.0f64),
+            (rx, ry, rz) in (-3.0..3.0f64, -3.0..3.0f64, -3.0..3.0f64),
+            ends in prop::collection::vec(
+                ((-0.5..0.5f64, -0.5..0.5f64, 0.3..1.5f64), (-0.3..0.3f64, -0.3..0.3f64, -0.3..0.3f64), 0.02..0.3f64),
+                1..4),
+            prim in primitive_strategy(),
+            samples in prop::collection::vec(
+                (0..4usize, 0.0..1.0f64, (-1.0..1.0f64, -1.0..1.0f64, -1.0..1.0f64), -2e-5..2e-5f64, 0..2u8),
+                4..400),
+            reach in 1u32..16,
+        ) {
+            let pose = Isometry3::new(Vector3::new(tx, ty, tz), Vector3::new(rx, ry, rz));
+            // Reaches in the camera frame: the HIP's ball (the first end), then capsules.
+            let capsules: Vec<(Point3<f64>, Point3<f64>, f64)> = (ends.iter())
+                .enumerate()
+                .map(|(k, &((x, y, z), (u, v, w), r))| {
+                    let a = Point3::new(x, y, z);
+                    (a, if k == 0 { a } else { a + Vector3::new(u, v, w) }, r)
+                })
+                .collect();
+            // The robot primitive among the reaches (camera frame z about 0.8 m), posed.
+            let robot = [prim.transformed(&(pose * Isometry3::translation(0.0, 0.0, 0.8)))];
+            let config = CropConfig {
+                radius_m: capsules[0].2,
+                ..CropConfig::default()
+            };
+            let scene = CropScene {
+                hip_m: pose * capsules[0].0,
+                robot: &robot,
+                camera_m: None,
+            };
+            let keep_off: Vec<ReachCapsule> = (capsules[1..].iter())
+                .map(|&(a, b, radius_m)| ReachCapsule { a_m: pose * a, b_m: pose * b, radius_m })
+                .collect();
+            let crop = CpuCrop::new(&config, &scene, &keep_off).unwrap();
+            let lanes = crop.camera_reach(&pose);
+            let points: Vec<Vec3> = (samples.iter())
+                .map(|&(k, t, (dx, dy, dz), eps, far)| {
+                    let (a, b, r) = capsules[k % capsules.len()];
+                    let dir = Vector3::new(dx, dy, dz).try_normalize(1e-9).unwrap_or(Vector3::z());
+                    let scale = if far == 0 { r + eps } else { r * 2.0 * (dx.abs() + eps) };
+                    let p = a + (b - a) * t + dir * scale;
+                    Vec3::new(p.x as f32, p.y as f32, p.z as f32)
+                })
+                .collect();
+            for four in points.chunks_exact(4) {
+                let p = [0, 1, 2].map(|c| Vec4::from_array([0, 1, 2, 3].map(|i| four[i][c])));
+                let (sure, maybe) = lanes.lanes(p, reach);
+                prop_assert_eq!(sure & maybe, 0);
+                for (i, &q) in four.iter().enumerate() {
+                    let keeps = crop.keeps_within(to_cloud_frame(q, &pose), reach);
+                    if sure >> i & 1 == 1 {
+                        prop_assert!(keeps, "kept for sure but not by f64: {:?}", q);
+                    }
+                    if (sure | maybe) >> i & 1 == 0 {
+                        prop_assert!(!keeps, "dropped but kept by f64: {:?}", q);
+                    }
                 }
             }
         }

@@ -135,56 +135,40 @@ impl<'a> VeilTest<'a> {
         if !self.active || p.distance_squared(self.near_cam) >= self.r2 {
             return false;
         }
-        let w = self.width;
-        veiled_by_a_neighbour(
-            p,
-            (i % w, i / w),
-            (w, self.height),
-            self.window,
-            self.sin2_min,
-            |x, y| Some(self.points[y * w + x]).filter(|&q| valid(q)),
-        )
+        let (w, k) = (self.width, self.window);
+        let (u, v) = (i % w, i / w);
+        let limit = self.sin2_min * p.length_squared();
+        let columns = u.saturating_sub(k)..(u + k + 1).min(w);
+        // Each window row's points are contiguous; the valid ones are tested one at a time
+        // (the pixel itself, d = 0, never veils).
+        (v.saturating_sub(k)..(v + k + 1).min(self.height)).any(|y| {
+            (self.points[y * w..][columns.clone()].iter()).any(|&q| {
+                valid(q) && {
+                    let (c2, bound) = veil_sides(p.to_array(), q.to_array(), limit);
+                    c2 < bound
+                }
+            })
+        })
     }
 }
 
-/// Whether a neighbour of pixel `(u, v)` (within `window` pixels, in a `width` x `height`
-/// image) veils its camera-frame point `p` ([`veil_lanes`]). `neighbour(x, y)` is that
-/// pixel's point, `None` when it has none; the neighbours (not the pixel itself) are tested
-/// four at a time.
-fn veiled_by_a_neighbour(
-    p: Vec3,
-    (u, v): (usize, usize),
-    (width, height): (usize, usize),
-    window: usize,
-    sin2_min: f32,
-    neighbour: impl Fn(usize, usize) -> Option<Vec3>,
-) -> bool {
-    let limit = sin2_min * p.length_squared();
-    // Every window pixel takes a lane in turn, NaN where it has no point and for the pixel
-    // itself; each four lanes are tested together.
-    let mut lanes = [[f32::NAN; 4]; 3];
-    let mut n = 0;
-    let (c0, c1) = (u.saturating_sub(window), (u + window + 1).min(width));
-    for y in v.saturating_sub(window)..(v + window + 1).min(height) {
-        for x in c0..c1 {
-            let q = neighbour(x, y)
-                .filter(|_| (x, y) != (u, v))
-                .unwrap_or(Vec3::NAN);
-            for (lane, c) in lanes.iter_mut().zip(q.to_array()) {
-                lane[n] = c;
-            }
-            n += 1;
-            if n == 4 {
-                let [qx, qy, qz] = lanes.map(Vec4::from_array);
-                if veil_lanes(p, limit, qx, qy, qz) != 0 {
-                    return true;
-                }
-                n = 0;
-            }
-        }
-    }
-    let [qx, qy, qz] = lanes.map(Vec4::from_array);
-    veil_lanes(p, limit, qx, qy, qz) & ((1 << n) - 1) != 0
+/// The veil criterion's two sides for the segment `d = q - p`: `(|d x p|^2, limit |d|^2)`,
+/// `q` veiling `p` when the first is below the second, in the arithmetic of `Vec3::cross`
+/// and `Vec3::length_squared`, on one f32 or on four lanes ([`veil_lanes`]).
+#[inline]
+fn veil_sides<T>(p: [T; 3], q: [T; 3], limit: T) -> (T, T)
+where
+    T: Copy + std::ops::Add<Output = T> + std::ops::Sub<Output = T> + std::ops::Mul<Output = T>,
+{
+    let [px, py, pz] = p;
+    let (dx, dy, dz) = (q[0] - px, q[1] - py, q[2] - pz);
+    let cx = dy * pz - py * dz;
+    let cy = dz * px - pz * dx;
+    let cz = dx * py - px * dy;
+    (
+        cx * cx + cy * cy + cz * cz,
+        limit * (dx * dx + dy * dy + dz * dz),
+    )
 }
 
 /// The veil criterion on four neighbours at once: bit `i` set when lane `i` of `(qx, qy, qz)`
@@ -195,14 +179,12 @@ fn veiled_by_a_neighbour(
 /// does either.
 #[inline]
 fn veil_lanes(p: Vec3, limit: f32, qx: Vec4, qy: Vec4, qz: Vec4) -> u32 {
-    let (px, py, pz) = (Vec4::splat(p.x), Vec4::splat(p.y), Vec4::splat(p.z));
-    let (dx, dy, dz) = (qx - px, qy - py, qz - pz);
-    let cx = dy * pz - py * dz;
-    let cy = dz * px - pz * dx;
-    let cz = dx * py - px * dy;
-    let c2 = cx * cx + cy * cy + cz * cz;
-    let d2 = dx * dx + dy * dy + dz * dz;
-    c2.cmplt(Vec4::splat(limit) * d2).bitmask()
+    let (c2, bound) = veil_sides(
+        p.to_array().map(Vec4::splat),
+        [qx, qy, qz],
+        Vec4::splat(limit),
+    );
+    c2.cmplt(bound).bitmask()
 }
 
 /// The veil test of a 16-bit depth image's pixels, the neighbours read from the rows a
