@@ -770,7 +770,7 @@ pub fn crop_depth_region_cpu(
                         }
                     }
                 }
-                _ => {
+                None => {
                     let row = &image.data[s.v as usize * width..][..width];
                     for x in s.u.clone() {
                         let raw = row[x as usize];
@@ -865,8 +865,7 @@ impl LaneCapsule {
         let ap = [0, 1, 2].map(|i| p[i] - self.a[i]);
         let dot = ap[0] * self.ab[0] + ap[1] * self.ab[1] + ap[2] * self.ab[2];
         let t = (dot * self.inv_len2).max(Vec4::ZERO).min(Vec4::ONE);
-        let [ex, ey, ez] = [0, 1, 2].map(|i| ap[i] - t * self.ab[i]);
-        ex * ex + ey * ey + ez * ez
+        distance2_lanes(&ap, &self.ab.map(|c| t * c))
     }
 }
 

@@ -101,7 +101,19 @@ const fn parents() -> ([u32; MOMENT_COUNT], [u32; MOMENT_COUNT]) {
 
 /// How many monomials have degree at most `d`, for `d` = 0..=4: they come first in
 /// [`EXPONENTS`], so a product with a monomial of degree `4 - d` ranges over that prefix.
-const UP_TO_DEGREE: [usize; MAX_DEGREE + 1] = [1, 4, 10, 20, 35];
+const UP_TO_DEGREE: [usize; MAX_DEGREE + 1] = {
+    let mut out = [0; MAX_DEGREE + 1];
+    let mut n = 0;
+    while n < MOMENT_COUNT {
+        let mut d = DEGREE[n] as usize;
+        while d <= MAX_DEGREE {
+            out[d] += 1;
+            d += 1;
+        }
+        n += 1;
+    }
+    out
+};
 
 /// Per pair of monomials whose degrees sum to at most 4, the index of their product
 /// (`u8::MAX` for the others): [`Poly::mul`]'s lookup instead of a search of [`EXPONENTS`].

@@ -25,6 +25,7 @@ use glam::Vec3;
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 use std::num::NonZeroUsize;
+use std::ops::RangeInclusive;
 
 /// Settings of the isolated-point removal.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -245,6 +246,34 @@ impl NeighbourGrid {
         Some(cell)
     }
 
+    /// The points of row `(z, y)` whose x cell lies in `x_cells`, in the row's order: each
+    /// point's slot and its squared distance to `c`.
+    #[inline]
+    fn row_distances2<'a>(
+        &'a self,
+        z: usize,
+        y: usize,
+        x_cells: RangeInclusive<u32>,
+        c: &'a [f64; 3],
+    ) -> impl Iterator<Item = (usize, f64)> + 'a {
+        let row = z * self.dims[1] + y;
+        let (s, e) = (
+            self.row_starts[row] as usize,
+            self.row_starts[row + 1] as usize,
+        );
+        let cells = &self.x_cells[s..e];
+        let (from, to) = (
+            s + cells.partition_point(|x| x < x_cells.start()),
+            s + cells.partition_point(|x| x <= x_cells.end()),
+        );
+        (from..to)
+            .zip(&self.coords[from..to])
+            .map(move |(slot, p)| {
+                let (dx, dy, dz) = (p[0] - c[0], p[1] - c[1], p[2] - c[2]);
+                (slot, dx * dx + dy * dy + dz * dz)
+            })
+    }
+
     /// The point nearest `c` among those within squared distance `radius2` of it (at most
     /// the squared radius the grid was built with), as its index in the grid's points and
     /// the squared distance; the lowest index among equal distances (a coincident point's
@@ -266,25 +295,12 @@ impl NeighbourGrid {
             }
             *r = (lo, hi);
         }
-        let (x0, x1) = (range[0].0 as u32, range[0].1 as u32);
+        let x_cells = range[0].0 as u32..=range[0].1 as u32;
         let mut best: Option<(u32, f64)> = None;
         for z in range[2].0..=range[2].1 {
             for y in range[1].0..=range[1].1 {
-                let row = z * self.dims[1] + y;
-                let (s, e) = (
-                    self.row_starts[row] as usize,
-                    self.row_starts[row + 1] as usize,
-                );
-                let s = s + self.x_cells[s..e].partition_point(|&x| x < x0);
-                for ((&x, p), &i) in (self.x_cells[s..e].iter())
-                    .zip(&self.coords[s..e])
-                    .zip(&self.index[s..e])
-                {
-                    if x > x1 {
-                        break;
-                    }
-                    let (dx, dy, dz) = (p[0] - c[0], p[1] - c[1], p[2] - c[2]);
-                    let d2 = dx * dx + dy * dy + dz * dz;
+                for (slot, d2) in self.row_distances2(z, y, x_cells.clone(), c) {
+                    let i = self.index[slot];
                     let nearer = match best {
                         None => d2 <= radius2,
                         Some((j, b)) => d2 < b || (d2 == b && i < j),
@@ -305,7 +321,7 @@ impl NeighbourGrid {
         let cell = self.cell_of(c)?;
         let (sure2, loose2) = (radius2 * (1.0 - SURE_MARGIN), radius2 * (1.0 + SURE_MARGIN));
         let (mut sure, mut loose) = (0, 0);
-        let (x0, x1) = (cell[0].saturating_sub(1) as u32, cell[0] as u32 + 1);
+        let x_cells = cell[0].saturating_sub(1) as u32..=cell[0] as u32 + 1;
         // The point's own row first: a point of a surface finds itself and its neighbours
         // there and returns early. The counts, and so the answer, do not depend on the order.
         for (oz, oy) in NEIGHBOUR_ROWS {
@@ -318,18 +334,7 @@ impl NeighbourGrid {
             if z >= self.dims[2] || y >= self.dims[1] {
                 continue;
             }
-            let row = z * self.dims[1] + y;
-            let (s, e) = (
-                self.row_starts[row] as usize,
-                self.row_starts[row + 1] as usize,
-            );
-            let s = s + self.x_cells[s..e].partition_point(|&x| x < x0);
-            for (&x, p) in self.x_cells[s..e].iter().zip(&self.coords[s..e]) {
-                if x > x1 {
-                    break;
-                }
-                let (dx, dy, dz) = (p[0] - c[0], p[1] - c[1], p[2] - c[2]);
-                let d2 = dx * dx + dy * dy + dz * dz;
+            for (_, d2) in self.row_distances2(z, y, x_cells.clone(), c) {
                 if d2 < sure2 {
                     sure += 1;
                     if sure >= k {
