@@ -77,6 +77,7 @@ fn a_twenty_episode_campaign_writes_its_tables_plots_and_worst_episodes() {
         "campaign-runs.csv",
         "campaign-summary.csv",
         "campaign-kinds.csv",
+        "campaign-views.csv",
         "campaign-contacts.csv",
         "campaign-episodes.csv",
         "campaign-safe.png",
@@ -89,16 +90,21 @@ fn a_twenty_episode_campaign_writes_its_tables_plots_and_worst_episodes() {
     let summary = details["summary"].as_array().unwrap();
     // (3 rates + all) x 4 sources
     assert_eq!(summary.len(), 4 * 4);
-    // 4 body kinds x 4 sources, each source's kinds adding up to the 20 episodes
+    // 4 body kinds x 4 sources, and 0 to 2 cameras facing the leading surface x 4 sources,
+    // each source's groups adding up to the 20 episodes
     let by_kind = details["by_kind"].as_array().unwrap();
     assert_eq!(by_kind.len(), 4 * 4);
-    for source in ["exact", "delayed_oracle", "visible_oracle", "perception"] {
-        let episodes: u64 = by_kind
-            .iter()
-            .filter(|r| r["source"] == source)
-            .map(|r| r["episodes"].as_u64().unwrap())
-            .sum();
-        assert_eq!(episodes, 20, "{source}");
+    let by_view = details["by_view"].as_array().unwrap();
+    assert!([4, 8, 12].contains(&by_view.len()), "{}", by_view.len());
+    for groups in [by_kind, by_view] {
+        for source in ["exact", "delayed_oracle", "visible_oracle", "perception"] {
+            let episodes: u64 = groups
+                .iter()
+                .filter(|r| r["source"] == source)
+                .map(|r| r["episodes"].as_u64().unwrap())
+                .sum();
+            assert_eq!(episodes, 20, "{source}");
+        }
     }
     for row in summary.iter().filter(|r| r["camera_rate_hz"] == 0.0) {
         assert_eq!(row["episodes"], 20);

@@ -25,6 +25,7 @@
 //! from the four sources in parallel and writes `campaign-runs.csv` (one row per episode,
 //! speed and source), `campaign-summary.csv` (fraction safe and margins per speed, camera
 //! rate and source), `campaign-kinds.csv` (the same per speed, approaching body kind and source),
+//! `campaign-views.csv` (the same per number of cameras facing the body's leading surface),
 //! `campaign-contacts.csv` (first touches per body region against ISO/TS 15066),
 //! `campaign-episodes.csv` (each episode's draws and CPU time), `campaign-safe.png`,
 //! `campaign-margins.png` and the `--worst` perception episodes as scene files in `worst/`.
@@ -728,6 +729,7 @@ fn campaign(
     write_rows(&out.join("campaign-runs.csv"), &rows)?;
     write_rows(&out.join("campaign-summary.csv"), &result.summary)?;
     write_rows(&out.join("campaign-kinds.csv"), &result.by_kind)?;
+    write_rows(&out.join("campaign-views.csv"), &result.by_view)?;
     write_rows(&out.join("campaign-contacts.csv"), &result.contacts)?;
     if keep_off {
         let guards: Vec<campaign::GuardRow> = result.guard_rows().cloned().collect();
@@ -747,6 +749,7 @@ fn campaign(
             approach_x: e.episode.approach.x,
             approach_y: e.episode.approach.y,
             approach_z: e.episode.approach.z,
+            leading_face_cameras: e.episode.leading_face_cameras,
             cpu_s: e.cpu_s,
         })
         .collect();
@@ -814,6 +817,7 @@ fn campaign(
         "threads": rayon::current_num_threads(),
         "summary": result.summary,
         "by_kind": result.by_kind,
+        "by_view": result.by_view,
         "contacts": result.contacts,
         "worst": worst_files,
     });
@@ -855,15 +859,22 @@ fn campaign(
         "worst mm",
         "contact"
     );
-    // every rate and kind, then each body kind over every rate
-    for r in result.summary.iter().chain(&result.by_kind) {
+    // every rate and kind, then each body kind and each count of cameras facing the leading
+    // surface over every rate
+    for r in result
+        .summary
+        .iter()
+        .chain(&result.by_kind)
+        .chain(&result.by_view)
+    {
         println!(
             "{:5.2} {:>7} {:15} {:5} {:8} {:6} {:8.3} {:>12} {:>13} {:10.1} {:10.1} {:8.3}",
             r.speed_mps,
-            match (r.kind, r.camera_rate_hz) {
-                (Some(kind), _) => kind.name().to_string(),
-                (None, 0.0) => "all".to_string(),
-                (None, rate) => format!("{rate}"),
+            match (r.kind, r.leading_face_cameras, r.camera_rate_hz) {
+                (Some(kind), _, _) => kind.name().to_string(),
+                (None, Some(cameras), _) => format!("{cameras} cam"),
+                (None, None, 0.0) => "all".to_string(),
+                (None, None, rate) => format!("{rate}"),
             },
             r.source.name(),
             r.episodes,
@@ -940,6 +951,7 @@ struct EpisodeDraw {
     approach_x: f64,
     approach_y: f64,
     approach_z: f64,
+    leading_face_cameras: usize,
     cpu_s: f64,
 }
 

@@ -238,6 +238,9 @@ pub struct RunRow {
     pub contact_handle_force_n: Option<f64>,
     /// No touch, or a touch within the region's transient limit.
     pub contact_within_limit: bool,
+    /// Cameras facing the body's leading surface where it first meets the HIP
+    /// ([`Episode::leading_face_cameras`]).
+    pub leading_face_cameras: usize,
 }
 
 /// One keep-off guard in one run of a keep-off episode: `campaign-guards.csv`'s row, the
@@ -335,6 +338,7 @@ fn run_row(e: &Episode, r: &SpeedRow) -> RunRow {
         contact_within_limit: region
             .zip(force)
             .is_none_or(|(g, f)| f <= g.transient_limit_n),
+        leading_face_cameras: e.leading_face_cameras,
     }
 }
 
@@ -346,6 +350,8 @@ pub struct SummaryRow {
     pub camera_rate_hz: f64,
     /// The approaching body's kind (none: every kind together).
     pub kind: Option<BodyKind>,
+    /// Cameras facing the leading surface (none: any number).
+    pub leading_face_cameras: Option<usize>,
     pub source: SurfaceSource,
     /// Episodes at this speed, rate and kind.
     pub episodes: usize,
@@ -401,7 +407,7 @@ pub fn summarize(rows: &[RunRow], speeds_mps: &[f64]) -> Vec<SummaryRow> {
     let mut out = Vec::new();
     for &speed in speeds_mps {
         for rate in [30.0, 60.0, 90.0, 0.0] {
-            out.extend(summary_at(rows, speed, rate, None));
+            out.extend(summary_at(rows, speed, rate, Group::default()));
         }
     }
     out
@@ -413,10 +419,51 @@ pub fn summarize_by_kind(rows: &[RunRow], speeds_mps: &[f64]) -> Vec<SummaryRow>
     let mut out = Vec::new();
     for &speed in speeds_mps {
         for kind in BodyKind::ALL {
-            out.extend(summary_at(rows, speed, 0.0, Some(kind)));
+            let group = Group {
+                kind: Some(kind),
+                ..Group::default()
+            };
+            out.extend(summary_at(rows, speed, 0.0, group));
         }
     }
     out
+}
+
+/// The summary of `rows` per speed, number of cameras facing the approaching body's leading
+/// surface (0 up to the most any episode has) and source, every rate and kind together: how
+/// much of what perception loses no camera could see.
+pub fn summarize_by_view(rows: &[RunRow], speeds_mps: &[f64]) -> Vec<SummaryRow> {
+    let most = rows
+        .iter()
+        .map(|r| r.leading_face_cameras)
+        .max()
+        .unwrap_or(0);
+    let mut out = Vec::new();
+    for &speed in speeds_mps {
+        for cameras in 0..=most {
+            let group = Group {
+                leading_face_cameras: Some(cameras),
+                ..Group::default()
+            };
+            out.extend(summary_at(rows, speed, 0.0, group));
+        }
+    }
+    out
+}
+
+/// The episodes one summary row counts: of one body kind, with so many cameras facing the
+/// leading surface, or (none) all.
+#[derive(Clone, Copy, Debug, Default)]
+struct Group {
+    kind: Option<BodyKind>,
+    leading_face_cameras: Option<usize>,
+}
+
+impl Group {
+    fn holds(&self, row: &RunRow) -> bool {
+        self.kind.is_none_or(|k| row.kind == k)
+            && (self.leading_face_cameras).is_none_or(|n| row.leading_face_cameras == n)
+    }
 }
 
 /// The episodes a summary cell's fractions count over: those whose exact-surface run
@@ -455,15 +502,15 @@ impl Survivors {
     }
 }
 
-/// One summary row per source of the runs at `speed`, camera `rate` (0: every rate) and
-/// body `kind` (none: every kind).
-fn summary_at(rows: &[RunRow], speed: f64, rate: f64, kind: Option<BodyKind>) -> Vec<SummaryRow> {
+/// One summary row per source of the runs at `speed`, camera `rate` (0: every rate) in
+/// `group`.
+fn summary_at(rows: &[RunRow], speed: f64, rate: f64, group: Group) -> Vec<SummaryRow> {
     let at = |source: SurfaceSource| {
         rows.iter().filter(move |r| {
             r.speed_mps == speed
                 && r.source == source
                 && (rate == 0.0 || r.camera_rate_hz == rate)
-                && kind.is_none_or(|k| r.kind == k)
+                && group.holds(r)
         })
     };
     let survivors = Survivors::new(|source| at(source).filter(|r| r.safe).map(|r| r.episode));
@@ -486,7 +533,8 @@ fn summary_at(rows: &[RunRow], speed: f64, rate: f64, kind: Option<BodyKind>) ->
             SummaryRow {
                 speed_mps: speed,
                 camera_rate_hz: rate,
-                kind,
+                kind: group.kind,
+                leading_face_cameras: group.leading_face_cameras,
                 source,
                 episodes: all.len(),
                 feasible: feasible.len(),
@@ -751,6 +799,9 @@ pub struct Campaign {
     pub summary: Vec<SummaryRow>,
     /// The summary per body kind, every camera rate together.
     pub by_kind: Vec<SummaryRow>,
+    /// The summary per number of cameras facing the leading surface, every rate and kind
+    /// together.
+    pub by_view: Vec<SummaryRow>,
     pub contacts: Vec<ContactRow>,
     /// The keep-off summary (empty for a handle campaign).
     pub keep_off: Vec<GuardSummaryRow>,
@@ -875,6 +926,7 @@ pub fn run(
         },
         summary: summarize(&rows, &speeds),
         by_kind: summarize_by_kind(&rows, &speeds),
+        by_view: summarize_by_view(&rows, &speeds),
         contacts: contacts(&rows, &speeds),
         config: CampaignConfig {
             speeds_mps: speeds,
@@ -966,6 +1018,7 @@ mod tests {
             contact_force_n: None,
             contact_handle_force_n: None,
             contact_within_limit: true,
+            leading_face_cameras: 1,
         }
     }
 
@@ -1119,12 +1172,16 @@ mod tests {
         assert_eq!(at("elbow", Perception).episodes, 0);
     }
 
-    /// Per body kind: each kind's rows count its own episodes only, and the kinds' counts
-    /// add up to the all-kinds row.
+    /// Per body kind and per cameras facing the leading surface: each group's rows count
+    /// its own episodes only, and the groups' counts add up to the all-kinds row.
     #[test]
-    fn the_summary_by_kind_splits_the_episodes_by_body() {
+    fn the_summaries_by_kind_and_by_view_split_the_episodes() {
         use SurfaceSource::{DelayedOracle, Exact, Perception};
-        let with_kind = |kind, r: RunRow| RunRow { kind, ..r };
+        let with_kind = |kind, r: RunRow| RunRow {
+            kind,
+            leading_face_cameras: 0,
+            ..r
+        };
         let rows = [
             row(0, Exact, true, 0.05),
             row(0, DelayedOracle, true, 0.04),
@@ -1155,18 +1212,25 @@ mod tests {
             .iter()
             .find(|r| r.source == Perception && r.camera_rate_hz == 0.0)
             .unwrap();
-        assert_eq!(all.kind, None);
-        let kinds_sum = |f: fn(&SummaryRow) -> usize| {
-            kinds
-                .iter()
-                .filter(|r| r.source == Perception)
-                .map(f)
-                .sum::<usize>()
-        };
-        assert_eq!(kinds_sum(|r| r.episodes), all.episodes);
-        assert_eq!(
-            kinds_sum(|r| r.safe_of_oracle_survived),
-            all.safe_of_oracle_survived
-        );
+        assert_eq!((all.kind, all.leading_face_cameras), (None, None));
+        let views = summarize_by_view(&rows, &[1.0]);
+        assert_eq!(views.len(), 2 * SurfaceSource::ALL.len());
+        let unseen = (views.iter())
+            .find(|r| r.source == Perception && r.leading_face_cameras == Some(0))
+            .unwrap();
+        assert_eq!((unseen.episodes, unseen.safe_of_oracle_survived), (2, 1));
+        for groups in [&kinds, &views] {
+            let sum = |f: fn(&SummaryRow) -> usize| {
+                (groups.iter())
+                    .filter(|r| r.source == Perception)
+                    .map(f)
+                    .sum::<usize>()
+            };
+            assert_eq!(sum(|r| r.episodes), all.episodes);
+            assert_eq!(
+                sum(|r| r.safe_of_oracle_survived),
+                all.safe_of_oracle_survived
+            );
+        }
     }
 }

@@ -117,6 +117,11 @@ pub struct Episode {
     /// Distance of the body's path from the HIP centre, metres.
     pub lateral_offset_m: f64,
     pub camera_rate_hz: f64,
+    /// How many cameras face the body's leading surface where it first meets its target
+    /// (the outward normal there points to the camera's side); 0: no camera can see the face
+    /// that touches, whatever perception does. Occlusion by the robot or the patient is not
+    /// counted.
+    pub leading_face_cameras: usize,
     #[serde(skip)]
     pub scene: Scene,
 }
@@ -384,8 +389,12 @@ fn point(p: Point3<f64>, radius_m: f64) -> GuardSegment {
     }
 }
 
-/// Signed distance from `core`'s segment (its radius left out) to `body` moved by `offset`.
-fn core_distance(body: &BodyConfig, offset: Vector3<f64>, core: &GuardSegment) -> f64 {
+/// The truth for `core`'s segment (its radius left out) among `body` moved by `offset`.
+fn core_truth(
+    body: &BodyConfig,
+    offset: Vector3<f64>,
+    core: &GuardSegment,
+) -> Option<truth::GuardTruth> {
     let moved = BodyConfig {
         motion: Motion::ConstantVelocity {
             velocity_m_s: offset,
@@ -398,7 +407,11 @@ fn core_distance(body: &BodyConfig, offset: Vector3<f64>, core: &GuardSegment) -
         ..*core
     };
     truth::closest_to_guard(std::slice::from_ref(&moved), 1.0, &bare)
-        .map_or(f64::INFINITY, |t| t.gap_m)
+}
+
+/// Signed distance from `core`'s segment (its radius left out) to `body` moved by `offset`.
+fn core_distance(body: &BodyConfig, offset: Vector3<f64>, core: &GuardSegment) -> f64 {
+    core_truth(body, offset, core).map_or(f64::INFINITY, |t| t.gap_m)
 }
 
 /// A moving body's drawn path: the body around its target, shifted laterally, and where
@@ -414,6 +427,9 @@ struct Path {
     /// How far it travels: to where its leading surface reaches the target, then
     /// [`PASS_M`] on, metres.
     travel_m: f64,
+    /// Where its leading surface first meets the target (at the start's offset minus the
+    /// travel to it), and the outward normal there.
+    leading_m: (Point3<f64>, Vector3<f64>),
 }
 
 /// Draws the body of `kind` around `aim`, its lateral offset (halved until its path along
@@ -481,12 +497,22 @@ fn draw_path(
             hi = mid;
         }
     }
+    // the surface point nearest the target one scan step before they meet (a plate's
+    // distance is unsigned: the bisection finds the crossing only to the scan's step)
+    let leading = core_truth(&body, u * (hi + SCAN_STEP_M), target).ok_or_else(|| {
+        invalid(
+            seed,
+            index,
+            format!("the drawn {} has no surface", kind.name()),
+        )
+    })?;
     Ok(Path {
-        body,
         lateral_m: lateral,
         start_distance_m: start_distance,
         offset_m: u * s_start,
         travel_m: s_start - 0.5 * (lo + hi) + PASS_M,
+        leading_m: (leading.closest_m, leading.normal),
+        body,
     })
 }
 
@@ -556,6 +582,10 @@ fn assemble(
         },
         ..path.body
     });
+    let (leading, normal) = path.leading_m;
+    let leading_face_cameras = (file.cameras.iter())
+        .filter(|c| normal.dot(&(c.position_m - leading)) > 0.0)
+        .count();
     let scene = Scene::new(file, &format!("episode {index} of seed {seed}"))?;
     Ok(Episode {
         seed,
@@ -566,6 +596,7 @@ fn assemble(
         start_distance_m: path.start_distance_m,
         lateral_offset_m: path.lateral_m,
         camera_rate_hz: rate_hz,
+        leading_face_cameras,
         scene,
     })
 }
@@ -730,6 +761,33 @@ mod tests {
         }
         assert_eq!(kinds.len(), 4, "{kinds:?}");
         assert_eq!(rates.len(), 3, "{rates:?}");
+    }
+
+    /// The leading surface is where the scene's moving body first meets the HIP: just before
+    /// the touch (the scene's end less [`PASS_M`] and a scan step of travel) the body's surface point nearest
+    /// the HIP has its outward normal turned to as many cameras as the episode counts, and
+    /// both faces turned away from every camera and faces seen by one are drawn.
+    #[test]
+    fn the_leading_face_is_counted_where_the_body_meets_the_hip() {
+        let mut counts = std::collections::BTreeSet::new();
+        for index in 0..24 {
+            let e = generate(1, index).unwrap();
+            let sim = super::super::Simulator::new(&e.scene).unwrap();
+            let hip = sim.hip_at(0.0).unwrap();
+            let body = e.scene.file.bodies.last().unwrap();
+            let touch_s = sim.duration_s() - (PASS_M + SCAN_STEP_M) / NOMINAL_SPEED_MPS;
+            let near = truth::posed_body(body, touch_s).closest(&hip);
+            assert!((0.0..0.005).contains(&near.distance_m), "{near:?} {e:?}");
+            let facing = (e.scene.file.cameras.iter())
+                .filter(|c| near.normal.dot(&(c.position_m - near.point_m)) > 0.0)
+                .count();
+            assert_eq!(facing, e.leading_face_cameras, "{near:?} {e:?}");
+            counts.insert(facing);
+        }
+        assert!(
+            counts.contains(&0) && counts.iter().any(|&n| n > 0),
+            "{counts:?}"
+        );
     }
 
     /// The handle's episodes keep their draws whatever other targets the generator serves:
