@@ -925,7 +925,11 @@ fn square(v: f64) -> Vec4 {
 impl LanePrimitive {
     /// Grown primitive `p` (cloud frame; `prepared` is it prepared) seen from a camera at
     /// `cloud_from_camera`.
-    fn new(p: &Primitive, prepared: &PreparedPrimitive, cloud_from_camera: &Isometry3<f64>) -> Self {
+    fn new(
+        p: &Primitive,
+        prepared: &PreparedPrimitive,
+        cloud_from_camera: &Isometry3<f64>,
+    ) -> Self {
         let in_camera = |c: &Point3<f64>| cloud_from_camera.inverse_transform_point(c);
         let (c, r2) = prepared.bounding_ball();
         let (c, r) = (in_camera(&c), r2.sqrt());
@@ -946,8 +950,8 @@ impl LanePrimitive {
                 half_extents_m,
                 ..
             } => {
-                let box_from_camera =
-                    box_rotation(rpy_rad).inverse() * cloud_from_camera.rotation.to_rotation_matrix();
+                let box_from_camera = box_rotation(rpy_rad).inverse()
+                    * cloud_from_camera.rotation.to_rotation_matrix();
                 let m = box_from_camera.matrix();
                 let extent = |grow: f64| {
                     let h = half_extents_m.map(|h| (h + grow).max(0.0));
@@ -972,7 +976,9 @@ impl LanePrimitive {
     /// neither).
     #[inline]
     fn holds(&self, p: &[Vec4; 3]) -> (u32, u32) {
-        let near = distance2_lanes(p, &self.centre).cmple(self.bound2).bitmask();
+        let near = distance2_lanes(p, &self.centre)
+            .cmple(self.bound2)
+            .bitmask();
         if near == 0 {
             return (0, 0);
         }
@@ -1089,7 +1095,9 @@ impl CpuCrop {
             .map(|((a, b, r), robot_of)| LaneCapsule {
                 reach: LaneRound::new(&in_camera(&a), &in_camera(&b), r, cloud_from_camera),
                 robot: (robot_of.iter())
-                    .map(|&i| LanePrimitive::new(&self.shapes[i], &self.robot[i], cloud_from_camera))
+                    .map(|&i| {
+                        LanePrimitive::new(&self.shapes[i], &self.robot[i], cloud_from_camera)
+                    })
                     .collect(),
             })
             .collect();
