@@ -823,22 +823,24 @@ pub fn kept_indices(mask: &[u32], n: usize) -> Vec<usize> {
 }
 
 /// The crop's reaches in a camera's frame, f32, for a pass over its pixels four at a time:
-/// which points lie surely within a reach and beside every robot primitive's bounding
-/// sphere that meets it (kept by [`CpuCrop`] without its f64 test), and which may lie within
-/// one (they take the f64 test). Each reach is a capsule (the HIP's ball one whose ends
-/// coincide); its radius is shrunk and grown, each sphere's grown, by the slack of
-/// [`region_slack_m`], which covers the roundings of the pose (f64, rounded to f32), of the
-/// ends and centres and of the f32 distances. A computed closest point lies on the segment
-/// within rounding whatever the rounding of its parameter, and the distance to the segment's
-/// points is 1-Lipschitz, so the f32 distance errs by the same order as the ball's.
+/// which points lie surely within a reach and surely outside every robot primitive that
+/// meets it (kept by [`CpuCrop`] without its f64 test), which surely inside a robot
+/// primitive (dropped without it), and which need it. Each reach is a capsule (the HIP's
+/// ball one whose ends coincide); its radius is shrunk and grown, each primitive shrunk and
+/// grown, by the slack of [`region_slack_m`], which covers the roundings of the pose (f64,
+/// rounded to f32), of the ends, centres and rotations and of the f32 distances. A computed
+/// closest point lies on the segment within rounding whatever the rounding of its
+/// parameter, and the distance to the segment's points is 1-Lipschitz, so the f32 distance
+/// errs by the same order as the ball's; a box's f32 rotation of `p - centre` errs by a few
+/// 1e-7 of that distance.
 pub(crate) struct CameraReach {
     /// Per reach (bit `j` of [`RowSpan::reach`]), see [`LaneCapsule`].
     reaches: Vec<LaneCapsule>,
 }
 
-/// One reach of [`CameraReach`] in x, y, z lanes: segment `a..a + ab`, and the robot's
-/// bounding spheres that meet its bounding ball.
-struct LaneCapsule {
+/// A capsule in x, y, z lanes: segment `a..a + ab`, and its radius shrunk and grown by a
+/// slack (squared).
+struct LaneRound {
     a: [Vec4; 3],
     ab: [Vec4; 3],
     /// `1 / |ab|^2`, 0 for a ball (the closest point is then `a`).
@@ -846,8 +848,34 @@ struct LaneCapsule {
     /// `(radius - slack)^2` (0 when the slack is larger) and `(radius + slack)^2`.
     inner: Vec4,
     outer: Vec4,
-    /// Centre and `(radius + slack)^2` of the robot primitives [`CpuCrop`] tests in it.
-    robot: Vec<([Vec4; 3], Vec4)>,
+}
+
+/// One reach of [`CameraReach`] in lanes, and the robot primitives that meet its bounding
+/// ball.
+struct LaneCapsule {
+    reach: LaneRound,
+    /// The primitives [`CpuCrop`] tests in this reach.
+    robot: Vec<LanePrimitive>,
+}
+
+/// A grown robot primitive in lanes: its bounding sphere (centre, `(radius + slack)^2`),
+/// then its shape.
+struct LanePrimitive {
+    centre: [Vec4; 3],
+    bound2: Vec4,
+    shape: LaneShape,
+}
+
+enum LaneShape {
+    /// A sphere or capsule.
+    Round(LaneRound),
+    /// A box: the rows of the rotation from the camera frame to the box's, and the half
+    /// extents shrunk and grown by the slack (about the bounding sphere's centre).
+    Box {
+        rows: [[Vec4; 3]; 3],
+        inner: [Vec4; 3],
+        outer: [Vec4; 3],
+    },
 }
 
 /// Squared f32 distances of four points (x, y, z lanes) to `centre`.
@@ -857,7 +885,22 @@ fn distance2_lanes(p: &[Vec4; 3], centre: &[Vec4; 3]) -> Vec4 {
     ex * ex + ey * ey + ez * ez
 }
 
-impl LaneCapsule {
+impl LaneRound {
+    /// In camera-frame lanes: the segment `a..b` and radius `r`, the slack of
+    /// [`region_slack_m`] for a point of `cloud_from_camera`'s cloud.
+    fn new(a: &Point3<f64>, b: &Point3<f64>, r: f64, cloud_from_camera: &Isometry3<f64>) -> Self {
+        let slack = region_slack_m(r, a, b, cloud_from_camera);
+        let ab = b - a;
+        let len2 = ab.norm_squared();
+        Self {
+            a: lanes(a.coords),
+            ab: lanes(ab),
+            inv_len2: Vec4::splat(if len2 > 0.0 { (1.0 / len2) as f32 } else { 0.0 }),
+            inner: square((r - slack).max(0.0)),
+            outer: square(r + slack),
+        }
+    }
+
     /// Squared f32 distances of four points to the segment: closest point `a + t ab`,
     /// `t = clamp((p - a).ab / |ab|^2, 0, 1)` (a NaN lane stays NaN).
     #[inline]
@@ -869,28 +912,123 @@ impl LaneCapsule {
     }
 }
 
+/// `v`'s coordinates, each in four f32 lanes.
+fn lanes(v: Vector3<f64>) -> [Vec4; 3] {
+    [v.x, v.y, v.z].map(|c| Vec4::splat(c as f32))
+}
+
+/// `v * v` in four f32 lanes.
+fn square(v: f64) -> Vec4 {
+    Vec4::splat((v * v) as f32)
+}
+
+impl LanePrimitive {
+    /// Grown primitive `p` (cloud frame; `prepared` is it prepared) seen from a camera at
+    /// `cloud_from_camera`.
+    fn new(
+        p: &Primitive,
+        prepared: &PreparedPrimitive,
+        cloud_from_camera: &Isometry3<f64>,
+    ) -> Self {
+        let in_camera = |c: &Point3<f64>| cloud_from_camera.inverse_transform_point(c);
+        let (c, r2) = prepared.bounding_ball();
+        let (c, r) = (in_camera(&c), r2.sqrt());
+        let slack = region_slack_m(r, &c, &c, cloud_from_camera);
+        let shape = match p {
+            Primitive::Sphere { center_m, radius_m } => {
+                let c = in_camera(center_m);
+                LaneShape::Round(LaneRound::new(&c, &c, *radius_m, cloud_from_camera))
+            }
+            Primitive::Capsule { a_m, b_m, radius_m } => LaneShape::Round(LaneRound::new(
+                &in_camera(a_m),
+                &in_camera(b_m),
+                *radius_m,
+                cloud_from_camera,
+            )),
+            Primitive::OrientedBox {
+                rpy_rad,
+                half_extents_m,
+                ..
+            } => {
+                let box_from_camera = box_rotation(rpy_rad).inverse()
+                    * cloud_from_camera.rotation.to_rotation_matrix();
+                let m = box_from_camera.matrix();
+                let extent = |grow: f64| {
+                    let h = half_extents_m.map(|h| (h + grow).max(0.0));
+                    [h.x, h.y, h.z].map(|v| Vec4::splat(v as f32))
+                };
+                LaneShape::Box {
+                    rows: [0, 1, 2].map(|i| [0, 1, 2].map(|j| Vec4::splat(m[(i, j)] as f32))),
+                    inner: extent(-slack),
+                    outer: extent(slack),
+                }
+            }
+        };
+        Self {
+            centre: lanes(c.coords),
+            bound2: square(r + slack),
+            shape,
+        }
+    }
+
+    /// Of four camera-frame points: the lanes the primitive may hold and those it holds
+    /// for sure, strictly within its shrunk shape (bit `i` for lane `i`; NaN lanes in
+    /// neither).
+    #[inline]
+    fn holds(&self, p: &[Vec4; 3]) -> (u32, u32) {
+        let near = distance2_lanes(p, &self.centre)
+            .cmple(self.bound2)
+            .bitmask();
+        if near == 0 {
+            return (0, 0);
+        }
+        match &self.shape {
+            LaneShape::Round(round) => {
+                let d2 = round.distance2(p);
+                (
+                    near & d2.cmple(round.outer).bitmask(),
+                    near & d2.cmplt(round.inner).bitmask(),
+                )
+            }
+            LaneShape::Box { rows, inner, outer } => {
+                let e = [0, 1, 2].map(|i| p[i] - self.centre[i]);
+                let (mut may, mut sure) = (near, near);
+                for ((row, lo), hi) in rows.iter().zip(inner).zip(outer) {
+                    let q = (row[0] * e[0] + row[1] * e[1] + row[2] * e[2]).abs();
+                    may &= q.cmple(*hi).bitmask();
+                    sure &= q.cmplt(*lo).bitmask();
+                }
+                (may, sure)
+            }
+        }
+    }
+}
+
 impl CameraReach {
     /// Of four camera-frame points (x, y, z lanes; NaN: no point) that only the reaches in
     /// `reach` can hold: the lanes the crop keeps for sure and the lanes that need its f64
-    /// test (bit `i` for lane `i`). The other lanes lie surely outside those reaches.
+    /// test (bit `i` for lane `i`). The other lanes lie surely outside those reaches or
+    /// surely inside a robot primitive.
     #[inline]
     pub(crate) fn lanes(&self, p: [Vec4; 3], reach: u32) -> (u32, u32) {
-        let (mut sure, mut maybe) = (0, 0);
+        let (mut sure, mut maybe, mut held) = (0, 0, 0);
         for (j, c) in self.reaches.iter().enumerate() {
             if reach >> j & 1 == 0 {
                 continue;
             }
-            let d2 = c.distance2(&p);
-            maybe |= d2.cmple(c.outer).bitmask();
-            let inside = d2.cmplt(c.inner).bitmask() & !sure;
+            let d2 = c.reach.distance2(&p);
+            maybe |= d2.cmple(c.reach.outer).bitmask();
+            let inside = d2.cmplt(c.reach.inner).bitmask() & !sure & !held;
             if inside != 0 {
-                let near_robot = (c.robot.iter()).fold(0, |m, (centre, limit)| {
-                    m | distance2_lanes(&p, centre).cmple(*limit).bitmask()
+                let (may_hold, holds) = (c.robot.iter()).fold((0, 0), |(m, h), prim| {
+                    let (pm, ph) = prim.holds(&p);
+                    (m | pm, h | ph)
                 });
-                sure |= inside & !near_robot;
+                sure |= inside & !may_hold;
+                held |= inside & holds;
             }
         }
-        (sure, maybe & !sure)
+        (sure, maybe & !sure & !held)
     }
 }
 
@@ -899,6 +1037,8 @@ pub(crate) struct CpuCrop {
     hip: Point3<f64>,
     r2: f64,
     keep_off: Vec<ReachCapsule>,
+    /// The grown primitives that meet a reach, and each prepared.
+    shapes: Vec<Primitive>,
     robot: Vec<PreparedPrimitive>,
     /// Per reach (0: the HIP's ball, `1 + i`: keep-off capsule `i`), the robot primitives
     /// that reach into its bounding ball: a point within that reach can lie in no other.
@@ -922,10 +1062,14 @@ impl CpuCrop {
             let half: Vector3<f64> = (c.b_m - c.a_m) * 0.5;
             (c.a_m + half, half.norm() + c.radius_m)
         }));
-        let robot: Vec<PreparedPrimitive> = (scene.robot.iter())
-            .map(|p| p.grown(margin).prepared())
-            .filter(|p| balls.iter().any(|(c, r)| p.may_meet_ball(c, *r)))
-            .collect();
+        let (shapes, robot): (Vec<Primitive>, Vec<PreparedPrimitive>) = (scene.robot.iter())
+            .map(|p| {
+                let grown = p.grown(margin);
+                let prepared = grown.prepared();
+                (grown, prepared)
+            })
+            .filter(|(_, p)| balls.iter().any(|(c, r)| p.may_meet_ball(c, *r)))
+            .unzip();
         let robot_of = (balls.iter())
             .map(|(c, r)| (0..robot.len()).filter(|&i| robot[i].may_meet_ball(c, *r)))
             .map(Iterator::collect)
@@ -934,6 +1078,7 @@ impl CpuCrop {
             hip: scene.hip_m,
             r2: config.radius_m * config.radius_m,
             keep_off: keep_off.to_vec(),
+            shapes,
             robot,
             robot_of,
         })
@@ -942,36 +1087,18 @@ impl CpuCrop {
     /// The HIP's ball, the keep-off capsules and their robot primitives seen from a camera
     /// at `cloud_from_camera`.
     pub(crate) fn camera_reach(&self, cloud_from_camera: &Isometry3<f64>) -> CameraReach {
-        let lanes = |c: Vector3<f64>| [c.x, c.y, c.z].map(|v| Vec4::splat(v as f32));
         let in_camera = |c: &Point3<f64>| cloud_from_camera.inverse_transform_point(c);
-        let square = |v: f64| Vec4::splat((v * v) as f32);
         let hip = (self.hip, self.hip, self.r2.sqrt());
         let ends =
             std::iter::once(hip).chain(self.keep_off.iter().map(|c| (c.a_m, c.b_m, c.radius_m)));
         let reaches = (ends.zip(&self.robot_of))
-            .map(|((a, b, r), robot_of)| {
-                let (a, b) = (in_camera(&a), in_camera(&b));
-                let slack = region_slack_m(r, &a, &b, cloud_from_camera);
-                let ab = b - a;
-                let len2 = ab.norm_squared();
-                let robot = (robot_of.iter())
+            .map(|((a, b, r), robot_of)| LaneCapsule {
+                reach: LaneRound::new(&in_camera(&a), &in_camera(&b), r, cloud_from_camera),
+                robot: (robot_of.iter())
                     .map(|&i| {
-                        let (c, r2) = self.robot[i].bounding_ball();
-                        let (c, r) = (in_camera(&c), r2.sqrt());
-                        (
-                            lanes(c.coords),
-                            square(r + region_slack_m(r, &c, &c, cloud_from_camera)),
-                        )
+                        LanePrimitive::new(&self.shapes[i], &self.robot[i], cloud_from_camera)
                     })
-                    .collect();
-                LaneCapsule {
-                    a: lanes(a.coords),
-                    ab: lanes(ab),
-                    inv_len2: Vec4::splat(if len2 > 0.0 { (1.0 / len2) as f32 } else { 0.0 }),
-                    inner: square((r - slack).max(0.0)),
-                    outer: square(r + slack),
-                    robot,
-                }
+                    .collect(),
             })
             .collect();
         CameraReach { reaches }
@@ -2421,13 +2548,40 @@ mod tests {
         }
     }
 
+    /// A point `eps` outside `prim`'s surface (inside when negative) in about direction
+    /// `dir` from its core (`t` along a capsule's segment).
+    fn near_surface(prim: &Primitive, t: f64, dir: &Vector3<f64>, eps: f64) -> Point3<f64> {
+        match prim {
+            Primitive::Sphere { center_m, radius_m } => center_m + dir * (radius_m + eps),
+            Primitive::Capsule { a_m, b_m, radius_m } => {
+                let axis = (b_m - a_m).try_normalize(1e-12).unwrap_or(Vector3::z());
+                let across = (dir - axis * dir.dot(&axis))
+                    .try_normalize(1e-9)
+                    .unwrap_or_else(|| axis.cross(&Vector3::x()).normalize());
+                a_m + (b_m - a_m) * t + across * (radius_m + eps)
+            }
+            Primitive::OrientedBox {
+                center_m,
+                rpy_rad,
+                half_extents_m,
+            } => {
+                // On the face the direction points at most, `eps` off it.
+                let k = dir.iamax();
+                let mut q = dir.component_mul(half_extents_m) / dir[k].abs();
+                q[k] = dir[k].signum() * (half_extents_m[k] + eps);
+                center_m + box_rotation(rpy_rad) * q
+            }
+        }
+    }
+
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(64))]
 
-        /// The camera-frame lane test of the HIP's ball and keep-off capsules is
-        /// conservative: every lane it keeps for sure the f64 crop keeps, and every lane it
-        /// drops (neither sure nor maybe) the f64 crop drops, for points scattered within a
-        /// few micrometres of a reach's surface and anywhere around it.
+        /// The camera-frame lane test of the HIP's ball, keep-off capsules and robot
+        /// primitives is conservative: every lane it keeps for sure the f64 crop keeps, and
+        /// every lane it drops (neither sure nor maybe) the f64 crop drops, for points
+        /// scattered within a few micrometres of a reach's or the grown primitive's surface
+        /// and anywhere around them.
         #[test]
         fn camera_lanes_never_decide_against_the_f64_crop(
             (tx, ty, tz) in (-2.0..2.0f64, -2.0..2.0f64, -1.0..1.0f64),
@@ -2437,7 +2591,7 @@ mod tests {
                 1..4),
             prim in primitive_strategy(),
             samples in prop::collection::vec(
-                (0..4usize, 0.0..1.0f64, (-1.0..1.0f64, -1.0..1.0f64, -1.0..1.0f64), -2e-5..2e-5f64, 0..2u8),
+                (0..4usize, 0.0..1.0f64, (-1.0..1.0f64, -1.0..1.0f64, -1.0..1.0f64), -2e-5..2e-5f64, 0..3u8),
                 4..400),
             reach in 1u32..16,
         ) {
@@ -2466,12 +2620,20 @@ mod tests {
                 .collect();
             let crop = CpuCrop::new(&config, &scene, &keep_off).unwrap();
             let lanes = crop.camera_reach(&pose);
+            // The grown primitive in the camera frame.
+            let grown = prim
+                .transformed(&Isometry3::translation(0.0, 0.0, 0.8))
+                .grown(config.robot_margin_for(&scene));
             let points: Vec<Vec3> = (samples.iter())
                 .map(|&(k, t, (dx, dy, dz), eps, far)| {
                     let (a, b, r) = capsules[k % capsules.len()];
                     let dir = Vector3::new(dx, dy, dz).try_normalize(1e-9).unwrap_or(Vector3::z());
                     let scale = if far == 0 { r + eps } else { r * 2.0 * (dx.abs() + eps) };
-                    let p = a + (b - a) * t + dir * scale;
+                    let p = if far == 2 {
+                        near_surface(&grown, t, &dir, eps)
+                    } else {
+                        a + (b - a) * t + dir * scale
+                    };
                     Vec3::new(p.x as f32, p.y as f32, p.z as f32)
                 })
                 .collect();
