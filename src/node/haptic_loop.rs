@@ -26,6 +26,7 @@ use crate::control::{Controller, ControllerInput, ControllerOutput, Intent};
 use crate::fusion::{Fit, Fusion, PushOutcome};
 use crate::gpu::{Backend, GpuContext};
 use crate::haptics::HapticConstraints;
+use crate::perception::closure::Closure;
 use crate::perception::lookahead::Lookahead;
 use crate::perception::pipeline::{CameraChain, ChainFrame};
 use crate::robot::guards::{GuardRole, MAX_GUARDS};
@@ -122,6 +123,7 @@ impl Tick {
 pub struct Perception {
     chain: CameraChain,
     lookahead: Lookahead,
+    closure: Closure,
     /// Why the GPU could not be opened at start, if it could not.
     start_fallback: Option<String>,
     warned: bool,
@@ -181,6 +183,7 @@ impl Perception {
         Ok(Self {
             chain,
             lookahead: Lookahead::new(config.lookahead.clone()),
+            closure: Closure::new(&config.lookahead),
             start_fallback,
             warned: false,
         })
@@ -238,13 +241,27 @@ impl Perception {
             crate::stderr_line!("warning: GPU failed ({reason}); perception continues on the CPU");
             self.warned = true;
         }
+        // The convex closure keeps every frame's bodies; the far field is the earlier of its
+        // surface and the look-ahead's.
+        let voxel = &chain.front.voxel;
+        let bodies = chain.front.clusters.clusters.iter().map(|c| {
+            (c.indices.iter().map(|&i| i as usize)).filter_map(|i| {
+                let count = voxel.counts.get(i).copied().unwrap_or(0);
+                voxel.points.get(i).map(|p| (*p, count))
+            })
+        });
+        let camera = frame.world_from_camera.translation.vector.into();
+        let (hip, id, stamp) = (&scene.hip_m, frame.camera_id, frame.stamp_s);
+        let closed = self.closure.far_field(bodies, hip, &camera, id, stamp);
         let far_field = chain
             .estimate()
             .surface
             .is_none()
             .then(|| {
-                self.lookahead
-                    .far_field(&chain.kept, &scene.hip_m, frame.camera_id, frame.stamp_s)
+                let seen = self.lookahead.far_field(&chain.kept, hip, id, stamp);
+                seen.into_iter()
+                    .chain(closed)
+                    .min_by(|a, b| a.contact_time_s.total_cmp(&b.contact_time_s))
             })
             .flatten();
         Ok(FrameRecord {

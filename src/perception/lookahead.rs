@@ -72,6 +72,8 @@ pub struct LookaheadConfig {
     pub max_surface_speed_mps: f64,
     /// Frames farther apart than this are not matched (no approach speed), seconds.
     pub max_frame_gap_s: f64,
+    /// The convex closure of moving bodies, a further candidate ([`super::closure`]).
+    pub closure: super::closure::ClosureConfig,
 }
 
 impl Default for LookaheadConfig {
@@ -94,6 +96,7 @@ impl Default for LookaheadConfig {
             same_surface_rad: 0.35,
             max_surface_speed_mps: 3.0,
             max_frame_gap_s: 0.1,
+            closure: super::closure::ClosureConfig::default(),
         }
     }
 }
@@ -152,7 +155,9 @@ impl LookaheadConfig {
         if !(1..=16).contains(&self.max_surfaces_count) {
             return bad("max_surfaces_count", self.max_surfaces_count as f64);
         }
-        Ok(())
+        self.closure
+            .validate()
+            .or_else(|(field, value)| bad(field, value))
     }
 }
 

@@ -1,6 +1,7 @@
 //! Per-camera perception stages (paper section IV-A to IV-E), each with a GPU and a CPU
 //! reference implementation.
 
+pub mod closure;
 pub mod cluster;
 pub mod crop;
 pub mod fit;
