@@ -121,7 +121,7 @@ pub struct ClosureCounts {
 /// Per camera, its recent frames' bodies (see the module doc).
 #[derive(Clone, Debug)]
 pub struct Closure {
-    config: ClosureConfig,
+    /// The look-ahead's settings, the closure's own in `closure`.
     lookahead: LookaheadConfig,
     /// Frames in stamp order per camera, none older than `max_frame_gap_s` before the
     /// camera's newest.
@@ -134,7 +134,6 @@ impl Closure {
     /// gap, speed bound and contact-time floor.
     pub fn new(lookahead: &LookaheadConfig) -> Self {
         Self {
-            config: lookahead.closure.clone(),
             lookahead: lookahead.clone(),
             history: Vec::new(),
             counts: ClosureCounts::default(),
@@ -162,7 +161,7 @@ impl Closure {
         C: IntoIterator<Item = P>,
         P: IntoIterator<Item = (Vec3, u32)>,
     {
-        if !self.config.enabled || !stamp_s.is_finite() {
+        if !self.lookahead.closure.enabled || !stamp_s.is_finite() {
             return None;
         }
         let bodies: Vec<Body> = clusters
@@ -179,7 +178,7 @@ impl Closure {
     fn body(&self, cluster: impl IntoIterator<Item = (Vec3, u32)>) -> Option<Body> {
         let points: Vec<Vector3<f64>> = cluster
             .into_iter()
-            .filter(|(p, n)| p.is_finite() && *n >= self.config.min_voxel_points_count)
+            .filter(|(p, n)| p.is_finite() && *n >= self.lookahead.closure.min_voxel_points_count)
             .map(|(p, _)| Vector3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)))
             .collect();
         if points.is_empty() {
@@ -197,7 +196,8 @@ impl Closure {
             .filter(|f| f.camera_id == camera_id)
             .filter(|f| {
                 let gap = stamp_s - f.stamp_s;
-                gap >= self.config.min_baseline_s && gap <= self.lookahead.max_frame_gap_s
+                gap >= self.lookahead.closure.min_baseline_s
+                    && gap <= self.lookahead.max_frame_gap_s
             })
             .max_by(|a, b| a.stamp_s.total_cmp(&b.stamp_s))
     }
@@ -240,9 +240,9 @@ impl Closure {
             let gap = stamp_s - reference.stamp_s;
             let moved = support(&body.points, &normal) - support(&before.points, &normal);
             let range = (nearest - camera_m.coords).norm();
-            let gate = self.config.noise_sigmas
+            let gate = self.lookahead.closure.noise_sigmas
                 * std::f64::consts::SQRT_2
-                * self.config.depth_noise_at_1m_m
+                * self.lookahead.closure.depth_noise_at_1m_m
                 * range
                 * range;
             if moved <= gate {
