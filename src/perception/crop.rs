@@ -46,7 +46,9 @@ use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{DepthImage, PinholeIntrinsics};
-use crate::geometry::{PreparedPrimitive, Primitive, PrimitiveError, box_rotation};
+use crate::geometry::{
+    PreparedPrimitive, Primitive, PrimitiveError, box_rotation, closest_point_on_segment,
+};
 use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams, ReachCapsuleGpu};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
@@ -1009,9 +1011,14 @@ impl CameraReach {
     /// `reach` can hold: the lanes the crop keeps for sure and the lanes that need its f64
     /// test (bit `i` for lane `i`). The other lanes lie surely outside those reaches or
     /// surely inside a robot primitive.
+    ///
+    /// A lane kept for sure or held by a primitive is decided: the later reaches cannot
+    /// change it, so the reaches stop once every lane is decided (a NaN lane from the
+    /// start), and the primitives once every lane inside the reach is held.
     #[inline]
     pub(crate) fn lanes(&self, p: [Vec4; 3], reach: u32) -> (u32, u32) {
         let (mut sure, mut maybe, mut held) = (0, 0, 0);
+        let nan = !(p[0].cmpeq(p[0]) & p[1].cmpeq(p[1]) & p[2].cmpeq(p[2])).bitmask() & 0xf;
         for (j, c) in self.reaches.iter().enumerate() {
             if reach >> j & 1 == 0 {
                 continue;
@@ -1020,12 +1027,20 @@ impl CameraReach {
             maybe |= d2.cmple(c.reach.outer).bitmask();
             let inside = d2.cmplt(c.reach.inner).bitmask() & !sure & !held;
             if inside != 0 {
-                let (may_hold, holds) = (c.robot.iter()).fold((0, 0), |(m, h), prim| {
+                let (mut may_hold, mut holds) = (0, 0);
+                for prim in &c.robot {
                     let (pm, ph) = prim.holds(&p);
-                    (m | pm, h | ph)
-                });
+                    may_hold |= pm;
+                    holds |= ph;
+                    if holds & inside == inside {
+                        break;
+                    }
+                }
                 sure |= inside & !may_hold;
                 held |= inside & holds;
+                if (sure | held | nan) == 0xf {
+                    break;
+                }
             }
         }
         (sure, maybe & !sure & !held)
@@ -1041,7 +1056,7 @@ pub(crate) struct CpuCrop {
     shapes: Vec<Primitive>,
     robot: Vec<PreparedPrimitive>,
     /// Per reach (0: the HIP's ball, `1 + i`: keep-off capsule `i`), the robot primitives
-    /// that reach into its bounding ball: a point within that reach can lie in no other.
+    /// whose bounding sphere meets it: a point within that reach can lie in no other.
     robot_of: Vec<Vec<usize>>,
 }
 
@@ -1055,23 +1070,28 @@ impl CpuCrop {
         scene.validate()?;
         validate_reach(keep_off)?;
         let margin = config.robot_margin_for(scene);
-        // Only the primitives that reach into the HIP's ball or a capsule's bounding ball: a
-        // point is tested against them once it lies in that reach.
-        let mut balls = vec![(scene.hip_m, config.radius_m)];
-        balls.extend(keep_off.iter().map(|c| {
-            let half: Vector3<f64> = (c.b_m - c.a_m) * 0.5;
-            (c.a_m + half, half.norm() + c.radius_m)
-        }));
+        // Only the primitives whose bounding sphere meets the HIP's ball or a capsule (the
+        // sphere's centre within the two radii of the capsule's segment, 1 um of slack for
+        // rounding): a point is tested against them once it lies in that reach.
+        let reaches: Vec<(Point3<f64>, Point3<f64>, f64)> =
+            std::iter::once((scene.hip_m, scene.hip_m, config.radius_m))
+                .chain(keep_off.iter().map(|c| (c.a_m, c.b_m, c.radius_m)))
+                .collect();
+        let meets = |p: &PreparedPrimitive, (a, b, r): &(Point3<f64>, Point3<f64>, f64)| {
+            let (c, r2) = p.bounding_ball();
+            let reach = r2.sqrt() + r + 1e-6;
+            (c - closest_point_on_segment(a, b, &c)).norm_squared() <= reach * reach
+        };
         let (shapes, robot): (Vec<Primitive>, Vec<PreparedPrimitive>) = (scene.robot.iter())
             .map(|p| {
                 let grown = p.grown(margin);
                 let prepared = grown.prepared();
                 (grown, prepared)
             })
-            .filter(|(_, p)| balls.iter().any(|(c, r)| p.may_meet_ball(c, *r)))
+            .filter(|(_, p)| reaches.iter().any(|reach| meets(p, reach)))
             .unzip();
-        let robot_of = (balls.iter())
-            .map(|(c, r)| (0..robot.len()).filter(|&i| robot[i].may_meet_ball(c, *r)))
+        let robot_of = (reaches.iter())
+            .map(|reach| (0..robot.len()).filter(|&i| meets(&robot[i], reach)))
             .map(Iterator::collect)
             .collect();
         Ok(Self {

@@ -474,6 +474,50 @@ fn reach_box(segment: &GuardSegment, reach: f64) -> impl Fn(&Vec3) -> bool + use
     move |p: &Vec3| p.cmpge(lo).all() && p.cmple(hi).all()
 }
 
+/// One keep-off guard's kept points within its reach ([`bin_by_reach`]): the points in the
+/// candidates' order, and each with its distance to the guard's core and its f64 position.
+#[derive(Debug, Default)]
+struct ReachPoints {
+    points: Vec<Vec3>,
+    near: Vec<(f64, Point3<f64>)>,
+}
+
+/// Each guard's points of `candidates` within its reach with `base` ([`guard_reach_m`] of
+/// its segment, by the f64 closest point), in one pass over them, into `bins` (one per
+/// guard, their buffers kept from frame to frame). A point's guards are the ones whose
+/// [`reach_box`] passes it.
+fn bin_by_reach(
+    candidates: &[Vec3],
+    guards: &[GuardSegment],
+    base: &SurfaceConfig,
+    bins: &mut Vec<ReachPoints>,
+) {
+    bins.resize_with(guards.len(), ReachPoints::default);
+    let tests: Vec<_> = (guards.iter())
+        .map(|g| {
+            let reach = guard_reach_m(base, g.radius_m);
+            (g, reach, reach_box(g, reach))
+        })
+        .collect();
+    for bin in bins.iter_mut() {
+        bin.points.clear();
+        bin.near.clear();
+    }
+    for p in candidates {
+        for ((segment, reach, within_box), bin) in tests.iter().zip(bins.iter_mut()) {
+            if !within_box(p) {
+                continue;
+            }
+            let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+            let d = (x - segment.closest_point(&x)).norm();
+            if d <= *reach {
+                bin.points.push(*p);
+                bin.near.push((d, x));
+            }
+        }
+    }
+}
+
 /// A ball holding a whole-arm frame's crop, the union of the HIP's crop ball (`hip`,
 /// `radius_m`) and each guard's reach capsule (the hull of the balls of radius
 /// `guard_reach_m` around its segment's ends), grown ball by ball (Ritter's bounding sphere,
@@ -523,6 +567,8 @@ pub struct CameraChain {
     estimators: BTreeMap<u32, SurfaceEstimator>,
     /// Per camera id and keep-off guard index, that guard's estimator.
     guard_estimators: BTreeMap<(u32, usize), SurfaceEstimator>,
+    /// Per keep-off guard, the frame's points within its reach (buffers kept).
+    guard_points: Vec<ReachPoints>,
     gpu_fallback: Option<String>,
     want_crop_keep: bool,
     /// Frame size the front end's buffers are sized for.
@@ -552,6 +598,7 @@ impl CameraChain {
             ctx,
             estimators: BTreeMap::new(),
             guard_estimators: BTreeMap::new(),
+            guard_points: Vec::new(),
             gpu_fallback: None,
             want_crop_keep: false,
             reserved_points: 0,
@@ -777,17 +824,19 @@ impl CameraChain {
                 }
             };
             let candidates = candidates.as_deref().unwrap_or(&kept);
+            let mut bins = std::mem::take(&mut self.guard_points);
+            bin_by_reach(candidates, guards, &self.surface_config, &mut bins);
             // The GPU's sums per guard when it summed every guard this frame.
             let on_gpu = gpu_guards.len() == guards.len();
             let mut gpu = gpu_guards.into_iter();
-            let frames = guards
-                .iter()
-                .enumerate()
-                .map(|(g, segment)| {
+            let frames = (guards.iter().zip(&mut bins).enumerate())
+                .map(|(g, (segment, within))| {
                     let sums = gpu.next().filter(|_| on_gpu);
-                    self.guard_frame(g, segment, candidates, sums, camera, id, stamp)
+                    self.guard_frame(g, segment, within, sums, camera, id, stamp)
                 })
-                .collect::<Result<Vec<_>, _>>()?;
+                .collect::<Result<Vec<_>, _>>();
+            self.guard_points = bins;
+            let frames = frames?;
             guards_time = watch.elapsed();
             frames
         };
@@ -808,31 +857,21 @@ impl CameraChain {
         })
     }
 
-    /// Keep-off guard `index`'s estimate from the kept points `candidates` (world frame);
-    /// with `gpu`, the GPU front end's sums of those points and the origin it chose for them.
+    /// Keep-off guard `index`'s estimate from the kept points `within` its reach (world
+    /// frame); with `gpu`, the GPU front end's sums of those points and the origin it chose
+    /// for them.
     #[allow(clippy::too_many_arguments)]
     fn guard_frame(
         &mut self,
         index: usize,
         segment: &GuardSegment,
-        candidates: &[Vec3],
+        within: &mut ReachPoints,
         gpu: Option<GuardSums>,
         camera: Point3<f64>,
         camera_id: u32,
         stamp_s: f64,
     ) -> Result<GuardFrame, ChainError> {
-        let reach = guard_reach_m(&self.surface_config, segment.radius_m);
-        let within_box = reach_box(segment, reach);
-        // Within the reach: each point with its distance to the core.
-        let (points, mut near): (Vec<Vec3>, Vec<(f64, Point3<f64>)>) = candidates
-            .iter()
-            .filter(|p| within_box(p))
-            .filter_map(|p| {
-                let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-                let d = (x - segment.closest_point(&x)).norm();
-                (d <= reach).then_some((*p, (d, x)))
-            })
-            .unzip();
+        let (points, near) = (&within.points, &mut within.near);
         let k = GUARD_NEAREST_POINTS.min(near.len());
         if k > 0 {
             near.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
@@ -854,14 +893,14 @@ impl CameraChain {
         };
         let mut surface = match gpu {
             Some(gpu) => estimator.estimate_summed(
-                &points,
+                points,
                 (gpu.sums, Backend::Gpu),
                 &origin,
                 camera,
                 camera_id,
                 stamp_s,
             ),
-            None => estimator.estimate(&points, &origin, camera, camera_id, stamp_s),
+            None => estimator.estimate(points, &origin, camera, camera_id, stamp_s),
         };
         let mut nearest_points_surface = false;
         if let Some(fitted) = &mut surface.abstraction.estimate.surface {
