@@ -1285,6 +1285,61 @@ mod tests {
     }
 
     #[test]
+    fn one_pass_bins_each_guards_points_within_reach_in_candidate_order() {
+        let config = SurfaceConfig::default();
+        let hip = Point3::new(0.3, -0.2, 0.9);
+        // A capsule, a sphere inside its reach and a capsule far from both.
+        let guards = [
+            GuardSegment {
+                a_m: hip + Vector3::new(-0.1, 0.0, 0.0),
+                b_m: hip + Vector3::new(0.2, 0.05, 0.0),
+                radius_m: 0.05,
+            },
+            GuardSegment {
+                a_m: hip + Vector3::new(0.0, 0.08, 0.02),
+                b_m: hip + Vector3::new(0.0, 0.08, 0.02),
+                radius_m: 0.03,
+            },
+            GuardSegment {
+                a_m: hip + Vector3::new(2.0, 0.0, 0.0),
+                b_m: hip + Vector3::new(2.0, 0.5, 0.0),
+                radius_m: 0.04,
+            },
+        ];
+        // A 2 mm grid over the first two guards' reaches, and a NaN point.
+        let mut candidates: Vec<Vec3> = (0..200 * 150 * 3)
+            .map(|i| {
+                let (x, y, z) = (i % 200, i / 200 % 150, i / 30_000);
+                let p = hip
+                    + Vector3::new(-0.25, -0.15, -0.01)
+                    + Vector3::new(0.002 * x as f64, 0.002 * y as f64, 0.01 * z as f64);
+                Vec3::new(p.x as f32, p.y as f32, p.z as f32)
+            })
+            .collect();
+        candidates.insert(1000, Vec3::NAN);
+        let mut bins = Vec::new();
+        for guards in [&guards[..], &guards[1..2], &guards[..]] {
+            bin_by_reach(&candidates, guards, &config, &mut bins);
+            assert_eq!(bins.len(), guards.len());
+            for (g, bin) in guards.iter().zip(&bins) {
+                let reach = guard_reach_m(&config, g.radius_m);
+                let within: Vec<(Vec3, f64)> = (candidates.iter())
+                    .filter_map(|p| {
+                        let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                        let d = (x - g.closest_point(&x)).norm();
+                        (d <= reach).then_some((*p, d))
+                    })
+                    .collect();
+                assert_eq!(bin.points, within.iter().map(|w| w.0).collect::<Vec<_>>());
+                let distances: Vec<f64> = bin.near.iter().map(|n| n.0).collect();
+                assert_eq!(distances, within.iter().map(|w| w.1).collect::<Vec<_>>());
+            }
+        }
+        assert!(bins[0].points.len() > 1000 && bins[1].points.len() > 100);
+        assert!(bins[2].points.is_empty());
+    }
+
+    #[test]
     fn the_crop_ball_is_the_hips_without_guards_and_holds_every_guards_reach() {
         let config = SurfaceConfig::default();
         let hip = Point3::new(0.3, -0.2, 0.9);
