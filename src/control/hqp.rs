@@ -114,7 +114,7 @@ pub enum LevelMethod {
 /// Most levels a hierarchy may have, and most inequality rows one level may have (the
 /// reports are fixed-size, so a solve allocates nothing).
 pub const MAX_LEVELS: usize = 8;
-pub const MAX_LEVEL_ROWS: usize = 32;
+pub const MAX_LEVEL_ROWS: usize = 48;
 
 /// Outcome of one level.
 #[derive(Clone, Debug, PartialEq)]

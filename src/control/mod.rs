@@ -35,7 +35,10 @@
 //! none. While no keep-off guard has rows, the hierarchy has exactly the shapes of the
 //! single-HIP controller (its own buffers), so its results are those of the paper's
 //! single-HIP mode bit for bit; with keep-off rows, level 4 holds the handle's rows and two
-//! per keep-off guard (unused ones `0 <= 0`).
+//! per keep-off guard and surface it holds (`surfaces_per_guard`; unused ones `0 <= 0`).
+//! A keep-off guard's first surface is its own; the others are the surfaces of the handle
+//! and the other keep-off guards that are near it and reach it first, so braking a link for
+//! one body never drops the row that keeps it off the body beside it.
 //!
 //! A failed solve or non-finite input never panics: the controller returns the safe command
 //! (gravity compensation and joint damping, saturated) with a status saying why.
@@ -46,7 +49,7 @@ pub mod record;
 
 use crate::geometry::MAX_PRIMITIVE_M;
 use crate::haptics::{self, HapticConfig, HapticConstraints};
-use crate::robot::guards::{GuardConfig, GuardError, GuardSet, MAX_GUARDS};
+use crate::robot::guards::{GuardConfig, GuardError, GuardSet, MAX_GUARDS, MAX_SURFACES_PER_GUARD};
 use crate::robot::{DOF, HipKinematics, JointMatrix, JointVector, RobotModel};
 use crate::surface::SurfaceState;
 use arrayvec::ArrayVec;
@@ -257,6 +260,24 @@ struct Workspaces {
     guarded: Option<Workspace>,
 }
 
+/// Most rows of surfaces shared between keep-off guards in one tick.
+const MAX_SHARED: usize = MAX_GUARDS * (MAX_SURFACES_PER_GUARD - 1);
+
+/// Two surfaces whose normals are within this angle, rad, and whose centroids lie within
+/// [`SAME_PLANE_OFFSET_M`] along the normal are the same plane to a keep-off guard.
+const SAME_PLANE_ANGLE_RAD: f64 = 15.0 * std::f64::consts::PI / 180.0;
+
+// Level 4 holds the handle's three rows and two per keep-off guard and surface.
+const _: () = assert!(3 + (MAX_GUARDS - 1) * MAX_SURFACES_PER_GUARD * 2 <= hqp::MAX_LEVEL_ROWS);
+
+/// See [`SAME_PLANE_ANGLE_RAD`], metres.
+const SAME_PLANE_OFFSET_M: f64 = 0.02;
+
+/// Least deceleration a keep-off guard's approach is planned with, m/s^2: below it the
+/// ramp would start beyond the activation distance at walking speeds and hold a link that
+/// cannot move away anyway.
+const MIN_KEEP_OFF_DECEL_MPS2: f64 = 1.0;
+
 /// No surface for any keep-off guard.
 const NO_SURFACES: [Option<&SurfaceState>; MAX_GUARDS] = [None; MAX_GUARDS];
 
@@ -286,8 +307,10 @@ impl Controller {
     pub fn new(model: RobotModel, config: ControllerConfig) -> Result<Self, ControllerConfigError> {
         config.validate()?;
         let guards = GuardSet::new(&model, &config.guards)?;
-        let keep_off_rows = guards.keep_off().len() * usize::from(config.haptics.enable_position)
-            + guards.keep_off().len() * usize::from(config.haptics.enable_velocity);
+        let keep_off_rows = guards.keep_off().len()
+            * guards.surfaces_per_guard()
+            * (usize::from(config.haptics.enable_position)
+                + usize::from(config.haptics.enable_velocity));
         let guarded = (keep_off_rows > 0).then(|| Workspace::new(&config, keep_off_rows));
         Ok(Self {
             workspace: RefCell::new(Workspaces {
@@ -402,6 +425,15 @@ impl Controller {
             &mass,
         );
         let margin = self.guards.keep_off_margin_m();
+        let chol = self
+            .guards
+            .reachable_decel()
+            .then(|| mass.cholesky())
+            .flatten();
+        let free = bias - jtf;
+        let decel = |jc: &RowSVector<f64, DOF>, bias_n: f64| {
+            self.keep_off_decel_mps2(chol.as_ref(), &free, jc, bias_n)
+        };
         let keep_off_rows: ArrayVec<HapticConstraints, MAX_GUARDS> = guards
             .iter()
             .zip(keep_off)
@@ -420,16 +452,34 @@ impl Controller {
                     &self.model.point_kinematics(&motion, qd, guard.link, &p),
                     guard.radius_m,
                     qd,
+                    decel,
                 )
             })
             .collect();
+        let shared = self.shared_keep_off_rows(input.surface, keep_off, &motion, qd, &decel);
         let mut workspaces = self.workspace.borrow_mut();
         let workspaces = &mut *workspaces;
         let ws = match &mut workspaces.guarded {
-            Some(guarded) if keep_off_rows.iter().any(|c| !c.rows.is_empty()) => guarded,
+            Some(guarded)
+                if keep_off_rows
+                    .iter()
+                    .chain(&shared)
+                    .any(|c| !c.rows.is_empty()) =>
+            {
+                guarded
+            }
             _ => &mut workspaces.single,
         };
-        self.fill_tasks(ws, input, &hip, &mass, &bias, &jtf, &haptic, &keep_off_rows);
+        self.fill_tasks(
+            ws,
+            input,
+            &hip,
+            &mass,
+            &bias,
+            &jtf,
+            &haptic,
+            keep_off_rows.iter().chain(&shared),
+        );
         match self.solver.solve_in(&ws.tasks, &mut ws.hqp) {
             Ok(sol) => {
                 let qdd = JointVector::from_column_slice(sol.x.as_slice());
@@ -500,9 +550,117 @@ impl Controller {
         }
     }
 
+    /// The rows each keep-off guard holds for surfaces other than its own: of the surfaces
+    /// this tick knows (the handle's, `handle`, and every keep-off guard's, `keep_off`), up to
+    /// `surfaces_per_guard - 1` per guard, distinct from its own and from each other (not the
+    /// same plane within [`SAME_PLANE_ANGLE_RAD`] and [`SAME_PLANE_OFFSET_M`]), local to it
+    /// (the guard's point nearest the centroid lies within `activation_distance_m` plus its
+    /// radius of the centroid along the plane) and not behind it (`d_proj >= -radius`), and
+    /// active ([`haptics::keep_off_constraints`]), those that reach it first (least
+    /// clearance less the braking distance of the closing speed) first.
+    fn shared_keep_off_rows(
+        &self,
+        handle: Option<&SurfaceState>,
+        keep_off: &[Option<&SurfaceState>],
+        motion: &crate::robot::LinkMotion,
+        qd: &JointVector,
+        decel: &impl Fn(&RowSVector<f64, DOF>, f64) -> f64,
+    ) -> ArrayVec<HapticConstraints, MAX_SHARED> {
+        let mut shared = ArrayVec::new();
+        let extra = self.guards.surfaces_per_guard() - 1;
+        if extra == 0 {
+            return shared;
+        }
+        let haptics = &self.config.haptics;
+        let margin = self.guards.keep_off_margin_m();
+        let pool: ArrayVec<&SurfaceState, { MAX_GUARDS + 1 }> = handle
+            .into_iter()
+            .chain(keep_off.iter().flatten().copied())
+            .collect();
+        let cos_same = SAME_PLANE_ANGLE_RAD.cos();
+        let same_plane = |a: &SurfaceState, b: &SurfaceState| {
+            a.normal.dot(&b.normal) >= cos_same
+                && (b.centroid_m - a.centroid_m).dot(&a.normal).abs() <= SAME_PLANE_OFFSET_M
+        };
+        for (&g, own) in self.guards.keep_off().iter().zip(keep_off) {
+            let guard = &self.guards.guards()[g];
+            let segment = guard.world(&motion.world_from_link);
+            let mut candidates: ArrayVec<
+                (f64, &SurfaceState, HapticConstraints),
+                { MAX_GUARDS + 1 },
+            > = ArrayVec::new();
+            for &s in &pool {
+                if own.is_some_and(|o| same_plane(o, s))
+                    || candidates.iter().any(|(_, c, _)| same_plane(c, s))
+                {
+                    continue;
+                }
+                let p = segment.closest_point(&s.centroid_m);
+                let offset = p - s.centroid_m;
+                let height = offset.dot(&s.normal);
+                let lateral = (offset - s.normal.into_inner() * height).norm();
+                if height < 0.0 || lateral > haptics.activation_distance_m + guard.radius_m {
+                    continue;
+                }
+                let c = haptics::keep_off_constraints(
+                    haptics,
+                    margin,
+                    s,
+                    &self.model.point_kinematics(motion, qd, guard.link, &p),
+                    guard.radius_m,
+                    qd,
+                    decel,
+                );
+                if c.rows.is_empty() {
+                    continue;
+                }
+                let closing = (-c.d_rate_mps).max(0.0);
+                let first =
+                    c.d_proj_m - margin - closing * closing / (2.0 * haptics.braking_decel_mps2);
+                candidates.push((first, s, c));
+            }
+            candidates.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+            shared.extend(candidates.into_iter().take(extra).map(|(_, _, c)| c));
+        }
+        shared
+    }
+
+    /// The deceleration of a keep-off guard's approach to plan with along `J_c` (`jc`, with
+    /// the bias acceleration `bias_n` along the normal): `braking_decel_mps2`, or with
+    /// `reachable_decel` and the mass matrix's Cholesky factor `chol`, the most the torque
+    /// limits give the point away from the surface this tick, if less: with `w = J_c M^-1`
+    /// and `qdd = M^-1 (tau - free)`, `max J_c qdd + bias_n` over `|tau_i| <= tau_max,i` is
+    /// `sum |w_i| tau_max,i - w . free + bias_n` (the torque box alone, the levels below the
+    /// first ignored). At least [`MIN_KEEP_OFF_DECEL_MPS2`].
+    fn keep_off_decel_mps2(
+        &self,
+        chol: Option<&nalgebra::Cholesky<f64, nalgebra::Const<DOF>>>,
+        free: &JointVector,
+        jc: &RowSVector<f64, DOF>,
+        bias_n: f64,
+    ) -> f64 {
+        let configured = self.config.haptics.braking_decel_mps2;
+        let Some(chol) = chol else {
+            return configured;
+        };
+        let w = chol.solve(&jc.transpose());
+        let effort = self.effort();
+        let reach = w
+            .iter()
+            .zip(effort.iter())
+            .map(|(w, t)| w.abs() * t)
+            .sum::<f64>()
+            - w.dot(free)
+            + bias_n;
+        if !reach.is_finite() {
+            return configured;
+        }
+        reach.clamp(MIN_KEEP_OFF_DECEL_MPS2, configured)
+    }
+
     /// Writes the six levels of this tick (see the module doc) into `ws`.
     #[allow(clippy::too_many_arguments)]
-    fn fill_tasks(
+    fn fill_tasks<'a>(
         &self,
         ws: &mut Workspace,
         input: &ControllerInput<'_>,
@@ -511,7 +669,7 @@ impl Controller {
         bias: &JointVector,
         jtf: &JointVector,
         haptic: &HapticConstraints,
-        keep_off: &[HapticConstraints],
+        keep_off: impl Iterator<Item = &'a HapticConstraints>,
     ) {
         let (q, qd) = (&input.q, &input.qd);
         let effort = self.effort();
@@ -559,7 +717,7 @@ impl Controller {
             haptic
                 .rows
                 .iter()
-                .chain(keep_off.iter().flat_map(|c| &c.rows))
+                .chain(keep_off.flat_map(|c| &c.rows))
                 .map(|r| (r.row, r.bound)),
         );
         // 5. intent
@@ -588,6 +746,19 @@ impl Controller {
 }
 
 impl Workspace {
+    /// The handle's rows at level 4: one per enabled constraint kind.
+    fn haptic_rows(config: &ControllerConfig) -> usize {
+        let haptics = &config.haptics;
+        [
+            haptics.enable_position,
+            haptics.enable_velocity,
+            haptics.enable_force,
+        ]
+        .into_iter()
+        .filter(|&on| on)
+        .count()
+    }
+
     /// The six levels in the shapes of `config`, level 4 with `keep_off_rows` rows for the
     /// keep-off guards (the constant rows already written).
     fn new(config: &ControllerConfig, keep_off_rows: usize) -> Self {
@@ -596,15 +767,7 @@ impl Workspace {
         limits
             .view_mut((DOF, 0), (DOF, DOF))
             .copy_from(&(-DMatrix::<f64>::identity(DOF, DOF)));
-        let haptics = &config.haptics;
-        let haptic_rows = [
-            haptics.enable_position,
-            haptics.enable_velocity,
-            haptics.enable_force,
-        ]
-        .into_iter()
-        .filter(|&on| on)
-        .count();
+        let haptic_rows = Self::haptic_rows(config);
         let inequalities = |name, rows| {
             Task::new(name, DOF).inequalities(DMatrix::zeros(rows, DOF), DVector::zeros(rows))
         };
@@ -780,7 +943,16 @@ mod tests {
             &mass,
         );
         let mut ws = Workspace::new(c.config(), 0);
-        c.fill_tasks(&mut ws, &input, &hip, &mass, &bias, &jtf, &haptic, &[]);
+        c.fill_tasks(
+            &mut ws,
+            &input,
+            &hip,
+            &mass,
+            &bias,
+            &jtf,
+            &haptic,
+            [].iter(),
+        );
         let mut tasks = ws.tasks;
         assert_eq!(tasks[4].name, "intent: torque");
         assert_eq!(tasks[5].name, "minimal joint accelerations");
@@ -904,6 +1076,158 @@ mod tests {
             c.tick_guarded(&input, &surfaces).status,
             ControlStatus::BadInput
         );
+    }
+
+    /// A keep-off guard holds rows for another guard's surface beside it only with
+    /// `surfaces_per_guard > 1`, and never for a plane it is behind or one far along it.
+    #[test]
+    fn keep_off_guards_share_surfaces_near_them() {
+        let shared = |k: usize| {
+            let mut config = ControllerConfig::default();
+            config.guards.surfaces_per_guard = k;
+            Controller::new(RobotModel::anyexo().unwrap(), config).unwrap()
+        };
+        let (one, two) = (shared(1), shared(2));
+        let model = one.model();
+        let q = pose();
+        let hip = model.hip_kinematics(&q, &JointVector::zeros());
+        let qd = hip.jacobian.pseudo_inverse(1e-9).unwrap() * Vector3::new(0.0, 0.0, -1.0);
+        let input = ControllerInput {
+            q,
+            qd,
+            surface: None,
+            interaction_force_n: Vector3::zeros(),
+            intent: Intent::Transparent,
+        };
+        let guards = one.guards();
+        let forearm = &guards.guards()[guards.keep_off()[0]];
+        let motion = model.link_motion(&q, &qd);
+        let seg = forearm.world(&motion.world_from_link);
+        let low = if seg.a_m.z < seg.b_m.z {
+            seg.a_m
+        } else {
+            seg.b_m
+        };
+        let plane = |z: f64, normal: Unit<Vector3<f64>>, x: f64| {
+            haptics::known_surface(
+                0.0,
+                Point3::new(low.x + x, low.y, z),
+                normal,
+                Vector3::zeros(),
+            )
+            .surface
+            .unwrap()
+        };
+        // a floor 3 cm under the forearm, seen by the elbow's estimator alone
+        let floor = plane(low.z - forearm.radius_m - 0.03, Vector3::z_axis(), 0.0);
+        let mut surfaces = [None; 5];
+        surfaces[1] = Some(&floor);
+        let p = seg.closest_point(&floor.centroid_m);
+        let pk = model.point_kinematics(&motion, &qd, forearm.link, &p);
+        assert!(pk.velocity_mps.z < -0.3, "{}", pk.velocity_mps);
+        let forearm_acc =
+            |out: &ControllerOutput| (pk.jacobian * out.qdd + pk.bias_acceleration_mps2).z;
+        let a = one.tick_guarded(&input, &surfaces);
+        let b = two.tick_guarded(&input, &surfaces);
+        assert_eq!((a.status, b.status), (ControlStatus::Ok, ControlStatus::Ok));
+        let configured =
+            |_: &RowSVector<f64, DOF>, _: f64| HapticConfig::default().braking_decel_mps2;
+        let rows = |c: &Controller, surfaces: &[Option<&SurfaceState>]| {
+            c.shared_keep_off_rows(None, surfaces, &motion, &qd, &configured)
+                .iter()
+                .map(|k| k.rows.len())
+                .sum::<usize>()
+        };
+        // the forearm's rows (and the upper arm's above it); the elbow's own surface is not
+        // shared back to it
+        assert_eq!(rows(&one, &surfaces), 0);
+        assert!(rows(&two, &surfaces) >= 2);
+        assert!(
+            forearm_acc(&b) > 1.0,
+            "forearm acceleration {}",
+            forearm_acc(&b)
+        );
+        // the tick with shared rows meets them
+        let shared = two.shared_keep_off_rows(None, &surfaces, &motion, &qd, &configured);
+        let met = |out: &ControllerOutput| {
+            (shared.iter().flat_map(|k| &k.rows)).all(|r| (r.row * out.qdd)[0] <= r.bound + 1e-6)
+        };
+        assert!(met(&b));
+        // a ceiling the forearm is under, and a floor 0.5 m along: not the forearm's
+        let ceiling = plane(low.z - forearm.radius_m - 0.03, -Vector3::z_axis(), 0.0);
+        let far = plane(low.z - forearm.radius_m - 0.03, Vector3::z_axis(), 0.5);
+        for s in [&ceiling, &far] {
+            surfaces[1] = Some(s);
+            assert_eq!(rows(&two, &surfaces), 0);
+        }
+        // a plane is held once: not again by the two guards it is their own surface of,
+        // once (not twice) by the upper arm beside them
+        surfaces[0] = Some(&floor);
+        surfaces[1] = Some(&floor);
+        assert_eq!(rows(&two, &surfaces), 2);
+        for k in [0, 4] {
+            let mut config = ControllerConfig::default();
+            config.guards.surfaces_per_guard = k;
+            let e = Controller::new(RobotModel::anyexo().unwrap(), config).unwrap_err();
+            assert!(e.to_string().contains("surfaces_per_guard"), "{e}");
+        }
+    }
+
+    /// With `reachable_decel`, a keep-off guard plans with the best acceleration away from
+    /// the surface over the corners of the torque box (brute force over its 64 corners),
+    /// capped by `braking_decel_mps2` and at least the floor; without, with the configured.
+    #[test]
+    fn keep_off_decel_is_the_torque_boxs_best() {
+        let mut config = ControllerConfig::default();
+        config.guards.reachable_decel = true;
+        config.haptics.braking_decel_mps2 = haptics::bounds::MAX_BRAKING_DECEL_MPS2;
+        let c = Controller::new(RobotModel::anyexo().unwrap(), config).unwrap();
+        let plain = controller();
+        let model = c.model();
+        let q = pose();
+        let qd = JointVector::from_column_slice(&[0.3, -0.2, 0.1, 0.4, -0.1, 0.2]);
+        let mass = model.mass_matrix(&q);
+        let chol = mass.cholesky().unwrap();
+        let free = model.bias_forces(&q, &qd);
+        let effort = c.effort();
+        let inv = mass.try_inverse().unwrap();
+        for (k, dir) in [
+            [1.0, 0.0, 0.0, 0.3, -0.2, 0.5],
+            [-0.2, 0.7, 0.1, 0.0, 0.4, -0.3],
+        ]
+        .iter()
+        .enumerate()
+        {
+            let jc = RowSVector::<f64, DOF>::from_row_slice(dir);
+            let bias_n = 0.1 * k as f64;
+            let best = (0..1u32 << DOF)
+                .map(|m| {
+                    let tau = JointVector::from_fn(|i, _| {
+                        if m & (1 << i) != 0 {
+                            effort[i]
+                        } else {
+                            -effort[i]
+                        }
+                    });
+                    (jc * inv * (tau - free))[0] + bias_n
+                })
+                .fold(f64::NEG_INFINITY, f64::max);
+            let got = c.keep_off_decel_mps2(Some(&chol), &free, &jc, bias_n);
+            let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1.0);
+            assert!(
+                close(
+                    got,
+                    best.clamp(
+                        MIN_KEEP_OFF_DECEL_MPS2,
+                        haptics::bounds::MAX_BRAKING_DECEL_MPS2
+                    )
+                ),
+                "{got} vs {best}"
+            );
+            let capped = plain.keep_off_decel_mps2(Some(&chol), &free, &jc, bias_n);
+            assert!(close(capped, best.clamp(MIN_KEEP_OFF_DECEL_MPS2, 7.0)));
+            assert_eq!(plain.keep_off_decel_mps2(None, &free, &jc, bias_n), 7.0);
+        }
     }
 
     #[test]

@@ -37,6 +37,9 @@ use serde::{Deserialize, Serialize};
 /// Most guards one robot may have (the control tick's buffers are sized for it).
 pub const MAX_GUARDS: usize = 8;
 
+/// Most surfaces one keep-off guard holds rows for (`surfaces_per_guard`).
+pub const MAX_SURFACES_PER_GUARD: usize = 3;
+
 /// Largest inflation of a guard, metres.
 pub const MAX_INFLATION_M: f64 = 0.2;
 
@@ -105,6 +108,15 @@ pub struct GuardConfig {
     /// Distance every keep-off guard keeps from the surface, `d_proj >= keep_off_margin_m`,
     /// metres, at least 0 and at most 2.
     pub keep_off_margin_m: f64,
+    /// How many distinct surfaces each keep-off guard holds rows for, 1 to
+    /// [`MAX_SURFACES_PER_GUARD`]: its own, then the nearest-to-reach of the others the
+    /// controller knows (the handle's and the other keep-off guards'),
+    /// [`crate::control::Controller::tick_guarded`].
+    pub surfaces_per_guard: usize,
+    /// Plan each keep-off guard's braking (the ramp's envelope, the activation's braking
+    /// distance) with the lesser of `braking_decel_mps2` and the acceleration away from the
+    /// surface its link gets from the torque limits this tick.
+    pub reachable_decel: bool,
     /// The guards: exactly one `handle`, at most 8 in all. ANYexo's set by default; the
     /// handle alone is the paper's single-HIP mode.
     pub guards: Vec<GuardSpec>,
@@ -123,6 +135,8 @@ impl Default for GuardConfig {
         };
         Self {
             keep_off_margin_m: 0.01,
+            surfaces_per_guard: 1,
+            reachable_decel: false,
             guards: vec![
                 Self::handle(),
                 keep_off("forearm", "forearm_link", GuardGeometry::Collision(0)),
@@ -197,6 +211,12 @@ impl GuardConfig {
             0.0,
             MAX_DISTANCE_M,
         )?;
+        if !(1..=MAX_SURFACES_PER_GUARD).contains(&self.surfaces_per_guard) {
+            return Err(format!(
+                "surfaces_per_guard must be 1 to {MAX_SURFACES_PER_GUARD}, got {}",
+                self.surfaces_per_guard
+            ));
+        }
         if self.guards.len() > MAX_GUARDS {
             return Err(format!(
                 "at most {MAX_GUARDS} guards, got {}",
@@ -365,6 +385,8 @@ pub struct GuardSet {
     handle: usize,
     keep_off: Vec<usize>,
     keep_off_margin_m: f64,
+    surfaces_per_guard: usize,
+    reachable_decel: bool,
 }
 
 impl GuardSet {
@@ -400,6 +422,8 @@ impl GuardSet {
             handle,
             keep_off,
             keep_off_margin_m: config.keep_off_margin_m,
+            surfaces_per_guard: config.surfaces_per_guard,
+            reachable_decel: config.reachable_decel,
         })
     }
 
@@ -483,6 +507,16 @@ impl GuardSet {
     /// `d_proj` every keep-off guard keeps, metres.
     pub fn keep_off_margin_m(&self) -> f64 {
         self.keep_off_margin_m
+    }
+
+    /// How many distinct surfaces each keep-off guard holds rows for.
+    pub fn surfaces_per_guard(&self) -> usize {
+        self.surfaces_per_guard
+    }
+
+    /// Whether keep-off guards brake with what their links can do ([`GuardConfig`]).
+    pub fn reachable_decel(&self) -> bool {
+        self.reachable_decel
     }
 }
 

@@ -27,7 +27,9 @@
 //! handle's (`d_proj` -3 .. 12 cm from the guard's segment point closest to it in 70 % of
 //! the ticks, else beyond activation), next to `all` (the handle alone) in the same run; as
 //! in the node's `ControlLoop`, each keep-off guard has its own Fusion (fed the same 30 Hz
-//! estimates), and the case's tick evaluates all six.
+//! estimates), and the case's tick evaluates all six. The case `guards_shared` ticks the
+//! same inputs with `surfaces_per_guard = 3` and `reachable_decel` (every keep-off guard may
+//! hold rows for two more of those surfaces, each braking planned from the torque box).
 //!
 //! Run: `cargo bench --bench control_tick`.
 
@@ -132,6 +134,10 @@ fn main() {
     let model = RobotModel::anyexo().expect("embedded URDF parses");
     let controller =
         Controller::new(model.clone(), ControllerConfig::default()).expect("default config");
+    let mut shared_config = ControllerConfig::default();
+    shared_config.guards.surfaces_per_guard = 3;
+    shared_config.guards.reachable_decel = true;
+    let shared = Controller::new(model.clone(), shared_config).expect("shared-surface config");
     let mut fusion = Fusion::new(FusionConfig::default()).expect("default fusion config");
     let mut guard_fusions: Vec<Fusion> = controller
         .guards()
@@ -148,6 +154,7 @@ fn main() {
         Case::new("contact"),
         Case::new("all"),
         Case::new("guards"),
+        Case::new("guards_shared"),
     ];
     println!(
         "load average (1, 5, 15 min) before: {} on {} CPUs",
@@ -256,6 +263,26 @@ fn main() {
         let cpu_us = (thread_cpu_s() - cpu_start) * 1e6;
         let us = start.elapsed().as_secs_f64() * 1e6;
         cases[3].record(us, cpu_us, allocations() - allocations_start, &out);
+        let allocations_start = allocations();
+        let start = Instant::now();
+        let cpu_start = thread_cpu_s();
+        black_box(fusion.tick(black_box(t)));
+        for f in &mut guard_fusions {
+            black_box(f.tick(black_box(t)));
+        }
+        let out = shared.tick_guarded(
+            black_box(&ControllerInput {
+                q,
+                qd,
+                surface: surface.tracked(),
+                interaction_force_n: force,
+                intent: Intent::Transparent,
+            }),
+            black_box(&tracked),
+        );
+        let cpu_us = (thread_cpu_s() - cpu_start) * 1e6;
+        let us = start.elapsed().as_secs_f64() * 1e6;
+        cases[4].record(us, cpu_us, allocations() - allocations_start, &out);
     }
     cases.extend(closed_loop_cases(&model));
     println!(
