@@ -273,11 +273,6 @@ const _: () = assert!(3 + (MAX_GUARDS - 1) * MAX_SURFACES_PER_GUARD * 2 <= hqp::
 /// See [`SAME_PLANE_ANGLE_RAD`], metres.
 const SAME_PLANE_OFFSET_M: f64 = 0.02;
 
-/// Least deceleration a keep-off guard's approach is planned with, m/s^2: below it the
-/// ramp would start beyond the activation distance at walking speeds and hold a link that
-/// cannot move away anyway.
-const MIN_KEEP_OFF_DECEL_MPS2: f64 = 1.0;
-
 /// No surface for any keep-off guard.
 const NO_SURFACES: [Option<&SurfaceState>; MAX_GUARDS] = [None; MAX_GUARDS];
 
@@ -425,15 +420,6 @@ impl Controller {
             &mass,
         );
         let margin = self.guards.keep_off_margin_m();
-        let chol = self
-            .guards
-            .reachable_decel()
-            .then(|| mass.cholesky())
-            .flatten();
-        let free = bias - jtf;
-        let decel = |jc: &RowSVector<f64, DOF>, bias_n: f64| {
-            self.keep_off_decel_mps2(chol.as_ref(), &free, jc, bias_n)
-        };
         let keep_off_rows: ArrayVec<HapticConstraints, MAX_GUARDS> = guards
             .iter()
             .zip(keep_off)
@@ -452,11 +438,10 @@ impl Controller {
                     &self.model.point_kinematics(&motion, qd, guard.link, &p),
                     guard.radius_m,
                     qd,
-                    decel,
                 )
             })
             .collect();
-        let shared = self.shared_keep_off_rows(input.surface, keep_off, &motion, qd, &decel);
+        let shared = self.shared_keep_off_rows(input.surface, keep_off, &motion, qd);
         let mut workspaces = self.workspace.borrow_mut();
         let workspaces = &mut *workspaces;
         let ws = match &mut workspaces.guarded {
@@ -564,7 +549,6 @@ impl Controller {
         keep_off: &[Option<&SurfaceState>],
         motion: &crate::robot::LinkMotion,
         qd: &JointVector,
-        decel: &impl Fn(&RowSVector<f64, DOF>, f64) -> f64,
     ) -> ArrayVec<HapticConstraints, MAX_SHARED> {
         let mut shared = ArrayVec::new();
         let extra = self.guards.surfaces_per_guard() - 1;
@@ -609,7 +593,6 @@ impl Controller {
                     &self.model.point_kinematics(motion, qd, guard.link, &p),
                     guard.radius_m,
                     qd,
-                    decel,
                 );
                 if c.rows.is_empty() {
                     continue;
@@ -623,39 +606,6 @@ impl Controller {
             shared.extend(candidates.into_iter().take(extra).map(|(_, _, c)| c));
         }
         shared
-    }
-
-    /// The deceleration of a keep-off guard's approach to plan with along `J_c` (`jc`, with
-    /// the bias acceleration `bias_n` along the normal): `braking_decel_mps2`, or with
-    /// `reachable_decel` and the mass matrix's Cholesky factor `chol`, the most the torque
-    /// limits give the point away from the surface this tick, if less: with `w = J_c M^-1`
-    /// and `qdd = M^-1 (tau - free)`, `max J_c qdd + bias_n` over `|tau_i| <= tau_max,i` is
-    /// `sum |w_i| tau_max,i - w . free + bias_n` (the torque box alone, the levels below the
-    /// first ignored). At least [`MIN_KEEP_OFF_DECEL_MPS2`].
-    fn keep_off_decel_mps2(
-        &self,
-        chol: Option<&nalgebra::Cholesky<f64, nalgebra::Const<DOF>>>,
-        free: &JointVector,
-        jc: &RowSVector<f64, DOF>,
-        bias_n: f64,
-    ) -> f64 {
-        let configured = self.config.haptics.braking_decel_mps2;
-        let Some(chol) = chol else {
-            return configured;
-        };
-        let w = chol.solve(&jc.transpose());
-        let effort = self.effort();
-        let reach = w
-            .iter()
-            .zip(effort.iter())
-            .map(|(w, t)| w.abs() * t)
-            .sum::<f64>()
-            - w.dot(free)
-            + bias_n;
-        if !reach.is_finite() {
-            return configured;
-        }
-        reach.clamp(MIN_KEEP_OFF_DECEL_MPS2, configured)
     }
 
     /// Writes the six levels of this tick (see the module doc) into `ws`.
@@ -1130,10 +1080,8 @@ mod tests {
         let a = one.tick_guarded(&input, &surfaces);
         let b = two.tick_guarded(&input, &surfaces);
         assert_eq!((a.status, b.status), (ControlStatus::Ok, ControlStatus::Ok));
-        let configured =
-            |_: &RowSVector<f64, DOF>, _: f64| HapticConfig::default().braking_decel_mps2;
         let rows = |c: &Controller, surfaces: &[Option<&SurfaceState>]| {
-            c.shared_keep_off_rows(None, surfaces, &motion, &qd, &configured)
+            c.shared_keep_off_rows(None, surfaces, &motion, &qd)
                 .iter()
                 .map(|k| k.rows.len())
                 .sum::<usize>()
@@ -1148,7 +1096,7 @@ mod tests {
             forearm_acc(&b)
         );
         // the tick with shared rows meets them
-        let shared = two.shared_keep_off_rows(None, &surfaces, &motion, &qd, &configured);
+        let shared = two.shared_keep_off_rows(None, &surfaces, &motion, &qd);
         let met = |out: &ControllerOutput| {
             (shared.iter().flat_map(|k| &k.rows)).all(|r| (r.row * out.qdd)[0] <= r.bound + 1e-6)
         };
@@ -1170,63 +1118,6 @@ mod tests {
             config.guards.surfaces_per_guard = k;
             let e = Controller::new(RobotModel::anyexo().unwrap(), config).unwrap_err();
             assert!(e.to_string().contains("surfaces_per_guard"), "{e}");
-        }
-    }
-
-    /// With `reachable_decel`, a keep-off guard plans with the best acceleration away from
-    /// the surface over the corners of the torque box (brute force over its 64 corners),
-    /// capped by `braking_decel_mps2` and at least the floor; without, with the configured.
-    #[test]
-    fn keep_off_decel_is_the_torque_boxs_best() {
-        let mut config = ControllerConfig::default();
-        config.guards.reachable_decel = true;
-        config.haptics.braking_decel_mps2 = haptics::bounds::MAX_BRAKING_DECEL_MPS2;
-        let c = Controller::new(RobotModel::anyexo().unwrap(), config).unwrap();
-        let plain = controller();
-        let model = c.model();
-        let q = pose();
-        let qd = JointVector::from_column_slice(&[0.3, -0.2, 0.1, 0.4, -0.1, 0.2]);
-        let mass = model.mass_matrix(&q);
-        let chol = mass.cholesky().unwrap();
-        let free = model.bias_forces(&q, &qd);
-        let effort = c.effort();
-        let inv = mass.try_inverse().unwrap();
-        for (k, dir) in [
-            [1.0, 0.0, 0.0, 0.3, -0.2, 0.5],
-            [-0.2, 0.7, 0.1, 0.0, 0.4, -0.3],
-        ]
-        .iter()
-        .enumerate()
-        {
-            let jc = RowSVector::<f64, DOF>::from_row_slice(dir);
-            let bias_n = 0.1 * k as f64;
-            let best = (0..1u32 << DOF)
-                .map(|m| {
-                    let tau = JointVector::from_fn(|i, _| {
-                        if m & (1 << i) != 0 {
-                            effort[i]
-                        } else {
-                            -effort[i]
-                        }
-                    });
-                    (jc * inv * (tau - free))[0] + bias_n
-                })
-                .fold(f64::NEG_INFINITY, f64::max);
-            let got = c.keep_off_decel_mps2(Some(&chol), &free, &jc, bias_n);
-            let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1.0);
-            assert!(
-                close(
-                    got,
-                    best.clamp(
-                        MIN_KEEP_OFF_DECEL_MPS2,
-                        haptics::bounds::MAX_BRAKING_DECEL_MPS2
-                    )
-                ),
-                "{got} vs {best}"
-            );
-            let capped = plain.keep_off_decel_mps2(Some(&chol), &free, &jc, bias_n);
-            assert!(close(capped, best.clamp(MIN_KEEP_OFF_DECEL_MPS2, 7.0)));
-            assert_eq!(plain.keep_off_decel_mps2(None, &free, &jc, bias_n), 7.0);
         }
     }
 

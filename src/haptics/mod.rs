@@ -248,27 +248,23 @@ impl HapticConfig {
     /// The speed limit `vc(d)`: eq. 12's ramp, capped by the braking envelope (module doc),
     /// m/s.
     pub fn speed_limit_mps(&self, d_proj_m: f64) -> f64 {
-        self.ramp_limit_mps(
-            self.min_speed_mps,
-            self.ramp_offset_m,
-            d_proj_m,
-            self.braking_decel_mps2,
-        )
+        self.ramp_limit_mps(self.min_speed_mps, self.ramp_offset_m, d_proj_m)
     }
 
-    /// The speed limit of a keep-off guard at `d_proj_m` braking at `decel_mps2`: eq. 12's
-    /// ramp (and braking envelope) with `v_min = 0` and `d_offset = margin_m`, so the allowed
-    /// approach speed reaches zero at the margin, m/s.
-    pub fn keep_off_speed_limit_mps(&self, margin_m: f64, d_proj_m: f64, decel_mps2: f64) -> f64 {
-        self.ramp_limit_mps(0.0, margin_m, d_proj_m, decel_mps2)
+    /// The speed limit of a keep-off guard at `d_proj_m`: eq. 12's ramp (and braking
+    /// envelope) with `v_min = 0` and `d_offset = margin_m`, so the allowed approach speed
+    /// reaches zero at the margin, m/s.
+    pub fn keep_off_speed_limit_mps(&self, margin_m: f64, d_proj_m: f64) -> f64 {
+        self.ramp_limit_mps(0.0, margin_m, d_proj_m)
     }
 
     /// Eq. 12's ramp from `v_min` at `d_offset` to `max_speed_mps` over `ramp_width_m`,
-    /// capped by the braking envelope of the deceleration `a`, at `d_proj_m`, m/s.
-    fn ramp_limit_mps(&self, v_min: f64, d_offset: f64, d_proj_m: f64, a: f64) -> f64 {
+    /// capped by the braking envelope, at `d_proj_m`, m/s.
+    fn ramp_limit_mps(&self, v_min: f64, d_offset: f64, d_proj_m: f64) -> f64 {
         let t = ((d_proj_m - d_offset) / self.ramp_width_m).clamp(0.0, 1.0);
         let ramp = v_min + t * (self.max_speed_mps - v_min);
         let slope = (self.max_speed_mps - v_min) / self.ramp_width_m;
+        let a = self.braking_decel_mps2;
         // where following the ramp needs more than `a`: the envelope's tangent point
         let v1 = (a / slope).max(v_min);
         if slope <= 0.0 || ramp <= v1 {
@@ -281,16 +277,11 @@ impl HapticConfig {
     /// Distance within which the constraints are on at a rate of `d_proj` of
     /// `d_rate_mps`: the activation distance plus the braking distance of the closing speed.
     pub fn activation_reach_m(&self, d_rate_mps: f64) -> f64 {
-        self.activation_reach_braking_m(d_rate_mps, self.braking_decel_mps2)
-    }
-
-    /// [`Self::activation_reach_m`] braking at `decel_mps2`.
-    fn activation_reach_braking_m(&self, d_rate_mps: f64, decel_mps2: f64) -> f64 {
         let closing = (-d_rate_mps).max(0.0);
         if !closing.is_finite() {
             return self.activation_distance_m;
         }
-        self.activation_distance_m + closing * closing / (2.0 * decel_mps2)
+        self.activation_distance_m + closing * closing / (2.0 * self.braking_decel_mps2)
     }
 }
 
@@ -490,11 +481,8 @@ pub fn haptic_constraints(
 /// `d_proj >= margin_m`. The positional row (eq. 9-11) predicts `d_proj - margin_m >= 0`;
 /// the velocity row (eq. 12-14) limits the approach by
 /// [`HapticConfig::keep_off_speed_limit_mps`], zero at the margin. No force row: a keep-off
-/// guard is not meant to push. Activation as for the handle, on `d_proj - margin_m`; the
-/// ramp's envelope and the activation's braking distance plan with `decel(J_c)`, the
-/// deceleration of the approach the guard can count on along `J_c` (the configured
-/// `braking_decel_mps2`, or less where its link cannot do that). A guard without a surface
-/// has no rows ([`HapticConstraints::no_surface`]).
+/// guard is not meant to push. Activation as for the handle, on `d_proj - margin_m`. A guard
+/// without a surface has no rows ([`HapticConstraints::no_surface`]).
 pub fn keep_off_constraints(
     config: &HapticConfig,
     margin_m: f64,
@@ -502,12 +490,10 @@ pub fn keep_off_constraints(
     point: &HipKinematics,
     radius_m: f64,
     qd: &JointVector,
-    decel: impl FnOnce(&RowSVector<f64, 6>, f64) -> f64,
 ) -> HapticConstraints {
     let c = contact(config, surface, point, radius_m, qd);
     let clearance = c.d_proj_m - margin_m;
-    let a = decel(&c.jacobian, c.bias);
-    if clearance > config.activation_reach_braking_m(c.d_rate_mps, a) {
+    if clearance > config.activation_reach_m(c.d_rate_mps) {
         return HapticConstraints::far(&c);
     }
     let mut rows = ArrayVec::new();
@@ -526,7 +512,7 @@ pub fn keep_off_constraints(
         rows.push(ConstraintRow {
             kind: ConstraintKind::Velocity,
             row: -c.jacobian * horizon,
-            bound: config.keep_off_speed_limit_mps(margin_m, c.d_proj_m, a)
+            bound: config.keep_off_speed_limit_mps(margin_m, c.d_proj_m)
                 + c.d_rate_mps
                 + horizon * c.bias,
         });

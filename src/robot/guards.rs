@@ -113,10 +113,6 @@ pub struct GuardConfig {
     /// controller knows (the handle's and the other keep-off guards'),
     /// [`crate::control::Controller::tick_guarded`].
     pub surfaces_per_guard: usize,
-    /// Plan each keep-off guard's braking (the ramp's envelope, the activation's braking
-    /// distance) with the lesser of `braking_decel_mps2` and the acceleration away from the
-    /// surface its link gets from the torque limits this tick.
-    pub reachable_decel: bool,
     /// The guards: exactly one `handle`, at most 8 in all. ANYexo's set by default; the
     /// handle alone is the paper's single-HIP mode.
     pub guards: Vec<GuardSpec>,
@@ -136,7 +132,6 @@ impl Default for GuardConfig {
         Self {
             keep_off_margin_m: 0.01,
             surfaces_per_guard: 1,
-            reachable_decel: false,
             guards: vec![
                 Self::handle(),
                 keep_off("forearm", "forearm_link", GuardGeometry::Collision(0)),
@@ -386,7 +381,6 @@ pub struct GuardSet {
     keep_off: Vec<usize>,
     keep_off_margin_m: f64,
     surfaces_per_guard: usize,
-    reachable_decel: bool,
 }
 
 impl GuardSet {
@@ -423,7 +417,6 @@ impl GuardSet {
             keep_off,
             keep_off_margin_m: config.keep_off_margin_m,
             surfaces_per_guard: config.surfaces_per_guard,
-            reachable_decel: config.reachable_decel,
         })
     }
 
@@ -512,11 +505,6 @@ impl GuardSet {
     /// How many distinct surfaces each keep-off guard holds rows for.
     pub fn surfaces_per_guard(&self) -> usize {
         self.surfaces_per_guard
-    }
-
-    /// Whether keep-off guards brake with what their links can do ([`GuardConfig`]).
-    pub fn reachable_decel(&self) -> bool {
-        self.reachable_decel
     }
 }
 

@@ -28,8 +28,8 @@
 //! the ticks, else beyond activation), next to `all` (the handle alone) in the same run; as
 //! in the node's `ControlLoop`, each keep-off guard has its own Fusion (fed the same 30 Hz
 //! estimates), and the case's tick evaluates all six. The case `guards_shared` ticks the
-//! same inputs with `surfaces_per_guard = 3` and `reachable_decel` (every keep-off guard may
-//! hold rows for two more of those surfaces, each braking planned from the torque box).
+//! same inputs with `surfaces_per_guard = 3` (every keep-off guard may hold rows for two
+//! more of those surfaces).
 //!
 //! Run: `cargo bench --bench control_tick`.
 
@@ -136,7 +136,6 @@ fn main() {
         Controller::new(model.clone(), ControllerConfig::default()).expect("default config");
     let mut shared_config = ControllerConfig::default();
     shared_config.guards.surfaces_per_guard = 3;
-    shared_config.guards.reachable_decel = true;
     let shared = Controller::new(model.clone(), shared_config).expect("shared-surface config");
     let mut fusion = Fusion::new(FusionConfig::default()).expect("default fusion config");
     let mut guard_fusions: Vec<Fusion> = controller
