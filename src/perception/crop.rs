@@ -388,14 +388,27 @@ pub struct RowSpan {
     /// Bit 0: the HIP's ball; bit `1 + i`: keep-off capsule `i` (only these can hold the
     /// span's points).
     pub reach: u32,
+    /// The span's entries of [`CropRegion::columns`]: where on the row each of its reaches
+    /// can hold a point.
+    pub columns: Range<usize>,
+}
+
+/// The columns of one row where the reaches in `reach` (bits as [`RowSpan::reach`]) can hold
+/// a point: one capsule's row crossing, or a whole span without a scene.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ReachColumns {
+    pub u: Range<u32>,
+    pub reach: u32,
 }
 
 /// The pixels of a depth frame whose point the crop can keep ([`crop_region`]): spans in
-/// row-major order (disjoint, ascending), and their bounding rectangle.
+/// row-major order (disjoint, ascending), their bounding rectangle, and each span's
+/// columns per reach.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct CropRegion {
     pub spans: Vec<RowSpan>,
     pub bounds: PixelRect,
+    pub columns: Vec<ReachColumns>,
 }
 
 impl CropRegion {
@@ -406,34 +419,48 @@ impl CropRegion {
             u: 0..width,
             depth: (1, u16::MAX),
             reach: u32::MAX,
+            columns: v as usize..v as usize + 1,
         };
-        let spans = if width == 0 {
-            Vec::new()
-        } else {
-            (0..height).map(row).collect()
-        };
-        Self::from_spans(spans)
+        let rows = if width == 0 { 0 } else { height };
+        let spans = (0..rows).map(row).collect();
+        let columns = (0..rows)
+            .map(|_| ReachColumns {
+                u: 0..width,
+                reach: u32::MAX,
+            })
+            .collect();
+        Self::from_spans(spans, columns)
     }
 
-    /// Row pieces merged row by row: on each row the pieces that overlap make one span
-    /// (their depth intervals' hull, their reaches' union).
+    /// Row pieces (one reach's columns each, `columns` of one entry) merged row by row: on
+    /// each row the pieces that overlap make one span (their depth intervals' hull, their
+    /// reaches' union, their columns).
     fn from_pieces(mut pieces: Vec<RowSpan>) -> Self {
         pieces.sort_unstable_by_key(|s| (s.v, s.u.start));
         let mut spans: Vec<RowSpan> = Vec::with_capacity(pieces.len());
-        for p in pieces {
+        let mut columns = Vec::with_capacity(pieces.len());
+        for (i, p) in pieces.into_iter().enumerate() {
+            columns.push(ReachColumns {
+                u: p.u.clone(),
+                reach: p.reach,
+            });
             match spans.last_mut() {
                 Some(o) if o.v == p.v && p.u.start < o.u.end => {
                     o.u.end = o.u.end.max(p.u.end);
                     o.depth = (o.depth.0.min(p.depth.0), o.depth.1.max(p.depth.1));
                     o.reach |= p.reach;
+                    o.columns.end = i + 1;
                 }
-                _ => spans.push(p),
+                _ => spans.push(RowSpan {
+                    columns: i..i + 1,
+                    ..p
+                }),
             }
         }
-        Self::from_spans(spans)
+        Self::from_spans(spans, columns)
     }
 
-    fn from_spans(spans: Vec<RowSpan>) -> Self {
+    fn from_spans(spans: Vec<RowSpan>, columns: Vec<ReachColumns>) -> Self {
         let bounds = match (spans.first(), spans.last()) {
             (Some(first), Some(last)) => PixelRect {
                 u: spans.iter().map(|s| s.u.start).min().unwrap_or(0)
@@ -442,7 +469,11 @@ impl CropRegion {
             },
             _ => PixelRect::empty(),
         };
-        Self { spans, bounds }
+        Self {
+            spans,
+            bounds,
+            columns,
+        }
     }
 
     /// Pixels of the spans.
@@ -575,7 +606,15 @@ fn capsule_rows(
     for v in rect.v.clone() {
         let t = (f64::from(v) - k.cy) / k.fy;
         let l = (1.0 + t * t).sqrt();
-        let mut piece = |u: Range<u32>, depth| out.push(RowSpan { v, u, depth, reach });
+        let mut piece = |u: Range<u32>, depth| {
+            out.push(RowSpan {
+                v,
+                u,
+                depth,
+                reach,
+                columns: 0..0,
+            });
+        };
         if !l.is_finite() {
             piece(rect.u.clone(), rect_depth);
             continue;
@@ -761,9 +800,14 @@ pub fn crop_depth_region_cpu(
                 // Four pixels at a time in the camera frame: those the crop keeps for sure and
                 // those it may keep go on.
                 Some(reach) => {
+                    let columns = &region.columns[s.columns.clone()];
+                    let (mut within, mut next) = (0, 0);
                     for x in s.u.clone().step_by(4) {
                         let lanes = (1u32 << (s.u.end - x).min(4)) - 1;
-                        let (sure, maybe) = reach.lanes(rows.lanes(x, s.v), s.reach);
+                        if x >= next {
+                            (within, next) = reaches_at(columns, x);
+                        }
+                        let (sure, maybe) = reach.lanes(rows.lanes(x, s.v), within);
                         let mut on = (sure | maybe) & lanes;
                         while on != 0 {
                             let lane = on.trailing_zeros();
@@ -801,6 +845,21 @@ pub fn crop_depth_region_cpu(
         flying: done.iter().map(|t| t.flying).sum(),
         region,
     })
+}
+
+/// The reaches of a span's `columns` that meet its pixels `x..x + 4`, and the least `x`
+/// at which that set can change (a column's end, or 3 before a later column's start).
+fn reaches_at(columns: &[ReachColumns], x: u32) -> (u32, u32) {
+    let (mut within, mut next) = (0, u32::MAX);
+    for c in columns {
+        if c.u.start < x + 4 && x < c.u.end {
+            within |= c.reach;
+            next = next.min(c.u.end);
+        } else if c.u.start >= x + 4 {
+            next = next.min(c.u.start - 3);
+        }
+    }
+    (within, next)
 }
 
 /// True when all three coordinates are finite, decided on the bit patterns.

@@ -218,6 +218,7 @@ impl DepthVeilTest {
     /// [`Self::window`], covering the pixel's span): each window row's `2 w + 1` columns are
     /// read four lanes at a time straight from its slot (the pixel itself, `d = 0`, and the
     /// columns beside the image, NaN, never veil; lanes past the window are masked off).
+    #[inline]
     pub(crate) fn is_flying(&self, u: u32, v: u32, p: Vec3, rows: &DepthRows<'_>) -> bool {
         if !self.active {
             return false;
@@ -309,6 +310,7 @@ impl<'a> DepthRows<'a> {
 
     /// Deprojects what is missing of the rows `v - w ..= v + w` (within the image) over the
     /// columns `u` grown by `w` (within the image).
+    #[inline]
     pub(crate) fn cover(&mut self, v: u32, u: Range<u32>) {
         let (width, height, w) = (self.image.width, self.image.height, self.window);
         let want = u.start.saturating_sub(w)..(u.end + w).min(width);
