@@ -728,13 +728,16 @@ mod tests {
         #[test]
         fn matches_clarabel_on_feasible_problems(p in feasible_qp()) {
             let sol = active_set(&p).unwrap();
-            let reference = clarabel(&p).unwrap();
             let scale = 1.0 + sol.x.norm() + p.b.amax();
             prop_assert!(p.max_violation(&sol.x) <= 1e-9 * scale, "violation {}", p.max_violation(&sol.x));
-            let (f, f_ref) = (p.objective(&sol.x), p.objective(&reference));
-            prop_assert!(f <= f_ref + 1e-6 * (1.0 + f_ref.abs()), "objective {f} vs clarabel {f_ref}");
-            prop_assert!(f >= f_ref - 1e-6 * (1.0 + f_ref.abs()) - 1e-6 * p.max_violation(&reference),
-                "objective {f} below clarabel's {f_ref}");
+            // Clarabel may stop at its iteration cap (the saved regression case): there is then
+            // no reference optimum to compare with.
+            if let Ok(reference) = clarabel(&p) {
+                let (f, f_ref) = (p.objective(&sol.x), p.objective(&reference));
+                prop_assert!(f <= f_ref + 1e-6 * (1.0 + f_ref.abs()), "objective {f} vs clarabel {f_ref}");
+                prop_assert!(f >= f_ref - 1e-6 * (1.0 + f_ref.abs()) - 1e-6 * p.max_violation(&reference),
+                    "objective {f} below clarabel's {f_ref}");
+            }
         }
 
         /// The hierarchy's level problems: a nearly singular block (`1e-9 I` on the step, the
