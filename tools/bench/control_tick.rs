@@ -242,46 +242,28 @@ fn main() {
             })
             .collect();
         let tracked: Vec<_> = keep_off.iter().map(|s| s.tracked()).collect();
-        let allocations_start = allocations();
-        let start = Instant::now();
-        let cpu_start = thread_cpu_s();
-        black_box(fusion.tick(black_box(t)));
-        for f in &mut guard_fusions {
-            black_box(f.tick(black_box(t)));
+        for (case, guarded) in [(3, &controller), (4, &shared)] {
+            let allocations_start = allocations();
+            let start = Instant::now();
+            let cpu_start = thread_cpu_s();
+            black_box(fusion.tick(black_box(t)));
+            for f in &mut guard_fusions {
+                black_box(f.tick(black_box(t)));
+            }
+            let out = guarded.tick_guarded(
+                black_box(&ControllerInput {
+                    q,
+                    qd,
+                    surface: surface.tracked(),
+                    interaction_force_n: force,
+                    intent: Intent::Transparent,
+                }),
+                black_box(&tracked),
+            );
+            let cpu_us = (thread_cpu_s() - cpu_start) * 1e6;
+            let us = start.elapsed().as_secs_f64() * 1e6;
+            cases[case].record(us, cpu_us, allocations() - allocations_start, &out);
         }
-        let out = controller.tick_guarded(
-            black_box(&ControllerInput {
-                q,
-                qd,
-                surface: surface.tracked(),
-                interaction_force_n: force,
-                intent: Intent::Transparent,
-            }),
-            black_box(&tracked),
-        );
-        let cpu_us = (thread_cpu_s() - cpu_start) * 1e6;
-        let us = start.elapsed().as_secs_f64() * 1e6;
-        cases[3].record(us, cpu_us, allocations() - allocations_start, &out);
-        let allocations_start = allocations();
-        let start = Instant::now();
-        let cpu_start = thread_cpu_s();
-        black_box(fusion.tick(black_box(t)));
-        for f in &mut guard_fusions {
-            black_box(f.tick(black_box(t)));
-        }
-        let out = shared.tick_guarded(
-            black_box(&ControllerInput {
-                q,
-                qd,
-                surface: surface.tracked(),
-                interaction_force_n: force,
-                intent: Intent::Transparent,
-            }),
-            black_box(&tracked),
-        );
-        let cpu_us = (thread_cpu_s() - cpu_start) * 1e6;
-        let us = start.elapsed().as_secs_f64() * 1e6;
-        cases[4].record(us, cpu_us, allocations() - allocations_start, &out);
     }
     cases.extend(closed_loop_cases(&model));
     println!(
