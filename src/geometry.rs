@@ -263,11 +263,13 @@ impl PreparedPrimitive {
         (self.bound_center_m, self.bound_r2)
     }
 
-    /// False when no point within `radius_m` of `center_m` lies inside the primitive: its
-    /// bounding sphere does not meet that ball (1 um of slack for rounding).
-    pub fn may_meet_ball(&self, center_m: &Point3<f64>, radius_m: f64) -> bool {
+    /// False when no point within `radius_m` of the segment `a_m`-`b_m` (a ball when they
+    /// coincide) lies inside the primitive: its bounding sphere does not meet that capsule
+    /// (1 um of slack for rounding).
+    pub fn may_meet_capsule(&self, a_m: &Point3<f64>, b_m: &Point3<f64>, radius_m: f64) -> bool {
         let reach = self.bound_r2.sqrt() + radius_m + 1e-6;
-        (center_m - self.bound_center_m).norm_squared() <= reach * reach
+        let nearest = closest_point_on_segment(a_m, b_m, &self.bound_center_m);
+        (nearest - self.bound_center_m).norm_squared() <= reach * reach
     }
 
     /// True when `p` lies inside or on the primitive.

@@ -267,11 +267,11 @@ const MAX_SHARED: usize = MAX_GUARDS * (MAX_SURFACES_PER_GUARD - 1);
 /// [`SAME_PLANE_OFFSET_M`] along the normal are the same plane to a keep-off guard.
 const SAME_PLANE_ANGLE_RAD: f64 = 15.0 * std::f64::consts::PI / 180.0;
 
-// Level 4 holds the handle's three rows and two per keep-off guard and surface.
-const _: () = assert!(3 + (MAX_GUARDS - 1) * MAX_SURFACES_PER_GUARD * 2 <= hqp::MAX_LEVEL_ROWS);
-
 /// See [`SAME_PLANE_ANGLE_RAD`], metres.
 const SAME_PLANE_OFFSET_M: f64 = 0.02;
+
+// Level 4 holds the handle's three rows and two per keep-off guard and surface.
+const _: () = assert!(3 + (MAX_GUARDS - 1) * MAX_SURFACES_PER_GUARD * 2 <= hqp::MAX_LEVEL_ROWS);
 
 /// No surface for any keep-off guard.
 const NO_SURFACES: [Option<&SurfaceState>; MAX_GUARDS] = [None; MAX_GUARDS];
@@ -597,9 +597,7 @@ impl Controller {
                 if c.rows.is_empty() {
                     continue;
                 }
-                let closing = (-c.d_rate_mps).max(0.0);
-                let first =
-                    c.d_proj_m - margin - closing * closing / (2.0 * haptics.braking_decel_mps2);
+                let first = c.d_proj_m - margin - haptics.braking_distance_m(c.d_rate_mps);
                 candidates.push((first, s, c));
             }
             candidates.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
@@ -932,6 +930,15 @@ mod tests {
 
     /// Without keep-off surfaces the default guard set gives the single-HIP controller's
     /// output bit for bit; with one, the forearm guard gets its own rows and is braked.
+    /// The lower end (least z) of a guard's segment.
+    fn lower_end(seg: &crate::robot::guards::GuardSegment) -> Point3<f64> {
+        if seg.a_m.z < seg.b_m.z {
+            seg.a_m
+        } else {
+            seg.b_m
+        }
+    }
+
     #[test]
     fn keep_off_guard_rows() {
         let c = controller();
@@ -983,11 +990,7 @@ mod tests {
         assert_eq!(forearm.name, "forearm");
         let motion = model.link_motion(&q, &qd);
         let seg = forearm.world(&motion.world_from_link);
-        let low = if seg.a_m.z < seg.b_m.z {
-            seg.a_m
-        } else {
-            seg.b_m
-        };
+        let low = lower_end(&seg);
         let under_forearm = floor(low.z - forearm.radius_m - 0.03);
         let mut surfaces = [None; 5];
         surfaces[0] = Some(&under_forearm);
@@ -1053,11 +1056,7 @@ mod tests {
         let forearm = &guards.guards()[guards.keep_off()[0]];
         let motion = model.link_motion(&q, &qd);
         let seg = forearm.world(&motion.world_from_link);
-        let low = if seg.a_m.z < seg.b_m.z {
-            seg.a_m
-        } else {
-            seg.b_m
-        };
+        let low = lower_end(&seg);
         let plane = |z: f64, normal: Unit<Vector3<f64>>, x: f64| {
             haptics::known_surface(
                 0.0,

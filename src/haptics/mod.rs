@@ -277,11 +277,17 @@ impl HapticConfig {
     /// Distance within which the constraints are on at a rate of `d_proj` of
     /// `d_rate_mps`: the activation distance plus the braking distance of the closing speed.
     pub fn activation_reach_m(&self, d_rate_mps: f64) -> f64 {
+        self.activation_distance_m + self.braking_distance_m(d_rate_mps)
+    }
+
+    /// Distance to stop the closing speed of a `d_proj` rate `d_rate_mps` at
+    /// `braking_decel_mps2` (0 while receding or for a rate that is not finite), metres.
+    pub fn braking_distance_m(&self, d_rate_mps: f64) -> f64 {
         let closing = (-d_rate_mps).max(0.0);
         if !closing.is_finite() {
-            return self.activation_distance_m;
+            return 0.0;
         }
-        self.activation_distance_m + closing * closing / (2.0 * self.braking_decel_mps2)
+        closing * closing / (2.0 * self.braking_decel_mps2)
     }
 }
 

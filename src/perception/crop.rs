@@ -46,9 +46,7 @@ use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{DepthImage, PinholeIntrinsics};
-use crate::geometry::{
-    PreparedPrimitive, Primitive, PrimitiveError, box_rotation, closest_point_on_segment,
-};
+use crate::geometry::{PreparedPrimitive, Primitive, PrimitiveError, box_rotation};
 use crate::gpu::mirrors::{CropParams, CropPrimitive, DepthParams, ReachCapsuleGpu};
 use crate::gpu::shader::{self, BindingKind, CachedBindGroup};
 use crate::gpu::timing::StageTimer;
@@ -1129,17 +1127,14 @@ impl CpuCrop {
         scene.validate()?;
         validate_reach(keep_off)?;
         let margin = config.robot_margin_for(scene);
-        // Only the primitives whose bounding sphere meets the HIP's ball or a capsule (the
-        // sphere's centre within the two radii of the capsule's segment, 1 um of slack for
-        // rounding): a point is tested against them once it lies in that reach.
+        // Only the primitives whose bounding sphere meets the HIP's ball or a capsule: a point
+        // is tested against them once it lies in that reach.
         let reaches: Vec<(Point3<f64>, Point3<f64>, f64)> =
             std::iter::once((scene.hip_m, scene.hip_m, config.radius_m))
                 .chain(keep_off.iter().map(|c| (c.a_m, c.b_m, c.radius_m)))
                 .collect();
         let meets = |p: &PreparedPrimitive, (a, b, r): &(Point3<f64>, Point3<f64>, f64)| {
-            let (c, r2) = p.bounding_ball();
-            let reach = r2.sqrt() + r + 1e-6;
-            (c - closest_point_on_segment(a, b, &c)).norm_squared() <= reach * reach
+            p.may_meet_capsule(a, b, *r)
         };
         let (shapes, robot): (Vec<Primitive>, Vec<PreparedPrimitive>) = (scene.robot.iter())
             .map(|p| {
