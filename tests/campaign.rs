@@ -245,6 +245,53 @@ fn a_keep_off_campaign_writes_its_guard_tables() {
     );
 }
 
+/// `--write-episodes` writes the listed episodes, drawn as the campaign draws them, as scene
+/// files headed by the command that runs them, and runs none; an index no campaign reaches
+/// is refused with its value.
+#[test]
+fn listed_episodes_are_written_as_scene_files_without_running() {
+    let dir = TempDir::new("campaign_write_episodes");
+    let d = dir.path.to_str().unwrap();
+    let json = run_json([
+        "experiment",
+        "campaign",
+        "--seed",
+        "35",
+        "--write-episodes",
+        "748,3",
+        "--speeds",
+        "1.5,2",
+        "--out",
+        d,
+        "--json",
+    ]);
+    let written = json["details"]["written"].as_array().unwrap();
+    assert_eq!(written.len(), 2);
+    for (w, index) in written.iter().zip([748, 3]) {
+        let path = std::path::Path::new(w["file"].as_str().unwrap());
+        let text = std::fs::read_to_string(path).unwrap();
+        let drawn = episode::generate(35, index).unwrap();
+        let command = format!(
+            "safe-speed --scene {} --speeds 1.5,2 --camera-rate-hz {}",
+            path.display(),
+            drawn.camera_rate_hz
+        );
+        assert!(text.contains(&command), "{text}");
+        assert_eq!(Scene::from_file(path).unwrap().file, drawn.scene.file);
+        assert_eq!(w["camera_rate_hz"], drawn.camera_rate_hz);
+    }
+    assert!(!dir.path.join("campaign-runs.csv").exists());
+    let err = run_err([
+        "experiment",
+        "campaign",
+        "--write-episodes",
+        "100000",
+        "--out",
+        d,
+    ]);
+    assert!(err.contains("episode 100000"), "{err}");
+}
+
 #[test]
 fn bad_campaign_arguments_are_refused_with_the_value() {
     let dir = TempDir::new("campaign_bad");

@@ -103,6 +103,11 @@ pub struct ExperimentArgs {
     /// of the controller's config (the keep-off guards then run in every run).
     #[arg(long, default_value = "handle", value_parser = ["handle", "keep-off"])]
     target: String,
+    /// campaign: only write these episodes of `--seed` and `--target` (e.g. `11,49`) as scene
+    /// files into `OUT/episodes/`, each headed by the `safe-speed` command that runs it; no
+    /// episode is run.
+    #[arg(long, value_delimiter = ',')]
+    write_episodes: Vec<u32>,
 }
 
 const FONT: &str = "sans-serif";
@@ -406,6 +411,14 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 &loop_options,
             )?;
         }
+        "campaign" if !args.write_episodes.is_empty() => {
+            extra = write_episodes(
+                &args.write_episodes,
+                (args.seed, target, &args.speeds),
+                &out,
+                (&loop_options, args.config.as_deref()),
+            )?;
+        }
         "campaign" => {
             extra = campaign(
                 campaign::CampaignConfig {
@@ -472,7 +485,14 @@ pub fn run(args: ExperimentArgs) -> Result<()> {
                 safe["paper"], safe["surface_velocity"]
             );
         }
-        println!("wrote CSV and PNG files to {}", out.display());
+        match extra.get("written").and_then(|w| w.as_array()) {
+            Some(files) => {
+                for f in files {
+                    println!("{}", f["file"].as_str().unwrap_or_default());
+                }
+            }
+            None => println!("wrote CSV and PNG files to {}", out.display()),
+        }
     }
     Ok(())
 }
@@ -697,6 +717,68 @@ fn whole_arm(
     }))
 }
 
+/// Writes episode `e` as a scene file in `dir`: its description, `why` it was written and the
+/// `safe-speed` command that runs it at `speeds` with its camera rate, then the scene.
+fn write_episode_file(
+    dir: &Path,
+    e: &hapcloud::scene::episode::Episode,
+    why: &str,
+    speeds: &str,
+    config_arg: &str,
+) -> Result<PathBuf> {
+    let path = dir.join(format!("{}.toml", e.scene.file.name));
+    let keep_off = if e.guard.is_some() { " --keep-off" } else { "" };
+    let text = format!(
+        "# {}\n# {why}; reproduce with\n\
+         # hapcloud experiment safe-speed{keep_off} --scene {} --speeds {speeds} --camera-rate-hz {}{config_arg} --out DIR\n{}",
+        e.scene.file.description,
+        path.display(),
+        e.camera_rate_hz,
+        toml::to_string(&e.scene.file)?
+    );
+    std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+    Ok(path)
+}
+
+/// `campaign --write-episodes`: draws the listed episodes as the campaign would and writes
+/// each as a scene file into `OUT/episodes/`; returns the JSON details.
+fn write_episodes(
+    indices: &[u32],
+    (seed, target, speeds): (u64, campaign::Target, &[f64]),
+    out: &Path,
+    (options, config_path): (&SceneLoopOptions, Option<&Path>),
+) -> Result<serde_json::Value> {
+    if let Some(i) = indices.iter().find(|&&i| i >= campaign::MAX_EPISODES) {
+        bail!(
+            "--write-episodes: episode {i} is beyond the largest campaign (episodes 0 to {})",
+            campaign::MAX_EPISODES - 1
+        );
+    }
+    let guards = &options.sim.controller.guards;
+    campaign::keep_off_targets(target, guards)?;
+    let config_arg = config_path.map_or(String::new(), |p| format!(" --config {}", p.display()));
+    let speeds: Vec<String> = speeds.iter().map(f64::to_string).collect();
+    let dir = out.join("episodes");
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let mut files = Vec::new();
+    for &index in indices {
+        let e = campaign::draw(seed, target, guards, index)?;
+        let why = format!(
+            "episode {index} of seed {seed} (campaign --target {})",
+            target.name()
+        );
+        let path = write_episode_file(&dir, &e, &why, &speeds.join(","), &config_arg)?;
+        files.push(serde_json::json!({
+            "file": path.display().to_string(),
+            "episode": index,
+            "kind": e.kind,
+            "target": e.guard,
+            "camera_rate_hz": e.camera_rate_hz,
+        }));
+    }
+    Ok(serde_json::json!({ "seed": seed, "written": files }))
+}
+
 /// `campaign`: runs the episodes in parallel with a progress bar, writes the CSVs, the plots
 /// and the worst episodes' scene files, prints the summary; returns the JSON details.
 fn campaign(
@@ -759,17 +841,18 @@ fn campaign(
         .with_context(|| format!("creating {}", worst_dir.display()))?;
     let mut worst_files = Vec::new();
     for (e, speed, d_proj) in result.worst_keep_off(if keep_off { worst } else { 0 }) {
-        let path = worst_dir.join(format!("{}.toml", e.episode.scene.file.name));
         let rate = e.episode.camera_rate_hz;
         let guard = e.episode.guard.as_deref().unwrap_or_default();
-        let text = format!(
-            "# {}\n# perception's least d_proj of keep-off guard `{guard}` {d_proj:.4} m at {speed} m/s with {rate} Hz cameras; reproduce with\n\
-             # hapcloud experiment safe-speed --keep-off --scene {} --speeds {speed} --camera-rate-hz {rate}{config_arg} --out DIR\n{}",
-            e.episode.scene.file.description,
-            path.display(),
-            toml::to_string(&e.episode.scene.file)?
+        let why = format!(
+            "perception's least d_proj of keep-off guard `{guard}` {d_proj:.4} m at {speed} m/s with {rate} Hz cameras"
         );
-        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        let path = write_episode_file(
+            &worst_dir,
+            &e.episode,
+            &why,
+            &speed.to_string(),
+            &config_arg,
+        )?;
         worst_files.push(serde_json::json!({
             "file": path.display().to_string(),
             "episode": e.episode.index,
@@ -780,20 +863,17 @@ fn campaign(
         }));
     }
     for (e, r) in result.worst_perception(if keep_off { 0 } else { worst }) {
-        let path = worst_dir.join(format!("{}.toml", e.episode.scene.file.name));
-        let text = format!(
-            "# {}\n# perception's min margin {:.4} m at {} m/s with {} Hz cameras; reproduce with\n\
-             # hapcloud experiment safe-speed --scene {} --speeds {} --camera-rate-hz {}{config_arg} --out DIR\n{}",
-            e.episode.scene.file.description,
-            r.min_margin_m,
-            r.speed_mps,
-            r.camera_rate_hz,
-            path.display(),
-            r.speed_mps,
-            r.camera_rate_hz,
-            toml::to_string(&e.episode.scene.file)?
+        let why = format!(
+            "perception's min margin {:.4} m at {} m/s with {} Hz cameras",
+            r.min_margin_m, r.speed_mps, r.camera_rate_hz
         );
-        std::fs::write(&path, text).with_context(|| format!("writing {}", path.display()))?;
+        let path = write_episode_file(
+            &worst_dir,
+            &e.episode,
+            &why,
+            &r.speed_mps.to_string(),
+            &config_arg,
+        )?;
         worst_files.push(serde_json::json!({
             "file": path.display().to_string(),
             "episode": e.episode.index,

@@ -34,7 +34,7 @@
 
 use super::safe_speed::{SpeedRow, run_at_speed};
 use super::scene_loop::{SceneLoopError, SceneLoopOptions, SurfaceSource};
-use crate::robot::guards::GuardRole;
+use crate::robot::guards::{GuardConfig, GuardRole};
 use crate::scene::episode::{self, BodyKind, Episode};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -872,6 +872,44 @@ impl Campaign {
     }
 }
 
+/// The keep-off guards a campaign aimed at `target` can draw (none for the handle); an
+/// error when it aims at keep-off guards and `guards` is a single-HIP config.
+pub fn keep_off_targets(
+    target: Target,
+    guards: &GuardConfig,
+) -> Result<Vec<String>, CampaignError> {
+    let targets: Vec<String> = (guards.guards.iter())
+        .filter(|g| g.role == GuardRole::KeepOff)
+        .map(|g| g.name.clone())
+        .collect();
+    if target == Target::KeepOff && targets.is_empty() {
+        return Err(CampaignError::Value(
+            "--target keep-off needs keep-off guards, but the controller's guards are a \
+             single-HIP config (the handle alone)"
+                .into(),
+        ));
+    }
+    Ok(targets)
+}
+
+/// Episode `index` of seed `seed` aimed at `target` (a keep-off guard of `guards`), as the
+/// campaign runs it.
+pub fn draw(
+    seed: u64,
+    target: Target,
+    guards: &GuardConfig,
+    index: u32,
+) -> Result<Episode, CampaignError> {
+    match target {
+        Target::Handle => episode::generate(seed, index),
+        Target::KeepOff => episode::generate_keep_off(seed, index, guards),
+    }
+    .map_err(|e| CampaignError::Episode {
+        index,
+        source: e.into(),
+    })
+}
+
 /// Runs the campaign (see the module doc); `progress` is called after each episode.
 pub fn run(
     config: &CampaignConfig,
@@ -880,18 +918,8 @@ pub fn run(
 ) -> Result<Campaign, CampaignError> {
     config.validate()?;
     let guards = &options.sim.controller.guards;
-    let targets: Vec<String> = (guards.guards.iter())
-        .filter(|g| g.role == GuardRole::KeepOff)
-        .map(|g| g.name.clone())
-        .collect();
+    let targets = keep_off_targets(config.target, guards)?;
     let keep_off = config.target == Target::KeepOff;
-    if keep_off && targets.is_empty() {
-        return Err(CampaignError::Value(
-            "--target keep-off needs keep-off guards, but the controller's guards are a \
-             single-HIP config (the handle alone)"
-                .into(),
-        ));
-    }
     let mut speeds = config.speeds_mps.clone();
     speeds.sort_by(f64::total_cmp);
     speeds.dedup();
@@ -903,15 +931,8 @@ pub fn run(
     let episodes: Vec<EpisodeResult> = (0..config.episodes)
         .into_par_iter()
         .map(|index| {
-            let drawn = match config.target {
-                Target::Handle => episode::generate(config.seed, index),
-                Target::KeepOff => episode::generate_keep_off(config.seed, index, guards),
-            };
-            let e = drawn.map_err(|e| CampaignError::Episode {
-                index,
-                source: e.into(),
-            })?;
-            let result = run_episode(e, &speeds, &options);
+            let result = draw(config.seed, config.target, guards, index)
+                .and_then(|e| run_episode(e, &speeds, &options));
             progress();
             result
         })
