@@ -928,8 +928,6 @@ mod tests {
         assert!(table_i.x.norm() < 1e-6, "{}", table_i.x);
     }
 
-    /// Without keep-off surfaces the default guard set gives the single-HIP controller's
-    /// output bit for bit; with one, the forearm guard gets its own rows and is braked.
     /// The lower end (least z) of a guard's segment.
     fn lower_end(seg: &crate::robot::guards::GuardSegment) -> Point3<f64> {
         if seg.a_m.z < seg.b_m.z {
@@ -939,6 +937,8 @@ mod tests {
         }
     }
 
+    /// Without keep-off surfaces the default guard set gives the single-HIP controller's
+    /// output bit for bit; with one, the forearm guard gets its own rows and is braked.
     #[test]
     fn keep_off_guard_rows() {
         let c = controller();
