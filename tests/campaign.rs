@@ -290,6 +290,17 @@ fn listed_episodes_are_written_as_scene_files_without_running() {
         d,
     ]);
     assert!(err.contains("episode 100000"), "{err}");
+    let err = run_err([
+        "experiment",
+        "campaign",
+        "--write-episodes",
+        "3",
+        "--speeds",
+        "9",
+        "--out",
+        d,
+    ]);
+    assert!(err.contains("got 9"), "{err}");
 }
 
 #[test]

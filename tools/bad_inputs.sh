@@ -361,6 +361,7 @@ t err "no_such_experiment" experiment no_such_experiment --out "$D/e"
 t err "--target" experiment campaign --target no_such_target --out "$D/e"
 t err "single-HIP" experiment campaign --target keep-off --config tools/configs/single_hip.toml --episodes 1 --out "$D/e"
 t err "episode 100000" experiment campaign --write-episodes 100000 --out "$D/e"
+t err "got 9" experiment campaign --write-episodes 3 --speeds 9 --out "$D/e"
 t err "single-HIP" experiment campaign --target keep-off --config tools/configs/single_hip.toml --write-episodes 1 --out "$D/e"
 # Whole-arm sweeps: closing speeds out of range, a robot that never moves, a hand reaching
 # away, a single-HIP config, bad rates and scenes.

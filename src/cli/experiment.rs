@@ -754,10 +754,13 @@ fn write_episodes(
             campaign::MAX_EPISODES - 1
         );
     }
+    campaign::validate_speeds(speeds)?;
     let guards = &options.sim.controller.guards;
     campaign::keep_off_targets(target, guards)?;
     let config_arg = config_path.map_or(String::new(), |p| format!(" --config {}", p.display()));
-    let speeds: Vec<String> = speeds.iter().map(f64::to_string).collect();
+    let speeds = (speeds.iter().map(f64::to_string))
+        .collect::<Vec<_>>()
+        .join(",");
     let dir = out.join("episodes");
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut files = Vec::new();
@@ -767,7 +770,7 @@ fn write_episodes(
             "episode {index} of seed {seed} (campaign --target {})",
             target.name()
         );
-        let path = write_episode_file(&dir, &e, &why, &speeds.join(","), &config_arg)?;
+        let path = write_episode_file(&dir, &e, &why, &speeds, &config_arg)?;
         files.push(serde_json::json!({
             "file": path.display().to_string(),
             "episode": index,

@@ -102,21 +102,27 @@ impl CampaignConfig {
                 self.episodes
             )));
         }
-        if self.speeds_mps.is_empty() || self.speeds_mps.len() > MAX_SPEEDS {
-            return Err(CampaignError::Value(format!(
-                "--speeds takes 1 to {MAX_SPEEDS} speeds, got {}",
-                self.speeds_mps.len()
-            )));
-        }
-        if let Some(v) = self.speeds_mps.iter().find(|v| !SPEEDS_MPS.contains(*v)) {
-            return Err(CampaignError::Value(format!(
-                "--speeds must be finite and in [{}, {}] m/s, got {v}",
-                SPEEDS_MPS.start(),
-                SPEEDS_MPS.end()
-            )));
-        }
-        Ok(())
+        validate_speeds(&self.speeds_mps)
     }
+}
+
+/// Checks a campaign's `--speeds`: 1 to [`MAX_SPEEDS`], each within [`SPEEDS_MPS`]; the error
+/// names the value.
+pub fn validate_speeds(speeds_mps: &[f64]) -> Result<(), CampaignError> {
+    if speeds_mps.is_empty() || speeds_mps.len() > MAX_SPEEDS {
+        return Err(CampaignError::Value(format!(
+            "--speeds takes 1 to {MAX_SPEEDS} speeds, got {}",
+            speeds_mps.len()
+        )));
+    }
+    if let Some(v) = speeds_mps.iter().find(|v| !SPEEDS_MPS.contains(*v)) {
+        return Err(CampaignError::Value(format!(
+            "--speeds must be finite and in [{}, {}] m/s, got {v}",
+            SPEEDS_MPS.start(),
+            SPEEDS_MPS.end()
+        )));
+    }
+    Ok(())
 }
 
 /// A body region of ISO/TS 15066's body model (Table A.2, A.3 via REFERENCE.md).
