@@ -627,6 +627,7 @@ pub fn simulate_scene(
                     options.frontend.crop.radius_m,
                     &guards_then,
                     &options.surface,
+                    options.lookahead.keep_off_guards,
                 );
                 let region = ReadRegion {
                     centre_m,

@@ -48,6 +48,9 @@ pub struct FrameRecord {
     pub scene: PerceptionScene,
     /// Without a surface in the shells: the nearest surface patch beyond them (look-ahead).
     pub far_field: Option<FarFieldEstimate>,
+    /// The same per keep-off guard, in `chain.guards`' order (empty without guards or
+    /// without their look-ahead, [`crate::perception::lookahead::LookaheadConfig::keep_off_guards`]).
+    pub guard_far_fields: Vec<Option<FarFieldEstimate>>,
 }
 
 impl FrameRecord {
@@ -123,6 +126,9 @@ impl Tick {
 pub struct Perception {
     chain: CameraChain,
     lookahead: Lookahead,
+    /// One look-ahead per keep-off guard (module doc of [`crate::perception::lookahead`]),
+    /// made at the first frame with that many guards.
+    guard_lookaheads: Vec<Lookahead>,
     closure: Closure,
     /// Why the GPU could not be opened at start, if it could not.
     start_fallback: Option<String>,
@@ -180,9 +186,12 @@ impl Perception {
                 (chain(Backend::Cpu, None)?, Some(e))
             }
         };
+        let mut chain = chain;
+        chain.set_guard_lookahead(config.lookahead.keep_off_guards);
         Ok(Self {
             chain,
             lookahead: Lookahead::new(config.lookahead.clone()),
+            guard_lookaheads: Vec::new(),
             closure: Closure::new(&config.lookahead),
             start_fallback,
             warned: false,
@@ -264,12 +273,42 @@ impl Perception {
                     .min_by(|a, b| a.contact_time_s.total_cmp(&b.contact_time_s))
             })
             .flatten();
+        let guard_far_fields = self.guard_far_fields(&chain, id, stamp);
         Ok(FrameRecord {
             chain,
             world_from_camera: frame.world_from_camera,
             scene: scene.clone(),
             far_field,
+            guard_far_fields,
         })
+    }
+
+    /// Each keep-off guard's far-field estimate of the frame `chain` (with their look-ahead
+    /// on): a guard whose shells see no surface runs its own look-ahead
+    /// ([`CameraChain::guard_far_field`]).
+    fn guard_far_fields(
+        &mut self,
+        chain: &ChainFrame,
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> Vec<Option<FarFieldEstimate>> {
+        if !self.lookahead.config().keep_off_guards {
+            return Vec::new();
+        }
+        let config = self.lookahead.config().clone();
+        self.guard_lookaheads
+            .resize_with(chain.guards.len(), || Lookahead::new(config.clone()));
+        (chain
+            .guards
+            .iter()
+            .zip(&mut self.guard_lookaheads)
+            .enumerate())
+        .map(|(i, (guard, lookahead))| {
+            guard.estimate().surface.is_none().then(|| {
+                (self.chain).guard_far_field(i, &guard.segment, lookahead, camera_id, stamp_s)
+            })?
+        })
+        .collect()
     }
 }
 
@@ -316,17 +355,18 @@ impl ControlLoop {
         &self.guard_fusions
     }
 
-    /// Keep-off guard `index`'s estimate from one camera frame joins that guard's window,
-    /// having arrived at `arrival_s`; an index beyond the controller's keep-off guards is
-    /// ignored (a record from another guard set).
+    /// Keep-off guard `index`'s estimate from one camera frame (and its far-field estimate,
+    /// if any) joins that guard's window, having arrived at `arrival_s`; an index beyond the
+    /// controller's keep-off guards is ignored (a record from another guard set).
     pub fn push_guard_estimate(
         &mut self,
         index: usize,
         estimate: &SurfaceEstimate,
+        far_field: Option<&FarFieldEstimate>,
         arrival_s: f64,
     ) {
         if let Some(fusion) = self.guard_fusions.get_mut(index) {
-            push_into(fusion, estimate, None, arrival_s);
+            push_into(fusion, estimate, far_field, arrival_s);
         }
     }
 
@@ -496,10 +536,11 @@ impl FusionWindow {
         &mut self,
         index: usize,
         estimate: &SurfaceEstimate,
+        far_field: Option<&FarFieldEstimate>,
         arrival_s: f64,
     ) -> Option<Fit> {
         let fusion = self.guards.get_mut(index)?;
-        push_into(fusion, estimate, None, arrival_s);
+        push_into(fusion, estimate, far_field, arrival_s);
         fusion.refit()
     }
 
@@ -584,8 +625,9 @@ impl HapticLoop {
         self.control
             .push_estimate(record.estimate(), record.far_field.as_ref(), frame.stamp_s);
         for (i, guard) in record.chain.guards.iter().enumerate() {
+            let far_field = record.guard_far_fields.get(i).and_then(Option::as_ref);
             self.control
-                .push_guard_estimate(i, guard.estimate(), frame.stamp_s);
+                .push_guard_estimate(i, guard.estimate(), far_field, frame.stamp_s);
         }
         Ok(record)
     }

@@ -401,7 +401,10 @@ pub(super) fn perception_worker(
                 .iter()
                 .take(window.guard_count().min(MAX_GUARDS))
                 .enumerate()
-                .map(|(i, e)| window.push_guard(i, e, now_s))
+                .map(|(i, e)| {
+                    let far_field = record.guard_far_fields.get(i).and_then(Option::as_ref);
+                    window.push_guard(i, e, far_field, now_s)
+                })
                 .collect();
             (fit, fits)
         };

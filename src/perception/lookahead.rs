@@ -76,6 +76,12 @@ pub struct LookaheadConfig {
     pub max_surface_speed_mps: f64,
     /// Frames farther apart than this are not matched (no approach speed), seconds.
     pub max_frame_gap_s: f64,
+    /// Each keep-off guard has a look-ahead of its own: its crop reaches the crop radius
+    /// beyond its skin, as far as the handle's look-ahead sees from the HIP
+    /// ([`super::pipeline::guard_crop_reach_m`]), and on a frame whose guard shells see no
+    /// surface this look-ahead runs on those points from the guard segment's point closest
+    /// to the nearest of them. Off: a guard sees only its shells' reach.
+    pub keep_off_guards: bool,
     /// The convex closure of moving bodies, a further candidate ([`super::closure`]).
     pub closure: super::closure::ClosureConfig,
 }
@@ -100,6 +106,7 @@ impl Default for LookaheadConfig {
             same_surface_rad: 0.35,
             max_surface_speed_mps: 3.0,
             max_frame_gap_s: 0.1,
+            keep_off_guards: true,
             closure: super::closure::ClosureConfig::default(),
         }
     }

@@ -78,6 +78,7 @@ use super::flying::{FlyingPixelConfig, FlyingPixelConfigError};
 use super::frontend::{
     CameraCloud, FrameInput, FramePoints, Frontend, FrontendConfig, FrontendError, FrontendOutput,
 };
+use super::lookahead::Lookahead;
 use super::memory::{MemoryConfig, MemoryConfigError, MemoryStep, SurfaceMemory};
 use super::outliers::{OutlierConfig, OutlierConfigError, remove_isolated};
 use super::shells::{
@@ -89,7 +90,7 @@ use crate::geometry::Primitive;
 use crate::gpu::clock::HostClock;
 use crate::gpu::{Backend, GpuContext, GpuError};
 use crate::robot::guards::GuardSegment;
-use crate::surface::SurfaceEstimate;
+use crate::surface::{FarFieldEstimate, SurfaceEstimate, SurfacePoint};
 use crate::timing::{SpanTime, Stopwatch};
 use glam::Vec3;
 use nalgebra::{Point3, Vector3};
@@ -458,6 +459,19 @@ pub fn guard_reach_m(base: &SurfaceConfig, radius_m: f64) -> f64 {
     base.shells.outer_radius_m() + radius_m
 }
 
+/// How far beyond its core a keep-off guard of radius `radius_m` is cropped and binned:
+/// with its look-ahead on ([`CameraChain::set_guard_lookahead`]), the crop radius
+/// `crop_radius_m` beyond its skin (the distance the handle's look-ahead sees from the HIP),
+/// else its shells' reach ([`guard_reach_m`]), metres.
+pub fn guard_crop_reach_m(
+    base: &SurfaceConfig,
+    lookahead_crop_m: Option<f64>,
+    radius_m: f64,
+) -> f64 {
+    let shells = guard_reach_m(base, radius_m);
+    lookahead_crop_m.map_or(shells, |crop| shells.max(crop + radius_m))
+}
+
 /// Margin of [`reach_box`], metres: far above the rounding of the box's corners to f32
 /// (about 1e-7 m at a few metres from the origin).
 const REACH_BOX_MARGIN_M: f64 = 1e-4;
@@ -474,45 +488,99 @@ fn reach_box(segment: &GuardSegment, reach: f64) -> impl Fn(&Vec3) -> bool + use
     move |p: &Vec3| p.cmpge(lo).all() && p.cmple(hi).all()
 }
 
-/// One keep-off guard's kept points within its reach ([`bin_by_reach`]): the points in the
-/// candidates' order, and each with its distance to the guard's core and its f64 position.
+/// Eq. 7 holds for a surface in front of a keep-off guard (module doc): `fitted` stands when
+/// the direction from the guard's `k` nearest points (the first `k` of `near`, each with its
+/// distance to `segment`'s core) to the core agrees with its normal within
+/// [`GUARD_NORMAL_AGREEMENT_RAD`] and a point of `near` lies within `support_m` of the plane's
+/// point nearest the guard; otherwise it becomes those points' mean with that direction.
+/// Returns whether it did.
+fn seen_from_guard(
+    fitted: &mut SurfacePoint,
+    segment: &GuardSegment,
+    near: &[(f64, Point3<f64>)],
+    k: usize,
+    support_m: f64,
+) -> bool {
+    if k == 0 {
+        return false;
+    }
+    // The nearest points' mean and the direction from it to the core.
+    let mean = near[..k]
+        .iter()
+        .fold(Vector3::zeros(), |sum, (_, x)| sum + x.coords)
+        / k as f64;
+    let q = Point3::from(mean);
+    // Where the fitted plane comes nearest the guard: the foot on it of the segment's point
+    // closest to the centroid. The plane holds there only if a seen point lies within
+    // `support_m` of that foot.
+    let core = segment.closest_point(&fitted.centroid_m);
+    let foot = core - fitted.normal.into_inner() * (core - fitted.centroid_m).dot(&fitted.normal);
+    let seen_at_foot =
+        || (near.iter()).any(|(_, x)| (x - foot).norm_squared() <= support_m * support_m);
+    match nalgebra::Unit::try_new(segment.closest_point(&q) - q, 1e-9) {
+        Some(towards)
+            if fitted.normal.dot(&towards) < GUARD_NORMAL_AGREEMENT_RAD.cos()
+                || !seen_at_foot() =>
+        {
+            *fitted = SurfacePoint {
+                centroid_m: q,
+                normal: towards,
+            };
+            true
+        }
+        _ => false,
+    }
+}
+
+/// One keep-off guard's kept points within its reach ([`bin_by_reach`]): the points within
+/// its shells' reach in the candidates' order, and each with its distance to the guard's
+/// core and its f64 position; and every point within its crop reach, for its look-ahead.
 #[derive(Debug, Default)]
 struct ReachPoints {
     points: Vec<Vec3>,
     near: Vec<(f64, Point3<f64>)>,
+    lookahead: Vec<Vec3>,
 }
 
 /// Each guard's points of `candidates` within its reach with `base` ([`guard_reach_m`] of
-/// its segment, by the f64 closest point), in one pass over them, into `bins` (one per
-/// guard, their buffers kept from frame to frame). A point's guards are the ones whose
-/// [`reach_box`] passes it.
+/// its segment, by the f64 closest point) and, with `lookahead_crop_m`, within its crop
+/// reach ([`guard_crop_reach_m`]), in one pass over them, into `bins` (one per guard, their
+/// buffers kept from frame to frame). A point's guards are the ones whose [`reach_box`]
+/// passes it.
 fn bin_by_reach(
     candidates: &[Vec3],
     guards: &[GuardSegment],
     base: &SurfaceConfig,
+    lookahead_crop_m: Option<f64>,
     bins: &mut Vec<ReachPoints>,
 ) {
     bins.resize_with(guards.len(), ReachPoints::default);
     let tests: Vec<_> = (guards.iter())
         .map(|g| {
-            let reach = guard_reach_m(base, g.radius_m);
-            (g, reach, reach_box(g, reach))
+            let shells = guard_reach_m(base, g.radius_m);
+            let crop =
+                lookahead_crop_m.map(|_| guard_crop_reach_m(base, lookahead_crop_m, g.radius_m));
+            (g, shells, crop, reach_box(g, crop.unwrap_or(shells)))
         })
         .collect();
     for bin in bins.iter_mut() {
         bin.points.clear();
         bin.near.clear();
+        bin.lookahead.clear();
     }
     for p in candidates {
-        for ((segment, reach, within_box), bin) in tests.iter().zip(bins.iter_mut()) {
+        for ((segment, shells, crop, within_box), bin) in tests.iter().zip(bins.iter_mut()) {
             if !within_box(p) {
                 continue;
             }
             let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
             let d = (x - segment.closest_point(&x)).norm();
-            if d <= *reach {
+            if d <= *shells {
                 bin.points.push(*p);
                 bin.near.push((d, x));
+            }
+            if crop.is_some_and(|crop| d <= crop) {
+                bin.lookahead.push(*p);
             }
         }
     }
@@ -520,7 +588,8 @@ fn bin_by_reach(
 
 /// A ball holding a whole-arm frame's crop, the union of the HIP's crop ball (`hip`,
 /// `radius_m`) and each guard's reach capsule (the hull of the balls of radius
-/// `guard_reach_m` around its segment's ends), grown ball by ball (Ritter's bounding sphere,
+/// [`guard_crop_reach_m`] around its segment's ends, with their look-ahead when
+/// `guard_lookahead`), grown ball by ball (Ritter's bounding sphere,
 /// at most about 5 % above the smallest): a bound on the rows the chain can read, for a
 /// renderer that renders only those. Without guards: exactly the HIP's ball.
 pub fn crop_ball(
@@ -528,10 +597,12 @@ pub fn crop_ball(
     radius_m: f64,
     guards: &[GuardSegment],
     base: &SurfaceConfig,
+    guard_lookahead: bool,
 ) -> (Point3<f64>, f64) {
     let (mut c, mut r) = (*hip, radius_m);
+    let lookahead_crop_m = guard_lookahead.then_some(radius_m);
     for g in guards {
-        let reach = guard_reach_m(base, g.radius_m);
+        let reach = guard_crop_reach_m(base, lookahead_crop_m, g.radius_m);
         for end in [g.a_m, g.b_m] {
             let d = (end - c).norm();
             if d + reach <= r {
@@ -569,6 +640,8 @@ pub struct CameraChain {
     guard_estimators: BTreeMap<(u32, usize), SurfaceEstimator>,
     /// Per keep-off guard, the frame's points within its reach (buffers kept).
     guard_points: Vec<ReachPoints>,
+    /// Keep-off guards are cropped to their look-ahead's reach ([`guard_crop_reach_m`]).
+    guard_lookahead: bool,
     gpu_fallback: Option<String>,
     want_crop_keep: bool,
     /// Frame size the front end's buffers are sized for.
@@ -599,6 +672,7 @@ impl CameraChain {
             estimators: BTreeMap::new(),
             guard_estimators: BTreeMap::new(),
             guard_points: Vec::new(),
+            guard_lookahead: false,
             gpu_fallback: None,
             want_crop_keep: false,
             reserved_points: 0,
@@ -645,6 +719,64 @@ impl CameraChain {
     /// Whether the front end hands back each frame's crop keep mask.
     pub fn crop_keep(&self) -> bool {
         self.want_crop_keep
+    }
+
+    /// Whether keep-off guards are cropped to the reach of a look-ahead (the crop radius
+    /// beyond their skin, [`guard_crop_reach_m`]) and each frame keeps those points
+    /// ([`Self::guard_lookahead_points`]); off: their shells' reach.
+    pub fn set_guard_lookahead(&mut self, on: bool) {
+        self.guard_lookahead = on;
+    }
+
+    /// The last frame's kept points within keep-off guard `index`'s look-ahead reach (world
+    /// frame; empty without [`Self::set_guard_lookahead`] or beyond the frame's guards).
+    pub fn guard_lookahead_points(&self, index: usize) -> &[Vec3] {
+        self.guard_points
+            .get(index)
+            .map_or(&[], |bin| bin.lookahead.as_slice())
+    }
+
+    /// Keep-off guard `index`'s far-field estimate of the last frame (its look-ahead on,
+    /// [`Self::set_guard_lookahead`]), posed as `segment`: `lookahead` on the kept points
+    /// within its look-ahead reach from the segment's point closest to the nearest of them,
+    /// the surface then held to what the guard sees as its shells' is ([`seen_from_guard`],
+    /// one shell width of support). `None` without such points or surface.
+    pub fn guard_far_field(
+        &self,
+        index: usize,
+        segment: &GuardSegment,
+        lookahead: &mut Lookahead,
+        camera_id: u32,
+        stamp_s: f64,
+    ) -> Option<FarFieldEstimate> {
+        let points = self.guard_lookahead_points(index);
+        let mut near: Vec<(f64, Point3<f64>)> = (points.iter().filter(|p| p.is_finite()))
+            .map(|p| {
+                let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                ((x - segment.closest_point(&x)).norm(), x)
+            })
+            .collect();
+        let k = GUARD_NEAREST_POINTS.min(near.len());
+        near.select_nth_unstable_by(k.checked_sub(1)?, |a, b| a.0.total_cmp(&b.0));
+        let nearest = near[..k].iter().min_by(|a, b| a.0.total_cmp(&b.0))?;
+        let origin = segment.closest_point(&nearest.1);
+        let mut far = lookahead.far_field(points, &origin, camera_id, stamp_s)?;
+        let mut seen = SurfacePoint {
+            centroid_m: far.centroid_m,
+            normal: far.normal,
+        };
+        let support_m = shell_width_m(&self.surface_config.shells.radii_m);
+        if seen_from_guard(&mut seen, segment, &near, k, support_m) {
+            far.distance_m = (segment.closest_point(&seen.centroid_m) - seen.centroid_m).norm();
+            far.centroid_m = seen.centroid_m;
+            far.normal = seen.normal;
+        }
+        Some(far)
+    }
+
+    fn guard_lookahead_crop_m(&self) -> Option<f64> {
+        self.guard_lookahead
+            .then_some(self.frontend_config.crop.radius_m)
     }
 
     /// The GPU failure that moved the chain to the CPU, if one did.
@@ -705,10 +837,11 @@ impl CameraChain {
     ) -> Result<ChainFrame, ChainError> {
         let pose = frame.world_from_camera;
         // The crop keeps the union of the HIP's ball and every guard's reach capsule.
+        let lookahead_crop_m = self.guard_lookahead_crop_m();
         let reach_m = |g: &GuardSegment| guard_reach_m(&self.surface_config, g.radius_m);
         let reach: Vec<ReachCapsule> = (guards.iter())
             .map(|g| ReachCapsule {
-                radius_m: reach_m(g),
+                radius_m: guard_crop_reach_m(&self.surface_config, lookahead_crop_m, g.radius_m),
                 ..*g
             })
             .collect();
@@ -825,7 +958,13 @@ impl CameraChain {
             };
             let candidates = candidates.as_deref().unwrap_or(&kept);
             let mut bins = std::mem::take(&mut self.guard_points);
-            bin_by_reach(candidates, guards, &self.surface_config, &mut bins);
+            bin_by_reach(
+                candidates,
+                guards,
+                &self.surface_config,
+                lookahead_crop_m,
+                &mut bins,
+            );
             // The GPU's sums per guard when it summed every guard this frame.
             let on_gpu = gpu_guards.len() == guards.len();
             let mut gpu = gpu_guards.into_iter();
@@ -902,34 +1041,9 @@ impl CameraChain {
             ),
             None => estimator.estimate(points, &origin, camera, camera_id, stamp_s),
         };
-        let mut nearest_points_surface = false;
-        if let Some(fitted) = &mut surface.abstraction.estimate.surface {
-            // The nearest points' mean and the direction from it to the core.
-            let mean = near[..k]
-                .iter()
-                .fold(Vector3::zeros(), |sum, (_, x)| sum + x.coords)
-                / k as f64;
-            let q = Point3::from(mean);
-            // Where the fitted plane comes nearest the guard: the foot on it of the
-            // segment's point closest to the centroid. The plane holds there only if a
-            // seen point lies within one shell's width of that foot.
-            let core = segment.closest_point(&fitted.centroid_m);
-            let foot =
-                core - fitted.normal.into_inner() * (core - fitted.centroid_m).dot(&fitted.normal);
-            let support_m = shell_width_m(&self.surface_config.shells.radii_m);
-            let seen_at_foot =
-                || (near.iter()).any(|(_, x)| (x - foot).norm_squared() <= support_m * support_m);
-            if let Some(towards) = nalgebra::Unit::try_new(segment.closest_point(&q) - q, 1e-9)
-                && (fitted.normal.dot(&towards) < GUARD_NORMAL_AGREEMENT_RAD.cos()
-                    || !seen_at_foot())
-            {
-                *fitted = crate::surface::SurfacePoint {
-                    centroid_m: q,
-                    normal: towards,
-                };
-                nearest_points_surface = true;
-            }
-        }
+        let support_m = shell_width_m(&self.surface_config.shells.radii_m);
+        let nearest_points_surface = (surface.abstraction.estimate.surface.as_mut())
+            .is_some_and(|fitted| seen_from_guard(fitted, segment, near, k, support_m));
         Ok(GuardFrame {
             segment: *segment,
             origin_m: origin,
@@ -1284,6 +1398,57 @@ mod tests {
         (segment, hip, closest, pose() * -Vector3::z())
     }
 
+    /// [`guard_in_front_of_the_sphere`]'s capsule moved back to `gap_m` from the sphere.
+    fn guard_at_gap(gap_m: f64) -> GuardSegment {
+        let (near, ..) = guard_in_front_of_the_sphere();
+        let back = pose() * -Vector3::z() * (gap_m - 0.04);
+        GuardSegment {
+            a_m: near.a_m + back,
+            b_m: near.b_m + back,
+            ..near
+        }
+    }
+
+    #[test]
+    fn a_guards_look_ahead_keeps_the_body_beyond_its_shells_and_no_more() {
+        let (_, hip, closest, _) = guard_in_front_of_the_sphere();
+        // 0.2 m from the sphere: beyond the guard's shells (0.10 m past its skin), within
+        // its look-ahead's reach (the crop radius, 0.3 m).
+        let guard = guard_at_gap(0.2);
+        let crop = FrontendConfig::default().crop.radius_m;
+        let reach = guard_crop_reach_m(&SurfaceConfig::default(), Some(crop), guard.radius_m);
+        for lookahead in [false, true] {
+            let mut chain = default_chain(Backend::Cpu).unwrap();
+            chain.set_guard_lookahead(lookahead);
+            let out = chain
+                .process_guarded(&frame(1, 0), &hip, &[], &[guard])
+                .unwrap();
+            assert!(out.guards[0].estimate().surface.is_none());
+            assert_eq!(out.guards[0].points, 0);
+            let points = chain.guard_lookahead_points(0);
+            assert_eq!(points.is_empty(), !lookahead, "{}", points.len());
+            let mut nearest = f64::INFINITY;
+            for p in points {
+                let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                let d = (x - guard.closest_point(&x)).norm();
+                assert!(d <= reach + 1e-9, "{d}");
+                nearest = nearest.min(d);
+            }
+            if lookahead {
+                // The sphere, 0.2 m beyond the guard's skin, is seen (its rim reaches a
+                // little nearer the capsule's ends), beyond the shells' 0.10 m.
+                let truth = (closest - guard.closest_point(&closest)).norm();
+                assert!((truth - guard.radius_m - 0.2).abs() < 1e-9);
+                let shells = guard_reach_m(&SurfaceConfig::default(), guard.radius_m);
+                assert!(
+                    nearest > shells && nearest < truth + 0.01,
+                    "{nearest} vs {truth}"
+                );
+                assert!(points.len() > 500, "{}", points.len());
+            }
+        }
+    }
+
     #[test]
     fn one_pass_bins_each_guards_points_within_reach_in_candidate_order() {
         let config = SurfaceConfig::default();
@@ -1318,32 +1483,41 @@ mod tests {
             .collect();
         candidates.insert(1000, Vec3::NAN);
         let mut bins = Vec::new();
-        for guards in [&guards[..], &guards[1..2], &guards[..]] {
-            bin_by_reach(&candidates, guards, &config, &mut bins);
-            assert_eq!(bins.len(), guards.len());
-            for (g, bin) in guards.iter().zip(&bins) {
-                let reach = guard_reach_m(&config, g.radius_m);
-                let within: Vec<(Vec3, f64)> = (candidates.iter())
-                    .filter_map(|p| {
-                        let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-                        let d = (x - g.closest_point(&x)).norm();
-                        (d <= reach).then_some((*p, d))
-                    })
-                    .collect();
-                assert_eq!(bin.points, within.iter().map(|w| w.0).collect::<Vec<_>>());
-                let distances: Vec<f64> = bin.near.iter().map(|n| n.0).collect();
-                assert_eq!(distances, within.iter().map(|w| w.1).collect::<Vec<_>>());
+        let within = |g: &GuardSegment, reach: f64| -> Vec<(Vec3, f64)> {
+            (candidates.iter())
+                .filter_map(|p| {
+                    let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
+                    let d = (x - g.closest_point(&x)).norm();
+                    (d <= reach).then_some((*p, d))
+                })
+                .collect()
+        };
+        // Without and with the look-ahead's crop reach (0.12 m beyond the skin).
+        for lookahead_crop_m in [None, Some(0.12)] {
+            for guards in [&guards[..], &guards[1..2], &guards[..]] {
+                bin_by_reach(&candidates, guards, &config, lookahead_crop_m, &mut bins);
+                assert_eq!(bins.len(), guards.len());
+                for (g, bin) in guards.iter().zip(&bins) {
+                    let shells = within(g, guard_reach_m(&config, g.radius_m));
+                    assert_eq!(bin.points, shells.iter().map(|w| w.0).collect::<Vec<_>>());
+                    let distances: Vec<f64> = bin.near.iter().map(|n| n.0).collect();
+                    assert_eq!(distances, shells.iter().map(|w| w.1).collect::<Vec<_>>());
+                    let crop = lookahead_crop_m.map_or(Vec::new(), |c| within(g, c + g.radius_m));
+                    assert_eq!(bin.lookahead, crop.iter().map(|w| w.0).collect::<Vec<_>>());
+                }
             }
+            assert!(bins[0].points.len() > 1000 && bins[1].points.len() > 100);
+            assert!(bins[2].points.is_empty());
         }
-        assert!(bins[0].points.len() > 1000 && bins[1].points.len() > 100);
-        assert!(bins[2].points.is_empty());
+        assert!(bins[0].lookahead.len() > bins[0].points.len());
     }
 
     #[test]
     fn the_crop_ball_is_the_hips_without_guards_and_holds_every_guards_reach() {
         let config = SurfaceConfig::default();
         let hip = Point3::new(0.3, -0.2, 0.9);
-        assert_eq!(crop_ball(&hip, 0.3, &[], &config), (hip, 0.3));
+        assert_eq!(crop_ball(&hip, 0.3, &[], &config, false), (hip, 0.3));
+        assert_eq!(crop_ball(&hip, 0.3, &[], &config, true), (hip, 0.3));
         let guards = [
             GuardSegment {
                 a_m: hip + Vector3::new(0.1, 0.0, 0.0),
@@ -1361,21 +1535,25 @@ mod tests {
                 radius_m: 0.05,
             },
         ];
-        let (c, r) = crop_ball(&hip, 0.3, &guards, &config);
-        assert!((hip - c).norm() + 0.3 <= r + 1e-12);
-        for g in &guards {
-            let reach = guard_reach_m(&config, g.radius_m);
-            assert!((reach - (g.radius_m + 0.10)).abs() < 1e-12);
-            for t in 0..=10 {
-                let p = g.a_m + (g.b_m - g.a_m) * (f64::from(t) / 10.0);
-                assert!(
-                    (p - c).norm() + reach <= r + 1e-12,
-                    "{p} outside ({c}, {r})"
-                );
+        // The guards' reach beyond their skin: their shells' 0.10 m, or the crop radius
+        // with their look-ahead.
+        for (guard_lookahead, beyond_skin) in [(false, 0.10), (true, 0.3)] {
+            let (c, r) = crop_ball(&hip, 0.3, &guards, &config, guard_lookahead);
+            assert!((hip - c).norm() + 0.3 <= r + 1e-12);
+            for g in &guards {
+                let reach = guard_crop_reach_m(&config, guard_lookahead.then_some(0.3), g.radius_m);
+                assert!((reach - (g.radius_m + beyond_skin)).abs() < 1e-12);
+                for t in 0..=10 {
+                    let p = g.a_m + (g.b_m - g.a_m) * (f64::from(t) / 10.0);
+                    assert!(
+                        (p - c).norm() + reach <= r + 1e-12,
+                        "{p} outside ({c}, {r})"
+                    );
+                }
             }
+            // No bigger than the ball through the two farthest reaches.
+            assert!(r < 0.3 + (guards[2].b_m - hip).norm() + 0.05 + beyond_skin);
         }
-        // No bigger than the ball through the two farthest reaches.
-        assert!(r < 0.3 + (guards[2].b_m - hip).norm() + 0.15);
     }
 
     #[test]
