@@ -1077,7 +1077,7 @@ type GuardErrors = Vec<Vec<(f64, f64)>>;
 /// Per keep-off guard, `(estimated d_proj, true gap)` of every camera estimate with a surface
 /// and of every far-field estimate (its look-ahead), and the ticks whose guard fusion
 /// tracked, for `scene` between `t0` and `t1` through the haptic loop (CPU), the robot
-/// carrying ANYexo's default guards.
+/// carrying ANYexo's default guards, each with its look-ahead.
 fn whole_arm_through_the_loop(name: &str, t0: f64, t1: f64) -> (GuardErrors, GuardErrors, usize) {
     use crate::robot::guards::GuardConfig;
     let scene = crate::scene::Scene::from_builtin(name).unwrap();
@@ -1086,7 +1086,8 @@ fn whole_arm_through_the_loop(name: &str, t0: f64, t1: f64) -> (GuardErrors, Gua
         .unwrap()
         .with_guards(&GuardConfig::default())
         .unwrap();
-    let config = NodeConfig::default();
+    let mut config = NodeConfig::default();
+    config.lookahead.keep_off_guards = true;
     let mut haptic_loop =
         HapticLoop::new(&config, robot.model().clone(), Backend::Cpu, None).unwrap();
     let (mut per_guard, mut far_fields, mut tracking) =

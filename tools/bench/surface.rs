@@ -12,8 +12,10 @@
 //! guards' reach capsules, an estimator per guard) on the same simulated D435 frames of
 //! `forearm_to_torso_realistic` and `torso_approach_realistic`, the two chains alternating
 //! frame by frame, with the ratio of their medians and their front ends' (crop, voxel grid,
-//! clusters), wall time and the thread's CPU time. `--arm-chain` runs only that part, on one
-//! thread (its CPU time is then all the work).
+//! clusters), wall time and the thread's CPU time; and the 5 guards each with its look-ahead
+//! (`[lookahead] keep_off_guards`: the crop reaching the crop radius beyond every guard's
+//! skin).
+//! `--arm-chain` runs only that part, on one thread (its CPU time is then all the work).
 //!
 //! `--gpu-stages` instead runs the GPU chain (the adapter `WGPU_ADAPTER_NAME` names, else the
 //! best one) on the frames of `forearm_to_torso_realistic` and `torso_approach_realistic` and
@@ -303,7 +305,15 @@ fn whole_arm_chain(scene: &str) {
     use hapcloud::gpu::Backend;
     let (origin, frames) = arm_frames(scene);
     let chain = || default_chain(Backend::Cpu, None);
-    let (mut single, mut whole) = (chain(), chain());
+    let (mut single, mut whole, mut ahead) = (chain(), chain(), chain());
+    // The third chain: the 5 guards, each with its look-ahead (`[lookahead] keep_off_guards`).
+    ahead.set_guard_lookahead(true);
+    let config = hapcloud::perception::lookahead::LookaheadConfig::default();
+    let mut lookaheads: Vec<_> = (0..5)
+        .map(|_| hapcloud::perception::lookahead::Lookahead::new(config.clone()))
+        .collect();
+    // Wall, front-end wall and thread CPU (chain + look-ahead wall) of the third chain, ms.
+    let (mut c, mut fc, mut cc) = (Vec::new(), Vec::new(), Vec::new());
     let (mut a, mut b, mut guards_ms) = (Vec::new(), Vec::new(), Vec::new());
     // The front ends' wall time (crop, voxel grid, clusters), single HIP and 5 guards.
     let (mut fa, mut fb) = (Vec::new(), Vec::new());
@@ -353,6 +363,27 @@ fn whole_arm_chain(scene: &str) {
         }
         split[4] += out.front.voxel.valid_in as f64;
         add_sizes(&mut sizes[1], &out);
+        black_box(out);
+        let start = Instant::now();
+        let out = ahead
+            .process_guarded(frame, &s.hip_m, &s.primitives, &s.guards)
+            .expect("frame");
+        let look = Instant::now();
+        for (i, (g, lookahead)) in out.guards.iter().zip(&mut lookaheads).enumerate() {
+            if g.estimate().surface.is_none() {
+                black_box(ahead.guard_far_field(
+                    i,
+                    &g.segment,
+                    lookahead,
+                    frame.camera_id,
+                    frame.stamp_s,
+                ));
+            }
+        }
+        let look_ms = look.elapsed().as_secs_f64() * 1e3;
+        c.push(start.elapsed().as_secs_f64() * 1e3);
+        fc.push(out.frontend_time.wall_ms);
+        cc.push(cpu(&out) + look_ms);
     }
     for v in [
         &mut a,
@@ -362,6 +393,9 @@ fn whole_arm_chain(scene: &str) {
         &mut fb,
         &mut ca,
         &mut cb,
+        &mut c,
+        &mut fc,
+        &mut cc,
     ] {
         v.sort_by(f64::total_cmp);
     }
@@ -392,6 +426,17 @@ fn whole_arm_chain(scene: &str) {
         m(&cb),
         cb[n * 9 / 10],
         m(&cb) / m(&ca)
+    );
+    println!(
+        "  with the guards' look-ahead ([lookahead] keep_off_guards): chain median {:.2} ms p90 {:.2} ms (x{:.2} of single HIP); \
+         front end median {:.2} ms (x{:.2}); thread CPU with the look-ahead median {:.2} ms (x{:.2})",
+        m(&c),
+        c[n * 9 / 10],
+        m(&c) / m(&a),
+        m(&fc),
+        m(&fc) / m(&fa),
+        m(&cc),
+        m(&cc) / m(&ca)
     );
     let per = |v: f64| v / n as f64;
     println!(
