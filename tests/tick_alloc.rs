@@ -147,7 +147,8 @@ fn a_control_tick_allocates_nothing_after_warm_up() {
                 .map(|g| g.estimate().clone())
                 .collect();
             for (i, e) in guard_estimates.iter().enumerate() {
-                guard_fits.push((i, window.push_guard(i, e, t)));
+                let far_field = record.guard_far_fields.get(i).and_then(Option::as_ref);
+                guard_fits.push((i, window.push_guard(i, e, far_field, t)));
             }
             // Boxed by perception, moved on by the loop.
             estimates.push((Box::new(record.estimate().clone()), guard_estimates));
