@@ -47,7 +47,10 @@
 //! (`GuardFrame::nearest_points_surface`), the distance measured to what is seen. A
 //! guard whose reach holds too few
 //! points (the robot's own links, cropped out, hide the body) has no surface
-//! (`estimate.surface = None`), never a made-up distance. On the GPU the front end sums every
+//! (`estimate.surface = None`), never a made-up distance. With their look-ahead
+//! ([`CameraChain::set_guard_lookahead`]) the guards are cropped to the crop radius beyond
+//! their skin, and a guard whose shells see no surface gets the look-ahead's surface of
+//! those points from `p*`, held to the same two tests ([`CameraChain::guard_far_field`]). On the GPU the front end sums every
 //! keep-off guard's shells in the frame's one submission (the origin found there in f32:
 //! [`GuardShells`]) and the guard's estimator corrects those sums on the CPU as the HIP's
 //! ([`SurfaceEstimator::estimate_summed`]); on the CPU each guard's estimator sums its own.
