@@ -501,7 +501,7 @@ fn patch_cylinder(config: &LookaheadConfig, wide: &WidePatch) -> Option<PatchFit
     let hip = -wide.mean;
     let off_axis = (hip - centre) - axis.into_inner() * along(&(hip - centre));
     let off_axis_m = off_axis.norm();
-    if !(off_axis_m > radius + 1e-6) {
+    if off_axis_m.is_nan() || off_axis_m <= radius + 1e-6 {
         return None;
     }
     let foot = centre + axis.into_inner() * along(&hip).clamp(low, high);
@@ -569,7 +569,7 @@ fn circle_across(
         };
         let next = circle - step;
         let next_rms = rms_of(residuals(next));
-        if !(next_rms < rms) {
+        if next_rms.is_nan() || next_rms >= rms {
             break;
         }
         (circle, rms) = (next, next_rms);
