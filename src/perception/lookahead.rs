@@ -4,9 +4,9 @@
 //!
 //! **Surfaces of one frame.** Kept points nearest the HIP are tried as patch centres; a
 //! populated, flat patch gives a plane (eigenvector of the patch covariance, f64), and a
-//! sphere (a head's) or a cylinder (a limb's) fitted to a wider patch (Kasa, in 3-D or across
-//! each of the patch's principal axes, f64) replaces it when its radius is body-like and it
-//! explains the patch clearly better. Each gives the `(c, n)` of Alg. 2's output and the
+//! sphere (a head's: Kasa) or a cylinder (a limb's: a geometric circle fit across each of the
+//! patch's principal axes) fitted to a wider patch (f64) replaces it when its radius is
+//! body-like and it explains the patch clearly better. Each gives the `(c, n)` of Alg. 2's output and the
 //! HIP's distance. Its points leave the candidates and the next surface is fitted, up to
 //! `max_surfaces_count`; beyond the nearest, a surface counts only when it faces the HIP
 //! (`min_facing_cos`). Within `min_distance_m` the surface is the shells' and nothing is
@@ -467,8 +467,8 @@ fn patch_sphere(config: &LookaheadConfig, wide: &WidePatch) -> Option<PatchFit> 
 
 /// The cylinder through a wider patch (a limb's), when it describes the patch clearly better
 /// than a plane (module doc). Its axis is the covariance eigenvector about which a circle
-/// (Kasa, in the plane across it) fits the patch best: a cylinder patch centred on one of
-/// its points is mirror-symmetric across the plane through that point normal to the axis, so
+/// (in the plane across it) fits the patch best: a cylinder patch centred on one of its
+/// points is mirror-symmetric across the plane through that point normal to the axis, so
 /// the axis is an eigenvector. Returns its point closest to the HIP (kept within the patch's
 /// extent along the axis), the normal there towards the HIP, the HIP's distance and the RMS
 /// residual; `None`: no radius in the limb range, no clear gain over the plane, or the HIP
@@ -521,9 +521,10 @@ fn patch_cylinder(config: &LookaheadConfig, wide: &WidePatch) -> Option<PatchFit
     })
 }
 
-/// The circle (Kasa) through the points `relative` projected on the plane normal to `axis`:
-/// its centre (in that plane, relative to the points' origin), radius and the RMS distance of
-/// the points from the cylinder it sweeps along `axis`. `None` for a singular fit.
+/// The circle through the points `relative` projected on the plane normal to `axis` (Kasa,
+/// refined by Gauss-Newton on the geometric distances): its centre (in that plane, relative
+/// to the points' origin), radius and the RMS distance of the points from the cylinder it
+/// sweeps along `axis`. `None` for a singular fit.
 fn circle_across(
     relative: &[Vector3<f64>],
     axis: &Unit<Vector3<f64>>,
