@@ -295,7 +295,7 @@ impl Perception {
         if !self.lookahead.config().keep_off_guards {
             return Vec::new();
         }
-        let config = self.lookahead.config().clone();
+        let config = self.lookahead.config();
         self.guard_lookaheads
             .resize_with(chain.guards.len(), || Lookahead::new(config.clone()));
         (chain

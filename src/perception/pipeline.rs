@@ -537,12 +537,24 @@ fn seen_from_guard(
 
 /// One keep-off guard's kept points within its reach ([`bin_by_reach`]): the points within
 /// its shells' reach in the candidates' order, and each with its distance to the guard's
-/// core and its f64 position; and every point within its crop reach, for its look-ahead.
+/// core and its f64 position; and the same for every point within its crop reach, for its
+/// look-ahead.
 #[derive(Debug, Default)]
 struct ReachPoints {
     points: Vec<Vec3>,
     near: Vec<(f64, Point3<f64>)>,
     lookahead: Vec<Vec3>,
+    lookahead_near: Vec<(f64, Point3<f64>)>,
+}
+
+/// Moves the [`GUARD_NEAREST_POINTS`] entries of `near` nearest the guard's core to its
+/// front (in no order) and returns how many there are.
+fn select_nearest(near: &mut [(f64, Point3<f64>)]) -> usize {
+    let k = GUARD_NEAREST_POINTS.min(near.len());
+    if k > 0 {
+        near.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
+    }
+    k
 }
 
 /// Each guard's points of `candidates` within its reach with `base` ([`guard_reach_m`] of
@@ -558,18 +570,19 @@ fn bin_by_reach(
     bins: &mut Vec<ReachPoints>,
 ) {
     bins.resize_with(guards.len(), ReachPoints::default);
+    let lookahead = lookahead_crop_m.is_some();
     let tests: Vec<_> = (guards.iter())
         .map(|g| {
             let shells = guard_reach_m(base, g.radius_m);
-            let crop =
-                lookahead_crop_m.map(|_| guard_crop_reach_m(base, lookahead_crop_m, g.radius_m));
-            (g, shells, crop, reach_box(g, crop.unwrap_or(shells)))
+            let crop = guard_crop_reach_m(base, lookahead_crop_m, g.radius_m);
+            (g, shells, crop, reach_box(g, crop))
         })
         .collect();
     for bin in bins.iter_mut() {
         bin.points.clear();
         bin.near.clear();
         bin.lookahead.clear();
+        bin.lookahead_near.clear();
     }
     for p in candidates {
         for ((segment, shells, crop, within_box), bin) in tests.iter().zip(bins.iter_mut()) {
@@ -582,8 +595,9 @@ fn bin_by_reach(
                 bin.points.push(*p);
                 bin.near.push((d, x));
             }
-            if crop.is_some_and(|crop| d <= crop) {
+            if lookahead && d <= *crop {
                 bin.lookahead.push(*p);
+                bin.lookahead_near.push((d, x));
             }
         }
     }
@@ -725,18 +739,10 @@ impl CameraChain {
     }
 
     /// Whether keep-off guards are cropped to the reach of a look-ahead (the crop radius
-    /// beyond their skin, [`guard_crop_reach_m`]) and each frame keeps those points
-    /// ([`Self::guard_lookahead_points`]); off: their shells' reach.
+    /// beyond their skin, [`guard_crop_reach_m`]) and each frame keeps those points for
+    /// [`Self::guard_far_field`]; off: their shells' reach.
     pub fn set_guard_lookahead(&mut self, on: bool) {
         self.guard_lookahead = on;
-    }
-
-    /// The last frame's kept points within keep-off guard `index`'s look-ahead reach (world
-    /// frame; empty without [`Self::set_guard_lookahead`] or beyond the frame's guards).
-    pub fn guard_lookahead_points(&self, index: usize) -> &[Vec3] {
-        self.guard_points
-            .get(index)
-            .map_or(&[], |bin| bin.lookahead.as_slice())
     }
 
     /// Keep-off guard `index`'s far-field estimate of the last frame (its look-ahead on,
@@ -745,22 +751,16 @@ impl CameraChain {
     /// the surface then held to what the guard sees as its shells' is ([`seen_from_guard`],
     /// one shell width of support). `None` without such points or surface.
     pub fn guard_far_field(
-        &self,
+        &mut self,
         index: usize,
         segment: &GuardSegment,
         lookahead: &mut Lookahead,
         camera_id: u32,
         stamp_s: f64,
     ) -> Option<FarFieldEstimate> {
-        let points = self.guard_lookahead_points(index);
-        let mut near: Vec<(f64, Point3<f64>)> = (points.iter().filter(|p| p.is_finite()))
-            .map(|p| {
-                let x = Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z));
-                ((x - segment.closest_point(&x)).norm(), x)
-            })
-            .collect();
-        let k = GUARD_NEAREST_POINTS.min(near.len());
-        near.select_nth_unstable_by(k.checked_sub(1)?, |a, b| a.0.total_cmp(&b.0));
+        let bin = self.guard_points.get_mut(index)?;
+        let (points, near) = (&bin.lookahead, &mut bin.lookahead_near);
+        let k = select_nearest(near);
         let nearest = near[..k].iter().min_by(|a, b| a.0.total_cmp(&b.0))?;
         let origin = segment.closest_point(&nearest.1);
         let mut far = lookahead.far_field(points, &origin, camera_id, stamp_s)?;
@@ -769,7 +769,7 @@ impl CameraChain {
             normal: far.normal,
         };
         let support_m = shell_width_m(&self.surface_config.shells.radii_m);
-        if seen_from_guard(&mut seen, segment, &near, k, support_m) {
+        if seen_from_guard(&mut seen, segment, near, k, support_m) {
             far.distance_m = (segment.closest_point(&seen.centroid_m) - seen.centroid_m).norm();
             far.centroid_m = seen.centroid_m;
             far.normal = seen.normal;
@@ -1014,10 +1014,7 @@ impl CameraChain {
         stamp_s: f64,
     ) -> Result<GuardFrame, ChainError> {
         let (points, near) = (&within.points, &mut within.near);
-        let k = GUARD_NEAREST_POINTS.min(near.len());
-        if k > 0 {
-            near.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
-        }
+        let k = select_nearest(near);
         // The GPU's sums serve when it saw points within reach exactly when the host does
         // (f32 against f64 only at the reach's edge); otherwise this guard's estimator sums
         // its own.
@@ -1428,7 +1425,7 @@ mod tests {
                 .unwrap();
             assert!(out.guards[0].estimate().surface.is_none());
             assert_eq!(out.guards[0].points, 0);
-            let points = chain.guard_lookahead_points(0);
+            let points = &chain.guard_points[0].lookahead;
             assert_eq!(points.is_empty(), !lookahead, "{}", points.len());
             let mut nearest = f64::INFINITY;
             for p in points {
@@ -1507,6 +1504,8 @@ mod tests {
                     assert_eq!(distances, shells.iter().map(|w| w.1).collect::<Vec<_>>());
                     let crop = lookahead_crop_m.map_or(Vec::new(), |c| within(g, c + g.radius_m));
                     assert_eq!(bin.lookahead, crop.iter().map(|w| w.0).collect::<Vec<_>>());
+                    let distances: Vec<f64> = bin.lookahead_near.iter().map(|n| n.0).collect();
+                    assert_eq!(distances, crop.iter().map(|w| w.1).collect::<Vec<_>>());
                 }
             }
             assert!(bins[0].points.len() > 1000 && bins[1].points.len() > 100);
